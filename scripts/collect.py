@@ -1,0 +1,20 @@
+"""Collect perturbed micro-trajectory transitions (m, L, phi, phi_next) from the full model.
+
+python scripts/collect.py                      # gaussian field, dt 0.05, 10k transitions per origin
+python scripts/collect.py field=linear dt=0.02
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+from surrogate.collect import run
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
+def main(cfg: DictConfig) -> str:
+    """Hydra entry point."""
+    return str(run(cfg))
+
+
+if __name__ == "__main__":
+    main()

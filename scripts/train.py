@@ -1,0 +1,19 @@
+"""Train the GP classifiers psi0 (from TUMBLE) and psi1 (from RUN) on collected transitions.
+
+python scripts/train.py                          # gaussian-field data, RBF kernel, 100 inducing points
+python scripts/train.py field=linear gp.kernel=matern52
+"""
+
+import hydra
+from omegaconf import DictConfig
+from surrogate.train import run
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def main(cfg: DictConfig) -> str:
+    """Hydra entry point."""
+    return str(run(cfg))
+
+
+if __name__ == "__main__":
+    main()

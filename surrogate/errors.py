@@ -1,0 +1,23 @@
+"""Exception types: every user-facing failure names the setting or file at fault."""
+
+from __future__ import annotations
+
+
+class SurrogateError(Exception):
+    """Base class of all errors raised deliberately by surrogate."""
+
+
+class ConfigError(SurrogateError, ValueError):
+    """A setting is invalid; the message names the setting and what is allowed."""
+
+
+class ArtefactError(SurrogateError, RuntimeError):
+    """An artefact is corrupt, truncated or was made with other settings."""
+
+
+class MissingArtefactError(ArtefactError, FileNotFoundError):
+    """An artefact from an earlier stage is missing; the message says which command makes it."""
+
+
+class NumericalError(SurrogateError, FloatingPointError):
+    """NaN or infinite values where finite numbers are required."""

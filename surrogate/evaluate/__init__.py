@@ -1,0 +1,55 @@
+"""Evaluation of an abstraction against the full model: statistics, figures and reports.
+
+``statistics`` and ``report`` are re-exported here; import ``surrogate.evaluate.figures``
+explicitly (it needs matplotlib).
+"""
+
+from __future__ import annotations
+
+from surrogate.evaluate.report import (
+    PAPER_QUANTITIES,
+    PAPER_TABLE1,
+    format_markdown_table,
+    paper_table1_frame,
+    table1_markdown,
+    write_comparison,
+    write_report,
+)
+from surrogate.evaluate.statistics import (
+    PAPER_SUBSAMPLE,
+    PAPER_TIMES,
+    SimulationRun,
+    combine_with_noise_floor,
+    compare_samples,
+    comparison_table,
+    default_times,
+    distances_at,
+    ks_critical_value,
+    load_run,
+    mean_std_over_time,
+    noise_floor_table,
+    speedup,
+)
+
+__all__ = [
+    "PAPER_QUANTITIES",
+    "PAPER_SUBSAMPLE",
+    "PAPER_TABLE1",
+    "PAPER_TIMES",
+    "SimulationRun",
+    "combine_with_noise_floor",
+    "compare_samples",
+    "comparison_table",
+    "default_times",
+    "distances_at",
+    "format_markdown_table",
+    "ks_critical_value",
+    "load_run",
+    "mean_std_over_time",
+    "noise_floor_table",
+    "paper_table1_frame",
+    "speedup",
+    "table1_markdown",
+    "write_comparison",
+    "write_report",
+]

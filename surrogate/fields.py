@@ -1,0 +1,160 @@
+"""Spatio-temporal ligand fields L(r, t) in mM, positions in mm, time in s.
+
+The paper's three fields (peak 0.1 mM at the origin):
+
+* ``GaussianField`` (L1): 0.1 exp(-0.5 r' S^-1 r), S = 3 I
+* ``LinearField`` (L2): max(1e-5, 0.1 - 0.05 |A r|), A = diag(1/5, 1/2)
+* ``DynamicGaussianField`` (L3): 0.1 exp(-0.5 r' S(t)^-1 r), S(t) = 3 (t/50 + 1) I
+
+A user-defined field is any subclass of :class:`Field` (or any object with the same
+``__call__(position, t)`` and ``peak``), selected through Hydra's ``_target_``::
+
+    # conf/field/my_field.yaml
+    _target_: mypackage.fields.MyField
+    name: my_field
+    some_parameter: 1.0
+
+All fields are vectorised over cells: ``position`` is ``(n_cells, 2)``, the result ``(n_cells,)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+
+
+class Field:
+    """Base class: a ligand concentration L(r, t) >= 0 with a peak location for distances."""
+
+    name: str = "field"
+
+    def __init__(self, peak: Sequence[float] = (0.0, 0.0)) -> None:
+        if len(peak) != 2:
+            raise ConfigError(f"field.peak must have two coordinates (mm), got {list(peak)!r}")
+        self.peak = tuple(float(v) for v in peak)
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        """Ligand concentration (mM) at ``position`` (n, 2) and time ``t`` (s)."""
+        raise NotImplementedError
+
+    def offset(self, position: Tensor) -> Tensor:
+        """Position relative to the peak, (n, 2)."""
+        if self.peak == (0.0, 0.0):
+            return position
+        return position - position.new_tensor(self.peak)
+
+    def distance_from_peak(self, position: Tensor) -> Tensor:
+        """Euclidean distance (mm) from the field's peak, (n,)."""
+        return torch.linalg.vector_norm(self.offset(position), dim=-1)
+
+    def __repr__(self) -> str:
+        params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items())
+        return f"{type(self).__name__}({params})"
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"field.{name} must be a positive number, got {value!r}")
+    return value
+
+
+class ConstantField(Field):
+    """Uniform, static concentration (``value = 0`` is the zero field used as a control)."""
+
+    name = "constant"
+
+    def __init__(self, value: float = 0.0, peak: Sequence[float] = (0.0, 0.0)) -> None:
+        super().__init__(peak)
+        if not (math.isfinite(float(value)) and float(value) >= 0):
+            raise ConfigError(f"field.value must be a non-negative number, got {value!r}")
+        self.value = float(value)
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        return torch.full(
+            position.shape[:-1], self.value, dtype=position.dtype, device=position.device
+        )
+
+
+class GaussianField(Field):
+    """L1: ``amplitude * exp(-0.5 |r - peak|^2 / variance)``."""
+
+    name = "gaussian"
+
+    def __init__(
+        self, amplitude: float = 0.1, variance: float = 3.0, peak: Sequence[float] = (0.0, 0.0)
+    ) -> None:
+        super().__init__(peak)
+        self.amplitude = _positive("amplitude", amplitude)
+        self.variance = _positive("variance", variance)
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        r2 = self.offset(position).square().sum(-1)
+        return self.amplitude * torch.exp(r2 * (-0.5 / self.variance))
+
+
+class LinearField(Field):
+    """L2: ``max(floor, amplitude - slope * |A (r - peak)|)``, ``A = diag(scale_x, scale_y)``."""
+
+    name = "linear"
+
+    def __init__(
+        self,
+        amplitude: float = 0.1,
+        slope: float = 0.05,
+        scale: Sequence[float] = (0.2, 0.5),
+        floor: float = 1e-5,
+        peak: Sequence[float] = (0.0, 0.0),
+    ) -> None:
+        super().__init__(peak)
+        self.amplitude = _positive("amplitude", amplitude)
+        self.slope = _positive("slope", slope)
+        if len(scale) != 2:
+            raise ConfigError(
+                f"field.scale must have two entries (diagonal of A), got {list(scale)!r}"
+            )
+        self.scale = (_positive("scale", scale[0]), _positive("scale", scale[1]))
+        self.floor = float(floor)
+        if not (math.isfinite(self.floor) and 0 <= self.floor < self.amplitude):
+            raise ConfigError(f"field.floor must lie in [0, amplitude), got {floor!r}")
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        scaled = self.offset(position) * position.new_tensor(self.scale)
+        value = self.amplitude - self.slope * torch.linalg.vector_norm(scaled, dim=-1)
+        return value.clamp_min(self.floor)
+
+
+class DynamicGaussianField(Field):
+    """L3: a Gaussian whose variance grows in time, ``variance * (t / spread_time + 1)``."""
+
+    name = "dynamic"
+
+    def __init__(
+        self,
+        amplitude: float = 0.1,
+        variance: float = 3.0,
+        spread_time: float = 50.0,
+        peak: Sequence[float] = (0.0, 0.0),
+    ) -> None:
+        super().__init__(peak)
+        self.amplitude = _positive("amplitude", amplitude)
+        self.variance = _positive("variance", variance)
+        self.spread_time = _positive("spread_time", spread_time)
+
+    def variance_at(self, t: float) -> float:
+        """Variance of the Gaussian (mm^2) at time ``t``."""
+        return self.variance * (t / self.spread_time + 1.0)
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        r2 = self.offset(position).square().sum(-1)
+        return self.amplitude * torch.exp(r2 * (-0.5 / self.variance_at(t)))
+
+
+BUILTIN_FIELDS: dict[str, type[Field]] = {
+    cls.name: cls for cls in (ConstantField, GaussianField, LinearField, DynamicGaussianField)
+}

@@ -1,0 +1,82 @@
+"""The sparse variational GP classifier that approximates one psi surface.
+
+The model sees NORMALISED inputs (m, L) -- see :class:`surrogate.gp.training.Normalizer` -- so
+kernel lengthscales start at a sensible scale for both columns even though L spans only 0.1 mM.
+"""
+
+from __future__ import annotations
+
+import gpytorch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+
+KERNELS = ("rbf", "matern12", "matern32", "matern52")
+
+_MATERN_NU = {"matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
+
+
+def make_kernel(kernel: str, ard: bool, n_dims: int = 2) -> gpytorch.kernels.ScaleKernel:
+    """``ScaleKernel`` over an RBF or Matern base kernel (one lengthscale per input if ``ard``)."""
+    if kernel not in KERNELS:
+        raise ConfigError(f"gp.kernel: unknown kernel {kernel!r}; allowed values are {KERNELS}")
+    ard_num_dims = n_dims if ard else None
+    if kernel == "rbf":
+        base = gpytorch.kernels.RBFKernel(ard_num_dims=ard_num_dims)
+    else:
+        base = gpytorch.kernels.MaternKernel(nu=_MATERN_NU[kernel], ard_num_dims=ard_num_dims)
+    return gpytorch.kernels.ScaleKernel(base)
+
+
+class PsiGP(gpytorch.models.ApproximateGP):
+    """Sparse variational GP for the latent function f of a probit classifier p = Phi(f).
+
+    Args:
+        inducing_points: (M, 2) initial inducing locations in normalised input space.
+        kernel: one of :data:`KERNELS`.
+        ard: one lengthscale per input column (m and L vary on different scales).
+        learn_inducing: optimise the inducing locations together with the hyperparameters.
+        natural: use a ``NaturalVariationalDistribution`` (to be trained with
+            ``gpytorch.optim.NGD``) instead of a ``CholeskyVariationalDistribution``.
+    """
+
+    def __init__(
+        self,
+        inducing_points: Tensor,
+        kernel: str = "rbf",
+        ard: bool = True,
+        learn_inducing: bool = True,
+        natural: bool = False,
+    ) -> None:
+        if inducing_points.dim() != 2 or inducing_points.shape[0] < 1:
+            raise ConfigError(
+                f"gp.n_inducing: inducing points must be a non-empty (M, d) tensor, "
+                f"got shape {tuple(inducing_points.shape)}"
+            )
+        # Validate before building anything so the error names the setting, not a gpytorch class.
+        covar_module = make_kernel(kernel, ard, n_dims=inducing_points.shape[1])
+        n_inducing = inducing_points.shape[0]
+        if natural:
+            variational_distribution = gpytorch.variational.NaturalVariationalDistribution(
+                n_inducing
+            )
+        else:
+            variational_distribution = gpytorch.variational.CholeskyVariationalDistribution(
+                n_inducing
+            )
+        strategy = gpytorch.variational.VariationalStrategy(
+            self,
+            inducing_points,
+            variational_distribution,
+            learn_inducing_locations=learn_inducing,
+        )
+        super().__init__(strategy)
+        self.kernel_name = kernel
+        self.ard = ard
+        self.natural = natural
+        self.mean_module = gpytorch.means.ConstantMean()
+        self.covar_module = covar_module
+
+    def forward(self, x: Tensor) -> gpytorch.distributions.MultivariateNormal:
+        """The GP prior over f at ``x`` (normalised inputs)."""
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))

@@ -1,0 +1,455 @@
+"""Settings, input normalisation and the training loop for one psi classifier.
+
+Numerical guard (a deliberate choice): when the training loss becomes NaN/inf, or a Cholesky
+factorisation fails, training stops, the model is restored to the end of the last epoch whose
+loss was finite, and :class:`~surrogate.errors.NumericalError` is raised. The restored model is
+attached to the exception as ``exc.partial`` (a :class:`FittedClassifier` without validation
+metrics) for inspection, but it is never returned silently: a half-trained surrogate must not
+flow into the downstream simulations unnoticed. The message says which epoch failed and which
+settings to lower.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+import gpytorch
+import torch
+from linear_operator.utils.errors import NanError, NotPSDError
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from surrogate.errors import ConfigError, NumericalError
+from surrogate.gp.metrics import classification_metrics
+from surrogate.gp.model import KERNELS, PsiGP
+
+PREDICT_CHUNK = 65_536
+_PAD = 64  # rows; a multiple of every SIMD width, see FittedClassifier._latent_padded
+
+
+# ----------------------------------------------------------------------------------------------
+# settings
+
+
+@dataclass
+class GPSettings:
+    """Hyperparameters of one GP classifier (the ``gp`` config group).
+
+    Validated on construction; every error names the offending ``gp.<key>``.
+    """
+
+    kernel: str = "rbf"
+    ard: bool = True
+    n_inducing: int = 100
+    learn_inducing: bool = True
+    epochs: int = 40
+    batch_size: int = 1000
+    lr: float = 0.05
+    natural_gradient: bool = False
+    natural_lr: float = 0.1
+    validation_fraction: float = 0.2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.kernel, str) or self.kernel not in KERNELS:
+            raise ConfigError(
+                f"gp.kernel: unknown kernel {self.kernel!r}; allowed values are {KERNELS}"
+            )
+        for name in ("ard", "learn_inducing", "natural_gradient"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"gp.{name} must be true or false, got {getattr(self, name)!r}")
+        for name in ("n_inducing", "epochs", "batch_size"):
+            _check_int(name, getattr(self, name), minimum=1)
+        _check_int("seed", self.seed, minimum=0)
+        for name in ("lr", "natural_lr"):
+            value = _check_float(name, getattr(self, name))
+            if value <= 0:
+                raise ConfigError(f"gp.{name} must be > 0, got {value!r}")
+        value = _check_float("validation_fraction", self.validation_fraction)
+        if not 0.0 <= value < 1.0:
+            raise ConfigError(f"gp.validation_fraction must lie in [0, 1), got {value!r}")
+
+    @classmethod
+    def from_config(cls, mapping: Mapping[str, Any] | None) -> GPSettings:
+        """Build settings from a mapping (e.g. a Hydra ``DictConfig``); unknown keys are errors."""
+        if mapping is None:
+            return cls()
+        allowed = [f.name for f in fields(cls)]
+        values = {str(k): v for k, v in dict(mapping).items()}
+        unknown = sorted(set(values) - set(allowed))
+        if unknown:
+            raise ConfigError(
+                f"unknown GP setting(s) {', '.join('gp.' + k for k in unknown)}; "
+                f"allowed keys are {allowed}"
+            )
+        # Config files may write 1 for 1.0; store the declared type so the state dict is stable.
+        for name in ("lr", "natural_lr", "validation_fraction"):
+            v = values.get(name)
+            if isinstance(v, int) and not isinstance(v, bool):
+                values[name] = float(v)
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of the settings (JSON-able and ``weights_only``-loadable)."""
+        return asdict(self)
+
+
+def _check_int(name: str, value: Any, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"gp.{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"gp.{name} must be >= {minimum}, got {value!r}")
+    return value
+
+
+def _check_float(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"gp.{name} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ConfigError(f"gp.{name} must be finite, got {value!r}")
+    return float(value)
+
+
+# ----------------------------------------------------------------------------------------------
+# normalisation
+
+
+class Normalizer:
+    """Per-column standardisation ``(x - mean) / std`` fitted on the training inputs."""
+
+    def __init__(self, mean: Tensor, std: Tensor) -> None:
+        self.mean = mean
+        self.std = std
+
+    @classmethod
+    def fit(cls, x: Tensor) -> Normalizer:
+        """Fit mean and std per column of ``x`` (n, d)."""
+        mean = x.mean(dim=0)
+        std = x.std(dim=0) if x.shape[0] > 1 else torch.ones_like(mean)
+        # A constant column (e.g. training data at a single ligand level) must not divide by 0.
+        std = torch.where(std > 0, std, torch.ones_like(std))
+        return cls(mean.detach().clone(), std.detach().clone())
+
+    def transform(self, x: Tensor) -> Tensor:
+        """Normalise ``x`` (n, d); ``x`` must be on the normaliser's device."""
+        return (x - self.mean) / self.std
+
+    def to(self, device: torch.device | str) -> Normalizer:
+        """Move to ``device`` in place and return self."""
+        self.mean = self.mean.to(device)
+        self.std = self.std.to(device)
+        return self
+
+    def state_dict(self) -> dict[str, Tensor]:
+        """The fitted statistics as CPU tensors."""
+        return {"mean": self.mean.detach().cpu().clone(), "std": self.std.detach().cpu().clone()}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, Tensor]) -> Normalizer:
+        """Inverse of :meth:`state_dict`."""
+        return cls(state["mean"].clone(), state["std"].clone())
+
+
+# ----------------------------------------------------------------------------------------------
+# fitted classifier
+
+
+@dataclass
+class FittedClassifier:
+    """A trained GP classifier with everything needed to predict and to rebuild it."""
+
+    model: PsiGP
+    likelihood: gpytorch.likelihoods.BernoulliLikelihood
+    normaliser: Normalizer
+    settings: GPSettings
+    history: list[float] = field(default_factory=list)
+    validation: dict[str, Any] | None = None
+    n_train: int = 0
+    n_val: int = 0
+    train_seconds: float = 0.0
+
+    @property
+    def device(self) -> torch.device:
+        """Device holding the model parameters."""
+        return self.model.variational_strategy.inducing_points.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating-point type of the model parameters."""
+        return self.model.variational_strategy.inducing_points.dtype
+
+    def to(self, device: torch.device | str) -> FittedClassifier:
+        """Move model, likelihood and normaliser to ``device`` in place; return self."""
+        self.model.to(device)
+        self.likelihood.to(device)
+        self.normaliser.to(device)
+        return self
+
+    @torch.no_grad()
+    def latent(self, x: Tensor, chunk_size: int = PREDICT_CHUNK) -> tuple[Tensor, Tensor]:
+        """Mean and variance of the latent f at raw (un-normalised) inputs ``x`` (n, 2)."""
+        n = x.shape[0]
+        mu, var = self._latent_padded(x, chunk_size)
+        return mu[:n], var[:n]
+
+    @torch.no_grad()
+    def predict_proba(self, x: Tensor, chunk_size: int = PREDICT_CHUNK) -> Tensor:
+        """p(y = 1 | x) for raw inputs ``x`` (n, 2), on the model's device.
+
+        The Bernoulli-probit predictive integrated over the latent posterior in closed form:
+        E[Phi(f)] = Phi(mu / sqrt(1 + var)) for f ~ N(mu, var). Evaluated in chunks of
+        ``chunk_size`` rows to bound memory; on the CPU a row's result does not depend on the
+        chunk size or on the other rows in the call (see ``_latent_padded``).
+        """
+        n = x.shape[0]
+        mu, var = self._latent_padded(x, chunk_size)
+        return torch.special.ndtr(mu / torch.sqrt(1.0 + var))[:n]
+
+    def _latent_padded(self, x: Tensor, chunk_size: int) -> tuple[Tensor, Tensor]:
+        """Latent mean/variance for ``x`` padded to a multiple of ``_PAD`` rows.
+
+        Vectorised CPU kernels (exp, erfc) and BLAS round a short remainder differently from
+        full SIMD blocks, so without padding the last rows of a call would change in the last
+        bit with the chunk size. Padding every chunk to a multiple of ``_PAD`` rows (repeating
+        the last row) keeps each row on the same code path; the padded rows are cut off later.
+        """
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        self.model.eval()
+        self.likelihood.eval()
+        x = x.to(device=self.device, dtype=self.dtype)
+        n = x.shape[0]
+        if n == 0:
+            empty = x.new_empty(0)
+            return empty, empty.clone()
+        chunk_size = max(_PAD, chunk_size - chunk_size % _PAD)
+        n_pad = -n % _PAD
+        if n_pad:
+            x = torch.cat([x, x[-1:].expand(n_pad, -1)])
+        means, variances = [], []
+        with gpytorch.settings.fast_pred_var():
+            for start in range(0, x.shape[0], chunk_size):
+                f = self.model(self.normaliser.transform(x[start : start + chunk_size]))
+                means.append(f.mean)
+                variances.append(f.variance)
+        return torch.cat(means), torch.cat(variances)
+
+    def to_state(self) -> dict[str, Any]:
+        """Tensors and plain Python values only, loadable with ``torch.load(weights_only=True)``."""
+        return {
+            "settings": self.settings.to_dict(),
+            "normaliser": self.normaliser.state_dict(),
+            "model": {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
+            "likelihood": {
+                k: v.detach().cpu().clone() for k, v in self.likelihood.state_dict().items()
+            },
+            "history": [float(v) for v in self.history],
+            "validation": copy.deepcopy(self.validation),
+            "n_train": int(self.n_train),
+            "n_val": int(self.n_val),
+            "train_seconds": float(self.train_seconds),
+        }
+
+    @classmethod
+    def from_state(
+        cls, state: Mapping[str, Any], device: torch.device | str = "cpu"
+    ) -> FittedClassifier:
+        """Rebuild the model from :meth:`to_state` output; predictions are reproduced exactly."""
+        settings = GPSettings.from_config(state["settings"])
+        model_state = state["model"]
+        inducing = model_state["variational_strategy.inducing_points"]
+        model = PsiGP(
+            inducing.clone(),
+            kernel=settings.kernel,
+            ard=settings.ard,
+            learn_inducing=settings.learn_inducing,
+            natural=settings.natural_gradient,
+        )
+        model.load_state_dict(model_state, strict=True)
+        likelihood = gpytorch.likelihoods.BernoulliLikelihood()
+        likelihood.load_state_dict(state["likelihood"], strict=True)
+        fitted = cls(
+            model=model,
+            likelihood=likelihood,
+            normaliser=Normalizer.from_state_dict(state["normaliser"]),
+            settings=settings,
+            history=list(state.get("history", [])),
+            validation=copy.deepcopy(state.get("validation")),
+            n_train=int(state.get("n_train", 0)),
+            n_val=int(state.get("n_val", 0)),
+            train_seconds=float(state.get("train_seconds", 0.0)),
+        )
+        fitted.to(device)
+        fitted.model.eval()
+        fitted.likelihood.eval()
+        return fitted
+
+
+# ----------------------------------------------------------------------------------------------
+# training
+
+
+def _check_data(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    if not isinstance(x, Tensor) or not isinstance(y, Tensor):
+        raise TypeError("fit_classifier expects torch tensors x (n, 2) and y (n,)")
+    if x.dim() != 2 or x.shape[1] != 2:
+        raise ValueError(f"x must have shape (n, 2) (columns m, L), got {tuple(x.shape)}")
+    y = y.reshape(-1)
+    if y.shape[0] != x.shape[0]:
+        raise ValueError(f"x and y differ in length: {x.shape[0]} vs {y.shape[0]}")
+    x = x.to(torch.float32)
+    y = y.to(torch.float32)
+    if not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).any(dim=1).sum())
+        raise NumericalError(f"training inputs (m, L) contain NaN or inf in {bad} row(s)")
+    if not bool(torch.isfinite(y).all()) or not bool(((y == 0) | (y == 1)).all()):
+        raise NumericalError("training labels must be 0 or 1 (no NaN/inf or other values)")
+    return x, y
+
+
+def fit_classifier(
+    x: Tensor,
+    y: Tensor,
+    settings: GPSettings | None = None,
+    progress: bool = True,
+    device: torch.device | str = "cpu",
+    desc: str = "GP",
+) -> FittedClassifier:
+    """Train a sparse variational GP probit classifier on inputs ``x`` (n, 2 = m, L), labels ``y``.
+
+    A random validation split (fixed by ``settings.seed``) is held out; the normaliser and the
+    inducing points (a random subset of training inputs) come from the training part only. The
+    negative ELBO is minimised with minibatch Adam (plus NGD on the variational parameters when
+    ``settings.natural_gradient``). See the module docstring for the numerical guard.
+    """
+    settings = settings or GPSettings()
+    device = torch.device(device)
+    x, y = _check_data(x, y)
+    n = x.shape[0]
+    n_val = round(settings.validation_fraction * n)
+    n_train = n - n_val
+    if n_train < 2:
+        raise ConfigError(
+            f"gp.validation_fraction={settings.validation_fraction} leaves {n_train} training "
+            f"point(s) of {n}; need at least 2"
+        )
+    if settings.n_inducing > n_train:
+        raise ConfigError(
+            f"gp.n_inducing={settings.n_inducing} exceeds the {n_train} training points"
+        )
+
+    torch.manual_seed(settings.seed)
+    # Index generation on the CPU with its own generator: same split and batches on any device.
+    gen = torch.Generator().manual_seed(settings.seed)
+    perm = torch.randperm(n, generator=gen)
+    train_idx, val_idx = perm[:n_train], perm[n_train:]
+    x_train, y_train = x[train_idx].to(device), y[train_idx].to(device)
+
+    normaliser = Normalizer.fit(x_train)
+    z_train = normaliser.transform(x_train)
+    inducing = z_train[torch.randperm(n_train, generator=gen)[: settings.n_inducing].to(device)]
+    model = PsiGP(
+        inducing.clone(),
+        kernel=settings.kernel,
+        ard=settings.ard,
+        learn_inducing=settings.learn_inducing,
+        natural=settings.natural_gradient,
+    ).to(device)
+    likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(device)
+    mll = gpytorch.mlls.VariationalELBO(likelihood, model, num_data=n_train)
+
+    if settings.natural_gradient:
+        optimizers: list[torch.optim.Optimizer] = [
+            gpytorch.optim.NGD(
+                model.variational_parameters(), num_data=n_train, lr=settings.natural_lr
+            ),
+            torch.optim.Adam([*model.hyperparameters(), *likelihood.parameters()], lr=settings.lr),
+        ]
+    else:
+        optimizers = [
+            torch.optim.Adam([*model.parameters(), *likelihood.parameters()], lr=settings.lr)
+        ]
+
+    fitted = FittedClassifier(
+        model=model,
+        likelihood=likelihood,
+        normaliser=normaliser,
+        settings=settings,
+        n_train=n_train,
+        n_val=n_val,
+    )
+    model.train()
+    likelihood.train()
+    good_state = _snapshot(fitted)
+    t0 = time.perf_counter()
+    bar = tqdm(range(settings.epochs), desc=desc, disable=not progress, leave=False)
+    for epoch in bar:
+        batches = torch.randperm(n_train, generator=gen).to(device).split(settings.batch_size)
+        # Accumulate on the device; one host sync per epoch, not per minibatch.
+        total = torch.zeros((), device=device)
+        try:
+            for idx in batches:
+                for opt in optimizers:
+                    opt.zero_grad(set_to_none=True)
+                loss = -mll(model(z_train[idx]), y_train[idx])
+                loss.backward()
+                for opt in optimizers:
+                    opt.step()
+                total = total + loss.detach() * idx.shape[0]
+        except (NotPSDError, NanError) as exc:
+            bar.close()
+            raise _numerical_failure(fitted, good_state, epoch, str(exc)) from exc
+        epoch_loss = float(total) / n_train
+        if not math.isfinite(epoch_loss):
+            bar.close()
+            raise _numerical_failure(fitted, good_state, epoch, f"loss became {epoch_loss}")
+        fitted.history.append(epoch_loss)
+        good_state = _snapshot(fitted)
+        bar.set_postfix(loss=f"{epoch_loss:.4f}")
+    bar.close()
+    fitted.train_seconds = time.perf_counter() - t0
+
+    model.eval()
+    likelihood.eval()
+    if n_val > 0:
+        p_val = fitted.predict_proba(x[val_idx])
+        fitted.validation = classification_metrics(p_val, y[val_idx])
+    return fitted
+
+
+_State = tuple[dict[str, Tensor], dict[str, Tensor]]
+
+
+def _snapshot(fitted: FittedClassifier) -> _State:
+    return (
+        {k: v.detach().clone() for k, v in fitted.model.state_dict().items()},
+        {k: v.detach().clone() for k, v in fitted.likelihood.state_dict().items()},
+    )
+
+
+def _numerical_failure(
+    fitted: FittedClassifier, good_state: _State, epoch: int, what: str
+) -> NumericalError:
+    """Restore the last good state and build the error (with the restored model attached)."""
+    fitted.model.load_state_dict(good_state[0])
+    fitted.likelihood.load_state_dict(good_state[1])
+    fitted.model.eval()
+    fitted.likelihood.eval()
+    s = fitted.settings
+    err = NumericalError(
+        f"GP training diverged in epoch {epoch + 1}/{s.epochs} ({what}). The model was "
+        f"restored to the end of epoch {len(fitted.history)} and is attached as `exc.partial`. "
+        f"Try a smaller gp.lr (now {s.lr})"
+        + (f" or gp.natural_lr (now {s.natural_lr})" if s.natural_gradient else "")
+        + f", or fewer gp.n_inducing (now {s.n_inducing})."
+    )
+    err.partial = fitted  # type: ignore[attr-defined]
+    return err
+
+
+__all__ = ["FittedClassifier", "GPSettings", "Normalizer", "fit_classifier"]

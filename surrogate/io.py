@@ -1,0 +1,245 @@
+"""Artefact paths, manifests and atomic writes.
+
+Every stage writes into a directory derived from the settings that define its output, so stages
+chain without passing paths and sweep jobs never collide. Every file is written to a temporary
+name in the same directory and renamed into place, so a killed job leaves either the previous
+complete file or none.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import tempfile
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import torch
+
+from surrogate.errors import ArtefactError, MissingArtefactError
+
+MANIFEST = "manifest.json"
+
+
+# ----------------------------------------------------------------------------------------------
+# atomic writes
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success rename it onto ``path``.
+
+    On any exception (or a kill) the temporary file is removed or left under a ``.tmp`` name
+    that no loader reads, and ``path`` keeps its previous content.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        with open(tmp_path, "rb") as fh:  # flush to disk before the rename makes it visible
+            os.fsync(fh.fileno())
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_atomic(path: str | os.PathLike, writer: Callable[[Path], None]) -> Path:
+    """Call ``writer(tmp_path)`` and atomically move the result to ``path``."""
+    with atomic_path(path) as tmp:
+        writer(tmp)
+    return Path(path)
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON, atomically."""
+
+    def _w(tmp: Path) -> None:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
+
+    return write_atomic(path, _w)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write a text file atomically."""
+    return write_atomic(path, lambda tmp: tmp.write_text(text))
+
+
+def write_parquet(path: str | os.PathLike, df: pd.DataFrame) -> Path:
+    """Write a DataFrame as Parquet, atomically."""
+    return write_atomic(path, lambda tmp: df.to_parquet(tmp, index=False))
+
+
+def write_csv(path: str | os.PathLike, df: pd.DataFrame) -> Path:
+    """Write a DataFrame as CSV (no index), atomically."""
+    return write_atomic(path, lambda tmp: df.to_csv(tmp, index=False))
+
+
+def save_tensors(path: str | os.PathLike, obj: Mapping[str, Any]) -> Path:
+    """``torch.save`` a dict of tensors / plain Python values, atomically."""
+    return write_atomic(path, lambda tmp: torch.save(dict(obj), tmp))
+
+
+def save_figure(path: str | os.PathLike, fig: Any) -> Path:
+    """Save a matplotlib figure atomically (format from the suffix) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fmt = path.suffix.lstrip(".") or "png"
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120, bbox_inches="tight"))
+    plt.close(fig)
+    return path
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, torch.Tensor):
+        return obj.tolist()
+    if hasattr(obj, "item"):
+        return obj.item()
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+# ----------------------------------------------------------------------------------------------
+# safe reads
+
+
+def read_json(path: str | os.PathLike, made_by: str | None = None) -> dict[str, Any]:
+    """Read a JSON file, with a clear error when it is missing or corrupt."""
+    path = Path(path)
+    _require(path, made_by)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ArtefactError(f"{path} is corrupt or truncated (not valid JSON: {exc})") from exc
+
+
+def read_parquet(path: str | os.PathLike, made_by: str | None = None) -> pd.DataFrame:
+    """Read a Parquet file, with a clear error when it is missing or corrupt."""
+    path = Path(path)
+    _require(path, made_by)
+    try:
+        return pd.read_parquet(path)
+    except Exception as exc:  # pyarrow raises several types for a truncated file
+        raise ArtefactError(
+            f"{path} is corrupt or truncated (not a readable Parquet file: {exc})"
+        ) from exc
+
+
+def load_tensors(
+    path: str | os.PathLike, made_by: str | None = None, map_location: Any = "cpu"
+) -> dict[str, Any]:
+    """``torch.load(weights_only=True)`` with clear errors; never unpickles arbitrary objects."""
+    path = Path(path)
+    _require(path, made_by)
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:
+        raise ArtefactError(
+            f"{path} is corrupt, truncated or not a safe tensor file: {exc}"
+        ) from exc
+
+
+def _require(path: Path, made_by: str | None) -> None:
+    if not path.exists():
+        hint = f" Run `{made_by}` first to create it." if made_by else ""
+        raise MissingArtefactError(f"missing artefact {path}.{hint}")
+
+
+# ----------------------------------------------------------------------------------------------
+# settings-derived directories and manifests
+
+
+def settings_hash(settings: Mapping[str, Any], length: int = 8) -> str:
+    """A short stable hash of a (nested) settings mapping."""
+    blob = json.dumps(settings, sort_keys=True, default=_json_default, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:length]
+
+
+def artefact_dir(
+    root: str | os.PathLike, stage: str, label: Mapping[str, Any], settings: Mapping[str, Any]
+) -> Path:
+    """``root/stage/k1=v1_k2=v2-<hash>``: readable label plus a hash of all defining settings."""
+    readable = "_".join(f"{k}={_fmt(v)}" for k, v in label.items())
+    return Path(root) / stage / f"{readable}-{settings_hash(settings)}"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    return str(v).replace("/", "-").replace(" ", "")
+
+
+def versions() -> dict[str, str]:
+    """Versions of the packages that define results."""
+    import gpytorch
+    import numpy
+    import scipy
+
+    import surrogate
+
+    return {
+        "surrogate": surrogate.__version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "gpytorch": gpytorch.__version__,
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "pandas": pd.__version__,
+    }
+
+
+def write_manifest(
+    directory: str | os.PathLike,
+    *,
+    stage: str,
+    config: Mapping[str, Any],
+    seed: int | None,
+    **extra: Any,
+) -> Path:
+    """Write ``manifest.json``: stage, resolved config, seed, versions and any extra fields."""
+    manifest = {
+        "stage": stage,
+        "seed": seed,
+        "config": dict(config),
+        "versions": versions(),
+        "host": platform.node(),
+        **extra,
+    }
+    return write_json(Path(directory) / MANIFEST, manifest)
+
+
+def read_manifest(directory: str | os.PathLike, made_by: str | None = None) -> dict[str, Any]:
+    """Read a stage's ``manifest.json`` (the last file a stage writes, so its presence means done)."""
+    return read_json(Path(directory) / MANIFEST, made_by=made_by)
+
+
+def check_settings(
+    expected: Mapping[str, Any], found: Mapping[str, Any], where: str, made_by: str
+) -> None:
+    """Refuse an artefact whose defining settings differ from ours, naming the differences."""
+    diffs = [
+        f"{key}: artefact has {found.get(key)!r}, this run wants {expected[key]!r}"
+        for key in expected
+        if _normalise(found.get(key)) != _normalise(expected[key])
+    ]
+    if diffs:
+        raise ArtefactError(
+            f"artefact {where} was made with different settings ({'; '.join(diffs)}). "
+            f"Re-create it with `{made_by}`."
+        )
+
+
+def _normalise(v: Any) -> Any:
+    return json.loads(json.dumps(v, sort_keys=True, default=_json_default))

@@ -1,0 +1,1 @@
+"""Concrete internal models of agents (one subpackage per model)."""

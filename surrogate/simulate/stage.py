@@ -1,0 +1,149 @@
+"""The simulate stage: config -> population run -> artefact directory."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from surrogate.config import (
+    build_field,
+    build_params,
+    non_negative,
+    positive,
+    resolve_device,
+    seed_everything,
+    to_dict,
+    validate_common,
+    validate_start,
+)
+from surrogate.errors import ConfigError
+from surrogate.io import MANIFEST, read_manifest, write_manifest
+from surrogate.paths import SIMULATE_CMD, abstraction_config, simulate_dir, simulate_settings
+from surrogate.simulate.decision import AbstractDecision, DecisionLayer, FullDecision
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.population import simulate_population, steps_between
+
+log = logging.getLogger(__name__)
+
+DECISIONS = ("full", "abstract")
+ABSTRACT_MODES = ("lookup", "classifier")
+
+
+def validate(cfg: Mapping[str, Any]) -> None:
+    """All checks of a simulate config, before any work starts."""
+    validate_common(cfg)
+    positive(cfg, "n_cells", integer=True)
+    t_end = positive(cfg, "t_end")
+    interval = positive(cfg, "record_interval")
+    dt = float(cfg["dt"])
+    if dt > interval:
+        raise ConfigError(f"dt={dt:g} s is larger than record_interval={interval:g} s")
+    try:
+        steps_between(interval, dt, "record_interval")
+        steps_between(t_end, dt, "t_end")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    non_negative(cfg, "equilibration_time")
+    validate_start(cfg)
+    decision = cfg["decision"]
+    if decision.get("name") not in DECISIONS:
+        raise ConfigError(
+            f"decision must be one of {list(DECISIONS)}, got {decision.get('name')!r}"
+        )
+    if decision["name"] == "abstract":
+        if decision.get("mode") not in ABSTRACT_MODES:
+            raise ConfigError(
+                f"decision.mode must be one of {list(ABSTRACT_MODES)}, got {decision.get('mode')!r}"
+            )
+        size = decision.get("lookup_size")
+        if not (
+            size is not None and len(size) == 2 and all(isinstance(s, int) and s >= 2 for s in size)
+        ):
+            raise ConfigError(f"decision.lookup_size must be two integers >= 2, got {size!r}")
+        from surrogate.config import field_config
+
+        field_config(str(decision.get("train_field")))  # unknown train field -> ConfigError
+
+
+def build_decision(cfg: Mapping[str, Any], device: Any) -> tuple[DecisionLayer, dict[str, Any]]:
+    """The decision layer of a config, and facts about it for the manifest."""
+    params = build_params(cfg["model"])
+    if cfg["decision"]["name"] == "full":
+        return FullDecision(params), {}
+    from surrogate.gp import load_abstraction
+
+    train_cfg = abstraction_config(cfg)
+    psi, meta = load_abstraction(train_cfg, device=device)
+    info: dict[str, Any] = {"abstraction_dir": str(meta["directory"])}
+    if cfg["decision"]["mode"] == "lookup":
+        from surrogate.gp import PsiLookupTable
+
+        domain = psi.domain
+        table = PsiLookupTable.from_classifier(
+            psi, domain["m"], domain["L"], size=tuple(cfg["decision"]["lookup_size"])
+        ).to(device)
+        info["lookup_max_deviation"] = float(table.max_deviation(psi))
+        log.info(
+            "lookup table %s: max |table - classifier| = %.2e",
+            tuple(table.size),
+            info["lookup_max_deviation"],
+        )
+        return AbstractDecision(table, params), info
+    return AbstractDecision(psi, params), info
+
+
+def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
+    """Run (or reuse) the population simulation described by ``cfg``; return its directory."""
+    validate(cfg)
+    out = simulate_dir(cfg)
+    if not force and (out / MANIFEST).exists():
+        read_manifest(out)  # refuse a corrupt manifest rather than silently reusing it
+        log.info("simulation exists, reusing %s", out)
+        return out
+    device = resolve_device(cfg.get("device", "cpu"))
+    seed_everything(int(cfg["seed"]))
+    decision, info = build_decision(cfg, device)
+    simulator = Simulator(
+        decision, build_field(cfg["field"]), build_params(cfg["model"]), float(cfg["dt"]), device
+    )
+    t0 = time.perf_counter()
+    summary = simulate_population(
+        simulator,
+        n_cells=int(cfg["n_cells"]),
+        t_end=float(cfg["t_end"]),
+        out_dir=out,
+        record_interval=float(cfg["record_interval"]),
+        start=validate_start(cfg),
+        equilibration_time=float(cfg["equilibration_time"]),
+        record_durations=bool(cfg["record_durations"]),
+        progress=bool(cfg.get("progress", True)),
+    )
+    write_manifest(
+        out,
+        stage="simulate",
+        config=to_dict(cfg),
+        seed=int(cfg["seed"]),
+        settings=simulate_settings(cfg),
+        decision=cfg["decision"]["name"],
+        device=str(device),
+        wall_time_s=time.perf_counter() - t0,
+        loop_time_s=summary.loop_time_s,
+        cell_steps_per_s=summary.cell_steps_per_s,
+        n_cells=summary.n_cells,
+        n_steps=summary.n_steps,
+        n_durations=summary.n_durations,
+        final_mean_distance=summary.mean_distance[-1],
+        **info,
+    )
+    log.info(
+        "%s simulation of %d cells x %d steps: %.2f s (%.3g cell-steps/s); artefacts in %s",
+        cfg["decision"]["name"], summary.n_cells, summary.n_steps, summary.loop_time_s,
+        summary.cell_steps_per_s, out,
+    )  # fmt: skip
+    return out
+
+
+__all__ = ["SIMULATE_CMD", "build_decision", "run", "validate"]

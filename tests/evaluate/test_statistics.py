@@ -1,0 +1,299 @@
+"""Tests of surrogate.evaluate.statistics."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from surrogate.errors import ArtefactError, MissingArtefactError, NumericalError
+from surrogate.evaluate.statistics import (
+    COLUMNS,
+    SimulationRun,
+    combine_with_noise_floor,
+    compare_samples,
+    comparison_table,
+    default_times,
+    distances_at,
+    ks_critical_value,
+    load_run,
+    mean_std_over_time,
+    noise_floor_table,
+    speedup,
+)
+from surrogate.io import write_json, write_parquet
+
+TIMES = (5.0, 10.0, 15.0, 20.0)
+
+
+def write_synthetic_run(
+    directory: Path,
+    seed: int,
+    n_cells: int = 50,
+    t_end: float = 20.0,
+    dt: float = 1.0,
+    shift: float = 0.0,
+    n_durations: int = 3000,
+    wall_time_s: float = 10.0,
+) -> Path:
+    """Write distances.parquet, durations.parquet and manifest.json like a simulation run."""
+    rng = np.random.default_rng(seed)
+    times = np.arange(0.0, t_end + dt / 2, dt)
+    t = np.repeat(times, n_cells)
+    cell = np.tile(np.arange(n_cells, dtype=np.int64), times.size)
+    # cells drift towards the peak, with spread; distances must stay non-negative
+    distance = np.abs(2.0 - 0.05 * t + shift + 0.3 * rng.standard_normal(t.size))
+    distances = pd.DataFrame(
+        {"t": t.astype(np.float64), "cell": cell, "distance": distance.astype(np.float32)}
+    )
+    kinds = np.array(["run"] * n_durations + ["tumble"] * (n_durations // 2))
+    scale = np.where(kinds == "run", 0.5 * (1 + shift), 0.2)
+    durations = pd.DataFrame(
+        {
+            "kind": kinds,
+            "duration": rng.exponential(scale),
+            "cell": rng.integers(0, n_cells, kinds.size).astype(np.int64),
+            "t_end": rng.uniform(0, t_end, kinds.size),
+        }
+    )
+    write_parquet(directory / "distances.parquet", distances)
+    write_parquet(directory / "durations.parquet", durations)
+    write_json(
+        directory / "manifest.json",
+        {
+            "wall_time_s": wall_time_s,
+            "seed": seed,
+            "config": {"n_cells": n_cells, "t_end": t_end},
+            "cell_steps_per_s": n_cells * t_end / 0.05 / wall_time_s,
+        },
+    )
+    return directory
+
+
+@pytest.fixture
+def runs(tmp_path: Path) -> tuple[SimulationRun, SimulationRun]:
+    """A reference run and a slightly shifted candidate run, loaded from disk."""
+    ref = load_run(write_synthetic_run(tmp_path / "ref", seed=1, wall_time_s=80.0))
+    cand = load_run(write_synthetic_run(tmp_path / "cand", seed=2, shift=0.2, wall_time_s=10.0))
+    return ref, cand
+
+
+# ----------------------------------------------------------------------------------------------
+# compare_samples
+
+
+def test_compare_samples_hand_checkable() -> None:
+    assert compare_samples([1, 2, 3], [1, 2, 3])["ks"] == 0.0
+    assert compare_samples([0, 0], [1, 1])["ks"] == 1.0
+    assert compare_samples([0.0], [1.0])["wasserstein"] == 1.0
+    res = compare_samples([1, 2, 3], [4, 5])
+    assert (res["n_a"], res["n_b"]) == (3, 2)
+    assert res["ks_critical_05"] == pytest.approx(1.358 * math.sqrt(5 / 6))
+
+
+def test_compare_samples_matches_scipy() -> None:
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=200), rng.gamma(2.0, size=150)
+    res = compare_samples(a, b)
+    ks = stats.ks_2samp(a, b)
+    assert res["ks"] == ks.statistic
+    assert res["ks_pvalue"] == ks.pvalue
+    assert res["wasserstein"] == stats.wasserstein_distance(a, b)
+    assert (res["n_a"], res["n_b"]) == (200, 150)
+
+
+def test_subsample_without_replacement_and_reproducible() -> None:
+    a = np.arange(5000, dtype=float)  # distinct values: a duplicate would reveal replacement
+    b = np.arange(3000, dtype=float) + 0.5
+    r1 = compare_samples(a, b, subsample=1000, rng=np.random.default_rng(7))
+    r2 = compare_samples(a, b, subsample=1000, rng=np.random.default_rng(7))
+    r3 = compare_samples(a, b, subsample=1000, rng=np.random.default_rng(8))
+    assert r1 == r2
+    assert r1 != r3
+    assert (r1["n_a"], r1["n_b"]) == (1000, 1000)
+    assert r1["ks_critical_05"] == pytest.approx(ks_critical_value(1000, 1000))
+
+    # the same draws by hand: choice without replacement, first from a then from b
+    rng = np.random.default_rng(7)
+    sa = rng.choice(a, 1000, replace=False)
+    sb = rng.choice(b, 1000, replace=False)
+    assert np.unique(sa).size == 1000
+    assert r1["ks"] == stats.ks_2samp(sa, sb).statistic
+
+
+def test_subsample_larger_than_sample_uses_all() -> None:
+    res = compare_samples(np.arange(10.0), np.arange(20.0), subsample=1000)
+    assert (res["n_a"], res["n_b"]) == (10, 20)
+
+
+def test_ks_against_critical_value() -> None:
+    rng = np.random.default_rng(0)
+    same = compare_samples(rng.normal(size=1000), rng.normal(size=1000))
+    shifted = compare_samples(rng.normal(size=1000), rng.normal(0.5, 1.0, size=1000))
+    assert same["ks"] < same["ks_critical_05"]
+    assert shifted["ks"] > shifted["ks_critical_05"]
+
+
+def test_compare_samples_errors_name_quantity() -> None:
+    with pytest.raises(ValueError, match="tumble durations"):
+        compare_samples([], [1.0], name="tumble durations")
+    with pytest.raises(NumericalError, match="distances"):
+        compare_samples([1.0, np.nan], [1.0], name="distances")
+    with pytest.raises(ValueError, match="subsample"):
+        compare_samples([1.0], [1.0], subsample=0)
+
+
+# ----------------------------------------------------------------------------------------------
+# runs
+
+
+def test_load_run_missing_names_command(tmp_path: Path) -> None:
+    with pytest.raises(MissingArtefactError, match=r"scripts/simulate\.py"):
+        load_run(tmp_path)
+
+
+def test_load_run_rejects_missing_columns(tmp_path: Path) -> None:
+    write_synthetic_run(tmp_path, seed=0)
+    write_parquet(tmp_path / "distances.parquet", pd.DataFrame({"t": [0.0], "cell": [0]}))
+    with pytest.raises(ArtefactError, match="distance"):
+        load_run(tmp_path)
+
+
+def test_distances_at_nearest_and_out_of_range(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    ref, _ = runs
+    expected = ref.distances.loc[ref.distances["t"] == 10.0, "distance"].to_numpy(np.float64)
+    np.testing.assert_array_equal(distances_at(ref, 10.0), expected)
+    np.testing.assert_array_equal(distances_at(ref, 10.4), expected)  # within half of dt=1
+    assert distances_at(ref, 10.0).dtype == np.float64
+    with pytest.raises(ValueError, match=r"t=125.*0\.\.20"):
+        distances_at(ref, 125.0)
+    with pytest.raises(ValueError, match=r"t=20\.6"):
+        distances_at(ref, 20.6)
+
+
+def test_default_times(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    assert default_times(runs[0]) == TIMES
+
+
+def test_comparison_table_rows_columns_and_values(
+    runs: tuple[SimulationRun, SimulationRun],
+) -> None:
+    ref, cand = runs
+    table = comparison_table(ref, cand, times=TIMES, subsample=1000, seed=0)
+    assert list(table.columns) == list(COLUMNS)
+    assert list(table["quantity"]) == [
+        "distance_t5",
+        "distance_t10",
+        "distance_t15",
+        "distance_t20",
+        "run",
+        "tumble",
+    ]
+    by_q = table.set_index("quantity")
+
+    a = ref.distances.loc[ref.distances["t"] == 15.0, "distance"].to_numpy(np.float64)
+    b = cand.distances.loc[cand.distances["t"] == 15.0, "distance"].to_numpy(np.float64)
+    row = by_q.loc["distance_t15"]
+    assert row["ks"] == stats.ks_2samp(a, b).statistic
+    assert row["ks_pvalue"] == stats.ks_2samp(a, b).pvalue
+    assert row["wasserstein"] == stats.wasserstein_distance(a, b)
+    assert (row["n_reference"], row["n_candidate"]) == (50, 50)
+    assert np.isnan(row["ks_full"]) and np.isnan(row["ks_pvalue_full"])
+
+    # durations: full sample and the documented subsample draw order (run ref, run cand, ...)
+    rng = np.random.default_rng(0)
+    run_ref, run_cand = ref.durations_of("run"), cand.durations_of("run")
+    sub_ref = rng.choice(run_ref, 1000, replace=False)
+    sub_cand = rng.choice(run_cand, 1000, replace=False)
+    row = by_q.loc["run"]
+    assert row["ks"] == stats.ks_2samp(sub_ref, sub_cand).statistic
+    assert row["wasserstein"] == stats.wasserstein_distance(sub_ref, sub_cand)
+    assert row["ks_full"] == stats.ks_2samp(run_ref, run_cand).statistic
+    assert row["ks_pvalue_full"] == stats.ks_2samp(run_ref, run_cand).pvalue
+    assert (row["n_reference"], row["n_candidate"]) == (1000, 1000)
+    assert by_q.loc["tumble", "n_reference"] == 1000  # 1500 tumbles subsampled to 1000
+
+    # reproducible with the seed, different with another
+    again = comparison_table(ref, cand, times=TIMES, subsample=1000, seed=0)
+    pd.testing.assert_frame_equal(table, again)
+    other = comparison_table(ref, cand, times=TIMES, subsample=1000, seed=1)
+    assert other.set_index("quantity").loc["run", "ks"] != row["ks"]
+
+
+def test_comparison_table_out_of_range_time(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    with pytest.raises(ValueError, match="t=125"):
+        comparison_table(*runs)  # the paper's 125..500 s are outside these 20 s runs
+
+
+def test_comparison_table_empty_durations(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    ref, cand = runs
+    no_tumbles = SimulationRun(
+        distances=cand.distances,
+        durations=cand.durations[cand.durations["kind"] == "run"],
+        manifest=cand.manifest,
+    )
+    with pytest.raises(ValueError, match="tumble durations of the candidate"):
+        comparison_table(ref, no_tumbles, times=TIMES)
+
+
+def test_noise_floor_and_combination(tmp_path: Path) -> None:
+    full_a = load_run(write_synthetic_run(tmp_path / "a", seed=1))
+    full_b = load_run(write_synthetic_run(tmp_path / "b", seed=2))
+    abstract = load_run(write_synthetic_run(tmp_path / "c", seed=3, shift=0.5))
+    floor = noise_floor_table(full_a, full_b, times=TIMES)
+    pd.testing.assert_frame_equal(floor, comparison_table(full_a, full_b, times=TIMES))
+
+    table = comparison_table(full_a, abstract, times=TIMES)
+    combined = combine_with_noise_floor(table, floor)
+    assert list(combined["quantity"]) == list(table["quantity"])
+    np.testing.assert_array_equal(combined["ks_noise_floor"], floor["ks"])
+    np.testing.assert_array_equal(combined["wasserstein_noise_floor"], floor["wasserstein"])
+    threshold = np.maximum(floor["ks"], table["ks_critical_05"])
+    np.testing.assert_array_equal(combined["within_noise"], table["ks"] <= threshold)
+    # the shifted model is clearly outside noise for distances and runs (tumbles are unshifted)
+    by_q = combined.set_index("quantity")
+    assert not by_q.loc["distance_t10", "within_noise"]
+    assert not by_q.loc["run", "within_noise"]
+    assert by_q.loc["tumble", "within_noise"]
+
+    # a quantity missing from the floor is judged against the critical value alone
+    partial = combine_with_noise_floor(table, floor[floor["quantity"] != "tumble"])
+    row = partial.set_index("quantity").loc["tumble"]
+    assert np.isnan(row["ks_noise_floor"])
+    assert row["within_noise"] == (row["ks"] <= row["ks_critical_05"])
+
+
+def test_noise_floor_warns_on_same_seed(tmp_path: Path) -> None:
+    a = load_run(write_synthetic_run(tmp_path / "a", seed=1))
+    b = load_run(write_synthetic_run(tmp_path / "b", seed=1))
+    with pytest.warns(UserWarning, match="same seed"):
+        floor = noise_floor_table(a, b, times=TIMES)
+    # identical runs: zero on all-cell distances and full duration samples (the two duration
+    # subsamples are independent draws, so those differ)
+    assert (floor["ks"].iloc[:4] == 0).all()
+    assert (floor["ks_full"].iloc[4:] == 0).all()
+
+
+def test_speedup(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    ref, cand = runs
+    assert speedup(ref, cand) == pytest.approx(8.0)
+    assert speedup(ref, cand, per_cell_step=True) == pytest.approx(8.0)
+    broken = SimulationRun(ref.distances, ref.durations, manifest={"wall_time_s": 0.0})
+    with pytest.raises(ArtefactError, match="wall_time_s"):
+        speedup(ref, broken)
+
+
+def test_mean_std_over_time(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    ref, _ = runs
+    ms = mean_std_over_time(ref)
+    assert list(ms.columns) == ["t", "mean", "std", "n"]
+    assert ms["t"].tolist() == [float(t) for t in range(21)]
+    assert (ms["n"] == 50).all()
+    at5 = ref.distances.loc[ref.distances["t"] == 5.0, "distance"].to_numpy(np.float64)
+    row = ms.set_index("t").loc[5.0]
+    assert row["mean"] == pytest.approx(at5.mean())
+    assert row["std"] == pytest.approx(at5.std(ddof=1))
