@@ -68,7 +68,8 @@ def collect_transitions(
     """Simulate the full model with perturbations until ``n_per_state`` transitions from each
     origin state are recorded; return a random subsample of exactly ``n_per_state`` per origin.
 
-    Columns: ``m``, ``L``, ``phi``, ``phi_next`` (0 = TUMBLE, 1 = RUN), ``cell``, ``t``.
+    Columns: ``m``, ``L``, ``phi``, ``phi_next`` (0 = TUMBLE, 1 = RUN), ``cell``, ``t`` (start of
+    the window) and ``perturbed`` (the cell was moved just before this window).
     """
     device, dt, field = simulator.device, simulator.dt, simulator.field
     # cells start spread over the disc the perturbations use, adapted to where they are
@@ -89,15 +90,20 @@ def collect_transitions(
             target = random_in_disc(n_cells, field.peak, perturb_radius, device)
             state.position = torch.where(jump.unsqueeze(-1), target, state.position)
             rec = simulator.step(state)
-            if (k + 1) % record_every:
+            # every cell on thinned steps, plus every cell just perturbed: the step after a jump
+            # is where off-boundary inputs meet the "wrong" origin state (RUN far above m0(L),
+            # TUMBLE far below), which steady-state sampling almost never sees
+            rows = cells if (k + 1) % record_every == 0 else jump.nonzero().squeeze(1)
+            if rows.numel() == 0:
                 continue
             chunk = {
-                "m": rec.methylation.float().cpu().numpy(),
-                "L": rec.ligand.float().cpu().numpy(),
-                "phi": rec.run_before.to(torch.int8).cpu().numpy(),
-                "phi_next": rec.run_after.to(torch.int8).cpu().numpy(),
-                "cell": cells.cpu().numpy(),
-                "t": np.full(n_cells, k * dt),
+                "m": rec.methylation[rows].float().cpu().numpy(),
+                "L": rec.ligand[rows].float().cpu().numpy(),
+                "phi": rec.run_before[rows].to(torch.int8).cpu().numpy(),
+                "phi_next": rec.run_after[rows].to(torch.int8).cpu().numpy(),
+                "cell": rows.cpu().numpy(),
+                "t": np.full(rows.numel(), k * dt),
+                "perturbed": jump[rows].cpu().numpy(),
             }
             chunks.append(chunk)
             new = np.bincount(chunk["phi"], minlength=2)

@@ -91,7 +91,9 @@ def plot_psi_surfaces(
             rows = data[data["phi"] == phi]
             if len(rows) > MAX_POINTS_PER_PANEL:
                 rows = rows.iloc[rng.choice(len(rows), MAX_POINTS_PER_PANEL, replace=False)]
-            for nxt, colour in ((1, "white"), (0, "black")):
+            # Colours chosen to stand out on viridis: next-RUN points mostly sit on the yellow
+            # (p ~ 1) region, next-TUMBLE points on the dark one.
+            for nxt, colour in ((1, "magenta"), (0, "cyan")):
                 sel = rows[rows["phi_next"] == nxt]
                 ax.scatter(
                     sel["L"],
@@ -104,7 +106,7 @@ def plot_psi_surfaces(
                 )
         if adapted_curve is not None:
             L_curve, m_curve = (np.asarray(a, dtype=float) for a in adapted_curve)
-            ax.plot(L_curve, m_curve, color="red", lw=1.5, label="adapted $m_0(L)$")
+            ax.plot(L_curve, m_curve, color="white", ls="--", lw=2, label="adapted $m_0(L)$")
         ax.set_xlim(L_range)
         ax.set_ylim(m_range)
         ax.set_xlabel("ligand L (mM)")

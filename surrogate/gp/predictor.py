@@ -41,7 +41,8 @@ class PsiClassifier:
     ) -> None:
         if psi_tumble.device != psi_run.device:
             raise ValueError(
-                f"psi_tumble is on {psi_tumble.device} but psi_run on {psi_run.device}"
+                f"psi_tumble and psi_run must be on the same device, got {psi_tumble.device} "
+                f"and {psi_run.device}"
             )
         self.psi_tumble = psi_tumble
         self.psi_run = psi_run
@@ -141,8 +142,8 @@ def fit_psi(
         rows = data[data["phi"] == phi]
         if len(rows) == 0:
             raise ArtefactError(f"transition data has no rows with phi == {phi} to fit {name}")
-        x = torch.as_tensor(rows[["m", "L"]].to_numpy(dtype="float32"))
-        y = torch.as_tensor(rows["phi_next"].to_numpy(dtype="float32"))
+        x = torch.tensor(rows[["m", "L"]].to_numpy(dtype="float32"))
+        y = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
         fitted[name] = fit_classifier(x, y, settings, progress=progress, device=device, desc=name)
     return PsiClassifier(fitted["psi_tumble"], fitted["psi_run"], domain=data_domain(data))
 

@@ -73,11 +73,11 @@ def build_decision(cfg: Mapping[str, Any], device: Any) -> tuple[DecisionLayer, 
     params = build_params(cfg["model"])
     if cfg["decision"]["name"] == "full":
         return FullDecision(params), {}
-    from surrogate.gp import load_abstraction
+    from surrogate.train import load_abstraction, resolve_abstraction
 
-    train_cfg = abstraction_config(cfg)
-    psi, meta = load_abstraction(train_cfg, device=device)
-    info: dict[str, Any] = {"abstraction_dir": str(meta["directory"])}
+    directory = resolve_abstraction(abstraction_config(cfg))
+    psi = load_abstraction(directory, device=device)
+    info: dict[str, Any] = {"abstraction_dir": str(directory)}
     if cfg["decision"]["mode"] == "lookup":
         from surrogate.gp import PsiLookupTable
 
@@ -88,7 +88,7 @@ def build_decision(cfg: Mapping[str, Any], device: Any) -> tuple[DecisionLayer, 
         info["lookup_max_deviation"] = float(table.max_deviation(psi))
         log.info(
             "lookup table %s: max |table - classifier| = %.2e",
-            tuple(table.size),
+            tuple(table.shape),
             info["lookup_max_deviation"],
         )
         return AbstractDecision(table, params), info

@@ -137,7 +137,10 @@ def assert_matches_distribution(
 
 
 def flagella_network() -> ReactionNetwork:
-    """E. coli motor: S(witching) -> C(CW-locked) at mu, C/S -> N at k+, N -> S at k-."""
+    """E. coli flagellum: N(ormal, CCW motor), S(emi-coiled) and C(urly) (CW).
+
+    S -> C at mu, S/C -> N at k+ (CW -> CCW), N -> S at k- (CCW -> CW), with k+ k- = omega^2.
+    """
     return ReactionNetwork.from_reactions(
         ["S", "C", "N"],
         [
@@ -195,7 +198,8 @@ EXACTNESS_CASES = {
     "second-order": (dimerisation(), (5, 0, 0), [0.8, 1.0, 0.5, 0.7], 0.4),
     "flagella-adapted": (flagella_network(), (1, 1, 2), flagella_rates(3.5, 0.48), 0.05),
     "flagella-slow-long": (flagella_network(), (1, 1, 2), flagella_rates(3.5, 0.48), 0.5),
-    # rates >> 1/dt: every motor is driven into N within ~1e-4 s and stays there.
+    # rates >> 1/dt (k+ at CheY-P = 0, k- = omega^2 / k+): every motor is driven into N
+    # within ~1e-4 s and stays there.
     "flagella-fast": (
         flagella_network(),
         (1, 1, 2),

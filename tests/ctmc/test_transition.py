@@ -142,7 +142,7 @@ def test_transition_matrix_matches_scipy_expm() -> None:
     assert p.shape == (len(cases), 3, 3)
     assert p.dtype == torch.float64
     assert (p >= 0).all()
-    torch.testing.assert_close(p.sum(-1), torch.ones(len(cases), dtype=torch.float64))
+    torch.testing.assert_close(p.sum(-1), torch.ones((len(cases), 3), dtype=torch.float64))
     for c in range(len(cases)):
         reference = scipy.linalg.expm(q[c].numpy() * DT)
         # Both are accurate to ~1e-15 relative to ||exp(Q dt)|| = 1; 1e-10 leaves room for

@@ -1,0 +1,25 @@
+"""Shared fixtures: Hydra composition of the shipped configs."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from surrogate.config import CONF_DIR
+
+
+@pytest.fixture
+def compose_cfg(tmp_path) -> Callable[..., DictConfig]:
+    """Compose a primary config with overrides; artefacts go to a temporary data_dir."""
+
+    def _compose(name: str, overrides: list[str] | None = None) -> DictConfig:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose(
+                config_name=name,
+                overrides=[f"data_dir={tmp_path / 'data'}", "progress=false", *(overrides or [])],
+            )
+
+    return _compose

@@ -1,0 +1,264 @@
+"""Training: settings validation, bad inputs, numerical guard and recovery of a known surface."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import gpytorch
+import pytest
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError, NumericalError
+from surrogate.gp import (
+    KERNELS,
+    GPSettings,
+    PsiGP,
+    classification_metrics,
+    fit_classifier,
+)
+
+M_BOX = (1.0, 3.5)
+L_BOX = (0.0, 0.1)
+W = 0.1  # switch width in m: steep, like the real psi surfaces
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> Iterator[None]:
+    # Other test processes share the 2 CPU cores; one intra-op thread avoids the OpenMP
+    # oversubscription that makes small-matrix training 10x slower under contention.
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def p_true(x: Tensor) -> Tensor:
+    """Logistic switch at the adapted level m0(L) = 2.2 + 10 L."""
+    return torch.sigmoid((2.2 + 10.0 * x[:, 1] - x[:, 0]) / W)
+
+
+def sample(n: int, gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    """Uniform inputs on the box, labels ~ Bernoulli(p_true)."""
+    m = M_BOX[0] + (M_BOX[1] - M_BOX[0]) * torch.rand(n, generator=gen, dtype=torch.float64)
+    L = L_BOX[0] + (L_BOX[1] - L_BOX[0]) * torch.rand(n, generator=gen, dtype=torch.float64)
+    x = torch.stack([m, L], dim=1)
+    p = p_true(x)
+    return x, torch.bernoulli(p, generator=gen), p
+
+
+def grid(n: int = 50) -> Tensor:
+    """Regular n x n test grid over the box (float64)."""
+    m = torch.linspace(*M_BOX, n, dtype=torch.float64)
+    L = torch.linspace(*L_BOX, n, dtype=torch.float64)
+    mm, ll = torch.meshgrid(m, L, indexing="ij")
+    return torch.stack([mm.reshape(-1), ll.reshape(-1)], dim=1)
+
+
+SMALL = {"n_inducing": 25, "epochs": 20, "batch_size": 500, "lr": 0.05}
+
+
+@pytest.fixture(scope="module")
+def trained() -> tuple:
+    gen = torch.Generator().manual_seed(0)
+    x, y, _ = sample(3000, gen)
+    fitted = fit_classifier(x, y, GPSettings(**SMALL), progress=False)
+    return fitted, gen
+
+
+# ----------------------------------------------------------------------------------------------
+# statistical recovery
+
+
+def test_recovers_known_surface(trained: tuple) -> None:
+    fitted, _ = trained
+    xg = grid()
+    pg = p_true(xg)
+    err = (fitted.predict_proba(xg).double() - pg).abs().mean().item()
+    const_err = (pg - pg.mean()).abs().mean().item()  # best constant in mean-square sense: ~0.39
+    # Noise floor: a smoother that resolves the switch pools k ~ 50-100 of the 3000 points, so
+    # its s.e. is <= 0.5/sqrt(50) ~ 0.07 inside the band |m - m0| < 2w (16% of the box) and ~0
+    # where p is near 0 or 1 (binomial variance p(1-p) vanishes): mean |error| ~ 0.16 * 0.8 *
+    # 0.07 ~ 0.01. We allow 0.05 (5x) for smoothing bias at the steep switch; a model that did
+    # not learn the switch position sits near the constant's 0.39.
+    assert err < 0.05, f"mean |p_hat - p_true| = {err:.4f}"
+    assert err < 0.15 * const_err
+
+
+def test_held_out_brier_beats_base_rate(trained: tuple) -> None:
+    fitted, gen = trained
+    x_test, y_test, p_test = sample(4000, gen)
+    met = classification_metrics(fitted.predict_proba(x_test), y_test)
+    # The gain over the base-rate predictor must exceed 5 of its own sampling s.e.: a classifier
+    # without skill has gain <= 0 in expectation, so this fails by chance with p < 3e-7.
+    assert met["brier_gain"] > 5 * met["brier_gain_se"], met
+    # Excess Brier over the Bayes-optimal predictor p_true estimates E[(p_hat - p)^2]; with the
+    # grid error above (< 0.05 mean, max |err| <= 1) it cannot exceed 0.05.
+    oracle = ((p_test - y_test) ** 2).mean().item()
+    assert met["brier"] - oracle < 0.05 * 1.0
+    # Validation metrics come from the held-out 20% split.
+    assert fitted.validation is not None
+    assert fitted.validation["n"] == fitted.n_val == 600
+    assert fitted.n_train == 2400
+
+
+def test_history_decreases(trained: tuple) -> None:
+    fitted, _ = trained
+    assert len(fitted.history) == SMALL["epochs"]
+    # Negative ELBO per point starts near log 2 ~ 0.69 (uninformed) and must fall well below:
+    # the Bayes-optimal log loss on this surface is ~0.13.
+    assert fitted.history[-1] < 0.5 * fitted.history[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# determinism and options
+
+
+def tiny_data(n: int = 400, seed: int = 1) -> tuple[Tensor, Tensor]:
+    x, y, _ = sample(n, torch.Generator().manual_seed(seed))
+    return x, y
+
+
+TINY = {"n_inducing": 8, "epochs": 3, "batch_size": 100}
+
+
+def test_same_seed_same_model() -> None:
+    x, y = tiny_data()
+    a = fit_classifier(x, y, GPSettings(**TINY, seed=3), progress=False)
+    b = fit_classifier(x, y, GPSettings(**TINY, seed=3), progress=False)
+    c = fit_classifier(x, y, GPSettings(**TINY, seed=4), progress=False)
+    xg = grid(10)
+    assert torch.equal(a.predict_proba(xg), b.predict_proba(xg))
+    assert not torch.equal(a.predict_proba(xg), c.predict_proba(xg))
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("ard", [True, False])
+def test_kernels_build_and_predict(kernel: str, ard: bool) -> None:
+    x, y = tiny_data()
+    fitted = fit_classifier(x, y, GPSettings(**TINY, kernel=kernel, ard=ard), progress=False)
+    lengthscale = fitted.model.covar_module.base_kernel.lengthscale
+    assert lengthscale.shape[-1] == (2 if ard else 1)
+    p = fitted.predict_proba(grid(5))
+    assert p.shape == (25,)
+    assert bool(((p >= 0) & (p <= 1)).all())
+
+
+def test_natural_gradient_trains() -> None:
+    x, y = tiny_data(800)
+    fitted = fit_classifier(
+        x, y, GPSettings(**{**TINY, "epochs": 5}, natural_gradient=True), progress=False
+    )
+    assert isinstance(
+        fitted.model.variational_strategy._variational_distribution,
+        gpytorch.variational.NaturalVariationalDistribution,
+    )
+    assert fitted.history[-1] < fitted.history[0]
+    assert fitted.validation is not None and fitted.validation["brier_skill"] > 0
+
+
+def test_fixed_inducing_points_stay_put() -> None:
+    x, y = tiny_data()
+    fitted = fit_classifier(x, y, GPSettings(**TINY, learn_inducing=False), progress=False)
+    z = fitted.model.variational_strategy.inducing_points
+    assert not z.requires_grad
+    # They are still the initial subset of normalised training inputs (exact distances: the
+    # matmul form of cdist loses ~1e-3 to cancellation).
+    zx = fitted.normaliser.transform(x.float())
+    dist = torch.cdist(z, zx, compute_mode="donot_use_mm_for_euclid_dist")
+    assert bool((dist.min(dim=1).values < 1e-6).all())
+
+
+def test_no_validation_split() -> None:
+    x, y = tiny_data()
+    fitted = fit_classifier(x, y, GPSettings(**TINY, validation_fraction=0.0), progress=False)
+    assert fitted.validation is None
+    assert (fitted.n_train, fitted.n_val) == (400, 0)
+
+
+# ----------------------------------------------------------------------------------------------
+# bad settings and inputs
+
+
+def test_settings_defaults_match_brief() -> None:
+    s = GPSettings()
+    assert (s.kernel, s.ard, s.n_inducing, s.epochs, s.batch_size) == ("rbf", True, 100, 40, 1000)
+    assert GPSettings.from_config(s.to_dict()) == s
+    assert GPSettings.from_config({"lr": 1}).lr == 1.0
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("kernel", "linear"),
+        ("n_inducing", 0),
+        ("n_inducing", -5),
+        ("n_inducing", 2.5),
+        ("epochs", 0),
+        ("batch_size", True),
+        ("lr", 0.0),
+        ("lr", float("nan")),
+        ("natural_lr", -1.0),
+        ("validation_fraction", 1.0),
+        ("validation_fraction", -0.1),
+        ("ard", "yes"),
+        ("seed", -1),
+    ],
+)
+def test_bad_setting_names_key(key: str, value: object) -> None:
+    with pytest.raises(ConfigError, match=f"gp\\.{key}"):
+        GPSettings.from_config({key: value})
+
+
+def test_unknown_setting_key() -> None:
+    with pytest.raises(ConfigError, match=r"gp\.n_inducing_points"):
+        GPSettings.from_config({"n_inducing_points": 10})
+
+
+def test_unknown_kernel_in_model_lists_allowed() -> None:
+    with pytest.raises(ConfigError, match=r"gp\.kernel.*matern52"):
+        PsiGP(torch.zeros(4, 2), kernel="periodic")
+
+
+def test_too_many_inducing_points() -> None:
+    x, y = tiny_data(50)
+    with pytest.raises(ConfigError, match=r"gp\.n_inducing"):
+        fit_classifier(x, y, GPSettings(n_inducing=100), progress=False)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_inputs(bad: float) -> None:
+    x, y = tiny_data()
+    x[17, 1] = bad
+    with pytest.raises(NumericalError, match="NaN or inf"):
+        fit_classifier(x, y, GPSettings(**TINY), progress=False)
+
+
+def test_bad_labels() -> None:
+    x, y = tiny_data()
+    y[3] = 2.0
+    with pytest.raises(NumericalError, match="labels"):
+        fit_classifier(x, y, GPSettings(**TINY), progress=False)
+
+
+def test_divergence_restores_last_good_state(monkeypatch: pytest.MonkeyPatch) -> None:
+    x, y = tiny_data()
+    settings = GPSettings(**{**TINY, "epochs": 5})
+    n_batches = 4  # 320 training points / batch 100
+    calls = {"n": 0}
+    original = gpytorch.mlls.VariationalELBO.forward
+
+    def nan_in_epoch_3(self: gpytorch.mlls.VariationalELBO, *args: object, **kw: object) -> Tensor:
+        calls["n"] += 1
+        out = original(self, *args, **kw)
+        # Poison the second minibatch of epoch 3: the loss and the gradients become NaN.
+        return out * float("nan") if calls["n"] == 2 * n_batches + 2 else out
+
+    monkeypatch.setattr(gpytorch.mlls.VariationalELBO, "forward", nan_in_epoch_3)
+    with pytest.raises(NumericalError, match=r"epoch 3/5.*gp\.lr") as info:
+        fit_classifier(x, y, settings, progress=False)
+    partial = info.value.partial
+    assert len(partial.history) == 2
+    for p in partial.model.parameters():
+        assert bool(torch.isfinite(p).all())
+    assert bool(torch.isfinite(partial.predict_proba(grid(5))).all())
