@@ -5,10 +5,16 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from surrogate.config import CONF_DIR
+
+
+# One intra-op thread: the suite's tensors are small, and two threads stall badly whenever another
+# process holds a core (measured: 55x slower GP training under load).
+torch.set_num_threads(1)
 
 
 @pytest.fixture

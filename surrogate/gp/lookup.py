@@ -97,13 +97,14 @@ class PsiLookupTable:
         return self
 
     def __call__(self, phi: Tensor, m: Tensor, L: Tensor) -> Tensor:
-        """Interpolated p(RUN next), float32, on the table's device.
+        """Interpolated p(RUN next), float32, on the input's device (like the classifier).
 
         Inputs outside the box are clamped to its edge. ``phi`` must be 0/1 (or bool) and is not
         checked (that would need a host sync); NaN in m or L gives NaN out, never a bad index.
         """
         n_m, n_L = self.shape
         dev = self.table.device
+        out_device = m.device
         m = m.to(dev, torch.float32).reshape(-1)
         L = L.to(dev, torch.float32).reshape(-1)
         u = ((m - self.m_range[0]) * self._m_scale).clamp_(0.0, n_m - 1)
@@ -120,7 +121,8 @@ class PsiLookupTable:
         v01 = flat[base + 1]
         v10 = flat[base + n_L]
         v11 = flat[base + (n_L + 1)]
-        return torch.lerp(torch.lerp(v00, v01, fv), torch.lerp(v10, v11, fv), fu)
+        out = torch.lerp(torch.lerp(v00, v01, fv), torch.lerp(v10, v11, fv), fu)
+        return out.to(out_device)  # no-op in the usual case of inputs on the table's device
 
     @torch.no_grad()
     def max_deviation(self, psi: PsiFunction, n_check: int | None = None, seed: int = 0) -> float:
@@ -147,8 +149,8 @@ class PsiLookupTable:
         m = m_mid[rest // (n_L - 1)]
         L = L_mid[rest % (n_L - 1)]
         device = getattr(psi, "device", self.device)
-        exact = psi(phi.to(device), m.to(device), L.to(device)).to(self.device, torch.float64)
-        approx = self(phi, m, L).to(torch.float64)
+        exact = psi(phi.to(device), m.to(device), L.to(device)).to("cpu", torch.float64)
+        approx = self(phi, m, L).to("cpu", torch.float64)  # CPU inputs: CPU output
         return float((approx - exact).abs().max())
 
     def to_state(self) -> dict[str, Any]:
