@@ -31,11 +31,7 @@ def collect_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
 
 def train_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Everything that defines a trained abstraction (its data and the GP settings)."""
-    return {
-        **collect_settings(cfg),
-        "gp": to_dict(cfg["gp"]),
-        "grid_size": list(cfg.get("grid_size", [50, 50])),
-    }
+    return {**collect_settings(cfg), "gp": to_dict(cfg["gp"])}
 
 
 def collect_dir(cfg: Mapping[str, Any]) -> Path:

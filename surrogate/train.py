@@ -70,16 +70,17 @@ REQUIRED_COLUMNS = ("m", "L", "phi", "phi_next")
 
 def gp_settings(cfg: Mapping[str, Any]) -> GPSettings:
     """Validated GP settings of a config (the run's seed drives initialisation and splits)."""
-    return GPSettings.from_config({**to_dict(cfg["gp"]), "seed": int(cfg["seed"])})
+    gp = {k: v for k, v in to_dict(cfg["gp"]).items() if k != "grid_size"}  # presentation only
+    return GPSettings.from_config({**gp, "seed": int(cfg["seed"])})
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
     """All checks of a train config, before any work starts."""
     validate_common(cfg)
     gp_settings(cfg)
-    size = cfg.get("grid_size", [50, 50])
+    size = cfg["gp"].get("grid_size", [50, 50])
     if not (len(size) == 2 and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in size)):
-        raise ConfigError(f"grid_size must be two integers >= 2, got {list(size)!r}")
+        raise ConfigError(f"gp.grid_size must be two integers >= 2, got {list(size)!r}")
 
 
 def load_transitions(cfg: Mapping[str, Any]) -> tuple[pd.DataFrame, Path]:
@@ -140,7 +141,7 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     params = build_params(cfg["model"])
     save_psi(out / PSI, psi, {"settings": train_settings(cfg), "source": str(source)})
     write_json(out / METRICS, metrics)
-    write_csv(out / GRID, psi_grid_frame(psi, domain["m"], domain["L"], size=tuple(cfg.get("grid_size", [50, 50]))))
+    write_csv(out / GRID, psi_grid_frame(psi, domain["m"], domain["L"], size=tuple(cfg["gp"].get("grid_size", [50, 50]))))
     save_figure(out / SURFACES_FIGURE, plot_psi_surfaces(psi, table, domain["m"], domain["L"], adapted_curve=adapted_curve(domain["L"], params)))
     save_figure(out / HISTORY_FIGURE, plot_training_history({"psi_tumble": psi.psi_tumble.history, "psi_run": psi.psi_run.history}))
     write_manifest(
