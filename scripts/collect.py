@@ -7,13 +7,14 @@ python scripts/collect.py field=linear dt=0.02
 import hydra
 from omegaconf import DictConfig
 
+from surrogate.cli import run_stage
 from surrogate.collect import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="collect")
-def main(cfg: DictConfig) -> str:
-    """Hydra entry point."""
-    return str(run(cfg))
+def main(cfg: DictConfig) -> str | None:
+    """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
+    return run_stage("collect", run, cfg)
 
 
 if __name__ == "__main__":

@@ -1,19 +1,20 @@
 """Compare an abstracted population run with the full model (KS, Wasserstein, noise floor, speed-up).
 
-    python scripts/evaluate.py                               # gaussian field, needs both runs
-    python scripts/evaluate.py field=linear evaluate.run_missing=true
+python scripts/evaluate.py                               # gaussian field, needs both runs
+python scripts/evaluate.py field=linear evaluate.run_missing=true
 """
 
 import hydra
 from omegaconf import DictConfig
 
+from surrogate.cli import run_stage
 from surrogate.evaluate.stage import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
-def main(cfg: DictConfig) -> str:
-    """Hydra entry point."""
-    return str(run(cfg))
+def main(cfg: DictConfig) -> str | None:
+    """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
+    return run_stage("evaluate", run, cfg)
 
 
 if __name__ == "__main__":

@@ -2,18 +2,20 @@
 
 python scripts/simulate.py                       # full model, gaussian field, 100 cells, 500 s
 python scripts/simulate.py decision=abstract field=linear
+python scripts/simulate.py -m shard.count=4 shard.index=0,1,2,3   # a population in 4 shards
 """
 
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.simulate.stage import run
+from surrogate.cli import run_stage
+from surrogate.simulate.shards import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="simulate")
-def main(cfg: DictConfig) -> str:
-    """Hydra entry point."""
-    return str(run(cfg))
+def main(cfg: DictConfig) -> str | None:
+    """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
+    return run_stage("simulate", run, cfg)
 
 
 if __name__ == "__main__":

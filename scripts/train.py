@@ -6,13 +6,15 @@ python scripts/train.py field=linear gp.kernel=matern52
 
 import hydra
 from omegaconf import DictConfig
+
+from surrogate.cli import run_stage
 from surrogate.train import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
-def main(cfg: DictConfig) -> str:
-    """Hydra entry point."""
-    return str(run(cfg))
+def main(cfg: DictConfig) -> str | None:
+    """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
+    return run_stage("train", run, cfg)
 
 
 if __name__ == "__main__":

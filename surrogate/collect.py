@@ -31,9 +31,16 @@ from surrogate.config import (
     to_dict,
     validate_common,
 )
-from surrogate.errors import ConfigError
-from surrogate.io import MANIFEST, read_manifest, save_figure, write_manifest, write_parquet
-from surrogate.paths import collect_dir, collect_settings
+from surrogate.errors import ConfigError, NumericalError
+from surrogate.io import (
+    MANIFEST,
+    artefact_lock,
+    existing_artefact,
+    save_figure,
+    write_manifest,
+    write_parquet,
+)
+from surrogate.paths import collect_command, collect_dir, collect_settings
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 
@@ -105,6 +112,13 @@ def collect_transitions(
                 "t": np.full(rows.numel(), k * dt),
                 "perturbed": jump[rows].cpu().numpy(),
             }
+            # the rows are on the host already, so the check is free; NaN/inf must not reach
+            # the table (clamping turns an infinite L into m = m_max, so L is checked too)
+            if not (np.isfinite(chunk["m"]).all() and np.isfinite(chunk["L"]).all()):
+                raise NumericalError(
+                    f"collect: NaN/inf in the recorded (m, L) at t={k * dt:g} s; the field "
+                    f"returned NaN/inf concentrations or the dynamics diverged"
+                )
             chunks.append(chunk)
             new = np.bincount(chunk["phi"], minlength=2)
             bar.update(
@@ -198,10 +212,25 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Run (or reuse) the collect stage of ``cfg``; return its artefact directory."""
     validate(cfg)
     out = collect_dir(cfg)
-    if not force and (out / MANIFEST).exists():
-        read_manifest(out)
-        log.info("transitions exist, reusing %s", out)
+    if not force and _existing(cfg, out):
         return out
+    with artefact_lock(out):  # also removes the temporaries of killed runs
+        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
+            return out
+        _collect(cfg, out)
+    return out
+
+
+def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
+    """Whether ``out`` holds complete transitions of these settings (refusing corrupt ones)."""
+    if existing_artefact(out, collect_settings(cfg), collect_command(cfg)) is None:
+        return False
+    log.info("transitions exist, reusing %s", out)
+    return True
+
+
+def _collect(cfg: Mapping[str, Any], out: Path) -> None:
+    """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
     device = resolve_device(cfg.get("device", "cpu"))
     seed_everything(int(cfg["seed"]))
     params = build_params(cfg["model"])
@@ -222,6 +251,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         progress=bool(cfg.get("progress", True)),
     )
     wall = time.perf_counter() - t0
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
     write_parquet(out / TRANSITIONS, table)
     save_figure(out / COVERAGE_FIGURE, plot_coverage(table, params))
     counts = {
@@ -251,4 +282,3 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         },
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
-    return out

@@ -1,6 +1,18 @@
 """From Hydra configs to objects, with validation up front (before any work starts).
 
 Every check raises :class:`~surrogate.errors.ConfigError` naming the setting and what is allowed.
+
+Seeds: every random draw of a stage follows from the one ``seed`` setting, recorded in each
+manifest. A stage calls :func:`seed_everything` (torch's CPU and CUDA generators) before its
+first draw; the GP training takes its split, inducing points and minibatches from its own
+generator seeded with the same ``seed``; collect's subsample draws a NumPy seed from the torch
+stream; evaluate's second full run (the noise floor) uses ``seed + evaluate.noise_seed_offset``
+and its duration subsample uses ``seed``; shard i of a sharded population (``shard.count=K``)
+uses child i of ``numpy.random.SeedSequence(seed).spawn(K)``. Nothing depends on time, PID or
+job number, so parallel jobs (Hydra ``--multirun``, joblib or SLURM launchers) draw independent
+streams only when their ``seed`` (or shard index) differs: sweep it explicitly
+(``--multirun seed=0,1,2``); jobs with the same settings and seed produce the same artefact
+(in the same directory, which they take turns to write, see :func:`surrogate.io.artefact_lock`).
 """
 
 from __future__ import annotations
@@ -137,12 +149,18 @@ def non_negative(cfg: Mapping[str, Any], key: str, prefix: str = "") -> float:
 
 def validate_common(cfg: Mapping[str, Any]) -> None:
     """Checks shared by every stage: dt, seed, device, model constants, field."""
-    positive(cfg, "dt")
+    dt = positive(cfg, "dt")
     seed = cfg.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
     resolve_device(cfg.get("device", "cpu"))
-    build_params(cfg["model"])
+    params = build_params(cfg["model"])
+    # the methylation OU is stepped by Euler-Maruyama: dt >= tau overshoots its drift
+    if dt >= params.tau:
+        raise ConfigError(
+            f"dt={dt:g} s must be smaller than model.tau={params.tau:g} s (the adaptation time, "
+            f"stepped by Euler-Maruyama); the paper uses dt=0.05"
+        )
     build_field(cfg["field"])
 
 
@@ -163,5 +181,6 @@ def validate_start(
 
 
 def seed_everything(seed: int) -> None:
-    """Seed torch's global generators (CPU and every CUDA device) for a run."""
+    """Seed torch's global generators (CPU and every CUDA device) for a run (see the module
+    docstring for how every stage's draws derive from it)."""
     torch.manual_seed(int(seed))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import platform
 import tempfile
@@ -23,7 +24,20 @@ import torch
 
 from surrogate.errors import ArtefactError, MissingArtefactError
 
+try:  # POSIX only; without it stages run unlocked and leave stale temporaries alone
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None  # type: ignore[assignment]
+
+log = logging.getLogger(__name__)
+
 MANIFEST = "manifest.json"
+LOCK = ".lock"
+TMP_GLOB = ".*.tmp"
+
+# mkstemp creates 0600 files; artefacts get the permissions a plain open() would give them.
+_UMASK = os.umask(0)
+os.umask(_UMASK)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -42,6 +56,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
+    os.chmod(tmp_path, 0o666 & ~_UMASK)
     try:
         yield tmp_path
         with open(tmp_path, "rb") as fh:  # flush to disk before the rename makes it visible
@@ -50,6 +65,67 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def clean_stale_tmp(directory: str | os.PathLike) -> list[Path]:
+    """Remove the ``.*.tmp`` files a killed run left in ``directory``; return what was removed.
+
+    Only safe while no other process writes into ``directory``: call it under
+    :func:`artefact_lock` (which does), never on a directory another job may be writing.
+    """
+    directory = Path(directory)
+    removed = []
+    for tmp in sorted(directory.glob(TMP_GLOB)):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    if removed:
+        log.info(
+            "removed %d stale temporary file(s) of a killed run in %s", len(removed), directory
+        )
+    return removed
+
+
+@contextmanager
+def artefact_lock(directory: str | os.PathLike) -> Iterator[Path]:
+    """Hold an exclusive lock on a stage's artefact directory while the stage writes it.
+
+    Two jobs with the same settings (hence the same directory) take turns instead of writing
+    the same files at once; the second should re-check the manifest once it has the lock. The
+    lock (``flock`` on ``directory/.lock``) is released by the kernel when its holder dies, even
+    by SIGKILL, so every ``.*.tmp`` file found while holding it belongs to a dead run and is
+    removed. Where ``flock`` is unsupported (e.g. some network file systems) the stage runs
+    unlocked and stale temporaries are left in place (no loader reads them). Not re-entrant:
+    taking it twice on one directory in one process blocks forever.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:  # pragma: no cover - Windows
+        yield directory
+        return
+    with open(directory / LOCK, "a+b") as fh:
+        locked = _flock(fh.fileno(), directory)
+        try:
+            if locked:
+                clean_stale_tmp(directory)
+            yield directory
+        finally:
+            if locked:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
+def _flock(fd: int, directory: Path) -> bool:
+    """Take an exclusive flock on ``fd`` (waiting if needed); False where flock is unsupported."""
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info("another job is writing %s; waiting for it to finish", directory)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError as exc:
+        log.warning("cannot lock %s (%s); running unlocked, stale temporaries kept", directory, exc)
+        return False
+    return True
 
 
 def write_atomic(path: str | os.PathLike, writer: Callable[[Path], None]) -> Path:
@@ -123,6 +199,18 @@ def read_json(path: str | os.PathLike, made_by: str | None = None) -> dict[str, 
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ArtefactError(f"{path} is corrupt or truncated (not valid JSON: {exc})") from exc
+
+
+def read_csv(path: str | os.PathLike, made_by: str | None = None) -> pd.DataFrame:
+    """Read a CSV table, with a clear error when it is missing, empty or unparsable."""
+    path = Path(path)
+    _require(path, made_by)
+    try:
+        return pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ArtefactError(
+            f"{path} is corrupt or truncated (not a readable CSV file: {exc})"
+        ) from exc
 
 
 def read_parquet(path: str | os.PathLike, made_by: str | None = None) -> pd.DataFrame:
@@ -222,7 +310,12 @@ def write_manifest(
 
 def read_manifest(directory: str | os.PathLike, made_by: str | None = None) -> dict[str, Any]:
     """Read a stage's ``manifest.json`` (the last file a stage writes, so its presence means done)."""
-    return read_json(Path(directory) / MANIFEST, made_by=made_by)
+    path = Path(directory) / MANIFEST
+    manifest = read_json(path, made_by=made_by)
+    if not isinstance(manifest, dict) or "stage" not in manifest:
+        # valid JSON but not a manifest (e.g. a file replaced by hand): refuse, don't KeyError later
+        raise ArtefactError(f"{path} is not a stage manifest (no 'stage' entry)")
+    return manifest
 
 
 def check_settings(
@@ -239,6 +332,27 @@ def check_settings(
             f"artefact {where} was made with different settings ({'; '.join(diffs)}). "
             f"Re-create it with `{made_by}`."
         )
+
+
+def existing_artefact(
+    directory: str | os.PathLike, settings: Mapping[str, Any], made_by: str
+) -> dict[str, Any] | None:
+    """The manifest of the complete artefact in ``directory``, or None when there is none.
+
+    A stage calls this before (re)computing, and again once it holds :func:`artefact_lock`.
+    A corrupt manifest, or one made with other ``settings``, is refused rather than reused;
+    rerunning the same command would only reuse it again, so the message says to delete it.
+    """
+    directory = Path(directory)
+    if not (directory / MANIFEST).exists():
+        return None
+    remake = f"rm -r {directory} && {made_by}"
+    try:
+        manifest = read_manifest(directory)
+    except ArtefactError as exc:
+        raise ArtefactError(f"{exc}. Re-create it with `{remake}`.") from exc
+    check_settings(settings, manifest.get("settings", {}), str(directory), remake)
+    return manifest
 
 
 def _normalise(v: Any) -> Any:

@@ -21,7 +21,15 @@ from surrogate.config import field_config, to_dict, validate_common
 from surrogate.errors import ConfigError
 from surrogate.evaluate import stage as evaluate_stage
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
-from surrogate.io import artefact_dir, read_json, write_manifest
+from surrogate.io import (
+    MANIFEST,
+    artefact_dir,
+    artefact_lock,
+    read_csv,
+    read_json,
+    read_manifest,
+    write_manifest,
+)
 from surrogate.paths import abstraction_config, train_settings
 
 log = logging.getLogger(__name__)
@@ -54,6 +62,9 @@ def validate(cfg: Mapping[str, Any]) -> None:
     validate_common(cfg)
     collect.validate(train_config(cfg))
     train.validate(train_config(cfg))
+    # the simulate/evaluate settings too: a bad n_cells must not surface after collect and train
+    for name in fields:
+        evaluate_stage.validate(field_run_config(cfg, str(name)))
 
 
 def reproduce_dir(cfg: Mapping[str, Any]) -> Path:
@@ -78,25 +89,33 @@ def run(cfg: Mapping[str, Any]) -> Path:
         log.info("field %s: full and abstracted simulations, evaluation", name)
         evaluations[str(name)] = evaluate_stage.run(field_run_config(cfg, str(name)))
     out = reproduce_dir(cfg)
-    write_report(out / REPORT, *report_sections(cfg, collect_dir, train_dir, evaluations, out),
-                 title="Statistical abstraction of E. coli chemotaxis: reproduction report")  # fmt: skip
-    write_manifest(out, stage="reproduce", config=to_dict(cfg), seed=int(cfg["seed"]),
-                   collect=str(collect_dir), train=str(train_dir),
-                   evaluations={k: str(v) for k, v in evaluations.items()},
-                   wall_time_s=time.perf_counter() - t0)  # fmt: skip
+    with artefact_lock(out):  # also removes the temporaries of killed runs
+        sections = report_sections(cfg, collect_dir, train_dir, evaluations, out)
+        (out / MANIFEST).unlink(missing_ok=True)  # incomplete until the manifest is rewritten
+        write_report(out / REPORT, *sections,
+                     title="Statistical abstraction of E. coli chemotaxis: reproduction report")  # fmt: skip
+        write_manifest(out, stage="reproduce", config=to_dict(cfg), seed=int(cfg["seed"]),
+                       collect=str(collect_dir), train=str(train_dir),
+                       evaluations={k: str(v) for k, v in evaluations.items()},
+                       wall_time_s=time.perf_counter() - t0)  # fmt: skip
     log.info("report written to %s", out / REPORT)
     return out
 
 
 def report_sections(
-    cfg: Mapping[str, Any], collect_dir: Path, train_dir: Path, evaluations: Mapping[str, Path], out: Path
+    cfg: Mapping[str, Any],
+    collect_dir: Path,
+    train_dir: Path,
+    evaluations: Mapping[str, Path],
+    out: Path,
 ) -> tuple[list[tuple[str, str]], list[tuple[str, Path]]]:
     """Markdown sections and figures of the report."""
-    tables = {name: pd.read_csv(d / f"{evaluate_stage.COMPARISON}.csv") for name, d in evaluations.items()}
+    tables = {name: read_csv(d / f"{evaluate_stage.COMPARISON}.csv", made_by=evaluate_stage.EVALUATE_CMD)
+              for name, d in evaluations.items()}  # fmt: skip
     summaries = {name: evaluate_stage.read_summary(d) for name, d in evaluations.items()}
     speedups = {name: s["speedup_loop"] for name, s in summaries.items()}
     metrics = read_json(train_dir / train.METRICS)
-    collect_manifest = read_json(collect_dir / "manifest.json")
+    collect_manifest = read_manifest(collect_dir)
 
     setting = (
         f"{cfg['n_cells']} cells per run, t_end = {cfg['t_end']} s, dt = {cfg['dt']} s, seed {cfg['seed']}; "
@@ -123,7 +142,9 @@ def report_sections(
                 "full cell-steps/s": s["cell_steps_per_s"]["full"],
                 "abstract cell-steps/s": s["cell_steps_per_s"]["abstract"],
                 "speed-up": s["speedup_loop"],
-                "paper speed-up": {"gaussian": 7.8, "linear": 9.4, "dynamic": 8.9}.get(name, float("nan")),
+                "paper speed-up": {"gaussian": 7.8, "linear": 9.4, "dynamic": 8.9}.get(
+                    name, float("nan")
+                ),
             }
             for name, s in summaries.items()
         ]
@@ -133,8 +154,15 @@ def report_sections(
         "(excluding collection and training, as in the paper). Both models are batched over cells, "
         "so the ratio is far smaller than against a per-cell implementation; see the README's "
         "benchmark for throughput at larger populations.\n\n"
-        + format_markdown_table(speed_rows, floatfmt={"full cell-steps/s": ".3g", "abstract cell-steps/s": ".3g",
-                                                      "speed-up": ".1f", "paper speed-up": ".1f"})  # fmt: skip
+        + format_markdown_table(
+            speed_rows,
+            floatfmt={
+                "full cell-steps/s": ".3g",
+                "abstract cell-steps/s": ".3g",
+                "speed-up": ".1f",
+                "paper speed-up": ".1f",
+            },
+        )
     )
     noise_lines = []
     for name, table in tables.items():
@@ -143,8 +171,11 @@ def report_sections(
         above = table[~table["within_noise"].astype(bool)]["quantity"].tolist()
         noise_lines.append(
             f"- **{name}**: largest KS {table['ks'].max():.3f} vs noise floor {table['ks_noise_floor'].max():.3f}; "
-            + ("every quantity within the noise floor or the KS critical value." if not above
-               else f"above noise: {', '.join(above)}.")  # fmt: skip
+            + (
+                "every quantity within the noise floor or the KS critical value."
+                if not above
+                else f"above noise: {', '.join(above)}."
+            )
         )
     gp_rows = pd.DataFrame(
         [
@@ -159,11 +190,26 @@ def report_sections(
         ("Against sampling noise", "\n".join(noise_lines) or "No noise floor was computed."),
         ("Speed", speed),
         ("Classifiers (held-out validation)", format_markdown_table(gp_rows, floatfmt=".4f")),
-        ("Artefacts", "\n".join(f"- {k}: `{os.path.relpath(v, out)}`" for k, v in
-                                {"collect": collect_dir, "train": train_dir, **evaluations}.items())),  # fmt: skip
+        (
+            "Artefacts",
+            "\n".join(
+                f"- {k}: `{os.path.relpath(v, out)}`"
+                for k, v in {"collect": collect_dir, "train": train_dir, **evaluations}.items()
+            ),
+        ),
     ]
     figures = [("GP probability surfaces (paper Figure 3)", train_dir / train.SURFACES_FIGURE)]
     for name, d in evaluations.items():
-        figures.append((f"{name}: distance histograms, full vs abstract (paper Figure 4)", d / "distance_histograms.png"))
-        figures.append((f"{name}: mean and s.d. of distance over time (paper Figure 5)", d / "distance_over_time.png"))
+        figures.append(
+            (
+                f"{name}: distance histograms, full vs abstract (paper Figure 4)",
+                d / "distance_histograms.png",
+            )
+        )
+        figures.append(
+            (
+                f"{name}: mean and s.d. of distance over time (paper Figure 5)",
+                d / "distance_over_time.png",
+            )
+        )
     return sections, figures

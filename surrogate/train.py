@@ -41,7 +41,9 @@ from surrogate.gp import (
 )
 from surrogate.io import (
     MANIFEST,
+    artefact_lock,
     check_settings,
+    existing_artefact,
     read_manifest,
     read_parquet,
     save_figure,
@@ -77,10 +79,31 @@ def gp_settings(cfg: Mapping[str, Any]) -> GPSettings:
 def validate(cfg: Mapping[str, Any]) -> None:
     """All checks of a train config, before any work starts."""
     validate_common(cfg)
-    gp_settings(cfg)
+    settings = gp_settings(cfg)
+    # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
+    if not 0.0 < settings.validation_fraction < 1.0:
+        raise ConfigError(
+            f"gp.validation_fraction must lie in (0, 1) for the train stage (it reports held-out "
+            f"metrics), got {settings.validation_fraction!r}"
+        )
+    # checked here, not after collect has run: each classifier trains on its origin state's rows
+    n_per_state = cfg["collect"].get("n_per_state")
+    if isinstance(n_per_state, int) and not isinstance(n_per_state, bool) and n_per_state > 0:
+        n_train = n_per_state - round(settings.validation_fraction * n_per_state)
+        if settings.n_inducing > n_train:
+            raise ConfigError(
+                f"gp.n_inducing={settings.n_inducing} exceeds the {n_train} training points per "
+                f"classifier (collect.n_per_state={n_per_state} minus the validation split); "
+                f"lower gp.n_inducing or raise collect.n_per_state"
+            )
     size = cfg["gp"].get("grid_size", [50, 50])
-    if not (len(size) == 2 and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in size)):
-        raise ConfigError(f"gp.grid_size must be two integers >= 2, got {list(size)!r}")
+    if not (
+        not isinstance(size, str | bytes | Mapping)
+        and hasattr(size, "__len__")
+        and len(size) == 2
+        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in size)
+    ):
+        raise ConfigError(f"gp.grid_size must be two integers >= 2, got {size!r}")
 
 
 def load_transitions(cfg: Mapping[str, Any]) -> tuple[pd.DataFrame, Path]:
@@ -93,7 +116,9 @@ def load_transitions(cfg: Mapping[str, Any]) -> tuple[pd.DataFrame, Path]:
             f"Run `{collect_command(cfg)}` first."
         )
     manifest = read_manifest(directory, made_by=collect_command(cfg))
-    check_settings(collect_settings(cfg), manifest.get("settings", {}), str(directory), collect_command(cfg))
+    check_settings(
+        collect_settings(cfg), manifest.get("settings", {}), str(directory), collect_command(cfg)
+    )
     table = read_parquet(directory / TRANSITIONS, made_by=collect_command(cfg))
     missing = [c for c in REQUIRED_COLUMNS if c not in table.columns]
     if missing:
@@ -113,16 +138,37 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Run (or reuse) the train stage of ``cfg``; return its artefact directory."""
     validate(cfg)
     out = train_dir(cfg)
-    if not force and (out / MANIFEST).exists():
-        read_manifest(out)
-        log.info("abstraction exists, reusing %s", out)
+    if not force and _existing(cfg, out):
         return out
     table, source = load_transitions(cfg)
+    with artefact_lock(out):  # also removes the temporaries of killed runs
+        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
+            return out
+        _train(cfg, out, table, source)
+    return out
+
+
+def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
+    """Whether ``out`` holds a complete abstraction of these settings (refusing corrupt ones)."""
+    if existing_artefact(out, train_settings(cfg), train_command(cfg)) is None:
+        return False
+    log.info("abstraction exists, reusing %s", out)
+    return True
+
+
+def _train(cfg: Mapping[str, Any], out: Path, table: pd.DataFrame, source: Path) -> None:
+    """Fit both classifiers, then write the model, tables, figures and (last) the manifest."""
     device = resolve_device(cfg.get("device", "cpu"))
     settings = gp_settings(cfg)
     seed_everything(int(cfg["seed"]))
     t0 = time.perf_counter()
-    psi = fit_psi(table, settings, progress=bool(cfg.get("progress", True)), device=device)
+    try:
+        psi = fit_psi(table, settings, progress=bool(cfg.get("progress", True)), device=device)
+    except NumericalError as exc:
+        # nothing was written: a previous complete abstraction in `out` (if any) is kept
+        err = NumericalError(f"{exc} Nothing was written to {out}.")
+        err.partial = getattr(exc, "partial", None)  # type: ignore[attr-defined]
+        raise err from exc
     wall = time.perf_counter() - t0
     psi.to("cpu")
 
@@ -139,11 +185,32 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     metrics["train_seconds_total"] = wall
     domain = psi.domain
     params = build_params(cfg["model"])
+    grid = psi_grid_frame(
+        psi, domain["m"], domain["L"], size=tuple(cfg["gp"].get("grid_size", [50, 50]))
+    )
+    if not np.isfinite(grid["p"].to_numpy()).all():
+        # a model that predicts NaN must not reach the simulations (NaN < u is always False)
+        raise NumericalError(
+            f"the trained classifiers predict NaN/inf on their own (m, L) domain; nothing was "
+            f"written to {out}. Try a smaller gp.lr (now {settings.lr}) or more gp.epochs"
+        )
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
     save_psi(out / PSI, psi, {"settings": train_settings(cfg), "source": str(source)})
     write_json(out / METRICS, metrics)
-    write_csv(out / GRID, psi_grid_frame(psi, domain["m"], domain["L"], size=tuple(cfg["gp"].get("grid_size", [50, 50]))))
-    save_figure(out / SURFACES_FIGURE, plot_psi_surfaces(psi, table, domain["m"], domain["L"], adapted_curve=adapted_curve(domain["L"], params)))
-    save_figure(out / HISTORY_FIGURE, plot_training_history({"psi_tumble": psi.psi_tumble.history, "psi_run": psi.psi_run.history}))
+    write_csv(out / GRID, grid)
+    save_figure(
+        out / SURFACES_FIGURE,
+        plot_psi_surfaces(
+            psi, table, domain["m"], domain["L"], adapted_curve=adapted_curve(domain["L"], params)
+        ),
+    )
+    save_figure(
+        out / HISTORY_FIGURE,
+        plot_training_history(
+            {"psi_tumble": psi.psi_tumble.history, "psi_run": psi.psi_run.history}
+        ),
+    )
     write_manifest(
         out,
         stage="train",
@@ -155,7 +222,9 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         wall_time_s=wall,
         domain={k: list(v) for k, v in domain.items()},
         brier={n: metrics[n]["validation"]["brier"] for n in ("psi_tumble", "psi_run")},
-        brier_baseline={n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_tumble", "psi_run")},
+        brier_baseline={
+            n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_tumble", "psi_run")
+        },
     )
     for name in ("psi_tumble", "psi_run"):
         v = metrics[name]["validation"]
@@ -164,10 +233,11 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
             name, v["brier"], v["brier_baseline"], v["mean_log_predictive"], v["accuracy"],
         )  # fmt: skip
     log.info("trained both classifiers in %.1f s; artefacts in %s", wall, out)
-    return out
 
 
-def adapted_curve(L_range: tuple[float, float], params: Any, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
+def adapted_curve(
+    L_range: tuple[float, float], params: Any, n: int = 200
+) -> tuple[np.ndarray, np.ndarray]:
     """(L, m0(L)) over ``L_range``: the steady-state boundary drawn on the surfaces."""
     from surrogate.models.ecoli import adapted_methylation
 
@@ -184,11 +254,15 @@ def resolve_abstraction(cfg: Mapping[str, Any]) -> Path:
             f"Run `{train_command(cfg)}` first (after `{collect_command(cfg)}`)."
         )
     manifest = read_manifest(directory, made_by=train_command(cfg))
-    check_settings(train_settings(cfg), manifest.get("settings", {}), str(directory), train_command(cfg))
+    check_settings(
+        train_settings(cfg), manifest.get("settings", {}), str(directory), train_command(cfg)
+    )
     return directory
 
 
-def load_abstraction(source: str | os.PathLike | Mapping[str, Any], device: str | torch.device = "cpu") -> PsiClassifier:
+def load_abstraction(
+    source: str | os.PathLike | Mapping[str, Any], device: str | torch.device = "cpu"
+) -> PsiClassifier:
     """Load a trained abstraction from its artefact directory (or from the config that made it).
 
     Returns a :class:`~surrogate.gp.PsiClassifier`: ``psi(phi, m, L)`` gives
@@ -197,4 +271,3 @@ def load_abstraction(source: str | os.PathLike | Mapping[str, Any], device: str 
     directory = resolve_abstraction(source) if isinstance(source, Mapping) else Path(source)
     psi, _ = load_psi(directory / PSI, device=device)
     return psi
-

@@ -27,12 +27,22 @@ from surrogate.evaluate.statistics import (
     mean_std_over_time,
     noise_floor_table,
 )
-from surrogate.io import MANIFEST, artefact_dir, read_json, save_figure, write_json, write_manifest
+from surrogate.io import (
+    MANIFEST,
+    artefact_dir,
+    artefact_lock,
+    existing_artefact,
+    read_json,
+    save_figure,
+    write_json,
+    write_manifest,
+)
 from surrogate.paths import SIMULATE_CMD, simulate_dir, simulate_settings
 from surrogate.simulate import stage as simulate_stage
 
 log = logging.getLogger(__name__)
 
+EVALUATE_CMD = "python scripts/evaluate.py"
 SUMMARY = "summary.json"
 COMPARISON = "comparison"
 NOISE_FLOOR = "noise_floor"
@@ -52,7 +62,9 @@ def run_config(cfg: Mapping[str, Any], decision: str, seed_offset: int = 0) -> A
     c = OmegaConf.create(to_dict(cfg))
     c.decision = to_dict(cfg["decision"]) if decision == "abstract" else {"name": "full"}
     if decision == "abstract" and c.decision.get("name") != "abstract":
-        raise ConfigError("evaluate needs decision=abstract settings (decision.train_field, decision.mode)")
+        raise ConfigError(
+            "evaluate needs decision=abstract settings (decision.train_field, decision.mode)"
+        )
     c.seed = int(cfg["seed"]) + seed_offset
     return c
 
@@ -83,18 +95,43 @@ def validate(cfg: Mapping[str, Any]) -> None:
     positive(e, "subsample", "evaluate.", integer=True)
     times = e.get("times")
     if times is not None:
+        try:
+            values = [float(t) for t in times]
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"evaluate.times must be a list of times in s (or null), got {times!r}"
+            ) from None
         t_end = float(cfg["t_end"])
-        bad = [t for t in times if not 0 <= float(t) <= t_end]
+        bad = [t for t in values if not 0 <= t <= t_end]
         if bad:
             raise ConfigError(f"evaluate.times {bad} lie outside [0, t_end={t_end:g}] s")
+    if e.get("noise_floor", True):
+        offset = e.get("noise_seed_offset")
+        seed = int(cfg["seed"])
+        # offset 0 would compare the full run with itself: a noise floor of exactly zero
+        if (
+            isinstance(offset, bool)
+            or not isinstance(offset, int)
+            or offset == 0
+            or seed + offset < 0
+        ):
+            raise ConfigError(
+                f"evaluate.noise_seed_offset must be a non-zero integer with seed + offset >= 0 "
+                f"(the noise floor's second full run uses seed + offset), got {offset!r}"
+            )
+
+
+def evaluate_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Everything that defines an evaluation (the abstract run's settings and ``evaluate``)."""
+    return {
+        "abstract": simulate_settings(run_config(cfg, "abstract")),
+        "evaluate": to_dict(cfg["evaluate"]),
+    }
 
 
 def evaluate_dir(cfg: Mapping[str, Any]) -> Path:
     """``data/evaluate/field=..._dt=..._n=..._T=..._seed=...-<hash>``."""
-    settings = {
-        "abstract": simulate_settings(run_config(cfg, "abstract")),
-        "evaluate": to_dict(cfg["evaluate"]),
-    }
+    settings = evaluate_settings(cfg)
     label = {"field": field_name(to_dict(cfg["field"])), "dt": float(cfg["dt"]), "n": cfg["n_cells"],
              "T": cfg["t_end"], "seed": cfg["seed"]}  # fmt: skip
     return artefact_dir(cfg["data_dir"], "evaluate", label, settings)
@@ -103,38 +140,66 @@ def evaluate_dir(cfg: Mapping[str, Any]) -> Path:
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Compare abstract vs full (and full vs full for the noise floor); return the directory."""
     validate(cfg)
-    e = cfg["evaluate"]
     out = evaluate_dir(cfg)
-    if not force and (out / MANIFEST).exists():
-        log.info("evaluation exists, reusing %s", out)
+    if not force and _existing(cfg, out):
         return out
+    with artefact_lock(out):  # also removes the temporaries of killed runs
+        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
+            return out
+        _evaluate(cfg, out)
+    return out
+
+
+def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
+    """Whether ``out`` holds a complete evaluation of these settings (refusing corrupt ones)."""
+    if existing_artefact(out, evaluate_settings(cfg), EVALUATE_CMD) is None:
+        return False
+    log.info("evaluation exists, reusing %s", out)
+    return True
+
+
+def _evaluate(cfg: Mapping[str, Any], out: Path) -> None:
+    """Make sure the runs exist, compare them, then write tables, figures and (last) the manifest."""
+    e = cfg["evaluate"]
     run_missing = bool(e.get("run_missing", False))
     dirs = {"full": ensure_run(run_config(cfg, "full"), run_missing),
             "abstract": ensure_run(run_config(cfg, "abstract"), run_missing)}  # fmt: skip
     if e.get("noise_floor", True):
-        dirs["full_repeat"] = ensure_run(run_config(cfg, "full", int(e["noise_seed_offset"])), run_missing)
+        dirs["full_repeat"] = ensure_run(
+            run_config(cfg, "full", int(e["noise_seed_offset"])), run_missing
+        )
     t0 = time.perf_counter()
     runs = RunSet(load_run(dirs["full"]), load_run(dirs["abstract"]),
                   load_run(dirs["full_repeat"]) if "full_repeat" in dirs else None)  # fmt: skip
-    times = tuple(float(t) for t in e["times"]) if e.get("times") is not None else default_times(runs.full)
+    times = (
+        tuple(float(t) for t in e["times"])
+        if e.get("times") is not None
+        else default_times(runs.full)
+    )
     seed = int(cfg["seed"])
-    table = comparison_table(runs.full, runs.abstract, times=times, subsample=int(e["subsample"]), seed=seed)
+    table = comparison_table(
+        runs.full, runs.abstract, times=times, subsample=int(e["subsample"]), seed=seed
+    )
     floor = None
     if runs.full_repeat is not None:
-        floor = noise_floor_table(runs.full, runs.full_repeat, times=times, subsample=int(e["subsample"]), seed=seed)
+        floor = noise_floor_table(
+            runs.full, runs.full_repeat, times=times, subsample=int(e["subsample"]), seed=seed
+        )
         table = combine_with_noise_floor(table, floor)
     summary = summarise(runs, table)
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
     write_outputs(out, table, floor, runs, times)
     write_json(out / SUMMARY, summary)
     write_manifest(out, stage="evaluate", config=to_dict(cfg), seed=seed, runs={k: str(v) for k, v in dirs.items()},
-                   wall_time_s=time.perf_counter() - t0, times=list(times), **summary)  # fmt: skip
+                   settings=evaluate_settings(cfg), wall_time_s=time.perf_counter() - t0, times=list(times),
+                   **summary)  # fmt: skip
     log.info(
         "evaluate %s: max KS (abstract vs full) %.3f, noise floor %s; loop speed-up %.1fx; artefacts in %s",
         field_name(to_dict(cfg["field"])), summary["max_ks"],
         f"{summary['max_ks_noise_floor']:.3f}" if summary["max_ks_noise_floor"] is not None else "n/a",
         summary["speedup_loop"], out,
     )  # fmt: skip
-    return out
 
 
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
@@ -143,16 +208,30 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
     return {
         "speedup_loop": float(full["loop_time_s"]) / float(abstract["loop_time_s"]),
         "speedup_wall": float(full["wall_time_s"]) / float(abstract["wall_time_s"]),
-        "loop_time_s": {"full": float(full["loop_time_s"]), "abstract": float(abstract["loop_time_s"])},
-        "cell_steps_per_s": {"full": float(full["cell_steps_per_s"]), "abstract": float(abstract["cell_steps_per_s"])},
+        "loop_time_s": {
+            "full": float(full["loop_time_s"]),
+            "abstract": float(abstract["loop_time_s"]),
+        },
+        "cell_steps_per_s": {
+            "full": float(full["cell_steps_per_s"]),
+            "abstract": float(abstract["cell_steps_per_s"]),
+        },
         "max_ks": float(table["ks"].max()),
-        "max_ks_noise_floor": float(table["ks_noise_floor"].max()) if "ks_noise_floor" in table else None,
+        "max_ks_noise_floor": float(table["ks_noise_floor"].max())
+        if "ks_noise_floor" in table
+        else None,
         "all_within_noise": bool(table["within_noise"].all()) if "within_noise" in table else None,
         "lookup_max_deviation": abstract.get("lookup_max_deviation"),
     }
 
 
-def write_outputs(out: Path, table: pd.DataFrame, floor: pd.DataFrame | None, runs: RunSet, times: tuple[float, ...]) -> None:
+def write_outputs(
+    out: Path,
+    table: pd.DataFrame,
+    floor: pd.DataFrame | None,
+    runs: RunSet,
+    times: tuple[float, ...],
+) -> None:
     """Tables (CSV + Markdown) and figures (Figures 4 and 5 of the paper, durations)."""
     from surrogate.evaluate.figures import (
         plot_distance_histograms,
@@ -166,14 +245,22 @@ def write_outputs(out: Path, table: pd.DataFrame, floor: pd.DataFrame | None, ru
     if floor is not None:
         write_comparison(out, floor, prefix=NOISE_FLOOR)
     over_time = pd.concat(
-        [mean_std_over_time(r).assign(model=name) for name, r in (("full", runs.full), ("abstract", runs.abstract))]
+        [
+            mean_std_over_time(r).assign(model=name)
+            for name, r in (("full", runs.full), ("abstract", runs.abstract))
+        ]
     )
     write_csv(out / "distance_over_time.csv", over_time)
-    save_figure(out / "distance_histograms.png", plot_distance_histograms(runs.full, runs.abstract, times))
-    save_figure(out / "distance_over_time.png", plot_distance_over_time(runs.full, runs.abstract, separate=True))
+    save_figure(
+        out / "distance_histograms.png", plot_distance_histograms(runs.full, runs.abstract, times)
+    )
+    save_figure(
+        out / "distance_over_time.png",
+        plot_distance_over_time(runs.full, runs.abstract, separate=True),
+    )
     save_figure(out / "durations.png", plot_duration_histograms(runs.full, runs.abstract))
 
 
 def read_summary(directory: str | Path) -> dict[str, Any]:
     """The summary.json of an evaluation directory."""
-    return read_json(Path(directory) / SUMMARY, made_by="python scripts/evaluate.py")
+    return read_json(Path(directory) / SUMMARY, made_by=EVALUATE_CMD)

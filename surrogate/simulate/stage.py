@@ -51,7 +51,8 @@ def validate(cfg: Mapping[str, Any]) -> None:
     decision = cfg["decision"]
     if decision.get("name") not in DECISIONS:
         raise ConfigError(
-            f"decision must be one of {list(DECISIONS)}, got {decision.get('name')!r}"
+            f"decision.name must be one of {list(DECISIONS)} (select with decision=full|abstract), "
+            f"got {decision.get('name')!r}"
         )
     if decision["name"] == "abstract":
         if decision.get("mode") not in ABSTRACT_MODES:
@@ -60,12 +61,19 @@ def validate(cfg: Mapping[str, Any]) -> None:
             )
         size = decision.get("lookup_size")
         if not (
-            size is not None and len(size) == 2 and all(isinstance(s, int) and s >= 2 for s in size)
+            not isinstance(size, str | bytes | Mapping)
+            and hasattr(size, "__len__")
+            and len(size) == 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in size)
         ):
             raise ConfigError(f"decision.lookup_size must be two integers >= 2, got {size!r}")
-        from surrogate.config import field_config
+        # The collect/gp settings locate the abstraction: refuse invalid ones (and an unknown
+        # decision.train_field) here, not as a missing artefact after the lookups.
+        from surrogate import collect, train
 
-        field_config(str(decision.get("train_field")))  # unknown train field -> ConfigError
+        train_cfg = abstraction_config(cfg)  # unknown train field -> ConfigError
+        collect.validate(train_cfg)
+        train.validate(train_cfg)
 
 
 def build_decision(cfg: Mapping[str, Any], device: Any) -> tuple[DecisionLayer, dict[str, Any]]:

@@ -18,6 +18,11 @@ TUMBLE_MODES = ("per_step", "per_tumble")
 MOTOR_SAMPLERS = ("transition_matrix", "ssa")
 
 
+def _is_number(value: Any) -> bool:
+    """A finite int or float (bool is an int in Python, but `model.mu=true` is a typo)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 @dataclass(frozen=True)
 class EcoliParameters:
     """All constants of the signalling, motor and movement layers (units: mM, uM, s, mm)."""
@@ -58,9 +63,14 @@ class EcoliParameters:
             "n_tar", "n_tsr", "k_tar_off", "k_tar_on", "k_tsr_off", "k_tsr_on", "alpha", "omega",
             "k_d", "mu", "n_motors", "cv", "tau", "speed", "tumble_shape", "tumble_scale_deg",
         ]  # fmt: skip
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("int", "float") and not _is_number(value):
+                # checked first, so the range checks below never compare a string or a bool
+                raise ConfigError(f"model.{f.name} must be a finite number, got {value!r}")
         for name in positive:
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            if not value > 0:
                 raise ConfigError(f"model.{name} must be a positive number, got {value!r}")
         if not 0 < self.yp_adapted < self.alpha:
             raise ConfigError(

@@ -1,0 +1,226 @@
+"""Bad settings are refused up front, by name, before any stage starts its work."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import torch
+from hydra.errors import ConfigCompositionException, MissingConfigException
+
+from surrogate import collect, reproduce, train
+from surrogate.config import CONF_DIR
+from surrogate.errors import ConfigError
+from surrogate.evaluate import stage as evaluate_stage
+from surrogate.simulate import stage as simulate_stage
+
+from .conftest import compose_in
+
+REPO = CONF_DIR.parent
+
+VALIDATORS: dict[str, Callable] = {
+    "collect": collect.validate,
+    "train": train.validate,
+    "simulate": simulate_stage.validate,
+    "evaluate": evaluate_stage.validate,
+    "reproduce": reproduce.validate,
+}
+
+# (stage, overrides, text the message must contain: the setting's name and what is allowed)
+BAD_INPUTS = [
+    # time stepping
+    ("simulate", ["dt=0"], "dt must be a positive number"),
+    ("collect", ["dt=-0.05"], "dt must be a positive number"),
+    ("simulate", ["dt=20.0", "record_interval=20.0", "t_end=40.0"], "model.tau"),
+    ("simulate", ["t_end=0"], "t_end must be a positive number"),
+    ("simulate", ["t_end=-5.0"], "t_end must be a positive number"),
+    ("simulate", ["t_end=2.01"], "t_end=2.01 s must be a positive multiple of dt"),
+    ("simulate", ["n_cells=0"], "n_cells must be a positive number"),
+    ("simulate", ["n_cells=2.5"], "n_cells must be a positive integer"),
+    ("simulate", ["record_interval=0"], "record_interval must be a positive number"),
+    ("simulate", ["dt=0.5", "record_interval=0.25"], "larger than record_interval"),
+    ("simulate", ["equilibration_time=-1.0"], "equilibration_time must be a non-negative"),
+    ("simulate", ["start=[1.0]"], "start must be two coordinates"),
+    ("simulate", ["seed=-1"], "seed must be a non-negative integer"),
+    # device and names
+    ("simulate", ["device=tpu"], "device='tpu'"),
+    ("simulate", ["decision.name=foo"], "decision.name must be one of ['full', 'abstract']"),
+    ("simulate", ["decision=abstract", "decision.mode=foo"], "decision.mode must be one of"),
+    ("simulate", ["decision=abstract", "decision.train_field=foo"], "unknown field 'foo'"),
+    ("simulate", ["decision=abstract", "decision.lookup_size=[1,1]"], "decision.lookup_size"),
+    ("simulate", ["decision=abstract", "gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'"),
+    ("train", ["gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'; allowed values"),
+    ("train", ["+gp.foo=1"], "gp.foo"),
+    ("simulate", ["model.motor_sampler=foo"], "model.motor_sampler must be one of"),
+    ("simulate", ["model.tumble_mode=foo"], "model.tumble_mode must be one of"),
+    ("simulate", ["+model.foo=1"], "unknown model setting(s) ['foo']"),
+    ("simulate", ["field._target_=surrogate.fields.Nope"], "surrogate.fields.Nope"),
+    ("simulate", ["field.amplitude=-1.0"], "field.amplitude must be a positive number"),
+    ("reproduce", ["fields=[gaussian,foo]"], "unknown field 'foo'"),
+    # model constants: probabilities, rates, counts
+    ("simulate", ["model.n_motors=0"], "model.n_motors must be a positive number"),
+    ("simulate", ["model.n_motors=2.5"], "model.n_motors must be an integer"),
+    ("simulate", ["model.yp_adapted=0.0"], "model.yp_adapted must lie in (0, model.alpha"),
+    ("simulate", ["model.yp_adapted=6.0"], "model.yp_adapted must lie in (0, model.alpha"),
+    ("simulate", ["model.cv=0.0"], "model.cv must be a positive number"),
+    ("simulate", ["model.mu=-1.0"], "model.mu must be a positive number"),
+    ("simulate", ["model.mu=true"], "model.mu must be a finite number"),
+    ("simulate", ["model.g0=nan"], "model.g0 must be a finite number"),
+    ("simulate", ["model.m_min=9.0"], "model.m_min"),
+    # GP settings
+    ("train", ["gp.validation_fraction=0.0"], "gp.validation_fraction must lie in (0, 1)"),
+    ("train", ["gp.validation_fraction=1.0"], "gp.validation_fraction must lie in"),
+    ("train", ["gp.validation_fraction=1.5"], "gp.validation_fraction must lie in"),
+    ("train", ["gp.lr=0.0"], "gp.lr must be > 0"),
+    ("train", ["gp.epochs=0"], "gp.epochs must be >= 1"),
+    ("train", ["gp.n_inducing=500"], "gp.n_inducing=500 exceeds the 160 training points"),
+    ("train", ["gp.grid_size=[1,50]"], "gp.grid_size must be two integers >= 2"),
+    ("train", ["gp.grid_size=5"], "gp.grid_size must be two integers >= 2, got 5"),
+    # collect settings
+    ("collect", ["collect.perturb_rate=-0.1"], "collect.perturb_rate must be a non-negative"),
+    ("collect", ["collect.perturb_rate=30.0"], "collect.perturb_rate=30/s cannot be met"),
+    ("collect", ["collect.n_per_state=0"], "collect.n_per_state must be a positive"),
+    ("collect", ["collect.record_every=0"], "collect.record_every must be a positive"),
+    # evaluate / reproduce
+    ("evaluate", ["evaluate.noise_seed_offset=0"], "evaluate.noise_seed_offset"),
+    ("evaluate", ["evaluate.times=[5.0]"], "evaluate.times [5.0] lie outside"),
+    ("evaluate", ["evaluate.subsample=0"], "evaluate.subsample must be a positive"),
+    ("evaluate", ["decision.mode=foo"], "decision.mode must be one of"),
+    ("reproduce", ["n_cells=0"], "n_cells must be a positive number"),
+    ("reproduce", ["decision.lookup_size=[0,4]"], "decision.lookup_size"),
+]
+
+
+@pytest.mark.parametrize(
+    ("stage", "overrides", "message"),
+    BAD_INPUTS,
+    ids=[f"{s}:{' '.join(o)}" for s, o, _ in BAD_INPUTS],
+)
+def test_bad_setting_is_refused_by_name(
+    tmp_path: Path, stage: str, overrides: list[str], message: str
+) -> None:
+    cfg = compose_in(tmp_path / "data", stage, overrides)
+    with pytest.raises(ConfigError) as info:
+        VALIDATORS[stage](cfg)
+    assert message in str(info.value)
+    assert not (tmp_path / "data").exists()  # validation writes nothing
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+@pytest.mark.parametrize("stage", ["collect", "train", "simulate"])
+def test_cuda_without_cuda_is_refused(tmp_path: Path, stage: str) -> None:
+    cfg = compose_in(tmp_path / "data", stage, ["device=cuda"])
+    with pytest.raises(ConfigError, match=r"device='cuda'.*CUDA is not available.*device=cpu"):
+        VALIDATORS[stage](cfg)
+
+
+@pytest.mark.parametrize("group", ["field", "model", "decision", "gp", "collect"])
+def test_unknown_config_group_option_is_hydras_error(tmp_path: Path, group: str) -> None:
+    """``field=foo`` etc. fail in Hydra's composition, listing the available options."""
+    with pytest.raises(MissingConfigException) as info:
+        compose_in(tmp_path / "data", "simulate", [f"{group}=foo"])
+    text = str(info.value)
+    assert f"Could not find '{group}/foo'" in text
+    assert f"Available options in '{group}'" in text
+
+
+def test_unknown_key_without_plus_is_hydras_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigCompositionException, match="Could not override 'model.foo'"):
+        compose_in(tmp_path / "data", "simulate", ["model.foo=1"])
+
+
+# ---------------------------------------------------------------------------------------------
+# validation happens before any expensive work
+
+
+def _forbid(monkeypatch: pytest.MonkeyPatch, target: str) -> None:
+    def expensive(*args, **kwargs):
+        raise AssertionError(f"{target} ran before the config was validated")
+
+    monkeypatch.setattr(target, expensive)
+
+
+def test_collect_validates_before_simulating(tiny, monkeypatch) -> None:
+    _forbid(monkeypatch, "surrogate.collect.collect_transitions")
+    _forbid(monkeypatch, "surrogate.collect.Simulator")
+    with pytest.raises(ConfigError, match="collect.perturb_rate"):
+        collect.run(tiny("collect", ["collect.perturb_rate=-1.0"]))
+
+
+def test_train_validates_before_loading_data(tiny, monkeypatch) -> None:
+    _forbid(monkeypatch, "surrogate.train.load_transitions")
+    _forbid(monkeypatch, "surrogate.train.fit_psi")
+    # no collected data either: the bad setting is named, not the missing artefact
+    with pytest.raises(ConfigError, match="gp.kernel"):
+        train.run(tiny("train", ["gp.kernel=foo"]))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["decision.train_field=foo"], "unknown field 'foo'"),
+        (["gp.validation_fraction=0.0"], "gp.validation_fraction"),
+        (["collect.perturb_rate=-1.0"], "collect.perturb_rate"),
+    ],
+)
+def test_simulate_validates_the_abstraction_settings_before_lookups(
+    tiny, monkeypatch, overrides: list[str], message: str
+) -> None:
+    _forbid(monkeypatch, "surrogate.train.resolve_abstraction")
+    _forbid(monkeypatch, "surrogate.train.load_abstraction")
+    _forbid(monkeypatch, "surrogate.simulate.stage.build_decision")
+    _forbid(monkeypatch, "surrogate.simulate.stage.simulate_population")
+    with pytest.raises(ConfigError, match=message):
+        simulate_stage.run(tiny("simulate", ["decision=abstract", *overrides]))
+
+
+def test_evaluate_validates_before_simulating(tiny, monkeypatch) -> None:
+    _forbid(monkeypatch, "surrogate.evaluate.stage.ensure_run")
+    _forbid(monkeypatch, "surrogate.simulate.stage.run")
+    with pytest.raises(ConfigError, match="evaluate.noise_seed_offset"):
+        evaluate_stage.run(tiny("evaluate", ["evaluate.noise_seed_offset=0"]))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["n_cells=0"], "n_cells"),
+        (["decision.mode=foo"], "decision.mode"),
+        (["evaluate.times=[1000.0]"], "evaluate.times"),
+    ],
+)
+def test_reproduce_validates_every_stage_before_collecting(
+    tiny, monkeypatch, overrides: list[str], message: str
+) -> None:
+    _forbid(monkeypatch, "surrogate.collect.run")
+    _forbid(monkeypatch, "surrogate.train.run")
+    _forbid(monkeypatch, "surrogate.evaluate.stage.run")
+    with pytest.raises(ConfigError, match=message):
+        reproduce.run(tiny("reproduce", overrides))
+
+
+def test_script_reports_a_bad_setting_in_one_line(tmp_path: Path) -> None:
+    """The command line: ``error: <message>`` naming the setting, exit status 2, no traceback."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "scripts/simulate.py",
+            f"data_dir={tmp_path / 'data'}",
+            "dt=0",
+            "threads=1",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "error: dt must be a positive number, got 0" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "data" / "simulate").exists()

@@ -1,0 +1,170 @@
+"""Population sharding: shard settings and seeds, K shards merged into one ordinary run."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from omegaconf import OmegaConf, open_dict
+
+from surrogate.errors import ConfigError, MissingArtefactError
+from surrogate.evaluate.statistics import comparison_table, load_run
+from surrogate.io import read_manifest
+from surrogate.paths import simulate_dir
+from surrogate.simulate import shards
+from surrogate.simulate import stage as simulate_stage
+
+ROOT = Path(__file__).resolve().parents[1]
+# Small and quick: 10 cells for 2 s, records every 0.5 s.
+SMALL = ["n_cells=10", "t_end=2.0", "record_interval=0.5", "equilibration_time=0.5"]
+
+
+def test_shard_sizes_offsets_and_seeds() -> None:
+    assert shards.shard_sizes(10, 3) == [4, 3, 3]
+    assert shards.shard_sizes(9, 3) == [3, 3, 3]
+    assert shards.shard_offsets(10, 3) == [0, 4, 7]
+    seeds = [shards.shard_seed(0, 3, i) for i in range(3)]
+    assert len(set(seeds)) == 3 and 0 not in seeds
+    assert seeds == [shards.shard_seed(0, 3, i) for i in range(3)]  # deterministic
+    assert all(0 <= s < 2**63 for s in seeds)
+    assert shards.shard_seed(1, 3, 0) not in seeds  # the parent seed matters
+
+
+def test_default_is_unsharded_with_unchanged_directory(compose_cfg) -> None:
+    cfg = compose_cfg("simulate", SMALL)
+    assert (cfg.shard.count, cfg.shard.index) == (1, 0)
+    without = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    del without["shard"]
+    assert simulate_dir(cfg) == simulate_dir(without) == simulate_dir(shards.shard_config(cfg))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        (["shard.count=3", "shard.index=3"], "shard.index"),
+        (["shard.count=0"], "shard.count"),
+        (["shard.count=11"], "larger than n_cells"),
+    ],
+)
+def test_invalid_shard_settings(compose_cfg, overrides: list[str], match: str) -> None:
+    cfg = compose_cfg("simulate", [*SMALL, *overrides])
+    with pytest.raises(ConfigError, match=match):
+        shards.run(cfg)
+
+
+def test_merge_needs_shards(compose_cfg) -> None:
+    with pytest.raises(ConfigError, match="nothing to merge"):
+        shards.merge(compose_cfg("simulate", SMALL))
+
+
+def test_merge_names_the_missing_shard_and_its_command(compose_cfg) -> None:
+    for i in (0, 2):
+        shards.run(compose_cfg("simulate", [*SMALL, "shard.count=3", f"shard.index={i}"]))
+    cfg = compose_cfg("simulate", [*SMALL, "shard.count=3"])
+    with pytest.raises(MissingArtefactError) as err:
+        shards.merge(cfg, overrides=["n_cells=10", "t_end=2.0", "shard.count=3"])
+    message = str(err.value)
+    assert "missing 1 of 3 shards: shard 1 (" in message
+    assert "python scripts/simulate.py n_cells=10 t_end=2.0 shard.count=3 shard.index=1" in message
+
+
+def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
+    base = compose_cfg("simulate", SMALL)
+    unsharded = load_run(simulate_stage.run(base))
+    shard_dirs = [
+        shards.run(compose_cfg("simulate", [*SMALL, "shard.count=3", f"shard.index={i}"]))
+        for i in range(3)
+    ]
+    assert len({*shard_dirs, unsharded.path}) == 4  # every shard has its own directory
+    cfg = compose_cfg("simulate", [*SMALL, "shard.count=3"])
+    out = shards.merge(cfg)
+    assert out == shards.merged_dir(cfg) and out.parent == unsharded.path.parent
+    assert out not in (*shard_dirs, unsharded.path)
+
+    merged = load_run(out)
+    d = merged.distances
+    np.testing.assert_array_equal(merged.record_times, unsharded.record_times)
+    for _, rows in d.groupby("t"):
+        assert sorted(rows["cell"]) == list(range(10))  # n_cells rows, unique contiguous ids
+    # same format as an unsharded run: columns, dtypes (pandas and Parquet), row order by (t, cell)
+    for name in ("distances", "durations"):
+        a, b = getattr(merged, name), getattr(unsharded, name)
+        assert list(a.columns) == list(b.columns) and a.dtypes.equals(b.dtypes)
+        pa_schema = pq.read_schema(out / f"{name}.parquet")
+        assert pa_schema.equals(pq.read_schema(unsharded.path / f"{name}.parquet"))
+    assert d[["t", "cell"]].equals(d.sort_values(["t", "cell"])[["t", "cell"]])
+
+    # each shard's cells are its rows, offset; durations are the shards' concatenated
+    parts = [load_run(p) for p in shard_dirs]
+    for part, offset in zip(parts, shards.shard_offsets(10, 3), strict=True):
+        n = part.manifest["n_cells"]
+        mine = d[(d["cell"] >= offset) & (d["cell"] < offset + n)].reset_index(drop=True)
+        np.testing.assert_array_equal(mine["distance"], part.distances["distance"])
+        np.testing.assert_array_equal(mine["cell"] - offset, part.distances["cell"])
+    durations = merged.durations
+    assert len(durations) == sum(len(p.durations) for p in parts) > 0
+    offsets = np.repeat(shards.shard_offsets(10, 3), [len(p.durations) for p in parts])
+    expected_cells = np.concatenate([p.durations["cell"] for p in parts]) + offsets
+    np.testing.assert_array_equal(durations["cell"], expected_cells)
+
+    m, u = merged.manifest, unsharded.manifest
+    assert set(u) <= set(m)
+    assert m["n_cells"] == 10 and m["n_steps"] == u["n_steps"] and m["seed"] == 0
+    assert m["n_durations"] == len(durations)
+    assert m["wall_time_s"] == pytest.approx(sum(p.manifest["wall_time_s"] for p in parts))
+    loop = sum(p.manifest["loop_time_s"] for p in parts)
+    assert m["loop_time_s"] == pytest.approx(loop)
+    assert m["cell_steps_per_s"] == pytest.approx(10 * m["n_steps"] / loop)
+    assert m["final_mean_distance"] == pytest.approx(
+        float(d.loc[d["t"] == d["t"].max(), "distance"].mean()), rel=1e-5
+    )
+    assert m["shards"] == [str(p) for p in shard_dirs] and m["shard_count"] == 3
+    # evaluate reads it like any run
+    table = comparison_table(unsharded, merged, times=(1.0, 2.0), subsample=50, seed=0)
+    assert table["ks"].notna().all()
+
+    stamp = (out / "manifest.json").stat().st_mtime_ns
+    assert shards.merge(cfg) == out  # reused, not rewritten
+    assert (out / "manifest.json").stat().st_mtime_ns == stamp
+    assert read_manifest(out)["shards"] == m["shards"]
+
+
+def test_shard_of_an_abstract_run_keeps_decision_settings(compose_cfg) -> None:
+    cfg = compose_cfg("simulate", [*SMALL, "decision=abstract", "shard.count=2", "shard.index=1"])
+    c = shards.shard_config(cfg)
+    assert c.decision == cfg.decision and c.n_cells == 5 and c.seed == shards.shard_seed(0, 2, 1)
+    with open_dict(cfg):
+        cfg.shard.index = 0
+    assert shards.shard_config(cfg).seed != c.seed
+
+
+@pytest.mark.slow
+def test_sharded_multirun_and_merge_scripts(tmp_path: Path) -> None:
+    """End to end: merge_shards.py names the missing shards' command; that command (a joblib
+    multirun) makes them; merge_shards.py then writes one run that evaluate can load."""
+    common = [*SMALL, f"data_dir={tmp_path / 'data'}", "threads=1"]
+
+    def script(name: str, *args: str) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+        return subprocess.run([sys.executable, str(ROOT / "scripts" / name), *args], cwd=ROOT,
+                              capture_output=True, text=True, timeout=300, env=env)  # fmt: skip
+
+    first = script("merge_shards.py", *common, "shard.count=3")
+    assert first.returncode == 2, first.stderr
+    assert "Traceback" not in first.stderr
+    command = re.search(r"Run `python scripts/simulate.py (.*?)` first", first.stderr)
+    assert command is not None, first.stderr
+    args = command.group(1).split()
+    assert "-m" in args and "shard.index=0,1,2" in args
+    made = script("simulate.py", *args, "hydra/launcher=joblib", f"hydra.sweep.dir={tmp_path}/sw")
+    assert made.returncode == 0, made.stderr
+    merged = script("merge_shards.py", *common, "shard.count=3")
+    assert merged.returncode == 0, merged.stderr
+    run = load_run(next((tmp_path / "data" / "simulate").glob("*_shards=3-*")))
+    assert run.manifest["n_cells"] == 10 and len(run.manifest["shards"]) == 3
