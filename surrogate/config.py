@@ -11,8 +11,8 @@ and its duration subsample uses ``seed``; shard i of a sharded population (``sha
 uses child i of ``numpy.random.SeedSequence(seed).spawn(K)``. Nothing depends on time, PID or
 job number, so parallel jobs (Hydra ``--multirun``, joblib or SLURM launchers) draw independent
 streams only when their ``seed`` (or shard index) differs: sweep it explicitly
-(``--multirun seed=0,1,2``); jobs with the same settings and seed produce the same artefact
-(in the same directory, which they take turns to write, see :func:`surrogate.io.artefact_lock`).
+(``--multirun seed=0,1,2``); jobs with the same settings and seed produce the same artefact in
+the same directory (stages that write under :func:`surrogate.io.artefact_lock` take turns).
 """
 
 from __future__ import annotations

@@ -125,7 +125,8 @@ def evaluate_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Everything that defines an evaluation (the abstract run's settings and ``evaluate``)."""
     return {
         "abstract": simulate_settings(run_config(cfg, "abstract")),
-        "evaluate": to_dict(cfg["evaluate"]),
+        # run_missing says how to get the inputs, not what the evaluation is
+        "evaluate": {k: v for k, v in to_dict(cfg["evaluate"]).items() if k != "run_missing"},
     }
 
 

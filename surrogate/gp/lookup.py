@@ -12,7 +12,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import ArtefactError, ConfigError
+from surrogate.errors import ArtefactError, ConfigError, NumericalError
 
 PsiFunction = Callable[[Tensor, Tensor, Tensor], Tensor]
 
@@ -43,6 +43,7 @@ class PsiLookupTable:
         n_m, n_L = self.shape
         self._m_scale = (n_m - 1) / (self.m_range[1] - self.m_range[0])
         self._L_scale = (n_L - 1) / (self.L_range[1] - self.L_range[0])
+        self.check_finite = True
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -100,8 +101,12 @@ class PsiLookupTable:
         """Interpolated p(RUN next), float32, on the input's device (like the classifier).
 
         Inputs outside the box are clamped to its edge. ``phi`` must be 0/1 (or bool) and is not
-        checked (that would need a host sync); NaN in m or L gives NaN out, never a bad index.
+        checked. NaN/inf in m or L raise :class:`NumericalError` while ``check_finite`` is true (a
+        host sync per call; the simulation loop turns it off and checks its state at record
+        times instead); unchecked, NaN gives NaN out, never a bad index.
         """
+        if self.check_finite and not bool(torch.isfinite(m).all() & torch.isfinite(L).all()):
+            raise NumericalError("PsiLookupTable got NaN or infinite inputs (m or L)")
         n_m, n_L = self.shape
         dev = self.table.device
         out_device = m.device

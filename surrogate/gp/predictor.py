@@ -11,7 +11,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from surrogate.errors import ArtefactError
+from surrogate.errors import ArtefactError, NumericalError
 from surrogate.gp.training import PREDICT_CHUNK, FittedClassifier, GPSettings, fit_classifier
 from surrogate.io import load_tensors, save_tensors
 
@@ -48,6 +48,7 @@ class PsiClassifier:
         self.psi_run = psi_run
         self.domain: Domain = dict(domain) if domain else {}
         self.chunk_size = int(chunk_size)
+        self.check_finite = True
 
     @property
     def device(self) -> torch.device:
@@ -66,8 +67,9 @@ class PsiClassifier:
 
         Each classifier is evaluated only on its own rows (measured about twice as fast as
         evaluating both on every row and selecting with ``torch.where``; the cost is one host
-        sync for the boolean-mask sizes). NaN inputs give NaN outputs; they are not checked here
-        because that would cost another sync on every simulation step.
+        sync for the boolean-mask sizes). NaN/inf inputs raise :class:`NumericalError` while
+        ``check_finite`` is true (the default; the simulation loop turns it off and checks its
+        state at record times instead).
         """
         out_device = m.device
         dev = self.device
@@ -77,6 +79,8 @@ class PsiClassifier:
         )
         if run.shape[0] != x.shape[0]:
             raise ValueError(f"phi has {run.shape[0]} rows but m and L have {x.shape[0]}")
+        if self.check_finite and not bool(torch.isfinite(x).all()):
+            raise NumericalError("PsiClassifier got NaN or infinite inputs (m or L)")
         out = torch.empty(x.shape[0], dtype=torch.float32, device=dev)
         idx_run = run.nonzero().squeeze(1)
         idx_tumble = (~run).nonzero().squeeze(1)

@@ -389,6 +389,9 @@ def fit_classifier(
     t0 = time.perf_counter()
     bar = tqdm(range(settings.epochs), desc=desc, disable=not progress, leave=False)
     for epoch in bar:
+        # The parameters after an epoch's last step are never evaluated by a loss, so the last
+        # state known to be good is the one an epoch started from once all its losses are finite.
+        epoch_start = _snapshot(fitted)
         batches = torch.randperm(n_train, generator=gen).to(device).split(settings.batch_size)
         # Accumulate on the device; one host sync per epoch, not per minibatch.
         total = torch.zeros((), device=device)
@@ -409,7 +412,7 @@ def fit_classifier(
             bar.close()
             raise _numerical_failure(fitted, good_state, epoch, f"loss became {epoch_loss}")
         fitted.history.append(epoch_loss)
-        good_state = _snapshot(fitted)
+        good_state = epoch_start
         bar.set_postfix(loss=f"{epoch_loss:.4f}")
     bar.close()
     fitted.train_seconds = time.perf_counter() - t0

@@ -29,6 +29,7 @@ class PopulationSummary:
     wall_time_s: float
     loop_time_s: float
     record_times: list[float] = field(default_factory=list)
+    compile_time_s: float = 0.0  # warm-up (torch.compile) time, not part of loop_time_s
     mean_distance: list[float] = field(default_factory=list)
     n_durations: int = 0
 
@@ -58,7 +59,13 @@ def simulate_population(
     progress: bool = True,
 ) -> PopulationSummary:
     """Simulate ``n_cells`` cells to ``t_end`` and write ``distances.parquet`` and
-    ``durations.parquet`` into ``out_dir`` (atomically, only once the run completes)."""
+    ``durations.parquet`` into ``out_dir`` (atomically, only once the run completes).
+
+    The state is checked for NaN/inf at every record time (:meth:`Simulator.check_state`,
+    raising :class:`~surrogate.errors.NumericalError` with the time window), not every step,
+    so the loop has no per-step host sync. With ``simulator.compile`` the step is compiled on
+    a throw-away copy of the initial state first (``compile_time_s``), outside the loop timing.
+    """
     dt = simulator.dt
     n_steps = steps_between(t_end, dt, "t_end")
     every = steps_between(record_interval, dt, "record_interval")
@@ -73,7 +80,9 @@ def simulate_population(
     try:
         with torch.no_grad():
             state = simulator.initial_state(n_cells, start, equilibration_time)
+            simulator.check_state(state)
             distances.record(0.0, simulator.field.distance_from_peak(state.position))
+            compile_time = simulator.warm_up(state) if simulator.compile else 0.0
             loop_start = time.perf_counter()
             for k in tqdm(range(n_steps), desc=f"simulate {simulator.decision.name}", unit="step",
                           disable=not progress, mininterval=1.0):  # fmt: skip
@@ -81,9 +90,11 @@ def simulate_population(
                 if durations is not None:
                     durations.record(k, rec.ended_length)
                 if (k + 1) % every == 0:
+                    simulator.check_state(state)
                     distances.record(
                         (k + 1) * dt, simulator.field.distance_from_peak(state.position)
                     )
+            simulator.check_state(state)  # the tail after the last record time
             if simulator.device.type == "cuda":
                 torch.cuda.synchronize(simulator.device)
             loop_time = time.perf_counter() - loop_start
@@ -108,4 +119,5 @@ def simulate_population(
         record_times=distances.times,
         mean_distance=distances.mean,
         n_durations=n_durations,
+        compile_time_s=compile_time,
     )

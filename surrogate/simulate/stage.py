@@ -100,7 +100,14 @@ def build_decision(cfg: Mapping[str, Any], device: Any) -> tuple[DecisionLayer, 
             info["lookup_max_deviation"],
         )
         return AbstractDecision(table, params), info
-    return AbstractDecision(psi, params), info
+    # classifier every step: the same predictive in closed form with cached factors (no gpytorch,
+    # no host sync per step); its agreement with the classifier is checked and recorded
+    from surrogate.gp.fast import CachedPsi
+
+    cached = CachedPsi.from_classifier(psi)
+    info["cached_max_deviation"] = cached.max_deviation(psi)
+    log.info("cached classifier: max |cached - classifier| = %.2e", info["cached_max_deviation"])
+    return AbstractDecision(cached, params), info
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
