@@ -11,7 +11,6 @@ from omegaconf import DictConfig
 
 from surrogate.config import CONF_DIR
 
-
 # One intra-op thread: the suite's tensors are small, and two threads stall badly whenever another
 # process holds a core (measured: 55x slower GP training under load).
 torch.set_num_threads(1)

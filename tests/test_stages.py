@@ -33,7 +33,9 @@ TINY = [
 @pytest.fixture
 def trained(compose_cfg):
     """A tiny collect + train, shared settings for the tests below."""
-    cfg = compose_cfg("train", [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")])
+    cfg = compose_cfg(
+        "train", [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    )
     collect_dir = collect.run(cfg)
     train_dir = train.run(cfg)
     return cfg, collect_dir, train_dir
@@ -56,7 +58,13 @@ def test_collect_writes_columns_counts_and_manifest(trained) -> None:
 
 def test_train_writes_artefacts_and_round_trips(trained) -> None:
     cfg, _, train_dir = trained
-    for name in ("psi.pt", "train_metrics.json", "psi_grid.csv", "psi_surfaces.png", "manifest.json"):
+    for name in (
+        "psi.pt",
+        "train_metrics.json",
+        "psi_grid.csv",
+        "psi_surfaces.png",
+        "manifest.json",
+    ):
         assert (train_dir / name).exists(), name
     grid = pd.read_csv(train_dir / "psi_grid.csv")
     assert list(grid.columns) == ["phi", "m", "L", "p"] and len(grid) == 2 * 12 * 10
@@ -64,16 +72,24 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
     load_tensors(train_dir / "psi.pt")  # loads with weights_only=True
     psi = train.load_abstraction(train_dir)
     # the saved grid is reproduced exactly by the reloaded model
-    p = psi(torch.tensor(grid["phi"].to_numpy()), torch.tensor(grid["m"].to_numpy()), torch.tensor(grid["L"].to_numpy()))
+    p = psi(
+        torch.tensor(grid["phi"].to_numpy()),
+        torch.tensor(grid["m"].to_numpy()),
+        torch.tensor(grid["L"].to_numpy()),
+    )
     np.testing.assert_allclose(p.numpy(), grid["p"].to_numpy(), rtol=0, atol=1e-6)
     # the same abstraction is found from the config alone
     psi2 = train.load_abstraction(cfg)
-    assert torch.equal(psi2(torch.tensor([1, 0]), torch.tensor([2.0, 2.5]), torch.tensor([0.01, 0.05])),
-                       psi(torch.tensor([1, 0]), torch.tensor([2.0, 2.5]), torch.tensor([0.01, 0.05])))
+    assert torch.equal(
+        psi2(torch.tensor([1, 0]), torch.tensor([2.0, 2.5]), torch.tensor([0.01, 0.05])),
+        psi(torch.tensor([1, 0]), torch.tensor([2.0, 2.5]), torch.tensor([0.01, 0.05])),
+    )
     metrics = json.loads((train_dir / "train_metrics.json").read_text())
     for name in ("psi_tumble", "psi_run"):
         v = metrics[name]["validation"]
-        assert {"brier", "brier_baseline", "mean_log_predictive", "accuracy", "calibration"} <= set(v)
+        assert {"brier", "brier_baseline", "mean_log_predictive", "accuracy", "calibration"} <= set(
+            v
+        )
 
 
 def test_train_without_collect_names_the_command(compose_cfg) -> None:
@@ -89,11 +105,23 @@ def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     cfg = compose_cfg("evaluate", overrides)
     out = evaluate_stage.run(cfg)
     table = pd.read_csv(out / "comparison.csv")
-    assert table["quantity"].tolist() == ["distance_t5", "distance_t10", "distance_t15", "distance_t20", "run", "tumble"]
+    assert table["quantity"].tolist() == [
+        "distance_t5",
+        "distance_t10",
+        "distance_t15",
+        "distance_t20",
+        "run",
+        "tumble",
+    ]
     assert table["ks"].between(0, 1).all() and table["ks_noise_floor"].notna().all()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["speedup_loop"] > 0
-    for name in ("distance_histograms.png", "distance_over_time.png", "durations.png", "comparison.md"):
+    for name in (
+        "distance_histograms.png",
+        "distance_over_time.png",
+        "durations.png",
+        "comparison.md",
+    ):
         assert (out / name).exists()
     # the abstract run is a complete simulation artefact in the same format as the full run
     run_cfg = evaluate_stage.run_config(cfg, "abstract")

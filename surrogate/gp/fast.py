@@ -12,15 +12,16 @@ constant prior mean c:
 
     a(x)   = L^{-1} k_Z(x)                                   (M,)
     mean   = c + a^T m_u
-    var    = k(x, x) + jitter + a^T (S - I) a = k(x, x) + jitter - |a|^2 + |L_S^T a|^2,  S = L_S L_S^T
+    var    = k(x, x) + jitter + a^T (S - I) a
     p(RUN) = Phi(mean / sqrt(1 + var))                        (Bernoulli-probit predictive)
 
-With G = [L^{-T} | L^{-T} L_S | L^{-T} m_u] (M x (2M + 1)) cached, one matmul k_Z(x)^T G gives
-a, L_S^T a and a^T m_u together. The kernel row k_Z(x) (scaled RBF or Matern with per-input
-lengthscales) is computed from direct coordinate differences (no |x|^2 + |z|^2 - 2 x.z
-cancellation). The factors come from the model's own kernel module, jitter and Cholesky
-routine, so they are those gpytorch uses; both classifiers (origin TUMBLE / RUN) are stacked
-and evaluated as one batch, and each row takes the one of its origin state.
+With S - I = V diag(d) V^T (eigendecomposition, float64) and G = [L^{-T} V | L^{-T} m_u]
+(M x (M + 1)) cached, one matmul k_Z(x)^T G gives y = V^T a and a^T m_u together, and
+a^T (S - I) a = sum_j d_j y_j^2 (as accurate as gpytorch's a^T (S - I) a; the tempting
+k^T [L^{-T} (S - I) L^{-1}] k is not, in float32). The kernel row k_Z(x) (scaled RBF or Matern
+with per-input lengthscales) is exp of a small matmul of augmented inputs, centred on the
+inducing points. The factors come from the model's own kernel module, jitter and Cholesky
+routine, so they are those gpytorch uses.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import Tensor
 
+from surrogate.errors import NumericalError
 from surrogate.gp.predictor import PsiClassifier
 from surrogate.gp.training import FittedClassifier
 
@@ -106,10 +108,11 @@ class CachedPsi:
     Per query the work is one small matmul for the exponents (inputs augmented as
     [u, |u|^2, 1] against [2w; -1; -|w|^2], so -|u - w|^2 comes out of the matmul, centred on
     the inducing points to keep the float32 cancellation small), one ``exp`` over (rows, M) and
-    one (rows, M) x (M, 2M + 1) matmul. On the CPU, calls with at least ``split_rows`` rows
+    one (rows, M) x (M, M + 1) matmul (S - I = V diag(d) V^T is folded into the cache, so
+    a^T (S - I) a = sum_j d_j (v_j^T a)^2). On the CPU, calls with at least ``split_rows`` rows
     evaluate each classifier only on its own rows (one host sync for the row split, half the
-    flops); otherwise (small calls, CUDA, or inside ``torch.compile``) both classifiers are
-    evaluated on every row and each row selects its own, with no sync.
+    flops; run eagerly even inside ``torch.compile``); otherwise (small calls, CUDA) both
+    classifiers are evaluated on every row and each row selects its own, with no sync.
     """
 
     def __init__(
@@ -126,6 +129,9 @@ class CachedPsi:
         self.domain = dict(domain) if domain else {}
         self.dtype = dtype
         self.split_rows = int(split_rows)
+        # like PsiClassifier: refuse NaN/inf inputs on direct calls (a host sync per call; the
+        # simulation loop turns it off and checks its state at record times instead)
+        self.check_finite = True
         self.n_inducing = int(tumble["z"].shape[0])
         # RBF: k = exp(-|x - z|^2 / 2) in lengthscale units, so work with u = x / sqrt(2) and
         # get -|u - w|^2 = -r^2 / 2; Matern needs r itself: u = x, r = sqrt(|u - w|^2).
@@ -210,26 +216,32 @@ class CachedPsi:
         """p(RUN next) (float32, on ``m``'s device) for rows with origin ``phi`` (0/1 or bool)."""
         out_device = m.device
         x = torch.stack([m.reshape(-1), L.reshape(-1)], dim=-1).to(self.device, self.dtype)
+        if self.check_finite and not bool(torch.isfinite(x).all()):
+            raise NumericalError("CachedPsi got NaN or infinite inputs (m or L)")
         run = phi.to(self.device).reshape(-1)
         if run.shape[0] != x.shape[0]:
             raise ValueError(f"phi has {run.shape[0]} rows but m and L have {x.shape[0]}")
-        split = (
-            self.device.type == "cpu"
-            and x.shape[0] >= self.split_rows
-            and not torch.compiler.is_compiling()
-        )
-        if split:
-            is_run = run.bool()
-            out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
-            for c, rows in ((0, (~is_run).nonzero().squeeze(1)), (1, is_run.nonzero().squeeze(1))):
-                if rows.numel():
-                    mean, var = self._latent(x.index_select(0, rows), c)
-                    out[rows] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
+        if self.device.type == "cpu" and x.shape[0] >= self.split_rows:
+            out = self._split_rows(run, x)
         else:
             mean, var = self._latent(x, None)
             p = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))  # (2, n)
             out = torch.where(run.to(p.dtype) > 0, p[1], p[0])
         return out.to(out_device, torch.float32)
+
+    def _split_rows_impl(self, run: Tensor, x: Tensor) -> Tensor:
+        """Each classifier on its own rows only (one host sync for the split)."""
+        is_run = run.bool()
+        out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
+        for c, rows in ((0, (~is_run).nonzero().squeeze(1)), (1, is_run.nonzero().squeeze(1))):
+            if rows.numel():
+                mean, var = self._latent(x.index_select(0, rows), c)
+                out[rows] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
+        return out
+
+    # data-dependent row counts: run eagerly even inside a compiled simulation step (a graph
+    # break there), since halving the matmul outweighs the break at these sizes
+    _split_rows = torch.compiler.disable(_split_rows_impl)
 
     @torch.no_grad()
     def max_deviation(self, psi: PsiClassifier, n_check: int = 4096, seed: int = 0) -> float:

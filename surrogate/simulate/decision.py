@@ -61,10 +61,13 @@ class FusedDecision(Protocol):
 
     ``fused_uniforms`` float32 and ``fused_uniforms64`` float64 uniform rows (each of length n)
     are drawn by the simulator per step and passed in; ``fused_step`` must be pure (no host
-    sync, no RNG, no state mutation) and returns (next RUN property, next state, aux): the
-    simulator stores the state with ``set_fused_state`` and drops ``aux`` (intermediate tensors
-    returned only so that ``torch.compile`` materialises them once per step instead of
-    recomputing them inside every consumer loop).
+    sync, no RNG, no state mutation). It gets phi before the window as float 0/1 (plus
+    ``log_terms`` = ln TarTerm + ln TsrTerm of L, shared with the OU drift) and returns (phi
+    after the window as float 0/1, next state, aux): flags travel as numbers because compiled
+    CPU kernels handle boolean tensors with scalar loops. The simulator stores the state with
+    ``set_fused_state`` and drops ``aux`` (intermediate tensors returned only so that
+    ``torch.compile`` materialises them once per step instead of recomputing them inside every
+    consumer loop).
     """
 
     fusable: bool
@@ -143,6 +146,8 @@ class FullDecision:
             return
         # motors of a cell are exchangeable: lay the counts out as states in any order
         m = int(self.params.n_motors)
+        if counts.dim() != 2 or counts.shape[1] != 3 or bool((counts.sum(1) != m).any()):
+            raise ValueError(f"motor counts must be (n, 3) with rows summing to n_motors={m}")
         cum = counts.to(torch.int64).cumsum(-1)  # (n, 3)
         slots = torch.arange(m, device=counts.device)
         states = (slots[:, None, None] >= cum[None, :, :]).sum(-1)  # (M, n)

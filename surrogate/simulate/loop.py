@@ -12,6 +12,9 @@ Performance design (see ``surrogate.bench``):
   bookkeeping, with no host sync and a fixed number of ops. ``compile=True`` runs it through
   ``torch.compile`` (fused C++/OpenMP loops on the CPU, Triton on CUDA); if compiling fails the
   simulator falls back to the same function run eagerly, with a warning.
+* Flags (RUN before/after, segment complete) enter and leave the kernel as uint8 views of the
+  bool tensors and are 0/1 numbers inside: compiled CPU kernels handle bool tensors with
+  scalar loops (measured ~50x slower than the same logic in arithmetic).
 * Gamma(k, scale) tumble angles with an integer shape k are -scale * ln(prod of k uniforms)
   (a sum of k exponentials, exact); a non-integer shape falls back to torch's Gamma sampler.
 * No per-step NaN check: NaN/inf from the field propagates into the methylation (and positions)
@@ -36,7 +39,6 @@ from surrogate.fields import Field
 from surrogate.models.ecoli import EcoliParameters, adapted_methylation, ou_step
 from surrogate.models.ecoli.signalling import log_receptor_terms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
-
 
 # integer Gamma shapes up to this are drawn as sums of exponentials (k uniforms per cell)
 MAX_GAMMA_UNIFORMS = 16
@@ -80,7 +82,11 @@ def _private_copy(method: Callable[..., Any]) -> Callable[..., Any]:
     """
     func = method.__func__  # type: ignore[attr-defined]
     copy = types.FunctionType(
-        func.__code__.replace(), func.__globals__, func.__name__, func.__defaults__, func.__closure__
+        func.__code__.replace(),
+        func.__globals__,
+        func.__name__,
+        func.__defaults__,
+        func.__closure__,
     )
     copy.__qualname__ = func.__qualname__
     return types.MethodType(copy, method.__self__)  # type: ignore[attr-defined]
@@ -97,8 +103,9 @@ class Simulator:
         dt: time step (s).
         device: where all per-cell tensors live.
         check_finite: let :meth:`check_state` raise on NaN/inf (called at record times).
-        compile: run the step kernel through ``torch.compile`` (first steps pay the compile
-            time, see ``compile_seconds``; falls back to eager on failure).
+        compile: run the step kernel through ``torch.compile`` (the first steps pay the
+            compile time, seconds; :meth:`warm_up` does it up front; falls back to eager with a
+            warning if compiling fails, see ``compile_error``).
     """
 
     def __init__(
@@ -129,6 +136,11 @@ class Simulator:
         self._ou_rate = self.dt / params.tau
         self._ou_noise = params.sigma_m * math.sqrt(2.0 * self.dt / params.tau)
         self._checked_step = 0  # step up to which check_state found the state finite
+        # a run-probability function's own per-call NaN check would cost a host sync per step;
+        # the loop checks its state at record times instead (check_state)
+        run_probability = getattr(decision, "run_probability", None)
+        if getattr(run_probability, "check_finite", False):
+            run_probability.check_finite = False  # type: ignore[union-attr]
         # compiled kernels (per simulator, see _private_copy); None = eager
         self.compile = bool(compile)
         self.compile_error: str | None = None
@@ -175,21 +187,15 @@ class Simulator:
     # ------------------------------------------------------------------------------------
     def step(self, state: PopulationState) -> StepRecord:
         """Advance every cell by one time step dt, in place; return what the step saw."""
-        n, dev = state.n_cells, self.device
         t = state.step * self.dt
         m, run_before = state.methylation, state.run
         decision = self.decision
         fused = is_fusable(decision)
-        n_dec = decision.fused_uniforms if fused else 0  # type: ignore[attr-defined]
-        u = torch.rand((n_dec + self._gamma_k + 1, n), device=dev)
-        z = torch.randn(n, device=dev)
-        angle = None if self._gamma_k else self._tumble.sample((n,))
+        u, u64, z, angle = self.draw_randoms(state.n_cells)
         # flags enter and leave the kernels as uint8 (free views of the bool tensors): compiled
         # CPU kernels handle bool loads/stores/blends with scalar loops, bytes in SIMD lanes
         run8, complete8 = _as_bytes(run_before), _as_bytes(state.segment_complete)
         if fused:
-            n64 = decision.fused_uniforms64  # type: ignore[attr-defined]
-            u64 = torch.rand((n64, n), dtype=torch.float64, device=dev) if n64 else None
             out = self._run(
                 "_fused_step",
                 state.position, state.heading, m, run8, state.segment_steps, complete8,
@@ -212,6 +218,20 @@ class Simulator:
         state.step += 1
         return StepRecord(ligand, m, run_before, run, ended)
 
+    def draw_randoms(self, n: int) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
+        """All random numbers of one step, in at most four calls: float32 uniforms (k, n)
+        (decision, Gamma angle, sign), float64 motor uniforms (M, n) or None, normals (n,),
+        and the tumble angles (n,) only for a non-integer Gamma shape (else None)."""
+        dev, decision = self.device, self.decision
+        fused = is_fusable(decision)
+        n_dec = decision.fused_uniforms if fused else 0  # type: ignore[attr-defined]
+        n64 = decision.fused_uniforms64 if fused else 0  # type: ignore[attr-defined]
+        u = torch.rand((n_dec + self._gamma_k + 1, n), device=dev)
+        u64 = torch.rand((n64, n), dtype=torch.float64, device=dev) if n64 else None
+        z = torch.randn(n, device=dev)
+        angle = None if self._gamma_k else self._tumble.sample((n,))
+        return u, u64, z, angle
+
     def _run(self, name: str, *args: Any) -> Any:
         """Call kernel ``name`` compiled if enabled (falling back to eager on failure)."""
         kernel = self._kernels.get(name)
@@ -230,22 +250,25 @@ class Simulator:
         return getattr(self, name)(*args)
 
     def warm_up(self, state: PopulationState) -> float:
-        """Compile (if enabled) by stepping a throw-away copy of ``state``; return seconds.
+        """Compile (if enabled) by running the fused kernel on ``state`` without changing it or
+        the decision layer (the kernel is pure; only the RNG stream advances); return seconds.
 
-        The simulator's RNG stream advances; the decision layer's fused state is restored.
+        Three calls: dynamo specialises on the first time value and generalises on the next.
+        A decision layer that is not fusable has nothing to warm up (its ``_advance`` kernel
+        compiles on the first step).
         """
+        if not is_fusable(self.decision):
+            return 0.0
         t0 = time.perf_counter()
-        if is_fusable(self.decision):
-            saved = self.decision.fused_state()  # type: ignore[attr-defined]
-        copy = PopulationState(
-            state.position.clone(), state.heading.clone(), state.methylation.clone(),
-            state.run.clone(), state.segment_steps.clone(), state.segment_complete.clone(),
-            state.step,
-        )  # fmt: skip
-        for _ in range(3):  # t = 0 specialises, the next value generalises (SymFloat)
-            self.step(copy)
-        if is_fusable(self.decision):
-            self.decision.set_fused_state(saved)  # type: ignore[attr-defined]
+        run8, complete8 = _as_bytes(state.run), _as_bytes(state.segment_complete)
+        for k in range(3):
+            u, u64, z, angle = self.draw_randoms(state.n_cells)
+            self._run(
+                "_fused_step",
+                state.position, state.heading, state.methylation, run8, state.segment_steps,
+                complete8, self.decision.fused_state(), u, u64, z, angle,  # type: ignore[attr-defined]
+                (state.step + k) * self.dt,
+            )  # fmt: skip
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         return time.perf_counter() - t0

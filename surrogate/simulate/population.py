@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 from collections.abc import Sequence
@@ -83,6 +84,10 @@ def simulate_population(
             simulator.check_state(state)
             distances.record(0.0, simulator.field.distance_from_peak(state.position))
             compile_time = simulator.warm_up(state) if simulator.compile else 0.0
+            # the objects alive now (models, compiled graphs, caches) are set aside from the
+            # cyclic GC for the loop, so its frequent young-generation passes stay short (they
+            # are collectable again after the loop)
+            gc.freeze()
             loop_start = time.perf_counter()
             for k in tqdm(range(n_steps), desc=f"simulate {simulator.decision.name}", unit="step",
                           disable=not progress, mininterval=1.0):  # fmt: skip
@@ -98,6 +103,7 @@ def simulate_population(
             if simulator.device.type == "cuda":
                 torch.cuda.synchronize(simulator.device)
             loop_time = time.perf_counter() - loop_start
+            gc.unfreeze()
         distances.table.commit()
         n_durations = 0
         if durations is not None:
@@ -105,6 +111,7 @@ def simulate_population(
             n_durations = durations.table.n_rows
             durations.table.commit()
     except BaseException:
+        gc.unfreeze()
         distances.table.abort()
         if durations is not None:
             durations.table.abort()

@@ -37,7 +37,7 @@ def test_stationary_cw_bias_and_run_probability(sampler: str, L: float, m: float
     # RUN iff S == 0 and N >= 2, i.e. all motors in C or N with at least two in N
     kp, km = k_plus[0].item(), k_minus[0].item()
     w = [1.0, p.mu / kp, (p.mu + kp) / km]
-    pi_s, pi_c, pi_n = (x / sum(w) for x in w)
+    _, pi_c, pi_n = (x / sum(w) for x in w)
     M = p.n_motors
     p_run = sum(math.comb(M, j) * pi_n**j * pi_c ** (M - j) for j in range(2, M + 1))
     run = is_run(counts).double().mean().item()

@@ -34,7 +34,9 @@ def test_always_run_moves_straight_at_speed(tmp_path) -> None:
     for _ in range(200):  # 10 s
         sim.step(state)
     # every cell ran 10 s at 20 um/s along its initial heading: exactly 0.2 mm in a straight line
-    expected = torch.tensor([2.0, 0.0]) + 0.2 * torch.stack([torch.cos(heading0), torch.sin(heading0)], -1)
+    expected = torch.tensor([2.0, 0.0]) + 0.2 * torch.stack(
+        [torch.cos(heading0), torch.sin(heading0)], -1
+    )
     assert torch.allclose(state.position, expected, atol=1e-5)
     assert torch.equal(state.heading, heading0)
 

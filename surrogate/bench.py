@@ -1,0 +1,603 @@
+"""Benchmark: speed of the full and the abstracted simulation, and of the stages around them.
+
+One run (``python scripts/bench.py``, config ``conf/bench.yaml``) measures, in this order:
+
+* data collection (20k transitions with ``collect_transitions``) and GP training (both
+  classifiers with ``fit_psi``); the classifiers trained here are the abstraction used below
+  (trained on the fly: it is about speed, not accuracy);
+* throughput (cell-steps/s) of the full model and of the abstraction in lookup-table mode and in
+  classifier-every-step mode (:class:`~surrogate.gp.fast.CachedPsi`) at each size, per thread
+  count and eager / ``torch.compile``, side by side, with the abstract/full ratios;
+* the abstract/full ratio as the number of motors grows;
+* a split of the step time into random numbers, the fused kernel and the rest;
+* the wall time of the paper's workload (100 cells, 500 s, dt 0.05) with ``simulate_population``;
+* the peak RSS of a 1e6-cell abstracted run in a fresh subprocess, for two t_end.
+
+It prints a table and writes everything as JSON (``surrogate.io.write_json``). Timings are the
+best of ``repeats``; the machine's load average is recorded with them, since other processes
+on a small machine distort them. The benchmark asserts nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import fields
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from surrogate.config import build_field, build_params, resolve_device, to_dict
+from surrogate.fields import Field
+from surrogate.io import load_tensors, save_tensors, write_json
+from surrogate.models.ecoli import EcoliParameters
+from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.population import simulate_population
+
+MODELS = ("full", "lookup", "classifier")
+
+
+# ----------------------------------------------------------------------------------------------
+# settings and machine
+
+
+def bench_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Plain settings of a bench config, with ``quick_settings`` applied when ``quick``."""
+    data = to_dict(cfg)
+    quick = data.pop("quick_settings", {}) or {}
+    if data.get("quick"):
+        data.update(quick)
+    return data
+
+
+def read_load() -> list[float]:
+    """1/5/15-minute load averages (empty where unsupported)."""
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def machine_info(device: torch.device) -> dict[str, Any]:
+    """CPU model, cores, torch threads and versions, device, load."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info: dict[str, Any] = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "device": str(device),
+        "host": platform.node(),
+        "load_average": read_load(),
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+@contextmanager
+def num_threads(n: int) -> Iterator[None]:
+    """Temporarily set torch's intra-op thread count."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+# ----------------------------------------------------------------------------------------------
+# abstraction (trained on the fly) and simulators
+
+
+def train_abstraction(
+    s: Mapping[str, Any], cfg: Mapping[str, Any], device: torch.device
+) -> tuple[Any, dict[str, Any]]:
+    """Collect transitions and fit both classifiers (each timed); return (psi, facts)."""
+    from surrogate.collect import collect_transitions
+    from surrogate.gp import GPSettings, fit_psi
+
+    params = build_params(cfg["model"])
+    field = build_field(cfg["field"])
+    c, t = cfg["collect"], s["training"]
+    simulator = Simulator(FullDecision(params), field, params, float(cfg["dt"]), device)
+    t0 = time.perf_counter()
+    data = collect_transitions(
+        simulator,
+        n_cells=int(c["n_cells"]),
+        n_per_state=int(t["n_per_state"]),
+        perturb_rate=float(c["perturb_rate"]),
+        perturb_radius=float(c["perturb_radius"]),
+        record_every=int(c["record_every"]),
+        equilibration_time=float(c["equilibration_time"]),
+        max_time=float(c["max_time"]),
+        progress=False,
+    )
+    collect_s = time.perf_counter() - t0
+    known = {f.name for f in fields(GPSettings)}  # the gp group also holds presentation keys
+    gp = {k: v for k, v in to_dict(cfg["gp"]).items() if k in known}
+    gp.update(n_inducing=int(t["n_inducing"]), epochs=int(t["epochs"]), seed=int(cfg["seed"]))
+    gp.update(batch_size=int(t["batch_size"]))
+    settings = GPSettings.from_config(gp)
+    t0 = time.perf_counter()
+    psi = fit_psi(data, settings, progress=False, device=device)
+    train_s = time.perf_counter() - t0
+    facts = {
+        "collect": {
+            "n_transitions": len(data),
+            "seconds": collect_s,
+            "transitions_per_s": len(data) / collect_s,
+            "n_cells": int(c["n_cells"]),
+            "record_every": int(c["record_every"]),
+        },
+        "training": {
+            "seconds": train_s,
+            "n_points": len(data),
+            "n_per_classifier": int(t["n_per_state"]),
+            "fit_seconds": {
+                "psi_tumble": psi.psi_tumble.train_seconds,
+                "psi_run": psi.psi_run.train_seconds,
+            },
+            "settings": settings.to_dict(),
+            "threads": torch.get_num_threads(),
+        },
+    }
+    return psi, facts
+
+
+def make_decision(model: str, params: EcoliParameters, tables: Mapping[str, Any]) -> Any:
+    """A decision layer: ``full``, ``lookup`` (table) or ``classifier`` (CachedPsi)."""
+    if model == "full":
+        return FullDecision(params)
+    return AbstractDecision(tables[model], params)
+
+
+def make_simulator(
+    model: str,
+    params: EcoliParameters,
+    field: Field,
+    dt: float,
+    device: torch.device,
+    tables: Mapping[str, Any],
+    compile: bool,
+) -> Simulator:
+    """A simulator for one model."""
+    return Simulator(
+        make_decision(model, params, tables), field, params, dt, device, compile=compile
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# measurements
+
+
+def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict[str, Any]:
+    """Best cell-steps/s over ``repeats`` timed runs (after a warm-up, which also compiles)."""
+    device = simulator.device
+    with torch.no_grad():
+        state = simulator.initial_state(n_cells, s["start"], 0.0)
+        warm_s = simulator.warm_up(state)
+        best, best_steps, best_s = 0.0, 0, 0.0
+        for _ in range(int(s["repeats"])):
+            steps = 0
+            t0 = time.perf_counter()
+            while True:
+                simulator.step(state)
+                steps += 1
+                if steps >= int(s["max_steps"]):
+                    break
+                if steps >= int(s["min_steps"]) and time.perf_counter() - t0 >= s["min_seconds"]:
+                    break
+            _sync(device)
+            seconds = time.perf_counter() - t0
+            rate = n_cells * steps / seconds
+            if rate > best:
+                best, best_steps, best_s = rate, steps, seconds
+    return {
+        "cell_steps_per_s": best,
+        "us_per_step": 1e6 * best_s / best_steps,
+        "steps": best_steps,
+        "warm_up_s": warm_s,
+        "compile_error": simulator.compile_error,
+    }
+
+
+def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict[str, float]:
+    """Per-step microseconds: drawing the random numbers, the fused kernel alone, the whole
+    step, and the rest (Python, bookkeeping) = step - randoms - kernel."""
+    if not is_fusable(simulator.decision):
+        return {}
+    device = simulator.device
+
+    def best_us(fn: Callable[[], Any], k: int) -> float:
+        fn()
+        out = math.inf
+        for _ in range(repeats):
+            _sync(device)
+            t0 = time.perf_counter()
+            for _ in range(k):
+                fn()
+            _sync(device)
+            out = min(out, (time.perf_counter() - t0) / k)
+        return 1e6 * out
+
+    with torch.no_grad():
+        state = simulator.initial_state(n_cells, (2.0, 0.0), 0.0)
+        simulator.warm_up(state)
+        k = max(3, min(500, 2_000_000 // n_cells))
+        randoms = simulator.draw_randoms(n_cells)
+        u, u64, z, angle = randoms
+        decision = simulator.decision
+        args = (
+            state.position, state.heading, state.methylation, state.run.view(torch.uint8),
+            state.segment_steps, state.segment_complete.view(torch.uint8),
+            decision.fused_state(), u, u64, z, angle, 1.0,
+        )  # fmt: skip
+        rng = best_us(lambda: simulator.draw_randoms(n_cells), k)
+        kernel = best_us(lambda: simulator._run("_fused_step", *args), k)
+        step = best_us(lambda: simulator.step(state), k)
+    return {"randoms_us": rng, "kernel_us": kernel, "step_us": step, "rest_us": step - rng - kernel}
+
+
+def paper_workload(simulator: Simulator, p: Mapping[str, Any], out_dir: Path) -> dict[str, Any]:
+    """Wall time of simulate_population for the paper's workload (durations recorded)."""
+    t0 = time.perf_counter()
+    summary = simulate_population(
+        simulator,
+        n_cells=int(p["n_cells"]),
+        t_end=float(p["t_end"]),
+        out_dir=out_dir,
+        record_interval=float(p["record_interval"]),
+        equilibration_time=float(p["equilibration_time"]),
+        record_durations=True,
+        progress=False,
+    )
+    return {
+        "wall_s": time.perf_counter() - t0,
+        "loop_s": summary.loop_time_s,
+        "compile_s": summary.compile_time_s,
+        "n_steps": summary.n_steps,
+        "cell_steps_per_s": summary.cell_steps_per_s,
+        "n_durations": summary.n_durations,
+    }
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident set size of this process in MiB (psutil, /proc VmHWM or getrusage)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _rss_mb() -> float:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return math.nan
+
+
+def memory_child(spec_json: str) -> None:
+    """Subprocess entry: one abstracted (lookup) run; prints a JSON line with peak RSS."""
+    spec = json.loads(spec_json)
+    torch.set_num_threads(int(spec["threads"]))
+    from surrogate.gp import PsiLookupTable
+
+    device = torch.device(spec["device"])
+    params = EcoliParameters.from_config(spec["model"])
+    table = PsiLookupTable.from_state(load_tensors(spec["table"]), device)
+    from omegaconf import OmegaConf
+
+    field = build_field(OmegaConf.create(spec["field"]))
+    simulator = Simulator(
+        AbstractDecision(table, params), field, params, spec["dt"], device,
+        compile=bool(spec["compile"]),
+    )  # fmt: skip
+    rss_before = _rss_mb()
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = simulate_population(
+            simulator,
+            n_cells=int(spec["n_cells"]),
+            t_end=float(spec["t_end"]),
+            out_dir=tmp,
+            record_interval=float(spec["record_interval"]),
+            record_durations=False,
+            progress=False,
+        )
+    out = {
+        "peak_rss_mb": _peak_rss_mb(),
+        "rss_before_mb": rss_before,
+        "n_cells": summary.n_cells,
+        "t_end": summary.t_end,
+        "loop_s": summary.loop_time_s,
+        "cell_steps_per_s": summary.cell_steps_per_s,
+    }
+    if device.type == "cuda":
+        out["cuda_max_allocated_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    print("BENCH_MEMORY " + json.dumps(out), flush=True)
+
+
+def memory_run(
+    table: Any, cfg: Mapping[str, Any], m: Mapping[str, Any], t_end: float, tmp: Path
+) -> dict[str, Any]:
+    """Peak RSS of an abstracted run in a fresh Python process (so earlier work in this one
+    does not pollute the peak)."""
+    path = save_tensors(tmp / "table.pt", table.to_state())
+    spec = {
+        "threads": torch.get_num_threads(),
+        "device": str(table.device),
+        "model": to_dict(cfg["model"]),
+        "field": to_dict(cfg["field"]),
+        "dt": float(cfg["dt"]),
+        "table": str(path),
+        "n_cells": int(m["n_cells"]),
+        "t_end": float(t_end),
+        "record_interval": float(cfg["dt"]) * max(1, round(0.5 / float(cfg["dt"]))),
+        "compile": bool(m.get("compile", False)),
+    }
+    code = "import sys; from surrogate.bench import memory_child; memory_child(sys.argv[1])"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, json.dumps(spec)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    for line in proc.stdout.splitlines():
+        if line.startswith("BENCH_MEMORY "):
+            return json.loads(line[len("BENCH_MEMORY ") :])
+    raise RuntimeError(f"memory benchmark subprocess failed:\n{proc.stderr[-3000:]}")
+
+
+# ----------------------------------------------------------------------------------------------
+# the whole benchmark
+
+
+def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run every measurement of ``cfg`` (see the module docstring); return the results."""
+    from surrogate.gp import PsiLookupTable
+    from surrogate.gp.fast import CachedPsi
+
+    s = bench_settings(cfg)
+    device = resolve_device(cfg.get("device", "cpu"))
+    torch.manual_seed(int(cfg["seed"]))
+    params = build_params(cfg["model"])
+    field = build_field(cfg["field"])
+    dt = float(cfg["dt"])
+    started = time.perf_counter()
+    results: dict[str, Any] = {
+        "started": datetime.now().isoformat(timespec="seconds"),
+        "machine": machine_info(device),
+        "settings": {k: v for k, v in s.items() if k not in ("hydra",)},
+    }
+
+    # 1. collection + training (their own timings), giving the abstraction
+    log("collecting transitions and training the classifiers ...")
+    psi, facts = train_abstraction(s, cfg, device)
+    results.update(facts)
+    table = PsiLookupTable.from_classifier(
+        psi, psi.domain["m"], psi.domain["L"], size=tuple(s["lookup_size"])
+    ).to(device)
+    cached = CachedPsi.from_classifier(psi)
+    tables = {"lookup": table, "classifier": cached}
+    results["abstraction"] = {
+        "source": "trained on the fly (collect_transitions + fit_psi, timed above)",
+        "n_per_state": int(s["training"]["n_per_state"]),
+        "n_inducing": int(s["training"]["n_inducing"]),
+        "epochs": int(s["training"]["epochs"]),
+        "lookup_size": list(table.shape),
+        "lookup_max_deviation": table.max_deviation(psi, n_check=4096),
+        "cached_max_deviation": cached.max_deviation(psi),
+        "domain": {k: list(v) for k, v in psi.domain.items()},
+    }
+
+    # 2. throughput: models x sizes, per thread count and compile mode
+    rows = []
+    for threads in s["threads"]:
+        with num_threads(threads):
+            for compile in s["compile"]:
+                sims = {
+                    model: make_simulator(model, params, field, dt, device, tables, compile)
+                    for model in MODELS
+                }
+                for n in s["sizes"]:
+                    load = read_load()
+                    row: dict[str, Any] = {
+                        "threads": threads, "compile": compile, "n_cells": n, "load": load,
+                    }  # fmt: skip
+                    for model in MODELS:
+                        log(f"throughput: {model} n={n} threads={threads} compile={compile}")
+                        row[model] = throughput(sims[model], n, s)
+                    full = row["full"]["cell_steps_per_s"]
+                    row["ratio_lookup"] = row["lookup"]["cell_steps_per_s"] / full
+                    row["ratio_classifier"] = row["classifier"]["cell_steps_per_s"] / full
+                    rows.append(row)
+    results["throughput"] = rows
+
+    best_threads, best_compile = _best_config(rows)
+    results["best_config"] = {"threads": best_threads, "compile": best_compile}
+
+    with num_threads(best_threads):
+        # 3. ratio as the number of motors grows (lookup abstraction; independent of motors)
+        motors = []
+        n = int(s["motors_size"])
+        sim_abs = make_simulator("lookup", params, field, dt, device, tables, best_compile)
+        abstract = throughput(sim_abs, n, s)
+        for n_motors in s["motors"]:
+            p_m = EcoliParameters(**{**params.to_dict(), "n_motors": int(n_motors)})
+            log(f"motors: {n_motors} motors, n={n}")
+            sim_full = make_simulator("full", p_m, field, dt, device, tables, best_compile)
+            full = throughput(sim_full, n, s)
+            motors.append({
+                "n_motors": int(n_motors), "n_cells": n, "full": full, "lookup": abstract,
+                "ratio_lookup": abstract["cell_steps_per_s"] / full["cell_steps_per_s"],
+            })  # fmt: skip
+        results["motors"] = motors
+
+        # 4. per-step split (best config)
+        breakdown = []
+        for n in s["breakdown_sizes"]:
+            for model in MODELS:
+                sim = make_simulator(model, params, field, dt, device, tables, best_compile)
+                breakdown.append({"model": model, "n_cells": n, **step_breakdown(sim, n)})
+        results["breakdown"] = breakdown
+
+        # 5. the paper's workload, eager and compiled
+        paper = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for compile in s["compile"]:
+                for model in ("full", "lookup"):
+                    log(f"paper workload: {model} compile={compile}")
+                    sim = make_simulator(model, params, field, dt, device, tables, compile)
+                    out = paper_workload(sim, s["paper"], Path(tmp) / f"{model}-{compile}")
+                    paper.append({"model": model, "compile": compile, "load": read_load(), **out})
+        results["paper"] = {
+            "n_cells": int(s["paper"]["n_cells"]),
+            "t_end": float(s["paper"]["t_end"]),
+            "dt": dt,
+            "threads": best_threads,
+            "runs": paper,
+        }
+
+        # 6. memory of a large abstracted run, in a fresh process, for two t_end
+        memory = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for t_end in s["memory"]["t_end"]:
+                log(f"memory: {s['memory']['n_cells']} cells, t_end={t_end}")
+                memory.append(memory_run(table, cfg, s["memory"], float(t_end), Path(tmp)))
+        results["memory"] = {"runs": memory, "threads": best_threads}
+
+    results["machine"]["load_average_end"] = read_load()
+    results["total_s"] = time.perf_counter() - started
+    return results
+
+
+def _best_config(rows: list[dict[str, Any]]) -> tuple[int, bool]:
+    """(threads, compile) with the highest full-model throughput at the largest size."""
+    largest = max(r["n_cells"] for r in rows)
+    top = max((r for r in rows if r["n_cells"] == largest), key=lambda r: _score(r))
+    return int(top["threads"]), bool(top["compile"])
+
+
+def _score(row: Mapping[str, Any]) -> float:
+    return row["full"]["cell_steps_per_s"] + row["lookup"]["cell_steps_per_s"]
+
+
+# ----------------------------------------------------------------------------------------------
+# output
+
+
+def _si(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def format_report(r: Mapping[str, Any]) -> str:
+    """The results as plain-text tables."""
+    m = r["machine"]
+    lines = [
+        f"machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, device {m['device']}, "
+        f"load {m['load_average']} -> {m.get('load_average_end')}",
+        f"abstraction: {r['abstraction']['source']}; lookup {r['abstraction']['lookup_size']} "
+        f"(max dev {r['abstraction']['lookup_max_deviation']:.1e}), cached classifier "
+        f"(max dev {r['abstraction']['cached_max_deviation']:.1e})",
+        "",
+        "throughput (cell-steps/s; best of repeats)",
+        f"{'thr':>3} {'compile':>7} {'cells':>7} {'full':>9} {'lookup':>9} {'classif':>9} "
+        f"{'lk/full':>7} {'cl/full':>7}  load",
+    ]
+    for row in r["throughput"]:
+        lines.append(
+            f"{row['threads']:>3} {row['compile']!s:>7} {row['n_cells']:>7} "
+            f"{_si(row['full']['cell_steps_per_s']):>9} {_si(row['lookup']['cell_steps_per_s']):>9} "
+            f"{_si(row['classifier']['cell_steps_per_s']):>9} {row['ratio_lookup']:>7.2f} "
+            f"{row['ratio_classifier']:>7.2f}  {row['load'][:1]}"
+        )
+    b = r["best_config"]
+    lines += ["", f"motors (threads={b['threads']}, compile={b['compile']})"]
+    lines.append(f"{'motors':>6} {'cells':>7} {'full':>9} {'lookup':>9} {'lk/full':>7}")
+    for row in r["motors"]:
+        lines.append(
+            f"{row['n_motors']:>6} {row['n_cells']:>7} {_si(row['full']['cell_steps_per_s']):>9} "
+            f"{_si(row['lookup']['cell_steps_per_s']):>9} {row['ratio_lookup']:>7.2f}"
+        )
+    lines += ["", "per-step split (us): randoms / fused kernel / rest = step"]
+    for row in r["breakdown"]:
+        if "step_us" in row:
+            lines.append(
+                f"  {row['model']:>10} n={row['n_cells']:<7} {row['randoms_us']:8.1f} "
+                f"{row['kernel_us']:9.1f} {row['rest_us']:8.1f} = {row['step_us']:9.1f}"
+            )
+    p = r["paper"]
+    lines += ["", f"paper workload ({p['n_cells']} cells, {p['t_end']:g} s, dt {p['dt']:g})"]
+    for run in p["runs"]:
+        lines.append(
+            f"  {run['model']:>7} compile={run['compile']!s:<5} wall {run['wall_s']:7.2f} s "
+            f"(loop {run['loop_s']:.2f} s, compile {run['compile_s']:.1f} s)  load {run['load'][:1]}"
+        )
+    c, t = r["collect"], r["training"]
+    lines += [
+        "",
+        f"collect {c['n_transitions']} transitions: {c['seconds']:.2f} s",
+        f"train both classifiers ({t['n_per_classifier']} points each, "
+        f"{t['settings']['n_inducing']} inducing, {t['settings']['epochs']} epochs, "
+        f"batch {t['settings']['batch_size']}): {t['seconds']:.2f} s",
+        "",
+        "memory (abstracted lookup run in a fresh process, record_durations off)",
+    ]
+    for run in r["memory"]["runs"]:
+        lines.append(
+            f"  {run['n_cells']} cells, t_end {run['t_end']:g} s: peak RSS "
+            f"{run['peak_rss_mb']:.0f} MiB (after imports {run['rss_before_mb']:.0f} MiB)"
+        )
+    lines.append(f"\ntotal {r['total_s']:.0f} s")
+    return "\n".join(lines)
+
+
+def default_output(cfg: Mapping[str, Any]) -> Path:
+    """``<data_dir>/bench/bench-<timestamp>.json``."""
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path(str(cfg.get("data_dir", "data"))) / "bench" / f"bench-{stamp}.json"
+
+
+def main(cfg: Mapping[str, Any]) -> Path:
+    """Run the benchmark, print the tables, write the JSON; return its path."""
+    results = run_bench(cfg, log=lambda msg: print(msg, file=sys.stderr, flush=True))
+    print(format_report(results), flush=True)
+    out = Path(str(cfg["output"])) if cfg.get("output") else default_output(cfg)
+    write_json(out, results)
+    print(f"results: {out}", flush=True)
+    return out
+
+
+__all__ = ["bench_settings", "format_report", "machine_info", "main", "run_bench"]
