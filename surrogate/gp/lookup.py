@@ -115,9 +115,10 @@ class PsiLookupTable:
         u = ((m - self.m_range[0]) * self._m_scale).clamp_(0.0, n_m - 1)
         v = ((L - self.L_range[0]) * self._L_scale).clamp_(0.0, n_L - 1)
         # Lower node index, kept <= n - 2 so the upper neighbour exists (u = n - 1 gets frac 1).
-        # nan_to_num only for the index: NaN still flows into the fractions and out.
-        i = torch.nan_to_num(u, nan=0.0).floor_().clamp_(max=n_m - 2)
-        j = torch.nan_to_num(v, nan=0.0).floor_().clamp_(max=n_L - 2)
+        # NaN -> 0 only for the index (u == u is False for NaN; cheaper than nan_to_num inside a
+        # compiled step): NaN still flows into the fractions and out.
+        i = torch.where(u == u, u, 0.0).floor_().clamp_(max=n_m - 2)
+        j = torch.where(v == v, v, 0.0).floor_().clamp_(max=n_L - 2)
         fu = u - i
         fv = v - j
         base = phi.to(dev).reshape(-1).long() * (n_m * n_L) + i.long() * n_L + j.long()

@@ -20,7 +20,7 @@ from surrogate.config import (
     validate_start,
 )
 from surrogate.errors import ConfigError
-from surrogate.io import MANIFEST, read_manifest, write_manifest
+from surrogate.io import MANIFEST, artefact_lock, existing_artefact, write_manifest
 from surrogate.paths import SIMULATE_CMD, abstraction_config, simulate_dir, simulate_settings
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, FullDecision
 from surrogate.simulate.loop import Simulator
@@ -114,16 +114,38 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Run (or reuse) the population simulation described by ``cfg``; return its directory."""
     validate(cfg)
     out = simulate_dir(cfg)
-    if not force and (out / MANIFEST).exists():
-        read_manifest(out)  # refuse a corrupt manifest rather than silently reusing it
-        log.info("simulation exists, reusing %s", out)
+    if not force and _existing(cfg, out):
         return out
+    with artefact_lock(out):  # also removes the temporaries of killed runs
+        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
+            return out
+        _simulate(cfg, out)
+    return out
+
+
+def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
+    """Whether ``out`` holds a complete run of these settings (refusing corrupt ones)."""
+    if existing_artefact(out, simulate_settings(cfg), SIMULATE_CMD) is None:
+        return False
+    log.info("simulation exists, reusing %s", out)
+    return True
+
+
+def _simulate(cfg: Mapping[str, Any], out: Path) -> None:
+    """Simulate, then write the tables and (last) the manifest into ``out``."""
     device = resolve_device(cfg.get("device", "cpu"))
     seed_everything(int(cfg["seed"]))
     decision, info = build_decision(cfg, device)
     simulator = Simulator(
-        decision, build_field(cfg["field"]), build_params(cfg["model"]), float(cfg["dt"]), device
+        decision,
+        build_field(cfg["field"]),
+        build_params(cfg["model"]),
+        float(cfg["dt"]),
+        device,
+        compile=bool(cfg.get("compile", False)),
     )
+    # a rerun (force) must not leave the old manifest vouching for half-replaced tables
+    (out / MANIFEST).unlink(missing_ok=True)
     t0 = time.perf_counter()
     summary = simulate_population(
         simulator,
@@ -146,6 +168,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         device=str(device),
         wall_time_s=time.perf_counter() - t0,
         loop_time_s=summary.loop_time_s,
+        compile_time_s=summary.compile_time_s,
+        compiled=simulator.compile_error is None and bool(cfg.get("compile", False)),
         cell_steps_per_s=summary.cell_steps_per_s,
         n_cells=summary.n_cells,
         n_steps=summary.n_steps,
@@ -158,7 +182,6 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         cfg["decision"]["name"], summary.n_cells, summary.n_steps, summary.loop_time_s,
         summary.cell_steps_per_s, out,
     )  # fmt: skip
-    return out
 
 
 __all__ = ["SIMULATE_CMD", "build_decision", "run", "validate"]
