@@ -50,15 +50,24 @@ TRANSITIONS = "transitions.parquet"
 COVERAGE_FIGURE = "coverage.png"
 
 
+SAMPLINGS = ("radius", "area")
+
+
 def random_in_disc(
-    n: int, centre: tuple[float, float], radius: float, device: torch.device
+    n: int,
+    centre: tuple[float, float],
+    radius: float,
+    device: torch.device,
+    sampling: str = "radius",
 ) -> torch.Tensor:
-    """``n`` points uniform in a disc (mm), (n, 2)."""
-    r = radius * torch.sqrt(torch.rand(n, device=device))
+    """``n`` random points (mm, (n, 2)) in a disc: distance from the centre uniform in
+    [0, radius] (``radius``: more points near the peak, where the fields' high L lives) or
+    uniform over the disc's area (``area``)."""
+    u = torch.rand(n, device=device)
+    r = radius * (u if sampling == "radius" else torch.sqrt(u))
     theta = torch.rand(n, device=device) * (2 * math.pi)
-    return torch.stack([r * torch.cos(theta), r * torch.sin(theta)], -1) + torch.tensor(
-        centre, device=device
-    )
+    offset = torch.stack([r * torch.cos(theta), r * torch.sin(theta)], -1)
+    return offset + torch.tensor(centre, device=device)
 
 
 def collect_transitions(
@@ -67,6 +76,7 @@ def collect_transitions(
     n_per_state: int,
     perturb_rate: float,
     perturb_radius: float,
+    perturb_sampling: str = "radius",
     record_every: int = 1,
     equilibration_time: float = 10.0,
     max_time: float = 2000.0,
@@ -80,7 +90,7 @@ def collect_transitions(
     """
     device, dt, field = simulator.device, simulator.dt, simulator.field
     # cells start spread over the disc the perturbations use, adapted to where they are
-    start = random_in_disc(n_cells, field.peak, perturb_radius, device)
+    start = random_in_disc(n_cells, field.peak, perturb_radius, device, perturb_sampling)
     state = simulator.initial_state(n_cells, start, equilibration_time)
 
     jump_probability = perturb_rate * dt
@@ -94,7 +104,7 @@ def collect_transitions(
     with torch.no_grad():
         for k in range(max_steps):
             jump = torch.rand(n_cells, device=device) < jump_probability
-            target = random_in_disc(n_cells, field.peak, perturb_radius, device)
+            target = random_in_disc(n_cells, field.peak, perturb_radius, device, perturb_sampling)
             state.position = torch.where(jump.unsqueeze(-1), target, state.position)
             rec = simulator.step(state)
             # every cell on thinned steps, plus every cell just perturbed: the step after a jump
@@ -172,6 +182,11 @@ def validate(cfg: Mapping[str, Any]) -> None:
             f"collect.perturb_rate={rate:g}/s cannot be met with dt={cfg['dt']:g} s: at most one "
             f"perturbation per step, so the rate must be <= 1/dt = {1 / float(cfg['dt']):g}/s"
         )
+    if c.get("perturb_sampling", "radius") not in SAMPLINGS:
+        raise ConfigError(
+            f"collect.perturb_sampling must be one of {list(SAMPLINGS)}, "
+            f"got {c.get('perturb_sampling')!r}"
+        )
 
 
 def plot_coverage(table: pd.DataFrame, params: Any) -> Any:
@@ -245,6 +260,7 @@ def _collect(cfg: Mapping[str, Any], out: Path) -> None:
         n_per_state=int(c["n_per_state"]),
         perturb_rate=float(c["perturb_rate"]),
         perturb_radius=float(c["perturb_radius"]),
+        perturb_sampling=str(c.get("perturb_sampling", "radius")),
         record_every=int(c["record_every"]),
         equilibration_time=float(c["equilibration_time"]),
         max_time=float(c["max_time"]),
