@@ -243,6 +243,8 @@ def merged_manifest(
         "device": devices[0] if len(devices) == 1 else ",".join(devices),
         "wall_time_s": sum(float(m["wall_time_s"]) for m in manifests),
         "loop_time_s": loop,
+        "compile_time_s": sum(float(m.get("compile_time_s", 0.0)) for m in manifests),
+        "compiled": all(bool(m.get("compiled", False)) for m in manifests),
         "cell_steps_per_s": n_cells * n_steps / max(loop, 1e-12),
         "n_cells": n_cells,
         "n_steps": n_steps,
