@@ -72,13 +72,15 @@ def simulate_population(
     every = steps_between(record_interval, dt, "record_interval")
     out = Path(out_dir)
     t0 = time.perf_counter()
-    distances = DistanceRecorder(out / DISTANCES, n_cells)
-    durations = (
-        DurationRecorder(out / DURATIONS, n_cells, dt, block_steps=every, device=simulator.device)
-        if record_durations
-        else None
-    )
+    distances: DistanceRecorder | None = None
+    durations: DurationRecorder | None = None
     try:
+        # created inside the try, so an interrupt right at the start drops their temporaries too
+        distances = DistanceRecorder(out / DISTANCES, n_cells)
+        if record_durations:
+            durations = DurationRecorder(
+                out / DURATIONS, n_cells, dt, block_steps=every, device=simulator.device
+            )
         with torch.no_grad():
             state = simulator.initial_state(n_cells, start, equilibration_time)
             simulator.check_state(state)
@@ -112,9 +114,9 @@ def simulate_population(
             durations.table.commit()
     except BaseException:
         gc.unfreeze()
-        distances.table.abort()
-        if durations is not None:
-            durations.table.abort()
+        for recorder in (distances, durations):
+            if recorder is not None:
+                recorder.table.abort()
         raise
     return PopulationSummary(
         n_cells=n_cells,
