@@ -32,14 +32,7 @@ from surrogate.config import (
     validate_common,
 )
 from surrogate.errors import ConfigError, NumericalError
-from surrogate.io import (
-    MANIFEST,
-    artefact_lock,
-    existing_artefact,
-    save_figure,
-    write_manifest,
-    write_parquet,
-)
+from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.paths import collect_command, collect_dir, collect_settings
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
@@ -227,21 +220,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Run (or reuse) the collect stage of ``cfg``; return its artefact directory."""
     validate(cfg)
     out = collect_dir(cfg)
-    if not force and _existing(cfg, out):
-        return out
-    with artefact_lock(out):  # also removes the temporaries of killed runs
-        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
-            return out
-        _collect(cfg, out)
-    return out
-
-
-def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
-    """Whether ``out`` holds complete transitions of these settings (refusing corrupt ones)."""
-    if existing_artefact(out, collect_settings(cfg), collect_command(cfg)) is None:
-        return False
-    log.info("transitions exist, reusing %s", out)
-    return True
+    return make_once(out, collect_settings(cfg), collect_command(cfg), lambda _: _collect(cfg, out),
+                     what="transitions", force=force)  # fmt: skip
 
 
 def _collect(cfg: Mapping[str, Any], out: Path) -> None:

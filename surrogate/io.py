@@ -357,3 +357,38 @@ def existing_artefact(
 
 def _normalise(v: Any) -> Any:
     return json.loads(json.dumps(v, sort_keys=True, default=_json_default))
+
+
+def make_once(
+    directory: str | os.PathLike,
+    settings: Mapping[str, Any],
+    made_by: str,
+    make: Callable[[Any], None],
+    *,
+    what: str,
+    force: bool = False,
+    prepare: Callable[[], Any] | None = None,
+) -> Path:
+    """Reuse the complete artefact of ``settings`` in ``directory``, or make it under the lock.
+
+    The shared skeleton of every stage: check for a complete artefact; ``prepare()`` (reading
+    inputs, so a missing input fails before any lock or directory is made); take
+    :func:`artefact_lock`; re-check (a job with the same settings may have finished meanwhile);
+    ``make(prepared)``, which writes the manifest last. ``force`` always remakes.
+    """
+    directory = Path(directory)
+
+    def reusable() -> bool:
+        if force or existing_artefact(directory, settings, made_by) is None:
+            return False
+        log.info("%s exists, reusing %s", what, directory)
+        return True
+
+    if reusable():
+        return directory
+    prepared = prepare() if prepare is not None else None
+    with artefact_lock(directory):  # also removes the temporaries of killed runs
+        if reusable():
+            return directory
+        make(prepared)
+    return directory

@@ -41,9 +41,8 @@ from surrogate.gp import (
 )
 from surrogate.io import (
     MANIFEST,
-    artefact_lock,
     check_settings,
-    existing_artefact,
+    make_once,
     read_manifest,
     read_parquet,
     save_figure,
@@ -138,22 +137,9 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Run (or reuse) the train stage of ``cfg``; return its artefact directory."""
     validate(cfg)
     out = train_dir(cfg)
-    if not force and _existing(cfg, out):
-        return out
-    table, source = load_transitions(cfg)
-    with artefact_lock(out):  # also removes the temporaries of killed runs
-        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
-            return out
-        _train(cfg, out, table, source)
-    return out
-
-
-def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
-    """Whether ``out`` holds a complete abstraction of these settings (refusing corrupt ones)."""
-    if existing_artefact(out, train_settings(cfg), train_command(cfg)) is None:
-        return False
-    log.info("abstraction exists, reusing %s", out)
-    return True
+    return make_once(out, train_settings(cfg), train_command(cfg),
+                     lambda data: _train(cfg, out, *data), what="abstraction", force=force,
+                     prepare=lambda: load_transitions(cfg))  # fmt: skip
 
 
 def _train(cfg: Mapping[str, Any], out: Path, table: pd.DataFrame, source: Path) -> None:

@@ -30,8 +30,7 @@ from surrogate.evaluate.statistics import (
 from surrogate.io import (
     MANIFEST,
     artefact_dir,
-    artefact_lock,
-    existing_artefact,
+    make_once,
     read_json,
     save_figure,
     write_json,
@@ -142,21 +141,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Compare abstract vs full (and full vs full for the noise floor); return the directory."""
     validate(cfg)
     out = evaluate_dir(cfg)
-    if not force and _existing(cfg, out):
-        return out
-    with artefact_lock(out):  # also removes the temporaries of killed runs
-        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
-            return out
-        _evaluate(cfg, out)
-    return out
-
-
-def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
-    """Whether ``out`` holds a complete evaluation of these settings (refusing corrupt ones)."""
-    if existing_artefact(out, evaluate_settings(cfg), EVALUATE_CMD) is None:
-        return False
-    log.info("evaluation exists, reusing %s", out)
-    return True
+    return make_once(out, evaluate_settings(cfg), EVALUATE_CMD, lambda _: _evaluate(cfg, out),
+                     what="evaluation", force=force)  # fmt: skip
 
 
 def _evaluate(cfg: Mapping[str, Any], out: Path) -> None:

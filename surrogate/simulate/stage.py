@@ -20,7 +20,7 @@ from surrogate.config import (
     validate_start,
 )
 from surrogate.errors import ConfigError
-from surrogate.io import MANIFEST, artefact_lock, existing_artefact, write_manifest
+from surrogate.io import MANIFEST, make_once, write_manifest
 from surrogate.paths import SIMULATE_CMD, abstraction_config, simulate_dir, simulate_settings
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, FullDecision
 from surrogate.simulate.loop import Simulator
@@ -114,21 +114,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Run (or reuse) the population simulation described by ``cfg``; return its directory."""
     validate(cfg)
     out = simulate_dir(cfg)
-    if not force and _existing(cfg, out):
-        return out
-    with artefact_lock(out):  # also removes the temporaries of killed runs
-        if not force and _existing(cfg, out):  # a job with the same settings finished meanwhile
-            return out
-        _simulate(cfg, out)
-    return out
-
-
-def _existing(cfg: Mapping[str, Any], out: Path) -> bool:
-    """Whether ``out`` holds a complete run of these settings (refusing corrupt ones)."""
-    if existing_artefact(out, simulate_settings(cfg), SIMULATE_CMD) is None:
-        return False
-    log.info("simulation exists, reusing %s", out)
-    return True
+    return make_once(out, simulate_settings(cfg), SIMULATE_CMD, lambda _: _simulate(cfg, out),
+                     what="simulation", force=force)  # fmt: skip
 
 
 def _simulate(cfg: Mapping[str, Any], out: Path) -> None:
