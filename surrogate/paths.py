@@ -96,7 +96,12 @@ def simulate_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
 def simulate_dir(cfg: Mapping[str, Any]) -> Path:
     """``data/simulate/<decision>_field=..._dt=..._n=..._T=..._seed=...-<hash>``."""
     s = simulate_settings(cfg)
-    label = {
+    return artefact_dir(cfg["data_dir"], "simulate", simulate_label(s), s)
+
+
+def simulate_label(s: Mapping[str, Any]) -> dict[str, Any]:
+    """The readable part of a simulation directory's name, from its settings."""
+    return {
         "decision": s["decision"]["name"],
         "field": field_name(s["field"]),
         "dt": s["dt"],
@@ -104,4 +109,3 @@ def simulate_dir(cfg: Mapping[str, Any]) -> Path:
         "T": s["t_end"],
         "seed": s["seed"],
     }
-    return artefact_dir(cfg["data_dir"], "simulate", label, s)

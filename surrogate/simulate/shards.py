@@ -38,7 +38,7 @@ from surrogate.io import (
     read_manifest,
     write_manifest,
 )
-from surrogate.paths import SIMULATE_CMD, simulate_dir, simulate_settings
+from surrogate.paths import SIMULATE_CMD, simulate_dir, simulate_label, simulate_settings
 from surrogate.simulate import stage as simulate_stage
 from surrogate.simulate.population import DISTANCES, DURATIONS
 from surrogate.simulate.recorders import DISTANCE_SCHEMA, DURATION_SCHEMA, StreamingParquet
@@ -132,15 +132,7 @@ def merged_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
 def merged_dir(cfg: Mapping[str, Any]) -> Path:
     """``data/simulate/<decision>_field=..._n=..._seed=..._shards=K-<hash>``."""
     s = merged_settings(cfg)
-    label = {
-        "decision": s["decision"]["name"],
-        "field": field_name(s["field"]),
-        "dt": s["dt"],
-        "n": s["n_cells"],
-        "T": s["t_end"],
-        "seed": s["seed"],
-        "shards": s["shard_count"],
-    }
+    label = {**simulate_label(s), "shards": s["shard_count"]}
     return artefact_dir(cfg["data_dir"], "simulate", label, s)
 
 
