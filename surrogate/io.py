@@ -302,6 +302,8 @@ def write_manifest(
         "seed": seed,
         "config": dict(config),
         "versions": versions(),
+        # float reductions (GP training) depend on the thread count: part of reproducing a run
+        "torch_threads": torch.get_num_threads(),
         "host": platform.node(),
         **extra,
     }
