@@ -56,15 +56,21 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o666 & ~_UMASK)
     try:
         yield tmp_path
-        with open(tmp_path, "rb") as fh:  # flush to disk before the rename makes it visible
-            os.fsync(fh.fileno())
-        os.replace(tmp_path, path)
+        publish(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def publish(tmp_path: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Make a finished temporary file the artefact ``path``: usual permissions (mkstemp gives
+    0600), flushed to disk, then renamed into place in one atomic step."""
+    os.chmod(tmp_path, 0o666 & ~_UMASK)
+    with open(tmp_path, "rb") as fh:  # flush to disk before the rename makes it visible
+        os.fsync(fh.fileno())
+    os.replace(tmp_path, path)
 
 
 def clean_stale_tmp(directory: str | os.PathLike) -> list[Path]:

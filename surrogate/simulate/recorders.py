@@ -16,6 +16,8 @@ import pyarrow.parquet as pq
 import torch
 from torch import Tensor
 
+from surrogate.io import publish
+
 
 class StreamingParquet:
     """Append column chunks; flush a row group when enough rows are buffered; commit atomically."""
@@ -62,7 +64,7 @@ class StreamingParquet:
         """Write what is buffered, close, and rename into place."""
         self._flush()
         self._writer.close()
-        os.replace(self.tmp, self.path)
+        publish(self.tmp, self.path)
         return self.path
 
     def abort(self) -> None:
