@@ -164,6 +164,18 @@ def validate_common(cfg: Mapping[str, Any]) -> None:
     build_field(cfg["field"])
 
 
+def grid_shape(value: Any, name: str) -> tuple[int, int]:
+    """Two integers >= 2 (a grid's nodes in m and L), or a ConfigError naming ``name``."""
+    if not (
+        not isinstance(value, str | bytes | Mapping)
+        and hasattr(value, "__len__")
+        and len(value) == 2
+        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in value)
+    ):
+        raise ConfigError(f"{name} must be two integers >= 2, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
 def validate_start(
     cfg: Mapping[str, Any], key: str = "start", prefix: str = ""
 ) -> tuple[float, float]:

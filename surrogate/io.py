@@ -367,6 +367,27 @@ def _normalise(v: Any) -> Any:
     return json.loads(json.dumps(v, sort_keys=True, default=_json_default))
 
 
+def require_artefact(
+    directory: str | os.PathLike,
+    settings: Mapping[str, Any],
+    made_by: str,
+    what: str,
+    after: str | None = None,
+) -> dict[str, Any]:
+    """The manifest of a stage's INPUT artefact: it must exist (else the error names the
+    command that makes it, and ``after`` the one before that) and match ``settings`` (else the
+    error names the differences)."""
+    directory = Path(directory)
+    if not (directory / MANIFEST).exists():
+        then = f" (after `{after}`)" if after else ""
+        raise MissingArtefactError(
+            f"no {what} for these settings ({directory} is missing). Run `{made_by}` first{then}."
+        )
+    manifest = read_manifest(directory, made_by=made_by)
+    check_settings(settings, manifest.get("settings", {}), str(directory), made_by)
+    return manifest
+
+
 def make_once(
     directory: str | os.PathLike,
     settings: Mapping[str, Any],

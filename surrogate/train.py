@@ -23,12 +23,13 @@ import torch
 from surrogate.collect import TRANSITIONS
 from surrogate.config import (
     build_params,
+    grid_shape,
     resolve_device,
     seed_everything,
     to_dict,
     validate_common,
 )
-from surrogate.errors import ArtefactError, ConfigError, MissingArtefactError, NumericalError
+from surrogate.errors import ArtefactError, ConfigError, NumericalError
 from surrogate.gp import (
     GPSettings,
     PsiClassifier,
@@ -41,10 +42,9 @@ from surrogate.gp import (
 )
 from surrogate.io import (
     MANIFEST,
-    check_settings,
     make_once,
-    read_manifest,
     read_parquet,
+    require_artefact,
     save_figure,
     write_csv,
     write_json,
@@ -95,28 +95,14 @@ def validate(cfg: Mapping[str, Any]) -> None:
                 f"classifier (collect.n_per_state={n_per_state} minus the validation split); "
                 f"lower gp.n_inducing or raise collect.n_per_state"
             )
-    size = cfg["gp"].get("grid_size", [50, 50])
-    if not (
-        not isinstance(size, str | bytes | Mapping)
-        and hasattr(size, "__len__")
-        and len(size) == 2
-        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in size)
-    ):
-        raise ConfigError(f"gp.grid_size must be two integers >= 2, got {size!r}")
+    grid_shape(cfg["gp"].get("grid_size", [50, 50]), "gp.grid_size")
 
 
 def load_transitions(cfg: Mapping[str, Any]) -> tuple[pd.DataFrame, Path]:
     """The collected transitions this config trains on, checked against its settings."""
     directory = collect_dir(cfg)
-    manifest_path = directory / MANIFEST
-    if not manifest_path.exists():
-        raise MissingArtefactError(
-            f"no collected transitions for these settings ({directory} is missing). "
-            f"Run `{collect_command(cfg)}` first."
-        )
-    manifest = read_manifest(directory, made_by=collect_command(cfg))
-    check_settings(
-        collect_settings(cfg), manifest.get("settings", {}), str(directory), collect_command(cfg)
+    manifest = require_artefact(
+        directory, collect_settings(cfg), collect_command(cfg), "collected transitions"
     )
     table = read_parquet(directory / TRANSITIONS, made_by=collect_command(cfg))
     missing = [c for c in REQUIRED_COLUMNS if c not in table.columns]
@@ -234,14 +220,12 @@ def adapted_curve(
 def resolve_abstraction(cfg: Mapping[str, Any]) -> Path:
     """The train directory a config points to, or a clear error naming the command that makes it."""
     directory = train_dir(cfg)
-    if not (directory / MANIFEST).exists():
-        raise MissingArtefactError(
-            f"no trained abstraction for these settings ({directory} is missing). "
-            f"Run `{train_command(cfg)}` first (after `{collect_command(cfg)}`)."
-        )
-    manifest = read_manifest(directory, made_by=train_command(cfg))
-    check_settings(
-        train_settings(cfg), manifest.get("settings", {}), str(directory), train_command(cfg)
+    require_artefact(
+        directory,
+        train_settings(cfg),
+        train_command(cfg),
+        "trained abstraction",
+        after=collect_command(cfg),
     )
     return directory
 

@@ -11,6 +11,7 @@ from typing import Any
 from surrogate.config import (
     build_field,
     build_params,
+    grid_shape,
     non_negative,
     positive,
     resolve_device,
@@ -59,14 +60,7 @@ def validate(cfg: Mapping[str, Any]) -> None:
             raise ConfigError(
                 f"decision.mode must be one of {list(ABSTRACT_MODES)}, got {decision.get('mode')!r}"
             )
-        size = decision.get("lookup_size")
-        if not (
-            not isinstance(size, str | bytes | Mapping)
-            and hasattr(size, "__len__")
-            and len(size) == 2
-            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in size)
-        ):
-            raise ConfigError(f"decision.lookup_size must be two integers >= 2, got {size!r}")
+        grid_shape(decision.get("lookup_size"), "decision.lookup_size")
         # The collect/gp settings locate the abstraction: refuse invalid ones (and an unknown
         # decision.train_field) here, not as a missing artefact after the lookups.
         from surrogate import collect, train
