@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from surrogate.cli import run_stage, task_overrides
-from surrogate.simulate.shards import merge
+from surrogate.stages.shards import merge
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="simulate")

@@ -10,7 +10,7 @@ import hydra
 from omegaconf import DictConfig
 
 from surrogate.cli import run_stage
-from surrogate.reproduce import run
+from surrogate.stages.reproduce import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="reproduce")

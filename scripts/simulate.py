@@ -9,7 +9,7 @@ import hydra
 from omegaconf import DictConfig
 
 from surrogate.cli import run_stage
-from surrogate.simulate.shards import run
+from surrogate.stages.shards import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="simulate")

@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from surrogate.cli import run_stage
-from surrogate.train import run
+from surrogate.stages.train import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")

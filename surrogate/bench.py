@@ -30,17 +30,16 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import fields
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from surrogate.config import build_field, build_params, resolve_device, to_dict
+from surrogate.config import build_field, build_model, resolve_device, to_dict
 from surrogate.fields import Field
 from surrogate.io import load_tensors, save_tensors, write_json
-from surrogate.models.ecoli import EcoliParameters
+from surrogate.models.base import Model
 from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.population import simulate_population
@@ -117,78 +116,78 @@ def _sync(device: torch.device) -> None:
 def train_abstraction(
     s: Mapping[str, Any], cfg: Mapping[str, Any], device: torch.device
 ) -> tuple[Any, dict[str, Any]]:
-    """Collect transitions and fit both classifiers (each timed); return (psi, facts)."""
-    from surrogate.collect import collect_transitions
-    from surrogate.gp import GPSettings, fit_psi
+    """Collect transitions and fit both classifiers (each timed) with the collect and gp
+    settings of ``cfg`` (``training`` overrides sizes); return (psi, facts)."""
+    from surrogate.gp import fit_psi
+    from surrogate.simulate.transitions import collect_transitions
+    from surrogate.stages.settings import TrainSettings
 
-    params = build_params(cfg["model"])
-    field = build_field(cfg["field"])
-    c, t = cfg["collect"], s["training"]
-    simulator = Simulator(FullDecision(params), field, params, float(cfg["dt"]), device)
+    t = s["training"]
+    c = {**to_dict(cfg["collect"]), "n_per_state": int(t["n_per_state"])}
+    gp = {**to_dict(cfg["gp"]), "n_inducing": int(t["n_inducing"]), "epochs": int(t["epochs"]),
+          "batch_size": int(t["batch_size"])}  # fmt: skip
+    settings = TrainSettings.from_config({**to_dict(cfg), "collect": c, "gp": gp})
+    setup, opts = settings.setup, settings.source.options  # type: ignore[union-attr]
+    model = setup.model
+    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, device)
+    perturbation = model.body.perturbation(setup.field, model.perturbation_options)
     t0 = time.perf_counter()
     data = collect_transitions(
         simulator,
-        n_cells=int(c["n_cells"]),
-        n_per_state=int(t["n_per_state"]),
-        perturb_rate=float(c["perturb_rate"]),
-        perturb_radius=float(c["perturb_radius"]),
-        record_every=int(c["record_every"]),
-        equilibration_time=float(c["equilibration_time"]),
-        max_time=float(c["max_time"]),
+        perturbation,
+        n_cells=int(opts["n_cells"]),
+        n_per_state=int(opts["n_per_state"]),
+        perturb_rate=float(opts["perturb_rate"]),
+        record_every=int(opts["record_every"]),
+        equilibration_time=float(opts["equilibration_time"]),
+        max_time=float(opts["max_time"]),
         progress=False,
     )
     collect_s = time.perf_counter() - t0
-    known = {f.name for f in fields(GPSettings)}  # the gp group also holds presentation keys
-    gp = {k: v for k, v in to_dict(cfg["gp"]).items() if k in known}
-    gp.update(n_inducing=int(t["n_inducing"]), epochs=int(t["epochs"]), seed=int(cfg["seed"]))
-    gp.update(batch_size=int(t["batch_size"]))
-    settings = GPSettings.from_config(gp)
     t0 = time.perf_counter()
-    psi = fit_psi(data, settings, progress=False, device=device)
+    psi = fit_psi(data, settings.inputs, settings.gp, progress=False, device=device,
+                  lump_names=model.internal.lump_names)  # fmt: skip
     train_s = time.perf_counter() - t0
     facts = {
         "collect": {
             "n_transitions": len(data),
             "seconds": collect_s,
             "transitions_per_s": len(data) / collect_s,
-            "n_cells": int(c["n_cells"]),
-            "record_every": int(c["record_every"]),
+            "n_cells": int(opts["n_cells"]),
+            "record_every": int(opts["record_every"]),
         },
         "training": {
             "seconds": train_s,
             "n_points": len(data),
             "n_per_classifier": int(t["n_per_state"]),
-            "fit_seconds": {
-                "psi_tumble": psi.psi_tumble.train_seconds,
-                "psi_run": psi.psi_run.train_seconds,
-            },
-            "settings": settings.to_dict(),
+            "inputs": list(settings.inputs),
+            "fit_seconds": {f"psi_{p}": c.train_seconds for p, c in enumerate(psi.classifiers)},
+            "settings": settings.gp.to_dict(),
             "threads": torch.get_num_threads(),
         },
     }
     return psi, facts
 
 
-def make_decision(model: str, params: EcoliParameters, tables: Mapping[str, Any]) -> Any:
+def make_decision(name: str, model: Model, tables: Mapping[str, Any]) -> Any:
     """A decision layer: ``full``, ``lookup`` (table) or ``classifier`` (CachedPsi)."""
-    if model == "full":
-        return FullDecision(params)
-    return AbstractDecision(tables[model], params)
+    if name == "full":
+        return FullDecision(model.internal)
+    psi = tables[name]
+    return AbstractDecision(psi, model.internal, model.featurizer(psi.input_names))
 
 
 def make_simulator(
-    model: str,
-    params: EcoliParameters,
+    name: str,
+    model: Model,
     field: Field,
     dt: float,
     device: torch.device,
     tables: Mapping[str, Any],
     compile: bool,
 ) -> Simulator:
-    """A simulator for one model."""
-    return Simulator(
-        make_decision(model, params, tables), field, params, dt, device, compile=compile
-    )
+    """A simulator for one decision layer."""
+    return Simulator(model, make_decision(name, model, tables), field, dt, device, compile=compile)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -249,13 +248,12 @@ def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict
         state = simulator.initial_state(n_cells, (2.0, 0.0), 0.0)
         simulator.warm_up(state)
         k = max(3, min(500, 2_000_000 // n_cells))
-        randoms = simulator.draw_randoms(n_cells)
-        u, u64, z, angle = randoms
+        u, u64, z, extra = simulator.draw_randoms(n_cells)
         decision = simulator.decision
         args = (
-            state.position, state.heading, state.methylation, state.run.view(torch.uint8),
-            state.segment_steps, state.segment_complete.view(torch.uint8),
-            decision.fused_state(), u, u64, z, angle, 1.0,
+            state.body, state.phi.view(torch.uint8), state.segment_steps,
+            state.segment_complete.view(torch.uint8), decision.fused_state(), u, u64, z, extra,
+            1.0,
         )  # fmt: skip
         rng = best_us(lambda: simulator.draw_randoms(n_cells), k)
         kernel = best_us(lambda: simulator._run("_fused_step", *args), k)
@@ -316,15 +314,11 @@ def memory_child(spec_json: str) -> None:
     from surrogate.gp import PsiLookupTable
 
     device = torch.device(spec["device"])
-    params = EcoliParameters.from_config(spec["model"])
+    model = build_model(spec["model"])
     table = PsiLookupTable.from_state(load_tensors(spec["table"]), device)
-    from omegaconf import OmegaConf
-
-    field = build_field(OmegaConf.create(spec["field"]))
-    simulator = Simulator(
-        AbstractDecision(table, params), field, params, spec["dt"], device,
-        compile=bool(spec["compile"]),
-    )  # fmt: skip
+    field = build_field(spec["field"])
+    decision = AbstractDecision(table, model.internal, model.featurizer(table.input_names))
+    simulator = Simulator(model, decision, field, spec["dt"], device, compile=bool(spec["compile"]))
     rss_before = _rss_mb()
     with tempfile.TemporaryDirectory() as tmp:
         summary = simulate_population(
@@ -392,7 +386,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
     s = bench_settings(cfg)
     device = resolve_device(cfg.get("device", "cpu"))
     torch.manual_seed(int(cfg["seed"]))
-    params = build_params(cfg["model"])
+    model = build_model(cfg["model"])
     field = build_field(cfg["field"])
     dt = float(cfg["dt"])
     started = time.perf_counter()
@@ -406,15 +400,16 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
     log("collecting transitions and training the classifiers ...")
     psi, facts = train_abstraction(s, cfg, device)
     results.update(facts)
-    table = PsiLookupTable.from_classifier(
-        psi, psi.domain["m"], psi.domain["L"], size=tuple(s["lookup_size"])
-    ).to(device)
+    ranges = [psi.domain[n] for n in psi.input_names]
+    size = tuple(s["lookup_size"]) if s.get("lookup_size") else None
+    table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
     cached = CachedPsi.from_classifier(psi)
     tables = {"lookup": table, "classifier": cached}
     results["abstraction"] = {
         "source": "trained on the fly (collect_transitions + fit_psi, timed above)",
         "n_per_state": int(s["training"]["n_per_state"]),
         "n_inducing": int(s["training"]["n_inducing"]),
+        "inputs": list(psi.input_names),
         "epochs": int(s["training"]["epochs"]),
         "lookup_size": list(table.shape),
         "lookup_max_deviation": table.max_deviation(psi, n_check=4096),
@@ -428,17 +423,17 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
         with num_threads(threads):
             for compile in s["compile"]:
                 sims = {
-                    model: make_simulator(model, params, field, dt, device, tables, compile)
-                    for model in MODELS
+                    name: make_simulator(name, model, field, dt, device, tables, compile)
+                    for name in MODELS
                 }
                 for n in s["sizes"]:
                     load = read_load()
                     row: dict[str, Any] = {
                         "threads": threads, "compile": compile, "n_cells": n, "load": load,
                     }  # fmt: skip
-                    for model in MODELS:
-                        log(f"throughput: {model} n={n} threads={threads} compile={compile}")
-                        row[model] = throughput(sims[model], n, s)
+                    for name in MODELS:
+                        log(f"throughput: {name} n={n} threads={threads} compile={compile}")
+                        row[name] = throughput(sims[name], n, s)
                     full = row["full"]["cell_steps_per_s"]
                     row["ratio_lookup"] = row["lookup"]["cell_steps_per_s"] / full
                     row["ratio_classifier"] = row["classifier"]["cell_steps_per_s"] / full
@@ -452,12 +447,12 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
         # 3. ratio as the number of motors grows (lookup abstraction; independent of motors)
         motors = []
         n = int(s["motors_size"])
-        sim_abs = make_simulator("lookup", params, field, dt, device, tables, best_compile)
+        sim_abs = make_simulator("lookup", model, field, dt, device, tables, best_compile)
         abstract = throughput(sim_abs, n, s)
         for n_motors in s["motors"]:
-            p_m = EcoliParameters(**{**params.to_dict(), "n_motors": int(n_motors)})
+            m_model = build_model({**to_dict(cfg["model"]), "n_motors": int(n_motors)})
             log(f"motors: {n_motors} motors, n={n}")
-            sim_full = make_simulator("full", p_m, field, dt, device, tables, best_compile)
+            sim_full = make_simulator("full", m_model, field, dt, device, tables, best_compile)
             full = throughput(sim_full, n, s)
             motors.append({
                 "n_motors": int(n_motors), "n_cells": n, "full": full, "lookup": abstract,
@@ -468,20 +463,20 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
         # 4. per-step split (best config)
         breakdown = []
         for n in s["breakdown_sizes"]:
-            for model in MODELS:
-                sim = make_simulator(model, params, field, dt, device, tables, best_compile)
-                breakdown.append({"model": model, "n_cells": n, **step_breakdown(sim, n)})
+            for name in MODELS:
+                sim = make_simulator(name, model, field, dt, device, tables, best_compile)
+                breakdown.append({"model": name, "n_cells": n, **step_breakdown(sim, n)})
         results["breakdown"] = breakdown
 
         # 5. the paper's workload, eager and compiled
         paper = []
         with tempfile.TemporaryDirectory() as tmp:
             for compile in s["compile"]:
-                for model in ("full", "lookup"):
-                    log(f"paper workload: {model} compile={compile}")
-                    sim = make_simulator(model, params, field, dt, device, tables, compile)
-                    out = paper_workload(sim, s["paper"], Path(tmp) / f"{model}-{compile}")
-                    paper.append({"model": model, "compile": compile, "load": read_load(), **out})
+                for name in ("full", "lookup"):
+                    log(f"paper workload: {name} compile={compile}")
+                    sim = make_simulator(name, model, field, dt, device, tables, compile)
+                    out = paper_workload(sim, s["paper"], Path(tmp) / f"{name}-{compile}")
+                    paper.append({"model": name, "compile": compile, "load": read_load(), **out})
         results["paper"] = {
             "n_cells": int(s["paper"]["n_cells"]),
             "t_end": float(s["paper"]["t_end"]),

@@ -27,11 +27,10 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from surrogate.errors import ConfigError, SurrogateError
-from surrogate.io import write_json
+from surrogate.io import JOB_STATUS, write_json
 
 log = logging.getLogger(__name__)
 
-JOB_STATUS = "job_status.json"
 EXIT_USER_ERROR = 2
 
 JOBLIB_TARGET = "JoblibLauncher"

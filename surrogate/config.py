@@ -1,6 +1,8 @@
 """From Hydra configs to objects, with validation up front (before any work starts).
 
 Every check raises :class:`~surrogate.errors.ConfigError` naming the setting and what is allowed.
+Models and fields are built here, at the edge, from their config group's ``_target_``; stages
+pass the objects down (see :mod:`surrogate.stages.settings`).
 
 Seeds: every random draw of a stage follows from the one ``seed`` setting, recorded in each
 manifest. A stage calls :func:`seed_everything` (torch's CPU and CUDA generators) before its
@@ -17,6 +19,7 @@ the same directory (stages that write under :func:`surrogate.io.artefact_lock` t
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -27,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from surrogate.errors import ConfigError
 from surrogate.fields import BUILTIN_FIELDS, Field
-from surrogate.models.ecoli import EcoliParameters
+from surrogate.models.base import Model
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -39,56 +42,104 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dict(cfg)
 
 
+def group_options(group: str) -> list[str]:
+    """Names of the configs shipped in ``conf/<group>``."""
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
 def available_fields() -> list[str]:
     """Names of the field configs shipped in ``conf/field``."""
-    return sorted(p.stem for p in (CONF_DIR / "field").glob("*.yaml"))
+    return group_options("field")
 
 
-def field_config(name: str) -> DictConfig:
-    """The shipped config of field ``name`` (used to rebuild the field an abstraction was trained on)."""
+def group_config(group: str, name: str) -> dict[str, Any]:
+    """The shipped config ``conf/<group>/<name>.yaml`` as a plain dict."""
+    path = CONF_DIR / group / f"{name}.yaml"
+    if not path.exists():
+        raise ConfigError(f"unknown {group} {name!r}; available: {group_options(group)}")
+    return to_dict(OmegaConf.load(path))
+
+
+def field_config(name: str) -> dict[str, Any]:
+    """The shipped config of field ``name`` (to rebuild the field an abstraction was trained on)."""
     path = CONF_DIR / "field" / f"{name}.yaml"
     if not path.exists():
         raise ConfigError(f"unknown field {name!r}; available fields: {available_fields()}")
-    return OmegaConf.load(path)  # type: ignore[return-value]
+    return to_dict(OmegaConf.load(path))
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_fields() -> tuple[tuple[str, Any], ...]:
+    return tuple((name, _plain(field_config(name))) for name in available_fields())
 
 
 def field_name(cfg_field: Mapping[str, Any]) -> str:
-    """A short name for a field config: its class's ``name`` or the target's last part."""
-    target = str(cfg_field.get("_target_", ""))
+    """A short name for a field config: the shipped config it equals, its class's ``name``, or
+    the target's last part."""
+    data = _plain(to_dict(cfg_field))
+    for name, shipped in _shipped_fields():
+        if shipped == data:
+            return name
+    target = str(data.get("_target_", ""))
     for name, cls in BUILTIN_FIELDS.items():
         if target == f"{cls.__module__}.{cls.__qualname__}":
-            if name == "constant" and float(cfg_field.get("value", 0.0)) == 0.0:
-                return "zero"
             return name
     return target.rsplit(".", 1)[-1] or "field"
 
 
-def build_field(cfg_field: Mapping[str, Any]) -> Field:
-    """Instantiate a field from its config (``_target_`` + keyword arguments)."""
+def _plain(data: Mapping[str, Any]) -> Any:
+    """A comparable form of a config (numbers as floats: ``1`` and ``1.0`` are one setting)."""
+    def norm(v: Any) -> Any:
+        if isinstance(v, Mapping):
+            return {k: norm(x) for k, x in sorted(v.items())}
+        if isinstance(v, list | tuple):
+            return [norm(x) for x in v]
+        if isinstance(v, int | float) and not isinstance(v, bool):
+            return float(v)
+        return v
+
+    return norm(dict(data))
+
+
+def _instantiate(cfg: Mapping[str, Any], group: str, what: str) -> Any:
+    """``hydra.utils.instantiate`` with errors as ConfigError naming the group's target."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    data = to_dict(cfg_field)
+    data = to_dict(cfg)
     if "_target_" not in data:
         raise ConfigError(
-            f"field config needs a `_target_` (a Field class); got keys {sorted(data)}; "
-            f"built-in fields: {available_fields()}"
+            f"{group} config needs a `_target_` ({what}); got keys {sorted(data)}; shipped "
+            f"{group} configs: {group_options(group)}"
         )
     try:
-        field = instantiate(data)
+        return instantiate(data, _convert_="all")
     except InstantiationException as exc:
         cause = exc.__cause__
         if isinstance(cause, ConfigError):
             raise cause from None
-        raise ConfigError(f"could not build field {data.get('_target_')!r}: {exc}") from exc
+        raise ConfigError(f"could not build {group} {data.get('_target_')!r}: {exc}") from exc
+
+
+def build_field(cfg_field: Mapping[str, Any]) -> Field:
+    """Instantiate a field from its config (``_target_`` + keyword arguments)."""
+    field = _instantiate(cfg_field, "field", "a Field class")
     if not callable(field) or not hasattr(field, "distance_from_peak"):
-        raise ConfigError(f"field target {data['_target_']!r} is not a surrogate.fields.Field")
+        raise ConfigError(
+            f"field target {to_dict(cfg_field)['_target_']!r} is not a surrogate.fields.Field"
+        )
     return field
 
 
-def build_params(cfg_model: Mapping[str, Any]) -> EcoliParameters:
-    """Validated model constants from the ``model`` config group."""
-    return EcoliParameters.from_config(to_dict(cfg_model))
+def build_model(cfg_model: Mapping[str, Any]) -> Model:
+    """Instantiate an agent model from the ``model`` config group (``_target_`` + settings)."""
+    model = _instantiate(cfg_model, "model", "a surrogate.models.Model, e.g. EcoliModel")
+    if not isinstance(model, Model):
+        raise ConfigError(
+            f"model target {to_dict(cfg_model)['_target_']!r} did not return a "
+            f"surrogate.models.Model (got {type(model).__name__})"
+        )
+    return model
 
 
 def resolve_device(name: str) -> torch.device:
@@ -147,33 +198,33 @@ def non_negative(cfg: Mapping[str, Any], key: str, prefix: str = "") -> float:
     return value
 
 
-def validate_common(cfg: Mapping[str, Any]) -> None:
-    """Checks shared by every stage: dt, seed, device, model constants, field."""
-    dt = positive(cfg, "dt")
+def seed_setting(cfg: Mapping[str, Any]) -> int:
+    """The run's seed: a non-negative integer."""
     seed = cfg.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
-    resolve_device(cfg.get("device", "cpu"))
-    params = build_params(cfg["model"])
-    # the methylation OU is stepped by Euler-Maruyama: dt >= tau overshoots its drift
-    if dt >= params.tau:
-        raise ConfigError(
-            f"dt={dt:g} s must be smaller than model.tau={params.tau:g} s (the adaptation time, "
-            f"stepped by Euler-Maruyama); the paper uses dt=0.05"
-        )
-    build_field(cfg["field"])
+    return seed
 
 
-def grid_shape(value: Any, name: str) -> tuple[int, int]:
-    """Two integers >= 2 (a grid's nodes in m and L), or a ConfigError naming ``name``."""
-    if not (
+def grid_size(value: Any, name: str, axes: int | None = None) -> tuple[int, ...] | None:
+    """Integers >= 2 (grid nodes per axis; ``axes`` of them if given), None (the caller's
+    default), or a ConfigError naming ``name``. A single integer means the same number on every
+    axis."""
+    if value is None:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 2 and axes:
+        return (value,) * axes
+    ok = (
         not isinstance(value, str | bytes | Mapping)
         and hasattr(value, "__len__")
-        and len(value) == 2
+        and len(value) >= 1
         and all(isinstance(s, int) and not isinstance(s, bool) and s >= 2 for s in value)
-    ):
-        raise ConfigError(f"{name} must be two integers >= 2, got {value!r}")
-    return int(value[0]), int(value[1])
+    )
+    if not ok or (axes is not None and len(value) not in (axes, 1)):
+        want = f"{axes} integers" if axes else "integers"
+        raise ConfigError(f"{name} must be {want} >= 2 (or one for every axis), got {value!r}")
+    sizes = tuple(int(s) for s in value)
+    return sizes * axes if axes is not None and len(sizes) == 1 else sizes
 
 
 def validate_start(

@@ -32,6 +32,7 @@ except ImportError:  # pragma: no cover - Windows
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
+JOB_STATUS = "job_status.json"  # a Hydra job's outcome, written by surrogate.cli
 LOCK = ".lock"
 TMP_GLOB = ".*.tmp"
 
@@ -71,6 +72,21 @@ def publish(tmp_path: str | os.PathLike, path: str | os.PathLike) -> None:
     with open(tmp_path, "rb") as fh:  # flush to disk before the rename makes it visible
         os.fsync(fh.fileno())
     os.replace(tmp_path, path)
+    fsync_directory(Path(path).parent)  # the rename itself survives a crash only once synced
+
+
+def fsync_directory(directory: str | os.PathLike) -> None:
+    """Flush a directory's entries (e.g. a rename into it) to disk, where the OS allows it."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:  # pragma: no cover - e.g. Windows cannot open directories
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover - some file systems refuse fsync on directories
+        pass
+    finally:
+        os.close(fd)
 
 
 def clean_stale_tmp(directory: str | os.PathLike) -> list[Path]:

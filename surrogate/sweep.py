@@ -19,10 +19,9 @@ from typing import Any
 import pandas as pd
 from omegaconf import OmegaConf
 
-from surrogate.cli import JOB_STATUS
 from surrogate.config import field_name
 from surrogate.errors import ArtefactError, MissingArtefactError, SurrogateError
-from surrogate.io import read_json, read_manifest, save_figure, write_csv
+from surrogate.io import JOB_STATUS, read_json, read_manifest, save_figure, write_csv
 
 log = logging.getLogger(__name__)
 
@@ -134,15 +133,16 @@ def job_results(directory: Path) -> dict[str, Any]:
     if stage == "evaluate":
         field = field_name(manifest["config"]["field"])
         out = evaluation_results(directory, field)
-        abstract = read_manifest(Path(manifest["runs"]["abstract"]))
-        if abstract.get("abstraction_dir"):
-            out.update(train_results(Path(abstract["abstraction_dir"])))
+        candidate = read_manifest(Path(manifest["runs"]["candidate"]))
+        if candidate.get("abstraction_dir"):
+            out.update(train_results(Path(candidate["abstraction_dir"])))
         return out
     if stage == "train":
         return train_results(directory, manifest)
     if stage == "simulate":
-        return {k: manifest.get(k) for k in ("n_cells", "loop_time_s", "cell_steps_per_s",
-                                             "final_mean_distance")}  # fmt: skip
+        out = {k: manifest.get(k) for k in ("n_cells", "loop_time_s", "cell_steps_per_s")}
+        out.update({f"final_mean_{k}": v for k, v in (manifest.get("final_means") or {}).items()})
+        return out
     if stage == "collect":
         return {"n_transitions": manifest.get("n_rows"), "collect_s": manifest.get("wall_time_s")}
     return {}
@@ -160,12 +160,17 @@ def evaluation_results(directory: Path, field: str) -> dict[str, Any]:
 
 
 def train_results(directory: Path, manifest: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Held-out Brier scores (and the constant predictor's) and training time."""
+    """Held-out Brier scores (and the constant predictor's), the switching probabilities'
+    bias where the population lives, and training time."""
     m = manifest if manifest is not None else read_manifest(directory)
     out: dict[str, Any] = {}
-    for name in ("psi_tumble", "psi_run"):
+    for name in ("psi_0", "psi_1"):
         out[f"brier_{name}"] = (m.get("brier") or {}).get(name)
         out[f"brier_baseline_{name}"] = (m.get("brier_baseline") or {}).get(name)
+    diagnostic = m.get("diagnostic") or {}
+    for p in (0, 1):
+        d = diagnostic.get(f"phi{p}") or {}
+        out[f"switch_bias_phi{p}"] = d.get("rel_bias")
     out["train_s"] = m.get("wall_time_s")
     return out
 

@@ -7,10 +7,8 @@ explicitly (it needs matplotlib).
 from __future__ import annotations
 
 from surrogate.evaluate.report import (
-    PAPER_QUANTITIES,
-    PAPER_TABLE1,
     format_markdown_table,
-    paper_table1_frame,
+    split_quantity,
     table1_markdown,
     write_comparison,
     write_report,
@@ -28,13 +26,12 @@ from surrogate.evaluate.statistics import (
     load_run,
     mean_std_over_time,
     noise_floor_table,
+    observable_at,
     speedup,
 )
 
 __all__ = [
-    "PAPER_QUANTITIES",
     "PAPER_SUBSAMPLE",
-    "PAPER_TABLE1",
     "PAPER_TIMES",
     "SimulationRun",
     "combine_with_noise_floor",
@@ -47,8 +44,9 @@ __all__ = [
     "load_run",
     "mean_std_over_time",
     "noise_floor_table",
-    "paper_table1_frame",
+    "observable_at",
     "speedup",
+    "split_quantity",
     "table1_markdown",
     "write_comparison",
     "write_report",

@@ -14,32 +14,37 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from surrogate.evaluate.statistics import (
-    DURATION_KINDS,
     SimulationRun,
     compare_samples,
-    distances_at,
     mean_std_over_time,
+    observable_at,
 )
 
 COLOURS: tuple[str, str] = ("tab:blue", "tab:orange")
 
 
-def plot_distance_histograms(
+def plot_observable_histograms(
     reference: SimulationRun,
     candidate: SimulationRun,
     times: Sequence[float],
     labels: tuple[str, str] = ("full", "abstract"),
     bins: int = 20,
+    name: str | None = None,
+    axis_label: str | None = None,
 ) -> Figure:
-    """The paper's Figure 4: distance-from-peak histograms, one panel per record time.
+    """The paper's Figure 4: histograms of an observable (default: the first, e.g. the distance
+    from the peak), one panel per record time.
 
     Both models are overlaid as step histograms (densities, so unequal cell counts compare) on
     bins shared by all panels, so panels are comparable across time too. Each panel's title
     gives the KS distance between the two samples.
     """
     if not times:
-        raise ValueError("plot_distance_histograms needs at least one time")
-    samples = [(distances_at(reference, t), distances_at(candidate, t)) for t in times]
+        raise ValueError("plot_observable_histograms needs at least one time")
+    name = name or reference.observable_names[0]
+    samples = [
+        (observable_at(reference, name, t), observable_at(candidate, name, t)) for t in times
+    ]
     edges = np.histogram_bin_edges(np.concatenate([np.concatenate(s) for s in samples]), bins=bins)
     fig = Figure(figsize=(3.2 * len(times), 3.0), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(times), sharex=True, sharey=True))
@@ -54,21 +59,24 @@ def plot_distance_histograms(
                 color=colour,
                 label=f"{label} (n={values.size})",
             )
-        ks = compare_samples(ref, cand, name=f"distances at t={t:g}")["ks"]
+        ks = compare_samples(ref, cand, name=f"{name} at t={t:g}")["ks"]
         ax.set_title(f"t = {t:g} s (KS {ks:.3f})", fontsize=10)
-        ax.set_xlabel("distance from peak (mm)")
+        ax.set_xlabel(axis_label or name)
     axes[0].set_ylabel("density")
     axes[0].legend(fontsize=8)
     return fig
 
 
-def plot_distance_over_time(
+def plot_observable_over_time(
     reference: SimulationRun,
     candidate: SimulationRun,
     labels: tuple[str, str] = ("full", "abstract"),
     separate: bool = False,
+    name: str | None = None,
+    axis_label: str | None = None,
 ) -> Figure:
-    """The paper's Figure 5: mean distance from the peak and a ±1 s.d. band against time.
+    """The paper's Figure 5: mean of an observable (default: the first, e.g. the distance from
+    the peak) and a ±1 s.d. band against time.
 
     Both models share one axis by default; ``separate=True`` gives the paper's layout of one
     panel per model (shared y-axis).
@@ -79,18 +87,18 @@ def plot_distance_over_time(
         zip((reference, candidate), labels, COLOURS, strict=True)
     ):
         ax = axes[i] if separate else axes[0]
-        _mean_band(ax, run, label, colour)
+        _mean_band(ax, run, label, colour, name)
         if separate:
             ax.set_title(label, fontsize=10)
     for ax in axes:
         ax.set_xlabel("t (s)")
         ax.legend(fontsize=8)
-    axes[0].set_ylabel("distance from peak (mm)")
+    axes[0].set_ylabel(axis_label or name or reference.observable_names[0])
     return fig
 
 
-def _mean_band(ax: Axes, run: SimulationRun, label: str, colour: str) -> None:
-    ms = mean_std_over_time(run)
+def _mean_band(ax: Axes, run: SimulationRun, label: str, colour: str, name: str | None) -> None:
+    ms = mean_std_over_time(run, name)
     t, mean, std = ms["t"].to_numpy(), ms["mean"].to_numpy(), ms["std"].fillna(0.0).to_numpy()
     ax.plot(t, mean, color=colour, lw=1.5, label=f"{label} mean")
     ax.fill_between(
@@ -104,14 +112,16 @@ def plot_duration_histograms(
     labels: tuple[str, str] = ("full", "abstract"),
     bins: int = 40,
 ) -> Figure:
-    """Run and tumble duration histograms (two panels, densities on a log y-axis).
+    """Duration histograms of each lump (e.g. run and tumble; two panels, densities on a log
+    y-axis).
 
     All durations are used (not the KS subsample); each panel's bins are shared by both models.
     A kind with no durations in either run gets an empty panel saying so.
     """
     fig = Figure(figsize=(9.0, 3.5), layout="constrained")
-    axes = fig.subplots(1, len(DURATION_KINDS))
-    for ax, kind in zip(axes, DURATION_KINDS, strict=True):
+    kinds = list(reversed(reference.lump_names))
+    axes = fig.subplots(1, len(kinds))
+    for ax, kind in zip(axes, kinds, strict=True):
         pair = (reference.durations_of(kind), candidate.durations_of(kind))
         pooled = np.concatenate(pair)
         ax.set_title(f"{kind} durations", fontsize=10)

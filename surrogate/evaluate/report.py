@@ -1,4 +1,5 @@
-"""Markdown rendering of comparison tables and the evaluation report.
+"""Markdown rendering of comparison tables and the evaluation report (for any model: the
+published reference table, if any, comes from the model's ``reference_table`` hook).
 
 Tables are rendered by hand (no ``tabulate`` dependency). Everything is written atomically
 through ``surrogate.io``.
@@ -16,101 +17,8 @@ import pandas as pd
 
 from surrogate.io import write_csv, write_text
 
-#: The paper's Table 1 (Michaelides, Hillston & Sanguinetti): KS distance between 100 full and
-#: 100 abstracted cells' distances from the peak at t = 125/250/375/500 s, and between 1,000
-#: sampled run / tumble durations of each model, with the p-values printed under each distance,
-#: and the observed speed-up. Quantity keys match ``comparison_table``'s ``quantity`` column.
-#: Transcribed as published; note the linear field's t=125 s distance 0.010 cannot go with its
-#: p-value 0.677 (with 100 cells per model a KS distance below 0.01 is impossible and 0.010 would
-#: give p = 1), so it is probably a typo for 0.100.
-PAPER_TABLE1: dict[str, dict[str, Any]] = {
-    "gaussian": {
-        "label": "Gaussian L1(r)",
-        "ks": {
-            "distance_t125": 0.110,
-            "distance_t250": 0.160,
-            "distance_t375": 0.170,
-            "distance_t500": 0.160,
-            "run": 0.039,
-            "tumble": 0.101,
-        },
-        "ks_pvalue": {
-            "distance_t125": 0.556,
-            "distance_t250": 0.140,
-            "distance_t375": 0.099,
-            "distance_t500": 0.140,
-            "run": 0.425,
-            "tumble": 7e-5,
-        },
-        "speedup": 7.8,
-    },
-    "linear": {
-        "label": "Linear L2(r)",
-        "ks": {
-            "distance_t125": 0.010,
-            "distance_t250": 0.150,
-            "distance_t375": 0.170,
-            "distance_t500": 0.130,
-            "run": 0.022,
-            "tumble": 0.014,
-        },
-        "ks_pvalue": {
-            "distance_t125": 0.677,
-            "distance_t250": 0.193,
-            "distance_t375": 0.100,
-            "distance_t500": 0.344,
-            "run": 0.967,
-            "tumble": 0.100,
-        },
-        "speedup": 9.4,
-    },
-    "dynamic": {
-        "label": "Dynamic Gaussian L3(r, t)",
-        "ks": {
-            "distance_t125": 0.140,
-            "distance_t250": 0.070,
-            "distance_t375": 0.140,
-            "distance_t500": 0.080,
-            "run": 0.047,
-            "tumble": 0.039,
-        },
-        "ks_pvalue": {
-            "distance_t125": 0.261,
-            "distance_t250": 0.961,
-            "distance_t375": 0.261,
-            "distance_t500": 0.894,
-            "run": 0.214,
-            "tumble": 0.425,
-        },
-        "speedup": 8.9,
-    },
-}
-
-#: The quantities of the paper's Table 1, in column order.
-PAPER_QUANTITIES: tuple[str, ...] = (
-    "distance_t125",
-    "distance_t250",
-    "distance_t375",
-    "distance_t500",
-    "run",
-    "tumble",
-)
-
 #: Formats ``write_comparison`` uses: p-values span many decades, so fixed-point would show 0.
 COMPARISON_FORMATS: dict[str, str] = {"ks_pvalue": ".3g", "ks_pvalue_full": ".3g"}
-
-_DISTANCE_PREFIX = "distance_t"
-
-
-def paper_table1_frame() -> pd.DataFrame:
-    """``PAPER_TABLE1`` as a long table: ``field``, ``quantity``, ``ks``, ``ks_pvalue``."""
-    rows = [
-        {"field": name, "quantity": q, "ks": entry["ks"][q], "ks_pvalue": entry["ks_pvalue"][q]}
-        for name, entry in PAPER_TABLE1.items()
-        for q in PAPER_QUANTITIES
-    ]
-    return pd.DataFrame(rows)
-
 
 # ----------------------------------------------------------------------------------------------
 # markdown
@@ -174,92 +82,81 @@ def _fmt_p(p: float) -> str:
     return f"{p:.3f}" if p >= 1e-3 else f"{p:.0e}"
 
 
-def _distance_time(quantity: str) -> float:
-    return float(quantity[len(_DISTANCE_PREFIX) :])
+def split_quantity(quantity: str) -> tuple[str, float] | None:
+    """``"distance_t125"`` -> ``("distance", 125.0)``; None for a duration row (``"run"``)."""
+    name, sep, t = str(quantity).rpartition("_t")
+    if not sep:
+        return None
+    try:
+        return name, float(t)
+    except ValueError:
+        return None
 
 
 def table1_markdown(
     results: Mapping[str, pd.DataFrame],
     speedups: Mapping[str, float],
+    reference: Mapping[str, Mapping[str, Any]] | None = None,
     floatfmt: str = ".3f",
 ) -> str:
-    """Our KS distances beside the paper's Table 1, one block of sub-rows per field.
+    """Our KS distances (the paper's Table 1 layout), one block of sub-rows per field.
 
     Args:
-        results: Field name ("gaussian", "linear", "dynamic", or another) -> a
-            ``comparison_table`` (optionally passed through ``combine_with_noise_floor``).
-        speedups: Field name -> our speed-up factor (missing fields show "–").
+        results: Field name -> a ``comparison_table`` (optionally passed through
+            ``combine_with_noise_floor``).
+        speedups: Field name -> our speed-up factor (missing fields show "-").
+        reference: Field name -> published figures to print beside ours (``{"ks": {quantity:
+            value}, "ks_pvalue": {...}, "speedup": x}``, e.g. the model's
+            ``reference_table()``), or None.
         floatfmt: Format of KS distances.
 
-    Each field gets an ``ours`` row (``KS (p-value)``), a ``paper`` row (when the paper has the
-    field) and a ``noise floor`` row (when the table has ``ks_noise_floor``). An ours-cell is
-    marked ``†`` when ``within_noise`` is False. When our distance times differ from the paper's
-    125/250/375/500 s (e.g. shorter runs), columns are matched by position and each of our
-    cells states its time.
+    Columns: every observable-at-time quantity (``<observable>_t<t>``, in time order), then the
+    duration quantities. Each field gets an ``ours`` row (``KS (p-value)``), a ``published`` row
+    (when ``reference`` has the field) and a ``noise floor`` row (when the table has
+    ``ks_noise_floor``). An ours-cell is marked ``†`` when ``within_noise`` is False.
     """
-    ours_distance = {name: _distance_rows(df) for name, df in results.items()}
-    paper_times = [_distance_time(q) for q in PAPER_QUANTITIES[:4]]
-    same_times = all(
-        [_distance_time(q) for q in qs] == paper_times for qs in ours_distance.values()
-    )
-    n_dist = max([4, *(len(qs) for qs in ours_distance.values())])
-    if same_times:
-        dist_headers = [f"t={t:g} s" for t in paper_times]
-    else:
-        dist_headers = [
-            f"distance {i + 1}" + (f" (paper t={paper_times[i]:g} s)" if i < 4 else "")
-            for i in range(n_dist)
-        ]
-    header = ["Field", "Source", *dist_headers, "Run", "Tumble", "Speed-up"]
+    reference = reference or {}
+    first = next(iter(results.values()))
+    timed = [q for q in first["quantity"] if split_quantity(q) is not None]
+    timed = sorted(timed, key=lambda q: (split_quantity(q)[0], split_quantity(q)[1]))  # type: ignore[index]
+    durations = [q for q in first["quantity"] if split_quantity(q) is None]
+    names = {split_quantity(q)[0] for q in timed}  # type: ignore[index]
+    headers = [
+        (f"t={split_quantity(q)[1]:g} s" if len(names) == 1 else f"{q}")  # type: ignore[index]
+        for q in timed
+    ]
+    header = ["Field", "Source", *headers, *[d.capitalize() for d in durations], "Speed-up"]
     lines = [
         "| " + " | ".join(header) + " |",
         "|" + "|".join([":---", ":---", *["---:"] * (len(header) - 2)]) + "|",
     ]
+    quantities = [*timed, *durations]
     any_flag = False
     for name, df in results.items():
         by_q = df.set_index("quantity")
-        dist_qs = ours_distance[name]
-        cells: list[str] = []
-        for i in range(n_dist):
-            if i >= len(dist_qs):
-                cells.append("")
-                continue
-            q = dist_qs[i]
-            cell = _ours_cell(by_q.loc[q], floatfmt)
-            cells.append(cell if same_times else f"{cell} @{_distance_time(q):g} s")
-        for kind in ("run", "tumble"):
-            cells.append(_ours_cell(by_q.loc[kind], floatfmt) if kind in by_q.index else "")
+        cells = [_ours_cell(by_q.loc[q], floatfmt) if q in by_q.index else "" for q in quantities]
         any_flag = any_flag or any("†" in c for c in cells)
         sp = speedups.get(name)
         sp_cell = "–" if sp is None or not math.isfinite(float(sp)) else f"{float(sp):.1f}"
         lines.append("| " + " | ".join([name, "ours", *cells, sp_cell]) + " |")
-
-        paper = PAPER_TABLE1.get(name)
-        if paper is not None:
+        published = reference.get(name)
+        if published is not None:
             pcells = [
-                f"{paper['ks'][q]:{floatfmt}} ({_fmt_p(paper['ks_pvalue'][q])})"
-                for q in PAPER_QUANTITIES[:4]
-            ] + [""] * (n_dist - 4)
-            pcells += [
-                f"{paper['ks'][k]:{floatfmt}} ({_fmt_p(paper['ks_pvalue'][k])})"
-                for k in ("run", "tumble")
-            ]
-            lines.append(
-                "| " + " | ".join(["", "paper", *pcells, f"{paper['speedup']:.1f}"]) + " |"
-            )
-
+                f"{published['ks'][q]:{floatfmt}} ({_fmt_p(published['ks_pvalue'][q])})"
+                if q in published.get("ks", {}) else ""
+                for q in quantities
+            ]  # fmt: skip
+            speed = published.get("speedup")
+            lines.append("| " + " | ".join(
+                ["", "published", *pcells, f"{speed:.1f}" if speed else ""]) + " |")  # fmt: skip
         if "ks_noise_floor" in df.columns:
             floor = by_q["ks_noise_floor"]
-            fcells = [_num(floor.get(q), floatfmt) for q in dist_qs]
-            fcells += [""] * (n_dist - len(dist_qs))
-            fcells += [_num(floor.get(k), floatfmt) for k in ("run", "tumble")]
+            fcells = [_num(floor.get(q), floatfmt) for q in quantities]
             lines.append("| " + " | ".join(["", "noise floor", *fcells, ""]) + " |")
-
     notes = [
         "",
-        "Cells: KS distance (p-value). Run/tumble: a random subsample of durations from each "
-        "model (1,000 in the paper). "
-        "Noise floor: KS distance between two full-model runs with different seeds.",
+        "Cells: KS distance (p-value). Durations: a random subsample from each model (1,000 in "
+        "the paper). Noise floor: KS distance between two full-model runs with different seeds.",
     ]
     if any_flag:
         notes.append(
@@ -267,11 +164,6 @@ def table1_markdown(
             "(outside sampling noise)."
         )
     return "\n".join(lines + notes) + "\n"
-
-
-def _distance_rows(df: pd.DataFrame) -> list[str]:
-    qs = [str(q) for q in df["quantity"] if str(q).startswith(_DISTANCE_PREFIX)]
-    return sorted(qs, key=_distance_time)
 
 
 def _ours_cell(row: pd.Series, floatfmt: str) -> str:

@@ -2,11 +2,12 @@
 
 The paper compares the two models with the two-sample Kolmogorov-Smirnov (KS) statistic on
 
-* the cells' distance from the field's peak at a few record times (one value per cell, so 100
-  values per model for a 100-cell population), and
-* the run and tumble durations pooled over the whole trajectory (~60,000 values per model), of
-  which a random 1,000 are drawn from each model before the test, because with tens of
-  thousands of values any approximation error, however small, gives a vanishing p-value.
+* the body's observables at a few record times (for E. coli the cells' distance from the
+  field's peak; one value per cell, so 100 values per model for a 100-cell population), and
+* the durations of the property's segments (run and tumble) pooled over the whole trajectory
+  (~60,000 values per model), of which a random 1,000 are drawn from each model before the
+  test, because with tens of thousands of values any approximation error, however small, gives
+  a vanishing p-value.
 
 Besides the KS statistic and its p-value we report the 1-Wasserstein distance (in the data's
 units, so it says *how far* apart the distributions are, not only whether they differ) and the
@@ -47,7 +48,9 @@ PAPER_SUBSAMPLE = 1000
 
 MADE_BY = "python scripts/simulate.py ..."
 
-DURATION_KINDS: tuple[str, ...] = ("run", "tumble")
+OBSERVABLES = "observables.parquet"
+DURATIONS = "durations.parquet"
+DEFAULT_LUMPS: tuple[str, str] = ("tumble", "run")
 
 COLUMNS: tuple[str, ...] = (
     "quantity",
@@ -149,21 +152,34 @@ class SimulationRun:
     """The artefacts of one simulation run directory.
 
     Attributes:
-        distances: Long table ``t``, ``cell``, ``distance`` (mm from the field's peak).
-        durations: ``kind`` ("run"/"tumble"), ``duration`` (s), ``cell``, ``t_end``.
+        observables: Long table ``t``, ``cell`` and one column per observable (e.g.
+            ``distance``, mm from the field's peak).
+        durations: ``kind`` (the lump's name, e.g. "run"/"tumble"), ``duration`` (s), ``cell``,
+            ``t_end``.
         manifest: The run's ``manifest.json`` (``wall_time_s``, ``seed``, ``config``, ...).
         path: The run directory.
     """
 
-    distances: pd.DataFrame
+    observables: pd.DataFrame
     durations: pd.DataFrame
     manifest: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
 
     @property
+    def observable_names(self) -> list[str]:
+        """The observables recorded (every column but ``t`` and ``cell``)."""
+        return [c for c in self.observables.columns if c not in ("t", "cell")]
+
+    @property
+    def lump_names(self) -> tuple[str, str]:
+        """Names of phi = 0 and phi = 1 (the duration kinds)."""
+        names = self.manifest.get("lump_names") or DEFAULT_LUMPS
+        return (str(names[0]), str(names[1]))
+
+    @property
     def record_times(self) -> np.ndarray:
         """The sorted distinct record times (s)."""
-        return np.unique(self.distances["t"].to_numpy(dtype=np.float64))
+        return np.unique(self.observables["t"].to_numpy(dtype=np.float64))
 
     @property
     def t_end(self) -> float:
@@ -176,29 +192,30 @@ class SimulationRun:
         return self.path.name if self.path is not None else "run"
 
     def durations_of(self, kind: str) -> np.ndarray:
-        """All completed segment durations of ``kind`` ("run" or "tumble")."""
-        if kind not in DURATION_KINDS:
-            raise ValueError(f"duration kind must be one of {DURATION_KINDS}, got {kind!r}")
+        """All completed segment durations of ``kind`` (a lump name, e.g. "run")."""
+        if kind not in self.lump_names:
+            raise ValueError(f"duration kind must be one of {self.lump_names}, got {kind!r}")
         mask = self.durations["kind"].astype(str) == kind
         return self.durations.loc[mask, "duration"].to_numpy(dtype=np.float64)
 
 
 def load_run(directory: str | os.PathLike) -> SimulationRun:
-    """Read ``distances.parquet``, ``durations.parquet`` and ``manifest.json`` from a run directory.
+    """Read ``observables.parquet``, ``durations.parquet`` and ``manifest.json`` of a run.
 
     Raises:
         MissingArtefactError: A file is missing (the message says which command makes it).
         ArtefactError: A file is corrupt or lacks the expected columns.
     """
     path = Path(directory)
-    distances = read_parquet(path / "distances.parquet", made_by=MADE_BY)
-    durations = read_parquet(path / "durations.parquet", made_by=MADE_BY)
+    observables = read_parquet(path / OBSERVABLES, made_by=MADE_BY)
+    durations = read_parquet(path / DURATIONS, made_by=MADE_BY)
     manifest = read_json(path / "manifest.json", made_by=MADE_BY)
-    _require_columns(distances, ("t", "cell", "distance"), path / "distances.parquet")
-    _require_columns(durations, ("kind", "duration"), path / "durations.parquet")
-    if distances.empty:
-        raise ArtefactError(f"{path / 'distances.parquet'} has no rows; re-run `{MADE_BY}`")
-    return SimulationRun(distances=distances, durations=durations, manifest=manifest, path=path)
+    _require_columns(observables, ("t", "cell"), path / OBSERVABLES)
+    _require_columns(durations, ("kind", "duration"), path / DURATIONS)
+    if observables.empty or observables.shape[1] < 3:
+        raise ArtefactError(f"{path / OBSERVABLES} has no observations; re-run `{MADE_BY}`")
+    return SimulationRun(observables=observables, durations=durations, manifest=manifest,
+                         path=path)  # fmt: skip
 
 
 def _require_columns(df: pd.DataFrame, columns: Sequence[str], where: Path) -> None:
@@ -210,8 +227,8 @@ def _require_columns(df: pd.DataFrame, columns: Sequence[str], where: Path) -> N
         )
 
 
-def distances_at(run: SimulationRun, t: float) -> np.ndarray:
-    """The cells' distances at the record time closest to ``t``.
+def observable_at(run: SimulationRun, name: str, t: float) -> np.ndarray:
+    """The cells' values of observable ``name`` at the record time closest to ``t``.
 
     Raises:
         ValueError: No record lies within half a record interval of ``t``; the message names
@@ -224,12 +241,17 @@ def distances_at(run: SimulationRun, t: float) -> np.ndarray:
     tol = 0.5 * float(np.median(np.diff(times))) if times.size > 1 else _SINGLE_RECORD_RTOL
     if abs(nearest - t) > tol * (1 + 1e-9):
         raise ValueError(
-            f"no distance record near t={t:g} s in {run.label}: records span "
+            f"no record near t={t:g} s in {run.label}: records span "
             f"{times[0]:g}..{times[-1]:g} s ({times.size} record times); pass times within "
             f"that range"
         )
-    values = run.distances.loc[run.distances["t"] == nearest, "distance"]
+    values = run.observables.loc[run.observables["t"] == nearest, name]
     return values.to_numpy(dtype=np.float64)
+
+
+def distances_at(run: SimulationRun, t: float) -> np.ndarray:
+    """The cells' distances from the peak at the record time closest to ``t`` (E. coli)."""
+    return observable_at(run, "distance", t)
 
 
 def default_times(run: SimulationRun, n: int = 4) -> tuple[float, ...]:
@@ -240,9 +262,9 @@ def default_times(run: SimulationRun, n: int = 4) -> tuple[float, ...]:
     return tuple(run.t_end * (k + 1) / n for k in range(n))
 
 
-def distance_quantity(t: float) -> str:
-    """The ``quantity`` label of the distance row at time ``t``, e.g. ``distance_t125``."""
-    return f"distance_t{t:g}"
+def observable_quantity(name: str, t: float) -> str:
+    """The ``quantity`` label of an observable's row at time ``t``, e.g. ``distance_t125``."""
+    return f"{name}_t{t:g}"
 
 
 def comparison_table(
@@ -254,9 +276,9 @@ def comparison_table(
 ) -> pd.DataFrame:
     """One row per quantity comparing ``candidate`` against ``reference`` (the paper's Table 1).
 
-    Rows: ``distance_t<t>`` for each of ``times`` (all cells, no subsampling), then ``run`` and
-    ``tumble`` (``subsample`` durations drawn without replacement from each run, from a
-    generator seeded with ``seed``). Columns: see ``COLUMNS``; ``n_reference``/``n_candidate``
+    Rows: ``<observable>_t<t>`` for each observable and each of ``times`` (all cells, no
+    subsampling), then one per lump, phi = 1 first (``run``, ``tumble``: ``subsample``
+    durations drawn without replacement from each run, from a generator seeded with ``seed``). Columns: see ``COLUMNS``; ``n_reference``/``n_candidate``
     are the sizes actually compared, and the duration rows also carry the full-sample
     ``ks_full``/``ks_pvalue_full`` (NaN on distance rows).
 
@@ -269,13 +291,15 @@ def comparison_table(
     """
     rng = np.random.default_rng(seed)
     rows: list[dict[str, Any]] = []
-    for t in times:
-        quantity = distance_quantity(t)
-        res = compare_samples(
-            distances_at(reference, t), distances_at(candidate, t), name=f"{quantity} distances"
-        )
-        rows.append(_row(quantity, res, full=None))
-    for kind in DURATION_KINDS:
+    for name in reference.observable_names:
+        for t in times:
+            quantity = observable_quantity(name, t)
+            res = compare_samples(
+                observable_at(reference, name, t), observable_at(candidate, name, t),
+                name=quantity,
+            )
+            rows.append(_row(quantity, res, full=None))
+    for kind in reversed(reference.lump_names):
         ref = _durations(reference, kind, "reference")
         cand = _durations(candidate, kind, "candidate")
         full = compare_samples(ref, cand, name=f"{kind} durations")
@@ -379,11 +403,13 @@ def _positive(run: SimulationRun, key: str) -> float:
     return value
 
 
-def mean_std_over_time(run: SimulationRun) -> pd.DataFrame:
-    """Per record time: the mean, sample standard deviation (ddof=1) and count of distances.
+def mean_std_over_time(run: SimulationRun, name: str | None = None) -> pd.DataFrame:
+    """Per record time: the mean, sample standard deviation (ddof=1) and count of observable
+    ``name`` (default: the first one).
 
     Columns ``t``, ``mean``, ``std``, ``n``; ``std`` is NaN where only one cell is recorded.
     """
-    d = run.distances.assign(distance=run.distances["distance"].astype(np.float64))
-    out = d.groupby("t", sort=True)["distance"].agg(["mean", "std", "count"]).reset_index()
+    name = name or run.observable_names[0]
+    d = run.observables.assign(**{name: run.observables[name].astype(np.float64)})
+    out = d.groupby("t", sort=True)[name].agg(["mean", "std", "count"]).reset_index()
     return out.rename(columns={"count": "n"}).astype({"t": float, "n": int})

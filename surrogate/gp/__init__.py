@@ -1,4 +1,5 @@
-"""GP classifiers psi_phi(m, L) = p(phi' = RUN | phi, m, L) that replace the internal model.
+"""GP classifiers psi_phi(z) = p(phi' = 1 | phi, z) that replace the internal model, over the
+abstraction's declared inputs z (e.g. the signal the internal network sees, or the paper's (m, L)).
 
 Train with :func:`fit_psi` (or :func:`fit_classifier` per origin state), persist with
 :func:`save_psi` / :func:`load_psi`, and tabulate with :class:`PsiLookupTable` for fast
@@ -7,7 +8,7 @@ simulation.
 
 from __future__ import annotations
 
-from surrogate.gp.figures import plot_psi_surfaces, plot_training_history, psi_grid_frame
+from surrogate.gp.figures import binned_frequencies, plot_psi, plot_training_history, psi_grid_frame
 from surrogate.gp.lookup import PsiFunction, PsiLookupTable
 from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import KERNELS, PsiGP, make_kernel
@@ -23,13 +24,14 @@ __all__ = [
     "PsiFunction",
     "PsiGP",
     "PsiLookupTable",
+    "binned_frequencies",
     "classification_metrics",
     "data_domain",
     "fit_classifier",
     "fit_psi",
     "load_psi",
     "make_kernel",
-    "plot_psi_surfaces",
+    "plot_psi",
     "plot_training_history",
     "psi_grid_frame",
     "save_psi",

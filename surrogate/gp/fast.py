@@ -99,11 +99,12 @@ def _factors(fitted: FittedClassifier) -> dict[str, Any]:
 
 
 class CachedPsi:
-    """psi_phi(m, L) = p(phi' = RUN | phi, m, L) of a :class:`PsiClassifier`, in closed form.
+    """psi_phi(z) = p(phi' = 1 | phi, z) of a :class:`PsiClassifier`, in closed form.
 
-    Build with :meth:`from_classifier`; call like the classifier: ``psi(phi, m, L)`` -> float32
-    probabilities on the inputs' device. Agrees with ``PsiClassifier.__call__`` to ~1e-5 (the
-    size of gpytorch's own float32 round-off; see the tests).
+    Build with :meth:`from_classifier`; call like the classifier: ``psi(phi, z)`` (``z``:
+    ``n x d``) -> float32 probabilities on the inputs' device. Agrees with
+    ``PsiClassifier.__call__`` to ~2e-5 (the size of gpytorch's own float32 round-off; see the
+    tests).
 
     Per query the work is one small matmul for the exponents (inputs augmented as
     [u, |u|^2, 1] against [2w; -1; -|w|^2], so -|u - w|^2 comes out of the matmul, centred on
@@ -118,6 +119,7 @@ class CachedPsi:
     def __init__(
         self,
         factors: tuple[dict[str, Any], dict[str, Any]],
+        input_names: tuple[str, ...] | list[str],
         domain: dict[str, tuple[float, float]] | None = None,
         dtype: torch.dtype = torch.float32,
         split_rows: int = 4096,
@@ -126,6 +128,7 @@ class CachedPsi:
         if tumble["nu"] != run["nu"] or tumble["z"].shape != run["z"].shape:
             raise ValueError("CachedPsi: both classifiers must share the kernel and inducing count")
         self.nu: float | None = tumble["nu"]
+        self.input_names = tuple(input_names)
         self.domain = dict(domain) if domain else {}
         self.dtype = dtype
         self.split_rows = int(split_rows)
@@ -149,7 +152,7 @@ class CachedPsi:
             w_aug.append(torch.cat([2.0 * w.mT, -ones[None], -(w * w).sum(1)[None]], 0))
             g.append(f64["g"] * f["outputscale"])
             d.append(f64["d"])
-        # (2, ...) tensors, index 0 = origin TUMBLE, 1 = origin RUN
+        # (2, ...) tensors, index = origin phi
         self.x_gain = torch.stack(x_gain).to(dtype)  # (2, d)
         self.x_bias = torch.stack(x_bias).to(dtype)  # (2, d)
         self.w_aug = torch.stack(w_aug).to(dtype)  # (2, d + 2, M)
@@ -164,8 +167,8 @@ class CachedPsi:
         cls, psi: PsiClassifier, dtype: torch.dtype = torch.float32, split_rows: int = 4096
     ) -> CachedPsi:
         """Cache the factors of both classifiers of ``psi`` (on its device)."""
-        factors = (_factors(psi.psi_tumble), _factors(psi.psi_run))
-        return cls(factors, psi.domain, dtype, split_rows)
+        factors = (_factors(psi.psi_0), _factors(psi.psi_1))
+        return cls(factors, psi.input_names, psi.domain, dtype, split_rows)
 
     @property
     def device(self) -> torch.device:
@@ -207,33 +210,37 @@ class CachedPsi:
         var = torch.matmul(y * y, self.d[sel].unsqueeze(-1)).squeeze(-1)  # a^T (S - I) a
         return mean, var + (self.prior_var[sel, None] if c is None else self.prior_var[c])
 
-    def latent(self, m: Tensor, L: Tensor) -> tuple[Tensor, Tensor]:
-        """Latent mean and variance (2, n) of both classifiers at raw inputs (m, L)."""
-        x = torch.stack([m.reshape(-1), L.reshape(-1)], dim=-1).to(self.device, self.dtype)
-        return self._latent(x, None)
+    def latent(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """Latent mean and variance (``2 x n``) of both classifiers at raw inputs ``z``."""
+        return self._latent(z.reshape(z.shape[0], -1).to(self.device, self.dtype), None)
 
-    def __call__(self, phi: Tensor, m: Tensor, L: Tensor) -> Tensor:
-        """p(RUN next) (float32, on ``m``'s device) for rows with origin ``phi`` (0/1 or bool)."""
-        out_device = m.device
-        x = torch.stack([m.reshape(-1), L.reshape(-1)], dim=-1).to(self.device, self.dtype)
-        if self.check_finite and not bool(torch.isfinite(x).all()):
-            raise NumericalError("CachedPsi got NaN or infinite inputs (m or L)")
-        run = phi.to(self.device).reshape(-1)
-        if run.shape[0] != x.shape[0]:
-            raise ValueError(f"phi has {run.shape[0]} rows but m and L have {x.shape[0]}")
+    def __call__(self, phi: Tensor, z: Tensor) -> Tensor:
+        """p(phi' = 1) (float32, on ``z``'s device); refuses NaN/inf inputs while
+        ``check_finite`` is true (a host sync per call)."""
+        if self.check_finite and not bool(torch.isfinite(z).all()):
+            raise NumericalError(f"CachedPsi got NaN or infinite inputs {self.input_names}")
+        return self.evaluate(phi, z)
+
+    def evaluate(self, phi: Tensor, z: Tensor) -> Tensor:
+        """Pure form of :meth:`__call__` (no checks; no host sync unless rows are split)."""
+        out_device = z.device
+        x = z.reshape(z.shape[0], -1).to(self.device, self.dtype)
+        one = phi.to(self.device).reshape(-1)
+        if one.shape[0] != x.shape[0]:
+            raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
         if self.device.type == "cpu" and x.shape[0] >= self.split_rows:
-            out = self._split_rows(run, x)
+            out = self._split_rows(one, x)
         else:
             mean, var = self._latent(x, None)
             p = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))  # (2, n)
-            out = torch.where(run.to(p.dtype) > 0, p[1], p[0])
+            out = torch.where(one.to(p.dtype) > 0, p[1], p[0])
         return out.to(out_device, torch.float32)
 
-    def _split_rows_impl(self, run: Tensor, x: Tensor) -> Tensor:
+    def _split_rows_impl(self, phi: Tensor, x: Tensor) -> Tensor:
         """Each classifier on its own rows only (one host sync for the split)."""
-        is_run = run.bool()
+        one = phi.bool()
         out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
-        for c, rows in ((0, (~is_run).nonzero().squeeze(1)), (1, is_run.nonzero().squeeze(1))):
+        for c, rows in ((0, (~one).nonzero().squeeze(1)), (1, one.nonzero().squeeze(1))):
             if rows.numel():
                 mean, var = self._latent(x.index_select(0, rows), c)
                 out[rows] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
@@ -245,18 +252,19 @@ class CachedPsi:
 
     @torch.no_grad()
     def max_deviation(self, psi: PsiClassifier, n_check: int = 4096, seed: int = 0) -> float:
-        """Max |cached - psi| over ``n_check`` random (phi, m, L) points in ``psi.domain``
-        (widened by 10 % on each side; the unit box if the domain is unknown)."""
+        """Max |cached - psi| over ``n_check`` random (phi, z) points in ``psi.domain`` (widened
+        by 10 % on each side; the unit box for an input without a known range)."""
         gen = torch.Generator().manual_seed(seed)
         cols = []
-        for key in ("m", "L"):
+        for key in self.input_names:
             lo, hi = self.domain.get(key, (0.0, 1.0))
             pad = 0.1 * (hi - lo)
             cols.append(lo - pad + (hi - lo + 2 * pad) * torch.rand(n_check, generator=gen))
+        z = torch.stack(cols, -1)
         phi = torch.randint(0, 2, (n_check,), generator=gen)
         dev = psi.device
-        exact = psi(phi.to(dev), cols[0].to(dev), cols[1].to(dev)).to("cpu", torch.float64)
-        approx = self(phi.to(self.device), cols[0].to(self.device), cols[1].to(self.device))
+        exact = psi(phi.to(dev), z.to(dev)).to("cpu", torch.float64)
+        approx = self(phi.to(self.device), z.to(self.device))
         return float((approx.to("cpu", torch.float64) - exact).abs().max())
 
 

@@ -1,12 +1,13 @@
-"""A dense (phi, m, L) table of psi with bilinear interpolation, for fast per-step simulation.
+"""A dense table of psi over 1-3 declared input axes with multilinear interpolation.
 
-Evaluating the GP costs O(M) kernel evaluations per query; the table costs four gathers and
-three lerps, with no Python loop and no host sync, so it suits 1e5-1e6 cells per step.
+Evaluating the GP costs O(M) kernel evaluations per query; the table costs 2^d gathers and
+2^d - 1 lerps, with no Python loop over cells and no host sync, so it suits 1e5-1e6 cells per
+step. Beyond three inputs use the classifier itself (``decision.mode=classifier``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -14,149 +15,178 @@ from torch import Tensor
 
 from surrogate.errors import ArtefactError, ConfigError, NumericalError
 
-PsiFunction = Callable[[Tensor, Tensor, Tensor], Tensor]
+#: ``psi(phi (n,), z (n x d)) -> p(phi' = 1) (n,)``
+PsiFunction = Callable[[Tensor, Tensor], Tensor]
 
-STATE_FORMAT = "surrogate.gp.lookup/1"
+STATE_FORMAT = "surrogate.gp.lookup/2"
+MAX_AXES = 3
+
+Range = tuple[float, float]
 
 
 class PsiLookupTable:
-    """Bilinear interpolation of psi on a regular grid over the box ``m_range`` x ``L_range``.
+    """Multilinear interpolation of psi on a regular grid over a box of ``d`` <= 3 inputs.
 
     Args:
-        table: (2, n_m, n_L) values of p(RUN next); index 0 = phi TUMBLE, 1 = phi RUN.
-        m_range, L_range: the grid box; node i of m is ``m_lo + i * (m_hi - m_lo) / (n_m - 1)``.
+        table: ``2 x n_1 [x n_2 [x n_3]]`` values of p(phi' = 1); index 0: phi = 0, 1: phi = 1.
+        ranges: ``d`` pairs (lo, hi): node i of axis a is ``lo + i (hi - lo) / (n_a - 1)``.
+        input_names: names of the ``d`` input columns (what the table is a function of).
+
+    Example:
+        >>> table = PsiLookupTable.from_function(lambda phi, z: z[:, 0].sigmoid(),
+        ...                                      [(-5.0, 5.0)], ("dG",), size=(101,))
+        >>> table(torch.tensor([1]), torch.tensor([[0.0]]))
+        tensor([0.5000])
     """
 
     def __init__(
-        self, table: Tensor, m_range: tuple[float, float], L_range: tuple[float, float]
+        self, table: Tensor, ranges: Sequence[Range], input_names: Sequence[str] | None = None
     ) -> None:
-        if table.dim() != 3 or table.shape[0] != 2 or table.shape[1] < 2 or table.shape[2] < 2:
+        d = table.dim() - 1
+        if not 1 <= d <= MAX_AXES or table.shape[0] != 2 or min(table.shape[1:]) < 2:
             raise ConfigError(
-                f"lookup table must have shape (2, n_m >= 2, n_L >= 2), got {tuple(table.shape)}"
+                f"lookup table must have shape (2, n_1, ..., n_d) with 1 <= d <= {MAX_AXES} and "
+                f"every n >= 2, got {tuple(table.shape)}"
             )
-        _check_range("m_range", m_range)
-        _check_range("L_range", L_range)
+        if len(ranges) != d:
+            raise ConfigError(f"lookup table has {d} axes but {len(ranges)} ranges")
+        for r in ranges:
+            _check_range(r)
         self.table = table.to(torch.float32).contiguous()
-        self.m_range = (float(m_range[0]), float(m_range[1]))
-        self.L_range = (float(L_range[0]), float(L_range[1]))
-        # Python floats, so the hot path needs no device tensors beyond the table itself.
-        n_m, n_L = self.shape
-        self._m_scale = (n_m - 1) / (self.m_range[1] - self.m_range[0])
-        self._L_scale = (n_L - 1) / (self.L_range[1] - self.L_range[0])
+        self.ranges: list[Range] = [(float(lo), float(hi)) for lo, hi in ranges]
+        self.input_names = tuple(input_names) if input_names else tuple(f"x{i}" for i in range(d))
+        if len(self.input_names) != d:
+            raise ConfigError(f"lookup table has {d} axes but names {self.input_names}")
+        # Python floats, so the hot path needs no device tensors beyond the table itself
+        self._scale = [(n - 1) / (hi - lo) for n, (lo, hi) in zip(self.shape, self.ranges, strict=True)]
+        strides = []
+        stride = 1
+        for n in reversed(self.shape):
+            strides.append(stride)
+            stride *= n
+        self._strides = list(reversed(strides))
+        self._layer = stride  # elements per phi layer
         self.check_finite = True
 
     @property
-    def shape(self) -> tuple[int, int]:
-        """(n_m, n_L)."""
-        return int(self.table.shape[1]), int(self.table.shape[2])
+    def shape(self) -> tuple[int, ...]:
+        """Grid nodes per axis."""
+        return tuple(int(s) for s in self.table.shape[1:])
 
     @property
     def device(self) -> torch.device:
         """Device of the table."""
         return self.table.device
 
-    def grid(self) -> tuple[Tensor, Tensor]:
-        """The node coordinates (m nodes, L nodes) as float64 CPU tensors."""
-        n_m, n_L = self.shape
-        return (
-            torch.linspace(*self.m_range, n_m, dtype=torch.float64),
-            torch.linspace(*self.L_range, n_L, dtype=torch.float64),
-        )
+    @property
+    def domain(self) -> dict[str, Range]:
+        """``{input name: (lo, hi)}`` of the grid box."""
+        return dict(zip(self.input_names, self.ranges, strict=True))
+
+    def nodes(self) -> list[Tensor]:
+        """Node coordinates per axis (float64 CPU tensors)."""
+        return [
+            torch.linspace(lo, hi, n, dtype=torch.float64)
+            for (lo, hi), n in zip(self.ranges, self.shape, strict=True)
+        ]
 
     @classmethod
     @torch.no_grad()
-    def from_classifier(
+    def from_function(
         cls,
         psi: PsiFunction,
-        m_range: tuple[float, float],
-        L_range: tuple[float, float],
-        size: tuple[int, int] = (256, 256),
+        ranges: Sequence[Range],
+        input_names: Sequence[str] | None = None,
+        size: Sequence[int] | None = None,
     ) -> PsiLookupTable:
-        """Tabulate ``psi(phi, m, L)`` (e.g. a :class:`~surrogate.gp.PsiClassifier`) on a grid.
+        """Tabulate ``psi(phi, z)`` (a classifier, the exact psi, ...) on a regular grid.
 
-        The table lives on ``psi.device`` when it has one, else on the CPU.
+        ``size`` defaults to 256 nodes per axis (4,096 for one axis). The table lives on
+        ``psi.device`` when it has one, else on the CPU.
         """
-        n_m, n_L = (int(s) for s in size)
-        if n_m < 2 or n_L < 2:
-            raise ConfigError(f"lookup size must be at least (2, 2), got {tuple(size)}")
-        _check_range("m_range", m_range)
-        _check_range("L_range", L_range)
+        d = len(ranges)
+        if size is None:
+            size = (4096,) if d == 1 else (256,) * d
+        size = tuple(int(s) for s in size)
+        if len(size) != d or min(size) < 2:
+            raise ConfigError(f"lookup size must be {d} integers >= 2, got {size}")
+        for r in ranges:
+            _check_range(r)
         device = getattr(psi, "device", torch.device("cpu"))
-        m_nodes = torch.linspace(float(m_range[0]), float(m_range[1]), n_m, dtype=torch.float64)
-        L_nodes = torch.linspace(float(L_range[0]), float(L_range[1]), n_L, dtype=torch.float64)
-        mm, ll = torch.meshgrid(m_nodes, L_nodes, indexing="ij")
-        mm, ll = mm.reshape(-1).to(device), ll.reshape(-1).to(device)
+        axes = [torch.linspace(float(lo), float(hi), n, dtype=torch.float64) for (lo, hi), n in zip(ranges, size, strict=True)]
+        grid = torch.stack([g.reshape(-1) for g in torch.meshgrid(*axes, indexing="ij")], -1)
+        grid = grid.to(device)
         layers = []
         for phi in (0, 1):
-            phis = torch.full_like(mm, phi, dtype=torch.long)
-            layers.append(psi(phis, mm, ll).to(device, torch.float32).reshape(n_m, n_L))
-        return cls(torch.stack(layers), m_range, L_range)
+            phis = torch.full((grid.shape[0],), phi, dtype=torch.long, device=device)
+            values = psi(phis, grid.to(torch.float32))
+            layers.append(values.to(device, torch.float32).reshape(size))
+        return cls(torch.stack(layers), ranges, input_names)
 
     def to(self, device: torch.device | str) -> PsiLookupTable:
         """Move the table to ``device`` in place; return self."""
         self.table = self.table.to(device)
         return self
 
-    def __call__(self, phi: Tensor, m: Tensor, L: Tensor) -> Tensor:
-        """Interpolated p(RUN next), float32, on the input's device (like the classifier).
+    def __call__(self, phi: Tensor, z: Tensor) -> Tensor:
+        """Interpolated p(phi' = 1), float32, on the input's device; refuses NaN/inf inputs while
+        ``check_finite`` is true (a host sync per call)."""
+        if self.check_finite and not bool(torch.isfinite(z).all()):
+            raise NumericalError(f"PsiLookupTable got NaN or infinite inputs {self.input_names}")
+        return self.evaluate(phi, z)
 
-        Inputs outside the box are clamped to its edge. ``phi`` must be 0/1 (or bool) and is not
-        checked. NaN/inf in m or L raise :class:`NumericalError` while ``check_finite`` is true (a
-        host sync per call; the simulation loop turns it off and checks its state at record
-        times instead); unchecked, NaN gives NaN out, never a bad index.
-        """
-        if self.check_finite and not bool(torch.isfinite(m).all() & torch.isfinite(L).all()):
-            raise NumericalError("PsiLookupTable got NaN or infinite inputs (m or L)")
-        n_m, n_L = self.shape
+    def evaluate(self, phi: Tensor, z: Tensor) -> Tensor:
+        """Pure interpolation (no checks, no host sync): inputs outside the box are clamped to
+        its edge; NaN inputs give NaN out, never a bad index. ``phi`` 0/1 is not checked."""
         dev = self.table.device
-        out_device = m.device
-        m = m.to(dev, torch.float32).reshape(-1)
-        L = L.to(dev, torch.float32).reshape(-1)
-        u = ((m - self.m_range[0]) * self._m_scale).clamp_(0.0, n_m - 1)
-        v = ((L - self.L_range[0]) * self._L_scale).clamp_(0.0, n_L - 1)
-        # Lower node index, kept <= n - 2 so the upper neighbour exists (u = n - 1 gets frac 1).
-        # NaN -> 0 only for the index (u == u is False for NaN; cheaper than nan_to_num inside a
-        # compiled step): NaN still flows into the fractions and out.
-        i = torch.where(u == u, u, 0.0).floor_().clamp_(max=n_m - 2)
-        j = torch.where(v == v, v, 0.0).floor_().clamp_(max=n_L - 2)
-        fu = u - i
-        fv = v - j
-        base = phi.to(dev).reshape(-1).long() * (n_m * n_L) + i.long() * n_L + j.long()
+        out_device = z.device
+        z = z.to(dev, torch.float32).reshape(-1, len(self.shape))
+        base = phi.to(dev).reshape(-1).long() * self._layer
+        fracs, offsets = [], []
+        for a, (n, (lo, _), scale) in enumerate(zip(self.shape, self.ranges, self._scale, strict=True)):
+            u = ((z[:, a] - lo) * scale).clamp(0.0, n - 1)
+            # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1); NaN -> 0
+            # only for the index (u == u is False for NaN), NaN still flows into the fraction
+            i = torch.where(u == u, u, 0.0).floor().clamp(max=n - 2)
+            fracs.append(u - i)
+            base = base + i.long() * self._strides[a]
+            offsets.append(self._strides[a])
         flat = self.table.view(-1)
-        v00 = flat[base]
-        v01 = flat[base + 1]
-        v10 = flat[base + n_L]
-        v11 = flat[base + (n_L + 1)]
-        out = torch.lerp(torch.lerp(v00, v01, fv), torch.lerp(v10, v11, fv), fu)
-        return out.to(out_device)  # no-op in the usual case of inputs on the table's device
+        # gather the 2^d corners (last axis fastest), then lerp along the last axis first
+        corners = [base]
+        for off in offsets:
+            corners = [c for b in corners for c in (b, b + off)]
+        values = [flat[c] for c in corners]
+        for frac in reversed(fracs):
+            values = [torch.lerp(values[i], values[i + 1], frac) for i in range(0, len(values), 2)]
+        return values[0].to(out_device)
 
     @torch.no_grad()
-    def max_deviation(self, psi: PsiFunction, n_check: int | None = None, seed: int = 0) -> float:
-        """Max |table - psi| over cell centres (midway between nodes in both m and L).
-
-        Cell centres are where bilinear interpolation error peaks for smooth surfaces. All
-        2 * (n_m - 1) * (n_L - 1) centres are checked when ``n_check`` is None, else a random
-        subset of ``n_check`` of them (fixed by ``seed``).
-        """
-        n_m, n_L = self.shape
-        m_nodes, L_nodes = self.grid()
-        m_mid = 0.5 * (m_nodes[:-1] + m_nodes[1:])
-        L_mid = 0.5 * (L_nodes[:-1] + L_nodes[1:])
-        n_cells = 2 * (n_m - 1) * (n_L - 1)
-        if n_check is None or n_check >= n_cells:
-            flat = torch.arange(n_cells)
+    def max_deviation(self, psi: PsiFunction, n_check: int | None = 4096, seed: int = 0) -> float:
+        """Max |table - psi| over cell centres (midway between nodes on every axis), where
+        multilinear interpolation error peaks for smooth surfaces; all centres of both layers
+        when ``n_check`` is None or larger than their number, else a random subset."""
+        mids = [0.5 * (g[:-1] + g[1:]) for g in self.nodes()]
+        counts = [len(m) for m in mids]
+        total = 2
+        for c in counts:
+            total *= c
+        if n_check is None or n_check >= total:
+            flat = torch.arange(total)
         else:
             if n_check < 1:
                 raise ConfigError(f"n_check must be >= 1, got {n_check}")
-            gen = torch.Generator().manual_seed(seed)
-            flat = torch.randperm(n_cells, generator=gen)[:n_check]
-        phi = flat // ((n_m - 1) * (n_L - 1))
-        rest = flat % ((n_m - 1) * (n_L - 1))
-        m = m_mid[rest // (n_L - 1)]
-        L = L_mid[rest % (n_L - 1)]
+            flat = torch.randperm(total, generator=torch.Generator().manual_seed(seed))[:n_check]
+        cols = []
+        rest = flat.clone()
+        for m, c in zip(reversed(mids), reversed(counts), strict=True):
+            cols.append(m[rest % c])
+            rest = rest // c
+        phi = rest
+        z = torch.stack(list(reversed(cols)), -1).to(torch.float32)
         device = getattr(psi, "device", self.device)
-        exact = psi(phi.to(device), m.to(device), L.to(device)).to("cpu", torch.float64)
-        approx = self(phi, m, L).to("cpu", torch.float64)  # CPU inputs: CPU output
+        exact = psi(phi.to(device), z.to(device)).to("cpu", torch.float64)
+        approx = self.evaluate(phi, z).to("cpu", torch.float64)
         return float((approx - exact).abs().max())
 
     def to_state(self) -> dict[str, Any]:
@@ -164,8 +194,8 @@ class PsiLookupTable:
         return {
             "format": STATE_FORMAT,
             "table": self.table.detach().cpu().clone(),
-            "m_range": list(self.m_range),
-            "L_range": list(self.L_range),
+            "ranges": [list(r) for r in self.ranges],
+            "input_names": list(self.input_names),
         }
 
     @classmethod
@@ -178,13 +208,14 @@ class PsiLookupTable:
                 f"not a psi lookup table state (format {state.get('format')!r}, "
                 f"expected {STATE_FORMAT!r})"
             )
-        return cls(state["table"].to(device), tuple(state["m_range"]), tuple(state["L_range"]))
+        ranges = [tuple(r) for r in state["ranges"]]
+        return cls(state["table"].to(device), ranges, state["input_names"])
 
 
-def _check_range(name: str, r: tuple[float, float]) -> None:
+def _check_range(r: Sequence[float]) -> None:
     lo, hi = (float(v) for v in r)
     if not lo < hi:
-        raise ConfigError(f"lookup {name} must satisfy lo < hi, got {tuple(r)}")
+        raise ConfigError(f"lookup range must satisfy lo < hi, got {tuple(r)}")
 
 
 __all__ = ["PsiFunction", "PsiLookupTable"]

@@ -1,7 +1,7 @@
 """The sparse variational GP classifier that approximates one psi surface.
 
-The model sees NORMALISED inputs (m, L) -- see :class:`surrogate.gp.training.Normalizer` -- so
-kernel lengthscales start at a sensible scale for both columns even though L spans only 0.1 mM.
+The model sees NORMALISED inputs -- see :class:`surrogate.gp.training.Normalizer` -- so kernel
+lengthscales start at a sensible scale for every column (the ligand L spans only 0.1 mM).
 """
 
 from __future__ import annotations

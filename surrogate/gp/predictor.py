@@ -1,9 +1,10 @@
-"""The pair of GP classifiers psi_0 (origin TUMBLE) and psi_1 (origin RUN) as one callable."""
+"""The pair of GP classifiers psi_0 (origin phi = 0) and psi_1 (origin phi = 1) as one callable
+over the abstraction's declared input columns."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,87 +16,119 @@ from surrogate.errors import ArtefactError, NumericalError
 from surrogate.gp.training import PREDICT_CHUNK, FittedClassifier, GPSettings, fit_classifier
 from surrogate.io import load_tensors, save_tensors
 
-STATE_FORMAT = "surrogate.gp.psi/1"
-COLUMNS = ("m", "L", "phi", "phi_next")
+STATE_FORMAT = "surrogate.gp.psi/2"
+LABELS = ("phi", "phi_next")
 
 Domain = dict[str, tuple[float, float]]
 
 
 class PsiClassifier:
-    """psi_phi(m, L) = p(phi' = RUN | phi, m, L), with phi = 0 (TUMBLE) or 1 (RUN).
+    """psi_phi(z) = p(phi' = 1 | phi, z): the pair of GP classifiers of a two-state abstraction.
 
     Args:
-        psi_tumble: classifier trained on transitions from TUMBLE (psi_0).
-        psi_run: classifier trained on transitions from RUN (psi_1).
-        domain: ``{"m": (min, max), "L": (min, max)}`` of the training inputs, so users can tell
-            when a simulation queries the surrogate outside the data it was fitted on.
+        psi_0: classifier trained on transitions from phi = 0 (e.g. TUMBLE).
+        psi_1: classifier trained on transitions from phi = 1 (e.g. RUN).
+        input_names: the names of the ``d`` input columns ``z`` (saved with the artefact, so a
+            simulation can compute them from the model's inputs).
+        domain: ``{name: (min, max)}`` of the training inputs, so users can tell when a
+            simulation queries the abstraction outside the data it was fitted on.
+        lump_names: names of phi = 0 and 1 (e.g. ``("tumble", "run")``), for reports.
         chunk_size: rows per GP evaluation, bounding memory (about ``chunk_size * M`` floats).
+
+    Example:
+        >>> psi = fit_psi(table, ("dG",))                     # doctest: +SKIP
+        >>> psi(torch.tensor([0, 1]), torch.tensor([[0.6], [0.6]]))   # doctest: +SKIP
+        tensor([0.2491, 0.9033])
     """
 
     def __init__(
         self,
-        psi_tumble: FittedClassifier,
-        psi_run: FittedClassifier,
+        psi_0: FittedClassifier,
+        psi_1: FittedClassifier,
+        input_names: tuple[str, ...] | list[str],
         domain: Domain | None = None,
+        lump_names: tuple[str, str] = ("0", "1"),
         chunk_size: int = PREDICT_CHUNK,
     ) -> None:
-        if psi_tumble.device != psi_run.device:
+        if psi_0.device != psi_1.device:
             raise ValueError(
-                f"psi_tumble and psi_run must be on the same device, got {psi_tumble.device} "
-                f"and {psi_run.device}"
+                f"psi_0 and psi_1 must be on the same device, got {psi_0.device} and "
+                f"{psi_1.device}"
             )
-        self.psi_tumble = psi_tumble
-        self.psi_run = psi_run
+        self.psi_0 = psi_0
+        self.psi_1 = psi_1
+        self.input_names = tuple(input_names)
         self.domain: Domain = dict(domain) if domain else {}
+        self.lump_names = (str(lump_names[0]), str(lump_names[1]))
         self.chunk_size = int(chunk_size)
         self.check_finite = True
 
     @property
+    def classifiers(self) -> tuple[FittedClassifier, FittedClassifier]:
+        """(psi_0, psi_1), indexed by the origin phi."""
+        return self.psi_0, self.psi_1
+
+    @property
     def device(self) -> torch.device:
         """Device of the models."""
-        return self.psi_run.device
+        return self.psi_1.device
 
     def to(self, device: torch.device | str) -> PsiClassifier:
         """Move both classifiers to ``device`` in place; return self."""
-        self.psi_tumble.to(device)
-        self.psi_run.to(device)
+        self.psi_0.to(device)
+        self.psi_1.to(device)
         return self
 
     @torch.no_grad()
-    def __call__(self, phi: Tensor, m: Tensor, L: Tensor) -> Tensor:
-        """p(RUN at the next step) for each row, float32 on the input's device.
+    def __call__(self, phi: Tensor, z: Tensor) -> Tensor:
+        """p(phi' = 1) for each row (``z``: ``n x d``), float32 on the input's device.
+
+        NaN/inf inputs raise :class:`NumericalError` while ``check_finite`` is true (a host
+        sync per call).
+        """
+        z = self._inputs(z)
+        if self.check_finite and not bool(torch.isfinite(z).all()):
+            raise NumericalError(f"PsiClassifier got NaN or infinite inputs {self.input_names}")
+        return self.evaluate(phi, z)
+
+    def _inputs(self, z: Tensor) -> Tensor:
+        z = z.reshape(z.shape[0], -1) if z.dim() > 1 else z.reshape(-1, 1)
+        if z.shape[1] != len(self.input_names):
+            raise ValueError(
+                f"psi takes {len(self.input_names)} input column(s) {self.input_names}, got "
+                f"{z.shape[1]}"
+            )
+        return z
+
+    @torch.no_grad()
+    def evaluate(self, phi: Tensor, z: Tensor) -> Tensor:
+        """:meth:`__call__` without the finiteness check.
 
         Each classifier is evaluated only on its own rows (measured about twice as fast as
-        evaluating both on every row and selecting with ``torch.where``; the cost is one host
-        sync for the boolean-mask sizes). NaN/inf inputs raise :class:`NumericalError` while
-        ``check_finite`` is true (the default; the simulation loop turns it off and checks its
-        state at record times instead).
+        evaluating both on every row and selecting; the cost is one host sync for the
+        boolean-mask sizes).
         """
-        out_device = m.device
+        z = self._inputs(z)
+        out_device = z.device
         dev = self.device
-        run = phi.to(dev).reshape(-1).bool()
-        x = torch.stack(
-            [m.to(dev, torch.float32).reshape(-1), L.to(dev, torch.float32).reshape(-1)], dim=1
-        )
-        if run.shape[0] != x.shape[0]:
-            raise ValueError(f"phi has {run.shape[0]} rows but m and L have {x.shape[0]}")
-        if self.check_finite and not bool(torch.isfinite(x).all()):
-            raise NumericalError("PsiClassifier got NaN or infinite inputs (m or L)")
+        one = phi.to(dev).reshape(-1).bool()
+        x = z.to(dev, torch.float32)
+        if one.shape[0] != x.shape[0]:
+            raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
         out = torch.empty(x.shape[0], dtype=torch.float32, device=dev)
-        idx_run = run.nonzero().squeeze(1)
-        idx_tumble = (~run).nonzero().squeeze(1)
-        if idx_run.numel():
-            out[idx_run] = self.psi_run.predict_proba(x[idx_run], self.chunk_size).float()
-        if idx_tumble.numel():
-            out[idx_tumble] = self.psi_tumble.predict_proba(x[idx_tumble], self.chunk_size).float()
+        for clf, rows in ((self.psi_1, one.nonzero().squeeze(1)), (self.psi_0, (~one).nonzero().squeeze(1))):
+            if rows.numel():
+                out[rows] = clf.predict_proba(x[rows], self.chunk_size).float()
         return out.to(out_device)
 
     def to_state(self) -> dict[str, Any]:
         """Plain-value export (tensors, numbers, strings, lists, dicts) of both classifiers."""
         return {
             "format": STATE_FORMAT,
-            "psi_tumble": self.psi_tumble.to_state(),
-            "psi_run": self.psi_run.to_state(),
+            "psi_0": self.psi_0.to_state(),
+            "psi_1": self.psi_1.to_state(),
+            "input_names": list(self.input_names),
+            "lump_names": list(self.lump_names),
             "domain": {k: [float(v[0]), float(v[1])] for k, v in self.domain.items()},
             "chunk_size": self.chunk_size,
         }
@@ -108,13 +141,15 @@ class PsiClassifier:
         if state.get("format") != STATE_FORMAT:
             raise ArtefactError(
                 f"not a psi classifier state (format {state.get('format')!r}, "
-                f"expected {STATE_FORMAT!r})"
+                f"expected {STATE_FORMAT!r}); re-train it with this version"
             )
         try:
             return cls(
-                FittedClassifier.from_state(state["psi_tumble"], device),
-                FittedClassifier.from_state(state["psi_run"], device),
+                FittedClassifier.from_state(state["psi_0"], device),
+                FittedClassifier.from_state(state["psi_1"], device),
+                input_names=tuple(state["input_names"]),
                 domain={k: (float(v[0]), float(v[1])) for k, v in state["domain"].items()},
+                lump_names=tuple(state.get("lump_names", ("0", "1"))),
                 chunk_size=int(state.get("chunk_size", PREDICT_CHUNK)),
             )
         except (KeyError, RuntimeError) as exc:
@@ -123,33 +158,51 @@ class PsiClassifier:
             ) from exc
 
 
-def data_domain(data: pd.DataFrame) -> Domain:
-    """Min/max of ``m`` and ``L`` in a transition table."""
-    return {c: (float(data[c].min()), float(data[c].max())) for c in ("m", "L")}
+def data_domain(data: pd.DataFrame, columns: Sequence[str]) -> Domain:
+    """Min/max of ``columns`` in a transitions table."""
+    return {c: (float(data[c].min()), float(data[c].max())) for c in columns}
 
 
 def fit_psi(
     data: pd.DataFrame,
+    input_names: Sequence[str],
     settings: GPSettings | None = None,
     progress: bool = True,
     device: torch.device | str = "cpu",
+    lump_names: tuple[str, str] = ("0", "1"),
 ) -> PsiClassifier:
     """Fit psi_0 on rows with ``phi == 0`` and psi_1 on rows with ``phi == 1`` of ``data``.
 
-    ``data`` has columns ``m``, ``L``, ``phi`` and ``phi_next``; the label is ``phi_next``.
+    Args:
+        data: a transitions table with the columns ``input_names``, ``phi`` and ``phi_next``
+            (the label), e.g. from the collect stage or tracked cells of an experiment.
+        input_names: the ``d`` input columns the classifiers are functions of.
+        settings: GP settings (kernel, inducing points, epochs, ...).
     """
-    missing = [c for c in COLUMNS if c not in data.columns]
+    input_names = tuple(input_names)
+    missing = [c for c in (*input_names, *LABELS) if c not in data.columns]
     if missing:
-        raise ArtefactError(f"transition data lacks column(s) {missing}; expected {list(COLUMNS)}")
+        raise ArtefactError(
+            f"transition data lacks column(s) {missing}; it has {list(data.columns)} and needs "
+            f"the inputs {list(input_names)} plus {list(LABELS)}"
+        )
     fitted = {}
-    for phi, name in ((0, "psi_tumble"), (1, "psi_run")):
+    for phi in (0, 1):
         rows = data[data["phi"] == phi]
+        name = f"psi_{phi}"
         if len(rows) == 0:
             raise ArtefactError(f"transition data has no rows with phi == {phi} to fit {name}")
-        x = torch.tensor(rows[["m", "L"]].to_numpy(dtype="float32"))
+        x = torch.tensor(rows[list(input_names)].to_numpy(dtype="float32"))
         y = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
-        fitted[name] = fit_classifier(x, y, settings, progress=progress, device=device, desc=name)
-    return PsiClassifier(fitted["psi_tumble"], fitted["psi_run"], domain=data_domain(data))
+        label = f"{name} (from {lump_names[phi]})"
+        fitted[phi] = fit_classifier(x, y, settings, progress=progress, device=device, desc=label)
+    return PsiClassifier(
+        fitted[0],
+        fitted[1],
+        input_names,
+        domain=data_domain(data, input_names),
+        lump_names=lump_names,
+    )
 
 
 def save_psi(

@@ -1,8 +1,9 @@
 """Settings, input normalisation and the training loop for one psi classifier.
 
 Numerical guard (a deliberate choice): when the training loss becomes NaN/inf, or a Cholesky
-factorisation fails, training stops, the model is restored to the end of the last epoch whose
-loss was finite, and :class:`~surrogate.errors.NumericalError` is raised. The restored model is
+factorisation fails, training stops, the model is restored to the last state known to be good
+(the start of the last epoch whose losses were all finite: the parameters after an epoch's last
+step are never evaluated by a loss), and :class:`~surrogate.errors.NumericalError` is raised. The restored model is
 attached to the exception as ``exc.partial`` (a :class:`FittedClassifier` without validation
 metrics) for inspection, but it is never returned silently: a half-trained surrogate must not
 flow into the downstream simulations unnoticed. The message says which epoch failed and which
@@ -192,14 +193,14 @@ class FittedClassifier:
 
     @torch.no_grad()
     def latent(self, x: Tensor, chunk_size: int = PREDICT_CHUNK) -> tuple[Tensor, Tensor]:
-        """Mean and variance of the latent f at raw (un-normalised) inputs ``x`` (n, 2)."""
+        """Mean and variance of the latent f at raw (un-normalised) inputs ``x`` (``n x d``)."""
         n = x.shape[0]
         mu, var = self._latent_padded(x, chunk_size)
         return mu[:n], var[:n]
 
     @torch.no_grad()
     def predict_proba(self, x: Tensor, chunk_size: int = PREDICT_CHUNK) -> Tensor:
-        """p(y = 1 | x) for raw inputs ``x`` (n, 2), on the model's device.
+        """p(y = 1 | x) for raw inputs ``x`` (``n x d``), on the model's device.
 
         The Bernoulli-probit predictive integrated over the latent posterior in closed form:
         E[Phi(f)] = Phi(mu / sqrt(1 + var)) for f ~ N(mu, var). Evaluated in chunks of
@@ -296,9 +297,9 @@ class FittedClassifier:
 
 def _check_data(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     if not isinstance(x, Tensor) or not isinstance(y, Tensor):
-        raise TypeError("fit_classifier expects torch tensors x (n, 2) and y (n,)")
-    if x.dim() != 2 or x.shape[1] != 2:
-        raise ValueError(f"x must have shape (n, 2) (columns m, L), got {tuple(x.shape)}")
+        raise TypeError("fit_classifier expects torch tensors x (n x d) and y (n,)")
+    if x.dim() != 2 or x.shape[1] < 1:
+        raise ValueError(f"x must have shape (n, d) (one column per input), got {tuple(x.shape)}")
     y = y.reshape(-1)
     if y.shape[0] != x.shape[0]:
         raise ValueError(f"x and y differ in length: {x.shape[0]} vs {y.shape[0]}")
@@ -306,7 +307,7 @@ def _check_data(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     y = y.to(torch.float32)
     if not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).any(dim=1).sum())
-        raise NumericalError(f"training inputs (m, L) contain NaN or inf in {bad} row(s)")
+        raise NumericalError(f"training inputs contain NaN or inf in {bad} row(s)")
     if not bool(torch.isfinite(y).all()) or not bool(((y == 0) | (y == 1)).all()):
         raise NumericalError("training labels must be 0 or 1 (no NaN/inf or other values)")
     return x, y
@@ -320,7 +321,7 @@ def fit_classifier(
     device: torch.device | str = "cpu",
     desc: str = "GP",
 ) -> FittedClassifier:
-    """Train a sparse variational GP probit classifier on inputs ``x`` (n, 2 = m, L), labels ``y``.
+    """Train a sparse variational GP probit classifier on inputs ``x`` (``n x d``), labels ``y``.
 
     A random validation split (fixed by ``settings.seed``) is held out; the normaliser and the
     inducing points (a random subset of training inputs) come from the training part only. The
@@ -444,9 +445,12 @@ def _numerical_failure(
     fitted.model.eval()
     fitted.likelihood.eval()
     s = fitted.settings
+    finished = len(fitted.history)
+    restored = f"the start of epoch {finished}" if finished else "its initial state"
     err = NumericalError(
         f"GP training diverged in epoch {epoch + 1}/{s.epochs} ({what}). The model was "
-        f"restored to the end of epoch {len(fitted.history)} and is attached as `exc.partial`. "
+        f"restored to {restored} (the last state whose losses were all finite) and is attached "
+        f"as `exc.partial`. "
         f"Try a smaller gp.lr (now {s.lr})"
         + (f" or gp.natural_lr (now {s.natural_lr})" if s.natural_gradient else "")
         + f", or fewer gp.n_inducing (now {s.n_inducing})."

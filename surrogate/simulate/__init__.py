@@ -1,14 +1,23 @@
-"""Population simulation: one outer time loop with a pluggable decision layer."""
+"""Population simulation: one outer time loop over any agent model, with a pluggable decision
+layer (the full internal model, its exact lumped psi, or a learned abstraction)."""
 
 from __future__ import annotations
 
-from surrogate.simulate.decision import AbstractDecision, DecisionLayer, FullDecision
+from surrogate.simulate.decision import (
+    AbstractDecision,
+    DecisionLayer,
+    ExactDecision,
+    ExactPsi,
+    FullDecision,
+)
 from surrogate.simulate.loop import PopulationState, Simulator, StepRecord
 from surrogate.simulate.population import PopulationSummary, simulate_population
 
 __all__ = [
     "AbstractDecision",
     "DecisionLayer",
+    "ExactDecision",
+    "ExactPsi",
     "FullDecision",
     "PopulationState",
     "PopulationSummary",

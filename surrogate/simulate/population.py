@@ -13,9 +13,9 @@ import torch
 from tqdm.auto import tqdm
 
 from surrogate.simulate.loop import Simulator
-from surrogate.simulate.recorders import DistanceRecorder, DurationRecorder
+from surrogate.simulate.recorders import DurationRecorder, ObservableRecorder
 
-DISTANCES = "distances.parquet"
+OBSERVABLES = "observables.parquet"
 DURATIONS = "durations.parquet"
 
 
@@ -31,7 +31,7 @@ class PopulationSummary:
     loop_time_s: float
     record_times: list[float] = field(default_factory=list)
     compile_time_s: float = 0.0  # warm-up (torch.compile) time, not part of loop_time_s
-    mean_distance: list[float] = field(default_factory=list)
+    means: dict[str, list[float]] = field(default_factory=dict)  # observable -> mean per record
     n_durations: int = 0
 
     @property
@@ -54,13 +54,14 @@ def simulate_population(
     t_end: float,
     out_dir: str | os.PathLike,
     record_interval: float = 1.0,
-    start: Sequence[float] = (2.0, 0.0),
+    start: Sequence[float] | torch.Tensor = (2.0, 0.0),
     equilibration_time: float = 0.0,
     record_durations: bool = True,
     progress: bool = True,
 ) -> PopulationSummary:
-    """Simulate ``n_cells`` cells to ``t_end`` and write ``distances.parquet`` and
-    ``durations.parquet`` into ``out_dir`` (atomically, only once the run completes).
+    """Simulate ``n_cells`` cells to ``t_end`` and write ``observables.parquet`` (the body's
+    observables at record times) and ``durations.parquet`` (completed phi segments) into
+    ``out_dir`` (atomically, only once the run completes).
 
     The state is checked for NaN/inf at every record time (:meth:`Simulator.check_state`,
     raising :class:`~surrogate.errors.NumericalError` with the time window), not every step,
@@ -72,19 +73,25 @@ def simulate_population(
     every = steps_between(record_interval, dt, "record_interval")
     out = Path(out_dir)
     t0 = time.perf_counter()
-    distances: DistanceRecorder | None = None
+    body, field_ = simulator.body, simulator.field
+    observables: ObservableRecorder | None = None
     durations: DurationRecorder | None = None
     try:
         # created inside the try, so an interrupt right at the start drops their temporaries too
-        distances = DistanceRecorder(out / DISTANCES, n_cells)
+        observables = ObservableRecorder(out / OBSERVABLES, n_cells, body.observable_names)
         if record_durations:
             durations = DurationRecorder(
-                out / DURATIONS, n_cells, dt, block_steps=every, device=simulator.device
+                out / DURATIONS,
+                n_cells,
+                dt,
+                block_steps=every,
+                device=simulator.device,
+                lump_names=simulator.model.internal.lump_names,
             )
         with torch.no_grad():
             state = simulator.initial_state(n_cells, start, equilibration_time)
             simulator.check_state(state)
-            distances.record(0.0, simulator.field.distance_from_peak(state.position))
+            observables.record(0.0, body.observables(state.body, field_))
             compile_time = simulator.warm_up(state) if simulator.compile else 0.0
             # the objects alive now (models, compiled graphs, caches) are set aside from the
             # cyclic GC for the loop, so its frequent young-generation passes stay short (they
@@ -98,15 +105,13 @@ def simulate_population(
                     durations.record(k, rec.ended_length)
                 if (k + 1) % every == 0:
                     simulator.check_state(state)
-                    distances.record(
-                        (k + 1) * dt, simulator.field.distance_from_peak(state.position)
-                    )
+                    observables.record((k + 1) * dt, body.observables(state.body, field_))
             simulator.check_state(state)  # the tail after the last record time
             if simulator.device.type == "cuda":
                 torch.cuda.synchronize(simulator.device)
             loop_time = time.perf_counter() - loop_start
             gc.unfreeze()
-        distances.table.commit()
+        observables.table.commit()
         n_durations = 0
         if durations is not None:
             durations.flush()
@@ -114,7 +119,7 @@ def simulate_population(
             durations.table.commit()
     except BaseException:
         gc.unfreeze()
-        for recorder in (distances, durations):
+        for recorder in (observables, durations):
             if recorder is not None:
                 recorder.table.abort()
         raise
@@ -125,8 +130,8 @@ def simulate_population(
         t_end=t_end,
         wall_time_s=time.perf_counter() - t0,
         loop_time_s=loop_time,
-        record_times=distances.times,
-        mean_distance=distances.mean,
+        record_times=observables.times,
+        means=observables.mean,
         n_durations=n_durations,
         compile_time_s=compile_time,
     )

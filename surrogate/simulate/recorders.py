@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,6 @@ class StreamingParquet:
             self.tmp.unlink(missing_ok=True)
 
 
-DISTANCE_SCHEMA = pa.schema([("t", pa.float64()), ("cell", pa.int64()), ("distance", pa.float32())])
 DURATION_SCHEMA = pa.schema(
     [
         ("kind", pa.string()),
@@ -86,25 +86,36 @@ DURATION_SCHEMA = pa.schema(
 )
 
 
-class DistanceRecorder:
-    """Each cell's distance from the field's peak at record times -> ``distances.parquet``."""
+def observable_schema(names: Sequence[str]) -> pa.Schema:
+    """Columns ``t``, ``cell`` and one float32 column per observable."""
+    return pa.schema(
+        [("t", pa.float64()), ("cell", pa.int64()), *[(n, pa.float32()) for n in names]]
+    )
 
-    def __init__(self, path: str | os.PathLike, n_cells: int) -> None:
-        self.table = StreamingParquet(path, DISTANCE_SCHEMA)
+
+class ObservableRecorder:
+    """Each cell's observables (e.g. distance from the peak) at record times ->
+    ``observables.parquet`` (columns ``t``, ``cell``, one per observable)."""
+
+    def __init__(self, path: str | os.PathLike, n_cells: int, names: Sequence[str]) -> None:
+        self.names = tuple(names)
+        self.table = StreamingParquet(path, observable_schema(self.names))
         self.cells = np.arange(n_cells, dtype=np.int64)
         self.times: list[float] = []
-        self.mean: list[float] = []
+        self.mean: dict[str, list[float]] = {n: [] for n in self.names}
 
-    def record(self, t: float, distance: Tensor) -> None:
-        """Record the distances (n,) at time t (one device->host copy per record time)."""
-        d = distance.detach().to("cpu", torch.float32).numpy()
-        self.table.append(t=np.full(d.shape[0], t), cell=self.cells, distance=d)
+    def record(self, t: float, observables: Mapping[str, Tensor]) -> None:
+        """Record the observables (each ``(n,)``) at time t (one device->host copy each)."""
+        values = {n: observables[n].detach().to("cpu", torch.float32).numpy() for n in self.names}
+        self.table.append(t=np.full(self.cells.shape[0], t), cell=self.cells, **values)
         self.times.append(t)
-        self.mean.append(float(d.mean()))
+        for n, v in values.items():
+            self.mean[n].append(float(v.mean()))
 
 
 class DurationRecorder:
-    """Completed run and tumble durations -> ``durations.parquet``.
+    """Completed phi segments (e.g. runs and tumbles) -> ``durations.parquet`` (``kind`` = the
+    lump's name, ``duration`` in s, ``cell``, ``t_end``).
 
     Segment ends are buffered on the device for a block of steps and moved to the host in one
     transfer per block, so the loop does not synchronise every step.
@@ -117,17 +128,19 @@ class DurationRecorder:
         dt: float,
         block_steps: int,
         device: torch.device,
+        lump_names: tuple[str, str] = ("tumble", "run"),
     ) -> None:
         self.table = StreamingParquet(path, DURATION_SCHEMA)
         self.dt = dt
+        self.lump_names = lump_names
         self.block_steps = max(1, block_steps)
-        # steps of the segment that ended at this step (0 = nothing ended); sign = kind
+        # steps of the segment that ended at this step (0 = nothing ended); sign = phi
         self._buffer = torch.zeros(self.block_steps, n_cells, dtype=torch.int32, device=device)
         self._block_start = 0
         self._filled = 0
 
     def record(self, step: int, ended_length: Tensor) -> None:
-        """``ended_length`` (n,) int32: +k a run of k steps ended, -k a tumble, 0 nothing."""
+        """``ended_length`` (n,) int32: +k a phi=1 segment of k steps ended, -k phi=0, 0 none."""
         if self._filled == 0:
             self._block_start = step
         self._buffer[self._filled] = ended_length
@@ -144,8 +157,9 @@ class DurationRecorder:
         values = block[rows, cells].cpu().numpy()
         rows_np, cells_np = rows.cpu().numpy(), cells.cpu().numpy()
         t_end = (self._block_start + rows_np + 1) * self.dt
+        off, on = self.lump_names
         self.table.append(
-            kind=np.where(values > 0, "run", "tumble").astype(object),
+            kind=np.where(values > 0, on, off).astype(object),
             duration=np.abs(values).astype(np.float64) * self.dt,
             cell=cells_np.astype(np.int64),
             t_end=t_end.astype(np.float64),

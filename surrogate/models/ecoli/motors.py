@@ -25,6 +25,8 @@ e^{-1500} underflows harmlessly to 0). It is checked against ``scipy.linalg.expm
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
@@ -35,6 +37,7 @@ from surrogate.ctmc import (
     unit_generator,
     unit_transition_matrix,
 )
+from surrogate.ctmc.lumped import StateSpace, lumped_psi
 from surrogate.models.ecoli.parameters import EcoliParameters
 
 SPECIES = ("S", "C", "N")
@@ -230,3 +233,20 @@ def generic_transition_matrix(
     """exp(Q dt) by the generic path (generator + ``torch.linalg.matrix_exp``), for checks."""
     rates = rate_constants(k_plus.double(), k_minus.double(), p)
     return unit_transition_matrix(unit_generator(FLAGELLA_NETWORK, rates), dt)
+
+
+@functools.lru_cache(maxsize=8)
+def population_space(n_motors: int) -> StateSpace:
+    """The motor population's states (counts S, C, N summing to ``n_motors``): 15 for 4 motors."""
+    return StateSpace.enumerate(FLAGELLA_NETWORK, torch.tensor([0, 0, int(n_motors)]))
+
+
+def exact_run_probability(
+    k_plus: Tensor, k_minus: Tensor, dt: float, p: EcoliParameters
+) -> Tensor:
+    """Exact lumped P(RUN after dt | TUMBLE / RUN now), ``n x 2``, at rates ``k_plus``/``k_minus``
+    (``(n,)``): the motor population's generator, started from its stationary law restricted to
+    the current lump (:func:`surrogate.ctmc.lumped.lumped_psi`)."""
+    space = population_space(p.n_motors)
+    q = space.generator(rate_constants(k_plus.double(), k_minus.double(), p))
+    return lumped_psi(q, is_run(space.states), dt)

@@ -9,7 +9,7 @@ under ``data/simulate``. ``shard.count=1`` (the default) is the unsharded run, u
 
 :func:`merge` (``python scripts/merge_shards.py shard.count=K``) streams the K shards' tables into
 ONE run directory in exactly the unsharded format: cell ids offset to ``0..n_cells-1`` (shard 0
-first), distances ordered by record time then cell, durations concatenated in shard order, and a
+first), observables ordered by record time then cell, durations concatenated in shard order, and a
 manifest with the unsharded keys (``n_cells`` the total, wall and loop times summed, throughput
 recomputed) plus ``shards``, the shard directories.
 """
@@ -26,9 +26,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from omegaconf import OmegaConf
 
-from surrogate.config import field_name, to_dict
+from surrogate.config import to_dict
 from surrogate.errors import ArtefactError, ConfigError, MissingArtefactError
 from surrogate.io import (
     MANIFEST,
@@ -38,10 +37,10 @@ from surrogate.io import (
     read_manifest,
     write_manifest,
 )
-from surrogate.paths import SIMULATE_CMD, simulate_dir, simulate_label, simulate_settings
-from surrogate.simulate import stage as simulate_stage
-from surrogate.simulate.population import DISTANCES, DURATIONS
-from surrogate.simulate.recorders import DISTANCE_SCHEMA, DURATION_SCHEMA, StreamingParquet
+from surrogate.simulate.population import DURATIONS, OBSERVABLES
+from surrogate.simulate.recorders import DURATION_SCHEMA, StreamingParquet, observable_schema
+from surrogate.stages.settings import SIMULATE_CMD, SimulateSettings
+from surrogate.stages.simulate import simulate
 
 log = logging.getLogger(__name__)
 
@@ -89,65 +88,58 @@ def shard_seed(seed: int, count: int, index: int) -> int:
     return int(child.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
 
-def shard_config(cfg: Mapping[str, Any], index: int | None = None) -> Any:
-    """The plain simulate config of one shard: its share of the cells and its own seed.
-
-    ``shard`` in the result records ``count``, ``index``, the parent ``seed`` and ``n_cells``
-    (kept in the shard's manifest; no settings hash reads it).
-    """
-    count, own = shard_settings(cfg)
-    index = own if index is None else index
-    c = OmegaConf.create(to_dict(cfg))
+def shard_run(settings: SimulateSettings, count: int, index: int) -> SimulateSettings:
+    """The settings of one shard: its share of the cells and its own seed (the parent's seed and
+    size are recorded in ``shard``)."""
     if count == 1:
-        return c
+        return settings
     if not 0 <= index < count:
         raise ConfigError(f"shard.index must be an integer in 0..{count - 1}, got {index!r}")
-    n_total, seed = int(cfg["n_cells"]), int(cfg["seed"])
-    c.n_cells = shard_sizes(n_total, count)[index]
-    c.seed = shard_seed(seed, count, index)
-    c.shard = {"count": count, "index": index, "parent_seed": seed, "parent_n_cells": n_total}
-    return c
+    n_total, seed = settings.n_cells, settings.setup.seed
+    return settings.replace(
+        n_cells=shard_sizes(n_total, count)[index],
+        seed=shard_seed(seed, count, index),
+        shard={"count": count, "index": index, "parent_seed": seed, "parent_n_cells": n_total},
+    )
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """The simulate job: the whole population, or shard ``shard.index`` of ``shard.count``."""
     count, index = shard_settings(cfg)
-    if count == 1:
-        return simulate_stage.run(cfg, force=force)
-    c = shard_config(cfg, index)
-    log.info("shard %d of %d: %d cells, seed %d", index, count, c.n_cells, c.seed)
-    return simulate_stage.run(c, force=force)
+    settings = shard_run(SimulateSettings.from_config(cfg), count, index)
+    if count > 1:
+        log.info("shard %d of %d: %d cells, seed %d", index, count, settings.n_cells,
+                 settings.setup.seed)  # fmt: skip
+    return simulate(settings, config=to_dict(cfg), force=force)
 
 
 # ----------------------------------------------------------------------------------------------
 # merge
 
 
-def merged_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def merged_identity(settings: SimulateSettings, count: int) -> dict[str, Any]:
     """What defines a merged run: the unsharded run's settings plus the shard count."""
-    count, _ = shard_settings(cfg)
-    return {**simulate_settings(cfg), "shard_count": count}
+    return {**settings.identity(), "shard_count": count}
 
 
-def merged_dir(cfg: Mapping[str, Any]) -> Path:
-    """``data/simulate/<decision>_field=..._n=..._seed=..._shards=K-<hash>``."""
-    s = merged_settings(cfg)
-    label = {**simulate_label(s), "shards": s["shard_count"]}
-    return artefact_dir(cfg["data_dir"], "simulate", label, s)
+def merged_dir(settings: SimulateSettings, count: int) -> Path:
+    """``data/simulate/<decision>_..._seed=..._shards=K-<hash>``."""
+    label = {**settings.label(), "shards": count}
+    return artefact_dir(settings.job.data_dir, "simulate", label, merged_identity(settings, count))
 
 
 def simulate_command(
-    cfg: Mapping[str, Any], indices: Sequence[int], overrides: Sequence[str] | None = None
+    settings: SimulateSettings,
+    count: int,
+    indices: Sequence[int],
+    overrides: Sequence[str] | None = None,
 ) -> str:
     """The command that makes shards ``indices``: the merge's own overrides when known (so every
     setting matches), else the main settings; a multirun for several shards."""
-    count, _ = shard_settings(cfg)
     if overrides is not None:
         keep = [o for o in overrides if not o.lstrip("+~").startswith("shard.")]
     else:
-        keep = [f"decision={cfg['decision']['name']}", f"field={field_name(to_dict(cfg['field']))}",
-                f"n_cells={cfg['n_cells']}", f"t_end={cfg['t_end']}", f"dt={cfg['dt']}",
-                f"seed={cfg['seed']}"]  # fmt: skip
+        keep = settings.overrides()
     multi = ["-m"] if len(indices) > 1 else []
     shard = [f"shard.count={count}", f"shard.index={','.join(str(i) for i in indices)}"]
     return " ".join([SIMULATE_CMD, *multi, *keep, *shard])
@@ -167,36 +159,39 @@ def merge(
     count, _ = shard_settings(cfg)
     if count == 1:
         raise ConfigError("shard.count=1: nothing to merge; set shard.count to the shards' K")
-    simulate_stage.validate(cfg)
-    out = merged_dir(cfg)
+    settings = SimulateSettings.from_config(cfg)
+    out = merged_dir(settings, count)
     made_by = f"{MERGE_CMD} shard.count={count}"
-    if not force and existing_artefact(out, merged_settings(cfg), made_by) is not None:
+    identity = merged_identity(settings, count)
+    if not force and existing_artefact(out, identity, made_by) is not None:
         log.info("merged run exists, reusing %s", out)
         return out
-    dirs = [simulate_dir(shard_config(cfg, i)) for i in range(count)]
+    dirs = [shard_run(settings, count, i).directory for i in range(count)]
     missing = [i for i, d in enumerate(dirs) if not (d / MANIFEST).exists()]
     if missing:
         names = ", ".join(f"shard {i} ({dirs[i]})" for i in missing)
         raise MissingArtefactError(
             f"missing {len(missing)} of {count} shards: {names}. "
-            f"Run `{simulate_command(cfg, missing, overrides)}` first."
+            f"Run `{simulate_command(settings, count, missing, overrides)}` first."
         )
     with artefact_lock(out):  # two merges of the same run take turns
-        if not force and existing_artefact(out, merged_settings(cfg), made_by) is not None:
+        if not force and existing_artefact(out, identity, made_by) is not None:
             return out
-        _merge(cfg, dirs, out)
+        _merge(settings, count, dirs, out, to_dict(cfg))
     return out
 
 
-def _merge(cfg: Mapping[str, Any], dirs: Sequence[Path], out: Path) -> None:
+def _merge(
+    settings: SimulateSettings, count: int, dirs: Sequence[Path], out: Path, config: dict[str, Any]
+) -> None:
     """Write the merged tables, then (last, marking completion) the manifest into ``out``."""
     t0 = time.perf_counter()
-    count = len(dirs)
     manifests = [read_manifest(d) for d in dirs]
-    sizes = shard_sizes(int(cfg["n_cells"]), count)
+    sizes = shard_sizes(settings.n_cells, count)
     _check_shards(dirs, manifests, sizes)
-    offsets = shard_offsets(int(cfg["n_cells"]), count)
-    _merge_distances([d / DISTANCES for d in dirs], offsets, sizes, out / DISTANCES)
+    offsets = shard_offsets(settings.n_cells, count)
+    names = list(manifests[0].get("observables") or ["distance"])
+    _merge_observables([d / OBSERVABLES for d in dirs], offsets, sizes, out / OBSERVABLES, names)
     n_durations = 0
     has_durations = [(d / DURATIONS).exists() for d in dirs]
     if any(has_durations):
@@ -204,50 +199,54 @@ def _merge(cfg: Mapping[str, Any], dirs: Sequence[Path], out: Path) -> None:
             lacking = [str(d) for d, h in zip(dirs, has_durations, strict=True) if not h]
             raise ArtefactError(f"shard(s) {lacking} lack {DURATIONS} but others have one")
         n_durations = _merge_durations([d / DURATIONS for d in dirs], offsets, out / DURATIONS)
-    write_manifest(out, **merged_manifest(cfg, manifests, dirs, n_durations),
+    write_manifest(out, **merged_manifest(settings, count, config, manifests, dirs, n_durations),
                    merge_time_s=time.perf_counter() - t0)  # fmt: skip
     log.info("merged %d shards (%d cells) into %s", count, sum(sizes), out)
 
 
 def merged_manifest(
-    cfg: Mapping[str, Any], manifests: Sequence[Mapping[str, Any]], dirs: Sequence[Path],
-    n_durations: int,
+    settings: SimulateSettings, count: int, config: dict[str, Any],
+    manifests: Sequence[Mapping[str, Any]], dirs: Sequence[Path], n_durations: int,
 ) -> dict[str, Any]:  # fmt: skip
     """Keyword arguments of :func:`~surrogate.io.write_manifest` for the merged run: the
     unsharded run's keys, with totals over the shards."""
     n_cells = sum(int(m["n_cells"]) for m in manifests)
     n_steps = int(manifests[0]["n_steps"])
     loop = sum(float(m["loop_time_s"]) for m in manifests)
-    config = to_dict(cfg)
-    config["shard"] = {"count": len(manifests), "index": None}
+    config = {**config, "shard": {"count": count, "index": None}}
     extra = {}  # what the decision layer reported (same abstraction in every shard)
-    for key in ("abstraction_dir", "lookup_max_deviation"):
+    for key in ("abstraction_dir", "lookup_max_deviation", "inputs"):
         values = [m[key] for m in manifests if key in m]
         if values:
             extra[key] = max(values) if key == "lookup_max_deviation" else values[0]
     devices = sorted({str(m.get("device")) for m in manifests})
+    finals = [m.get("final_means") or {} for m in manifests]
     return {
         "stage": "simulate",
         "config": config,
-        "seed": int(cfg["seed"]),
-        "settings": merged_settings(cfg),
+        "seed": settings.setup.seed,
+        "settings": merged_identity(settings, count),
         "decision": manifests[0]["decision"],
         "device": devices[0] if len(devices) == 1 else ",".join(devices),
         "wall_time_s": sum(float(m["wall_time_s"]) for m in manifests),
         "loop_time_s": loop,
         "compile_time_s": sum(float(m.get("compile_time_s", 0.0)) for m in manifests),
+        "compile": bool(manifests[0].get("compile", False)),
         "compiled": all(bool(m.get("compiled", False)) for m in manifests),
         "cell_steps_per_s": n_cells * n_steps / max(loop, 1e-12),
         "n_cells": n_cells,
         "n_steps": n_steps,
         "n_durations": n_durations,
         # mean over all cells = cell-weighted mean of the shards' means
-        "final_mean_distance": sum(
-            int(m["n_cells"]) * float(m["final_mean_distance"]) for m in manifests
-        )
-        / n_cells,
+        "final_means": {
+            k: sum(int(m["n_cells"]) * float(f[k]) for m, f in zip(manifests, finals, strict=True))
+            / n_cells
+            for k in finals[0]
+        },
+        "observables": manifests[0].get("observables"),
+        "lump_names": manifests[0].get("lump_names"),
         **extra,
-        "shard_count": len(manifests),
+        "shard_count": count,
         "shards": [str(d) for d in dirs],
         "shard_seeds": [int(m["seed"]) for m in manifests],
     }
@@ -264,13 +263,11 @@ def _check_shards(
             raise ArtefactError(f"shard {d} has {m['n_cells']} cells, expected {n}")
 
 
-def _time_groups(path: Path) -> Iterator[tuple[float, pa.Table]]:
-    """The rows of a distances table, one record time at a time (rows are grouped by time)."""
+def _time_groups(path: Path, columns: Sequence[str]) -> Iterator[tuple[float, pa.Table]]:
+    """The rows of an observables table, one record time at a time (rows are grouped by time)."""
     pending: list[pa.Table] = []
     pending_t: float | None = None
-    for batch in pq.ParquetFile(path).iter_batches(
-        batch_size=_BATCH_ROWS, columns=DISTANCE_SCHEMA.names
-    ):
+    for batch in pq.ParquetFile(path).iter_batches(batch_size=_BATCH_ROWS, columns=list(columns)):
         table = pa.Table.from_batches([batch])
         t = table.column("t").to_numpy()
         cuts = [0, *(np.flatnonzero(np.diff(t)) + 1).tolist(), len(t)]
@@ -287,16 +284,21 @@ def _time_groups(path: Path) -> Iterator[tuple[float, pa.Table]]:
         yield pending_t, pa.concat_tables(pending)  # type: ignore[misc]
 
 
-def _merge_distances(
-    paths: Sequence[Path], offsets: Sequence[int], sizes: Sequence[int], out: Path
+def _merge_observables(
+    paths: Sequence[Path],
+    offsets: Sequence[int],
+    sizes: Sequence[int],
+    out: Path,
+    names: Sequence[str],
 ) -> None:
-    """Stream the shards' distances into one table: per record time, every shard's cells."""
+    """Stream the shards' observables into one table: per record time, every shard's cells."""
     for p in paths:
         if not p.exists():
             raise MissingArtefactError(f"missing artefact {p} (its shard's manifest exists)")
-    writer = StreamingParquet(out, DISTANCE_SCHEMA)
+    schema = observable_schema(names)
+    writer = StreamingParquet(out, schema)
     try:
-        groups = [_time_groups(p) for p in paths]
+        groups = [_time_groups(p, schema.names) for p in paths]
         for k, row in enumerate(itertools.zip_longest(*groups)):
             if any(g is None for g in row):
                 short = [str(paths[i]) for i, g in enumerate(row) if g is None]
@@ -314,7 +316,7 @@ def _merge_distances(
                 writer.append(
                     t=table.column("t").to_numpy(),
                     cell=cells.astype(np.int64) + offset,
-                    distance=table.column("distance").to_numpy().astype(np.float32),
+                    **{n: table.column(n).to_numpy().astype(np.float32) for n in names},
                 )
         writer.commit()
     except BaseException:

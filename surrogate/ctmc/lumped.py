@@ -1,0 +1,184 @@
+"""Exact lumped switching probabilities of a small reaction network: the best two-state abstraction.
+
+A two-state abstraction replaces an internal network by a Markov chain over one boolean property
+phi of its state (e.g. RUN). For a network whose reachable state space is small (the four motors
+of an E. coli cell: 15 states; anything up to a few thousand states), the abstraction's transition
+probabilities can be computed exactly from the generator Q of the window's rates:
+
+    psi_phi = sum_{s in lump phi} pi(s | phi) * sum_{s' in lump 1} exp(Q dt)[s, s'],
+
+where pi is the stationary law of Q (the network adapted to the current inputs) and pi(. | phi)
+its restriction to lump phi, renormalised. ``psi_phi`` is P(phi' = 1 | phi) after one window dt.
+This is the reference a learned psi is scored against; a chain driven by it is the best any
+two-state abstraction built from stationary inputs can do.
+
+Everything is batched over cells: ``(n, R)`` rate constants give ``(n, K, K)`` generators.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from surrogate.ctmc.network import ReactionNetwork, make_propensity_fn
+
+__all__ = ["StateSpace", "lumped_psi", "stationary_distribution"]
+
+#: default bound on the number of enumerated states (a generator of K^2 float64 per cell)
+MAX_STATES = 5000
+
+
+@dataclass(frozen=True, eq=False)
+class StateSpace:
+    """The states a network reaches from ``initial`` counts, and its transitions between them.
+
+    Attributes:
+        network: the reaction network.
+        states: ``K x S`` int64 reachable states, ``states[0]`` = the initial state.
+        source, target, reaction: int64 ``(T,)``: firing ``reaction[t]`` in ``source[t]`` leads to
+            ``target[t]`` (only reactions that can fire there, i.e. non-zero mass-action factor).
+
+    Example:
+        >>> net = ReactionNetwork.from_reactions(["A", "B"], [("a->b", {"A": 1}, {"B": 1})])
+        >>> StateSpace.enumerate(net, torch.tensor([2, 0])).states.tolist()
+        [[2, 0], [1, 1], [0, 2]]
+    """
+
+    network: ReactionNetwork
+    states: Tensor
+    source: Tensor
+    target: Tensor
+    reaction: Tensor
+
+    @classmethod
+    def enumerate(
+        cls, network: ReactionNetwork, initial: Tensor, max_states: int = MAX_STATES
+    ) -> StateSpace:
+        """Breadth-first enumeration of the states reachable from ``initial`` (``S`` counts).
+
+        Raises ``ValueError`` when more than ``max_states`` states are reachable (an open or large
+        network has no exact lumped psi this way).
+        """
+        start = tuple(int(v) for v in torch.as_tensor(initial).reshape(-1).tolist())
+        if len(start) != network.n_species or min(start) < 0:
+            raise ValueError(
+                f"initial state must be {network.n_species} non-negative counts, got {start}"
+            )
+        reactants = network.reactants.tolist()
+        stoich = network.stoichiometry.tolist()
+        index = {start: 0}
+        order = [start]
+        src, tgt, rxn = [], [], []
+        head = 0
+        while head < len(order):
+            state = order[head]
+            for r, (need, change) in enumerate(zip(reactants, stoich, strict=True)):
+                if any(x < k for x, k in zip(state, need, strict=True)):
+                    continue  # mass-action factor prod binom(x, k) is zero
+                nxt = tuple(x + d for x, d in zip(state, change, strict=True))
+                if nxt == state:
+                    continue  # a reaction that changes nothing is no transition
+                j = index.get(nxt)
+                if j is None:
+                    if len(order) >= max_states:
+                        raise ValueError(
+                            f"more than max_states={max_states} states are reachable from "
+                            f"{start}; the exact lumped psi needs a small state space"
+                        )
+                    j = index[nxt] = len(order)
+                    order.append(nxt)
+                src.append(head)
+                tgt.append(j)
+                rxn.append(r)
+            head += 1
+        as_long = lambda v: torch.tensor(v, dtype=torch.int64)  # noqa: E731
+        return cls(network, as_long(order), as_long(src), as_long(tgt), as_long(rxn))
+
+    @property
+    def n_states(self) -> int:
+        """Number of states ``K``."""
+        return int(self.states.shape[0])
+
+    def mass_action(self, rate_constants: Tensor) -> Tensor:
+        """Propensities ``n x K x R`` of every reaction in every state (float64).
+
+        Args:
+            rate_constants: ``n x R`` mass-action rate constants per cell.
+        """
+        fn = make_propensity_fn(self.network.reactants, rate_constants.device)
+        k, r = self.n_states, self.network.n_reactions
+        n = rate_constants.shape[0]
+        states = self.states.to(rate_constants.device).repeat(n, 1)  # (n K, S)
+        rates = rate_constants.to(torch.float64).repeat_interleave(k, dim=0)  # (n K, R)
+        return fn(states, rates).reshape(n, k, r)
+
+    def generator(
+        self, rate_constants: Tensor, propensity: Callable[[Tensor, Tensor], Tensor] | None = None
+    ) -> Tensor:
+        """Generators ``n x K x K`` (float64, rows summing to 0) at each cell's parameters.
+
+        Args:
+            rate_constants: ``n x R`` mass-action rate constants, or ``n x P`` parameters of
+                ``propensity``.
+            propensity: optional ``f(states (m x S) float64, params (m x P)) -> (m x R)`` for
+                non-mass-action kinetics; ``None`` means mass action.
+        """
+        n = rate_constants.shape[0]
+        k = self.n_states
+        device = rate_constants.device
+        if propensity is None:
+            a = self.mass_action(rate_constants)
+        else:
+            states = self.states.to(device, torch.float64).repeat(n, 1)
+            params = rate_constants.to(torch.float64).repeat_interleave(k, dim=0)
+            a = propensity(states, params).reshape(n, k, -1).to(torch.float64)
+        src, tgt, rxn = (t.to(device) for t in (self.source, self.target, self.reaction))
+        rates = a[:, src, rxn]  # (n, T)
+        q = torch.zeros((n, k * k), dtype=torch.float64, device=device)
+        q.index_add_(1, src * k + tgt, rates)
+        q = q.view(n, k, k)
+        return q - torch.diag_embed(q.sum(-1))
+
+
+def stationary_distribution(q: Tensor) -> Tensor:
+    """Stationary law ``n x K`` of generators ``q`` (``n x K x K``, irreducible), in float64.
+
+    Solves pi Q = 0 with sum(pi) = 1 after scaling each generator by its largest exit rate (the
+    uniformised chain has the same stationary law and entries of order one); round-off negatives
+    are clamped to 0 and the result renormalised.
+    """
+    q = q.to(torch.float64)
+    k = q.shape[-1]
+    scale = (-torch.diagonal(q, dim1=-2, dim2=-1)).amax(-1).clamp_min(1e-300)
+    a = (q / scale[:, None, None]).mT.clone()
+    a[:, -1, :] = 1.0  # replace one balance equation by the normalisation
+    b = torch.zeros(q.shape[:-1], dtype=torch.float64, device=q.device)
+    b[:, -1] = 1.0
+    pi = torch.linalg.solve(a, b).clamp_min(0.0)
+    return pi / pi.sum(-1, keepdim=True)
+
+
+def lumped_psi(q: Tensor, lump: Tensor, dt: float) -> Tensor:
+    """Exact ``P(phi' = 1 | phi)`` after a window ``dt``, ``n x 2`` (column 0: phi = 0, 1: phi = 1).
+
+    Args:
+        q: ``n x K x K`` generators (rates held fixed over the window).
+        lump: ``K`` bool, the property phi of each state.
+        dt: window length (s).
+
+    The chain starts from the stationary law of ``q`` restricted to the current lump (see the
+    module docstring). A lump with zero stationary mass gets NaN.
+    """
+    lump = lump.to(q.device)
+    pi = stationary_distribution(q)  # (n, K)
+    p = torch.linalg.matrix_exp(q.to(torch.float64) * dt).clamp_min(0.0)
+    p = p / p.sum(-1, keepdim=True)
+    to_one = p[:, :, lump].sum(-1)  # (n, K): P(phi' = 1 | s)
+    out = []
+    for phi in (False, True):
+        w = pi * (lump == phi)
+        out.append((w * to_one).sum(-1) / w.sum(-1))
+    return torch.stack(out, -1).clamp(0.0, 1.0)

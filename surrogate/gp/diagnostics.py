@@ -1,0 +1,173 @@
+"""How wrong a learned psi is where it matters: where the population actually lives.
+
+A learned psi can be accurate on average over its training data (perturbed on purpose, far from
+steady state) and still be 10-40 % off on the thin band where the population spends its time,
+which is what sets the run and tumble durations and the drift. This diagnostic scores the two
+*switching* probabilities (leaving phi = 0: psi_0; leaving phi = 1: 1 - psi_1) against a
+reference, weighted by the full model's occupancy (rows of an unperturbed full-model run:
+inputs and phi at sampled steps):
+
+* ``reference = exact``: the internal model's exact lumped psi at each occupied point;
+* ``reference = empirical`` (no exact psi): the observed switching frequency of the occupancy
+  run itself in equal-count bins of the abstraction's inputs (1-D) -- noisy, so the binomial
+  standard error is reported with it.
+
+Per origin state: ``rel_bias`` = (mean learned - mean reference) / mean reference of the
+occupancy-weighted switching probability (it predicts the relative error of the mean segment
+duration, with the opposite sign), ``mean_abs_rel_error`` (the mean of |learned - reference| /
+reference over occupied points) and its 90th percentile.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+from surrogate.gp.lookup import PsiFunction
+
+
+def switching(phi: np.ndarray, p_one: np.ndarray) -> np.ndarray:
+    """P(leave phi within dt) from p(phi' = 1): p for phi = 0, 1 - p for phi = 1."""
+    return np.where(phi == 0, p_one, 1.0 - p_one)
+
+
+@torch.no_grad()
+def psi_errors(
+    psi: PsiFunction,
+    occupancy: pd.DataFrame,
+    inputs: list[str] | tuple[str, ...],
+    exact: Callable[[pd.DataFrame], np.ndarray] | None = None,
+    bins: int = 20,
+) -> tuple[dict[str, Any], pd.DataFrame]:
+    """Score ``psi`` on ``occupancy`` (columns ``inputs``, ``phi``, ``phi_next``).
+
+    Args:
+        psi: the learned ``psi(phi, z)``.
+        occupancy: rows of an unperturbed full-model run (see
+            :func:`surrogate.simulate.transitions.record_occupancy`).
+        inputs: the psi's input columns.
+        exact: ``rows -> (n x 2)`` exact P(phi' = 1 | phi = 0, 1) at each row, or None for the
+            empirical reference (binned over the first input).
+
+    Returns:
+        (metrics dict, per-row (exact) or per-bin (empirical) frame for figures).
+    """
+    phi = occupancy["phi"].to_numpy(np.int64)
+    z = torch.from_numpy(occupancy[list(inputs)].to_numpy(np.float32, copy=True))
+    learned = switching(phi, psi(torch.as_tensor(phi), z).double().cpu().numpy())
+    out: dict[str, Any] = {"reference": "exact" if exact is not None else "empirical",
+                           "n_occupancy": int(len(occupancy))}  # fmt: skip
+    if exact is not None:
+        ref_both = exact(occupancy)
+        reference = switching(phi, ref_both[np.arange(len(phi)), phi])
+        frame = pd.DataFrame({"phi": phi, **{n: occupancy[n].to_numpy() for n in inputs},
+                              "learned": learned, "reference": reference})  # fmt: skip
+        for p in (0, 1):
+            sel = phi == p
+            out[f"phi{p}"] = _scores(learned[sel], reference[sel], np.ones(sel.sum()))
+        return out, frame
+    # empirical: equal-count bins of the first input, per origin state
+    observed = (occupancy["phi_next"].to_numpy() != phi).astype(float)
+    rows = []
+    for p in (0, 1):
+        sel = np.flatnonzero(phi == p)
+        if sel.size == 0:
+            continue
+        x = occupancy[inputs[0]].to_numpy(float)[sel]
+        edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+        idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+        for b in range(len(edges) - 1):
+            m = idx == b
+            if m.sum() == 0:
+                continue
+            f = observed[sel][m].mean()
+            rows.append({"phi": p, inputs[0]: float(x[m].mean()), "n": int(m.sum()),
+                         "learned": float(learned[sel][m].mean()), "reference": float(f),
+                         "reference_se": float(np.sqrt(max(f * (1 - f), 1e-12) / m.sum()))})  # fmt: skip
+    frame = pd.DataFrame(rows)
+    for p in (0, 1):
+        f = frame[frame["phi"] == p]
+        if len(f):
+            out[f"phi{p}"] = _scores(f["learned"].to_numpy(), f["reference"].to_numpy(),
+                                     f["n"].to_numpy(float))  # fmt: skip
+    return out, frame
+
+
+def _scores(learned: np.ndarray, reference: np.ndarray, weight: np.ndarray) -> dict[str, float]:
+    w = weight / weight.sum()
+    mean_l, mean_r = float((w * learned).sum()), float((w * reference).sum())
+    rel = np.abs(learned - reference) / np.maximum(reference, 1e-12)
+    order = np.argsort(rel)
+    cdf = np.cumsum(w[order])
+    p90 = float(rel[order][min(np.searchsorted(cdf, 0.9), len(rel) - 1)])
+    return {
+        "n": int(weight.sum()),
+        "mean_switching_learned": mean_l,
+        "mean_switching_reference": mean_r,
+        "rel_bias": (mean_l - mean_r) / mean_r if mean_r > 0 else float("nan"),
+        "mean_abs_rel_error": float((w * rel).sum()),
+        "p90_abs_rel_error": p90,
+    }
+
+
+def plot_psi_errors(
+    frame: pd.DataFrame, inputs: list[str] | tuple[str, ...], lump_names: tuple[str, str]
+) -> Figure:
+    """Learned vs reference switching probability over the occupied inputs (first input on
+    the x axis), with the occupancy histogram; one panel per origin state."""
+    import matplotlib.pyplot as plt
+
+    name = inputs[0]
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6), sharex="col", constrained_layout=True,
+                             gridspec_kw={"height_ratios": [3, 1]})  # fmt: skip
+    for col, p in enumerate((0, 1)):
+        f = frame[frame["phi"] == p].sort_values(name)
+        ax, hist = axes[0, col], axes[1, col]
+        if len(f) == 0:
+            continue
+        x = f[name].to_numpy()
+        if "reference_se" in f:  # empirical bins
+            ax.errorbar(x, f["reference"], yerr=f["reference_se"], fmt="o", ms=3, color="black",
+                        label="full model (binned)")  # fmt: skip
+            ax.plot(x, f["learned"], "-", color="tab:blue", label="learned psi")
+            hist.bar(x, f["n"], width=np.gradient(x) if len(x) > 1 else 1.0, color="grey")
+        else:
+            order = np.argsort(x)
+            stride = max(1, len(order) // 3000)
+            sel = order[::stride]
+            ax.plot(x[sel], f["reference"].to_numpy()[sel], ".", ms=2, color="black",
+                    label="exact lumped psi")  # fmt: skip
+            ax.plot(x[sel], f["learned"].to_numpy()[sel], ".", ms=2, color="tab:blue",
+                    label="learned psi")  # fmt: skip
+            hist.hist(x, bins=60, color="grey")
+        ax.set_title(f"leaving {lump_names[p]} (phi = {p}), occupancy-weighted")
+        ax.set_ylabel("P(switch within dt)")
+        ax.legend(fontsize=8, markerscale=4)
+        hist.set_xlabel(name)
+        hist.set_ylabel("occupancy")
+    return fig
+
+
+def exact_reference(
+    internal: Any, dt: float
+) -> Callable[[pd.DataFrame], np.ndarray]:
+    """``rows -> (n x 2)`` exact psi of ``internal`` at the rows' signal columns."""
+
+    def reference(rows: pd.DataFrame) -> np.ndarray:
+        signal: Tensor = torch.as_tensor(
+            rows[list(internal.signal_names)].to_numpy(np.float64), dtype=torch.float64
+        )
+        return internal.exact_psi(signal, dt).cpu().numpy()
+
+    return reference
+
+
+__all__ = ["exact_reference", "plot_psi_errors", "psi_errors", "switching"]

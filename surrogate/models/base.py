@@ -1,0 +1,278 @@
+"""The seams of a multi-scale agent model, as the generic engine sees them.
+
+An agent model has two layers (paper, Section 2.2):
+
+* an :class:`InternalModel`: the agent's internal stochastic network (a reaction network on
+  :mod:`surrogate.ctmc`), run for one window dt per step with its rates fixed by the inputs ``x``
+  the body hands it, and read out as one boolean property phi (e.g. RUN) of its state;
+* an :class:`AgentBody`: the agent's outer state (position, heading, slow processes such as
+  methylation), the inputs it hands the internal model from the field and its own state, how
+  phi moves it, what is observed of it, and how it is perturbed when training data is collected.
+
+A :class:`Model` bundles the two with the model's own checks and evaluation hooks; the ``model``
+config group selects one by ``_target_``. Engine code (:mod:`surrogate.simulate`,
+:mod:`surrogate.gp`, the stages) only uses these protocols.
+
+Conventions: cells live in the batch dimension; ``x`` is ``n x d`` float32 in the order of
+``input_names``; phi travels as float 0/1 inside pure (fusable) functions, because compiled CPU
+kernels handle boolean tensors with scalar loops. A *pure* function takes its random numbers as
+arguments (drawn by the simulator in bulk, see :class:`Randoms`), never synchronises with the
+host and never mutates its inputs, so the simulator can fuse a whole step into one function and
+``torch.compile`` it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+from surrogate.fields import Field
+
+#: per-cell tensors an internal model carries from window to window (opaque to the engine)
+InternalState = tuple[Tensor, ...]
+#: the body's outer state: named per-cell tensors, cells in dimension 0
+BodyState = dict[str, Tensor]
+
+
+@dataclass(frozen=True)
+class Randoms:
+    """Random numbers a pure function needs per cell and step, drawn by the simulator in bulk.
+
+    Attributes:
+        uniform: rows of float32 U[0, 1).
+        uniform64: rows of float64 U[0, 1) (probabilities below float32 resolution).
+        normal: rows of float32 N(0, 1).
+    """
+
+    uniform: int = 0
+    uniform64: int = 0
+    normal: int = 0
+
+
+@runtime_checkable
+class InternalModel(Protocol):
+    """The internal layer of one agent type, batched over cells.
+
+    Attributes:
+        input_names: names of the columns of ``x`` (what the body hands in each step).
+        feature_names: names of derived inputs :meth:`features` can compute from ``x`` (e.g. the
+            signal the network's rates actually depend on); may be empty.
+        signal_names: the features through which ``x`` enters the network's rates (a subset of
+            ``input_names + feature_names``): the exact psi, and the default abstraction, are
+            functions of these alone.
+        lump_names: names of phi = 0 and phi = 1, e.g. ``("tumble", "run")``.
+        randoms: what :meth:`fused_advance` needs per window.
+        fusable: whether :meth:`fused_advance` exists (a pure window); an SSA with a
+            data-dependent number of events is not.
+    """
+
+    input_names: tuple[str, ...]
+    feature_names: tuple[str, ...]
+    signal_names: tuple[str, ...]
+    lump_names: tuple[str, str]
+    randoms: Randoms
+    fusable: bool
+
+    def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
+        """Inputs or derived features ``names`` at inputs ``x`` (``n x d``) -> ``n x len(names)``."""
+        ...
+
+    def initial_state(self, x: Tensor) -> InternalState:
+        """A state drawn from the network's stationary law at fixed inputs ``x`` (``n x d``)."""
+        ...
+
+    def advance(self, state: InternalState, x: Tensor, dt: float) -> InternalState:
+        """The exact state after a window ``dt`` with inputs ``x`` held fixed (own RNG)."""
+        ...
+
+    def fused_advance(
+        self, state: InternalState, x: Tensor, dt: float, u: Tensor, u64: Tensor | None
+    ) -> tuple[InternalState, tuple[Tensor, ...]]:
+        """Pure form of :meth:`advance`: ``u`` (``uniform x n``), ``u64`` (``uniform64 x n``).
+
+        Returns the next state and auxiliary tensors (intermediates returned only so that a
+        compiled step materialises them once; the simulator drops them).
+        """
+        ...
+
+    def phi(self, state: InternalState) -> Tensor:
+        """The property of each cell's state as float 0/1 ``(n,)``."""
+        ...
+
+    def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
+        """Exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` at signals ``signal`` (``n x k``, in the
+        order of ``signal_names``); raises ``NotImplementedError`` where no exact psi exists."""
+        ...
+
+
+class Perturbation(Protocol):
+    """How collect moves cells off their steady state (paper: "sporadic perturbation")."""
+
+    def start(self, n_cells: int, device: torch.device) -> Tensor:
+        """Where ``n_cells`` cells start when collecting (e.g. positions ``n x 2``)."""
+        ...
+
+    def apply(self, state: BodyState, mask: Tensor) -> BodyState:
+        """Perturb the cells where ``mask`` (bool ``(n,)``) is true; return the new state."""
+        ...
+
+
+@runtime_checkable
+class AgentBody(Protocol):
+    """The outer layer of one agent type, batched over cells.
+
+    Attributes:
+        observable_names: what evaluation compares between models at record times, e.g.
+            ``("distance",)``.
+        randoms: what :meth:`move` needs per step.
+        adapt_randoms: what :meth:`adapt` needs per step.
+    """
+
+    observable_names: tuple[str, ...]
+    randoms: Randoms
+    adapt_randoms: Randoms
+
+    def initial_state(self, n_cells: int, start: Tensor, field: Field, dt: float) -> BodyState:
+        """``n_cells`` bodies at ``start`` (what :meth:`Perturbation.start` or the user gives),
+        their slow internal processes drawn from their stationary law there (own RNG)."""
+        ...
+
+    def inputs(self, state: BodyState, field: Field, t: float) -> Tensor:
+        """Pure: the inputs ``x`` (``n x d``) handed to the internal model at time ``t``."""
+        ...
+
+    def adapt(self, state: BodyState, x: Tensor, dt: float, u: Tensor, z: Tensor) -> BodyState:
+        """Pure: one step of the body's slow internal processes at inputs ``x`` without moving
+        (the only dynamics while the population equilibrates before cells move)."""
+        ...
+
+    def move(
+        self,
+        state: BodyState,
+        phi_before: Tensor,
+        phi_after: Tensor,
+        x: Tensor,
+        dt: float,
+        u: Tensor,
+        z: Tensor,
+        extra: Tensor | None,
+    ) -> BodyState:
+        """Pure: one step of movement driven by phi (float 0/1 before and after the window) and
+        the slow internal processes; ``u``/``z`` hold :attr:`randoms`' rows, ``extra`` what
+        :meth:`sample_extra` drew (or None)."""
+        ...
+
+    def sample_extra(self, n_cells: int, device: torch.device) -> Tensor | None:
+        """Random numbers :attr:`randoms` cannot express (e.g. non-integer Gamma angles), or None."""
+        ...
+
+    def observables(self, state: BodyState, field: Field) -> dict[str, Tensor]:
+        """The observables ``(n,)`` of each cell, keyed by :attr:`observable_names`."""
+        ...
+
+    def check_inputs(self, x: Tensor) -> str | None:
+        """A description of what is wrong with inputs ``x`` (e.g. negative concentrations), or
+        None. Called at record times only (it synchronises with the host)."""
+        ...
+
+    def perturbation(self, field: Field, options: Mapping[str, Any]) -> Perturbation:
+        """The perturbation collect uses, built from the model's ``perturbation`` options."""
+        ...
+
+
+class Model:
+    """An agent model: an internal model, a body, and the model's checks and report hooks.
+
+    Subclasses set :attr:`name`, :attr:`internal`, :attr:`body` and :attr:`perturbation_options`
+    and may override the hooks. A model is selected by the ``model`` config group's ``_target_``
+    (any callable returning a :class:`Model`), e.g. ``conf/model/ecoli.yaml``.
+    """
+
+    name: str = "model"
+    internal: InternalModel
+    body: AgentBody
+    perturbation_options: Mapping[str, Any] = {}
+
+    #: the abstraction's default inputs (``gp.inputs=signal``): the internal model's signal
+    default_abstraction_inputs: str = "signal"
+
+    def validate(self, dt: float) -> None:
+        """Refuse a time step this model cannot be simulated with (ConfigError naming why)."""
+
+    def abstraction_inputs(self, choice: str | Sequence[str] | None) -> tuple[str, ...]:
+        """The input columns of the abstraction: ``"signal"`` (the internal model's signal),
+        ``"inputs"`` (the raw inputs the body hands in, the paper's choice), or explicit names."""
+        internal = self.internal
+        choice = self.default_abstraction_inputs if choice is None else choice
+        if isinstance(choice, str):
+            if choice == "signal":
+                return tuple(internal.signal_names)
+            if choice == "inputs":
+                return tuple(internal.input_names)
+            choice = [choice]
+        names = tuple(str(c) for c in choice)
+        known = (*internal.input_names, *internal.feature_names)
+        unknown = [n for n in names if n not in known]
+        if unknown or not names:
+            raise ConfigError(
+                f"gp.inputs: {list(names)} - model {self.name!r} provides inputs "
+                f"{list(internal.input_names)} and features {list(internal.feature_names)}; use "
+                f"one or more of those, 'signal' or 'inputs'"
+            )
+        return names
+
+    def featurizer(self, names: Sequence[str]) -> Callable[[Tensor], Tensor]:
+        """``x (n x d) -> z (n x len(names))``: the columns an abstraction over ``names`` needs."""
+        names = self.abstraction_inputs(list(names))
+        internal = self.internal
+        if names == tuple(internal.input_names):
+            return _identity
+        return lambda x: internal.features(x, names)
+
+    # ---- evaluation hooks ------------------------------------------------------------------
+    def observable_label(self, name: str) -> str:
+        """Axis label of an observable in figures."""
+        return name
+
+    def reference_table(self) -> Any:
+        """A published table to print beside ours (e.g. the paper's Table 1), or None."""
+        return None
+
+    def describe(self) -> str:
+        """One line on the model for reports."""
+        return self.name
+
+    def to_config(self) -> dict[str, Any]:
+        """Plain description for manifests (the resolved config is recorded separately)."""
+        return {"name": self.name}
+
+
+def _identity(x: Tensor) -> Tensor:
+    return x
+
+
+def check_options(
+    options: Mapping[str, Any], allowed: Mapping[str, Any], where: str
+) -> dict[str, Any]:
+    """Merge ``options`` over ``allowed`` defaults, refusing unknown keys by name."""
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ConfigError(f"unknown {where} setting(s) {unknown}; allowed: {sorted(allowed)}")
+    return {**allowed, **dict(options)}
+
+
+__all__ = [
+    "AgentBody",
+    "BodyState",
+    "InternalModel",
+    "InternalState",
+    "Model",
+    "Perturbation",
+    "Randoms",
+    "check_options",
+]

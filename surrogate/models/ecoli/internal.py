@@ -1,0 +1,148 @@
+"""The E. coli internal model: the flagella/motor population CTMC driven by (m, L).
+
+Inputs ``x = (m, L)``: the cell's methylation and the ligand at its position. The network's
+rates depend on them only through the receptor free energy F(m, L) (equivalently CheY-P, or the
+motor free-energy difference dG = ln(k+ / omega)), so those are offered as features, and dG is
+the *signal*: the exact lumped psi and the default abstraction are functions of it alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from surrogate.ctmc import gillespie
+from surrogate.models.base import InternalState, Randoms
+from surrogate.models.ecoli.motors import (
+    FLAGELLA_NETWORK,
+    MOTOR_DTYPE,
+    counts_from_states,
+    exact_run_probability,
+    is_run,
+    motor_thresholds,
+    rate_constants,
+    run_flag_from_states,
+    sample_motor_states,
+    sample_stationary_counts,
+    sample_stationary_states,
+)
+from surrogate.models.ecoli.parameters import EcoliParameters
+from surrogate.models.ecoli.signalling import (
+    cheyp_from_free_energy,
+    delta_g,
+    free_energy,
+    rates_from_delta_g,
+)
+
+INPUTS = ("m", "L")
+FEATURES = ("F", "cheyp", "dG")
+
+
+class MotorInternalModel:
+    """Four (``n_motors``) independent flagellar motors per cell, S -> C (mu), C -> N (k+),
+    S -> N (k+), N -> S (k-), with k+- = omega exp(+-dG(m, L)); phi = RUN iff N >= 2 and S == 0.
+
+    With ``motor_sampler=transition_matrix`` (default) every motor keeps its own state (state =
+    ``(motors,)``, ``n_motors x n`` float32: 0 = S, 1 = C, 2 = N) and moves by its closed-form
+    exp(Q dt), one float64 uniform per motor and window: exact, fixed cost, fusable. With ``ssa``
+    the counts (state = ``(counts,)``, ``n x 3``) advance by the general batched Gillespie SSA
+    (exact, event loop with host syncs, not fusable).
+
+    Example:
+        >>> model = MotorInternalModel(EcoliParameters())
+        >>> x = torch.tensor([[2.2, 0.0]])
+        >>> state = model.initial_state(x)
+        >>> model.phi(model.advance(state, x, 0.05)).shape
+        torch.Size([1])
+    """
+
+    input_names = INPUTS
+    feature_names = FEATURES
+    signal_names = ("dG",)
+    lump_names = ("tumble", "run")
+
+    def __init__(self, params: EcoliParameters) -> None:
+        self.params = params
+        self.fusable = params.motor_sampler != "ssa"
+        self.randoms = Randoms(uniform64=int(params.n_motors) if self.fusable else 0)
+        # dG over CheY-P in [0, alpha]: the whole range the signal can take
+        yp_max = params.alpha
+        low = params.g0 / 4.0 - params.g1 / 2.0 * yp_max / (yp_max + params.k_d)
+        self.signal_bounds = {"dG": (low, params.g0 / 4.0)}
+
+    # -- inputs and features -----------------------------------------------------------------
+    def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
+        """Columns ``names`` (any of m, L, F, cheyp, dG) at inputs ``x`` (``n x 2``)."""
+        unknown = [n for n in names if n not in INPUTS + FEATURES]
+        if unknown:
+            raise KeyError(f"unknown feature(s) {unknown}; known: {list(INPUTS + FEATURES)}")
+        p = self.params
+        cols = {"m": x[:, 0], "L": x[:, 1]}
+        if any(n in FEATURES for n in names):  # F -> CheY-P -> dG, each computed once
+            cols["F"] = free_energy(cols["m"], cols["L"], p)
+            cols["cheyp"] = cheyp_from_free_energy(cols["F"], p)
+            cols["dG"] = delta_g(cols["cheyp"], p)
+        return torch.stack([cols[n] for n in names], -1)
+
+    def rates(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """(k+, k-) ``(n,)`` float64 at inputs ``x``."""
+        return rates_from_delta_g(self.features(x, ("dG",))[:, 0], self.params)
+
+    # -- the window ----------------------------------------------------------------------------
+    def initial_state(self, x: Tensor) -> InternalState:
+        """Every motor from its own stationary law at the cell's (m, L)."""
+        k_plus, k_minus = self.rates(x)
+        if self.fusable:
+            return (sample_stationary_states(k_plus, k_minus, self.params),)
+        return (sample_stationary_counts(k_plus, k_minus, self.params),)
+
+    def advance(self, state: InternalState, x: Tensor, dt: float) -> InternalState:
+        """One exact window (per-motor transition matrices, or the SSA on the counts)."""
+        if self.fusable:
+            u64 = torch.rand(state[0].shape, dtype=torch.float64, device=state[0].device)
+            return self.fused_advance(state, x, dt, state[0].new_empty(0), u64)[0]
+        k_plus, k_minus = self.rates(x)
+        rates = rate_constants(k_plus, k_minus, self.params)
+        return (gillespie(FLAGELLA_NETWORK, state[0], rates, dt),)
+
+    def fused_advance(
+        self, state: InternalState, x: Tensor, dt: float, u: Tensor, u64: Tensor | None
+    ) -> tuple[InternalState, tuple[Tensor, ...]]:
+        """Pure: rates from (m, L), one exact window of every motor (``u64``: one uniform per
+        motor). The per-cell thresholds are returned as one ``5 x n`` aux tensor, so a compiled
+        step materialises them once instead of recomputing them for every motor."""
+        if not self.fusable:
+            raise RuntimeError("motor_sampler=ssa has no fused window")
+        k_plus, k_minus = self.rates(x)
+        thresholds = torch.stack(motor_thresholds(k_plus, k_minus, dt, self.params.mu))
+        return (sample_motor_states(state[0], thresholds, u64),), (thresholds,)
+
+    def phi(self, state: InternalState) -> Tensor:
+        """RUN (N >= 2 and S == 0) as float 0/1 ``(n,)``."""
+        if self.fusable:
+            return run_flag_from_states(state[0])
+        return is_run(state[0]).to(torch.float32)
+
+    def counts(self, state: InternalState) -> Tensor:
+        """Motor counts ``n x 3`` (S, C, N) of a state."""
+        return counts_from_states(state[0]) if self.fusable else state[0]
+
+    def state_from_counts(self, counts: Tensor) -> InternalState:
+        """A state with the given motor counts (``n x 3``; motors are exchangeable)."""
+        m = int(self.params.n_motors)
+        if counts.dim() != 2 or counts.shape[1] != 3 or bool((counts.sum(1) != m).any()):
+            raise ValueError(f"motor counts must be (n, 3) with rows summing to n_motors={m}")
+        if not self.fusable:
+            return (counts.to(torch.int64),)
+        cum = counts.to(torch.int64).cumsum(-1)  # (n, 3)
+        slots = torch.arange(m, device=counts.device)
+        states = (slots[:, None, None] >= cum[None, :, :]).sum(-1)  # (M, n)
+        return (states.clamp_max(2).to(MOTOR_DTYPE).contiguous(),)
+
+    # -- exact lumped psi ------------------------------------------------------------------------
+    def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
+        """Exact P(RUN after dt | TUMBLE / RUN now) ``n x 2`` at signals dG (``n x 1``)."""
+        k_plus, k_minus = rates_from_delta_g(signal[:, 0], self.params)
+        return exact_run_probability(k_plus, k_minus, dt, self.params)

@@ -1,0 +1,165 @@
+"""Transitions (x, phi, phi') recorded from full-model runs: training data and occupancy.
+
+:func:`collect_transitions` runs the full model with sporadic perturbations (the body's: e.g.
+jumps to random points of a disc around the field's peak) until enough transitions from each
+origin state are recorded, the paper's micro-trajectory data. :func:`record_occupancy` runs it
+unperturbed from a start and records where the population actually lives, the weights of the
+abstraction's diagnostic.
+
+Each row: the model's inputs (``x`` columns), its declared features, ``phi`` and ``phi_next``
+(the property before and after the window), ``cell``, ``t`` (start of the window) and
+``perturbed`` (the cell was moved just before this window).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm.auto import tqdm
+
+from surrogate.errors import ConfigError, NumericalError
+from surrogate.models.base import Perturbation
+from surrogate.simulate.loop import Simulator
+
+
+def _rows(
+    simulator: Simulator,
+    n_cells: int,
+    start: Sequence[float] | torch.Tensor,
+    equilibration_time: float,
+    record_every: int,
+    max_steps: int,
+    perturbation: Perturbation | None = None,
+    perturb_rate: float = 0.0,
+) -> Iterator[dict[str, np.ndarray]]:
+    """Yield recorded rows step by step (see the module docstring)."""
+    internal = simulator.decision.internal  # type: ignore[attr-defined]
+    names = (*internal.input_names, *internal.feature_names)
+    device, dt = simulator.device, simulator.dt
+    state = simulator.initial_state(n_cells, start, equilibration_time)
+    jump_probability = perturb_rate * dt
+    cells = torch.arange(n_cells, device=device)
+    with torch.no_grad():
+        for k in range(max_steps):
+            jump = None
+            if perturbation is not None:
+                jump = torch.rand(n_cells, device=device) < jump_probability
+                state.body = perturbation.apply(state.body, jump)
+            rec = simulator.step(state)
+            # every cell on thinned steps, plus every cell just perturbed: the step after a jump
+            # is where off-boundary inputs meet the "wrong" origin state (e.g. RUN far above
+            # m0(L), TUMBLE far below), which steady-state sampling almost never sees
+            if (k + 1) % record_every == 0:
+                rows = cells
+            elif jump is not None:
+                rows = jump.nonzero().squeeze(1)
+            else:
+                continue
+            if rows.numel() == 0:
+                continue
+            x = rec.inputs[rows]
+            values = internal.features(x, names).float().cpu().numpy()
+            # the rows are on the host already, so the check is free; NaN/inf must not reach
+            # the table
+            if not np.isfinite(values).all():
+                raise NumericalError(
+                    f"NaN/inf in the recorded inputs at t={k * dt:g} s; the field returned "
+                    f"NaN/inf values or the dynamics diverged"
+                )
+            chunk = {n: values[:, i] for i, n in enumerate(names)}
+            chunk.update(
+                phi=rec.phi_before[rows].to(torch.int8).cpu().numpy(),
+                phi_next=rec.phi_after[rows].to(torch.int8).cpu().numpy(),
+                cell=rows.cpu().numpy(),
+                t=np.full(rows.numel(), k * dt),
+                perturbed=(jump[rows] if jump is not None else torch.zeros_like(rows, dtype=torch.bool)).cpu().numpy(),
+            )
+            yield chunk
+
+
+def _table(chunks: list[dict[str, np.ndarray]]) -> pd.DataFrame:
+    table = pd.DataFrame({k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]})
+    table["phi"] = table["phi"].astype(np.int8)
+    table["phi_next"] = table["phi_next"].astype(np.int8)
+    return table
+
+
+def collect_transitions(
+    simulator: Simulator,
+    perturbation: Perturbation,
+    n_cells: int,
+    n_per_state: int,
+    perturb_rate: float,
+    record_every: int = 1,
+    equilibration_time: float = 10.0,
+    max_time: float = 2000.0,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Simulate the full model with perturbations until ``n_per_state`` transitions from each
+    origin state are recorded; return a random (seeded) subsample of exactly ``n_per_state``
+    per origin state.
+
+    Args:
+        simulator: a simulator whose decision layer is the full internal model.
+        perturbation: the body's perturbation (where cells start, how they jump).
+        n_cells: cells simulated in parallel.
+        n_per_state: transitions kept per origin state.
+        perturb_rate: jumps per cell and second.
+        record_every: steps between recorded transitions per cell (thins autocorrelated rows);
+            the window right after each jump is always recorded.
+        max_time: simulated seconds before giving up (ConfigError).
+    """
+    start = perturbation.start(n_cells, simulator.device)
+    max_steps = math.ceil(max_time / simulator.dt)
+    chunks: list[dict[str, np.ndarray]] = []
+    counts = np.zeros(2, dtype=np.int64)
+    bar = tqdm(total=2 * n_per_state, desc="collect transitions", disable=not progress,
+               mininterval=1.0)  # fmt: skip
+    rows = _rows(simulator, n_cells, start, equilibration_time, record_every, max_steps,
+                 perturbation, perturb_rate)  # fmt: skip
+    for chunk in rows:
+        chunks.append(chunk)
+        new = np.bincount(chunk["phi"], minlength=2)
+        bar.update(int(np.minimum(counts + new, n_per_state).sum()
+                       - np.minimum(counts, n_per_state).sum()))  # fmt: skip
+        counts += new
+        if (counts >= n_per_state).all():
+            break
+    bar.close()
+    if not (counts >= n_per_state).all():
+        raise ConfigError(
+            f"collect reached collect.max_time={max_time:g} s with only {counts.tolist()} "
+            f"transitions (phi = 0, 1) of the {n_per_state} wanted per origin state; raise "
+            f"collect.max_time or collect.n_cells, or lower collect.n_per_state"
+        )
+    table = _table(chunks)
+    # a random (seeded) subsample per origin spreads the kept rows over the whole collection
+    gen = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
+    phi = table["phi"].to_numpy()
+    keep = np.concatenate(
+        [np.sort(gen.choice(np.flatnonzero(phi == p), n_per_state, replace=False)) for p in (0, 1)]
+    )
+    return table.iloc[np.sort(keep)].reset_index(drop=True)
+
+
+def record_occupancy(
+    simulator: Simulator,
+    n_cells: int,
+    t_end: float,
+    start: Sequence[float] | torch.Tensor,
+    record_every: int = 5,
+    equilibration_time: float = 10.0,
+) -> pd.DataFrame:
+    """Where an unperturbed population lives: every ``record_every``-th step of every cell
+    from ``start`` for ``t_end`` seconds (the weights of the abstraction's diagnostic)."""
+    steps = max(1, round(t_end / simulator.dt))
+    chunks = list(_rows(simulator, n_cells, start, equilibration_time, record_every, steps))
+    if not chunks:
+        raise ConfigError(
+            f"gp.diagnostic: t_end={t_end:g} s records no step (record_every={record_every})"
+        )
+    return _table(chunks)

@@ -1,0 +1,131 @@
+"""The collect stage: perturbed micro-trajectories of the full model -> transitions table.
+
+``python scripts/collect.py [model=...] [field=...] [collect.n_per_state=...]`` writes
+``transitions.parquet`` (the model's inputs and features, ``phi``, ``phi_next``, ``cell``, ``t``,
+``perturbed``), ``coverage.png`` and ``manifest.json`` into the settings' directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from surrogate.config import seed_everything, to_dict
+from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
+from surrogate.simulate.decision import FullDecision
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.transitions import collect_transitions
+from surrogate.stages.settings import CollectSettings
+
+log = logging.getLogger(__name__)
+
+TRANSITIONS = "transitions.parquet"
+COVERAGE_FIGURE = "coverage.png"
+
+
+def validate(cfg: Mapping[str, Any]) -> CollectSettings:
+    """All checks of a collect config, before any work starts; the typed settings."""
+    return CollectSettings.from_config(cfg)
+
+
+def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
+    """Run (or reuse) the collect stage of ``cfg``; return its artefact directory."""
+    return collect(validate(cfg), config=to_dict(cfg), force=force)
+
+
+def collect(
+    settings: CollectSettings, config: Mapping[str, Any] | None = None, force: bool = False
+) -> Path:
+    """Run (or reuse) the collect stage described by ``settings``."""
+    out = settings.directory
+    return make_once(out, settings.identity(), settings.command(),
+                     lambda _: _collect(settings, out, config), what="transitions", force=force)  # fmt: skip
+
+
+def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | None) -> None:
+    """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
+    setup, c, job = settings.setup, settings.options, settings.job
+    seed_everything(setup.seed)
+    model = setup.model
+    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
+    perturbation = model.body.perturbation(setup.field, model.perturbation_options)
+    t0 = time.perf_counter()
+    table = collect_transitions(
+        simulator,
+        perturbation,
+        n_cells=int(c["n_cells"]),
+        n_per_state=int(c["n_per_state"]),
+        perturb_rate=float(c["perturb_rate"]),
+        record_every=int(c["record_every"]),
+        equilibration_time=float(c["equilibration_time"]),
+        max_time=float(c["max_time"]),
+        progress=job.progress,
+    )
+    wall = time.perf_counter() - t0
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
+    write_parquet(out / TRANSITIONS, table)
+    save_figure(out / COVERAGE_FIGURE, plot_coverage(table, model))
+    lumps = model.internal.lump_names
+    counts = {
+        f"{lumps[phi]}_to_{lumps[nxt]}": int(((table["phi"] == phi) & (table["phi_next"] == nxt)).sum())
+        for phi in (0, 1)
+        for nxt in (0, 1)
+    }
+    columns = [*model.internal.input_names, *model.internal.feature_names]
+    write_manifest(
+        out,
+        stage="collect",
+        config=dict(config) if config is not None else settings.identity(),
+        seed=setup.seed,
+        settings=settings.identity(),
+        device=str(job.device),
+        wall_time_s=wall,
+        n_rows=len(table),
+        counts_per_origin={lumps[p]: int((table["phi"] == p).sum()) for p in (0, 1)},
+        counts=counts,
+        lump_names=list(lumps),
+        domain={n: [float(table[n].min()), float(table[n].max())] for n in columns},
+    )
+    log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
+
+
+def plot_coverage(table: pd.DataFrame, model: Any) -> Any:
+    """Where the collected transitions lie: the raw inputs (first two, coloured by the next
+    phi) and the histogram of the signal by origin state."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    internal = model.internal
+    lumps = internal.lump_names
+    inputs = list(internal.input_names)
+    signal = list(internal.signal_names)[0]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    for ax, phi in zip(axes[:2], (1, 0), strict=True):
+        rows = table[table["phi"] == phi]
+        rows = rows.sample(min(len(rows), 4000), random_state=0)
+        x, y = (inputs[1], inputs[0]) if len(inputs) > 1 else (inputs[0], "t")
+        for nxt, colour in ((1, "tab:blue"), (0, "tab:red")):
+            pts = rows[rows["phi_next"] == nxt]
+            ax.scatter(pts[x], pts[y], s=3, alpha=0.5, c=colour, label=f"next {lumps[nxt]}")
+        ax.set_title(f"from {lumps[phi]} (n={int((table['phi'] == phi).sum())})")
+        ax.set_xlabel(x)
+        ax.set_ylabel(y)
+        ax.legend(markerscale=3, fontsize=8)
+    for phi in (0, 1):
+        values = table.loc[table["phi"] == phi, signal].to_numpy(float)
+        axes[2].hist(values, bins=np.linspace(*np.quantile(table[signal], [0.001, 0.999]), 80),
+                     alpha=0.6, label=f"from {lumps[phi]}")  # fmt: skip
+    axes[2].set_xlabel(f"signal {signal}")
+    axes[2].set_ylabel("transitions")
+    axes[2].legend(fontsize=8)
+    fig.suptitle("Collected transitions")
+    return fig

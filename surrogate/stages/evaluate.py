@@ -1,0 +1,199 @@
+"""The evaluate stage: a candidate run (the learned abstraction, or the exact lumped psi) vs a
+full run in the same field, beside the noise floor.
+
+The noise floor is the same statistics between two full runs with different seeds: a reader sees
+whether the candidate's distance from the full model is larger than sampling noise.
+``python scripts/evaluate.py [field=...] [decision=abstract|exact] [evaluate.run_missing=true]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from surrogate.config import to_dict
+from surrogate.errors import MissingArtefactError
+from surrogate.evaluate.statistics import (
+    SimulationRun,
+    combine_with_noise_floor,
+    comparison_table,
+    load_run,
+    mean_std_over_time,
+    noise_floor_table,
+)
+from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
+from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
+from surrogate.stages.simulate import simulate
+
+log = logging.getLogger(__name__)
+
+SUMMARY = "summary.json"
+COMPARISON = "comparison"
+NOISE_FLOOR = "noise_floor"
+
+
+@dataclass
+class RunSet:
+    """The three simulation runs an evaluation compares."""
+
+    full: SimulationRun
+    candidate: SimulationRun
+    full_repeat: SimulationRun | None
+
+
+def validate(cfg: Mapping[str, Any]) -> EvaluateSettings:
+    """Checks of an evaluate config (and of the runs it compares); the typed settings."""
+    return EvaluateSettings.from_config(cfg)
+
+
+def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
+    """Compare the candidate with the full model (and full vs full for the noise floor)."""
+    return evaluate(validate(cfg), config=to_dict(cfg), force=force)
+
+
+def evaluate(
+    settings: EvaluateSettings, config: Mapping[str, Any] | None = None, force: bool = False
+) -> Path:
+    """Run (or reuse) the evaluation described by ``settings``; return its directory."""
+    out = settings.directory
+    return make_once(out, settings.identity(), settings.command(),
+                     lambda _: _evaluate(settings, out, config), what="evaluation", force=force)  # fmt: skip
+
+
+def ensure_run(settings: SimulateSettings, run_missing: bool) -> Path:
+    """The directory of a simulation run; simulate it if allowed, else name the command."""
+    directory = settings.directory
+    if not (directory / MANIFEST).exists():
+        if not run_missing:
+            raise MissingArtefactError(
+                f"missing simulation {directory}. Run `{settings.command()}` first "
+                f"(or evaluate with evaluate.run_missing=true)."
+            )
+        simulate(settings)
+    return directory
+
+
+def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] | None) -> None:
+    """Make sure the runs exist, compare them, then write tables, figures and (last) the
+    manifest."""
+    runs_missing = settings.run_missing
+    dirs = {"full": ensure_run(settings.full, runs_missing),
+            "candidate": ensure_run(settings.candidate, runs_missing)}  # fmt: skip
+    if settings.full_repeat is not None:
+        dirs["full_repeat"] = ensure_run(settings.full_repeat, runs_missing)
+    t0 = time.perf_counter()
+    runs = RunSet(load_run(dirs["full"]), load_run(dirs["candidate"]),
+                  load_run(dirs["full_repeat"]) if "full_repeat" in dirs else None)  # fmt: skip
+    seed = settings.candidate.setup.seed
+    table = comparison_table(runs.full, runs.candidate, times=settings.times,
+                             subsample=settings.subsample, seed=seed)  # fmt: skip
+    floor = None
+    if runs.full_repeat is not None:
+        floor = noise_floor_table(runs.full, runs.full_repeat, times=settings.times,
+                                  subsample=settings.subsample, seed=seed)  # fmt: skip
+        table = combine_with_noise_floor(table, floor)
+    summary = summarise(runs, table)
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
+    write_outputs(out, table, floor, runs, settings)
+    write_json(out / SUMMARY, summary)
+    write_manifest(out, stage="evaluate",
+                   config=dict(config) if config is not None else settings.identity(), seed=seed,
+                   runs={k: str(v) for k, v in dirs.items()}, settings=settings.identity(),
+                   wall_time_s=time.perf_counter() - t0, times=list(settings.times),
+                   **summary)  # fmt: skip
+    floor_text = (
+        f"{summary['max_ks_noise_floor']:.3f}" if summary["max_ks_noise_floor"] is not None else "n/a"
+    )
+    log.info(
+        "evaluate %s (%s): max KS vs full %.3f, noise floor %s; loop speed-up %.1fx; artefacts "
+        "in %s", settings.candidate.setup.field_name, settings.candidate.decision.name,
+        summary["max_ks"], floor_text, summary["speedup_loop"], out,
+    )  # fmt: skip
+
+
+def mean_durations(run: SimulationRun) -> dict[str, float | None]:
+    """Mean segment duration (s) per lump name."""
+    return {
+        kind: (float(v.mean()) if (v := run.durations_of(kind)).size else None)
+        for kind in run.lump_names
+    }
+
+
+def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
+    """Headline figures: speed-ups (loop and wall time, only from runs measured comparably:
+    same compile setting and thread count), the largest KS distances, mean durations."""
+    full, cand = runs.full.manifest, runs.candidate.manifest
+    comparable = all(full.get(k) == cand.get(k) for k in ("compile", "torch_threads", "device"))
+    speedup_loop = float(full["loop_time_s"]) / float(cand["loop_time_s"]) if comparable else None
+    speedup_wall = float(full["wall_time_s"]) / float(cand["wall_time_s"]) if comparable else None
+    durations = {"full": mean_durations(runs.full), "candidate": mean_durations(runs.candidate)}
+    if runs.full_repeat is not None:
+        durations["full_repeat"] = mean_durations(runs.full_repeat)
+    return {
+        "candidate": cand.get("decision"),
+        "speedup_loop": speedup_loop,
+        "speedup_wall": speedup_wall,
+        "speed_comparable": comparable,
+        "loop_time_s": {"full": float(full["loop_time_s"]), "candidate": float(cand["loop_time_s"])},
+        "cell_steps_per_s": {
+            "full": float(full["cell_steps_per_s"]),
+            "candidate": float(cand["cell_steps_per_s"]),
+        },
+        "max_ks": float(table["ks"].max()),
+        "max_ks_noise_floor": float(table["ks_noise_floor"].max())
+        if "ks_noise_floor" in table
+        else None,
+        "all_within_noise": bool(table["within_noise"].all()) if "within_noise" in table else None,
+        "mean_durations": durations,
+        "lookup_max_deviation": cand.get("lookup_max_deviation"),
+    }
+
+
+def write_outputs(
+    out: Path,
+    table: pd.DataFrame,
+    floor: pd.DataFrame | None,
+    runs: RunSet,
+    settings: EvaluateSettings,
+) -> None:
+    """Tables (CSV + Markdown) and figures (Figures 4 and 5 of the paper, durations)."""
+    from surrogate.evaluate.figures import (
+        plot_duration_histograms,
+        plot_observable_histograms,
+        plot_observable_over_time,
+    )
+    from surrogate.evaluate.report import write_comparison
+    from surrogate.io import write_csv
+
+    model = settings.candidate.setup.model
+    labels = ("full", settings.candidate.decision.name)
+    write_comparison(out, table, prefix=COMPARISON)
+    if floor is not None:
+        write_comparison(out, floor, prefix=NOISE_FLOOR)
+    frames = []
+    for name in runs.full.observable_names:
+        for label, r in zip(labels, (runs.full, runs.candidate), strict=True):
+            frames.append(mean_std_over_time(r, name).assign(observable=name, model=label))
+        axis = model.observable_label(name)
+        save_figure(out / f"{name}_histograms.png", plot_observable_histograms(
+            runs.full, runs.candidate, settings.times, labels, name=name, axis_label=axis))  # fmt: skip
+        save_figure(out / f"{name}_over_time.png", plot_observable_over_time(
+            runs.full, runs.candidate, labels, separate=True, name=name, axis_label=axis))  # fmt: skip
+    write_csv(out / "observables_over_time.csv", pd.concat(frames, ignore_index=True))
+    save_figure(out / "durations.png", plot_duration_histograms(runs.full, runs.candidate, labels))
+
+
+def read_summary(directory: str | Path) -> dict[str, Any]:
+    """The summary.json of an evaluation directory."""
+    return read_json(Path(directory) / SUMMARY, made_by=EVALUATE_CMD)
+
+
+__all__ = ["ensure_run", "evaluate", "mean_durations", "read_summary", "run", "summarise", "validate"]
+

@@ -1,0 +1,249 @@
+"""The whole paper from one command: collect -> train -> full and abstracted simulations on
+several fields -> evaluate -> ``report.md`` with Table 1 beside the published one, the noise
+floor, the abstraction's error where the population lives, speed-ups and figures.
+
+``python scripts/reproduce.py [experiment=paper|scale] [model=...]``. Every stage reuses
+artefacts that already exist for the same settings. With ``exact_psi=true`` (where the model has
+an exact lumped psi) the chain driven by it is evaluated too: the best any two-state
+abstraction can do, beside the learned one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from surrogate.config import to_dict
+from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
+from surrogate.io import MANIFEST, artefact_lock, read_csv, read_manifest, write_manifest
+from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages.collect import collect
+from surrogate.stages.settings import CollectSettings, ReproduceSettings
+from surrogate.stages.train import read_metrics, train
+
+log = logging.getLogger(__name__)
+
+REPORT = "report.md"
+
+
+def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
+    """Checks before any work: every field exists, every stage's settings are valid."""
+    return ReproduceSettings.from_config(cfg)
+
+
+def run(cfg: Mapping[str, Any]) -> Path:
+    """Run every stage (reusing what exists) and write the report; return its directory."""
+    return reproduce(validate(cfg), config=to_dict(cfg))
+
+
+def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = None) -> Path:
+    """Run the pipeline of ``settings`` and write ``report.md``."""
+    t0 = time.perf_counter()
+    tr = settings.train
+    collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
+    train_dir = train(tr)
+    evaluations: dict[str, Path] = {}
+    for name, e in settings.evaluations.items():
+        log.info("field %s: full and abstracted simulations, evaluation", name)
+        evaluations[name] = evaluate_stage.evaluate(e)
+    exact: dict[str, Path] = {}
+    for name, e in settings.exact.items():
+        log.info("field %s: the chain driven by the exact lumped psi", name)
+        exact[name] = evaluate_stage.evaluate(e)
+    out = settings.directory
+    with artefact_lock(out):  # also removes the temporaries of killed runs
+        sections, figures = report_sections(settings, collect_dir, train_dir, evaluations, exact, out)
+        (out / MANIFEST).unlink(missing_ok=True)  # incomplete until the manifest is rewritten
+        model = tr.setup.model
+        write_report(out / REPORT, sections, figures,
+                     title=f"Statistical abstraction of {model.describe().split(':')[0]}: report")  # fmt: skip
+        write_manifest(out, stage="reproduce",
+                       config=dict(config) if config is not None else settings.identity(),
+                       seed=tr.seed, settings=settings.identity(),
+                       collect=str(collect_dir) if collect_dir else None, train=str(train_dir),
+                       evaluations={k: str(v) for k, v in evaluations.items()},
+                       exact={k: str(v) for k, v in exact.items()},
+                       wall_time_s=time.perf_counter() - t0)  # fmt: skip
+    log.info("report written to %s", out / REPORT)
+    return out
+
+
+def _tables(evaluations: Mapping[str, Path]) -> dict[str, pd.DataFrame]:
+    return {
+        name: read_csv(d / f"{evaluate_stage.COMPARISON}.csv", made_by=evaluate_stage.EVALUATE_CMD)
+        for name, d in evaluations.items()
+    }
+
+
+def report_sections(
+    settings: ReproduceSettings,
+    collect_dir: Path | None,
+    train_dir: Path,
+    evaluations: Mapping[str, Path],
+    exact: Mapping[str, Path],
+    out: Path,
+) -> tuple[list[tuple[str, str]], list[tuple[str, Path]]]:
+    """Markdown sections and figures of the report."""
+    tr = settings.train
+    model = tr.setup.model
+    lumps = model.internal.lump_names
+    first = next(iter(settings.evaluations.values())).candidate
+    tables = _tables(evaluations)
+    summaries = {name: evaluate_stage.read_summary(d) for name, d in evaluations.items()}
+    speedups = {name: s["speedup_loop"] for name, s in summaries.items() if s["speedup_loop"]}
+    metrics = read_metrics(train_dir)
+    data = "an external table"
+    if collect_dir is not None:
+        cm = read_manifest(collect_dir)
+        counts = ", ".join(f"{v} from {k}" for k, v in cm["counts_per_origin"].items())
+        data = f"{counts} collected in {cm['wall_time_s']:.1f} s"
+    setting = (
+        f"{model.describe()}. {first.n_cells} cells per run, t_end = {first.t_end:g} s, "
+        f"dt = {first.setup.dt:g} s, seed {first.setup.seed}; abstraction over "
+        f"`{', '.join(tr.inputs)}` trained on `{tr.setup.field_name}` transitions ({data}), GP "
+        f"kernel `{tr.gp.kernel}` with {tr.gp.n_inducing} inducing points (trained in "
+        f"{metrics['train_seconds_total']:.1f} s), decision mode `{first.decision.mode}`."
+    )
+    table1 = (
+        "KS distance (p-value) between the full and the abstracted model: the observables at "
+        "four times, and the segment durations (1,000 sampled each, as in the paper). The *noise "
+        "floor* row is the same statistic between two full runs with different seeds; † marks a "
+        "value above both the noise floor and the KS 5 % critical value.\n\n"
+        + table1_markdown(tables, speedups, model.reference_table())
+    )
+    sections = [("Setting", setting), ("Table 1: abstracted vs full model", table1)]
+    noise_lines = []
+    for name, table in tables.items():
+        if "ks_noise_floor" not in table:
+            continue
+        above = table[~table["within_noise"].astype(bool)]["quantity"].tolist()
+        noise_lines.append(
+            f"- **{name}**: largest KS {table['ks'].max():.3f} vs noise floor "
+            f"{table['ks_noise_floor'].max():.3f}; "
+            + ("every quantity within the noise floor or the KS critical value." if not above
+               else f"above noise: {', '.join(above)}.")
+        )  # fmt: skip
+    sections.append(("Against sampling noise", "\n".join(noise_lines) or "No noise floor."))
+    sections.append(("Segment durations", _durations_table(summaries, exact, lumps)))
+    if exact:
+        sections.append((
+            "The exact lumped psi (the best two-state abstraction)",
+            "The same comparison for the two-state chain driven by the internal model's exact "
+            "lumped psi instead of the learned one.\n\n"
+            + table1_markdown(_tables(exact), {}),
+        ))  # fmt: skip
+    sections.append(("The abstraction where the population lives", _diagnostic_text(metrics, lumps)))
+    sections.append(("Speed", _speed_text(summaries)))
+    gp_rows = pd.DataFrame([
+        {"classifier": f"{name} (from {metrics[name]['origin']})",
+         **{k: metrics[name]["validation"][k]
+            for k in ("brier", "brier_baseline", "mean_log_predictive", "accuracy", "n")}}
+        for name in ("psi_0", "psi_1")
+    ])  # fmt: skip
+    sections.append(("Classifiers (held-out validation)", format_markdown_table(gp_rows, ".4f")))
+    artefacts = {"train": train_dir, **evaluations, **{f"exact {k}": v for k, v in exact.items()}}
+    if collect_dir is not None:
+        artefacts = {"collect": collect_dir, **artefacts}
+    sections.append(("Artefacts", "\n".join(
+        f"- {k}: `{os.path.relpath(v, out)}`" for k, v in artefacts.items())))  # fmt: skip
+    from surrogate.stages.train import DIAGNOSTIC_FIGURE, SURFACES_FIGURE
+
+    figures = [("The learned psi (paper Figure 3)", train_dir / SURFACES_FIGURE)]
+    if (train_dir / DIAGNOSTIC_FIGURE).exists():
+        figures.append(("The learned psi against the reference where the population lives",
+                        train_dir / DIAGNOSTIC_FIGURE))  # fmt: skip
+    for name, d in evaluations.items():
+        for obs in first.setup.model.body.observable_names:
+            label = model.observable_label(obs)
+            figures.append((f"{name}: {label}, full vs abstract (paper Figure 4)",
+                            d / f"{obs}_histograms.png"))  # fmt: skip
+            figures.append((f"{name}: mean and s.d. of {label} over time (paper Figure 5)",
+                            d / f"{obs}_over_time.png"))  # fmt: skip
+    return sections, figures
+
+
+def _durations_table(
+    summaries: Mapping[str, Mapping[str, Any]], exact: Mapping[str, Path], lumps: tuple[str, str]
+) -> str:
+    exact_summaries = {n: evaluate_stage.read_summary(d) for n, d in exact.items()}
+    rows = []
+    for name, s in summaries.items():
+        md = s["mean_durations"]
+        row: dict[str, Any] = {"field": name}
+        for kind in reversed(lumps):
+            full = md["full"][kind]
+            row[f"{kind} full (s)"] = full
+            row[f"{kind} abstract (s)"] = md["candidate"][kind]
+            row[f"{kind} abstract vs full"] = _rel(md["candidate"][kind], full)
+            if name in exact_summaries:
+                ex = exact_summaries[name]["mean_durations"]["candidate"][kind]
+                row[f"{kind} exact psi vs full"] = _rel(ex, full)
+        rows.append(row)
+    return (
+        "Mean segment duration of each model (all completed segments).\n\n"
+        + format_markdown_table(pd.DataFrame(rows), ".4f")
+    )
+
+
+def _rel(value: float | None, reference: float | None) -> str:
+    if value is None or not reference:
+        return ""
+    return f"{100 * (value / reference - 1):+.1f} %"
+
+
+def _diagnostic_text(metrics: Mapping[str, Any], lumps: tuple[str, str]) -> str:
+    d = metrics.get("diagnostic") or {}
+    rows = []
+    for p in (0, 1):
+        s = d.get(f"phi{p}")
+        if s:
+            rows.append({
+                "leaving": lumps[p],
+                "switching prob., learned": s["mean_switching_learned"],
+                f"{d['reference']} reference": s["mean_switching_reference"],
+                "bias": f"{100 * s['rel_bias']:+.1f} %",
+                "mean abs. rel. error": f"{100 * s['mean_abs_rel_error']:.1f} %",
+                "90th pct.": f"{100 * s['p90_abs_rel_error']:.1f} %",
+            })  # fmt: skip
+    if not rows:
+        return "No diagnostic was computed."
+    o = d.get("settings", {})
+    return (
+        f"The learned switching probabilities against the {d['reference']} psi, weighted by "
+        f"where an unperturbed full-model population lives ({o.get('n_cells')} cells from "
+        f"{o.get('start')} for {o.get('t_end')} s in the training field; {d['n_occupancy']} "
+        "occupied points). The bias predicts the relative error of the mean segment duration "
+        "(with the opposite sign).\n\n" + format_markdown_table(pd.DataFrame(rows), ".4f")
+    )
+
+
+def _speed_text(summaries: Mapping[str, Mapping[str, Any]]) -> str:
+    rows = []
+    for name, s in summaries.items():
+        rows.append({
+            "field": name,
+            "full loop (s)": s["loop_time_s"]["full"],
+            "abstract loop (s)": s["loop_time_s"]["candidate"],
+            "full cell-steps/s": s["cell_steps_per_s"]["full"],
+            "abstract cell-steps/s": s["cell_steps_per_s"]["candidate"],
+            "speed-up": s["speedup_loop"] if s["speedup_loop"] else float("nan"),
+        })  # fmt: skip
+    note = "" if all(s["speed_comparable"] for s in summaries.values()) else (
+        "\n\nA speed-up is shown only for runs measured comparably (same compile setting, "
+        "thread count and device); '–'/nan marks the others.")  # fmt: skip
+    return (
+        "Wall-clock time of the simulation loops, measured on this machine (excluding "
+        "collection and training, as in the paper). Both models are batched over cells, so the "
+        "ratio is far smaller than against a per-cell implementation; see the README's "
+        "benchmark for throughput at larger populations.\n\n"
+        + format_markdown_table(pd.DataFrame(rows), {"full cell-steps/s": ".3g",
+                                                     "abstract cell-steps/s": ".3g",
+                                                     "speed-up": ".1f"})  # fmt: skip
+        + note
+    )

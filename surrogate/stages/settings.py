@@ -1,0 +1,693 @@
+"""Typed settings of every stage, built once from a Hydra config at the stage's edge.
+
+Each settings object validates its part of the config on construction (so a bad setting is
+refused by name before any work starts), builds the objects the stage needs (model, field, GP
+settings) and knows, in one place, its artefact directory (a function of its ``identity``:
+exactly the settings that change the output, including ones that change the random stream such
+as ``compile``) and the command that makes it. Stages receive these objects, never raw configs.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from surrogate.config import (
+    build_field,
+    build_model,
+    field_config,
+    field_name,
+    grid_size,
+    group_config,
+    group_options,
+    non_negative,
+    positive,
+    resolve_device,
+    seed_setting,
+    to_dict,
+    validate_start,
+)
+from surrogate.errors import ConfigError
+from surrogate.fields import Field
+from surrogate.gp.training import GPSettings
+from surrogate.io import artefact_dir
+from surrogate.models.base import Model
+
+COLLECT_CMD = "python scripts/collect.py"
+TRAIN_CMD = "python scripts/train.py"
+SIMULATE_CMD = "python scripts/simulate.py"
+EVALUATE_CMD = "python scripts/evaluate.py"
+REPRODUCE_CMD = "python scripts/reproduce.py"
+
+DECISIONS = ("full", "abstract", "exact")
+DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
+#: keys of the gp group that are not GP hyperparameters
+GP_EXTRA = ("inputs", "grid_size", "diagnostic")
+DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
+    "n_cells": 1000,
+    "t_end": 100.0,
+    "record_every": 5,
+    "start": [2.0, 0.0],
+    "equilibration_time": 10.0,
+}
+#: bytes of device memory per simulated cell, measured at ~690 B for the E. coli abstraction
+#: (1e6 cells in 689 MiB); the estimate is generous (recorders, the full model's motors)
+BYTES_PER_CELL = 4096
+
+
+# ----------------------------------------------------------------------------------------------
+# commands: the overrides that reproduce a setting, relative to the shipped defaults
+
+
+def _flatten(prefix: str, value: Any) -> dict[str, Any]:
+    if isinstance(value, Mapping):
+        out: dict[str, Any] = {}
+        for k, v in value.items():
+            out.update(_flatten(f"{prefix}.{k}", v))
+        return out
+    return {prefix: value}
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, list | tuple):
+        return "[" + ",".join(_fmt(v) for v in value) + "]"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if value is None:
+        return "null"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def group_overrides(group: str, value: Mapping[str, Any], choice: str | None = None) -> list[str]:
+    """Command-line overrides that select ``value`` for config ``group``: the shipped option it
+    is based on (``choice``, or the one with the same ``_target_``) plus every key that differs."""
+    value = to_dict(value)
+    if choice is None:
+        for name in group_options(group):
+            if group_config(group, name).get("_target_") == value.get("_target_"):
+                choice = name
+                break
+    base = group_config(group, choice) if choice else {}
+    want, have = _flatten(group, value), _flatten(group, base)
+    out = [f"{group}={choice}"] if choice else []
+    for key, v in want.items():
+        if key not in have:
+            out.append(f"+{key}={_fmt(v)}")
+        elif have[key] != v:
+            out.append(f"{key}={_fmt(v)}")
+    return out
+
+
+def _command(script: str, *parts: list[str]) -> str:
+    return " ".join([script, *[p for part in parts for p in part]])
+
+
+# ----------------------------------------------------------------------------------------------
+# building blocks
+
+
+@dataclass(frozen=True)
+class Job:
+    """Settings of a job that never change a result: where artefacts go, device, progress."""
+
+    data_dir: Path
+    device: torch.device
+    progress: bool
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> Job:
+        """Validated job settings."""
+        return cls(
+            Path(str(cfg.get("data_dir", "data"))),
+            resolve_device(cfg.get("device", "cpu")),
+            bool(cfg.get("progress", True)),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class ModelSetup:
+    """The agent model, the field, the time step and the seed of a run, built and checked."""
+
+    model_config: dict[str, Any]
+    field_config: dict[str, Any]
+    model: Model
+    field: Field
+    dt: float
+    seed: int
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> ModelSetup:
+        """Validate dt and seed, build the model (with its own checks of dt) and the field."""
+        dt = float(positive(cfg, "dt"))
+        seed = seed_setting(cfg)
+        model_config, field_cfg = to_dict(cfg["model"]), to_dict(cfg["field"])
+        model = build_model(model_config)
+        model.validate(dt)
+        return cls(model_config, field_cfg, model, build_field(field_cfg), dt, seed)
+
+    @property
+    def field_name(self) -> str:
+        """Short name of the field (the shipped config it equals, else its class)."""
+        return field_name(self.field_config)
+
+    def identity(self) -> dict[str, Any]:
+        """What of these settings defines an artefact."""
+        return {"model": self.model_config, "field": self.field_config, "dt": self.dt,
+                "seed": self.seed}  # fmt: skip
+
+    def label(self) -> dict[str, Any]:
+        """Readable part of a directory name."""
+        return {"model": self.model.name, "field": self.field_name, "dt": self.dt}
+
+    def overrides(self) -> list[str]:
+        """Overrides that reproduce these settings."""
+        return [
+            *group_overrides("model", self.model_config),
+            *group_overrides("field", self.field_config, self._field_choice()),
+            f"dt={_fmt(self.dt)}",
+            f"seed={self.seed}",
+        ]
+
+    def _field_choice(self) -> str | None:
+        name = self.field_name
+        return name if name in group_options("field") else None
+
+    def with_field(self, field_cfg: Mapping[str, Any]) -> ModelSetup:
+        """The same setup in another field."""
+        cfg = to_dict(field_cfg)
+        return ModelSetup(self.model_config, cfg, self.model, build_field(cfg), self.dt, self.seed)
+
+    def with_seed(self, seed: int) -> ModelSetup:
+        """The same setup with another seed."""
+        return ModelSetup(self.model_config, self.field_config, self.model, self.field, self.dt,
+                          int(seed))  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# collect
+
+
+@dataclass(frozen=True, eq=False)
+class CollectSettings:
+    """The collect stage: perturbed full-model runs -> transitions table."""
+
+    setup: ModelSetup
+    options: dict[str, Any]
+    job: Job
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> CollectSettings:
+        """Validate the collect group (and the model's perturbation options)."""
+        setup = ModelSetup.from_config(cfg)
+        c = to_dict(cfg["collect"])
+        for key in ("n_per_state", "n_cells", "record_every"):
+            positive(c, key, "collect.", integer=True)
+        positive(c, "max_time", "collect.")
+        non_negative(c, "equilibration_time", "collect.")
+        rate = non_negative(c, "perturb_rate", "collect.")
+        if rate * setup.dt > 1.0:
+            raise ConfigError(
+                f"collect.perturb_rate={rate:g}/s cannot be met with dt={setup.dt:g} s: at most "
+                f"one perturbation per step, so the rate must be <= 1/dt = {1 / setup.dt:g}/s"
+            )
+        # the body checks its own perturbation options now, not after simulating
+        setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
+        return cls(setup, c, Job.from_config(cfg))
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that defines a transitions table."""
+        return {**self.setup.identity(), "collect": self.options}
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/collect/model=..._field=..._dt=..._seed=...-<hash>``."""
+        label = {**self.setup.label(), "seed": self.setup.seed}
+        return artefact_dir(self.job.data_dir, "collect", label, self.identity())
+
+    def command(self) -> str:
+        """The command that makes this artefact."""
+        return _command(COLLECT_CMD, self.setup.overrides(), self._overrides())
+
+    def _overrides(self) -> list[str]:
+        return group_overrides("collect", self.options, "default")[1:]
+
+
+# ----------------------------------------------------------------------------------------------
+# train
+
+
+@dataclass(frozen=True)
+class ExternalTable:
+    """A transitions table from outside the pipeline (CSV or Parquet), identified by content."""
+
+    path: Path
+    sha256: str
+
+    @classmethod
+    def from_path(cls, path: str | Path) -> ExternalTable:
+        """Hash the file (its content defines what is trained on)."""
+        p = Path(path).expanduser().resolve()
+        if not p.is_file():
+            raise ConfigError(f"transitions={path}: no such file")
+        if p.suffix.lower() not in (".csv", ".parquet", ".pq"):
+            raise ConfigError(f"transitions={path}: expected a .csv or .parquet table")
+        digest = hashlib.sha256()
+        with open(p, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(chunk)
+        return cls(p, digest.hexdigest())
+
+
+@dataclass(frozen=True, eq=False)
+class TrainSettings:
+    """The train stage: transitions -> the two GP classifiers of the abstraction."""
+
+    setup: ModelSetup
+    source: CollectSettings | ExternalTable
+    gp: GPSettings
+    gp_config: dict[str, Any]
+    inputs: tuple[str, ...]
+    grid_size: tuple[int, ...] | None
+    diagnostic: dict[str, Any]
+    job: Job
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
+        """Validate the gp group; the data is collected with ``cfg`` or read from
+        ``transitions`` (an external table)."""
+        external = cfg.get("transitions")
+        if external:
+            setup = ModelSetup.from_config(cfg)
+            source: CollectSettings | ExternalTable = ExternalTable.from_path(str(external))
+        else:
+            source = CollectSettings.from_config(cfg)
+            setup = source.setup
+        gp_config = to_dict(cfg["gp"])
+        hyper = {k: v for k, v in gp_config.items() if k not in GP_EXTRA}
+        gp = GPSettings.from_config({**hyper, "seed": setup.seed})
+        # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
+        if not 0.0 < gp.validation_fraction < 1.0:
+            raise ConfigError(
+                f"gp.validation_fraction must lie in (0, 1) for the train stage (it reports "
+                f"held-out metrics), got {gp.validation_fraction!r}"
+            )
+        inputs = setup.model.abstraction_inputs(gp_config.get("inputs"))
+        if isinstance(source, CollectSettings):
+            n_per_state = source.options["n_per_state"]
+            n_train = n_per_state - round(gp.validation_fraction * n_per_state)
+            if gp.n_inducing > n_train:
+                raise ConfigError(
+                    f"gp.n_inducing={gp.n_inducing} exceeds the {n_train} training points per "
+                    f"classifier (collect.n_per_state={n_per_state} minus the validation "
+                    f"split); lower gp.n_inducing or raise collect.n_per_state"
+                )
+        sizes = grid_size(gp_config.get("grid_size"), "gp.grid_size", len(inputs))
+        diagnostic = _diagnostic(gp_config.get("diagnostic") or {})
+        return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg))
+
+    @property
+    def seed(self) -> int:
+        """The seed of the collection and of the training."""
+        return self.setup.seed
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that defines a trained abstraction: its data and the GP settings."""
+        if isinstance(self.source, CollectSettings):
+            data = self.source.identity()
+        else:
+            data = {"table": str(self.source.path), "sha256": self.source.sha256,
+                    "model": self.setup.model_config, "seed": self.setup.seed}  # fmt: skip
+        return {**data, "gp": self.gp_config, "inputs": list(self.inputs)}
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/train/model=..._field=..._dt=..._inputs=..._kernel=..._seed=...-<hash>``."""
+        if isinstance(self.source, CollectSettings):
+            label = self.setup.label()
+        else:
+            label = {"table": self.source.path.stem}
+        label = {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
+                 "inducing": self.gp.n_inducing, "seed": self.seed}  # fmt: skip
+        return artefact_dir(self.job.data_dir, "train", label, self.identity())
+
+    def command(self) -> str:
+        """The command that makes this artefact."""
+        if isinstance(self.source, CollectSettings):
+            data = [*self.setup.overrides(), *self.source._overrides()]
+        else:
+            data = [f"transitions={self.source.path}", *self.setup.overrides()]
+        return _command(TRAIN_CMD, data, group_overrides("gp", self.gp_config, "svgp")[1:])
+
+    def input_command(self) -> str:
+        """The command that makes this stage's input (the collected transitions)."""
+        if isinstance(self.source, CollectSettings):
+            return self.source.command()
+        return f"(the external table {self.source.path})"
+
+
+def _diagnostic(options: Mapping[str, Any]) -> dict[str, Any]:
+    unknown = sorted(set(options) - set(DIAGNOSTIC_DEFAULTS))
+    if unknown:
+        raise ConfigError(
+            f"unknown gp.diagnostic setting(s) {unknown}; allowed: {sorted(DIAGNOSTIC_DEFAULTS)}"
+        )
+    d = {**DIAGNOSTIC_DEFAULTS, **dict(options)}
+    positive(d, "n_cells", "gp.diagnostic.", integer=True)
+    positive(d, "t_end", "gp.diagnostic.")
+    positive(d, "record_every", "gp.diagnostic.", integer=True)
+    non_negative(d, "equilibration_time", "gp.diagnostic.")
+    d["start"] = list(validate_start(d, "start", "gp.diagnostic."))
+    return d
+
+
+# ----------------------------------------------------------------------------------------------
+# simulate
+
+
+@dataclass(frozen=True, eq=False)
+class DecisionSettings:
+    """The decision layer of a run: full model, learned abstraction, or exact lumped psi."""
+
+    name: str
+    config: dict[str, Any]
+    mode: str | None = None
+    lookup_size: tuple[int, ...] | None = None
+    train: TrainSettings | None = None
+    train_field: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup) -> DecisionSettings:
+        """Validate the decision group (and, for an abstraction, the settings that locate it)."""
+        d = to_dict(cfg["decision"])
+        name = d.get("name")
+        if name not in DECISIONS:
+            raise ConfigError(
+                f"decision.name must be one of {list(DECISIONS)} (select with "
+                f"decision=full|abstract|exact), got {name!r}"
+            )
+        if name == "full":
+            return cls(name, d)
+        mode = d.get("mode")
+        if mode not in DECISION_MODES[name]:
+            raise ConfigError(
+                f"decision.mode must be one of {list(DECISION_MODES[name])} for "
+                f"decision={name}, got {mode!r}"
+            )
+        if name == "exact":
+            internal = setup.model.internal
+            if not hasattr(internal, "exact_psi"):
+                raise ConfigError(f"model {setup.model.name!r} has no exact lumped psi")
+            sizes = None
+            if mode == "lookup":
+                sizes = grid_size(d.get("lookup_size"), "decision.lookup_size",
+                                  len(internal.signal_names))  # fmt: skip
+                if not getattr(internal, "signal_bounds", None):
+                    raise ConfigError(
+                        f"decision.mode=lookup needs the model's signal bounds; model "
+                        f"{setup.model.name!r} declares none: use decision.mode=direct"
+                    )
+            return cls(name, d, mode, sizes)
+        train_field = str(d.get("train_field"))
+        train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
+        train = TrainSettings.from_config(train_cfg)
+        sizes = None
+        if mode == "lookup":
+            if len(train.inputs) > 3:
+                raise ConfigError(
+                    f"decision.mode=lookup tabulates at most 3 inputs, the abstraction has "
+                    f"{list(train.inputs)}: use decision.mode=classifier"
+                )
+            sizes = grid_size(d.get("lookup_size"), "decision.lookup_size", len(train.inputs))
+        return cls(name, d, mode, sizes, train, train_field)
+
+    def identity(self) -> dict[str, Any]:
+        """What of the decision defines a run (the abstraction by its own identity)."""
+        out: dict[str, Any] = {"decision": self.config}
+        if self.train is not None:
+            out["abstraction"] = self.train.identity()
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class SimulateSettings:
+    """The simulate stage: one population run (or one shard of it)."""
+
+    setup: ModelSetup
+    decision: DecisionSettings
+    n_cells: int
+    t_end: float
+    record_interval: float
+    start: tuple[float, float]
+    equilibration_time: float
+    record_durations: bool
+    compile: bool
+    job: Job
+    shard: dict[str, int] | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> SimulateSettings:
+        """Validate the run settings, the decision and a memory estimate."""
+        from surrogate.simulate.population import steps_between
+
+        setup = ModelSetup.from_config(cfg)
+        n_cells = int(positive(cfg, "n_cells", integer=True))
+        t_end = float(positive(cfg, "t_end"))
+        interval = float(positive(cfg, "record_interval"))
+        if setup.dt > interval:
+            raise ConfigError(
+                f"dt={setup.dt:g} s is larger than record_interval={interval:g} s"
+            )
+        try:
+            steps_between(interval, setup.dt, "record_interval")
+            steps_between(t_end, setup.dt, "t_end")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        eq = float(non_negative(cfg, "equilibration_time"))
+        start = validate_start(cfg)
+        decision = DecisionSettings.from_config(cfg, setup)
+        job = Job.from_config(cfg)
+        shards = (cfg.get("shard") or {}).get("count", 1)
+        per_job = -(-n_cells // shards) if isinstance(shards, int) and shards >= 1 else n_cells
+        check_memory(per_job, job.device)
+        return cls(setup, decision, n_cells, t_end, interval, start, eq,
+                   bool(cfg.get("record_durations", True)), bool(cfg.get("compile", False)), job)  # fmt: skip
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that defines a population run (``compile`` too: compiled kernels round
+        differently, so a compiled and an eager run with one seed differ)."""
+        out = {**self.setup.identity(), **self.decision.identity(), "n_cells": self.n_cells,
+               "t_end": self.t_end, "record_interval": self.record_interval,
+               "start": list(self.start), "equilibration_time": self.equilibration_time,
+               "record_durations": self.record_durations, "compile": self.compile}  # fmt: skip
+        if self.shard is not None:
+            out["shard"] = self.shard
+        return out
+
+    def label(self) -> dict[str, Any]:
+        """Readable part of the directory name."""
+        return {"decision": self.decision.name, **self.setup.label(), "n": self.n_cells,
+                "T": self.t_end, "seed": self.setup.seed}  # fmt: skip
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/simulate/<decision>_model=..._field=..._n=..._T=..._seed=...-<hash>``."""
+        return artefact_dir(self.job.data_dir, "simulate", self.label(), self.identity())
+
+    def overrides(self) -> list[str]:
+        """Overrides that reproduce this run (shards: the parent run's)."""
+        setup = self.setup
+        n, seed = self.n_cells, setup.seed
+        if self.shard is not None:
+            n, seed = self.shard["parent_n_cells"], self.shard["parent_seed"]
+        out = [f"decision={self.decision.name}",
+               *[o for o in setup.with_seed(seed).overrides()], f"n_cells={n}",
+               f"t_end={_fmt(self.t_end)}"]  # fmt: skip
+        if self.decision.train is not None:
+            out += group_overrides("gp", self.decision.train.gp_config, "svgp")[1:]
+            if isinstance(self.decision.train.source, CollectSettings):
+                out += self.decision.train.source._overrides()
+        if self.compile:
+            out.append("compile=true")
+        if self.shard is not None:
+            out += [f"shard.count={self.shard['count']}", f"shard.index={self.shard['index']}"]
+        return out
+
+    def command(self) -> str:
+        """The command that makes this run."""
+        return _command(SIMULATE_CMD, self.overrides())
+
+    def replace(self, **changes: Any) -> SimulateSettings:
+        """A copy with some fields changed (``seed=`` changes the setup's seed)."""
+        from dataclasses import replace
+
+        seed = changes.pop("seed", None)
+        out = replace(self, **changes)
+        if seed is not None:
+            out = replace(out, setup=self.setup.with_seed(seed))
+        out.__dict__.pop("directory", None)
+        return out
+
+
+def check_memory(n_cells: int, device: torch.device) -> None:
+    """Refuse a population that cannot fit in memory, before allocating it (naming sharding)."""
+    need = n_cells * BYTES_PER_CELL
+    if device.type == "cuda":
+        have = torch.cuda.mem_get_info(device)[0]
+    else:
+        try:
+            import os
+
+            have = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+            return
+    if need > have:
+        raise ConfigError(
+            f"n_cells={n_cells} needs about {need / 2**30:.1f} GiB (~{BYTES_PER_CELL} B per "
+            f"cell) but {have / 2**30:.1f} GiB are free on {device}; split the population "
+            f"into shards (`{SIMULATE_CMD} -m shard.count=K shard.index='range(K)' "
+            f"n_cells={n_cells}`, then scripts/merge_shards.py)"
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# evaluate
+
+
+@dataclass(frozen=True, eq=False)
+class EvaluateSettings:
+    """The evaluate stage: a candidate run (abstract or exact) vs a full run, and the noise
+    floor (a second full run with another seed)."""
+
+    candidate: SimulateSettings
+    full: SimulateSettings
+    full_repeat: SimulateSettings | None
+    times: tuple[float, ...]
+    subsample: int
+    options: dict[str, Any]
+    run_missing: bool
+    job: Job
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> EvaluateSettings:
+        """Validate the evaluate group and the three runs it compares."""
+        candidate = SimulateSettings.from_config(cfg)
+        if candidate.decision.name == "full":
+            raise ConfigError(
+                "evaluate compares an abstraction with the full model: use decision=abstract "
+                "(or decision=exact)"
+            )
+        full_cfg = {**to_dict(cfg), "decision": {"name": "full"}}
+        full = SimulateSettings.from_config(full_cfg)
+        e = to_dict(cfg["evaluate"])
+        subsample = int(positive(e, "subsample", "evaluate.", integer=True))
+        t_end = candidate.t_end
+        times_cfg = e.get("times")
+        if times_cfg is None:  # the paper's quarters of t_end
+            times = tuple(t_end * (k + 1) / 4 for k in range(4))
+        else:
+            try:
+                times = tuple(float(t) for t in times_cfg)
+            except (TypeError, ValueError):
+                raise ConfigError(
+                    f"evaluate.times must be a list of times in s (or null), got {times_cfg!r}"
+                ) from None
+            bad = [t for t in times if not 0 <= t <= t_end]
+            if bad:
+                raise ConfigError(
+                    f"evaluate.times {bad} lie outside [0, t_end={t_end:g}] s (null: quarters "
+                    f"of t_end)"
+                )
+        repeat = None
+        if e.get("noise_floor", True):
+            offset = e.get("noise_seed_offset")
+            seed = candidate.setup.seed
+            # offset 0 would compare the full run with itself: a noise floor of exactly zero
+            if isinstance(offset, bool) or not isinstance(offset, int) or offset == 0 or seed + offset < 0:
+                raise ConfigError(
+                    f"evaluate.noise_seed_offset must be a non-zero integer with seed + offset "
+                    f">= 0 (the noise floor's second full run uses seed + offset), got {offset!r}"
+                )
+            repeat = full.replace(seed=seed + offset)
+        options = {k: v for k, v in e.items() if k != "run_missing"}
+        return cls(candidate, full, repeat, times, subsample, options,
+                   bool(e.get("run_missing", False)), Job.from_config(cfg))  # fmt: skip
+
+    def identity(self) -> dict[str, Any]:
+        """The candidate run's settings and the evaluation's own (times as resolved)."""
+        return {"candidate": self.candidate.identity(),
+                "evaluate": {**self.options, "times": list(self.times)}}  # fmt: skip
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/evaluate/<decision>_model=..._field=..._n=..._T=..._seed=...-<hash>``."""
+        return artefact_dir(self.job.data_dir, "evaluate", self.candidate.label(), self.identity())
+
+    def command(self) -> str:
+        """The command that makes this evaluation."""
+        return _command(EVALUATE_CMD, self.candidate.overrides())
+
+
+# ----------------------------------------------------------------------------------------------
+# reproduce
+
+
+@dataclass(frozen=True, eq=False)
+class ReproduceSettings:
+    """collect -> train -> simulate and evaluate on several fields -> report."""
+
+    train: TrainSettings
+    evaluations: dict[str, EvaluateSettings]
+    exact: dict[str, EvaluateSettings]
+    job: Job
+    config: dict[str, Any] = field(repr=False)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> ReproduceSettings:
+        """Validate every stage's settings before any work starts."""
+        fields = [str(f) for f in (cfg.get("fields") or [])]
+        if not fields:
+            raise ConfigError(
+                "fields must list at least one field, e.g. [gaussian, linear, dynamic]"
+            )
+        for name in fields:
+            field_config(name)
+        c = to_dict(cfg)
+        evaluations = {
+            name: EvaluateSettings.from_config(_field_run(c, name, c["decision"])) for name in fields
+        }
+        train = next(iter(evaluations.values())).candidate.decision.train
+        if train is None:
+            raise ConfigError("reproduce needs decision=abstract (the learned abstraction)")
+        exact = {}
+        if c.get("exact_psi") and hasattr(train.setup.model.internal, "exact_psi"):
+            decision = {**group_config("decision", "exact")}
+            exact = {
+                name: EvaluateSettings.from_config(_field_run(c, name, decision)) for name in fields
+            }
+        return cls(train, evaluations, exact, Job.from_config(cfg), c)
+
+    def identity(self) -> dict[str, Any]:
+        """The evaluations' identities (which include the abstraction's)."""
+        return {name: e.identity() for name, e in {**self.evaluations, **{
+            f"exact:{k}": v for k, v in self.exact.items()}}.items()}  # fmt: skip
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/reproduce/model=..._dt=..._n=..._T=..._inputs=..._seed=...-<hash>``."""
+        first = next(iter(self.evaluations.values())).candidate
+        label = {"model": first.setup.model.name, "dt": first.setup.dt, "n": first.n_cells,
+                 "T": first.t_end, "inputs": "+".join(self.train.inputs),
+                 "seed": first.setup.seed}  # fmt: skip
+        return artefact_dir(self.job.data_dir, "reproduce", label, self.identity())
+
+
+def _field_run(cfg: dict[str, Any], name: str, decision: Mapping[str, Any]) -> dict[str, Any]:
+    """The evaluate config for one field: same settings, that field, missing runs simulated."""
+    return {**cfg, "field": field_config(name), "decision": dict(decision),
+            "evaluate": {**cfg["evaluate"], "run_missing": True}}  # fmt: skip

@@ -1,0 +1,320 @@
+"""The train stage: transitions table -> GP classifiers psi_0 / psi_1 -> artefact directory.
+
+``python scripts/train.py [gp.inputs=signal|inputs|[names]] [gp.kernel=...]`` trains on the
+collected transitions of the same settings, or on any external table with ``transitions=PATH``
+(CSV or Parquet with the input columns, ``phi`` and ``phi_next``, e.g. tracked cells). It writes
+``psi.pt``, ``psi_grid.csv``, ``train_metrics.json`` (held-out scores, and the diagnostic: the
+switching probabilities' error where the full model's population lives), figures and the
+manifest. Also the Python API to load a trained abstraction::
+
+    from surrogate import load_abstraction
+    psi = load_abstraction("data/train/model=ecoli_...")
+    p = psi(phi, z)   # z: n x d in the order of psi.input_names
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from surrogate.config import seed_everything, to_dict
+from surrogate.errors import ArtefactError, NumericalError
+from surrogate.gp import (
+    PsiClassifier,
+    PsiLookupTable,
+    fit_psi,
+    load_psi,
+    plot_psi,
+    plot_training_history,
+    psi_grid_frame,
+    save_psi,
+)
+from surrogate.gp.diagnostics import plot_psi_errors, psi_errors
+from surrogate.io import (
+    MANIFEST,
+    make_once,
+    read_csv,
+    read_parquet,
+    require_artefact,
+    save_figure,
+    write_csv,
+    write_json,
+    write_manifest,
+)
+from surrogate.models.base import Model
+from surrogate.simulate.decision import ExactPsi, FullDecision
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.transitions import record_occupancy
+from surrogate.stages.collect import TRANSITIONS
+from surrogate.stages.settings import CollectSettings, TrainSettings
+
+log = logging.getLogger(__name__)
+
+PSI = "psi.pt"
+METRICS = "train_metrics.json"
+GRID = "psi_grid.csv"
+SURFACES_FIGURE = "psi_surfaces.png"
+DIAGNOSTIC_FIGURE = "psi_diagnostic.png"
+HISTORY_FIGURE = "training_history.png"
+LABELS = ("phi", "phi_next")
+
+
+def validate(cfg: Mapping[str, Any]) -> TrainSettings:
+    """All checks of a train config, before any work starts; the typed settings."""
+    return TrainSettings.from_config(cfg)
+
+
+def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
+    """Run (or reuse) the train stage of ``cfg``; return its artefact directory."""
+    return train(validate(cfg), config=to_dict(cfg), force=force)
+
+
+def train(
+    settings: TrainSettings, config: Mapping[str, Any] | None = None, force: bool = False
+) -> Path:
+    """Run (or reuse) the train stage described by ``settings``."""
+    out = settings.directory
+    return make_once(out, settings.identity(), settings.command(),
+                     lambda data: _train(settings, out, *data, config), what="abstraction",
+                     force=force, prepare=lambda: load_transitions(settings))  # fmt: skip
+
+
+def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
+    """The transitions this abstraction trains on, checked: (table, where it came from)."""
+    source = settings.source
+    if isinstance(source, CollectSettings):
+        directory = source.directory
+        manifest = require_artefact(directory, source.identity(), source.command(),
+                                    "collected transitions")  # fmt: skip
+        table = read_parquet(directory / TRANSITIONS, made_by=source.command())
+        if len(table) != manifest.get("n_rows", len(table)):
+            raise ArtefactError(
+                f"{directory / TRANSITIONS} has {len(table)} rows but its manifest says "
+                f"{manifest['n_rows']}; re-create it with `{source.command()}`"
+            )
+        where = str(directory)
+    else:
+        path = source.path
+        try:
+            table = pd.read_csv(path) if path.suffix.lower() == ".csv" else read_parquet(path)
+        except (OSError, ValueError) as exc:
+            raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
+        where = str(path)
+    needed = [*settings.inputs, *LABELS]
+    missing = [c for c in needed if c not in table.columns]
+    if missing:
+        raise ArtefactError(
+            f"{where} lacks column(s) {missing}: the abstraction needs its inputs "
+            f"{list(settings.inputs)} and {list(LABELS)} (it has {list(table.columns)})"
+        )
+    values = table[list(settings.inputs)].to_numpy(dtype=np.float64)
+    if not np.isfinite(values).all():
+        raise NumericalError(f"{where} contains NaN or infinite values in {list(settings.inputs)}")
+    labels = table[list(LABELS)].to_numpy()
+    if not np.isin(labels, (0, 1)).all():
+        raise ArtefactError(f"{where}: phi and phi_next must be 0 or 1")
+    return table, where
+
+
+def _train(
+    settings: TrainSettings,
+    out: Path,
+    table: pd.DataFrame,
+    source: str,
+    config: Mapping[str, Any] | None,
+) -> None:
+    """Fit both classifiers, score them, then write model, tables, figures and (last) the
+    manifest."""
+    job, model = settings.job, settings.setup.model
+    lumps = model.internal.lump_names
+    seed_everything(settings.seed)
+    t0 = time.perf_counter()
+    try:
+        psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
+                      device=job.device, lump_names=lumps)  # fmt: skip
+    except NumericalError as exc:
+        # nothing was written: a previous complete abstraction in `out` (if any) is kept
+        err = NumericalError(f"{exc} Nothing was written to {out}.")
+        err.partial = getattr(exc, "partial", None)  # type: ignore[attr-defined]
+        raise err from exc
+    wall = time.perf_counter() - t0
+    psi.to("cpu")
+    metrics: dict[str, Any] = {
+        f"psi_{phi}": {
+            "origin": lumps[phi],
+            "validation": clf.validation,
+            "n_train": clf.n_train,
+            "n_val": clf.n_val,
+            "train_seconds": clf.train_seconds,
+            "final_loss": clf.history[-1] if clf.history else None,
+        }
+        for phi, clf in enumerate(psi.classifiers)
+    }
+    metrics["train_seconds_total"] = wall
+    metrics["inputs"] = list(settings.inputs)
+    grid = psi_grid_frame(psi, psi.domain, psi.input_names, settings.grid_size)
+    if not np.isfinite(grid["p"].to_numpy()).all():
+        # a model that predicts NaN must not reach the simulations (NaN < u is always False)
+        raise NumericalError(
+            f"the trained classifiers predict NaN/inf on their own input domain; nothing was "
+            f"written to {out}. Try a smaller gp.lr (now {settings.gp.lr}) or more gp.epochs"
+        )
+    diagnostic, frame = diagnose(psi, settings, model)
+    metrics["diagnostic"] = diagnostic
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
+    save_psi(out / PSI, psi, {"settings": settings.identity(), "source": source})
+    write_json(out / METRICS, metrics)
+    write_csv(out / GRID, grid)
+    exact = _exact_curve(model, settings) if len(psi.input_names) == 1 else None
+    save_figure(out / SURFACES_FIGURE, plot_psi(psi, psi.domain, psi.input_names, table, lumps,
+                                                exact=exact))  # fmt: skip
+    if frame is not None:
+        save_figure(out / DIAGNOSTIC_FIGURE, plot_psi_errors(frame, psi.input_names, lumps))
+    save_figure(out / HISTORY_FIGURE, plot_training_history(
+        {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
+    write_manifest(
+        out,
+        stage="train",
+        config=dict(config) if config is not None else settings.identity(),
+        seed=settings.seed,
+        settings=settings.identity(),
+        source=source,
+        device=str(job.device),
+        wall_time_s=wall,
+        inputs=list(settings.inputs),
+        domain={k: list(v) for k, v in psi.domain.items()},
+        brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},
+        brier_baseline={n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_0", "psi_1")},
+        diagnostic=diagnostic,
+    )
+    for name in ("psi_0", "psi_1"):
+        v = metrics[name]["validation"]
+        log.info(
+            "%s (from %s): held-out Brier %.4f (constant predictor %.4f), log predictive %.4f",
+            name, metrics[name]["origin"], v["brier"], v["brier_baseline"], v["mean_log_predictive"],
+        )  # fmt: skip
+    for p in (0, 1):
+        d = diagnostic.get(f"phi{p}")
+        if d:
+            log.info(
+                "leaving %s where the population lives: switching probability %.4f vs %s %.4f "
+                "(bias %+.1f %%, mean |error| %.1f %%)", lumps[p], d["mean_switching_learned"],
+                diagnostic["reference"], d["mean_switching_reference"], 100 * d["rel_bias"],
+                100 * d["mean_abs_rel_error"],
+            )  # fmt: skip
+    log.info("trained both classifiers in %.1f s; artefacts in %s", wall, out)
+
+
+def exact_psi_function(model: Model, dt: float) -> Any:
+    """The model's exact lumped psi as ``psi(phi, signal)``: tabulated over the signal's bounds
+    when the model declares them (1e-5-accurate and fast), else computed directly; None when
+    the model has no exact psi."""
+    internal = model.internal
+    if not hasattr(internal, "exact_psi"):
+        return None
+    exact = ExactPsi(internal, dt)
+    bounds = getattr(internal, "signal_bounds", None)
+    try:
+        if bounds:
+            ranges = [bounds[n] for n in internal.signal_names]
+            return PsiLookupTable.from_function(exact, ranges, internal.signal_names)
+        exact(torch.zeros(1, dtype=torch.long), torch.zeros(1, len(internal.signal_names)))
+    except NotImplementedError:
+        return None
+    return exact
+
+
+def diagnose(
+    psi: PsiClassifier, settings: TrainSettings, model: Model
+) -> tuple[dict[str, Any], pd.DataFrame | None]:
+    """The learned psi's switching probabilities against the exact psi (or the full model's
+    binned frequencies) where an unperturbed full-model population lives (``gp.diagnostic``:
+    its start, size and length), on the field the data was collected in."""
+    d = settings.diagnostic
+    setup = settings.setup
+    t0 = time.perf_counter()
+    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt,
+                          settings.job.device)  # fmt: skip
+    occupancy = record_occupancy(
+        simulator,
+        int(d["n_cells"]),
+        float(d["t_end"]),
+        torch.tensor(d["start"]),
+        int(d["record_every"]),
+        float(d["equilibration_time"]),
+    )
+    exact_fn = exact_psi_function(model, setup.dt)
+    reference = None
+    if exact_fn is not None:
+        names = list(model.internal.signal_names)
+
+        def reference(rows: pd.DataFrame) -> np.ndarray:
+            s = torch.from_numpy(rows[names].to_numpy(np.float32, copy=True))
+            n = len(rows)
+            return np.stack([exact_fn(torch.full((n,), p), s).double().numpy() for p in (0, 1)], -1)
+
+    metrics, frame = psi_errors(psi, occupancy, list(settings.inputs), reference)
+    metrics["settings"] = dict(d)
+    metrics["seconds"] = time.perf_counter() - t0
+    return metrics, frame
+
+
+def _exact_curve(model: Model, settings: TrainSettings) -> Any:
+    """For a 1-D psi over the model's signal: z -> exact (n x 2), for the figure."""
+    internal = model.internal
+    if list(settings.inputs) != list(getattr(internal, "signal_names", [])):
+        return None
+    exact_fn = exact_psi_function(model, settings.setup.dt)
+    if exact_fn is None:
+        return None
+
+    def curve(z: np.ndarray) -> np.ndarray:
+        s = torch.as_tensor(z, dtype=torch.float32)[:, None]
+        return np.stack([exact_fn(torch.full((len(z),), p), s).double().numpy() for p in (0, 1)], -1)
+
+    return curve
+
+
+def resolve_abstraction(settings: TrainSettings) -> Path:
+    """The train directory of ``settings``, or a clear error naming the command that makes it."""
+    directory = settings.directory
+    require_artefact(directory, settings.identity(), settings.command(), "trained abstraction",
+                     after=settings.input_command())  # fmt: skip
+    return directory
+
+
+def load_abstraction(
+    source: str | os.PathLike | Mapping[str, Any], device: str | torch.device = "cpu"
+) -> PsiClassifier:
+    """Load a trained abstraction from its artefact directory (or from the config that made it).
+
+    Returns a :class:`~surrogate.gp.PsiClassifier`: ``psi(phi, z)`` gives p(phi' = 1 | phi, z)
+    for ``z`` (``n x d``) in the order of ``psi.input_names``, under ``torch.no_grad()``.
+    """
+    if isinstance(source, Mapping):
+        directory = resolve_abstraction(TrainSettings.from_config(source))
+    else:
+        directory = Path(source)
+    psi, _ = load_psi(directory / PSI, device=device)
+    return psi
+
+
+def read_metrics(directory: str | Path) -> dict[str, Any]:
+    """The ``train_metrics.json`` of a train directory."""
+    from surrogate.io import read_json
+
+    return read_json(Path(directory) / METRICS, made_by="python scripts/train.py")
+
+
+def read_grid(directory: str | Path) -> pd.DataFrame:
+    """The ``psi_grid.csv`` of a train directory."""
+    return read_csv(Path(directory) / GRID, made_by="python scripts/train.py")
