@@ -33,7 +33,7 @@ from surrogate.models.ecoli.motors import (
     sample_stationary_states,
     step_motor_states,
 )
-from surrogate.simulate import FullDecision
+from surrogate.models.ecoli.internal import MotorInternalModel
 
 from ..ctmc.test_ssa import N_CHAINS, P_MIN, assert_matches_distribution, state_counts
 from ..ctmc.test_transition import (
@@ -190,62 +190,49 @@ def test_stationary_states_follow_the_stationary_law() -> None:
     assert np.all(np.abs(observed - pi) < 5 * se)
 
 
-def test_full_decision_counts_round_trip() -> None:
+def test_internal_model_counts_round_trip() -> None:
     torch.manual_seed(6)
-    decision = FullDecision(P)
-    m = torch.full((1000,), 2.2)
-    run = decision.initialize(m, torch.zeros(1000))
-    counts = decision.counts
+    internal = MotorInternalModel(P)
+    x = torch.stack([torch.full((1000,), 2.2), torch.zeros(1000)], -1)
+    state = internal.initial_state(x)
+    counts = internal.counts(state)
     assert counts.shape == (1000, 3) and bool((counts.sum(1) == P.n_motors).all())
-    assert torch.equal(run, is_run(counts))
-    decision.counts = counts.flip(0)
-    assert torch.equal(decision.counts, counts.flip(0))
-    ssa = FullDecision(EcoliParameters(motor_sampler="ssa"))
-    ssa.initialize(m, torch.zeros(1000))
-    assert not ssa.fusable and ssa.motors is None and ssa.counts.shape == (1000, 3)
+    assert torch.equal(internal.phi(state) > 0, is_run(counts))
+    assert torch.equal(internal.counts(internal.state_from_counts(counts.flip(0))), counts.flip(0))
+    ssa = MotorInternalModel(EcoliParameters(motor_sampler="ssa"))
+    (ssa_counts,) = ssa.initial_state(x)
+    assert not ssa.fusable and ssa_counts.shape == (1000, 3)
 
 
-def test_fused_rates_are_the_model_rates() -> None:
-    from surrogate.models.ecoli.signalling import log_receptor_terms
-    from surrogate.simulate.decision import rates_from_log_terms
-
+def test_internal_rates_are_the_model_rates() -> None:
+    """The rates the simulation uses come from the same formula chain as motor_rates."""
     gen = torch.Generator().manual_seed(7)
     m = 8.0 * torch.rand(10_000, generator=gen)
     L = 0.2 * torch.rand(10_000, generator=gen)
-    k_plus, k_minus = rates_from_log_terms(m, log_receptor_terms(L, P), P)
+    k_plus, k_minus = MotorInternalModel(P).rates(torch.stack([m, L], -1))
     ref_plus, ref_minus = motor_rates(m, L, P)
     assert k_plus.dtype == torch.float64
-    torch.testing.assert_close(k_plus, ref_plus.double(), rtol=1e-5, atol=0)
-    torch.testing.assert_close(k_minus, ref_minus.double(), rtol=1e-5, atol=0)
+    assert torch.equal(k_plus, ref_plus) and torch.equal(k_minus, ref_minus)
 
 
 @pytest.mark.parametrize(("m", "L"), [(2.2, 0.0), (2.4, 0.0), (2.6, 0.02)])
-def test_fused_full_decision_agrees_with_the_ssa_decision(m: float, L: float) -> None:
-    """FullDecision's fused step (closed form, as the simulator runs it) against FullDecision
-    with the SSA sampler: motor counts after 10 windows at fixed inputs, two-sample chi-square."""
-    from surrogate.models.ecoli.signalling import log_receptor_terms
-
+def test_fused_window_agrees_with_the_ssa_window(m: float, L: float) -> None:
+    """The internal model's fused window (closed form, as the simulator runs it) against the
+    SSA sampler: motor counts after 10 windows at fixed inputs, two-sample chi-square."""
     n = N_CHAINS
-    mt, Lt = torch.full((n,), m), torch.full((n,), L)
+    x = torch.stack([torch.full((n,), m), torch.full((n,), L)], -1)
     torch.manual_seed(8)
-    fused = FullDecision(P)
-    run = fused.initialize(mt, Lt)
-    ssa = FullDecision(EcoliParameters(motor_sampler="ssa"))
-    ssa.counts = fused.counts  # the same start
-    run_ssa = run
-    terms = log_receptor_terms(Lt, P)
+    fused = MotorInternalModel(P)
+    state = fused.initial_state(x)
+    ssa = MotorInternalModel(EcoliParameters(motor_sampler="ssa"))
+    ssa_state = (fused.counts(state),)  # the same start
     for _ in range(10):
         u64 = torch.rand((P.n_motors, n), dtype=torch.float64)
-        flag, state, _ = fused.fused_step(
-            run.float(), mt, Lt, terms, DT, None, u64, fused.fused_state()
-        )
-        fused.set_fused_state(state)
-        run = flag > 0
-        run_ssa = ssa.step(run_ssa, mt, Lt, DT)
-    assert torch.equal(run, is_run(fused.counts))
+        state, _ = fused.fused_advance(state, x, DT, torch.empty(0, n), u64)
+        ssa_state = ssa.advance(ssa_state, x, DT)
     states = [s for s in itertools.product(range(5), repeat=3) if sum(s) == P.n_motors]
     pvalue, bins = merged_contingency_pvalue(
-        state_counts(fused.counts, states), state_counts(ssa.counts, states)
+        state_counts(fused.counts(state), states), state_counts(ssa.counts(ssa_state), states)
     )
     assert bins >= 3
     assert pvalue > P_MIN, f"two-sample chi-square p = {pvalue:.3g} over {bins} bins"
