@@ -89,7 +89,7 @@ class CellStreams:
         return CellStreams(self.state.copy())
 
 
-def _kernel_source(kinetics: Kinetics) -> str:
+def _kernel_source(kinetics: Kinetics, parallel: bool) -> str:
     header = _HEADER.format(
         max_events=_direct_method.MAX_EVENTS,
         bad_propensity=_direct_method.BAD_PROPENSITY,
@@ -97,8 +97,9 @@ def _kernel_source(kinetics: Kinetics) -> str:
     )
     propensity = "@numba.njit(cache=True, error_model='numpy', inline='always')\n"
     propensity += kinetics.numba_source
-    kernel = "@numba.njit(parallel=True, cache=True, error_model='numpy', nogil=True)\n"
-    kernel += inspect.getsource(_direct_method.advance_cells)
+    kernel = f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)\n"
+    body = inspect.getsource(_direct_method.advance_cells)
+    kernel += body if parallel else body.replace("prange(n)", "range(n)")
     return header + propensity + "\n" + kernel
 
 
@@ -131,20 +132,26 @@ class CompiledSSA:
             or :func:`~surrogate.ctmc.kinetics.mass_action_kinetics`).
         cache_dir: Where the generated module and numba's cache go (default
             :func:`default_cache_dir`).
+        parallel: Spread cells over numba's threads (``prange``); ``False`` compiles about
+            twice as fast (measured 1.3 s vs 2.3 s cold) and runs on one thread. Results are
+            identical either way (one random stream per cell).
 
     Compilation happens on the first :meth:`advance` (or an explicit :meth:`compile`), from the
     on-disk cache when a previous process compiled the same network.
     """
 
-    def __init__(self, kinetics: Kinetics, *, cache_dir: Path | str | None = None) -> None:
+    def __init__(
+        self, kinetics: Kinetics, *, cache_dir: Path | str | None = None, parallel: bool = True
+    ) -> None:
         self.kinetics = kinetics
+        self.parallel = bool(parallel)
         self.cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
         stoich = kinetics.network.stoichiometry.numpy()
         rows, cols = np.nonzero(stoich)
         self._change_ptr = np.searchsorted(rows, np.arange(stoich.shape[0] + 1)).astype(np.int64)
         self._change_species = cols.astype(np.int64)
         self._change_delta = stoich[rows, cols].astype(np.int64)
-        self.source = _kernel_source(kinetics)
+        self.source = _kernel_source(kinetics, self.parallel)
         self._module: ModuleType | None = None
         self.compile_seconds: float | None = None
 
