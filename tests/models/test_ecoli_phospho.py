@@ -47,3 +47,22 @@ def test_network_reads_with_activity_input_and_balanced_fluxes():
         assert a[name] == pytest.approx(flux, rel=6e-3)
     kp = c.omega * math.exp(10 - 20 * 2.7 / 5.76)
     assert a["C_to_N"] == pytest.approx(kp * 1, rel=1e-3)  # C = 1, Yp = 2268 / 840 = 2.7
+
+
+def test_amounts_variant_has_the_same_propensities():
+    from surrogate.models.ecoli_phospho import NETWORK_AMOUNTS_PATH
+
+    assert NETWORK_AMOUNTS_PATH.read_text() == network_sbml(amounts=True)
+    conc, amounts = load_network(), load_network(NETWORK_AMOUNTS_PATH)
+    assert conc.species == amounts.species and conc.reaction_names == amounts.reaction_names
+    assert torch.equal(conc.initial_state, amounts.initial_state)
+    gen = torch.Generator().manual_seed(0)
+    state = conc.initial_states(50) + torch.randint(-90, 90, (50, 8), generator=gen).clamp_min(0)
+    state[:, :3] = torch.tensor([1, 1, 2])
+    activity = torch.rand((50, 1), generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(
+        conc.propensities(state, activity),
+        amounts.propensities(state, activity),
+        rtol=1e-12,
+        atol=0,
+    )

@@ -45,6 +45,7 @@ import numpy as np
 from surrogate.sbml import SbmlModel, read_sbml
 
 __all__ = [
+    "NETWORK_AMOUNTS_PATH",
     "NETWORK_PATH",
     "N_PER_UM",
     "PhosphoConstants",
@@ -58,6 +59,9 @@ __all__ = [
 ]
 
 NETWORK_PATH = Path(__file__).with_name("network.xml")
+# The same model written with amounts only (explicit / 840 in the laws, no function definition):
+# read identically by any SBML tool, e.g. GillesPy2 for the benchmark (scripts/bench_ssa.py).
+NETWORK_AMOUNTS_PATH = Path(__file__).with_name("network_amounts.xml")
 N_PER_UM = 840.0  # molecules per uM in a 1.4 fL cell
 
 
@@ -154,10 +158,13 @@ def cw_bias(cheyp: float, c: PhosphoConstants) -> float:
     return 1.0 / (1.0 + math.exp(2 * dg))
 
 
-def network_sbml(c: PhosphoConstants | None = None) -> str:
+def network_sbml(c: PhosphoConstants | None = None, *, amounts: bool = False) -> str:
     """The network as an SBML L3V1 document (the text of ``network.xml`` for the defaults).
 
-    Initial counts: the mean-field steady state at a*, motors (S, C, N) = (0, 1, 3).
+    Initial counts: the mean-field steady state at a*, motors (S, C, N) = (0, 1, 3). With
+    ``amounts`` every species is a count in the laws (hasOnlySubstanceUnits) and the laws divide
+    by ``nuM`` = 840 explicitly, with dG written out (``network_amounts.xml``): the same
+    propensities, in the form that tools without concentration semantics read identically.
     """
     import libsbml
 
@@ -171,20 +178,23 @@ def network_sbml(c: PhosphoConstants | None = None) -> str:
     model.setSubstanceUnits("item")
     model.setTimeUnits("second")
     model.setExtentUnits("item")
-    unit = model.createUnitDefinition()
-    unit.setId("uM_volume")  # the volume in which one molecule is 1 uM: 1 / (N_A 1e-6) litre
-    u = unit.createUnit()
-    u.setKind(libsbml.UNIT_KIND_LITRE)
-    u.setExponent(1)
-    u.setScale(0)
-    u.setMultiplier(1.0 / (6.02214076e23 * 1e-6))
-    fn = model.createFunctionDefinition()
-    fn.setId("dG")
-    fn.setMath(libsbml.parseL3Formula("lambda(y, g0, g1, KD, g0 / 4 - g1 / 2 * y / (y + KD))"))
+    if not amounts:
+        unit = model.createUnitDefinition()
+        unit.setId("uM_volume")  # the volume in which one molecule is 1 uM: 1 / (N_A 1e-6) litre
+        u = unit.createUnit()
+        u.setKind(libsbml.UNIT_KIND_LITRE)
+        u.setExponent(1)
+        u.setScale(0)
+        u.setMultiplier(1.0 / (6.02214076e23 * 1e-6))
+    if not amounts:
+        fn = model.createFunctionDefinition()
+        fn.setId("dG")
+        fn.setMath(libsbml.parseL3Formula("lambda(y, g0, g1, KD, g0 / 4 - g1 / 2 * y / (y + KD))"))
     compartment = model.createCompartment()
     compartment.setId("cell")
-    compartment.setSize(n)
-    compartment.setUnits("uM_volume")
+    compartment.setSize(1.0 if amounts else n)
+    if not amounts:
+        compartment.setUnits("uM_volume")
     compartment.setSpatialDimensions(3)
     compartment.setConstant(True)
     counts = {
@@ -202,7 +212,8 @@ def network_sbml(c: PhosphoConstants | None = None) -> str:
         sp.setId(sid)
         sp.setCompartment("cell")
         sp.setInitialAmount(amount)
-        sp.setHasOnlySubstanceUnits(only_substance)  # motors: counts; proteins: uM in laws
+        # motors: counts; proteins: uM in laws (unless amounts)
+        sp.setHasOnlySubstanceUnits(only_substance or amounts)
         fixed = sid == "CheZ"
         sp.setBoundaryCondition(fixed)
         sp.setConstant(fixed)
@@ -218,6 +229,8 @@ def network_sbml(c: PhosphoConstants | None = None) -> str:
         "g1": (c.g1, "kT"),
         "KD": (c.k_d, "CheY-P dissociation constant at the motor, uM"),
     }
+    if amounts:
+        parameters["nuM"] = (n, "molecules per uM")
     for pid, (value, note) in parameters.items():
         p = model.createParameter()
         p.setId(pid)
@@ -226,21 +239,34 @@ def network_sbml(c: PhosphoConstants | None = None) -> str:
         p.setConstant(True)
     k_plus = "omega * exp(dG(CheYp, g0, g1, KD))"
     k_minus = "omega * exp(-dG(CheYp, g0, g1, KD))"
+    laws = {
+        "autophosphorylation": "kA * activity * CheA * cell",
+        "phosphotransfer": "kY * CheAp * CheY * cell",
+        "dephosphorylation": "(kZ * CheZ + gY) * CheYp * cell",
+    }
+    if amounts:
+        dg = "(g0 / 4 - g1 / 2 * (CheYp / nuM) / (CheYp / nuM + KD))"
+        k_plus, k_minus = f"omega * exp({dg})", f"omega * exp(-{dg})"
+        laws = {
+            "autophosphorylation": "kA * activity * CheA",
+            "phosphotransfer": "kY * CheAp * CheY / nuM",
+            "dephosphorylation": "(kZ * CheZ / nuM + gY) * CheYp",
+        }
     reactions = [
-        ("autophosphorylation", {"CheA": 1}, {"CheAp": 1}, (), "kA * activity * CheA * cell"),
+        ("autophosphorylation", {"CheA": 1}, {"CheAp": 1}, (), laws["autophosphorylation"]),
         (
             "phosphotransfer",
             {"CheAp": 1, "CheY": 1},
             {"CheA": 1, "CheYp": 1},
             (),
-            "kY * CheAp * CheY * cell",
+            laws["phosphotransfer"],
         ),
         (
             "dephosphorylation",
             {"CheYp": 1},
             {"CheY": 1},
             ("CheZ",),
-            "(kZ * CheZ + gY) * CheYp * cell",
+            laws["dephosphorylation"],
         ),
         ("S_to_C", {"S": 1}, {"C": 1}, (), "mu * S"),
         ("C_to_N", {"C": 1}, {"N": 1}, ("CheYp",), f"{k_plus} * C"),
@@ -273,6 +299,7 @@ def main() -> None:
     """Write ``network.xml`` from the default constants (``python -m
     surrogate.models.ecoli_phospho``)."""
     NETWORK_PATH.write_text(network_sbml())
+    NETWORK_AMOUNTS_PATH.write_text(network_sbml(amounts=True))
 
 
 if __name__ == "__main__":
