@@ -306,10 +306,6 @@ class _Reader:
     def _constant_value(self, name: str, where: str) -> float:
         if name in self.initial_assignments:
             assignment = self.initial_assignments[name]
-            if name in self.species_index:
-                return self._evaluate_constant(
-                    assignment.getMath(), f"initial assignment of {name!r}"
-                )
             return self._evaluate_constant(assignment.getMath(), f"initial assignment of {name!r}")
         if name in self.compartments:
             c = self.compartments[name]
