@@ -16,7 +16,7 @@ import math
 import torch
 from torch import Tensor
 
-from surrogate.ctmc.network import ReactionNetwork, make_propensity_fn
+from surrogate.ctmc.network import PropensityFn, ReactionNetwork, make_propensity_fn
 
 __all__ = ["gillespie"]
 
@@ -50,6 +50,7 @@ def gillespie(
     generator: torch.Generator | None = None,
     *,
     max_rounds: int | None = None,
+    propensity: PropensityFn | None = None,
 ) -> Tensor:
     """Sample the states of ``n`` independent chains after a window of length ``dt``.
 
@@ -66,12 +67,22 @@ def gillespie(
         generator: Random generator on the device of ``state`` (for reproducibility).
         max_rounds: If given, raise ``RuntimeError`` when cells are still active after this many
             rounds (guards against unexpectedly stiff rates).
+        propensity: Optional general kinetics ``f(state (m, S) int64, params (m, P)) -> (m, R)
+            float64`` (e.g. ``Kinetics.torch_propensity``), called on the active cells' rows.
+            ``rate_constants`` is then the ``(n, P)`` (or ``(P,)``) float tensor of per-cell
+            parameters handed to it instead of mass-action rate constants; it must be finite
+            but may have any width ``P``. Propensities that are negative or not finite, and
+            events that drive a count negative, raise ``ValueError`` after the window (checked
+            without extra host syncs per round).
 
     Returns:
         ``(n, S)`` int64 counts at the window end, on the device of ``state``. A cell in an
         absorbing state (total propensity 0) stays where it is.
     """
-    state, rates = network.check_inputs(state, rate_constants)
+    if propensity is None:
+        state, rates = network.check_inputs(state, rate_constants)
+    else:
+        state, rates = _check_params(network, state, rate_constants)
     device = state.device
     if generator is not None and generator.device.type != device.type:
         raise ValueError(f"generator is on {generator.device} but state on {device}")
@@ -83,7 +94,10 @@ def gillespie(
     if n == 0:
         return out
 
-    propensity = make_propensity_fn(network.reactants, device)
+    general = propensity is not None
+    if propensity is None:
+        propensity = make_propensity_fn(network.reactants, device)
+    invalid = torch.zeros((), dtype=torch.bool, device=device)  # general kinetics only
     stoich = network.stoichiometry.to(device)
     last = network.n_reactions - 1
 
@@ -93,7 +107,11 @@ def gillespie(
     index = torch.arange(n, device=device)
     rounds = 0
     while True:
-        cum = propensity(x, c).cumsum(dim=1)
+        a = propensity(x, c)
+        if general:
+            # Accumulated on the device: one check (and one sync) after the window.
+            invalid = invalid | ~((a >= 0) & (a < math.inf)).all()
+        cum = a.cumsum(dim=1)
         total = cum[:, -1]
         u = torch.rand((x.shape[0], 2), generator=generator, device=device, dtype=torch.float64)
         # 1 - u lies in (0, 1]: finite waiting times, and a threshold > 0 that never selects
@@ -106,6 +124,8 @@ def gillespie(
         threshold = (1.0 - u[:, 1]) * total
         chosen = (cum < threshold.unsqueeze(1)).sum(dim=1).clamp_max(last)
         x = x + stoich.index_select(0, chosen) * fire.unsqueeze(1)
+        if general:
+            invalid = invalid | (x < 0).any()
         # A finished cell gets zero time left, so it can never fire again (tau >= 0).
         remaining = torch.where(fire, remaining - tau, 0.0)
         rounds += 1
@@ -127,4 +147,41 @@ def gillespie(
             remaining = remaining.index_select(0, active)
             index = index.index_select(0, active)
     out.index_copy_(0, index, x)
+    if general and bool(invalid):
+        raise ValueError(
+            "gillespie: the propensity function returned a negative or non-finite value, or a "
+            "reaction fired that drove a count negative, during the window (check the kinetic "
+            "laws: a reaction's propensity must be 0 when it lacks the molecules it consumes)"
+        )
     return out
+
+
+def _check_params(network: ReactionNetwork, state: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    """Validate a ``(n, S)`` state and ``(n, P)`` (or ``(P,)``) finite float parameters."""
+    if not isinstance(state, Tensor) or not isinstance(params, Tensor):
+        raise ValueError("state and rate_constants (the propensity's parameters) must be tensors")
+    if state.dim() != 2 or state.shape[1] != network.n_species:
+        raise ValueError(
+            f"state must have shape (n, S) with S = {network.n_species} species "
+            f"{network.species}, got {tuple(state.shape)}"
+        )
+    if state.dtype.is_floating_point or state.dtype.is_complex or state.dtype == torch.bool:
+        raise ValueError(f"state must hold integer counts, got dtype {state.dtype}")
+    n = state.shape[0]
+    if params.dim() == 1:
+        params = params.unsqueeze(0).expand(n, -1)
+    if params.dim() != 2 or params.shape[0] != n:
+        raise ValueError(
+            f"with a propensity function, rate_constants holds its per-cell parameters and "
+            f"must have shape (n, P) with n = {n}, or (P,); got {tuple(params.shape)}"
+        )
+    if not params.dtype.is_floating_point:
+        raise ValueError(f"rate_constants must be floating point, got dtype {params.dtype}")
+    if params.device != state.device:
+        raise ValueError(f"state is on {state.device} but rate_constants on {params.device}")
+    bad = torch.stack([(state < 0).any(), ~torch.isfinite(params).all()]).tolist()
+    if bad[0]:
+        raise ValueError("state must hold non-negative counts")
+    if bad[1]:
+        raise ValueError("rate_constants (the propensity's parameters) must be finite")
+    return state.to(torch.int64), params

@@ -1,0 +1,549 @@
+"""General reaction kinetics: propensities as validated expression trees, compiled twice.
+
+A :class:`Kinetics` is a :class:`~surrogate.ctmc.ReactionNetwork` (who is consumed and produced)
+plus one expression per reaction giving its propensity (events per unit time) as a function of
+the state (species counts) and of per-cell *inputs* (parameters supplied by the caller every
+window, e.g. a receptor activity). Expressions are small immutable trees built only from the
+operators in ``OPERATORS``; every node is type-checked (real or boolean) and constant subtrees
+are folded when the tree is built. From one tree we generate, once, Python source for
+
+* a torch function ``propensities(state (n, S), inputs (n, P)) -> (n, R) float64`` that runs on
+  any device (vectorised over cells), and
+* a scalar per-cell function ``propensities(x (S,), p (P,), a (R,))`` that numba compiles into
+  the per-cell Gillespie kernel of :mod:`surrogate.ctmc.compiled`.
+
+The generated source contains only our own templates, column indices and ``repr`` of floats, so
+nothing read from a model file is ever evaluated as code. We hand-write this small tree (rather
+than use sympy's ``lambdify``) because it must emit numba-compilable scalar code and device-safe
+torch code from the same tree, with SBML's piecewise/boolean semantics and no import-time cost.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from surrogate.ctmc.network import ReactionNetwork
+
+__all__ = [
+    "OPERATORS",
+    "Expr",
+    "Kinetics",
+    "call",
+    "const",
+    "input_ref",
+    "mass_action_kinetics",
+    "species_ref",
+]
+
+REAL, BOOL = "real", "bool"
+
+
+@dataclass(frozen=True)
+class _Op:
+    """One operator: arity (``None``: variadic, at least ``min_args``), argument / result types,
+    the folding function on float64 scalars and the torch / numba code templates."""
+
+    min_args: int
+    max_args: int | None
+    arg_kind: str  # REAL, BOOL or "any" (comparisons of reals; piecewise checks itself)
+    kind: str
+    fold: Callable[..., float | bool]
+    torch: str  # format string over {0}, {1}, ... or a special name
+    numba: str
+
+
+def _np1(fn: Callable[[np.float64], np.float64]) -> Callable[[float], float]:
+    def folded(x: float) -> float:
+        with np.errstate(all="ignore"):
+            return float(fn(np.float64(x)))
+
+    return folded
+
+
+def _pow(a: float, b: float) -> float:
+    with np.errstate(all="ignore"):
+        return float(np.power(np.float64(a), np.float64(b)))
+
+
+def _div(a: float, b: float) -> float:
+    with np.errstate(all="ignore"):
+        return float(np.float64(a) / np.float64(b))
+
+
+_UNARY_NP = {
+    "exp": np.exp,
+    "ln": np.log,
+    "log10": np.log10,
+    "sqrt": np.sqrt,
+    "abs": np.abs,
+    "floor": np.floor,
+    "ceiling": np.ceil,
+    "sin": np.sin,
+    "cos": np.cos,
+    "tan": np.tan,
+    "arcsin": np.arcsin,
+    "arccos": np.arccos,
+    "arctan": np.arctan,
+    "sinh": np.sinh,
+    "cosh": np.cosh,
+    "tanh": np.tanh,
+}
+_UNARY_TORCH = {
+    "exp": "exp",
+    "ln": "log",
+    "log10": "log10",
+    "sqrt": "sqrt",
+    "abs": "abs",
+    "floor": "floor",
+    "ceiling": "ceil",
+    "sin": "sin",
+    "cos": "cos",
+    "tan": "tan",
+    "arcsin": "asin",
+    "arccos": "acos",
+    "arctan": "atan",
+    "sinh": "sinh",
+    "cosh": "cosh",
+    "tanh": "tanh",
+}
+_UNARY_NUMBA = {
+    "exp": "exp",
+    "ln": "log",
+    "log10": "log10",
+    "sqrt": "sqrt",
+    "abs": "abs",
+    "floor": "floor",
+    "ceiling": "ceil",
+    "sin": "sin",
+    "cos": "cos",
+    "tan": "tan",
+    "arcsin": "arcsin",
+    "arccos": "arccos",
+    "arctan": "arctan",
+    "sinh": "sinh",
+    "cosh": "cosh",
+    "tanh": "tanh",
+}
+
+OPERATORS: dict[str, _Op] = {
+    "plus": _Op(1, None, REAL, REAL, lambda *a: math.fsum(a), "+", "+"),
+    "times": _Op(1, None, REAL, REAL, lambda *a: math.prod(a), "*", "*"),
+    "minus": _Op(2, 2, REAL, REAL, lambda a, b: a - b, "({0} - {1})", "({0} - {1})"),
+    "negate": _Op(1, 1, REAL, REAL, lambda a: -a, "(-{0})", "(-{0})"),
+    "divide": _Op(2, 2, REAL, REAL, _div, "({0} / {1})", "({0} / {1})"),
+    "power": _Op(2, 2, REAL, REAL, _pow, "({0} ** {1})", "({0} ** {1})"),
+    "min": _Op(1, None, REAL, REAL, min, "minimum", "min"),
+    "max": _Op(1, None, REAL, REAL, max, "maximum", "max"),
+    **{
+        name: _Op(
+            1,
+            1,
+            REAL,
+            REAL,
+            _np1(fn),
+            f"torch.{_UNARY_TORCH[name]}({{0}})",
+            f"np.{_UNARY_NUMBA[name]}({{0}})",
+        )
+        for name, fn in _UNARY_NP.items()
+    },
+    "lt": _Op(2, 2, REAL, BOOL, lambda a, b: a < b, "({0} < {1})", "({0} < {1})"),
+    "leq": _Op(2, 2, REAL, BOOL, lambda a, b: a <= b, "({0} <= {1})", "({0} <= {1})"),
+    "gt": _Op(2, 2, REAL, BOOL, lambda a, b: a > b, "({0} > {1})", "({0} > {1})"),
+    "geq": _Op(2, 2, REAL, BOOL, lambda a, b: a >= b, "({0} >= {1})", "({0} >= {1})"),
+    "eq": _Op(2, 2, REAL, BOOL, lambda a, b: a == b, "({0} == {1})", "({0} == {1})"),
+    "neq": _Op(2, 2, REAL, BOOL, lambda a, b: a != b, "({0} != {1})", "({0} != {1})"),
+    "and": _Op(1, None, BOOL, BOOL, lambda *a: all(a), "logical_and", "and"),
+    "or": _Op(1, None, BOOL, BOOL, lambda *a: any(a), "logical_or", "or"),
+    "xor": _Op(1, None, BOOL, BOOL, lambda *a: sum(a) % 2 == 1, "logical_xor", "!="),
+    "not": _Op(1, 1, BOOL, BOOL, lambda a: not a, "torch.logical_not({0})", "(not {0})"),
+    # piecewise(v1, c1, v2, c2, ..., otherwise): args checked by ``call`` itself.
+    "piecewise": _Op(1, None, "any", REAL, lambda *a: math.nan, "piecewise", "piecewise"),
+}
+
+
+@dataclass(frozen=True)
+class Expr:
+    """A node of a propensity expression. Build with :func:`const`, :func:`species_ref`,
+    :func:`input_ref` and :func:`call` (which check and fold), not directly.
+
+    Attributes:
+        op: ``"const"``, ``"species"``, ``"input"`` or a key of ``OPERATORS``.
+        args: Child nodes (operators only).
+        value: The value of a constant (a bool for boolean constants).
+        index: Column of a species (in the state) or an input (in the inputs).
+        name: Species or input name (for messages and readable code).
+        kind: ``"real"`` or ``"bool"``.
+    """
+
+    op: str
+    args: tuple[Expr, ...] = ()
+    value: float | bool = 0.0
+    index: int = -1
+    name: str = ""
+    kind: str = REAL
+
+    @property
+    def is_const(self) -> bool:
+        """True for a constant leaf (every constant subtree is folded into one)."""
+        return self.op == "const"
+
+    def evaluate(self, species: Sequence[float], inputs: Sequence[float]) -> float | bool:
+        """Evaluate at one state with plain float64 scalar arithmetic (a reference, not fast)."""
+        if self.op == "const":
+            return self.value
+        if self.op == "species":
+            return float(species[self.index])
+        if self.op == "input":
+            return float(inputs[self.index])
+        if self.op == "piecewise":
+            pieces = self.args
+            for k in range(0, len(pieces) - 1, 2):
+                if pieces[k + 1].evaluate(species, inputs):
+                    return pieces[k].evaluate(species, inputs)
+            return pieces[-1].evaluate(species, inputs) if len(pieces) % 2 else math.nan
+        values = [arg.evaluate(species, inputs) for arg in self.args]
+        return OPERATORS[self.op].fold(*values)
+
+    def species_used(self) -> set[int]:
+        """Columns of the species this expression reads."""
+        if self.op == "species":
+            return {self.index}
+        return set().union(*(arg.species_used() for arg in self.args)) if self.args else set()
+
+    def inputs_used(self) -> set[int]:
+        """Columns of the inputs this expression reads."""
+        if self.op == "input":
+            return {self.index}
+        return set().union(*(arg.inputs_used() for arg in self.args)) if self.args else set()
+
+
+def const(value: float | bool) -> Expr:
+    """A real (or, for a Python bool, boolean) constant."""
+    if isinstance(value, (bool, np.bool_)):
+        return Expr("const", value=bool(value), kind=BOOL)
+    return Expr("const", value=float(value))
+
+
+def species_ref(index: int, name: str) -> Expr:
+    """The count of species ``name`` (state column ``index``), as a real number."""
+    if index < 0:
+        raise ValueError(f"species {name!r}: column must be >= 0, got {index}")
+    return Expr("species", index=index, name=name)
+
+
+def input_ref(index: int, name: str) -> Expr:
+    """The per-cell input ``name`` (inputs column ``index``)."""
+    if index < 0:
+        raise ValueError(f"input {name!r}: column must be >= 0, got {index}")
+    return Expr("input", index=index, name=name)
+
+
+def call(op: str, *args: Expr) -> Expr:
+    """Apply operator ``op`` (a key of ``OPERATORS``) to ``args``; type-checks and folds.
+
+    Raises:
+        ValueError: unknown operator, wrong number of arguments, or an argument of the wrong
+            kind (e.g. a boolean added to a number); the message names the operator.
+    """
+    spec = OPERATORS.get(op)
+    if spec is None:
+        raise ValueError(f"unknown operator {op!r}; known: {sorted(OPERATORS)}")
+    n = len(args)
+    if n < spec.min_args or (spec.max_args is not None and n > spec.max_args):
+        most = "any number of" if spec.max_args is None else f"at most {spec.max_args}"
+        raise ValueError(
+            f"operator {op!r} takes at least {spec.min_args} and {most} arguments, got {n}"
+        )
+    if op == "piecewise":
+        for k, arg in enumerate(args):
+            want = BOOL if (k % 2 == 1 and not (n % 2 == 1 and k == n - 1)) else REAL
+            if arg.kind != want:
+                raise ValueError(f"piecewise argument {k} must be {want}, got {arg.kind}")
+        return _fold_piecewise(args)
+    if spec.arg_kind != "any":
+        for k, arg in enumerate(args):
+            if arg.kind != spec.arg_kind:
+                raise ValueError(
+                    f"operator {op!r} argument {k} must be {spec.arg_kind}, got {arg.kind}"
+                )
+    if all(arg.is_const for arg in args):
+        return const(spec.fold(*(arg.value for arg in args)))
+    if op in ("and", "or"):
+        absorbing = op == "or"  # True absorbs 'or', False absorbs 'and'
+        rest = []
+        for arg in args:
+            if arg.is_const:
+                if arg.value == absorbing:
+                    return const(absorbing)
+                continue  # the neutral constant drops out
+            rest.append(arg)
+        if len(rest) == 1:
+            return rest[0]
+        args = tuple(rest)
+    if n == 1 and op in ("plus", "times", "min", "max"):
+        return args[0]
+    return Expr(op, args=tuple(args), kind=spec.kind)
+
+
+def _fold_piecewise(args: Sequence[Expr]) -> Expr:
+    """Drop pieces whose condition is constant False; stop at the first constant True."""
+    pieces: list[Expr] = []
+    otherwise = args[-1] if len(args) % 2 == 1 else const(math.nan)
+    for k in range(0, len(args) - 1, 2):
+        value, cond = args[k], args[k + 1]
+        if cond.is_const:
+            if cond.value:
+                otherwise = value
+                break
+            continue
+        pieces += [value, cond]
+    if not pieces:
+        return otherwise
+    return Expr("piecewise", args=(*pieces, otherwise), kind=REAL)
+
+
+# ----------------------------------------------------------------------------------------------
+# code generation
+
+
+def _torch_code(e: Expr, tensor: bool = False) -> str:
+    """Torch expression over ``x`` (n, S) float64 and ``p`` (n, P) float64; ``_z`` is an
+    (n,) float64 zero vector used to turn constants into tensors where torch needs one."""
+    if e.op == "const":
+        if e.kind == BOOL:
+            return "(_z == 0)" if e.value else "(_z != 0)"
+        text = repr(float(e.value))
+        return f"(_z + {text})" if tensor else f"({text})"
+    if e.op == "species":
+        return f"x[:, {e.index}]"
+    if e.op == "input":
+        return f"p[:, {e.index}]"
+    spec = OPERATORS[e.op]
+    if e.op in ("plus", "times"):
+        return "(" + f" {spec.torch} ".join(_torch_code(a) for a in e.args) + ")"
+    if e.op in ("min", "max", "and", "or", "xor"):
+        code = _torch_code(e.args[0], tensor=True)
+        for arg in e.args[1:]:
+            code = f"torch.{spec.torch}({code}, {_torch_code(arg, tensor=True)})"
+        return code
+    if e.op == "piecewise":
+        code = _torch_code(e.args[-1], tensor=True)
+        for k in range(len(e.args) - 3, -1, -2):
+            value = _torch_code(e.args[k], tensor=True)
+            code = f"torch.where({_torch_code(e.args[k + 1], tensor=True)}, {value}, {code})"
+        return code
+    return spec.torch.format(
+        *(_torch_code(a, tensor=spec.torch.startswith("torch.")) for a in e.args)
+    )
+
+
+def _numba_code(e: Expr) -> str:
+    """Scalar numba expression over locals ``s<j>`` (species, float) and ``p<j>`` (inputs)."""
+    if e.op == "const":
+        if e.kind == BOOL:
+            return "True" if e.value else "False"
+        value = float(e.value)
+        if math.isnan(value):
+            return "np.nan"
+        if math.isinf(value):
+            return "np.inf" if value > 0 else "(-np.inf)"
+        return repr(value)
+    if e.op == "species":
+        return f"s{e.index}"
+    if e.op == "input":
+        return f"p{e.index}"
+    spec = OPERATORS[e.op]
+    args = [_numba_code(a) for a in e.args]
+    if e.op in ("plus", "times", "and", "or", "xor"):
+        return "(" + f" {spec.numba} ".join(args) + ")"
+    if e.op in ("min", "max"):
+        code = args[0]
+        for arg in args[1:]:
+            code = f"{spec.numba}({code}, {arg})"
+        return code
+    if e.op == "piecewise":
+        code = args[-1]
+        for k in range(len(args) - 3, -1, -2):
+            code = f"({args[k]} if {args[k + 1]} else {code})"
+        return code
+    return spec.numba.format(*args)
+
+
+def _torch_source(exprs: Sequence[Expr]) -> str:
+    lines = [
+        "def propensities(state, inputs):",
+        "    x = state.to(torch.float64)",
+        "    p = inputs.to(device=state.device, dtype=torch.float64)",
+        "    _z = torch.zeros(state.shape[0], dtype=torch.float64, device=state.device)",
+        "    return torch.stack([",
+    ]
+    lines += [f"        {_torch_code(e, tensor=True)}," for e in exprs]
+    lines += ["    ], dim=1)", ""]
+    return "\n".join(lines)
+
+
+def _numba_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
+    used_s = sorted(set().union(*(e.species_used() for e in exprs)))
+    used_p = sorted(set().union(*(e.inputs_used() for e in exprs)))
+    lines = [f"def {name}(x, p, a):"]
+    lines += [f"    s{j} = float(x[{j}])" for j in used_s]
+    lines += [f"    p{j} = p[{j}]" for j in used_p]
+    lines += [f"    a[{r}] = {_numba_code(e)}" for r, e in enumerate(exprs)]
+    lines += ["", ""]
+    return "\n".join(lines)
+
+
+@dataclass(frozen=True, eq=False)
+class Kinetics:
+    """A reaction network with general propensities over its state and per-cell inputs.
+
+    Attributes:
+        network: Species, reactions and their (net) stoichiometry. Species that the model
+            holds fixed (boundary or constant species) have zero net change.
+        input_names: Names of the per-cell inputs, in column order of the ``inputs`` tensor.
+        propensity_exprs: One expression per reaction (events per unit time), over species
+            counts and inputs.
+    """
+
+    network: ReactionNetwork
+    input_names: tuple[str, ...]
+    propensity_exprs: tuple[Expr, ...]
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        exprs = tuple(self.propensity_exprs)
+        names = tuple(self.input_names)
+        object.__setattr__(self, "propensity_exprs", exprs)
+        object.__setattr__(self, "input_names", names)
+        if len(exprs) != self.network.n_reactions:
+            raise ValueError(
+                f"need one propensity per reaction ({self.network.n_reactions}), got {len(exprs)}"
+            )
+        if len(set(names)) != len(names):
+            raise ValueError(f"input names must be unique, got {names}")
+        for r, e in enumerate(exprs):
+            name = self.network.reaction_names[r]
+            if e.kind != REAL:
+                raise ValueError(f"reaction {name!r}: propensity must be real, got boolean")
+            if e.species_used() and max(e.species_used()) >= self.network.n_species:
+                raise ValueError(f"reaction {name!r}: species column out of range")
+            if e.inputs_used() and max(e.inputs_used()) >= len(names):
+                raise ValueError(f"reaction {name!r}: input column out of range")
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of per-cell inputs ``P``."""
+        return len(self.input_names)
+
+    @property
+    def torch_source(self) -> str:
+        """Generated source of the torch propensity function (for inspection)."""
+        return _torch_source(self.propensity_exprs)
+
+    @property
+    def numba_source(self) -> str:
+        """Generated source of ``propensities(x, p, a)``: scalar per-cell code for numba.
+
+        ``x`` is one cell's ``(S,)`` int64 counts, ``p`` its ``(P,)`` float64 inputs, and the
+        ``(R,)`` float64 propensities are written into ``a``. Uses ``np`` (numpy) only.
+        """
+        return _numba_source(self.propensity_exprs)
+
+    @property
+    def torch_propensity(self) -> Callable[[Tensor, Tensor], Tensor]:
+        """``propensities(state (n, S), inputs (n, P)) -> (n, R) float64`` on any device.
+
+        Generated once from the expression trees and cached. No validation (hot path); use
+        :meth:`propensities` for a checked call.
+        """
+        fn = self._cache.get("torch")
+        if fn is None:
+            namespace: dict = {"torch": torch}
+            exec(compile(self.torch_source, "<surrogate.kinetics>", "exec"), namespace)
+            fn = namespace["propensities"]
+            self._cache["torch"] = fn
+        return fn
+
+    def check_inputs(self, state: Tensor, inputs: Tensor) -> tuple[Tensor, Tensor]:
+        """Validate ``state`` ``(n, S)`` integer counts >= 0 and ``inputs`` ``(n, P)`` (or
+        ``(P,)``, shared) finite floats on the same device; return (int64 state, (n, P) inputs).
+        """
+        network = self.network
+        if not isinstance(state, Tensor) or not isinstance(inputs, Tensor):
+            raise ValueError("state and inputs must be torch tensors")
+        if state.dim() != 2 or state.shape[1] != network.n_species:
+            raise ValueError(
+                f"state must have shape (n, S) with S = {network.n_species} species "
+                f"{network.species}, got {tuple(state.shape)}"
+            )
+        if state.dtype.is_floating_point or state.dtype.is_complex or state.dtype == torch.bool:
+            raise ValueError(f"state must hold integer counts, got dtype {state.dtype}")
+        n = state.shape[0]
+        if inputs.dim() == 1:
+            inputs = inputs.unsqueeze(0).expand(n, -1)
+        if inputs.dim() != 2 or tuple(inputs.shape) != (n, self.n_inputs):
+            raise ValueError(
+                f"inputs must have shape (n, P) = ({n}, {self.n_inputs}) for inputs "
+                f"{self.input_names}, or (P,), got {tuple(inputs.shape)}"
+            )
+        if not inputs.dtype.is_floating_point:
+            raise ValueError(f"inputs must be floating point, got dtype {inputs.dtype}")
+        if inputs.device != state.device:
+            raise ValueError(f"state is on {state.device} but inputs on {inputs.device}")
+        bad = torch.stack([(state < 0).any(), ~torch.isfinite(inputs).all()]).tolist()
+        if bad[0]:
+            raise ValueError("state must hold non-negative counts")
+        if bad[1]:
+            raise ValueError("inputs must be finite")
+        return state.to(torch.int64), inputs
+
+    def propensities(self, state: Tensor, inputs: Tensor) -> Tensor:
+        """Checked propensities.
+
+        Args:
+            state: ``n x S`` integer species counts.
+            inputs: ``n x P`` float per-cell inputs (``(P,)`` is shared by all cells).
+
+        Returns:
+            ``n x R`` float64 propensities, on the device of ``state``.
+        """
+        state, inputs = self.check_inputs(state, inputs)
+        return self.torch_propensity(state, inputs)
+
+
+def mass_action_kinetics(network: ReactionNetwork) -> Kinetics:
+    """Mass-action kinetics of ``network`` with the rate constants as per-cell inputs.
+
+    Input ``r`` (named ``k_<reaction name>``) is reaction ``r``'s rate constant ``c_r``, and
+    ``a_r(x) = c_r prod_s binom(x_s, r_rs)`` as in :mod:`surrogate.ctmc.network`, so
+    ``kinetics.torch_propensity(state, rate_constants)`` equals ``network.propensities``.
+    """
+    exprs = []
+    reactants = network.reactants.tolist()
+    for r, coeffs in enumerate(reactants):
+        factors = [input_ref(r, f"k_{network.reaction_names[r]}")]
+        for s, m in enumerate(coeffs):
+            for k in range(m):
+                x = species_ref(s, network.species[s])
+                # binom(x, m) = prod_{k<m} (x - k) / (k + 1)
+                factors.append(
+                    x if k == 0 else call("divide", call("minus", x, const(k)), const(k + 1))
+                )
+        exprs.append(call("times", *factors))
+    names = tuple(f"k_{name}" for name in network.reaction_names)
+    return Kinetics(network=network, input_names=names, propensity_exprs=tuple(exprs))
+
+
+def substitute(e: Expr, bindings: Mapping[str, Expr]) -> Expr:
+    """Replace every input leaf whose name is in ``bindings`` (re-folding on the way up)."""
+    if e.op == "input":
+        return bindings.get(e.name, e)
+    if not e.args:
+        return e
+    return call(e.op, *(substitute(a, bindings) for a in e.args))

@@ -1,0 +1,560 @@
+"""Read an SBML model as a stochastic reaction network with general kinetics.
+
+Reading (the discrete stochastic interpretation of SBML, as in the SBML discrete stochastic
+model test suite):
+
+* Species are molecule counts. A species' initial value is its ``initialAmount``, or
+  ``initialConcentration x compartment size`` (rounded to the nearest integer), or the value of
+  an initial assignment. Substance units must be items (or unset / dimensionless): a model in
+  moles is refused rather than silently rescaled.
+* In a kinetic law a species symbol is its amount when ``hasOnlySubstanceUnits`` is true, else
+  its concentration ``amount / compartment size``. The kinetic law's value is the reaction's
+  propensity (events per unit time).
+* Boundary-condition and constant species are never changed by reactions.
+* Global parameters named in ``inputs`` are per-cell inputs, supplied with the state at every
+  window; every other parameter and every compartment size is a constant. Local (kinetic-law)
+  parameters shadow globals. Function definitions are inlined. Assignment rules whose variable
+  is a parameter are inlined where the parameter is used (they are functions of the state).
+
+Refused, with an :class:`~surrogate.sbml.errors.SbmlError` naming the construct and the element
+id: events, rate and algebraic rules, assignment rules on species or compartments, delays, the
+time / rateOf csymbols, fast or reversible reactions (write a reversible reaction as two
+irreversible ones), non-integer or variable stoichiometry, initial assignments that depend on
+something other than constants, conversion factors, unknown MathML.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import libsbml
+import torch
+from torch import Tensor
+
+from surrogate.ctmc.kinetics import Expr, Kinetics, call, const, input_ref, species_ref
+from surrogate.ctmc.network import ReactionNetwork
+from surrogate.sbml.errors import SbmlError
+from surrogate.sbml.math import convert
+
+__all__ = ["SbmlModel", "SbmlReaction", "read_sbml", "read_sbml_string"]
+
+
+@dataclass(frozen=True)
+class SbmlReaction:
+    """One reaction as written in the file.
+
+    Attributes:
+        id: The reaction id (also its name in the network).
+        reactants: ``{species id: stoichiometry}`` consumed (boundary species included).
+        products: ``{species id: stoichiometry}`` produced (boundary species included).
+        modifiers: Ids of the modifier species.
+    """
+
+    id: str
+    reactants: Mapping[str, int]
+    products: Mapping[str, int]
+    modifiers: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class SbmlModel:
+    """An SBML model read as a stochastic reaction network.
+
+    Attributes:
+        id: The model id.
+        kinetics: Network (species in file order; net stoichiometry, zero for fixed species)
+            and one propensity expression per reaction over counts and ``input_names``.
+        initial_state: ``(S,)`` int64 initial molecule counts.
+        constants: Values of every global parameter that is not an input and of every
+            compartment size (by id).
+        input_defaults: The value the file gives each input parameter (NaN if unset).
+        fixed_species: Ids of boundary-condition or constant species.
+        reactions: The reactions as written (including fixed species and modifiers).
+        source: The file read, or ``None`` for a string.
+    """
+
+    id: str
+    kinetics: Kinetics
+    initial_state: Tensor
+    constants: Mapping[str, float]
+    input_defaults: Mapping[str, float]
+    fixed_species: tuple[str, ...]
+    reactions: tuple[SbmlReaction, ...]
+    source: Path | None = None
+
+    @property
+    def network(self) -> ReactionNetwork:
+        """The reaction network (species, reactants, products, stoichiometry)."""
+        return self.kinetics.network
+
+    @property
+    def species(self) -> tuple[str, ...]:
+        """Species ids, in state column order."""
+        return self.kinetics.network.species
+
+    @property
+    def reaction_names(self) -> tuple[str, ...]:
+        """Reaction ids, in propensity column order."""
+        return self.kinetics.network.reaction_names
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Per-cell input names, in inputs column order."""
+        return self.kinetics.input_names
+
+    @property
+    def numba_source(self) -> str:
+        """Scalar per-cell ``propensities(x, p, a)`` source for numba (see ``Kinetics``)."""
+        return self.kinetics.numba_source
+
+    @property
+    def torch_propensity(self) -> Callable[[Tensor, Tensor], Tensor]:
+        """Unchecked ``propensities(state (n, S), inputs (n, P)) -> (n, R)`` float64."""
+        return self.kinetics.torch_propensity
+
+    def propensities(self, state: Tensor, inputs: Tensor) -> Tensor:
+        """Checked propensities.
+
+        Args:
+            state: ``n x S`` integer counts.
+            inputs: ``n x P`` float inputs (``(P,)`` shared by all cells).
+
+        Returns:
+            ``n x R`` float64 propensities on the device of ``state``.
+        """
+        return self.kinetics.propensities(state, inputs)
+
+    def default_inputs(self) -> Tensor:
+        """``(P,)`` float64 input values given in the file (raises if one is unset)."""
+        values = [self.input_defaults[name] for name in self.input_names]
+        missing = [n for n, v in zip(self.input_names, values, strict=True) if math.isnan(v)]
+        if missing:
+            raise SbmlError(f"model {self.id!r}: inputs {missing} have no value in the file")
+        return torch.tensor(values, dtype=torch.float64)
+
+    def initial_states(self, n: int) -> Tensor:
+        """``n x S`` int64: the initial state repeated for ``n`` cells."""
+        return self.initial_state.unsqueeze(0).expand(n, -1).clone()
+
+
+def read_sbml(path: str | Path, inputs: Sequence[str] = ()) -> SbmlModel:
+    """Read an SBML file (levels 2 and 3) as a stochastic reaction network.
+
+    Args:
+        path: The ``.xml`` / ``.sbml`` file.
+        inputs: Global parameter ids supplied per cell at run time (``inputs (n, P)`` columns
+            in this order); all other parameters are constants.
+
+    Returns:
+        The :class:`SbmlModel`.
+
+    Raises:
+        SbmlError: unreadable file, SBML errors, or an unsupported construct (the message
+            names it and the element id).
+
+    Example::
+
+        model = read_sbml("network.xml", inputs=["activity"])
+        ssa = CompiledSSA(model.kinetics)
+        x, events = ssa.advance(model.initial_states(100), torch.tensor([0.45]), 0.05,
+                                CellStreams.from_seed(0, 100))
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SbmlError(f"SBML file {str(path)!r} does not exist")
+    document = libsbml.readSBMLFromFile(str(path))
+    return _read_document(document, inputs, str(path), path)
+
+
+def read_sbml_string(text: str, inputs: Sequence[str] = ()) -> SbmlModel:
+    """Like :func:`read_sbml`, from the SBML document's text."""
+    document = libsbml.readSBMLFromString(text)
+    return _read_document(document, inputs, "<string>", None)
+
+
+def _read_document(
+    document: libsbml.SBMLDocument, inputs: Sequence[str], label: str, source: Path | None
+) -> SbmlModel:
+    errors = [
+        document.getError(i)
+        for i in range(document.getNumErrors())
+        if document.getError(i).getSeverity() >= libsbml.LIBSBML_SEV_ERROR
+    ]
+    if errors:
+        first = errors[0]
+        raise SbmlError(
+            f"{label}: {len(errors)} SBML error(s); first at line {first.getLine()}: "
+            f"{first.getMessage().strip()}"
+        )
+    model = document.getModel()
+    if model is None:
+        raise SbmlError(f"{label}: the document has no model")
+    return _Reader(model, tuple(inputs), label).read(source)
+
+
+def _ids(items: Iterable) -> list[str]:
+    return [item.getId() for item in items]
+
+
+class _Reader:
+    """One pass over a libsbml Model; builds the SbmlModel or raises on the first problem."""
+
+    def __init__(self, model: libsbml.Model, inputs: tuple[str, ...], label: str) -> None:
+        self.model = model
+        self.label = label
+        self.inputs = inputs
+        self.functions = {f.getId(): f for f in model.getListOfFunctionDefinitions()}
+        self.species = list(model.getListOfSpecies())
+        self.species_index = {sp.getId(): s for s, sp in enumerate(self.species)}
+        self.compartments = {c.getId(): c for c in model.getListOfCompartments()}
+        self.parameters = {p.getId(): p for p in model.getListOfParameters()}
+        self.initial_assignments = {a.getSymbol(): a for a in model.getListOfInitialAssignments()}
+        self.assignment_rules: dict[str, libsbml.Rule] = {}
+        self._values: dict[str, float] = {}
+        self._resolving: list[str] = []
+
+    # -- checks of the model as a whole ---------------------------------------------------
+
+    def _refuse_unsupported(self) -> None:
+        model = self.model
+        if model.getNumEvents():
+            event = model.getEvent(0)
+            raise SbmlError(
+                f"{self.label}: unsupported construct: event {event.getId() or '(no id)'!r} "
+                f"({model.getNumEvents()} events in the model)"
+            )
+        if model.isSetConversionFactor():
+            raise SbmlError(
+                f"{self.label}: unsupported construct: model conversionFactor "
+                f"{model.getConversionFactor()!r}"
+            )
+        for rule in model.getListOfRules():
+            variable = rule.getVariable() if not rule.isAlgebraic() else ""
+            if rule.isAlgebraic():
+                raise SbmlError(
+                    f"{self.label}: unsupported construct: algebraic rule "
+                    f"{rule.getId() or libsbml.formulaToL3String(rule.getMath())!r}"
+                )
+            if rule.isRate():
+                raise SbmlError(f"{self.label}: unsupported construct: rate rule for {variable!r}")
+            if variable not in self.parameters:
+                raise SbmlError(
+                    f"{self.label}: unsupported construct: assignment rule for {variable!r} "
+                    "(only parameters may be assigned by rules; species change by reactions "
+                    "only and compartments are fixed)"
+                )
+            if variable in self.inputs:
+                raise SbmlError(
+                    f"{self.label}: parameter {variable!r} is declared an input but is "
+                    "assigned by a rule"
+                )
+            self.assignment_rules[variable] = rule
+        for name in self.inputs:
+            if name not in self.parameters:
+                known = sorted(self.parameters)
+                raise SbmlError(
+                    f"{self.label}: input {name!r} is not a global parameter of the model; "
+                    f"global parameters: {known}"
+                )
+            if name in self.initial_assignments:
+                raise SbmlError(f"{self.label}: input parameter {name!r} has an initial assignment")
+        if len(set(self.inputs)) != len(self.inputs):
+            raise SbmlError(f"{self.label}: inputs must be unique, got {list(self.inputs)}")
+        for sp in self.species:
+            if sp.isSetConversionFactor():
+                raise SbmlError(
+                    f"{self.label}: unsupported construct: conversionFactor on species "
+                    f"{sp.getId()!r}"
+                )
+            self._check_substance_units(sp.getSubstanceUnits() or model.getSubstanceUnits(), sp)
+
+    def _check_substance_units(self, units: str, sp: libsbml.Species) -> None:
+        if not units or units in ("item", "dimensionless"):
+            return
+        if units in ("mole", "gram", "kilogram", "avogadro"):
+            kinds = [units]
+        else:
+            definition = self.model.getUnitDefinition(units)
+            if definition is None:
+                return
+            kinds = [libsbml.UnitKind_toString(u.getKind()) for u in definition.getListOfUnits()]
+        if any(k not in ("item", "dimensionless") for k in kinds):
+            raise SbmlError(
+                f"{self.label}: species {sp.getId()!r} has substance units {units!r} "
+                f"({kinds}); the stochastic reading needs molecule counts (item)"
+            )
+
+    # -- values of constants ------------------------------------------------------------
+
+    def constant_value(self, name: str, where: str) -> float:
+        """Value of a compartment, parameter or species at t = 0 (initial assignments used)."""
+        if name in self._values:
+            return self._values[name]
+        if name in self._resolving:
+            raise SbmlError(f"{where}: circular initial assignments through {name!r}")
+        self._resolving.append(name)
+        try:
+            value = self._constant_value(name, where)
+        finally:
+            self._resolving.pop()
+        self._values[name] = value
+        return value
+
+    def _constant_value(self, name: str, where: str) -> float:
+        if name in self.initial_assignments:
+            assignment = self.initial_assignments[name]
+            return self._evaluate_constant(assignment.getMath(), f"initial assignment of {name!r}")
+        if name in self.compartments:
+            c = self.compartments[name]
+            if not c.isSetSize():
+                raise SbmlError(f"{where}: compartment {name!r} has no size")
+            return float(c.getSize())
+        if name in self.parameters:
+            p = self.parameters[name]
+            if name in self.assignment_rules:
+                raise SbmlError(
+                    f"{where}: parameter {name!r} is assigned by a rule, so it is not a constant"
+                )
+            if not p.isSetValue():
+                raise SbmlError(f"{where}: parameter {name!r} has no value")
+            return float(p.getValue())
+        if name in self.species_index:
+            return self._initial_species_value(self.species[self.species_index[name]])
+        raise SbmlError(f"{where}: unknown symbol {name!r}")
+
+    def _evaluate_constant(self, math_node: libsbml.ASTNode, where: str) -> float:
+        def resolve(name: str) -> Expr:
+            if name in self.inputs:
+                raise SbmlError(f"{where}: depends on input parameter {name!r}")
+            if name in self.species_index and name not in self.initial_assignments:
+                sp = self.species[self.species_index[name]]
+                amount = self._initial_amount(sp)
+                if sp.getHasOnlySubstanceUnits():
+                    return const(amount)
+                return const(amount / self._compartment_size(sp, where))
+            return const(self.constant_value(name, where))
+
+        expr = convert(math_node, resolve, self.functions, where)
+        if not expr.is_const:
+            raise SbmlError(f"{where}: unsupported construct: value is not a constant")
+        return float(expr.value)
+
+    def _compartment_size(self, sp: libsbml.Species, where: str) -> float:
+        cid = sp.getCompartment()
+        if cid not in self.compartments:
+            raise SbmlError(f"species {sp.getId()!r}: unknown compartment {cid!r}")
+        size = self.constant_value(cid, where)
+        if not (size > 0 and math.isfinite(size)):
+            raise SbmlError(f"compartment {cid!r}: size must be finite and > 0, got {size}")
+        return size
+
+    def _initial_amount(self, sp: libsbml.Species) -> float:
+        sid = sp.getId()
+        where = f"species {sid!r}"
+        if sid in self.initial_assignments:
+            value = self._evaluate_constant(
+                self.initial_assignments[sid].getMath(), f"initial assignment of {sid!r}"
+            )
+            if sp.getHasOnlySubstanceUnits():
+                return value
+            return value * self._compartment_size(sp, where)
+        if sp.isSetInitialAmount():
+            return float(sp.getInitialAmount())
+        if sp.isSetInitialConcentration():
+            return float(sp.getInitialConcentration()) * self._compartment_size(sp, where)
+        raise SbmlError(f"{where}: no initialAmount, initialConcentration or initial assignment")
+
+    def _initial_species_value(self, sp: libsbml.Species) -> float:
+        amount = self._initial_amount(sp)
+        if sp.getHasOnlySubstanceUnits():
+            return amount
+        return amount / self._compartment_size(sp, f"species {sp.getId()!r}")
+
+    def initial_count(self, sp: libsbml.Species) -> int:
+        """Initial molecule count; concentrations x size are rounded to the nearest integer."""
+        sid = sp.getId()
+        amount = self._initial_amount(sp)
+        if not (math.isfinite(amount) and amount >= 0):
+            raise SbmlError(
+                f"species {sid!r}: initial amount must be finite and >= 0, got {amount}"
+            )
+        if sp.isSetInitialAmount() and sid not in self.initial_assignments:
+            if not float(amount).is_integer():
+                raise SbmlError(
+                    f"species {sid!r}: initialAmount {amount} is not a whole number of molecules"
+                )
+            return int(amount)
+        return round(amount)
+
+    # -- kinetic laws ---------------------------------------------------------------------
+
+    def expression(
+        self, math_node: libsbml.ASTNode, local: Mapping[str, float], where: str
+    ) -> Expr:
+        """Convert a kinetic law (or an assignment rule's math) to a propensity expression."""
+
+        def resolve(name: str) -> Expr:
+            if name in local:
+                return const(local[name])
+            if name in self.species_index:
+                s = self.species_index[name]
+                sp = self.species[s]
+                x = species_ref(s, name)
+                if sp.getHasOnlySubstanceUnits():
+                    return x
+                return call("divide", x, const(self._compartment_size(sp, where)))
+            if name in self.compartments:
+                return const(self.constant_value(name, where))
+            if name in self.inputs:
+                return input_ref(self.inputs.index(name), name)
+            if name in self.assignment_rules:
+                if name in self._resolving:
+                    raise SbmlError(f"{where}: circular assignment rules through {name!r}")
+                self._resolving.append(name)
+                try:
+                    rule = self.assignment_rules[name]
+                    return self.expression(rule.getMath(), {}, f"assignment rule for {name!r}")
+                finally:
+                    self._resolving.pop()
+            if name in self.parameters:
+                return const(self.constant_value(name, where))
+            if self.model.getReaction(name) is not None:
+                raise SbmlError(
+                    f"{where}: unsupported construct: reaction id {name!r} used as a value"
+                )
+            if self._is_species_reference(name):
+                raise SbmlError(
+                    f"{where}: unsupported construct: species reference {name!r} used as a value"
+                )
+            raise SbmlError(f"{where}: unknown symbol {name!r}")
+
+        return convert(math_node, resolve, self.functions, where)
+
+    def _is_species_reference(self, name: str) -> bool:
+        for reaction in self.model.getListOfReactions():
+            for ref in (*reaction.getListOfReactants(), *reaction.getListOfProducts()):
+                if ref.isSetId() and ref.getId() == name:
+                    return True
+        return False
+
+    def _stoichiometry(self, reaction: libsbml.Reaction, refs: Iterable, side: str) -> dict:
+        rid = reaction.getId()
+        out: dict[str, int] = {}
+        for ref in refs:
+            sid = ref.getSpecies()
+            if sid not in self.species_index:
+                raise SbmlError(f"reaction {rid!r}: {side} {sid!r} is not a species")
+            if ref.isSetStoichiometryMath():
+                raise SbmlError(
+                    f"reaction {rid!r}: unsupported construct: stoichiometryMath for {side} {sid!r}"
+                )
+            if ref.isSetId() and (
+                ref.getId() in self.initial_assignments
+                or self.model.getRule(ref.getId()) is not None
+            ):
+                raise SbmlError(
+                    f"reaction {rid!r}: unsupported construct: variable stoichiometry of {side} "
+                    f"{sid!r} (species reference {ref.getId()!r} is assigned)"
+                )
+            level = self.model.getLevel()
+            coeff = (
+                float(ref.getStoichiometry()) if (level < 3 or ref.isSetStoichiometry()) else 1.0
+            )
+            if level >= 3 and not ref.isSetStoichiometry():
+                raise SbmlError(f"reaction {rid!r}: {side} {sid!r} has no stoichiometry")
+            if not (math.isfinite(coeff) and coeff >= 0 and coeff.is_integer()):
+                raise SbmlError(
+                    f"reaction {rid!r}: unsupported construct: non-integer stoichiometry {coeff} "
+                    f"of {side} {sid!r}"
+                )
+            out[sid] = out.get(sid, 0) + int(coeff)
+        return out
+
+    def read(self, source: Path | None) -> SbmlModel:
+        self._refuse_unsupported()
+        model = self.model
+        if not self.species:
+            raise SbmlError(f"{self.label}: the model has no species")
+        if model.getNumReactions() == 0:
+            raise SbmlError(f"{self.label}: the model has no reactions")
+        fixed = {sp.getId() for sp in self.species if sp.getBoundaryCondition() or sp.getConstant()}
+        species_ids = tuple(sp.getId() for sp in self.species)
+        reactions: list[SbmlReaction] = []
+        exprs: list[Expr] = []
+        n_species = len(species_ids)
+        reactants = torch.zeros((model.getNumReactions(), n_species), dtype=torch.int64)
+        products = torch.zeros_like(reactants)
+        for r, reaction in enumerate(model.getListOfReactions()):
+            rid = reaction.getId()
+            if reaction.isSetFast() and reaction.getFast():
+                raise SbmlError(f"reaction {rid!r}: unsupported construct: fast reaction")
+            if reaction.getReversible():
+                raise SbmlError(
+                    f"reaction {rid!r}: unsupported construct: reversible reaction (a kinetic "
+                    "law is one propensity; write it as two irreversible reactions)"
+                )
+            consumed = self._stoichiometry(reaction, reaction.getListOfReactants(), "reactant")
+            produced = self._stoichiometry(reaction, reaction.getListOfProducts(), "product")
+            modifiers = tuple(m.getSpecies() for m in reaction.getListOfModifiers())
+            for sid in modifiers:
+                if sid not in self.species_index:
+                    raise SbmlError(f"reaction {rid!r}: modifier {sid!r} is not a species")
+            law = reaction.getKineticLaw()
+            if law is None:
+                raise SbmlError(f"reaction {rid!r}: no kinetic law (needed as the propensity)")
+            local = {}
+            params = (
+                law.getListOfLocalParameters()
+                if model.getLevel() >= 3
+                else law.getListOfParameters()
+            )
+            for p in params:
+                if not p.isSetValue():
+                    raise SbmlError(f"reaction {rid!r}: local parameter {p.getId()!r} has no value")
+                local[p.getId()] = float(p.getValue())
+            exprs.append(self.expression(law.getMath(), local, f"kinetic law of reaction {rid!r}"))
+            for sid, coeff in consumed.items():
+                if sid not in fixed:
+                    reactants[r, self.species_index[sid]] = coeff
+            for sid, coeff in produced.items():
+                if sid not in fixed:
+                    products[r, self.species_index[sid]] = coeff
+            reactions.append(SbmlReaction(rid, consumed, produced, modifiers))
+        network = ReactionNetwork(
+            species=species_ids,
+            reactants=reactants,
+            products=products,
+            reaction_names=tuple(r.id for r in reactions),
+        )
+        kinetics = Kinetics(network=network, input_names=self.inputs, propensity_exprs=tuple(exprs))
+        initial = torch.tensor([self.initial_count(sp) for sp in self.species], dtype=torch.int64)
+        constants = {
+            name: self.constant_value(name, f"compartment {name!r}") for name in self.compartments
+        }
+        for name in self.parameters:
+            if name not in self.inputs and name not in self.assignment_rules:
+                try:
+                    constants[name] = self.constant_value(name, f"parameter {name!r}")
+                except SbmlError:
+                    if name in self.initial_assignments:
+                        raise
+                    constants[name] = math.nan  # declared without a value and never used
+        defaults = {
+            name: float(self.parameters[name].getValue())
+            if self.parameters[name].isSetValue()
+            else math.nan
+            for name in self.inputs
+        }
+        return SbmlModel(
+            id=model.getId(),
+            kinetics=kinetics,
+            initial_state=initial,
+            constants=constants,
+            input_defaults=defaults,
+            fixed_species=tuple(s for s in species_ids if s in fixed),
+            reactions=tuple(reactions),
+            source=source,
+        )
