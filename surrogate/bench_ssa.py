@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from surrogate.ctmc import CellStreams, CompiledSSA, gillespie
+from surrogate.io import write_json
 from surrogate.models.ecoli_phospho import NETWORK_AMOUNTS_PATH, calibrated, load_network
 
 __all__ = ["compile_times", "run_bench"]
@@ -204,8 +205,7 @@ def run_bench(
     result["mean_cheyp_initial"] = int(load_network().initial_state[6])
     print(format_table(result))
     if output is not None:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(output, result)
     return result
 
 

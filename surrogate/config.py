@@ -89,6 +89,7 @@ def field_name(cfg_field: Mapping[str, Any]) -> str:
 
 def _plain(data: Mapping[str, Any]) -> Any:
     """A comparable form of a config (numbers as floats: ``1`` and ``1.0`` are one setting)."""
+
     def norm(v: Any) -> Any:
         if isinstance(v, Mapping):
             return {k: norm(x) for k, x in sorted(v.items())}

@@ -272,9 +272,21 @@ def _require(path: Path, made_by: str | None) -> None:
 
 
 def settings_hash(settings: Mapping[str, Any], length: int = 8) -> str:
-    """A short stable hash of a (nested) settings mapping."""
-    blob = json.dumps(settings, sort_keys=True, default=_json_default, separators=(",", ":"))
+    """A short stable hash of a (nested) settings mapping; numbers are hashed as floats, so
+    ``radius=3`` and ``radius=3.0`` (one setting, typed two ways) share a directory."""
+    blob = json.dumps(_numbers_as_floats(_normalise(settings)), sort_keys=True,
+                      separators=(",", ":"))  # fmt: skip
     return hashlib.sha256(blob.encode()).hexdigest()[:length]
+
+
+def _numbers_as_floats(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _numbers_as_floats(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_numbers_as_floats(v) for v in value]
+    if isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
 
 
 def artefact_dir(

@@ -1,12 +1,24 @@
-"""Every config group composes and instantiates (Hydra compose API)."""
+"""Every config group composes and instantiates; settings are built once and their commands
+reproduce them."""
 
 from __future__ import annotations
 
-import pytest
+import shlex
 
-from surrogate.config import CONF_DIR, build_field, build_params, validate_common
+import pytest
+from hydra import compose, initialize_config_dir
+
+from surrogate.config import CONF_DIR, build_field, build_model
+from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.ecoli import EcoliParameters
+from surrogate.models.base import Model
+from surrogate.models.ecoli import EcoliModel
+from surrogate.stages.settings import (
+    CollectSettings,
+    ModelSetup,
+    SimulateSettings,
+    TrainSettings,
+)
 
 PRIMARY = ["collect", "train", "simulate"]
 FIELDS = sorted(p.stem for p in (CONF_DIR / "field").glob("*.yaml"))
@@ -17,45 +29,95 @@ EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 
 def test_the_groups_exist() -> None:
     assert {"gaussian", "linear", "dynamic", "zero"} <= set(FIELDS)
-    assert {"full", "abstract"} <= set(DECISIONS)
+    assert {"full", "abstract", "exact"} <= set(DECISIONS)
     assert "paper" in EXPERIMENTS
 
 
 @pytest.mark.parametrize("name", PRIMARY)
 def test_primary_configs_compose_and_validate(compose_cfg, name: str) -> None:
     cfg = compose_cfg(name)
-    validate_common(cfg)
-    assert isinstance(build_params(cfg.model), EcoliParameters)
+    setup = ModelSetup.from_config(cfg)
+    assert isinstance(setup.model, EcoliModel) and isinstance(setup.model, Model)
 
 
 @pytest.mark.parametrize("field", FIELDS)
 def test_every_field_instantiates(compose_cfg, field: str) -> None:
     cfg = compose_cfg("simulate", [f"field={field}"])
-    f = build_field(cfg.field)
-    assert isinstance(f, Field)
+    assert isinstance(build_field(cfg.field), Field)
 
 
 @pytest.mark.parametrize("decision", DECISIONS)
-def test_every_decision_composes(compose_cfg, decision: str) -> None:
+def test_every_decision_composes_and_validates(compose_cfg, decision: str) -> None:
     cfg = compose_cfg("simulate", [f"decision={decision}"])
     assert cfg.decision.name == decision
+    assert SimulateSettings.from_config(cfg).decision.name == decision
 
 
 @pytest.mark.parametrize("gp", GPS)
 def test_every_gp_config_builds_settings(compose_cfg, gp: str) -> None:
-    from surrogate.train import gp_settings
-
     cfg = compose_cfg("train", [f"gp={gp}"])
-    assert gp_settings(cfg).n_inducing == cfg.gp.n_inducing
+    settings = TrainSettings.from_config(cfg)
+    assert settings.gp.n_inducing == cfg.gp.n_inducing
+    assert settings.inputs == ("dG",)  # the model's signal by default
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_composes(compose_cfg, experiment: str) -> None:
     cfg = compose_cfg("simulate", [f"experiment={experiment}"])
-    validate_common(cfg)
+    SimulateSettings.from_config(cfg)
 
 
 def test_overrides_reach_the_model(compose_cfg) -> None:
     cfg = compose_cfg("simulate", ["model.n_motors=10", "model.tau=20", "dt=0.02"])
-    p = build_params(cfg.model)
-    assert (p.n_motors, p.tau, cfg.dt) == (10, 20.0, 0.02)
+    model = build_model(cfg.model)
+    assert (model.params.n_motors, model.params.tau, cfg.dt) == (10, 20.0, 0.02)
+
+
+def test_the_model_is_selected_by_target(compose_cfg) -> None:
+    cfg = compose_cfg("simulate", ["model._target_=builtins.dict"])
+    with pytest.raises(ConfigError, match="did not return a surrogate.models.Model"):
+        build_model(cfg.model)
+
+
+def test_inputs_choice(compose_cfg) -> None:
+    assert TrainSettings.from_config(compose_cfg("train", ["gp.inputs=inputs"])).inputs == (
+        "m",
+        "L",
+    )
+    both = TrainSettings.from_config(compose_cfg("train", ["gp.inputs=[F,L]"])).inputs
+    assert both == ("F", "L")
+    with pytest.raises(ConfigError, match="gp.inputs.*provides inputs"):
+        TrainSettings.from_config(compose_cfg("train", ["gp.inputs=[foo]"]))
+
+
+def _compose_command(command: str, data_dir: str):
+    """Compose the config a printed command would run (script name -> primary config)."""
+    words = shlex.split(command)
+    script = words[1].rsplit("/", 1)[-1].removesuffix(".py")
+    overrides = [w for w in words[2:] if w != "-m"]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name=script, overrides=[f"data_dir={data_dir}", *overrides])
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        [],
+        ["field=linear", "dt=0.02", "seed=3", "collect.n_per_state=500", "model.n_motors=6"],
+        ["model.perturbation.radius=3.0", "collect.record_every=5", "field.amplitude=0.2"],
+    ],
+)
+def test_commands_reproduce_the_settings(compose_cfg, tmp_path, overrides: list[str]) -> None:
+    """The command a missing artefact names makes exactly that artefact (same identity)."""
+    cfg = compose_cfg("simulate", ["decision=abstract", "gp.n_inducing=50", *overrides])
+    sim = SimulateSettings.from_config(cfg)
+    train = sim.decision.train
+    assert train is not None and isinstance(train.source, CollectSettings)
+    for settings, cls in (
+        (train.source, CollectSettings),
+        (train, TrainSettings),
+        (sim, SimulateSettings),
+    ):
+        again = cls.from_config(_compose_command(settings.command(), str(tmp_path / "data")))
+        assert again.identity() == settings.identity(), settings.command()
+        assert again.directory == settings.directory

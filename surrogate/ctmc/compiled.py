@@ -18,12 +18,7 @@ never on the number of threads. Usage::
 
 from __future__ import annotations
 
-import hashlib
-import importlib.util
 import inspect
-import os
-import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +30,7 @@ from torch import Tensor
 
 from surrogate.ctmc import _direct_method
 from surrogate.ctmc._xoshiro import seed_streams
+from surrogate.ctmc.codegen import default_cache_dir, load_generated
 from surrogate.ctmc.kinetics import Kinetics
 
 __all__ = ["CellStreams", "CompiledSSA", "default_cache_dir"]
@@ -53,14 +49,6 @@ NEGATIVE_COUNT = {negative_count}
 
 
 '''
-
-
-def default_cache_dir() -> Path:
-    """Where generated kernels (and numba's cache of them) live: ``$SURROGATE_CACHE_DIR`` or
-    ``~/.cache/surrogate``, under ``ssa/``."""
-    root = os.environ.get("SURROGATE_CACHE_DIR")
-    base = Path(root) if root else Path.home() / ".cache" / "surrogate"
-    return base / "ssa"
 
 
 @dataclass
@@ -103,27 +91,6 @@ def _kernel_source(kinetics: Kinetics, parallel: bool) -> str:
     return header + propensity + "\n" + kernel
 
 
-def _load(source: str, cache_dir: Path) -> ModuleType:
-    """Write ``source`` under ``cache_dir`` (content-addressed, atomic) and import it."""
-    digest = hashlib.sha256(source.encode()).hexdigest()[:20]
-    name = f"_surrogate_ssa_{digest}"
-    if name in sys.modules:
-        return sys.modules[name]
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    path = cache_dir / f"{name}.py"
-    if not path.exists() or path.read_text() != source:
-        fd, tmp = tempfile.mkstemp(dir=cache_dir, suffix=".tmp")
-        with os.fdopen(fd, "w") as handle:
-            handle.write(source)
-        os.replace(tmp, path)
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 class CompiledSSA:
     """Exact per-cell Gillespie direct method for general kinetics, compiled with numba.
 
@@ -159,7 +126,7 @@ class CompiledSSA:
     def module(self) -> ModuleType:
         """The generated module (imported on first use)."""
         if self._module is None:
-            self._module = _load(self.source, self.cache_dir)
+            self._module = load_generated(self.source, self.cache_dir, prefix="ssa")
         return self._module
 
     def compile(self) -> float:

@@ -464,9 +464,10 @@ class Kinetics:
         """
         fn = self._cache.get("torch")
         if fn is None:
-            namespace: dict = {"torch": torch}
-            exec(compile(self.torch_source, "<surrogate.kinetics>", "exec"), namespace)
-            fn = namespace["propensities"]
+            from surrogate.ctmc.codegen import load_generated
+
+            source = "import torch\n\n\n" + self.torch_source
+            fn = load_generated(source, prefix="kinetics").propensities
             self._cache["torch"] = fn
         return fn
 

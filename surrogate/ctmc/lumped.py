@@ -151,7 +151,6 @@ def stationary_distribution(q: Tensor) -> Tensor:
     are clamped to 0 and the result renormalised.
     """
     q = q.to(torch.float64)
-    k = q.shape[-1]
     scale = (-torch.diagonal(q, dim1=-2, dim2=-1)).amax(-1).clamp_min(1e-300)
     a = (q / scale[:, None, None]).mT.clone()
     a[:, -1, :] = 1.0  # replace one balance equation by the normalisation

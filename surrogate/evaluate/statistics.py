@@ -295,7 +295,8 @@ def comparison_table(
         for t in times:
             quantity = observable_quantity(name, t)
             res = compare_samples(
-                observable_at(reference, name, t), observable_at(candidate, name, t),
+                observable_at(reference, name, t),
+                observable_at(candidate, name, t),
                 name=quantity,
             )
             rows.append(_row(quantity, res, full=None))

@@ -64,7 +64,7 @@ def psi_errors(
     z = torch.from_numpy(occupancy[list(inputs)].to_numpy(np.float32, copy=True))
     learned = switching(phi, psi(torch.as_tensor(phi), z).double().cpu().numpy())
     out: dict[str, Any] = {"reference": "exact" if exact is not None else "empirical",
-                           "n_occupancy": int(len(occupancy))}  # fmt: skip
+                           "n_occupancy": len(occupancy)}  # fmt: skip
     if exact is not None:
         ref_both = exact(occupancy)
         reference = switching(phi, ref_both[np.arange(len(phi)), phi])
@@ -156,9 +156,7 @@ def plot_psi_errors(
     return fig
 
 
-def exact_reference(
-    internal: Any, dt: float
-) -> Callable[[pd.DataFrame], np.ndarray]:
+def exact_reference(internal: Any, dt: float) -> Callable[[pd.DataFrame], np.ndarray]:
     """``rows -> (n x 2)`` exact psi of ``internal`` at the rows' signal columns."""
 
     def reference(rows: pd.DataFrame) -> np.ndarray:

@@ -35,7 +35,9 @@ def _evaluate(psi: PsiFunction, grid: np.ndarray) -> dict[int, np.ndarray]:
     return out
 
 
-def _axes(domain: Mapping[str, Range], names: Sequence[str], size: Sequence[int]) -> list[np.ndarray]:
+def _axes(
+    domain: Mapping[str, Range], names: Sequence[str], size: Sequence[int]
+) -> list[np.ndarray]:
     return [
         np.linspace(domain[n][0], domain[n][1], int(s)) for n, s in zip(names, size, strict=True)
     ]

@@ -58,7 +58,9 @@ class PsiLookupTable:
         if len(self.input_names) != d:
             raise ConfigError(f"lookup table has {d} axes but names {self.input_names}")
         # Python floats, so the hot path needs no device tensors beyond the table itself
-        self._scale = [(n - 1) / (hi - lo) for n, (lo, hi) in zip(self.shape, self.ranges, strict=True)]
+        self._scale = [
+            (n - 1) / (hi - lo) for n, (lo, hi) in zip(self.shape, self.ranges, strict=True)
+        ]
         strides = []
         stride = 1
         for n in reversed(self.shape):
@@ -113,7 +115,10 @@ class PsiLookupTable:
         for r in ranges:
             _check_range(r)
         device = getattr(psi, "device", torch.device("cpu"))
-        axes = [torch.linspace(float(lo), float(hi), n, dtype=torch.float64) for (lo, hi), n in zip(ranges, size, strict=True)]
+        axes = [
+            torch.linspace(float(lo), float(hi), n, dtype=torch.float64)
+            for (lo, hi), n in zip(ranges, size, strict=True)
+        ]
         grid = torch.stack([g.reshape(-1) for g in torch.meshgrid(*axes, indexing="ij")], -1)
         grid = grid.to(device)
         layers = []
@@ -143,7 +148,9 @@ class PsiLookupTable:
         z = z.to(dev, torch.float32).reshape(-1, len(self.shape))
         base = phi.to(dev).reshape(-1).long() * self._layer
         fracs, offsets = [], []
-        for a, (n, (lo, _), scale) in enumerate(zip(self.shape, self.ranges, self._scale, strict=True)):
+        for a, (n, (lo, _), scale) in enumerate(
+            zip(self.shape, self.ranges, self._scale, strict=True)
+        ):
             u = ((z[:, a] - lo) * scale).clamp(0.0, n - 1)
             # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1); NaN -> 0
             # only for the index (u == u is False for NaN), NaN still flows into the fraction

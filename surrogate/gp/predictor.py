@@ -52,8 +52,7 @@ class PsiClassifier:
     ) -> None:
         if psi_0.device != psi_1.device:
             raise ValueError(
-                f"psi_0 and psi_1 must be on the same device, got {psi_0.device} and "
-                f"{psi_1.device}"
+                f"psi_0 and psi_1 must be on the same device, got {psi_0.device} and {psi_1.device}"
             )
         self.psi_0 = psi_0
         self.psi_1 = psi_1
@@ -116,7 +115,10 @@ class PsiClassifier:
         if one.shape[0] != x.shape[0]:
             raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
         out = torch.empty(x.shape[0], dtype=torch.float32, device=dev)
-        for clf, rows in ((self.psi_1, one.nonzero().squeeze(1)), (self.psi_0, (~one).nonzero().squeeze(1))):
+        for clf, rows in (
+            (self.psi_1, one.nonzero().squeeze(1)),
+            (self.psi_0, (~one).nonzero().squeeze(1)),
+        ):
             if rows.numel():
                 out[rows] = clf.predict_proba(x[rows], self.chunk_size).float()
         return out.to(out_device)

@@ -70,7 +70,7 @@ class NetworkInternalModel:
         self.burn_in = float(burn_in)
         self.max_states = int(max_states)
         self.max_rounds = max_rounds
-        self._space: StateSpace | None | bool = None  # False: too large to enumerate
+        self._space: StateSpace | bool | None = None  # False: too large to enumerate
 
     # -- inputs and features -----------------------------------------------------------------
     def features(self, x: Tensor, names: Sequence[str]) -> Tensor:

@@ -225,9 +225,7 @@ class Simulator:
         state.step += 1
         return StepRecord(x, phi_before, phi, ended)
 
-    def draw_randoms(
-        self, n: int
-    ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
+    def draw_randoms(self, n: int) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
         """All random numbers of one step: float32 uniforms, float64 uniforms (or None),
         normals (rows as declared, decision first) and the body's ``sample_extra`` (or None)."""
         u, u64, z = self._draw(self.randoms, n)
@@ -268,7 +266,11 @@ class Simulator:
         t0 = time.perf_counter()
         n, r, dev = state.n_cells, self.randoms, self.device
         u = torch.full((r.uniform, n), 0.5, device=dev)
-        u64 = torch.full((r.uniform64, n), 0.5, dtype=torch.float64, device=dev) if r.uniform64 else None
+        u64 = (
+            torch.full((r.uniform64, n), 0.5, dtype=torch.float64, device=dev)
+            if r.uniform64
+            else None
+        )
         z = torch.zeros((r.normal, n), device=dev)
         extra = self.body.sample_extra(n, dev)
         extra = None if extra is None else torch.ones_like(extra)

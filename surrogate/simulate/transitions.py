@@ -76,7 +76,11 @@ def _rows(
                 phi_next=rec.phi_after[rows].to(torch.int8).cpu().numpy(),
                 cell=rows.cpu().numpy(),
                 t=np.full(rows.numel(), k * dt),
-                perturbed=(jump[rows] if jump is not None else torch.zeros_like(rows, dtype=torch.bool)).cpu().numpy(),
+                perturbed=(
+                    jump[rows] if jump is not None else torch.zeros_like(rows, dtype=torch.bool)
+                )
+                .cpu()
+                .numpy(),
             )
             yield chunk
 

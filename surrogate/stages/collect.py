@@ -74,7 +74,9 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     save_figure(out / COVERAGE_FIGURE, plot_coverage(table, model))
     lumps = model.internal.lump_names
     counts = {
-        f"{lumps[phi]}_to_{lumps[nxt]}": int(((table["phi"] == phi) & (table["phi_next"] == nxt)).sum())
+        f"{lumps[phi]}_to_{lumps[nxt]}": int(
+            ((table["phi"] == phi) & (table["phi_next"] == nxt)).sum()
+        )
         for phi in (0, 1)
         for nxt in (0, 1)
     }
@@ -107,7 +109,7 @@ def plot_coverage(table: pd.DataFrame, model: Any) -> Any:
     internal = model.internal
     lumps = internal.lump_names
     inputs = list(internal.input_names)
-    signal = list(internal.signal_names)[0]
+    signal = internal.signal_names[0]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
     for ax, phi in zip(axes[:2], (1, 0), strict=True):
         rows = table[table["phi"] == phi]

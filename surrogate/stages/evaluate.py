@@ -109,7 +109,9 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
                    wall_time_s=time.perf_counter() - t0, times=list(settings.times),
                    **summary)  # fmt: skip
     floor_text = (
-        f"{summary['max_ks_noise_floor']:.3f}" if summary["max_ks_noise_floor"] is not None else "n/a"
+        f"{summary['max_ks_noise_floor']:.3f}"
+        if summary["max_ks_noise_floor"] is not None
+        else "n/a"
     )
     log.info(
         "evaluate %s (%s): max KS vs full %.3f, noise floor %s; loop speed-up %.1fx; artefacts "
@@ -141,7 +143,10 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
         "speedup_loop": speedup_loop,
         "speedup_wall": speedup_wall,
         "speed_comparable": comparable,
-        "loop_time_s": {"full": float(full["loop_time_s"]), "candidate": float(cand["loop_time_s"])},
+        "loop_time_s": {
+            "full": float(full["loop_time_s"]),
+            "candidate": float(cand["loop_time_s"]),
+        },
         "cell_steps_per_s": {
             "full": float(full["cell_steps_per_s"]),
             "candidate": float(cand["cell_steps_per_s"]),
@@ -195,5 +200,12 @@ def read_summary(directory: str | Path) -> dict[str, Any]:
     return read_json(Path(directory) / SUMMARY, made_by=EVALUATE_CMD)
 
 
-__all__ = ["ensure_run", "evaluate", "mean_durations", "read_summary", "run", "summarise", "validate"]
-
+__all__ = [
+    "ensure_run",
+    "evaluate",
+    "mean_durations",
+    "read_summary",
+    "run",
+    "summarise",
+    "validate",
+]

@@ -30,6 +30,7 @@ from surrogate.stages.train import read_metrics, train
 log = logging.getLogger(__name__)
 
 REPORT = "report.md"
+SPEED_FORMATS = {"full cell-steps/s": ".3g", "abstract cell-steps/s": ".3g", "speed-up": ".1f"}
 
 
 def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
@@ -58,7 +59,9 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
         exact[name] = evaluate_stage.evaluate(e)
     out = settings.directory
     with artefact_lock(out):  # also removes the temporaries of killed runs
-        sections, figures = report_sections(settings, collect_dir, train_dir, evaluations, exact, out)
+        sections, figures = report_sections(
+            settings, collect_dir, train_dir, evaluations, exact, out
+        )
         (out / MANIFEST).unlink(missing_ok=True)  # incomplete until the manifest is rewritten
         model = tr.setup.model
         write_report(out / REPORT, sections, figures,
@@ -138,7 +141,9 @@ def report_sections(
             "lumped psi instead of the learned one.\n\n"
             + table1_markdown(_tables(exact), {}),
         ))  # fmt: skip
-    sections.append(("The abstraction where the population lives", _diagnostic_text(metrics, lumps)))
+    sections.append(
+        ("The abstraction where the population lives", _diagnostic_text(metrics, lumps))
+    )
     sections.append(("Speed", _speed_text(summaries)))
     gp_rows = pd.DataFrame([
         {"classifier": f"{name} (from {metrics[name]['origin']})",
@@ -242,8 +247,6 @@ def _speed_text(summaries: Mapping[str, Mapping[str, Any]]) -> str:
         "collection and training, as in the paper). Both models are batched over cells, so the "
         "ratio is far smaller than against a per-cell implementation; see the README's "
         "benchmark for throughput at larger populations.\n\n"
-        + format_markdown_table(pd.DataFrame(rows), {"full cell-steps/s": ".3g",
-                                                     "abstract cell-steps/s": ".3g",
-                                                     "speed-up": ".1f"})  # fmt: skip
+        + format_markdown_table(pd.DataFrame(rows), SPEED_FORMATS)
         + note
     )

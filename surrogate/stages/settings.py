@@ -81,7 +81,7 @@ def _fmt(value: Any) -> str:
         return str(value).lower()
     if value is None:
         return "null"
-    return f"{value:g}" if isinstance(value, float) else str(value)
+    return repr(value) if isinstance(value, float) else str(value)
 
 
 def group_overrides(group: str, value: Mapping[str, Any], choice: str | None = None) -> list[str]:
@@ -170,7 +170,7 @@ class ModelSetup:
         return [
             *group_overrides("model", self.model_config),
             *group_overrides("field", self.field_config, self._field_choice()),
-            f"dt={_fmt(self.dt)}",
+            f"dt={self.dt:g}",
             f"seed={self.seed}",
         ]
 
@@ -460,9 +460,7 @@ class SimulateSettings:
         t_end = float(positive(cfg, "t_end"))
         interval = float(positive(cfg, "record_interval"))
         if setup.dt > interval:
-            raise ConfigError(
-                f"dt={setup.dt:g} s is larger than record_interval={interval:g} s"
-            )
+            raise ConfigError(f"dt={setup.dt:g} s is larger than record_interval={interval:g} s")
         try:
             steps_between(interval, setup.dt, "record_interval")
             steps_between(t_end, setup.dt, "t_end")
@@ -505,15 +503,21 @@ class SimulateSettings:
         n, seed = self.n_cells, setup.seed
         if self.shard is not None:
             n, seed = self.shard["parent_n_cells"], self.shard["parent_seed"]
-        out = [f"decision={self.decision.name}",
-               *[o for o in setup.with_seed(seed).overrides()], f"n_cells={n}",
-               f"t_end={_fmt(self.t_end)}"]  # fmt: skip
+        out = [*group_overrides("decision", self.decision.config, self.decision.name),
+               *setup.with_seed(seed).overrides()]  # fmt: skip
+        shipped = _shipped_run_settings()
+        run = {"n_cells": n, "t_end": self.t_end, "record_interval": self.record_interval,
+               "start": list(self.start), "equilibration_time": self.equilibration_time,
+               "record_durations": self.record_durations, "compile": self.compile}  # fmt: skip
+        out += [
+            f"{k}={_fmt(v)}"
+            for k, v in run.items()
+            if shipped.get(k) != v or k in ("n_cells", "t_end")
+        ]
         if self.decision.train is not None:
             out += group_overrides("gp", self.decision.train.gp_config, "svgp")[1:]
             if isinstance(self.decision.train.source, CollectSettings):
                 out += self.decision.train.source._overrides()
-        if self.compile:
-            out.append("compile=true")
         if self.shard is not None:
             out += [f"shard.count={self.shard['count']}", f"shard.index={self.shard['index']}"]
         return out
@@ -532,6 +536,17 @@ class SimulateSettings:
             out = replace(out, setup=self.setup.with_seed(seed))
         out.__dict__.pop("directory", None)
         return out
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_run_settings() -> dict[str, Any]:
+    """The run settings of the shipped ``conf/simulate.yaml`` (what a command need not repeat)."""
+    from omegaconf import OmegaConf
+
+    from surrogate.config import CONF_DIR
+
+    data = to_dict(OmegaConf.load(CONF_DIR / "simulate.yaml"))
+    return {k: v for k, v in data.items() if k != "defaults"}
 
 
 def check_memory(n_cells: int, device: torch.device) -> None:
@@ -608,7 +623,12 @@ class EvaluateSettings:
             offset = e.get("noise_seed_offset")
             seed = candidate.setup.seed
             # offset 0 would compare the full run with itself: a noise floor of exactly zero
-            if isinstance(offset, bool) or not isinstance(offset, int) or offset == 0 or seed + offset < 0:
+            if (
+                isinstance(offset, bool)
+                or not isinstance(offset, int)
+                or offset == 0
+                or seed + offset < 0
+            ):
                 raise ConfigError(
                     f"evaluate.noise_seed_offset must be a non-zero integer with seed + offset "
                     f">= 0 (the noise floor's second full run uses seed + offset), got {offset!r}"
@@ -659,7 +679,8 @@ class ReproduceSettings:
             field_config(name)
         c = to_dict(cfg)
         evaluations = {
-            name: EvaluateSettings.from_config(_field_run(c, name, c["decision"])) for name in fields
+            name: EvaluateSettings.from_config(_field_run(c, name, c["decision"]))
+            for name in fields
         }
         train = next(iter(evaluations.values())).candidate.decision.train
         if train is None:

@@ -64,7 +64,9 @@ def build_decision(settings: SimulateSettings) -> tuple[DecisionLayer, dict[str,
                                              d.lookup_size).to(device)  # fmt: skip
         deviation = table.max_deviation(exact, n_check=2048)
         log.info("exact psi table %s: max |table - exact| = %.2e", table.shape, deviation)
-        return ExactDecision(internal, settings.setup.dt, table), {"lookup_max_deviation": deviation}
+        return ExactDecision(internal, settings.setup.dt, table), {
+            "lookup_max_deviation": deviation
+        }
     from surrogate.stages.train import load_abstraction, resolve_abstraction
 
     assert d.train is not None

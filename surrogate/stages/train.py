@@ -279,7 +279,9 @@ def _exact_curve(model: Model, settings: TrainSettings) -> Any:
 
     def curve(z: np.ndarray) -> np.ndarray:
         s = torch.as_tensor(z, dtype=torch.float32)[:, None]
-        return np.stack([exact_fn(torch.full((len(z),), p), s).double().numpy() for p in (0, 1)], -1)
+        return np.stack(
+            [exact_fn(torch.full((len(z),), p), s).double().numpy() for p in (0, 1)], -1
+        )
 
     return curve
 

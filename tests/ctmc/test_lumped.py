@@ -74,12 +74,14 @@ def _distinguishable(kp: float, km: float) -> tuple[np.ndarray, np.ndarray]:
 def test_stationary_law_is_the_multinomial_of_the_one_motor_law(kp: float, km: float) -> None:
     space = population_space(4)
     f64 = torch.float64
-    q = space.generator(rate_constants(torch.tensor([kp], dtype=f64), torch.tensor([km], dtype=f64), P))
+    q = space.generator(
+        rate_constants(torch.tensor([kp], dtype=f64), torch.tensor([km], dtype=f64), P)
+    )
     pi = stationary_distribution(q)[0].numpy()
     w = np.array([1.0, P.mu / kp, (P.mu + kp) / km])
     p1 = w / w.sum()
     expected = [
-        math.factorial(4) / math.prod(math.factorial(c) for c in s) * np.prod(p1**np.array(s))
+        math.factorial(4) / math.prod(math.factorial(c) for c in s) * np.prod(p1 ** np.array(s))
         for s in space.states.tolist()
     ]
     np.testing.assert_allclose(pi, expected, rtol=1e-9, atol=1e-15)
@@ -91,10 +93,14 @@ def test_lumped_psi_matches_distinguishable_motors(kp: float, km: float) -> None
     # stationary law of the 81-state chain: the product of one-motor laws
     w = np.array([1.0, P.mu / kp, (P.mu + kp) / km])
     p1 = w / w.sum()
-    pi = np.array([np.prod([p1[s] for s in states]) for states in itertools.product(range(3), repeat=4)])
+    pi = np.array(
+        [np.prod([p1[s] for s in states]) for states in itertools.product(range(3), repeat=4)]
+    )
     transition = scipy.linalg.expm(q * DT)
     to_run = transition[:, run].sum(1)
-    expected = [float((pi * (run == phi) * to_run).sum() / (pi * (run == phi)).sum()) for phi in (0, 1)]
+    expected = [
+        float((pi * (run == phi) * to_run).sum() / (pi * (run == phi)).sum()) for phi in (0, 1)
+    ]
     f64 = torch.float64
     got = exact_run_probability(torch.tensor([kp], dtype=f64), torch.tensor([km], dtype=f64), DT, P)
     got = got[0].numpy()
@@ -150,7 +156,9 @@ def test_lumped_psi_of_a_dimerisation_network() -> None:
         if b >= 1:
             out[(a + 2, b - 1)] = 1.3 * b
         for j, s in enumerate(space.states.tolist()):
-            assert q[i, j] == pytest.approx(out.get(tuple(s), 0.0) if i != j else -sum(out.values()))
+            assert q[i, j] == pytest.approx(
+                out.get(tuple(s), 0.0) if i != j else -sum(out.values())
+            )
     on = space.states[:, 1] >= 2  # "ON": at least two dimers
     psi = lumped_psi(torch.as_tensor(q)[None], on, 0.3)[0].numpy()
     pi = stationary_distribution(torch.as_tensor(q)[None])[0].numpy()
@@ -168,7 +176,9 @@ def test_exact_psi_is_batched_and_run_property_consistent() -> None:
     kp = torch.tensor([r[0] for r in RATES], dtype=torch.float64)
     km = torch.tensor([r[1] for r in RATES], dtype=torch.float64)
     batched = exact_run_probability(kp, km, DT, P)
-    single = torch.cat([exact_run_probability(kp[i : i + 1], km[i : i + 1], DT, P) for i in range(4)])
+    single = torch.cat(
+        [exact_run_probability(kp[i : i + 1], km[i : i + 1], DT, P) for i in range(4)]
+    )
     torch.testing.assert_close(batched, single, rtol=1e-12, atol=0)
     assert batched.shape == (4, 2) and bool(((batched >= 0) & (batched <= 1)).all())
     assert FLAGELLA_NETWORK.n_species == 3

@@ -8,17 +8,16 @@ import numpy as np
 import pandas as pd
 import pytest
 from matplotlib.figure import Figure
+from scipy import stats
 
 from surrogate.evaluate.figures import (
-    plot_distance_histograms,
-    plot_distance_over_time,
     plot_duration_histograms,
+    plot_observable_histograms,
+    plot_observable_over_time,
 )
 from surrogate.evaluate.report import (
-    PAPER_QUANTITIES,
-    PAPER_TABLE1,
     format_markdown_table,
-    paper_table1_frame,
+    split_quantity,
     table1_markdown,
     write_comparison,
     write_report,
@@ -29,8 +28,12 @@ from surrogate.evaluate.statistics import (
     combine_with_noise_floor,
     comparison_table,
     load_run,
+    mean_std_over_time,
+    observable_at,
 )
 from surrogate.io import save_figure
+from surrogate.models.ecoli import EcoliModel
+from surrogate.models.ecoli.reference import PAPER_QUANTITIES, PAPER_TABLE1, paper_table1_frame
 
 from .test_statistics import TIMES, write_synthetic_run
 
@@ -64,11 +67,14 @@ def _paper_time_table(ks: float, pvalue: float) -> pd.DataFrame:
 # figures
 
 
-def test_distance_histograms(runs: tuple[SimulationRun, SimulationRun], tmp_path: Path) -> None:
-    fig = plot_distance_histograms(*runs, times=TIMES, labels=("full", "abstract"))
+def test_observable_histograms(
+    runs: tuple[SimulationRun, SimulationRun], tmp_path: Path
+) -> None:
+    fig = plot_observable_histograms(*runs, times=TIMES, labels=("full", "abstract"))
     assert isinstance(fig, Figure)
     assert len(fig.axes) == 4
     assert fig.axes[0].get_title().startswith("t = 5 s (KS ")
+    assert fig.axes[0].get_xlabel() == "distance"  # the first observable, by default
     assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == [
         "full (n=50)",
         "abstract (n=50)",
@@ -77,22 +83,54 @@ def test_distance_histograms(runs: tuple[SimulationRun, SimulationRun], tmp_path
     assert out.stat().st_size > 1000
 
 
-def test_distance_histograms_single_time(runs: tuple[SimulationRun, SimulationRun]) -> None:
-    assert len(plot_distance_histograms(*runs, times=[10.0]).axes) == 1
+def test_observable_histograms_single_time(runs: tuple[SimulationRun, SimulationRun]) -> None:
+    assert len(plot_observable_histograms(*runs, times=[10.0]).axes) == 1
     with pytest.raises(ValueError, match="t=99"):
-        plot_distance_histograms(*runs, times=[99.0])
+        plot_observable_histograms(*runs, times=[99.0])
+    with pytest.raises(ValueError, match="at least one time"):
+        plot_observable_histograms(*runs, times=[])
+
+
+def test_observable_histograms_of_a_named_observable(tmp_path: Path) -> None:
+    ref = load_run(write_synthetic_run(tmp_path / "r", seed=1, extra_observable=True))
+    cand = load_run(write_synthetic_run(tmp_path / "c", seed=2, shift=0.3, extra_observable=True))
+    fig = plot_observable_histograms(ref, cand, times=[5.0, 20.0], name="speed",
+                                     axis_label="speed (mm/s)")  # fmt: skip
+    assert [ax.get_xlabel() for ax in fig.axes] == ["speed (mm/s)"] * 2
+    # the title's KS is that of the named observable, not of the distance
+    a, b = observable_at(ref, "speed", 20.0), observable_at(cand, "speed", 20.0)
+    ks = stats.ks_2samp(a, b).statistic
+    assert fig.axes[1].get_title() == f"t = 20 s (KS {ks:.3f})"
+    # the bins (shared by all panels) span the speed values (a few 1e-2), not the distances
+    speeds = np.concatenate([observable_at(r, "speed", t) for r in (ref, cand) for t in (5, 20)])
+    for ax in fig.axes:
+        xs = np.concatenate([p.get_path().vertices[:, 0] for p in ax.patches])
+        np.testing.assert_allclose([xs.min(), xs.max()], [speeds.min(), speeds.max()], rtol=1e-9)
 
 
 @pytest.mark.parametrize(("separate", "n_axes"), [(False, 1), (True, 2)])
-def test_distance_over_time(
+def test_observable_over_time(
     runs: tuple[SimulationRun, SimulationRun], tmp_path: Path, separate: bool, n_axes: int
 ) -> None:
-    fig = plot_distance_over_time(*runs, labels=("full", "abstract"), separate=separate)
+    fig = plot_observable_over_time(*runs, labels=("full", "abstract"), separate=separate)
     assert len(fig.axes) == n_axes
     lines = [line for ax in fig.axes for line in ax.get_lines()]
     assert len(lines) == 2  # one mean line per model
     np.testing.assert_allclose(lines[0].get_xdata(), np.arange(21.0))
+    np.testing.assert_allclose(lines[0].get_ydata(), mean_std_over_time(runs[0])["mean"])
+    np.testing.assert_allclose(lines[1].get_ydata(), mean_std_over_time(runs[1])["mean"])
+    assert fig.axes[0].get_ylabel() == "distance"
     assert save_figure(tmp_path / "time.pdf", fig).stat().st_size > 1000
+
+
+def test_observable_over_time_of_a_named_observable(tmp_path: Path) -> None:
+    ref = load_run(write_synthetic_run(tmp_path / "r", seed=1, extra_observable=True))
+    cand = load_run(write_synthetic_run(tmp_path / "c", seed=2, shift=0.3, extra_observable=True))
+    fig = plot_observable_over_time(ref, cand, name="speed", axis_label="speed (mm/s)")
+    lines = fig.axes[0].get_lines()
+    np.testing.assert_allclose(lines[0].get_ydata(), mean_std_over_time(ref, "speed")["mean"])
+    np.testing.assert_allclose(lines[1].get_ydata(), mean_std_over_time(cand, "speed")["mean"])
+    assert fig.axes[0].get_ylabel() == "speed (mm/s)"
 
 
 def test_duration_histograms(runs: tuple[SimulationRun, SimulationRun], tmp_path: Path) -> None:
@@ -103,11 +141,24 @@ def test_duration_histograms(runs: tuple[SimulationRun, SimulationRun], tmp_path
     assert save_figure(tmp_path / "dur.png", fig).exists()
 
 
+def test_duration_histograms_of_other_lumps(tmp_path: Path) -> None:
+    kw = {"lump_names": ("off", "on"), "n_durations": 200}
+    ref = load_run(write_synthetic_run(tmp_path / "r", seed=1, **kw))
+    cand = load_run(write_synthetic_run(tmp_path / "c", seed=2, **kw))
+    fig = plot_duration_histograms(ref, cand)
+    assert [ax.get_title() for ax in fig.axes] == ["on durations", "off durations"]
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == [
+        "full (n=200)",
+        "abstract (n=200)",
+    ]
+
+
 # ----------------------------------------------------------------------------------------------
 # markdown and files
 
 
 def test_paper_table1_values() -> None:
+    assert EcoliModel().reference_table() is PAPER_TABLE1
     assert set(PAPER_TABLE1) == {"gaussian", "linear", "dynamic"}
     assert PAPER_TABLE1["gaussian"]["ks"]["tumble"] == 0.101
     assert PAPER_TABLE1["gaussian"]["ks_pvalue"]["tumble"] == 7e-5
@@ -144,38 +195,86 @@ def test_format_markdown_table() -> None:
     assert "| run | 0.12 |" in format_markdown_table(df, floatfmt=".2f")
 
 
-def test_table1_markdown_ours_paper_and_noise_floor() -> None:
+def test_table1_markdown_ours_published_and_noise_floor() -> None:
     ours = _paper_time_table(0.2, 0.03)
     floor = _paper_time_table(0.05, 0.9)
     combined = combine_with_noise_floor(ours, floor)  # 0.2 > max(0.05, 0.192): flagged
-    text = table1_markdown({"gaussian": combined, "linear": ours}, {"gaussian": 7.25})
+    text = table1_markdown(
+        {"gaussian": combined, "linear": ours}, {"gaussian": 7.25}, reference=PAPER_TABLE1
+    )
     lines = text.splitlines()
     assert lines[0] == (
         "| Field | Source | t=125 s | t=250 s | t=375 s | t=500 s | Run | Tumble | Speed-up |"
     )
+    assert lines[1] == "|:---|:---|---:|---:|---:|---:|---:|---:|---:|"
     assert lines[2].startswith("| gaussian | ours | 0.200 (0.030) † |")
     assert lines[2].endswith("| 7.2 |")
     assert lines[3] == (
-        "|  | paper | 0.110 (0.556) | 0.160 (0.140) | 0.170 (0.099) | 0.160 (0.140) "
+        "|  | published | 0.110 (0.556) | 0.160 (0.140) | 0.170 (0.099) | 0.160 (0.140) "
         "| 0.039 (0.425) | 0.101 (7e-05) | 7.8 |"
     )
     assert lines[4].startswith("|  | noise floor | 0.050 | 0.050 |")
     assert lines[5].startswith("| linear | ours | 0.200 (0.030) |")
     assert lines[5].endswith("| – |")  # no speed-up given
     assert "†" not in lines[5]
-    assert lines[6].startswith("|  | paper | 0.010 (0.677) |")
+    assert lines[6].startswith("|  | published | 0.010 (0.677) |")
+    assert lines[7] == ""  # no noise floor for linear: the notes follow
     assert any(line.startswith("† KS distance above") for line in lines)
+
+
+def test_table1_markdown_without_reference() -> None:
+    ours = _paper_time_table(0.1, 0.5)
+    lines = table1_markdown({"gaussian": ours}, {"gaussian": 3.0}).splitlines()
+    assert lines[2] == (
+        "| gaussian | ours | 0.100 (0.500) | 0.100 (0.500) | 0.100 (0.500) | 0.100 (0.500) "
+        "| 0.100 (0.500) | 0.100 (0.500) | 3.0 |"
+    )
+    assert lines[3] == ""  # neither published nor noise-floor rows
+    assert not any("†" in line for line in lines)
 
 
 def test_table1_markdown_other_times(runs: tuple[SimulationRun, SimulationRun]) -> None:
     table = comparison_table(*runs, times=TIMES, subsample=200)
-    text = table1_markdown({"custom": table}, {"custom": 2.0})
+    text = table1_markdown({"custom": table}, {"custom": 2.0}, reference=PAPER_TABLE1)
     lines = text.splitlines()
-    assert "distance 1 (paper t=125 s)" in lines[0]
-    ks5 = table.set_index("quantity").loc["distance_t5", "ks"]
-    assert lines[2].startswith(f"| custom | ours | {ks5:.3f} (")
-    assert "@5 s" in lines[2]
-    assert not any("| paper |" in line for line in lines)  # no paper row for unknown fields
+    assert lines[0] == (
+        "| Field | Source | t=5 s | t=10 s | t=15 s | t=20 s | Run | Tumble | Speed-up |"
+    )
+    by_q = table.set_index("quantity")
+    ks5, p5 = by_q.loc["distance_t5", "ks"], by_q.loc["distance_t5", "ks_pvalue"]
+    p5_text = f"{p5:.3f}" if p5 >= 1e-3 else f"{p5:.0e}"
+    assert lines[2].startswith(f"| custom | ours | {ks5:.3f} ({p5_text}) |")
+    assert lines[2].endswith("| 2.0 |")
+    assert not any("| published |" in line for line in lines)  # not a field of the reference
+
+
+def test_table1_markdown_several_observables_and_lumps(tmp_path: Path) -> None:
+    kw = {"extra_observable": True, "lump_names": ("off", "on"), "n_durations": 300}
+    ref = load_run(write_synthetic_run(tmp_path / "r", seed=1, **kw))
+    cand = load_run(write_synthetic_run(tmp_path / "c", seed=2, shift=0.2, **kw))
+    table = comparison_table(ref, cand, times=(20.0, 5.0), subsample=100)
+    reference = {"f": {"ks": {"speed_t5": 0.5, "on": 0.25}, "ks_pvalue": {"speed_t5": 1e-4,
+                                                                          "on": 0.5}}}  # fmt: skip
+    lines = table1_markdown({"f": table}, {}, reference=reference, floatfmt=".2f").splitlines()
+    # quantities named in full (two observables), each in time order, then the lumps
+    assert lines[0] == (
+        "| Field | Source | distance_t5 | distance_t20 | speed_t5 | speed_t20 | On | Off "
+        "| Speed-up |"
+    )
+    by_q = table.set_index("quantity")
+    cells = lines[2].split(" | ")
+    assert cells[2].startswith(f"{by_q.loc['distance_t5', 'ks']:.2f} (")
+    assert cells[4].startswith(f"{by_q.loc['speed_t5', 'ks']:.2f} (")
+    assert cells[6].startswith(f"{by_q.loc['on', 'ks']:.2f} (")
+    assert lines[3] == "|  | published |  |  | 0.50 (1e-04) |  | 0.25 (0.500) |  |  |"
+
+
+def test_split_quantity() -> None:
+    assert split_quantity("distance_t125") == ("distance", 125.0)
+    assert split_quantity("distance_t2.5") == ("distance", 2.5)
+    assert split_quantity("mean_speed_t10") == ("mean_speed", 10.0)
+    assert split_quantity("run") is None
+    assert split_quantity("tumble") is None
 
 
 def test_write_report(tmp_path: Path) -> None:

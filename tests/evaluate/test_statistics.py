@@ -23,6 +23,8 @@ from surrogate.evaluate.statistics import (
     load_run,
     mean_std_over_time,
     noise_floor_table,
+    observable_at,
+    observable_quantity,
     speedup,
 )
 from surrogate.io import write_json, write_parquet
@@ -39,19 +41,33 @@ def write_synthetic_run(
     shift: float = 0.0,
     n_durations: int = 3000,
     wall_time_s: float = 10.0,
+    extra_observable: bool = False,
+    lump_names: tuple[str, str] | None = None,
 ) -> Path:
-    """Write distances.parquet, durations.parquet and manifest.json like a simulation run."""
+    """Write observables.parquet, durations.parquet and manifest.json like a simulation run.
+
+    ``extra_observable`` adds a second observable ``speed`` (after ``distance``);
+    ``lump_names`` renames the duration kinds (tumble, run) and records them in the manifest.
+    """
     rng = np.random.default_rng(seed)
     times = np.arange(0.0, t_end + dt / 2, dt)
     t = np.repeat(times, n_cells)
     cell = np.tile(np.arange(n_cells, dtype=np.int64), times.size)
     # cells drift towards the peak, with spread; distances must stay non-negative
     distance = np.abs(2.0 - 0.05 * t + shift + 0.3 * rng.standard_normal(t.size))
-    distances = pd.DataFrame(
+    observables = pd.DataFrame(
         {"t": t.astype(np.float64), "cell": cell, "distance": distance.astype(np.float32)}
     )
+    if extra_observable:
+        observables["speed"] = (0.02 + shift * 0.01 * t + 0.005 * rng.random(t.size)).astype(
+            np.float32
+        )
     kinds = np.array(["run"] * n_durations + ["tumble"] * (n_durations // 2))
     scale = np.where(kinds == "run", 0.5 * (1 + shift), 0.2)
+    manifest_extra = {}
+    if lump_names is not None:
+        kinds = np.where(kinds == "run", lump_names[1], lump_names[0])
+        manifest_extra["lump_names"] = list(lump_names)
     durations = pd.DataFrame(
         {
             "kind": kinds,
@@ -60,7 +76,7 @@ def write_synthetic_run(
             "t_end": rng.uniform(0, t_end, kinds.size),
         }
     )
-    write_parquet(directory / "distances.parquet", distances)
+    write_parquet(directory / "observables.parquet", observables)
     write_parquet(directory / "durations.parquet", durations)
     write_json(
         directory / "manifest.json",
@@ -69,6 +85,7 @@ def write_synthetic_run(
             "seed": seed,
             "config": {"n_cells": n_cells, "t_end": t_end},
             "cell_steps_per_s": n_cells * t_end / 0.05 / wall_time_s,
+            **manifest_extra,
         },
     )
     return directory
@@ -158,14 +175,60 @@ def test_load_run_missing_names_command(tmp_path: Path) -> None:
 
 def test_load_run_rejects_missing_columns(tmp_path: Path) -> None:
     write_synthetic_run(tmp_path, seed=0)
-    write_parquet(tmp_path / "distances.parquet", pd.DataFrame({"t": [0.0], "cell": [0]}))
-    with pytest.raises(ArtefactError, match="distance"):
+    # no observable column at all
+    write_parquet(tmp_path / "observables.parquet", pd.DataFrame({"t": [0.0], "cell": [0]}))
+    with pytest.raises(ArtefactError, match=r"observables\.parquet has no observations"):
         load_run(tmp_path)
+    # no time column
+    write_parquet(tmp_path / "observables.parquet", pd.DataFrame({"cell": [0], "distance": [1.0]}))
+    with pytest.raises(ArtefactError, match=r"observables\.parquet lacks column\(s\) \['t'\]"):
+        load_run(tmp_path)
+    write_synthetic_run(tmp_path, seed=0)
+    write_parquet(tmp_path / "durations.parquet", pd.DataFrame({"duration": [1.0]}))
+    with pytest.raises(ArtefactError, match=r"durations\.parquet lacks column\(s\) \['kind'\]"):
+        load_run(tmp_path)
+
+
+def test_load_run_reads_the_old_file_name_no_more(tmp_path: Path) -> None:
+    write_synthetic_run(tmp_path, seed=0)
+    (tmp_path / "observables.parquet").rename(tmp_path / "distances.parquet")
+    with pytest.raises(MissingArtefactError, match=r"observables\.parquet"):
+        load_run(tmp_path)
+
+
+def test_run_observables_and_lumps(tmp_path: Path) -> None:
+    run = load_run(write_synthetic_run(tmp_path / "a", seed=0, extra_observable=True))
+    assert run.observable_names == ["distance", "speed"]
+    assert run.lump_names == ("tumble", "run")  # the default without manifest["lump_names"]
+    assert run.durations_of("run").size == 3000 and run.durations_of("tumble").size == 1500
+    with pytest.raises(ValueError, match="duration kind"):
+        run.durations_of("swim")
+    other = load_run(
+        write_synthetic_run(tmp_path / "b", seed=0, n_durations=40, lump_names=("off", "on"))
+    )
+    assert other.lump_names == ("off", "on")
+    assert other.durations_of("on").size == 40 and other.durations_of("off").size == 20
+    with pytest.raises(ValueError, match="duration kind"):
+        other.durations_of("run")
+
+
+def test_observable_at(tmp_path: Path) -> None:
+    run = load_run(write_synthetic_run(tmp_path, seed=0, extra_observable=True))
+    for name in ("distance", "speed"):
+        expected = run.observables.loc[run.observables["t"] == 7.0, name].to_numpy(np.float64)
+        got = observable_at(run, name, 7.2)
+        assert got.dtype == np.float64
+        np.testing.assert_array_equal(got, expected)
+    assert not np.array_equal(observable_at(run, "speed", 7.0), observable_at(run, "distance", 7.0))
+    np.testing.assert_array_equal(distances_at(run, 7.0), observable_at(run, "distance", 7.0))
+    assert observable_quantity("speed", 125.0) == "speed_t125"
+    assert observable_quantity("distance", 2.5) == "distance_t2.5"
 
 
 def test_distances_at_nearest_and_out_of_range(runs: tuple[SimulationRun, SimulationRun]) -> None:
     ref, _ = runs
-    expected = ref.distances.loc[ref.distances["t"] == 10.0, "distance"].to_numpy(np.float64)
+    obs = ref.observables
+    expected = obs.loc[obs["t"] == 10.0, "distance"].to_numpy(np.float64)
     np.testing.assert_array_equal(distances_at(ref, 10.0), expected)
     np.testing.assert_array_equal(distances_at(ref, 10.4), expected)  # within half of dt=1
     assert distances_at(ref, 10.0).dtype == np.float64
@@ -195,8 +258,8 @@ def test_comparison_table_rows_columns_and_values(
     ]
     by_q = table.set_index("quantity")
 
-    a = ref.distances.loc[ref.distances["t"] == 15.0, "distance"].to_numpy(np.float64)
-    b = cand.distances.loc[cand.distances["t"] == 15.0, "distance"].to_numpy(np.float64)
+    a = ref.observables.loc[ref.observables["t"] == 15.0, "distance"].to_numpy(np.float64)
+    b = cand.observables.loc[cand.observables["t"] == 15.0, "distance"].to_numpy(np.float64)
     row = by_q.loc["distance_t15"]
     assert row["ks"] == stats.ks_2samp(a, b).statistic
     assert row["ks_pvalue"] == stats.ks_2samp(a, b).pvalue
@@ -232,7 +295,7 @@ def test_comparison_table_out_of_range_time(runs: tuple[SimulationRun, Simulatio
 def test_comparison_table_empty_durations(runs: tuple[SimulationRun, SimulationRun]) -> None:
     ref, cand = runs
     no_tumbles = SimulationRun(
-        distances=cand.distances,
+        observables=cand.observables,
         durations=cand.durations[cand.durations["kind"] == "run"],
         manifest=cand.manifest,
     )
@@ -282,7 +345,7 @@ def test_speedup(runs: tuple[SimulationRun, SimulationRun]) -> None:
     ref, cand = runs
     assert speedup(ref, cand) == pytest.approx(8.0)
     assert speedup(ref, cand, per_cell_step=True) == pytest.approx(8.0)
-    broken = SimulationRun(ref.distances, ref.durations, manifest={"wall_time_s": 0.0})
+    broken = SimulationRun(ref.observables, ref.durations, manifest={"wall_time_s": 0.0})
     with pytest.raises(ArtefactError, match="wall_time_s"):
         speedup(ref, broken)
 
@@ -293,7 +356,45 @@ def test_mean_std_over_time(runs: tuple[SimulationRun, SimulationRun]) -> None:
     assert list(ms.columns) == ["t", "mean", "std", "n"]
     assert ms["t"].tolist() == [float(t) for t in range(21)]
     assert (ms["n"] == 50).all()
-    at5 = ref.distances.loc[ref.distances["t"] == 5.0, "distance"].to_numpy(np.float64)
+    at5 = ref.observables.loc[ref.observables["t"] == 5.0, "distance"].to_numpy(np.float64)
     row = ms.set_index("t").loc[5.0]
     assert row["mean"] == pytest.approx(at5.mean())
     assert row["std"] == pytest.approx(at5.std(ddof=1))
+    pd.testing.assert_frame_equal(mean_std_over_time(ref, "distance"), ms)
+
+
+def test_mean_std_over_time_of_a_named_observable(tmp_path: Path) -> None:
+    run = load_run(write_synthetic_run(tmp_path, seed=0, n_cells=3, extra_observable=True))
+    ms = mean_std_over_time(run, "speed")
+    at5 = run.observables.loc[run.observables["t"] == 5.0, "speed"].to_numpy(np.float64)
+    row = ms.set_index("t").loc[5.0]
+    assert row["n"] == 3
+    assert row["mean"] == pytest.approx(at5.mean(), rel=1e-12)
+    assert row["std"] == pytest.approx(at5.std(ddof=1), rel=1e-12)
+    assert row["mean"] != pytest.approx(mean_std_over_time(run).set_index("t").loc[5.0, "mean"])
+    one = SimulationRun(run.observables[run.observables["cell"] == 0], run.durations)
+    assert mean_std_over_time(one, "speed")["std"].isna().all()  # one cell: no spread
+
+
+def test_comparison_table_is_generic_over_observables_and_lumps(tmp_path: Path) -> None:
+    kw = {"extra_observable": True, "lump_names": ("off", "on"), "n_durations": 400}
+    ref = load_run(write_synthetic_run(tmp_path / "ref", seed=1, **kw))
+    cand = load_run(write_synthetic_run(tmp_path / "cand", seed=2, shift=0.3, **kw))
+    table = comparison_table(ref, cand, times=(5.0, 20.0), subsample=100, seed=0)
+    # every observable at every time, then the lumps with phi = 1 first
+    assert list(table["quantity"]) == [
+        "distance_t5", "distance_t20", "speed_t5", "speed_t20", "on", "off",
+    ]  # fmt: skip
+    by_q = table.set_index("quantity")
+    a, b = observable_at(ref, "speed", 20.0), observable_at(cand, "speed", 20.0)
+    assert by_q.loc["speed_t20", "ks"] == stats.ks_2samp(a, b).statistic
+    assert by_q.loc["speed_t20", "wasserstein"] == stats.wasserstein_distance(a, b)
+    assert np.isnan(by_q.loc["speed_t20", "ks_full"])
+    on_ref, on_cand = ref.durations_of("on"), cand.durations_of("on")
+    assert by_q.loc["on", "ks_full"] == stats.ks_2samp(on_ref, on_cand).statistic
+    # the subsample draws: phi = 1 (on) first, reference then candidate
+    rng = np.random.default_rng(0)
+    sub_ref = rng.choice(on_ref, 100, replace=False)
+    sub_cand = rng.choice(on_cand, 100, replace=False)
+    assert by_q.loc["on", "ks"] == stats.ks_2samp(sub_ref, sub_cand).statistic
+    assert (by_q.loc["off", "n_reference"], by_q.loc["off", "n_candidate"]) == (100, 100)

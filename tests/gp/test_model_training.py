@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import gpytorch
@@ -144,6 +145,39 @@ def test_kernels_build_and_predict(kernel: str, ard: bool) -> None:
     assert bool(((p >= 0) & (p <= 1)).all())
 
 
+@pytest.mark.parametrize("d", [1, 3, 5])
+@pytest.mark.parametrize("ard", [True, False])
+def test_any_number_of_inputs(d: int, ard: bool) -> None:
+    """x of shape (n, d) for any d >= 1: one lengthscale per column with ARD, inducing points
+    and normaliser in d dimensions, predictions for (n, d) queries."""
+    gen = torch.Generator().manual_seed(d)
+    x = torch.rand(600, d, generator=gen, dtype=torch.float64) * torch.arange(1, d + 1)
+    p = torch.sigmoid(4.0 * (x[:, 0] - 0.5))  # depends on the first column only
+    y = torch.bernoulli(p, generator=gen)
+    settings = GPSettings(n_inducing=12, epochs=8, batch_size=200, lr=0.1, ard=ard)
+    fitted = fit_classifier(x, y, settings, progress=False)
+    lengthscale = fitted.model.covar_module.base_kernel.lengthscale
+    assert lengthscale.shape[-1] == (d if ard else 1)
+    assert fitted.model.variational_strategy.inducing_points.shape == (12, d)
+    assert fitted.normaliser.mean.shape == fitted.normaliser.std.shape == (d,)
+    q = torch.rand(50, d, generator=gen) * torch.arange(1, d + 1)
+    out = fitted.predict_proba(q)
+    assert out.shape == (50,) and bool(((out >= 0) & (out <= 1)).all())
+    mean, var = fitted.latent(q)
+    assert mean.shape == var.shape == (50,) and bool((var > 0).all())
+    # it learned the trend along the first input
+    lo, hi = q.clone(), q.clone()
+    lo[:, 0], hi[:, 0] = 0.0, 1.0
+    assert (fitted.predict_proba(hi) - fitted.predict_proba(lo)).mean() > 0.2
+
+
+def test_inputs_must_be_a_matrix() -> None:
+    with pytest.raises(ValueError, match=r"\(n, d\)"):
+        fit_classifier(torch.rand(100), torch.zeros(100), GPSettings(**TINY), progress=False)
+    with pytest.raises(ValueError, match=r"\(n, d\)"):
+        fit_classifier(torch.rand(100, 0), torch.zeros(100), GPSettings(**TINY), progress=False)
+
+
 def test_natural_gradient_trains() -> None:
     x, y = tiny_data(800)
     fitted = fit_classifier(
@@ -262,3 +296,88 @@ def test_divergence_restores_last_good_state(monkeypatch: pytest.MonkeyPatch) ->
     for p in partial.model.parameters():
         assert bool(torch.isfinite(p).all())
     assert bool(torch.isfinite(partial.predict_proba(grid(5))).all())
+
+
+def _state(fitted) -> dict[str, Tensor]:
+    return {
+        **{f"model.{k}": v for k, v in fitted.model.state_dict().items()},
+        **{f"likelihood.{k}": v for k, v in fitted.likelihood.state_dict().items()},
+    }
+
+
+def _same_state(a: dict[str, Tensor], b: dict[str, Tensor]) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("bad_epoch", [1, 2, 3, 4])
+def test_divergence_message_names_the_restored_state(
+    monkeypatch: pytest.MonkeyPatch, bad_epoch: int
+) -> None:
+    """The epoch the message says the model was restored to is the state actually restored.
+
+    The loss of the second minibatch of ``bad_epoch`` is made NaN. The last epoch whose losses
+    were all finite is ``bad_epoch - 1``; its start is the state after ``bad_epoch - 2`` full
+    epochs, which a clean fit with that many epochs reproduces bit for bit (same seed, same
+    split and minibatches). The state *after* the named epoch (what the old message claimed)
+    must not be what was restored.
+    """
+    x, y = tiny_data()
+    epochs = 5
+    n_batches = 4  # 320 training points / batch 100
+    original = gpytorch.mlls.VariationalELBO.forward
+    calls = {"n": 0}
+
+    def poisoned(self: gpytorch.mlls.VariationalELBO, *args: object, **kw: object) -> Tensor:
+        calls["n"] += 1
+        out = original(self, *args, **kw)
+        return out * float("nan") if calls["n"] == (bad_epoch - 1) * n_batches + 2 else out
+
+    with monkeypatch.context() as patch:
+        patch.setattr(gpytorch.mlls.VariationalELBO, "forward", poisoned)
+        with pytest.raises(NumericalError, match=f"diverged in epoch {bad_epoch}/{epochs}") as info:
+            fit_classifier(x, y, GPSettings(**{**TINY, "epochs": epochs}), progress=False)
+    message = str(info.value)
+    partial = info.value.partial
+    restored = _state(partial)
+    assert len(partial.history) == bad_epoch - 1
+
+    named = re.search(r"restored to the start of epoch (\d+) ", message)
+    if named is None:
+        assert "restored to its initial state" in message
+        start_of = 1  # the initial state is the start of epoch 1
+    else:
+        start_of = int(named.group(1))
+    # the last epoch whose losses were all finite (the initial state when the first failed)
+    assert start_of == max(bad_epoch - 1, 1)
+    assert "end of epoch" not in message
+
+    def after(n_epochs: int) -> dict[str, Tensor]:
+        fitted = fit_classifier(x, y, GPSettings(**{**TINY, "epochs": n_epochs}), progress=False)
+        return _state(fitted)
+
+    done = start_of - 1  # full epochs before the start of epoch `start_of`
+    if done >= 1:
+        assert _same_state(restored, after(done))
+    else:
+        # Nothing trained yet: gpytorch's untouched initial values (variational distribution
+        # not yet initialised from the prior, q(u) = N(0, I)), inducing points still exactly
+        # rows of the normalised training inputs, every hyperparameter as freshly built.
+        strategy = partial.model.variational_strategy
+        assert int(strategy.variational_params_initialized) == 0
+        q = strategy._variational_distribution
+        assert torch.equal(q.variational_mean, torch.zeros_like(q.variational_mean))
+        eye = torch.eye(TINY["n_inducing"])
+        assert torch.equal(q.chol_variational_covar, eye)
+        z = strategy.inducing_points
+        zx = partial.normaliser.transform(x.float())
+        dist = torch.cdist(z, zx, compute_mode="donot_use_mm_for_euclid_dist")
+        assert bool((dist.min(dim=1).values == 0).all())
+        fresh = PsiGP(z.detach().clone())
+        fresh_state = {f"model.{k}": v for k, v in fresh.state_dict().items()}
+        fresh_state.update({
+            f"likelihood.{k}": v
+            for k, v in gpytorch.likelihoods.BernoulliLikelihood().state_dict().items()
+        })  # fmt: skip
+        assert _same_state(restored, fresh_state)
+    # not the state after the named epoch (what the old message said)
+    assert not _same_state(restored, after(start_of))

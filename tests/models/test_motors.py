@@ -18,6 +18,7 @@ import torch
 
 from surrogate.ctmc import gillespie
 from surrogate.models.ecoli import EcoliParameters, motor_rates
+from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
     MOTOR_DTYPE,
@@ -33,7 +34,6 @@ from surrogate.models.ecoli.motors import (
     sample_stationary_states,
     step_motor_states,
 )
-from surrogate.models.ecoli.internal import MotorInternalModel
 
 from ..ctmc.test_ssa import N_CHAINS, P_MIN, assert_matches_distribution, state_counts
 from ..ctmc.test_transition import (

@@ -14,24 +14,25 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from surrogate import collect, train
 from surrogate.config import CONF_DIR
+from surrogate.stages import collect, train
 
 # collect: 200 transitions per origin state from 50 cells
 COLLECT = ["collect.n_per_state=200", "collect.n_cells=50", "collect.equilibration_time=1.0"]
-# train: 10 inducing points, 2 epochs, a 10 x 10 psi grid
-GP = ["gp.epochs=2", "gp.n_inducing=10", "gp.batch_size=100", "gp.grid_size=[10,10]"]
+# train: 10 inducing points, 2 epochs, a 10-node psi grid, a small diagnostic run
+GP = ["gp.epochs=2", "gp.n_inducing=10", "gp.batch_size=100", "gp.grid_size=[10]",
+      "gp.diagnostic.n_cells=50", "gp.diagnostic.t_end=5.0"]  # fmt: skip
 # simulate: 20 cells for 2 s
 SIM = ["n_cells=20", "t_end=2.0", "equilibration_time=1.0"]
-ABSTRACT = ["decision=abstract", "decision.lookup_size=[16,16]"]
+ABSTRACT = ["decision=abstract", "decision.lookup_size=[16]"]
 EVALUATE = ["evaluate.times=[1.0,2.0]", "evaluate.subsample=50"]
 
 STAGE_OVERRIDES = {
     "collect": COLLECT,
     "train": COLLECT + GP,
     "simulate": COLLECT + GP + SIM,
-    "evaluate": COLLECT + GP + SIM + ["decision.lookup_size=[16,16]", *EVALUATE],
-    "reproduce": COLLECT + GP + SIM + ["decision.lookup_size=[16,16]", *EVALUATE],
+    "evaluate": COLLECT + GP + SIM + ["decision.lookup_size=[16]", *EVALUATE],
+    "reproduce": COLLECT + GP + SIM + ["decision.lookup_size=[16]", *EVALUATE],
 }
 
 Compose = Callable[..., DictConfig]
@@ -74,3 +75,25 @@ def copy_data(trained_data: Path, tmp_path: Path) -> Path:
     target = tmp_path / "data"
     shutil.copytree(trained_data, target)
     return target
+
+
+# directories of a config's artefacts, from the stages' typed settings
+def collect_dir(cfg: DictConfig) -> Path:
+    """The collect artefact directory of ``cfg``."""
+    from surrogate.stages.settings import CollectSettings
+
+    return CollectSettings.from_config(cfg).directory
+
+
+def train_dir(cfg: DictConfig) -> Path:
+    """The train artefact directory of ``cfg``."""
+    from surrogate.stages.settings import TrainSettings
+
+    return TrainSettings.from_config(cfg).directory
+
+
+def simulate_dir(cfg: DictConfig) -> Path:
+    """The simulation artefact directory of ``cfg``."""
+    from surrogate.stages.settings import SimulateSettings
+
+    return SimulateSettings.from_config(cfg).directory

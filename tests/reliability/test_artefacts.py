@@ -8,10 +8,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from surrogate import collect, train
-from surrogate.collect import TRANSITIONS
 from surrogate.errors import ArtefactError, MissingArtefactError
-from surrogate.evaluate import stage as evaluate_stage
 from surrogate.evaluate.statistics import load_run
 from surrogate.gp import load_psi
 from surrogate.io import (
@@ -25,11 +22,14 @@ from surrogate.io import (
     write_json,
     write_parquet,
 )
-from surrogate.paths import collect_dir, train_dir
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import collect, train
+from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.collect import TRANSITIONS
 
 # ---------------------------------------------------------------------------------------------
 # missing inputs name the command that makes them
+from .conftest import collect_dir, train_dir
 
 
 def test_train_without_collect_names_the_collect_command(tiny) -> None:
@@ -38,7 +38,10 @@ def test_train_without_collect_names_the_collect_command(tiny) -> None:
         train.run(cfg)
     text = str(info.value)
     assert "no collected transitions" in text and str(collect_dir(cfg)) in text
-    assert "python scripts/collect.py field=gaussian dt=0.05 seed=7" in text
+    assert (
+        "python scripts/collect.py model=ecoli field=gaussian dt=0.05 seed=7 "
+        "collect.n_per_state=200 collect.n_cells=50 collect.equilibration_time=1.0`" in text
+    )
     assert not train_dir(cfg).exists()  # nothing was started
 
 
@@ -48,8 +51,14 @@ def test_simulate_abstract_without_train_names_the_train_command(tiny) -> None:
         simulate_stage.run(cfg)
     text = str(info.value)
     assert "no trained abstraction" in text
-    assert "python scripts/train.py field=gaussian dt=0.05 seed=0 gp.kernel=rbf" in text
-    assert "python scripts/collect.py" in text
+    # the whole command: every setting that differs from the shipped defaults
+    assert (
+        "Run `python scripts/train.py model=ecoli field=gaussian dt=0.05 seed=0 "
+        "collect.n_per_state=200 collect.n_cells=50 collect.equilibration_time=1.0 "
+        "gp.n_inducing=10 gp.epochs=2 gp.batch_size=100 gp.grid_size=[10] "
+        "gp.diagnostic.n_cells=50 gp.diagnostic.t_end=5.0` first (after `python "
+        "scripts/collect.py model=ecoli field=gaussian dt=0.05 seed=0" in text
+    )
 
 
 def test_evaluate_without_simulations_names_the_simulate_command(tiny) -> None:
@@ -57,7 +66,10 @@ def test_evaluate_without_simulations_names_the_simulate_command(tiny) -> None:
         evaluate_stage.run(tiny("evaluate"))
     text = str(info.value)
     assert "missing simulation" in text
-    assert "python scripts/simulate.py decision=full field=gaussian n_cells=20 t_end=2.0" in text
+    assert (
+        "python scripts/simulate.py decision=full model=ecoli field=gaussian dt=0.05 seed=0 "
+        "n_cells=20 t_end=2.0 equilibration_time=1.0`" in text
+    )
     assert "evaluate.run_missing=true" in text
 
 
@@ -90,7 +102,7 @@ def test_train_refuses_transitions_made_with_other_settings(tiny, copy_data) -> 
     with pytest.raises(
         ArtefactError, match=r"made with different settings \(collect: artefact has"
     ):
-        train.load_transitions(cfg)
+        train.load_transitions(train.validate(cfg))
     with pytest.raises(ArtefactError, match="'perturb_rate': 0.5"):
         train.run(cfg, force=True)
     # rerunning collect would only reuse the foreign artefact, so it says to remove it
@@ -123,7 +135,7 @@ def test_train_refuses_a_truncated_collect_artefact(
     path = collect_dir(cfg) / name
     _truncate(path, keep)
     with pytest.raises(ArtefactError) as info:
-        train.load_transitions(cfg)
+        train.load_transitions(train.validate(cfg))
     assert str(path) in str(info.value) and "corrupt or truncated" in str(info.value)
 
 
@@ -147,7 +159,7 @@ def test_a_truncated_train_manifest_is_refused(tiny, copy_data) -> None:
     path = train_dir(cfg) / MANIFEST
     _truncate(path, 0.5)
     with pytest.raises(ArtefactError, match=f"{path}.*not valid JSON"):
-        train.resolve_abstraction(cfg)
+        train.resolve_abstraction(train.validate(cfg))
     with pytest.raises(ArtefactError, match=f"{path}.*not valid JSON"):
         train.run(cfg)  # the stage does not reuse (or overwrite) a corrupt artefact silently
 
@@ -158,7 +170,7 @@ def test_a_manifest_that_is_not_a_manifest_is_refused(tiny, copy_data) -> None:
     with pytest.raises(ArtefactError, match="is not a stage manifest"):
         read_manifest(collect_dir(cfg))
     with pytest.raises(ArtefactError, match="is not a stage manifest"):
-        train.load_transitions(cfg)
+        train.load_transitions(train.validate(cfg))
 
 
 def test_transitions_that_disagree_with_their_manifest_are_refused(tiny, copy_data) -> None:
@@ -167,13 +179,13 @@ def test_transitions_that_disagree_with_their_manifest_are_refused(tiny, copy_da
     table = pd.read_parquet(path)
     write_parquet(path, table.iloc[:-10])
     with pytest.raises(ArtefactError, match=f"{path} has 390 rows but its manifest says 400"):
-        train.load_transitions(cfg)
+        train.load_transitions(train.validate(cfg))
     write_parquet(path, table.drop(columns=["phi_next"]))
     with pytest.raises(ArtefactError, match=r"lacks column\(s\) \['phi_next'\]"):
-        train.load_transitions(cfg)
+        train.load_transitions(train.validate(cfg))
 
 
-@pytest.mark.parametrize("name", ["distances.parquet", "durations.parquet", "manifest.json"])
+@pytest.mark.parametrize("name", ["observables.parquet", "durations.parquet", "manifest.json"])
 def test_evaluate_refuses_a_truncated_simulation(tiny, name: str) -> None:
     directory = simulate_stage.run(tiny("simulate"))
     load_run(directory)  # complete: loads

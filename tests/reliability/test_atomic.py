@@ -14,8 +14,6 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from surrogate import collect
-from surrogate.collect import TRANSITIONS
 from surrogate.config import CONF_DIR
 from surrogate.errors import ArtefactError
 from surrogate.evaluate.statistics import load_run
@@ -30,10 +28,11 @@ from surrogate.io import (
     write_csv,
     write_json,
 )
-from surrogate.paths import collect_dir, simulate_dir
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import collect
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.collect import TRANSITIONS
 
-from .conftest import COLLECT, compose_in
+from .conftest import COLLECT, collect_dir, compose_in, simulate_dir
 
 REPO = CONF_DIR.parent
 PACKAGE = REPO / "surrogate"
@@ -139,12 +138,17 @@ def test_the_lock_excludes_other_processes_and_dies_with_its_holder(tmp_path: Pa
 
 
 def test_clean_stale_tmp_removes_only_temporaries(tmp_path: Path) -> None:
-    for name in (".distances.parquet.abc123.tmp", ".manifest.json.x.tmp", "keep.parquet", "b.tmp"):
+    for name in (
+        ".observables.parquet.abc123.tmp",
+        ".manifest.json.x.tmp",
+        "keep.parquet",
+        "b.tmp",
+    ):
         (tmp_path / name).write_text("x")
     removed = clean_stale_tmp(tmp_path)
     assert sorted(p.name for p in removed) == [
-        ".distances.parquet.abc123.tmp",
         ".manifest.json.x.tmp",
+        ".observables.parquet.abc123.tmp",
     ]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b.tmp", "keep.parquet"]
 
@@ -213,7 +217,7 @@ def _start_simulate(data_dir: Path, extra: list[str]) -> subprocess.Popen:
 
 def _assert_nothing_readable(directory: Path) -> None:
     assert not (directory / MANIFEST).exists()
-    for name in ("distances.parquet", "durations.parquet"):
+    for name in ("observables.parquet", "durations.parquet"):
         assert not (directory / name).exists()
     with pytest.raises(ArtefactError):  # MissingArtefactError: the run reads as absent
         load_run(directory)
@@ -249,7 +253,7 @@ def test_simulate_killed_mid_run_leaves_no_partial_artefact(
     assert out == target
     run = load_run(out)
     assert read_manifest(out)["seed"] == cfg.seed
-    assert run.distances["cell"].nunique() == 200 and run.record_times[-1] == pytest.approx(200.0)
+    assert run.observables["cell"].nunique() == 200 and run.record_times[-1] == pytest.approx(200.0)
     clean_stale_tmp(out)  # what a locking stage does on its next run
     assert not _tmp_files(out)
 
@@ -289,7 +293,7 @@ def test_a_failed_rerun_keeps_the_previous_complete_artefact(tiny, copy_data, mo
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("surrogate.collect.collect_transitions", interrupted)
+    monkeypatch.setattr("surrogate.stages.collect.collect_transitions", interrupted)
     with pytest.raises(KeyboardInterrupt):
         collect.run(cfg, force=True)
     read_manifest(collect_dir(cfg))

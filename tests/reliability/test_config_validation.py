@@ -12,11 +12,11 @@ import pytest
 import torch
 from hydra.errors import ConfigCompositionException, MissingConfigException
 
-from surrogate import collect, reproduce, train
 from surrogate.config import CONF_DIR
 from surrogate.errors import ConfigError
-from surrogate.evaluate import stage as evaluate_stage
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import collect, reproduce, train
+from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages import simulate as simulate_stage
 
 from .conftest import compose_in
 
@@ -48,16 +48,28 @@ BAD_INPUTS = [
     ("simulate", ["seed=-1"], "seed must be a non-negative integer"),
     # device and names
     ("simulate", ["device=tpu"], "device='tpu'"),
-    ("simulate", ["decision.name=foo"], "decision.name must be one of ['full', 'abstract']"),
+    (
+        "simulate",
+        ["decision.name=foo"],
+        "decision.name must be one of ['full', 'abstract', 'exact']",
+    ),
+    ("simulate", ["decision=exact", "decision.mode=foo"], "decision.mode must be one of"),
     ("simulate", ["decision=abstract", "decision.mode=foo"], "decision.mode must be one of"),
     ("simulate", ["decision=abstract", "decision.train_field=foo"], "unknown field 'foo'"),
-    ("simulate", ["decision=abstract", "decision.lookup_size=[1,1]"], "decision.lookup_size"),
+    ("simulate", ["decision=abstract", "decision.lookup_size=[1]"], "decision.lookup_size"),
+    ("simulate", ["decision=abstract", "decision.lookup_size=[8,8]"], "decision.lookup_size"),
+    ("simulate", ["decision=abstract", "gp.inputs=[m,L,F,cheyp]"], "at most 3 inputs"),
     ("simulate", ["decision=abstract", "gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'"),
     ("train", ["gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'; allowed values"),
     ("train", ["+gp.foo=1"], "gp.foo"),
     ("simulate", ["model.motor_sampler=foo"], "model.motor_sampler must be one of"),
     ("simulate", ["model.tumble_mode=foo"], "model.tumble_mode must be one of"),
     ("simulate", ["+model.foo=1"], "unknown model setting(s) ['foo']"),
+    ("simulate", ["model._target_=builtins.dict"], "did not return a surrogate.models.Model"),
+    ("simulate", ["~model._target_"], "model config needs a `_target_`"),
+    ("collect", ["model.perturbation.radius=-1.0"], "model.perturbation.radius must be > 0"),
+    ("collect", ["model.perturbation.sampling=foo"], "model.perturbation.sampling must be one of"),
+    ("collect", ["+model.perturbation.foo=1"], "unknown model.perturbation setting(s) ['foo']"),
     ("simulate", ["field._target_=surrogate.fields.Nope"], "surrogate.fields.Nope"),
     ("simulate", ["field.amplitude=-1.0"], "field.amplitude must be a positive number"),
     ("reproduce", ["fields=[gaussian,foo]"], "unknown field 'foo'"),
@@ -78,8 +90,17 @@ BAD_INPUTS = [
     ("train", ["gp.lr=0.0"], "gp.lr must be > 0"),
     ("train", ["gp.epochs=0"], "gp.epochs must be >= 1"),
     ("train", ["gp.n_inducing=500"], "gp.n_inducing=500 exceeds the 160 training points"),
-    ("train", ["gp.grid_size=[1,50]"], "gp.grid_size must be two integers >= 2"),
-    ("train", ["gp.grid_size=5"], "gp.grid_size must be two integers >= 2, got 5"),
+    ("train", ["gp.grid_size=[1]"], "gp.grid_size must be 1 integers >= 2"),
+    ("train", ["gp.grid_size=[5,5]"], "gp.grid_size must be 1 integers >= 2"),
+    ("train", ["gp.grid_size=1"], "gp.grid_size must be 1 integers >= 2"),
+    ("train", ["gp.inputs=[foo]"], "gp.inputs: ['foo']"),
+    ("train", ["gp.diagnostic.n_cells=0"], "gp.diagnostic.n_cells must be a positive"),
+    ("train", ["+gp.diagnostic.foo=1"], "unknown gp.diagnostic setting(s) ['foo']"),
+    (
+        "train",
+        ["transitions=/nonexistent.parquet"],
+        "transitions=/nonexistent.parquet: no such file",
+    ),
     # collect settings
     ("collect", ["collect.perturb_rate=-0.1"], "collect.perturb_rate must be a non-negative"),
     ("collect", ["collect.perturb_rate=30.0"], "collect.perturb_rate=30/s cannot be met"),
@@ -90,8 +111,10 @@ BAD_INPUTS = [
     ("evaluate", ["evaluate.times=[5.0]"], "evaluate.times [5.0] lie outside"),
     ("evaluate", ["evaluate.subsample=0"], "evaluate.subsample must be a positive"),
     ("evaluate", ["decision.mode=foo"], "decision.mode must be one of"),
+    ("evaluate", ["decision.name=full"], "use decision=abstract"),
     ("reproduce", ["n_cells=0"], "n_cells must be a positive number"),
     ("reproduce", ["decision.lookup_size=[0,4]"], "decision.lookup_size"),
+    ("simulate", ["n_cells=2000000000000"], "split the population into shards"),
 ]
 
 
@@ -145,15 +168,15 @@ def _forbid(monkeypatch: pytest.MonkeyPatch, target: str) -> None:
 
 
 def test_collect_validates_before_simulating(tiny, monkeypatch) -> None:
-    _forbid(monkeypatch, "surrogate.collect.collect_transitions")
-    _forbid(monkeypatch, "surrogate.collect.Simulator")
+    _forbid(monkeypatch, "surrogate.stages.collect.collect_transitions")
+    _forbid(monkeypatch, "surrogate.stages.collect.Simulator")
     with pytest.raises(ConfigError, match="collect.perturb_rate"):
         collect.run(tiny("collect", ["collect.perturb_rate=-1.0"]))
 
 
 def test_train_validates_before_loading_data(tiny, monkeypatch) -> None:
-    _forbid(monkeypatch, "surrogate.train.load_transitions")
-    _forbid(monkeypatch, "surrogate.train.fit_psi")
+    _forbid(monkeypatch, "surrogate.stages.train.load_transitions")
+    _forbid(monkeypatch, "surrogate.stages.train.fit_psi")
     # no collected data either: the bad setting is named, not the missing artefact
     with pytest.raises(ConfigError, match="gp.kernel"):
         train.run(tiny("train", ["gp.kernel=foo"]))
@@ -170,17 +193,17 @@ def test_train_validates_before_loading_data(tiny, monkeypatch) -> None:
 def test_simulate_validates_the_abstraction_settings_before_lookups(
     tiny, monkeypatch, overrides: list[str], message: str
 ) -> None:
-    _forbid(monkeypatch, "surrogate.train.resolve_abstraction")
-    _forbid(monkeypatch, "surrogate.train.load_abstraction")
-    _forbid(monkeypatch, "surrogate.simulate.stage.build_decision")
-    _forbid(monkeypatch, "surrogate.simulate.stage.simulate_population")
+    _forbid(monkeypatch, "surrogate.stages.train.resolve_abstraction")
+    _forbid(monkeypatch, "surrogate.stages.train.load_abstraction")
+    _forbid(monkeypatch, "surrogate.stages.simulate.build_decision")
+    _forbid(monkeypatch, "surrogate.stages.simulate.simulate_population")
     with pytest.raises(ConfigError, match=message):
         simulate_stage.run(tiny("simulate", ["decision=abstract", *overrides]))
 
 
 def test_evaluate_validates_before_simulating(tiny, monkeypatch) -> None:
-    _forbid(monkeypatch, "surrogate.evaluate.stage.ensure_run")
-    _forbid(monkeypatch, "surrogate.simulate.stage.run")
+    _forbid(monkeypatch, "surrogate.stages.evaluate.ensure_run")
+    _forbid(monkeypatch, "surrogate.stages.simulate.run")
     with pytest.raises(ConfigError, match="evaluate.noise_seed_offset"):
         evaluate_stage.run(tiny("evaluate", ["evaluate.noise_seed_offset=0"]))
 
@@ -196,9 +219,9 @@ def test_evaluate_validates_before_simulating(tiny, monkeypatch) -> None:
 def test_reproduce_validates_every_stage_before_collecting(
     tiny, monkeypatch, overrides: list[str], message: str
 ) -> None:
-    _forbid(monkeypatch, "surrogate.collect.run")
-    _forbid(monkeypatch, "surrogate.train.run")
-    _forbid(monkeypatch, "surrogate.evaluate.stage.run")
+    _forbid(monkeypatch, "surrogate.stages.reproduce.collect")
+    _forbid(monkeypatch, "surrogate.stages.reproduce.train")
+    _forbid(monkeypatch, "surrogate.stages.evaluate.evaluate")
     with pytest.raises(ConfigError, match=message):
         reproduce.run(tiny("reproduce", overrides))
 

@@ -10,14 +10,15 @@ import pytest
 import torch
 from omegaconf import open_dict
 
-from surrogate import collect, train
-from surrogate.collect import TRANSITIONS
 from surrogate.errors import NumericalError
 from surrogate.fields import Field
 from surrogate.gp import FittedClassifier, GPSettings, PsiLookupTable, fit_classifier
 from surrogate.io import MANIFEST, write_parquet
-from surrogate.paths import collect_dir, simulate_dir, train_dir
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import collect, train
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.collect import TRANSITIONS
+
+from .conftest import collect_dir, simulate_dir, train_dir
 
 
 class BadField(Field):
@@ -49,7 +50,7 @@ def test_a_field_returning_nan_stops_the_simulation(tiny, value: float, after: f
         simulate_stage.run(cfg)
     assert "field" in str(info.value)
     out = simulate_dir(cfg)
-    assert not (out / MANIFEST).exists() and not (out / "distances.parquet").exists()
+    assert not (out / MANIFEST).exists() and not (out / "observables.parquet").exists()
 
 
 def test_a_field_returning_nan_stops_collect(tiny) -> None:
@@ -63,9 +64,9 @@ def test_nan_in_the_transitions_is_refused_by_name(tiny, copy_data) -> None:
     cfg = tiny("train")
     path = collect_dir(cfg) / TRANSITIONS
     table = pd.read_parquet(path)
-    table.loc[3, "m"] = np.nan
+    table.loc[3, "dG"] = np.nan
     write_parquet(path, table)
-    with pytest.raises(NumericalError, match=f"{path} contains NaN or infinite m/L values"):
+    with pytest.raises(NumericalError, match=r"contains NaN or infinite values in \['dG'\]"):
         train.run(cfg, force=True)
 
 
@@ -106,17 +107,18 @@ def test_the_restored_model_predicts_finite_values() -> None:
 
 def test_a_lookup_table_of_a_nan_classifier_yields_nan_not_a_bad_index() -> None:
     """The table never indexes out of bounds on NaN; the NaN stays visible in its output."""
-    table = PsiLookupTable(torch.rand(2, 4, 4), (0.0, 1.0), (0.0, 1.0))
-    table.check_finite = False  # as in the simulation loop, which checks at record times
-    out = table(torch.tensor([0, 1]), torch.tensor([math.nan, 0.5]), torch.tensor([0.5, math.nan]))
+    table = PsiLookupTable(torch.rand(2, 4, 4), [(0.0, 1.0), (0.0, 1.0)])
+    # evaluate: unchecked, as in the simulation loop, which checks at record times
+    out = table.evaluate(torch.tensor([0, 1]), torch.tensor([[math.nan, 0.5], [0.5, math.nan]]))
     assert bool(torch.isnan(out).all())
+    assert table.check_finite  # the direct call still checks
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
 def test_classifier_inputs_are_checked(tiny, copy_data, bad: float) -> None:
     psi = train.load_abstraction(train_dir(tiny("train")))
     with pytest.raises(NumericalError, match="NaN"):
-        psi(torch.tensor([0, 1]), torch.tensor([bad, 2.0]), torch.tensor([0.01, 0.01]))
-    table = PsiLookupTable.from_classifier(psi, (2.0, 3.0), (0.0, 0.1), size=(8, 8))
+        psi(torch.tensor([0, 1]), torch.tensor([[bad], [0.5]]))
+    table = PsiLookupTable.from_function(psi, [(0.0, 1.0)], psi.input_names, size=(8,))
     with pytest.raises(NumericalError, match="NaN"):
-        table(torch.tensor([0, 1]), torch.tensor([2.5, 2.0]), torch.tensor([bad, 0.01]))
+        table(torch.tensor([0, 1]), torch.tensor([[0.5], [bad]]))

@@ -16,11 +16,11 @@ import pandas as pd
 import pytest
 import torch
 
-from surrogate import collect, train
-from surrogate.collect import TRANSITIONS
-from surrogate.evaluate import stage as evaluate_stage
 from surrogate.io import read_manifest, write_manifest
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import collect, train
+from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.collect import TRANSITIONS
 
 from .conftest import SIM, compose_in
 
@@ -80,9 +80,8 @@ def test_train_same_seed_identical_other_seed_different(
     # the reloaded classifiers agree bit for bit on new inputs too
     gen = torch.Generator().manual_seed(123)
     phi = torch.randint(0, 2, (500,), generator=gen)
-    m = 1.0 + 2.0 * torch.rand(500, generator=gen)
-    L = 0.1 * torch.rand(500, generator=gen)
-    p = {k: train.load_abstraction(d)(phi, m, L) for k, d in dirs.items()}
+    dg = -1.0 + 3.0 * torch.rand(500, 1, generator=gen)
+    p = {k: train.load_abstraction(d)(phi, dg) for k, d in dirs.items()}
     assert torch.equal(p["a"], p["b"])
     assert not torch.equal(p["a"], p["c"])
     metrics = {k: read_manifest(d)["brier"] for k, d in dirs.items()}
@@ -104,7 +103,7 @@ def test_simulate_same_seed_identical_other_seed_different(
     def tables(data: Path, seed: int) -> tuple[pd.DataFrame, pd.DataFrame]:
         cfg = compose_in(data, "simulate", [*decision, f"seed={seed}"])
         out = simulate_stage.run(cfg, force=True)
-        return pd.read_parquet(out / "distances.parquet"), pd.read_parquet(
+        return pd.read_parquet(out / "observables.parquet"), pd.read_parquet(
             out / "durations.parquet"
         )
 
@@ -118,9 +117,9 @@ def test_simulate_same_seed_identical_other_seed_different(
 def test_same_process_rerun_is_identical(tiny) -> None:
     """Seeding at the start of each stage: earlier draws in the same process do not leak in."""
     cfg = tiny("simulate", ["seed=5"])
-    first = pd.read_parquet(simulate_stage.run(cfg) / "distances.parquet")
+    first = pd.read_parquet(simulate_stage.run(cfg) / "observables.parquet")
     torch.rand(1000)  # disturb the global stream
-    again = pd.read_parquet(simulate_stage.run(cfg, force=True) / "distances.parquet")
+    again = pd.read_parquet(simulate_stage.run(cfg, force=True) / "observables.parquet")
     _same(first, again)
 
 
@@ -142,7 +141,7 @@ def test_every_manifest_records_the_seed(tiny, copy_data) -> None:
         "train": 0,
         "evaluate": 0,
         "simulate full": 0,
-        "simulate abstract": 0,
+        "simulate candidate": 0,
         "simulate full_repeat": 1000,
     }
 
@@ -170,7 +169,7 @@ def test_parallel_jobs_draw_independent_streams(tmp_path: Path) -> None:
         cfg = compose_in(data, "simulate", [f"seed={seed}"])
         out = simulate_stage.run(cfg)  # reuses the job's artefact
         assert read_manifest(out)["seed"] == seed
-        parallel[seed] = pd.read_parquet(out / "distances.parquet")
+        parallel[seed] = pd.read_parquet(out / "observables.parquet")
         serial = compose_in(tmp_path / "serial", "simulate", [f"seed={seed}"])
-        _same(parallel[seed], pd.read_parquet(simulate_stage.run(serial) / "distances.parquet"))
+        _same(parallel[seed], pd.read_parquet(simulate_stage.run(serial) / "observables.parquet"))
     _differ(parallel[0], parallel[1])

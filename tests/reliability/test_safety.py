@@ -109,6 +109,20 @@ def test_no_unsafe_deserialisation_or_eval_in_the_package() -> None:
     assert not offences, "\n".join(offences)
 
 
+def test_generated_code_is_loaded_in_one_place_only() -> None:
+    """Source generated from validated expression trees (propensities, SSA kernels) becomes code
+    only through surrogate.ctmc.codegen.load_generated; nothing else imports files by path."""
+    offences = [
+        f"{f}:{line}: {name}(...)"
+        for f, line, name, _ in _calls()
+        if name.endswith(("spec_from_file_location", "exec_module", "import_module"))
+        and f != "surrogate/ctmc/codegen.py"
+    ]
+    assert not offences, "\n".join(offences)
+    callers = {f for f, _, name, _ in _calls() if name.endswith("load_generated")}
+    assert callers <= {"surrogate/ctmc/compiled.py", "surrogate/ctmc/kinetics.py"}, callers
+
+
 def test_torch_load_only_in_load_tensors_with_weights_only() -> None:
     loads = [(f, line, node) for f, line, name, node in _calls() if name == "torch.load"]
     assert [f for f, _, _ in loads] == ["surrogate/io.py"], loads

@@ -13,6 +13,7 @@ from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.reference import PAPER_TABLE1
 
+
 class EcoliModel(Model):
     """E. coli chemotaxis after Sneddon, Pontius & Emonet (2012) and the paper.
 
@@ -60,4 +61,8 @@ class EcoliModel(Model):
 
     def to_config(self) -> dict[str, Any]:
         """Constants and perturbation (for manifests)."""
-        return {"name": self.name, **self.params.to_dict(), "perturbation": dict(self.perturbation_options)}
+        return {
+            "name": self.name,
+            **self.params.to_dict(),
+            "perturbation": dict(self.perturbation_options),
+        }

@@ -241,9 +241,7 @@ def population_space(n_motors: int) -> StateSpace:
     return StateSpace.enumerate(FLAGELLA_NETWORK, torch.tensor([0, 0, int(n_motors)]))
 
 
-def exact_run_probability(
-    k_plus: Tensor, k_minus: Tensor, dt: float, p: EcoliParameters
-) -> Tensor:
+def exact_run_probability(k_plus: Tensor, k_minus: Tensor, dt: float, p: EcoliParameters) -> Tensor:
     """Exact lumped P(RUN after dt | TUMBLE / RUN now), ``n x 2``, at rates ``k_plus``/``k_minus``
     (``(n,)``): the motor population's generator, started from its stationary law restricted to
     the current lump (:func:`surrogate.ctmc.lumped.lumped_psi`)."""

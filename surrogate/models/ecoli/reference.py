@@ -87,7 +87,6 @@ PAPER_QUANTITIES: tuple[str, ...] = (
 )
 
 
-
 def paper_table1_frame() -> pd.DataFrame:
     """``PAPER_TABLE1`` as a long table: ``field``, ``quantity``, ``ks``, ``ks_pvalue``."""
     rows = [

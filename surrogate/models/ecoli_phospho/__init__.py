@@ -298,8 +298,10 @@ def load_network(path: str | Path = NETWORK_PATH) -> SbmlModel:
 def main() -> None:
     """Write ``network.xml`` from the default constants (``python -m
     surrogate.models.ecoli_phospho``)."""
-    NETWORK_PATH.write_text(network_sbml())
-    NETWORK_AMOUNTS_PATH.write_text(network_sbml(amounts=True))
+    from surrogate.io import write_text
+
+    write_text(NETWORK_PATH, network_sbml())
+    write_text(NETWORK_AMOUNTS_PATH, network_sbml(amounts=True))
 
 
 if __name__ == "__main__":

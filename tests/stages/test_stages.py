@@ -9,13 +9,13 @@ import pandas as pd
 import pytest
 import torch
 
-from surrogate import collect, train
 from surrogate.errors import MissingArtefactError
-from surrogate.evaluate import stage as evaluate_stage
 from surrogate.evaluate.statistics import load_run
 from surrogate.io import load_tensors
-from surrogate.paths import simulate_dir
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import collect, train
+from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.settings import EvaluateSettings
 
 TINY = [
     "collect.n_per_state=400",
@@ -26,7 +26,9 @@ TINY = [
     "n_cells=40",
     "t_end=20.0",
     "equilibration_time=1.0",
-    "gp.grid_size=[12,10]",
+    "gp.grid_size=[12]",
+    "gp.diagnostic.n_cells=100",
+    "gp.diagnostic.t_end=10.0",
 ]
 
 
@@ -44,10 +46,10 @@ def trained(compose_cfg):
 def test_collect_writes_columns_counts_and_manifest(trained) -> None:
     cfg, collect_dir, _ = trained
     table = pd.read_parquet(collect_dir / "transitions.parquet")
-    assert {"m", "L", "phi", "phi_next", "cell", "t"} <= set(table.columns)
+    assert {"m", "L", "F", "cheyp", "dG", "phi", "phi_next", "cell", "t"} <= set(table.columns)
     assert (table["phi"] == 0).sum() == 400 and (table["phi"] == 1).sum() == 400
     assert set(table["phi_next"].unique()) <= {0, 1}
-    assert np.isfinite(table[["m", "L"]].to_numpy()).all()
+    assert np.isfinite(table[["m", "L", "dG"]].to_numpy()).all()
     manifest = json.loads((collect_dir / "manifest.json").read_text())
     assert manifest["counts_per_origin"] == {"tumble": 400, "run": 400}
     assert manifest["seed"] == cfg.seed and manifest["config"]["dt"] == cfg.dt
@@ -63,44 +65,47 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
         "train_metrics.json",
         "psi_grid.csv",
         "psi_surfaces.png",
+        "psi_diagnostic.png",
         "manifest.json",
     ):
         assert (train_dir / name).exists(), name
     grid = pd.read_csv(train_dir / "psi_grid.csv")
-    assert list(grid.columns) == ["phi", "m", "L", "p"] and len(grid) == 2 * 12 * 10
+    assert list(grid.columns) == ["phi", "dG", "p"] and len(grid) == 2 * 12
     assert grid["p"].between(0, 1).all()
     load_tensors(train_dir / "psi.pt")  # loads with weights_only=True
     psi = train.load_abstraction(train_dir)
+    assert psi.input_names == ("dG",) and psi.lump_names == ("tumble", "run")
     # the saved grid is reproduced exactly by the reloaded model
-    p = psi(
-        torch.tensor(grid["phi"].to_numpy()),
-        torch.tensor(grid["m"].to_numpy()),
-        torch.tensor(grid["L"].to_numpy()),
-    )
+    p = psi(torch.tensor(grid["phi"].to_numpy()), torch.tensor(grid[["dG"]].to_numpy()))
     np.testing.assert_allclose(p.numpy(), grid["p"].to_numpy(), rtol=0, atol=1e-6)
     # the same abstraction is found from the config alone
     psi2 = train.load_abstraction(cfg)
-    assert torch.equal(
-        psi2(torch.tensor([1, 0]), torch.tensor([2.0, 2.5]), torch.tensor([0.01, 0.05])),
-        psi(torch.tensor([1, 0]), torch.tensor([2.0, 2.5]), torch.tensor([0.01, 0.05])),
-    )
+    z = torch.tensor([[0.3], [0.9]])
+    assert torch.equal(psi2(torch.tensor([1, 0]), z), psi(torch.tensor([1, 0]), z))
     metrics = json.loads((train_dir / "train_metrics.json").read_text())
-    for name in ("psi_tumble", "psi_run"):
+    for name in ("psi_0", "psi_1"):
         v = metrics[name]["validation"]
         assert {"brier", "brier_baseline", "mean_log_predictive", "accuracy", "calibration"} <= set(
             v
         )
+    d = metrics["diagnostic"]
+    assert d["reference"] == "exact" and d["n_occupancy"] == 100 * 200 // 10
+    for phi in ("phi0", "phi1"):
+        assert 0 < d[phi]["mean_switching_reference"] < 1
+        learned, reference = d[phi]["mean_switching_learned"], d[phi]["mean_switching_reference"]
+        assert d[phi]["rel_bias"] == pytest.approx(learned / reference - 1, rel=1e-12)
+        assert d[phi]["p90_abs_rel_error"] >= 0 and d[phi]["mean_abs_rel_error"] >= 0
 
 
 def test_train_without_collect_names_the_command(compose_cfg) -> None:
     cfg = compose_cfg("train", ["field=linear"])
-    with pytest.raises(MissingArtefactError, match="python scripts/collect.py field=linear"):
+    with pytest.raises(MissingArtefactError, match=r"python scripts/collect.py .*field=linear"):
         train.run(cfg)
 
 
 @pytest.mark.parametrize("mode", ["lookup", "classifier"])
 def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
-    overrides = [*TINY, "decision=abstract", f"decision.mode={mode}", "decision.lookup_size=[32,32]",
+    overrides = [*TINY, "decision=abstract", f"decision.mode={mode}", "decision.lookup_size=[64]",
                  "evaluate.times=null", "evaluate.subsample=200", "evaluate.run_missing=true"]  # fmt: skip
     cfg = compose_cfg("evaluate", overrides)
     out = evaluate_stage.run(cfg)
@@ -115,7 +120,8 @@ def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     ]
     assert table["ks"].between(0, 1).all() and table["ks_noise_floor"].notna().all()
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["speedup_loop"] > 0
+    assert summary["speedup_loop"] > 0 and summary["speed_comparable"]
+    assert set(summary["mean_durations"]) == {"full", "candidate", "full_repeat"}
     for name in (
         "distance_histograms.png",
         "distance_over_time.png",
@@ -124,9 +130,8 @@ def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     ):
         assert (out / name).exists()
     # the abstract run is a complete simulation artefact in the same format as the full run
-    run_cfg = evaluate_stage.run_config(cfg, "abstract")
-    abstract = load_run(simulate_dir(run_cfg))
-    assert abstract.distances["cell"].nunique() == 40
+    abstract = load_run(EvaluateSettings.from_config(cfg).candidate.directory)
+    assert abstract.observables["cell"].nunique() == 40
     assert abstract.manifest["decision"] == "abstract"
 
 

@@ -11,16 +11,16 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from omegaconf import OmegaConf, open_dict
+from omegaconf import OmegaConf
 
 from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.evaluate.statistics import comparison_table, load_run
 from surrogate.io import read_manifest
-from surrogate.paths import simulate_dir
-from surrogate.simulate import shards
-from surrogate.simulate import stage as simulate_stage
+from surrogate.stages import shards
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.settings import SimulateSettings
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # Small and quick: 10 cells for 2 s, records every 0.5 s.
 SMALL = ["n_cells=10", "t_end=2.0", "record_interval=0.5", "equilibration_time=0.5"]
 
@@ -41,7 +41,12 @@ def test_default_is_unsharded_with_unchanged_directory(compose_cfg) -> None:
     assert (cfg.shard.count, cfg.shard.index) == (1, 0)
     without = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     del without["shard"]
-    assert simulate_dir(cfg) == simulate_dir(without) == simulate_dir(shards.shard_config(cfg))
+    settings = SimulateSettings.from_config(cfg)
+    assert (
+        settings.directory
+        == SimulateSettings.from_config(without).directory
+        == shards.shard_run(settings, 1, 0).directory
+    )
 
 
 @pytest.mark.parametrize(
@@ -72,6 +77,12 @@ def test_merge_names_the_missing_shard_and_its_command(compose_cfg) -> None:
     message = str(err.value)
     assert "missing 1 of 3 shards: shard 1 (" in message
     assert "python scripts/simulate.py n_cells=10 t_end=2.0 shard.count=3 shard.index=1" in message
+    # without the merge's own overrides, the command is built from the settings
+    with pytest.raises(MissingArtefactError) as err:
+        shards.merge(cfg)
+    command = re.search(r"Run `(python scripts/simulate.py .*?)` first", str(err.value))
+    assert command is not None and "n_cells=10" in command.group(1)
+    assert "shard.count=3 shard.index=1" in command.group(1)
 
 
 def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
@@ -84,16 +95,17 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
     assert len({*shard_dirs, unsharded.path}) == 4  # every shard has its own directory
     cfg = compose_cfg("simulate", [*SMALL, "shard.count=3"])
     out = shards.merge(cfg)
-    assert out == shards.merged_dir(cfg) and out.parent == unsharded.path.parent
+    settings = SimulateSettings.from_config(cfg)
+    assert out == shards.merged_dir(settings, 3) and out.parent == unsharded.path.parent
     assert out not in (*shard_dirs, unsharded.path)
 
     merged = load_run(out)
-    d = merged.distances
+    d = merged.observables
     np.testing.assert_array_equal(merged.record_times, unsharded.record_times)
     for _, rows in d.groupby("t"):
         assert sorted(rows["cell"]) == list(range(10))  # n_cells rows, unique contiguous ids
     # same format as an unsharded run: columns, dtypes (pandas and Parquet), row order by (t, cell)
-    for name in ("distances", "durations"):
+    for name in ("observables", "durations"):
         a, b = getattr(merged, name), getattr(unsharded, name)
         assert list(a.columns) == list(b.columns) and a.dtypes.equals(b.dtypes)
         pa_schema = pq.read_schema(out / f"{name}.parquet")
@@ -105,8 +117,8 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
     for part, offset in zip(parts, shards.shard_offsets(10, 3), strict=True):
         n = part.manifest["n_cells"]
         mine = d[(d["cell"] >= offset) & (d["cell"] < offset + n)].reset_index(drop=True)
-        np.testing.assert_array_equal(mine["distance"], part.distances["distance"])
-        np.testing.assert_array_equal(mine["cell"] - offset, part.distances["cell"])
+        np.testing.assert_array_equal(mine["distance"], part.observables["distance"])
+        np.testing.assert_array_equal(mine["cell"] - offset, part.observables["cell"])
     durations = merged.durations
     assert len(durations) == sum(len(p.durations) for p in parts) > 0
     offsets = np.repeat(shards.shard_offsets(10, 3), [len(p.durations) for p in parts])
@@ -121,7 +133,7 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
     loop = sum(p.manifest["loop_time_s"] for p in parts)
     assert m["loop_time_s"] == pytest.approx(loop)
     assert m["cell_steps_per_s"] == pytest.approx(10 * m["n_steps"] / loop)
-    assert m["final_mean_distance"] == pytest.approx(
+    assert m["final_means"]["distance"] == pytest.approx(
         float(d.loc[d["t"] == d["t"].max(), "distance"].mean()), rel=1e-5
     )
     assert m["shards"] == [str(p) for p in shard_dirs] and m["shard_count"] == 3
@@ -137,11 +149,13 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
 
 def test_shard_of_an_abstract_run_keeps_decision_settings(compose_cfg) -> None:
     cfg = compose_cfg("simulate", [*SMALL, "decision=abstract", "shard.count=2", "shard.index=1"])
-    c = shards.shard_config(cfg)
-    assert c.decision == cfg.decision and c.n_cells == 5 and c.seed == shards.shard_seed(0, 2, 1)
-    with open_dict(cfg):
-        cfg.shard.index = 0
-    assert shards.shard_config(cfg).seed != c.seed
+    settings = SimulateSettings.from_config(cfg)
+    c = shards.shard_run(settings, 2, 1)
+    assert c.decision is settings.decision and c.n_cells == 5
+    assert c.setup.seed == shards.shard_seed(0, 2, 1)
+    assert c.identity()["abstraction"] == settings.identity()["abstraction"]
+    assert shards.shard_run(settings, 2, 0).setup.seed != c.setup.seed
+    assert c.directory != settings.directory
 
 
 @pytest.mark.slow
