@@ -121,3 +121,23 @@ def test_commands_reproduce_the_settings(compose_cfg, tmp_path, overrides: list[
         again = cls.from_config(_compose_command(settings.command(), str(tmp_path / "data")))
         assert again.identity() == settings.identity(), settings.command()
         assert again.directory == settings.directory
+
+
+def test_compile_is_part_of_a_runs_identity(compose_cfg) -> None:
+    """A compiled and an eager run with one seed differ (kernels round differently), so they
+    must not share a directory."""
+    eager = SimulateSettings.from_config(compose_cfg("simulate"))
+    compiled = SimulateSettings.from_config(compose_cfg("simulate", ["compile=true"]))
+    assert eager.identity()["compile"] is False and compiled.identity()["compile"] is True
+    assert eager.directory != compiled.directory
+    assert "compile=true" in compiled.command()
+
+
+def test_evaluation_times_follow_t_end_unless_set(compose_cfg) -> None:
+    from surrogate.stages.settings import EvaluateSettings, ReproduceSettings
+
+    cfg = compose_cfg("reproduce", ["t_end=30.0"])
+    settings = ReproduceSettings.from_config(cfg)  # was: times beyond t_end refused
+    assert settings.evaluations["gaussian"].times == (7.5, 15.0, 22.5, 30.0)
+    paper = EvaluateSettings.from_config(compose_cfg("evaluate", ["experiment=paper"]))
+    assert paper.times == (125.0, 250.0, 375.0, 500.0)

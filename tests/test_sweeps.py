@@ -15,13 +15,14 @@ from omegaconf import OmegaConf
 
 from surrogate import cli
 from surrogate.errors import ConfigError, MissingArtefactError
-from surrogate.io import read_json
+from surrogate.io import JOB_STATUS, read_json
 from surrogate.sweep import summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 
 # A reproduce job in seconds: one field, 20 cells for 10 s, 300 transitions per origin state,
-# 2 epochs of a 10-inducing-point GP, a coarse lookup table.
+# 2 epochs of a 10-inducing-point GP, a coarse lookup table (over the default single input, the
+# E. coli model's signal dG).
 TINY = [
     "fields=[gaussian]",
     "n_cells=20",
@@ -30,7 +31,7 @@ TINY = [
     "collect.n_per_state=300",
     "gp.epochs=2",
     "gp.n_inducing=10",
-    "decision.lookup_size=[32,32]",
+    "decision.lookup_size=[64]",
     "evaluate.times=null",
     "evaluate.subsample=50",
 ]
@@ -52,7 +53,7 @@ def run_script(name: str, *args: str, cwd: Path = ROOT) -> subprocess.CompletedP
 def statuses(sweep_dir: Path) -> dict[int, dict]:
     """job number -> job_status.json of a sweep."""
     return {
-        int(p.parent.name): json.loads(p.read_text()) for p in sweep_dir.glob(f"*/{cli.JOB_STATUS}")
+        int(p.parent.name): json.loads(p.read_text()) for p in sweep_dir.glob(f"*/{JOB_STATUS}")
     }
 
 
@@ -98,7 +99,7 @@ def test_ok_job_records_status_and_sets_threads(tmp_path: Path) -> None:
         torch.set_num_threads(before)
     assert out == str((tmp_path / "artefact").resolve())
     assert cfg.progress is False  # multirun: no interleaved progress bars
-    status = read_json(tmp_path / "job" / cli.JOB_STATUS)
+    status = read_json(tmp_path / "job" / JOB_STATUS)
     assert status["status"] == "ok" and status["artefact_dir"] == out
     assert status["overrides"] == ["dt=0.1"] and status["job_num"] == 3 and status["threads"] == 1
     assert status["error"] is None and status["wall_time_s"] >= 0
@@ -111,7 +112,7 @@ def test_multirun_failure_is_recorded_not_raised(tmp_path: Path, error: Exceptio
 
     ctx = cli.JobContext(multirun=True, output_dir=tmp_path, overrides=["gp.kernel=x"])
     assert cli.execute("train", stage, OmegaConf.create({}), ctx) is None
-    status = read_json(tmp_path / cli.JOB_STATUS)
+    status = read_json(tmp_path / JOB_STATUS)
     assert status["status"] == "failed" and status["artefact_dir"] is None
     assert status["error_type"] == type(error).__name__ and status["error"] == str(error)
     assert str(error) in status["traceback"] and status["overrides"] == ["gp.kernel=x"]
@@ -127,7 +128,7 @@ def test_single_run_errors_reach_the_user(tmp_path: Path, capsys) -> None:
         cli.execute("simulate", user_error, OmegaConf.create({}), ctx)
     assert exit_.value.code == 2
     assert capsys.readouterr().err == "error: dt must be positive\n"
-    assert read_json(tmp_path / cli.JOB_STATUS)["status"] == "failed"
+    assert read_json(tmp_path / JOB_STATUS)["status"] == "failed"
 
     def bug(cfg: object) -> Path:
         raise KeyError("a bug")
@@ -184,6 +185,51 @@ def _raise_config_error(cfg: object) -> Path:
     raise ConfigError("bad n_cells")
 
 
+def test_job_results_columns_by_stage(tmp_path: Path) -> None:
+    """The summary's result columns per stage, from hand-written artefacts: generic names
+    (psi_0/psi_1, phi0/phi1, final_mean_<observable>), not the E. coli ones."""
+    from surrogate.io import write_json, write_manifest
+    from surrogate.sweep import job_results
+
+    train = tmp_path / "train"
+    write_manifest(
+        train, stage="train", config={}, seed=0, wall_time_s=3.5,
+        brier={"psi_0": 0.1, "psi_1": 0.2}, brier_baseline={"psi_0": 0.3, "psi_1": 0.4},
+        diagnostic={"phi0": {"rel_bias": -0.05}, "phi1": {"rel_bias": 0.25}},
+    )  # fmt: skip
+    assert job_results(train) == {
+        "brier_psi_0": 0.1, "brier_psi_1": 0.2,
+        "brier_baseline_psi_0": 0.3, "brier_baseline_psi_1": 0.4,
+        "switch_bias_phi0": -0.05, "switch_bias_phi1": 0.25, "train_s": 3.5,
+    }  # fmt: skip
+
+    simulate = tmp_path / "simulate"
+    write_manifest(
+        simulate, stage="simulate", config={}, seed=0, n_cells=10, loop_time_s=1.0,
+        cell_steps_per_s=5.0, final_means={"distance": 1.5, "speed": 0.02},
+    )  # fmt: skip
+    assert job_results(simulate) == {
+        "n_cells": 10, "loop_time_s": 1.0, "cell_steps_per_s": 5.0,
+        "final_mean_distance": 1.5, "final_mean_speed": 0.02,
+    }  # fmt: skip
+
+    candidate = tmp_path / "candidate"
+    write_manifest(candidate, stage="simulate", config={}, seed=0, abstraction_dir=str(train))
+    evaluate = tmp_path / "evaluate"
+    write_manifest(
+        evaluate, stage="evaluate", config={"field": {"_target_": "a.b.MyField"}}, seed=0,
+        runs={"full": "x", "candidate": str(candidate), "full_repeat": "y"},
+    )  # fmt: skip
+    write_json(evaluate / "summary.json", {"max_ks": 0.3, "max_ks_noise_floor": 0.2,
+                                          "all_within_noise": False, "speedup_loop": None,
+                                          "speed_comparable": False})  # fmt: skip
+    out = job_results(evaluate)
+    assert out["max_ks_MyField"] == 0.3 and out["max_ks_noise_MyField"] == 0.2
+    assert out["within_noise_MyField"] is False
+    assert out["speedup_MyField"] is None  # runs not measured comparably: no speed-up
+    assert out["brier_psi_1"] == 0.2 and out["switch_bias_phi1"] == 0.25  # its abstraction
+
+
 # ----------------------------------------------------------------------------------------------
 # tiny sweeps through real launchers
 
@@ -230,7 +276,11 @@ def test_joblib_sweep_of_reproduce(workdir: Path) -> None:
     assert len(df) == 4 and (df["status"] == "ok").all()
     assert set(df["gp.kernel"]) == {"rbf", "matern52"} and set(df["dt"]) == {0.05, 0.1}
     assert df["max_ks_gaussian"].between(0, 1).all() and (df["speedup_gaussian"] > 0).all()
-    assert df["brier_psi_tumble"].between(0, 1).all()
+    for phi in (0, 1):
+        assert df[f"brier_psi_{phi}"].between(0, 1).all()
+        assert df[f"brier_baseline_psi_{phi}"].between(0, 1).all()
+        # the learned switching probabilities' relative bias where the population lives
+        assert df[f"switch_bias_phi{phi}"].notna().all()
     assert (sweep / "summary.png").stat().st_size > 0
 
     before = _artefact_manifests(data)

@@ -67,9 +67,7 @@ def _paper_time_table(ks: float, pvalue: float) -> pd.DataFrame:
 # figures
 
 
-def test_observable_histograms(
-    runs: tuple[SimulationRun, SimulationRun], tmp_path: Path
-) -> None:
+def test_observable_histograms(runs: tuple[SimulationRun, SimulationRun], tmp_path: Path) -> None:
     fig = plot_observable_histograms(*runs, times=TIMES, labels=("full", "abstract"))
     assert isinstance(fig, Figure)
     assert len(fig.axes) == 4

@@ -335,7 +335,7 @@ def test_three_axes_interpolate_nonlinear_functions_by_hand() -> None:
         idx, frac = [], []
         for a, (n, (lo, hi)) in enumerate(zip(SHAPE3, RANGES3, strict=True)):
             u = (z[r, a].double().item() - lo) / (hi - lo) * (n - 1)
-            i = min(int(math.floor(u)), n - 2)
+            i = min(math.floor(u), n - 2)
             idx.append(i)
             frac.append(u - i)
         total = 0.0

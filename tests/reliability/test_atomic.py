@@ -298,3 +298,26 @@ def test_a_failed_rerun_keeps_the_previous_complete_artefact(tiny, copy_data, mo
         collect.run(cfg, force=True)
     read_manifest(collect_dir(cfg))
     pd.testing.assert_frame_equal(pd.read_parquet(collect_dir(cfg) / TRANSITIONS), before)
+
+
+def test_publish_syncs_the_directory_after_the_rename(tmp_path: Path, monkeypatch) -> None:
+    """The rename that makes an artefact visible survives a crash only once its directory is
+    fsynced: publish syncs the file before and the directory after the rename."""
+    import os
+    import stat
+
+    from surrogate.io import publish
+
+    synced: list[tuple[bool, bool]] = []  # (is a directory, target already renamed)
+    real_fsync = os.fsync
+    target = tmp_path / "out.json"
+
+    def recording_fsync(fd: int) -> None:
+        synced.append((stat.S_ISDIR(os.fstat(fd).st_mode), target.exists()))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    tmp = tmp_path / ".out.json.x.tmp"
+    tmp.write_text("{}")
+    publish(tmp, target)
+    assert synced == [(False, False), (True, True)]
