@@ -36,7 +36,7 @@ from typing import Any
 
 import torch
 
-from surrogate.config import build_field, build_model, resolve_device, to_dict
+from surrogate.config import build_field, build_model, grid_size, resolve_device, to_dict
 from surrogate.fields import Field
 from surrogate.io import load_tensors, save_tensors, write_json
 from surrogate.models.base import Model
@@ -401,7 +401,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
     psi, facts = train_abstraction(s, cfg, device)
     results.update(facts)
     ranges = [psi.domain[n] for n in psi.input_names]
-    size = tuple(s["lookup_size"]) if s.get("lookup_size") else None
+    size = grid_size(s.get("lookup_size"), "lookup_size", len(psi.input_names))
     table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
     cached = CachedPsi.from_classifier(psi)
     tables = {"lookup": table, "classifier": cached}

@@ -22,10 +22,10 @@ START = (2.0, 0.0)
 @pytest.mark.parametrize(
     ("inputs", "overrides", "lookup_size"),
     [
-        # the default abstraction (the signal dG, one input) with a 1-D table
-        (["dG"], ["quick_settings.lookup_size=[64]"], [64]),
-        # the paper's (m, L) abstraction with the shipped quick 2-D table
-        (["m", "L"], ["gp.inputs=inputs"], [32, 32]),
+        # the default abstraction (the signal dG, one input): the shipped quick size, 1-D
+        (["dG"], [], [64]),
+        # the paper's (m, L) abstraction: the same size on both axes
+        (["m", "L"], ["gp.inputs=inputs", "quick_settings.lookup_size=32"], [32, 32]),
     ],
     ids=["signal", "inputs"],
 )
@@ -63,13 +63,6 @@ def test_quick_bench_writes_all_sections(
     assert "throughput" in format_report(r)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="config bug: conf/bench.yaml sets lookup_size [256, 256] and quick_settings."
-    "lookup_size [32, 32] (two axes) while the default abstraction has one input (gp.inputs="
-    "signal = dG), so `python scripts/bench.py [quick=true]` fails with ConfigError",
-)
 @pytest.mark.parametrize("quick", [False, True])
 def test_shipped_bench_lookup_size_fits_the_default_inputs(compose_cfg, quick: bool) -> None:
     from surrogate.bench import bench_settings
@@ -79,7 +72,9 @@ def test_shipped_bench_lookup_size_fits_the_default_inputs(compose_cfg, quick: b
     cfg = compose_cfg("bench", [f"quick={str(quick).lower()}"])
     settings = bench_settings(cfg)
     inputs = TrainSettings.from_config(to_dict(cfg)).inputs
-    size = settings["lookup_size"]
+    from surrogate.config import grid_size
+
+    size = grid_size(settings["lookup_size"], "lookup_size", len(inputs))
     assert size is None or len(size) == len(inputs), (size, inputs)
 
 

@@ -212,7 +212,17 @@ class CachedPsi:
 
     def latent(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """Latent mean and variance (``2 x n``) of both classifiers at raw inputs ``z``."""
-        return self._latent(z.reshape(z.shape[0], -1).to(self.device, self.dtype), None)
+        return self._latent(self._inputs(z), None)
+
+    def _inputs(self, z: Tensor) -> Tensor:
+        """``z`` as ``n x d`` on the cache's device and dtype (a 1-D ``z`` for one input)."""
+        d = len(self.input_names)
+        z = z.reshape(-1, 1) if z.dim() == 1 and d == 1 else z
+        if z.dim() != 2 or z.shape[1] != d:
+            raise ValueError(
+                f"psi takes {d} input column(s) {self.input_names}, got {tuple(z.shape)}"
+            )
+        return z.to(self.device, self.dtype)
 
     def __call__(self, phi: Tensor, z: Tensor) -> Tensor:
         """p(phi' = 1) (float32, on ``z``'s device); refuses NaN/inf inputs while
@@ -224,7 +234,7 @@ class CachedPsi:
     def evaluate(self, phi: Tensor, z: Tensor) -> Tensor:
         """Pure form of :meth:`__call__` (no checks; no host sync unless rows are split)."""
         out_device = z.device
-        x = z.reshape(z.shape[0], -1).to(self.device, self.dtype)
+        x = self._inputs(z)
         one = phi.to(self.device).reshape(-1)
         if one.shape[0] != x.shape[0]:
             raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")

@@ -91,8 +91,10 @@ class PsiClassifier:
         return self.evaluate(phi, z)
 
     def _inputs(self, z: Tensor) -> Tensor:
-        z = z.reshape(z.shape[0], -1) if z.dim() > 1 else z.reshape(-1, 1)
-        if z.shape[1] != len(self.input_names):
+        d = len(self.input_names)
+        if z.dim() == 1 and d == 1:
+            z = z.reshape(-1, 1)
+        if z.dim() != 2 or z.shape[1] != d:
             raise ValueError(
                 f"psi takes {len(self.input_names)} input column(s) {self.input_names}, got "
                 f"{z.shape[1]}"

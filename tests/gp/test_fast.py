@@ -194,12 +194,6 @@ def test_max_deviation_samples_each_inputs_domain() -> None:
         assert z[:, i].min().item() < lo and z[:, i].max().item() > hi
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=RuntimeError,
-    reason="package bug: CachedPsi.evaluate/latent reshape z with z.reshape(z.shape[0], -1), "
-    "which torch refuses for 0 rows (surrogate/gp/fast.py)",
-)
 def test_empty_batch(psi: PsiClassifier) -> None:
     phi, z = _queries(10)
     fast = CachedPsi.from_classifier(psi)

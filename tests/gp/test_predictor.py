@@ -154,12 +154,6 @@ def test_single_phi_batch(psi: PsiClassifier) -> None:
     assert torch.equal(psi(zeros, x), psi.psi_0.predict_proba(x))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=RuntimeError,
-    reason="package bug: PsiClassifier._inputs reshapes z with z.reshape(z.shape[0], -1), "
-    "which torch refuses for 0 rows (surrogate/gp/predictor.py)",
-)
 def test_empty_batch(psi: PsiClassifier) -> None:
     phi, x = queries(100)
     assert psi(phi[:0], x[:0]).shape == (0,)
