@@ -155,6 +155,57 @@ class DynamicGaussianField(Field):
         return self.amplitude * torch.exp(r2 * (-0.5 / self.variance_at(t)))
 
 
+class ExponentialField(Field):
+    """A cone in log L: ``amplitude * exp(-|r - peak| / length)`` (constant d ln L / dr, so the
+    cells see the same relative gradient everywhere; not one of the paper's fields)."""
+
+    name = "exponential"
+
+    def __init__(
+        self, amplitude: float = 0.1, length: float = 1.0, peak: Sequence[float] = (0.0, 0.0)
+    ) -> None:
+        super().__init__(peak)
+        self.amplitude = _positive("amplitude", amplitude)
+        self.length = _positive("length", length)
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        r = torch.linalg.vector_norm(self.offset(position), dim=-1)
+        return self.amplitude * torch.exp(r * (-1.0 / self.length))
+
+
+class FieldBatch(Field):
+    """Several fields side by side for a population simulated as consecutive blocks of cells
+    (replicates in one batch): block i of ``sizes[i]`` cells sees ``fields[i]``.
+
+    Example:
+        >>> batch = FieldBatch([GaussianField(), LinearField()], [100, 100])
+        >>> batch(torch.zeros(200, 2), 0.0).shape
+        torch.Size([200])
+    """
+
+    name = "batch"
+
+    def __init__(self, fields: Sequence[Field], sizes: Sequence[int]) -> None:
+        if len(fields) != len(sizes) or not fields:
+            raise ValueError("FieldBatch needs one size per field")
+        super().__init__(fields[0].peak)
+        self.fields = list(fields)
+        self.sizes = [int(n) for n in sizes]
+
+    def _blocks(self, tensor: Tensor) -> list[Tensor]:
+        return list(torch.split(tensor, self.sizes, dim=0))
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        parts = self._blocks(position)
+        return torch.cat([f(p, t) for f, p in zip(self.fields, parts, strict=True)])
+
+    def distance_from_peak(self, position: Tensor) -> Tensor:
+        """Each block's distance from its own field's peak."""
+        parts = self._blocks(position)
+        return torch.cat([f.distance_from_peak(p) for f, p in zip(self.fields, parts, strict=True)])
+
+
 BUILTIN_FIELDS: dict[str, type[Field]] = {
-    cls.name: cls for cls in (ConstantField, GaussianField, LinearField, DynamicGaussianField)
+    cls.name: cls
+    for cls in (ConstantField, GaussianField, LinearField, DynamicGaussianField, ExponentialField)
 }

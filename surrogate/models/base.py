@@ -104,6 +104,10 @@ class InternalModel(Protocol):
         """The property of each cell's state as float 0/1 ``(n,)``."""
         ...
 
+    def concat_states(self, states: Sequence[InternalState]) -> InternalState:
+        """Several populations' states as one, cells in order (for replicates in one batch)."""
+        ...
+
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         """Exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` at signals ``signal`` (``n x k``, in the
         order of ``signal_names``); raises ``NotImplementedError`` where no exact psi exists."""

@@ -130,6 +130,10 @@ class NetworkInternalModel:
         """The property as float 0/1 ``(n,)``."""
         return self._lump(state[0]).to(torch.float32)
 
+    def concat_states(self, states: Sequence[InternalState]) -> InternalState:
+        """Counts ``(n, S)`` joined along cells."""
+        return (torch.cat([s[0] for s in states]),)
+
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         """Exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` from the enumerated generator."""
         space = self.state_space

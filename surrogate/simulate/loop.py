@@ -24,11 +24,13 @@ Performance design (see ``surrogate.bench``):
 
 from __future__ import annotations
 
+import os
 import time
 import types
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -95,8 +97,75 @@ def _private_copy(method: Callable[..., Any]) -> Callable[..., Any]:
     return types.MethodType(copy, method.__self__)  # type: ignore[attr-defined]
 
 
+def use_compile_cache(directory: str | os.PathLike) -> Path:
+    """Keep ``torch.compile``'s on-disk caches (inductor's compiled kernels, FX graphs) under
+    ``directory``, so every run and sweep job that shares a data directory reuses them across
+    processes; an explicit ``TORCHINDUCTOR_CACHE_DIR`` in the environment wins. Returns the
+    directory in use."""
+    chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR") or str(Path(directory).resolve())
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = chosen
+    return Path(chosen)
+
+
 def _add(a: Randoms, b: Randoms) -> Randoms:
     return Randoms(a.uniform + b.uniform, a.uniform64 + b.uniform64, a.normal + b.normal)
+
+
+#: memory one block of random numbers may take; the block covers as many steps as fit (<= 64)
+RANDOM_BLOCK_BYTES = 16 << 20
+MAX_BLOCK_STEPS = 64
+
+
+def block_steps(n_cells: int, randoms: Randoms) -> int:
+    """Steps per block of random numbers for ``n_cells`` cells: up to 64 while the block stays
+    within :data:`RANDOM_BLOCK_BYTES` (one call per block and kind instead of per step)."""
+    per_step = n_cells * (4 * randoms.uniform + 8 * randoms.uniform64 + 4 * randoms.normal)
+    return max(1, min(MAX_BLOCK_STEPS, RANDOM_BLOCK_BYTES // max(per_step, 1)))
+
+
+class RandomBlock:
+    """Random numbers for ``steps`` consecutive steps, drawn in one call per kind.
+
+    ``take()`` returns the next step's (uniform ``rows x n``, float64 uniform or None, normal)
+    views. The numbers depend only on the generator's state, the rows and ``n``, so a replicate
+    simulated in a batch draws exactly what it draws alone.
+    """
+
+    def __init__(
+        self,
+        randoms: Randoms,
+        n: int,
+        device: torch.device,
+        generator: torch.Generator | None = None,
+        steps: int | None = None,
+    ) -> None:
+        self.steps = block_steps(n, randoms) if steps is None else steps
+        k, r = self.steps, randoms
+        kw = {"device": device, "generator": generator}
+        self.u = (
+            torch.rand((k, r.uniform, n), **kw)
+            if r.uniform
+            else torch.empty(k, 0, n, device=device)
+        )
+        self.u64 = (
+            torch.rand((k, r.uniform64, n), dtype=torch.float64, **kw) if r.uniform64 else None
+        )
+        self.z = (
+            torch.randn((k, r.normal, n), **kw) if r.normal else torch.empty(k, 0, n, device=device)
+        )
+        self.n = n
+        self.next = 0
+
+    @property
+    def exhausted(self) -> bool:
+        """Whether every step's numbers were taken."""
+        return self.next >= self.steps
+
+    def take(self) -> tuple[Tensor, Tensor | None, Tensor]:
+        """The next step's random numbers."""
+        k = self.next
+        self.next += 1
+        return self.u[k], None if self.u64 is None else self.u64[k], self.z[k]
 
 
 class Simulator:
@@ -145,6 +214,7 @@ class Simulator:
         self.device = torch.device(device)
         self.check_finite = check_finite
         self._checked_step = 0  # step up to which check_state found the state sound
+        self._block: RandomBlock | None = None
         self.compile = bool(compile)
         self.compile_error: str | None = None
         self._kernels: dict[str, Callable[..., Any]] = {}
@@ -180,10 +250,11 @@ class Simulator:
         adapt = self.body.adapt_randoms
         for _ in range(round(equilibration_time / self.dt)):
             phi = self.decision.step(phi, x, self.dt)
-            u, _, z = self._draw(adapt, n_cells)
+            u, _, z = RandomBlock(adapt, n_cells, self.device, steps=1).take()
             body = self.body.adapt(body, x, self.dt, u, z)
             x = self.body.inputs(body, self.field, 0.0)
         self._checked_step = 0
+        self._block = None  # the loop's random numbers start after the initial state's
         return PopulationState(
             body=body,
             phi=phi,
@@ -226,17 +297,13 @@ class Simulator:
         return StepRecord(x, phi_before, phi, ended)
 
     def draw_randoms(self, n: int) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
-        """All random numbers of one step: float32 uniforms, float64 uniforms (or None),
-        normals (rows as declared, decision first) and the body's ``sample_extra`` (or None)."""
-        u, u64, z = self._draw(self.randoms, n)
+        """This step's random numbers: float32 uniforms, float64 uniforms (or None) and normals
+        (rows as declared, the decision's first; views into a block drawn every
+        :func:`block_steps` steps), and the body's ``sample_extra`` (or None)."""
+        if self._block is None or self._block.exhausted or self._block.n != n:
+            self._block = RandomBlock(self.randoms, n, self.device)
+        u, u64, z = self._block.take()
         return u, u64, z, self.body.sample_extra(n, self.device)
-
-    def _draw(self, r: Randoms, n: int) -> tuple[Tensor, Tensor | None, Tensor]:
-        dev = self.device
-        u = torch.rand((r.uniform, n), device=dev) if r.uniform else torch.empty(0, n, device=dev)
-        u64 = torch.rand((r.uniform64, n), dtype=torch.float64, device=dev) if r.uniform64 else None
-        z = torch.randn((r.normal, n), device=dev) if r.normal else torch.empty(0, n, device=dev)
-        return u, u64, z
 
     def _run(self, name: str, *args: Any) -> Any:
         """Call kernel ``name`` compiled if enabled (falling back to eager on failure)."""

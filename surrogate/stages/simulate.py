@@ -17,11 +17,14 @@ import torch
 from surrogate.config import seed_everything, to_dict
 from surrogate.io import MANIFEST, make_once, write_manifest
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, ExactDecision, FullDecision
-from surrogate.simulate.loop import Simulator
+from surrogate.simulate.loop import Simulator, use_compile_cache
 from surrogate.simulate.population import simulate_population
 from surrogate.stages.settings import SimulateSettings
 
 log = logging.getLogger(__name__)
+
+#: torch.compile's on-disk cache, under the data directory (shared by runs and sweep jobs)
+COMPILE_CACHE = "cache/torch_compile"
 
 
 def validate(cfg: Mapping[str, Any]) -> SimulateSettings:
@@ -94,6 +97,8 @@ def build_decision(settings: SimulateSettings) -> tuple[DecisionLayer, dict[str,
 def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] | None) -> None:
     """Simulate, then write the tables and (last) the manifest into ``out``."""
     setup, job = settings.setup, settings.job
+    if settings.compile:
+        use_compile_cache(job.data_dir / COMPILE_CACHE)
     seed_everything(setup.seed)
     decision, info = build_decision(settings)
     simulator = Simulator(setup.model, decision, setup.field, setup.dt, job.device,

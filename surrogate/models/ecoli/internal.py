@@ -125,6 +125,11 @@ class MotorInternalModel:
             return run_flag_from_states(state[0])
         return is_run(state[0]).to(torch.float32)
 
+    def concat_states(self, states: Sequence[InternalState]) -> InternalState:
+        """Per-motor states ``(M, n)`` are joined along cells (dim 1), counts ``(n, 3)`` dim 0."""
+        dim = 1 if self.fusable else 0
+        return (torch.cat([s[0] for s in states], dim=dim),)
+
     def counts(self, state: InternalState) -> Tensor:
         """Motor counts ``n x 3`` (S, C, N) of a state."""
         return counts_from_states(state[0]) if self.fusable else state[0]
