@@ -8,18 +8,26 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.gp import PsiLookupTable
 from surrogate.io import MANIFEST, make_once, write_manifest
-from surrogate.simulate.decision import AbstractDecision, DecisionLayer, ExactDecision, FullDecision
+from surrogate.models.base import Model
+from surrogate.simulate.decision import (
+    AbstractDecision,
+    DecisionLayer,
+    ExactDecision,
+    ExactPsi,
+    FullDecision,
+)
 from surrogate.simulate.loop import Simulator, use_compile_cache
 from surrogate.simulate.population import simulate_population
-from surrogate.stages.settings import SimulateSettings
+from surrogate.stages.settings import SimulateSettings, TrainSettings
 
 log = logging.getLogger(__name__)
 
@@ -48,38 +56,51 @@ def simulate(
 
 def build_decision(settings: SimulateSettings) -> tuple[DecisionLayer, dict[str, Any]]:
     """The decision layer of a run, and facts about it for the manifest."""
-    from surrogate.gp import PsiLookupTable
-
     model, device = settings.setup.model, settings.job.device
     d = settings.decision
     if d.name == "full":
         return FullDecision(model.internal), {}
     if d.name == "exact":
-        if d.mode == "direct":
-            return ExactDecision(model.internal, settings.setup.dt), {}
-        from surrogate.simulate.decision import ExactPsi
+        return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
+    assert d.train is not None
+    return abstract_decision(model, d.train, d.mode or "lookup", d.lookup_size, device)
 
-        internal = model.internal
-        bounds = internal.signal_bounds  # type: ignore[attr-defined]
-        ranges = [bounds[n] for n in internal.signal_names]
-        exact = ExactPsi(internal, settings.setup.dt)
-        table = PsiLookupTable.from_function(exact, ranges, internal.signal_names,
-                                             d.lookup_size).to(device)  # fmt: skip
-        deviation = table.max_deviation(exact, n_check=2048)
-        log.info("exact psi table %s: max |table - exact| = %.2e", table.shape, deviation)
-        return ExactDecision(internal, settings.setup.dt, table), {
-            "lookup_max_deviation": deviation
-        }
+
+def exact_decision(
+    model: Model, dt: float, mode: str, size: Sequence[int] | None, device: torch.device
+) -> tuple[DecisionLayer, dict[str, Any]]:
+    """The chain driven by the model's exact lumped psi: ``direct`` (exp(Q dt) per cell and
+    step) or ``lookup`` (a table over the signal's bounds, checked against direct)."""
+    internal = model.internal
+    if mode == "direct":
+        return ExactDecision(internal, dt), {}
+    bounds = internal.signal_bounds  # type: ignore[attr-defined]
+    ranges = [bounds[n] for n in internal.signal_names]
+    exact = ExactPsi(internal, dt)
+    table = PsiLookupTable.from_function(exact, ranges, internal.signal_names, size).to(device)
+    deviation = table.max_deviation(exact, n_check=2048)
+    log.info("exact psi table %s: max |table - exact| = %.2e", table.shape, deviation)
+    return ExactDecision(internal, dt, table), {"lookup_max_deviation": deviation}
+
+
+def abstract_decision(
+    model: Model,
+    train: TrainSettings,
+    mode: str,
+    size: Sequence[int] | None,
+    device: torch.device,
+) -> tuple[DecisionLayer, dict[str, Any]]:
+    """The learned abstraction of ``train`` (which must exist): a lookup table of it, or the
+    classifier every step in closed form with cached factors (checked against the classifier)."""
     from surrogate.stages.train import load_abstraction, resolve_abstraction
 
-    assert d.train is not None
-    directory = resolve_abstraction(d.train)
+    directory = resolve_abstraction(train)
     psi = load_abstraction(directory, device=device)
     info: dict[str, Any] = {"abstraction_dir": str(directory), "inputs": list(psi.input_names)}
     featurize = model.featurizer(psi.input_names)
-    if d.mode == "lookup":
+    if mode == "lookup":
         ranges = [psi.domain[n] for n in psi.input_names]
-        table = PsiLookupTable.from_function(psi, ranges, psi.input_names, d.lookup_size).to(device)
+        table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
         info["lookup_max_deviation"] = float(table.max_deviation(psi))
         log.info("lookup table %s: max |table - classifier| = %.2e", table.shape,
                  info["lookup_max_deviation"])  # fmt: skip

@@ -1,0 +1,236 @@
+"""The E. coli model with the stochastic CheY phosphorylation network read from SBML
+(``model=ecoli_phospho``): the first model's cell, fields and methylation, but CheY-P is a
+molecule count of an SBML network driven by the receptor activity a(m, L).
+
+The internal model simulates the SBML network exactly, window by window: on the CPU with the
+compiled per-cell Gillespie direct method (:class:`~surrogate.ctmc.CompiledSSA`, numba, one
+random stream per cell), on CUDA with the batched event-round SSA. Its inputs are the body's
+(m, L); the network sees them only through the activity a = 1 / (1 + exp(F(m, L))), which is
+therefore the *signal* (the default input of the abstraction). There is no exact lumped psi (the
+state space is large), so the abstraction's diagnostic uses the full model's binned switching
+frequencies.
+
+Unlike the first model, the internal state carries memory across windows beyond phi: CheY-P
+(relaxation ~33 ms, autocorrelation ~0.22 across one dt = 50 ms) and the motors' configuration
+within a lump. A two-state chain cannot carry it: that, not the learning, bounds how close the
+abstraction can get (measured in the README).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+from surrogate.models.base import InternalState, Model, Randoms
+from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
+from surrogate.models.ecoli.parameters import EcoliParameters
+from surrogate.models.ecoli.signalling import free_energy
+from surrogate.models.ecoli_phospho import (
+    NETWORK_PATH,
+    PhosphoConstants,
+    calibrated,
+    network_sbml,
+)
+from surrogate.sbml import SbmlModel, read_sbml, read_sbml_string
+
+SSA_BACKENDS = ("auto", "compiled", "batched")
+#: constants of the phospho network (beyond the first model's), with their config names
+PHOSPHO_KEYS = ("cheA_total", "cheY_total", "cheZ", "k_y", "k_z_cheZ", "gamma_y", "n_per_um")
+
+
+class PhosphoInternalModel:
+    """The SBML phosphorylation network with the motors, driven by the MWC activity.
+
+    Args:
+        params: the first model's constants (MWC receptor terms give the activity).
+        network: the SBML model (input ``activity``; motor species ``S``, ``C``, ``N``).
+        ssa: ``compiled`` (CPU, numba), ``batched`` (torch, any device) or ``auto``.
+        burn_in: seconds of SSA at each cell's activity from the file's initial state, standing
+            in for the network's stationary law (its CheY-P relaxes in ~33 ms, its motors in ~1 s).
+    """
+
+    input_names = ("m", "L")
+    feature_names = ("F", "activity")
+    signal_names = ("activity",)
+    lump_names = ("tumble", "run")
+    fusable = False
+    randoms = Randoms()
+    signal_bounds = {"activity": (0.0, 1.0)}
+
+    def __init__(
+        self, params: EcoliParameters, network: SbmlModel, ssa: str = "auto", burn_in: float = 2.0
+    ) -> None:
+        self.params = params
+        self.network = network
+        species = network.species
+        missing = [s for s in ("S", "C", "N") if s not in species]
+        if missing or network.input_names != ("activity",):
+            raise ConfigError(
+                f"model.network: the SBML model needs motor species S, C, N and the one input "
+                f"parameter 'activity'; it has species {list(species)} (missing {missing}) and "
+                f"inputs {list(network.input_names)}"
+            )
+        self._s, self._n = species.index("S"), species.index("N")
+        if ssa not in SSA_BACKENDS:
+            raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {ssa!r}")
+        self.ssa = ssa
+        self.burn_in = float(burn_in)
+        self._compiled = None
+
+    # -- inputs and features -----------------------------------------------------------------
+    def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
+        """Columns ``names`` (m, L, F, activity) at inputs ``x`` (``n x 2``)."""
+        cols = {"m": x[:, 0], "L": x[:, 1]}
+        if any(n in ("F", "activity") for n in names):
+            cols["F"] = free_energy(cols["m"], cols["L"], self.params)
+            cols["activity"] = torch.sigmoid(-cols["F"])
+        unknown = [n for n in names if n not in cols]
+        if unknown:
+            raise KeyError(f"unknown feature(s) {unknown}; known: m, L, F, activity")
+        return torch.stack([cols[n] for n in names], -1)
+
+    def _backend(self, device: torch.device) -> str:
+        if self.ssa == "auto":
+            return "compiled" if device.type == "cpu" else "batched"
+        if self.ssa == "compiled" and device.type != "cpu":
+            raise ConfigError("model.ssa=compiled runs on the CPU; use model.ssa=batched on CUDA")
+        return self.ssa
+
+    def _compiled_ssa(self):  # noqa: ANN202 - lazily built, numba compile once per process
+        if self._compiled is None:
+            from surrogate.ctmc import CompiledSSA
+
+            self._compiled = CompiledSSA(self.network.kinetics)
+        return self._compiled
+
+    # -- the window ----------------------------------------------------------------------------
+    def initial_state(self, x: Tensor) -> InternalState:
+        """The file's initial counts (the network's steady state at the adapted activity), then
+        ``burn_in`` seconds at each cell's own activity. The per-cell random streams of the
+        compiled SSA are seeded from torch's generator (so from the run's seed)."""
+        n = x.shape[0]
+        counts = self.network.initial_states(n).to(x.device)
+        seed = int(torch.randint(0, 2**62, (1,)).item())
+        streams = _seed_streams(seed, n, x.device)
+        state: InternalState = (counts, streams)
+        return self.advance(state, x, self.burn_in) if self.burn_in > 0 else state
+
+    def advance(self, state: InternalState, x: Tensor, dt: float) -> InternalState:
+        """One exact window of the network (every reaction, thousands of events per cell)."""
+        counts, streams = state
+        activity = self.features(x, ("activity",)).to(torch.float64)
+        if self._backend(x.device) == "compiled":
+            from surrogate.ctmc import CellStreams
+
+            cell_streams = CellStreams(streams.numpy().view(np.uint64))  # shares memory
+            counts, _ = self._compiled_ssa().advance(counts, activity, dt, cell_streams)
+            return (counts, streams)
+        from surrogate.ctmc import gillespie
+
+        counts = gillespie(self.network.network, counts, activity, dt,
+                           propensity=self.network.torch_propensity)  # fmt: skip
+        return (counts, streams)
+
+    def fused_advance(
+        self, state: InternalState, x: Tensor, dt: float, u: Tensor, u64: Tensor | None
+    ) -> tuple[InternalState, tuple[Tensor, ...]]:
+        """Not available: an SSA window has a data-dependent number of events."""
+        raise RuntimeError("the phospho network has no fused window (fusable = False)")
+
+    def phi(self, state: InternalState) -> Tensor:
+        """RUN (N >= 2 and S == 0 among the motors) as float 0/1 ``(n,)``."""
+        counts = state[0]
+        return ((counts[:, self._n] >= 2) & (counts[:, self._s] == 0)).to(torch.float32)
+
+    def concat_states(self, states: Sequence[InternalState]) -> InternalState:
+        """Counts and streams joined along cells."""
+        return (torch.cat([s[0] for s in states]), torch.cat([s[1] for s in states]))
+
+    def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
+        """Not available: the network's state space is far too large to enumerate."""
+        raise NotImplementedError("the phospho network has no exact lumped psi")
+
+
+def _seed_streams(seed: int, n: int, device: torch.device) -> Tensor:
+    """Per-cell xoshiro256** states as an ``n x 4`` int64 tensor (the bits of uint64), on the
+    CPU where the compiled SSA advances them in place."""
+    from surrogate.ctmc import CellStreams
+
+    return torch.from_numpy(CellStreams.from_seed(seed, n).state.view(np.int64)).to(device)
+
+
+class EcoliPhosphoModel(Model):
+    """E. coli with the CheY phosphorylation network (see the module docstring).
+
+    Args:
+        network: an SBML file with the input ``activity`` and motor species S, C, N; None: the
+            shipped ``network.xml`` (generated anew from the constants when they differ from
+            the defaults).
+        ssa: ``auto`` (compiled on the CPU, batched on CUDA), ``compiled`` or ``batched``.
+        burn_in: seconds of network dynamics at each cell's activity before the run's own
+            equilibration (see :class:`PhosphoInternalModel`).
+        perturbation: collect's perturbation (as the first model's).
+        **constants: the first model's constants (:class:`EcoliParameters`) and the network's
+            (``cheA_total``, ``cheY_total``, ``cheZ``, ``k_y``, ``k_z_cheZ``, ``gamma_y``,
+            ``n_per_um``).
+    """
+
+    name = "ecoli_phospho"
+
+    def __init__(
+        self,
+        network: str | None = None,
+        ssa: str = "auto",
+        burn_in: float = 2.0,
+        perturbation: Mapping[str, Any] | None = None,
+        **constants: Any,
+    ) -> None:
+        phospho = {k: constants.pop(k) for k in list(constants) if k in PHOSPHO_KEYS}
+        self.params = EcoliParameters.from_config(constants)
+        p = self.params
+        self.constants = calibrated(dataclasses.replace(
+            PhosphoConstants(), **phospho, adapted_activity=p.yp_adapted / p.alpha,
+            adapted_cheyp=p.yp_adapted, n_motors=int(p.n_motors), mu=p.mu, omega=p.omega,
+            g0=p.g0, g1=p.g1, k_d=p.k_d,
+        ))  # fmt: skip
+        sbml = _network(network, self.constants)
+        self.internal = PhosphoInternalModel(p, sbml, ssa, burn_in)
+        self.body = ChemotacticBody(p)
+        self.perturbation_options = {**PERTURBATION_DEFAULTS, **dict(perturbation or {})}
+
+    def validate(self, dt: float) -> None:
+        """The OU is stepped by Euler-Maruyama: dt must be well below tau."""
+        if dt >= self.params.tau:
+            raise ConfigError(f"dt={dt:g} s must be smaller than model.tau={self.params.tau:g} s")
+
+    def observable_label(self, name: str) -> str:
+        """Figure labels."""
+        return {"distance": "distance from the peak (mm)"}.get(name, name)
+
+    def describe(self) -> str:
+        """One line for reports."""
+        c = self.constants
+        return (
+            f"E. coli with stochastic CheY phosphorylation (SBML): {c.n_motors} motors, CheA "
+            f"{c.cheA_total:g} uM, CheY {c.cheY_total:g} uM, kA {c.k_a:.3g}/s (calibrated), "
+            f"SSA {self.internal.ssa}"
+        )
+
+
+def _network(path: str | None, constants: PhosphoConstants) -> SbmlModel:
+    if path is not None:
+        p = Path(path).expanduser()
+        if not p.is_file():
+            raise ConfigError(f"model.network={path}: no such SBML file")
+        return read_sbml(p, inputs=["activity"])
+    shipped = calibrated(PhosphoConstants(n_motors=constants.n_motors))
+    if constants == shipped:
+        return read_sbml(NETWORK_PATH, inputs=["activity"])
+    return read_sbml_string(network_sbml(constants), inputs=["activity"])

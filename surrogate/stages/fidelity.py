@@ -1,0 +1,451 @@
+"""The fidelity stage: is the abstraction indistinguishable from the full model at scale, for
+every training seed?
+
+``python scripts/fidelity.py`` trains one abstraction per training seed (and per input choice:
+the model's signal and the paper's raw inputs), then simulates, in batches (replicates in one
+population), on every field: the full model (the reference), a second full run with another
+seed (the noise floor), the chain driven by the exact lumped psi (the best any two-state
+abstraction can do, where the model has one) and every abstraction. It checks, per field and
+abstraction, the target of issue 10:
+
+* the KS distance between the observable (distance from the peak) of the abstraction and of the
+  full model at each evaluation time is at most ``max(ks_factor x the full-vs-full KS at that
+  time, the KS critical value at alpha)`` and at most ``ks_max``;
+* the mean duration of each phi segment (run, tumble) is within ``duration_tolerance`` of the
+  full model's,
+
+and writes ``fidelity.csv`` (one row per field, candidate and quantity), ``fidelity.md`` (the
+table, pass/fail per check, the count of passing checks), ``summary.json`` and a figure of the
+KS distances over time against the noise floor.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy import stats
+from tqdm.auto import tqdm
+
+from surrogate.config import (
+    build_field,
+    field_config,
+    positive,
+    seed_everything,
+    to_dict,
+    validate_start,
+)
+from surrogate.errors import ConfigError
+from surrogate.evaluate.report import format_markdown_table, write_report
+from surrogate.evaluate.statistics import KS_C_ALPHA_05
+from surrogate.io import (
+    MANIFEST,
+    artefact_dir,
+    make_once,
+    save_figure,
+    write_csv,
+    write_json,
+    write_manifest,
+)
+from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.decision import FullDecision
+from surrogate.simulate.loop import use_compile_cache
+from surrogate.simulate.population import steps_between
+from surrogate.stages.collect import collect
+from surrogate.stages.settings import Job, ModelSetup, TrainSettings, group_overrides
+from surrogate.stages.simulate import COMPILE_CACHE, abstract_decision, exact_decision
+from surrogate.stages.train import read_metrics, train
+
+log = logging.getLogger(__name__)
+
+FIDELITY_CMD = "python scripts/fidelity.py"
+TABLE = "fidelity"
+SUMMARY = "summary.json"
+FIGURE = "ks_over_time.png"
+#: c(alpha) of the asymptotic two-sample KS critical value, by alpha
+KS_C = {0.05: KS_C_ALPHA_05, 0.01: 1.628, 0.001: 1.949}
+#: longest segment (steps) the duration histograms resolve; longer ones go to the last bin
+MAX_SEGMENT_STEPS = 1 << 14
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One abstraction under test: its input choice and training seed (and its settings)."""
+
+    inputs: str
+    train_seed: int
+    train: TrainSettings
+
+    @property
+    def label(self) -> str:
+        """e.g. ``dG seed 1``."""
+        return f"{'+'.join(self.train.inputs)} seed {self.train_seed}"
+
+
+@dataclass(frozen=True, eq=False)
+class FidelitySettings:
+    """Everything the fidelity stage runs and checks, validated up front."""
+
+    setup: ModelSetup
+    fields: tuple[str, ...]
+    candidates: tuple[Candidate, ...]
+    exact_psi: bool
+    options: dict[str, Any]
+    times: tuple[float, ...]
+    compile: bool
+    job: Job
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> FidelitySettings:
+        """Validate the fidelity group and every abstraction's training settings."""
+        c = to_dict(cfg)
+        f = dict(c["fidelity"])
+        fields = tuple(str(x) for x in f.get("fields") or [])
+        if not fields:
+            raise ConfigError("fidelity.fields must list at least one field")
+        for name in fields:
+            field_config(name)
+        seeds = [int(s) for s in f.get("train_seeds") or []]
+        if not seeds or min(seeds) < 0:
+            raise ConfigError("fidelity.train_seeds must list non-negative training seeds")
+        choices = f.get("inputs") or ["signal"]
+        candidates = []
+        for choice in choices:
+            for seed in seeds:
+                tc = {**c, "seed": seed, "gp": {**c["gp"], "inputs": choice}}
+                candidates.append(Candidate(str(choice), seed, TrainSettings.from_config(tc)))
+        setup = candidates[0].train.setup
+        for key in ("n_cells", "record_every"):
+            if key in f:
+                positive(f, key, "fidelity.", integer=True)
+        t_end = float(positive(f, "t_end", "fidelity."))
+        try:
+            steps_between(t_end, setup.dt, "fidelity.t_end")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        times = tuple(float(t) for t in f.get("times") or [t_end * (k + 1) / 4 for k in range(4)])
+        for t in times:
+            try:
+                steps_between(t, setup.dt, "fidelity.times")
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+            if not 0 < t <= t_end:
+                raise ConfigError(f"fidelity.times {t:g} outside (0, t_end={t_end:g}]")
+        if float(f.get("alpha", 0.05)) not in KS_C:
+            raise ConfigError(f"fidelity.alpha must be one of {sorted(KS_C)}")
+        validate_start(f, "start", "fidelity.")
+        exact = bool(f.get("exact_psi", True)) and hasattr(setup.model.internal, "exact_psi")
+        if exact and not getattr(setup.model.internal, "signal_bounds", None):
+            exact = False
+        return cls(setup, fields, tuple(candidates), exact, f, times,
+                   bool(c.get("compile", False)), Job.from_config(cfg))  # fmt: skip
+
+    def identity(self) -> dict[str, Any]:
+        """The candidates' training identities, the fields and the run and check settings."""
+        return {
+            "model": self.setup.model_config,
+            "dt": self.setup.dt,
+            "fields": {name: field_config(name) for name in self.fields},
+            "candidates": [c.train.identity() for c in self.candidates],
+            "exact_psi": self.exact_psi,
+            "fidelity": {**self.options, "times": list(self.times)},
+            "compile": self.compile,
+        }
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/fidelity/model=..._n=..._T=..._seeds=...-<hash>``."""
+        seeds = sorted({c.train_seed for c in self.candidates})
+        label = {"model": self.setup.model.name, "n": self.options["n_cells"],
+                 "T": self.options["t_end"], "seeds": "+".join(map(str, seeds))}  # fmt: skip
+        return artefact_dir(self.job.data_dir, "fidelity", label, self.identity())
+
+    def command(self) -> str:
+        """The command that makes this artefact."""
+        return " ".join([FIDELITY_CMD, *group_overrides("model", self.setup.model_config)])
+
+
+def validate(cfg: Mapping[str, Any]) -> FidelitySettings:
+    """All checks of a fidelity config, before any work starts."""
+    return FidelitySettings.from_config(cfg)
+
+
+def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
+    """Train, simulate and check (reusing what exists); return the artefact directory."""
+    settings = validate(cfg)
+    out = settings.directory
+    return make_once(out, settings.identity(), settings.command(),
+                     lambda _: _fidelity(settings, out, to_dict(cfg)), what="fidelity check",
+                     force=force)  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# simulation: every run in batches, observables at the check times, duration sums on the device
+
+
+@dataclass
+class RunResult:
+    """What the checks need of one run."""
+
+    observables: dict[float, np.ndarray]  # time -> values (n,)
+    mean_durations: dict[str, float]  # lump name -> mean completed segment duration (s)
+    segments: dict[str, int]
+
+
+def _simulate_batch(
+    settings: FidelitySettings, replicates: list[Replicate], labels: list[str]
+) -> dict[str, RunResult]:
+    """Simulate ``replicates`` as one population; record what the checks need."""
+    setup, o, job = settings.setup, settings.options, settings.job
+    model = setup.model
+    sim = BatchSimulator(model, replicates, setup.dt, job.device, compile=settings.compile)
+    with torch.no_grad():
+        state = sim.initial_state(equilibration_time=float(o["equilibration_time"]))
+        if settings.compile:
+            sim.warm_up(state)
+        n_steps = steps_between(float(o["t_end"]), setup.dt, "t_end")
+        record = {steps_between(t, setup.dt, "times"): t for t in settings.times}
+        # per replicate and lump: completed segments and their total length (steps)
+        r = len(replicates)
+        replicate_of = torch.repeat_interleave(
+            torch.arange(r, device=job.device), torch.tensor(sim.sizes, device=job.device)
+        )
+        totals = torch.zeros(2 * r, dtype=torch.float64, device=job.device)
+        counts = torch.zeros(2 * r, dtype=torch.float64, device=job.device)
+        observed: dict[float, np.ndarray] = {}
+        name = model.body.observable_names[0]
+        for k in tqdm(range(n_steps), desc="fidelity", disable=not job.progress, mininterval=1.0):
+            ended = sim.step(state).ended_length
+            key = 2 * replicate_of + (ended > 0).long()
+            totals.index_add_(0, key, ended.abs().double())
+            counts.index_add_(0, key, (ended != 0).double())
+            if (k + 1) in record:
+                sim.check_state(state)
+                observed[record[k + 1]] = (
+                    model.body.observables(state.body, sim.field)[name].double().cpu().numpy()
+                )
+    lumps = model.internal.lump_names
+    totals, counts = totals.cpu().numpy(), counts.cpu().numpy()
+    out = {}
+    for i, (label, cells) in enumerate(zip(labels, sim.slices, strict=True)):
+        out[label] = RunResult(
+            observables={t: v[cells] for t, v in observed.items()},
+            mean_durations={
+                lumps[p]: float(totals[2 * i + p] / max(counts[2 * i + p], 1) * setup.dt)
+                for p in (0, 1)
+            },
+            segments={lumps[p]: int(counts[2 * i + p]) for p in (0, 1)},
+        )
+    return out
+
+
+def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) -> None:
+    t0 = time.perf_counter()
+    setup, o, job = settings.setup, settings.options, settings.job
+    model = setup.model
+    if settings.compile:
+        use_compile_cache(job.data_dir / COMPILE_CACHE)
+    # 1. the abstractions (collect and train reuse what exists)
+    psis = {}
+    for c in settings.candidates:
+        collect(c.train.source)  # type: ignore[arg-type]
+        train(c.train)
+        psis[c.label] = c
+    train_s = time.perf_counter() - t0
+    # 2. every run, in batches (decision-major, so same-kind layers merge)
+    fields = {name: build_field(field_config(name)) for name in settings.fields}
+    n = int(o["n_cells"])
+    start = tuple(float(v) for v in o["start"])
+    seed = int(o["sim_seed"])
+    offset = int(o.get("noise_seed_offset", 1000))
+    t1 = time.perf_counter()
+    reps, labels = [], []
+    for which, s in (("full", seed), ("full_repeat", seed + offset)):
+        for name in settings.fields:
+            reps.append(Replicate(FullDecision(model.internal), fields[name], n, s, start))
+            labels.append(f"{which}|{name}")
+    if settings.exact_psi:
+        exact, _ = exact_decision(model, setup.dt, "lookup", None, job.device)
+        for name in settings.fields:
+            reps.append(Replicate(exact, fields[name], n, seed + 2 * offset, start))
+            labels.append(f"exact|{name}")
+    for i, c in enumerate(settings.candidates):
+        decision, _ = abstract_decision(model, c.train, str(o.get("mode", "lookup")),
+                                        o.get("lookup_size"), job.device)  # fmt: skip
+        for name in settings.fields:
+            reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
+            labels.append(f"{c.label}|{name}")
+    seed_everything(seed)
+    results = _simulate_batch(settings, reps, labels)
+    sim_s = time.perf_counter() - t1
+    # 3. the checks
+    table = check(settings, results)
+    (out / MANIFEST).unlink(missing_ok=True)
+    write_csv(out / f"{TABLE}.csv", table)
+    summary = summarise(table, settings)
+    summary["diagnostics"] = {c.label: read_metrics(c.train.directory).get("diagnostic")
+                              for c in settings.candidates}  # fmt: skip
+    write_json(out / SUMMARY, summary)
+    save_figure(out / FIGURE, plot_ks(table, settings))
+    write_report(out / f"{TABLE}.md", report_sections(table, summary, settings), [
+        ("KS distance of the observable over time: candidates vs the noise floor", out / FIGURE)],
+        title=f"Fidelity at scale: {model.describe()}")  # fmt: skip
+    write_manifest(out, stage="fidelity", config=dict(config), seed=seed,
+                   settings=settings.identity(), wall_time_s=time.perf_counter() - t0,
+                   train_s=train_s, simulate_s=sim_s, cells=len(reps) * n,
+                   passed=summary["passed"], checks=summary["checks"])  # fmt: skip
+    log.info("fidelity: %d of %d checks pass; artefacts in %s", summary["passed"],
+             summary["checks"], out)  # fmt: skip
+
+
+def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.DataFrame:
+    """One row per field, candidate (incl. the exact psi and the second full run) and quantity:
+    the statistic, its threshold and whether it passes."""
+    o = settings.options
+    alpha = float(o.get("alpha", 0.05))
+    n = int(o["n_cells"])
+    crit = KS_C[alpha] * math.sqrt(2.0 / n)
+    factor, ks_max, tol = float(o["ks_factor"]), float(o["ks_max"]), float(o["duration_tolerance"])
+    lumps = settings.setup.model.internal.lump_names
+    candidates = ["full_repeat"] + (["exact"] if settings.exact_psi else []) + [
+        c.label for c in settings.candidates]  # fmt: skip
+    rows = []
+    for name in settings.fields:
+        full, repeat = results[f"full|{name}"], results[f"full_repeat|{name}"]
+        for cand in candidates:
+            run = results[f"{cand}|{name}"]
+            for t in settings.times:
+                ks = float(stats.ks_2samp(run.observables[t], full.observables[t]).statistic)
+                floor = float(stats.ks_2samp(repeat.observables[t], full.observables[t]).statistic)
+                limit = min(max(factor * floor, crit), ks_max)
+                rows.append({"field": name, "candidate": cand, "quantity": f"distance_t{t:g}",
+                             "value": ks, "noise_floor": floor, "threshold": limit,
+                             "passed": ks <= limit})  # fmt: skip
+            for p in (1, 0):
+                kind = lumps[p]
+                rel = run.mean_durations[kind] / full.mean_durations[kind] - 1.0
+                rows.append({"field": name, "candidate": cand, "quantity": f"mean_{kind}",
+                             "value": rel, "noise_floor": repeat.mean_durations[kind]
+                             / full.mean_durations[kind] - 1.0, "threshold": tol,
+                             "passed": abs(rel) <= tol, "mean_s": run.mean_durations[kind],
+                             "full_mean_s": full.mean_durations[kind],
+                             "segments": run.segments[kind]})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def summarise(table: pd.DataFrame, settings: FidelitySettings) -> dict[str, Any]:
+    """Counts of passing checks per candidate kind."""
+    learned = table[~table["candidate"].isin(["full_repeat", "exact"])]
+    out: dict[str, Any] = {
+        "checks": len(learned),
+        "passed": int(learned["passed"].sum()),
+        "by_candidate": {
+            c: {"checks": len(g), "passed": int(g["passed"].sum())}
+            for c, g in table.groupby("candidate", sort=False)
+        },
+        "max_distance_ks": {
+            c: float(g.loc[g["quantity"].str.startswith("distance"), "value"].max())
+            for c, g in table.groupby("candidate", sort=False)
+        },
+        "max_abs_duration_error": {
+            c: float(g.loc[g["quantity"].str.startswith("mean_"), "value"].abs().max())
+            for c, g in table.groupby("candidate", sort=False)
+        },
+    }
+    return out
+
+
+def report_sections(
+    table: pd.DataFrame, summary: Mapping[str, Any], settings: FidelitySettings
+) -> list[tuple[str, str]]:
+    """The markdown report: setting, the target table per candidate, diagnostics."""
+    o = settings.options
+    crit = KS_C[float(o.get("alpha", 0.05))] * math.sqrt(2.0 / int(o["n_cells"]))
+    setting = (
+        f"{settings.setup.model.describe()}. {o['n_cells']} cells per run, {o['t_end']} s, "
+        f"dt {settings.setup.dt:g} s, start {list(o['start'])}; abstractions trained on "
+        f"`{settings.setup.field_name}` with seeds {sorted({c.train_seed for c in settings.candidates})} "
+        f"(collection and training), inputs {sorted({'+'.join(c.train.inputs) for c in settings.candidates})}. "
+        f"Full model seed {o['sim_seed']}, noise floor seed {int(o['sim_seed']) + int(o.get('noise_seed_offset', 1000))}. "
+        f"Check: distance KS <= min(max({o['ks_factor']} x full-vs-full KS, KS critical {crit:.4f} at "
+        f"alpha {o.get('alpha', 0.05)}), {o['ks_max']}); mean segment durations within "
+        f"{100 * float(o['duration_tolerance']):g} % of the full model's."
+    )
+    rows = []
+    for (field, cand), g in table.groupby(["field", "candidate"], sort=False):
+        row: dict[str, Any] = {"field": field, "candidate": cand}
+        for _, r in g.iterrows():
+            q = r["quantity"]
+            mark = "" if r["passed"] else " ✗"
+            if q.startswith("distance"):
+                row[q.replace("distance_", "KS ")] = (
+                    f"{r['value']:.3f} ({r['noise_floor']:.3f}){mark}"
+                )
+            else:
+                row[q.replace("mean_", "mean ")] = f"{100 * r['value']:+.1f} %{mark}"
+        row["passed"] = f"{int(g['passed'].sum())}/{len(g)}"
+        rows.append(row)
+    target = (
+        f"{summary['passed']} of {summary['checks']} checks of the learned abstractions pass. "
+        "Cells: KS distance abstraction vs full model (in brackets: the same between two full "
+        "runs, the noise floor), and the relative error of the mean segment durations; ✗ marks a "
+        "failed check. The rows `full_repeat` (a second full run) and `exact` (the chain driven by "
+        "the exact lumped psi) show what sampling noise and the best two-state abstraction "
+        "achieve against the same checks.\n\n" + format_markdown_table(pd.DataFrame(rows))
+    )
+    diag_rows = []
+    for label, d in (summary.get("diagnostics") or {}).items():
+        if not d:
+            continue
+        for p in (0, 1):
+            s = d.get(f"phi{p}")
+            if s:
+                diag_rows.append({"abstraction": label, "leaving": settings.setup.model.internal.lump_names[p],
+                                  "bias": f"{100 * s['rel_bias']:+.1f} %",
+                                  "mean abs. rel. error": f"{100 * s['mean_abs_rel_error']:.1f} %"})  # fmt: skip
+    diag = ("The learned switching probabilities against the reference where the population "
+            "lives (train_metrics.json of each abstraction).\n\n"
+            + (format_markdown_table(pd.DataFrame(diag_rows)) if diag_rows else "none"))  # fmt: skip
+    return [
+        ("Setting", setting),
+        ("The target", target),
+        ("The learned psi where cells live", diag),
+    ]
+
+
+def plot_ks(table: pd.DataFrame, settings: FidelitySettings) -> Any:
+    """KS distance against time per field: every candidate, the noise floor and the threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fields = list(settings.fields)
+    fig, axes = plt.subplots(1, len(fields), figsize=(4 * len(fields), 3.6), sharey=True,
+                             constrained_layout=True, squeeze=False)  # fmt: skip
+    dist = table[table["quantity"].str.startswith("distance")].copy()
+    dist["t"] = dist["quantity"].str.replace("distance_t", "").astype(float)
+    for ax, name in zip(axes[0], fields, strict=True):
+        g = dist[dist["field"] == name]
+        for cand, h in g.groupby("candidate", sort=False):
+            style = {"full_repeat": ("k", "--"), "exact": ("grey", ":")}.get(cand, (None, "-"))
+            ax.plot(h["t"], h["value"], marker="o", color=style[0], ls=style[1], label=cand)
+        thr = g.groupby("t")["threshold"].max()
+        ax.plot(thr.index, thr.values, color="red", lw=1, label="threshold")
+        ax.set_title(name)
+        ax.set_xlabel("t (s)")
+    axes[0][0].set_ylabel("KS distance vs full model")
+    axes[0][-1].legend(fontsize=7)
+    return fig
+
+
+__all__ = ["FidelitySettings", "check", "run", "validate"]

@@ -1,0 +1,103 @@
+"""model=ecoli_phospho: the SBML network as a plug-in internal model, through the pipeline."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from surrogate.config import CONF_DIR, build_model, group_config
+from surrogate.errors import ConfigError
+from surrogate.fields import ConstantField
+from surrogate.models.ecoli import adapted_methylation
+from surrogate.models.ecoli_phospho import NETWORK_PATH, EcoliPhosphoModel
+from surrogate.simulate import FullDecision, Simulator
+from surrogate.stages import collect, evaluate, train
+
+
+def test_the_config_builds_the_shipped_network() -> None:
+    model = build_model(group_config("model", "ecoli_phospho"))
+    assert isinstance(model, EcoliPhosphoModel)
+    assert model.internal.network.source == NETWORK_PATH
+    assert model.internal.signal_names == ("activity",)
+    assert model.constants.k_a == pytest.approx(34.84, rel=1e-3)  # calibrated
+    # other constants: the network is generated anew from them
+    other = EcoliPhosphoModel(k_y=50.0)
+    assert other.internal.network.source is None
+    assert other.internal.network.constants["kY"] == 50.0
+    with pytest.raises(ConfigError, match="no such SBML file"):
+        EcoliPhosphoModel(network="/nonexistent.xml")
+    with pytest.raises(ConfigError, match="model.ssa"):
+        EcoliPhosphoModel(ssa="foo")
+
+
+def test_adapted_cells_have_the_first_models_cw_bias() -> None:
+    """At the adapted point (L = 0, m = m0, methylation noise off) the motors' CW fraction is
+    the first model's adapted bias 0.2227 (the network is calibrated to it), within 4.5
+    standard errors of the per-cell time averages."""
+    model = EcoliPhosphoModel(cv=1e-9, ssa="compiled", burn_in=1.0)
+    torch.manual_seed(3)
+    sim = Simulator(model, FullDecision(model.internal), ConstantField(0.0), dt=0.05)
+    n = 200
+    state = sim.initial_state(n, (0.0, 0.0))
+    m0 = float(adapted_methylation(torch.tensor(0.0), model.params))
+    assert state.body["m"].sub(m0).abs().max() < 1e-6
+    species = model.internal.network.species
+    cw = [species.index("S"), species.index("C")]
+    fractions = []
+    for _ in range(40):
+        sim.step(state)
+        counts = sim.decision.state[0]
+        fractions.append(counts[:, cw].sum(1).double() / model.params.n_motors)
+    per_cell = torch.stack(fractions).mean(0).numpy()
+    se = per_cell.std(ddof=1) / math.sqrt(n)
+    assert abs(per_cell.mean() - model.params.cw_bias_adapted) < 4.5 * se, (per_cell.mean(), se)
+
+
+def test_batched_and_compiled_windows_agree() -> None:
+    """The batched torch SSA (the CUDA path) and the compiled one sample the same window: from
+    one state, CheY-P after 0.02 s (~4,000 events per cell) agrees between 150 cells of each
+    (two-sample KS at alpha = 0.001)."""
+    from scipy import stats
+
+    compiled = EcoliPhosphoModel(ssa="compiled", burn_in=0.0).internal
+    batched = EcoliPhosphoModel(ssa="batched", burn_in=0.0).internal
+    x = torch.tensor([[2.25, 0.0]]).expand(150, 2).contiguous()
+    torch.manual_seed(4)
+    state = compiled.initial_state(x)
+    yp = compiled.network.species.index("CheYp")
+    a = compiled.advance(state, x, 0.02)[0][:, yp].numpy()
+    b = batched.advance(state, x, 0.02)[0][:, yp].numpy()
+    assert a.std() > 0 and b.std() > 0
+    assert stats.ks_2samp(a, b).statistic < 1.949 * math.sqrt(2 / 150)
+
+
+@pytest.mark.slow
+def test_the_pipeline_runs_on_the_phospho_model(tmp_path) -> None:
+    """collect -> train -> simulate (full, abstract) -> evaluate on model=ecoli_phospho, with
+    the binned full-model frequencies as the diagnostic's reference (no exact psi)."""
+    overrides = [
+        f"data_dir={tmp_path / 'data'}", "progress=false", "model=ecoli_phospho",
+        "model.burn_in=0.5", "collect.n_per_state=200", "collect.n_cells=50",
+        "collect.equilibration_time=0.5", "gp.n_inducing=10", "gp.epochs=3",
+        "gp.batch_size=100", "gp.diagnostic.n_cells=40", "gp.diagnostic.t_end=2.0",
+        "gp.diagnostic.equilibration_time=0.5", "n_cells=20", "t_end=2.0",
+        "equilibration_time=0.5", "evaluate.subsample=100", "evaluate.run_missing=true",
+    ]  # fmt: skip
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=overrides)
+    table = pd.read_parquet(collect.run(cfg) / "transitions.parquet")
+    assert {"m", "L", "F", "activity", "phi", "phi_next"} <= set(table.columns)
+    assert np.isfinite(table["activity"]).all() and table["activity"].between(0, 1).all()
+    train_dir = train.run(cfg)
+    metrics = train.read_metrics(train_dir)
+    assert metrics["inputs"] == ["activity"]
+    assert metrics["diagnostic"]["reference"] == "empirical"
+    out = evaluate.run(cfg)
+    comparison = pd.read_csv(out / "comparison.csv")
+    assert comparison["quantity"].tolist()[-2:] == ["run", "tumble"]
+    assert comparison["ks"].between(0, 1).all()
