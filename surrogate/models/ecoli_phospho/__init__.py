@@ -306,3 +306,9 @@ def main() -> None:
 
 if __name__ == "__main__":
     main()
+
+
+# the plug-in (imported last: it uses the constants and the network above)
+from surrogate.models.ecoli_phospho.model import EcoliPhosphoModel, PhosphoInternalModel  # noqa: E402
+
+__all__ += ["EcoliPhosphoModel", "PhosphoInternalModel"]
