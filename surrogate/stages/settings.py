@@ -210,6 +210,7 @@ class CollectSettings:
             positive(c, key, "collect.", integer=True)
         positive(c, "max_time", "collect.")
         non_negative(c, "equilibration_time", "collect.")
+        non_negative(c, "blackout_time", "collect.")
         rate = non_negative(c, "perturb_rate", "collect.")
         if rate * setup.dt > 1.0:
             raise ConfigError(

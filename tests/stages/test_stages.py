@@ -139,3 +139,21 @@ def test_simulate_abstract_without_training_names_the_command(compose_cfg) -> No
     cfg = compose_cfg("simulate", ["decision=abstract", "n_cells=4", "t_end=1.0"])
     with pytest.raises(MissingArtefactError, match="python scripts/train.py"):
         simulate_stage.run(cfg)
+
+
+def test_collect_records_nothing_inside_the_blackout_after_a_jump(compose_cfg) -> None:
+    """Windows within collect.blackout_time of a perturbation are never recorded (their hidden
+    motor state belongs to the old inputs), and with a blackout of 0 they are."""
+
+    def table(blackout: float):
+        cfg = compose_cfg("collect", ["collect.n_per_state=400", "collect.n_cells=100",
+                                      "collect.perturb_rate=1.0", "collect.record_every=2",
+                                      f"collect.blackout_time={blackout}"])  # fmt: skip
+        return pd.read_parquet(collect.run(cfg) / "transitions.parquet")
+
+    with_blackout = table(1.0)
+    jumped = with_blackout["since_jump"] >= 0
+    assert jumped.sum() > 100  # at 1 jump/s most cells have jumped
+    assert (with_blackout.loc[jumped, "since_jump"] >= 20).all()  # 1 s = 20 steps
+    without = table(0.0)
+    assert (without["since_jump"].between(0, 19)).sum() > 50

@@ -67,7 +67,7 @@ def pipeline(tmp_path_factory):
 def test_collect_records_the_declared_inputs(pipeline) -> None:
     _, collect_dir, _, _ = pipeline
     table = pd.read_parquet(collect_dir / "transitions.parquet")
-    assert {"s", "phi", "phi_next", "cell", "t", "perturbed"} <= set(table.columns)
+    assert {"s", "phi", "phi_next", "cell", "t", "since_jump"} <= set(table.columns)
     assert not {"m", "L", "dG"} & set(table.columns)  # nothing of E. coli
     assert (table["phi"] == 0).sum() == 1500 and (table["phi"] == 1).sum() == 1500
     manifest = pd.read_json(collect_dir / "manifest.json", typ="series")
