@@ -14,10 +14,12 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from surrogate.evaluate.statistics import (
+    BinnedSample,
+    Distribution,
+    ExactSample,
     SimulationRun,
-    compare_samples,
+    compare_distributions,
     mean_std_over_time,
-    observable_at,
 )
 
 COLOURS: tuple[str, str] = ("tab:blue", "tab:orange")
@@ -33,38 +35,67 @@ def plot_observable_histograms(
     axis_label: str | None = None,
 ) -> Figure:
     """The paper's Figure 4: histograms of an observable (default: the first, e.g. the distance
-    from the peak), one panel per record time.
+    from the peak) over all cells, one panel per record time.
 
     Both models are overlaid as step histograms (densities, so unequal cell counts compare) on
-    bins shared by all panels, so panels are comparable across time too. Each panel's title
-    gives the KS distance between the two samples.
+    about ``bins`` bins shared by all panels, so panels are comparable across time too: from
+    every cell's value when both runs recorded them all, else from the histograms (the shared
+    bins are then whole groups of the recorded grid's bins, spanning the values present; the
+    values outside the grid, if any, are left out of the panel but not of its normalisation).
+    Each panel's title gives the KS distance between the two runs (the comparison table's).
     """
     if not times:
         raise ValueError("plot_observable_histograms needs at least one time")
     name = name or reference.observable_names[0]
-    samples = [
-        (observable_at(reference, name, t), observable_at(candidate, name, t)) for t in times
+    dists = [
+        (reference.observable_distribution(name, t), candidate.observable_distribution(name, t))
+        for t in times
     ]
-    edges = np.histogram_bin_edges(np.concatenate([np.concatenate(s) for s in samples]), bins=bins)
+    flat = [d for pair in dists for d in pair]
+    exact = all(isinstance(d, ExactSample) and d.counts is None for d in flat)
+    if exact:
+        values = [d.values for d in flat]  # type: ignore[union-attr]
+        edges = np.histogram_bin_edges(np.concatenate(values), bins=bins)
+    else:
+        edges = _shared_edges(flat, bins)
     fig = Figure(figsize=(3.2 * len(times), 3.0), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(times), sharex=True, sharey=True))
-    for ax, t, (ref, cand) in zip(axes, times, samples, strict=True):
-        for values, label, colour in zip((ref, cand), labels, COLOURS, strict=True):
-            ax.hist(
-                values,
-                bins=edges,
-                density=True,
-                histtype="step",
-                lw=1.5,
-                color=colour,
-                label=f"{label} (n={values.size})",
-            )
-        ks = compare_samples(ref, cand, name=f"{name} at t={t:g}")["ks"]
+    for ax, t, pair in zip(axes, times, dists, strict=True):
+        for dist, label, colour in zip(pair, labels, COLOURS, strict=True):
+            if exact:
+                ax.hist(dist.values, bins=edges, density=True, histtype="step", lw=1.5,  # type: ignore[union-attr]
+                        color=colour, label=f"{label} (n={dist.n})")  # fmt: skip
+            else:
+                density = np.diff(dist.below(edges)) / (dist.n * np.diff(edges))
+                ax.stairs(density, edges, lw=1.5, color=colour, label=f"{label} (n={dist.n})")
+        ks = compare_distributions(*pair, name=f"{name} at t={t:g}")["ks"]
         ax.set_title(f"t = {t:g} s (KS {ks:.3f})", fontsize=10)
         ax.set_xlabel(axis_label or name)
     axes[0].set_ylabel("density")
     axes[0].legend(fontsize=8)
     return fig
+
+
+def _shared_edges(dists: Sequence[Distribution], bins: int) -> np.ndarray:
+    """About ``bins`` bins spanning the values of ``dists``, made of whole bins of the (first)
+    recorded grid, so every binned distribution's counts in them are exact."""
+    grid = next(d.edges for d in dists if isinstance(d, BinnedSample))
+    lo, hi = np.inf, -np.inf
+    for d in dists:
+        if isinstance(d, BinnedSample):
+            filled = np.flatnonzero(d.counts[1:-1])
+            if filled.size:
+                lo, hi = min(lo, d.edges[filled[0]]), max(hi, d.edges[filled[-1] + 1])
+        else:
+            v = d.values
+            lo, hi = min(lo, float(np.min(v))), max(hi, float(np.max(v)))
+    if not lo < hi:  # every value outside the grid or in one bin
+        lo, hi = grid[0], grid[-1]
+    first = int(np.clip(np.searchsorted(grid, lo, side="right") - 1, 0, grid.size - 2))
+    last = int(np.clip(np.searchsorted(grid, hi, side="left"), first + 1, grid.size - 1))
+    step = max(1, -(-(last - first) // bins))
+    idx = np.arange(first, last + step, step)
+    return grid[np.unique(np.minimum(idx, grid.size - 1))]
 
 
 def plot_observable_over_time(
@@ -115,34 +146,31 @@ def plot_duration_histograms(
     """Duration histograms of each lump (e.g. run and tumble; two panels, densities on a log
     y-axis).
 
-    All durations are used (not the KS subsample); each panel's bins are shared by both models.
-    A kind with no durations in either run gets an empty panel saying so.
+    All durations are used (not the KS subsample; from the lattice histograms when the runs
+    have them, which give the same figure as the values); each panel's bins are shared by both
+    models. A kind with no durations in either run gets an empty panel saying so.
     """
     fig = Figure(figsize=(9.0, 3.5), layout="constrained")
     kinds = list(reversed(reference.lump_names))
     axes = fig.subplots(1, len(kinds))
     for ax, kind in zip(axes, kinds, strict=True):
-        pair = (reference.durations_of(kind), candidate.durations_of(kind))
-        pooled = np.concatenate(pair)
+        pair = (reference.duration_distribution(kind), candidate.duration_distribution(kind))
         ax.set_title(f"{kind} durations", fontsize=10)
         ax.set_xlabel("duration (s)")
-        if pooled.size == 0:
+        present = [d for d in pair if d.n]
+        if not present:
             ax.text(
                 0.5, 0.5, f"no {kind} durations", ha="center", va="center", transform=ax.transAxes
             )
             continue
-        edges = np.histogram_bin_edges(pooled, bins=bins)
-        for values, label, colour in zip(pair, labels, COLOURS, strict=True):
-            if values.size:
-                ax.hist(
-                    values,
-                    bins=edges,
-                    density=True,
-                    histtype="step",
-                    lw=1.5,
-                    color=colour,
-                    label=f"{label} (n={values.size})",
-                )
+        lo = min(float(np.min(d.values)) for d in present)
+        hi = max(float(np.max(d.values)) for d in present)
+        edges = np.histogram_bin_edges([lo, hi], bins=bins)
+        for dist, label, colour in zip(pair, labels, COLOURS, strict=True):
+            if dist.n:
+                counts, _ = np.histogram(dist.values, bins=edges, weights=dist.counts)
+                density = counts / (dist.n * np.diff(edges))
+                ax.stairs(density, edges, lw=1.5, color=colour, label=f"{label} (n={dist.n})")
         ax.set_yscale("log")
         ax.legend(fontsize=8)
     axes[0].set_ylabel("density")

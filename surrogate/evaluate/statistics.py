@@ -20,6 +20,7 @@ different seeds also differ. ``noise_floor_table`` measures that run-to-run diff
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import warnings
@@ -35,6 +36,18 @@ from scipy import stats
 
 from surrogate.errors import ArtefactError, NumericalError
 from surrogate.io import read_json, read_parquet
+from surrogate.simulate.recorders import (
+    DURATION_HISTOGRAM,
+    DURATION_HISTOGRAM_SCHEMA,
+    DURATION_SCHEMA,
+    DURATIONS,
+    HISTOGRAM_SCHEMA,
+    HISTOGRAMS,
+    MOMENTS,
+    MOMENTS_SCHEMA,
+    OBSERVABLES,
+    read_metadata,
+)
 
 #: c(alpha) of the asymptotic two-sample KS critical value at alpha = 0.05,
 #: sqrt(-ln(alpha / 2) / 2) = 1.358.
@@ -48,8 +61,6 @@ PAPER_SUBSAMPLE = 1000
 
 MADE_BY = "python scripts/simulate.py ..."
 
-OBSERVABLES = "observables.parquet"
-DURATIONS = "durations.parquet"
 DEFAULT_LUMPS: tuple[str, str] = ("tumble", "run")
 
 COLUMNS: tuple[str, ...] = (
@@ -63,6 +74,14 @@ COLUMNS: tuple[str, ...] = (
     "ks_full",
     "ks_pvalue_full",
 )
+
+#: sample size up to which ``ks_2samp`` computes the exact p-value (its ``method="auto"``)
+_SCIPY_EXACT_N = 10_000
+
+
+#: most values :meth:`SimulationRun.durations_of` expands a lattice histogram into
+EXPAND_LIMIT = 20_000_000
+
 
 # Relative tolerance when a run has a single record time (no interval to take half of).
 _SINGLE_RECORD_RTOL = 1e-9
@@ -144,42 +163,316 @@ def _subsample(arr: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarr
 
 
 # ----------------------------------------------------------------------------------------------
+# empirical distributions: every value, or counts on a grid
+
+
+@dataclass(frozen=True, eq=False)
+class ExactSample:
+    """Every value of a sample: ``values`` ``(k,)`` with multiplicities ``counts`` ``(k,)`` int64
+    (a lattice histogram: distinct values, sorted), or ``counts=None`` (a raw sample: each value
+    once, in the order recorded, e.g. a table's column)."""
+
+    values: np.ndarray
+    counts: np.ndarray | None = None
+
+    @classmethod
+    def from_counts(cls, values: ArrayLike, counts: ArrayLike) -> ExactSample:
+        """Distinct ``values`` with their ``counts`` (sorted; zero counts dropped)."""
+        v, c = np.asarray(values, dtype=np.float64), np.asarray(counts, dtype=np.int64)
+        order = np.argsort(v, kind="stable")
+        v, c = v[order], c[order]
+        keep = c > 0
+        return cls(v[keep], c[keep])
+
+    @property
+    def n(self) -> int:
+        """Sample size."""
+        return int(self.values.size if self.counts is None else self.counts.sum())
+
+    @functools.cached_property
+    def _sorted(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.counts is not None:
+            return self.values, np.concatenate([[0], np.cumsum(self.counts)])
+        v = np.sort(np.asarray(self.values, dtype=np.float64))
+        return v, np.arange(v.size + 1, dtype=np.int64)
+
+    def below(self, x: ArrayLike) -> np.ndarray:
+        """How many values are ``< x`` (int64, the shape of ``x``)."""
+        v, cum = self._sorted
+        return cum[np.searchsorted(v, np.asarray(x, dtype=np.float64), side="left")]
+
+    def at_most(self, x: ArrayLike) -> np.ndarray:
+        """How many values are ``<= x``."""
+        v, cum = self._sorted
+        return cum[np.searchsorted(v, np.asarray(x, dtype=np.float64), side="right")]
+
+    def expand(self) -> np.ndarray:
+        """Every value (float64): the raw order, or sorted for a lattice histogram."""
+        values = np.asarray(self.values, dtype=np.float64)
+        return values if self.counts is None else np.repeat(values, self.counts)
+
+    def draw(self, size: int, rng: np.random.Generator) -> np.ndarray:
+        """``size`` values drawn without replacement: positions ``rng.choice(n, size,
+        replace=False)`` in the raw order (so a raw sample gives exactly
+        ``rng.choice(values, size, replace=False)``) or in sorted order (a lattice histogram);
+        every value, without touching ``rng``, when ``n <= size``."""
+        if self.n <= size:
+            return self.expand()
+        positions = rng.choice(self.n, size=size, replace=False)
+        if self.counts is None:
+            return np.asarray(self.values, dtype=np.float64)[positions]
+        v, cum = self._sorted
+        return v[np.searchsorted(cum, positions, side="right") - 1]
+
+    def mean(self) -> float:
+        """The sample mean."""
+        if self.counts is None:
+            return float(np.mean(np.asarray(self.values, dtype=np.float64)))
+        return float(np.dot(self.values, self.counts) / self.counts.sum())
+
+
+@dataclass(frozen=True, eq=False)
+class BinnedSample:
+    """A sample known by its counts on a grid: ``edges`` ``(n_bins + 1,)``, ``counts``
+    ``(n_bins + 2,)`` int64 = [values below ``edges[0]``, bin 0, ..., bin n_bins - 1, values at or
+    above ``edges[-1]``] (bin i is ``[edges[i], edges[i + 1])``), and the sample's extremes
+    ``vmin``/``vmax`` (which bound the two outer bins)."""
+
+    edges: np.ndarray
+    counts: np.ndarray
+    vmin: float
+    vmax: float
+
+    @property
+    def n(self) -> int:
+        """Sample size (outer bins included)."""
+        return int(self.counts.sum())
+
+    def below_edges(self) -> np.ndarray:
+        """How many values are ``< edges[i]``, for every edge (int64 ``(n_bins + 1,)``)."""
+        return np.cumsum(self.counts)[:-1]
+
+    def below(self, points: ArrayLike) -> np.ndarray:
+        """How many values are ``< x`` for each of ``points``: exact at the grid's edges
+        (matched to 1e-9 relative); elsewhere the count below the edge under the point, a lower
+        bound."""
+        x = np.asarray(points, dtype=np.float64)
+        e = self.edges
+        idx = np.clip(np.searchsorted(e, x), 0, e.size - 1)
+        near = np.abs(e[idx] - x) <= 1e-9 * max(1.0, float(np.abs(e).max()))
+        idx = np.where(near | (x >= e[idx]), idx, np.clip(idx - 1, 0, e.size - 1))
+        below = self.below_edges()[idx]
+        below = np.where(x < e[0] - 1e-9 * max(1.0, abs(float(e[0]))), 0, below)
+        return np.where(x > e[-1] + 1e-9 * max(1.0, abs(float(e[-1]))), self.n, below)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Representative points for the Wasserstein distance: the centre of every non-empty
+        bin (the outer bins' between the extreme and the grid) with its count, and how far the
+        sample's values lie from them on average (the representation's W1 error bound)."""
+        e = self.edges
+        lo_out = min(self.vmin, e[0])
+        hi_out = max(self.vmax, e[-1])
+        left = np.concatenate([[lo_out], e])
+        right = np.concatenate([e, [hi_out]])
+        keep = self.counts > 0
+        centre = 0.5 * (left + right)[keep]
+        weight = self.counts[keep].astype(np.float64)
+        error = float(np.dot(weight, 0.5 * (right - left)[keep]) / weight.sum())
+        return centre, weight, error
+
+
+Distribution = ExactSample | BinnedSample
+
+
+def ks_pvalue_asymptotic(d: float, n_a: int, n_b: int) -> float:
+    """The two-sided KS p-value of ``scipy.stats.ks_2samp``'s asymptotic method:
+    ``kstwo.sf(d, round(n_a n_b / (n_a + n_b)))`` (what scipy uses above 10,000 values)."""
+    m, n = sorted([float(n_a), float(n_b)], reverse=True)
+    en = m * n / (m + n)
+    return float(np.clip(stats.kstwo.sf(d, np.round(en)), 0.0, 1.0))
+
+
+def compare_distributions(
+    a: Distribution,
+    b: Distribution,
+    subsample: int | None = None,
+    rng: np.random.Generator | None = None,
+    *,
+    name: str = "sample",
+) -> dict[str, float | int]:
+    """:func:`compare_samples` for exact samples and binned summaries alike.
+
+    * Both raw samples: exactly :func:`compare_samples`.
+    * Exact samples with counts (lattice histograms): the same KS statistic, computed from the
+      counts (``ks_2samp``'s own value: identical ECDFs); its p-value as ``ks_2samp`` gives it
+      (the exact method on the expanded values up to 10,000 values per sample, else
+      :func:`ks_pvalue_asymptotic`); Wasserstein from the weighted values.
+    * ``subsample``: ``min(subsample, n)`` values drawn from each (``a`` first) with
+      :meth:`ExactSample.draw`, then compared as raw samples (exact samples only).
+    * Either binned: the ECDFs are compared where both are known exactly, at the grid's edges
+      (both grids' common edges). ``ks`` is the largest difference there, the KS distance of
+      the two samples with every value moved down to its bin's lower edge, a lower bound of the
+      exact KS; ``ks_error`` bounds its shortfall: in each interval between known points the
+      ECDFs move by at most that interval's mass, so exact KS <= max over intervals of
+      ``max(F(right) - G(left), G(right) - F(left))``. Wasserstein from bin centres (the outer
+      bins' between the extremes and the grid), ``wasserstein_error`` = the mean distance of
+      the values from their centres (half a bin width inside the grid), summed over the binned
+      samples, bounds ``|wasserstein - exact|``. The p-value is :func:`ks_pvalue_asymptotic`.
+
+    Returns:
+        :func:`compare_samples`' keys plus ``ks_error`` and ``wasserstein_error`` (0 when both
+        are exact).
+    """
+    for dist, which in ((a, "first"), (b, "second")):
+        if dist.n == 0:
+            raise ValueError(f"{name} ({which} sample) is empty: nothing to compare")
+    exact = {"ks_error": 0.0, "wasserstein_error": 0.0}
+    if subsample is not None:
+        if subsample <= 0:
+            raise ValueError(f"subsample for {name} must be positive, got {subsample}")
+        if not (isinstance(a, ExactSample) and isinstance(b, ExactSample)):
+            raise ValueError(f"{name}: a binned summary cannot be subsampled value by value")
+        rng = np.random.default_rng(0) if rng is None else rng
+        x, y = a.draw(subsample, rng), b.draw(subsample, rng)
+        return {**compare_samples(x, y, name=name), **exact}
+    if isinstance(a, ExactSample) and isinstance(b, ExactSample):
+        if a.counts is None and b.counts is None:
+            return {**compare_samples(a.values, b.values, name=name), **exact}
+        if max(a.n, b.n) <= _SCIPY_EXACT_N:
+            return {**compare_samples(a.expand(), b.expand(), name=name), **exact}
+        return {**_compare_weighted(a, b, name), **exact}
+    return _compare_binned(a, b, name)
+
+
+def _compare_weighted(a: ExactSample, b: ExactSample, name: str) -> dict[str, float | int]:
+    ua, ub = (
+        _as_sample(d.values, f"{name} ({w} sample)") for d, w in ((a, "first"), (b, "second"))
+    )
+    wa = np.ones(ua.size) if a.counts is None else a.counts.astype(np.float64)
+    wb = np.ones(ub.size) if b.counts is None else b.counts.astype(np.float64)
+    grid = np.union1d(ua, ub)
+    diff = a.at_most(grid) / a.n - b.at_most(grid) / b.n  # ks_2samp's ECDFs at every value
+    d = float(max(np.clip(-diff.min(), 0, 1), diff.max()))
+    return {
+        "ks": d,
+        "ks_pvalue": ks_pvalue_asymptotic(d, a.n, b.n),
+        "wasserstein": float(stats.wasserstein_distance(ua, ub, wa, wb)),
+        "n_a": a.n,
+        "n_b": b.n,
+        "ks_critical_05": ks_critical_value(a.n, b.n),
+    }
+
+
+def _known_points(a: Distribution, b: Distribution) -> np.ndarray:
+    """The points where both ECDFs are known: a binned sample's edges (both grids' common
+    edges, matched to 1e-9 relative)."""
+    grids = [d.edges for d in (a, b) if isinstance(d, BinnedSample)]
+    edges = grids[0]
+    if len(grids) == 2 and not np.array_equal(grids[0], grids[1]):
+        other = grids[1]
+        j = np.clip(np.searchsorted(other, edges), 1, other.size - 1)
+        nearest = np.minimum(np.abs(other[j] - edges), np.abs(other[j - 1] - edges))
+        tol = 1e-9 * max(1.0, float(np.abs(edges).max()), float(np.abs(other).max()))
+        edges = edges[nearest <= tol]
+    return edges
+
+
+def _compare_binned(a: Distribution, b: Distribution, name: str) -> dict[str, float | int]:
+    points = _known_points(a, b)
+    f = np.concatenate([[0.0], a.below(points) / a.n, [1.0]])
+    g = np.concatenate([[0.0], b.below(points) / b.n, [1.0]])
+    ks = float(np.abs(f - g).max())
+    upper = float(max((f[1:] - g[:-1]).max(), (g[1:] - f[:-1]).max()))
+    pos, wts, errs = [], [], []
+    for d, which in ((a, "first"), (b, "second")):
+        if isinstance(d, ExactSample):
+            pos.append(_as_sample(d.values, f"{name} ({which} sample)"))
+            wts.append(None if d.counts is None else d.counts.astype(np.float64))
+            errs.append(0.0)
+        else:
+            if not (math.isfinite(d.vmin) and math.isfinite(d.vmax)):
+                raise NumericalError(f"{name} ({which} sample) has NaN or infinite values")
+            centre, weight, error = d.points()
+            pos.append(centre)
+            wts.append(weight)
+            errs.append(error)
+    return {
+        "ks": ks,
+        "ks_pvalue": ks_pvalue_asymptotic(ks, a.n, b.n),
+        "wasserstein": float(stats.wasserstein_distance(pos[0], pos[1], wts[0], wts[1])),
+        "n_a": a.n,
+        "n_b": b.n,
+        "ks_critical_05": ks_critical_value(a.n, b.n),
+        "ks_error": max(upper - ks, 0.0),
+        "wasserstein_error": float(sum(errs)),
+    }
+
+
+# ----------------------------------------------------------------------------------------------
 # simulation runs
+
+RUN_SOURCES: tuple[str, ...] = ("auto", "tables", "summaries")
 
 
 @dataclass
 class SimulationRun:
     """The artefacts of one simulation run directory.
 
+    A run written by :class:`~surrogate.simulate.recorders.RunRecorder` has summaries over all
+    cells (moments, histograms, the lattice histogram of durations) beside its tables; an older
+    run has the complete tables only. Statistics use the most exact source a run has: the
+    recorded cells' values when they are all cells, else the histograms; durations from the
+    lattice histogram (exact), else the table.
+
     Attributes:
         observables: Long table ``t``, ``cell`` and one column per observable (e.g.
-            ``distance``, mm from the field's peak).
+            ``distance``, mm from the field's peak): every cell, or the recorded subsample.
         durations: ``kind`` (the lump's name, e.g. "run"/"tumble"), ``duration`` (s), ``cell``,
-            ``t_end``.
+            ``t_end``: every completed segment, or the recorded cells' (see
+            ``recording["durations"]``); empty when the run kept none.
         manifest: The run's ``manifest.json`` (``wall_time_s``, ``seed``, ``config``, ...).
         path: The run directory.
+        moments: ``observable_moments.parquet`` (``t``, ``observable``, ``n``, ``mean``,
+            ``variance``, ``min``, ``max``, ``lo``, ``width``, ``n_bins``), or None.
+        histograms: ``observable_histograms.parquet`` (``t``, ``observable``, ``bin``,
+            ``count``), or None.
+        duration_counts: ``duration_histogram.parquet`` (``kind``, ``steps``, ``duration``,
+            ``count``), or None.
+        recording: The recording facts of the summaries' metadata (``n_cells``,
+            ``record_cells``, ``observable_cells``, ``durations``, ...), or empty.
+        source: ``"auto"`` (the most exact source), ``"tables"`` (the tables only, as an older
+            run; they must be complete) or ``"summaries"`` (histograms even where every cell's
+            value is known).
     """
 
     observables: pd.DataFrame
     durations: pd.DataFrame
     manifest: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
+    moments: pd.DataFrame | None = None
+    histograms: pd.DataFrame | None = None
+    duration_counts: pd.DataFrame | None = None
+    recording: dict[str, Any] = field(default_factory=dict)
+    source: str = "auto"
 
     @property
     def observable_names(self) -> list[str]:
-        """The observables recorded (every column but ``t`` and ``cell``)."""
+        """The observables recorded (the moments' order, else every column but ``t``, ``cell``)."""
+        if self.moments is not None:
+            return [str(n) for n in pd.unique(self.moments["observable"])]
         return [c for c in self.observables.columns if c not in ("t", "cell")]
 
     @property
     def lump_names(self) -> tuple[str, str]:
         """Names of phi = 0 and phi = 1 (the duration kinds)."""
-        names = self.manifest.get("lump_names") or DEFAULT_LUMPS
+        names = self.manifest.get("lump_names") or self.recording.get("lump_names") or DEFAULT_LUMPS
         return (str(names[0]), str(names[1]))
 
     @property
     def record_times(self) -> np.ndarray:
         """The sorted distinct record times (s)."""
-        return np.unique(self.observables["t"].to_numpy(dtype=np.float64))
+        table = self.moments if self.moments is not None else self.observables
+        return np.unique(table["t"].to_numpy(dtype=np.float64))
 
     @property
     def t_end(self) -> float:
@@ -191,31 +484,173 @@ class SimulationRun:
         """A short name for messages: the directory name, or "run" when built in memory."""
         return self.path.name if self.path is not None else "run"
 
-    def durations_of(self, kind: str) -> np.ndarray:
-        """All completed segment durations of ``kind`` (a lump name, e.g. "run")."""
+    def record_time(self, t: float) -> float:
+        """The record time closest to ``t``.
+
+        Raises:
+            ValueError: No record lies within half a record interval of ``t``; the message
+                names ``t`` and the recorded range.
+        """
+        times = self.record_times
+        i = int(np.argmin(np.abs(times - t)))
+        nearest = float(times[i])
+        # Half the (median) record interval: a regular grid puts every t in range within it.
+        tol = 0.5 * float(np.median(np.diff(times))) if times.size > 1 else _SINGLE_RECORD_RTOL
+        if abs(nearest - t) > tol * (1 + 1e-9):
+            raise ValueError(
+                f"no record near t={t:g} s in {self.label}: records span "
+                f"{times[0]:g}..{times[-1]:g} s ({times.size} record times); pass times within "
+                f"that range"
+            )
+        return nearest
+
+    def _moment(self, name: str, t: float) -> pd.Series:
+        assert self.moments is not None
+        m = self.moments
+        rows = m[(m["observable"] == name) & (m["t"] == t)]
+        if rows.empty:
+            raise ArtefactError(f"{self.label} has no moments of {name!r} at t={t:g} s")
+        return rows.iloc[0]
+
+    def recorded_values(self, name: str, t: float) -> np.ndarray:
+        """The recorded cells' values of observable ``name`` at record time ``t`` (float64)."""
+        if name not in self.observables.columns:
+            raise ValueError(f"{self.label} has no observable {name!r} (has "
+                             f"{self.observable_names})")  # fmt: skip
+        values = self.observables.loc[self.observables["t"] == t, name]
+        return values.to_numpy(dtype=np.float64)
+
+    def complete_at(self, name: str, t: float) -> bool:
+        """Whether the recorded values at record time ``t`` are every cell's."""
+        if self.moments is None:
+            return True
+        return int(self._moment(name, t)["n"]) == int((self.observables["t"] == t).sum())
+
+    def observable_distribution(self, name: str, t: float) -> Distribution:
+        """Observable ``name`` over all cells at the record time closest to ``t``: the exact
+        values when every cell's is recorded (and ``source`` is not "summaries"), else the
+        histogram over all cells."""
+        t = self.record_time(t)
+        if self.source != "summaries" and self.complete_at(name, t):
+            return ExactSample(self.recorded_values(name, t))
+        if self.histograms is None or self.moments is None:
+            raise ArtefactError(
+                f"{self.label} recorded {name!r} for only some cells and has no histograms; "
+                f"re-run `{MADE_BY}`"
+            )
+        m = self._moment(name, t)
+        n_bins = int(m["n_bins"])
+        counts = np.zeros(n_bins + 2, dtype=np.int64)
+        rows = self._histogram_rows.get((name, t))
+        if rows is not None:
+            h = self.histograms
+            counts[h["bin"].to_numpy()[rows] + 1] = h["count"].to_numpy()[rows]
+        edges = float(m["lo"]) + float(m["width"]) * np.arange(n_bins + 1, dtype=np.float64)
+        if int(counts.sum()) != int(m["n"]):
+            raise ArtefactError(
+                f"{self.label}: histogram of {name!r} at t={t:g} s counts {counts.sum()} values "
+                f"but its moments say {int(m['n'])}"
+            )
+        return BinnedSample(edges, counts, float(m["min"]), float(m["max"]))
+
+    @functools.cached_property
+    def _histogram_rows(self) -> dict[tuple[str, float], np.ndarray]:
+        if self.histograms is None or self.histograms.empty:
+            return {}
+        groups = self.histograms.groupby(["observable", "t"], sort=False).indices
+        return {(str(k[0]), float(k[1])): v for k, v in groups.items()}
+
+    def duration_distribution(self, kind: str) -> ExactSample:
+        """Every completed segment duration of ``kind`` (a lump name): the lattice histogram's
+        counts when the run has one (and ``source`` is not "tables"), else the table's column
+        (in the table's order)."""
         if kind not in self.lump_names:
             raise ValueError(f"duration kind must be one of {self.lump_names}, got {kind!r}")
+        if self.duration_counts is not None:
+            d = self.duration_counts
+            mask = d["kind"].astype(str) == kind
+            return ExactSample.from_counts(d.loc[mask, "duration"], d.loc[mask, "count"])
         mask = self.durations["kind"].astype(str) == kind
-        return self.durations.loc[mask, "duration"].to_numpy(dtype=np.float64)
+        return ExactSample(self.durations.loc[mask, "duration"].to_numpy(dtype=np.float64))
+
+    def durations_of(self, kind: str) -> np.ndarray:
+        """All completed segment durations of ``kind`` (a lump name, e.g. "run"), expanded from
+        the lattice histogram when the run has one (at most :data:`EXPAND_LIMIT` values; use
+        :meth:`duration_distribution` or :meth:`mean_duration` for more)."""
+        dist = self.duration_distribution(kind)
+        if dist.counts is not None and dist.n > EXPAND_LIMIT:
+            raise ValueError(
+                f"{self.label} has {dist.n} {kind} durations, more than {EXPAND_LIMIT} to expand; "
+                f"use duration_distribution({kind!r}) (values and counts) instead"
+            )
+        return dist.expand()
+
+    def mean_duration(self, kind: str) -> float | None:
+        """The mean completed segment duration of ``kind`` (s), None when there is none."""
+        dist = self.duration_distribution(kind)
+        return dist.mean() if dist.n else None
 
 
-def load_run(directory: str | os.PathLike) -> SimulationRun:
-    """Read ``observables.parquet``, ``durations.parquet`` and ``manifest.json`` of a run.
+def load_run(directory: str | os.PathLike, source: str = "auto") -> SimulationRun:
+    """Read a run directory: ``observables.parquet``, ``manifest.json``, and the summaries when
+    it has them (``observable_moments.parquet``, ``observable_histograms.parquet``,
+    ``duration_histogram.parquet``; :mod:`surrogate.simulate.recorders`) or else
+    ``durations.parquet`` (which is read whenever present).
+
+    Args:
+        directory: The run directory.
+        source: See :class:`SimulationRun`; ``"tables"`` reads a new run as an old one and
+            refuses it unless its tables are complete (every cell and every duration).
 
     Raises:
         MissingArtefactError: A file is missing (the message says which command makes it).
         ArtefactError: A file is corrupt or lacks the expected columns.
+        ValueError: ``source="tables"`` on a run whose tables are a subsample, or
+            ``"summaries"`` on a run without summaries.
     """
+    if source not in RUN_SOURCES:
+        raise ValueError(f"source must be one of {RUN_SOURCES}, got {source!r}")
     path = Path(directory)
     observables = read_parquet(path / OBSERVABLES, made_by=MADE_BY)
-    durations = read_parquet(path / DURATIONS, made_by=MADE_BY)
-    manifest = read_json(path / "manifest.json", made_by=MADE_BY)
     _require_columns(observables, ("t", "cell"), path / OBSERVABLES)
-    _require_columns(durations, ("kind", "duration"), path / DURATIONS)
+    moments = _optional(path / MOMENTS, MOMENTS_SCHEMA.names)
+    histograms = _optional(path / HISTOGRAMS, HISTOGRAM_SCHEMA.names)
+    duration_counts = _optional(path / DURATION_HISTOGRAM, DURATION_HISTOGRAM_SCHEMA.names)
+    if duration_counts is None or (path / DURATIONS).exists():
+        durations = read_parquet(path / DURATIONS, made_by=MADE_BY)
+        _require_columns(durations, ("kind", "duration"), path / DURATIONS)
+    else:
+        durations = pd.DataFrame({n: pd.Series(dtype=t.to_pandas_dtype()) for n, t in
+                                  zip(DURATION_SCHEMA.names, DURATION_SCHEMA.types, strict=True)})  # fmt: skip
+    manifest = read_json(path / "manifest.json", made_by=MADE_BY)
     if observables.empty or observables.shape[1] < 3:
         raise ArtefactError(f"{path / OBSERVABLES} has no observations; re-run `{MADE_BY}`")
+    recording: dict[str, Any] = {}
+    for name in (MOMENTS, DURATION_HISTOGRAM):
+        if (path / name).exists():
+            recording.update(read_metadata(path / name))
+    if source == "tables" and moments is not None:
+        # the recorded cells' durations are all durations when the recorded cells are all cells
+        if int(recording.get("observable_cells", 0)) < int(recording.get("n_cells", 0)):
+            raise ValueError(
+                f"{path} recorded {recording.get('observable_cells')} of "
+                f"{recording.get('n_cells')} cells: its tables are a subsample; use "
+                f"source='auto'"
+            )
+        moments = histograms = duration_counts = None
+    if source == "summaries" and (moments is None or histograms is None):
+        raise ValueError(f"{path} has no summaries ({MOMENTS}, {HISTOGRAMS}); use source='auto'")
     return SimulationRun(observables=observables, durations=durations, manifest=manifest,
-                         path=path)  # fmt: skip
+                         path=path, moments=moments, histograms=histograms,
+                         duration_counts=duration_counts, recording=recording, source=source)  # fmt: skip
+
+
+def _optional(path: Path, columns: Sequence[str]) -> pd.DataFrame | None:
+    if not path.exists():
+        return None
+    table = read_parquet(path, made_by=MADE_BY)
+    _require_columns(table, columns, path)
+    return table
 
 
 def _require_columns(df: pd.DataFrame, columns: Sequence[str], where: Path) -> None:
@@ -228,25 +663,15 @@ def _require_columns(df: pd.DataFrame, columns: Sequence[str], where: Path) -> N
 
 
 def observable_at(run: SimulationRun, name: str, t: float) -> np.ndarray:
-    """The cells' values of observable ``name`` at the record time closest to ``t``.
+    """The recorded cells' values of observable ``name`` at the record time closest to ``t``
+    (every cell's, unless the run recorded a subsample; see
+    :meth:`SimulationRun.observable_distribution` for all cells).
 
     Raises:
         ValueError: No record lies within half a record interval of ``t``; the message names
             ``t`` and the recorded range.
     """
-    times = run.record_times
-    i = int(np.argmin(np.abs(times - t)))
-    nearest = float(times[i])
-    # Half the (median) record interval: a regular grid puts every t in range within it.
-    tol = 0.5 * float(np.median(np.diff(times))) if times.size > 1 else _SINGLE_RECORD_RTOL
-    if abs(nearest - t) > tol * (1 + 1e-9):
-        raise ValueError(
-            f"no record near t={t:g} s in {run.label}: records span "
-            f"{times[0]:g}..{times[-1]:g} s ({times.size} record times); pass times within "
-            f"that range"
-        )
-    values = run.observables.loc[run.observables["t"] == nearest, name]
-    return values.to_numpy(dtype=np.float64)
+    return run.recorded_values(name, run.record_time(t))
 
 
 def distances_at(run: SimulationRun, t: float) -> np.ndarray:
@@ -267,20 +692,31 @@ def observable_quantity(name: str, t: float) -> str:
     return f"{name}_t{t:g}"
 
 
+#: extra columns of ``comparison_table(..., errors=True)``
+ERROR_COLUMNS: tuple[str, ...] = ("ks_binning_error", "wasserstein_binning_error")
+
+
 def comparison_table(
     reference: SimulationRun,
     candidate: SimulationRun,
     times: Sequence[float] = PAPER_TIMES,
     subsample: int | None = PAPER_SUBSAMPLE,
     seed: int = 0,
+    errors: bool = False,
 ) -> pd.DataFrame:
     """One row per quantity comparing ``candidate`` against ``reference`` (the paper's Table 1).
 
     Rows: ``<observable>_t<t>`` for each observable and each of ``times`` (all cells, no
-    subsampling), then one per lump, phi = 1 first (``run``, ``tumble``: ``subsample``
-    durations drawn without replacement from each run, from a generator seeded with ``seed``). Columns: see ``COLUMNS``; ``n_reference``/``n_candidate``
-    are the sizes actually compared, and the duration rows also carry the full-sample
-    ``ks_full``/``ks_pvalue_full`` (NaN on distance rows).
+    subsampling: every cell's value when the runs recorded them all, else the histograms, see
+    :func:`compare_distributions`), then one per lump, phi = 1 first (``run``, ``tumble``:
+    ``subsample`` durations drawn without replacement from each run, from a generator seeded
+    with ``seed``, reference then candidate; from a lattice histogram the draw is of positions
+    in sorted order, from a table of positions in the table's order). Columns: see
+    ``COLUMNS``; ``n_reference``/``n_candidate`` are the sizes actually compared, and the
+    duration rows also carry the full-sample ``ks_full``/``ks_pvalue_full`` (NaN on
+    observable rows), exact from the lattice histograms. ``errors=True`` appends
+    :data:`ERROR_COLUMNS`: bounds on ``|ks - exact KS|`` and ``|wasserstein - exact|`` of
+    histogram-based rows (0 where every value is known).
 
     The caller chooses ``times``: runs shorter than the paper's 500 s need times within their
     record range (``default_times`` gives the paper's quarters of ``t_end``); a time outside it
@@ -294,24 +730,27 @@ def comparison_table(
     for name in reference.observable_names:
         for t in times:
             quantity = observable_quantity(name, t)
-            res = compare_samples(
-                observable_at(reference, name, t),
-                observable_at(candidate, name, t),
+            res = compare_distributions(
+                reference.observable_distribution(name, t),
+                candidate.observable_distribution(name, t),
                 name=quantity,
             )
             rows.append(_row(quantity, res, full=None))
     for kind in reversed(reference.lump_names):
         ref = _durations(reference, kind, "reference")
         cand = _durations(candidate, kind, "candidate")
-        full = compare_samples(ref, cand, name=f"{kind} durations")
-        sub = compare_samples(ref, cand, subsample=subsample, rng=rng, name=f"{kind} durations")
+        full = compare_distributions(ref, cand, name=f"{kind} durations")
+        sub = compare_distributions(
+            ref, cand, subsample=subsample, rng=rng, name=f"{kind} durations"
+        )
         rows.append(_row(kind, sub, full=full))
-    return pd.DataFrame(rows, columns=list(COLUMNS))
+    columns = [*COLUMNS, *ERROR_COLUMNS] if errors else list(COLUMNS)
+    return pd.DataFrame(rows, columns=columns)
 
 
-def _durations(run: SimulationRun, kind: str, role: str) -> np.ndarray:
-    values = run.durations_of(kind)
-    if values.size == 0:
+def _durations(run: SimulationRun, kind: str, role: str) -> ExactSample:
+    values = run.duration_distribution(kind)
+    if values.n == 0:
         raise ValueError(
             f"{kind} durations of the {role} run {run.label} are empty: no completed {kind} "
             f"segment was recorded (run longer or with more cells)"
@@ -330,6 +769,8 @@ def _row(quantity: str, res: dict[str, Any], full: dict[str, Any] | None) -> dic
         "ks_critical_05": res["ks_critical_05"],
         "ks_full": np.nan if full is None else full["ks"],
         "ks_pvalue_full": np.nan if full is None else full["ks_pvalue"],
+        "ks_binning_error": res.get("ks_error", 0.0),
+        "wasserstein_binning_error": res.get("wasserstein_error", 0.0),
     }
 
 
@@ -339,6 +780,7 @@ def noise_floor_table(
     times: Sequence[float] = PAPER_TIMES,
     subsample: int | None = PAPER_SUBSAMPLE,
     seed: int = 0,
+    errors: bool = False,
 ) -> pd.DataFrame:
     """``comparison_table`` between two FULL-model runs that differ only in their seed.
 
@@ -353,7 +795,8 @@ def noise_floor_table(
             f"{full_b.label}): the floor will be ~0; use runs with different seeds",
             stacklevel=2,
         )
-    return comparison_table(full_a, full_b, times=times, subsample=subsample, seed=seed)
+    return comparison_table(full_a, full_b, times=times, subsample=subsample, seed=seed,
+                            errors=errors)  # fmt: skip
 
 
 def combine_with_noise_floor(table: pd.DataFrame, floor_table: pd.DataFrame) -> pd.DataFrame:
@@ -406,11 +849,24 @@ def _positive(run: SimulationRun, key: str) -> float:
 
 def mean_std_over_time(run: SimulationRun, name: str | None = None) -> pd.DataFrame:
     """Per record time: the mean, sample standard deviation (ddof=1) and count of observable
-    ``name`` (default: the first one).
+    ``name`` (default: the first one), over all cells (from the moments when the run has them).
 
     Columns ``t``, ``mean``, ``std``, ``n``; ``std`` is NaN where only one cell is recorded.
     """
     name = name or run.observable_names[0]
+    if run.moments is not None:
+        m = run.moments[run.moments["observable"] == name].sort_values("t")
+        if m.empty:
+            raise ValueError(f"{run.label} has no observable {name!r} (has "
+                             f"{run.observable_names})")  # fmt: skip
+        return pd.DataFrame(
+            {
+                "t": m["t"].to_numpy(np.float64),
+                "mean": m["mean"].to_numpy(np.float64),
+                "std": np.sqrt(m["variance"].to_numpy(np.float64)),
+                "n": m["n"].to_numpy(np.int64).astype(int),
+            }
+        )
     d = run.observables.assign(**{name: run.observables[name].astype(np.float64)})
     out = d.groupby("t", sort=True)[name].agg(["mean", "std", "count"]).reset_index()
     return out.rename(columns={"count": "n"}).astype({"t": float, "n": int})

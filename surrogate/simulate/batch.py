@@ -18,16 +18,24 @@ vectorised body and a scalar tail), which leaves it identical in distribution.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import os
+import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import InternalState, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
+
+if TYPE_CHECKING:
+    from surrogate.simulate.population import PopulationSummary
 
 
 class DecisionBatch:
@@ -308,4 +316,92 @@ def _set_global_state(device: torch.device, state: Tensor) -> None:
         torch.random.set_rng_state(state)
 
 
-__all__ = ["BatchSimulator", "DecisionBatch", "Replicate"]
+def simulate_batch(
+    simulator: BatchSimulator,
+    t_end: float,
+    out_dirs: Sequence[str | os.PathLike],
+    record_interval: float = 1.0,
+    equilibration_time: float = 0.0,
+    record_durations: bool = True,
+    progress: bool = True,
+    *,
+    record_cells: int | None = None,
+    histogram_spec: Mapping[str, Any] | None = None,
+) -> list[PopulationSummary]:
+    """:func:`~surrogate.simulate.simulate_population` for every replicate of a batch at once:
+    one loop, one recorder per replicate writing the ordinary run files into its own directory
+    (``out_dirs``, in replicate order), each committed only once the whole batch completes.
+
+    The loop time is the batch's (shared by its replicates); a replicate's cells are seeded as
+    its standalone run's (its seed also chooses its recorded cells).
+    """
+    from surrogate.simulate.population import PopulationSummary, steps_between
+    from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS, RunRecorder
+
+    if len(out_dirs) != len(simulator.replicates):
+        raise ValueError("simulate_batch needs one output directory per replicate")
+    dt = simulator.dt
+    n_steps = steps_between(t_end, dt, "t_end")
+    every = steps_between(record_interval, dt, "record_interval")
+    body, lumps = simulator.body, simulator.model.internal.lump_names
+    mode = "histogram" if record_durations else "none"
+    t0 = time.perf_counter()
+    recorders: list[RunRecorder] = []
+    try:
+        for rep, out in zip(simulator.replicates, out_dirs, strict=True):
+            recorders.append(RunRecorder(
+                Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=every,
+                device=simulator.device, record_cells=record_cells or DEFAULT_RECORD_CELLS,
+                durations=mode, histogram_spec=histogram_spec, seed=int(rep.seed)))  # fmt: skip
+        with torch.no_grad():
+            state = simulator.initial_state(equilibration_time=equilibration_time)
+            simulator.check_state(state)
+            _record(recorders, simulator, state, 0.0)
+            compile_time = simulator.warm_up(state) if simulator.compile else 0.0
+            loop_start = time.perf_counter()
+            for k in tqdm(range(n_steps), desc=f"simulate {simulator.decision.name}",
+                          unit="step", disable=not progress, mininterval=1.0):  # fmt: skip
+                ended = simulator.step(state).ended_length
+                if mode != "none":
+                    for rec, cells in zip(recorders, simulator.slices, strict=True):
+                        rec.record_step(k, ended[cells])
+                if (k + 1) % every == 0:
+                    simulator.check_state(state)
+                    _record(recorders, simulator, state, (k + 1) * dt)
+            simulator.check_state(state)
+            if simulator.device.type == "cuda":
+                torch.cuda.synchronize(simulator.device)
+            loop_time = time.perf_counter() - loop_start
+        facts = [rec.commit() for rec in recorders]
+    except BaseException:
+        for rec in recorders:
+            rec.abort()
+        raise
+    wall = time.perf_counter() - t0
+    return [
+        PopulationSummary(
+            n_cells=rep.n_cells,
+            n_steps=n_steps,
+            dt=dt,
+            t_end=t_end,
+            wall_time_s=wall,
+            loop_time_s=loop_time,
+            record_times=rec.times,
+            compile_time_s=compile_time,
+            means=rec.means,
+            n_durations=f["n_durations"],
+            recording=f,
+        )
+        for rep, rec, f in zip(simulator.replicates, recorders, facts, strict=True)
+    ]
+
+
+def _record(
+    recorders: Sequence[Any], simulator: BatchSimulator, state: PopulationState, t: float
+) -> None:
+    observed = simulator.body.observables(state.body, simulator.field)
+    for rec, cells in zip(recorders, simulator.slices, strict=True):
+        rec.record_observables(t, {k: v[cells] for k, v in observed.items()})
+
+
+__all__ = ["BatchSimulator", "DecisionBatch", "Replicate", "simulate_batch"]

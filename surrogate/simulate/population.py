@@ -5,18 +5,23 @@ from __future__ import annotations
 import gc
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 from tqdm.auto import tqdm
 
 from surrogate.simulate.loop import Simulator
-from surrogate.simulate.recorders import DurationRecorder, ObservableRecorder
-
-OBSERVABLES = "observables.parquet"
-DURATIONS = "durations.parquet"
+from surrogate.simulate.recorders import (
+    DEFAULT_RECORD_CELLS,
+    DURATIONS,
+    OBSERVABLES,
+    DurationMode,
+    GridSpec,
+    RunRecorder,
+)
 
 
 @dataclass
@@ -33,6 +38,7 @@ class PopulationSummary:
     compile_time_s: float = 0.0  # warm-up (torch.compile) time, not part of loop_time_s
     means: dict[str, list[float]] = field(default_factory=dict)  # observable -> mean per record
     n_durations: int = 0
+    recording: dict[str, Any] = field(default_factory=dict)  # RunRecorder.commit()'s facts
 
     @property
     def cell_steps_per_s(self) -> float:
@@ -58,10 +64,20 @@ def simulate_population(
     equilibration_time: float = 0.0,
     record_durations: bool = True,
     progress: bool = True,
+    *,
+    record_cells: int = DEFAULT_RECORD_CELLS,
+    durations: DurationMode | None = None,
+    histogram_spec: Mapping[str, GridSpec] | None = None,
+    recorder_seed: int | None = None,
 ) -> PopulationSummary:
-    """Simulate ``n_cells`` cells to ``t_end`` and write ``observables.parquet`` (the body's
-    observables at record times) and ``durations.parquet`` (completed phi segments) into
-    ``out_dir`` (atomically, only once the run completes).
+    """Simulate ``n_cells`` cells to ``t_end`` and write what
+    :class:`~surrogate.simulate.recorders.RunRecorder` keeps into ``out_dir`` (atomically, only
+    once the run completes): the observables at record times (histograms and moments over all
+    cells, exact values of ``record_cells`` seeded random cells) and the completed phi segments
+    (exact lattice histogram; ``durations="histogram"`` keeps the recorded cells' segments in
+    ``durations.parquet``, ``"all"`` every segment, ``"none"`` nothing). ``durations`` defaults
+    to ``"histogram"``, or ``"none"`` when ``record_durations`` is false. ``recorder_seed``
+    (default ``torch.initial_seed()``) seeds the choice of recorded cells.
 
     The state is checked for NaN/inf at every record time (:meth:`Simulator.check_state`,
     raising :class:`~surrogate.errors.NumericalError` with the time window), not every step,
@@ -74,24 +90,20 @@ def simulate_population(
     out = Path(out_dir)
     t0 = time.perf_counter()
     body, field_ = simulator.body, simulator.field
-    observables: ObservableRecorder | None = None
-    durations: DurationRecorder | None = None
+    mode = durations if durations is not None else ("histogram" if record_durations else "none")
+    seed = torch.initial_seed() if recorder_seed is None else recorder_seed
+    recorder: RunRecorder | None = None
     try:
-        # created inside the try, so an interrupt right at the start drops their temporaries too
-        observables = ObservableRecorder(out / OBSERVABLES, n_cells, body.observable_names)
-        if record_durations:
-            durations = DurationRecorder(
-                out / DURATIONS,
-                n_cells,
-                dt,
-                block_steps=every,
-                device=simulator.device,
-                lump_names=simulator.model.internal.lump_names,
-            )
+        # created inside the try, so an interrupt right at the start drops its temporaries too
+        recorder = RunRecorder(out, n_cells, dt, body.observable_names,
+                               simulator.model.internal.lump_names, block_steps=every,
+                               device=simulator.device, record_cells=record_cells,
+                               durations=mode, histogram_spec=histogram_spec, seed=seed)  # fmt: skip
+        steps_recorded = mode != "none"
         with torch.no_grad():
             state = simulator.initial_state(n_cells, start, equilibration_time)
             simulator.check_state(state)
-            observables.record(0.0, body.observables(state.body, field_))
+            recorder.record_observables(0.0, body.observables(state.body, field_))
             compile_time = simulator.warm_up(state) if simulator.compile else 0.0
             # the objects alive now (models, compiled graphs, caches) are set aside from the
             # cyclic GC for the loop, so its frequent young-generation passes stay short (they
@@ -101,27 +113,21 @@ def simulate_population(
             for k in tqdm(range(n_steps), desc=f"simulate {simulator.decision.name}", unit="step",
                           disable=not progress, mininterval=1.0):  # fmt: skip
                 rec = simulator.step(state)
-                if durations is not None:
-                    durations.record(k, rec.ended_length)
+                if steps_recorded:
+                    recorder.record_step(k, rec.ended_length)
                 if (k + 1) % every == 0:
                     simulator.check_state(state)
-                    observables.record((k + 1) * dt, body.observables(state.body, field_))
+                    recorder.record_observables((k + 1) * dt, body.observables(state.body, field_))
             simulator.check_state(state)  # the tail after the last record time
             if simulator.device.type == "cuda":
                 torch.cuda.synchronize(simulator.device)
             loop_time = time.perf_counter() - loop_start
             gc.unfreeze()
-        observables.table.commit()
-        n_durations = 0
-        if durations is not None:
-            durations.flush()
-            n_durations = durations.table.n_rows
-            durations.table.commit()
+        facts = recorder.commit()
     except BaseException:
         gc.unfreeze()
-        for recorder in (observables, durations):
-            if recorder is not None:
-                recorder.table.abort()
+        if recorder is not None:
+            recorder.abort()
         raise
     return PopulationSummary(
         n_cells=n_cells,
@@ -130,8 +136,12 @@ def simulate_population(
         t_end=t_end,
         wall_time_s=time.perf_counter() - t0,
         loop_time_s=loop_time,
-        record_times=observables.times,
-        means=observables.mean,
-        n_durations=n_durations,
+        record_times=recorder.times,
+        means=recorder.means,
+        n_durations=facts["n_durations"],
         compile_time_s=compile_time,
+        recording=facts,
     )
+
+
+__all__ = ["DURATIONS", "OBSERVABLES", "PopulationSummary", "simulate_population", "steps_between"]

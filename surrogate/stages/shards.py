@@ -7,16 +7,26 @@ and no shard repeats the unsharded run's stream (which seeds torch with ``seed``
 is an ordinary simulation with those settings, so it lands in its own settings-derived directory
 under ``data/simulate``. ``shard.count=1`` (the default) is the unsharded run, unchanged.
 
-:func:`merge` (``python scripts/merge_shards.py shard.count=K``) streams the K shards' tables into
-ONE run directory in exactly the unsharded format: cell ids offset to ``0..n_cells-1`` (shard 0
-first), observables ordered by record time then cell, durations concatenated in shard order, and a
-manifest with the unsharded keys (``n_cells`` the total, wall and loop times summed, throughput
-recomputed) plus ``shards``, the shard directories.
+:func:`merge` (``python scripts/merge_shards.py shard.count=K``) merges the K shards into ONE run
+directory in exactly the unsharded format (:mod:`surrogate.simulate.recorders`), streaming, so
+memory stays flat in n_cells x t_end: cell ids offset to ``0..n_cells-1`` (shard 0 first);
+moments combined exactly over all cells (counts, means and variances by the pairwise formula,
+extremes); histograms (observables on their common grid, durations on the lattice) added; the
+recorded cells' values kept as a uniform random subsample of ``min(record_cells, n_cells)`` cells
+of the merged population (seeded by the run's seed: how many cells come from each shard is drawn
+as for a simple random sample of the whole population, then that many from each shard's own
+uniform subsample; every cell when the shards recorded every cell and the total fits), rows
+by record time then cell; ``durations.parquet`` the shards' rows in shard order (those of the
+kept cells, unless it holds every segment); and a manifest with the unsharded keys
+(``n_cells`` the total, wall and loop times summed, throughput recomputed) plus ``shards``, the
+shard directories. Shards written before the summaries existed (complete tables only) merge
+into a run of that older format.
 """
 
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -24,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -35,10 +46,25 @@ from surrogate.io import (
     artefact_lock,
     existing_artefact,
     read_manifest,
+    read_parquet,
     write_manifest,
 )
-from surrogate.simulate.population import DURATIONS, OBSERVABLES
-from surrogate.simulate.recorders import DURATION_SCHEMA, StreamingParquet, observable_schema
+from surrogate.simulate.recorders import (
+    DURATION_HISTOGRAM,
+    DURATION_HISTOGRAM_SCHEMA,
+    DURATION_SCHEMA,
+    DURATIONS,
+    HISTOGRAM_SCHEMA,
+    HISTOGRAMS,
+    MOMENTS,
+    MOMENTS_SCHEMA,
+    OBSERVABLES,
+    StreamingParquet,
+    duration_histogram_rows,
+    observable_schema,
+    read_metadata,
+    with_metadata,
+)
 from surrogate.stages.settings import SIMULATE_CMD, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -189,19 +215,191 @@ def _merge(
     manifests = [read_manifest(d) for d in dirs]
     sizes = shard_sizes(settings.n_cells, count)
     _check_shards(dirs, manifests, sizes)
-    offsets = shard_offsets(settings.n_cells, count)
     names = list(manifests[0].get("observables") or ["distance"])
-    _merge_observables([d / OBSERVABLES for d in dirs], offsets, sizes, out / OBSERVABLES, names)
-    n_durations = 0
-    has_durations = [(d / DURATIONS).exists() for d in dirs]
-    if any(has_durations):
-        if not all(has_durations):
-            lacking = [str(d) for d, h in zip(dirs, has_durations, strict=True) if not h]
-            raise ArtefactError(f"shard(s) {lacking} lack {DURATIONS} but others have one")
-        n_durations = _merge_durations([d / DURATIONS for d in dirs], offsets, out / DURATIONS)
-    write_manifest(out, **merged_manifest(settings, count, config, manifests, dirs, n_durations),
-                   merge_time_s=time.perf_counter() - t0)  # fmt: skip
+    facts = merge_runs(dirs, sizes, out, names, seed=settings.setup.seed)
+    write_manifest(out, **merged_manifest(settings, count, config, manifests, dirs,
+                                          facts["n_durations"]),
+                   recording=facts, merge_time_s=time.perf_counter() - t0)  # fmt: skip
     log.info("merged %d shards (%d cells) into %s", count, sum(sizes), out)
+
+
+def merge_runs(
+    dirs: Sequence[Path], sizes: Sequence[int], out: Path, names: Sequence[str], seed: int
+) -> dict[str, Any]:
+    """Merge the data files of the runs in ``dirs`` (``sizes`` cells each, in order) into
+    ``out`` (see the module docstring); return the merged recording's facts (those of
+    :meth:`~surrogate.simulate.recorders.RunRecorder.commit` that the files determine).
+
+    Raises:
+        MissingArtefactError: A run lacks a file.
+        ArtefactError: The runs disagree (formats, record times, grids, recording settings).
+    """
+    offsets = [0, *itertools.accumulate(sizes)][: len(sizes)]
+    summarised = [(d / MOMENTS).exists() for d in dirs]
+    if any(summarised) and not all(summarised):
+        raise ArtefactError(f"shards mix formats: only some have {MOMENTS}: {list(dirs)}")
+    metas = [read_metadata(d / MOMENTS) for d in dirs] if all(summarised) else []
+    for key in ("record_cells", "durations", "lump_names", "dt"):
+        values = {json.dumps(m.get(key)) for m in metas}
+        if len(values) > 1:
+            raise ArtefactError(f"shards disagree on {key} ({sorted(values)}): {list(dirs)}")
+    for d in dirs:
+        if not (d / OBSERVABLES).exists():
+            raise MissingArtefactError(
+                f"missing artefact {d / OBSERVABLES} (its shard's manifest exists)"
+            )
+    rng = np.random.default_rng([int(seed) & (2**63 - 1), len(dirs)])
+    recorded = [_recorded_cells(d / OBSERVABLES) for d in dirs]
+    n_total = int(sum(sizes))
+    target = n_total if not metas else min(int(metas[0]["record_cells"]), n_total)
+    if target >= sum(r.size for r in recorded):
+        keep = recorded
+    else:  # a simple random sample of the whole population, from the shards' own samples
+        alloc = _allocate(sizes, target, rng)
+        keep = [
+            np.sort(rng.choice(r, m, replace=False)) for r, m in zip(recorded, alloc, strict=True)
+        ]
+    has_table = [(d / DURATIONS).exists() for d in dirs]
+    if any(has_table) and not all(has_table):
+        lacking = [str(d) for d, h in zip(dirs, has_table, strict=True) if not h]
+        raise ArtefactError(f"shard(s) {lacking} lack {DURATIONS} but others have one")
+    mode = metas[0].get("durations", "histogram") if metas else "all"
+    facts: dict[str, Any] = {"n_cells": n_total, "observable_cells": int(sum(k.size for k in keep)),
+                             "seed": int(seed), "shards": len(dirs), "durations": mode}  # fmt: skip
+    if metas:
+        facts.update(
+            {k: metas[0][k] for k in ("record_cells", "dt", "lump_names") if k in metas[0]}
+        )
+    written: list[Path] = []
+    try:
+        _merge_observables([d / OBSERVABLES for d in dirs], offsets, recorded, keep,
+                           out / OBSERVABLES, names)  # fmt: skip
+        written.append(out / OBSERVABLES)
+        if metas:
+            written += _merge_summaries(dirs, out, facts)
+        n_rows = 0
+        if all(has_table):
+            every = mode == "all"
+            n_rows = _merge_durations([d / DURATIONS for d in dirs], offsets, out / DURATIONS,
+                                      keep=None if every else keep)  # fmt: skip
+            written.append(out / DURATIONS)
+        n_durations = n_rows
+        if metas and mode != "none":
+            n_durations = _merge_duration_histograms(dirs, out, facts)
+            written.append(out / DURATION_HISTOGRAM)
+    except BaseException:
+        for path in written:  # no half-merged set of files (the manifest is not written)
+            path.unlink(missing_ok=True)
+        raise
+    return {**facts, "n_durations": int(n_durations), "duration_rows": int(n_rows)}
+
+
+def _allocate(sizes: Sequence[int], total: int, rng: np.random.Generator) -> np.ndarray:
+    """How many of a simple random sample of ``total`` cells of the merged population fall in
+    each part of ``sizes`` (multivariate hypergeometric, for any population size)."""
+    picked = rng.choice(int(sum(sizes)), size=total, replace=False)
+    part = np.searchsorted(np.cumsum(sizes), picked, side="right")
+    return np.bincount(part, minlength=len(sizes))
+
+
+def _recorded_cells(path: Path) -> np.ndarray:
+    """The cells of an observables table (those of its first record time), sorted."""
+    for _, table in _time_groups(path, ["t", "cell"]):
+        return np.sort(table.column("cell").to_numpy().astype(np.int64))
+    raise ArtefactError(f"{path} has no rows")
+
+
+def _merge_summaries(dirs: Sequence[Path], out: Path, facts: dict[str, Any]) -> list[Path]:
+    """Combine the moments (exactly) and add the histograms of the runs into ``out``."""
+    frames = [read_parquet(d / MOMENTS) for d in dirs]
+    first = frames[0]
+    for d, f in zip(dirs, frames, strict=True):
+        same = len(f) == len(first) and all(
+            np.array_equal(f[c].to_numpy(), first[c].to_numpy())
+            for c in ("t", "observable", "lo", "width", "n_bins")
+        )
+        if not same:
+            raise ArtefactError(
+                f"{d / MOMENTS} differs from {dirs[0] / MOMENTS} in record times, observables or "
+                "histogram grids: shards must share them"
+            )
+    n = np.stack([f["n"].to_numpy(np.int64) for f in frames])
+    mean = np.stack([f["mean"].to_numpy(np.float64) for f in frames])
+    var = np.stack([f["variance"].to_numpy(np.float64) for f in frames])
+    total = n.sum(axis=0)
+    merged_mean = (n * mean).sum(axis=0) / total
+    # pairwise (Chan et al.) combination of the sums of squared deviations
+    m2 = (np.where(n > 1, (n - 1) * var, 0.0) + n * (mean - merged_mean) ** 2).sum(axis=0)
+    moments = {
+        "t": first["t"].to_numpy(np.float64),
+        "observable": first["observable"].to_numpy(object),
+        "n": total,
+        "mean": merged_mean,
+        "variance": np.where(total > 1, m2 / np.maximum(total - 1, 1), np.nan),
+        "min": np.min([f["min"].to_numpy(np.float64) for f in frames], axis=0),
+        "max": np.max([f["max"].to_numpy(np.float64) for f in frames], axis=0),
+        "lo": first["lo"].to_numpy(np.float64),
+        "width": first["width"].to_numpy(np.float64),
+        "n_bins": first["n_bins"].to_numpy(np.int32),
+    }
+    paths = []
+    for name in (MOMENTS, HISTOGRAMS):
+        if not all((d / name).exists() for d in dirs):
+            raise MissingArtefactError(f"missing {name} in a shard of {list(dirs)}")
+    writer = StreamingParquet(out / MOMENTS, with_metadata(MOMENTS_SCHEMA, facts))
+    try:
+        writer.append(**moments)
+        paths.append(writer.commit())
+    except BaseException:
+        writer.abort()
+        raise
+    hist = StreamingParquet(out / HISTOGRAMS, HISTOGRAM_SCHEMA)
+    try:
+        groups = [_time_groups(d / HISTOGRAMS, HISTOGRAM_SCHEMA.names) for d in dirs]
+        for k, row in enumerate(itertools.zip_longest(*groups)):
+            if any(g is None for g in row) or len({t for t, _ in row}) != 1:
+                raise ArtefactError(f"shards' {HISTOGRAMS} disagree on record time #{k}")
+            table = pa.concat_tables([tbl for _, tbl in row]).to_pandas()
+            summed = table.groupby(["observable", "bin"], sort=False)["count"].sum().reset_index()
+            order = {name: i for i, name in enumerate(pd.unique(first["observable"]))}
+            summed = summed.sort_values(["observable", "bin"], key=lambda c: c.map(order)
+                                        if c.name == "observable" else c)  # fmt: skip
+            hist.append(t=np.full(len(summed), row[0][0]),
+                        observable=summed["observable"].to_numpy(object),
+                        bin=summed["bin"].to_numpy(np.int32),
+                        count=summed["count"].to_numpy(np.int64))  # fmt: skip
+        paths.append(hist.commit())
+    except BaseException:
+        hist.abort()
+        for path in paths:
+            path.unlink(missing_ok=True)
+        raise
+    return paths
+
+
+def _merge_duration_histograms(dirs: Sequence[Path], out: Path, facts: dict[str, Any]) -> int:
+    """Add the runs' lattice histograms of durations; return the number of durations."""
+    frames = [read_parquet(d / DURATION_HISTOGRAM) for d in dirs]
+    table = pd.concat(frames, ignore_index=True)
+    lumps = list(facts.get("lump_names") or pd.unique(table["kind"]))
+    k_max = int(table["steps"].max()) if len(table) else 0
+    counts = np.zeros((2, k_max + 1), dtype=np.int64)
+    phi = table["kind"].map({lumps[0]: 0, lumps[1]: 1})
+    if phi.isna().any():
+        raise ArtefactError(f"{DURATION_HISTOGRAM} of the shards has kinds outside {lumps}")
+    np.add.at(counts, (phi.to_numpy(np.int64), table["steps"].to_numpy(np.int64)),
+              table["count"].to_numpy(np.int64))  # fmt: skip
+    dt = float(facts["dt"])
+    writer = StreamingParquet(
+        out / DURATION_HISTOGRAM, with_metadata(DURATION_HISTOGRAM_SCHEMA, facts)
+    )
+    try:
+        writer.append(**duration_histogram_rows(counts, dt, lumps))
+        writer.commit()
+    except BaseException:
+        writer.abort()
+        raise
+    return int(counts.sum())
 
 
 def merged_manifest(
@@ -287,14 +485,13 @@ def _time_groups(path: Path, columns: Sequence[str]) -> Iterator[tuple[float, pa
 def _merge_observables(
     paths: Sequence[Path],
     offsets: Sequence[int],
-    sizes: Sequence[int],
+    recorded: Sequence[np.ndarray],
+    keep: Sequence[np.ndarray],
     out: Path,
     names: Sequence[str],
 ) -> None:
-    """Stream the shards' observables into one table: per record time, every shard's cells."""
-    for p in paths:
-        if not p.exists():
-            raise MissingArtefactError(f"missing artefact {p} (its shard's manifest exists)")
+    """Stream the shards' observables into one table: per record time, every shard's kept
+    cells (``keep``, a subset of the ``recorded`` ones: local ids), offset."""
     schema = observable_schema(names)
     writer = StreamingParquet(out, schema)
     try:
@@ -306,13 +503,19 @@ def _merge_observables(
             times = {t for t, _ in row}
             if len(times) != 1:
                 raise ArtefactError(f"shards disagree on record time #{k}: {sorted(times)}")
-            for (t, table), offset, n, path in zip(row, offsets, sizes, paths, strict=True):
+            for (t, table), offset, mine, kept, path in zip(
+                row, offsets, recorded, keep, paths, strict=True
+            ):
                 cells = table.column("cell").to_numpy()
-                if len(cells) != n or cells.min() < 0 or cells.max() >= n:
+                if len(cells) != mine.size or not np.array_equal(np.sort(cells), mine):
                     raise ArtefactError(
                         f"{path} at t={t:g} has {len(cells)} rows with cell ids "
-                        f"{cells.min()}..{cells.max()}, expected {n} cells 0..{n - 1}"
+                        f"{cells.min()}..{cells.max()}, expected the {mine.size} cells of its "
+                        "first record time"
                     )
+                if kept.size != mine.size:
+                    table = table.filter(pa.array(np.isin(cells, kept)))
+                    cells = table.column("cell").to_numpy()
                 writer.append(
                     t=table.column("t").to_numpy(),
                     cell=cells.astype(np.int64) + offset,
@@ -324,19 +527,27 @@ def _merge_observables(
         raise
 
 
-def _merge_durations(paths: Sequence[Path], offsets: Sequence[int], out: Path) -> int:
-    """Concatenate the shards' durations (shard order), offsetting cell ids; return the rows."""
+def _merge_durations(
+    paths: Sequence[Path],
+    offsets: Sequence[int],
+    out: Path,
+    keep: Sequence[np.ndarray] | None = None,
+) -> int:
+    """Concatenate the shards' durations (shard order), offsetting cell ids; with ``keep``
+    only the rows of those cells (local ids per shard). Returns the rows written."""
     writer = StreamingParquet(out, DURATION_SCHEMA)
     try:
-        for path, offset in zip(paths, offsets, strict=True):
+        for i, (path, offset) in enumerate(zip(paths, offsets, strict=True)):
             for batch in pq.ParquetFile(path).iter_batches(
                 batch_size=_BATCH_ROWS, columns=DURATION_SCHEMA.names
             ):
+                cells = batch.column("cell").to_numpy().astype(np.int64)
+                rows = slice(None) if keep is None else np.isin(cells, keep[i])
                 writer.append(
-                    kind=batch.column("kind").to_numpy(zero_copy_only=False).astype(object),
-                    duration=batch.column("duration").to_numpy(),
-                    cell=batch.column("cell").to_numpy().astype(np.int64) + offset,
-                    t_end=batch.column("t_end").to_numpy(),
+                    kind=batch.column("kind").to_numpy(zero_copy_only=False).astype(object)[rows],
+                    duration=batch.column("duration").to_numpy()[rows],
+                    cell=cells[rows] + offset,
+                    t_end=batch.column("t_end").to_numpy()[rows],
                 )
         writer.commit()
     except BaseException:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import subprocess
@@ -9,13 +10,26 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+import torch
 from omegaconf import OmegaConf
 
-from surrogate.errors import ConfigError, MissingArtefactError
+from surrogate.errors import ArtefactError, ConfigError, MissingArtefactError
 from surrogate.evaluate.statistics import comparison_table, load_run
+from surrogate.fields import GaussianField
 from surrogate.io import read_manifest
+from surrogate.models.ecoli import EcoliModel
+from surrogate.simulate import FullDecision, Simulator, simulate_population
+from surrogate.simulate.recorders import (
+    DURATION_HISTOGRAM,
+    DURATIONS,
+    HISTOGRAMS,
+    MOMENTS,
+    OBSERVABLES,
+    read_metadata,
+)
 from surrogate.stages import shards
 from surrogate.stages import simulate as simulate_stage
 from surrogate.stages.settings import SimulateSettings
@@ -125,6 +139,24 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
     expected_cells = np.concatenate([p.durations["cell"] for p in parts]) + offsets
     np.testing.assert_array_equal(durations["cell"], expected_cells)
 
+    # summaries over all cells: moments of the merged cells, histograms and lattice added
+    for t, rows in d.groupby("t"):
+        mo = merged.moments[merged.moments["t"] == t].iloc[0]
+        x = rows["distance"].to_numpy(np.float64)
+        assert mo["n"] == 10 and mo["mean"] == pytest.approx(x.mean(), rel=1e-12)
+        assert mo["variance"] == pytest.approx(x.var(ddof=1), rel=1e-9)
+        assert (mo["min"], mo["max"]) == (x.min(), x.max())
+    for name, keys in ((HISTOGRAMS, ["t", "observable", "bin"]),
+                       (DURATION_HISTOGRAM, ["kind", "steps", "duration"])):  # fmt: skip
+        summed = (pd.concat([pd.read_parquet(p / name) for p in shard_dirs])
+                  .groupby(keys, sort=False)["count"].sum())  # fmt: skip
+        got = pd.read_parquet(out / name).set_index(keys)["count"]
+        pd.testing.assert_series_equal(got.sort_index(), summed.sort_index())
+        assert pq.read_schema(out / name).equals(pq.read_schema(unsharded.path / name))
+    lattice = durations.assign(steps=np.rint(durations["duration"] / 0.05).astype(np.int64))
+    assert merged.duration_counts["count"].sum() == len(lattice)
+    assert read_metadata(out / MOMENTS)["n_cells"] == 10
+
     m, u = merged.manifest, unsharded.manifest
     assert set(u) <= set(m)
     assert m["n_cells"] == 10 and m["n_steps"] == u["n_steps"] and m["seed"] == 0
@@ -145,6 +177,102 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
     assert shards.merge(cfg) == out  # reused, not rewritten
     assert (out / "manifest.json").stat().st_mtime_ns == stamp
     assert read_manifest(out)["shards"] == m["shards"]
+
+
+def _shard(out: Path, seed: int, n: int, **kw) -> Path:
+    """A full-model shard of ``n`` cells for 2 s (records every 0.5 s), as the stage writes it."""
+    torch.manual_seed(seed)
+    model = EcoliModel()
+    sim = Simulator(model, FullDecision(model.internal), GaussianField(), 0.05)
+    simulate_population(sim, n, 2.0, out, record_interval=0.5, progress=False,
+                        recorder_seed=seed, **kw)  # fmt: skip
+    return out
+
+
+SIZES = [40, 30, 30]
+
+
+@pytest.fixture(scope="module")
+def subsampled(tmp_path_factory) -> dict[str, Path]:
+    """Three shards recording 20 of their cells, the same shards recording every cell, and the
+    merges of both."""
+    root = tmp_path_factory.mktemp("shards")
+    out: dict[str, Path] = {}
+    for name, record_cells in (("sub", 20), ("all", 100)):
+        dirs = [_shard(root / f"{name}{i}", 10 + i, n, record_cells=record_cells)
+                for i, n in enumerate(SIZES)]  # fmt: skip
+        out[name] = root / f"{name}_merged"
+        facts = shards.merge_runs(dirs, SIZES, out[name], ["distance"], seed=3)
+        assert facts["n_cells"] == 100 and facts["shards"] == 3
+        out[f"{name}_dirs"] = dirs  # type: ignore[assignment]
+    return out
+
+
+def test_merged_subsample_is_a_subsample_of_the_merged_population(subsampled) -> None:
+    sub = pd.read_parquet(subsampled["sub"] / OBSERVABLES)
+    every = pd.read_parquet(subsampled["all"] / OBSERVABLES)
+    # 20 of the 100 cells (not 3 x 20), the same cells at every record time, in (t, cell) order
+    cells = sub.groupby("t")["cell"].apply(tuple)
+    assert cells.nunique() == 1 and len(cells.iloc[0]) == 20 == len(set(cells.iloc[0]))
+    assert sub[["t", "cell"]].equals(sub.sort_values(["t", "cell"])[["t", "cell"]])
+    # exact values of those cells: the same simulation recorded in full says so
+    joined = sub.merge(every, on=["t", "cell"], suffixes=("", "_all"), validate="one_to_one")
+    assert len(joined) == len(sub)
+    np.testing.assert_array_equal(joined["distance"], joined["distance_all"])
+    # each kept cell came from its shard's own subsample
+    for d, offset, n in zip(subsampled["sub_dirs"], [0, 40, 70], SIZES, strict=True):
+        mine = set(pd.read_parquet(d / OBSERVABLES)["cell"] + offset)
+        kept = {c for c in cells.iloc[0] if offset <= c < offset + n}
+        assert kept <= mine
+    # summaries: over all 100 cells whatever was recorded
+    for name in (MOMENTS, HISTOGRAMS, DURATION_HISTOGRAM):
+        pd.testing.assert_frame_equal(
+            pd.read_parquet(subsampled["sub"] / name), pd.read_parquet(subsampled["all"] / name)
+        )
+    for t, rows in every.groupby("t"):  # the moments' pairwise combination is exact
+        mo = pd.read_parquet(subsampled["sub"] / MOMENTS).set_index("t").loc[t]
+        x = rows["distance"].to_numpy(np.float64)
+        assert mo["n"] == 100 and mo["mean"] == pytest.approx(x.mean(), rel=1e-12)
+        assert mo["variance"] == pytest.approx(x.var(ddof=1), rel=1e-9)
+    # durations.parquet: the kept cells' rows (histogram mode), all rows from full recordings
+    d_sub = pd.read_parquet(subsampled["sub"] / DURATIONS)
+    d_all = pd.read_parquet(subsampled["all"] / DURATIONS)
+    expected = d_all[d_all["cell"].isin(cells.iloc[0])].reset_index(drop=True)
+    pd.testing.assert_frame_equal(d_sub, expected)
+    assert pd.read_parquet(subsampled["all"] / DURATION_HISTOGRAM)["count"].sum() == len(d_all)
+    meta = read_metadata(subsampled["sub"] / MOMENTS)
+    assert (meta["n_cells"], meta["observable_cells"], meta["record_cells"]) == (100, 20, 20)
+
+
+def test_merge_allocation_is_that_of_a_simple_random_sample() -> None:
+    """Cells drawn per shard: multivariate hypergeometric. Over 3,000 seeds the mean draw from
+    each shard is within 4.5 standard errors of total x size / N."""
+    sizes, total = [400, 300, 300, 7], 50
+    draws = np.array(
+        [shards._allocate(sizes, total, np.random.default_rng(s)) for s in range(3000)]
+    )
+    assert (draws.sum(axis=1) == total).all() and (draws <= np.array(sizes)).all()
+    n = sum(sizes)
+    for k, size in enumerate(sizes):
+        p = size / n
+        sd = math.sqrt(total * p * (1 - p) * (n - total) / (n - 1))
+        assert abs(draws[:, k].mean() - total * p) < 4.5 * sd / math.sqrt(len(draws))
+
+
+def test_merge_refuses_mixed_formats_and_keeps_every_duration_of_full_tables(
+    subsampled, tmp_path: Path
+) -> None:
+    dirs = [_shard(tmp_path / f"s{i}", 20 + i, n, record_cells=20, durations="all")
+            for i, n in enumerate(SIZES)]  # fmt: skip
+    facts = shards.merge_runs(dirs, SIZES, tmp_path / "m", ["distance"], seed=0)
+    merged = pd.read_parquet(tmp_path / "m" / DURATIONS)
+    assert len(merged) == sum(len(pd.read_parquet(d / DURATIONS)) for d in dirs)
+    assert facts["n_durations"] == len(merged) == facts["duration_rows"]
+    assert pd.read_parquet(tmp_path / "m" / OBSERVABLES)["cell"].nunique() == 20
+    (dirs[1] / MOMENTS).unlink()  # a shard of the older format among new ones
+    with pytest.raises(ArtefactError, match="mix formats"):
+        shards.merge_runs(dirs, SIZES, tmp_path / "m2", ["distance"], seed=0)
+    assert not (tmp_path / "m2").exists() or not any((tmp_path / "m2").iterdir())
 
 
 def test_shard_of_an_abstract_run_keeps_decision_settings(compose_cfg) -> None:

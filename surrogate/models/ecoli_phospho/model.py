@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -62,7 +62,7 @@ class PhosphoInternalModel:
     lump_names = ("tumble", "run")
     fusable = False
     randoms = Randoms()
-    signal_bounds = {"activity": (0.0, 1.0)}
+    signal_bounds: ClassVar[dict[str, tuple[float, float]]] = {"activity": (0.0, 1.0)}
 
     def __init__(
         self, params: EcoliParameters, network: SbmlModel, ssa: str = "auto", burn_in: float = 2.0
@@ -103,7 +103,7 @@ class PhosphoInternalModel:
             raise ConfigError("model.ssa=compiled runs on the CPU; use model.ssa=batched on CUDA")
         return self.ssa
 
-    def _compiled_ssa(self):  # noqa: ANN202 - lazily built, numba compile once per process
+    def _compiled_ssa(self):  # lazily built: numba compiles once per process
         if self._compiled is None:
             from surrogate.ctmc import CompiledSSA
 
