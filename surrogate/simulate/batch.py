@@ -33,6 +33,7 @@ from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import InternalState, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
+from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
 
 if TYPE_CHECKING:
     from surrogate.simulate.population import PopulationSummary
@@ -236,15 +237,16 @@ class BatchSimulator(Simulator):
     def _assemble(self) -> RandomBlock:
         """The next block of the batch: every replicate's next block placed in its columns.
 
-        Replicates whose blocks cover different numbers of steps (very different sizes) are
-        assembled one step at a time (a block of one step)."""
-        if not self._blocks or all(b.exhausted for b in self._blocks):
-            self._blocks = [
-                RandomBlock(self._replicate_randoms(i), s.stop - s.start, self.device, gen)
-                for i, (s, gen) in enumerate(zip(self.slices, self.generators, strict=True))
-            ]
-        steps = {b.steps - b.next for b in self._blocks}
-        k = steps.pop() if len(steps) == 1 else 1
+        A replicate draws its next block when its own is used up (as its standalone run does);
+        replicates whose blocks cover different numbers of steps (very different sizes) are
+        assembled over the steps all of them have left."""
+        if not self._blocks:
+            self._blocks = [None] * len(self.slices)  # type: ignore[list-item]
+        for i, (s, gen) in enumerate(zip(self.slices, self.generators, strict=True)):
+            if self._blocks[i] is None or self._blocks[i].exhausted:
+                self._blocks[i] = RandomBlock(self._replicate_randoms(i), s.stop - s.start,
+                                              self.device, gen)  # fmt: skip
+        k = min(b.steps - b.next for b in self._blocks)
         total, n = self.randoms, sum(self.sizes)
         out = RandomBlock.__new__(RandomBlock)
         out.steps, out.next, out.n = k, 0, n
@@ -325,7 +327,8 @@ def simulate_batch(
     record_durations: bool = True,
     progress: bool = True,
     *,
-    record_cells: int | None = None,
+    record_cells: int | None = DEFAULT_RECORD_CELLS,
+    durations: str | None = None,
     histogram_spec: Mapping[str, Any] | None = None,
 ) -> list[PopulationSummary]:
     """:func:`~surrogate.simulate.simulate_population` for every replicate of a batch at once:
@@ -333,10 +336,11 @@ def simulate_batch(
     (``out_dirs``, in replicate order), each committed only once the whole batch completes.
 
     The loop time is the batch's (shared by its replicates); a replicate's cells are seeded as
-    its standalone run's (its seed also chooses its recorded cells).
+    its standalone run's (its seed also chooses its recorded cells). ``record_cells`` None
+    records every cell; ``durations`` as for :func:`~surrogate.simulate.simulate_population`.
     """
     from surrogate.simulate.population import PopulationSummary, steps_between
-    from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS, RunRecorder
+    from surrogate.simulate.recorders import RunRecorder
 
     if len(out_dirs) != len(simulator.replicates):
         raise ValueError("simulate_batch needs one output directory per replicate")
@@ -344,14 +348,14 @@ def simulate_batch(
     n_steps = steps_between(t_end, dt, "t_end")
     every = steps_between(record_interval, dt, "record_interval")
     body, lumps = simulator.body, simulator.model.internal.lump_names
-    mode = "histogram" if record_durations else "none"
+    mode = durations if durations is not None else ("histogram" if record_durations else "none")
     t0 = time.perf_counter()
     recorders: list[RunRecorder] = []
     try:
         for rep, out in zip(simulator.replicates, out_dirs, strict=True):
             recorders.append(RunRecorder(
                 Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=every,
-                device=simulator.device, record_cells=record_cells or DEFAULT_RECORD_CELLS,
+                device=simulator.device, record_cells=record_cells or rep.n_cells,
                 durations=mode, histogram_spec=histogram_spec, seed=int(rep.seed)))  # fmt: skip
         with torch.no_grad():
             state = simulator.initial_state(equilibration_time=equilibration_time)

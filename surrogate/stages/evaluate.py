@@ -113,10 +113,12 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
         if summary["max_ks_noise_floor"] is not None
         else "n/a"
     )
+    speed = summary["speedup_loop"]
+    speed_text = f"{speed:.1f}x" if speed else "n/a (runs not timed comparably)"
     log.info(
-        "evaluate %s (%s): max KS vs full %.3f, noise floor %s; loop speed-up %.1fx; artefacts "
+        "evaluate %s (%s): max KS vs full %.3f, noise floor %s; loop speed-up %s; artefacts "
         "in %s", settings.candidate.setup.field_name, settings.candidate.decision.name,
-        summary["max_ks"], floor_text, summary["speedup_loop"], out,
+        summary["max_ks"], floor_text, speed_text, out,
     )  # fmt: skip
 
 
@@ -130,9 +132,13 @@ def mean_durations(run: SimulationRun) -> dict[str, float | None]:
 
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
     """Headline figures: speed-ups (loop and wall time, only from runs measured comparably:
-    same compile setting and thread count), the largest KS distances, mean durations."""
+    same compile setting and thread count, not simulated in one batch), the largest KS
+    distances, mean durations."""
     full, cand = runs.full.manifest, runs.candidate.manifest
-    comparable = all(full.get(k) == cand.get(k) for k in ("compile", "torch_threads", "device"))
+    # runs simulated in one batch share one loop time: no speed of their own
+    comparable = all(
+        full.get(k) == cand.get(k) for k in ("compile", "torch_threads", "device")
+    ) and not (full.get("batched") or cand.get("batched"))
     speedup_loop = float(full["loop_time_s"]) / float(cand["loop_time_s"]) if comparable else None
     speedup_wall = float(full["wall_time_s"]) / float(cand["wall_time_s"]) if comparable else None
     durations = {"full": mean_durations(runs.full), "candidate": mean_durations(runs.candidate)}

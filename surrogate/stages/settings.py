@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,7 @@ from surrogate.fields import Field
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
 from surrogate.models.base import Model
+from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
 
 COLLECT_CMD = "python scripts/collect.py"
 TRAIN_CMD = "python scripts/train.py"
@@ -450,6 +452,11 @@ class SimulateSettings:
     compile: bool
     job: Job
     shard: dict[str, int] | None = None
+    record_cells: int | None = DEFAULT_RECORD_CELLS
+    #: compiled runs simulated in one batch (reproduce): the batch's id (in the identity, since
+    #: kernels fused for the batch's shape round differently) and the command that makes it
+    batch: str | None = None
+    made_by: str | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> SimulateSettings:
@@ -474,8 +481,12 @@ class SimulateSettings:
         shards = (cfg.get("shard") or {}).get("count", 1)
         per_job = -(-n_cells // shards) if isinstance(shards, int) and shards >= 1 else n_cells
         check_memory(per_job, job.device)
+        record_cells = cfg.get("record_cells", DEFAULT_RECORD_CELLS)
+        if record_cells is not None:
+            record_cells = int(positive(cfg, "record_cells", integer=True))
         return cls(setup, decision, n_cells, t_end, interval, start, eq,
-                   bool(cfg.get("record_durations", True)), bool(cfg.get("compile", False)), job)  # fmt: skip
+                   bool(cfg.get("record_durations", True)), bool(cfg.get("compile", False)), job,
+                   record_cells=record_cells)  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """Everything that defines a population run (``compile`` too: compiled kernels round
@@ -483,9 +494,12 @@ class SimulateSettings:
         out = {**self.setup.identity(), **self.decision.identity(), "n_cells": self.n_cells,
                "t_end": self.t_end, "record_interval": self.record_interval,
                "start": list(self.start), "equilibration_time": self.equilibration_time,
-               "record_durations": self.record_durations, "compile": self.compile}  # fmt: skip
+               "record_durations": self.record_durations, "compile": self.compile,
+               "record_cells": self.record_cells}  # fmt: skip
         if self.shard is not None:
             out["shard"] = self.shard
+        if self.batch is not None:
+            out["batch"] = self.batch
         return out
 
     def label(self) -> dict[str, Any]:
@@ -509,7 +523,8 @@ class SimulateSettings:
         shipped = _shipped_run_settings()
         run = {"n_cells": n, "t_end": self.t_end, "record_interval": self.record_interval,
                "start": list(self.start), "equilibration_time": self.equilibration_time,
-               "record_durations": self.record_durations, "compile": self.compile}  # fmt: skip
+               "record_durations": self.record_durations, "compile": self.compile,
+               "record_cells": self.record_cells}  # fmt: skip
         out += [
             f"{k}={_fmt(v)}"
             for k, v in run.items()
@@ -525,7 +540,7 @@ class SimulateSettings:
 
     def command(self) -> str:
         """The command that makes this run."""
-        return _command(SIMULATE_CMD, self.overrides())
+        return self.made_by or _command(SIMULATE_CMD, self.overrides())
 
     def replace(self, **changes: Any) -> SimulateSettings:
         """A copy with some fields changed (``seed=`` changes the setup's seed)."""
@@ -598,9 +613,11 @@ class EvaluateSettings:
                 "evaluate compares an abstraction with the full model: use decision=abstract "
                 "(or decision=exact)"
             )
-        full_cfg = {**to_dict(cfg), "decision": {"name": "full"}}
-        full = SimulateSettings.from_config(full_cfg)
         e = to_dict(cfg["evaluate"])
+        full_cfg = {**to_dict(cfg), "decision": {"name": "full"}}
+        if e.get("full_n_cells") is not None:  # the full model on fewer cells (large runs)
+            full_cfg["n_cells"] = int(positive(e, "full_n_cells", "evaluate.", integer=True))
+        full = SimulateSettings.from_config(full_cfg)
         subsample = int(positive(e, "subsample", "evaluate.", integer=True))
         t_end = candidate.t_end
         times_cfg = e.get("times")
@@ -692,7 +709,18 @@ class ReproduceSettings:
             exact = {
                 name: EvaluateSettings.from_config(_field_run(c, name, decision)) for name in fields
             }
+        if c.get("batch", True) and c.get("compile", False):
+            evaluations, exact = _batched(evaluations, exact)
         return cls(train, evaluations, exact, Job.from_config(cfg), c)
+
+    def runs(self) -> list[SimulateSettings]:
+        """Every population run the report needs (each once)."""
+        out: dict[Path, SimulateSettings] = {}
+        for e in [*self.evaluations.values(), *self.exact.values()]:
+            for s in (e.full, e.candidate, e.full_repeat):
+                if s is not None:
+                    out.setdefault(s.directory, s)
+        return list(out.values())
 
     def identity(self) -> dict[str, Any]:
         """The evaluations' identities (which include the abstraction's)."""
@@ -707,6 +735,46 @@ class ReproduceSettings:
                  "T": first.t_end, "inputs": "+".join(self.train.inputs),
                  "seed": first.setup.seed}  # fmt: skip
         return artefact_dir(self.job.data_dir, "reproduce", label, self.identity())
+
+
+#: runs of at most this many cells are simulated in one batch (reproduce); larger ones alone:
+#: batching takes the per-step overhead out of small populations, and costs a large one
+#: ~1.4x (1e6 cells, measured) in assembling the batch's random numbers and fields
+BATCH_MAX_CELLS = 20_000
+
+
+def batchable(run: SimulateSettings) -> bool:
+    """Whether reproduce simulates ``run`` in its batch (small populations, unsharded)."""
+    return run.n_cells <= BATCH_MAX_CELLS and run.shard is None
+
+
+def _batched(
+    evaluations: dict[str, EvaluateSettings], exact: dict[str, EvaluateSettings]
+) -> tuple[dict[str, EvaluateSettings], dict[str, EvaluateSettings]]:
+    """The evaluations with their (compiled) runs marked as one batch: the batch's id is a hash
+    of its runs' identities; the command that makes them is reproduce's."""
+    from dataclasses import replace
+
+    everything = [*evaluations.values(), *exact.values()]
+    runs = {json.dumps(s.identity(), sort_keys=True, default=str)
+            for e in everything for s in (e.full, e.candidate, e.full_repeat)
+            if s is not None and batchable(s)}  # fmt: skip
+    batch = hashlib.sha256("\n".join(sorted(runs)).encode()).hexdigest()[:12]
+    first = everything[0].candidate
+    keep = [o for o in first.overrides() if not o.startswith(("field=", "decision"))]
+    made_by = _command(REPRODUCE_CMD, keep)
+
+    def tagged(e: EvaluateSettings) -> EvaluateSettings:
+        def mark(s: SimulateSettings | None) -> SimulateSettings | None:
+            if s is None or not batchable(s):
+                return s
+            return s.replace(batch=batch, made_by=made_by)
+
+        return replace(e, candidate=mark(e.candidate), full=mark(e.full),
+                       full_repeat=mark(e.full_repeat))  # fmt: skip
+
+    return ({k: tagged(v) for k, v in evaluations.items()},
+            {k: tagged(v) for k, v in exact.items()})  # fmt: skip
 
 
 def _field_run(cfg: dict[str, Any], name: str, decision: Mapping[str, Any]) -> dict[str, Any]:

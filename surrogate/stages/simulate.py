@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import time
 from collections.abc import Mapping, Sequence
@@ -16,7 +18,7 @@ import torch
 
 from surrogate.config import seed_everything, to_dict
 from surrogate.gp import PsiLookupTable
-from surrogate.io import MANIFEST, make_once, write_manifest
+from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
 from surrogate.models.base import Model
 from surrogate.simulate.decision import (
     AbstractDecision,
@@ -26,8 +28,8 @@ from surrogate.simulate.decision import (
     FullDecision,
 )
 from surrogate.simulate.loop import Simulator, use_compile_cache
-from surrogate.simulate.population import simulate_population
-from surrogate.stages.settings import SimulateSettings, TrainSettings
+from surrogate.simulate.population import PopulationSummary, simulate_population
+from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +118,6 @@ def abstract_decision(
 
 
 def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] | None) -> None:
-    """Simulate, then write the tables and (last) the manifest into ``out``."""
     setup, job = settings.setup, settings.job
     if settings.compile:
         use_compile_cache(job.data_dir / COMPILE_CACHE)
@@ -137,7 +138,23 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         equilibration_time=settings.equilibration_time,
         record_durations=settings.record_durations,
         progress=job.progress,
+        # null = every cell and every duration (the complete tables, for small runs)
+        record_cells=settings.record_cells or settings.n_cells,
+        durations=None if settings.record_cells or not settings.record_durations else "all",
     )
+    _write_manifest(settings, out, config, summary, time.perf_counter() - t0,
+                    compiled=simulator.compile_error is None and settings.compile, **info)  # fmt: skip
+
+
+def _write_manifest(
+    settings: SimulateSettings,
+    out: Path,
+    config: Mapping[str, Any] | None,
+    summary: PopulationSummary,
+    wall_time_s: float,
+    **facts: Any,
+) -> None:
+    setup = settings.setup
     write_manifest(
         out,
         stage="simulate",
@@ -145,12 +162,11 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         seed=setup.seed,
         settings=settings.identity(),
         decision=settings.decision.name,
-        device=str(job.device),
-        wall_time_s=time.perf_counter() - t0,
+        device=str(settings.job.device),
+        wall_time_s=wall_time_s,
         loop_time_s=summary.loop_time_s,
         compile_time_s=summary.compile_time_s,
         compile=settings.compile,
-        compiled=simulator.compile_error is None and settings.compile,
         cell_steps_per_s=summary.cell_steps_per_s,
         n_cells=summary.n_cells,
         n_steps=summary.n_steps,
@@ -158,7 +174,7 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         final_means={k: v[-1] for k, v in summary.means.items()},
         observables=list(setup.model.body.observable_names),
         lump_names=list(setup.model.internal.lump_names),
-        **info,
+        **facts,
     )
     log.info(
         "%s simulation of %d cells x %d steps: %.2f s (%.3g cell-steps/s); artefacts in %s",
@@ -167,4 +183,82 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
     )  # fmt: skip
 
 
-__all__ = ["build_decision", "run", "simulate", "validate"]
+def batch_key(settings: SimulateSettings) -> str:
+    """Runs with equal keys can be simulated in one batch (same model, step, recording)."""
+    s = settings
+    return json.dumps([s.setup.identity().get("model"), s.setup.dt, s.t_end, s.record_interval,
+                       s.equilibration_time, s.record_durations, s.record_cells, s.compile,
+                       str(s.job.device)], sort_keys=True, default=str)  # fmt: skip
+
+
+def simulate_together(runs: Sequence[SimulateSettings]) -> list[Path]:
+    """Make the missing runs of ``runs`` as replicates of one population per :func:`batch_key`
+    (:class:`~surrogate.simulate.batch.BatchSimulator`: one loop for all, each run's cells seeded
+    as its standalone run's), each written to its own directory with its own manifest; reuse
+    the complete ones. Returns the runs' directories, in order.
+
+    Small populations pay the per-step cost once per batch instead of once per run; runs of
+    more than ``BATCH_MAX_CELLS`` cells are simulated alone (:func:`simulate`). Eager, a
+    batched run is the standalone run bit for bit; compiled, kernels fused for another shape
+    round differently, so ``SimulateSettings.batched`` puts such runs in their own directories.
+    The manifests say ``batched``: their loop time is the batch's, not a run's own.
+    """
+    unique = {s.directory: s for s in runs}
+    missing = [s for d, s in unique.items()
+               if existing_artefact(d, s.identity(), s.command()) is None]  # fmt: skip
+    groups: dict[str, list[SimulateSettings]] = {}
+    for s in missing:
+        if batchable(s):
+            groups.setdefault(batch_key(s), []).append(s)
+        else:  # a large population: alone (batching would only slow it down)
+            simulate(s)
+    for group in groups.values():
+        # decision-major order, so consecutive interchangeable layers merge into one
+        group.sort(key=lambda s: s.decision.name)
+        with contextlib.ExitStack() as stack:
+            for s in group:
+                stack.enter_context(artefact_lock(s.directory))
+            todo = [s for s in group
+                    if existing_artefact(s.directory, s.identity(), s.command()) is None]  # fmt: skip
+            if todo:
+                _simulate_group(todo)
+    return [s.directory for s in runs]
+
+
+def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
+    from surrogate.simulate.batch import BatchSimulator, Replicate, simulate_batch
+
+    first = runs[0]
+    setup, job = first.setup, first.job
+    if first.compile:
+        use_compile_cache(job.data_dir / COMPILE_CACHE)
+    replicates, infos = [], []
+    for s in runs:
+        decision, info = build_decision(s)
+        replicates.append(Replicate(decision, s.setup.field, s.n_cells, s.setup.seed,
+                                    torch.tensor(s.start)))  # fmt: skip
+        infos.append(info)
+        (s.directory / MANIFEST).unlink(missing_ok=True)
+    log.info("simulating %d runs in one batch (%d cells)", len(runs),
+             sum(s.n_cells for s in runs))  # fmt: skip
+    t0 = time.perf_counter()
+    seed_everything(setup.seed)
+    simulator = BatchSimulator(setup.model, replicates, setup.dt, job.device,
+                               compile=first.compile)  # fmt: skip
+    summaries = simulate_batch(
+        simulator, first.t_end, [s.directory for s in runs],
+        record_interval=first.record_interval, equilibration_time=first.equilibration_time,
+        record_durations=first.record_durations, progress=job.progress,
+        record_cells=first.record_cells,
+        durations=None if first.record_cells or not first.record_durations else "all",
+    )  # fmt: skip
+    wall = time.perf_counter() - t0
+    labels = [f"{s.decision.name}|{s.setup.label().get('field')}|seed={s.setup.seed}" for s in runs]
+    for s, summary, info in zip(runs, summaries, infos, strict=True):
+        _write_manifest(s, s.directory, None, summary, wall,
+                        compiled=simulator.compile_error is None and s.compile,
+                        batched={"runs": labels, "n_cells": sum(r.n_cells for r in runs)},
+                        **info)  # fmt: skip
+
+
+__all__ = ["batch_key", "build_decision", "run", "simulate", "simulate_together", "validate"]

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
-from surrogate.errors import MissingArtefactError
+from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.evaluate.statistics import load_run
 from surrogate.io import load_tensors
 from surrogate.stages import collect, train
@@ -157,3 +157,67 @@ def test_collect_records_nothing_inside_the_blackout_after_a_jump(compose_cfg) -
     assert (with_blackout.loc[jumped, "since_jump"] >= 20).all()  # 1 s = 20 steps
     without = table(0.0)
     assert (without["since_jump"].between(0, 19)).sum() > 50
+
+
+def test_runs_simulated_together_are_the_standalone_runs(trained, compose_cfg) -> None:
+    """reproduce simulates its runs as one batch: eager, each run is its standalone run bit for
+    bit (same directory, same files), whatever else is in the batch."""
+    from surrogate.stages.settings import ReproduceSettings
+
+    cfg = compose_cfg("reproduce", [*TINY, "decision.lookup_size=[64]", "fields=[gaussian,linear]",
+                                    "record_cells=16"])  # fmt: skip
+    settings = ReproduceSettings.from_config(cfg)
+    runs = settings.runs()
+    assert {s.decision.name for s in runs} == {"full", "abstract", "exact"} and len(runs) == 8
+    dirs = simulate_stage.simulate_together(runs)
+    batched = {d: (pd.read_parquet(d / "observables.parquet"),
+                   pd.read_parquet(d / "duration_histogram.parquet")) for d in dirs}  # fmt: skip
+    for d in dirs:
+        assert json.loads((d / "manifest.json").read_text())["batched"]["n_cells"] == 8 * 40
+    for s in (runs[0], runs[3], runs[-1]):  # one of each kind, standalone
+        for f in s.directory.iterdir():
+            f.unlink()
+        s.directory.rmdir()
+        simulate_stage.simulate(s)
+        observables, durations = batched[s.directory]
+        pd.testing.assert_frame_equal(pd.read_parquet(s.directory / "observables.parquet"),
+                                      observables)  # fmt: skip
+        pd.testing.assert_frame_equal(
+            pd.read_parquet(s.directory / "duration_histogram.parquet"), durations
+        )
+        assert observables["cell"].nunique() == 16
+
+
+def test_compiled_runs_of_a_batch_have_their_own_identity(compose_cfg) -> None:
+    """Compiled kernels fused for a batch round differently from a standalone run's: such runs
+    carry the batch's id and name reproduce as the command that makes them."""
+    from surrogate.stages.settings import ReproduceSettings
+
+    eager = ReproduceSettings.from_config(compose_cfg("reproduce", ["fields=[gaussian]"]))
+    compiled = ReproduceSettings.from_config(
+        compose_cfg("reproduce", ["fields=[gaussian]", "compile=true"])
+    )
+    assert all("batch" not in s.identity() for s in eager.runs())
+    ids = {s.identity()["batch"] for s in compiled.runs()}
+    assert len(ids) == 1
+    assert all(s.command().startswith("python scripts/reproduce.py") for s in compiled.runs())
+    unbatched = ReproduceSettings.from_config(
+        compose_cfg("reproduce", ["fields=[gaussian]", "compile=true", "batch=false"])
+    )
+    assert all("batch" not in s.identity() for s in unbatched.runs())
+
+
+def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
+    from surrogate.stages import speed
+
+    cfg = compose_cfg("speed", [*TINY, "decision.lookup_size=[64]", "steps=5"])
+    out = speed.run(cfg)
+    result = json.loads((out / "speed.json").read_text())
+    assert result["steps"] == 5 and result["n_cells"] == 40
+    for name in ("full", "abstract"):
+        assert result[name]["steps"] == 5 and result[name]["seconds"] > 0
+    assert result["speedup"] == pytest.approx(
+        result["full"]["seconds"] / result["abstract"]["seconds"]
+    )
+    with pytest.raises(ConfigError, match="decision=abstract"):
+        speed.run(compose_cfg("speed", [*TINY, "decision=full"]))
