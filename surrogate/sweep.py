@@ -128,6 +128,9 @@ def job_results(directory: Path) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for field, d in manifest["evaluations"].items():
             out.update(evaluation_results(Path(d), field))
+        speed = manifest.get("speed")  # batched runs: measured side by side on one field
+        if speed:
+            out[f"speedup_{speed['field']}"] = speed.get("speedup")
         out.update(train_results(Path(manifest["train"])))
         return out
     if stage == "evaluate":

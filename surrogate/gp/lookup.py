@@ -57,10 +57,16 @@ class PsiLookupTable:
         self.input_names = tuple(input_names) if input_names else tuple(f"x{i}" for i in range(d))
         if len(self.input_names) != d:
             raise ConfigError(f"lookup table has {d} axes but names {self.input_names}")
-        # Python floats, so the hot path needs no device tensors beyond the table itself
+        # (lo, nodes per unit) per axis as a tensor, not Python floats: torch.compile would
+        # bake floats into the graph, so every newly trained table (other data range) would
+        # miss the compile cache
         self._scale = [
             (n - 1) / (hi - lo) for n, (lo, hi) in zip(self.shape, self.ranges, strict=True)
         ]
+        self._affine = torch.tensor(
+            [[lo, sc] for (lo, _), sc in zip(self.ranges, self._scale, strict=True)],
+            dtype=torch.float32, device=self.table.device,
+        )  # fmt: skip
         strides = []
         stride = 1
         for n in reversed(self.shape):
@@ -131,6 +137,7 @@ class PsiLookupTable:
     def to(self, device: torch.device | str) -> PsiLookupTable:
         """Move the table to ``device`` in place; return self."""
         self.table = self.table.to(device)
+        self._affine = self._affine.to(device)
         return self
 
     def __call__(self, phi: Tensor, z: Tensor) -> Tensor:
@@ -148,10 +155,9 @@ class PsiLookupTable:
         z = z.to(dev, torch.float32).reshape(-1, len(self.shape))
         base = phi.to(dev).reshape(-1).long() * self._layer
         fracs, offsets = [], []
-        for a, (n, (lo, _), scale) in enumerate(
-            zip(self.shape, self.ranges, self._scale, strict=True)
-        ):
-            u = ((z[:, a] - lo) * scale).clamp(0.0, n - 1)
+        affine = self._affine
+        for a, n in enumerate(self.shape):
+            u = ((z[:, a] - affine[a, 0]) * affine[a, 1]).clamp(0.0, n - 1)
             # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1); NaN -> 0
             # only for the index (u == u is False for NaN), NaN still flows into the fraction
             i = torch.where(u == u, u, 0.0).floor().clamp(max=n - 2)

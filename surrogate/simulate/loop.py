@@ -102,9 +102,14 @@ def use_compile_cache(directory: str | os.PathLike) -> Path:
     ``directory``, so every run and sweep job that shares a data directory reuses them across
     processes; an explicit ``TORCHINDUCTOR_CACHE_DIR`` in the environment wins. Returns the
     directory in use."""
-    chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR") or str(Path(directory).resolve())
+    # the user's setting as the process started: torch writes its default into the variable
+    # the first time it looks (e.g. while another stage of the same process runs)
+    chosen = _USER_COMPILE_CACHE or str(Path(directory).resolve())
     os.environ["TORCHINDUCTOR_CACHE_DIR"] = chosen
     return Path(chosen)
+
+
+_USER_COMPILE_CACHE = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
 
 
 def _add(a: Randoms, b: Randoms) -> Randoms:

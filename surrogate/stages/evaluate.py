@@ -124,10 +124,7 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
 
 def mean_durations(run: SimulationRun) -> dict[str, float | None]:
     """Mean segment duration (s) per lump name."""
-    return {
-        kind: (float(v.mean()) if (v := run.durations_of(kind)).size else None)
-        for kind in run.lump_names
-    }
+    return {kind: run.mean_duration(kind) for kind in run.lump_names}
 
 
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:

@@ -53,7 +53,11 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     train_dir = train(tr)
     if settings.config.get("batch", True):  # every missing run in one batch, then evaluate
         simulate_together(settings.runs())
-    speed = measure_stage_speed(settings) if settings.config.get("batch", True) else None
+    speed = None
+    if settings.config.get("batch", True):  # measured once per report (reused on a rerun)
+        previous = settings.directory / MANIFEST
+        speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
+        speed = speed or measure_stage_speed(settings)
     evaluations: dict[str, Path] = {}
     for name, e in settings.evaluations.items():
         log.info("field %s: full and abstracted simulations, evaluation", name)

@@ -176,10 +176,12 @@ def _write_manifest(
         lump_names=list(setup.model.internal.lump_names),
         **facts,
     )
+    batch = facts.get("batched")
+    speed = (f"one loop of {len(batch['runs'])} runs, {batch['n_cells']} cells" if batch
+             else f"{summary.cell_steps_per_s:.3g} cell-steps/s")  # fmt: skip
     log.info(
-        "%s simulation of %d cells x %d steps: %.2f s (%.3g cell-steps/s); artefacts in %s",
-        settings.decision.name, summary.n_cells, summary.n_steps, summary.loop_time_s,
-        summary.cell_steps_per_s, out,
+        "%s simulation of %d cells x %d steps: %.2f s (%s); artefacts in %s",
+        settings.decision.name, summary.n_cells, summary.n_steps, summary.loop_time_s, speed, out,
     )  # fmt: skip
 
 
