@@ -33,7 +33,7 @@ from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import InternalState, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
-from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
+from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS, FLUSH_STEPS
 
 if TYPE_CHECKING:
     from surrogate.simulate.population import PopulationSummary
@@ -354,7 +354,7 @@ def simulate_batch(
     try:
         for rep, out in zip(simulator.replicates, out_dirs, strict=True):
             recorders.append(RunRecorder(
-                Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=every,
+                Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=max(every, FLUSH_STEPS),
                 device=simulator.device, record_cells=record_cells or rep.n_cells,
                 durations=mode, histogram_spec=histogram_spec, seed=int(rep.seed)))  # fmt: skip
         with torch.no_grad():

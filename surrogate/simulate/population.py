@@ -17,6 +17,7 @@ from surrogate.simulate.loop import Simulator
 from surrogate.simulate.recorders import (
     DEFAULT_RECORD_CELLS,
     DURATIONS,
+    FLUSH_STEPS,
     OBSERVABLES,
     DurationMode,
     GridSpec,
@@ -96,7 +97,7 @@ def simulate_population(
     try:
         # created inside the try, so an interrupt right at the start drops its temporaries too
         recorder = RunRecorder(out, n_cells, dt, body.observable_names,
-                               simulator.model.internal.lump_names, block_steps=every,
+                               simulator.model.internal.lump_names, block_steps=max(every, FLUSH_STEPS),
                                device=simulator.device, record_cells=record_cells,
                                durations=mode, histogram_spec=histogram_spec, seed=seed)  # fmt: skip
         steps_recorded = mode != "none"

@@ -71,6 +71,9 @@ DURATION_MODES: tuple[str, ...] = ("histogram", "all", "none")
 DEFAULT_RECORD_CELLS = 2000
 #: device memory the per-step duration buffer may take (int32 x block rows x n_cells)
 BUFFER_BYTES = 64 << 20
+#: steps of segment ends buffered on the device between reductions (capped by BUFFER_BYTES):
+#: one reduction and host sync per block, so small populations stop paying it every few steps
+FLUSH_STEPS = 1024
 #: bins of the fallback grid of an observable the spec does not name
 FALLBACK_BINS = 10_000
 
