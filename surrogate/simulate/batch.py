@@ -33,7 +33,7 @@ from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import InternalState, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
-from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS, FLUSH_STEPS
+from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
 
 if TYPE_CHECKING:
     from surrogate.simulate.population import PopulationSummary
@@ -357,6 +357,17 @@ def simulate_batch(
                 Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=max(every, FLUSH_STEPS),
                 device=simulator.device, record_cells=record_cells or rep.n_cells,
                 durations=mode, histogram_spec=histogram_spec, seed=int(rep.seed)))  # fmt: skip
+        # the whole batch's segment ends, buffered on the device and handed to the replicates'
+        # recorders a block at a time (not one call per replicate and step)
+        n_total = sum(rep.n_cells for rep in simulator.replicates)
+        rows = max(1, min(FLUSH_STEPS, BUFFER_BYTES // (4 * n_total)))
+        buffer = torch.zeros(rows, n_total, dtype=torch.int32, device=simulator.device)
+        filled, first = 0, 0
+
+        def hand_over() -> None:
+            for rec, cells in zip(recorders, simulator.slices, strict=True):
+                rec.record_block(first, buffer[:filled, cells])
+
         with torch.no_grad():
             state = simulator.initial_state(equilibration_time=equilibration_time)
             simulator.check_state(state)
@@ -367,11 +378,18 @@ def simulate_batch(
                           unit="step", disable=not progress, mininterval=1.0):  # fmt: skip
                 ended = simulator.step(state).ended_length
                 if mode != "none":
-                    for rec, cells in zip(recorders, simulator.slices, strict=True):
-                        rec.record_step(k, ended[cells])
+                    if filled == 0:
+                        first = k
+                    buffer[filled] = ended
+                    filled += 1
+                    if filled == rows:
+                        hand_over()
+                        filled = 0
                 if (k + 1) % every == 0:
                     simulator.check_state(state)
                     _record(recorders, simulator, state, (k + 1) * dt)
+            if mode != "none" and filled:
+                hand_over()
             simulator.check_state(state)
             if simulator.device.type == "cuda":
                 torch.cuda.synchronize(simulator.device)

@@ -445,6 +445,22 @@ class RunRecorder:
         if self._filled == self.block_rows:
             self.flush()
 
+    def record_block(self, first_step: int, block: Tensor) -> None:
+        """:meth:`record_step` for ``k`` consecutive loop steps at once (``block``: ``k x
+        n_cells`` int32, rows from step ``first_step`` on): one copy per buffer block."""
+        if self._buffer is None:
+            return
+        i, k = 0, int(block.shape[0])
+        while i < k:
+            if self._filled == 0:
+                self._block_start = first_step + i
+            take = min(k - i, self.block_rows - self._filled)
+            self._buffer[self._filled : self._filled + take] = block[i : i + take]
+            self._filled += take
+            i += take
+            if self._filled == self.block_rows:
+                self.flush()
+
     def flush(self) -> None:
         """Reduce the buffered block: lattice histogram, and the segments kept in the table."""
         if self._buffer is None or self._filled == 0:
