@@ -355,7 +355,7 @@ def simulate_batch(
         for rep, out in zip(simulator.replicates, out_dirs, strict=True):
             recorders.append(RunRecorder(
                 Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=max(every, FLUSH_STEPS),
-                device=simulator.device, record_cells=record_cells or rep.n_cells,
+                device=simulator.device, record_cells=record_cells,
                 durations=mode, histogram_spec=histogram_spec, seed=int(rep.seed)))  # fmt: skip
         # the whole batch's segment ends, buffered on the device and handed to the replicates'
         # recorders a block at a time (not one call per replicate and step)

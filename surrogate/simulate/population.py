@@ -66,7 +66,7 @@ def simulate_population(
     record_durations: bool = True,
     progress: bool = True,
     *,
-    record_cells: int = DEFAULT_RECORD_CELLS,
+    record_cells: int | None = DEFAULT_RECORD_CELLS,
     durations: DurationMode | None = None,
     histogram_spec: Mapping[str, GridSpec] | None = None,
     recorder_seed: int | None = None,
@@ -74,7 +74,7 @@ def simulate_population(
     """Simulate ``n_cells`` cells to ``t_end`` and write what
     :class:`~surrogate.simulate.recorders.RunRecorder` keeps into ``out_dir`` (atomically, only
     once the run completes): the observables at record times (histograms and moments over all
-    cells, exact values of ``record_cells`` seeded random cells) and the completed phi segments
+    cells, exact values of ``record_cells`` seeded random cells; None: every cell) and the completed phi segments
     (exact lattice histogram; ``durations="histogram"`` keeps the recorded cells' segments in
     ``durations.parquet``, ``"all"`` every segment, ``"none"`` nothing). ``durations`` defaults
     to ``"histogram"``, or ``"none"`` when ``record_durations`` is false. ``recorder_seed``

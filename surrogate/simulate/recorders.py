@@ -149,10 +149,11 @@ def bin_counts(values: Tensor, grid: HistogramGrid) -> Tensor:
     return torch.bincount(idx, minlength=grid.n_bins + 2)
 
 
-def choose_cells(n_cells: int, record_cells: int, seed: int) -> np.ndarray:
-    """The recorded cells: every cell when ``n_cells <= record_cells``, else a uniform random
-    subset of ``record_cells`` cells (seeded), sorted (int64)."""
-    if n_cells <= record_cells:
+def choose_cells(n_cells: int, record_cells: int | None, seed: int) -> np.ndarray:
+    """The recorded cells: every cell when ``record_cells`` is None or ``n_cells <=
+    record_cells``, else a uniform random subset of ``record_cells`` cells (seeded), sorted
+    (int64)."""
+    if record_cells is None or n_cells <= record_cells:
         return np.arange(n_cells, dtype=np.int64)
     rng = np.random.default_rng([int(seed) & (2**63 - 1), 0])
     return np.sort(rng.choice(n_cells, size=record_cells, replace=False)).astype(np.int64)
@@ -317,7 +318,8 @@ class RunRecorder:
         lump_names: names of phi = 0 and phi = 1 (e.g. ``("tumble", "run")``).
         block_steps: steps per buffer block at most (e.g. the steps between record times).
         device: where the simulation's tensors live.
-        record_cells: cells whose exact values are kept.
+        record_cells: cells whose exact values are kept; None keeps every cell (and says so in
+            the metadata, so that shards of any sizes merge into a run that keeps every cell).
         durations: ``"histogram"`` (lattice histogram + the recorded cells' segments),
             ``"all"`` (lattice histogram + every segment) or ``"none"``.
         histogram_spec: observable -> grid (``(lo, hi, width)``, a mapping with those keys or a
@@ -336,14 +338,14 @@ class RunRecorder:
         lump_names: Sequence[str],
         block_steps: int,
         device: torch.device | str,
-        record_cells: int = DEFAULT_RECORD_CELLS,
+        record_cells: int | None = DEFAULT_RECORD_CELLS,
         durations: DurationMode = "histogram",
         histogram_spec: Mapping[str, GridSpec] | None = None,
         seed: int = 0,
     ) -> None:
         if durations not in DURATION_MODES:
             raise ValueError(f"durations must be one of {DURATION_MODES}, got {durations!r}")
-        if n_cells < 1 or record_cells < 1:
+        if n_cells < 1 or (record_cells is not None and record_cells < 1):
             raise ValueError(f"need n_cells >= 1 and record_cells >= 1, got {n_cells}, "
                              f"{record_cells}")  # fmt: skip
         self.out = Path(out_dir)
@@ -352,7 +354,8 @@ class RunRecorder:
         self.lumps = (str(lump_names[0]), str(lump_names[1]))
         self.device = torch.device(device)
         self.mode = durations
-        self.record_cells, self.seed = int(record_cells), int(seed)
+        self.record_cells = None if record_cells is None else int(record_cells)
+        self.seed = int(seed)
         spec = {**DEFAULT_HISTOGRAM_SPEC, **dict(histogram_spec or {})}
         self.grids: dict[str, HistogramGrid | None] = {
             n: grid_from_spec(spec[n]) if n in spec else None for n in self.names

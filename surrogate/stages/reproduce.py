@@ -2,7 +2,7 @@
 several fields -> evaluate -> ``report.md`` with Table 1 beside the published one, the noise
 floor, the abstraction's error where the population lives, speed-ups and figures.
 
-``python scripts/reproduce.py [experiment=paper|scale] [model=...]``. Every stage reuses
+``python scripts/reproduce.py [experiment=small|paper|large|phospho] [model=...]``. Every stage reuses
 artefacts that already exist for the same settings. With ``exact_psi=true`` (where the model has
 an exact lumped psi) the chain driven by it is evaluated too: the best any two-state
 abstraction can do, beside the learned one.

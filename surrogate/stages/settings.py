@@ -54,7 +54,7 @@ GP_EXTRA = ("inputs", "grid_size", "diagnostic")
 DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "n_cells": 1000,
     "t_end": 100.0,
-    "record_every": 5,
+    "record_every": 10,  # as conf/gp/svgp.yaml
     "start": [2.0, 0.0],
     "equilibration_time": 10.0,
 }

@@ -15,7 +15,7 @@ extremes); histograms (observables on their common grid, durations on the lattic
 recorded cells' values kept as a uniform random subsample of ``min(record_cells, n_cells)`` cells
 of the merged population (seeded by the run's seed: how many cells come from each shard is drawn
 as for a simple random sample of the whole population, then that many from each shard's own
-uniform subsample; every cell when the shards recorded every cell and the total fits), rows
+uniform subsample; every cell when the shards recorded every cell, ``record_cells=null``), rows
 by record time then cell; ``durations.parquet`` the shards' rows in shard order (those of the
 kept cells, unless it holds every segment); and a manifest with the unsharded keys
 (``n_cells`` the total, wall and loop times summed, throughput recomputed) plus ``shards``, the
@@ -251,7 +251,8 @@ def merge_runs(
     rng = np.random.default_rng([int(seed) & (2**63 - 1), len(dirs)])
     recorded = [_recorded_cells(d / OBSERVABLES) for d in dirs]
     n_total = int(sum(sizes))
-    target = n_total if not metas else min(int(metas[0]["record_cells"]), n_total)
+    every_cell = not metas or metas[0].get("record_cells") is None  # shards kept every cell
+    target = n_total if every_cell else min(int(metas[0]["record_cells"]), n_total)
     if target >= sum(r.size for r in recorded):
         keep = recorded
     else:  # a simple random sample of the whole population, from the shards' own samples

@@ -1,7 +1,9 @@
 """The simulate stage: settings -> one population run -> artefact directory.
 
 ``python scripts/simulate.py [decision=full|abstract|exact] [field=...] [n_cells=...]`` writes
-``observables.parquet``, ``durations.parquet`` and ``manifest.json``.
+the recorders' files (:mod:`surrogate.simulate.recorders`: ``observables.parquet``,
+``observable_histograms.parquet``, ``observable_moments.parquet``,
+``duration_histogram.parquet``, ``durations.parquet``) and, last, ``manifest.json``.
 """
 
 from __future__ import annotations
@@ -139,7 +141,7 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         record_durations=settings.record_durations,
         progress=job.progress,
         # null = every cell and every duration (the complete tables, for small runs)
-        record_cells=settings.record_cells or settings.n_cells,
+        record_cells=settings.record_cells,
         durations=None if settings.record_cells or not settings.record_durations else "all",
     )
     _write_manifest(settings, out, config, summary, time.perf_counter() - t0,

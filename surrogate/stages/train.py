@@ -7,7 +7,7 @@ collected transitions of the same settings, or on any external table with ``tran
 switching probabilities' error where the full model's population lives), figures and the
 manifest. Also the Python API to load a trained abstraction::
 
-    from surrogate import load_abstraction
+    from surrogate.stages.train import load_abstraction
     psi = load_abstraction("data/train/model=ecoli_...")
     p = psi(phi, z)   # z: n x d in the order of psi.input_names
 """

@@ -179,6 +179,24 @@ def test_three_shards_merge_into_an_ordinary_run(compose_cfg) -> None:
     assert read_manifest(out)["shards"] == m["shards"]
 
 
+def test_shards_recording_every_cell_merge_into_a_run_of_every_cell(compose_cfg) -> None:
+    """``record_cells=null`` on shards of unequal sizes (4, 3, 3 cells): the merged run keeps
+    all 10 cells and every segment (each shard recorded its own share, not one shard's count)."""
+    every = [*SMALL, "record_cells=null"]
+    shard_dirs = [
+        shards.run(compose_cfg("simulate", [*every, "shard.count=3", f"shard.index={i}"]))
+        for i in range(3)
+    ]
+    merged = load_run(shards.merge(compose_cfg("simulate", [*every, "shard.count=3"])))
+    for _, rows in merged.observables.groupby("t"):
+        assert sorted(rows["cell"]) == list(range(10))
+    parts = [load_run(p) for p in shard_dirs]
+    assert len(merged.durations) == sum(len(p.durations) for p in parts) > 0
+    assert merged.duration_counts["count"].sum() == len(merged.durations)
+    meta = read_metadata(merged.path / MOMENTS)
+    assert meta["record_cells"] is None and meta["observable_cells"] == 10
+
+
 def _shard(out: Path, seed: int, n: int, **kw) -> Path:
     """A full-model shard of ``n`` cells for 2 s (records every 0.5 s), as the stage writes it."""
     torch.manual_seed(seed)
