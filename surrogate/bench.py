@@ -197,7 +197,7 @@ def make_simulator(
 def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict[str, Any]:
     """Best cell-steps/s over ``repeats`` timed runs (after a warm-up, which also compiles)."""
     device = simulator.device
-    with torch.no_grad():
+    with torch.inference_mode():  # cheaper per op than no_grad
         state = simulator.initial_state(n_cells, s["start"], 0.0)
         warm_s = simulator.warm_up(state)
         best, best_steps, best_s = 0.0, 0, 0.0
@@ -244,7 +244,7 @@ def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict
             out = min(out, (time.perf_counter() - t0) / k)
         return 1e6 * out
 
-    with torch.no_grad():
+    with torch.inference_mode():  # cheaper per op than no_grad
         state = simulator.initial_state(n_cells, (2.0, 0.0), 0.0)
         simulator.warm_up(state)
         k = max(3, min(500, 2_000_000 // n_cells))

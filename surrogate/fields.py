@@ -19,6 +19,7 @@ All fields are vectorised over cells: ``position`` is ``(n_cells, 2)``, the resu
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 
@@ -177,6 +178,9 @@ class FieldBatch(Field):
     """Several fields side by side for a population simulated as consecutive blocks of cells
     (replicates in one batch): block i of ``sizes[i]`` cells sees ``fields[i]``.
 
+    Blocks that share one field object are evaluated in one call over all their cells (gathered,
+    then put back in block order), so a batch costs one call per distinct field, not per block.
+
     Example:
         >>> batch = FieldBatch([GaussianField(), LinearField()], [100, 100])
         >>> batch(torch.zeros(200, 2), 0.0).shape
@@ -191,18 +195,41 @@ class FieldBatch(Field):
         super().__init__(fields[0].peak)
         self.fields = list(fields)
         self.sizes = [int(n) for n in sizes]
+        distinct = {id(f): f for f in self.fields}
+        self.distinct = list(distinct.values())
+        self._cells: list[Tensor] | None = None  # per distinct field, its cells (block order)
+        self._order: Tensor | None = None  # position of each cell in the concatenated results
+        if len(self.distinct) < len(self.fields):
+            starts = [0, *itertools.accumulate(self.sizes)][:-1]
+            cells = {k: [] for k in distinct}
+            for f, a, n in zip(self.fields, starts, self.sizes, strict=True):
+                cells[id(f)].append(torch.arange(a, a + n))
+            self._cells = [torch.cat(c) for c in cells.values()]
+            self._order = torch.argsort(torch.cat(self._cells))
+        self._device: torch.device | None = None
 
-    def _blocks(self, tensor: Tensor) -> list[Tensor]:
-        return list(torch.split(tensor, self.sizes, dim=0))
+    def _on(self, device: torch.device) -> None:
+        if self._cells is not None and self._device != device:
+            self._cells = [c.to(device) for c in self._cells]
+            self._order = self._order.to(device)  # type: ignore[union-attr]
+            self._device = device
+
+    def _apply(self, method: str, position: Tensor, *args: float) -> Tensor:
+        if self._cells is None:  # every block its own field: split, evaluate, join
+            parts = torch.split(position, self.sizes, dim=0)
+            return torch.cat([getattr(f, method)(p, *args)
+                              for f, p in zip(self.fields, parts, strict=True)])  # fmt: skip
+        self._on(position.device)
+        out = torch.cat([getattr(f, method)(position[c], *args)
+                         for f, c in zip(self.distinct, self._cells, strict=True)])  # fmt: skip
+        return out[self._order]
 
     def __call__(self, position: Tensor, t: float) -> Tensor:
-        parts = self._blocks(position)
-        return torch.cat([f(p, t) for f, p in zip(self.fields, parts, strict=True)])
+        return self._apply("__call__", position, t)
 
     def distance_from_peak(self, position: Tensor) -> Tensor:
         """Each block's distance from its own field's peak."""
-        parts = self._blocks(position)
-        return torch.cat([f.distance_from_peak(p) for f, p in zip(self.fields, parts, strict=True)])
+        return self._apply("distance_from_peak", position)
 
 
 BUILTIN_FIELDS: dict[str, type[Field]] = {

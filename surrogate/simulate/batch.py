@@ -368,7 +368,7 @@ def simulate_batch(
             for rec, cells in zip(recorders, simulator.slices, strict=True):
                 rec.record_block(first, buffer[:filled, cells])
 
-        with torch.no_grad():
+        with torch.inference_mode():  # cheaper per op than no_grad
             state = simulator.initial_state(equilibration_time=equilibration_time)
             simulator.check_state(state)
             _record(recorders, simulator, state, 0.0)

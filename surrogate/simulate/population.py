@@ -101,7 +101,7 @@ def simulate_population(
                                device=simulator.device, record_cells=record_cells,
                                durations=mode, histogram_spec=histogram_spec, seed=seed)  # fmt: skip
         steps_recorded = mode != "none"
-        with torch.no_grad():
+        with torch.inference_mode():  # cheaper per op than no_grad
             state = simulator.initial_state(n_cells, start, equilibration_time)
             simulator.check_state(state)
             recorder.record_observables(0.0, body.observables(state.body, field_))

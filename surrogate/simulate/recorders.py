@@ -329,6 +329,7 @@ class RunRecorder:
         seed: seeds the choice of recorded cells.
     """
 
+    @torch.inference_mode()
     def __init__(
         self,
         out_dir: str | os.PathLike,
@@ -392,6 +393,7 @@ class RunRecorder:
             raise
 
     # ------------------------------------------------------------------------------------
+    @torch.inference_mode()  # the loop's tensors are inference tensors
     def record_observables(self, t: float, observables: Mapping[str, Tensor]) -> None:
         """Record the observables (each ``(n_cells,)``) at time ``t``: histograms and moments
         over all cells, exact values of the recorded cells (one device->host copy each)."""
@@ -436,6 +438,7 @@ class RunRecorder:
         )
         self.times.append(float(t))
 
+    @torch.inference_mode()  # the loop's tensors are inference tensors
     def record_step(self, step: int, ended_length: Tensor) -> None:
         """``ended_length`` (``(n_cells,)`` int32) of loop step ``step``: +k a phi = 1 segment of
         k steps ended, -k a phi = 0 one, 0 nothing. Buffered on the device (no host sync)."""
@@ -448,6 +451,7 @@ class RunRecorder:
         if self._filled == self.block_rows:
             self.flush()
 
+    @torch.inference_mode()  # the loop's tensors are inference tensors
     def record_block(self, first_step: int, block: Tensor) -> None:
         """:meth:`record_step` for ``k`` consecutive loop steps at once (``block``: ``k x
         n_cells`` int32, rows from step ``first_step`` on): one copy per buffer block."""
@@ -464,6 +468,7 @@ class RunRecorder:
             if self._filled == self.block_rows:
                 self.flush()
 
+    @torch.inference_mode()  # the loop's tensors are inference tensors
     def flush(self) -> None:
         """Reduce the buffered block: lattice histogram, and the segments kept in the table."""
         if self._buffer is None or self._filled == 0:
@@ -498,6 +503,7 @@ class RunRecorder:
         grown[half - self._half : half + self._half + 1] = self._lattice
         self._lattice, self._half = grown, half
 
+    @torch.inference_mode()  # the loop's tensors are inference tensors
     def duration_counts(self) -> np.ndarray:
         """The lattice histogram so far: int64 ``(2, K)``, ``[phi, k]`` = completed segments of
         phi lasting k steps (one host copy)."""
@@ -517,6 +523,7 @@ class RunRecorder:
                 "observable_cells": int(self.cells.size), "seed": self.seed, "dt": self.dt,
                 "lump_names": list(self.lumps), "durations": self.mode}  # fmt: skip
 
+    @torch.inference_mode()  # the loop's tensors are inference tensors
     def commit(self) -> dict[str, Any]:
         """Flush, write the summary tables and rename every file into place. Returns facts for
         the manifest: ``n_cells``, ``record_cells``, ``observable_cells``, ``seed``, ``dt``,

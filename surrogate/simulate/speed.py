@@ -40,7 +40,7 @@ def measure_speed(
     out = {}
     for name, decision in decisions.items():
         sim = Simulator(model, decision, field, dt, device, compile=compile)
-        with torch.no_grad():
+        with torch.inference_mode():  # cheaper per op than no_grad
             state = sim.initial_state(n_cells, start)
             compile_s = sim.warm_up(state) if compile else 0.0
             best = float("inf")

@@ -9,6 +9,7 @@ the recorders' files (:mod:`surrogate.simulate.recorders`: ``observables.parquet
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import logging
 import time
@@ -19,6 +20,7 @@ from typing import Any
 import torch
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.fields import Field
 from surrogate.gp import PsiLookupTable
 from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
 from surrogate.models.base import Model
@@ -229,6 +231,10 @@ def simulate_together(runs: Sequence[SimulateSettings]) -> list[Path]:
     return [s.directory for s in runs]
 
 
+def _key(config: Any) -> str:
+    return json.dumps(config, sort_keys=True, default=str)
+
+
 def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
     from surrogate.simulate.batch import BatchSimulator, Replicate, simulate_batch
 
@@ -236,19 +242,31 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
     setup, job = first.setup, first.job
     if first.compile:
         use_compile_cache(job.data_dir / COMPILE_CACHE)
+    # decision-major, then field: consecutive runs with one decision (a shared table) and one
+    # field are one block of the batch, so its step costs about as many tensor ops as one run
+    runs = sorted(runs, key=lambda s: (s.decision.name, _key(s.decision.identity()),
+                                       _key(s.setup.field_config)))  # fmt: skip
+    built: dict[str, tuple[DecisionLayer, dict[str, Any]]] = {}
+    fields: dict[str, Field] = {}
     replicates, infos = [], []
     for s in runs:
-        decision, info = build_decision(s)
-        replicates.append(Replicate(decision, s.setup.field, s.n_cells, s.setup.seed,
+        key = _key(s.decision.identity())
+        if key not in built:
+            built[key] = build_decision(s)
+        decision, info = built[key]
+        field = fields.setdefault(_key(s.setup.field_config), s.setup.field)
+        # a layer per run (its own state), sharing the built table with the others
+        replicates.append(Replicate(copy.copy(decision), field, s.n_cells, s.setup.seed,
                                     torch.tensor(s.start)))  # fmt: skip
         infos.append(info)
         (s.directory / MANIFEST).unlink(missing_ok=True)
-    log.info("simulating %d runs in one batch (%d cells)", len(runs),
-             sum(s.n_cells for s in runs))  # fmt: skip
     t0 = time.perf_counter()
     seed_everything(setup.seed)
     simulator = BatchSimulator(setup.model, replicates, setup.dt, job.device,
                                compile=first.compile)  # fmt: skip
+    log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d field blocks)",
+             len(runs), sum(s.n_cells for s in runs), len(simulator.decision.members),
+             len(simulator.field.fields))  # fmt: skip
     summaries = simulate_batch(
         simulator, first.t_end, [s.directory for s in runs],
         record_interval=first.record_interval, equilibration_time=first.equilibration_time,

@@ -86,6 +86,32 @@ def test_field_and_decision_batches_split_by_block() -> None:
         DecisionBatch([FullDecision(MODEL.internal)], [1, 2])
 
 
+def test_field_batch_evaluates_a_shared_field_once_over_its_blocks() -> None:
+    """Blocks G, L, G (one GaussianField object twice): the same values as block by block, with
+    one call per distinct field."""
+    gauss, linear = GaussianField(), DynamicGaussianField()
+    calls: list[int] = []
+
+    class Counting(LinearField):
+        def __call__(self, position, t):
+            calls.append(len(position))
+            return super().__call__(position, t)
+
+    counted = Counting()
+    sizes = [2, 3, 4, 1]
+    fields = FieldBatch([gauss, counted, gauss, counted], sizes)
+    x = torch.randn(10, 2, generator=torch.Generator().manual_seed(0))
+    parts = torch.split(x, sizes)
+    for t in (0.0, 30.0):
+        expected = torch.cat([gauss(parts[0], t), LinearField()(parts[1], t),
+                              gauss(parts[2], t), LinearField()(parts[3], t)])  # fmt: skip
+        assert torch.equal(fields(x, t), expected)
+    assert calls == [4, 4]  # both of its blocks in one call, per evaluation
+    peaks = FieldBatch([linear, GaussianField(peak=(1.0, 1.0)), linear], [2, 2, 2])
+    y = torch.zeros(6, 2)
+    np.testing.assert_allclose(peaks.distance_from_peak(y), [0, 0, 2**0.5, 2**0.5, 0, 0])
+
+
 def test_compiled_batch_is_identical_in_distribution(tmp_path) -> None:
     """Two compiled replicates (L1 and L2) against the same runs simulated alone, eagerly:
     distances after 60 s and mean run/tumble durations agree (KS at alpha = 0.001; means
