@@ -158,11 +158,13 @@ class PsiLookupTable:
         affine = self._affine
         for a, n in enumerate(self.shape):
             u = ((z[:, a] - affine[a, 0]) * affine[a, 1]).clamp(0.0, n - 1)
-            # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1); NaN -> 0
-            # only for the index (u == u is False for NaN), NaN still flows into the fraction
-            i = torch.where(u == u, u, 0.0).floor().clamp(max=n - 2)
+            # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1). Clamped
+            # as an integer: a NaN converts to some integer and lands in range (never a bad
+            # index; NaN still flows into the fraction), and the compiler can prove the bounds,
+            # so a fused step keeps its loop vectorised (a NaN test here made it scalar, 2-3x)
+            i = u.floor().long().clamp(0, n - 2)
             fracs.append(u - i)
-            base = base + i.long() * self._strides[a]
+            base = base + i * self._strides[a]
             offsets.append(self._strides[a])
         flat = self.table.view(-1)
         # gather the 2^d corners (last axis fastest), then lerp along the last axis first
