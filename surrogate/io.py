@@ -187,12 +187,18 @@ def save_tensors(path: str | os.PathLike, obj: Mapping[str, Any]) -> Path:
 
 
 def save_figure(path: str | os.PathLike, fig: Any) -> Path:
-    """Save a matplotlib figure atomically (format from the suffix) and close it."""
+    """Save a matplotlib figure atomically (format from the suffix) and close it.
+
+    A figure with a layout engine (e.g. ``layout="constrained"``) already fits its canvas and
+    is drawn once; one without is cropped to its contents (``bbox_inches="tight"``, which
+    costs a second draw).
+    """
     import matplotlib.pyplot as plt
 
     path = Path(path)
     fmt = path.suffix.lstrip(".") or "png"
-    write_atomic(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120, bbox_inches="tight"))
+    bbox = None if fig.get_layout_engine() is not None else "tight"
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120, bbox_inches=bbox))
     plt.close(fig)
     return path
 

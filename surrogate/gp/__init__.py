@@ -9,7 +9,7 @@ simulation.
 from __future__ import annotations
 
 from surrogate.gp.figures import binned_frequencies, plot_psi, plot_training_history, psi_grid_frame
-from surrogate.gp.lookup import PsiFunction, PsiLookupTable
+from surrogate.gp.lookup import PsiFunction, PsiLookupTable, StackedPsiLookup
 from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import KERNELS, PsiGP, make_kernel
 from surrogate.gp.predictor import PsiClassifier, data_domain, fit_psi, load_psi, save_psi
@@ -24,6 +24,7 @@ __all__ = [
     "PsiFunction",
     "PsiGP",
     "PsiLookupTable",
+    "StackedPsiLookup",
     "binned_frequencies",
     "classification_metrics",
     "data_domain",

@@ -154,27 +154,10 @@ class PsiLookupTable:
         out_device = z.device
         z = z.to(dev, torch.float32).reshape(-1, len(self.shape))
         base = phi.to(dev).reshape(-1).long() * self._layer
-        fracs, offsets = [], []
-        affine = self._affine
-        for a, n in enumerate(self.shape):
-            u = ((z[:, a] - affine[a, 0]) * affine[a, 1]).clamp(0.0, n - 1)
-            # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1). Clamped
-            # as an integer: a NaN converts to some integer and lands in range (never a bad
-            # index; NaN still flows into the fraction), and the compiler can prove the bounds,
-            # so a fused step keeps its loop vectorised (a NaN test here made it scalar, 2-3x)
-            i = u.floor().long().clamp(0, n - 2)
-            fracs.append(u - i)
-            base = base + i * self._strides[a]
-            offsets.append(self._strides[a])
-        flat = self.table.view(-1)
-        # gather the 2^d corners (last axis fastest), then lerp along the last axis first
-        corners = [base]
-        for off in offsets:
-            corners = [c for b in corners for c in (b, b + off)]
-        values = [flat[c] for c in corners]
-        for frac in reversed(fracs):
-            values = [torch.lerp(values[i], values[i + 1], frac) for i in range(0, len(values), 2)]
-        return values[0].to(out_device)
+        origin = [self._affine[a, 0] for a in range(len(self.shape))]
+        scale = [self._affine[a, 1] for a in range(len(self.shape))]
+        out = _interpolate(self.table.view(-1), self.shape, self._strides, base, z, origin, scale)
+        return out.to(out_device)
 
     @torch.no_grad()
     def max_deviation(self, psi: PsiFunction, n_check: int | None = 4096, seed: int = 0) -> float:
@@ -233,4 +216,105 @@ def _check_range(r: Sequence[float]) -> None:
         raise ConfigError(f"lookup range must satisfy lo < hi, got {tuple(r)}")
 
 
-__all__ = ["PsiFunction", "PsiLookupTable"]
+def _interpolate(
+    flat: Tensor,
+    shape: Sequence[int],
+    strides: Sequence[int],
+    base: Tensor,
+    z: Tensor,
+    origin: Sequence[Tensor],
+    scale: Sequence[Tensor],
+) -> Tensor:
+    """Multilinear interpolation in the flat table ``flat`` at ``z`` (``n x d``): ``base``
+    (``n``, long) is each query's layer offset, node coordinates along axis a are
+    ``(z[:, a] - origin[a]) * scale[a]`` (0-d or per-query ``(n,)`` tensors)."""
+    fracs, offsets = [], []
+    for a, n in enumerate(shape):
+        u = ((z[:, a] - origin[a]) * scale[a]).clamp(0.0, n - 1)
+        # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1). Clamped
+        # as an integer: a NaN converts to some integer and lands in range (never a bad
+        # index; NaN still flows into the fraction), and the compiler can prove the bounds,
+        # so a fused step keeps its loop vectorised (a NaN test here made it scalar, 2-3x)
+        i = u.floor().long().clamp(0, n - 2)
+        fracs.append(u - i)
+        base = base + i * strides[a]
+        offsets.append(strides[a])
+    # gather the 2^d corners (last axis fastest), then lerp along the last axis first
+    corners = [base]
+    for off in offsets:
+        corners = [c for b in corners for c in (b, b + off)]
+    values = [flat[c] for c in corners]
+    for frac in reversed(fracs):
+        values = [torch.lerp(values[i], values[i + 1], frac) for i in range(0, len(values), 2)]
+    return values[0]
+
+
+class StackedPsiLookup:
+    """Several lookup tables of one grid shape over the same inputs, each for a contiguous
+    block of cells: one interpolation over all the blocks' cells instead of one per table.
+
+    Cell j of block k is interpolated in ``tables[k]`` with that table's own box, exactly as
+    ``tables[k].evaluate`` would (the same arithmetic, bit for bit).
+
+    Args:
+        tables: the tables (same shape, input names and device).
+        sizes: cells per block, in order (the queries' first dimension is ``sum(sizes)``).
+
+    Example:
+        >>> a = PsiLookupTable.from_function(lambda phi, z: z[:, 0].sigmoid(), [(-5.0, 5.0)],
+        ...                                  ("dG",), size=(101,))
+        >>> b = PsiLookupTable.from_function(lambda phi, z: 0.5 + 0 * z[:, 0], [(0.0, 1.0)],
+        ...                                  ("dG",), size=(101,))
+        >>> StackedPsiLookup([a, b], [1, 1])(torch.tensor([1, 1]), torch.zeros(2, 1))
+        tensor([0.5000, 0.5000])
+    """
+
+    check_finite = False
+
+    def __init__(self, tables: Sequence[PsiLookupTable], sizes: Sequence[int]) -> None:
+        if not tables or len(tables) != len(sizes):
+            raise ValueError("StackedPsiLookup needs one size per table")
+        first = tables[0]
+        for t in tables[1:]:
+            if (t.shape, t.input_names, t.device) != (first.shape, first.input_names, first.device):
+                raise ValueError(
+                    "stacked lookup tables need one shape, input names and device; got "
+                    f"{t.shape} {t.input_names} {t.device} vs "
+                    f"{first.shape} {first.input_names} {first.device}"
+                )
+        self.tables = list(tables)
+        self.sizes = [int(n) for n in sizes]
+        self.input_names = first.input_names
+        self.shape = first.shape
+        self._strides = first._strides
+        dev = first.device
+        self.table = torch.stack([t.table for t in tables]).contiguous()  # (K, 2, *shape)
+        block = torch.repeat_interleave(
+            torch.arange(len(tables), device=dev), torch.tensor(self.sizes, device=dev)
+        )
+        self._block_base = block * (2 * first._layer)  # (n,) offset of each cell's table
+        self._layer = first._layer
+        affine = torch.stack([t._affine for t in tables])[block]  # (n, d, 2)
+        self._origin = [affine[:, a, 0].contiguous() for a in range(len(self.shape))]
+        self._scale = [affine[:, a, 1].contiguous() for a in range(len(self.shape))]
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the tables."""
+        return self.table.device
+
+    def evaluate(self, phi: Tensor, z: Tensor) -> Tensor:
+        """Pure interpolation of every cell in its block's table (see
+        :meth:`PsiLookupTable.evaluate`); ``phi`` and ``z`` cover all blocks' cells."""
+        dev = self.table.device
+        out_device = z.device
+        z = z.to(dev, torch.float32).reshape(-1, len(self.shape))
+        base = self._block_base + phi.to(dev).reshape(-1).long() * self._layer
+        flat = self.table.view(-1)
+        out = _interpolate(flat, self.shape, self._strides, base, z, self._origin, self._scale)
+        return out.to(out_device)
+
+    __call__ = evaluate
+
+
+__all__ = ["PsiFunction", "PsiLookupTable", "StackedPsiLookup"]

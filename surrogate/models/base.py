@@ -232,11 +232,7 @@ class Model:
 
     def featurizer(self, names: Sequence[str]) -> Callable[[Tensor], Tensor]:
         """``x (n x d) -> z (n x len(names))``: the columns an abstraction over ``names`` needs."""
-        names = self.abstraction_inputs(list(names))
-        internal = self.internal
-        if names == tuple(internal.input_names):
-            return _identity
-        return lambda x: internal.features(x, names)
+        return FeatureMap(self.internal, self.abstraction_inputs(list(names)))
 
     # ---- evaluation hooks ------------------------------------------------------------------
     def observable_label(self, name: str) -> str:
@@ -256,8 +252,34 @@ class Model:
         return {"name": self.name}
 
 
-def _identity(x: Tensor) -> Tensor:
-    return x
+class FeatureMap:
+    """``x (n x d) -> z (n x k)``: the columns ``names`` of an internal model's inputs and
+    features (the inputs themselves when ``names`` are its inputs).
+
+    Two maps are equal when they compute the same columns of the same internal model, so
+    decision layers over equal maps can share one evaluation (see ``simulate.batch``).
+    """
+
+    def __init__(self, internal: InternalModel, names: Sequence[str]) -> None:
+        self.internal = internal
+        self.names = tuple(names)
+        self._identity = self.names == tuple(internal.input_names)
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """The columns ``names`` at inputs ``x`` (``n x d``)."""
+        return x if self._identity else self.internal.features(x, self.names)
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, FeatureMap)
+            and other.internal is self.internal
+            and other.names == self.names
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"FeatureMap({list(self.names)})"
 
 
 def check_options(
@@ -273,6 +295,7 @@ def check_options(
 __all__ = [
     "AgentBody",
     "BodyState",
+    "FeatureMap",
     "InternalModel",
     "InternalState",
     "Model",

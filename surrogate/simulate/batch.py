@@ -19,6 +19,7 @@ vectorised body and a scalar tail), which leaves it identical in distribution.
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ from tqdm.auto import tqdm
 
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import InternalState, Model, Randoms
-from surrogate.simulate.decision import DecisionLayer, is_fusable
+from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
 from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
 
@@ -166,10 +167,10 @@ class BatchSimulator(Simulator):
         self.replicates = list(replicates)
         if not self.replicates:
             raise ValueError("a batch needs at least one replicate")
-        self.groups = _groups([r.decision for r in self.replicates])
         sizes = [r.n_cells for r in self.replicates]
+        self.groups, members = _decision_blocks(self.replicates)
         group_sizes = [sum(sizes[i] for i in g) for g in self.groups]
-        decision = DecisionBatch([self.replicates[g[0]].decision for g in self.groups], group_sizes)
+        decision = DecisionBatch(members, group_sizes)
         # consecutive replicates in the same field object share one block of the field
         blocks: list[tuple[Field, int]] = []
         for r in self.replicates:
@@ -288,6 +289,64 @@ def _groups(decisions: Sequence[DecisionLayer]) -> list[list[int]]:
         else:
             groups.append([i])
     return groups
+
+
+def _decision_blocks(
+    replicates: Sequence[Replicate],
+) -> tuple[list[list[int]], list[DecisionLayer]]:
+    """The batch's decision blocks: (replicate indices, decision layer) per block.
+
+    Consecutive interchangeable layers share one block (:func:`_groups`); then consecutive
+    blocks of two-state chains over lookup tables of one shape and the same features (e.g.
+    the learned abstraction and the exact-psi chain) are stacked into one layer over a
+    :class:`~surrogate.gp.lookup.StackedPsiLookup`: one featurisation and one interpolation
+    per step for all of them, with the same numbers as separate blocks.
+    """
+    groups = _groups([r.decision for r in replicates])
+    members = [replicates[g[0]].decision for g in groups]
+    merged_groups: list[list[int]] = []
+    merged: list[DecisionLayer] = []
+    k = 0
+    while k < len(groups):
+        end = k + 1
+        while end < len(groups) and _stackable(members[k], members[end]):
+            end += 1
+        if end - k == 1:
+            merged_groups.append(groups[k])
+            merged.append(members[k])
+        else:
+            from surrogate.gp.lookup import StackedPsiLookup
+
+            cells = [sum(replicates[i].n_cells for i in g) for g in groups[k:end]]
+            first = members[k]
+            table = StackedPsiLookup([m.run_probability for m in members[k:end]], cells)  # type: ignore[attr-defined]
+            name = "+".join(dict.fromkeys(m.name for m in members[k:end]))
+            merged.append(AbstractDecision(table, first.internal, first.featurize, name=name))  # type: ignore[attr-defined]
+            merged_groups.append([i for g in groups[k:end] for i in g])
+        k = end
+    return merged_groups, merged
+
+
+def _stackable(a: DecisionLayer, b: DecisionLayer) -> bool:
+    """Whether two two-state chains can share one stacked lookup (see
+    :func:`_decision_blocks`): same fused protocol, internal model, features and grid."""
+    if not (isinstance(a, AbstractDecision) and isinstance(b, AbstractDecision)):
+        return False
+    if type(a).fused_step is not type(b).fused_step or a.randoms != b.randoms:
+        return False
+    # a table exists only if its module was imported (the engine does not import gp itself)
+    lookup = sys.modules.get("surrogate.gp.lookup")
+    table = getattr(lookup, "PsiLookupTable", None)
+    ta, tb = a.run_probability, b.run_probability
+    if table is None or not (isinstance(ta, table) and isinstance(tb, table)):
+        return False
+    return (
+        a.internal is b.internal
+        and a.featurize == b.featurize
+        and (ta.shape, ta.input_names, ta.device) == (tb.shape, tb.input_names, tb.device)  # type: ignore[attr-defined]
+        and is_fusable(a)
+        and is_fusable(b)
+    )
 
 
 def _interchangeable(a: DecisionLayer, b: DecisionLayer) -> bool:

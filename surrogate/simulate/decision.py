@@ -23,7 +23,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from surrogate.models.base import InternalModel, InternalState, Randoms
+from surrogate.models.base import FeatureMap, InternalModel, InternalState, Randoms
 
 #: ``psi(phi (n,), z (n x k)) -> p(phi' = 1)`` float32 ``(n,)``; a learned classifier, its
 #: lookup table or the exact psi. An object may also offer ``evaluate(phi, z)``: the same
@@ -228,8 +228,7 @@ class ExactDecision(AbstractDecision):
         self, internal: InternalModel, dt: float, run_probability: RunProbability | None = None
     ) -> None:
         psi = run_probability if run_probability is not None else ExactPsi(internal, dt)
-        names = tuple(internal.signal_names)
-        super().__init__(psi, internal, lambda x: internal.features(x, names), name="exact")
+        super().__init__(psi, internal, FeatureMap(internal, internal.signal_names), name="exact")
 
 
 def is_fusable(decision: object) -> bool:

@@ -87,7 +87,7 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
 
 
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'
-SPEED_STEPS = 2000
+SPEED_STEPS = 1000
 SPEED_MAX_CELLS = 100_000
 
 

@@ -60,9 +60,14 @@ def simulate(
                      lambda _: _simulate(settings, out, config), what="simulation", force=force)  # fmt: skip
 
 
-def build_decision(settings: SimulateSettings) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The decision layer of a run, and facts about it for the manifest."""
-    model, device = settings.setup.model, settings.job.device
+def build_decision(
+    settings: SimulateSettings, model: Model | None = None
+) -> tuple[DecisionLayer, dict[str, Any]]:
+    """The decision layer of a run, and facts about it for the manifest; over ``model`` when
+    given (a batch's runs share one model object, so their layers can share blocks), else
+    the run's own."""
+    model = model if model is not None else settings.setup.model
+    device = settings.job.device
     d = settings.decision
     if d.name == "full":
         return FullDecision(model.internal), {}
@@ -252,7 +257,7 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
     for s in runs:
         key = _key(s.decision.identity())
         if key not in built:
-            built[key] = build_decision(s)
+            built[key] = build_decision(s, setup.model)  # one model: layers can share blocks
         decision, info = built[key]
         field = fields.setdefault(_key(s.setup.field_config), s.setup.field)
         # a layer per run (its own state), sharing the built table with the others

@@ -13,7 +13,13 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError, ConfigError, NumericalError
-from surrogate.gp import GPSettings, PsiClassifier, PsiLookupTable, fit_classifier
+from surrogate.gp import (
+    GPSettings,
+    PsiClassifier,
+    PsiLookupTable,
+    StackedPsiLookup,
+    fit_classifier,
+)
 
 W = 0.1
 M_BOX = (1.0, 3.5)
@@ -366,3 +372,29 @@ def test_three_axes_nodes_clamp_and_round_trip(tmp_path: Path) -> None:
     z = _uniform_in(RANGES3, 1000, seed=7)
     phi = torch.randint(0, 2, (1000,), generator=gen)
     assert torch.equal(loaded(phi, z), table(phi, z))
+
+
+def test_stacked_tables_give_each_block_its_own_table_bit_for_bit() -> None:
+    """Blocks of cells in one stacked interpolation: each block's values are exactly its own
+    table's (own box, clamping and NaN included); tables of other shapes are refused."""
+    gen = torch.Generator().manual_seed(0)
+    tables = [
+        PsiLookupTable(torch.rand(2, 17, 9, generator=gen), [(-1.0, 2.0), (0.0, 5.0)], ("a", "b")),
+        PsiLookupTable(torch.rand(2, 17, 9, generator=gen), [(-3.0, 1.5), (1.0, 2.0)], ("a", "b")),
+        PsiLookupTable(torch.rand(2, 17, 9, generator=gen), [(0.0, 9.0), (-2.0, 7.0)], ("a", "b")),
+    ]
+    sizes = [5, 7, 6]
+    z = torch.rand(sum(sizes), 2, generator=gen) * 14.0 - 5.0  # inside and outside the boxes
+    z[3, 0] = float("nan")
+    phi = torch.randint(0, 2, (sum(sizes),), generator=gen)
+    stacked = StackedPsiLookup(tables, sizes)
+    out = stacked(phi, z)
+    parts = [t.evaluate(p, q) for t, p, q in
+             zip(tables, phi.split(sizes), z.split(sizes), strict=True)]  # fmt: skip
+    assert torch.equal(out.isnan(), torch.cat(parts).isnan()) and bool(out[3].isnan())
+    assert torch.equal(out.nan_to_num(-1.0), torch.cat(parts).nan_to_num(-1.0))
+    other = PsiLookupTable(torch.rand(2, 17, 8), [(0.0, 1.0), (0.0, 1.0)], ("a", "b"))
+    with pytest.raises(ValueError, match="one shape"):
+        StackedPsiLookup([tables[0], other], [1, 1])
+    with pytest.raises(ValueError, match="one size per table"):
+        StackedPsiLookup(tables, [1, 2])

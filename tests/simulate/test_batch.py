@@ -15,7 +15,7 @@ import torch
 from scipy import stats
 
 from surrogate.fields import DynamicGaussianField, FieldBatch, GaussianField, LinearField
-from surrogate.gp import PsiLookupTable
+from surrogate.gp import PsiLookupTable, StackedPsiLookup
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, DecisionBatch, Replicate
@@ -24,16 +24,17 @@ MODEL = EcoliModel()
 DT = 0.05
 
 
-def _table() -> PsiLookupTable:
-    dg = torch.linspace(-3.0, 10.0, 256)
+def _table(lo: float = -3.0, hi: float = 10.0) -> PsiLookupTable:
+    dg = torch.linspace(lo, hi, 256)
     return PsiLookupTable(torch.stack([torch.sigmoid(dg - 1.0), torch.sigmoid(dg + 2.0)]),
-                          [(-3.0, 10.0)], ("dG",))  # fmt: skip
+                          [(lo, hi)], ("dG",))  # fmt: skip
 
 
 def _decisions():
-    table = _table()
-    abstract = AbstractDecision(table, MODEL.internal, MODEL.featurizer(["dG"]))
-    exact = ExactDecision(MODEL.internal, DT, table)
+    abstract = AbstractDecision(_table(), MODEL.internal, MODEL.featurizer(["dG"]))
+    # another table over the same feature and grid size, on another box: stacked with the
+    # abstract layer's in a batch (per-cell boxes)
+    exact = ExactDecision(MODEL.internal, DT, _table(-4.0, 12.5))
     return {"full": lambda: FullDecision(MODEL.internal), "abstract": lambda: abstract,
             "exact": lambda: exact}  # fmt: skip
 
@@ -65,7 +66,12 @@ def test_eager_replicates_are_their_standalone_runs_bit_for_bit(spec) -> None:
     reps = [Replicate(make[k](), f, n, s) for k, f, n, s in spec]
     batch = BatchSimulator(MODEL, reps, DT)
     if spec is SPEC:
-        assert batch.groups == [[0, 1], [2, 3], [4]]  # same-kind neighbours share one layer
+        # same-kind neighbours share one layer; chains over equal-shape tables of the same
+        # feature share one stacked table
+        assert batch.groups == [[0, 1], [2, 3, 4]]
+        stacked = batch.decision.members[1]
+        assert isinstance(stacked.run_probability, StackedPsiLookup)
+        assert stacked.name == "abstract+exact"
     state = batch.initial_state(equilibration_time=1.0)
     torch.manual_seed(99)  # the global stream does not matter any more
     for _ in range(150):
