@@ -455,7 +455,7 @@ def bin_inputs(z: Tensor, y: Tensor, bins: int) -> tuple[Tensor, Tensor, Tensor]
     d = z.shape[1]
     index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
     for j in range(d):
-        col = z[:, j]
+        col = z[:, j].contiguous()  # bucketize copies (and warns) otherwise
         edges = torch.linspace(float(col.min()), float(col.max()), bins + 1, device=z.device)
         index = index * bins + torch.bucketize(col, edges[1:-1])
     size = bins**d
