@@ -186,18 +186,21 @@ def save_tensors(path: str | os.PathLike, obj: Mapping[str, Any]) -> Path:
     return write_atomic(path, lambda tmp: torch.save(dict(obj), tmp))
 
 
-def save_figure(path: str | os.PathLike, fig: Any) -> Path:
+def save_figure(path: str | os.PathLike, fig: Any, crop: bool | None = None) -> Path:
     """Save a matplotlib figure atomically (format from the suffix) and close it.
 
-    A figure with a layout engine (e.g. ``layout="constrained"``) already fits its canvas and
-    is drawn once; one without is cropped to its contents (``bbox_inches="tight"``, which
-    costs a second draw).
+    ``crop=True`` crops the image to its contents (``bbox_inches="tight"``, which costs a
+    second draw). By default (``None``) a figure with a layout engine (e.g.
+    ``layout="constrained"``), which already fits its canvas, is drawn once and one without
+    is cropped; pass ``crop=False`` for a figure whose margins were set by hand.
     """
     import matplotlib.pyplot as plt
 
     path = Path(path)
     fmt = path.suffix.lstrip(".") or "png"
-    bbox = None if fig.get_layout_engine() is not None else "tight"
+    if crop is None:
+        crop = fig.get_layout_engine() is None
+    bbox = "tight" if crop else None
     write_atomic(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=120, bbox_inches=bbox))
     plt.close(fig)
     return path

@@ -3,11 +3,15 @@
 Figures are built on ``matplotlib.figure.Figure`` directly rather than through ``pyplot``, so
 they render with the Agg canvas whatever backend is configured, never open a window, and are
 not kept alive by pyplot's figure registry. Save them with ``surrogate.io.save_figure``.
+Their margins are fixed in inches rather than found by a layout engine: constrained layout
+measures every tick label before drawing, which doubled the cost of saving (about 0.5 s of
+the 1.1 s an evaluation spent on its three figures).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -23,6 +27,21 @@ from surrogate.evaluate.statistics import (
 )
 
 COLOURS: tuple[str, str] = ("tab:blue", "tab:orange")
+
+
+def _panels(
+    figsize: tuple[float, float], n: int, gap: float, left: float = 0.8, **kwargs: Any
+) -> tuple[Figure, np.ndarray]:
+    """A figure of ``n`` panels in a row with fixed margins (inches): ``left`` for the first
+    panel's tick labels and axis label, ``gap`` between panels, room below for the x label
+    and above for titles."""
+    fig = Figure(figsize=figsize)
+    width, height = figsize
+    right, bottom, top = 0.15, 0.55, 0.35
+    panel = (width - left - right - (n - 1) * gap) / n
+    fig.subplots_adjust(left=left / width, right=1 - right / width, bottom=bottom / height,
+                        top=1 - top / height, wspace=gap / panel)  # fmt: skip
+    return fig, fig.subplots(1, n, squeeze=False, **kwargs)[0]
 
 
 def plot_observable_histograms(
@@ -58,8 +77,7 @@ def plot_observable_histograms(
         edges = np.histogram_bin_edges(np.concatenate(values), bins=bins)
     else:
         edges = _shared_edges(flat, bins)
-    fig = Figure(figsize=(3.2 * len(times), 3.0), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(1, len(times), sharex=True, sharey=True))
+    fig, axes = _panels((3.2 * len(times), 3.0), len(times), 0.15, sharex=True, sharey=True)
     for ax, t, pair in zip(axes, times, dists, strict=True):
         for dist, label, colour in zip(pair, labels, COLOURS, strict=True):
             if exact:
@@ -112,8 +130,7 @@ def plot_observable_over_time(
     Both models share one axis by default; ``separate=True`` gives the paper's layout of one
     panel per model (shared y-axis).
     """
-    fig = Figure(figsize=(9.0 if separate else 5.5, 3.5), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(1, 2 if separate else 1, sharey=True))
+    fig, axes = _panels((9.0 if separate else 5.5, 3.5), 2 if separate else 1, 0.15, sharey=True)
     for i, (run, label, colour) in enumerate(
         zip((reference, candidate), labels, COLOURS, strict=True)
     ):
@@ -150,9 +167,8 @@ def plot_duration_histograms(
     have them, which give the same figure as the values); each panel's bins are shared by both
     models. A kind with no durations in either run gets an empty panel saying so.
     """
-    fig = Figure(figsize=(9.0, 3.5), layout="constrained")
     kinds = list(reversed(reference.lump_names))
-    axes = fig.subplots(1, len(kinds))
+    fig, axes = _panels((9.0, 3.5), len(kinds), 0.8)
     for ax, kind in zip(axes, kinds, strict=True):
         pair = (reference.duration_distribution(kind), candidate.duration_distribution(kind))
         ax.set_title(f"{kind} durations", fontsize=10)

@@ -191,11 +191,12 @@ def write_outputs(
             frames.append(mean_std_over_time(r, name).assign(observable=name, model=label))
         axis = model.observable_label(name)
         save_figure(out / f"{name}_histograms.png", plot_observable_histograms(
-            runs.full, runs.candidate, settings.times, labels, name=name, axis_label=axis))  # fmt: skip
+            runs.full, runs.candidate, settings.times, labels, name=name, axis_label=axis), crop=False)  # fmt: skip
         save_figure(out / f"{name}_over_time.png", plot_observable_over_time(
-            runs.full, runs.candidate, labels, separate=True, name=name, axis_label=axis))  # fmt: skip
+            runs.full, runs.candidate, labels, separate=True, name=name, axis_label=axis), crop=False)  # fmt: skip
     write_csv(out / "observables_over_time.csv", pd.concat(frames, ignore_index=True))
-    save_figure(out / "durations.png", plot_duration_histograms(runs.full, runs.candidate, labels))
+    save_figure(out / "durations.png", plot_duration_histograms(runs.full, runs.candidate, labels),
+                crop=False)  # fmt: skip
 
 
 def read_summary(directory: str | Path) -> dict[str, Any]:

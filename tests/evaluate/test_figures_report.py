@@ -151,6 +151,43 @@ def test_duration_histograms_of_other_lumps(tmp_path: Path) -> None:
     ]
 
 
+def _drawn_extent(fig: Figure) -> tuple[float, float, float, float]:
+    """The bounding box (inches) of everything ``fig`` draws: what ``bbox_inches="tight"``
+    would crop to."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    box = fig.get_tightbbox(renderer)
+    return box.x0, box.y0, box.x1, box.y1
+
+
+def test_fixed_margins_keep_every_label_on_the_canvas(
+    runs: tuple[SimulationRun, SimulationRun], tmp_path: Path
+) -> None:
+    """The evaluation's figures are saved uncropped (margins set by hand): nothing drawn (tick
+    labels, axis labels, titles, legends) may fall off the canvas, even with a long axis
+    label."""
+    from PIL import Image
+
+    label = "distance from the peak of the field (mm)"
+    figures = {
+        "hist": plot_observable_histograms(*runs, times=TIMES, axis_label=label),
+        "time": plot_observable_over_time(*runs, separate=True, axis_label=label),
+        "time1": plot_observable_over_time(*runs, axis_label=label),
+        "dur": plot_duration_histograms(*runs),
+    }
+    for name, fig in figures.items():
+        x0, y0, x1, y1 = _drawn_extent(fig)
+        width, height = fig.get_size_inches()
+        assert x0 >= 0 and y0 >= 0 and x1 <= width and y1 <= height, (name, x0, y0, x1, y1)
+        with Image.open(save_figure(tmp_path / f"{name}.png", fig, crop=False)) as image:
+            assert image.size == (round(width * 120), round(height * 120)), name  # not cropped
+    cropped = save_figure(tmp_path / "cropped.png", plot_duration_histograms(*runs), crop=True)
+    with Image.open(cropped) as image:
+        assert image.size != (9 * 120, round(3.5 * 120))
+
+
 # ----------------------------------------------------------------------------------------------
 # markdown and files
 
