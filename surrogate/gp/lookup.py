@@ -39,6 +39,10 @@ class PsiLookupTable:
         tensor([0.5000])
     """
 
+    #: each row's value depends on that row's inputs only, bit for bit, whatever the number of
+    #: rows (elementwise interpolation): cells of several runs may share one call
+    rowwise = True
+
     def __init__(
         self, table: Tensor, ranges: Sequence[Range], input_names: Sequence[str] | None = None
     ) -> None:
@@ -232,9 +236,10 @@ def _interpolate(
     for a, n in enumerate(shape):
         u = ((z[:, a] - origin[a]) * scale[a]).clamp(0.0, n - 1)
         # lower node kept <= n - 2 so the upper one exists (u = n - 1 gets frac 1). Clamped
-        # as an integer: a NaN converts to some integer and lands in range (never a bad
-        # index; NaN still flows into the fraction), and the compiler can prove the bounds,
-        # so a fused step keeps its loop vectorised (a NaN test here made it scalar, 2-3x)
+        # as an integer so the compiler can prove the bounds and a fused step keeps its loop
+        # vectorised (a NaN test here made it scalar, 2-3x). A NaN's integer is unspecified
+        # in C++ (x86 and CUDA give INT64_MIN or 0); the clamp brings any value into range, and
+        # NaN still reaches the output through the fraction (tested eager and compiled)
         i = u.floor().long().clamp(0, n - 2)
         fracs.append(u - i)
         base = base + i * strides[a]
@@ -270,6 +275,7 @@ class StackedPsiLookup:
     """
 
     check_finite = False
+    rowwise = True  # as PsiLookupTable
 
     def __init__(self, tables: Sequence[PsiLookupTable], sizes: Sequence[int]) -> None:
         if not tables or len(tables) != len(sizes):

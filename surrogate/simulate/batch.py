@@ -350,10 +350,16 @@ def _stackable(a: DecisionLayer, b: DecisionLayer) -> bool:
 
 
 def _interchangeable(a: DecisionLayer, b: DecisionLayer) -> bool:
+    """Whether two layers can be one block: the same kind over the same objects, and a run
+    probability (if any) declared ``rowwise``. A psi whose rows interact numerically (e.g.
+    matmul-based, with code paths by row count) would give a replicate other last bits in a
+    block than alone."""
     same = type(a) is type(b) and a.name == b.name
     for attr in ("internal", "run_probability"):
         same = same and getattr(a, attr, None) is getattr(b, attr, None)
-    return same and is_fusable(a) == is_fusable(b)
+    psi = getattr(a, "run_probability", None)
+    rowwise = psi is None or bool(getattr(psi, "rowwise", False))
+    return same and rowwise and is_fusable(a) == is_fusable(b)
 
 
 def _offsets(sizes: Sequence[int]) -> list[int]:

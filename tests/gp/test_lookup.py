@@ -169,6 +169,19 @@ def test_nan_propagates_without_bad_index() -> None:
     assert torch.equal(table(torch.tensor([1, 0, 1]), z).isnan(), out.isnan())
 
 
+def test_nan_propagates_through_the_compiled_interpolation() -> None:
+    """Compiled, a NaN input's node index is whatever the C++ conversion gives (clamped into
+    range); its output must still be NaN and its neighbours' values unchanged."""
+    table = PsiLookupTable.from_function(analytic, BOX, NAMES, (16, 16))
+    z = torch.tensor([[float("nan"), 0.0], [2.0, 0.05], [2.0, float("nan")], [2.5, 0.02]])
+    phi = torch.tensor([1, 0, 1, 0])
+    compiled = torch.compile(table.evaluate)
+    out = compiled(phi, z)
+    assert out.isnan().tolist() == [True, False, True, False]
+    eager = table.evaluate(phi, z)
+    torch.testing.assert_close(out[~out.isnan()], eager[~eager.isnan()], rtol=0, atol=1e-6)
+
+
 def test_phi_selects_layer() -> None:
     table = PsiLookupTable.from_function(analytic, BOX, NAMES, (32, 32))
     z = mL(torch.full((3,), 1.2), torch.full((3,), 0.05))

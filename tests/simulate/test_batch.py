@@ -155,3 +155,49 @@ def _durations(ended: torch.Tensor, sign: int) -> np.ndarray:
     values = ended[ended * sign > 0].abs().double().numpy() * DT
     assert len(values) > 1000
     return values
+
+
+def test_replicates_sharing_a_matmul_psi_keep_their_own_blocks() -> None:
+    """A closed-form GP psi (matmuls, another code path from 4,096 rows on) is not ``rowwise``:
+    two runs sharing it stay two blocks, so each is still its standalone run bit for bit (one
+    call over 6,000 rows gave some probabilities other last bits than two calls over 3,000, on
+    the CPU where this was found; a flipped draw is rare, so the grouping is what is asserted).
+    """
+    import numpy as np
+    import pandas as pd
+
+    from surrogate.gp import GPSettings, fit_psi
+    from surrogate.gp.fast import CachedPsi
+
+    rng = np.random.default_rng(0)
+    dg = rng.uniform(-3.0, 10.0, 1200)
+    phi = rng.integers(0, 2, dg.size)
+    switch = rng.random(dg.size) < 1.0 / (1.0 + np.exp(-(dg - 1.0)))
+    data = pd.DataFrame({"dG": dg, "phi": phi, "phi_next": switch.astype(np.int8)})
+    torch.manual_seed(0)
+    psi = fit_psi(data, ("dG",), GPSettings(n_inducing=20, epochs=3, batch_size=400),
+                  progress=False)  # fmt: skip
+    fast = CachedPsi.from_classifier(psi)
+    assert not getattr(fast, "rowwise", False) and _table().rowwise
+    shared = AbstractDecision(fast, MODEL.internal, MODEL.featurizer(["dG"]))
+    spec = [(GaussianField(), 3000, 0), (GaussianField(), 3000, 1)]
+    alone = []
+    for field, n, seed in spec:
+        torch.manual_seed(seed)
+        sim = Simulator(MODEL, shared, field, DT)
+        state = sim.initial_state(n, (2.0, 0.0))
+        for _ in range(40):
+            sim.step(state)
+        alone.append(state)
+    batch = BatchSimulator(MODEL, [Replicate(shared, f, n, s) for f, n, s in spec], DT)
+    assert batch.groups == [[0], [1]]
+    state = batch.initial_state()
+    for _ in range(40):
+        batch.step(state)
+    for i, cells in enumerate(batch.slices):
+        assert torch.equal(state.phi[cells], alone[i].phi), i
+        assert torch.equal(state.body["position"][cells], alone[i].body["position"]), i
+    # a shared lookup table is rowwise: one block
+    table = AbstractDecision(_table(), MODEL.internal, MODEL.featurizer(["dG"]))
+    reps = [Replicate(table, f, 10, s) for f, _, s in spec]
+    assert BatchSimulator(MODEL, reps, DT).groups == [[0, 1]]
