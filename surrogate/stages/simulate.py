@@ -269,9 +269,9 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
     seed_everything(setup.seed)
     simulator = BatchSimulator(setup.model, replicates, setup.dt, job.device,
                                compile=first.compile)  # fmt: skip
-    log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d field blocks)",
+    log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d distinct fields)",
              len(runs), sum(s.n_cells for s in runs), len(simulator.decision.members),
-             len(simulator.field.fields))  # fmt: skip
+             len(simulator.field.distinct))  # fmt: skip
     summaries = simulate_batch(
         simulator, first.t_end, [s.directory for s in runs],
         record_interval=first.record_interval, equilibration_time=first.equilibration_time,

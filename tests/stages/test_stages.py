@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pandas as pd
@@ -159,17 +160,25 @@ def test_collect_records_nothing_inside_the_blackout_after_a_jump(compose_cfg) -
     assert (without["since_jump"].between(0, 19)).sum() > 50
 
 
-def test_runs_simulated_together_are_the_standalone_runs(trained, compose_cfg) -> None:
+@pytest.mark.parametrize(("lookup", "blocks"), [("[64]", 3), ("null", 2)],
+                         ids=["own_tables", "stacked_tables"])  # fmt: skip
+def test_runs_simulated_together_are_the_standalone_runs(
+    trained, compose_cfg, caplog, lookup: str, blocks: int
+) -> None:
     """reproduce simulates its runs as one batch: eager, each run is its standalone run bit for
-    bit (same directory, same files), whatever else is in the batch."""
+    bit (same directory, same files), whatever else is in the batch. With the default table
+    size the abstraction's and the exact chain's tables (both 4,096 nodes over dG) are stacked
+    into one decision block."""
     from surrogate.stages.settings import ReproduceSettings
 
-    cfg = compose_cfg("reproduce", [*TINY, "decision.lookup_size=[64]", "fields=[gaussian,linear]",
-                                    "record_cells=16"])  # fmt: skip
+    cfg = compose_cfg("reproduce", [*TINY, f"decision.lookup_size={lookup}",
+                                    "fields=[gaussian,linear]", "record_cells=16"])  # fmt: skip
     settings = ReproduceSettings.from_config(cfg)
     runs = settings.runs()
     assert {s.decision.name for s in runs} == {"full", "abstract", "exact"} and len(runs) == 8
-    dirs = simulate_stage.simulate_together(runs)
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.simulate"):
+        dirs = simulate_stage.simulate_together(runs)
+    assert f"(320 cells, {blocks} decision blocks, 2 distinct fields)" in caplog.text
     batched = {d: (pd.read_parquet(d / "observables.parquet"),
                    pd.read_parquet(d / "duration_histogram.parquet")) for d in dirs}  # fmt: skip
     for d in dirs:
