@@ -185,9 +185,23 @@ def make_simulator(
     device: torch.device,
     tables: Mapping[str, Any],
     compile: bool,
+    backend: str = "torch",
 ) -> Simulator:
-    """A simulator for one decision layer."""
-    return Simulator(model, make_decision(name, model, tables), field, dt, device, compile=compile)
+    """A simulator for one decision layer (``backend`` numba falls back to torch where the
+    model has no kernel, e.g. the classifier; the results say which ran)."""
+    backend = "auto" if backend == "numba" else backend
+    return Simulator(model, make_decision(name, model, tables), field, dt, device,
+                     compile=compile, backend=backend)  # fmt: skip
+
+
+#: steps per Simulator.advance call, as the simulate stage takes a record interval (1 s at dt 0.05)
+CHUNK_STEPS = 20
+
+
+def modes(s: Mapping[str, Any]) -> list[tuple[str, bool]]:
+    """(backend, compile) pairs to measure: torch with each compile setting, numba once."""
+    backends = s.get("backends") or ["torch"]
+    return [(b, c) for b in backends for c in (s["compile"] if b == "torch" else [False])]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -205,8 +219,9 @@ def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict
             steps = 0
             t0 = time.perf_counter()
             while True:
-                simulator.step(state)
-                steps += 1
+                k = max(1, min(CHUNK_STEPS, int(s["max_steps"]) - steps))
+                simulator.advance(state, k)
+                steps += k
                 if steps >= int(s["max_steps"]):
                     break
                 if steps >= int(s["min_steps"]) and time.perf_counter() - t0 >= s["min_seconds"]:
@@ -222,13 +237,14 @@ def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict
         "steps": best_steps,
         "warm_up_s": warm_s,
         "compile_error": simulator.compile_error,
+        "backend": simulator.backend,
     }
 
 
 def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict[str, float]:
-    """Per-step microseconds: drawing the random numbers, the fused kernel alone, the whole
-    step, and the rest (Python, bookkeeping) = step - randoms - kernel."""
-    if not is_fusable(simulator.decision):
+    """Per-step microseconds of the torch step: drawing the random numbers, the fused kernel
+    alone, the whole step, and the rest (Python, bookkeeping) = step - randoms - kernel."""
+    if not is_fusable(simulator.decision) or simulator.kernel is not None:
         return {}
     device = simulator.device
 
@@ -421,18 +437,20 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
     rows = []
     for threads in s["threads"]:
         with num_threads(threads):
-            for compile in s["compile"]:
+            for backend, compile in modes(s):
                 sims = {
-                    name: make_simulator(name, model, field, dt, device, tables, compile)
+                    name: make_simulator(name, model, field, dt, device, tables, compile, backend)
                     for name in MODELS
                 }
                 for n in s["sizes"]:
                     load = read_load()
                     row: dict[str, Any] = {
-                        "threads": threads, "compile": compile, "n_cells": n, "load": load,
+                        "threads": threads, "backend": backend, "compile": compile,
+                        "n_cells": n, "load": load,
                     }  # fmt: skip
                     for name in MODELS:
-                        log(f"throughput: {name} n={n} threads={threads} compile={compile}")
+                        log(f"throughput: {name} n={n} threads={threads} backend={backend} "
+                            f"compile={compile}")  # fmt: skip
                         row[name] = throughput(sims[name], n, s)
                     full = row["full"]["cell_steps_per_s"]
                     row["ratio_lookup"] = row["lookup"]["cell_steps_per_s"] / full
@@ -468,15 +486,17 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
                 breakdown.append({"model": name, "n_cells": n, **step_breakdown(sim, n)})
         results["breakdown"] = breakdown
 
-        # 5. the paper's workload, eager and compiled
+        # 5. the paper's workload through simulate_population: eager, compiled, numba
         paper = []
         with tempfile.TemporaryDirectory() as tmp:
-            for compile in s["compile"]:
+            for backend, compile in modes(s):
                 for name in ("full", "lookup"):
-                    log(f"paper workload: {name} compile={compile}")
-                    sim = make_simulator(name, model, field, dt, device, tables, compile)
-                    out = paper_workload(sim, s["paper"], Path(tmp) / f"{name}-{compile}")
-                    paper.append({"model": name, "compile": compile, "load": read_load(), **out})
+                    log(f"paper workload: {name} backend={backend} compile={compile}")
+                    sim = make_simulator(name, model, field, dt, device, tables, compile, backend)
+                    out = paper_workload(sim, s["paper"],
+                                         Path(tmp) / f"{name}-{backend}-{compile}")  # fmt: skip
+                    paper.append({"model": name, "backend": sim.backend, "compile": compile,
+                                  "load": read_load(), **out})  # fmt: skip
         results["paper"] = {
             "n_cells": int(s["paper"]["n_cells"]),
             "t_end": float(s["paper"]["t_end"]),
@@ -499,7 +519,8 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
 
 
 def _best_config(rows: list[dict[str, Any]]) -> tuple[int, bool]:
-    """(threads, compile) with the highest full-model throughput at the largest size."""
+    """(threads, compile) of the torch step with the highest throughput at the largest size."""
+    rows = [r for r in rows if r.get("backend", "torch") == "torch"] or rows
     largest = max(r["n_cells"] for r in rows)
     top = max((r for r in rows if r["n_cells"] == largest), key=lambda r: _score(r))
     return int(top["threads"]), bool(top["compile"])
@@ -528,12 +549,13 @@ def format_report(r: Mapping[str, Any]) -> str:
         f"(max dev {r['abstraction']['cached_max_deviation']:.1e})",
         "",
         "throughput (cell-steps/s; best of repeats)",
-        f"{'thr':>3} {'compile':>7} {'cells':>7} {'full':>9} {'lookup':>9} {'classif':>9} "
-        f"{'lk/full':>7} {'cl/full':>7}  load",
+        f"{'thr':>3} {'backend':>7} {'compile':>7} {'cells':>7} {'full':>9} {'lookup':>9} "
+        f"{'classif':>9} {'lk/full':>7} {'cl/full':>7}  load",
     ]
     for row in r["throughput"]:
         lines.append(
-            f"{row['threads']:>3} {row['compile']!s:>7} {row['n_cells']:>7} "
+            f"{row['threads']:>3} {row.get('backend', 'torch'):>7} {row['compile']!s:>7} "
+            f"{row['n_cells']:>7} "
             f"{_si(row['full']['cell_steps_per_s']):>9} {_si(row['lookup']['cell_steps_per_s']):>9} "
             f"{_si(row['classifier']['cell_steps_per_s']):>9} {row['ratio_lookup']:>7.2f} "
             f"{row['ratio_classifier']:>7.2f}  {row['load'][:1]}"
@@ -557,7 +579,8 @@ def format_report(r: Mapping[str, Any]) -> str:
     lines += ["", f"paper workload ({p['n_cells']} cells, {p['t_end']:g} s, dt {p['dt']:g})"]
     for run in p["runs"]:
         lines.append(
-            f"  {run['model']:>7} compile={run['compile']!s:<5} wall {run['wall_s']:7.2f} s "
+            f"  {run['model']:>7} {run.get('backend', 'torch'):>5} compile={run['compile']!s:<5} "
+            f"wall {run['wall_s']:7.2f} s "
             f"(loop {run['loop_s']:.2f} s, compile {run['compile_s']:.1f} s)  load {run['load'][:1]}"
         )
     c, t = r["collect"], r["training"]

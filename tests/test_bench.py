@@ -42,13 +42,24 @@ def test_quick_bench_writes_all_sections(
                 "best_config", "motors", "breakdown", "paper", "memory", "total_s"):  # fmt: skip
         assert key in r, key
     assert {"cpu", "cores", "torch_threads", "device", "load_average"} <= set(r["machine"])
-    assert [row["n_cells"] for row in r["throughput"]] == [50, 200]
+    # the torch step, then the per-cell kernel (the classifier has none: torch there too)
+    assert [(row["backend"], row["n_cells"]) for row in r["throughput"]] == [
+        ("torch", 50),
+        ("torch", 200),
+        ("numba", 50),
+        ("numba", 200),
+    ]
     for row in r["throughput"]:
         for model in ("full", "lookup", "classifier"):
             assert row[model]["cell_steps_per_s"] > 0
         assert row["ratio_lookup"] > 0 and row["ratio_classifier"] > 0
+        kernel = "torch" if row["backend"] == "torch" else "numba"
+        assert (row["full"]["backend"], row["lookup"]["backend"]) == (kernel, kernel)
+        assert row["classifier"]["backend"] == "torch"
+    assert {(run["model"], run["backend"]) for run in r["paper"]["runs"]} == {
+        (m, b) for m in ("full", "lookup") for b in ("torch", "numba")
+    }
     assert [row["n_motors"] for row in r["motors"]] == [4, 10]
-    assert {run["model"] for run in r["paper"]["runs"]} == {"full", "lookup"}
     assert r["collect"]["seconds"] > 0 and r["training"]["seconds"] > 0
     assert r["training"]["n_per_classifier"] == 300
     assert r["training"]["inputs"] == inputs

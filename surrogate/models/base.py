@@ -54,6 +54,26 @@ class Randoms:
     normal: int = 0
 
 
+class KernelUnsupported(ConfigError):
+    """A model's compiled per-cell kernel cannot run this combination (the message says what);
+    ``backend=auto`` then keeps the torch step."""
+
+
+class CellKernel(Protocol):
+    """A model's compiled step over many steps per call (see :meth:`Model.cell_kernel`)."""
+
+    def advance(self, state: Any, ended: Tensor, u: Tensor, u64: Tensor | None, z: Tensor) -> None:
+        """Advance ``state`` (a ``PopulationState``) by ``ended.shape[0]`` steps in place,
+        writing each step's ended segment lengths into ``ended`` (``steps x n`` int32), with
+        the steps' random numbers ``u``/``u64``/``z`` (``steps x rows x n``) laid out as the
+        simulator's torch step takes them."""
+        ...
+
+    def warm_up(self, state: Any) -> None:
+        """Compile (or load from the cache) without changing ``state``."""
+        ...
+
+
 @runtime_checkable
 class InternalModel(Protocol):
     """The internal layer of one agent type, batched over cells.
@@ -230,6 +250,13 @@ class Model:
             )
         return names
 
+    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+        """The model's compiled per-cell kernel for this decision layer and field (the
+        simulator's ``backend=numba``): many steps per call, the same random numbers as the
+        torch step. Raises :class:`KernelUnsupported` (naming what) where it has none; the base
+        model has none."""
+        raise KernelUnsupported(f"model {self.name!r} has no compiled per-cell kernel")
+
     def featurizer(self, names: Sequence[str]) -> Callable[[Tensor], Tensor]:
         """``x (n x d) -> z (n x len(names))``: the columns an abstraction over ``names`` needs."""
         return FeatureMap(self.internal, self.abstraction_inputs(list(names)))
@@ -295,9 +322,11 @@ def check_options(
 __all__ = [
     "AgentBody",
     "BodyState",
+    "CellKernel",
     "FeatureMap",
     "InternalModel",
     "InternalState",
+    "KernelUnsupported",
     "Model",
     "Perturbation",
     "Randoms",

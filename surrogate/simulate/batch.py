@@ -142,7 +142,7 @@ class BatchSimulator(Simulator):
     Args:
         model: the agent model shared by every replicate.
         replicates: the runs, in block order; each needs its own decision-layer instance.
-        dt, device, check_finite, compile: as for :class:`Simulator`.
+        dt, device, check_finite, compile, backend: as for :class:`Simulator`.
 
     Example:
         >>> from surrogate.fields import GaussianField, LinearField
@@ -163,6 +163,7 @@ class BatchSimulator(Simulator):
         device: str | torch.device = "cpu",
         check_finite: bool = True,
         compile: bool = False,
+        backend: str = "torch",
     ) -> None:
         self.replicates = list(replicates)
         if not self.replicates:
@@ -179,7 +180,7 @@ class BatchSimulator(Simulator):
             else:
                 blocks.append((r.field, r.n_cells))
         field = FieldBatch([f for f, _ in blocks], [n for _, n in blocks])
-        super().__init__(model, decision, field, dt, device, check_finite, compile)
+        super().__init__(model, decision, field, dt, device, check_finite, compile, backend)
         self.sizes = sizes
         self.slices = [slice(a, a + n) for a, n in zip(_offsets(sizes), sizes, strict=True)]
         self._blocks: list[RandomBlock] = []
@@ -227,13 +228,16 @@ class BatchSimulator(Simulator):
         """Each replicate's rows from its own generator, in its standalone layout (the
         decision's rows right-aligned before the body's), assembled into the batch's."""
         if self._block is None or self._block.exhausted:
-            self._block = self._assemble()
+            self._block = self._next_block(n)
         u, u64, z = self._block.take()
         extras = [
             self._extra(s.stop - s.start, g)
             for s, g in zip(self.slices, self.generators, strict=True)
         ]
         return u, u64, z, None if extras[0] is None else torch.cat(extras)  # type: ignore[arg-type]
+
+    def _next_block(self, n: int) -> RandomBlock:
+        return self._assemble()
 
     def _assemble(self) -> RandomBlock:
         """The next block of the batch: every replicate's next block placed in its columns.
@@ -437,22 +441,26 @@ def simulate_batch(
             state = simulator.initial_state(equilibration_time=equilibration_time)
             simulator.check_state(state)
             _record(recorders, simulator, state, 0.0)
-            compile_time = simulator.warm_up(state) if simulator.compile else 0.0
+            compile_time = simulator.warm_up(state)
             loop_start = time.perf_counter()
-            for k in tqdm(range(n_steps), desc=f"simulate {simulator.decision.name}",
-                          unit="step", disable=not progress, mininterval=1.0):  # fmt: skip
-                ended = simulator.step(state).ended_length
-                if mode != "none":
+            k = 0
+            with tqdm(total=n_steps, desc=f"simulate {simulator.decision.name}", unit="step",
+                      disable=not progress, mininterval=1.0) as bar:  # fmt: skip
+                while k < n_steps:  # to the next record time, or until the buffer is full
+                    steps = min(every - k % every, n_steps - k, rows - filled)
                     if filled == 0:
                         first = k
-                    buffer[filled] = ended
-                    filled += 1
+                    simulator.advance(state, steps, out=buffer[filled : filled + steps])
+                    filled += steps
                     if filled == rows:
-                        hand_over()
+                        if mode != "none":
+                            hand_over()
                         filled = 0
-                if (k + 1) % every == 0:
-                    simulator.check_state(state)
-                    _record(recorders, simulator, state, (k + 1) * dt)
+                    k += steps
+                    bar.update(steps)
+                    if k % every == 0:
+                        simulator.check_state(state)
+                        _record(recorders, simulator, state, k * dt)
             if mode != "none" and filled:
                 hand_over()
             simulator.check_state(state)

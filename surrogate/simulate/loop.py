@@ -36,9 +36,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import NumericalError
+from surrogate.errors import ConfigError, NumericalError
 from surrogate.fields import Field
-from surrogate.models.base import BodyState, Model, Randoms
+from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 
 
@@ -53,6 +53,8 @@ class PopulationState:
         segment_complete: bool ``(n,)``, the current segment began with a switch (not censored).
         inputs: ``n x d``, the inputs of the last step (checked at record times), or None.
         step: steps taken.
+        private: the tensors are this state's own copies (a compiled per-cell kernel then
+            advances them in place; the torch step always makes new ones).
     """
 
     body: BodyState
@@ -61,6 +63,22 @@ class PopulationState:
     segment_complete: Tensor
     inputs: Tensor | None = None
     step: int = 0
+    private: bool = False
+
+    def make_private(self) -> None:
+        """Replace every tensor by a contiguous copy of its own (once), so writing into them
+        in place changes nothing a caller may still hold."""
+        if self.private:
+            return
+        self.body = {
+            k: v.clone(memory_format=torch.contiguous_format) for k, v in self.body.items()
+        }
+        self.phi = self.phi.clone(memory_format=torch.contiguous_format)
+        self.segment_steps = self.segment_steps.clone(memory_format=torch.contiguous_format)
+        self.segment_complete = self.segment_complete.clone(memory_format=torch.contiguous_format)
+        if self.inputs is not None:
+            self.inputs = self.inputs.clone(memory_format=torch.contiguous_format)
+        self.private = True
 
     @property
     def n_cells(self) -> int:
@@ -166,6 +184,16 @@ class RandomBlock:
         """Whether every step's numbers were taken."""
         return self.next >= self.steps
 
+    def take_steps(self, k: int) -> tuple[Tensor, Tensor | None, Tensor]:
+        """The next ``k`` steps' numbers (``k x rows x n`` views; ``k`` <= steps left)."""
+        a = self.next
+        self.next += k
+        return (
+            self.u[a : a + k],
+            None if self.u64 is None else self.u64[a : a + k],
+            self.z[a : a + k],
+        )
+
     def take(self) -> tuple[Tensor, Tensor | None, Tensor]:
         """The next step's random numbers."""
         k = self.next
@@ -186,7 +214,14 @@ class Simulator:
         check_finite: let :meth:`check_state` raise on NaN/inf or bad inputs (at record times).
         compile: run the step kernel through ``torch.compile`` (the first steps pay the compile
             time; :meth:`warm_up` does it up front without touching the random stream; falls
-            back to eager with a warning if compiling fails, see ``compile_error``).
+            back to eager with a warning if compiling fails, see ``compile_error``). Only for
+            the torch backend.
+        backend: ``torch`` (tensor operations per step, cells in the batch dimension; any
+            device), ``numba`` (the model's compiled per-cell kernel, :meth:`Model.cell_kernel`:
+            many steps per call, CPU only, the same random numbers as the torch step) or
+            ``auto`` (numba where the model has a kernel for this decision layer and field on
+            the CPU, else torch; ``backend_note`` says why torch). :meth:`advance` uses it;
+            :meth:`step` is always the torch step.
 
     Example:
         >>> from surrogate.fields import GaussianField
@@ -207,6 +242,7 @@ class Simulator:
         device: str | torch.device = "cpu",
         check_finite: bool = True,
         compile: bool = False,
+        backend: str = "torch",
     ) -> None:
         self.model = model
         self.body = model.body
@@ -220,10 +256,13 @@ class Simulator:
         self.check_finite = check_finite
         self._checked_step = 0  # step up to which check_state found the state sound
         self._block: RandomBlock | None = None
+        self.kernel, self.backend_note = _cell_kernel(backend, model, decision, field, self.dt,
+                                                      self.device)  # fmt: skip
+        self.backend = "torch" if self.kernel is None else "numba"
         self.compile = bool(compile)
         self.compile_error: str | None = None
         self._kernels: dict[str, Callable[..., Any]] = {}
-        if self.compile:
+        if self.compile and self.kernel is None:
             for name in ("_fused_step", "_advance"):
                 self._kernels[name] = torch.compile(_private_copy(getattr(self, name)))
 
@@ -299,16 +338,53 @@ class Simulator:
         state.segment_complete = complete8.view(torch.bool)
         state.inputs = x
         state.step += 1
+        state.private = False  # the returned record shares these tensors
         return StepRecord(x, phi_before, phi, ended)
+
+    def advance(self, state: PopulationState, steps: int, out: Tensor | None = None) -> Tensor:
+        """Advance every cell by ``steps`` steps; return each step's ended segment lengths
+        (``steps x n`` int32, as :attr:`StepRecord.ended_length`; into ``out`` if given).
+
+        The torch backend calls :meth:`step` per step; the numba backend calls the model's
+        kernel once per block of random numbers (the same numbers, in the same order), writing
+        into the state's own tensors (:meth:`PopulationState.make_private`)."""
+        n = state.n_cells
+        if out is None:
+            out = torch.empty((steps, n), dtype=torch.int32, device=self.device)
+        if self.kernel is None:
+            for s in range(steps):
+                out[s] = self.step(state).ended_length
+            return out
+        state.make_private()
+        done = 0
+        while done < steps:
+            u, u64, z = self.draw_block(n, steps - done)
+            k = int(u.shape[0])
+            self.kernel.advance(state, out[done : done + k], u, u64, z)
+            done += k
+        return out
 
     def draw_randoms(self, n: int) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
         """This step's random numbers: float32 uniforms, float64 uniforms (or None) and normals
         (rows as declared, the decision's first; views into a block drawn every
         :func:`block_steps` steps), and the body's ``sample_extra`` (or None)."""
         if self._block is None or self._block.exhausted or self._block.n != n:
-            self._block = RandomBlock(self.randoms, n, self.device)
+            self._block = self._next_block(n)
         u, u64, z = self._block.take()
         return u, u64, z, self.body.sample_extra(n, self.device)
+
+    def draw_block(self, n: int, max_steps: int) -> tuple[Tensor, Tensor | None, Tensor]:
+        """The next up to ``max_steps`` steps' random numbers (``k x rows x n``), the same
+        numbers :meth:`draw_randoms` would hand out step by step (to the end of the current
+        block at most)."""
+        if self._block is None or self._block.exhausted or self._block.n != n:
+            self._block = self._next_block(n)
+        k = min(max_steps, self._block.steps - self._block.next)
+        return self._block.take_steps(k)
+
+    def _next_block(self, n: int) -> RandomBlock:
+        """A new block of random numbers for ``n`` cells."""
+        return RandomBlock(self.randoms, n, self.device)
 
     def _run(self, name: str, *args: Any) -> Any:
         """Call kernel ``name`` compiled if enabled (falling back to eager on failure)."""
@@ -331,8 +407,13 @@ class Simulator:
         """Compile (if enabled) by running the kernel on ``state`` without changing it, the
         decision layer or the random stream (placeholder random numbers); return seconds.
 
-        Three calls: dynamo specialises on the first time value and generalises on the next.
+        torch.compile: three calls (dynamo specialises on the first time value and generalises
+        on the next). numba: the kernel compiled, or loaded from its cache, on zero cells.
         """
+        if self.kernel is not None:
+            t0 = time.perf_counter()
+            self.kernel.warm_up(state)
+            return time.perf_counter() - t0
         if not self._kernels:
             return 0.0
         t0 = time.perf_counter()
@@ -448,6 +529,35 @@ class Simulator:
         segment_steps = length * (1 - switched)
         complete8 = torch.maximum(complete, switched).to(torch.uint8)
         return body, segment_steps, complete8, ended_length
+
+
+BACKENDS = ("auto", "torch", "numba")
+
+
+def _cell_kernel(
+    backend: str,
+    model: Model,
+    decision: DecisionLayer,
+    field: Field,
+    dt: float,
+    device: torch.device,
+) -> tuple[Any, str | None]:
+    """The model's per-cell kernel for ``backend`` (None: the torch step) and, for ``auto``
+    falling back to torch, why."""
+    if backend not in BACKENDS:
+        raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    if backend == "torch":
+        return None, None
+    try:
+        if device.type != "cpu":
+            raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")
+        return model.cell_kernel(decision, field, dt), None
+    except KernelUnsupported as exc:
+        if backend == "numba":
+            raise KernelUnsupported(
+                f"backend=numba cannot run {exc}; use backend=torch (or auto)"
+            ) from None
+        return None, str(exc)
 
 
 def _as_bytes(flags: Tensor) -> Tensor:

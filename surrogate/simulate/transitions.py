@@ -53,13 +53,21 @@ def _rows(
     # steps since each cell's last jump (-1: never), on the device: no per-step host sync
     since = torch.full((n_cells,), -1, dtype=torch.int64, device=device)
     with torch.inference_mode():  # cheaper per op than no_grad
-        for k in range(max_steps):
+        k = 0
+        while k < max_steps:
+            if perturbation is None:  # no jumps to draw per step: unrecorded steps in one call
+                skip = min(record_every - 1 - k % record_every, max_steps - k)
+                if skip:
+                    simulator.advance(state, skip)
+                    k += skip
+                    continue
+            k += 1
             if perturbation is not None:
                 jump = torch.rand(n_cells, device=device) < jump_probability
                 state.body = perturbation.apply(state.body, jump)
                 since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
             rec = simulator.step(state)
-            if (k + 1) % record_every:
+            if k % record_every:
                 continue
             # every cell on thinned steps, except those still inside the blackout after a jump
             rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
@@ -71,7 +79,7 @@ def _rows(
             # the table
             if not np.isfinite(values).all():
                 raise NumericalError(
-                    f"NaN/inf in the recorded inputs at t={k * dt:g} s; the field returned "
+                    f"NaN/inf in the recorded inputs at t={(k - 1) * dt:g} s; the field returned "
                     f"NaN/inf values or the dynamics diverged"
                 )
             chunk = {n: values[:, i] for i, n in enumerate(names)}
@@ -79,7 +87,7 @@ def _rows(
                 phi=rec.phi_before[rows].to(torch.int8).cpu().numpy(),
                 phi_next=rec.phi_after[rows].to(torch.int8).cpu().numpy(),
                 cell=rows.cpu().numpy(),
-                t=np.full(rows.numel(), k * dt),
+                t=np.full(rows.numel(), (k - 1) * dt),
                 since_jump=since[rows].cpu().numpy(),
             )
             yield chunk

@@ -134,7 +134,7 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
     full, cand = runs.full.manifest, runs.candidate.manifest
     # runs simulated in one batch share one loop time: no speed of their own
     comparable = all(
-        full.get(k) == cand.get(k) for k in ("compile", "torch_threads", "device")
+        full.get(k) == cand.get(k) for k in ("compile", "torch_threads", "device", "loop_backend")
     ) and not (full.get("batched") or cand.get("batched"))
     speedup_loop = float(full["loop_time_s"]) / float(cand["loop_time_s"]) if comparable else None
     speedup_wall = float(full["wall_time_s"]) / float(cand["wall_time_s"]) if comparable else None

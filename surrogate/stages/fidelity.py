@@ -61,7 +61,13 @@ from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.population import steps_between
 from surrogate.stages.collect import collect
-from surrogate.stages.settings import Job, ModelSetup, TrainSettings, group_overrides
+from surrogate.stages.settings import (
+    Job,
+    ModelSetup,
+    TrainSettings,
+    group_overrides,
+    validate_backend,
+)
 from surrogate.stages.simulate import COMPILE_CACHE, abstract_decision, exact_decision
 from surrogate.stages.train import read_metrics, train
 
@@ -103,6 +109,7 @@ class FidelitySettings:
     times: tuple[float, ...]
     compile: bool
     job: Job
+    backend: str = "auto"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> FidelitySettings:
@@ -147,7 +154,8 @@ class FidelitySettings:
         if exact and not getattr(setup.model.internal, "signal_bounds", None):
             exact = False
         return cls(setup, fields, tuple(candidates), exact, f, times,
-                   bool(c.get("compile", False)), Job.from_config(cfg))  # fmt: skip
+                   bool(c.get("compile", False)), Job.from_config(cfg),
+                   validate_backend(c))  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """The candidates' training identities, the fields and the run and check settings."""
@@ -159,6 +167,7 @@ class FidelitySettings:
             "exact_psi": self.exact_psi,
             "fidelity": {**self.options, "times": list(self.times)},
             "compile": self.compile,
+            "backend": self.backend,
         }
 
     @functools.cached_property
@@ -201,17 +210,23 @@ class RunResult:
     segments: dict[str, int]
 
 
+#: steps per Simulator.advance call between check times
+CHUNK_STEPS = 20
+
+
 def _simulate_batch(
     settings: FidelitySettings, replicates: list[Replicate], labels: list[str]
 ) -> dict[str, RunResult]:
     """Simulate ``replicates`` as one population; record what the checks need."""
     setup, o, job = settings.setup, settings.options, settings.job
     model = setup.model
-    sim = BatchSimulator(model, replicates, setup.dt, job.device, compile=settings.compile)
+    sim = BatchSimulator(model, replicates, setup.dt, job.device, compile=settings.compile,
+                         backend=settings.backend)  # fmt: skip
+    log.info("simulating %d runs in one batch (%d cells, %s loop)", len(replicates),
+             sum(sim.sizes), sim.backend)  # fmt: skip
     with torch.inference_mode():  # cheaper per op than no_grad
         state = sim.initial_state(equilibration_time=float(o["equilibration_time"]))
-        if settings.compile:
-            sim.warm_up(state)
+        sim.warm_up(state)
         n_steps = steps_between(float(o["t_end"]), setup.dt, "t_end")
         record = {steps_between(t, setup.dt, "times"): t for t in settings.times}
         # per replicate and lump: completed segments and their total length (steps)
@@ -223,16 +238,23 @@ def _simulate_batch(
         counts = torch.zeros(2 * r, dtype=torch.float64, device=job.device)
         observed: dict[float, np.ndarray] = {}
         name = model.body.observable_names[0]
-        for k in tqdm(range(n_steps), desc="fidelity", disable=not job.progress, mininterval=1.0):
-            ended = sim.step(state).ended_length
-            key = 2 * replicate_of + (ended > 0).long()
-            totals.index_add_(0, key, ended.abs().double())
-            counts.index_add_(0, key, (ended != 0).double())
-            if (k + 1) in record:
-                sim.check_state(state)
-                observed[record[k + 1]] = (
-                    model.body.observables(state.body, sim.field)[name].double().cpu().numpy()
-                )
+        k = 0
+        with tqdm(total=n_steps, desc="fidelity", disable=not job.progress,
+                  mininterval=1.0) as bar:  # fmt: skip
+            while k < n_steps:  # up to the next check time, CHUNK_STEPS steps per call
+                upcoming = [s for s in record if s > k]
+                steps = min(min(upcoming, default=n_steps) - k, n_steps - k, CHUNK_STEPS)
+                ended = sim.advance(state, steps)  # steps x n
+                key = 2 * replicate_of + (ended > 0).long()
+                totals.index_add_(0, key.reshape(-1), ended.abs().double().reshape(-1))
+                counts.index_add_(0, key.reshape(-1), (ended != 0).double().reshape(-1))
+                k += steps
+                bar.update(steps)
+                if k in record:
+                    sim.check_state(state)
+                    observed[record[k]] = (
+                        model.body.observables(state.body, sim.field)[name].double().cpu().numpy()
+                    )
     lumps = model.internal.lump_names
     totals, counts = totals.cpu().numpy(), counts.cpu().numpy()
     out = {}

@@ -105,9 +105,13 @@ def measure_stage_speed(settings: ReproduceSettings) -> dict[str, Any]:
     decisions = {"full": build_decision(e.full)[0], "abstract": build_decision(run)[0]}
     log.info("measuring loop speed side by side: %d cells x %d steps (%s)", n, steps, name)
     result = measure_speed(setup.model, decisions, setup.field, n, steps, setup.dt,
-                           run.job.device, compile=run.compile, start=run.start)  # fmt: skip
+                           run.job.device, compile=run.compile, start=run.start,
+                           backend=run.backend,
+                           chunk_steps=round(run.record_interval / setup.dt))  # fmt: skip
     ratio = result["full"]["seconds"] / result["abstract"]["seconds"]
+    backends = {v["backend"] for v in result.values()}
     return {"field": name, "n_cells": n, "steps": steps, "compile": run.compile,
+            "backend": "/".join(sorted(backends)),
             "threads": torch.get_num_threads(), "speedup": ratio,
             **{k: {kk: vv for kk, vv in v.items() if kk != "compile_error"}
                for k, v in result.items()}}  # fmt: skip
@@ -277,7 +281,8 @@ def _measured_speed_text(speed: Mapping[str, Any]) -> str:
         f"The runs above were simulated together in one batch (one loop for all), so they have "
         f"no loop time of their own. Loop speed measured side by side in this process: "
         f"{speed['n_cells']} cells x {speed['steps']} steps in field {speed['field']}, "
-        f"compile={str(speed['compile']).lower()}, {speed['threads']} thread(s), best of two, "
+        f"backend {speed.get('backend', 'torch')}, compile={str(speed['compile']).lower()}, "
+        f"{speed['threads']} thread(s), best of two, "
         f"after a warm-up (compile time separate). Abstraction speed-up: "
         f"**{speed['speedup']:.2f}x** (excluding collection and training, as in the paper). "
         "Both models are batched over cells, so the ratio is far smaller than against a "

@@ -457,6 +457,8 @@ class SimulateSettings:
     #: kernels fused for the batch's shape round differently) and the command that makes it
     batch: str | None = None
     made_by: str | None = None
+    #: the loop's backend: auto | torch | numba (see :class:`~surrogate.simulate.Simulator`)
+    backend: str = "auto"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> SimulateSettings:
@@ -486,16 +488,16 @@ class SimulateSettings:
             record_cells = int(positive(cfg, "record_cells", integer=True))
         return cls(setup, decision, n_cells, t_end, interval, start, eq,
                    bool(cfg.get("record_durations", True)), bool(cfg.get("compile", False)), job,
-                   record_cells=record_cells)  # fmt: skip
+                   record_cells=record_cells, backend=validate_backend(cfg))  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
-        """Everything that defines a population run (``compile`` too: compiled kernels round
-        differently, so a compiled and an eager run with one seed differ)."""
+        """Everything that defines a population run (``compile`` and ``backend`` too: compiled
+        kernels round differently, so runs with one seed differ in the last bits)."""
         out = {**self.setup.identity(), **self.decision.identity(), "n_cells": self.n_cells,
                "t_end": self.t_end, "record_interval": self.record_interval,
                "start": list(self.start), "equilibration_time": self.equilibration_time,
                "record_durations": self.record_durations, "compile": self.compile,
-               "record_cells": self.record_cells}  # fmt: skip
+               "record_cells": self.record_cells, "backend": self.backend}  # fmt: skip
         if self.shard is not None:
             out["shard"] = self.shard
         if self.batch is not None:
@@ -524,7 +526,7 @@ class SimulateSettings:
         run = {"n_cells": n, "t_end": self.t_end, "record_interval": self.record_interval,
                "start": list(self.start), "equilibration_time": self.equilibration_time,
                "record_durations": self.record_durations, "compile": self.compile,
-               "record_cells": self.record_cells}  # fmt: skip
+               "record_cells": self.record_cells, "backend": self.backend}  # fmt: skip
         out += [
             f"{k}={_fmt(v)}"
             for k, v in run.items()
@@ -735,6 +737,16 @@ class ReproduceSettings:
                  "T": first.t_end, "inputs": "+".join(self.train.inputs),
                  "seed": first.setup.seed}  # fmt: skip
         return artefact_dir(self.job.data_dir, "reproduce", label, self.identity())
+
+
+def validate_backend(cfg: Mapping[str, Any]) -> str:
+    """The ``backend`` setting (auto | torch | numba)."""
+    from surrogate.simulate.loop import BACKENDS
+
+    backend = cfg.get("backend", "auto")
+    if backend not in BACKENDS:
+        raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    return str(backend)
 
 
 #: runs of at most this many cells are simulated in one batch (reproduce); larger ones alone:

@@ -432,6 +432,7 @@ def merged_manifest(
         "compile_time_s": sum(float(m.get("compile_time_s", 0.0)) for m in manifests),
         "compile": bool(manifests[0].get("compile", False)),
         "compiled": all(bool(m.get("compiled", False)) for m in manifests),
+        "loop_backend": "/".join(sorted({str(m.get("loop_backend", "torch")) for m in manifests})),
         "cell_steps_per_s": n_cells * n_steps / max(loop, 1e-12),
         "n_cells": n_cells,
         "n_steps": n_steps,

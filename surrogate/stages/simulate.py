@@ -133,7 +133,8 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
     seed_everything(setup.seed)
     decision, info = build_decision(settings)
     simulator = Simulator(setup.model, decision, setup.field, setup.dt, job.device,
-                          compile=settings.compile)  # fmt: skip
+                          compile=settings.compile, backend=settings.backend)  # fmt: skip
+    _log_backend(simulator)
     # a rerun (force) must not leave the old manifest vouching for half-replaced tables
     (out / MANIFEST).unlink(missing_ok=True)
     t0 = time.perf_counter()
@@ -152,7 +153,13 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         durations=None if settings.record_cells or not settings.record_durations else "all",
     )
     _write_manifest(settings, out, config, summary, time.perf_counter() - t0,
-                    compiled=simulator.compile_error is None and settings.compile, **info)  # fmt: skip
+                    compiled=simulator.compile_error is None and settings.compile,
+                    loop_backend=simulator.backend, **info)  # fmt: skip
+
+
+def _log_backend(simulator: Simulator) -> None:
+    if simulator.backend_note:
+        log.info("backend=auto: the torch step (no per-cell kernel for %s)", simulator.backend_note)
 
 
 def _write_manifest(
@@ -199,7 +206,7 @@ def batch_key(settings: SimulateSettings) -> str:
     s = settings
     return json.dumps([s.setup.identity().get("model"), s.setup.dt, s.t_end, s.record_interval,
                        s.equilibration_time, s.record_durations, s.record_cells, s.compile,
-                       str(s.job.device)], sort_keys=True, default=str)  # fmt: skip
+                       s.backend, str(s.job.device)], sort_keys=True, default=str)  # fmt: skip
 
 
 def simulate_together(runs: Sequence[SimulateSettings]) -> list[Path]:
@@ -241,7 +248,7 @@ def _key(config: Any) -> str:
 
 
 def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
-    from surrogate.simulate.batch import BatchSimulator, Replicate, simulate_batch
+    from surrogate.simulate.batch import Replicate
 
     first = runs[0]
     setup, job = first.setup, first.job
@@ -265,13 +272,33 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
                                     torch.tensor(s.start)))  # fmt: skip
         infos.append(info)
         (s.directory / MANIFEST).unlink(missing_ok=True)
+    # backend=auto: a run is batched only with runs its standalone run would share a loop
+    # backend with (a batch of kernel runs gives each run its standalone numbers, bit for bit)
+    by_backend: dict[str, list[int]] = {}
+    for i, (s, rep) in enumerate(zip(runs, replicates, strict=True)):
+        alone = Simulator(setup.model, rep.decision, rep.field, setup.dt, job.device,
+                          backend=s.backend)  # fmt: skip
+        by_backend.setdefault(alone.backend, []).append(i)
+    for members in by_backend.values():
+        _simulate_batch([runs[i] for i in members], [replicates[i] for i in members],
+                        [infos[i] for i in members])  # fmt: skip
+
+
+def _simulate_batch(
+    runs: Sequence[SimulateSettings], replicates: Sequence[Any], infos: Sequence[dict[str, Any]]
+) -> None:
+    from surrogate.simulate.batch import BatchSimulator, simulate_batch
+
+    first = runs[0]
+    setup, job = first.setup, first.job
     t0 = time.perf_counter()
     seed_everything(setup.seed)
     simulator = BatchSimulator(setup.model, replicates, setup.dt, job.device,
-                               compile=first.compile)  # fmt: skip
-    log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d distinct fields)",
-             len(runs), sum(s.n_cells for s in runs), len(simulator.decision.members),
-             len(simulator.field.distinct))  # fmt: skip
+                               compile=first.compile, backend=first.backend)  # fmt: skip
+    log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d distinct fields; "
+             "%s loop)", len(runs), sum(s.n_cells for s in runs),
+             len(simulator.decision.members), len(simulator.field.distinct),
+             simulator.backend)  # fmt: skip
     summaries = simulate_batch(
         simulator, first.t_end, [s.directory for s in runs],
         record_interval=first.record_interval, equilibration_time=first.equilibration_time,
@@ -284,6 +311,7 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
     for s, summary, info in zip(runs, summaries, infos, strict=True):
         _write_manifest(s, s.directory, None, summary, wall,
                         compiled=simulator.compile_error is None and s.compile,
+                        loop_backend=simulator.backend,
                         batched={"runs": labels, "n_cells": sum(r.n_cells for r in runs)},
                         **info)  # fmt: skip
 

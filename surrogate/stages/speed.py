@@ -52,22 +52,25 @@ def run(cfg: Mapping[str, Any]) -> Path:
     setup = candidate.setup
     result = measure_speed(setup.model, decisions, setup.field, candidate.n_cells, steps, dt,
                            candidate.job.device, compile=candidate.compile,
-                           start=candidate.start, repeats=repeats)  # fmt: skip
+                           start=candidate.start, repeats=repeats, backend=candidate.backend,
+                           chunk_steps=round(candidate.record_interval / dt))  # fmt: skip
     ratio = result["full"]["seconds"] / result["abstract"]["seconds"]
     identity = {**candidate.identity(), "steps": steps, "repeats": repeats}
     out = artefact_dir(candidate.job.data_dir, "speed", candidate.label(), identity)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / SPEED, {
         "speedup": ratio, "n_cells": candidate.n_cells, "steps": steps, "dt": dt,
-        "compile": candidate.compile, "threads": torch.get_num_threads(),
+        "compile": candidate.compile, "backend": candidate.backend,
+        "threads": torch.get_num_threads(),
         "device": str(candidate.job.device), "machine": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(), "load_average": list(os.getloadavg()),
         "settings": identity, **result,
     })  # fmt: skip
     for name in ("full", "abstract"):
         r = result[name]
-        log.info("%-8s %8.2f s loop (%7.1f us/step, %.3g cell-steps/s), compile %.1f s", name,
-                 r["seconds"], r["us_per_step"], r["cell_steps_per_s"], r["compile_s"])  # fmt: skip
+        log.info("%-8s %8.2f s loop (%7.1f us/step, %.3g cell-steps/s, %s), compile %.1f s",
+                 name, r["seconds"], r["us_per_step"], r["cell_steps_per_s"], r["backend"],
+                 r["compile_s"])  # fmt: skip
     log.info("abstraction speed-up %.1fx; written to %s", ratio, out / SPEED)
     return out
 

@@ -242,8 +242,9 @@ def diagnose(
     d = settings.diagnostic
     setup = settings.setup
     t0 = time.perf_counter()
+    # the model's per-cell kernel where it has one: the unrecorded steps in one call each
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt,
-                          settings.job.device)  # fmt: skip
+                          settings.job.device, backend="auto")  # fmt: skip
     occupancy = record_occupancy(
         simulator,
         int(d["n_cells"]),

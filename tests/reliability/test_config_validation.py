@@ -37,6 +37,8 @@ BAD_INPUTS = [
     ("collect", ["dt=-0.05"], "dt must be a positive number"),
     ("simulate", ["dt=20.0", "record_interval=20.0", "t_end=40.0"], "model.tau"),
     ("simulate", ["t_end=0"], "t_end must be a positive number"),
+    ("simulate", ["backend=numpy"], "backend must be one of ['auto', 'torch', 'numba']"),
+    ("reproduce", ["backend=gpu"], "backend must be one of ['auto', 'torch', 'numba']"),
     ("simulate", ["t_end=-5.0"], "t_end must be a positive number"),
     ("simulate", ["t_end=2.01"], "t_end=2.01 s must be a positive multiple of dt"),
     ("simulate", ["n_cells=0"], "n_cells must be a positive number"),

@@ -121,7 +121,10 @@ def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     ]
     assert table["ks"].between(0, 1).all() and table["ks_noise_floor"].notna().all()
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["speedup_loop"] > 0 and summary["speed_comparable"]
+    if mode == "lookup":  # both loops on the per-cell kernel (backend=auto)
+        assert summary["speedup_loop"] > 0 and summary["speed_comparable"]
+    else:  # the classifier every step has no kernel: torch beside a kernel is no comparison
+        assert summary["speedup_loop"] is None and not summary["speed_comparable"]
     assert set(summary["mean_durations"]) == {"full", "candidate", "full_repeat"}
     for name in (
         "distance_histograms.png",
@@ -160,25 +163,29 @@ def test_collect_records_nothing_inside_the_blackout_after_a_jump(compose_cfg) -
     assert (without["since_jump"].between(0, 19)).sum() > 50
 
 
-@pytest.mark.parametrize(("lookup", "blocks"), [("[64]", 3), ("null", 2)],
-                         ids=["own_tables", "stacked_tables"])  # fmt: skip
+@pytest.mark.parametrize(("lookup", "blocks", "backend"),
+                         [("[64]", 3, "numba"), ("null", 2, "numba"), ("null", 2, "torch")],
+                         ids=["own_tables", "stacked_tables", "stacked_tables_torch"])  # fmt: skip
 def test_runs_simulated_together_are_the_standalone_runs(
-    trained, compose_cfg, caplog, lookup: str, blocks: int
+    trained, compose_cfg, caplog, lookup: str, blocks: int, backend: str
 ) -> None:
-    """reproduce simulates its runs as one batch: eager, each run is its standalone run bit for
-    bit (same directory, same files), whatever else is in the batch. With the default table
-    size the abstraction's and the exact chain's tables (both 4,096 nodes over dG) are stacked
-    into one decision block."""
+    """reproduce simulates its runs as one batch: with the per-cell kernel or the eager torch
+    step, each run is its standalone run bit for bit (same directory, same files), whatever
+    else is in the batch. With the default table size the abstraction's and the exact chain's
+    tables (both 4,096 nodes over dG) are stacked into one decision block."""
     from surrogate.stages.settings import ReproduceSettings
 
     cfg = compose_cfg("reproduce", [*TINY, f"decision.lookup_size={lookup}",
-                                    "fields=[gaussian,linear]", "record_cells=16"])  # fmt: skip
+                                    "fields=[gaussian,linear]", "record_cells=16",
+                                    f"backend={backend}"])  # fmt: skip
     settings = ReproduceSettings.from_config(cfg)
     runs = settings.runs()
     assert {s.decision.name for s in runs} == {"full", "abstract", "exact"} and len(runs) == 8
     with caplog.at_level(logging.INFO, logger="surrogate.stages.simulate"):
         dirs = simulate_stage.simulate_together(runs)
-    assert f"(320 cells, {blocks} decision blocks, 2 distinct fields)" in caplog.text
+    assert (
+        f"(320 cells, {blocks} decision blocks, 2 distinct fields; {backend} loop)" in caplog.text
+    )
     batched = {d: (pd.read_parquet(d / "observables.parquet"),
                    pd.read_parquet(d / "duration_histogram.parquet")) for d in dirs}  # fmt: skip
     for d in dirs:

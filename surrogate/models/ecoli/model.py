@@ -7,7 +7,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from surrogate.errors import ConfigError
-from surrogate.models.base import Model
+from surrogate.fields import Field
+from surrogate.models.base import CellKernel, Model
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
@@ -42,6 +43,13 @@ class EcoliModel(Model):
                 f"dt={dt:g} s must be smaller than model.tau={self.params.tau:g} s (the "
                 f"adaptation time, stepped by Euler-Maruyama); the paper uses dt=0.05"
             )
+
+    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+        """The compiled per-cell E. coli step (:class:`~surrogate.models.ecoli.kernel.EcoliKernel`)
+        for the full model or a two-state chain over a lookup table, in a built-in field."""
+        from surrogate.models.ecoli.kernel import EcoliKernel  # numba: imported on demand
+
+        return EcoliKernel(self.params, decision, field, dt)
 
     def observable_label(self, name: str) -> str:
         """Figure labels."""

@@ -1,0 +1,202 @@
+"""The compiled per-cell E. coli kernel (``backend=numba``) against the torch step.
+
+The kernel consumes the same random numbers as the torch step, so from one seed both follow the
+same trajectories up to float rounding: every flag and segment length equal, positions and
+methylation within a few float32 ulps (a rounding-level difference can flip a comparison u < p,
+which then sends that one cell elsewhere; such cells must stay rare). This checks every formula
+the kernel transcribes (fields, signalling, motor transition terms and sampling, lookup
+interpolation over 1-3 features, movement, tumble angles, OU, segment bookkeeping) against the
+functions the rest of the package uses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from surrogate.errors import ConfigError
+from surrogate.fields import (
+    ConstantField,
+    DynamicGaussianField,
+    ExponentialField,
+    GaussianField,
+    LinearField,
+)
+from surrogate.gp import PsiLookupTable
+from surrogate.models.base import KernelUnsupported
+from surrogate.models.ecoli import EcoliModel
+from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
+from surrogate.simulate.batch import BatchSimulator, Replicate
+
+DT = 0.05
+N, STEPS = 400, 150  # 150 steps cross two blocks of random numbers (64 steps each)
+
+
+def _table(model: EcoliModel, names: tuple[str, ...]) -> PsiLookupTable:
+    """A smooth psi over ``names`` (1-3 features) that switches where cells live."""
+    internal = model.internal
+    bounds = {
+        "m": (1.0, 3.5),
+        "L": (0.0, 0.12),
+        "F": (-6.0, 6.0),
+        "dG": internal.signal_bounds["dG"],
+    }
+
+    def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        s = z.sum(1) / len(names)
+        return torch.where(phi > 0, torch.sigmoid(s - 4.0), torch.sigmoid(2.0 - s))
+
+    size = {1: (1024,), 2: (64, 48), 3: (16, 12, 10)}[len(names)]
+    return PsiLookupTable.from_function(psi, [bounds[n] for n in names], names, size)
+
+
+def _decision(kind: str, model: EcoliModel):
+    internal = model.internal
+    if kind == "full":
+        return FullDecision(internal)
+    if kind == "exact":
+        b = internal.signal_bounds["dG"]
+        table = PsiLookupTable.from_function(internal_psi(model), [b], ("dG",), (1024,))
+        return ExactDecision(internal, DT, table)
+    names = {"dG": ("dG",), "mL": ("m", "L"), "mLF": ("m", "L", "F")}[kind]
+    return AbstractDecision(_table(model, names), internal, model.featurizer(list(names)))
+
+
+def internal_psi(model: EcoliModel):
+    from surrogate.simulate.decision import ExactPsi
+
+    return ExactPsi(model.internal, DT)
+
+
+def _run(model, kind, field, backend, seed=3, n=N, steps=STEPS):
+    torch.manual_seed(seed)
+    sim = Simulator(model, _decision(kind, model), field, DT, backend=backend)
+    assert sim.backend == backend
+    with torch.inference_mode():
+        state = sim.initial_state(n, (2.0, 0.0), equilibration_time=1.0)
+        sim.warm_up(state)
+        ended = torch.cat([sim.advance(state, k) for k in (7, 20, steps - 27)])
+    return state, ended
+
+
+def _assert_same_trajectories(a, b) -> None:
+    (sa, ea), (sb, eb) = a, b
+    same = (ea == eb).all(0) & (sa.phi == sb.phi) & (sa.segment_steps == sb.segment_steps)
+    assert same.float().mean() >= 0.995, f"{int((~same).sum())} cells diverged"
+    pa, pb = sa.body["position"][same], sb.body["position"][same]
+    torch.testing.assert_close(pa, pb, atol=2e-5, rtol=0)
+    torch.testing.assert_close(sa.body["m"][same], sb.body["m"][same], atol=2e-5, rtol=0)
+    ha, hb = sa.body["heading"][same], sb.body["heading"][same]  # angles: compare on the circle
+    torch.testing.assert_close(torch.cos(ha), torch.cos(hb), atol=2e-5, rtol=0)
+    torch.testing.assert_close(torch.sin(ha), torch.sin(hb), atol=2e-5, rtol=0)
+    torch.testing.assert_close(sa.inputs[same], sb.inputs[same], atol=2e-6, rtol=1e-5)
+    assert (ea != 0).sum() > N  # segments did end (the comparison is not vacuous)
+
+
+@pytest.mark.parametrize("kind", ["full", "dG", "mL", "mLF", "exact"])
+def test_kernel_follows_the_torch_step(kind) -> None:
+    model = EcoliModel()
+    _assert_same_trajectories(_run(model, kind, GaussianField(), "torch"),
+                              _run(model, kind, GaussianField(), "numba"))  # fmt: skip
+
+
+FIELDS = {
+    "constant": ConstantField(0.05),
+    "linear": LinearField(),
+    "dynamic": DynamicGaussianField(spread_time=5.0),  # spreads visibly within 7.5 s
+    "exponential": ExponentialField(length=2.0, peak=(1.0, -0.5)),
+    "gaussian_off_centre": GaussianField(amplitude=0.2, variance=2.0, peak=(1.5, 0.5)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(FIELDS))
+def test_kernel_reads_every_builtin_field_as_the_field_does(name) -> None:
+    model = EcoliModel()
+    field = FIELDS[name]
+    _assert_same_trajectories(_run(model, "full", field, "torch"),
+                              _run(model, "full", field, "numba"))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "constants", [{"tumble_mode": "per_tumble"}, {"n_motors": 10, "tumble_shape": 8.0, "tau": 5.0}]
+)
+def test_kernel_follows_the_model_constants(constants) -> None:
+    model = EcoliModel(**constants)
+    for kind in ("full", "dG"):
+        _assert_same_trajectories(_run(model, kind, LinearField(), "torch"),
+                                  _run(model, kind, LinearField(), "numba"))  # fmt: skip
+
+
+def test_kernel_replicates_in_a_batch_are_their_standalone_runs_bit_for_bit() -> None:
+    """Cells never interact, so a batch of kernel runs (two decision blocks, one of them two
+    stacked tables, three fields) gives each run exactly its standalone numbers."""
+    model = EcoliModel()
+    spec = [("full", GaussianField(), 50, 0), ("full", LinearField(), 70, 1),
+            ("dG", DynamicGaussianField(), 40, 2), ("exact", GaussianField(), 30, 3)]  # fmt: skip
+    decisions = {k: _decision(k, model) for k in ("dG", "exact")}
+    alone = []
+    for kind, field, n, seed in spec:
+        torch.manual_seed(seed)
+        d = FullDecision(model.internal) if kind == "full" else decisions[kind]
+        sim = Simulator(model, d, field, DT, backend="numba")
+        state = sim.initial_state(n, (2.0, 0.0), equilibration_time=1.0)
+        alone.append((state, sim.advance(state, 100)))
+    reps = [Replicate(FullDecision(model.internal) if k == "full" else decisions[k], f, n, s)
+            for k, f, n, s in spec]  # fmt: skip
+    batch = BatchSimulator(model, reps, DT, backend="numba")
+    assert batch.backend == "numba" and len(batch.decision.members) == 2
+    state = batch.initial_state(equilibration_time=1.0)
+    ended = torch.cat([batch.advance(state, 20) for _ in range(5)])
+    for i, cells in enumerate(batch.slices):
+        a, a_ended = alone[i]
+        for key in ("position", "heading", "m"):
+            assert torch.equal(state.body[key][cells], a.body[key]), (i, key)
+        assert torch.equal(state.phi[cells], a.phi)
+        assert torch.equal(ended[:, cells], a_ended)
+
+
+class _UserField(GaussianField):
+    """A field the kernel cannot know (a user's subclass)."""
+
+
+def test_auto_keeps_the_torch_step_where_the_kernel_cannot_run() -> None:
+    model = EcoliModel()
+    sim = Simulator(model, FullDecision(model.internal), _UserField(), DT, backend="auto")
+    assert sim.backend == "torch" and "_UserField" in sim.backend_note
+    classifier = AbstractDecision(lambda phi, z: torch.full_like(z[:, 0], 0.5), model.internal,
+                                  model.featurizer(["dG"]))  # fmt: skip
+    sim = Simulator(model, classifier, GaussianField(), DT, backend="auto")
+    assert sim.backend == "torch" and "decision.mode=lookup" in sim.backend_note
+    ssa = EcoliModel(motor_sampler="ssa")
+    assert (
+        Simulator(ssa, FullDecision(ssa.internal), GaussianField(), DT, backend="auto").backend
+        == "torch"
+    )
+    assert (
+        Simulator(model, FullDecision(model.internal), GaussianField(), DT, backend="auto").backend
+        == "numba"
+    )
+    with pytest.raises(KernelUnsupported, match="_UserField.*backend=torch"):
+        Simulator(model, FullDecision(model.internal), _UserField(), DT, backend="numba")
+    with pytest.raises(ConfigError, match="backend must be one of"):
+        Simulator(model, FullDecision(model.internal), GaussianField(), DT, backend="numpy")
+
+
+def test_kernel_leaves_the_callers_tensors_and_warm_up_changes_nothing() -> None:
+    model = EcoliModel()
+    torch.manual_seed(0)
+    sim = Simulator(model, FullDecision(model.internal), GaussianField(), DT, backend="numba")
+    state = sim.initial_state(20, (2.0, 0.0))
+    held = {k: v.clone() for k, v in state.body.items()}
+    views = dict(state.body)
+    motors = sim.decision.fused_state()[0].clone()
+    sim.warm_up(state)
+    assert torch.equal(sim.decision.fused_state()[0], motors) and state.step == 0
+    sim.advance(state, 5)
+    assert state.step == 5
+    for k in held:
+        assert torch.equal(views[k], held[k]), k  # the caller's tensors are untouched
+    assert not torch.equal(state.body["m"], held["m"])
+    assert math.isfinite(float(state.body["position"].sum()))
