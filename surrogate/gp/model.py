@@ -7,6 +7,7 @@ lengthscales start at a sensible scale for every column (the ligand L spans only
 from __future__ import annotations
 
 import gpytorch
+import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
@@ -16,23 +17,30 @@ KERNELS = ("rbf", "matern12", "matern32", "matern52")
 _MATERN_NU = {"matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
 
 
-def make_kernel(kernel: str, ard: bool, n_dims: int = 2) -> gpytorch.kernels.ScaleKernel:
-    """``ScaleKernel`` over an RBF or Matern base kernel (one lengthscale per input if ``ard``)."""
+def make_kernel(
+    kernel: str, ard: bool, n_dims: int = 2, batch_shape: torch.Size = torch.Size()
+) -> gpytorch.kernels.ScaleKernel:
+    """``ScaleKernel`` over an RBF or Matern base kernel (one lengthscale per input if ``ard``),
+    with independent hyperparameters per ``batch_shape`` entry."""
     if kernel not in KERNELS:
         raise ConfigError(f"gp.kernel: unknown kernel {kernel!r}; allowed values are {KERNELS}")
     ard_num_dims = n_dims if ard else None
     if kernel == "rbf":
-        base = gpytorch.kernels.RBFKernel(ard_num_dims=ard_num_dims)
+        base = gpytorch.kernels.RBFKernel(ard_num_dims=ard_num_dims, batch_shape=batch_shape)
     else:
-        base = gpytorch.kernels.MaternKernel(nu=_MATERN_NU[kernel], ard_num_dims=ard_num_dims)
-    return gpytorch.kernels.ScaleKernel(base)
+        base = gpytorch.kernels.MaternKernel(
+            nu=_MATERN_NU[kernel], ard_num_dims=ard_num_dims, batch_shape=batch_shape
+        )
+    return gpytorch.kernels.ScaleKernel(base, batch_shape=batch_shape)
 
 
 class PsiGP(gpytorch.models.ApproximateGP):
     """Sparse variational GP for the latent function f of a probit classifier p = Phi(f).
 
     Args:
-        inducing_points: (M, 2) initial inducing locations in normalised input space.
+        inducing_points: ``M x d`` initial inducing locations in normalised input space, or
+            ``b x M x d`` for ``b`` independent GPs trained side by side (a batch; see
+            :func:`surrogate.gp.training.fit_classifiers`).
         kernel: one of :data:`KERNELS`.
         ard: one lengthscale per input column (m and L vary on different scales).
         learn_inducing: optimise the inducing locations together with the hyperparameters.
@@ -48,21 +56,22 @@ class PsiGP(gpytorch.models.ApproximateGP):
         learn_inducing: bool = True,
         natural: bool = False,
     ) -> None:
-        if inducing_points.dim() != 2 or inducing_points.shape[0] < 1:
+        if inducing_points.dim() not in (2, 3) or inducing_points.shape[-2] < 1:
             raise ConfigError(
                 f"gp.n_inducing: inducing points must be a non-empty (M, d) tensor, "
                 f"got shape {tuple(inducing_points.shape)}"
             )
+        batch = inducing_points.shape[:-2]
         # Validate before building anything so the error names the setting, not a gpytorch class.
-        covar_module = make_kernel(kernel, ard, n_dims=inducing_points.shape[1])
-        n_inducing = inducing_points.shape[0]
+        covar_module = make_kernel(kernel, ard, n_dims=inducing_points.shape[-1], batch_shape=batch)
+        n_inducing = inducing_points.shape[-2]
         if natural:
             variational_distribution = gpytorch.variational.NaturalVariationalDistribution(
-                n_inducing
+                n_inducing, batch_shape=batch
             )
         else:
             variational_distribution = gpytorch.variational.CholeskyVariationalDistribution(
-                n_inducing
+                n_inducing, batch_shape=batch
             )
         strategy = gpytorch.variational.VariationalStrategy(
             self,
@@ -74,7 +83,7 @@ class PsiGP(gpytorch.models.ApproximateGP):
         self.kernel_name = kernel
         self.ard = ard
         self.natural = natural
-        self.mean_module = gpytorch.means.ConstantMean()
+        self.mean_module = gpytorch.means.ConstantMean(batch_shape=batch)
         self.covar_module = covar_module
 
     def forward(self, x: Tensor) -> gpytorch.distributions.MultivariateNormal:

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError, NumericalError
-from surrogate.gp.training import PREDICT_CHUNK, FittedClassifier, GPSettings, fit_classifier
+from surrogate.gp.training import PREDICT_CHUNK, FittedClassifier, GPSettings, fit_classifiers
 from surrogate.io import load_tensors, save_tensors
 
 STATE_FORMAT = "surrogate.gp.psi/2"
@@ -190,16 +190,17 @@ def fit_psi(
             f"transition data lacks column(s) {missing}; it has {list(data.columns)} and needs "
             f"the inputs {list(input_names)} plus {list(LABELS)}"
         )
-    fitted = {}
+    pairs = []
     for phi in (0, 1):
         rows = data[data["phi"] == phi]
-        name = f"psi_{phi}"
         if len(rows) == 0:
-            raise ArtefactError(f"transition data has no rows with phi == {phi} to fit {name}")
+            raise ArtefactError(f"transition data has no rows with phi == {phi} to fit psi_{phi}")
         x = torch.tensor(rows[list(input_names)].to_numpy(dtype="float32"))
         y = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
-        label = f"{name} (from {lump_names[phi]})"
-        fitted[phi] = fit_classifier(x, y, settings, progress=progress, device=device, desc=label)
+        pairs.append((x, y))
+    # side by side (one batched GP) where the settings allow; the same steps as one by one
+    label = f"psi_0, psi_1 (from {lump_names[0]}, {lump_names[1]})"
+    fitted = fit_classifiers(pairs, settings, progress=progress, device=device, desc=label)
     return PsiClassifier(
         fitted[0],
         fitted[1],

@@ -15,7 +15,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -315,23 +315,26 @@ def _check_data(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     return x, y
 
 
-def fit_classifier(
-    x: Tensor,
-    y: Tensor,
-    settings: GPSettings | None = None,
-    progress: bool = True,
-    device: torch.device | str = "cpu",
-    desc: str = "GP",
-) -> FittedClassifier:
-    """Train a sparse variational GP probit classifier on inputs ``x`` (``n x d``), labels ``y``.
+@dataclass
+class _Prepared:
+    """One classifier's data as its training loop sees it (see :func:`_prepare`)."""
 
-    A random validation split (fixed by ``settings.seed``) is held out; the normaliser and the
-    inducing points (a random subset of training inputs) come from the training part only. The
-    negative ELBO is minimised with minibatch Adam (plus NGD on the variational parameters when
-    ``settings.natural_gradient``). See the module docstring for the numerical guard.
-    """
-    settings = settings or GPSettings()
-    device = torch.device(device)
+    n_train: int
+    n_val: int
+    gen: torch.Generator
+    normaliser: Normalizer
+    z_train: Tensor
+    y_train: Tensor
+    val_idx: Tensor
+    inducing: Tensor
+    x: Tensor
+    y: Tensor
+
+
+def _prepare(x: Tensor, y: Tensor, settings: GPSettings, device: torch.device) -> _Prepared:
+    """The validation split (fixed by ``settings.seed``), the normaliser and the inducing points
+    (a random subset of training inputs), both from the training part only. Seeds torch's
+    global generator with ``settings.seed`` first (the variational mean's initial noise)."""
     x, y = _check_data(x, y)
     n = x.shape[0]
     n_val = round(settings.validation_fraction * n)
@@ -356,6 +359,36 @@ def fit_classifier(
     normaliser = Normalizer.fit(x_train)
     z_train = normaliser.transform(x_train)
     inducing = z_train[torch.randperm(n_train, generator=gen)[: settings.n_inducing].to(device)]
+    return _Prepared(n_train, n_val, gen, normaliser, z_train, y_train, val_idx, inducing, x, y)
+
+
+def fit_classifier(
+    x: Tensor,
+    y: Tensor,
+    settings: GPSettings | None = None,
+    progress: bool = True,
+    device: torch.device | str = "cpu",
+    desc: str = "GP",
+) -> FittedClassifier:
+    """Train a sparse variational GP probit classifier on inputs ``x`` (``n x d``), labels ``y``.
+
+    A random validation split (fixed by ``settings.seed``) is held out; the normaliser and the
+    inducing points (a random subset of training inputs) come from the training part only. The
+    negative ELBO is minimised with minibatch Adam (plus NGD on the variational parameters when
+    ``settings.natural_gradient``). See the module docstring for the numerical guard.
+    """
+    settings = settings or GPSettings()
+    device = torch.device(device)
+    prep = _prepare(x, y, settings, device)
+    n_train, n_val, gen, z_train, y_train, inducing = (
+        prep.n_train,
+        prep.n_val,
+        prep.gen,
+        prep.z_train,
+        prep.y_train,
+        prep.inducing,
+    )
+    normaliser, val_idx = prep.normaliser, prep.val_idx
     model = PsiGP(
         inducing.clone(),
         kernel=settings.kernel,
@@ -430,10 +463,160 @@ def fit_classifier(
 
     model.eval()
     likelihood.eval()
-    if n_val > 0:
-        p_val = fitted.predict_proba(x[val_idx])
-        fitted.validation = classification_metrics(p_val, y[val_idx])
+    _validate(fitted, prep)
     return fitted
+
+
+def _validate(fitted: FittedClassifier, prep: _Prepared) -> None:
+    """Held-out metrics of a trained classifier (none without a validation split)."""
+    if prep.n_val > 0:
+        p_val = fitted.predict_proba(prep.x[prep.val_idx])
+        fitted.validation = classification_metrics(p_val, prep.y[prep.val_idx])
+
+
+def fit_classifiers(
+    data: Sequence[tuple[Tensor, Tensor]],
+    settings: GPSettings | None = None,
+    progress: bool = True,
+    device: torch.device | str = "cpu",
+    desc: str = "GP",
+) -> list[FittedClassifier]:
+    """:func:`fit_classifier` for several data sets (``(x, y)`` pairs), trained side by side.
+
+    With binned training (``settings.bins > 0``) and Adam alone, the classifiers are one
+    batched GP (independent hyperparameters, inducing points and variational parameters per
+    classifier) whose loss is the sum of theirs: Adam's update is elementwise, so each follows
+    the steps its own :func:`fit_classifier` would take (the same split, inducing points and
+    initial noise), at the per-step cost of one. ``train_seconds`` is the shared loop's.
+    Otherwise (minibatches, natural gradients) they are fitted one after the other.
+    """
+    settings = settings or GPSettings()
+    if not settings.bins or settings.natural_gradient or len(data) < 2:
+        return [fit_classifier(x, y, settings, progress=progress, device=device,
+                               desc=f"{desc} {i}") for i, (x, y) in enumerate(data)]  # fmt: skip
+    device = torch.device(device)
+    preps = [_prepare(x, y, settings, device) for x, y in data]
+    b = len(preps)
+    model = PsiGP(torch.stack([p.inducing for p in preps]).clone(), kernel=settings.kernel,
+                  ard=settings.ard, learn_inducing=settings.learn_inducing).to(device)  # fmt: skip
+    # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
+    # (gpytorch's CholeskyVariationalDistribution initialisation from the whitened prior)
+    strategy = model.variational_strategy
+    torch.manual_seed(settings.seed)
+    noise = torch.randn(settings.n_inducing, device=device)
+    with torch.no_grad():
+        dist = strategy._variational_distribution
+        dist.variational_mean.copy_(torch.zeros_like(noise).add_(noise, alpha=dist.mean_init_std))
+        dist.chol_variational_covar.copy_(torch.eye(settings.n_inducing, device=device))
+        strategy.variational_params_initialized.fill_(1)
+    likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(device)
+    optimizer = torch.optim.Adam([*model.parameters(), *likelihood.parameters()], lr=settings.lr)
+    z_b, n_b, k_b = _padded_bins([bin_inputs(p.z_train, p.y_train, settings.bins) for p in preps])
+    histories: list[list[float]] = [[] for _ in preps]
+    model.train()
+    likelihood.train()
+    good_state = _model_state(model)
+    t0 = time.perf_counter()
+    bar = tqdm(range(settings.epochs), desc=desc, disable=not progress, leave=False)
+    for epoch in bar:
+        epoch_start = _model_state(model)
+        try:
+            optimizer.zero_grad(set_to_none=True)
+            f = model(z_b)
+            ell = k_b * likelihood.expected_log_prob(torch.ones_like(n_b), f) + (
+                n_b - k_b
+            ) * likelihood.expected_log_prob(torch.zeros_like(n_b), f)
+            losses = -(ell.sum(-1) - strategy.kl_divergence()) / n_b.sum(-1)  # (b,)
+            losses.sum().backward()
+            optimizer.step()
+        except (NotPSDError, NanError) as exc:
+            bar.close()
+            raise _batch_failure(
+                model, good_state, preps, settings, histories, epoch, str(exc)
+            ) from exc
+        values = losses.detach().cpu().tolist()
+        if not all(math.isfinite(v) for v in values):
+            bar.close()
+            raise _batch_failure(model, good_state, preps, settings, histories, epoch,
+                                 f"loss became {values}")  # fmt: skip
+        for h, v in zip(histories, values, strict=True):
+            h.append(v)
+        good_state = epoch_start
+        bar.set_postfix(loss=" ".join(f"{v:.4f}" for v in values))
+    bar.close()
+    seconds = time.perf_counter() - t0
+    out = _split(model, preps, settings, histories)
+    for fitted, prep in zip(out, preps, strict=True):
+        fitted.train_seconds = seconds
+        _validate(fitted, prep)
+    assert len(out) == b
+    return out
+
+
+def _padded_bins(binned: Sequence[tuple[Tensor, Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+    """Stack several classifiers' bins (``b x L x d``, ``b x L``, ``b x L``), padding with
+    empty bins (no points: they add nothing to the ELBO) at the first bin's input."""
+    size = max(z.shape[0] for z, _, _ in binned)
+
+    def pad(t: Tensor, like: Tensor) -> Tensor:
+        extra = size - t.shape[0]
+        return torch.cat([t, like.expand(extra, *t.shape[1:])]) if extra else t
+
+    z = torch.stack([pad(z, z[:1]) for z, _, _ in binned])
+    n = torch.stack([pad(n, n.new_zeros(1)) for _, n, _ in binned])
+    k = torch.stack([pad(k, k.new_zeros(1)) for _, _, k in binned])
+    return z, n, k
+
+
+def _model_state(model: PsiGP) -> dict[str, Tensor]:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def _split(
+    model: PsiGP,
+    preps: Sequence[_Prepared],
+    settings: GPSettings,
+    histories: Sequence[list[float]],
+) -> list[FittedClassifier]:
+    """The batched GP as one :class:`FittedClassifier` per batch entry (its slice of every
+    batched tensor), each saved and loaded exactly as a separately fitted one."""
+    state = model.state_dict()
+    out = []
+    for i, prep in enumerate(preps):
+        single = PsiGP(state["variational_strategy.inducing_points"][i].clone(),
+                       kernel=settings.kernel, ard=settings.ard,
+                       learn_inducing=settings.learn_inducing).to(prep.z_train.device)  # fmt: skip
+        target = single.state_dict()
+        part = {}
+        for k, ref in target.items():
+            v = state[k]
+            part[k] = v.clone() if v.shape == ref.shape else v[i].clone()
+            if part[k].shape != ref.shape:
+                raise RuntimeError(f"batched GP state {k}: {tuple(v.shape)} vs {tuple(ref.shape)}")
+        single.load_state_dict(part, strict=True)
+        single.eval()
+        likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(prep.z_train.device)
+        likelihood.eval()
+        out.append(FittedClassifier(model=single, likelihood=likelihood,
+                                    normaliser=prep.normaliser, settings=settings,
+                                    history=list(histories[i]), n_train=prep.n_train,
+                                    n_val=prep.n_val))  # fmt: skip
+    return out
+
+
+def _batch_failure(
+    model: PsiGP,
+    good_state: dict[str, Tensor],
+    preps: Sequence[_Prepared],
+    settings: GPSettings,
+    histories: Sequence[list[float]],
+    epoch: int,
+    what: str,
+) -> NumericalError:
+    """Restore the batch to its last good state; the error of its first classifier."""
+    model.load_state_dict(good_state)
+    fitted = _split(model, preps, settings, histories)[0]
+    return _numerical_failure(fitted, _snapshot(fitted), epoch, what)
 
 
 _State = tuple[dict[str, Tensor], dict[str, Tensor]]
@@ -514,4 +697,4 @@ def _numerical_failure(
     return err
 
 
-__all__ = ["FittedClassifier", "GPSettings", "Normalizer", "fit_classifier"]
+__all__ = ["FittedClassifier", "GPSettings", "Normalizer", "fit_classifier", "fit_classifiers"]
