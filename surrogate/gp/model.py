@@ -15,10 +15,11 @@ from surrogate.errors import ConfigError
 KERNELS = ("rbf", "matern12", "matern32", "matern52")
 
 _MATERN_NU = {"matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
+_NO_BATCH = torch.Size()
 
 
 def make_kernel(
-    kernel: str, ard: bool, n_dims: int = 2, batch_shape: torch.Size = torch.Size()
+    kernel: str, ard: bool, n_dims: int = 2, batch_shape: torch.Size = _NO_BATCH
 ) -> gpytorch.kernels.ScaleKernel:
     """``ScaleKernel`` over an RBF or Matern base kernel (one lengthscale per input if ``ard``),
     with independent hyperparameters per ``batch_shape`` entry."""

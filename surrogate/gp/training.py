@@ -388,7 +388,7 @@ def fit_classifier(
         prep.y_train,
         prep.inducing,
     )
-    normaliser, val_idx = prep.normaliser, prep.val_idx
+    normaliser = prep.normaliser
     model = PsiGP(
         inducing.clone(),
         kernel=settings.kernel,

@@ -220,8 +220,8 @@ class Simulator:
             device), ``numba`` (the model's compiled per-cell kernel, :meth:`Model.cell_kernel`:
             many steps per call, CPU only, the same random numbers as the torch step) or
             ``auto`` (numba where the model has a kernel for this decision layer and field on
-            the CPU, else torch; ``backend_note`` says why torch). :meth:`advance` uses it;
-            :meth:`step` is always the torch step.
+            the CPU and ``compile`` is off, else torch; ``backend_note`` says why torch).
+            :meth:`advance` uses it; :meth:`step` is always the torch step.
 
     Example:
         >>> from surrogate.fields import GaussianField
@@ -257,7 +257,7 @@ class Simulator:
         self._checked_step = 0  # step up to which check_state found the state sound
         self._block: RandomBlock | None = None
         self.kernel, self.backend_note = _cell_kernel(backend, model, decision, field, self.dt,
-                                                      self.device)  # fmt: skip
+                                                      self.device, bool(compile))  # fmt: skip
         self.backend = "torch" if self.kernel is None else "numba"
         self.compile = bool(compile)
         self.compile_error: str | None = None
@@ -541,13 +541,17 @@ def _cell_kernel(
     field: Field,
     dt: float,
     device: torch.device,
+    compile: bool = False,
 ) -> tuple[Any, str | None]:
     """The model's per-cell kernel for ``backend`` (None: the torch step) and, for ``auto``
-    falling back to torch, why."""
+    falling back to torch, why. ``auto`` with ``compile`` is the compiled torch step (what
+    was asked for; the faster one from ~1e4 cells on, see the README's benchmark)."""
     if backend not in BACKENDS:
         raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
     if backend == "torch":
         return None, None
+    if backend == "auto" and compile:
+        return None, "compile=true asks for torch.compile of the torch step"
     try:
         if device.type != "cpu":
             raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")
@@ -558,6 +562,22 @@ def _cell_kernel(
                 f"backend=numba cannot run {exc}; use backend=torch (or auto)"
             ) from None
         return None, str(exc)
+
+
+def resolve_backend(
+    backend: str,
+    model: Model,
+    decision: DecisionLayer,
+    field: Field,
+    dt: float,
+    device: str | torch.device = "cpu",
+    compile: bool = False,
+) -> str:
+    """The loop backend (``torch`` or ``numba``) a :class:`Simulator` with these arguments
+    runs, without building it."""
+    kernel, _ = _cell_kernel(backend, model, decision, field, float(dt), torch.device(device),
+                             compile)  # fmt: skip
+    return "torch" if kernel is None else "numba"
 
 
 def _as_bytes(flags: Tensor) -> Tensor:

@@ -31,7 +31,7 @@ from surrogate.simulate.decision import (
     ExactPsi,
     FullDecision,
 )
-from surrogate.simulate.loop import Simulator, use_compile_cache
+from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
 
@@ -276,9 +276,9 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
     # backend with (a batch of kernel runs gives each run its standalone numbers, bit for bit)
     by_backend: dict[str, list[int]] = {}
     for i, (s, rep) in enumerate(zip(runs, replicates, strict=True)):
-        alone = Simulator(setup.model, rep.decision, rep.field, setup.dt, job.device,
-                          backend=s.backend)  # fmt: skip
-        by_backend.setdefault(alone.backend, []).append(i)
+        alone = resolve_backend(s.backend, setup.model, rep.decision, rep.field, setup.dt,
+                                job.device, s.compile)  # fmt: skip
+        by_backend.setdefault(alone, []).append(i)
     for members in by_backend.values():
         _simulate_batch([runs[i] for i in members], [replicates[i] for i in members],
                         [infos[i] for i in members])  # fmt: skip

@@ -102,6 +102,24 @@ def test_kernel_follows_the_torch_step(kind) -> None:
                               _run(model, kind, GaussianField(), "numba"))  # fmt: skip
 
 
+@pytest.mark.parametrize("kind", ["full", "dG"])
+def test_one_simulator_advances_populations_of_any_size(kind) -> None:
+    """A simulator (and its kernel) reused for another population size advances every cell of
+    it, as the torch step does (the bench reuses simulators across sizes)."""
+    model = EcoliModel()
+    out = {}
+    for backend in ("torch", "numba"):
+        sim = Simulator(model, _decision(kind, model), GaussianField(), DT, backend=backend)
+        for n in (30, 300):
+            torch.manual_seed(n)
+            state = sim.initial_state(n, (2.0, 0.0))
+            out[backend, n] = (state, sim.advance(state, 40))
+    for n in (30, 300):
+        (a, ea), (b, eb) = out["torch", n], out["numba", n]
+        assert torch.equal(ea, eb) and torch.equal(a.phi, b.phi)
+        torch.testing.assert_close(a.body["position"], b.body["position"], atol=2e-5, rtol=0)
+
+
 FIELDS = {
     "constant": ConstantField(0.05),
     "linear": LinearField(),

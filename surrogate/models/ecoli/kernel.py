@@ -382,9 +382,10 @@ def _numpy(t: Tensor) -> np.ndarray:
 
 
 class _Block:
-    """One decision block of the population: cells [start, start + count) and their layer."""
+    """One decision block of the population: cells [start, start + count) and their layer
+    (``count`` None: every cell of the population, whatever its size)."""
 
-    def __init__(self, start: int, count: int, decision: Any, rows: Randoms) -> None:
+    def __init__(self, start: int, count: int | None, decision: Any, rows: Randoms) -> None:
         self.start, self.count, self.decision = start, count, decision
         if isinstance(decision, FullDecision):
             self.kind = "motors"
@@ -397,7 +398,7 @@ class _Block:
         if isinstance(psi, StackedPsiLookup):
             tables, sizes = psi.tables, psi.sizes
         elif isinstance(psi, PsiLookupTable):
-            tables, sizes = [psi], [count]
+            tables, sizes = [psi], [0 if count is None else count]
         else:
             raise KernelUnsupported(
                 f"run probability {type(psi).__name__} (the kernel reads lookup tables: "
@@ -408,12 +409,7 @@ class _Block:
         if any(t.device.type != "cpu" for t in tables):
             raise KernelUnsupported("lookup tables off the CPU")
         self.table = torch.stack([t.table for t in tables]).reshape(-1).contiguous().numpy()
-        # a lone layer (count -1: every cell, known at the first call) reads one table
-        self.table_of_cell = (
-            np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
-            if count >= 0
-            else np.zeros(0, dtype=np.int32)
-        )
+        self.table_of_cell = np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
         affine = torch.stack([t._affine for t in tables]).numpy()  # (tables, d, 2) float32
         self.origin = np.ascontiguousarray(affine[:, :, 0])
         self.scale = np.ascontiguousarray(affine[:, :, 1])
@@ -468,26 +464,27 @@ class EcoliKernel:
         self.blocks: list[_Block] = []
         start = 0
         for member, size in zip(members, sizes, strict=True):
-            count = -1 if size is None else size
-            self.blocks.append(_Block(start, count, member, rows))
-            start += max(count, 0)
+            self.blocks.append(_Block(start, size, member, rows))
+            start += size or 0
+        self._total = None if sizes == [None] else start
         if isinstance(field, FieldBatch):
             self.fields = np.stack([pack_field(f) for f in field.fields])
             self._field_sizes: list[int] | None = field.sizes
         else:
             self.fields = pack_field(field)[None]
             self._field_sizes = None
+        self._field_total = None if self._field_sizes is None else sum(self._field_sizes)
         self._field_of_cell: np.ndarray | None = None
 
     def _cells(self, n: int) -> np.ndarray:
+        """Each cell's field row, for a population of ``n`` cells (checked against the
+        batch's blocks)."""
+        for what, total in (("decision", self._total), ("field", self._field_total)):
+            if total is not None and total != n:
+                raise ValueError(f"the kernel's {what} blocks cover {total} cells, not {n}")
         if self._field_of_cell is None or self._field_of_cell.shape[0] != n:
             sizes = [n] if self._field_sizes is None else self._field_sizes
             self._field_of_cell = np.repeat(np.arange(len(sizes), dtype=np.int32), sizes)
-            for b in self.blocks:  # a lone decision layer covers every cell
-                if b.count < 0:
-                    b.count = n
-                    if b.kind == "lookup" and b.table_of_cell.shape[0] != n:
-                        b.table_of_cell = np.zeros(n, dtype=np.int32)
         return self._field_of_cell
 
     def advance(
@@ -537,15 +534,18 @@ class EcoliKernel:
                   field_of_cell, self.fields]  # fmt: skip
         un, zn = _numpy(u), _numpy(z)
         for b in self.blocks:
-            if b.count == 0:
+            count = n if b.count is None else b.count
+            if count == 0:
                 continue
-            count = 0 if dry else b.count
+            count = 0 if dry else count
             if b.kind == "motors":
                 motors = b.decision.fused_state()[0]
                 advance_motors(steps, state.step, b.start, count, *common, _numpy(motors),
                                un, _numpy(u64), zn, b.motor_row, self.body_row, self.ou_row,
                                self.gamma_k, self.per_tumble, self.p32, self.p64)  # fmt: skip
             else:
+                if b.count is None and b.table_of_cell.shape[0] != n:  # a lone layer, one table
+                    b.table_of_cell = np.zeros(n, dtype=np.int32)
                 advance_lookup(steps, state.step, b.start, count, *common, b.table,
                                b.table_of_cell, b.layer, b.shape, b.strides, b.origin, b.scale,
                                b.features, un, zn, b.decision_row, self.body_row, self.ou_row,
