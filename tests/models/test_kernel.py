@@ -218,3 +218,21 @@ def test_kernel_leaves_the_callers_tensors_and_warm_up_changes_nothing() -> None
         assert torch.equal(views[k], held[k]), k  # the caller's tensors are untouched
     assert not torch.equal(state.body["m"], held["m"])
     assert math.isfinite(float(state.body["position"].sum()))
+
+
+@pytest.mark.parametrize("kind", ["full", "dG"])
+def test_nan_in_the_state_survives_the_kernel_as_in_the_torch_step(kind) -> None:
+    """A NaN methylation stays NaN (clamps let it through, as torch.clamp does), so the
+    simulator's check at the next record time finds it."""
+    from surrogate.errors import NumericalError
+
+    model = EcoliModel()
+    for backend in ("torch", "numba"):
+        torch.manual_seed(0)
+        sim = Simulator(model, _decision(kind, model), GaussianField(), DT, backend=backend)
+        state = sim.initial_state(10, (2.0, 0.0))
+        state.body["m"][3] = float("nan")
+        sim.advance(state, 5)
+        assert torch.isnan(state.body["m"][3]) and torch.isfinite(state.body["m"][:3]).all()
+        with pytest.raises(NumericalError, match="NaN"):
+            sim.check_state(state)

@@ -96,6 +96,16 @@ def _field(f, x, y, t):
 
 
 @numba.njit(inline="always", **_JIT)
+def _clamp(value, lo, hi):
+    """torch.clamp: NaN passes through (min/max would replace it by a bound)."""
+    if value < lo:
+        return lo
+    if value > hi:
+        return hi
+    return value
+
+
+@numba.njit(inline="always", **_JIT)
 def _log_receptor_terms(ligand, p):
     """signalling.log_receptor_terms (float32)."""
     tar = p[0] * (np.log1p(ligand / p[1]) - np.log1p(ligand / p[2]))
@@ -181,7 +191,7 @@ def _ou(m, lrt, z, p):
     """signalling.ou_step with the receptor terms already computed (float32)."""
     m0 = (p[12] - lrt) / p[7]
     value = m + (m0 - m) * p[13] + p[14] * z
-    return min(max(value, p[15]), p[16])
+    return _clamp(value, p[15], p[16])
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -296,8 +306,9 @@ def advance_lookup(
             for a in range(d):
                 value = _feature(features[a], m, ligand, energy, yp, dg)
                 top = _F32(shape[a] - 1)
-                w = min(max((value - origin[tab, a]) * scale[tab, a], _F32(0.0)), top)
-                i = min(max(int(np.floor(w)), 0), shape[a] - 2)
+                w = _clamp((value - origin[tab, a]) * scale[tab, a], _F32(0.0), top)
+                # NaN stays NaN in w (and so in the probability); its index is clamped
+                i = min(max(int(np.floor(w)) if w == w else 0, 0), shape[a] - 2)
                 base += i * strides[a]
                 if a == 0:
                     fr0 = w - _F32(i)
