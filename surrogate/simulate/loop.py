@@ -29,7 +29,7 @@ import time
 import types
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +53,6 @@ class PopulationState:
         segment_complete: bool ``(n,)``, the current segment began with a switch (not censored).
         inputs: ``n x d``, the inputs of the last step (checked at record times), or None.
         step: steps taken.
-        private: the tensors are this state's own copies (a compiled per-cell kernel then
-            advances them in place; the torch step always makes new ones).
     """
 
     body: BodyState
@@ -63,22 +61,28 @@ class PopulationState:
     segment_complete: Tensor
     inputs: Tensor | None = None
     step: int = 0
-    private: bool = False
+    #: ids of the tensors :meth:`make_private` copied (the state's own, written in place)
+    _own: tuple[int, ...] = field(default=(), repr=False, compare=False)
+
+    def _tensors(self) -> list[Tensor | None]:
+        return [*self.body.values(), self.phi, self.segment_steps, self.segment_complete,
+                self.inputs]  # fmt: skip
 
     def make_private(self) -> None:
-        """Replace every tensor by a contiguous copy of its own (once), so writing into them
-        in place changes nothing a caller may still hold."""
-        if self.private:
+        """Replace every tensor by a contiguous copy of its own, unless it is one already (a
+        compiled per-cell kernel advances them in place, so nothing a caller holds, e.g. a
+        :class:`StepRecord` of the torch step or a tensor put into ``body``, changes)."""
+        if self._own == tuple(map(id, self._tensors())):
             return
-        self.body = {
-            k: v.clone(memory_format=torch.contiguous_format) for k, v in self.body.items()
-        }
-        self.phi = self.phi.clone(memory_format=torch.contiguous_format)
-        self.segment_steps = self.segment_steps.clone(memory_format=torch.contiguous_format)
-        self.segment_complete = self.segment_complete.clone(memory_format=torch.contiguous_format)
-        if self.inputs is not None:
-            self.inputs = self.inputs.clone(memory_format=torch.contiguous_format)
-        self.private = True
+
+        def copy(t: Tensor) -> Tensor:
+            return t.clone(memory_format=torch.contiguous_format)
+
+        self.body = {k: copy(v) for k, v in self.body.items()}
+        self.phi, self.segment_steps = copy(self.phi), copy(self.segment_steps)
+        self.segment_complete = copy(self.segment_complete)
+        self.inputs = None if self.inputs is None else copy(self.inputs)
+        self._own = tuple(map(id, self._tensors()))
 
     @property
     def n_cells(self) -> int:
@@ -338,7 +342,6 @@ class Simulator:
         state.segment_complete = complete8.view(torch.bool)
         state.inputs = x
         state.step += 1
-        state.private = False  # the returned record shares these tensors
         return StepRecord(x, phi_before, phi, ended)
 
     def advance(self, state: PopulationState, steps: int, out: Tensor | None = None) -> Tensor:

@@ -422,11 +422,16 @@ def test_classifiers_fitted_side_by_side_take_their_separate_steps() -> None:
     assert together[0].predict_proba(q).sub(together[1].predict_proba(q)).abs().max() > 0.1
 
 
-def test_classifiers_without_binning_are_fitted_one_by_one() -> None:
+@pytest.mark.parametrize("bins", [0, 50], ids=["minibatch", "over_the_batch_limit"])
+def test_classifiers_are_fitted_one_by_one_where_batching_does_not_pay(
+    bins: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from surrogate.gp import training
     from surrogate.gp.training import fit_classifiers
 
+    monkeypatch.setattr(training, "BATCH_MAX_BINS", 20)  # 50 bins exceed it
     data = _two_surfaces(600)
-    s = GPSettings(n_inducing=10, epochs=3, bins=0, seed=1)
+    s = GPSettings(n_inducing=10, epochs=3, bins=bins, seed=1)
     separate = [fit_classifier(x, y, s, progress=False) for x, y in data]
     together = fit_classifiers(data, s, progress=False)
     q = torch.linspace(-3, 3, 50)[:, None]

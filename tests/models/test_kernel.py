@@ -41,6 +41,7 @@ def _table(model: EcoliModel, names: tuple[str, ...]) -> PsiLookupTable:
         "m": (1.0, 3.5),
         "L": (0.0, 0.12),
         "F": (-6.0, 6.0),
+        "cheyp": (0.5, 5.0),
         "dG": internal.signal_bounds["dG"],
     }
 
@@ -60,7 +61,15 @@ def _decision(kind: str, model: EcoliModel):
         b = internal.signal_bounds["dG"]
         table = PsiLookupTable.from_function(internal_psi(model), [b], ("dG",), (1024,))
         return ExactDecision(internal, DT, table)
-    names = {"dG": ("dG",), "mL": ("m", "L"), "mLF": ("m", "L", "F")}[kind]
+    if kind == "raw_inputs":  # no feature map: the table reads x = (m, L) itself
+        return AbstractDecision(_table(model, ("m", "L")), internal)
+    if kind == "dG_narrow":  # a box narrower than the values: the interpolation clamps
+        adapted = model.params.delta_g_adapted
+        table = PsiLookupTable.from_function(
+            lambda phi, z: torch.sigmoid(z[:, 0] * (2 * phi - 1)), [(adapted - 0.05, adapted + 0.05)],
+            ("dG",), (32,))  # fmt: skip
+        return AbstractDecision(table, internal, model.featurizer(["dG"]))
+    names = {"dG": ("dG",), "mL": ("m", "L"), "mLF": ("m", "L", "F"), "cheyp": ("cheyp",)}[kind]
     return AbstractDecision(_table(model, names), internal, model.featurizer(list(names)))
 
 
@@ -70,12 +79,12 @@ def internal_psi(model: EcoliModel):
     return ExactPsi(model.internal, DT)
 
 
-def _run(model, kind, field, backend, seed=3, n=N, steps=STEPS):
+def _run(model, kind, field, backend, seed=3, n=N, steps=STEPS, start=(2.0, 0.0)):
     torch.manual_seed(seed)
     sim = Simulator(model, _decision(kind, model), field, DT, backend=backend)
     assert sim.backend == backend
     with torch.inference_mode():
-        state = sim.initial_state(n, (2.0, 0.0), equilibration_time=1.0)
+        state = sim.initial_state(n, start, equilibration_time=1.0)
         sim.warm_up(state)
         ended = torch.cat([sim.advance(state, k) for k in (7, 20, steps - 27)])
     return state, ended
@@ -84,7 +93,8 @@ def _run(model, kind, field, backend, seed=3, n=N, steps=STEPS):
 def _assert_same_trajectories(a, b) -> None:
     (sa, ea), (sb, eb) = a, b
     same = (ea == eb).all(0) & (sa.phi == sb.phi) & (sa.segment_steps == sb.segment_steps)
-    assert same.float().mean() >= 0.995, f"{int((~same).sum())} cells diverged"
+    # a rounding-level difference may flip one comparison u < p and send that cell elsewhere
+    assert int((~same).sum()) <= 1, f"{int((~same).sum())} cells diverged"
     pa, pb = sa.body["position"][same], sb.body["position"][same]
     torch.testing.assert_close(pa, pb, atol=2e-5, rtol=0)
     torch.testing.assert_close(sa.body["m"][same], sb.body["m"][same], atol=2e-5, rtol=0)
@@ -95,7 +105,9 @@ def _assert_same_trajectories(a, b) -> None:
     assert (ea != 0).sum() > N  # segments did end (the comparison is not vacuous)
 
 
-@pytest.mark.parametrize("kind", ["full", "dG", "mL", "mLF", "exact"])
+@pytest.mark.parametrize(
+    "kind", ["full", "dG", "mL", "mLF", "exact", "cheyp", "raw_inputs", "dG_narrow"]
+)
 def test_kernel_follows_the_torch_step(kind) -> None:
     model = EcoliModel()
     _assert_same_trajectories(_run(model, kind, GaussianField(), "torch"),
@@ -138,7 +150,12 @@ def test_kernel_reads_every_builtin_field_as_the_field_does(name) -> None:
 
 
 @pytest.mark.parametrize(
-    "constants", [{"tumble_mode": "per_tumble"}, {"n_motors": 10, "tumble_shape": 8.0, "tau": 5.0}]
+    "constants",
+    [
+        {"tumble_mode": "per_tumble"},
+        {"n_motors": 10, "tumble_shape": 8.0, "tau": 5.0},
+        {"tumble_shape": 5.0, "n_motors": 3},
+    ],
 )
 def test_kernel_follows_the_model_constants(constants) -> None:
     model = EcoliModel(**constants)
@@ -236,3 +253,74 @@ def test_nan_in_the_state_survives_the_kernel_as_in_the_torch_step(kind) -> None
         assert torch.isnan(state.body["m"][3]) and torch.isfinite(state.body["m"][:3]).all()
         with pytest.raises(NumericalError, match="NaN"):
             sim.check_state(state)
+
+
+def test_kernel_at_the_clamps() -> None:
+    """Methylation at its upper bound (m_max just above the adapted level) and cells on the
+    linear field's floor (beyond 10 mm along x)."""
+    model = EcoliModel(m_max=2.21)
+    field = LinearField()
+    for kind in ("full", "dG"):
+        a = _run(model, kind, field, "torch", start=(10.5, 0.0))
+        b = _run(model, kind, field, "numba", start=(10.5, 0.0))
+        _assert_same_trajectories(a, b)
+        assert (a[0].body["m"] == 2.21).sum() > 10  # the clamp was hit
+        assert (a[0].inputs[:, 1] == field.floor).sum() > 10  # and the floor
+
+
+def test_the_kernel_refuses_what_it_does_not_transcribe() -> None:
+    """Subclasses (which may override a formula), other internal models, feature maps other
+    than the model's, and a table over more axes than features: torch for auto, an error
+    naming it for numba."""
+    from surrogate.models.base import FeatureMap
+
+    model = EcoliModel()
+    internal = model.internal
+
+    class Tempered(AbstractDecision):
+        def probability(self, phi, x):
+            return 0.5 * super().probability(phi, x)
+
+    class Scaled(FeatureMap):
+        def __call__(self, x):
+            return 2 * super().__call__(x)
+
+    table = _table(model, ("dG",))
+    cases = {
+        "Tempered": Tempered(table, internal, model.featurizer(["dG"])),
+        "another internal model": FullDecision(EcoliModel(n_motors=5).internal),
+        "feature map": AbstractDecision(table, internal, Scaled(internal, ["dG"])),
+        "1 features for a lookup table over 2 axes": AbstractDecision(
+            _table(model, ("m", "L")), internal, model.featurizer(["dG"])
+        ),
+    }
+    for what, decision in cases.items():
+        sim = Simulator(model, decision, GaussianField(), DT, backend="auto")
+        assert sim.backend == "torch" and what in sim.backend_note, (what, sim.backend_note)
+        with pytest.raises(KernelUnsupported, match=what):
+            Simulator(model, decision, GaussianField(), DT, backend="numba")
+
+
+def test_a_lone_stacked_table_must_cover_the_population() -> None:
+    from surrogate.gp import StackedPsiLookup
+
+    model = EcoliModel()
+    tables = [_table(model, ("dG",)), _table(model, ("dG",))]
+    decision = AbstractDecision(StackedPsiLookup(tables, [10, 10]), model.internal,
+                                model.featurizer(["dG"]))  # fmt: skip
+    sim = Simulator(model, decision, GaussianField(), DT, backend="numba")
+    sim.advance(sim.initial_state(20, (2.0, 0.0)), 3)
+    with pytest.raises(ValueError, match="cover 20 cells, not 30"):
+        sim.advance(sim.initial_state(30, (2.0, 0.0)), 3)
+
+
+def test_advance_leaves_a_held_motor_state_alone() -> None:
+    model = EcoliModel()
+    torch.manual_seed(1)
+    sim = Simulator(model, FullDecision(model.internal), GaussianField(), DT, backend="numba")
+    state = sim.initial_state(50, (2.0, 0.0))
+    held = sim.decision.fused_state()[0]
+    before = held.clone()
+    sim.advance(state, 10)
+    assert torch.equal(held, before)
+    assert not torch.equal(sim.decision.fused_state()[0], before)  # the layer's own copy moved

@@ -45,11 +45,11 @@ from surrogate.fields import (
     LinearField,
 )
 from surrogate.gp.lookup import PsiLookupTable, StackedPsiLookup
-from surrogate.models.base import KernelUnsupported, Randoms
+from surrogate.models.base import FeatureMap, KernelUnsupported, Randoms
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
-from surrogate.models.ecoli.internal import INPUTS
+from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
-from surrogate.simulate.decision import AbstractDecision, FullDecision
+from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import PopulationState
 
 # -- fields: kind codes and parameter columns of pack_field ------------------------------------
@@ -394,21 +394,33 @@ def _numpy(t: Tensor) -> np.ndarray:
 
 class _Block:
     """One decision block of the population: cells [start, start + count) and their layer
-    (``count`` None: every cell of the population, whatever its size)."""
+    (``count`` None: every cell of the population, whatever its size).
 
-    def __init__(self, start: int, count: int | None, decision: Any, rows: Randoms) -> None:
+    Only the exact classes whose formulas the kernels transcribe are accepted (a subclass may
+    override them), over this model's own internal model and constants."""
+
+    def __init__(
+        self, start: int, count: int | None, decision: Any, rows: Randoms, internal: Any
+    ) -> None:
         self.start, self.count, self.decision = start, count, decision
-        if isinstance(decision, FullDecision):
+        kind = type(decision)
+        if kind not in (FullDecision, AbstractDecision, ExactDecision):
+            raise KernelUnsupported(f"decision layer {kind.__name__}")
+        if not is_fusable(decision):
+            raise KernelUnsupported(f"a {kind.__name__} without a pure window (motor SSA)")
+        if decision.internal is not internal:
+            raise KernelUnsupported("a decision layer over another internal model")
+        if kind is FullDecision:
             self.kind = "motors"
             self.motor_row = rows.uniform64 - decision.randoms.uniform64
             return
         self.kind = "lookup"
-        if not isinstance(decision, AbstractDecision):
-            raise KernelUnsupported(f"decision layer {type(decision).__name__}")
         psi = decision.run_probability
-        if isinstance(psi, StackedPsiLookup):
+        if type(psi) is StackedPsiLookup:
             tables, sizes = psi.tables, psi.sizes
-        elif isinstance(psi, PsiLookupTable):
+            if count is not None and sum(sizes) != count:
+                raise ValueError(f"stacked tables cover {sum(sizes)} cells, the block {count}")
+        elif type(psi) is PsiLookupTable:
             tables, sizes = [psi], [0 if count is None else count]
         else:
             raise KernelUnsupported(
@@ -416,32 +428,47 @@ class _Block:
                 "decision.mode=lookup)"
             )
         first = tables[0]
-        names = _feature_names(decision, first)
+        codes = _feature_codes(decision, internal)
+        if len(codes) != len(first.shape):
+            raise KernelUnsupported(
+                f"{len(codes)} features for a lookup table over {len(first.shape)} axes"
+            )
         if any(t.device.type != "cpu" for t in tables):
             raise KernelUnsupported("lookup tables off the CPU")
         self.table = torch.stack([t.table for t in tables]).reshape(-1).contiguous().numpy()
         self.table_of_cell = np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
+        self.stacked = len(tables) > 1
         affine = torch.stack([t._affine for t in tables]).numpy()  # (tables, d, 2) float32
         self.origin = np.ascontiguousarray(affine[:, :, 0])
         self.scale = np.ascontiguousarray(affine[:, :, 1])
         self.layer = int(first._layer)
         self.shape = np.array(first.shape, dtype=np.int64)
         self.strides = np.array(first._strides, dtype=np.int64)
-        self.features = np.array([FEATURE_CODES[n] for n in names], dtype=np.int64)
+        self.features = np.array(codes, dtype=np.int64)
         self.decision_row = rows.uniform - 1  # the layer's one uniform, right-aligned
 
+    def tables_for(self, n: int) -> np.ndarray:
+        """Each cell's table for a block of ``n`` cells."""
+        if self.table_of_cell.shape[0] == n:
+            return self.table_of_cell
+        if self.stacked:  # a lone stacked table: its blocks must be the population
+            raise ValueError(f"stacked tables cover {self.table_of_cell.shape[0]} cells, not {n}")
+        self.table_of_cell = np.zeros(n, dtype=np.int32)
+        return self.table_of_cell
 
-def _feature_names(decision: AbstractDecision, table: PsiLookupTable) -> tuple[str, ...]:
+
+def _feature_codes(decision: AbstractDecision, internal: Any) -> list[int]:
+    """The kernel's codes of the abstraction's input columns: the raw inputs (m, L) without a
+    feature map (as the torch layer feeds x itself), else the map's names."""
     featurize = decision.featurize
     if featurize is None:
-        names = tuple(table.input_names)
-        if names not in (INPUTS, tuple(reversed(INPUTS))):
-            raise KernelUnsupported(f"an abstraction over {names} without a feature map")
-        return names
-    names = tuple(getattr(featurize, "names", ()))
-    if not names or any(n not in FEATURE_CODES for n in names):
+        return [FEATURE_CODES[n] for n in INPUTS]
+    if type(featurize) is not FeatureMap or featurize.internal is not internal:
         raise KernelUnsupported(f"feature map {featurize!r}")
-    return names
+    unknown = [n for n in featurize.names if n not in FEATURE_CODES]
+    if unknown:
+        raise KernelUnsupported(f"features {unknown}")
+    return [FEATURE_CODES[n] for n in featurize.names]
 
 
 class EcoliKernel:
@@ -453,11 +480,15 @@ class EcoliKernel:
     shapes), so the simulator keeps the torch step for those.
     """
 
-    def __init__(self, params: EcoliParameters, decision: Any, field: Field, dt: float) -> None:
+    def __init__(
+        self, params: EcoliParameters, internal: Any, decision: Any, field: Field, dt: float
+    ) -> None:
         from surrogate.simulate.batch import DecisionBatch
 
         if params.motor_sampler == "ssa":
             raise KernelUnsupported("model.motor_sampler=ssa")
+        if type(internal) is not MotorInternalModel or internal.params != params:
+            raise KernelUnsupported("an internal model other than the model's motors")
         shape = float(params.tumble_shape)
         if not (shape.is_integer() and shape <= MAX_GAMMA_UNIFORMS):
             raise KernelUnsupported(f"a non-integer tumble_shape {shape:g}")
@@ -468,14 +499,14 @@ class EcoliKernel:
         rows = decision.randoms
         self._rows = Randoms(rows.uniform + self.gamma_k + 1, rows.uniform64, rows.normal + 1)
         self.body_row, self.ou_row = rows.uniform, rows.normal
-        if isinstance(decision, DecisionBatch):
+        if type(decision) is DecisionBatch:
             members, sizes = decision.members, decision.sizes
         else:
             members, sizes = [decision], [None]
         self.blocks: list[_Block] = []
         start = 0
         for member, size in zip(members, sizes, strict=True):
-            self.blocks.append(_Block(start, size, member, rows))
+            self.blocks.append(_Block(start, size, member, rows, internal))
             start += size or 0
         self._total = None if sizes == [None] else start
         if isinstance(field, FieldBatch):
@@ -486,6 +517,7 @@ class EcoliKernel:
             self._field_sizes = None
         self._field_total = None if self._field_sizes is None else sum(self._field_sizes)
         self._field_of_cell: np.ndarray | None = None
+        self._owned: set[int] = set()  # ids of the motor tensors this kernel copied
 
     def _cells(self, n: int) -> np.ndarray:
         """Each cell's field row, for a population of ``n`` cells (checked against the
@@ -497,6 +529,16 @@ class EcoliKernel:
             sizes = [n] if self._field_sizes is None else self._field_sizes
             self._field_of_cell = np.repeat(np.arange(len(sizes), dtype=np.int32), sizes)
         return self._field_of_cell
+
+    def _own_motors(self, decision: FullDecision) -> Tensor:
+        """The layer's motor states, replaced once by a copy of its own (the kernel writes
+        into it in place; the torch step always makes new ones)."""
+        motors = decision.fused_state()[0]
+        if id(motors) not in self._owned:
+            motors = motors.clone(memory_format=torch.contiguous_format)
+            decision.set_fused_state((motors,))
+            self._owned.add(id(motors))
+        return motors
 
     def advance(
         self, state: PopulationState, ended: Tensor, u: Tensor, u64: Tensor | None, z: Tensor
@@ -550,15 +592,14 @@ class EcoliKernel:
                 continue
             count = 0 if dry else count
             if b.kind == "motors":
-                motors = b.decision.fused_state()[0]
+                motors = b.decision.fused_state()[0] if dry else self._own_motors(b.decision)
                 advance_motors(steps, state.step, b.start, count, *common, _numpy(motors),
                                un, _numpy(u64), zn, b.motor_row, self.body_row, self.ou_row,
                                self.gamma_k, self.per_tumble, self.p32, self.p64)  # fmt: skip
             else:
-                if b.count is None and b.table_of_cell.shape[0] != n:  # a lone layer, one table
-                    b.table_of_cell = np.zeros(n, dtype=np.int32)
+                table_of_cell = b.tables_for(n if b.count is None else b.count)
                 advance_lookup(steps, state.step, b.start, count, *common, b.table,
-                               b.table_of_cell, b.layer, b.shape, b.strides, b.origin, b.scale,
+                               table_of_cell, b.layer, b.shape, b.strides, b.origin, b.scale,
                                b.features, un, zn, b.decision_row, self.body_row, self.ou_row,
                                self.gamma_k, self.per_tumble, self.p32, self.p64)  # fmt: skip
         if not dry:

@@ -49,7 +49,7 @@ class EcoliModel(Model):
         for the full model or a two-state chain over a lookup table, in a built-in field."""
         from surrogate.models.ecoli.kernel import EcoliKernel  # numba: imported on demand
 
-        return EcoliKernel(self.params, decision, field, dt)
+        return EcoliKernel(self.params, self.internal, decision, field, dt)
 
     def observable_label(self, name: str) -> str:
         """Figure labels."""
