@@ -194,143 +194,127 @@ def _ou(m, lrt, z, p):
     return _clamp(value, p[15], p[16])
 
 
+@numba.njit(inline="always", **_JIT)
+def _motors_step(dg, motors, j, c, s, u64, motor_row, q):
+    """One exact window of cell c's motors (``motors[:, j]``, in place) at dG; its RUN flag.
+
+    motors.motor_transition_terms / motor_thresholds (float64), sample_motor_states and
+    run_flag_from_states."""
+    dt = q[2]
+    dg64 = np.float64(dg)
+    kp = q[0] * math.exp(dg64)
+    km = q[0] * math.exp(-dg64)
+    a = q[1] + kp
+    b = kp + km
+    em1_a = math.expm1(-a * dt)
+    em1_b = math.expm1(-b * dt)
+    g = -em1_a / a
+    lo = 1.0 + max(em1_a, em1_b)
+    ff = lo * dt * _h(abs(a - b) * dt)
+    relax = -em1_b / b
+    to_n = kp * relax
+    from_n = km * relax
+    cross = kp * km / b
+    p_cs = cross * max(g - ff, 0.0)
+    p_ss = (1.0 + em1_a) + p_cs
+    p_ns = min(cross * g + (km * km / b) * ff, from_n)
+    t2_cw = 1.0 - to_n
+    n_ccw = _F32(0.0)
+    lowest = _F32(2.0)
+    for i in range(motors.shape[0]):
+        state = motors[i, j]
+        v = u64[s, motor_row + i, c]
+        if state == 0:
+            t1, t2 = p_ss, t2_cw
+        elif state == 2:
+            t1, t2 = p_ns, from_n
+        else:
+            t1, t2 = p_cs, t2_cw
+        new = _F32(1.0 if v >= t1 else 0.0) + _F32(1.0 if v >= t2 else 0.0)
+        motors[i, j] = new
+        n_ccw += max(new - _F32(1.0), _F32(0.0))
+        lowest = min(lowest, new)
+    return _F32(1.0) if (n_ccw >= 2 and lowest > 0) else _F32(0.0)
+
+
+@numba.njit(inline="always", **_JIT)
+def _lookup(phi_now, tab, m, ligand, energy, yp, dg, table, layer, shape, strides, origin,
+            scale, features):  # fmt: skip
+    """p(phi' = 1): gp.lookup._interpolate in table ``tab`` (lower node per axis, then lerp
+    along the last axis first)."""
+    d = shape.shape[0]
+    base = tab * 2 * layer + (layer if phi_now > 0 else 0)
+    fr0 = _F32(0.0)
+    fr1 = _F32(0.0)
+    fr2 = _F32(0.0)
+    for a in range(d):
+        value = _feature(features[a], m, ligand, energy, yp, dg)
+        top = _F32(shape[a] - 1)
+        w = _clamp((value - origin[tab, a]) * scale[tab, a], _F32(0.0), top)
+        # NaN stays NaN in w (and so in the probability); its index is clamped
+        i = min(max(int(np.floor(w)) if w == w else 0, 0), shape[a] - 2)
+        base += i * strides[a]
+        if a == 0:
+            fr0 = w - _F32(i)
+        elif a == 1:
+            fr1 = w - _F32(i)
+        else:
+            fr2 = w - _F32(i)
+    if d == 1:
+        return _lerp(table[base], table[base + strides[0]], fr0)
+    if d == 2:
+        s0, s1 = strides[0], strides[1]
+        v0 = _lerp(table[base], table[base + s1], fr1)
+        v1 = _lerp(table[base + s0], table[base + s0 + s1], fr1)
+        return _lerp(v0, v1, fr0)
+    s0, s1, s2 = strides[0], strides[1], strides[2]
+    v00 = _lerp(table[base], table[base + s2], fr2)
+    v01 = _lerp(table[base + s1], table[base + s1 + s2], fr2)
+    v10 = _lerp(table[base + s0], table[base + s0 + s2], fr2)
+    v11 = _lerp(table[base + s0 + s1], table[base + s0 + s1 + s2], fr2)
+    return _lerp(_lerp(v00, v01, fr1), _lerp(v10, v11, fr1), fr0)
+
+
 @numba.njit(parallel=True, **_JIT)
-def advance_motors(
+def advance_cells(
     steps, step0, start, count, position, heading, meth, phi, seg, complete, last_x, ended,
-    field_of_cell, fields, motors, u, u64, z, motor_row, body_row, ou_row,
-    gamma_k, per_tumble, p, q,
+    field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
+    motors, motor_row,
+    table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
 ):  # fmt: skip
-    """``steps`` steps of the full model (every motor by its exact exp(Q dt)) for cells
-    ``start`` to ``start + count`` (whose motors are ``motors``, M x count).
+    """``steps`` steps of cells ``start`` to ``start + count``: the full model when ``motors``
+    (M x count float32, 0 = S, 1 = C, 2 = N) has rows, each motor by its exact exp(Q dt) with
+    the float64 uniforms from row ``motor_row``; else the two-state chain
+    phi' ~ Bernoulli(psi_phi(z)) with the uniform of row ``decision_row``, psi a multilinear
+    lookup over ``features`` (codes of FEATURE_CODES) in the flat float32 ``table``: cell
+    ``start + j`` reads table ``table_of_cell[j]`` (offset ``2 * layer`` each) with its box
+    ``origin``/``scale`` (tables x d float32).
 
     Arrays are the simulator's tensors (in place): position (n, 2), heading, meth (n,) float32,
-    phi, complete (n,) uint8, seg (n,) int32; last_x (n, 2) the last
-    step's inputs; ended (steps, n) int32 out; random blocks u (steps, rows, n) float32, u64
-    (steps, rows, n) float64, z (steps, rows, n) float32.
+    phi, complete (n,) uint8, seg (n,) int32; last_x (n, 2) the last step's inputs; ended
+    (steps, n) int32 out; random blocks u (steps, rows, n) float32, u64 (steps, rows, n) float64,
+    z (steps, rows, n) float32. One function for both layers: one compilation.
     """
-    n_motors = motors.shape[0]
-    dt = q[2]
-    mu = q[1]
-    for j in prange(count):
-        c = start + j
-        x, y, h, m = position[c, 0], position[c, 1], heading[c], meth[c]
-        phi_now = _F32(phi[c])
-        f = fields[field_of_cell[c]]
-        for s in range(steps):
-            t = (step0 + s) * dt
-            ligand = _field(f, x, y, t)
-            last_x[c, 0] = m
-            last_x[c, 1] = ligand
-            lrt = _log_receptor_terms(ligand, p)
-            _, _, dg = _signal(m, lrt, p)
-            # motors.motor_transition_terms / motor_thresholds (float64)
-            dg64 = np.float64(dg)
-            kp = q[0] * math.exp(dg64)
-            km = q[0] * math.exp(-dg64)
-            a = mu + kp
-            b = kp + km
-            em1_a = math.expm1(-a * dt)
-            em1_b = math.expm1(-b * dt)
-            g = -em1_a / a
-            lo = 1.0 + max(em1_a, em1_b)
-            ff = lo * dt * _h(abs(a - b) * dt)
-            relax = -em1_b / b
-            to_n = kp * relax
-            from_n = km * relax
-            cross = kp * km / b
-            p_cs = cross * max(g - ff, 0.0)
-            p_ss = (1.0 + em1_a) + p_cs
-            p_ns = min(cross * g + (km * km / b) * ff, from_n)
-            t2_cw = 1.0 - to_n
-            # motors.sample_motor_states and run_flag_from_states
-            n_ccw = _F32(0.0)
-            lowest = _F32(2.0)
-            for i in range(n_motors):
-                state = motors[i, j]
-                v = u64[s, motor_row + i, c]
-                if state == 0:
-                    t1, t2 = p_ss, t2_cw
-                elif state == 2:
-                    t1, t2 = p_ns, from_n
-                else:
-                    t1, t2 = p_cs, t2_cw
-                new = _F32(1.0 if v >= t1 else 0.0) + _F32(1.0 if v >= t2 else 0.0)
-                motors[i, j] = new
-                n_ccw += max(new - _F32(1.0), _F32(0.0))
-                lowest = min(lowest, new)
-            phi_after = _F32(1.0) if (n_ccw >= 2 and lowest > 0) else _F32(0.0)
-            x, y, h = _move_and_account(
-                c, s, phi_now, phi_after, x, y, h, u, body_row, gamma_k, per_tumble, p,
-                seg, complete, ended,
-            )  # fmt: skip
-            m = _ou(m, lrt, z[s, ou_row, c], p)
-            phi_now = phi_after
-        position[c, 0], position[c, 1], heading[c], meth[c] = x, y, h, m
-        phi[c] = np.uint8(phi_now)
-
-
-@numba.njit(parallel=True, **_JIT)
-def advance_lookup(
-    steps, step0, start, count, position, heading, meth, phi, seg, complete, last_x, ended,
-    field_of_cell, fields, table, table_of_cell, layer, shape, strides, origin, scale, features,
-    u, z, decision_row, body_row, ou_row, gamma_k, per_tumble, p, q,
-):  # fmt: skip
-    """``steps`` steps of the two-state chain phi' ~ Bernoulli(psi_phi(z)), psi a multilinear
-    lookup table over ``features`` (codes of FEATURE_CODES), for cells ``start`` to
-    ``start + count``.
-
-    ``table`` is the flat float32 table(s): cell ``start + j`` reads table ``table_of_cell[j]`` (offset
-    ``2 * layer`` each) with its box ``origin``/``scale`` (tables x d, float32). Other arrays as
-    in :func:`advance_motors`.
-    """
-    d = shape.shape[0]
+    full = motors.shape[0] > 0
     dt = q[2]
     for j in prange(count):
         c = start + j
         x, y, h, m = position[c, 0], position[c, 1], heading[c], meth[c]
         phi_now = _F32(phi[c])
         f = fields[field_of_cell[c]]
-        tab = table_of_cell[j]
+        tab = 0 if full else table_of_cell[j]
         for s in range(steps):
-            t = (step0 + s) * dt
-            ligand = _field(f, x, y, t)
+            ligand = _field(f, x, y, (step0 + s) * dt)
             last_x[c, 0] = m
             last_x[c, 1] = ligand
             lrt = _log_receptor_terms(ligand, p)
             energy, yp, dg = _signal(m, lrt, p)
-            # gp.lookup._interpolate: lower node per axis, then lerp along the last axis first
-            base = tab * 2 * layer + (layer if phi_now > 0 else 0)
-            fr0 = _F32(0.0)
-            fr1 = _F32(0.0)
-            fr2 = _F32(0.0)
-            for a in range(d):
-                value = _feature(features[a], m, ligand, energy, yp, dg)
-                top = _F32(shape[a] - 1)
-                w = _clamp((value - origin[tab, a]) * scale[tab, a], _F32(0.0), top)
-                # NaN stays NaN in w (and so in the probability); its index is clamped
-                i = min(max(int(np.floor(w)) if w == w else 0, 0), shape[a] - 2)
-                base += i * strides[a]
-                if a == 0:
-                    fr0 = w - _F32(i)
-                elif a == 1:
-                    fr1 = w - _F32(i)
-                else:
-                    fr2 = w - _F32(i)
-            if d == 1:
-                prob = _lerp(table[base], table[base + strides[0]], fr0)
-            elif d == 2:
-                s0, s1 = strides[0], strides[1]
-                v0 = _lerp(table[base], table[base + s1], fr1)
-                v1 = _lerp(table[base + s0], table[base + s0 + s1], fr1)
-                prob = _lerp(v0, v1, fr0)
+            if full:
+                phi_after = _motors_step(dg, motors, j, c, s, u64, motor_row, q)
             else:
-                s0, s1, s2 = strides[0], strides[1], strides[2]
-                v00 = _lerp(table[base], table[base + s2], fr2)
-                v01 = _lerp(table[base + s1], table[base + s1 + s2], fr2)
-                v10 = _lerp(table[base + s0], table[base + s0 + s2], fr2)
-                v11 = _lerp(table[base + s0 + s1], table[base + s0 + s1 + s2], fr2)
-                prob = _lerp(_lerp(v00, v01, fr1), _lerp(v10, v11, fr1), fr0)
-            phi_after = _F32(1.0) if u[s, decision_row, c] < prob else _F32(0.0)
+                prob = _lookup(phi_now, tab, m, ligand, energy, yp, dg, table, layer, shape,
+                               strides, origin, scale, features)  # fmt: skip
+                phi_after = _F32(1.0) if u[s, decision_row, c] < prob else _F32(0.0)
             x, y, h = _move_and_account(
                 c, s, phi_now, phi_after, x, y, h, u, body_row, gamma_k, per_tumble, p,
                 seg, complete, ended,
@@ -383,6 +367,15 @@ def pack_field(field: Field) -> np.ndarray:
     else:
         raise KernelUnsupported(f"field {kind.__name__} (the kernel knows the built-in fields)")
     return row
+
+
+# placeholders for the arguments of the layer a block does not use (one compiled signature)
+_NO_MOTORS = np.zeros((0, 0), dtype=np.float32)
+_NO_U64 = np.zeros((1, 1, 1), dtype=np.float64)
+_NO_TABLE = (np.zeros(2, dtype=np.float32), np.zeros(1, dtype=np.int32), 1,
+             np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+             np.zeros((1, 1), dtype=np.float32), np.zeros((1, 1), dtype=np.float32),
+             np.zeros(1, dtype=np.int64), 0)  # fmt: skip
 
 
 def _numpy(t: Tensor) -> np.ndarray:
@@ -499,6 +492,8 @@ class EcoliKernel:
         rows = decision.randoms
         self._rows = Randoms(rows.uniform + self.gamma_k + 1, rows.uniform64, rows.normal + 1)
         self.body_row, self.ou_row = rows.uniform, rows.normal
+        self._body_args = (self.body_row, self.ou_row, self.gamma_k, self.per_tumble, self.p32,
+                           self.p64)  # fmt: skip
         if type(decision) is DecisionBatch:
             members, sizes = decision.members, decision.sizes
         else:
@@ -593,14 +588,13 @@ class EcoliKernel:
             count = 0 if dry else count
             if b.kind == "motors":
                 motors = b.decision.fused_state()[0] if dry else self._own_motors(b.decision)
-                advance_motors(steps, state.step, b.start, count, *common, _numpy(motors),
-                               un, _numpy(u64), zn, b.motor_row, self.body_row, self.ou_row,
-                               self.gamma_k, self.per_tumble, self.p32, self.p64)  # fmt: skip
+                advance_cells(steps, state.step, b.start, count, *common, un, _numpy(u64), zn,
+                              *self._body_args, _numpy(motors), b.motor_row, *_NO_TABLE)  # fmt: skip
             else:
                 table_of_cell = b.tables_for(n if b.count is None else b.count)
-                advance_lookup(steps, state.step, b.start, count, *common, b.table,
-                               table_of_cell, b.layer, b.shape, b.strides, b.origin, b.scale,
-                               b.features, un, zn, b.decision_row, self.body_row, self.ou_row,
-                               self.gamma_k, self.per_tumble, self.p32, self.p64)  # fmt: skip
+                advance_cells(steps, state.step, b.start, count, *common, un,
+                              _NO_U64 if u64 is None else _numpy(u64), zn, *self._body_args,
+                              _NO_MOTORS, 0, b.table, table_of_cell, b.layer, b.shape,
+                              b.strides, b.origin, b.scale, b.features, b.decision_row)  # fmt: skip
         if not dry:
             state.step += steps
