@@ -280,21 +280,26 @@ def _simulate_group(runs: Sequence[SimulateSettings]) -> None:
                                 job.device, s.compile)  # fmt: skip
         by_backend.setdefault(alone, []).append(i)
     for members in by_backend.values():
-        _simulate_batch([runs[i] for i in members], [replicates[i] for i in members],
-                        [infos[i] for i in members])  # fmt: skip
+        _simulate_batch(setup.model, [runs[i] for i in members],
+                        [replicates[i] for i in members], [infos[i] for i in members])  # fmt: skip
 
 
 def _simulate_batch(
-    runs: Sequence[SimulateSettings], replicates: Sequence[Any], infos: Sequence[dict[str, Any]]
+    model: Model,
+    runs: Sequence[SimulateSettings],
+    replicates: Sequence[Any],
+    infos: Sequence[dict[str, Any]],
 ) -> None:
+    """One batch over ``model`` (the one the replicates' decision layers were built over)."""
     from surrogate.simulate.batch import BatchSimulator, simulate_batch
 
     first = runs[0]
     setup, job = first.setup, first.job
     t0 = time.perf_counter()
     seed_everything(setup.seed)
-    simulator = BatchSimulator(setup.model, replicates, setup.dt, job.device,
+    simulator = BatchSimulator(model, replicates, setup.dt, job.device,
                                compile=first.compile, backend=first.backend)  # fmt: skip
+    _log_backend(simulator)
     log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d distinct fields; "
              "%s loop)", len(runs), sum(s.n_cells for s in runs),
              len(simulator.decision.members), len(simulator.field.distinct),

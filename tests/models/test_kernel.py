@@ -294,6 +294,10 @@ def test_the_kernel_refuses_what_it_does_not_transcribe() -> None:
             _table(model, ("m", "L")), internal, model.featurizer(["dG"])
         ),
     }
+    # another instance with the same constants is the same motors (a batch's runs each build
+    # their own model object)
+    twin = FullDecision(EcoliModel().internal)
+    assert Simulator(model, twin, GaussianField(), DT, backend="auto").backend == "numba"
     for what, decision in cases.items():
         sim = Simulator(model, decision, GaussianField(), DT, backend="auto")
         assert sim.backend == "torch" and what in sim.backend_note, (what, sim.backend_note)

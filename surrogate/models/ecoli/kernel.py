@@ -401,7 +401,7 @@ class _Block:
             raise KernelUnsupported(f"decision layer {kind.__name__}")
         if not is_fusable(decision):
             raise KernelUnsupported(f"a {kind.__name__} without a pure window (motor SSA)")
-        if decision.internal is not internal:
+        if not _same_motors(decision.internal, internal):
             raise KernelUnsupported("a decision layer over another internal model")
         if kind is FullDecision:
             self.kind = "motors"
@@ -450,13 +450,19 @@ class _Block:
         return self.table_of_cell
 
 
+def _same_motors(a: Any, b: Any) -> bool:
+    """Whether two internal models are the same motors (class and constants): the kernel
+    computes with the model's constants."""
+    return a is b or (type(a) is type(b) is MotorInternalModel and a.params == b.params)
+
+
 def _feature_codes(decision: AbstractDecision, internal: Any) -> list[int]:
     """The kernel's codes of the abstraction's input columns: the raw inputs (m, L) without a
     feature map (as the torch layer feeds x itself), else the map's names."""
     featurize = decision.featurize
     if featurize is None:
         return [FEATURE_CODES[n] for n in INPUTS]
-    if type(featurize) is not FeatureMap or featurize.internal is not internal:
+    if type(featurize) is not FeatureMap or not _same_motors(featurize.internal, internal):
         raise KernelUnsupported(f"feature map {featurize!r}")
     unknown = [n for n in featurize.names if n not in FEATURE_CODES]
     if unknown:
