@@ -564,7 +564,7 @@ def _cell_kernel(
             raise KernelUnsupported(
                 f"backend=numba cannot run {exc}; use backend=torch (or auto)"
             ) from None
-        return None, str(exc)
+        return None, f"no per-cell kernel for {exc}"
 
 
 def resolve_backend(

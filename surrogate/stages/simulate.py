@@ -159,7 +159,7 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
 
 def _log_backend(simulator: Simulator) -> None:
     if simulator.backend_note:
-        log.info("backend=auto: the torch step (no per-cell kernel for %s)", simulator.backend_note)
+        log.info("backend=auto: the torch step (%s)", simulator.backend_note)
 
 
 def _write_manifest(
