@@ -19,6 +19,7 @@ the same directory (stages that write under :func:`surrogate.io.artefact_lock` t
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from collections.abc import Mapping
@@ -52,12 +53,23 @@ def available_fields() -> list[str]:
     return group_options("field")
 
 
+@functools.lru_cache(maxsize=256)
+def _load_yaml(path: Path, mtime_ns: int) -> dict[str, Any]:
+    """A YAML file as a plain dict, parsed once per version of the file (commands and
+    identities ask for the same shipped configs hundreds of times in a report)."""
+    return to_dict(OmegaConf.load(path))
+
+
+def _shipped(path: Path) -> dict[str, Any]:
+    return copy.deepcopy(_load_yaml(path, path.stat().st_mtime_ns))
+
+
 def group_config(group: str, name: str) -> dict[str, Any]:
     """The shipped config ``conf/<group>/<name>.yaml`` as a plain dict."""
     path = CONF_DIR / group / f"{name}.yaml"
     if not path.exists():
         raise ConfigError(f"unknown {group} {name!r}; available: {group_options(group)}")
-    return to_dict(OmegaConf.load(path))
+    return _shipped(path)
 
 
 def field_config(name: str) -> dict[str, Any]:
@@ -65,7 +77,7 @@ def field_config(name: str) -> dict[str, Any]:
     path = CONF_DIR / "field" / f"{name}.yaml"
     if not path.exists():
         raise ConfigError(f"unknown field {name!r}; available fields: {available_fields()}")
-    return to_dict(OmegaConf.load(path))
+    return _shipped(path)
 
 
 @functools.lru_cache(maxsize=1)

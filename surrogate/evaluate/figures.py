@@ -171,7 +171,7 @@ def plot_duration_histograms(
     fig, axes = _panels((9.0, 3.5), len(kinds), 0.8)
     for ax, kind in zip(axes, kinds, strict=True):
         pair = (reference.duration_distribution(kind), candidate.duration_distribution(kind))
-        ax.set_title(f"{kind} durations", fontsize=10)
+        ax.set_title(f"{kind} durations", fontsize=10, y=1.0)
         ax.set_xlabel("duration (s)")
         present = [d for d in pair if d.n]
         if not present:

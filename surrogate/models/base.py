@@ -257,6 +257,14 @@ class Model:
         model has none."""
         raise KernelUnsupported(f"model {self.name!r} has no compiled per-cell kernel")
 
+    def kernel_precompiler(self) -> str | None:
+        """``"module:function"`` of a zero-argument function that compiles this model's
+        per-cell kernel into its on-disk cache, or None when there is nothing to compile (no
+        kernel, or it is cached already). Stages run it in a background process
+        (:func:`surrogate.simulate.precompile.precompile_in_background`) while they collect and
+        train; the base model has no kernel."""
+        return None
+
     def featurizer(self, names: Sequence[str]) -> Callable[[Tensor], Tensor]:
         """``x (n x d) -> z (n x len(names))``: the columns an abstraction over ``names`` needs."""
         return FeatureMap(self.internal, self.abstraction_inputs(list(names)))

@@ -40,6 +40,7 @@ from surrogate.errors import ConfigError, NumericalError
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
+from surrogate.simulate.precompile import wait_for_precompile
 
 
 @dataclass
@@ -263,6 +264,8 @@ class Simulator:
         self.kernel, self.backend_note = _cell_kernel(backend, model, decision, field, self.dt,
                                                       self.device, bool(compile))  # fmt: skip
         self.backend = "torch" if self.kernel is None else "numba"
+        if self.kernel is not None:  # a compilation in flight fills numba's cache for its calls
+            wait_for_precompile()
         self.compile = bool(compile)
         self.compile_error: str | None = None
         self._kernels: dict[str, Callable[..., Any]] = {}
@@ -558,13 +561,14 @@ def _cell_kernel(
     try:
         if device.type != "cpu":
             raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")
-        return model.cell_kernel(decision, field, dt), None
+        kernel = model.cell_kernel(decision, field, dt)
     except KernelUnsupported as exc:
         if backend == "numba":
             raise KernelUnsupported(
                 f"backend=numba cannot run {exc}; use backend=torch (or auto)"
             ) from None
         return None, f"no per-cell kernel for {exc}"
+    return kernel, None
 
 
 def resolve_backend(

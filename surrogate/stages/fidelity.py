@@ -60,6 +60,7 @@ from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.population import steps_between
+from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.stages.collect import collect
 from surrogate.stages.settings import (
     Job,
@@ -276,6 +277,8 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     model = setup.model
     if settings.compile:
         use_compile_cache(job.data_dir / COMPILE_CACHE)
+    if kernel_wanted(settings.backend, settings.compile):
+        precompile_in_background(model, job.device)  # overlaps collect and train
     # 1. the abstractions (collect and train reuse what exists)
     psis = {}
     for c in settings.candidates:

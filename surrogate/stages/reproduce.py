@@ -23,6 +23,7 @@ import torch
 from surrogate.config import to_dict
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
 from surrogate.io import MANIFEST, artefact_lock, read_csv, read_manifest, write_manifest
+from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.collect import collect
 from surrogate.stages.settings import CollectSettings, ReproduceSettings
@@ -49,6 +50,8 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     """Run the pipeline of ``settings`` and write ``report.md``."""
     t0 = time.perf_counter()
     tr = settings.train
+    if any(kernel_wanted(r.backend, r.compile) for r in settings.runs()):
+        precompile_in_background(tr.setup.model, tr.job.device)  # overlaps collect and train
     collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
     train_dir = train(tr)
     if settings.config.get("batch", True):  # every missing run in one batch, then evaluate

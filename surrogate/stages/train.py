@@ -52,6 +52,7 @@ from surrogate.io import (
 from surrogate.models.base import Model
 from surrogate.simulate.decision import ExactPsi, FullDecision
 from surrogate.simulate.loop import Simulator
+from surrogate.simulate.precompile import precompile_in_background
 from surrogate.simulate.transitions import record_occupancy
 from surrogate.stages.collect import TRANSITIONS
 from surrogate.stages.settings import CollectSettings, TrainSettings
@@ -136,6 +137,7 @@ def _train(
     job, model = settings.job, settings.setup.model
     lumps = model.internal.lump_names
     seed_everything(settings.seed)
+    precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
     t0 = time.perf_counter()
     try:
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,

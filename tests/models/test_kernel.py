@@ -192,6 +192,37 @@ def test_kernel_replicates_in_a_batch_are_their_standalone_runs_bit_for_bit() ->
         assert torch.equal(ended[:, cells], a_ended)
 
 
+@pytest.mark.parametrize("kind", ["full", "dG"])
+def test_kernel_results_do_not_depend_on_the_thread_count(kind) -> None:
+    """Cells are split over threads in contiguous pieces, each cell reading its own random
+    numbers: one thread and three give the same numbers bit for bit."""
+    model = EcoliModel()
+    before = torch.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, 3):
+            torch.set_num_threads(threads)
+            runs.append(_run(model, kind, GaussianField(), "numba", n=301, steps=60))
+    finally:
+        torch.set_num_threads(before)
+    (a, a_ended), (b, b_ended) = runs
+    assert torch.equal(a_ended, b_ended)
+    for key in ("position", "heading", "m"):
+        assert torch.equal(a.body[key], b.body[key]), key
+    assert torch.equal(a.phi, b.phi) and torch.equal(a.segment_steps, b.segment_steps)
+
+
+def test_precompile_compiles_the_signature_the_simulator_calls() -> None:
+    """The background precompile calls the kernel with zero cells typed as the adaptor's
+    arguments: a simulation afterwards adds no second compiled signature."""
+    from surrogate.models.ecoli import kernel
+
+    kernel.precompile()
+    _run(EcoliModel(), "full", GaussianField(), "numba", n=20, steps=30)
+    _run(EcoliModel(), "mL", GaussianField(), "numba", n=20, steps=30)
+    assert len(kernel.advance_cells.signatures) == 1
+
+
 class _UserField(GaussianField):
     """A field the kernel cannot know (a user's subclass)."""
 

@@ -51,6 +51,13 @@ class EcoliModel(Model):
 
         return EcoliKernel(self.params, self.internal, decision, field, dt)
 
+    def kernel_precompiler(self) -> str | None:
+        """:func:`surrogate.models.ecoli.kernel.precompile` while numba's cache lacks the
+        kernel (one signature serves every decision layer and field)."""
+        from surrogate.models.ecoli import kernel
+
+        return None if kernel.is_compiled_on_disk() else f"{kernel.__name__}:precompile"
+
     def observable_label(self, name: str) -> str:
         """Figure labels."""
         return {"distance": "distance from the peak (mm)"}.get(name, name)
