@@ -26,11 +26,12 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 import pandas as pd
 import torch
+from torch import Tensor
 from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
-from surrogate.simulate.loop import Simulator
+from surrogate.simulate.loop import PopulationState, Simulator
 
 
 def _rows(
@@ -66,15 +67,14 @@ def _rows(
                 jump = torch.rand(n_cells, device=device) < jump_probability
                 state.body = perturbation.apply(state.body, jump)
                 since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
-            rec = simulator.step(state)
+            x, phi_before, phi_after = _one_step(simulator, state)
             if k % record_every:
                 continue
             # every cell on thinned steps, except those still inside the blackout after a jump
             rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
             if rows.numel() == 0:
                 continue
-            x = rec.inputs[rows]
-            values = internal.features(x, names).float().cpu().numpy()
+            values = internal.features(x[rows], names).float().cpu().numpy()
             # the rows are on the host already, so the check is free; NaN/inf must not reach
             # the table
             if not np.isfinite(values).all():
@@ -84,13 +84,25 @@ def _rows(
                 )
             chunk = {n: values[:, i] for i, n in enumerate(names)}
             chunk.update(
-                phi=rec.phi_before[rows].to(torch.int8).cpu().numpy(),
-                phi_next=rec.phi_after[rows].to(torch.int8).cpu().numpy(),
+                phi=phi_before[rows].to(torch.int8).cpu().numpy(),
+                phi_next=phi_after[rows].to(torch.int8).cpu().numpy(),
                 cell=rows.cpu().numpy(),
                 t=np.full(rows.numel(), (k - 1) * dt),
                 since_jump=since[rows].cpu().numpy(),
             )
             yield chunk
+
+
+def _one_step(simulator: Simulator, state: PopulationState) -> tuple[Tensor, Tensor, Tensor]:
+    """One step of every cell: (its inputs x, phi before, phi after). The model's per-cell
+    kernel where the simulator has one (it writes the state in place, so phi before is a
+    copy), else the torch step (same random numbers, same dynamics)."""
+    if simulator.kernel is None:
+        rec = simulator.step(state)
+        return rec.inputs, rec.phi_before, rec.phi_after
+    phi_before = state.phi.clone()
+    simulator.advance(state, 1)
+    return state.inputs, phi_before, state.phi
 
 
 def _table(chunks: list[dict[str, np.ndarray]]) -> pd.DataFrame:
