@@ -171,7 +171,8 @@ def write_outputs(
     runs: RunSet,
     settings: EvaluateSettings,
 ) -> None:
-    """Tables (CSV + Markdown) and figures (Figures 4 and 5 of the paper, durations)."""
+    """Tables (CSV + Markdown) and, unless ``evaluate.figures=false``, figures (Figures 4 and 5
+    of the paper, durations)."""
     from surrogate.evaluate.figures import (
         plot_duration_histograms,
         plot_observable_histograms,
@@ -185,18 +186,22 @@ def write_outputs(
     write_comparison(out, table, prefix=COMPARISON)
     if floor is not None:
         write_comparison(out, floor, prefix=NOISE_FLOOR)
+    figures = bool(settings.options.get("figures", True))
     frames = []
     for name in runs.full.observable_names:
         for label, r in zip(labels, (runs.full, runs.candidate), strict=True):
             frames.append(mean_std_over_time(r, name).assign(observable=name, model=label))
+        if not figures:
+            continue
         axis = model.observable_label(name)
         save_figure(out / f"{name}_histograms.png", plot_observable_histograms(
             runs.full, runs.candidate, settings.times, labels, name=name, axis_label=axis), crop=False)  # fmt: skip
         save_figure(out / f"{name}_over_time.png", plot_observable_over_time(
             runs.full, runs.candidate, labels, separate=True, name=name, axis_label=axis), crop=False)  # fmt: skip
     write_csv(out / "observables_over_time.csv", pd.concat(frames, ignore_index=True))
-    save_figure(out / "durations.png", plot_duration_histograms(runs.full, runs.candidate, labels),
-                crop=False)  # fmt: skip
+    if figures:
+        save_figure(out / "durations.png",
+                    plot_duration_histograms(runs.full, runs.candidate, labels), crop=False)  # fmt: skip
 
 
 def read_summary(directory: str | Path) -> dict[str, Any]:

@@ -621,6 +621,8 @@ class EvaluateSettings:
             full_cfg["n_cells"] = int(positive(e, "full_n_cells", "evaluate.", integer=True))
         full = SimulateSettings.from_config(full_cfg)
         subsample = int(positive(e, "subsample", "evaluate.", integer=True))
+        if not isinstance(e.get("figures", True), bool):
+            raise ConfigError(f"evaluate.figures must be true or false, got {e['figures']!r}")
         t_end = candidate.t_end
         times_cfg = e.get("times")
         if times_cfg is None:  # the paper's quarters of t_end
@@ -708,8 +710,11 @@ class ReproduceSettings:
         exact = {}
         if c.get("exact_psi") and hasattr(train.setup.model.internal, "exact_psi"):
             decision = {**group_config("decision", "exact")}
+            # the report shows the abstraction's figures only; the exact chain's are optional
+            figures = {"figures": bool(c.get("exact_psi_figures", False))}
             exact = {
-                name: EvaluateSettings.from_config(_field_run(c, name, decision)) for name in fields
+                name: EvaluateSettings.from_config(_field_run(c, name, decision, **figures))
+                for name in fields
             }
         if c.get("batch", True) and c.get("compile", False):
             evaluations, exact = _batched(evaluations, exact)
@@ -789,7 +794,10 @@ def _batched(
             {k: tagged(v) for k, v in exact.items()})  # fmt: skip
 
 
-def _field_run(cfg: dict[str, Any], name: str, decision: Mapping[str, Any]) -> dict[str, Any]:
-    """The evaluate config for one field: same settings, that field, missing runs simulated."""
+def _field_run(
+    cfg: dict[str, Any], name: str, decision: Mapping[str, Any], **evaluate: Any
+) -> dict[str, Any]:
+    """The evaluate config for one field: same settings, that field, missing runs simulated
+    (and any other ``evaluate`` options given)."""
     return {**cfg, "field": field_config(name), "decision": dict(decision),
-            "evaluate": {**cfg["evaluate"], "run_missing": True}}  # fmt: skip
+            "evaluate": {**cfg["evaluate"], **evaluate, "run_missing": True}}  # fmt: skip

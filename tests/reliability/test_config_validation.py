@@ -112,6 +112,7 @@ BAD_INPUTS = [
     ("evaluate", ["evaluate.noise_seed_offset=0"], "evaluate.noise_seed_offset"),
     ("evaluate", ["evaluate.times=[5.0]"], "evaluate.times [5.0] lie outside"),
     ("evaluate", ["evaluate.subsample=0"], "evaluate.subsample must be a positive"),
+    ("evaluate", ["evaluate.figures=maybe"], "evaluate.figures must be true or false"),
     ("evaluate", ["decision.mode=foo"], "decision.mode must be one of"),
     ("evaluate", ["decision.name=full"], "use decision=abstract"),
     ("reproduce", ["n_cells=0"], "n_cells must be a positive number"),

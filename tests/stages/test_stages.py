@@ -139,6 +139,21 @@ def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     assert abstract.manifest["decision"] == "abstract"
 
 
+def test_evaluation_without_figures_writes_the_same_tables(trained, compose_cfg) -> None:
+    """evaluate.figures=false (reproduce's exact-psi evaluations): the same comparison, no
+    figures, in a directory of its own."""
+    overrides = [*TINY, "decision=abstract", "decision.lookup_size=[64]", "evaluate.times=null",
+                 "evaluate.subsample=200", "evaluate.run_missing=true"]  # fmt: skip
+    with_figures = evaluate_stage.run(compose_cfg("evaluate", overrides))
+    without = evaluate_stage.run(compose_cfg("evaluate", [*overrides, "evaluate.figures=false"]))
+    assert without != with_figures
+    assert not list(without.glob("*.png")) and len(list(with_figures.glob("*.png"))) == 3
+    pd.testing.assert_frame_equal(
+        pd.read_csv(without / "comparison.csv"), pd.read_csv(with_figures / "comparison.csv")
+    )
+    assert (without / "observables_over_time.csv").exists()
+
+
 def test_simulate_abstract_without_training_names_the_command(compose_cfg) -> None:
     cfg = compose_cfg("simulate", ["decision=abstract", "n_cells=4", "t_end=1.0"])
     with pytest.raises(MissingArtefactError, match="python scripts/train.py"):
