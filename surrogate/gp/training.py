@@ -670,14 +670,17 @@ def binned_expected_log_likelihood(
     ``n - k`` failures of the probit likelihood, E_q[k log Phi(f) + (n - k) log Phi(-f)], in
     one pass of the likelihood's Gauss-Hermite quadrature.
 
-    What ``BernoulliLikelihood.expected_log_prob`` computes for each label, summed, with
-    ``torch.special.log_ndtr`` (torch's native log Phi, accurate in both tails) for gpytorch's
-    autograd-function ``log_normal_cdf``: the two quadratures and that function were ~40 % of
-    a training step at the paper's size.
+    What ``BernoulliLikelihood.expected_log_prob`` computes for each label (with its
+    ``log_normal_cdf``), summed, in one quadrature instead of two (a training step at the
+    paper's size ~25 % cheaper). Not ``torch.special.log_ndtr``, though it is closer to the
+    exact integral: the objective would change, and the fitted psi with it (measured: up to
+    2 % more bias where cells live after the default 1,000 steps on the same data).
     """
-    from torch.special import log_ndtr
+    from gpytorch.functions import log_normal_cdf
 
-    return likelihood.quadrature(lambda s: k_b * log_ndtr(s) + (n_b - k_b) * log_ndtr(-s), f)
+    return likelihood.quadrature(
+        lambda s: k_b * log_normal_cdf(s) + (n_b - k_b) * log_normal_cdf(-s), f
+    )
 
 
 def _binned_loss(

@@ -72,7 +72,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     write_parquet(out / TRANSITIONS, table)
-    save_figure(out / COVERAGE_FIGURE, plot_coverage(table, model))
+    save_figure(out / COVERAGE_FIGURE, plot_coverage(table, model), crop=False)
     lumps = model.internal.lump_names
     counts = {
         f"{lumps[phi]}_to_{lumps[nxt]}": int(
@@ -102,16 +102,16 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
 def plot_coverage(table: pd.DataFrame, model: Any) -> Any:
     """Where the collected transitions lie: the raw inputs (first two, coloured by the next
     phi) and the histogram of the signal by origin state."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     internal = model.internal
     lumps = internal.lump_names
     inputs = list(internal.input_names)
     signal = internal.signal_names[0]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    # margins fixed in inches (no layout engine: it measured every label once more)
+    fig = Figure(figsize=(15, 4.2))
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.13, top=0.86, wspace=0.25)
+    axes = fig.subplots(1, 3)
     for ax, phi in zip(axes[:2], (1, 0), strict=True):
         rows = table[table["phi"] == phi]
         rows = rows.sample(min(len(rows), 4000), random_state=0)
