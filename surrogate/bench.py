@@ -2,6 +2,8 @@
 
 One run (``python scripts/bench.py``, config ``conf/bench.yaml``) measures, in this order:
 
+* the per-cell kernel's one-time compilation in fresh processes: with an empty numba cache
+  (what a new machine pays once) and loading what that cached (``kernel_compile``);
 * data collection (20k transitions with ``collect_transitions``) and GP training (both
   classifiers with ``fit_psi``); the classifiers trained here are the abstraction used below
   (trained on the fly: it is about speed, not accuracy);
@@ -394,6 +396,41 @@ def memory_run(
 # the whole benchmark
 
 
+#: a fresh process: the model's precompile target (asked of the model unless given), timed
+_KERNEL_COMPILE_CHILD = """
+import importlib, json, sys, time
+from surrogate.config import build_model
+target = sys.argv[2] if len(sys.argv) > 2 else build_model(json.loads(sys.argv[1])).kernel_precompiler()
+if target is None:
+    print("none")
+else:
+    module, _, function = target.partition(":")
+    compile_kernel = getattr(importlib.import_module(module), function)
+    t0 = time.perf_counter()
+    compile_kernel()
+    print(target, time.perf_counter() - t0)
+"""
+
+
+def kernel_compile_times(model_cfg: Mapping[str, Any], cache_dir: Path) -> dict[str, Any] | None:
+    """The per-cell kernel's one-time compilation as a new machine pays it: a fresh process
+    with an empty numba cache (``cache_dir``), then a second one loading what the first
+    cached (seconds, imports excluded). None when the model has no kernel."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache_dir)}
+    args = [sys.executable, "-c", _KERNEL_COMPILE_CHILD, json.dumps(dict(model_cfg))]
+    out: dict[str, Any] = {}
+    for label in ("cold_s", "cached_s"):
+        proc = subprocess.run(args, capture_output=True, text=True, env=env, check=False)
+        if proc.returncode != 0:
+            raise RuntimeError(f"kernel compile subprocess failed:\n{proc.stderr[-3000:]}")
+        words = proc.stdout.split()
+        if words[-1] == "none":
+            return None
+        out["target"], out[label] = words[-2], float(words[-1])
+        args = [*args[:4], out["target"]]  # the second process loads what the first cached
+    return out
+
+
 def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run every measurement of ``cfg`` (see the module docstring); return the results."""
     from surrogate.gp import PsiLookupTable
@@ -433,7 +470,13 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
         "domain": {k: list(v) for k, v in psi.domain.items()},
     }
 
-    # 2. throughput: models x sizes, per thread count and compile mode
+    # 2. the per-cell kernel's one-time compilation (fresh processes, empty numba cache)
+    if s.get("kernel_compile", True) and "numba" in s["backends"] and device.type == "cpu":
+        log("kernel compilation: cold and cached, in fresh processes")
+        with tempfile.TemporaryDirectory() as tmp:
+            results["kernel_compile"] = kernel_compile_times(to_dict(cfg["model"]), Path(tmp))
+
+    # 3. throughput: models x sizes, per thread count and compile mode
     rows = []
     for threads in s["threads"]:
         with num_threads(threads):
@@ -462,7 +505,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
     results["best_config"] = {"threads": best_threads, "compile": best_compile}
 
     with num_threads(best_threads):
-        # 3. ratio as the number of motors grows (lookup abstraction; independent of motors)
+        # 4. ratio as the number of motors grows (lookup abstraction; independent of motors)
         motors = []
         n = int(s["motors_size"])
         sim_abs = make_simulator("lookup", model, field, dt, device, tables, best_compile)
@@ -478,7 +521,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
             })  # fmt: skip
         results["motors"] = motors
 
-        # 4. per-step split (best config)
+        # 5. per-step split (best config)
         breakdown = []
         for n in s["breakdown_sizes"]:
             for name in MODELS:
@@ -486,7 +529,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
                 breakdown.append({"model": name, "n_cells": n, **step_breakdown(sim, n)})
         results["breakdown"] = breakdown
 
-        # 5. the paper's workload through simulate_population: eager, compiled, numba
+        # 6. the paper's workload through simulate_population: eager, compiled, numba
         paper = []
         with tempfile.TemporaryDirectory() as tmp:
             for backend, compile in modes(s):
@@ -505,7 +548,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
             "runs": paper,
         }
 
-        # 6. memory of a large abstracted run, in a fresh process, for two t_end
+        # 7. memory of a large abstracted run, in a fresh process, for two t_end
         memory = []
         with tempfile.TemporaryDirectory() as tmp:
             for t_end in s["memory"]["t_end"]:
@@ -583,6 +626,10 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"wall {run['wall_s']:7.2f} s "
             f"(loop {run['loop_s']:.2f} s, compile {run['compile_s']:.1f} s)  load {run['load'][:1]}"
         )
+    k = r.get("kernel_compile")
+    if k:
+        lines += ["", f"per-cell kernel compilation (fresh process): {k['cold_s']:.1f} s with an "
+                      f"empty numba cache, {k['cached_s']:.2f} s loading it from the cache"]  # fmt: skip
     c, t = r["collect"], r["training"]
     lines += [
         "",

@@ -72,6 +72,18 @@ def test_quick_bench_writes_all_sections(
     assert all(run["peak_rss_mb"] > 0 for run in r["memory"]["runs"])
     assert "trained on the fly" in a["source"]
     assert "throughput" in format_report(r)
+    assert "kernel_compile" not in r  # the quick bench skips the fresh-process compilation
+
+
+def test_kernel_compile_is_timed_cold_then_cached(tmp_path) -> None:
+    """Two fresh processes share an empty numba cache: the first compiles the kernel, the
+    second loads it (much faster)."""
+    from surrogate.bench import kernel_compile_times
+
+    times = kernel_compile_times({"_target_": "surrogate.models.ecoli.EcoliModel"}, tmp_path)
+    assert times["target"] == "surrogate.models.ecoli.kernel:precompile"
+    assert 0 < times["cached_s"] < times["cold_s"]
+    assert any(tmp_path.rglob("*.nbi"))  # the first process filled the given cache
 
 
 @pytest.mark.parametrize("quick", [False, True])
