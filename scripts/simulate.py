@@ -8,7 +8,7 @@ python scripts/simulate.py -m shard.count=4 shard.index=0,1,2,3   # a population
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.cli import run_stage
+from surrogate.cli import exit_when_done, run_stage
 from surrogate.stages.shards import run
 
 
@@ -20,3 +20,4 @@ def main(cfg: DictConfig) -> str | None:
 
 if __name__ == "__main__":
     main()
+    exit_when_done()  # skip the interpreter's teardown (~1 s with torch loaded)

@@ -11,7 +11,7 @@ A multirun writes both itself when it ends; rerun this after rerunning failed jo
 import argparse
 import sys
 
-from surrogate.cli import EXIT_USER_ERROR, configure_logging
+from surrogate.cli import EXIT_USER_ERROR, configure_logging, exit_when_done
 from surrogate.errors import SurrogateError
 from surrogate.sweep import summarize
 
@@ -35,4 +35,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_when_done(main() or 0)

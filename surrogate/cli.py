@@ -10,17 +10,19 @@ missing artefact) as one line ``error: <message>`` and exit code 2, anything els
 
 from __future__ import annotations
 
+import atexit
 import datetime
 import logging
 import os
 import platform
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
 from hydra.experimental.callback import Callback
@@ -156,6 +158,32 @@ def prepare_config(cfg: DictConfig, ctx: JobContext) -> None:
 
 def _overridden(key: str, overrides: list[str]) -> bool:
     return any(o.lstrip("+~").split("=", 1)[0] == key for o in overrides)
+
+
+def exit_when_done(code: int = 0) -> NoReturn:
+    """End a script's process once its work is done, without the interpreter's teardown.
+
+    Python's shutdown frees every module and object one by one: ~0.3 s with torch imported and
+    0.7-1.5 s after a pipeline run (measured), time a user waits for the prompt with nothing
+    left to do. The exit handlers still run (logging flushes and closes its handlers), the
+    standard streams are flushed, then ``os._exit``. Nothing written depends on it: every
+    artefact is complete on disk (written, renamed into place, manifest last) before its stage
+    returns. Called only from the scripts' ``__main__`` blocks, after Hydra returns. While
+    another non-daemon thread lives (e.g. a joblib launcher's executor manager), whose shutdown
+    the interpreter orders before the exit handlers, the normal exit runs instead.
+    """
+    main = threading.main_thread()
+    if any(t is not main and t.is_alive() and not t.daemon for t in threading.enumerate()):
+        sys.exit(code)
+    try:
+        atexit._run_exitfuncs()
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # a closed or broken stream: nothing left to save
+                pass
+        os._exit(code)
 
 
 def run_stage(name: str, stage: Callable[[DictConfig], Any], cfg: DictConfig) -> str | None:
