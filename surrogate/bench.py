@@ -398,17 +398,11 @@ def memory_run(
 
 #: a fresh process: the model's precompile target (asked of the model unless given), timed
 _KERNEL_COMPILE_CHILD = """
-import importlib, json, sys, time
+import json, sys
 from surrogate.config import build_model
+from surrogate.simulate.precompile import run_precompiler
 target = sys.argv[2] if len(sys.argv) > 2 else build_model(json.loads(sys.argv[1])).kernel_precompiler()
-if target is None:
-    print("none")
-else:
-    module, _, function = target.partition(":")
-    compile_kernel = getattr(importlib.import_module(module), function)
-    t0 = time.perf_counter()
-    compile_kernel()
-    print(target, time.perf_counter() - t0)
+print("none" if target is None else f"{target} {run_precompiler(target)}")
 """
 
 

@@ -508,7 +508,6 @@ def fit_classifiers(
     binned = [bin_inputs(p.z_train, p.y_train, settings.bins) for p in preps]
     if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS:
         return one_by_one()
-    b = len(preps)
     model = PsiGP(torch.stack([p.inducing for p in preps]).clone(), kernel=settings.kernel,
                   ard=settings.ard, learn_inducing=settings.learn_inducing).to(device)  # fmt: skip
     # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
@@ -534,8 +533,7 @@ def fit_classifiers(
         epoch_start = _model_state(model)
         try:
             optimizer.zero_grad(set_to_none=True)
-            ell = binned_expected_log_likelihood(likelihood, model(z_b), n_b, k_b)
-            losses = -(ell.sum(-1) - strategy.kl_divergence()) / n_b.sum(-1)  # (b,)
+            losses = _binned_loss(model, likelihood, z_b, n_b, k_b)  # (b,)
             losses.sum().backward()
             optimizer.step()
         except (NotPSDError, NanError) as exc:
@@ -558,7 +556,6 @@ def fit_classifiers(
     for fitted, prep in zip(out, preps, strict=True):
         fitted.train_seconds = seconds
         _validate(fitted, prep)
-    assert len(out) == b
     return out
 
 
@@ -690,10 +687,11 @@ def _binned_loss(
     n_b: Tensor,
     k_b: Tensor,
 ) -> Tensor:
-    """Negative ELBO per point on binned data: the expected log-likelihood of k_b successes and
-    n_b - k_b failures at each bin's mean input, minus the KL term."""
+    """Negative ELBO per point on binned data (``...``: one per GP of a batch): the expected
+    log-likelihood of k_b successes and n_b - k_b failures at each bin's mean input, minus the
+    KL term."""
     ell = binned_expected_log_likelihood(likelihood, model(z_b), n_b, k_b)
-    return -(ell.sum() - model.variational_strategy.kl_divergence()) / n_b.sum()
+    return -(ell.sum(-1) - model.variational_strategy.kl_divergence()) / n_b.sum(-1)
 
 
 def _snapshot(fitted: FittedClassifier) -> _State:

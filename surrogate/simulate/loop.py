@@ -40,7 +40,7 @@ from surrogate.errors import ConfigError, NumericalError
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
-from surrogate.simulate.precompile import wait_for_precompile
+from surrogate.simulate.precompile import kernel_wanted, wait_for_precompile
 
 
 @dataclass
@@ -374,19 +374,21 @@ class Simulator:
         """This step's random numbers: float32 uniforms, float64 uniforms (or None) and normals
         (rows as declared, the decision's first; views into a block drawn every
         :func:`block_steps` steps), and the body's ``sample_extra`` (or None)."""
-        if self._block is None or self._block.exhausted or self._block.n != n:
-            self._block = self._next_block(n)
-        u, u64, z = self._block.take()
+        u, u64, z = self._current_block(n).take()
         return u, u64, z, self.body.sample_extra(n, self.device)
 
     def draw_block(self, n: int, max_steps: int) -> tuple[Tensor, Tensor | None, Tensor]:
         """The next up to ``max_steps`` steps' random numbers (``k x rows x n``), the same
         numbers :meth:`draw_randoms` would hand out step by step (to the end of the current
         block at most)."""
+        block = self._current_block(n)
+        return block.take_steps(min(max_steps, block.steps - block.next))
+
+    def _current_block(self, n: int) -> RandomBlock:
+        """The block of random numbers being handed out, a new one once it is used up."""
         if self._block is None or self._block.exhausted or self._block.n != n:
             self._block = self._next_block(n)
-        k = min(max_steps, self._block.steps - self._block.next)
-        return self._block.take_steps(k)
+        return self._block
 
     def _next_block(self, n: int) -> RandomBlock:
         """A new block of random numbers for ``n`` cells."""
@@ -540,6 +542,13 @@ class Simulator:
 BACKENDS = ("auto", "torch", "numba")
 
 
+def check_backend(backend: Any) -> str:
+    """``backend`` if it is one of :data:`BACKENDS`, else a :class:`ConfigError` naming them."""
+    if backend not in BACKENDS:
+        raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    return str(backend)
+
+
 def _cell_kernel(
     backend: str,
     model: Model,
@@ -552,12 +561,9 @@ def _cell_kernel(
     """The model's per-cell kernel for ``backend`` (None: the torch step) and, for ``auto``
     falling back to torch, why. ``auto`` with ``compile`` is the compiled torch step (what
     was asked for; the faster one from ~1e4 cells on, see the README's benchmark)."""
-    if backend not in BACKENDS:
-        raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
-    if backend == "torch":
-        return None, None
-    if backend == "auto" and compile:
-        return None, "compile=true asks for torch.compile of the torch step"
+    if not kernel_wanted(check_backend(backend), compile):
+        return None, ("compile=true asks for torch.compile of the torch step"
+                      if backend == "auto" else None)  # fmt: skip
     try:
         if device.type != "cpu":
             raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")

@@ -94,12 +94,9 @@ def _rows(
 
 
 def _one_step(simulator: Simulator, state: PopulationState) -> tuple[Tensor, Tensor, Tensor]:
-    """One step of every cell: (its inputs x, phi before, phi after). The model's per-cell
-    kernel where the simulator has one (it writes the state in place, so phi before is a
-    copy), else the torch step (same random numbers, same dynamics)."""
-    if simulator.kernel is None:
-        rec = simulator.step(state)
-        return rec.inputs, rec.phi_before, rec.phi_after
+    """One step of every cell by :meth:`Simulator.advance` (the model's per-cell kernel where
+    the simulator has one, else the torch step): (its inputs x, phi before, phi after). The
+    kernel writes the state in place, so phi before is a copy."""
     phi_before = state.phi.clone()
     simulator.advance(state, 1)
     return state.inputs, phi_before, state.phi

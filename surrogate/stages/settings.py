@@ -746,12 +746,9 @@ class ReproduceSettings:
 
 def validate_backend(cfg: Mapping[str, Any]) -> str:
     """The ``backend`` setting (auto | torch | numba)."""
-    from surrogate.simulate.loop import BACKENDS
+    from surrogate.simulate.loop import check_backend
 
-    backend = cfg.get("backend", "auto")
-    if backend not in BACKENDS:
-        raise ConfigError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
-    return str(backend)
+    return check_backend(cfg.get("backend", "auto"))
 
 
 #: runs of at most this many cells are simulated in one batch (reproduce); larger ones alone:
