@@ -45,6 +45,7 @@ from surrogate.models.base import Model
 from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.population import simulate_population
+from surrogate.simulate.precompile import precompiler_code
 
 MODELS = ("full", "lookup", "classifier")
 
@@ -396,14 +397,11 @@ def memory_run(
 # the whole benchmark
 
 
-#: a fresh process: the model's precompile target (asked of the model unless given), timed
-_KERNEL_COMPILE_CHILD = """
-import json, sys
-from surrogate.config import build_model
-from surrogate.simulate.precompile import run_precompiler
-target = sys.argv[2] if len(sys.argv) > 2 else build_model(json.loads(sys.argv[1])).kernel_precompiler()
-print("none" if target is None else f"{target} {run_precompiler(target)}")
-"""
+#: a fresh process: the model's precompile target where numba's cache lacks the kernel
+_TARGET_CHILD = (
+    "import json, sys; from surrogate.config import build_model; "
+    "print(build_model(json.loads(sys.argv[1])).kernel_precompiler() or 'none')"
+)
 
 
 def kernel_compile_times(model_cfg: Mapping[str, Any], cache_dir: Path) -> dict[str, Any] | None:
@@ -411,18 +409,19 @@ def kernel_compile_times(model_cfg: Mapping[str, Any], cache_dir: Path) -> dict[
     with an empty numba cache (``cache_dir``), then a second one loading what the first
     cached (seconds, imports excluded). None when the model has no kernel."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache_dir)}
-    args = [sys.executable, "-c", _KERNEL_COMPILE_CHILD, json.dumps(dict(model_cfg))]
-    out: dict[str, Any] = {}
-    for label in ("cold_s", "cached_s"):
-        proc = subprocess.run(args, capture_output=True, text=True, env=env, check=False)
+
+    def child(*args: str) -> str:
+        proc = subprocess.run([sys.executable, "-c", *args], capture_output=True, text=True,
+                              env=env, check=False)  # fmt: skip
         if proc.returncode != 0:
             raise RuntimeError(f"kernel compile subprocess failed:\n{proc.stderr[-3000:]}")
-        words = proc.stdout.split()
-        if words[-1] == "none":
-            return None
-        out["target"], out[label] = words[-2], float(words[-1])
-        args = [*args[:4], out["target"]]  # the second process loads what the first cached
-    return out
+        return proc.stdout.split()[-1]
+
+    target = child(_TARGET_CHILD, json.dumps(dict(model_cfg)))
+    if target == "none":
+        return None
+    code = precompiler_code(target)
+    return {"target": target, "cold_s": float(child(code)), "cached_s": float(child(code))}
 
 
 def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dict[str, Any]:

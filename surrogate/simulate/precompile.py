@@ -9,7 +9,6 @@ process fails or is slow, nothing is lost: the first call compiles (or loads) as
 
 from __future__ import annotations
 
-import importlib
 import logging
 import subprocess
 import sys
@@ -34,10 +33,7 @@ def precompile_in_background(model: Model, device: str | torch.device = "cpu") -
     target = model.kernel_precompiler()
     if target is None or target in _running:
         return False
-    code = (
-        "import os; os.nice(19); from surrogate.simulate.precompile import run_precompiler; "
-        f"run_precompiler({target!r})"
-    )
+    code = "import os; os.nice(19); " + precompiler_code(target)
     try:
         _running[target] = subprocess.Popen(
             [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
@@ -49,15 +45,15 @@ def precompile_in_background(model: Model, device: str | torch.device = "cpu") -
     return True
 
 
-def run_precompiler(target: str) -> float:
-    """Import ``target``'s module and call it (``"module:function"``, a
-    :meth:`~surrogate.models.base.Model.kernel_precompiler`); return the seconds the call took
-    (compiling, or loading from numba's cache)."""
+def precompiler_code(target: str) -> str:
+    """Python source for a fresh process (``python -c``) that imports ``target``'s module and
+    calls it (``"module:function"`` from :meth:`~surrogate.models.base.Model.kernel_precompiler`,
+    a name in the model's code, never user input), then prints the seconds the call took."""
     module, _, function = target.partition(":")
-    compile_kernel = getattr(importlib.import_module(module), function)
-    t0 = time.perf_counter()
-    compile_kernel()
-    return time.perf_counter() - t0
+    return (
+        f"import time; from {module} import {function} as compile_kernel; "
+        "t0 = time.perf_counter(); compile_kernel(); print(time.perf_counter() - t0)"
+    )
 
 
 def kernel_wanted(backend: str, compile: bool) -> bool:
@@ -80,4 +76,4 @@ def wait_for_precompile() -> float:
     return waited
 
 
-__all__ = ["kernel_wanted", "precompile_in_background", "run_precompiler", "wait_for_precompile"]
+__all__ = ["kernel_wanted", "precompile_in_background", "precompiler_code", "wait_for_precompile"]
