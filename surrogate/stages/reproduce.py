@@ -10,10 +10,11 @@ abstraction can do, beside the learned one.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +23,29 @@ import torch
 
 from surrogate.config import to_dict
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
-from surrogate.io import MANIFEST, artefact_lock, read_csv, read_manifest, write_manifest
-from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
+from surrogate.io import (
+    MANIFEST,
+    artefact_lock,
+    existing_artefact,
+    read_csv,
+    read_manifest,
+    write_manifest,
+)
+from surrogate.simulate.precompile import (
+    kernel_wanted,
+    precompile_in_background,
+    wait_for_precompile,
+)
 from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages.background import Worker, missing_runs, needs_training, worker_threads
 from surrogate.stages.collect import collect
-from surrogate.stages.settings import CollectSettings, ReproduceSettings
+from surrogate.stages.occupancy import occupancy
+from surrogate.stages.settings import (
+    CollectSettings,
+    OccupancySettings,
+    ReproduceSettings,
+    SimulateSettings,
+)
 from surrogate.stages.simulate import build_decision, simulate_together
 from surrogate.stages.train import read_metrics, train
 
@@ -52,23 +71,53 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     tr = settings.train
     if any(kernel_wanted(r.backend, r.compile) for r in settings.runs()):
         precompile_in_background(tr.setup.model, tr.job.device)  # overlaps collect and train
-    collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
-    train_dir = train(tr)
-    if settings.config.get("batch", True):  # every missing run in one batch, then evaluate
-        simulate_together(settings.runs())
-    speed = None
-    if settings.config.get("batch", True):  # measured once per report (reused on a rerun)
-        previous = settings.directory / MANIFEST
-        speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
-        speed = speed or measure_stage_speed(settings)
+    batch = settings.config.get("batch", True)
+    worker = None
+    if batch and settings.config.get("background", True):
+        worker = start_worker(settings)  # what needs no abstraction, during training
+    threads = torch.get_num_threads()
     evaluations: dict[str, Path] = {}
-    for name, e in settings.evaluations.items():
-        log.info("field %s: full and abstracted simulations, evaluation", name)
-        evaluations[name] = evaluate_stage.evaluate(e)
     exact: dict[str, Path] = {}
-    for name, e in settings.exact.items():
-        log.info("field %s: the chain driven by the exact lumped psi", name)
-        exact[name] = evaluate_stage.evaluate(e)
+    try:
+        _share_threads(worker, threads)
+        collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
+        train_dir = train(tr)
+        handed: dict[str, int] = {}
+        if worker is not None:  # the abstraction's runs here, meanwhile the worker ends its own
+            _share_threads(worker, threads)
+            simulate_together([s for s in settings.runs() if needs_training(s)])
+            worker.result(0)
+            _share_threads(worker, threads)
+        if batch:  # every missing run in one batch (none, or what the worker did not make)
+            simulate_together(settings.runs())
+        speed = None
+        if batch:  # measured once per report (reused on a rerun), before evaluations share cores
+            previous = settings.directory / MANIFEST
+            speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
+            speed = speed or measure_stage_speed(settings)
+        if worker is not None:
+            handed = hand_evaluations(worker, settings)
+            _share_threads(worker, threads)
+        for name, e in settings.evaluations.items():
+            if name not in handed:
+                log.info("field %s: full and abstracted simulations, evaluation", name)
+                evaluations[name] = evaluate_stage.evaluate(e)
+        if worker is not None:
+            for ticket in handed.values():
+                worker.result(ticket)
+            worker.close()
+            worker = None
+            torch.set_num_threads(threads)
+        for name, e in settings.evaluations.items():  # reused, or made here if the worker failed
+            if name in handed:
+                evaluations[name] = evaluate_stage.evaluate(e)
+        for name, e in settings.exact.items():
+            log.info("field %s: the chain driven by the exact lumped psi", name)
+            exact[name] = evaluate_stage.evaluate(e)
+    finally:
+        if worker is not None:  # this process failed: the worker's work is not needed now
+            worker.cancel()
+        torch.set_num_threads(threads)
     out = settings.directory
     with artefact_lock(out):  # also removes the temporaries of killed runs
         sections, figures = report_sections(
@@ -87,6 +136,69 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
                        wall_time_s=time.perf_counter() - t0)  # fmt: skip
     log.info("report written to %s", out / REPORT)
     return out
+
+
+def start_worker(settings: ReproduceSettings) -> Worker | None:
+    """Start a :class:`~surrogate.stages.background.Worker` on the report's work that the
+    learned psi does not change: its first job (ticket 0) makes the train diagnostic's
+    occupancy run (when training will run) and every missing run of the full model and of the
+    exact psi (one batch); it starts after the kernel's background compilation, which it would
+    otherwise repeat. None when nothing of it is missing, or when the runs are
+    ``torch.compile``-batched (their last bits depend on the batch's shape: one batch)."""
+    runs = settings.runs()
+    if any(s.batch is not None for s in runs):
+        return None
+    todo = [_quiet(s) for s in missing_runs(runs) if not needs_training(s)]
+    tr = settings.train
+    occupancy_run = None
+    if existing_artefact(tr.directory, tr.identity(), tr.command()) is None:
+        o = tr.occupancy()
+        if existing_artefact(o.directory, o.identity(), o.command()) is None:
+            occupancy_run = _quiet(o)
+    if not todo and occupancy_run is None:
+        return None
+    worker = Worker(worker_threads(), after=wait_for_precompile)
+    worker.submit(without_abstraction, occupancy_run, todo)
+    log.info("in a background process (%d thread(s)) during training: %d runs that need no "
+             "abstraction%s", worker.threads, len(todo),
+             ", the diagnostic's occupancy run" if occupancy_run else "")  # fmt: skip
+    return worker
+
+
+def without_abstraction(
+    occupancy_run: OccupancySettings | None, runs: Sequence[SimulateSettings]
+) -> None:
+    """What a report needs that the learned psi does not change, in the order it is needed:
+    the train diagnostic's occupancy run, then the runs of the full model and of the exact psi
+    (one batch)."""
+    if occupancy_run is not None:
+        occupancy(occupancy_run)
+    simulate_together(runs)
+
+
+def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, int]:
+    """Give ``worker`` a share of the report's evaluations (their runs exist by now): the last
+    third of the abstraction's and the exact psi's (about as long as the rest, which this
+    process makes meanwhile). Returns their tickets by field name (``exact:<field>`` for the
+    exact psi's)."""
+    names = list(settings.evaluations)
+    handed = {name: worker.submit(evaluate_stage.evaluate, settings.evaluations[name])
+              for name in names[len(names) - len(names) // 3:]}  # fmt: skip
+    for name, e in settings.exact.items():
+        handed[f"exact:{name}"] = worker.submit(evaluate_stage.evaluate, e)
+    return handed
+
+
+def _share_threads(worker: Worker | None, threads: int) -> None:
+    """This process's threads: all of them while the worker is idle (or gone), else what the
+    worker leaves (two busy threads on one core slow both; idle OpenMP threads spin)."""
+    busy = worker is not None and not worker.idle()
+    torch.set_num_threads(max(1, threads - worker.threads) if busy else threads)  # type: ignore[union-attr]
+
+
+def _quiet(settings: Any) -> Any:
+    """The same settings without progress bars (a worker's would interleave with ours)."""
+    return dataclasses.replace(settings, job=dataclasses.replace(settings.job, progress=False))
 
 
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'

@@ -353,6 +353,37 @@ class TrainSettings:
             return self.source.command()
         return f"(the external table {self.source.path})"
 
+    def occupancy(self) -> OccupancySettings:
+        """The diagnostic's occupancy run: an unperturbed full-model population in the training
+        field (``gp.diagnostic``: its size, start and length), seeded with this seed."""
+        return OccupancySettings(self.setup, dict(self.diagnostic), self.job, self.command())
+
+
+@dataclass(frozen=True, eq=False)
+class OccupancySettings:
+    """Where an unperturbed full-model population lives (the train diagnostic's weights): an
+    artefact of its own, made by the train command that needs it."""
+
+    setup: ModelSetup
+    options: dict[str, Any]
+    job: Job
+    made_by: str
+
+    def identity(self) -> dict[str, Any]:
+        """Model, field, step, seed and the ``gp.diagnostic`` settings."""
+        return {**self.setup.identity(), "occupancy": self.options}
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/occupancy/model=..._field=..._dt=..._n=..._T=..._seed=...-<hash>``."""
+        label = {**self.setup.label(), "n": self.options["n_cells"], "T": self.options["t_end"],
+                 "seed": self.setup.seed}  # fmt: skip
+        return artefact_dir(self.job.data_dir, "occupancy", label, self.identity())
+
+    def command(self) -> str:
+        """The command that makes this artefact (the train stage, which needs it)."""
+        return self.made_by
+
 
 def _diagnostic(options: Mapping[str, Any]) -> dict[str, Any]:
     unknown = sorted(set(options) - set(DIAGNOSTIC_DEFAULTS))
@@ -700,6 +731,9 @@ class ReproduceSettings:
         for name in fields:
             field_config(name)
         c = to_dict(cfg)
+        for key in ("batch", "background", "exact_psi", "exact_psi_figures"):
+            if not isinstance(c.get(key, True), bool):
+                raise ConfigError(f"{key} must be true or false, got {c[key]!r}")
         evaluations = {
             name: EvaluateSettings.from_config(_field_run(c, name, c["decision"]))
             for name in fields

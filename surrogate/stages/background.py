@@ -1,0 +1,255 @@
+"""Work that does not need the abstraction, done in a second process while this one trains it.
+
+A report's full-model runs (and the exact-psi chain's, the evaluations and the diagnostic's
+occupancy run) depend on the model and the fields only, not on the learned psi, so they need
+not wait for collection and training: reproduce hands them to one :class:`Worker` process at its
+start and does only the abstraction's share itself. GP training at the paper's size keeps about
+one core busy, so on two cores the worker's share costs almost no wall-clock time. While the
+worker is busy this process leaves it its threads (idle OpenMP threads spin, and two busy
+threads on one core slow both).
+
+Results do not depend on this: every run of a batch draws from its own generator, seeded as its
+standalone run, and the per-cell kernel and eager CPU steps are elementwise per cell, so a run
+is the same bit for bit whichever runs share its batch (tested). Runs compiled with
+``torch.compile`` round differently per batch shape: reproduce keeps those in one batch and
+starts no worker. Nothing is lost when the worker fails: a job that did not finish wrote
+nothing (every stage writes atomically, manifest last), and its caller makes what is missing.
+
+Jobs travel over a private pipe to a child process of this one (multiprocessing's
+``Connection``), never through files; the child is a fresh ``python -c`` that imports only what
+its jobs need (a spawned multiprocessing child would first import this process's ``__main__``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from typing import Any
+
+import torch
+
+from surrogate.io import existing_artefact
+from surrogate.stages.settings import SimulateSettings
+
+log = logging.getLogger(__name__)
+
+
+def needs_training(run: SimulateSettings) -> bool:
+    """Whether ``run`` waits for a trained abstraction (its decision layer is the learned psi)."""
+    return run.decision.train is not None
+
+
+def missing_runs(runs: Sequence[SimulateSettings]) -> list[SimulateSettings]:
+    """The runs of ``runs`` without a complete artefact, each once."""
+    unique = {s.directory: s for s in runs}
+    return [s for d, s in unique.items() if existing_artefact(d, s.identity(), s.command()) is None]
+
+
+def worker_threads() -> int:
+    """A worker's share of this process's threads (half, at least one)."""
+    return max(1, torch.get_num_threads() // 2)
+
+
+class Worker:
+    """A second Python process that runs jobs in the order they were submitted.
+
+    A job is a module-level function (the worker imports it by name) with picklable arguments
+    (settings objects, not open resources) that writes artefacts as every stage does; its
+    return value is not sent back. :meth:`result` waits for a job and re-emits the log records
+    it made here, with their times.
+
+    Args:
+        threads: the worker's torch and numba threads (its numba pool is created that size:
+            idle pool threads would spin on this process's cores).
+        after: called in a helper thread before the process starts (e.g. waiting for a
+            background compilation that its jobs would otherwise repeat); jobs submitted
+            meanwhile are queued.
+
+    Example:
+        >>> worker = Worker(threads=1)  # doctest: +SKIP
+        >>> ticket = worker.submit(simulate_together, runs)
+        >>> ...  # this process trains meanwhile
+        >>> worker.result(ticket)  # True, or False (logged) when the job failed
+        >>> worker.close()
+    """
+
+    def __init__(self, threads: int, after: Callable[[], object] | None = None) -> None:
+        self.threads = max(1, int(threads))
+        self._jobs: queue.Queue[tuple[Callable[..., object], tuple[Any, ...]] | None]
+        self._jobs = queue.Queue()
+        self._submitted = 0
+        self._results: dict[int, tuple[str, Any]] = {}
+        self._received = 0
+        self._process: subprocess.Popen[bytes] | None = None
+        self._receive: Connection | None = None
+        self._error: str | None = None
+        self._started = threading.Event()
+        self._t0 = time.perf_counter()
+        self._thread = threading.Thread(target=self._feed, args=(after,), daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Callable[..., object], *args: Any) -> int:
+        """Queue ``job(*args)``; returns its ticket for :meth:`result`."""
+        self._jobs.put((job, args))
+        self._submitted += 1
+        return self._submitted - 1
+
+    def idle(self) -> bool:
+        """Whether every submitted job has finished (without waiting)."""
+        if not self._started.is_set() or self._receive is None:
+            return self._error is not None
+        while self._received < self._submitted and self._poll():
+            self._read_one()
+        return self._received >= self._submitted
+
+    def result(self, ticket: int) -> bool:
+        """Wait for job ``ticket``, re-log its records here; return whether it succeeded (a
+        warning says why not; its caller makes what is missing)."""
+        self._started.wait()
+        while self._received <= ticket and self._receive is not None and self._error is None:
+            self._read_one()
+        status, payload = self._results.pop(ticket, ("error", self._error))
+        if status != "ok":
+            log.warning("a background job failed (%s); its work is done here", payload)
+            return False
+        for fields in payload:  # with the worker's times: the log says when it happened
+            fields = {**fields, "msg": f"[background] {fields['msg']}", "args": None}
+            logging.getLogger(fields["name"]).handle(logging.makeLogRecord(fields))
+        return True
+
+    def close(self) -> None:
+        """Let the worker finish its jobs and end; wait for it."""
+        self._jobs.put(None)
+        self._thread.join()
+        if self._process is not None:
+            self._process.wait()
+        if self._receive is not None:
+            self._receive.close()
+        log.info("background worker done (%.1f s after it was started)",
+                 time.perf_counter() - self._t0)  # fmt: skip
+
+    def cancel(self) -> None:
+        """Stop the worker now (this process failed; its work is not needed): a job it did
+        not finish wrote nothing."""
+        self._jobs.put(None)
+        self._thread.join()
+        if self._process is not None and self._process.poll() is None:
+            self._process.terminate()
+            self._process.wait()
+        if self._receive is not None:
+            self._receive.close()
+
+    def _poll(self) -> bool:
+        assert self._receive is not None
+        try:
+            return self._receive.poll()
+        except (OSError, EOFError):
+            return True  # _read_one records the failure
+
+    def _read_one(self) -> None:
+        assert self._receive is not None
+        try:
+            self._results[self._received] = self._receive.recv()
+        except (OSError, EOFError):
+            code = self._process.wait() if self._process is not None else None
+            self._error = f"the worker exited with code {code}"
+            for t in range(self._received, self._submitted):
+                self._results[t] = ("error", self._error)
+            self._received = self._submitted
+            return
+        self._received += 1
+
+    def _feed(self, after: Callable[[], object] | None) -> None:
+        try:
+            if after is not None:
+                after()
+            jobs_r, jobs_w = os.pipe()
+            results_r, results_w = os.pipe()
+            code = f"from surrogate.stages.background import serve; serve({jobs_r}, {results_w})"
+            env = {**os.environ, "NUMBA_NUM_THREADS": str(self.threads)}
+            try:
+                self._process = subprocess.Popen(
+                    [sys.executable, "-c", code, str(self.threads)],
+                    pass_fds=(jobs_r, results_w),
+                    env=env,
+                )
+            finally:
+                os.close(jobs_r)
+                os.close(results_w)
+            self._receive = Connection(results_r)
+            send = Connection(jobs_w)
+        except Exception as exc:  # no second process: every job is done by the caller
+            self._error = f"{type(exc).__name__}: {exc}"
+            self._started.set()
+            return
+        self._started.set()
+        try:
+            while (job := self._jobs.get()) is not None:
+                try:
+                    send.send(job)
+                except (OSError, EOFError):
+                    raise
+                except Exception as exc:  # e.g. unpicklable: the job fails in its turn
+                    send.send((_fail, (f"{type(exc).__name__}: {exc}",)))
+        except (OSError, EOFError):
+            pass  # the worker died: result() reports it
+        finally:
+            send.close()  # end of jobs: the worker exits
+
+
+def _fail(message: str) -> None:
+    raise RuntimeError(message)
+
+
+def serve(jobs_fd: int, results_fd: int) -> None:
+    """The worker's loop (``python -c``; the thread count is its first argument): run each job
+    received on ``jobs_fd`` and send ("ok", log records) or ("error", message) back."""
+    torch.set_num_threads(max(1, int(sys.argv[1])))
+    jobs, results = Connection(jobs_fd), Connection(results_fd)
+    while True:
+        try:
+            job, args = jobs.recv()
+        except EOFError:
+            break
+        try:
+            results.send(("ok", run_logged(job, args)))
+        except Exception as exc:  # reported to the parent, which does the job itself
+            results.send(("error", f"{type(exc).__name__}: {exc}"))
+    results.close()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)  # every job is done and reported: skip the interpreter's teardown (~1 s)
+
+
+def run_logged(job: Callable[..., object], args: tuple[Any, ...]) -> list[dict[str, Any]]:
+    """``job(*args)``; returns the log records it emitted (name, level, message, time) for the
+    parent process to re-emit."""
+    records: list[dict[str, Any]] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append({"name": record.name, "levelno": record.levelno,
+                            "levelname": record.levelname, "msg": record.getMessage(),
+                            "created": record.created, "msecs": record.msecs})  # fmt: skip
+
+    handler = Collect(logging.INFO)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    level = root.level
+    root.setLevel(logging.INFO)
+    try:
+        job(*args)
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
+    return records
+
+
+__all__ = ["Worker", "missing_runs", "needs_training", "run_logged", "serve", "worker_threads"]
