@@ -1,0 +1,151 @@
+"""The background worker: jobs in a second process, in order, failures reported, nothing lost;
+and reproduce with it gives the report it gives without it."""
+
+from __future__ import annotations
+
+import json
+import logging
+import operator
+import os
+import shutil
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from surrogate.stages import background, reproduce
+from surrogate.stages.background import Worker
+from surrogate.stages.occupancy import OCCUPANCY, occupancy
+from surrogate.stages.settings import ReproduceSettings, TrainSettings
+
+from .test_stages import TINY
+
+
+def test_jobs_run_in_order_and_their_logs_come_back(tmp_path: Path, caplog) -> None:
+    first, second = tmp_path / "a.txt", tmp_path / "b.txt"
+    worker = Worker(threads=1)
+    write = worker.submit(first.write_text, "written by the worker")
+    move = worker.submit(os.rename, first, second)  # needs the first job done
+    hello = worker.submit(logging.getLogger("surrogate.test").info, "hello %s", "there")
+    pause = worker.submit(time.sleep, 1.0)
+    with caplog.at_level(logging.INFO, logger="surrogate.test"):
+        assert worker.result(write) and worker.result(move) and worker.result(pause)
+        assert worker.idle()
+        assert worker.result(hello)  # re-emitted now, a second after it was logged
+    assert second.read_text() == "written by the worker" and not first.exists()
+    (record,) = [r for r in caplog.records if r.name == "surrogate.test"]
+    assert record.getMessage() == "[background] hello there"
+    assert record.created < time.time() - 0.9  # the worker's time, not the re-emission's
+    worker.close()
+
+
+def test_a_failed_job_is_reported_and_the_next_still_runs(tmp_path: Path, caplog) -> None:
+    worker = Worker(threads=1)
+    bad = worker.submit(int, "not a number")
+    unpicklable = worker.submit(operator.call, lambda: None)  # cannot be sent: fails in its turn
+    good = worker.submit((tmp_path / "ok").write_text, "ok")
+    with caplog.at_level(logging.WARNING, logger="surrogate.stages.background"):
+        assert not worker.result(bad)
+        assert not worker.result(unpicklable)
+        assert worker.result(good)
+    assert "ValueError: invalid literal" in caplog.text
+    assert "job failed" in caplog.text and (tmp_path / "ok").read_text() == "ok"
+    worker.close()
+
+
+def test_a_dead_worker_fails_its_pending_jobs(tmp_path: Path, caplog) -> None:
+    worker = Worker(threads=1)
+    dies = worker.submit(os._exit, 3)
+    after = worker.submit((tmp_path / "never").write_text, "x")
+    with caplog.at_level(logging.WARNING, logger="surrogate.stages.background"):
+        assert not worker.result(dies) and not worker.result(after)
+    assert "exited with code 3" in caplog.text and not (tmp_path / "never").exists()
+    worker.close()
+
+
+def test_no_process_means_every_job_fails_cleanly(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(background.sys, "executable", "/nonexistent/python")
+    worker = Worker(threads=1)
+    assert not worker.result(worker.submit(int, "1"))
+    assert worker.idle()
+    worker.close()
+
+
+def test_cancel_stops_a_busy_worker() -> None:
+    worker = Worker(threads=1)
+    worker.submit(time.sleep, 60)
+    time.sleep(0.5)
+    assert not worker.idle()
+    t0 = time.perf_counter()
+    worker.cancel()
+    assert time.perf_counter() - t0 < 10
+    assert worker._process is not None and worker._process.poll() is not None
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs /proc")
+def test_the_worker_sizes_its_numba_pool(tmp_path: Path) -> None:
+    """Its numba pool is created at its thread count: idle pool threads would spin on the
+    parent's cores."""
+    worker = Worker(threads=1)
+    assert worker.result(worker.submit(shutil.copyfile, "/proc/self/environ", tmp_path / "env"))
+    worker.close()
+    env = dict(v.split("=", 1) for v in (tmp_path / "env").read_text().split("\0") if "=" in v)
+    assert env["NUMBA_NUM_THREADS"] == "1"
+
+
+def test_the_occupancy_run_is_seeded_and_reused(compose_cfg, caplog) -> None:
+    train_only = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    settings = TrainSettings.from_config(compose_cfg("train", train_only)).occupancy()
+    rows = occupancy(settings)
+    assert len(rows) == 100 * 200 // 10 and {"dG", "phi", "phi_next"} <= set(rows.columns)
+    manifest = json.loads((settings.directory / "manifest.json").read_text())
+    assert manifest["stage"] == "occupancy" and manifest["rows"] == len(rows)
+    again = pd.read_parquet(settings.directory / OCCUPANCY)
+    (settings.directory / "manifest.json").unlink()  # incomplete: made again, the same rows
+    pd.testing.assert_frame_equal(occupancy(settings), again)
+    with caplog.at_level(logging.INFO, logger="surrogate.io"):
+        occupancy(settings)
+    assert "occupancy run exists, reusing" in caplog.text
+
+
+def _report_tables(out: Path) -> dict[str, pd.DataFrame]:
+    manifest = json.loads((out / "manifest.json").read_text())
+    dirs = {**manifest["evaluations"], **{f"exact:{k}": v for k, v in manifest["exact"].items()}}
+    return {k: pd.read_csv(Path(v) / "comparison.csv") for k, v in dirs.items()}
+
+
+@pytest.mark.parametrize("broken", [False, True])
+def test_reproduce_with_a_worker_gives_the_report_without_one(
+    compose_cfg, tmp_path: Path, caplog, monkeypatch: pytest.MonkeyPatch, broken: bool
+) -> None:
+    """The runs, the diagnostic and every evaluation are the same with the worker as without
+    it (the runs bit for bit: each run's numbers do not depend on its batch), and a worker that
+    cannot start loses nothing: this process makes everything itself."""
+    overrides = [*TINY, "fields=[gaussian,linear,dynamic]", "record_cells=16"]
+    alone = compose_cfg("reproduce", [*overrides, "background=false",
+                                      f"data_dir={tmp_path / 'alone'}"])  # fmt: skip
+    shared = compose_cfg("reproduce", [*overrides, f"data_dir={tmp_path / 'shared'}"])
+    if broken:
+        monkeypatch.setattr(background.sys, "executable", "/nonexistent/python")
+    with caplog.at_level(logging.INFO):
+        out = reproduce.run(shared)
+    assert "in a background process" in caplog.text
+    assert ("a background job failed" in caplog.text) == broken
+    if not broken:
+        assert "[background] full simulation" in caplog.text
+        assert "[background] evaluate dynamic (abstract)" in caplog.text
+    reference = reproduce.run(alone)
+    tables, expected = _report_tables(out), _report_tables(reference)
+    assert tables.keys() == expected.keys() and len(tables) == 6
+    for name, table in tables.items():
+        pd.testing.assert_frame_equal(table, expected[name], obj=name)
+    settings = ReproduceSettings.from_config(shared)
+    for run in settings.runs():
+        mine = run.directory / "observables.parquet"
+        theirs = Path(str(mine).replace(str(tmp_path / "shared"), str(tmp_path / "alone")))
+        pd.testing.assert_frame_equal(pd.read_parquet(mine), pd.read_parquet(theirs))
+    metrics = [json.loads((Path(d) / "train_metrics.json").read_text())["diagnostic"]
+               for d in (json.loads((o / "manifest.json").read_text())["train"]
+                         for o in (out, reference))]  # fmt: skip
+    assert metrics[0]["phi0"] == metrics[1]["phi0"] and metrics[0]["phi1"] == metrics[1]["phi1"]
