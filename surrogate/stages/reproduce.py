@@ -73,7 +73,7 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
         precompile_in_background(tr.setup.model, tr.job.device)  # overlaps collect and train
     batch = settings.config.get("batch", True)
     worker = None
-    if batch and settings.config.get("background", True):
+    if batch and _wants_worker(settings.config.get("background", "auto")):
         worker = start_worker(settings)  # what needs no abstraction, during training
     threads = torch.get_num_threads()
     evaluations: dict[str, Path] = {}
@@ -163,6 +163,12 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
              "abstraction%s", worker.threads, len(todo),
              ", the diagnostic's occupancy run" if occupancy_run else "")  # fmt: skip
     return worker
+
+
+def _wants_worker(setting: bool | str) -> bool:
+    """``background``: true, false, or auto: when this job has two or more threads (a sweep
+    job with one thread per core would only share its core with a second process)."""
+    return torch.get_num_threads() >= 2 if setting == "auto" else bool(setting)
 
 
 def without_abstraction(

@@ -731,9 +731,11 @@ class ReproduceSettings:
         for name in fields:
             field_config(name)
         c = to_dict(cfg)
-        for key in ("batch", "background", "exact_psi", "exact_psi_figures"):
+        for key in ("batch", "exact_psi", "exact_psi_figures"):
             if not isinstance(c.get(key, True), bool):
                 raise ConfigError(f"{key} must be true or false, got {c[key]!r}")
+        if c.get("background", "auto") not in (True, False, "auto"):
+            raise ConfigError(f"background must be true, false or auto, got {c['background']!r}")
         evaluations = {
             name: EvaluateSettings.from_config(_field_run(c, name, c["decision"]))
             for name in fields

@@ -109,6 +109,13 @@ def test_the_occupancy_run_is_seeded_and_reused(compose_cfg, caplog) -> None:
     assert "occupancy run exists, reusing" in caplog.text
 
 
+def test_auto_starts_a_worker_only_with_two_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(reproduce.torch, "get_num_threads", lambda: 1)
+    assert not reproduce._wants_worker("auto") and reproduce._wants_worker(True)
+    monkeypatch.setattr(reproduce.torch, "get_num_threads", lambda: 2)
+    assert reproduce._wants_worker("auto") and not reproduce._wants_worker(False)
+
+
 def _report_tables(out: Path) -> dict[str, pd.DataFrame]:
     manifest = json.loads((out / "manifest.json").read_text())
     dirs = {**manifest["evaluations"], **{f"exact:{k}": v for k, v in manifest["exact"].items()}}
@@ -125,7 +132,8 @@ def test_reproduce_with_a_worker_gives_the_report_without_one(
     overrides = [*TINY, "fields=[gaussian,linear,dynamic]", "record_cells=16"]
     alone = compose_cfg("reproduce", [*overrides, "background=false",
                                       f"data_dir={tmp_path / 'alone'}"])  # fmt: skip
-    shared = compose_cfg("reproduce", [*overrides, f"data_dir={tmp_path / 'shared'}"])
+    shared = compose_cfg("reproduce", [*overrides, "background=true",
+                                       f"data_dir={tmp_path / 'shared'}"])  # fmt: skip
     if broken:
         monkeypatch.setattr(background.sys, "executable", "/nonexistent/python")
     with caplog.at_level(logging.INFO):
