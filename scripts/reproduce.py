@@ -6,17 +6,24 @@ python scripts/reproduce.py -m hydra/launcher=joblib gp.kernel=rbf,matern52 dt=0
                                                  # a sweep, one job per core (docs/sweeps.md)
 """
 
+import functools
+
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.cli import exit_when_done, run_stage
-from surrogate.stages.reproduce import run
+from surrogate.cli import execute, exit_when_done, hydra_context, prepare_config
+from surrogate.stages.head_start import head_start
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="reproduce")
 def main(cfg: DictConfig) -> str | None:
     """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
-    return run_stage("reproduce", run, cfg)
+    ctx = hydra_context()
+    prepare_config(cfg, ctx)
+    worker = head_start(cfg, ctx.launcher)  # its imports overlap ours (torch: below)
+    from surrogate.stages.reproduce import run
+
+    return execute("reproduce", functools.partial(run, worker=worker), cfg, ctx)
 
 
 if __name__ == "__main__":

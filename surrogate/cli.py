@@ -24,12 +24,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
 
-import torch
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from surrogate.errors import ConfigError, SurrogateError
-from surrogate.io import JOB_STATUS, write_json
 
 log = logging.getLogger(__name__)
 
@@ -203,6 +201,8 @@ def execute(
         configure_logging()
         threads = resolve_threads(cfg, ctx.launcher)
         if threads is not None:
+            import torch  # here, not at import: a script may start work before torch loads
+
             torch.set_num_threads(threads)
         prepare_config(cfg, ctx)
         result = stage(cfg)
@@ -250,7 +250,7 @@ def _status(
             else None
         ),
         "wall_time_s": time.perf_counter() - t0,
-        "threads": threads if threads is not None else torch.get_num_threads(),
+        "threads": threads if threads is not None else _torch_threads(),
         "host": platform.node(),
         "pid": os.getpid(),
         "started": started.isoformat(timespec="seconds"),
@@ -258,9 +258,17 @@ def _status(
     }
 
 
+def _torch_threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
+
+
 def _write_status(ctx: JobContext, status: dict[str, Any]) -> None:
     if ctx.output_dir is None:
         return
+    from surrogate.io import JOB_STATUS, write_json
+
     try:
         write_json(ctx.output_dir / JOB_STATUS, status)
     except OSError as exc:  # a full or read-only disk must not hide the job's own outcome

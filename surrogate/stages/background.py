@@ -18,6 +18,7 @@ nothing (every stage writes atomically, manifest last), and its caller makes wha
 Jobs travel over a private pipe to a child process of this one (multiprocessing's
 ``Connection``), never through files; the child is a fresh ``python -c`` that imports only what
 its jobs need (a spawned multiprocessing child would first import this process's ``__main__``).
+This module imports nothing heavy, so a script can start its worker before it imports torch.
 """
 
 from __future__ import annotations
@@ -29,32 +30,16 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
-
-import torch
-
-from surrogate.io import existing_artefact
-from surrogate.stages.settings import SimulateSettings
 
 log = logging.getLogger(__name__)
 
 
-def needs_training(run: SimulateSettings) -> bool:
-    """Whether ``run`` waits for a trained abstraction (its decision layer is the learned psi)."""
-    return run.decision.train is not None
-
-
-def missing_runs(runs: Sequence[SimulateSettings]) -> list[SimulateSettings]:
-    """The runs of ``runs`` without a complete artefact, each once."""
-    unique = {s.directory: s for s in runs}
-    return [s for d, s in unique.items() if existing_artefact(d, s.identity(), s.command()) is None]
-
-
-def worker_threads() -> int:
-    """A worker's share of this process's threads (half, at least one)."""
-    return max(1, torch.get_num_threads() // 2)
+def worker_threads(threads: int) -> int:
+    """A worker's share of a process's ``threads`` (half, at least one)."""
+    return max(1, int(threads) // 2)
 
 
 class Worker:
@@ -211,6 +196,8 @@ def _fail(message: str) -> None:
 def serve(jobs_fd: int, results_fd: int) -> None:
     """The worker's loop (``python -c``; the thread count is its first argument): run each job
     received on ``jobs_fd`` and send ("ok", log records) or ("error", message) back."""
+    import torch
+
     torch.set_num_threads(max(1, int(sys.argv[1])))
     jobs, results = Connection(jobs_fd), Connection(results_fd)
     while True:
@@ -252,4 +239,4 @@ def run_logged(job: Callable[..., object], args: tuple[Any, ...]) -> list[dict[s
     return records
 
 
-__all__ = ["Worker", "missing_runs", "needs_training", "run_logged", "serve", "worker_threads"]
+__all__ = ["Worker", "run_logged", "serve", "worker_threads"]

@@ -37,7 +37,7 @@ from surrogate.simulate.precompile import (
     wait_for_precompile,
 )
 from surrogate.stages import evaluate as evaluate_stage
-from surrogate.stages.background import Worker, missing_runs, needs_training, worker_threads
+from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
 from surrogate.stages.occupancy import occupancy
 from surrogate.stages.settings import (
@@ -60,30 +60,47 @@ def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
     return ReproduceSettings.from_config(cfg)
 
 
-def run(cfg: Mapping[str, Any]) -> Path:
-    """Run every stage (reusing what exists) and write the report; return its directory."""
-    return reproduce(validate(cfg), config=to_dict(cfg))
+def run(cfg: Mapping[str, Any], worker: Worker | None = None) -> Path:
+    """Run every stage (reusing what exists) and write the report; return its directory.
+    ``worker``: one started on :func:`prepare` of this config (``scripts/reproduce.py``'s head
+    start, see :mod:`surrogate.stages.head_start`), stopped if this run fails."""
+    try:
+        return reproduce(validate(cfg), config=to_dict(cfg), worker=worker)
+    except BaseException:
+        if worker is not None:
+            worker.cancel()
+        raise
 
 
-def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = None) -> Path:
-    """Run the pipeline of ``settings`` and write ``report.md``."""
+def reproduce(
+    settings: ReproduceSettings,
+    config: Mapping[str, Any] | None = None,
+    worker: Worker | None = None,
+) -> Path:
+    """Run the pipeline of ``settings`` and write ``report.md``. Without ``worker`` (one whose
+    first job is :func:`prepare` of these settings), start one where the ``background``
+    setting asks for it (:func:`start_worker`)."""
     t0 = time.perf_counter()
     tr = settings.train
-    if any(kernel_wanted(r.backend, r.compile) for r in settings.runs()):
-        precompile_in_background(tr.setup.model, tr.job.device)  # overlaps collect and train
     batch = settings.config.get("batch", True)
-    worker = None
-    if batch and _wants_worker(settings.config.get("background", "auto")):
-        worker = start_worker(settings)  # what needs no abstraction, during training
+    model = tr.setup.model
+    if worker is None:
+        if any(kernel_wanted(r.backend, r.compile) for r in settings.runs()):
+            precompile_in_background(model, tr.job.device)  # overlaps collect and train
+        if batch and _wants_worker(settings.config.get("background", "auto")):
+            worker = start_worker(settings)  # what needs no abstraction, during training
+    compiling_elsewhere = worker is not None and model.kernel_precompiler() is not None
     threads = torch.get_num_threads()
     evaluations: dict[str, Path] = {}
     exact: dict[str, Path] = {}
     try:
         _share_threads(worker, threads)
         collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
-        train_dir = train(tr)
+        train_dir = train(tr, precompile=worker is None)
         handed: dict[str, int] = {}
         if worker is not None:  # the abstraction's runs here, meanwhile the worker ends its own
+            if compiling_elsewhere and model.kernel_precompiler() is not None:
+                worker.result(0)  # its first kernel call compiles the kernel: not twice
             _share_threads(worker, threads)
             simulate_together([s for s in settings.runs() if needs_training(s)])
             worker.result(0)
@@ -124,7 +141,6 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
             settings, collect_dir, train_dir, evaluations, exact, out, speed
         )
         (out / MANIFEST).unlink(missing_ok=True)  # incomplete until the manifest is rewritten
-        model = tr.setup.model
         write_report(out / REPORT, sections, figures,
                      title=f"Statistical abstraction of {model.describe().split(':')[0]}: report")  # fmt: skip
         write_manifest(out, stage="reproduce",
@@ -138,13 +154,24 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     return out
 
 
-def start_worker(settings: ReproduceSettings) -> Worker | None:
-    """Start a :class:`~surrogate.stages.background.Worker` on the report's work that the
-    learned psi does not change: its first job (ticket 0) makes the train diagnostic's
-    occupancy run (when training will run) and every missing run of the full model and of the
-    exact psi (one batch); it starts after the kernel's background compilation, which it would
-    otherwise repeat. None when nothing of it is missing, or when the runs are
-    ``torch.compile``-batched (their last bits depend on the batch's shape: one batch)."""
+def needs_training(run: SimulateSettings) -> bool:
+    """Whether ``run`` waits for a trained abstraction (its decision layer is the learned psi)."""
+    return run.decision.train is not None
+
+
+def missing_runs(runs: Sequence[SimulateSettings]) -> list[SimulateSettings]:
+    """The runs of ``runs`` without a complete artefact, each once."""
+    unique = {s.directory: s for s in runs}
+    return [s for d, s in unique.items() if existing_artefact(d, s.identity(), s.command()) is None]
+
+
+def independent_work(
+    settings: ReproduceSettings,
+) -> tuple[OccupancySettings | None, list[SimulateSettings]] | None:
+    """The report's missing work that the learned psi does not change: the train diagnostic's
+    occupancy run (when training will run) and the runs of the full model and of the exact
+    psi. None when there is none, or when the runs are ``torch.compile``-batched (their last
+    bits depend on the batch's shape: they stay in one batch)."""
     runs = settings.runs()
     if any(s.batch is not None for s in runs):
         return None
@@ -155,14 +182,36 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
         o = tr.occupancy()
         if existing_artefact(o.directory, o.identity(), o.command()) is None:
             occupancy_run = _quiet(o)
-    if not todo and occupancy_run is None:
+    return (occupancy_run, todo) if todo or occupancy_run is not None else None
+
+
+def start_worker(settings: ReproduceSettings) -> Worker | None:
+    """Start a :class:`~surrogate.stages.background.Worker` on :func:`independent_work` (its
+    first job, ticket 0), after the kernel's background compilation, which it would otherwise
+    repeat; None when there is no such work."""
+    work = independent_work(settings)
+    if work is None:
         return None
-    worker = Worker(worker_threads(), after=wait_for_precompile)
-    worker.submit(without_abstraction, occupancy_run, todo)
+    worker = Worker(worker_threads(torch.get_num_threads()), after=wait_for_precompile)
+    worker.submit(without_abstraction, *work)
+    occupancy_run, todo = work
     log.info("in a background process (%d thread(s)) during training: %d runs that need no "
              "abstraction%s", worker.threads, len(todo),
              ", the diagnostic's occupancy run" if occupancy_run else "")  # fmt: skip
     return worker
+
+
+def prepare(config: Mapping[str, Any]) -> None:
+    """The head start's job (in a worker started before the reproduce process has imported
+    torch): the collection, then :func:`independent_work` (compiling the kernel on its first
+    call where it is not cached)."""
+    settings = validate(config)
+    tr = settings.train
+    if isinstance(tr.source, CollectSettings):
+        collect(_quiet(tr.source))
+    work = independent_work(settings)
+    if work is not None:
+        without_abstraction(*work)
 
 
 def _wants_worker(setting: bool | str) -> bool:

@@ -78,13 +78,19 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
 
 
 def train(
-    settings: TrainSettings, config: Mapping[str, Any] | None = None, force: bool = False
+    settings: TrainSettings,
+    config: Mapping[str, Any] | None = None,
+    force: bool = False,
+    precompile: bool = True,
 ) -> Path:
-    """Run (or reuse) the train stage described by ``settings``."""
+    """Run (or reuse) the train stage described by ``settings``. ``precompile``: compile the
+    model's kernel (for the diagnostic's occupancy run) in a background process during the fit
+    when it is not cached (False: another process compiles it)."""
     out = settings.directory
     return make_once(out, settings.identity(), settings.command(),
-                     lambda data: _train(settings, out, *data, config), what="abstraction",
-                     force=force, prepare=lambda: load_transitions(settings))  # fmt: skip
+                     lambda data: _train(settings, out, *data, config, precompile),
+                     what="abstraction", force=force,
+                     prepare=lambda: load_transitions(settings))  # fmt: skip
 
 
 def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
@@ -130,13 +136,15 @@ def _train(
     table: pd.DataFrame,
     source: str,
     config: Mapping[str, Any] | None,
+    precompile: bool = True,
 ) -> None:
     """Fit both classifiers, score them, then write model, tables, figures and (last) the
     manifest."""
     job, model = settings.job, settings.setup.model
     lumps = model.internal.lump_names
     seed_everything(settings.seed)
-    precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
+    if precompile:
+        precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
     t0 = time.perf_counter()
     try:
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,

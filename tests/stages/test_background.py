@@ -157,3 +157,34 @@ def test_reproduce_with_a_worker_gives_the_report_without_one(
                for d in (json.loads((o / "manifest.json").read_text())["train"]
                          for o in (out, reference))]  # fmt: skip
     assert metrics[0]["phi0"] == metrics[1]["phi0"] and metrics[0]["phi1"] == metrics[1]["phi1"]
+
+
+def test_the_script_gives_its_worker_a_head_start(tmp_path: Path) -> None:
+    """``scripts/reproduce.py`` starts its worker on the composed config before it imports
+    torch: the worker collects (or waits for this process's collection) and makes the runs
+    that need no abstraction; the report's tables are those of a run without a worker."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    overrides = [*TINY, "fields=[gaussian,linear]", "record_cells=16", "progress=false"]
+    out = {}
+    for setting in ("true", "false"):
+        data = tmp_path / setting
+        result = subprocess.run(
+            [sys.executable, str(root / "scripts" / "reproduce.py"), *overrides,
+             f"background={setting}", f"data_dir={data}", f"hydra.run.dir={data}/hydra"],
+            cwd=root, capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr[-3000:]
+        out[setting] = (data, result.stderr + result.stdout)
+    log = out["true"][1]
+    assert "in a background process (" in log and "): the collection, then" in log
+    assert "[background] full simulation" in log and "background worker done" in log
+    assert "background" not in out["false"][1].replace("background=false", "")
+    (report,) = (out["true"][0] / "reproduce").glob("*/manifest.json")
+    (reference,) = (out["false"][0] / "reproduce").glob("*/manifest.json")
+    tables, expected = _report_tables(report.parent), _report_tables(reference.parent)
+    assert tables.keys() == expected.keys() and len(tables) == 4
+    for name, table in tables.items():
+        pd.testing.assert_frame_equal(table, expected[name], obj=name)
