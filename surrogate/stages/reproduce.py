@@ -102,7 +102,8 @@ def reproduce(
             if compiling_elsewhere and model.kernel_precompiler() is not None:
                 worker.result(0)  # its first kernel call compiles the kernel: not twice
             _share_threads(worker, threads)
-            simulate_together([s for s in settings.runs() if needs_training(s)])
+            if not any(s.batch is not None for s in settings.runs()):  # compiled: one batch
+                simulate_together([s for s in settings.runs() if needs_training(s)])
             worker.result(0)
             _share_threads(worker, threads)
         if batch:  # every missing run in one batch (none, or what the worker did not make)
