@@ -1,23 +1,28 @@
-"""reproduce's head start: its worker process starts from the composed config, before this
-process imports torch.
+"""What a report needs that the learned psi does not change, and reproduce's head start on it.
 
-``scripts/reproduce.py`` spends its first ~2.5 s importing torch, pandas and scipy. A worker
-started first (:class:`~surrogate.stages.background.Worker`; its own imports take as long, on
-the other core) validates the same config and makes what the learned psi does not change, in
-the order it is needed (:func:`surrogate.stages.reproduce.prepare`): the collection (the train
-stage here waits for it, under the artefact's lock, then reuses it), the diagnostic's occupancy
-run, the runs of the full model and of the exact psi. This module imports nothing heavy.
+Half of ``reproduce``'s work does not depend on the abstraction: the collection, the train
+diagnostic's occupancy run, the runs of the full model and of the exact psi. ``reproduce``
+hands it to a :class:`~surrogate.stages.background.Worker` while it trains;
+``scripts/reproduce.py`` starts that worker from the composed config (:func:`head_start`) before
+it imports torch, pandas and scipy (~2.5 s): the worker validates the same config and makes
+that work in the order it is needed (:func:`prepare`); the train stage here waits for the
+collection under the artefact's lock, then reuses it. This module imports nothing heavy at
+import (the worker imports only what its jobs need).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from surrogate.stages.background import Worker, worker_threads
+
+if TYPE_CHECKING:
+    from surrogate.stages.settings import OccupancySettings, ReproduceSettings, SimulateSettings
 
 log = logging.getLogger(__name__)
 
@@ -40,18 +45,87 @@ def head_start(cfg: DictConfig, launcher: Mapping[str, Any]) -> Worker | None:
     if setting == "auto" and threads < 2:
         return None
     worker = Worker(worker_threads(threads))
-    worker.submit(prepare_in_worker, OmegaConf.to_container(cfg, resolve=True))
+    worker.submit(prepare, OmegaConf.to_container(cfg, resolve=True))
     log.info("in a background process (%d thread(s)): the collection, then what needs no "
              "abstraction (the full model's and the exact psi's runs)", worker.threads)  # fmt: skip
     return worker
 
 
-def prepare_in_worker(config: dict[str, Any]) -> None:
-    """The worker's side: :func:`surrogate.stages.reproduce.prepare` (imported here, in the
-    worker, so that sending this job imports nothing heavy in the parent)."""
-    from surrogate.stages.reproduce import prepare
-
-    prepare(config)
+def needs_training(run: SimulateSettings) -> bool:
+    """Whether ``run`` waits for a trained abstraction (its decision layer is the learned psi)."""
+    return run.decision.train is not None
 
 
-__all__ = ["head_start", "prepare_in_worker"]
+def missing_runs(runs: Sequence[SimulateSettings]) -> list[SimulateSettings]:
+    """The runs of ``runs`` without a complete artefact, each once."""
+    from surrogate.io import existing_artefact
+
+    unique = {s.directory: s for s in runs}
+    return [s for d, s in unique.items() if existing_artefact(d, s.identity(), s.command()) is None]
+
+
+def independent_work(
+    settings: ReproduceSettings,
+) -> tuple[OccupancySettings | None, list[SimulateSettings]] | None:
+    """The report's missing work that the learned psi does not change: the train diagnostic's
+    occupancy run (when training will run) and the runs of the full model and of the exact
+    psi. None when there is none, or when the runs are ``torch.compile``-batched (their last
+    bits depend on the batch's shape: they stay in one batch)."""
+    from surrogate.io import existing_artefact
+
+    runs = settings.runs()
+    if any(s.batch is not None for s in runs):
+        return None
+    todo = [_quiet(s) for s in missing_runs(runs) if not needs_training(s)]
+    tr = settings.train
+    occupancy_run = None
+    if existing_artefact(tr.directory, tr.identity(), tr.command()) is None:
+        o = tr.occupancy()
+        if existing_artefact(o.directory, o.identity(), o.command()) is None:
+            occupancy_run = _quiet(o)
+    return (occupancy_run, todo) if todo or occupancy_run is not None else None
+
+
+def without_abstraction(
+    occupancy_run: OccupancySettings | None, runs: Sequence[SimulateSettings]
+) -> None:
+    """What a report needs that the learned psi does not change, in the order it is needed:
+    the train diagnostic's occupancy run, then the runs of the full model and of the exact psi
+    (one batch)."""
+    from surrogate.stages.occupancy import occupancy
+    from surrogate.stages.simulate import simulate_together
+
+    if occupancy_run is not None:
+        occupancy(occupancy_run)
+    simulate_together(runs)
+
+
+def prepare(config: Mapping[str, Any]) -> None:
+    """The head start's job (in a worker started before the reproduce process has imported
+    torch): the collection, then :func:`independent_work` (compiling the kernel on its first
+    call where it is not cached)."""
+    from surrogate.stages.collect import collect
+    from surrogate.stages.settings import CollectSettings, ReproduceSettings
+
+    settings = ReproduceSettings.from_config(config)
+    tr = settings.train
+    if isinstance(tr.source, CollectSettings):
+        collect(_quiet(tr.source))
+    work = independent_work(settings)
+    if work is not None:
+        without_abstraction(*work)
+
+
+def _quiet(settings: Any) -> Any:
+    """The same settings without progress bars (a worker's would interleave with ours)."""
+    return dataclasses.replace(settings, job=dataclasses.replace(settings.job, progress=False))
+
+
+__all__ = [
+    "head_start",
+    "independent_work",
+    "missing_runs",
+    "needs_training",
+    "prepare",
+    "without_abstraction",
+]

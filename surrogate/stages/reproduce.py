@@ -10,11 +10,10 @@ abstraction can do, beside the learned one.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,6 @@ from surrogate.evaluate.report import format_markdown_table, table1_markdown, wr
 from surrogate.io import (
     MANIFEST,
     artefact_lock,
-    existing_artefact,
     read_csv,
     read_manifest,
     write_manifest,
@@ -39,12 +37,14 @@ from surrogate.simulate.precompile import (
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
-from surrogate.stages.occupancy import occupancy
+from surrogate.stages.head_start import (
+    independent_work,
+    needs_training,
+    without_abstraction,
+)
 from surrogate.stages.settings import (
     CollectSettings,
-    OccupancySettings,
     ReproduceSettings,
-    SimulateSettings,
 )
 from surrogate.stages.simulate import build_decision, simulate_together
 from surrogate.stages.train import read_metrics, train
@@ -62,7 +62,7 @@ def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
 
 def run(cfg: Mapping[str, Any], worker: Worker | None = None) -> Path:
     """Run every stage (reusing what exists) and write the report; return its directory.
-    ``worker``: one started on :func:`prepare` of this config (``scripts/reproduce.py``'s head
+    ``worker``: one started on :func:`~surrogate.stages.head_start.prepare` of this config (``scripts/reproduce.py``'s head
     start, see :mod:`surrogate.stages.head_start`), stopped if this run fails."""
     try:
         return reproduce(validate(cfg), config=to_dict(cfg), worker=worker)
@@ -78,7 +78,7 @@ def reproduce(
     worker: Worker | None = None,
 ) -> Path:
     """Run the pipeline of ``settings`` and write ``report.md``. Without ``worker`` (one whose
-    first job is :func:`prepare` of these settings), start one where the ``background``
+    first job is :func:`~surrogate.stages.head_start.prepare` of these settings), start one where the ``background``
     setting asks for it (:func:`start_worker`)."""
     t0 = time.perf_counter()
     tr = settings.train
@@ -95,6 +95,8 @@ def reproduce(
     exact: dict[str, Path] = {}
     try:
         _share_threads(worker, threads)
+        if worker is not None:
+            _warm_up()  # while the worker collects (main then waits for its lock), or before
         collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
         train_dir = train(tr, precompile=worker is None)
         handed: dict[str, int] = {}
@@ -155,37 +157,6 @@ def reproduce(
     return out
 
 
-def needs_training(run: SimulateSettings) -> bool:
-    """Whether ``run`` waits for a trained abstraction (its decision layer is the learned psi)."""
-    return run.decision.train is not None
-
-
-def missing_runs(runs: Sequence[SimulateSettings]) -> list[SimulateSettings]:
-    """The runs of ``runs`` without a complete artefact, each once."""
-    unique = {s.directory: s for s in runs}
-    return [s for d, s in unique.items() if existing_artefact(d, s.identity(), s.command()) is None]
-
-
-def independent_work(
-    settings: ReproduceSettings,
-) -> tuple[OccupancySettings | None, list[SimulateSettings]] | None:
-    """The report's missing work that the learned psi does not change: the train diagnostic's
-    occupancy run (when training will run) and the runs of the full model and of the exact
-    psi. None when there is none, or when the runs are ``torch.compile``-batched (their last
-    bits depend on the batch's shape: they stay in one batch)."""
-    runs = settings.runs()
-    if any(s.batch is not None for s in runs):
-        return None
-    todo = [_quiet(s) for s in missing_runs(runs) if not needs_training(s)]
-    tr = settings.train
-    occupancy_run = None
-    if existing_artefact(tr.directory, tr.identity(), tr.command()) is None:
-        o = tr.occupancy()
-        if existing_artefact(o.directory, o.identity(), o.command()) is None:
-            occupancy_run = _quiet(o)
-    return (occupancy_run, todo) if todo or occupancy_run is not None else None
-
-
 def start_worker(settings: ReproduceSettings) -> Worker | None:
     """Start a :class:`~surrogate.stages.background.Worker` on :func:`independent_work` (its
     first job, ticket 0), after the kernel's background compilation, which it would otherwise
@@ -202,34 +173,10 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
     return worker
 
 
-def prepare(config: Mapping[str, Any]) -> None:
-    """The head start's job (in a worker started before the reproduce process has imported
-    torch): the collection, then :func:`independent_work` (compiling the kernel on its first
-    call where it is not cached)."""
-    settings = validate(config)
-    tr = settings.train
-    if isinstance(tr.source, CollectSettings):
-        collect(_quiet(tr.source))
-    work = independent_work(settings)
-    if work is not None:
-        without_abstraction(*work)
-
-
 def _wants_worker(setting: bool | str) -> bool:
     """``background``: true, false, or auto: when this job has two or more threads (a sweep
     job with one thread per core would only share its core with a second process)."""
     return torch.get_num_threads() >= 2 if setting == "auto" else bool(setting)
-
-
-def without_abstraction(
-    occupancy_run: OccupancySettings | None, runs: Sequence[SimulateSettings]
-) -> None:
-    """What a report needs that the learned psi does not change, in the order it is needed:
-    the train diagnostic's occupancy run, then the runs of the full model and of the exact psi
-    (one batch)."""
-    if occupancy_run is not None:
-        occupancy(occupancy_run)
-    simulate_together(runs)
 
 
 def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, int]:
@@ -245,16 +192,19 @@ def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, i
     return handed
 
 
+def _warm_up() -> None:
+    """Import what this process imports later on the way anyway, at a time it would otherwise
+    wait for the worker's collection: torch.optim's first optimizer imports torch._dynamo
+    (0.7-1.5 s), the figures matplotlib's pyplot (~0.4 s)."""
+    import matplotlib.pyplot  # noqa: F401
+    import torch._dynamo  # noqa: F401
+
+
 def _share_threads(worker: Worker | None, threads: int) -> None:
     """This process's threads: all of them while the worker is idle (or gone), else what the
     worker leaves (two busy threads on one core slow both; idle OpenMP threads spin)."""
     busy = worker is not None and not worker.idle()
     torch.set_num_threads(max(1, threads - worker.threads) if busy else threads)  # type: ignore[union-attr]
-
-
-def _quiet(settings: Any) -> Any:
-    """The same settings without progress bars (a worker's would interleave with ours)."""
-    return dataclasses.replace(settings, job=dataclasses.replace(settings.job, progress=False))
 
 
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'
