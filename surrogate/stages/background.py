@@ -56,6 +56,8 @@ class Worker:
         after: called in a helper thread before the process starts (e.g. waiting for a
             background compilation that its jobs would otherwise repeat); jobs submitted
             meanwhile are queued.
+        nice: added to the worker's niceness (e.g. 19: it runs on what this process leaves
+            idle, and never slows it).
 
     Example:
         >>> worker = Worker(threads=1)  # doctest: +SKIP
@@ -65,8 +67,11 @@ class Worker:
         >>> worker.close()
     """
 
-    def __init__(self, threads: int, after: Callable[[], object] | None = None) -> None:
+    def __init__(
+        self, threads: int, after: Callable[[], object] | None = None, nice: int = 0
+    ) -> None:
         self.threads = max(1, int(threads))
+        self.nice = int(nice)
         self._jobs: queue.Queue[tuple[Callable[..., object], tuple[Any, ...]] | None]
         self._jobs = queue.Queue()
         self._submitted = 0
@@ -157,7 +162,10 @@ class Worker:
                 after()
             jobs_r, jobs_w = os.pipe()
             results_r, results_w = os.pipe()
-            code = f"from surrogate.stages.background import serve; serve({jobs_r}, {results_w})"
+            code = (
+                f"import os; os.nice({self.nice}); "
+                f"from surrogate.stages.background import serve; serve({jobs_r}, {results_w})"
+            )
             env = {**os.environ, "NUMBA_NUM_THREADS": str(self.threads)}
             try:
                 self._process = subprocess.Popen(

@@ -26,6 +26,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: the worker's niceness: it runs on what the reproduce process leaves idle (while that trains
+#: on all its threads, whose result depends on their count), never slowing it
+WORKER_NICE = 19
+
 
 def head_start(cfg: DictConfig, launcher: Mapping[str, Any]) -> Worker | None:
     """Start the worker of a reproduce job on ``prepare(cfg)`` where the config asks for one
@@ -44,7 +48,7 @@ def head_start(cfg: DictConfig, launcher: Mapping[str, Any]) -> Worker | None:
         return None
     if setting == "auto" and threads < 2:
         return None
-    worker = Worker(worker_threads(threads))
+    worker = Worker(worker_threads(threads), nice=WORKER_NICE)
     worker.submit(prepare, OmegaConf.to_container(cfg, resolve=True))
     log.info("in a background process (%d thread(s)): the collection, then what needs no "
              "abstraction (the full model's and the exact psi's runs)", worker.threads)  # fmt: skip
@@ -122,6 +126,7 @@ def _quiet(settings: Any) -> Any:
 
 
 __all__ = [
+    "WORKER_NICE",
     "head_start",
     "independent_work",
     "missing_runs",

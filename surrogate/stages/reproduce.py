@@ -38,6 +38,7 @@ from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
 from surrogate.stages.head_start import (
+    WORKER_NICE,
     independent_work,
     needs_training,
     without_abstraction,
@@ -98,6 +99,9 @@ def reproduce(
         if worker is not None:
             _warm_up()  # while the worker collects (main then waits for its lock), or before
         collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
+        # every thread for the fit, worker or not: its result depends on the thread count (up
+        # to 3 % of psi at the default recipe), so it is the one scripts/train.py would give
+        torch.set_num_threads(threads)
         train_dir = train(tr, precompile=worker is None)
         handed: dict[str, int] = {}
         if worker is not None:  # the abstraction's runs here, meanwhile the worker ends its own
@@ -164,7 +168,8 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
     work = independent_work(settings)
     if work is None:
         return None
-    worker = Worker(worker_threads(torch.get_num_threads()), after=wait_for_precompile)
+    worker = Worker(worker_threads(torch.get_num_threads()), after=wait_for_precompile,
+                    nice=WORKER_NICE)  # fmt: skip
     worker.submit(without_abstraction, *work)
     occupancy_run, todo = work
     log.info("in a background process (%d thread(s)) during training: %d runs that need no "

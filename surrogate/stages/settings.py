@@ -50,7 +50,7 @@ REPRODUCE_CMD = "python scripts/reproduce.py"
 DECISIONS = ("full", "abstract", "exact")
 DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
 #: keys of the gp group that are not GP hyperparameters
-GP_EXTRA = ("inputs", "grid_size", "diagnostic")
+GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads")
 DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "n_cells": 1000,
     "t_end": 100.0,
@@ -312,7 +312,17 @@ class TrainSettings:
                 )
         sizes = grid_size(gp_config.get("grid_size"), "gp.grid_size", len(inputs))
         diagnostic = _diagnostic(gp_config.get("diagnostic") or {})
+        threads = gp_config.get("threads")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                    or threads < 1):  # fmt: skip
+            raise ConfigError(f"gp.threads must be a positive integer or null, got {threads!r}")
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg))
+
+    @property
+    def fit_threads(self) -> int | None:
+        """``gp.threads``: torch threads for the fit (None: the job's). The fit's result
+        depends on the count (float reductions), so it is part of the abstraction's identity."""
+        return self.gp_config.get("threads")
 
     @property
     def seed(self) -> int:

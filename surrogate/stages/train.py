@@ -146,7 +146,10 @@ def _train(
     if precompile:
         precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
     t0 = time.perf_counter()
+    threads = torch.get_num_threads()
+    fit_threads = settings.fit_threads or threads
     try:
+        torch.set_num_threads(fit_threads)
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
                       device=job.device, lump_names=lumps)  # fmt: skip
     except NumericalError as exc:
@@ -154,6 +157,8 @@ def _train(
         err = NumericalError(f"{exc} Nothing was written to {out}.")
         err.partial = getattr(exc, "partial", None)  # type: ignore[attr-defined]
         raise err from exc
+    finally:
+        torch.set_num_threads(threads)
     wall = time.perf_counter() - t0
     psi.to("cpu")
     metrics: dict[str, Any] = {
@@ -200,6 +205,7 @@ def _train(
         source=source,
         device=str(job.device),
         wall_time_s=wall,
+        fit_threads=fit_threads,  # the fit's result depends on it (float reductions)
         inputs=list(settings.inputs),
         domain={k: list(v) for k, v in psi.domain.items()},
         brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},

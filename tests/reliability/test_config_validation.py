@@ -98,6 +98,7 @@ BAD_INPUTS = [
     ("train", ["gp.inputs=[foo]"], "gp.inputs: ['foo']"),
     ("train", ["gp.diagnostic.n_cells=0"], "gp.diagnostic.n_cells must be a positive"),
     ("train", ["+gp.diagnostic.foo=1"], "unknown gp.diagnostic setting(s) ['foo']"),
+    ("train", ["gp.threads=0"], "gp.threads must be a positive integer or null"),
     (
         "train",
         ["transitions=/nonexistent.parquet"],

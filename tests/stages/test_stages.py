@@ -98,6 +98,20 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
         assert d[phi]["p90_abs_rel_error"] >= 0 and d[phi]["mean_abs_rel_error"] >= 0
 
 
+def test_the_fit_runs_on_gp_threads(compose_cfg) -> None:
+    """``gp.threads`` sets the fit's torch threads (its result depends on them), recorded in
+    the manifest and in the abstraction's identity; the job's own count is restored after."""
+    overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    cfg = compose_cfg("train", [*overrides, "gp.threads=2"])
+    collect.run(cfg)
+    before = torch.get_num_threads()
+    out = train.run(cfg)
+    assert torch.get_num_threads() == before
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["fit_threads"] == 2 and manifest["settings"]["gp"]["threads"] == 2
+    assert out != train.validate(compose_cfg("train", overrides)).directory
+
+
 def test_train_without_collect_names_the_command(compose_cfg) -> None:
     cfg = compose_cfg("train", ["field=linear"])
     with pytest.raises(MissingArtefactError, match=r"python scripts/collect.py .*field=linear"):
