@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -26,6 +27,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: the worker takes its pipes by descriptor (and runs niced): POSIX only; elsewhere reproduce
+#: runs in one process
+SUPPORTED = os.name == "posix"
 #: the worker's niceness: it runs on what the reproduce process leaves idle (while that trains
 #: on all its threads, whose result depends on their count), never slowing it
 WORKER_NICE = 19
@@ -40,7 +44,7 @@ def head_start(cfg: DictConfig, launcher: Mapping[str, Any]) -> Worker | None:
     from surrogate.errors import ConfigError
 
     setting = cfg.get("background", "auto")
-    if cfg.get("batch", True) is not True or setting not in (True, "auto"):
+    if cfg.get("batch", True) is not True or setting not in (True, "auto") or not SUPPORTED:
         return None
     try:
         threads = resolve_threads(cfg, launcher) or available_cores()

@@ -38,6 +38,7 @@ from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
 from surrogate.stages.head_start import (
+    SUPPORTED,
     WORKER_NICE,
     independent_work,
     needs_training,
@@ -180,7 +181,10 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
 
 def _wants_worker(setting: bool | str) -> bool:
     """``background``: true, false, or auto: when this job has two or more threads (a sweep
-    job with one thread per core would only share its core with a second process)."""
+    job with one thread per core would only share its core with a second process); never
+    where the worker is not supported (not POSIX)."""
+    if not SUPPORTED:
+        return False
     return torch.get_num_threads() >= 2 if setting == "auto" else bool(setting)
 
 
@@ -404,8 +408,9 @@ def _measured_speed_text(speed: Mapping[str, Any]) -> str:
              "cell-steps/s": speed[k]["cell_steps_per_s"], "compile (s)": speed[k]["compile_s"]}
             for k in ("full", "abstract")]  # fmt: skip
     return (
-        f"The runs above were simulated together in one batch (one loop for all), so they have "
-        f"no loop time of their own. Loop speed measured side by side in this process: "
+        f"The runs above were simulated in batches (one loop for several runs; with a background "
+        f"worker, one batch there and one here), so they have no loop time of their own. Loop "
+        f"speed measured side by side in this process, with the worker idle: "
         f"{speed['n_cells']} cells x {speed['steps']} steps in field {speed['field']}, "
         f"backend {speed.get('backend', 'torch')}, compile={str(speed['compile']).lower()}, "
         f"{speed['threads']} thread(s), best of two, "
