@@ -23,7 +23,12 @@ from omegaconf import DictConfig, OmegaConf
 from surrogate.stages.background import Worker, worker_threads
 
 if TYPE_CHECKING:
-    from surrogate.stages.settings import OccupancySettings, ReproduceSettings, SimulateSettings
+    from surrogate.stages.settings import (
+        EvaluateSettings,
+        OccupancySettings,
+        ReproduceSettings,
+        SimulateSettings,
+    )
 
 log = logging.getLogger(__name__)
 
@@ -72,13 +77,33 @@ def missing_runs(runs: Sequence[SimulateSettings]) -> list[SimulateSettings]:
     return [s for d, s in unique.items() if existing_artefact(d, s.identity(), s.command()) is None]
 
 
-def independent_work(
-    settings: ReproduceSettings,
-) -> tuple[OccupancySettings | None, list[SimulateSettings]] | None:
-    """The report's missing work that the learned psi does not change: the train diagnostic's
-    occupancy run (when training will run) and the runs of the full model and of the exact
-    psi. None when there is none, or when the runs are ``torch.compile``-batched (their last
-    bits depend on the batch's shape: they stay in one batch)."""
+@dataclasses.dataclass(frozen=True)
+class IndependentWork:
+    """The report's missing work that the learned psi does not change, in the order it is
+    needed: the train diagnostic's occupancy run (None: not needed or made), the runs of the
+    full model and of the exact psi (one batch), then the exact psi's evaluations."""
+
+    occupancy_run: OccupancySettings | None
+    runs: list[SimulateSettings]
+    exact: list[EvaluateSettings]
+
+    def __call__(self) -> None:
+        """Make it (in a worker: a job is a picklable callable)."""
+        from surrogate.stages import evaluate as evaluate_stage
+        from surrogate.stages.occupancy import occupancy
+        from surrogate.stages.simulate import simulate_together
+
+        if self.occupancy_run is not None:
+            occupancy(self.occupancy_run)
+        simulate_together(self.runs)
+        for e in self.exact:
+            evaluate_stage.evaluate(e)
+
+
+def independent_work(settings: ReproduceSettings) -> IndependentWork | None:
+    """The report's missing :class:`IndependentWork`. None when there is none, or when the runs
+    are ``torch.compile``-batched (their last bits depend on the batch's shape: they stay in
+    one batch, simulated after training)."""
     from surrogate.io import existing_artefact
 
     runs = settings.runs()
@@ -91,21 +116,11 @@ def independent_work(
         o = tr.occupancy()
         if existing_artefact(o.directory, o.identity(), o.command()) is None:
             occupancy_run = _quiet(o)
-    return (occupancy_run, todo) if todo or occupancy_run is not None else None
-
-
-def without_abstraction(
-    occupancy_run: OccupancySettings | None, runs: Sequence[SimulateSettings]
-) -> None:
-    """What a report needs that the learned psi does not change, in the order it is needed:
-    the train diagnostic's occupancy run, then the runs of the full model and of the exact psi
-    (one batch)."""
-    from surrogate.stages.occupancy import occupancy
-    from surrogate.stages.simulate import simulate_together
-
-    if occupancy_run is not None:
-        occupancy(occupancy_run)
-    simulate_together(runs)
+    exact = [e for e in settings.exact.values()
+             if existing_artefact(e.directory, e.identity(), e.command()) is None]  # fmt: skip
+    if not todo and occupancy_run is None and not exact:
+        return None
+    return IndependentWork(occupancy_run, todo, exact)
 
 
 def prepare(config: Mapping[str, Any]) -> None:
@@ -121,7 +136,7 @@ def prepare(config: Mapping[str, Any]) -> None:
         collect(_quiet(tr.source))
     work = independent_work(settings)
     if work is not None:
-        without_abstraction(*work)
+        work()
 
 
 def _quiet(settings: Any) -> Any:
@@ -131,10 +146,10 @@ def _quiet(settings: Any) -> Any:
 
 __all__ = [
     "WORKER_NICE",
+    "IndependentWork",
     "head_start",
     "independent_work",
     "missing_runs",
     "needs_training",
     "prepare",
-    "without_abstraction",
 ]

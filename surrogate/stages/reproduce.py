@@ -42,7 +42,6 @@ from surrogate.stages.head_start import (
     WORKER_NICE,
     independent_work,
     needs_training,
-    without_abstraction,
 )
 from surrogate.stages.settings import (
     CollectSettings,
@@ -163,19 +162,18 @@ def reproduce(
 
 
 def start_worker(settings: ReproduceSettings) -> Worker | None:
-    """Start a :class:`~surrogate.stages.background.Worker` on :func:`independent_work` (its
-    first job, ticket 0), after the kernel's background compilation, which it would otherwise
-    repeat; None when there is no such work."""
+    """Start a :class:`~surrogate.stages.background.Worker` on the report's
+    :class:`~surrogate.stages.head_start.IndependentWork` (its first job, ticket 0), after the
+    kernel's background compilation, which it would otherwise repeat; None when there is none."""
     work = independent_work(settings)
     if work is None:
         return None
     worker = Worker(worker_threads(torch.get_num_threads()), after=wait_for_precompile,
                     nice=WORKER_NICE)  # fmt: skip
-    worker.submit(without_abstraction, *work)
-    occupancy_run, todo = work
-    log.info("in a background process (%d thread(s)) during training: %d runs that need no "
-             "abstraction%s", worker.threads, len(todo),
-             ", the diagnostic's occupancy run" if occupancy_run else "")  # fmt: skip
+    worker.submit(work)
+    log.info("in a background process (%d thread(s)) during training: %d runs and %d "
+             "evaluations that need no abstraction%s", worker.threads, len(work.runs),
+             len(work.exact), ", the diagnostic's occupancy run" if work.occupancy_run else "")  # fmt: skip
     return worker
 
 
@@ -189,16 +187,12 @@ def _wants_worker(setting: bool | str) -> bool:
 
 
 def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, int]:
-    """Give ``worker`` a share of the report's evaluations (their runs exist by now): the last
-    third of the abstraction's and the exact psi's (about as long as the rest, which this
-    process makes meanwhile). Returns their tickets by field name (``exact:<field>`` for the
-    exact psi's)."""
+    """Give ``worker`` the last third of the abstraction's evaluations (about as long as the
+    exact psi's it made, plus one: the rest, made here meanwhile, take as long). Returns their
+    tickets by field name."""
     names = list(settings.evaluations)
-    handed = {name: worker.submit(evaluate_stage.evaluate, settings.evaluations[name])
-              for name in names[len(names) - len(names) // 3:]}  # fmt: skip
-    for name, e in settings.exact.items():
-        handed[f"exact:{name}"] = worker.submit(evaluate_stage.evaluate, e)
-    return handed
+    return {name: worker.submit(evaluate_stage.evaluate, settings.evaluations[name])
+            for name in names[len(names) - len(names) // 3:]}  # fmt: skip
 
 
 def _warm_up() -> None:
