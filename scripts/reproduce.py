@@ -11,7 +11,7 @@ import functools
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.cli import execute, exit_when_done, hydra_context, prepare_config
+from surrogate.cli import execute, exit_when_done, hydra_context
 from surrogate.stages.head_start import head_start
 
 
@@ -19,8 +19,7 @@ from surrogate.stages.head_start import head_start
 def main(cfg: DictConfig) -> str | None:
     """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
     ctx = hydra_context()
-    prepare_config(cfg, ctx)
-    worker = head_start(cfg, ctx.launcher)  # its imports overlap ours (torch: below)
+    worker = head_start(cfg, ctx)  # its imports overlap ours (torch: below)
     from surrogate.stages.reproduce import run
 
     return execute("reproduce", functools.partial(run, worker=worker), cfg, ctx)

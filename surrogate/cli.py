@@ -37,7 +37,7 @@ JOBLIB_TARGET = "JoblibLauncher"
 SUBMITIT_TARGET = "hydra_submitit_launcher"
 
 # Libraries that log at INFO/DEBUG on import or on every figure; their chatter hides ours.
-_QUIET_LOGGERS = ("matplotlib", "PIL", "fsspec", "urllib3", "numexpr")
+QUIET_LOGGERS = ("matplotlib", "PIL", "fsspec", "urllib3", "numexpr")
 
 
 @dataclass
@@ -129,7 +129,7 @@ def configure_logging() -> None:
         )
     logging.getLogger("surrogate").setLevel(logging.INFO)
     logging.captureWarnings(True)
-    for name in _QUIET_LOGGERS:
+    for name in QUIET_LOGGERS:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 

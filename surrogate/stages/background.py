@@ -11,8 +11,8 @@ threads on one core slow both).
 Results do not depend on this: every run of a batch draws from its own generator, seeded as its
 standalone run, and the per-cell kernel and eager CPU steps are elementwise per cell, so a run
 is the same bit for bit whichever runs share its batch (tested). Runs compiled with
-``torch.compile`` round differently per batch shape: reproduce keeps those in one batch and
-starts no worker. Nothing is lost when the worker fails: a job that did not finish wrote
+``torch.compile`` round differently per batch shape: reproduce keeps those in one batch (its
+worker then only collects). Nothing is lost when the worker fails: a job that did not finish wrote
 nothing (every stage writes atomically, manifest last), and its caller makes what is missing.
 
 Jobs travel over a private pipe to a child process of this one (multiprocessing's
@@ -30,6 +30,7 @@ import subprocess
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
@@ -76,9 +77,11 @@ class Worker:
         self._jobs = queue.Queue()
         self._submitted = 0
         self._results: dict[int, tuple[str, Any]] = {}
+        self._reported: set[int] = set()
         self._received = 0
         self._process: subprocess.Popen[bytes] | None = None
         self._receive: Connection | None = None
+        self._send: Connection | None = None
         self._error: str | None = None
         self._started = threading.Event()
         self._t0 = time.perf_counter()
@@ -105,19 +108,29 @@ class Worker:
         self._started.wait()
         while self._received <= ticket and self._receive is not None and self._error is None:
             self._read_one()
-        status, payload = self._results.pop(ticket, ("error", self._error))
+        status, payload = self._results.get(ticket, ("error", self._error))
+        if ticket in self._reported:  # asked again: the same answer, logged once
+            return status == "ok"
+        self._reported.add(ticket)
         if status != "ok":
-            log.warning("a background job failed (%s); its work is done here", payload)
+            message, trace = payload if isinstance(payload, tuple) else (payload, "")
+            log.warning("a background job failed (%s); its work is done here", message)
+            log.debug("the background job's traceback:\n%s", trace)
             return False
         for fields in payload:  # with the worker's times: the log says when it happened
-            fields = {**fields, "msg": f"[background] {fields['msg']}", "args": None}
-            logging.getLogger(fields["name"]).handle(logging.makeLogRecord(fields))
+            logger = logging.getLogger(fields["name"])
+            if logger.isEnabledFor(fields["levelno"]):
+                fields = {**fields, "msg": f"[background] {fields['msg']}", "args": None}
+                logger.handle(logging.makeLogRecord(fields))
         return True
 
     def close(self) -> None:
-        """Let the worker finish its jobs and end; wait for it."""
+        """Let the worker finish its jobs and end; wait for it (reading what it sends: a
+        result left in the pipe could block it)."""
         self._jobs.put(None)
         self._thread.join()
+        while self._receive is not None and self._received < self._submitted:
+            self._read_one()
         if self._process is not None:
             self._process.wait()
         if self._receive is not None:
@@ -129,7 +142,7 @@ class Worker:
         """Stop the worker now (this process failed; its work is not needed): a job it did
         not finish wrote nothing."""
         self._jobs.put(None)
-        self._thread.join()
+        self._thread.join()  # bounded: waits for `after` at most
         if self._process is not None and self._process.poll() is None:
             self._process.terminate()
             self._process.wait()
@@ -158,31 +171,14 @@ class Worker:
 
     def _feed(self, after: Callable[[], object] | None) -> None:
         try:
-            if after is not None:
-                after()
-            jobs_r, jobs_w = os.pipe()
-            results_r, results_w = os.pipe()
-            code = (
-                f"import os; os.nice({self.nice}); "
-                f"from surrogate.stages.background import serve; serve({jobs_r}, {results_w})"
-            )
-            env = {**os.environ, "NUMBA_NUM_THREADS": str(self.threads)}
-            try:
-                self._process = subprocess.Popen(
-                    [sys.executable, "-c", code, str(self.threads)],
-                    pass_fds=(jobs_r, results_w),
-                    env=env,
-                )
-            finally:
-                os.close(jobs_r)
-                os.close(results_w)
-            self._receive = Connection(results_r)
-            send = Connection(jobs_w)
-        except Exception as exc:  # no second process: every job is done by the caller
+            self._start_process(after)
+        except BaseException as exc:  # no second process: every job is done by the caller
             self._error = f"{type(exc).__name__}: {exc}"
-            self._started.set()
             return
-        self._started.set()
+        finally:
+            self._started.set()
+        send = self._send
+        assert send is not None
         try:
             while (job := self._jobs.get()) is not None:
                 try:
@@ -191,36 +187,83 @@ class Worker:
                     raise
                 except Exception as exc:  # e.g. unpicklable: the job fails in its turn
                     send.send((_fail, (f"{type(exc).__name__}: {exc}",)))
+            send.send(None)  # stop (not only EOF: another process may hold the pipe's end)
         except (OSError, EOFError):
             pass  # the worker died: result() reports it
         finally:
-            send.close()  # end of jobs: the worker exits
+            send.close()
+
+    def _start_process(self, after: Callable[[], object] | None) -> None:
+        if after is not None:
+            after()
+        jobs_r, jobs_w = os.pipe()
+        results_r, results_w = os.pipe()
+        try:
+            code = (
+                f"import os; os.nice({self.nice}); from surrogate.stages.background import serve; "
+                f"serve({jobs_r}, {results_w}, {os.getpid()})"
+            )
+            env = {**os.environ, "NUMBA_NUM_THREADS": str(self.threads)}
+            self._process = subprocess.Popen(
+                [sys.executable, "-c", code, str(self.threads)],
+                pass_fds=(jobs_r, results_w),
+                env=env,
+            )
+        except BaseException:
+            os.close(jobs_w)
+            os.close(results_r)
+            raise
+        finally:
+            os.close(jobs_r)
+            os.close(results_w)
+        self._receive = Connection(results_r)
+        self._send = Connection(jobs_w)
 
 
 def _fail(message: str) -> None:
     raise RuntimeError(message)
 
 
-def serve(jobs_fd: int, results_fd: int) -> None:
+def serve(jobs_fd: int, results_fd: int, parent: int | None = None) -> None:
     """The worker's loop (``python -c``; the thread count is its first argument): run each job
-    received on ``jobs_fd`` and send ("ok", log records) or ("error", message) back."""
+    received on ``jobs_fd`` and send ("ok", log records) or ("error", (message, traceback))
+    back, until a stop (None) or the end of the pipe. It ends itself if ``parent`` dies
+    (checked every 0.5 s): a killed reproduce leaves no worker behind."""
     import torch
 
+    from surrogate.cli import QUIET_LOGGERS
+
     torch.set_num_threads(max(1, int(sys.argv[1])))
+    for name in QUIET_LOGGERS:  # as in the parent: their chatter would be re-emitted there
+        logging.getLogger(name).setLevel(logging.WARNING)
+    if parent is not None:
+        threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
     jobs, results = Connection(jobs_fd), Connection(results_fd)
     while True:
         try:
-            job, args = jobs.recv()
+            item = jobs.recv()
         except EOFError:
             break
+        except Exception as exc:  # a job it cannot unpickle fails alone (the bytes were read)
+            results.send(("error", (f"{type(exc).__name__}: {exc}", traceback.format_exc())))
+            continue
+        if item is None:
+            break
+        job, args = item
         try:
             results.send(("ok", run_logged(job, args)))
         except Exception as exc:  # reported to the parent, which does the job itself
-            results.send(("error", f"{type(exc).__name__}: {exc}"))
+            results.send(("error", (f"{type(exc).__name__}: {exc}", traceback.format_exc())))
     results.close()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)  # every job is done and reported: skip the interpreter's teardown (~1 s)
+
+
+def _exit_with(parent: int) -> None:
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
 
 
 def run_logged(job: Callable[..., object], args: tuple[Any, ...]) -> list[dict[str, Any]]:

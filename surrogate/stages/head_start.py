@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from surrogate.stages.background import Worker, worker_threads
 
 if TYPE_CHECKING:
+    from surrogate.cli import JobContext
     from surrogate.stages.settings import (
         EvaluateSettings,
         OccupancySettings,
@@ -35,32 +36,39 @@ log = logging.getLogger(__name__)
 #: the worker takes its pipes by descriptor (and runs niced): POSIX only; elsewhere reproduce
 #: runs in one process
 SUPPORTED = os.name == "posix"
-#: the worker's niceness: it runs on what the reproduce process leaves idle (while that trains
-#: on all its threads, whose result depends on their count), never slowing it
-WORKER_NICE = 19
+#: the worker's niceness: it yields to the reproduce process (which trains on all its threads:
+#: the fit's result depends on their count), mildly, since that process may wait on its locks
+WORKER_NICE = 10
 
 
-def head_start(cfg: DictConfig, launcher: Mapping[str, Any]) -> Worker | None:
-    """Start the worker of a reproduce job on ``prepare(cfg)`` where the config asks for one
-    (``batch`` and ``background``: true, or auto with two or more threads for this job); None
-    otherwise, also for a config the job will refuse (its own validation says why). ``cfg``
-    must be final: the job's per-job adjustments (:func:`surrogate.cli.prepare_config`) done."""
-    from surrogate.cli import available_cores, resolve_threads
-    from surrogate.errors import ConfigError
+def head_start(cfg: DictConfig, ctx: JobContext) -> Worker | None:
+    """Start the worker of a reproduce job on :func:`prepare` of ``cfg`` where the config asks
+    for one (``batch``, and ``background`` true, or auto with two or more threads for this job
+    on the CPU); None otherwise, and for any config the job will refuse or cannot prepare (its
+    own validation, inside the job, says why). Makes the job's per-job adjustments of ``cfg``
+    first (:func:`surrogate.cli.prepare_config`: the worker sees the final config)."""
+    from surrogate.cli import available_cores, prepare_config, resolve_threads
 
-    setting = cfg.get("background", "auto")
-    if cfg.get("batch", True) is not True or setting not in (True, "auto") or not SUPPORTED:
-        return None
     try:
-        threads = resolve_threads(cfg, launcher) or available_cores()
-    except ConfigError:
-        return None
-    if setting == "auto" and threads < 2:
+        prepare_config(cfg, ctx)
+        setting = cfg.get("background", "auto")
+        if cfg.get("batch", True) is not True or not SUPPORTED:
+            return None
+        if setting is not True and setting != "auto":
+            return None
+        threads = resolve_threads(cfg, ctx.launcher) or available_cores()
+        on_cpu = str(cfg.get("device", "cpu")).startswith("cpu")
+        if setting == "auto" and (threads < 2 or not on_cpu):
+            return None
+        config = OmegaConf.to_container(cfg, resolve=True)
+    except Exception as exc:  # the job reports it, with its status file
+        log.debug("no head start (%s)", exc)
         return None
     worker = Worker(worker_threads(threads), nice=WORKER_NICE)
-    worker.submit(prepare, OmegaConf.to_container(cfg, resolve=True))
+    worker.submit(prepare, config)
     log.info("in a background process (%d thread(s)): the collection, then what needs no "
-             "abstraction (the full model's and the exact psi's runs)", worker.threads)  # fmt: skip
+             "abstraction (the full model's and the exact psi's runs and evaluations)",
+             worker.threads)  # fmt: skip
     return worker
 
 

@@ -88,9 +88,14 @@ def reproduce(
     if worker is None:
         if any(kernel_wanted(r.backend, r.compile) for r in settings.runs()):
             precompile_in_background(model, tr.job.device)  # overlaps collect and train
-        if batch and _wants_worker(settings.config.get("background", "auto")):
+        if batch and _wants_worker(settings.config.get("background", "auto"), tr.job.device):
             worker = start_worker(settings)  # what needs no abstraction, during training
-    compiling_elsewhere = worker is not None and model.kernel_precompiler() is not None
+    compiling_elsewhere = (  # the worker's first kernel call compiles it: not twice here
+        worker is not None
+        and tr.job.device.type == "cpu"
+        and any(kernel_wanted(r.backend, r.compile) for r in settings.runs())
+        and model.kernel_precompiler() is not None
+    )
     threads = torch.get_num_threads()
     evaluations: dict[str, Path] = {}
     exact: dict[str, Path] = {}
@@ -106,7 +111,7 @@ def reproduce(
         handed: dict[str, int] = {}
         if worker is not None:  # the abstraction's runs here, meanwhile the worker ends its own
             if compiling_elsewhere and model.kernel_precompiler() is not None:
-                worker.result(0)  # its first kernel call compiles the kernel: not twice
+                worker.result(0)  # still compiling: wait for it (result() answers once)
             _share_threads(worker, threads)
             if not any(s.batch is not None for s in settings.runs()):  # compiled: one batch
                 simulate_together([s for s in settings.runs() if needs_training(s)])
@@ -177,13 +182,16 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
     return worker
 
 
-def _wants_worker(setting: bool | str) -> bool:
+def _wants_worker(setting: bool | str, device: torch.device | str = "cpu") -> bool:
     """``background``: true, false, or auto: when this job has two or more threads (a sweep
-    job with one thread per core would only share its core with a second process); never
-    where the worker is not supported (not POSIX)."""
+    job with one thread per core would only share its core with a second process) and runs on
+    the CPU (two processes on one GPU would share its memory); never where the worker is not
+    supported (not POSIX)."""
     if not SUPPORTED:
         return False
-    return torch.get_num_threads() >= 2 if setting == "auto" else bool(setting)
+    if setting == "auto":
+        return torch.get_num_threads() >= 2 and torch.device(device).type == "cpu"
+    return bool(setting)
 
 
 def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, int]:
@@ -206,8 +214,10 @@ def _warm_up() -> None:
 def _share_threads(worker: Worker | None, threads: int) -> None:
     """This process's threads: all of them while the worker is idle (or gone), else what the
     worker leaves (two busy threads on one core slow both; idle OpenMP threads spin)."""
-    busy = worker is not None and not worker.idle()
-    torch.set_num_threads(max(1, threads - worker.threads) if busy else threads)  # type: ignore[union-attr]
+    if worker is None or worker.idle():
+        torch.set_num_threads(threads)
+    else:  # never below half: the worker's count may come from logical cores, ours physical
+        torch.set_num_threads(max(1, threads - min(worker.threads, threads // 2)))
 
 
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'
@@ -404,7 +414,7 @@ def _measured_speed_text(speed: Mapping[str, Any]) -> str:
     return (
         f"The runs above were simulated in batches (one loop for several runs; with a background "
         f"worker, one batch there and one here), so they have no loop time of their own. Loop "
-        f"speed measured side by side in this process, with the worker idle: "
+        f"speed measured side by side in this process (with no background work running): "
         f"{speed['n_cells']} cells x {speed['steps']} steps in field {speed['field']}, "
         f"backend {speed.get('backend', 'torch')}, compile={str(speed['compile']).lower()}, "
         f"{speed['threads']} thread(s), best of two, "

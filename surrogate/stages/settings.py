@@ -744,7 +744,8 @@ class ReproduceSettings:
         for key in ("batch", "exact_psi", "exact_psi_figures"):
             if not isinstance(c.get(key, True), bool):
                 raise ConfigError(f"{key} must be true or false, got {c[key]!r}")
-        if c.get("background", "auto") not in (True, False, "auto"):
+        background = c.get("background", "auto")
+        if not isinstance(background, bool) and background != "auto":
             raise ConfigError(f"background must be true, false or auto, got {c['background']!r}")
         evaluations = {
             name: EvaluateSettings.from_config(_field_run(c, name, c["decision"]))

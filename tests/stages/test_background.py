@@ -8,7 +8,10 @@ import logging
 import operator
 import os
 import shutil
+import subprocess
+import sys
 import time
+import types
 from pathlib import Path
 
 import pandas as pd
@@ -64,6 +67,76 @@ def test_a_dead_worker_fails_its_pending_jobs(tmp_path: Path, caplog) -> None:
     worker.close()
 
 
+def test_a_result_is_answered_once_and_logged_once(caplog) -> None:
+    worker = Worker(threads=1)
+    bad = worker.submit(int, "x")
+    with caplog.at_level(logging.WARNING, logger="surrogate.stages.background"):
+        assert not worker.result(bad) and not worker.result(bad)
+    assert caplog.text.count("a background job failed") == 1
+    worker.close()
+
+
+def test_a_job_the_worker_cannot_import_fails_alone(tmp_path: Path) -> None:
+    """Picklable here, but its module exists only in this process: the worker reports the
+    failed import and runs the next job."""
+    module = types.ModuleType("surrogate_only_in_the_parent")
+
+    def job() -> None:
+        pass
+
+    job.__module__, job.__qualname__ = module.__name__, "job"
+    module.job = job  # type: ignore[attr-defined]
+    sys.modules[module.__name__] = module
+    try:
+        worker = Worker(threads=1)
+        lost = worker.submit(module.job)
+        after = worker.submit((tmp_path / "after").write_text, "ran")
+        assert not worker.result(lost) and worker.result(after)
+        assert (tmp_path / "after").read_text() == "ran"
+        worker.close()
+    finally:
+        del sys.modules[module.__name__]
+
+
+def test_close_reads_what_was_not_asked_for() -> None:
+    """A job whose log records exceed the pipe's buffer, never asked for: close() still ends."""
+    worker = Worker(threads=1)
+    worker.submit(logging.getLogger("surrogate.test").info, "x" * 300_000)
+    t0 = time.perf_counter()
+    worker.close()
+    assert time.perf_counter() - t0 < 60
+
+
+def test_the_worker_ends_when_its_parent_dies(tmp_path: Path) -> None:
+    code = (
+        "import os, sys, time\n"
+        "from surrogate.stages.background import Worker\n"
+        "w = Worker(threads=1)\n"
+        "w.submit(time.sleep, 60)\n"
+        "while w._process is None: time.sleep(0.05)\n"
+        "print(w._process.pid, flush=True)\n"
+        "os._exit(0)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, cwd=Path(__file__).resolve().parents[2])  # fmt: skip
+    pid = int(out.stdout.split()[0])
+    deadline = time.time() + 20
+    while time.time() < deadline and _alive(pid):
+        time.sleep(0.2)
+    assert not _alive(pid)
+
+
+def _alive(pid: int) -> bool:
+    stat = Path(f"/proc/{pid}/stat")
+    if stat.exists():
+        return stat.read_text().split(")")[-1].split()[0] != "Z"  # a zombie has ended
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
 def test_no_process_means_every_job_fails_cleanly(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(background.sys, "executable", "/nonexistent/python")
     worker = Worker(threads=1)
@@ -114,6 +187,7 @@ def test_auto_starts_a_worker_only_with_two_threads(monkeypatch: pytest.MonkeyPa
     assert not reproduce._wants_worker("auto") and reproduce._wants_worker(True)
     monkeypatch.setattr(reproduce.torch, "get_num_threads", lambda: 2)
     assert reproduce._wants_worker("auto") and not reproduce._wants_worker(False)
+    assert not reproduce._wants_worker("auto", "cuda")  # two processes would share its memory
 
 
 def _report_tables(out: Path) -> dict[str, pd.DataFrame]:
@@ -163,9 +237,6 @@ def test_the_script_gives_its_worker_a_head_start(tmp_path: Path) -> None:
     """``scripts/reproduce.py`` starts its worker on the composed config before it imports
     torch: the worker collects (or waits for this process's collection) and makes the runs
     that need no abstraction; the report's tables are those of a run without a worker."""
-    import subprocess
-    import sys
-
     root = Path(__file__).resolve().parents[2]
     overrides = [*TINY, "fields=[gaussian,linear]", "record_cells=16", "progress=false"]
     out = {}
