@@ -57,8 +57,7 @@ class Worker:
         after: called in a helper thread before the process starts (e.g. waiting for a
             background compilation that its jobs would otherwise repeat); jobs submitted
             meanwhile are queued.
-        nice: added to the worker's niceness (e.g. 19: it runs on what this process leaves
-            idle, and never slows it).
+        nice: added to the worker's niceness (e.g. 10: it yields to this process).
 
     Example:
         >>> worker = Worker(threads=1)  # doctest: +SKIP

@@ -51,14 +51,9 @@ def head_start(cfg: DictConfig, ctx: JobContext) -> Worker | None:
 
     try:
         prepare_config(cfg, ctx)
-        setting = cfg.get("background", "auto")
-        if cfg.get("batch", True) is not True or not SUPPORTED:
-            return None
-        if setting is not True and setting != "auto":
-            return None
         threads = resolve_threads(cfg, ctx.launcher) or available_cores()
-        on_cpu = str(cfg.get("device", "cpu")).startswith("cpu")
-        if setting == "auto" and (threads < 2 or not on_cpu):
+        if not wants_worker(cfg.get("background", "auto"), cfg.get("batch", True), threads,
+                            cfg.get("device", "cpu")):  # fmt: skip
             return None
         config = OmegaConf.to_container(cfg, resolve=True)
     except Exception as exc:  # the job reports it, with its status file
@@ -70,6 +65,19 @@ def head_start(cfg: DictConfig, ctx: JobContext) -> Worker | None:
              "abstraction (the full model's and the exact psi's runs and evaluations)",
              worker.threads)  # fmt: skip
     return worker
+
+
+def wants_worker(setting: Any, batch: Any, threads: int, device: Any) -> bool:
+    """The ``background`` rule, for the head start (from the config) and for reproduce (from
+    torch): true, false, or auto: when the job has two or more threads (a sweep job with one
+    thread per core would only share its core with a second process) and runs on the CPU (two
+    processes on one GPU would share its memory); only with ``batch`` and where the worker is
+    supported (POSIX). Invalid values start none (the job's validation names them)."""
+    if batch is not True or not SUPPORTED:
+        return False
+    if setting == "auto":
+        return threads >= 2 and str(device).split(":")[0] == "cpu"
+    return setting is True
 
 
 def needs_training(run: SimulateSettings) -> bool:
@@ -160,4 +168,5 @@ __all__ = [
     "missing_runs",
     "needs_training",
     "prepare",
+    "wants_worker",
 ]

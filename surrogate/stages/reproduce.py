@@ -38,10 +38,10 @@ from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
 from surrogate.stages.head_start import (
-    SUPPORTED,
     WORKER_NICE,
     independent_work,
     needs_training,
+    wants_worker,
 )
 from surrogate.stages.settings import (
     CollectSettings,
@@ -85,18 +85,17 @@ def reproduce(
     tr = settings.train
     batch = settings.config.get("batch", True)
     model = tr.setup.model
-    if worker is None:
-        if any(kernel_wanted(r.backend, r.compile) for r in settings.runs()):
-            precompile_in_background(model, tr.job.device)  # overlaps collect and train
-        if batch and _wants_worker(settings.config.get("background", "auto"), tr.job.device):
-            worker = start_worker(settings)  # what needs no abstraction, during training
-    compiling_elsewhere = (  # the worker's first kernel call compiles it: not twice here
-        worker is not None
-        and tr.job.device.type == "cpu"
-        and any(kernel_wanted(r.backend, r.compile) for r in settings.runs())
-        and model.kernel_precompiler() is not None
-    )
+    runs = settings.runs()
+    kernel = tr.job.device.type == "cpu" and any(kernel_wanted(r.backend, r.compile) for r in runs)
     threads = torch.get_num_threads()
+    if worker is None:
+        if kernel:
+            precompile_in_background(model, tr.job.device)  # overlaps collect and train
+        background = settings.config.get("background", "auto")
+        if wants_worker(background, batch, threads, tr.job.device):
+            worker = start_worker(settings)  # what needs no abstraction, during training
+    # with a worker, its first kernel call compiles the kernel where it is not cached: not twice
+    compiling_elsewhere = worker is not None and kernel and model.kernel_precompiler() is not None
     evaluations: dict[str, Path] = {}
     exact: dict[str, Path] = {}
     try:
@@ -113,12 +112,12 @@ def reproduce(
             if compiling_elsewhere and model.kernel_precompiler() is not None:
                 worker.result(0)  # still compiling: wait for it (result() answers once)
             _share_threads(worker, threads)
-            if not any(s.batch is not None for s in settings.runs()):  # compiled: one batch
-                simulate_together([s for s in settings.runs() if needs_training(s)])
+            if not any(s.batch is not None for s in runs):  # compiled runs stay in one batch
+                simulate_together([s for s in runs if needs_training(s)])
             worker.result(0)
             _share_threads(worker, threads)
         if batch:  # every missing run in one batch (none, or what the worker did not make)
-            simulate_together(settings.runs())
+            simulate_together(runs)
         speed = None
         if batch:  # measured once per report (reused on a rerun), before evaluations share cores
             previous = settings.directory / MANIFEST
@@ -180,18 +179,6 @@ def start_worker(settings: ReproduceSettings) -> Worker | None:
              "evaluations that need no abstraction%s", worker.threads, len(work.runs),
              len(work.exact), ", the diagnostic's occupancy run" if work.occupancy_run else "")  # fmt: skip
     return worker
-
-
-def _wants_worker(setting: bool | str, device: torch.device | str = "cpu") -> bool:
-    """``background``: true, false, or auto: when this job has two or more threads (a sweep
-    job with one thread per core would only share its core with a second process) and runs on
-    the CPU (two processes on one GPU would share its memory); never where the worker is not
-    supported (not POSIX)."""
-    if not SUPPORTED:
-        return False
-    if setting == "auto":
-        return torch.get_num_threads() >= 2 and torch.device(device).type == "cpu"
-    return bool(setting)
 
 
 def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, int]:

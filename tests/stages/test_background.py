@@ -19,6 +19,7 @@ import pytest
 
 from surrogate.stages import background, reproduce
 from surrogate.stages.background import Worker
+from surrogate.stages.head_start import wants_worker
 from surrogate.stages.occupancy import OCCUPANCY, occupancy
 from surrogate.stages.settings import ReproduceSettings, TrainSettings
 
@@ -182,12 +183,11 @@ def test_the_occupancy_run_is_seeded_and_reused(compose_cfg, caplog) -> None:
     assert "occupancy run exists, reusing" in caplog.text
 
 
-def test_auto_starts_a_worker_only_with_two_threads(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(reproduce.torch, "get_num_threads", lambda: 1)
-    assert not reproduce._wants_worker("auto") and reproduce._wants_worker(True)
-    monkeypatch.setattr(reproduce.torch, "get_num_threads", lambda: 2)
-    assert reproduce._wants_worker("auto") and not reproduce._wants_worker(False)
-    assert not reproduce._wants_worker("auto", "cuda")  # two processes would share its memory
+def test_auto_starts_a_worker_only_with_two_threads() -> None:
+    assert not wants_worker("auto", True, 1, "cpu") and wants_worker(True, True, 1, "cpu")
+    assert wants_worker("auto", True, 2, "cpu") and not wants_worker(False, True, 2, "cpu")
+    assert not wants_worker("auto", True, 2, "cuda")  # two processes would share its memory
+    assert not wants_worker(True, False, 2, "cpu")  # batch=false: one process
 
 
 def _report_tables(out: Path) -> dict[str, pd.DataFrame]:
