@@ -212,7 +212,14 @@ def _start_simulate(data_dir: Path, extra: list[str]) -> subprocess.Popen:
         text=True,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
+        # a shell's background job ignores SIGINT, and its children inherit that: the test sends
+        # SIGINT, so the child takes the default handling back
+        preexec_fn=_default_sigint,
     )
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _assert_nothing_readable(directory: Path) -> None:
