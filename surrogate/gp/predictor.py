@@ -174,21 +174,28 @@ def fit_psi(
     progress: bool = True,
     device: torch.device | str = "cpu",
     lump_names: tuple[str, str] = ("0", "1"),
+    label: str = "phi_next",
 ) -> PsiClassifier:
     """Fit psi_0 on rows with ``phi == 0`` and psi_1 on rows with ``phi == 1`` of ``data``.
 
     Args:
         data: a transitions table with the columns ``input_names``, ``phi`` and ``phi_next``
-            (the label), e.g. from the collect stage or tracked cells of an experiment.
+            (the outcome), e.g. from the collect stage or tracked cells of an experiment.
         input_names: the ``d`` input columns the classifiers are functions of.
         settings: GP settings (kernel, inducing points, epochs, ...).
+        label: the column trained on: ``phi_next`` (0/1 outcomes) or expected labels in
+            [0, 1] such as ``phi_next_expected`` (binned training only); the held-out metrics
+            always score the outcomes.
+
+    Example:
+        >>> psi = fit_psi(table, ["dG"], GPSettings(bins=500), label="phi_next_expected")
     """
     input_names = tuple(input_names)
-    missing = [c for c in (*input_names, *LABELS) if c not in data.columns]
+    missing = [c for c in (*input_names, *LABELS, label) if c not in data.columns]
     if missing:
         raise ArtefactError(
             f"transition data lacks column(s) {missing}; it has {list(data.columns)} and needs "
-            f"the inputs {list(input_names)} plus {list(LABELS)}"
+            f"the inputs {list(input_names)} plus {sorted({*LABELS, label})}"
         )
     pairs = []
     for phi in (0, 1):
@@ -196,8 +203,9 @@ def fit_psi(
         if len(rows) == 0:
             raise ArtefactError(f"transition data has no rows with phi == {phi} to fit psi_{phi}")
         x = torch.tensor(rows[list(input_names)].to_numpy(dtype="float32"))
-        y = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
-        pairs.append((x, y))
+        y = torch.tensor(rows[label].to_numpy(dtype="float32"))
+        outcomes = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
+        pairs.append((x, y, outcomes))
     # side by side (one batched GP) where the settings allow; the same steps as one by one
     label = f"psi_0, psi_1 (from {lump_names[0]}, {lump_names[1]})"
     fitted = fit_classifiers(pairs, settings, progress=progress, device=device, desc=label)

@@ -314,8 +314,10 @@ def _check_data(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     if not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).any(dim=1).sum())
         raise NumericalError(f"training inputs contain NaN or inf in {bad} row(s)")
-    if not bool(torch.isfinite(y).all()) or not bool(((y == 0) | (y == 1)).all()):
-        raise NumericalError("training labels must be 0 or 1 (no NaN/inf or other values)")
+    if not bool(torch.isfinite(y).all()) or not bool(((y >= 0) & (y <= 1)).all()):
+        raise NumericalError(
+            "training labels must be 0/1 outcomes or probabilities in [0, 1] (no NaN/inf)"
+        )
     return x, y
 
 
@@ -332,14 +334,31 @@ class _Prepared:
     val_idx: Tensor
     inducing: Tensor
     x: Tensor
-    y: Tensor
+    outcomes: Tensor
 
 
-def _prepare(x: Tensor, y: Tensor, settings: GPSettings, device: torch.device) -> _Prepared:
+def _prepare(
+    x: Tensor,
+    y: Tensor,
+    settings: GPSettings,
+    device: torch.device,
+    outcomes: Tensor | None = None,
+) -> _Prepared:
     """The validation split (fixed by ``settings.seed``), the normaliser and the inducing points
     (a random subset of training inputs), both from the training part only. Seeds torch's
-    global generator with ``settings.seed`` first (the variational mean's initial noise)."""
+    global generator with ``settings.seed`` first (the variational mean's initial noise).
+    ``outcomes``: the 0/1 outcomes the held-out metrics score (default ``y``, which must then
+    be 0/1)."""
     x, y = _check_data(x, y)
+    if not settings.bins and not bool(((y == 0) | (y == 1)).all()):
+        # gpytorch's Bernoulli likelihood reads labels as signs: a fraction would be misread
+        raise ConfigError("expected (fractional) labels need binned training (gp.bins > 0)")
+    outcomes = y if outcomes is None else outcomes.reshape(-1).to(torch.float32)
+    if outcomes.shape != y.shape or not bool(((outcomes == 0) | (outcomes == 1)).all()):
+        raise NumericalError(
+            "held-out metrics need 0/1 outcomes (one per row); pass them as `outcomes` when "
+            "training on expected labels"
+        )
     n = x.shape[0]
     n_val = round(settings.validation_fraction * n)
     n_train = n - n_val
@@ -363,7 +382,8 @@ def _prepare(x: Tensor, y: Tensor, settings: GPSettings, device: torch.device) -
     normaliser = Normalizer.fit(x_train)
     z_train = normaliser.transform(x_train)
     inducing = z_train[torch.randperm(n_train, generator=gen)[: settings.n_inducing].to(device)]
-    return _Prepared(n_train, n_val, gen, normaliser, z_train, y_train, val_idx, inducing, x, y)
+    return _Prepared(n_train, n_val, gen, normaliser, z_train, y_train, val_idx, inducing, x,
+                     outcomes)  # fmt: skip
 
 
 def fit_classifier(
@@ -373,8 +393,11 @@ def fit_classifier(
     progress: bool = True,
     device: torch.device | str = "cpu",
     desc: str = "GP",
+    outcomes: Tensor | None = None,
 ) -> FittedClassifier:
-    """Train a sparse variational GP probit classifier on inputs ``x`` (``n x d``), labels ``y``.
+    """Train a sparse variational GP probit classifier on inputs ``x`` (``n x d``), labels ``y``
+    (``n``: 0/1 outcomes, or expected labels in [0, 1], whose binned likelihood counts each row
+    as ``y`` of a success; then ``outcomes``, the rows' 0/1 outcomes, score the held-out part).
 
     A random validation split (fixed by ``settings.seed``) is held out; the normaliser and the
     inducing points (a random subset of training inputs) come from the training part only. The
@@ -383,7 +406,7 @@ def fit_classifier(
     """
     settings = settings or GPSettings()
     device = torch.device(device)
-    prep = _prepare(x, y, settings, device)
+    prep = _prepare(x, y, settings, device, outcomes)
     n_train, n_val, gen, z_train, y_train, inducing = (
         prep.n_train,
         prep.n_val,
@@ -475,17 +498,18 @@ def _validate(fitted: FittedClassifier, prep: _Prepared) -> None:
     """Held-out metrics of a trained classifier (none without a validation split)."""
     if prep.n_val > 0:
         p_val = fitted.predict_proba(prep.x[prep.val_idx])
-        fitted.validation = classification_metrics(p_val, prep.y[prep.val_idx])
+        fitted.validation = classification_metrics(p_val, prep.outcomes[prep.val_idx])
 
 
 def fit_classifiers(
-    data: Sequence[tuple[Tensor, Tensor]],
+    data: Sequence[tuple[Tensor, ...]],
     settings: GPSettings | None = None,
     progress: bool = True,
     device: torch.device | str = "cpu",
     desc: str = "GP",
 ) -> list[FittedClassifier]:
-    """:func:`fit_classifier` for several data sets (``(x, y)`` pairs), trained side by side.
+    """:func:`fit_classifier` for several data sets (``(x, y)`` or ``(x, y, outcomes)``),
+    trained side by side.
 
     With binned training (``settings.bins > 0``) on at most :data:`BATCH_MAX_BINS` occupied
     bins each, and Adam alone, the classifiers are one batched GP (independent
@@ -499,12 +523,13 @@ def fit_classifiers(
     device = torch.device(device)
 
     def one_by_one() -> list[FittedClassifier]:
-        return [fit_classifier(x, y, settings, progress=progress, device=device,
-                               desc=f"{desc} {i}") for i, (x, y) in enumerate(data)]  # fmt: skip
+        return [fit_classifier(d[0], d[1], settings, progress=progress, device=device,
+                               desc=f"{desc} {i}", outcomes=d[2] if len(d) > 2 else None)
+                for i, d in enumerate(data)]  # fmt: skip
 
     if not settings.bins or settings.natural_gradient or len(data) < 2:
         return one_by_one()
-    preps = [_prepare(x, y, settings, device) for x, y in data]
+    preps = [_prepare(d[0], d[1], settings, device, d[2] if len(d) > 2 else None) for d in data]
     binned = [bin_inputs(p.z_train, p.y_train, settings.bins) for p in preps]
     if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS:
         return one_by_one()

@@ -2,7 +2,7 @@
 
 ``python scripts/collect.py [model=...] [field=...] [collect.n_per_state=...]`` writes
 ``transitions.parquet`` (the model's inputs and features, ``phi``, ``phi_next``, ``cell``, ``t``,
-``since_jump``), ``coverage.png`` and ``manifest.json`` into the settings' directory.
+``since_jump`` and, where the model gives it, the expected label ``phi_next_expected``), ``coverage.png`` and ``manifest.json`` into the settings' directory.
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         max_time=float(c["max_time"]),
         progress=job.progress,
         blackout=round(float(c.get("blackout_time", 0.0)) / setup.dt),
+        expected=settings.expected_labels,
     )
     wall = time.perf_counter() - t0
     # from here the directory reads as incomplete until the new manifest is written last

@@ -50,7 +50,9 @@ REPRODUCE_CMD = "python scripts/reproduce.py"
 DECISIONS = ("full", "abstract", "exact")
 DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
 #: keys of the gp group that are not GP hyperparameters
-GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads")
+GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels")
+#: gp.labels: the column each option trains on
+LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
 DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "n_cells": 1000,
     "t_end": 100.0,
@@ -219,9 +221,21 @@ class CollectSettings:
                 f"collect.perturb_rate={rate:g}/s cannot be met with dt={setup.dt:g} s: at most "
                 f"one perturbation per step, so the rate must be <= 1/dt = {1 / setup.dt:g}/s"
             )
+        expected = c.get("expected_labels", False)
+        if not isinstance(expected, bool):
+            raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
         return cls(setup, c, Job.from_config(cfg))
+
+    @property
+    def expected_labels(self) -> bool:
+        """Whether the table gets the expected labels (``collect.expected_labels`` and a model
+        whose internal model gives them)."""
+        from surrogate.simulate.transitions import can_expect
+
+        wanted = bool(self.options.get("expected_labels", False))
+        return wanted and can_expect(self.setup.model.internal)
 
     def identity(self) -> dict[str, Any]:
         """Everything that defines a transitions table."""
@@ -316,7 +330,28 @@ class TrainSettings:
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
                                     or threads < 1):  # fmt: skip
             raise ConfigError(f"gp.threads must be a positive integer or null, got {threads!r}")
+        labels = gp_config.get("labels", "outcome")
+        if labels not in LABEL_COLUMNS:
+            raise ConfigError(f"gp.labels must be one of {list(LABEL_COLUMNS)}, got {labels!r}")
+        if labels == "expected":
+            if not gp.bins:
+                raise ConfigError("gp.labels=expected needs binned training (gp.bins > 0)")
+            if isinstance(source, CollectSettings) and not source.expected_labels:
+                why = (
+                    "collect.expected_labels=false"
+                    if not source.options.get("expected_labels", False)
+                    else f"model {setup.model.name!r} gives none (no expected_phi_next)"
+                )
+                raise ConfigError(
+                    f"gp.labels=expected trains on expected labels, but {why}; use "
+                    "gp.labels=outcome"
+                )
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg))
+
+    @property
+    def label_column(self) -> str:
+        """The transitions column the classifiers are trained on (``gp.labels``)."""
+        return LABEL_COLUMNS[self.gp_config.get("labels", "outcome")]
 
     @property
     def fit_threads(self) -> int | None:

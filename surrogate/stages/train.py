@@ -114,19 +114,27 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
-    needed = [*settings.inputs, *LABELS]
+    label = settings.label_column
+    needed = list(dict.fromkeys([*settings.inputs, *LABELS, label]))
     missing = [c for c in needed if c not in table.columns]
     if missing:
         raise ArtefactError(
             f"{where} lacks column(s) {missing}: the abstraction needs its inputs "
-            f"{list(settings.inputs)} and {list(LABELS)} (it has {list(table.columns)})"
-        )
+            f"{list(settings.inputs)} and {needed[len(settings.inputs):]} (it has "
+            f"{list(table.columns)})"
+            + (" (collect it with collect.expected_labels=true, or train with "
+               "gp.labels=outcome)" if label in missing else "")
+        )  # fmt: skip
     values = table[list(settings.inputs)].to_numpy(dtype=np.float64)
     if not np.isfinite(values).all():
         raise NumericalError(f"{where} contains NaN or infinite values in {list(settings.inputs)}")
     labels = table[list(LABELS)].to_numpy()
     if not np.isin(labels, (0, 1)).all():
         raise ArtefactError(f"{where}: phi and phi_next must be 0 or 1")
+    if label not in LABELS:
+        p = table[label].to_numpy(dtype=np.float64)
+        if not (np.isfinite(p).all() and (p >= 0).all() and (p <= 1).all()):
+            raise ArtefactError(f"{where}: {label} must be probabilities in [0, 1]")
     return table, where
 
 
@@ -151,7 +159,7 @@ def _train(
     try:
         torch.set_num_threads(fit_threads)
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
-                      device=job.device, lump_names=lumps)  # fmt: skip
+                      device=job.device, lump_names=lumps, label=settings.label_column)  # fmt: skip
     except NumericalError as exc:
         # nothing was written: a previous complete abstraction in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")

@@ -471,3 +471,43 @@ def test_binned_likelihood_is_gpytorchs_per_label_expected_log_prob() -> None:
     ] * torch.special.log_ndtr(-s)
     truth = (log_p * weights).sum(-1) / math.sqrt(math.pi)
     torch.testing.assert_close(ours.double(), truth, rtol=1e-2, atol=0.1)
+
+
+# ----------------------------------------------------------------------------------------------
+# expected (fractional) labels
+
+
+def _hidden_state_data(n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """1-D inputs, a hidden state that scales each row's switching probability by 0.5 or 1.5
+    (so its expected label q has mean p_true(x) given x), and outcomes y ~ Bernoulli(q)."""
+    gen = torch.Generator().manual_seed(seed)
+    x = M_BOX[0] + (M_BOX[1] - M_BOX[0]) * torch.rand(n, 1, generator=gen)
+    p = 0.6 * torch.sigmoid((2.2 - x[:, 0]) / 0.3)
+    q = p * (0.5 + (torch.rand(n, generator=gen) < 0.5).float())
+    return x, q, torch.bernoulli(q, generator=gen), p
+
+
+def test_expected_labels_recover_the_surface_better_than_outcomes() -> None:
+    """Same inputs, binned training: on the expected labels (variance ~p^2/4 per row instead of
+    p(1 - p)) the fit is closer to p_true than on the 0/1 outcomes; held-out metrics score the
+    outcomes either way."""
+    x, q, y, _ = _hidden_state_data(4000, seed=3)
+    settings = GPSettings(n_inducing=20, epochs=150, bins=100, lr=0.05)
+    on_q = fit_classifier(x, q, settings, progress=False, outcomes=y)
+    on_y = fit_classifier(x, y, settings, progress=False)
+    xg = torch.linspace(*M_BOX, 200)[:, None]
+    truth = 0.6 * torch.sigmoid((2.2 - xg[:, 0]) / 0.3)
+    err_q = (on_q.predict_proba(xg) - truth).abs().mean().item()
+    err_y = (on_y.predict_proba(xg) - truth).abs().mean().item()
+    assert err_q < 0.7 * err_y, (err_q, err_y)
+    assert err_q < 0.01, err_q
+    assert on_q.validation is not None and on_q.validation["n"] == on_y.validation["n"] == 800
+    assert on_q.validation["base_rate"] == on_y.validation["base_rate"]  # the same outcomes
+
+
+def test_expected_labels_need_bins_and_outcomes() -> None:
+    x, q, y, _ = _hidden_state_data(400, seed=4)
+    with pytest.raises(ConfigError, match="binned"):
+        fit_classifier(x, q, GPSettings(**TINY), progress=False, outcomes=y)
+    with pytest.raises(NumericalError, match="0/1 outcomes"):
+        fit_classifier(x, q, GPSettings(**TINY, bins=20), progress=False)

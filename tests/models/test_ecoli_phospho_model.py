@@ -101,3 +101,28 @@ def test_the_pipeline_runs_on_the_phospho_model(tmp_path) -> None:
     comparison = pd.read_csv(out / "comparison.csv")
     assert comparison["quantity"].tolist()[-2:] == ["run", "tumble"]
     assert comparison["ks"].between(0, 1).all()
+
+
+def test_expected_labels_use_the_motor_rates_at_the_current_cheyp() -> None:
+    """The phospho model's expected label is the first model's exact one at the rates the
+    network's kinetics give for the cell's current CheY-P count: omega exp(+-dG(CheY-P / n_per_um))
+    and mu (the SBML rate laws, read back through the network's propensities)."""
+    from surrogate.models.ecoli.motors import motor_transition_matrix, run_probability_after
+    from surrogate.models.ecoli.motors import states_from_counts
+    from surrogate.models.ecoli.signalling import delta_g, rates_from_delta_g
+
+    model = EcoliPhosphoModel(ssa="compiled", burn_in=0.2)
+    internal, p = model.internal, model.params
+    gen = torch.Generator().manual_seed(5)
+    n = 64
+    x = torch.stack([2.2 + 0.3 * torch.randn(n, generator=gen), torch.zeros(n)], 1)
+    torch.manual_seed(5)
+    state = internal.initial_state(x)
+    counts = state[0]
+    species = internal.network.species
+    cheyp = counts[:, species.index("CheYp")].double() / model.constants.n_per_um
+    k_plus, k_minus = rates_from_delta_g(delta_g(cheyp, p), p)
+    motors = states_from_counts(counts[:, [species.index(s) for s in ("S", "C", "N")]], 4)
+    want = run_probability_after(motors, motor_transition_matrix(k_plus, k_minus, 0.05, p.mu))
+    torch.testing.assert_close(internal.expected_phi_next(state, x, 0.05), want, rtol=1e-9,
+                               atol=1e-12)  # fmt: skip

@@ -9,6 +9,7 @@ the seed been random) and a total-variation bound exceeded with probability <= 1
 from __future__ import annotations
 
 import itertools
+import math
 
 import mpmath
 import numpy as np
@@ -236,3 +237,64 @@ def test_fused_window_agrees_with_the_ssa_window(m: float, L: float) -> None:
     )
     assert bins >= 3
     assert pvalue > P_MIN, f"two-sample chi-square p = {pvalue:.3g} over {bins} bins"
+
+
+# ----------------------------------------------------------------------------------------------
+# expected labels
+
+
+def test_run_probability_after_is_the_sum_over_every_end_configuration() -> None:
+    """P(RUN after | motors now) against brute force: every one of the 3^M end configurations
+    weighted by the product of the motors' transition rows, summed where RUN holds."""
+    from surrogate.models.ecoli.motors import run_probability_after
+
+    gen = torch.Generator().manual_seed(0)
+    n, m = 64, 4
+    motors = torch.randint(0, 3, (m, n), generator=gen).to(MOTOR_DTYPE)
+    kp, km = _rates(RATES[:: max(1, len(RATES) // n)][:n])
+    transition = motor_transition_matrix(kp, km, DT, P.mu)
+    got = run_probability_after(motors, transition)
+    want = torch.zeros(n, dtype=torch.float64)
+    cells = torch.arange(n)
+    for ends in itertools.product(range(3), repeat=m):
+        weight = torch.ones(n, dtype=torch.float64)
+        for i, end in enumerate(ends):
+            weight = weight * transition[cells, motors[i].long(), end]
+        run = ends.count(2) >= 2 and 0 not in ends
+        want += weight if run else 0.0
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+
+
+def test_expected_labels_average_to_the_outcomes() -> None:
+    """From one set of states, the mean of 40 sampled windows' RUN flags per cell agrees with
+    the expected label within 5 standard errors, pooled per origin and per cell."""
+    model = MotorInternalModel(P)
+    gen = torch.Generator().manual_seed(1)
+    n = 4000
+    x = torch.stack([2.2 + 0.4 * torch.randn(n, generator=gen), torch.zeros(n)], 1)
+    torch.manual_seed(1)
+    state = model.initial_state(x)
+    expected = model.expected_phi_next(state, x, DT)
+    outcomes = torch.stack([model.phi(model.advance(state, x, DT)) for _ in range(40)]).double()
+    phi = model.phi(state)
+    for origin in (0, 1):
+        rows = phi == origin
+        mean, p = outcomes[:, rows].mean(), expected[rows].mean()
+        se = math.sqrt(float((expected[rows] * (1 - expected[rows])).sum()) / 40) / int(rows.sum())
+        assert abs(float(mean - p)) < 5 * se, (origin, float(mean), float(p), se)
+    # and it carries information beyond the origin: the per-cell frequencies follow it
+    per_cell = outcomes.mean(0)
+    assert float(torch.corrcoef(torch.stack([per_cell, expected]))[0, 1]) > 0.9
+
+
+def test_expected_labels_from_counts_equal_those_from_states() -> None:
+    """The SSA motor sampler (counts) gives the same expected labels as per-motor states."""
+    x = torch.tensor([[2.0, 0.0], [2.4, 0.01], [1.8, 0.0]]).repeat(20, 1)
+    states = MotorInternalModel(P)
+    counts = MotorInternalModel(EcoliParameters(motor_sampler="ssa"))
+    torch.manual_seed(2)
+    state = states.initial_state(x)
+    by_counts = (counts_from_states(state[0]),)
+    torch.testing.assert_close(
+        states.expected_phi_next(state, x, DT), counts.expected_phi_next(by_counts, x, DT)
+    )

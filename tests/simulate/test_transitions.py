@@ -50,3 +50,32 @@ def test_collected_transitions_by_the_kernel_are_the_torch_steps() -> None:
                                           equilibration_time=1.0, blackout=4))  # fmt: skip
     _same_rows(*tables)
     np.testing.assert_array_equal(tables[0]["since_jump"], tables[1]["since_jump"])
+
+
+def test_expected_labels_average_to_the_switching_frequency() -> None:
+    """Collected with expected labels (kernel loop), the same rows as without (they draw no
+    random numbers), and per origin the expected labels average to the outcomes' frequency
+    within 4 standard errors of the difference (outcome minus expected label per row)."""
+    from surrogate.simulate.transitions import EXPECTED
+
+    model = EcoliModel()
+    tables = []
+    for expected in (False, True):
+        torch.manual_seed(6)
+        sim = _simulator("numba")
+        perturbation = model.body.perturbation(sim.field, model.perturbation_options)
+        tables.append(collect_transitions(sim, perturbation, n_cells=1000, n_per_state=20000,
+                                          perturb_rate=0.1, record_every=5, progress=False,
+                                          equilibration_time=1.0, blackout=20,
+                                          expected=expected))  # fmt: skip
+    plain, table = tables
+    assert EXPECTED not in plain.columns
+    for column in plain.columns:
+        np.testing.assert_array_equal(plain[column], table[column])
+    for origin in (0, 1):
+        rows = table[table["phi"] == origin]
+        diff = rows["phi_next"].to_numpy(float) - rows[EXPECTED].to_numpy(float)
+        se = diff.std(ddof=1) / np.sqrt(len(diff))
+        assert abs(diff.mean()) < 4 * se, (origin, diff.mean(), se)
+        # lower variance than the outcomes (the point of them)
+        assert rows[EXPECTED].var() < 0.5 * rows["phi_next"].var()

@@ -17,16 +17,18 @@ from surrogate.ctmc import gillespie
 from surrogate.models.base import InternalState, Randoms
 from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
-    MOTOR_DTYPE,
     counts_from_states,
     exact_run_probability,
     is_run,
     motor_thresholds,
+    motor_transition_matrix,
     rate_constants,
     run_flag_from_states,
+    run_probability_after,
     sample_motor_states,
     sample_stationary_counts,
     sample_stationary_states,
+    states_from_counts,
 )
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import (
@@ -141,10 +143,16 @@ class MotorInternalModel:
             raise ValueError(f"motor counts must be (n, 3) with rows summing to n_motors={m}")
         if not self.fusable:
             return (counts.to(torch.int64),)
-        cum = counts.to(torch.int64).cumsum(-1)  # (n, 3)
-        slots = torch.arange(m, device=counts.device)
-        states = (slots[:, None, None] >= cum[None, :, :]).sum(-1)  # (M, n)
-        return (states.clamp_max(2).to(MOTOR_DTYPE).contiguous(),)
+        return (states_from_counts(counts, m).contiguous(),)
+
+    def expected_phi_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
+        """Exact P(RUN after a window ``dt`` | this state, inputs ``x``) ``(n,)`` float64: each
+        motor's row of its closed-form exp(Q dt) at the cell's rates (the expected label of
+        the window, :func:`~surrogate.models.ecoli.motors.run_probability_after`)."""
+        motors = state[0] if self.fusable else states_from_counts(state[0], self.params.n_motors)
+        k_plus, k_minus = self.rates(x)
+        return run_probability_after(motors, motor_transition_matrix(k_plus, k_minus, dt,
+                                                                     self.params.mu))
 
     # -- exact lumped psi ------------------------------------------------------------------------
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:

@@ -200,6 +200,40 @@ def sample_motor_states(motors: Tensor, thresholds: Tensor, u: Tensor) -> Tensor
     return (u >= t1).to(motors.dtype) + (u >= t2).to(motors.dtype)
 
 
+def run_probability_after(motors: Tensor, transition: Tensor) -> Tensor:
+    """P(RUN after the window | every motor's state now), ``(n,)`` float64: the expected RUN
+    flag of the next window given the current configuration (a Rao-Blackwellised label).
+
+    Motors move independently, motor i by the row of its cell's ``transition`` (``n x 3 x 3``,
+    exp(Q dt)) at its state; RUN = no motor in S and at least two in N. With a_i = P(C) and
+    b_i = P(N) after the window, P(RUN) = prod(a_i + b_i) - prod(a_i) - sum_i b_i prod_{j!=i} a_j,
+    accumulated motor by motor (the generating polynomial's coefficients of N^0 and N^1).
+
+    Args:
+        motors: per-motor states ``M x n`` (0 = S, 1 = C, 2 = N), any dtype.
+        transition: each cell's one-motor transition matrix ``n x 3 x 3`` (rows S, C, N).
+    """
+    index = motors.long()  # (M, n)
+    rows = transition.unsqueeze(0).expand(index.shape[0], -1, -1, -1)
+    after = rows.gather(2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(2)
+    no_s = torch.ones_like(after[0, :, 0])
+    none_n = torch.ones_like(no_s)
+    one_n = torch.zeros_like(no_s)
+    for a, b in zip(after[..., C], after[..., N], strict=True):
+        one_n = one_n * a + none_n * b
+        none_n = none_n * a
+        no_s = no_s * (a + b)
+    return (no_s - none_n - one_n).clamp(0.0, 1.0)
+
+
+def states_from_counts(counts: Tensor, n_motors: int) -> Tensor:
+    """Per-motor states ``M x n`` (float, see :data:`MOTOR_DTYPE`) with the given counts
+    ``n x 3`` (S, C, N; motors are exchangeable, so any order of them)."""
+    cum = counts.to(torch.int64).cumsum(-1)  # (n, 3)
+    slots = torch.arange(int(n_motors), device=counts.device)
+    return (slots[:, None, None] >= cum[None, :, :]).sum(-1).clamp_max(2).to(MOTOR_DTYPE)
+
+
 def step_motor_states(
     motors: Tensor, k_plus: Tensor, k_minus: Tensor, dt: float, mu: float, u: Tensor
 ) -> Tensor:

@@ -78,6 +78,8 @@ class PhosphoInternalModel:
                 f"inputs {list(network.input_names)}"
             )
         self._s, self._n = species.index("S"), species.index("N")
+        self._motor_columns = [species.index(m) for m in ("S", "C", "N")]
+        self._motor_moves = _motor_moves(network, self._motor_columns)
         if ssa not in SSA_BACKENDS:
             raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {ssa!r}")
         self.ssa = ssa
@@ -144,6 +146,31 @@ class PhosphoInternalModel:
         """Not available: an SSA window has a data-dependent number of events."""
         raise RuntimeError("the phospho network has no fused window (fusable = False)")
 
+    def expected_phi_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
+        """P(RUN after a window ``dt`` | the motors now, CheY-P held at its value now) ``(n,)``
+        float64: the expected label of the window, *approximately*.
+
+        Each motor moves by exp(Q dt) of its one-motor generator, whose rates are the network's
+        own motor propensities per motor at the cell's current counts (so the current CheY-P
+        count); :func:`~surrogate.models.ecoli.motors.run_probability_after` then gives P(RUN).
+        Exact for the motors given a CheY-P that stays put; CheY-P moves within the window
+        (relaxation ~33 ms against dt = 50 ms), which this ignores (bias measured in the README).
+        """
+        from surrogate.models.ecoli.motors import run_probability_after, states_from_counts
+
+        counts = state[0]
+        probe = counts.clone()
+        probe[:, self._motor_columns] = 1  # one motor in each state: propensity = rate per motor
+        activity = self.features(x, ("activity",)).to(torch.float64)
+        rates = self.network.propensities(probe, activity.to(counts.device))
+        generator = rates.new_zeros(counts.shape[0], 3, 3)
+        for reaction, source, target in self._motor_moves:
+            generator[:, source, target] += rates[:, reaction]
+        generator -= torch.diag_embed(generator.sum(-1))
+        transition = torch.linalg.matrix_exp(generator * dt)
+        motors = states_from_counts(counts[:, self._motor_columns], self.params.n_motors)
+        return run_probability_after(motors, transition)
+
     def phi(self, state: InternalState) -> Tensor:
         """RUN (N >= 2 and S == 0 among the motors) as float 0/1 ``(n,)``."""
         counts = state[0]
@@ -156,6 +183,25 @@ class PhosphoInternalModel:
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         """Not available: the network's state space is far too large to enumerate."""
         raise NotImplementedError("the phospho network has no exact lumped psi")
+
+
+def _motor_moves(network: SbmlModel, columns: Sequence[int]) -> list[tuple[int, int, int]]:
+    """(reaction, from, to) of the reactions that move one motor between S, C, N (indices
+    into ``columns``): one motor species consumed, another produced, first order in it."""
+    reactants, products = network.network.reactants, network.network.products
+    moves = []
+    for r in range(reactants.shape[0]):
+        used = reactants[r, columns].tolist()
+        made = products[r, columns].tolist()
+        if sum(used) == 0 and sum(made) == 0:
+            continue
+        if sorted(used) != [0, 0, 1] or sorted(made) != [0, 0, 1] or used == made:
+            raise ConfigError(
+                f"model.network: reaction {network.reaction_names[r]!r} does not move one "
+                f"motor between S, C and N (first order); the expected labels need that"
+            )
+        moves.append((r, used.index(1), made.index(1)))
+    return moves
 
 
 def _seed_streams(seed: int, n: int, device: torch.device) -> Tensor:
