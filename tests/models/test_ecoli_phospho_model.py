@@ -107,8 +107,11 @@ def test_expected_labels_use_the_motor_rates_at_the_current_cheyp() -> None:
     """The phospho model's expected label is the first model's exact one at the rates the
     network's kinetics give for the cell's current CheY-P count: omega exp(+-dG(CheY-P / n_per_um))
     and mu (the SBML rate laws, read back through the network's propensities)."""
-    from surrogate.models.ecoli.motors import motor_transition_matrix, run_probability_after
-    from surrogate.models.ecoli.motors import states_from_counts
+    from surrogate.models.ecoli.motors import (
+        motor_transition_matrix,
+        run_probability_after,
+        states_from_counts,
+    )
     from surrogate.models.ecoli.signalling import delta_g, rates_from_delta_g
 
     model = EcoliPhosphoModel(ssa="compiled", burn_in=0.2)

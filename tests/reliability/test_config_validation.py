@@ -100,8 +100,11 @@ BAD_INPUTS = [
     ("train", ["+gp.diagnostic.foo=1"], "unknown gp.diagnostic setting(s) ['foo']"),
     ("train", ["gp.threads=0"], "gp.threads must be a positive integer or null"),
     ("train", ["gp.labels=soft"], "gp.labels must be one of ['outcome', 'expected']"),
-    ("train", ["gp.labels=expected", "collect.expected_labels=false"],
-     "gp.labels=expected trains on expected labels, but collect.expected_labels=false"),
+    (
+        "train",
+        ["gp.labels=expected", "collect.expected_labels=false"],
+        "gp.labels=expected trains on expected labels, but collect.expected_labels=false",
+    ),
     ("train", ["gp.labels=expected", "gp.bins=0"], "gp.labels=expected needs binned training"),
     ("collect", ["collect.expected_labels=maybe"], "collect.expected_labels must be true or false"),
     (

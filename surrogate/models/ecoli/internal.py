@@ -151,8 +151,9 @@ class MotorInternalModel:
         the window, :func:`~surrogate.models.ecoli.motors.run_probability_after`)."""
         motors = state[0] if self.fusable else states_from_counts(state[0], self.params.n_motors)
         k_plus, k_minus = self.rates(x)
-        return run_probability_after(motors, motor_transition_matrix(k_plus, k_minus, dt,
-                                                                     self.params.mu))
+        return run_probability_after(
+            motors, motor_transition_matrix(k_plus, k_minus, dt, self.params.mu)
+        )
 
     # -- exact lumped psi ------------------------------------------------------------------------
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
