@@ -133,6 +133,12 @@ class InternalModel(Protocol):
         order of ``signal_names``); raises ``NotImplementedError`` where no exact psi exists."""
         ...
 
+    # Optional (detected by the collect stage, not required of a model):
+    #   expected_phi_next(state, x, dt) -> (n,) float: P(phi = 1 after a window dt | this
+    #   state, inputs x), the window's expected label. Its mean given x is psi(x), as the 0/1
+    #   outcome's, with less variance; collect records it (collect.expected_labels) and
+    #   gp.labels=auto trains on it (see surrogate.simulate.transitions).
+
 
 class Perturbation(Protocol):
     """How collect moves cells off their steady state (paper: "sporadic perturbation")."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,8 +51,9 @@ DECISIONS = ("full", "abstract", "exact")
 DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
 #: keys of the gp group that are not GP hyperparameters
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels")
-#: gp.labels: the column each option trains on
+#: gp.labels: the column each option trains on (auto: expected where the table has them)
 LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
+LABEL_CHOICES = ("auto", *LABEL_COLUMNS)
 DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "n_cells": 1000,
     "t_end": 100.0,
@@ -331,8 +332,8 @@ class TrainSettings:
                                     or threads < 1):  # fmt: skip
             raise ConfigError(f"gp.threads must be a positive integer or null, got {threads!r}")
         labels = gp_config.get("labels", "outcome")
-        if labels not in LABEL_COLUMNS:
-            raise ConfigError(f"gp.labels must be one of {list(LABEL_COLUMNS)}, got {labels!r}")
+        if labels not in LABEL_CHOICES:
+            raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
         if labels == "expected":
             if not gp.bins:
                 raise ConfigError("gp.labels=expected needs binned training (gp.bins > 0)")
@@ -348,10 +349,15 @@ class TrainSettings:
                 )
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg))
 
-    @property
-    def label_column(self) -> str:
-        """The transitions column the classifiers are trained on (``gp.labels``)."""
-        return LABEL_COLUMNS[self.gp_config.get("labels", "outcome")]
+    def label_column(self, columns: Sequence[str]) -> str:
+        """The column of a transitions table (with ``columns``) the classifiers are trained on
+        (``gp.labels``; ``auto``: the expected labels where the table has them, as collect
+        records them for models that give them, else the outcomes)."""
+        labels = self.gp_config.get("labels", "outcome")
+        if labels == "auto":
+            expected = LABEL_COLUMNS["expected"]
+            return expected if expected in columns else LABEL_COLUMNS["outcome"]
+        return LABEL_COLUMNS[labels]
 
     @property
     def fit_threads(self) -> int | None:

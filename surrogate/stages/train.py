@@ -114,7 +114,7 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
-    label = settings.label_column
+    label = settings.label_column(table.columns)
     needed = list(dict.fromkeys([*settings.inputs, *LABELS, label]))
     missing = [c for c in needed if c not in table.columns]
     if missing:
@@ -159,7 +159,8 @@ def _train(
     try:
         torch.set_num_threads(fit_threads)
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
-                      device=job.device, lump_names=lumps, label=settings.label_column)  # fmt: skip
+                      device=job.device, lump_names=lumps,
+                      label=settings.label_column(table.columns))  # fmt: skip
     except NumericalError as exc:
         # nothing was written: a previous complete abstraction in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")

@@ -99,7 +99,7 @@ BAD_INPUTS = [
     ("train", ["gp.diagnostic.n_cells=0"], "gp.diagnostic.n_cells must be a positive"),
     ("train", ["+gp.diagnostic.foo=1"], "unknown gp.diagnostic setting(s) ['foo']"),
     ("train", ["gp.threads=0"], "gp.threads must be a positive integer or null"),
-    ("train", ["gp.labels=soft"], "gp.labels must be one of ['outcome', 'expected']"),
+    ("train", ["gp.labels=soft"], "gp.labels must be one of ['auto', 'outcome', 'expected']"),
     (
         "train",
         ["gp.labels=expected", "collect.expected_labels=false"],
