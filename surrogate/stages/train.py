@@ -215,6 +215,7 @@ def _train(
         device=str(job.device),
         wall_time_s=wall,
         fit_threads=fit_threads,  # the fit's result depends on it (float reductions)
+        label_column=settings.label_column(table.columns),
         inputs=list(settings.inputs),
         domain={k: list(v) for k, v in psi.domain.items()},
         brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},

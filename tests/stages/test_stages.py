@@ -50,6 +50,7 @@ def test_collect_writes_columns_counts_and_manifest(trained) -> None:
     assert {"m", "L", "F", "cheyp", "dG", "phi", "phi_next", "cell", "t"} <= set(table.columns)
     assert (table["phi"] == 0).sum() == 400 and (table["phi"] == 1).sum() == 400
     assert set(table["phi_next"].unique()) <= {0, 1}
+    assert table["phi_next_expected"].between(0, 1).all()  # E. coli gives expected labels
     assert np.isfinite(table[["m", "L", "dG"]].to_numpy()).all()
     manifest = json.loads((collect_dir / "manifest.json").read_text())
     assert manifest["counts_per_origin"] == {"tumble": 400, "run": 400}
@@ -266,3 +267,25 @@ def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
     )
     with pytest.raises(ConfigError, match="decision=abstract"):
         speed.run(compose_cfg("speed", [*TINY, "decision=full"]))
+
+
+def test_auto_labels_are_the_exact_expected_labels_only(compose_cfg) -> None:
+    """gp.labels=auto trains on the expected labels where the table has them and the model
+    declares them exact (E. coli), on the outcomes otherwise (ecoli_phospho holds CheY-P: an
+    approximation, used only with gp.labels=expected); the manifest says which."""
+    from surrogate.stages.settings import TrainSettings
+
+    columns = ["dG", "phi", "phi_next", "phi_next_expected"]
+    ecoli = TrainSettings.from_config(compose_cfg("train"))
+    assert ecoli.label_column(columns) == "phi_next_expected"
+    assert ecoli.label_column(columns[:-1]) == "phi_next"
+    phospho = TrainSettings.from_config(compose_cfg("train", ["model=ecoli_phospho"]))
+    assert phospho.label_column(columns) == "phi_next"
+    forced = compose_cfg("train", ["model=ecoli_phospho", "gp.labels=expected"])
+    assert TrainSettings.from_config(forced).label_column(columns) == "phi_next_expected"
+
+
+def test_train_manifest_names_the_labels(trained) -> None:
+    _, _, train_dir = trained
+    manifest = json.loads((train_dir / "manifest.json").read_text())
+    assert manifest["label_column"] == "phi_next_expected"

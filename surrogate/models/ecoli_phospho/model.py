@@ -63,6 +63,9 @@ class PhosphoInternalModel:
     fusable = False
     randoms = Randoms()
     signal_bounds: ClassVar[dict[str, tuple[float, float]]] = {"activity": (0.0, 1.0)}
+    #: expected_phi_next holds CheY-P over the window: approximate (measured in the README), so
+    #: gp.labels=auto trains on the outcomes; gp.labels=expected uses them anyway
+    expected_labels_exact = False
 
     def __init__(
         self, params: EcoliParameters, network: SbmlModel, ssa: str = "auto", burn_in: float = 2.0
