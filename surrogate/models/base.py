@@ -137,8 +137,7 @@ class InternalModel(Protocol):
     #   expected_phi_next(state, x, dt) -> (n,) float: P(phi = 1 after a window dt | this
     #   state, inputs x), the window's expected label. Its mean given x is psi(x), as the 0/1
     #   outcome's, with less variance; collect records it (collect.expected_labels) and
-    #   gp.labels=auto trains on it (see surrogate.simulate.transitions) unless the model sets
-    #   expected_labels_exact = False (an approximation: gp.labels=expected still uses it).
+    #   gp.labels=auto trains on it (see surrogate.simulate.transitions).
 
 
 class Perturbation(Protocol):

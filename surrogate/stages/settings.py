@@ -352,14 +352,11 @@ class TrainSettings:
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
         (``gp.labels``; ``auto``: the expected labels where the table has them, as collect
-        records them for models that give them, unless the model declares them approximate
-        (``expected_labels_exact = False``); else the outcomes)."""
+        records them for models that give them; else the outcomes)."""
         labels = self.gp_config.get("labels", "outcome")
         if labels == "auto":
             expected = LABEL_COLUMNS["expected"]
-            # a model whose expected labels are approximate is trained on them only when asked
-            exact = bool(getattr(self.setup.model.internal, "expected_labels_exact", True))
-            return expected if expected in columns and exact else LABEL_COLUMNS["outcome"]
+            return expected if expected in columns else LABEL_COLUMNS["outcome"]
         return LABEL_COLUMNS[labels]
 
     @property

@@ -269,20 +269,19 @@ def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
         speed.run(compose_cfg("speed", [*TINY, "decision=full"]))
 
 
-def test_auto_labels_are_the_exact_expected_labels_only(compose_cfg) -> None:
-    """gp.labels=auto trains on the expected labels where the table has them and the model
-    declares them exact (E. coli), on the outcomes otherwise (ecoli_phospho holds CheY-P: an
-    approximation, used only with gp.labels=expected); the manifest says which."""
+def test_auto_labels_are_the_expected_labels_where_the_table_has_them(compose_cfg) -> None:
+    """gp.labels=auto trains on the expected labels where the table has them, on the outcomes
+    otherwise; outcome and expected choose."""
     from surrogate.stages.settings import TrainSettings
 
     columns = ["dG", "phi", "phi_next", "phi_next_expected"]
-    ecoli = TrainSettings.from_config(compose_cfg("train"))
-    assert ecoli.label_column(columns) == "phi_next_expected"
-    assert ecoli.label_column(columns[:-1]) == "phi_next"
-    phospho = TrainSettings.from_config(compose_cfg("train", ["model=ecoli_phospho"]))
-    assert phospho.label_column(columns) == "phi_next"
-    forced = compose_cfg("train", ["model=ecoli_phospho", "gp.labels=expected"])
-    assert TrainSettings.from_config(forced).label_column(columns) == "phi_next_expected"
+    auto = TrainSettings.from_config(compose_cfg("train"))
+    assert auto.label_column(columns) == "phi_next_expected"
+    assert auto.label_column(columns[:-1]) == "phi_next"
+    outcome = TrainSettings.from_config(compose_cfg("train", ["gp.labels=outcome"]))
+    assert outcome.label_column(columns) == "phi_next"
+    expected = TrainSettings.from_config(compose_cfg("train", ["gp.labels=expected"]))
+    assert expected.label_column(columns) == "phi_next_expected"
 
 
 def test_train_manifest_names_the_labels(trained) -> None:

@@ -63,9 +63,8 @@ class PhosphoInternalModel:
     fusable = False
     randoms = Randoms()
     signal_bounds: ClassVar[dict[str, tuple[float, float]]] = {"activity": (0.0, 1.0)}
-    #: expected_phi_next holds CheY-P over the window: approximate (measured in the README), so
-    #: gp.labels=auto trains on the outcomes; gp.labels=expected uses them anyway
-    expected_labels_exact = False
+    #: sub-windows of the CheY-P path in expected_phi_next (its only approximation)
+    expected_substeps = 10
 
     def __init__(
         self, params: EcoliParameters, network: SbmlModel, ssa: str = "auto", burn_in: float = 2.0
@@ -150,29 +149,47 @@ class PhosphoInternalModel:
         raise RuntimeError("the phospho network has no fused window (fusable = False)")
 
     def expected_phi_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
-        """P(RUN after a window ``dt`` | the motors now, CheY-P held at its value now) ``(n,)``
-        float64: the expected label of the window, *approximately*.
+        """P(RUN after a window ``dt`` | the motors now, a CheY-P path) ``(n,)`` float64: the
+        window's expected label, with the motors' randomness integrated out exactly.
 
-        Each motor moves by exp(Q dt) of its one-motor generator, whose rates are the network's
-        own motor propensities per motor at the cell's current counts (so the current CheY-P
-        count); :func:`~surrogate.models.ecoli.motors.run_probability_after` then gives P(RUN).
-        Exact for the motors given a CheY-P that stays put; CheY-P moves within the window
-        (relaxation ~33 ms against dt = 50 ms), which this ignores (bias measured in the README).
+        The motors do not act on CheY-P, so given the CheY-P path over the window the motors
+        are a time-inhomogeneous chain whose exact transition is a product of exp(Q(CheY-P) h)
+        over the path. The path is a second ("ghost") SSA run of the window from the same
+        state on a copy of the cell's random stream, in ``expected_substeps`` sub-windows: a
+        draw from the path's law given the state now, so its label's mean given the state is
+        the outcome's, whatever the ghost's correlation with the real window; the real window
+        is untouched (same random numbers). Per sub-window the motor rates are the mean of the
+        network's own per-motor propensities at its two ends (CheY-P relaxes in ~33 ms; dt is
+        50 ms). :func:`~surrogate.models.ecoli.motors.run_probability_after` then gives P(RUN).
         """
         from surrogate.models.ecoli.motors import run_probability_after, states_from_counts
 
-        counts = state[0]
+        counts, streams = state
+        activity = self.features(x, ("activity",)).to(torch.float64).to(counts.device)
+        h = dt / self.expected_substeps
+        ghost: InternalState = (counts.clone(), streams.clone())
+        rates = self._motor_generator(ghost[0], activity)
+        transition = torch.eye(3, dtype=torch.float64, device=counts.device).expand(
+            counts.shape[0], 3, 3
+        )
+        for _ in range(self.expected_substeps):
+            ghost = self.advance(ghost, x, h)
+            after = self._motor_generator(ghost[0], activity)
+            transition = transition @ torch.linalg.matrix_exp(0.5 * (rates + after) * h)
+            rates = after
+        motors = states_from_counts(counts[:, self._motor_columns], self.params.n_motors)
+        return run_probability_after(motors, transition)
+
+    def _motor_generator(self, counts: Tensor, activity: Tensor) -> Tensor:
+        """One motor's generator ``n x 3 x 3`` (S, C, N) at each cell's counts: the network's
+        own motor propensities with one motor in each state (first order: the rate per motor)."""
         probe = counts.clone()
-        probe[:, self._motor_columns] = 1  # one motor in each state: propensity = rate per motor
-        activity = self.features(x, ("activity",)).to(torch.float64)
-        rates = self.network.propensities(probe, activity.to(counts.device))
+        probe[:, self._motor_columns] = 1
+        rates = self.network.propensities(probe, activity)
         generator = rates.new_zeros(counts.shape[0], 3, 3)
         for reaction, source, target in self._motor_moves:
             generator[:, source, target] += rates[:, reaction]
-        generator -= torch.diag_embed(generator.sum(-1))
-        transition = torch.linalg.matrix_exp(generator * dt)
-        motors = states_from_counts(counts[:, self._motor_columns], self.params.n_motors)
-        return run_probability_after(motors, transition)
+        return generator - torch.diag_embed(generator.sum(-1))
 
     def phi(self, state: InternalState) -> Tensor:
         """RUN (N >= 2 and S == 0 among the motors) as float 0/1 ``(n,)``."""
