@@ -18,6 +18,14 @@ One run (``python scripts/bench.py``, config ``conf/bench.yaml``) measures, in t
 It prints a table and writes everything as JSON (``surrogate.io.write_json``). Timings are the
 best of ``repeats``; the machine's load average is recorded with them, since other processes
 on a small machine distort them. The benchmark asserts nothing.
+
+``lookup_only=true`` (:func:`run_lookup_bench`) measures only the abstraction's loop: the
+lookup throughput per thread count, backend and size over a table built from a smooth function
+of the model's signal (:func:`function_table`; no collection, training or full model), so it
+runs on any model whose full model is slow, e.g.
+``python scripts/bench.py lookup_only=true model=ecoli_phospho model.burn_in=0 threads=[2]
+compile=[false] sizes=[100,10000]`` (``model.burn_in=0``: the cells' first phi from the
+network's file state, not 2 s of SSA per cell; the throughput does not depend on it).
 """
 
 from __future__ import annotations
@@ -394,6 +402,101 @@ def memory_run(
 
 
 # ----------------------------------------------------------------------------------------------
+# the abstraction's loop alone (lookup_only=true)
+
+
+def function_table(model: Model, dt: float, size: Any = None) -> Any:
+    """A lookup table over the model's signal (its ``signal_bounds``) from a smooth psi with
+    E. coli-like switching, no training: runs end at ~1/s and tumbles at ~5/s, each rate
+    scaled by 0.5-1.5 across the signal's range (so the lookup's inputs matter)."""
+    from surrogate.gp import PsiLookupTable
+
+    internal = model.internal
+    names = tuple(internal.signal_names)
+    bounds = getattr(internal, "signal_bounds", None) or {}
+    missing = [n for n in names if n not in bounds]
+    if missing:
+        raise ValueError(f"lookup_only needs the internal model's signal_bounds for {missing}")
+    lo = torch.tensor([bounds[n][0] for n in names])
+    width = torch.tensor([bounds[n][1] - bounds[n][0] for n in names])
+
+    def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        s = ((z - lo) / width).mean(1).clamp(0.0, 1.0) + 0.5
+        stop = -torch.expm1(-s * dt)  # run -> tumble at ~1/s
+        start = -torch.expm1(-5.0 * s * dt)  # tumble -> run at ~5/s
+        return torch.where(phi > 0, 1.0 - stop, start)
+
+    shape = grid_size(size, "lookup_size", len(names))
+    return PsiLookupTable.from_function(psi, [bounds[n] for n in names], names, shape)
+
+
+def run_lookup_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dict[str, Any]:
+    """The abstraction's lookup throughput (cell-steps/s) for each thread count, (backend,
+    compile) and size, over :func:`function_table`, one simulator per (threads, backend,
+    compile) as :func:`run_bench`; each row records the backend that ran (``numba`` falls
+    back to torch where the model has no kernel)."""
+    s = bench_settings(cfg)
+    device = resolve_device(cfg.get("device", "cpu"))
+    torch.manual_seed(int(cfg["seed"]))
+    model = build_model(cfg["model"])
+    field = build_field(cfg["field"])
+    dt = float(cfg["dt"])
+    started = time.perf_counter()
+    table = function_table(model, dt, s.get("lookup_size")).to(device)
+    results: dict[str, Any] = {
+        "started": datetime.now().isoformat(timespec="seconds"),
+        "machine": machine_info(device),
+        "settings": {k: v for k, v in s.items() if k not in ("hydra",)},
+        "model": model.name,
+        "abstraction": {
+            "source": "a smooth function of the signal (bench.function_table; no training)",
+            "inputs": list(table.input_names),
+            "lookup_size": list(table.shape),
+        },
+    }
+    rows = []
+    for threads in s["threads"]:
+        with num_threads(threads):
+            for backend, compile in modes(s):
+                sim = make_simulator("lookup", model, field, dt, device, {"lookup": table},
+                                     compile, backend)  # fmt: skip
+                for n in s["sizes"]:
+                    log(f"lookup throughput: n={n} threads={threads} backend={backend} "
+                        f"compile={compile}")  # fmt: skip
+                    rows.append({"threads": threads, "backend": backend, "compile": compile,
+                                 "n_cells": n, "load": read_load(),
+                                 "lookup": throughput(sim, n, s)})  # fmt: skip
+    results["throughput"] = rows
+    results["machine"]["load_average_end"] = read_load()
+    results["total_s"] = time.perf_counter() - started
+    return results
+
+
+def format_lookup_report(r: Mapping[str, Any]) -> str:
+    """The lookup-only results as a plain-text table (``ran``: the backend that ran)."""
+    m, a = r["machine"], r["abstraction"]
+    lines = [
+        f"machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, device {m['device']}, "
+        f"load {m['load_average']} -> {m.get('load_average_end')}",
+        f"model {r['model']}; abstraction: {a['source']}; lookup over {a['inputs']} "
+        f"{a['lookup_size']}",
+        "",
+        "lookup throughput (cell-steps/s; best of repeats)",
+        f"{'thr':>3} {'backend':>7} {'compile':>7} {'cells':>7} {'lookup':>9} {'ran':>5} "
+        f"{'us/step':>9}  load",
+    ]
+    for row in r["throughput"]:
+        k = row["lookup"]
+        lines.append(
+            f"{row['threads']:>3} {row['backend']:>7} {row['compile']!s:>7} {row['n_cells']:>7} "
+            f"{_si(k['cell_steps_per_s']):>9} {k['backend']:>5} {k['us_per_step']:>9.1f}  "
+            f"{row['load'][:1]}"
+        )
+    lines.append(f"\ntotal {r['total_s']:.0f} s")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
 # the whole benchmark
 
 
@@ -650,12 +753,29 @@ def default_output(cfg: Mapping[str, Any]) -> Path:
 
 def main(cfg: Mapping[str, Any]) -> Path:
     """Run the benchmark, print the tables, write the JSON; return its path."""
-    results = run_bench(cfg, log=lambda msg: print(msg, file=sys.stderr, flush=True))
-    print(format_report(results), flush=True)
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    if bench_settings(cfg).get("lookup_only"):
+        results = run_lookup_bench(cfg, log=log)
+        print(format_lookup_report(results), flush=True)
+    else:
+        results = run_bench(cfg, log=log)
+        print(format_report(results), flush=True)
     out = Path(str(cfg["output"])) if cfg.get("output") else default_output(cfg)
     write_json(out, results)
     print(f"results: {out}", flush=True)
     return out
 
 
-__all__ = ["bench_settings", "format_report", "machine_info", "main", "run_bench"]
+__all__ = [
+    "bench_settings",
+    "format_lookup_report",
+    "format_report",
+    "function_table",
+    "machine_info",
+    "main",
+    "run_bench",
+    "run_lookup_bench",
+]

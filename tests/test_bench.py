@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from surrogate.bench import format_report, main
+from surrogate.bench import format_lookup_report, format_report, main
 from surrogate.fields import GaussianField
 from surrogate.gp import PsiLookupTable
 from surrogate.models.ecoli import EcoliModel
@@ -73,6 +73,31 @@ def test_quick_bench_writes_all_sections(
     assert "trained on the fly" in a["source"]
     assert "throughput" in format_report(r)
     assert "kernel_compile" not in r  # the quick bench skips the fresh-process compilation
+
+
+@pytest.mark.parametrize("model", ["ecoli", "ecoli_phospho"])
+def test_lookup_only_bench_times_the_abstraction_alone(compose_cfg, tmp_path, model) -> None:
+    """lookup_only=true: a table from a function of the signal (no training, no full model),
+    each backend's rows saying which loop ran."""
+    out = tmp_path / "bench.json"
+    cfg = compose_cfg("bench", [
+        "quick=true", "lookup_only=true", f"output={out}", f"model={model}",
+        "quick_settings.sizes=[30]", "quick_settings.threads=[1]",
+        *(["model.burn_in=0"] if model == "ecoli_phospho" else []),
+    ])  # fmt: skip
+    assert main(cfg) == out
+    r = json.loads(out.read_text())
+    signal = {"ecoli": "dG", "ecoli_phospho": "activity"}[model]
+    assert r["model"] == model and r["abstraction"]["inputs"] == [signal]
+    assert r["abstraction"]["lookup_size"] == [64]
+    assert [(row["backend"], row["n_cells"]) for row in r["throughput"]] == [
+        ("torch", 30),
+        ("numba", 30),
+    ]
+    for row in r["throughput"]:
+        assert row["lookup"]["cell_steps_per_s"] > 0
+    assert r["throughput"][0]["lookup"]["backend"] == "torch"
+    assert "collect" not in r and "lookup throughput" in format_lookup_report(r)
 
 
 def test_kernel_compile_is_timed_cold_then_cached(tmp_path) -> None:

@@ -359,3 +359,133 @@ def test_advance_leaves_a_held_motor_state_alone() -> None:
     sim.advance(state, 10)
     assert torch.equal(held, before)
     assert not torch.equal(sim.decision.fused_state()[0], before)  # the layer's own copy moved
+
+
+# -- ecoli_phospho: the same body, its abstraction over the MWC activity ------------------------
+def _phospho_model():
+    from surrogate.models.ecoli_phospho import EcoliPhosphoModel
+
+    # burn_in=0: the cells' first phi from the network's file state (no SSA; not under test)
+    return EcoliPhosphoModel(burn_in=0.0)
+
+
+def _phospho_decision(model, names: tuple[str, ...] = ("activity",)) -> AbstractDecision:
+    """A two-state chain over a smooth psi of the activity (and F): runs end and tumbles start
+    at rates that vary across the activity cells live at (a ~ 0.45 adapted)."""
+    bounds = {"activity": (0.0, 1.0), "F": (-6.0, 6.0)}
+
+    def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        a = z[:, 0] if len(names) == 1 else z[:, 1] - 0.02 * z[:, 0]
+        return torch.where(phi > 0, torch.sigmoid(3.0 - 4.0 * a), torch.sigmoid(4.0 * a - 2.5))
+
+    size = {1: (512,), 2: (48, 64)}[len(names)]
+    table = PsiLookupTable.from_function(psi, [bounds[n] for n in names], names, size)
+    return AbstractDecision(table, model.internal, model.featurizer(list(names)))
+
+
+@pytest.mark.parametrize("names", [("activity",), ("F", "activity")], ids=["a", "Fa"])
+@pytest.mark.parametrize("field", ["gaussian", "linear"])
+def test_kernel_follows_the_torch_step_on_the_phospho_abstraction(field, names) -> None:
+    """From one seed the phospho abstraction (a lookup over the activity) on the kernel
+    follows the torch step over 300 steps: positions, phi, m, segment lengths."""
+    model = _phospho_model()
+    decision = _phospho_decision(model, names)
+    f = {"gaussian": GaussianField(), "linear": LinearField()}[field]
+    runs = []
+    for backend in ("torch", "numba"):
+        torch.manual_seed(5)
+        sim = Simulator(model, decision, f, DT, backend=backend)
+        assert sim.backend == backend
+        with torch.inference_mode():
+            state = sim.initial_state(N, (2.0, 0.0), equilibration_time=1.0)
+            sim.warm_up(state)
+            ended = torch.cat([sim.advance(state, k) for k in (7, 20, 273)])
+        runs.append((state, ended))
+    _assert_same_trajectories(*runs)
+    a = runs[0][0]
+    assert a.phi.float().mean() > 0.2 and (1 - a.phi.float()).mean() > 0.2  # both states live
+
+
+def test_auto_runs_the_phospho_abstraction_on_the_kernel_and_its_full_model_on_torch() -> None:
+    """backend=auto: numba for the chain over a lookup table, torch for the SSA network (the
+    kernel refuses it, naming why); backend=numba on the full model is an error."""
+    from surrogate.simulate.loop import resolve_backend
+
+    model = _phospho_model()
+    abstract = _phospho_decision(model)
+    sim = Simulator(model, abstract, GaussianField(), DT, backend="auto")
+    assert sim.backend == "numba" and sim.backend_note is None
+    assert resolve_backend("auto", model, abstract, LinearField(), DT) == "numba"
+    full = FullDecision(model.internal)
+    sim = Simulator(model, full, GaussianField(), DT, backend="auto")
+    assert sim.backend == "torch" and "FullDecision over PhosphoInternalModel" in sim.backend_note
+    assert resolve_backend("auto", model, full, GaussianField(), DT) == "torch"
+    with pytest.raises(KernelUnsupported, match="FullDecision over PhosphoInternalModel"):
+        Simulator(model, full, GaussianField(), DT, backend="numba")
+    # compile=true asks for the torch step; the classifier has no table
+    assert Simulator(model, abstract, GaussianField(), DT, compile=True).backend == "torch"
+    classifier = AbstractDecision(lambda phi, z: torch.full_like(z[:, 0], 0.5), model.internal,
+                                  model.featurizer(["activity"]))  # fmt: skip
+    assert Simulator(model, classifier, GaussianField(), DT, backend="auto").backend == "torch"
+    # one compiled kernel serves both models
+    assert model.kernel_precompiler() == EcoliModel().kernel_precompiler()
+
+
+def test_the_kernel_refuses_what_it_does_not_transcribe_for_the_phospho_model() -> None:
+    """An exact chain over the network (no motors), a feature the network does not compute
+    (dG: torch would fail on it too), a layer over the other model's internal model, and
+    E. coli's kernel for a phospho layer."""
+    from surrogate.models.base import FeatureMap
+
+    model = _phospho_model()
+    internal = model.internal
+    table = _phospho_decision(model).run_probability
+    dg = _table(EcoliModel(), ("dG",))
+    cases = {
+        "ExactDecision over PhosphoInternalModel": ExactDecision(internal, DT, table),
+        "features \\['dG'\\]": AbstractDecision(dg, internal, FeatureMap(internal, ["dG"])),
+        "another internal model": AbstractDecision(table, _phospho_model().internal,
+                                                   _phospho_model().featurizer(["activity"])),
+    }  # fmt: skip
+    for what, decision in cases.items():
+        sim = Simulator(model, decision, GaussianField(), DT, backend="auto")
+        assert sim.backend == "torch", what
+        with pytest.raises(KernelUnsupported, match=what):
+            Simulator(model, decision, GaussianField(), DT, backend="numba")
+    ecoli = EcoliModel()
+    with pytest.raises(KernelUnsupported, match="another internal model"):
+        ecoli.cell_kernel(_phospho_decision(model), GaussianField(), DT)
+
+
+def test_activity_feature_code_is_the_phospho_networks_activity_in_float32() -> None:
+    """The kernel's ``activity`` (code 5) is torch.sigmoid(-F) within 2 float32 ulps at the
+    same F (exp differs by an ulp between torch's vector code and libm), and from (m, L) it is
+    PhosphoInternalModel.features' activity up to F's rounding (the terms are summed in
+    another order)."""
+    import numpy as np
+
+    from surrogate.models.ecoli import kernel
+
+    model = _phospho_model()
+    p32, _ = kernel.pack_parameters(model.params, DT)
+    g = torch.Generator().manual_seed(0)
+    n = 1500
+    x = torch.stack([0.5 + 3.0 * torch.rand(n, generator=g), torch.rand(n, generator=g) ** 3], 1)
+    x[:4, 1] = torch.tensor([0.0, 1e-4, 10.0, 1e3])
+    ref = model.internal.features(x, ("F", "activity"))
+    code = kernel.FEATURE_CODES["activity"]
+    assert code == 5 and set(model.internal.feature_names) <= set(kernel.FEATURE_CODES)
+    # the formula alone, at torch's F
+    energy = ref[:, 0].numpy()
+    act = np.array([kernel._activity(e) for e in energy], dtype=np.float32)  # float32 inside
+    expected = torch.sigmoid(-ref[:, 0]).numpy()
+    ulps = np.abs(act - expected) / np.spacing(expected)
+    assert ulps.max() <= 2, ulps.max()
+    # the kernel's path from (m, L): its signal, then the feature code
+    got = np.empty((n, 2), dtype=np.float32)
+    for i, (m, ligand) in enumerate(x.numpy()):
+        e, a, yp, dg = kernel._signal(m, kernel._log_receptor_terms(ligand, p32), p32)
+        got[i] = kernel._feature(2, m, ligand, e, a, yp, dg), kernel._feature(code, m, ligand, e,
+                                                                              a, yp, dg)  # fmt: skip
+    torch.testing.assert_close(torch.from_numpy(got), ref, atol=1e-5, rtol=1e-6)
+    assert np.abs(got[:, 1] - ref[:, 1].numpy()).max() < 5e-7

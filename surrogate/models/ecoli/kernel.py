@@ -14,7 +14,9 @@ tests compare each against its torch original:
 
 * fields: :mod:`surrogate.fields` (constant, gaussian, linear, dynamic, exponential);
 * signalling: :func:`~surrogate.models.ecoli.signalling.log_receptor_terms`, ``free_energy``,
-  ``cheyp_from_free_energy``, ``delta_g``, ``rates_from_delta_g``, ``ou_step``;
+  ``cheyp_from_free_energy``, ``delta_g``, ``rates_from_delta_g``, ``ou_step``; the MWC activity
+  1 / (1 + exp(F)) as ``torch.sigmoid(-F)`` (the abstraction's feature ``activity`` of models
+  on this body whose internal model is driven by it, e.g. ``ecoli_phospho``);
 * motors: :func:`~surrogate.models.ecoli.motors.motor_transition_terms` /
   ``motor_thresholds``, ``sample_motor_states``, ``run_flag_from_states``;
 * the abstraction: :func:`surrogate.gp.lookup._interpolate` (multilinear, torch's lerp);
@@ -57,7 +59,9 @@ CONSTANT, GAUSSIAN, LINEAR, DYNAMIC, EXPONENTIAL = 0, 1, 2, 3, 4
 FIELD_COLUMNS = 8  # kind, peak x, peak y, then up to five parameters
 
 # -- features of the abstraction's lookup table --------------------------------------------------
-FEATURE_CODES = {"m": 0, "L": 1, "F": 2, "cheyp": 3, "dG": 4}
+# what each name means here (its formula below); an internal model's feature of that name must
+# compute the same (the model that hands the kernel its internal model vouches for that)
+FEATURE_CODES = {"m": 0, "L": 1, "F": 2, "cheyp": 3, "dG": 4, "activity": 5}
 
 # -- float32 constants (signalling, OU, movement) and float64 constants (motors) ----------------
 P32_NAMES = (
@@ -114,17 +118,26 @@ def _log_receptor_terms(ligand, p):
 
 
 @numba.njit(inline="always", **_JIT)
-def _signal(m, lrt, p):
-    """(F, CheY-P, dG) from m and the receptor terms: signalling.free_energy,
-    cheyp_from_free_energy (alpha sigmoid(-F)) and delta_g (float32)."""
-    energy = p[6] + p[7] * m + lrt
-    yp = p[8] * (_F32(1.0) / (_F32(1.0) + np.exp(energy)))
-    dg = p[9] - p[10] * yp / (yp + p[11])
-    return energy, yp, dg
+def _activity(energy):
+    """The MWC activity torch.sigmoid(-F) = 1 / (1 + exp(F)) (float32), as
+    signalling.activity and the phospho network's input."""
+    return _F32(1.0) / (_F32(1.0) + np.exp(energy))
 
 
 @numba.njit(inline="always", **_JIT)
-def _feature(code, m, ligand, energy, yp, dg):
+def _signal(m, lrt, p):
+    """(F, activity, CheY-P, dG) from m and the receptor terms: signalling.free_energy,
+    :func:`_activity`, cheyp_from_free_energy (alpha sigmoid(-F)) and delta_g (float32)."""
+    energy = p[6] + p[7] * m + lrt
+    act = _activity(energy)
+    yp = p[8] * act
+    dg = p[9] - p[10] * yp / (yp + p[11])
+    return energy, act, yp, dg
+
+
+@numba.njit(inline="always", **_JIT)
+def _feature(code, m, ligand, energy, act, yp, dg):
+    """The column of FEATURE_CODES ``code``."""
     if code == 0:
         return m
     if code == 1:
@@ -133,6 +146,8 @@ def _feature(code, m, ligand, energy, yp, dg):
         return energy
     if code == 3:
         return yp
+    if code == 5:
+        return act
     return dg
 
 
@@ -238,7 +253,7 @@ def _motors_step(dg, motors, j, c, s, u64, motor_row, q):
 
 
 @numba.njit(inline="always", **_JIT)
-def _lookup(phi_now, tab, m, ligand, energy, yp, dg, table, layer, shape, strides, origin,
+def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, table, layer, shape, strides, origin,
             scale, features):  # fmt: skip
     """p(phi' = 1): gp.lookup._interpolate in table ``tab`` (lower node per axis, then lerp
     along the last axis first)."""
@@ -248,7 +263,7 @@ def _lookup(phi_now, tab, m, ligand, energy, yp, dg, table, layer, shape, stride
     fr1 = _F32(0.0)
     fr2 = _F32(0.0)
     for a in range(d):
-        value = _feature(features[a], m, ligand, energy, yp, dg)
+        value = _feature(features[a], m, ligand, energy, act, yp, dg)
         top = _F32(shape[a] - 1)
         w = _clamp((value - origin[tab, a]) * scale[tab, a], _F32(0.0), top)
         # NaN stays NaN in w (and so in the probability); its index is clamped
@@ -309,12 +324,12 @@ def _advance_range(
             last_x[c, 0] = m
             last_x[c, 1] = ligand
             lrt = _log_receptor_terms(ligand, p)
-            energy, yp, dg = _signal(m, lrt, p)
+            energy, act, yp, dg = _signal(m, lrt, p)
             if full:
                 phi_after = _motors_step(dg, motors, j, c, s, u64, motor_row, q)
             else:
-                prob = _lookup(phi_now, tab, m, ligand, energy, yp, dg, table, layer, shape,
-                               strides, origin, scale, features)  # fmt: skip
+                prob = _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, table, layer,
+                               shape, strides, origin, scale, features)  # fmt: skip
                 phi_after = _F32(1.0) if u[s, decision_row, c] < prob else _F32(0.0)
             x, y, h = _move_and_account(
                 c, s, phi_now, phi_after, x, y, h, u, body_row, gamma_k, per_tumble, p,
@@ -446,7 +461,10 @@ class _Block:
     (``count`` None: every cell of the population, whatever its size).
 
     Only the exact classes whose formulas the kernels transcribe are accepted (a subclass may
-    override them), over this model's own internal model and constants."""
+    override them), over this model's own internal model and constants: the motor blocks (the
+    full model, the exact chain) need the E. coli motors (:class:`MotorInternalModel`); a
+    lookup block reads features of FEATURE_CODES of any internal model the kernel was given
+    (see :class:`EcoliKernel`)."""
 
     def __init__(
         self, start: int, count: int | None, decision: Any, rows: Randoms, internal: Any
@@ -455,9 +473,14 @@ class _Block:
         kind = type(decision)
         if kind not in (FullDecision, AbstractDecision, ExactDecision):
             raise KernelUnsupported(f"decision layer {kind.__name__}")
+        if kind is not AbstractDecision and type(internal) is not MotorInternalModel:
+            raise KernelUnsupported(
+                f"a {kind.__name__} over {type(internal).__name__} (the kernel's full model and "
+                "exact chain are the E. coli motors)"
+            )
         if not is_fusable(decision):
             raise KernelUnsupported(f"a {kind.__name__} without a pure window (motor SSA)")
-        if not _same_motors(decision.internal, internal):
+        if not _same_internal(decision.internal, internal):
             raise KernelUnsupported("a decision layer over another internal model")
         if kind is FullDecision:
             self.kind = "motors"
@@ -506,21 +529,23 @@ class _Block:
         return self.table_of_cell
 
 
-def _same_motors(a: Any, b: Any) -> bool:
-    """Whether two internal models are the same motors (class and constants): the kernel
-    computes with the model's constants."""
+def _same_internal(a: Any, b: Any) -> bool:
+    """Whether two internal models are the same for the kernel: one object, or the same motors
+    (class and constants; the kernel computes with the model's constants)."""
     return a is b or (type(a) is type(b) is MotorInternalModel and a.params == b.params)
 
 
 def _feature_codes(decision: AbstractDecision, internal: Any) -> list[int]:
     """The kernel's codes of the abstraction's input columns: the raw inputs (m, L) without a
-    feature map (as the torch layer feeds x itself), else the map's names."""
+    feature map (as the torch layer feeds x itself), else the map's names, each one the
+    internal model computes (its inputs and features) and the kernel transcribes."""
     featurize = decision.featurize
     if featurize is None:
         return [FEATURE_CODES[n] for n in INPUTS]
-    if type(featurize) is not FeatureMap or not _same_motors(featurize.internal, internal):
+    if type(featurize) is not FeatureMap or not _same_internal(featurize.internal, internal):
         raise KernelUnsupported(f"feature map {featurize!r}")
-    unknown = [n for n in featurize.names if n not in FEATURE_CODES]
+    known = (*internal.input_names, *internal.feature_names)
+    unknown = [n for n in featurize.names if n not in FEATURE_CODES or n not in known]
     if unknown:
         raise KernelUnsupported(f"features {unknown}")
     return [FEATURE_CODES[n] for n in featurize.names]
@@ -529,10 +554,19 @@ def _feature_codes(decision: AbstractDecision, internal: Any) -> list[int]:
 class EcoliKernel:
     """The E. coli step for a whole population, many steps per call (see the module docstring).
 
-    Built by :meth:`EcoliModel.cell_kernel`; raises
+    Built by :meth:`EcoliModel.cell_kernel` (and the ``cell_kernel`` of other models on the
+    E. coli body, e.g. ``ecoli_phospho``); raises
     :class:`~surrogate.models.base.KernelUnsupported` for what it cannot run (other fields,
     classifier or direct-exact decision layers, the SSA motor sampler, non-integer tumble
-    shapes), so the simulator keeps the torch step for those.
+    shapes, a full model or exact chain over anything but the E. coli motors), so the
+    simulator keeps the torch step for those.
+
+    ``internal`` is the model's internal model, with the model's constants ``params`` and the
+    inputs (m, L). With the E. coli motors (:class:`MotorInternalModel`) every decision layer
+    above runs here; with another internal model (e.g. the phospho network) only two-state
+    chains over lookup tables do, over its features of the names in FEATURE_CODES: the model
+    that hands it over vouches that they compute the kernel's formulas (its ``cell_kernel``
+    checks its internal model's class).
     """
 
     def __init__(
@@ -542,8 +576,10 @@ class EcoliKernel:
 
         if params.motor_sampler == "ssa":
             raise KernelUnsupported("model.motor_sampler=ssa")
-        if type(internal) is not MotorInternalModel or internal.params != params:
-            raise KernelUnsupported("an internal model other than the model's motors")
+        if getattr(internal, "params", None) != params or tuple(internal.input_names) != INPUTS:
+            raise KernelUnsupported(
+                "an internal model with other constants or inputs than the model's (m, L)"
+            )
         shape = float(params.tumble_shape)
         if not (shape.is_integer() and shape <= MAX_GAMMA_UNIFORMS):
             raise KernelUnsupported(f"a non-integer tumble_shape {shape:g}")

@@ -8,7 +8,7 @@ from typing import Any
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, Model
+from surrogate.models.base import CellKernel, KernelUnsupported, Model
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
@@ -47,6 +47,8 @@ class EcoliModel(Model):
     def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
         """The compiled per-cell E. coli step (:class:`~surrogate.models.ecoli.kernel.EcoliKernel`)
         for the full model or a two-state chain over a lookup table, in a built-in field."""
+        if type(self.internal) is not MotorInternalModel:  # the kernel transcribes the motors
+            raise KernelUnsupported("an internal model other than the model's motors")
         from surrogate.models.ecoli.kernel import EcoliKernel  # numba: imported on demand
 
         return EcoliKernel(self.params, self.internal, decision, field, dt)

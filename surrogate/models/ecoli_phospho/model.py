@@ -28,7 +28,8 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
-from surrogate.models.base import InternalState, Model, Randoms
+from surrogate.fields import Field
+from surrogate.models.base import CellKernel, InternalState, KernelUnsupported, Model, Randoms
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
@@ -275,6 +276,25 @@ class EcoliPhosphoModel(Model):
         """The OU is stepped by Euler-Maruyama: dt must be well below tau."""
         if dt >= self.params.tau:
             raise ConfigError(f"dt={dt:g} s must be smaller than model.tau={self.params.tau:g} s")
+
+    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+        """The first model's compiled per-cell step
+        (:class:`~surrogate.models.ecoli.kernel.EcoliKernel`; the same body and signalling) for
+        a two-state chain over a lookup table of m, L, F or the activity, in a built-in field.
+        The full model (the SSA network) has no kernel: the kernel refuses it, and the
+        simulator keeps the torch step (whose window is the compiled SSA on the CPU)."""
+        if type(self.internal) is not PhosphoInternalModel:  # its features are the kernel's
+            raise KernelUnsupported(f"internal model {type(self.internal).__name__}")
+        from surrogate.models.ecoli.kernel import EcoliKernel  # numba: imported on demand
+
+        return EcoliKernel(self.params, self.internal, decision, field, dt)
+
+    def kernel_precompiler(self) -> str | None:
+        """:func:`surrogate.models.ecoli.kernel.precompile` while numba's cache lacks the
+        kernel (the first model's: one signature serves both models)."""
+        from surrogate.models.ecoli import kernel
+
+        return None if kernel.is_compiled_on_disk() else f"{kernel.__name__}:precompile"
 
     def observable_label(self, name: str) -> str:
         """Figure labels."""
