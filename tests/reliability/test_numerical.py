@@ -75,7 +75,7 @@ def test_fit_classifier_refuses_non_finite_inputs() -> None:
     x[7, 1] = math.inf
     with pytest.raises(NumericalError, match=r"NaN or inf in 1 row"):
         fit_classifier(x, torch.randint(0, 2, (50,)).float(), GPSettings(n_inducing=5, epochs=1))
-    with pytest.raises(NumericalError, match="labels must be 0 or 1"):
+    with pytest.raises(NumericalError, match="labels must be 0/1 outcomes or probabilities"):
         fit_classifier(torch.rand(50, 2), torch.full((50,), math.nan), GPSettings(n_inducing=5))
 
 
