@@ -430,23 +430,32 @@ def function_table(model: Model, dt: float, size: Any = None) -> Any:
     return PsiLookupTable.from_function(psi, [bounds[n] for n in names], names, shape)
 
 
+def _setup(
+    cfg: Mapping[str, Any],
+) -> tuple[dict[str, Any], torch.device, Model, Field, float, dict[str, Any]]:
+    """What every benchmark run starts from: its settings, device, model, field and dt (torch
+    seeded), and the head of its results (start time, machine, settings)."""
+    s = bench_settings(cfg)
+    device = resolve_device(cfg.get("device", "cpu"))
+    torch.manual_seed(int(cfg["seed"]))
+    head = {
+        "started": datetime.now().isoformat(timespec="seconds"),
+        "machine": machine_info(device),
+        "settings": {k: v for k, v in s.items() if k not in ("hydra",)},
+    }
+    return s, device, build_model(cfg["model"]), build_field(cfg["field"]), float(cfg["dt"]), head
+
+
 def run_lookup_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dict[str, Any]:
     """The abstraction's lookup throughput (cell-steps/s) for each thread count, (backend,
     compile) and size, over :func:`function_table`, one simulator per (threads, backend,
     compile) as :func:`run_bench`; each row records the backend that ran (``numba`` falls
     back to torch where the model has no kernel)."""
-    s = bench_settings(cfg)
-    device = resolve_device(cfg.get("device", "cpu"))
-    torch.manual_seed(int(cfg["seed"]))
-    model = build_model(cfg["model"])
-    field = build_field(cfg["field"])
-    dt = float(cfg["dt"])
+    s, device, model, field, dt, head = _setup(cfg)
     started = time.perf_counter()
     table = function_table(model, dt, s.get("lookup_size")).to(device)
     results: dict[str, Any] = {
-        "started": datetime.now().isoformat(timespec="seconds"),
-        "machine": machine_info(device),
-        "settings": {k: v for k, v in s.items() if k not in ("hydra",)},
+        **head,
         "model": model.name,
         "abstraction": {
             "source": "a smooth function of the signal (bench.function_table; no training)",
@@ -532,18 +541,9 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
     from surrogate.gp import PsiLookupTable
     from surrogate.gp.fast import CachedPsi
 
-    s = bench_settings(cfg)
-    device = resolve_device(cfg.get("device", "cpu"))
-    torch.manual_seed(int(cfg["seed"]))
-    model = build_model(cfg["model"])
-    field = build_field(cfg["field"])
-    dt = float(cfg["dt"])
+    s, device, model, field, dt, head = _setup(cfg)
     started = time.perf_counter()
-    results: dict[str, Any] = {
-        "started": datetime.now().isoformat(timespec="seconds"),
-        "machine": machine_info(device),
-        "settings": {k: v for k, v in s.items() if k not in ("hydra",)},
-    }
+    results: dict[str, Any] = dict(head)
 
     # 1. collection + training (their own timings), giving the abstraction
     log("collecting transitions and training the classifiers ...")
