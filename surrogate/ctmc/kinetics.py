@@ -39,6 +39,7 @@ __all__ = [
     "input_ref",
     "mass_action_kinetics",
     "species_ref",
+    "torch_function",
 ]
 
 REAL, BOOL = "real", "bool"
@@ -375,9 +376,9 @@ def _numba_code(e: Expr) -> str:
     return spec.numba.format(*args)
 
 
-def _torch_source(exprs: Sequence[Expr]) -> str:
+def _torch_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
     lines = [
-        "def propensities(state, inputs):",
+        f"def {name}(state, inputs):",
         "    x = state.to(torch.float64)",
         "    p = inputs.to(device=state.device, dtype=torch.float64)",
         "    _z = torch.zeros(state.shape[0], dtype=torch.float64, device=state.device)",
@@ -548,3 +549,29 @@ def substitute(e: Expr, bindings: Mapping[str, Expr]) -> Expr:
     if not e.args:
         return e
     return call(e.op, *(substitute(a, bindings) for a in e.args))
+
+
+def torch_function(exprs: Sequence[Expr]) -> Callable[[Tensor, Tensor], Tensor]:
+    """``f(state (n, S), inputs (n, P)) -> (n, K)``: the values of ``exprs`` per cell.
+
+    The same code generation as the propensities (from the validated trees only; no ``eval``),
+    for expressions of one kind: real ones give float64 columns, conditions (e.g. a lump
+    property over species counts) bool columns. Loaded once per distinct source.
+
+    Args:
+        exprs: ``K`` expressions over species columns of ``state`` and inputs columns.
+
+    Example:
+        >>> from surrogate.ctmc.kinetics import call, const, species_ref, torch_function
+        >>> run = call("geq", species_ref(1, "N"), const(2.0))
+        >>> torch_function([run])(torch.tensor([[0, 3], [1, 1]]), torch.zeros(2, 0))[:, 0]
+        tensor([ True, False])
+    """
+    exprs = tuple(exprs)
+    kinds = {e.kind for e in exprs}
+    if not exprs or len(kinds) != 1:
+        raise ValueError(f"need one or more expressions of one kind, got kinds {sorted(kinds)}")
+    from surrogate.ctmc.codegen import load_generated
+
+    source = "import torch\n\n\n" + _torch_source(exprs, "columns")
+    return load_generated(source, prefix="columns").columns

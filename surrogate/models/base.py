@@ -130,7 +130,8 @@ class InternalModel(Protocol):
 
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         """Exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` at signals ``signal`` (``n x k``, in the
-        order of ``signal_names``); raises ``NotImplementedError`` where no exact psi exists."""
+        order of ``signal_names``). Optional: a model without one sets ``exact_psi = None``
+        (see :func:`has_exact_psi`)."""
         ...
 
     # Optional (detected by the collect stage, not required of a model):
@@ -231,6 +232,12 @@ class Model:
     #: the abstraction's default inputs (``gp.inputs=signal``): the internal model's signal
     default_abstraction_inputs: str = "signal"
 
+    def sources(self) -> dict[str, str]:
+        """Digests of the files the model is read from beyond its config (e.g. an SBML file or
+        a yaml spec), by role: part of every artefact's identity, so editing a file never
+        reuses artefacts of its old content. The base model reads none."""
+        return {}
+
     def validate(self, dt: float) -> None:
         """Refuse a time step this model cannot be simulated with (ConfigError naming why)."""
 
@@ -323,6 +330,12 @@ class FeatureMap:
         return f"FeatureMap({list(self.names)})"
 
 
+def has_exact_psi(internal: Any) -> bool:
+    """Whether an internal model offers the exact lumped psi: an ``exact_psi`` that is not None
+    (a model whose state space is too large declares it absent with ``exact_psi = None``)."""
+    return callable(getattr(internal, "exact_psi", None))
+
+
 def check_options(
     options: Mapping[str, Any], allowed: Mapping[str, Any], where: str
 ) -> dict[str, Any]:
@@ -345,4 +358,5 @@ __all__ = [
     "Perturbation",
     "Randoms",
     "check_options",
+    "has_exact_psi",
 ]

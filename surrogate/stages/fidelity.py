@@ -56,6 +56,7 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
+from surrogate.models.base import has_exact_psi
 from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
@@ -151,7 +152,7 @@ class FidelitySettings:
         if float(f.get("alpha", 0.05)) not in KS_C:
             raise ConfigError(f"fidelity.alpha must be one of {sorted(KS_C)}")
         validate_start(f, "start", "fidelity.")
-        exact = bool(f.get("exact_psi", True)) and hasattr(setup.model.internal, "exact_psi")
+        exact = bool(f.get("exact_psi", True)) and has_exact_psi(setup.model.internal)
         if exact and not getattr(setup.model.internal, "signal_bounds", None):
             exact = False
         return cls(setup, fields, tuple(candidates), exact, f, times,

@@ -38,7 +38,7 @@ from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
-from surrogate.models.base import Model
+from surrogate.models.base import Model, has_exact_psi
 from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
 
 COLLECT_CMD = "python scripts/collect.py"
@@ -162,9 +162,12 @@ class ModelSetup:
         return field_name(self.field_config)
 
     def identity(self) -> dict[str, Any]:
-        """What of these settings defines an artefact."""
-        return {"model": self.model_config, "field": self.field_config, "dt": self.dt,
-                "seed": self.seed}  # fmt: skip
+        """What of these settings defines an artefact (with the digests of the files the
+        model is read from, where it reads any)."""
+        out = {"model": self.model_config, "field": self.field_config, "dt": self.dt,
+               "seed": self.seed}  # fmt: skip
+        sources = self.model.sources()
+        return {**out, "model_sources": sources} if sources else out
 
     def label(self) -> dict[str, Any]:
         """Readable part of a directory name."""
@@ -486,8 +489,12 @@ class DecisionSettings:
             )
         if name == "exact":
             internal = setup.model.internal
-            if not hasattr(internal, "exact_psi"):
-                raise ConfigError(f"model {setup.model.name!r} has no exact lumped psi")
+            if not has_exact_psi(internal):
+                raise ConfigError(
+                    f"decision=exact: model {setup.model.name!r} has no exact lumped psi (its "
+                    f"network's state space is too large to enumerate); use decision=full (the "
+                    f"model itself) or decision=abstract (the learned psi)"
+                )
             sizes = None
             if mode == "lookup":
                 sizes = grid_size(d.get("lookup_size"), "decision.lookup_size",
@@ -796,7 +803,7 @@ class ReproduceSettings:
         if train is None:
             raise ConfigError("reproduce needs decision=abstract (the learned abstraction)")
         exact = {}
-        if c.get("exact_psi") and hasattr(train.setup.model.internal, "exact_psi"):
+        if c.get("exact_psi") and has_exact_psi(train.setup.model.internal):
             decision = {**group_config("decision", "exact")}
             # the report shows the abstraction's figures only; the exact chain's are optional
             figures = {"figures": bool(c.get("exact_psi_figures", False))}

@@ -49,7 +49,7 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.base import Model
+from surrogate.models.base import Model, has_exact_psi
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.precompile import precompile_in_background
 from surrogate.stages.collect import TRANSITIONS
@@ -245,7 +245,7 @@ def exact_psi_function(model: Model, dt: float) -> Any:
     when the model declares them (1e-5-accurate and fast), else computed directly; None when
     the model has no exact psi."""
     internal = model.internal
-    if not hasattr(internal, "exact_psi"):
+    if not has_exact_psi(internal):
         return None
     exact = ExactPsi(internal, dt)
     bounds = getattr(internal, "signal_bounds", None)

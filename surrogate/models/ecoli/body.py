@@ -176,13 +176,24 @@ class ChemotacticBody:
     def perturbation(self, field: Field, options: Mapping[str, Any]) -> DiscJump:
         """Jumps into a disc of ``radius`` (mm) around the peak, distance uniform in radius
         (``sampling: radius``) or over the area (``area``)."""
-        o = check_options(options, PERTURBATION_DEFAULTS, "model.perturbation")
-        radius = o["radius"]
-        if isinstance(radius, bool) or not isinstance(radius, int | float) or not radius > 0:
-            raise ConfigError(f"model.perturbation.radius must be > 0 mm, got {radius!r}")
-        if o["sampling"] not in SAMPLINGS:
-            raise ConfigError(
-                f"model.perturbation.sampling must be one of {list(SAMPLINGS)}, "
-                f"got {o['sampling']!r}"
-            )
-        return DiscJump(field, float(radius), str(o["sampling"]))
+        return disc_jump(field, options, "model.perturbation")
+
+
+def disc_jump(field: Field, options: Mapping[str, Any], where: str) -> DiscJump:
+    """The :class:`DiscJump` of ``options`` around ``field``'s peak (see :func:`disc_options`)."""
+    return DiscJump(field, *disc_options(options, where))
+
+
+def disc_options(options: Mapping[str, Any], where: str) -> tuple[float, str]:
+    """``(radius, sampling)`` of a disc perturbation's ``options`` (``radius`` mm > 0,
+    ``sampling`` radius|area), each refused by its name under ``where`` (e.g.
+    ``"model.perturbation"``)."""
+    o = check_options(options, PERTURBATION_DEFAULTS, where)
+    radius = o["radius"]
+    if isinstance(radius, bool) or not isinstance(radius, int | float) or not radius > 0:
+        raise ConfigError(f"{where}.radius must be > 0 mm, got {radius!r}")
+    if o["sampling"] not in SAMPLINGS:
+        raise ConfigError(
+            f"{where}.sampling must be one of {list(SAMPLINGS)}, got {o['sampling']!r}"
+        )
+    return float(radius), str(o["sampling"])

@@ -576,7 +576,9 @@ class EcoliKernel:
 
         if params.motor_sampler == "ssa":
             raise KernelUnsupported("model.motor_sampler=ssa")
-        if getattr(internal, "params", None) != params or tuple(internal.input_names) != INPUTS:
+        # an internal model without constants of its own has its features from the body's
+        # (the model that hands it over vouches for that, e.g. a yaml model on this body)
+        if getattr(internal, "params", params) != params or tuple(internal.input_names) != INPUTS:
             raise KernelUnsupported(
                 "an internal model with other constants or inputs than the model's (m, L)"
             )

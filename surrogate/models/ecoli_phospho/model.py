@@ -21,15 +21,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, InternalState, KernelUnsupported, Model, Randoms
+from surrogate.models.base import CellKernel, InternalState, KernelUnsupported, Model
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
@@ -39,15 +38,19 @@ from surrogate.models.ecoli_phospho import (
     calibrated,
     network_sbml,
 )
+from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.sbml import SbmlModel, read_sbml, read_sbml_string
 
-SSA_BACKENDS = ("auto", "compiled", "batched")
+__all__ = ["SSA_BACKENDS", "EcoliPhosphoModel", "PhosphoInternalModel"]
 #: constants of the phospho network (beyond the first model's), with their config names
 PHOSPHO_KEYS = ("cheA_total", "cheY_total", "cheZ", "k_y", "k_z_cheZ", "gamma_y", "n_per_um")
 
 
-class PhosphoInternalModel:
-    """The SBML phosphorylation network with the motors, driven by the MWC activity.
+class PhosphoInternalModel(NetworkInternalModel):
+    """The SBML phosphorylation network with the motors, driven by the MWC activity: the
+    generic network model (:class:`~surrogate.models.network.NetworkInternalModel`) over the
+    SBML file, with the first model's signalling as its features and the motors' expected
+    labels.
 
     Args:
         params: the first model's constants (MWC receptor terms give the activity).
@@ -57,13 +60,7 @@ class PhosphoInternalModel:
             in for the network's stationary law (its CheY-P relaxes in ~33 ms, its motors in ~1 s).
     """
 
-    input_names = ("m", "L")
-    feature_names = ("F", "activity")
-    signal_names = ("activity",)
     lump_names = ("tumble", "run")
-    fusable = False
-    randoms = Randoms()
-    signal_bounds: ClassVar[dict[str, tuple[float, float]]] = {"activity": (0.0, 1.0)}
     #: sub-windows of the CheY-P path in expected_phi_next (its only approximation)
     expected_substeps = 10
 
@@ -71,7 +68,6 @@ class PhosphoInternalModel:
         self, params: EcoliParameters, network: SbmlModel, ssa: str = "auto", burn_in: float = 2.0
     ) -> None:
         self.params = params
-        self.network = network
         species = network.species
         missing = [s for s in ("S", "C", "N") if s not in species]
         if missing or network.input_names != ("activity",):
@@ -80,74 +76,19 @@ class PhosphoInternalModel:
                 f"parameter 'activity'; it has species {list(species)} (missing {missing}) and "
                 f"inputs {list(network.input_names)}"
             )
-        self._s, self._n = species.index("S"), species.index("N")
+        energy = lambda x: free_energy(x[:, 0], x[:, 1], params)  # noqa: E731
+        super().__init__(
+            network, ("m", "L"), "N >= 2 && S == 0", lump_names=self.lump_names,
+            features={"F": energy, "activity": lambda x: torch.sigmoid(-energy(x))},
+            ssa=ssa, burn_in=burn_in, signal_bounds={"activity": (0.0, 1.0)},
+        )  # fmt: skip
         self._motor_columns = [species.index(m) for m in ("S", "C", "N")]
         self._motor_moves = _motor_moves(network, self._motor_columns)
-        if ssa not in SSA_BACKENDS:
-            raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {ssa!r}")
-        self.ssa = ssa
-        self.burn_in = float(burn_in)
-        self._compiled = None
 
-    # -- inputs and features -----------------------------------------------------------------
-    def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
-        """Columns ``names`` (m, L, F, activity) at inputs ``x`` (``n x 2``)."""
-        cols = {"m": x[:, 0], "L": x[:, 1]}
-        if any(n in ("F", "activity") for n in names):
-            cols["F"] = free_energy(cols["m"], cols["L"], self.params)
-            cols["activity"] = torch.sigmoid(-cols["F"])
-        unknown = [n for n in names if n not in cols]
-        if unknown:
-            raise KeyError(f"unknown feature(s) {unknown}; known: m, L, F, activity")
-        return torch.stack([cols[n] for n in names], -1)
-
-    def _backend(self, device: torch.device) -> str:
-        if self.ssa == "auto":
-            return "compiled" if device.type == "cpu" else "batched"
-        if self.ssa == "compiled" and device.type != "cpu":
-            raise ConfigError("model.ssa=compiled runs on the CPU; use model.ssa=batched on CUDA")
-        return self.ssa
-
-    def _compiled_ssa(self):  # lazily built: numba compiles once per process
-        if self._compiled is None:
-            from surrogate.ctmc import CompiledSSA
-
-            self._compiled = CompiledSSA(self.network.kinetics)
-        return self._compiled
-
-    # -- the window ----------------------------------------------------------------------------
-    def initial_state(self, x: Tensor) -> InternalState:
-        """The file's initial counts (the network's steady state at the adapted activity), then
-        ``burn_in`` seconds at each cell's own activity. The per-cell random streams of the
-        compiled SSA are seeded from torch's generator (so from the run's seed)."""
-        n = x.shape[0]
-        counts = self.network.initial_states(n).to(x.device)
-        seed = int(torch.randint(0, 2**62, (1,)).item())
-        streams = _seed_streams(seed, n, x.device)
-        state: InternalState = (counts, streams)
-        return self.advance(state, x, self.burn_in) if self.burn_in > 0 else state
-
-    def advance(self, state: InternalState, x: Tensor, dt: float) -> InternalState:
-        """One exact window of the network (every reaction, thousands of events per cell)."""
-        counts, streams = state
-        activity = self.features(x, ("activity",)).to(torch.float64)
-        if self._backend(x.device) == "compiled":
-            from surrogate.ctmc import CellStreams
-
-            cell_streams = CellStreams(streams.numpy().view(np.uint64))  # shares memory
-            counts, _ = self._compiled_ssa().advance(counts, activity, dt, cell_streams)
-            return (counts, streams)
-        from surrogate.ctmc import gillespie
-
-        counts = gillespie(self.network.network, counts, activity, dt,
-                           propensity=self.network.torch_propensity)  # fmt: skip
-        return (counts, streams)
-
-    def fused_advance(
-        self, state: InternalState, x: Tensor, dt: float, u: Tensor, u64: Tensor | None
-    ) -> tuple[InternalState, tuple[Tensor, ...]]:
-        """Not available: an SSA window has a data-dependent number of events."""
-        raise RuntimeError("the phospho network has no fused window (fusable = False)")
+    @property
+    def state_space(self) -> None:
+        """None: the network's state space is far too large to enumerate (so no exact psi)."""
+        return None
 
     def expected_phi_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
         """P(RUN after a window ``dt`` | the motors now, a CheY-P path) ``(n,)`` float64: the
@@ -192,19 +133,6 @@ class PhosphoInternalModel:
             generator[:, source, target] += rates[:, reaction]
         return generator - torch.diag_embed(generator.sum(-1))
 
-    def phi(self, state: InternalState) -> Tensor:
-        """RUN (N >= 2 and S == 0 among the motors) as float 0/1 ``(n,)``."""
-        counts = state[0]
-        return ((counts[:, self._n] >= 2) & (counts[:, self._s] == 0)).to(torch.float32)
-
-    def concat_states(self, states: Sequence[InternalState]) -> InternalState:
-        """Counts and streams joined along cells."""
-        return (torch.cat([s[0] for s in states]), torch.cat([s[1] for s in states]))
-
-    def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
-        """Not available: the network's state space is far too large to enumerate."""
-        raise NotImplementedError("the phospho network has no exact lumped psi")
-
 
 def _motor_moves(network: SbmlModel, columns: Sequence[int]) -> list[tuple[int, int, int]]:
     """(reaction, from, to) of the reactions that move one motor between S, C, N (indices
@@ -223,14 +151,6 @@ def _motor_moves(network: SbmlModel, columns: Sequence[int]) -> list[tuple[int, 
             )
         moves.append((r, used.index(1), made.index(1)))
     return moves
-
-
-def _seed_streams(seed: int, n: int, device: torch.device) -> Tensor:
-    """Per-cell xoshiro256** states as an ``n x 4`` int64 tensor (the bits of uint64), on the
-    CPU where the compiled SSA advances them in place."""
-    from surrogate.ctmc import CellStreams
-
-    return torch.from_numpy(CellStreams.from_seed(seed, n).state.view(np.int64)).to(device)
 
 
 class EcoliPhosphoModel(Model):

@@ -1,0 +1,299 @@
+"""A model written as a yaml beside an SBML file, with no Python (``model=sbml``).
+
+The yaml (``model.spec``, or the same keys in the model config itself) names
+
+* ``network``: the SBML file (a path relative to the yaml);
+* ``inputs``: which of its global parameters are the agent's inputs and where each comes from:
+  a variable of the body (``L``, the field's value where the agent is, in every body; ``m``,
+  ``F``, ``activity`` in the chemotaxis body) or a formula over them (``"1 / (1 + exp(F))"``);
+  a formula may also live in the SBML file as an assignment rule over an input parameter;
+* ``lump``: the property phi as a condition on species counts (``"N >= 2 and S == 0"``), and
+  ``lump_names`` (phi = 0, phi = 1);
+* ``body``: a body of the library (:mod:`surrogate.models.bodies`) by ``kind`` with its
+  parameters;
+* optionally ``name``, ``ssa`` (auto|compiled|batched), ``burn_in`` (s), ``max_states``,
+  ``signal_bounds`` (``{input: [lo, hi]}``, lets the exact psi be tabulated) and ``collect``
+  (the model's default collection budget: ``n_per_state``, ``n_cells``, ``record_every``).
+
+Formulas are parsed by libsbml's formula parser (:mod:`surrogate.sbml.formula`), never
+evaluated as Python; everything is checked when the model is built, before any simulation: an
+unknown species in the lump, an input that is not a parameter of the file, a body parameter of
+the wrong type are each refused with a message naming the setting and the yaml.
+
+Example (``examples/gene_switch/model.yaml``)::
+
+    network: gene_switch.xml
+    inputs: {inducer: L}
+    lump: "D >= 2"
+    lump_names: [off, on]
+    body: {kind: walker, speed_on: 0.02, speed_off: 0.005}
+
+    python3 scripts/reproduce.py model=sbml model.spec=examples/gene_switch/model.yaml
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from torch import Tensor
+
+from surrogate.ctmc.kinetics import input_ref, torch_function
+from surrogate.errors import ConfigError
+from surrogate.fields import Field
+from surrogate.models.base import CellKernel, KernelUnsupported, Model
+from surrogate.models.bodies import build_body
+from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
+from surrogate.sbml import SbmlError, read_sbml
+from surrogate.sbml.formula import parse_formula
+
+__all__ = ["SPEC_DEFAULTS", "SbmlAgentModel", "load_spec"]
+
+#: every key of a spec and its default (None: required, or optional without a default)
+SPEC_DEFAULTS: dict[str, Any] = {
+    "name": None,
+    "network": None,
+    "inputs": {},
+    "lump": None,
+    "lump_names": ["off", "on"],
+    "body": None,
+    "ssa": "auto",
+    "burn_in": 50.0,
+    "max_states": 5000,
+    "signal_bounds": None,
+    "collect": None,
+}
+#: collection settings a model may carry as its default budget
+COLLECT_KEYS = ("n_per_state", "n_cells", "record_every")
+
+
+def load_spec(spec: str | Path | None, settings: Mapping[str, Any]) -> tuple[dict, Path]:
+    """The spec yaml's keys with ``settings`` merged over them (mappings key by key), and the
+    directory relative paths are read from (the yaml's, else the working directory)."""
+    data: dict[str, Any] = {}
+    base = Path.cwd()
+    if spec is not None:
+        path = Path(str(spec)).expanduser()
+        if not path.is_file():
+            raise ConfigError(f"model.spec={spec}: no such file (a yaml beside the SBML file)")
+        try:
+            loaded = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as error:
+            raise ConfigError(f"model.spec={spec}: not valid yaml ({error})") from None
+        if not isinstance(loaded, Mapping):
+            raise ConfigError(f"model.spec={spec}: expected a mapping of settings, got "
+                              f"{type(loaded).__name__}")  # fmt: skip
+        data, base = dict(loaded), path.resolve().parent
+    for key, value in settings.items():
+        if isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    unknown = sorted(set(data) - set(SPEC_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"unknown model setting(s) {unknown}; allowed: "
+                          f"{sorted(['spec', *SPEC_DEFAULTS])}")  # fmt: skip
+    return {**SPEC_DEFAULTS, **data}, base
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+class SbmlAgentModel(Model):
+    """An agent model from a yaml spec and an SBML file (see the module docstring).
+
+    Args:
+        spec: the yaml file (None: every key given as keyword arguments).
+        **settings: spec keys, merged over the yaml's (e.g. ``model.body.speed_on=0.03``).
+
+    Example:
+        >>> model = SbmlAgentModel("examples/gene_switch/model.yaml")
+        >>> model.internal.input_names, model.internal.signal_names, model.internal.lump_names
+        (('L',), ('inducer',), ('off', 'on'))
+    """
+
+    def __init__(self, spec: str | None = None, **settings: Any) -> None:
+        self.spec = None if spec is None else Path(str(spec)).expanduser()
+        try:
+            self._build(*load_spec(spec, settings))
+        except ConfigError as error:
+            where = f" (model.spec={spec})" if spec is not None else ""
+            raise type(error)(f"{error}{where}") from None
+
+    def _build(self, s: dict[str, Any], base: Path) -> None:
+        for key in ("network", "lump", "body"):
+            if s[key] is None:
+                raise ConfigError(f"model.{key} is required (see surrogate/models/sbml_agent.py)")
+        network = Path(str(s["network"])).expanduser()
+        self.network_path = network if network.is_absolute() else base / network
+        if not self.network_path.is_file():
+            raise ConfigError(f"model.network={s['network']}: no such SBML file "
+                              f"({self.network_path})")  # fmt: skip
+        inputs = s["inputs"] or {}
+        if not isinstance(inputs, Mapping):
+            raise ConfigError(f"model.inputs must map SBML parameters to their sources, got "
+                              f"{inputs!r}")  # fmt: skip
+        try:
+            sbml = read_sbml(self.network_path, inputs=[str(k) for k in inputs])
+        except SbmlError as error:
+            raise SbmlError(f"model.network / model.inputs: {error}") from None
+        self.body = build_body(s["body"])
+        features = {**self.body.derived, **self._mapped_inputs(inputs)}
+        names = s["lump_names"]
+        if not (
+            isinstance(names, list | tuple)
+            and len(names) == 2
+            and all(isinstance(n, str) and n for n in names)
+            and names[0] != names[1]
+        ):
+            hint = (" (write them in quotes: YAML reads bare off/on, yes/no as booleans)"
+                    if isinstance(names, list | tuple) and any(isinstance(n, bool) for n in names)
+                    else "")  # fmt: skip
+            raise ConfigError(f"model.lump_names must be two different names (phi = 0, phi = 1), "
+                              f"got {names!r}{hint}")  # fmt: skip
+        if s["ssa"] not in SSA_BACKENDS:
+            raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {s['ssa']!r}")
+        for key in ("burn_in", "max_states"):
+            value = s[key]
+            if isinstance(value, bool) or not isinstance(value, int | float) or value < 0:
+                raise ConfigError(f"model.{key} must be a non-negative number, got {value!r}")
+        self.internal = NetworkInternalModel(
+            sbml,
+            self.body.variable_names,
+            s["lump"],
+            lump_names=(names[0], names[1]),
+            features=features,
+            signal_names=sbml.input_names or None,
+            ssa=s["ssa"],
+            burn_in=float(s["burn_in"]),
+            max_states=int(s["max_states"]),
+            signal_bounds=self._bounds(s["signal_bounds"], sbml.input_names),
+        )
+        self.perturbation_options = self.body.perturbation_options
+        self.name = str(s["name"] or sbml.id or "sbml")
+        self.collect_defaults = self._collect(s["collect"])
+        self.settings = s
+
+    def _mapped_inputs(self, inputs: Mapping[str, Any]) -> dict[str, Any]:
+        """The features that supply the SBML input parameters: a body variable under another
+        name, or a formula over the body's variables (compiled from its expression tree)."""
+        body = self.body
+        variables = (*body.variable_names, *body.derived)
+        out: dict[str, Any] = {}
+        for param, source in inputs.items():
+            where = f"model.inputs.{param}"
+            if isinstance(source, int | float) and not isinstance(source, bool):
+                source = repr(float(source))
+            if not isinstance(source, str):
+                raise ConfigError(f"{where} must be a body variable {list(variables)} or a "
+                                  f"formula over them, got {source!r}")  # fmt: skip
+            name = source.strip()
+            if name in variables:
+                if param != name:
+                    out[param] = self._variable(name)
+                continue
+            if param in variables:
+                raise ConfigError(f"{where}: the body already has a variable {param!r}; map the "
+                                  f"parameter to it ({param}: {param}) or rename it in the "
+                                  "SBML file")  # fmt: skip
+            symbols = {v: input_ref(j, v) for j, v in enumerate(variables)}
+            expr = parse_formula(source, symbols, where, "real", what="body variable")
+            out[param] = self._formula(expr, variables)
+        return out
+
+    def _variable(self, name: str) -> Any:
+        body = self.body
+        if name in body.derived:
+            return body.derived[name]
+        column = body.variable_names.index(name)
+        return lambda x: x[:, column]
+
+    def _formula(self, expr: Any, variables: tuple[str, ...]) -> Any:
+        """``x (n x d) -> (n,)`` in x's dtype: the formula at the body's variables."""
+        function = torch_function([expr])
+        used = sorted(expr.inputs_used())
+        getters = {j: self._variable(variables[j]) for j in used}
+
+        def feature(x: Tensor) -> Tensor:
+            columns = x.new_zeros((x.shape[0], len(variables)), dtype=torch.float64)
+            for j, get in getters.items():
+                columns[:, j] = get(x).to(torch.float64)
+            return function(x.new_zeros((x.shape[0], 0)), columns)[:, 0].to(x.dtype)
+
+        return feature
+
+    @staticmethod
+    def _bounds(bounds: Any, names: tuple[str, ...]) -> dict[str, tuple[float, float]] | None:
+        if bounds is None:
+            return None
+        ok = isinstance(bounds, Mapping) and set(bounds) == set(names) and all(
+            isinstance(v, list | tuple) and len(v) == 2
+            and all(isinstance(b, int | float) and not isinstance(b, bool) for b in v)
+            and v[0] < v[1] for v in bounds.values())  # fmt: skip
+        if not ok:
+            raise ConfigError(f"model.signal_bounds must give [lo, hi] (lo < hi) for each input "
+                              f"{list(names)}, got {bounds!r}")  # fmt: skip
+        return {k: (float(v[0]), float(v[1])) for k, v in bounds.items()}
+
+    @staticmethod
+    def _collect(options: Any) -> dict[str, int]:
+        if options is None:
+            return {}
+        if not isinstance(options, Mapping) or set(options) - set(COLLECT_KEYS):
+            raise ConfigError(f"model.collect may set {list(COLLECT_KEYS)}, got {options!r}")
+        for key, value in options.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"model.collect.{key} must be a positive integer, got {value!r}")
+        return dict(options)
+
+    # -- the model's hooks -----------------------------------------------------------------------
+    def validate(self, dt: float) -> None:
+        """The body's check of the time step (e.g. dt below the adaptation time)."""
+        self.body.validate(dt)
+
+    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+        """The body's compiled per-cell step (the chemotaxis body has the E. coli one, for
+        lookup-table abstractions over its variables), where the body has one."""
+        kernel = getattr(self.body, "cell_kernel", None)
+        if kernel is None:
+            return super().cell_kernel(decision, field, dt)
+        mapped = set(self.internal.feature_names) - set(self.body.derived)
+        if mapped & {"cheyp", "dG"}:  # names the kernel computes with the body's formulas
+            raise KernelUnsupported(f"inputs {sorted(mapped)} named like the kernel's features")
+        return kernel(self.internal, decision, field, dt)
+
+    def kernel_precompiler(self) -> str | None:
+        """The body's kernel precompile, where it has one."""
+        precompiler = getattr(self.body, "kernel_precompiler", None)
+        return precompiler() if precompiler is not None else None
+
+    def sources(self) -> dict[str, str]:
+        """sha256 of the files this model is read from (part of every artefact's identity)."""
+        out = {"network": _sha256(self.network_path)}
+        if self.spec is not None:
+            out["spec"] = _sha256(self.spec)
+        return out
+
+    def observable_label(self, name: str) -> str:
+        """The body's figure labels."""
+        return self.body.observable_label(name)
+
+    def describe(self) -> str:
+        """One line for reports."""
+        internal = self.internal
+        return (
+            f"{self.name}: SBML network {self.network_path.name} ({len(internal.species)} "
+            f"species, {internal.reactions.n_reactions} reactions, inputs "
+            f"{list(internal.signal_names)}) in a {self.settings['body'].get('kind')} body; "
+            f"{internal.lump_names[1]} iff {self.settings['lump']}"
+        )
+
+    def to_config(self) -> dict[str, Any]:
+        """The resolved spec (for manifests)."""
+        return {"name": self.name, **{k: v for k, v in self.settings.items() if k != "name"},
+                "network": str(self.network_path)}  # fmt: skip

@@ -1,0 +1,238 @@
+"""model=sbml: models written as a yaml beside an SBML file, with no Python.
+
+* examples/ecoli_phospho/model.yaml (the phospho network in the chemotaxis body) gives, from
+  one seed, the same trajectories, transitions and learned abstraction as the hand-written
+  plug-in ``model=ecoli_phospho``;
+* examples/gene_switch/model.yaml (a gene switch in a walker, nothing of E. coli) runs through
+  collect, train, simulate (full, learned, exact) and evaluate, and its exact psi is the toy
+  model's (the same network written in Python);
+* a malformed yaml is refused before any simulation, naming the setting.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+import yaml
+from hydra import compose, initialize_config_dir
+
+from surrogate.config import CONF_DIR, build_model
+from surrogate.errors import ConfigError
+from surrogate.fields import ConstantField, GaussianField
+from surrogate.gp import PsiLookupTable
+from surrogate.models.ecoli_phospho import EcoliPhosphoModel
+from surrogate.models.sbml_agent import SbmlAgentModel
+from surrogate.simulate import AbstractDecision, FullDecision, Simulator
+from surrogate.stages import collect, evaluate, simulate, train
+from tests.toy.gene_switch import GeneSwitchModel
+
+REPO = CONF_DIR.parent
+PHOSPHO = REPO / "examples" / "ecoli_phospho" / "model.yaml"
+GENE_SWITCH = REPO / "examples" / "gene_switch" / "model.yaml"
+
+
+def compose_config(data_dir: Path, overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="evaluate",
+                       overrides=[f"data_dir={data_dir}", "progress=false", *overrides])  # fmt: skip
+
+
+def run_full(model, n_cells: int, steps: int, seed: int = 7):
+    """Body state, phi per step and the network's counts after ``steps`` full-model steps."""
+    torch.manual_seed(seed)
+    sim = Simulator(model, FullDecision(model.internal), GaussianField(), dt=0.05, backend="auto")
+    state = sim.initial_state(n_cells, (2.0, 0.0), equilibration_time=0.2)
+    phis = []
+    for _ in range(steps):
+        sim.step(state)
+        phis.append(state.phi.clone())
+    return state.body, torch.stack(phis), sim.decision.state[0]
+
+
+def test_the_phospho_yaml_is_the_plugins_full_model_from_one_seed() -> None:
+    """Same body trajectories, phi at every step and network counts, bit for bit."""
+    plugin = EcoliPhosphoModel(burn_in=0.2)
+    config = SbmlAgentModel(str(PHOSPHO), burn_in=0.2)
+    assert config.internal.input_names == plugin.internal.input_names == ("m", "L")
+    assert config.internal.feature_names == plugin.internal.feature_names == ("F", "activity")
+    assert config.internal.signal_names == plugin.internal.signal_names == ("activity",)
+    a, b = run_full(plugin, 30, 15), run_full(config, 30, 15)
+    for key in ("position", "heading", "m"):
+        assert torch.equal(a[0][key], b[0][key]), key
+    assert torch.equal(a[1], b[1]) and 0.2 < float(a[1].float().mean()) < 0.95  # both lumps occur
+    assert torch.equal(a[2], b[2])
+    assert config.internal.exact_psi is None and plugin.internal.exact_psi is None
+
+
+def test_the_phospho_yaml_abstraction_runs_on_the_ecoli_kernel() -> None:
+    """A lookup table over the activity runs on the E. coli body's compiled kernel for the
+    yaml model as for the plug-in, with the same trajectories."""
+    table = PsiLookupTable.from_function(
+        lambda phi, z: 0.2 + 0.6 * z[:, 0] * (phi > 0) + 0.1 * (phi == 0),
+        [(0.0, 1.0)], ["activity"], (64,),
+    )  # fmt: skip
+    out = []
+    for model in (EcoliPhosphoModel(burn_in=0.1), SbmlAgentModel(str(PHOSPHO), burn_in=0.1)):
+        torch.manual_seed(3)
+        decision = AbstractDecision(table, model.internal, model.featurizer(["activity"]))
+        sim = Simulator(model, decision, GaussianField(), dt=0.05, backend="auto")
+        assert sim.backend == "numba", sim.backend_note
+        state = sim.initial_state(50, (2.0, 0.0), equilibration_time=0.1)
+        sim.advance(state, 40)
+        out.append(state.body["position"].clone())
+    assert torch.equal(out[0], out[1])
+
+
+@pytest.mark.slow
+def test_the_phospho_yaml_collects_and_learns_what_the_plugin_does(tmp_path) -> None:
+    """Through the stages from one seed: the same transitions (the plug-in adds its expected
+    labels, a motor-specific column) and, trained on the outcomes, the same psi."""
+    common = [
+        "collect.n_per_state=60", "collect.n_cells=30",
+        "collect.record_every=1", "collect.equilibration_time=0.2", "gp.n_inducing=8",
+        "gp.epochs=3", "gp.labels=outcome", "gp.diagnostic.n_cells=20", "gp.diagnostic.t_end=1.0",
+        "gp.diagnostic.equilibration_time=0.2",
+    ]  # fmt: skip
+    plugin = compose_config(tmp_path / "a", ["model=ecoli_phospho", "model.burn_in=0.2", *common])
+    config = compose_config(tmp_path / "b", ["model=sbml", f"model.spec={PHOSPHO}",
+                                             "+model.burn_in=0.2", *common])  # fmt: skip
+    tables, grids = [], []
+    for cfg in (plugin, config):
+        tables.append(pd.read_parquet(collect.run(cfg) / "transitions.parquet"))
+        grids.append(pd.read_csv(train.run(cfg) / "psi_grid.csv"))
+    assert "phi_next_expected" in tables[0] and "phi_next_expected" not in tables[1]
+    pd.testing.assert_frame_equal(tables[0][tables[1].columns], tables[1])
+    pd.testing.assert_frame_equal(grids[0], grids[1])
+
+
+def test_the_gene_switch_yaml_is_the_toy_network() -> None:
+    """The SBML gene switch read with its yaml has the toy model's (Python) exact psi and
+    state space: the same network, written once in SBML."""
+    config, toy = SbmlAgentModel(str(GENE_SWITCH)), GeneSwitchModel()
+    assert config.internal.state_space.n_states == toy.internal.state_space.n_states == 25
+    signal = torch.tensor([[0.001], [0.02], [0.05], [0.1]])
+    torch.testing.assert_close(config.internal.exact_psi(signal, 0.05),
+                               toy.internal.exact_psi(signal, 0.05), rtol=1e-9, atol=1e-12)  # fmt: skip
+    assert config.describe().startswith("gene_switch: SBML network gene_switch.xml")
+
+
+SMALL = [
+    "collect.n_per_state=400", "collect.n_cells=100", "collect.equilibration_time=1.0",
+    "gp.n_inducing=10", "gp.epochs=5", "gp.diagnostic.n_cells=100", "gp.diagnostic.t_end=5.0",
+    "gp.diagnostic.equilibration_time=1.0", "n_cells=100", "t_end=10.0",
+    "equilibration_time=1.0", "start=[1.0,0.0]", "evaluate.subsample=200",
+    "evaluate.run_missing=true",
+]  # fmt: skip
+
+
+def test_the_gene_switch_yaml_runs_through_every_stage(tmp_path) -> None:
+    """collect -> train -> simulate (full, learned, exact) -> evaluate with nothing but the
+    yaml and the SBML file (the README's route)."""
+    overrides = ["model=sbml", f"model.spec={GENE_SWITCH}", *SMALL]
+    cfg = compose_config(tmp_path / "data", overrides)
+    table = pd.read_parquet(collect.run(cfg) / "transitions.parquet")
+    assert {"L", "inducer", "phi", "phi_next"} <= set(table.columns)
+    assert (table["inducer"] == table["L"]).all() and table["inducer"].between(0, 0.1).all()
+    metrics = train.read_metrics(train.run(cfg))
+    assert metrics["inputs"] == ["inducer"] and metrics["diagnostic"]["reference"] == "exact"
+    out = evaluate.run(cfg)
+    comparison = pd.read_csv(out / "comparison.csv")
+    assert comparison["quantity"].tolist()[-2:] == ["on", "off"]
+    assert comparison["ks"].between(0, 1).all()
+    exact = simulate.run(compose_config(tmp_path / "data", [*overrides, "decision=exact"]))
+    assert pd.read_parquet(exact / "observables.parquet")["cell"].nunique() == 100
+
+
+def test_a_static_agent_with_an_input_formula(tmp_path) -> None:
+    """The static body and an input given as a formula over the body's variables: the
+    network sees 2 L, the observable is the share of time ON."""
+    spec = yaml.safe_load(GENE_SWITCH.read_text())
+    spec.update(network=str(GENE_SWITCH.parent / "gene_switch.xml"), body={"kind": "static"},
+                inputs={"inducer": "2 * L"}, signal_bounds=None)  # fmt: skip
+    model = build_model({"_target_": "surrogate.models.sbml_agent.SbmlAgentModel", **spec})
+    x = torch.tensor([[0.01], [0.04]])
+    assert model.internal.feature_names == ("inducer",)
+    torch.testing.assert_close(model.internal.features(x, ["inducer"])[:, 0], 2 * x[:, 0])
+    torch.manual_seed(0)
+    sim = Simulator(model, FullDecision(model.internal), ConstantField(0.05), dt=0.05)
+    state = sim.initial_state(200, (0.0, 0.0), equilibration_time=0.5)
+    on = []
+    for _ in range(40):
+        sim.step(state)
+        on.append(state.phi.float())
+    fraction = model.body.observables(state.body, sim.field)["on_fraction"]
+    torch.testing.assert_close(fraction, torch.stack(on).mean(0))
+    assert torch.equal(state.body["position"], torch.zeros(200, 2))
+
+
+def _spec(**changes) -> dict:
+    spec = yaml.safe_load(GENE_SWITCH.read_text())
+    spec["network"] = str(GENE_SWITCH.parent / "gene_switch.xml")
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(spec.get(key), dict):
+            spec[key] = {**spec[key], **value}
+        else:
+            spec[key] = value
+    return spec
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"lump": "Q >= 2"}, "model.lump: unknown species 'Q'"),
+        ({"lump": "D + 2"}, "model.lump: 'D + 2' must be a condition"),
+        ({"lump": "D >= "}, "model.lump: cannot parse 'D >= '"),
+        ({"inputs": {"inducr": "L"}}, "input 'inducr' is not a global parameter of the model"),
+        ({"inputs": {"inducer": "M"}}, "model.inputs.inducer: unknown body variable 'M'"),
+        ({"inputs": {"inducer": ["L"]}}, "model.inputs.inducer must be a body variable"),
+        ({"body": {"speed_on": "fast"}}, "model.body.speed_on must be a finite number, got 'fast'"),
+        ({"body": {"speed_off": -1.0}}, "model.body.speed_off must be >= 0"),
+        ({"body": {"wings": 2}}, "unknown model.body setting(s) ['wings']"),
+        ({"body": {"kind": "flyer"}}, "model.body.kind must be one of"),
+        ({"body": {"perturbation": {"radius": 0}}}, "model.body.perturbation.radius must be > 0"),
+        ({"network": "/nonexistent.xml"}, "model.network=/nonexistent.xml: no such SBML file"),
+        ({"lump_names": [False, True]}, "write them in quotes"),
+        ({"ssa": "gpu"}, "model.ssa must be one of"),
+        ({"signal_bounds": {"inducer": [1.0, 0.0]}}, "model.signal_bounds must give [lo, hi]"),
+        ({"collect": {"n_per_state": 0}}, "model.collect.n_per_state must be a positive integer"),
+        ({"colour": "red"}, "unknown model setting(s) ['colour']"),
+    ],
+)
+def test_a_malformed_yaml_is_refused_by_name(tmp_path, changes, message) -> None:
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump(_spec(**changes)))
+    with pytest.raises(ConfigError) as info:
+        SbmlAgentModel(str(path))
+    assert message in str(info.value)
+    assert f"model.spec={path}" in str(info.value)  # the message names the yaml
+
+
+def test_the_chemotaxis_body_names_its_constants_under_the_body(tmp_path) -> None:
+    spec = yaml.safe_load(PHOSPHO.read_text())
+    spec["network"] = str((PHOSPHO.parent / spec["network"]).resolve())
+    spec["body"] = {"kind": "chemotaxis", "tau": "slow"}
+    with pytest.raises(ConfigError, match=r"model\.body\.tau must be a finite number, got 'slow'"):
+        SbmlAgentModel(**spec)
+    spec["body"] = {"kind": "chemotaxis", "tau": 0.04}
+    with pytest.raises(ConfigError, match=r"dt=0.05 s must be smaller than model\.body\.tau"):
+        SbmlAgentModel(**spec).validate(0.05)
+
+
+def test_an_edited_file_changes_the_artefacts_identity(tmp_path) -> None:
+    """The artefacts of a yaml model depend on its files' content, not only on their paths."""
+    from surrogate.stages.settings import ModelSetup
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "gene_switch.xml").write_text((GENE_SWITCH.parent / "gene_switch.xml").read_text())
+    (folder / "model.yaml").write_text(GENE_SWITCH.read_text())
+    cfg = compose_config(tmp_path / "data", ["model=sbml", f"model.spec={folder / 'model.yaml'}"])
+    before = ModelSetup.from_config(cfg).identity()
+    xml = (folder / "gene_switch.xml").read_text().replace('value="2"', 'value="3"')
+    (folder / "gene_switch.xml").write_text(xml)
+    after = ModelSetup.from_config(cfg).identity()
+    assert before["model"] == after["model"]
+    assert before["model_sources"]["network"] != after["model_sources"]["network"]
