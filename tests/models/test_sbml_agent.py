@@ -236,3 +236,29 @@ def test_an_edited_file_changes_the_artefacts_identity(tmp_path) -> None:
     after = ModelSetup.from_config(cfg).identity()
     assert before["model"] == after["model"]
     assert before["model_sources"]["network"] != after["model_sources"]["network"]
+
+
+def test_an_input_computed_by_sbml_math(tmp_path) -> None:
+    """An input's formula may live in the SBML file: ``inducer`` assigned by a rule over the
+    input parameter ``signal``, which the yaml maps to the field's value."""
+    import libsbml
+
+    document = libsbml.readSBMLFromFile(str(GENE_SWITCH.parent / "gene_switch.xml"))
+    model = document.getModel()
+    signal = model.createParameter()
+    signal.setId("signal")
+    signal.setValue(0.0)
+    signal.setConstant(True)
+    model.getParameter("inducer").setConstant(False)
+    rule = model.createAssignmentRule()
+    rule.setVariable("inducer")
+    rule.setMath(libsbml.parseL3Formula("2 * signal"))
+    path = tmp_path / "switch.xml"
+    path.write_text(libsbml.writeSBMLToString(document))
+    spec = {**_spec(network=str(path), signal_bounds=None), "inputs": {"signal": "L"}}
+    agent = SbmlAgentModel(**spec)
+    assert agent.internal.signal_names == ("signal",)
+    x = torch.tensor([[0.01], [0.04]])
+    counts = torch.tensor([[8, 0, 0], [8, 0, 0]])
+    rates = agent.internal.kinetics.propensities(counts, agent.internal.kinetic_inputs(x))
+    torch.testing.assert_close(rates[:, 0], 50.0 * 2 * x[:, 0].double() * 8)  # k_act 2 L I
