@@ -33,6 +33,18 @@ from torch import Tensor
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
 
+#: seconds per cell and step assumed for a full model that gives no estimate of its own, and
+#: for a two-state chain (abstraction or exact psi): the E. coli step's order (the numba kernel
+#: measured 0.16-0.22 us per cell-step at 100 cells, the torch step ~1 us at 1e4 cells)
+CELL_STEP_SECONDS = 1e-6
+#: the default collection for a model whose full step costs at most CHEAP_CELL_STEP_SECONDS
+#: per cell (E. coli): 100,000 transitions per origin from 2,000 cells, every 10th window
+CHEAP_COLLECTION: dict[str, int] = {"n_per_state": 100_000, "n_cells": 2_000, "record_every": 10}
+CHEAP_CELL_STEP_SECONDS = 1e-4
+#: ... and for a costlier one (an SBML network with ~1e4 events per window, e.g. the phospho
+#: network at ~0.5 ms per cell-step: ~5 minutes of collection on one core)
+COSTLY_COLLECTION: dict[str, int] = {"n_per_state": 10_000, "n_cells": 500, "record_every": 5}
+
 #: per-cell tensors an internal model carries from window to window (opaque to the engine)
 InternalState = tuple[Tensor, ...]
 #: the body's outer state: named per-cell tensors, cells in dimension 0
@@ -232,6 +244,24 @@ class Model:
     #: the abstraction's default inputs (``gp.inputs=signal``): the internal model's signal
     default_abstraction_inputs: str = "signal"
 
+    def cell_step_seconds(self, dt: float, decision: str = "full") -> float:
+        """Estimated wall time of one cell and step (s) under ``decision`` (``full``: the
+        internal model's own estimate, ``cell_step_seconds(dt)``, where it gives one; the
+        two-state chains and models without an estimate: :data:`CELL_STEP_SECONDS`). The stages
+        multiply it by steps and cells to say, before they start, what a run will cost."""
+        estimate = getattr(self.internal, "cell_step_seconds", None)
+        if decision == "full" and estimate is not None:
+            return float(estimate(dt))
+        return CELL_STEP_SECONDS
+
+    def collect_defaults(self, dt: float) -> dict[str, int]:
+        """The default collection budget (``n_per_state``, ``n_cells``, ``record_every``),
+        used where the collect settings leave them null: :data:`CHEAP_COLLECTION` for a model
+        whose full step costs at most :data:`CHEAP_CELL_STEP_SECONDS` per cell, else
+        :data:`COSTLY_COLLECTION`. A model may override it with figures of its own."""
+        cheap = self.cell_step_seconds(dt, "full") <= CHEAP_CELL_STEP_SECONDS
+        return dict(CHEAP_COLLECTION if cheap else COSTLY_COLLECTION)
+
     def sources(self) -> dict[str, str]:
         """Digests of the files the model is read from beyond its config (e.g. an SBML file or
         a yaml spec), by role: part of every artefact's identity, so editing a file never
@@ -347,6 +377,9 @@ def check_options(
 
 
 __all__ = [
+    "CELL_STEP_SECONDS",
+    "CHEAP_COLLECTION",
+    "COSTLY_COLLECTION",
     "AgentBody",
     "BodyState",
     "CellKernel",

@@ -176,7 +176,7 @@ class SbmlAgentModel(Model):
         )
         self.perturbation_options = self.body.perturbation_options
         self.name = str(s["name"] or sbml.id or "sbml")
-        self.collect_defaults = self._collect(s["collect"])
+        self._collect_budget = self._collect(s["collect"])
         self.settings = s
 
     def _mapped_inputs(self, inputs: Mapping[str, Any]) -> dict[str, Any]:
@@ -271,6 +271,10 @@ class SbmlAgentModel(Model):
         """The body's kernel precompile, where it has one."""
         precompiler = getattr(self.body, "kernel_precompiler", None)
         return precompiler() if precompiler is not None else None
+
+    def collect_defaults(self, dt: float) -> dict[str, int]:
+        """The yaml's ``collect`` budget over the default for the network's cost."""
+        return {**super().collect_defaults(dt), **self._collect_budget}
 
     def sources(self) -> dict[str, str]:
         """sha256 of the files this model is read from (part of every artefact's identity)."""

@@ -21,6 +21,7 @@ from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import collect_transitions
+from surrogate.stages import budget
 from surrogate.stages.settings import CollectSettings
 
 log = logging.getLogger(__name__)
@@ -30,8 +31,11 @@ COVERAGE_FIGURE = "coverage.png"
 
 
 def validate(cfg: Mapping[str, Any]) -> CollectSettings:
-    """All checks of a collect config, before any work starts; the typed settings."""
-    return CollectSettings.from_config(cfg)
+    """All checks of a collect config and its estimated cost, before any work starts; the
+    typed settings."""
+    settings = CollectSettings.from_config(cfg)
+    budget.check(cfg, budget.collect_work(settings), "collect")
+    return settings
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:

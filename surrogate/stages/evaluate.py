@@ -28,6 +28,7 @@ from surrogate.evaluate.statistics import (
     noise_floor_table,
 )
 from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
+from surrogate.stages import budget
 from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -48,8 +49,11 @@ class RunSet:
 
 
 def validate(cfg: Mapping[str, Any]) -> EvaluateSettings:
-    """Checks of an evaluate config (and of the runs it compares); the typed settings."""
-    return EvaluateSettings.from_config(cfg)
+    """Checks of an evaluate config (and of the runs it compares) and the estimated cost of
+    the runs it would make; the typed settings."""
+    settings = EvaluateSettings.from_config(cfg)
+    budget.check(cfg, budget.evaluate_work(settings), "evaluate")
+    return settings
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:

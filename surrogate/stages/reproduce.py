@@ -34,6 +34,7 @@ from surrogate.simulate.precompile import (
     precompile_in_background,
     wait_for_precompile,
 )
+from surrogate.stages import budget
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
@@ -57,8 +58,11 @@ SPEED_FORMATS = {"full cell-steps/s": ".3g", "abstract cell-steps/s": ".3g", "sp
 
 
 def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
-    """Checks before any work: every field exists, every stage's settings are valid."""
-    return ReproduceSettings.from_config(cfg)
+    """Checks before any work: every field exists, every stage's settings are valid, the
+    estimated cost of what is missing is said (or refused past ``max_hours``)."""
+    settings = ReproduceSettings.from_config(cfg)
+    budget.check(cfg, budget.reproduce_work(settings), "reproduce")
+    return settings
 
 
 def run(cfg: Mapping[str, Any], worker: Worker | None = None) -> Path:

@@ -208,12 +208,21 @@ class CollectSettings:
     setup: ModelSetup
     options: dict[str, Any]
     job: Job
+    #: the collect settings as given (null: the model's default budget), for the command
+    given: dict[str, Any] | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> CollectSettings:
-        """Validate the collect group (and the model's perturbation options)."""
+        """Validate the collect group (and the model's perturbation options); the budget left
+        null (``n_per_state``, ``n_cells``, ``record_every``) is the model's default, which
+        fits its cost (``Model.collect_defaults``)."""
         setup = ModelSetup.from_config(cfg)
-        c = to_dict(cfg["collect"])
+        given = to_dict(cfg["collect"])
+        c = dict(given)
+        defaults = setup.model.collect_defaults(setup.dt)
+        for key in ("n_per_state", "n_cells", "record_every"):
+            if c.get(key) is None:
+                c[key] = defaults[key]
         for key in ("n_per_state", "n_cells", "record_every"):
             positive(c, key, "collect.", integer=True)
         positive(c, "max_time", "collect.")
@@ -225,12 +234,17 @@ class CollectSettings:
                 f"collect.perturb_rate={rate:g}/s cannot be met with dt={setup.dt:g} s: at most "
                 f"one perturbation per step, so the rate must be <= 1/dt = {1 / setup.dt:g}/s"
             )
+        from surrogate.stages.budget import check_table_memory
+
+        internal = setup.model.internal
+        check_table_memory(int(c["n_per_state"]),
+                           len(internal.input_names) + len(internal.feature_names) + 7)  # fmt: skip
         expected = c.get("expected_labels", False)
         if not isinstance(expected, bool):
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
-        return cls(setup, c, Job.from_config(cfg))
+        return cls(setup, c, Job.from_config(cfg), given)
 
     @property
     def expected_labels(self) -> bool:
@@ -256,7 +270,8 @@ class CollectSettings:
         return _command(COLLECT_CMD, self.setup.overrides(), self._overrides())
 
     def _overrides(self) -> list[str]:
-        return group_overrides("collect", self.options, "default")[1:]
+        given = self.options if self.given is None else self.given
+        return group_overrides("collect", given, "default")[1:]
 
 
 # ----------------------------------------------------------------------------------------------

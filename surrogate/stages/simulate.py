@@ -33,6 +33,7 @@ from surrogate.simulate.decision import (
 )
 from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
 from surrogate.simulate.population import PopulationSummary, simulate_population
+from surrogate.stages import budget
 from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
 
 log = logging.getLogger(__name__)
@@ -42,8 +43,11 @@ COMPILE_CACHE = "cache/torch_compile"
 
 
 def validate(cfg: Mapping[str, Any]) -> SimulateSettings:
-    """All checks of a simulate config, before any work starts; the typed settings."""
-    return SimulateSettings.from_config(cfg)
+    """All checks of a simulate config and its estimated cost, before any work starts; the
+    typed settings."""
+    settings = SimulateSettings.from_config(cfg)
+    budget.check(cfg, budget.run_work(settings), "simulate")
+    return settings
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:

@@ -52,6 +52,7 @@ from surrogate.io import (
 from surrogate.models.base import Model, has_exact_psi
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.precompile import precompile_in_background
+from surrogate.stages import budget
 from surrogate.stages.collect import TRANSITIONS
 from surrogate.stages.occupancy import occupancy
 from surrogate.stages.settings import CollectSettings, TrainSettings
@@ -68,8 +69,11 @@ LABELS = ("phi", "phi_next")
 
 
 def validate(cfg: Mapping[str, Any]) -> TrainSettings:
-    """All checks of a train config, before any work starts; the typed settings."""
-    return TrainSettings.from_config(cfg)
+    """All checks of a train config and its estimated cost (the collection and diagnostic it
+    needs), before any work starts; the typed settings."""
+    settings = TrainSettings.from_config(cfg)
+    budget.check(cfg, budget.train_work(settings), "train")
+    return settings
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:

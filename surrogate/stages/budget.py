@@ -1,0 +1,241 @@
+"""What a stage will cost, estimated before it starts: steps x cells x the model's cost per
+cell-step, for every simulation the stage would run (artefacts that exist are reused, so they
+cost nothing).
+
+Each stage's ``validate`` calls :func:`check`: the estimate is logged, a warning names the
+settings that make it when it exceeds :data:`WARN_SECONDS`, and it is refused (a ConfigError
+naming those settings) above the ``max_hours`` setting. The cost of one cell-step comes from
+the model (:meth:`~surrogate.models.base.Model.cell_step_seconds`: for a network, its events
+per window at the initial state times the measured cost of an SSA event), so ``dt=1e-9`` or
+``collect.n_per_state=1e9`` is refused in milliseconds, not found out hours later.
+
+Example::
+
+    settings = SimulateSettings.from_config(cfg)
+    check(cfg, run_work(settings), "simulate")   # logs "simulate: estimated ~2.1 s of ..."
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from surrogate.errors import ConfigError
+from surrogate.io import MANIFEST
+
+if TYPE_CHECKING:
+    from surrogate.stages.settings import (
+        CollectSettings,
+        EvaluateSettings,
+        ReproduceSettings,
+        SimulateSettings,
+        TrainSettings,
+    )
+
+log = logging.getLogger(__name__)
+
+#: seconds per step whatever the population (the loop's dispatch: ~20 us for the numba kernel,
+#: 0.1-0.6 ms for the eager torch step)
+STEP_SECONDS = 1e-4
+#: estimates above this are logged as warnings, naming the settings that make them
+WARN_SECONDS = 600.0
+#: bytes per value of a transitions table while it is collected (float64 columns, generous for
+#: the rows gathered before the per-origin subsample)
+TABLE_BYTES_PER_VALUE = 32
+
+
+@dataclass(frozen=True)
+class Work:
+    """One simulation a stage would run.
+
+    Attributes:
+        what: what it is, e.g. ``"the full-model run"``.
+        cells: cells simulated together.
+        steps: time steps of dt.
+        cell_step_seconds: the model's estimated cost of one cell-step under its decision.
+        settings: the settings that set its size, as they would be written on the command line.
+        model: the model's name.
+    """
+
+    what: str
+    cells: int
+    steps: float
+    cell_step_seconds: float
+    settings: str
+    model: str
+
+    @property
+    def seconds(self) -> float:
+        """Estimated wall time (s)."""
+        return self.steps * (STEP_SECONDS + self.cells * self.cell_step_seconds)
+
+    def describe(self) -> str:
+        """One line: what, its size, the settings behind it, the cost per cell-step."""
+        return (
+            f"{self.what}: {self.steps:.3g} steps x {self.cells} cells ({self.settings}) at "
+            f"~{self.cell_step_seconds:.2g} s per cell-step of model {self.model!r}"
+        )
+
+
+def duration(seconds: float) -> str:
+    """``12 s``, ``4.2 min``, ``3.1 h``, ``2.0e+03 days``."""
+    if seconds < 120:
+        return f"{seconds:.2g} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.2g} min"
+    if seconds < 5 * 86400:
+        return f"{seconds / 3600:.2g} h"
+    return f"{seconds / 86400:.2g} days"
+
+
+def _exists(directory: Any) -> bool:
+    return (directory / MANIFEST).exists()
+
+
+def collect_work(settings: CollectSettings) -> list[Work]:
+    """The collection's windows, at least: the equilibration of every cell, then twice
+    ``n_per_state`` recorded windows (both origins equally common, none in a blackout), each
+    every ``record_every``-th window of a cell."""
+    if _exists(settings.directory):
+        return []
+    setup, c = settings.setup, settings.options
+    n, every, cells = int(c["n_per_state"]), int(c["record_every"]), int(c["n_cells"])
+    equilibration = float(c["equilibration_time"]) / setup.dt
+    steps = equilibration + 2.0 * n * every / cells
+    where = (f"collect.n_per_state={n} per origin, every collect.record_every={every}th window "
+             f"of collect.n_cells={cells}, collect.equilibration_time="
+             f"{float(c['equilibration_time']):g} s, dt={setup.dt:g} s")  # fmt: skip
+    return [Work("collect (at least)", cells, steps, setup.model.cell_step_seconds(setup.dt),
+                 where, setup.model.name)]  # fmt: skip
+
+
+def train_work(settings: TrainSettings) -> list[Work]:
+    """The collection it needs (if missing) and its diagnostic's full-model population."""
+    from surrogate.stages.settings import CollectSettings
+
+    works: list[Work] = []
+    if isinstance(settings.source, CollectSettings):
+        works += collect_work(settings.source)
+    occupancy = settings.occupancy()
+    if not _exists(occupancy.directory):
+        d, setup = occupancy.options, settings.setup
+        span = float(d["t_end"]) + float(d["equilibration_time"])
+        where = (f"gp.diagnostic.n_cells={d['n_cells']}, gp.diagnostic.t_end={d['t_end']:g} s "
+                 f"+ gp.diagnostic.equilibration_time={d['equilibration_time']:g} s at "
+                 f"dt={setup.dt:g} s")  # fmt: skip
+        works.append(Work("the train diagnostic's full-model population", int(d["n_cells"]),
+                          span / setup.dt, setup.model.cell_step_seconds(setup.dt), where,
+                          setup.model.name))  # fmt: skip
+    return works
+
+
+def run_work(settings: SimulateSettings) -> list[Work]:
+    """One population run (if its artefact is missing)."""
+    if _exists(settings.directory):
+        return []
+    setup, name = settings.setup, settings.decision.name
+    span = settings.t_end + settings.equilibration_time
+    where = (f"t_end={settings.t_end:g} s + equilibration_time={settings.equilibration_time:g} s "
+             f"at dt={setup.dt:g} s, n_cells={settings.n_cells}")  # fmt: skip
+    label = {"full": "the full-model run", "abstract": "the abstraction's run",
+             "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
+    return [Work(label, settings.n_cells, span / setup.dt,
+                 setup.model.cell_step_seconds(setup.dt, name), where, setup.model.name)]  # fmt: skip
+
+
+def evaluate_work(settings: EvaluateSettings) -> list[Work]:
+    """The runs it compares (and, with ``evaluate.run_missing``, the abstraction they need)."""
+    works: list[Work] = []
+    runs = [settings.candidate, settings.full, settings.full_repeat]
+    if settings.run_missing:
+        train = settings.candidate.decision.train
+        if train is not None and not _exists(train.directory):
+            works += train_work(train)
+        for run in runs:
+            if run is not None:
+                works += run_work(run)
+    return works
+
+
+def reproduce_work(settings: ReproduceSettings) -> list[Work]:
+    """Collection, training diagnostic and every population run of the report."""
+    works = train_work(settings.train) if not _exists(settings.train.directory) else []
+    for run in settings.runs():
+        works += run_work(run)
+    return works
+
+
+def max_hours(cfg: Mapping[str, Any]) -> float:
+    """The ``max_hours`` setting: a positive number of hours."""
+    value = cfg.get("max_hours", 24.0)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0 \
+            or not math.isfinite(value):  # fmt: skip
+        raise ConfigError(f"max_hours must be a positive number of hours, got {value!r}")
+    return float(value)
+
+
+def check(cfg: Mapping[str, Any], works: Sequence[Work], stage: str) -> float:
+    """Log the estimated cost of ``works``; warn past :data:`WARN_SECONDS`; refuse past
+    ``max_hours``, naming the settings of the costliest work. Returns the estimate (s)."""
+    limit = max_hours(cfg)
+    total = sum(w.seconds for w in works)
+    if not works:
+        return 0.0
+    worst = max(works, key=lambda w: w.seconds)
+    if not math.isfinite(total) or total > limit * 3600:
+        raise ConfigError(
+            f"{stage}: the simulations this asks for would take ~{duration(total)} (the "
+            f"costliest, {worst.describe()}: ~{duration(worst.seconds)}), above max_hours="
+            f"{limit:g}. Lower those settings, or raise max_hours to run it anyway"
+        )
+    parts = _summary(works)
+    if total > WARN_SECONDS:
+        log.warning("%s: estimated ~%s of simulation before it is done (%s); lower those "
+                    "settings for a quicker run", stage, duration(total), parts)  # fmt: skip
+    else:
+        log.info("%s: estimated ~%s of simulation (%s)", stage, duration(total), parts)
+    return total
+
+
+def _summary(works: Sequence[Work]) -> str:
+    """The works, identical ones counted once: ``2 x the full-model run: ...: ~5 min each``."""
+    groups: dict[str, list[Work]] = {}
+    for w in works:
+        groups.setdefault(w.describe(), []).append(w)
+    return "; ".join(
+        f"{len(g)} x {text}: ~{duration(g[0].seconds)} each" if len(g) > 1
+        else f"{text}: ~{duration(g[0].seconds)}" for text, g in groups.items()
+    )  # fmt: skip
+
+
+def check_table_memory(n_per_state: int, columns: int) -> None:
+    """Refuse a collection whose table cannot fit in memory, naming ``collect.n_per_state``."""
+    need = 2 * n_per_state * columns * TABLE_BYTES_PER_VALUE
+    try:
+        have = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return
+    if need > have:
+        raise ConfigError(
+            f"collect.n_per_state={n_per_state}: the transitions table ({columns} columns) "
+            f"needs about {need / 2**30:.1f} GiB while collected, but {have / 2**30:.1f} GiB "
+            f"are free; lower collect.n_per_state"
+        )
+
+
+__all__ = [
+    "Work",
+    "check",
+    "check_table_memory",
+    "collect_work",
+    "duration",
+    "evaluate_work",
+    "max_hours",
+    "reproduce_work",
+    "run_work",
+    "train_work",
+]
