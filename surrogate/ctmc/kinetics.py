@@ -437,6 +437,10 @@ class Kinetics:
             if e.inputs_used() and max(e.inputs_used()) >= len(names):
                 raise ValueError(f"reaction {name!r}: input column out of range")
 
+    def __getstate__(self) -> dict:
+        """Picklable: the expressions, not the generated code (loaded again on first use)."""
+        return {**self.__dict__, "_cache": {}}
+
     @property
     def n_inputs(self) -> int:
         """Number of per-cell inputs ``P``."""

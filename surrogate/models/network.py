@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from surrogate.ctmc import ReactionNetwork, gillespie, mass_action_kinetics
-from surrogate.ctmc.kinetics import species_ref, torch_function
+from surrogate.ctmc.kinetics import Expr, species_ref, torch_function
 from surrogate.ctmc.lumped import MAX_STATES, StateSpace, lumped_psi, stationary_distribution
 from surrogate.errors import ConfigError
 from surrogate.models.base import InternalState, Randoms
@@ -35,8 +35,33 @@ SSA_BACKENDS = ("auto", "compiled", "batched")
 #: compiled SSA 1.33e7 events/s, the batched torch SSA 5.3e5 events/s
 COMPILED_EVENT_SECONDS = 1 / 1.33e7
 BATCHED_EVENT_SECONDS = 1 / 5.3e5
-#: seconds per cell and step of the torch step around a window (inputs, movement, records)
-STEP_OVERHEAD_SECONDS = 1e-6
+#: seconds per cell and step around the window's events (the SSA call's per-cell work, the
+#: torch step, collect's records): the gene switch (1-2 events per window) collected at 7.1 us
+#: per cell-step on a loaded 2-core machine (2,000 cells), so ~3 us on a quiet one
+STEP_OVERHEAD_SECONDS = 3e-6
+
+
+class SpeciesCondition:
+    """``counts (n x S) -> bool (n,)``: a condition on species counts (e.g. the lump), from
+    its validated expression; compiled on first use, picklable (the expression, not the code).
+
+    Example:
+        >>> run = SpeciesCondition(call("geq", species_ref(0, "N"), const(2.0)))
+        >>> run(torch.tensor([[3], [1]]))
+        tensor([ True, False])
+    """
+
+    def __init__(self, expr: Expr) -> None:
+        self.expr = expr
+        self._function: Callable[[Tensor, Tensor], Tensor] | None = None
+
+    def __call__(self, counts: Tensor) -> Tensor:
+        if self._function is None:
+            self._function = torch_function([self.expr])
+        return self._function(counts, counts.new_zeros((counts.shape[0], 0)))[:, 0]
+
+    def __getstate__(self) -> dict:
+        return {"expr": self.expr, "_function": None}
 
 
 class NetworkInternalModel:
@@ -151,10 +176,13 @@ class NetworkInternalModel:
         if callable(lump):
             return lump
         symbols = {name: species_ref(s, name) for s, name in enumerate(self.species)}
-        predicate = torch_function([parse_formula(lump, symbols, "model.lump", "bool",
-                                                  what="species")])  # fmt: skip
         self.lump_formula = lump
-        return lambda counts: predicate(counts, counts.new_zeros((counts.shape[0], 0)))[:, 0]
+        return SpeciesCondition(parse_formula(lump, symbols, "model.lump", "bool", what="species"))
+
+    def __getstate__(self) -> dict:
+        """Picklable (a background worker receives models): without the compiled SSA, which
+        is rebuilt (from numba's cache) on first use."""
+        return {**self.__dict__, "_compiled": None}
 
     # -- inputs and features -----------------------------------------------------------------
     def features(self, x: Tensor, names: Sequence[str]) -> Tensor:

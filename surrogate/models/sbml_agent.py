@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,7 @@ import torch
 import yaml
 from torch import Tensor
 
-from surrogate.ctmc.kinetics import input_ref, torch_function
+from surrogate.ctmc.kinetics import Expr, input_ref, torch_function
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import CellKernel, KernelUnsupported, Model
@@ -102,6 +103,31 @@ def load_spec(spec: str | Path | None, settings: Mapping[str, Any]) -> tuple[dic
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _column(x: Tensor, index: int) -> Tensor:
+    return x[:, index]
+
+
+class FormulaFeature:
+    """``x (n x d) -> (n,)`` in x's dtype: a formula over a body's variables (the columns
+    ``getters`` compute from ``x``, by the formula's input index); compiled from its expression
+    on first use and picklable (the expression, not the code)."""
+
+    def __init__(self, expr: Expr, n_variables: int, getters: Mapping[int, Any]) -> None:
+        self.expr, self.n_variables, self.getters = expr, n_variables, dict(getters)
+        self._function: Any = None
+
+    def __call__(self, x: Tensor) -> Tensor:
+        if self._function is None:
+            self._function = torch_function([self.expr])
+        columns = x.new_zeros((x.shape[0], self.n_variables), dtype=torch.float64)
+        for j, get in self.getters.items():
+            columns[:, j] = get(x).to(torch.float64)
+        return self._function(x.new_zeros((x.shape[0], 0)), columns)[:, 0].to(x.dtype)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_function": None}
 
 
 class SbmlAgentModel(Model):
@@ -210,22 +236,12 @@ class SbmlAgentModel(Model):
         body = self.body
         if name in body.derived:
             return body.derived[name]
-        column = body.variable_names.index(name)
-        return lambda x: x[:, column]
+        return partial(_column, index=body.variable_names.index(name))
 
     def _formula(self, expr: Any, variables: tuple[str, ...]) -> Any:
         """``x (n x d) -> (n,)`` in x's dtype: the formula at the body's variables."""
-        function = torch_function([expr])
-        used = sorted(expr.inputs_used())
-        getters = {j: self._variable(variables[j]) for j in used}
-
-        def feature(x: Tensor) -> Tensor:
-            columns = x.new_zeros((x.shape[0], len(variables)), dtype=torch.float64)
-            for j, get in getters.items():
-                columns[:, j] = get(x).to(torch.float64)
-            return function(x.new_zeros((x.shape[0], 0)), columns)[:, 0].to(x.dtype)
-
-        return feature
+        getters = {j: self._variable(variables[j]) for j in sorted(expr.inputs_used())}
+        return FormulaFeature(expr, len(variables), getters)
 
     @staticmethod
     def _bounds(bounds: Any, names: tuple[str, ...]) -> dict[str, tuple[float, float]] | None:

@@ -262,3 +262,31 @@ def test_an_input_computed_by_sbml_math(tmp_path) -> None:
     counts = torch.tensor([[8, 0, 0], [8, 0, 0]])
     rates = agent.internal.kinetics.propensities(counts, agent.internal.kinetic_inputs(x))
     torch.testing.assert_close(rates[:, 0], 50.0 * 2 * x[:, 0].double() * 8)  # k_act 2 L I
+
+
+@pytest.mark.parametrize("which", ["phospho_plugin", "phospho_yaml", "gene_switch_formula"])
+def test_models_pickle_before_and_after_use(which) -> None:
+    """Reproduce's background worker receives settings with their model: network models
+    pickle (expressions, not generated code or the compiled SSA) before and after a window,
+    and the copy computes the same features and phi."""
+    import pickle
+
+    model = {
+        "phospho_plugin": lambda: EcoliPhosphoModel(burn_in=0.05),
+        "phospho_yaml": lambda: SbmlAgentModel(str(PHOSPHO), burn_in=0.05),
+        "gene_switch_formula": lambda: SbmlAgentModel(
+            str(GENE_SWITCH), inputs={"inducer": "2 * L"}
+        ),
+    }[which]()
+    pickle.dumps(model)
+    torch.manual_seed(0)
+    sim = Simulator(model, FullDecision(model.internal), GaussianField(), dt=0.05)
+    state = sim.initial_state(5, (1.0, 0.0), 0.1)
+    sim.step(state)
+    copy = pickle.loads(pickle.dumps(model))
+    names = model.internal.signal_names
+    assert torch.equal(copy.internal.features(state.inputs, names),
+                       model.internal.features(state.inputs, names))  # fmt: skip
+    assert torch.equal(
+        copy.internal.phi(sim.decision.state), model.internal.phi(sim.decision.state)
+    )

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -77,10 +78,10 @@ class PhosphoInternalModel(NetworkInternalModel):
                 f"parameter 'activity'; it has species {list(species)} (missing {missing}) and "
                 f"inputs {list(network.input_names)}"
             )
-        energy = lambda x: free_energy(x[:, 0], x[:, 1], params)  # noqa: E731
         super().__init__(
             network, ("m", "L"), "N >= 2 && S == 0", lump_names=self.lump_names,
-            features={"F": energy, "activity": lambda x: torch.sigmoid(-energy(x))},
+            features={"F": partial(receptor_energy, params=params),
+                      "activity": partial(receptor_activity, params=params)},
             ssa=ssa, burn_in=burn_in, signal_bounds={"activity": (0.0, 1.0)},
         )  # fmt: skip
         self._motor_columns = [species.index(m) for m in ("S", "C", "N")]
@@ -133,6 +134,16 @@ class PhosphoInternalModel(NetworkInternalModel):
         for reaction, source, target in self._motor_moves:
             generator[:, source, target] += rates[:, reaction]
         return generator - torch.diag_embed(generator.sum(-1))
+
+
+def receptor_energy(x: Tensor, params: EcoliParameters) -> Tensor:
+    """F(m, L) at inputs ``x = (m, L)`` (``n x 2``): the MWC free energy."""
+    return free_energy(x[:, 0], x[:, 1], params)
+
+
+def receptor_activity(x: Tensor, params: EcoliParameters) -> Tensor:
+    """The receptor activity 1 / (1 + exp(F(m, L))): the network's input."""
+    return torch.sigmoid(-receptor_energy(x, params))
 
 
 def _motor_moves(network: SbmlModel, columns: Sequence[int]) -> list[tuple[int, int, int]]:
