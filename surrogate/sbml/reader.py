@@ -16,18 +16,21 @@ model test suite):
   parameters shadow globals. Function definitions are inlined. Assignment rules whose variable
   is a parameter are inlined where the parameter is used (they are functions of the state).
 
+A compartment may lack a size (Level 3, every species an amount) unless something needs it.
+
 Refused, with an :class:`~surrogate.sbml.errors.SbmlError` naming the construct and the element
-id: events, rate and algebraic rules, assignment rules on species or compartments, delays, the
-time / rateOf csymbols, fast or reversible reactions (write a reversible reaction as two
-irreversible ones), non-integer or variable stoichiometry, initial assignments that depend on
-something other than constants, conversion factors, unknown MathML.
+id (every model-level construct of a file in one message): events, rate and algebraic rules,
+assignment rules on species or compartments, delays, the time / rateOf csymbols, fast or
+reversible reactions (write a reversible reaction as two irreversible ones), non-integer or
+variable stoichiometry, initial assignments that depend on something other than constants,
+conversion factors, packages the file marks required (e.g. ``distrib``), unknown MathML.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import libsbml
@@ -69,11 +72,13 @@ class SbmlModel:
             and one propensity expression per reaction over counts and ``input_names``.
         initial_state: ``(S,)`` int64 initial molecule counts.
         constants: Values of every global parameter that is not an input and of every
-            compartment size (by id).
+            compartment size (by id; NaN for a compartment without a size, legal in Level 3
+            where no law, initial value or formula needs it).
         input_defaults: The value the file gives each input parameter (NaN if unset).
         fixed_species: Ids of boundary-condition or constant species.
         reactions: The reactions as written (including fixed species and modifiers).
         source: The file read, or ``None`` for a string.
+        species_compartments: The compartment of each species (by id).
     """
 
     id: str
@@ -84,6 +89,7 @@ class SbmlModel:
     fixed_species: tuple[str, ...]
     reactions: tuple[SbmlReaction, ...]
     source: Path | None = None
+    species_compartments: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def network(self) -> ReactionNetwork:
@@ -134,6 +140,10 @@ class SbmlModel:
         if missing:
             raise SbmlError(f"model {self.id!r}: inputs {missing} have no value in the file")
         return torch.tensor(values, dtype=torch.float64)
+
+    def compartment_of(self, species: str) -> str:
+        """The id of the compartment ``species`` lives in."""
+        return self.species_compartments[species]
 
     def initial_states(self, n: int) -> Tensor:
         """``n x S`` int64: the initial state repeated for ``n`` cells."""
@@ -219,39 +229,55 @@ class _Reader:
     # -- checks of the model as a whole ---------------------------------------------------
 
     def _refuse_unsupported(self) -> None:
+        """Refuse every construct the stochastic reading has no meaning for, all of them in one
+        message (events, rules other than parameter assignments, conversion factors, required
+        packages): ``unsupported construct(s): event 'E0' (1 event in the model); rate rule
+        for 't'; package 'distrib' (required)``."""
         model = self.model
+        found: list[str] = []
         if model.getNumEvents():
             event = model.getEvent(0)
-            raise SbmlError(
-                f"{self.label}: unsupported construct: event {event.getId() or '(no id)'!r} "
-                f"({model.getNumEvents()} events in the model)"
-            )
+            count = model.getNumEvents()
+            found.append(f"event {event.getId() or '(no id)'!r} ({count} event"
+                         f"{'s' if count > 1 else ''} in the model)")  # fmt: skip
         if model.isSetConversionFactor():
-            raise SbmlError(
-                f"{self.label}: unsupported construct: model conversionFactor "
-                f"{model.getConversionFactor()!r}"
-            )
+            found.append(f"model conversionFactor {model.getConversionFactor()!r}")
         for rule in model.getListOfRules():
-            variable = rule.getVariable() if not rule.isAlgebraic() else ""
             if rule.isAlgebraic():
-                raise SbmlError(
-                    f"{self.label}: unsupported construct: algebraic rule "
-                    f"{rule.getId() or libsbml.formulaToL3String(rule.getMath())!r}"
-                )
+                math_text = libsbml.formulaToL3String(rule.getMath())
+                found.append(f"algebraic rule {rule.getId() or math_text!r}")
+                continue
+            variable = rule.getVariable()
             if rule.isRate():
-                raise SbmlError(f"{self.label}: unsupported construct: rate rule for {variable!r}")
-            if variable not in self.parameters:
-                raise SbmlError(
-                    f"{self.label}: unsupported construct: assignment rule for {variable!r} "
-                    "(only parameters may be assigned by rules; species change by reactions "
-                    "only and compartments are fixed)"
-                )
-            if variable in self.inputs:
+                found.append(f"rate rule for {variable!r}")
+            elif variable not in self.parameters:
+                found.append(f"assignment rule for {variable!r} (only parameters may be assigned "
+                             "by rules; species change by reactions only and compartments are "
+                             "fixed)")  # fmt: skip
+            elif variable in self.inputs:
                 raise SbmlError(
                     f"{self.label}: parameter {variable!r} is declared an input but is "
                     "assigned by a rule"
                 )
-            self.assignment_rules[variable] = rule
+            else:
+                self.assignment_rules[variable] = rule
+        for sp in self.species:
+            if sp.isSetConversionFactor():
+                found.append(f"conversionFactor on species {sp.getId()!r}")
+        document = model.getSBMLDocument()
+        # packages the file declares itself (libsbml adds internal ones, e.g. L3V2's extended
+        # math under the core namespace)
+        declared = document.getNamespaces()
+        uris = {declared.getURI(i) for i in range(declared.getNumNamespaces())}
+        uris.discard(document.getSBMLNamespaces().getURI())
+        for i in range(document.getNumPlugins() if model.getLevel() >= 3 else 0):  # L3 packages
+            plugin = document.getPlugin(i)
+            name = plugin.getPackageName()
+            if plugin.getURI() in uris and document.getPackageRequired(name):
+                found.append(f"package {name!r} (required by the file)")
+        if found:
+            plural = "s" if len(found) > 1 else ""
+            raise SbmlError(f"{self.label}: unsupported construct{plural}: " + "; ".join(found))
         for name in self.inputs:
             if name not in self.parameters:
                 known = sorted(self.parameters)
@@ -264,11 +290,6 @@ class _Reader:
         if len(set(self.inputs)) != len(self.inputs):
             raise SbmlError(f"{self.label}: inputs must be unique, got {list(self.inputs)}")
         for sp in self.species:
-            if sp.isSetConversionFactor():
-                raise SbmlError(
-                    f"{self.label}: unsupported construct: conversionFactor on species "
-                    f"{sp.getId()!r}"
-                )
             self._check_substance_units(sp.getSubstanceUnits() or model.getSubstanceUnits(), sp)
 
     def _check_substance_units(self, units: str, sp: libsbml.Species) -> None:
@@ -310,7 +331,12 @@ class _Reader:
         if name in self.compartments:
             c = self.compartments[name]
             if not c.isSetSize():
-                raise SbmlError(f"{where}: compartment {name!r} has no size")
+                raise SbmlError(
+                    f"{where}: compartment {name!r} has no size, and this needs it (a species "
+                    "read as a concentration, an initial concentration or the compartment's "
+                    "id in a formula); give the compartment a size, or mark the species "
+                    "hasOnlySubstanceUnits"
+                )
             return float(c.getSize())
         if name in self.parameters:
             p = self.parameters[name]
@@ -531,8 +557,11 @@ class _Reader:
         )
         kinetics = Kinetics(network=network, input_names=self.inputs, propensity_exprs=tuple(exprs))
         initial = torch.tensor([self.initial_count(sp) for sp in self.species], dtype=torch.int64)
-        constants = {
-            name: self.constant_value(name, f"compartment {name!r}") for name in self.compartments
+        constants = {  # NaN: a compartment without a size (legal where no law needs one)
+            name: self.constant_value(name, f"compartment {name!r}")
+            if self.compartments[name].isSetSize() or name in self.initial_assignments
+            else math.nan
+            for name in self.compartments
         }
         for name in self.parameters:
             if name not in self.inputs and name not in self.assignment_rules:
@@ -557,4 +586,5 @@ class _Reader:
             fixed_species=tuple(s for s in species_ids if s in fixed),
             reactions=tuple(reactions),
             source=source,
+            species_compartments={sp.getId(): sp.getCompartment() for sp in self.species},
         )
