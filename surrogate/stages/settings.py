@@ -205,6 +205,8 @@ class CollectSettings:
     setup: ModelSetup
     options: dict[str, Any]
     job: Job
+    #: the fits of a sequential design (``collect.design.target_error`` set), else None
+    design: TrainSettings | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> CollectSettings:
@@ -227,7 +229,7 @@ class CollectSettings:
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
-        return cls(setup, c, Job.from_config(cfg))
+        return cls(setup, c, Job.from_config(cfg), _design_settings(cfg, c, rate))
 
     @property
     def expected_labels(self) -> bool:
@@ -238,9 +240,20 @@ class CollectSettings:
         wanted = bool(self.options.get("expected_labels", False))
         return wanted and can_expect(self.setup.model.internal)
 
+    @property
+    def target_error(self) -> float | None:
+        """The sequential design's target (``collect.design.target_error``), or None."""
+        return None if self.design is None else float(self.options["design"]["target_error"])
+
     def identity(self) -> dict[str, Any]:
-        """Everything that defines a transitions table."""
-        return {**self.setup.identity(), "collect": self.options}
+        """Everything that defines a transitions table (the design's fits where it has one; a
+        switched-off design leaves the fixed design's identity as it was)."""
+        options = {k: v for k, v in self.options.items() if k != "design" or self.design}
+        out = {**self.setup.identity(), "collect": options}
+        if self.design is not None:
+            out["design_fit"] = {"gp": self.design.gp_config, "inputs": list(self.design.inputs),
+                                 "diagnostic": self.design.diagnostic}  # fmt: skip
+        return out
 
     @functools.cached_property
     def directory(self) -> Path:
@@ -254,6 +267,51 @@ class CollectSettings:
 
     def _overrides(self) -> list[str]:
         return group_overrides("collect", self.options, "default")[1:]
+
+
+#: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
+DESIGN_KEYS = ("target_error", "max_rounds", "candidates", "explore")
+
+
+def _design_settings(
+    cfg: Mapping[str, Any], options: dict[str, Any], perturb_rate: float
+) -> TrainSettings | None:
+    """Validate ``collect.design``; the settings of its fits where ``target_error`` is set."""
+    d = options.get("design")
+    if d is None:
+        return None
+    if not isinstance(d, Mapping):
+        raise ConfigError(f"collect.design must be a mapping of {list(DESIGN_KEYS)}, got {d!r}")
+    unknown = sorted(set(d) - set(DESIGN_KEYS))
+    if unknown:
+        raise ConfigError(
+            f"unknown collect.design setting(s) {unknown}; allowed: {list(DESIGN_KEYS)}"
+        )
+    if d.get("target_error") is None:
+        return None
+    target = positive(d, "target_error", "collect.design.")
+    if target >= 1.0:
+        raise ConfigError(
+            f"collect.design.target_error={target:g} is a relative error of psi: give a value "
+            f"in (0, 1), e.g. 0.02"
+        )
+    positive(d, "max_rounds", "collect.design.", integer=True)
+    positive(d, "candidates", "collect.design.", integer=True)
+    explore = non_negative(d, "explore", "collect.design.")
+    if explore > 1.0:
+        raise ConfigError(f"collect.design.explore={explore:g} is a share: give a value in [0, 1]")
+    if perturb_rate <= 0.0:
+        raise ConfigError(
+            "collect.design needs perturbations to guide: set collect.perturb_rate > 0"
+        )
+    if "gp" not in cfg:
+        raise ConfigError(
+            "collect.design.target_error needs the gp group (its rounds fit psi): run "
+            f"{TRAIN_CMD} collect.design.target_error={target:g} or add gp=svgp"
+        )
+    inner = to_dict(cfg)
+    inner["collect"] = {**options, "design": {**dict(d), "target_error": None}}
+    return TrainSettings.from_config(inner)
 
 
 # ----------------------------------------------------------------------------------------------
