@@ -231,8 +231,10 @@ def simulate_together(runs: Sequence[SimulateSettings]) -> list[Path]:
         else:  # a large population: alone (batching would only slow it down)
             simulate(s)
     for group in groups.values():
-        # decision-major order, so consecutive interchangeable layers merge into one
-        group.sort(key=lambda s: s.decision.name)
+        # one global order (by directory) whatever the caller's: two jobs sharing runs in
+        # opposite orders would otherwise each hold a lock the other waits for
+        # (_simulate_group orders the batch itself, decision-major)
+        group.sort(key=lambda s: str(s.directory))
         with contextlib.ExitStack() as stack:
             for s in group:
                 stack.enter_context(artefact_lock(s.directory))

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -232,6 +234,33 @@ def test_runs_simulated_together_are_the_standalone_runs(
             pd.read_parquet(s.directory / "duration_histogram.parquet"), durations
         )
         assert observables["cell"].nunique() == 16
+
+
+def test_runs_are_locked_in_one_global_order(compose_cfg, monkeypatch) -> None:
+    """simulate_together takes its runs' locks in one global order (by directory), whatever
+    order its caller lists them in: two jobs sharing runs in opposite orders (e.g.
+    ``fields=[gaussian,linear]`` and ``[linear,gaussian]``) cannot deadlock."""
+    from surrogate.stages.settings import SimulateSettings
+
+    run = [o for o in TINY if not o.startswith(("collect", "gp"))]
+    runs = [SimulateSettings.from_config(compose_cfg("simulate", [*run, "decision=full",
+                                                                   f"field={name}"]))
+            for name in ("linear", "gaussian")]  # fmt: skip
+    taken: list[Path] = []
+
+    @contextlib.contextmanager
+    def lock(directory):
+        taken.append(Path(directory))
+        yield Path(directory)
+
+    monkeypatch.setattr(simulate_stage, "artefact_lock", lock)
+    monkeypatch.setattr(simulate_stage, "_simulate_group", lambda group: None)
+    orders = []
+    for listed in (runs, runs[::-1]):
+        taken.clear()
+        simulate_stage.simulate_together(listed)
+        orders.append(list(taken))
+    assert len(orders[0]) == 2 and orders[0] == orders[1] == sorted(orders[0])
 
 
 def test_compiled_runs_of_a_batch_have_their_own_identity(compose_cfg) -> None:
