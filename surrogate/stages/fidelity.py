@@ -39,6 +39,8 @@ from tqdm.auto import tqdm
 from surrogate.config import (
     build_field,
     field_config,
+    grid_size,
+    non_negative,
     positive,
     seed_everything,
     to_dict,
@@ -132,25 +134,23 @@ class FidelitySettings:
                 tc = {**c, "seed": seed, "gp": {**c["gp"], "inputs": choice}}
                 candidates.append(Candidate(str(choice), seed, TrainSettings.from_config(tc)))
         setup = candidates[0].train.setup
-        for key in ("n_cells", "record_every"):
-            if key in f:
-                positive(f, key, "fidelity.", integer=True)
+        positive(f, "n_cells", "fidelity.", integer=True)
         t_end = float(positive(f, "t_end", "fidelity."))
         try:
             steps_between(t_end, setup.dt, "fidelity.t_end")
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-        times = tuple(float(t) for t in f.get("times") or [t_end * (k + 1) / 4 for k in range(4)])
-        for t in times:
-            try:
-                steps_between(t, setup.dt, "fidelity.times")
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from None
-            if not 0 < t <= t_end:
-                raise ConfigError(f"fidelity.times {t:g} outside (0, t_end={t_end:g}]")
-        if float(f.get("alpha", 0.05)) not in KS_C:
-            raise ConfigError(f"fidelity.alpha must be one of {sorted(KS_C)}")
-        validate_start(f, "start", "fidelity.")
+        times = _times(f.get("times"), t_end, setup.dt)
+        _check_run_and_checks(f)
+        for c in candidates:
+            if f.get("mode", "lookup") != "lookup":
+                continue
+            if len(c.train.inputs) > 3:
+                raise ConfigError(
+                    f"fidelity.mode=lookup tabulates at most 3 inputs, {c.label} has "
+                    f"{list(c.train.inputs)}: use fidelity.mode=classifier"
+                )
+            grid_size(f.get("lookup_size"), "fidelity.lookup_size", len(c.train.inputs))
         exact = bool(f.get("exact_psi", True)) and hasattr(setup.model.internal, "exact_psi")
         if exact and not getattr(setup.model.internal, "signal_bounds", None):
             exact = False
@@ -182,6 +182,63 @@ class FidelitySettings:
     def command(self) -> str:
         """The command that makes this artefact."""
         return " ".join([FIDELITY_CMD, *group_overrides("model", self.setup.model_config)])
+
+
+#: decision.mode of the abstractions under test
+MODES = ("lookup", "classifier")
+
+
+def _times(value: Any, t_end: float, dt: float) -> tuple[float, ...]:
+    """``fidelity.times``: multiples of dt in (0, t_end] (null: the quarters of t_end)."""
+    if value is None:
+        return tuple(t_end * (k + 1) / 4 for k in range(4))
+    try:
+        times = tuple(float(t) for t in value)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"fidelity.times must be a list of times in s (or null: the quarters of t_end), "
+            f"got {value!r}"
+        ) from None
+    if not times:
+        raise ConfigError("fidelity.times must list at least one time (or be null)")
+    for t in times:
+        if not 0 < t <= t_end:
+            raise ConfigError(f"fidelity.times {t:g} outside (0, t_end={t_end:g}]")
+        try:
+            steps_between(t, dt, "fidelity.times")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    return times
+
+
+def _check_run_and_checks(f: Mapping[str, Any]) -> None:
+    """The run settings (seeds, start, mode) and the check thresholds of the fidelity group,
+    all read only after training and simulation: refused now, by name."""
+    validate_start(f, "start", "fidelity.")
+    non_negative(f, "equilibration_time", "fidelity.")
+    seed = f.get("sim_seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"fidelity.sim_seed must be a non-negative integer, got {seed!r}")
+    offset = f.get("noise_seed_offset", 1000)
+    # the noise floor, the exact chain and abstraction i use sim_seed + offset, 2 x offset and
+    # 3 x offset + i; offset 0 would compare the full run with itself (a noise floor of zero)
+    lowest = seed + min(offset, 3 * offset) if isinstance(offset, int) else -1
+    if isinstance(offset, bool) or not isinstance(offset, int) or offset == 0 or lowest < 0:
+        raise ConfigError(
+            f"fidelity.noise_seed_offset must be a non-zero integer with sim_seed + k x offset "
+            f">= 0 for k = 1, 2, 3 (the noise floor, the exact chain and the abstractions use "
+            f"those seeds), got {offset!r}"
+        )
+    if f.get("mode", "lookup") not in MODES:
+        raise ConfigError(f"fidelity.mode must be one of {list(MODES)}, got {f['mode']!r}")
+    if not isinstance(f.get("exact_psi", True), bool):
+        raise ConfigError(f"fidelity.exact_psi must be true or false, got {f['exact_psi']!r}")
+    positive(f, "ks_factor", "fidelity.")
+    positive(f, "ks_max", "fidelity.")
+    positive(f, "duration_tolerance", "fidelity.")
+    alpha = f.get("alpha", 0.05)
+    if isinstance(alpha, bool) or not isinstance(alpha, int | float) or alpha not in KS_C:
+        raise ConfigError(f"fidelity.alpha must be one of {sorted(KS_C)}, got {alpha!r}")
 
 
 def validate(cfg: Mapping[str, Any]) -> FidelitySettings:
