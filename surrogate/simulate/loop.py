@@ -274,6 +274,12 @@ class Simulator:
                 self._kernels[name] = torch.compile(_private_copy(getattr(self, name)))
 
     @property
+    def compiled(self) -> bool:
+        """Whether the torch step runs through ``torch.compile`` (asked for, the torch loop,
+        and not fallen back to eager so far)."""
+        return self.compile and self.kernel is None and self.compile_error is None
+
+    @property
     def randoms(self) -> Randoms:
         """Rows of random numbers one step draws: the decision's (first) and the body's."""
         decision = self.decision.randoms if is_fusable(self.decision) else Randoms()
