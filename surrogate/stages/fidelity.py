@@ -169,6 +169,7 @@ class FidelitySettings:
             "fidelity": {**self.options, "times": list(self.times)},
             "compile": self.compile,
             "backend": self.backend,
+            "device": self.job.device_type,
         }
 
     @functools.cached_property
@@ -279,7 +280,7 @@ def _simulate_batch(
     setup, o, job = settings.setup, settings.options, settings.job
     model = setup.model
     sim = BatchSimulator(model, replicates, setup.dt, job.device, compile=settings.compile,
-                         backend=settings.backend)  # fmt: skip
+                         backend=settings.backend, compile_fallback=False)  # fmt: skip
     log.info("simulating %d runs in one batch (%d cells, %s loop)", len(replicates),
              sum(sim.sizes), sim.backend)  # fmt: skip
     with torch.inference_mode():  # cheaper per op than no_grad

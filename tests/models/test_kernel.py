@@ -12,6 +12,10 @@ functions the rest of the package uses.
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -210,6 +214,29 @@ def test_kernel_results_do_not_depend_on_the_thread_count(kind) -> None:
     for key in ("position", "heading", "m"):
         assert torch.equal(a.body[key], b.body[key]), key
     assert torch.equal(a.phi, b.phi) and torch.equal(a.segment_steps, b.segment_steps)
+
+
+def test_the_kernel_leaves_torchs_thread_count_alone() -> None:
+    """numba's OpenMP pool, started by the kernel's first call, sets the process's OpenMP
+    thread count, which is torch's too: the kernel restores it (a job's ``threads`` setting,
+    and the fit's identity resolved from it, must survive a simulation). In a fresh process
+    with a two-thread pool: the pool starts once per process."""
+    code = (
+        "import torch; torch.set_num_threads(1)\n"
+        "from surrogate.fields import GaussianField\n"
+        "from surrogate.models.ecoli import EcoliModel\n"
+        "from surrogate.simulate import FullDecision, Simulator\n"
+        "m = EcoliModel()\n"
+        "sim = Simulator(m, FullDecision(m.internal), GaussianField(), 0.05, backend='numba')\n"
+        "state = sim.initial_state(10, (2.0, 0.0)); sim.warm_up(state); sim.advance(state, 3)\n"
+        "print('threads', torch.get_num_threads())\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "NUMBA_NUM_THREADS": "2",
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=root, timeout=300, check=True)  # fmt: skip
+    assert out.stdout.split()[-2:] == ["threads", "1"], out.stdout + out.stderr[-2000:]
 
 
 def test_precompile_compiles_the_signature_the_simulator_calls() -> None:

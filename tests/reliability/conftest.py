@@ -97,6 +97,13 @@ def train_dir(cfg: DictConfig) -> Path:
     return TrainSettings.from_config(cfg).directory
 
 
+def fit_dir(cfg: DictConfig) -> Path:
+    """The fit directory of ``cfg`` (the classifiers simulations load)."""
+    from surrogate.stages.settings import TrainSettings
+
+    return TrainSettings.from_config(cfg).fit_directory
+
+
 def simulate_dir(cfg: DictConfig) -> Path:
     """The simulation artefact directory of ``cfg``."""
     from surrogate.stages.settings import SimulateSettings
