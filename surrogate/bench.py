@@ -55,7 +55,7 @@ from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusab
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.population import simulate_population
 from surrogate.simulate.precompile import precompiler_code
-from surrogate.simulate.speed import LoopTiming, differences, speedup
+from surrogate.simulate.speed import LoopTiming, compare
 
 MODELS = ("full", "lookup", "classifier")
 
@@ -255,10 +255,9 @@ def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict
 
 def ratio(full: Mapping[str, Any], candidate: Mapping[str, Any]) -> float | None:
     """The candidate's speed-up over the full model from two :func:`throughput` results
-    (:func:`~surrogate.simulate.speed.speedup`, per cell-step); None where they ran under
-    different set-ups (e.g. one compiled step fell back to eager)."""
-    a, b = LoopTiming.from_mapping(full), LoopTiming.from_mapping(candidate)
-    return None if differences(a, b) else speedup(a, b)
+    (:func:`~surrogate.simulate.speed.compare`: per cell-step; None where they ran under
+    different set-ups, e.g. the classifier's torch step beside the full model's kernel)."""
+    return compare(full, candidate)[0]
 
 
 def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict[str, float]:

@@ -9,17 +9,16 @@ from typing import Any
 import pandas as pd
 import pytest
 
-from surrogate.bench import ratio
 from surrogate.evaluate.statistics import SimulationRun
 from surrogate.simulate.speed import (
     IncomparableSpeeds,
     LoopTiming,
     cell_steps_per_s,
+    compare,
     differences,
     speedup,
 )
 from surrogate.stages import evaluate as evaluate_stage
-from surrogate.stages.speed import compare
 
 LOOP = LoopTiming(n_cells=100, steps=1000, seconds=2.0, device="cpu", threads=2,
                   backend="numba", compiled=False)  # fmt: skip
@@ -101,12 +100,16 @@ def _entry(timing: LoopTiming) -> dict[str, Any]:
     return {**dataclasses.asdict(timing), "cell_steps_per_s": timing.cell_steps_per_s}
 
 
-def test_the_speed_stage_and_the_bench_use_the_one_formula() -> None:
-    """A compiled step that fell back to eager in one model gives no speed-up (the loops ran
+def test_compare_takes_timings_or_the_speed_stages_and_benchs_entries() -> None:
+    """The speed stage, reproduce and the bench give compare() their measurement entries: a
+    compiled step that fell back to eager in one model gives no speed-up (the loops ran
     differently); otherwise the ratio is the formula's."""
+    from surrogate.bench import ratio
+
     eager = dataclasses.replace(LOOP, compiled=False)
     compiled = dataclasses.replace(LOOP, compiled=True, seconds=0.5)
     assert compare(_entry(eager), _entry(compiled)) == (None, ["compiled False vs True"])
+    assert compare(eager, compiled) == (None, ["compiled False vs True"])
     assert ratio(_entry(eager), _entry(compiled)) is None
     fast = LOOP.with_seconds(0.5)
     assert compare(_entry(LOOP), _entry(fast)) == (pytest.approx(4.0), [])

@@ -160,6 +160,23 @@ def speedup(reference: LoopTiming, candidate: LoopTiming) -> float:
     return candidate.cell_steps_per_s / reference.cell_steps_per_s
 
 
+def compare(
+    reference: LoopTiming | Mapping[str, Any], candidate: LoopTiming | Mapping[str, Any]
+) -> tuple[float | None, list[str]]:
+    """:func:`speedup` of ``candidate`` over ``reference`` where their set-ups match, else None;
+    and why not (:func:`differences`; empty when they match).
+
+    Args:
+        reference: a :class:`LoopTiming`, or a mapping with its fields (a
+            :func:`measure_speed` entry, a bench throughput result).
+        candidate: the same for the loop compared.
+    """
+    a, b = (t if isinstance(t, LoopTiming) else LoopTiming.from_mapping(t)
+            for t in (reference, candidate))  # fmt: skip
+    why = differences(a, b)
+    return (None if why else speedup(a, b)), why
+
+
 def measure_speed(
     model: Model,
     decisions: Mapping[str, DecisionLayer],
@@ -215,6 +232,7 @@ __all__ = [
     "IncomparableSpeeds",
     "LoopTiming",
     "cell_steps_per_s",
+    "compare",
     "differences",
     "measure_speed",
     "speedup",

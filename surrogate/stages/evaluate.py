@@ -28,7 +28,7 @@ from surrogate.evaluate.statistics import (
     noise_floor_table,
 )
 from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
-from surrogate.simulate.speed import LoopTiming, differences, speedup
+from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -140,14 +140,12 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
     durations."""
     full, cand = runs.full.manifest, runs.candidate.manifest
     loops = {"full": LoopTiming.from_manifest(full), "candidate": LoopTiming.from_manifest(cand)}
-    why = differences(loops["full"], loops["candidate"])
+    speedup_loop, why = compare(loops["full"], loops["candidate"])
+    speedup_wall, _ = compare(loops["full"].with_seconds(full["wall_time_s"]),
+                              loops["candidate"].with_seconds(cand["wall_time_s"]))  # fmt: skip
     if full.get("batched") or cand.get("batched"):  # one loop time for several runs
         why.insert(0, "simulated in a batch (no loop time of its own)")
-    speedup_loop = speedup_wall = None
-    if not why:
-        speedup_loop = speedup(loops["full"], loops["candidate"])
-        speedup_wall = speedup(loops["full"].with_seconds(full["wall_time_s"]),
-                               loops["candidate"].with_seconds(cand["wall_time_s"]))  # fmt: skip
+        speedup_loop = speedup_wall = None
     durations = {"full": mean_durations(runs.full), "candidate": mean_durations(runs.candidate)}
     if runs.full_repeat is not None:
         durations["full_repeat"] = mean_durations(runs.full_repeat)

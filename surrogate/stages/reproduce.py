@@ -216,8 +216,7 @@ def measure_stage_speed(settings: ReproduceSettings) -> dict[str, Any]:
     """Loop speed of the full model and of the abstraction on the first field, measured side by
     side in this process as the runs are set up (cells, compile, device): runs simulated in one
     batch have no loop time of their own."""
-    from surrogate.simulate.speed import measure_speed
-    from surrogate.stages.speed import compare
+    from surrogate.simulate.speed import compare, measure_speed
 
     name, e = next(iter(settings.evaluations.items()))
     run = e.candidate

@@ -21,7 +21,7 @@ import torch
 from surrogate.config import non_negative, positive, seed_everything, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir, write_json
-from surrogate.simulate.speed import LoopTiming, differences, measure_speed, speedup
+from surrogate.simulate.speed import compare, measure_speed
 from surrogate.stages.settings import SimulateSettings
 from surrogate.stages.simulate import build_decision
 
@@ -80,13 +80,4 @@ def run(cfg: Mapping[str, Any]) -> Path:
     return out
 
 
-def compare(full: Mapping[str, Any], abstract: Mapping[str, Any]) -> tuple[float | None, list[str]]:
-    """The abstraction's speed-up over the full model from two :func:`measure_speed` entries
-    (:func:`~surrogate.simulate.speed.speedup`), or None and why their set-ups differ (e.g. one
-    compiled step fell back to eager)."""
-    reference, candidate = LoopTiming.from_mapping(full), LoopTiming.from_mapping(abstract)
-    why = differences(reference, candidate)
-    return (None if why else speedup(reference, candidate)), why
-
-
-__all__ = ["compare", "run"]
+__all__ = ["run"]
