@@ -258,6 +258,9 @@ def test_reproduce_with_a_worker_gives_the_report_without_one(
         assert "[background] full simulation" in caplog.text
         assert "[background] evaluate dynamic (abstract)" in caplog.text
     reference = reproduce.run(alone)
+    report = (out / "report.md").read_text()  # the exact chain: adapted cells, not a bound
+    assert "The exact lumped psi (cells adapted to their current input)" in report
+    assert "best two-state" not in report and "best any" not in report
     tables, expected = _report_tables(out), _report_tables(reference)
     assert tables.keys() == expected.keys() and len(tables) == 6
     for name, table in tables.items():
