@@ -16,7 +16,7 @@ from torch import Tensor
 
 from surrogate.ctmc import ReactionNetwork, gillespie
 from surrogate.ctmc.lumped import MAX_STATES, StateSpace, lumped_psi, stationary_distribution
-from surrogate.models.base import InternalState, Randoms
+from surrogate.models.base import InternalState, Randoms, burn_in_seconds
 
 Feature = Callable[[Tensor], Tensor]
 
@@ -67,7 +67,7 @@ class NetworkInternalModel:
         self._features = dict(features or {})
         self.feature_names = tuple(self._features)
         self.signal_names = tuple(signal_names) if signal_names else self.input_names
-        self.burn_in = float(burn_in)
+        self.burn_in = burn_in_seconds(burn_in, "burn_in")
         self.max_states = int(max_states)
         self.max_rounds = max_rounds
         self._space: StateSpace | bool | None = None  # False: too large to enumerate

@@ -29,7 +29,14 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, InternalState, KernelUnsupported, Model, Randoms
+from surrogate.models.base import (
+    CellKernel,
+    InternalState,
+    KernelUnsupported,
+    Model,
+    Randoms,
+    burn_in_seconds,
+)
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
@@ -86,7 +93,7 @@ class PhosphoInternalModel:
         if ssa not in SSA_BACKENDS:
             raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {ssa!r}")
         self.ssa = ssa
-        self.burn_in = float(burn_in)
+        self.burn_in = burn_in_seconds(burn_in)
         self._compiled = None
 
     # -- inputs and features -----------------------------------------------------------------
