@@ -263,7 +263,8 @@ class CollectSettings:
         options = {k: v for k, v in self.options.items() if k != "design" or self.design}
         out = {**self.setup.identity(), "collect": options, "device": self.job.device_type}
         if self.design is not None:
-            out["design_fit"] = self.design.fit_identity()
+            # its rounds fit psi and score it on the diagnostic's occupancy run
+            out["design_fit"] = {**self.design.fit_identity(), "occupancy": self.design.diagnostic}
         return out
 
     @functools.cached_property
