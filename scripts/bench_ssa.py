@@ -1,6 +1,7 @@
 """Benchmark the SSA backends on the E. coli phospho network (see surrogate/bench_ssa.py).
 
-python scripts/bench_ssa.py [--cells 256] [--windows 20] [--out data/bench/ssa.json]
+python scripts/bench_ssa.py [--cells 20] [--t-end 10] [--repeats 3] [--out data/bench/ssa.json]
+Every backend that compares simulates the same workload (cells x t_end simulated seconds);
 GillesPy2 is optional: pip install -e ".[compare]".
 """
 
@@ -15,21 +16,21 @@ from surrogate.bench_ssa import run_bench
 def main() -> None:
     """Parse arguments and run the benchmark."""
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--cells", type=int, default=256, help="cells for the compiled SSA")
-    parser.add_argument("--windows", type=int, default=20, help="windows for the compiled SSA")
-    parser.add_argument("--torch-cells", type=int, default=256)
-    parser.add_argument("--torch-windows", type=int, default=1)
-    parser.add_argument("--trajectories", type=int, default=64, help="GillesPy2 trajectories")
-    parser.add_argument("--t-end", type=float, default=1.0, help="GillesPy2 simulated seconds")
+    parser.add_argument("--cells", type=int, default=20, help="trajectories per backend")
+    parser.add_argument("--t-end", type=float, default=10.0, help="simulated seconds each")
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (best kept)")
+    parser.add_argument("--torch-cells", type=int, default=256, help="batched torch SSA cells")
+    parser.add_argument("--torch-t-end", type=float, default=0.05, help="its simulated seconds")
+    parser.add_argument("--dt", type=float, default=0.05, help="compiled SSA window (s)")
     parser.add_argument("--out", type=Path, default=Path("data/bench/ssa.json"))
     args = parser.parse_args()
     run_bench(
-        args.cells,
-        args.windows,
-        args.torch_cells,
-        args.torch_windows,
-        args.trajectories,
-        args.t_end,
+        cells=args.cells,
+        t_end=args.t_end,
+        repeats=args.repeats,
+        torch_cells=args.torch_cells,
+        torch_t_end=args.torch_t_end,
+        dt=args.dt,
         output=args.out,
     )
 

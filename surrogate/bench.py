@@ -30,6 +30,7 @@ network's file state, not 2 s of SSA per cell; the throughput does not depend on
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -54,6 +55,7 @@ from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusab
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.population import simulate_population
 from surrogate.simulate.precompile import precompiler_code
+from surrogate.simulate.speed import LoopTiming, compare
 
 MODELS = ("full", "lookup", "classifier")
 
@@ -225,7 +227,7 @@ def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict
     with torch.inference_mode():  # cheaper per op than no_grad
         state = simulator.initial_state(n_cells, s["start"], 0.0)
         warm_s = simulator.warm_up(state)
-        best, best_steps, best_s = 0.0, 0, 0.0
+        best: LoopTiming | None = None
         for _ in range(int(s["repeats"])):
             steps = 0
             t0 = time.perf_counter()
@@ -238,18 +240,24 @@ def throughput(simulator: Simulator, n_cells: int, s: Mapping[str, Any]) -> dict
                 if steps >= int(s["min_steps"]) and time.perf_counter() - t0 >= s["min_seconds"]:
                     break
             _sync(device)
-            seconds = time.perf_counter() - t0
-            rate = n_cells * steps / seconds
-            if rate > best:
-                best, best_steps, best_s = rate, steps, seconds
+            timing = LoopTiming.of(simulator, n_cells, steps, time.perf_counter() - t0)
+            if best is None or timing.cell_steps_per_s > best.cell_steps_per_s:
+                best = timing
+    assert best is not None
     return {
-        "cell_steps_per_s": best,
-        "us_per_step": 1e6 * best_s / best_steps,
-        "steps": best_steps,
+        **dataclasses.asdict(best),
+        "cell_steps_per_s": best.cell_steps_per_s,
+        "us_per_step": 1e6 * best.seconds / best.steps,
         "warm_up_s": warm_s,
         "compile_error": simulator.compile_error,
-        "backend": simulator.backend,
     }
+
+
+def ratio(full: Mapping[str, Any], candidate: Mapping[str, Any]) -> float | None:
+    """The candidate's speed-up over the full model from two :func:`throughput` results
+    (:func:`~surrogate.simulate.speed.compare`: per cell-step; None where they ran under
+    different set-ups, e.g. the classifier's torch step beside the full model's kernel)."""
+    return compare(full, candidate)[0]
 
 
 def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict[str, float]:
@@ -591,9 +599,8 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
                         log(f"throughput: {name} n={n} threads={threads} backend={backend} "
                             f"compile={compile}")  # fmt: skip
                         row[name] = throughput(sims[name], n, s)
-                    full = row["full"]["cell_steps_per_s"]
-                    row["ratio_lookup"] = row["lookup"]["cell_steps_per_s"] / full
-                    row["ratio_classifier"] = row["classifier"]["cell_steps_per_s"] / full
+                    row["ratio_lookup"] = ratio(row["full"], row["lookup"])
+                    row["ratio_classifier"] = ratio(row["full"], row["classifier"])
                     rows.append(row)
     results["throughput"] = rows
 
@@ -613,7 +620,7 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
             full = throughput(sim_full, n, s)
             motors.append({
                 "n_motors": int(n_motors), "n_cells": n, "full": full, "lookup": abstract,
-                "ratio_lookup": abstract["cell_steps_per_s"] / full["cell_steps_per_s"],
+                "ratio_lookup": ratio(full, abstract),
             })  # fmt: skip
         results["motors"] = motors
 
@@ -677,6 +684,10 @@ def _si(x: float) -> str:
     return f"{x:.3g}"
 
 
+def _ratio(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
+
+
 def format_report(r: Mapping[str, Any]) -> str:
     """The results as plain-text tables."""
     m = r["machine"]
@@ -696,8 +707,8 @@ def format_report(r: Mapping[str, Any]) -> str:
             f"{row['threads']:>3} {row.get('backend', 'torch'):>7} {row['compile']!s:>7} "
             f"{row['n_cells']:>7} "
             f"{_si(row['full']['cell_steps_per_s']):>9} {_si(row['lookup']['cell_steps_per_s']):>9} "
-            f"{_si(row['classifier']['cell_steps_per_s']):>9} {row['ratio_lookup']:>7.2f} "
-            f"{row['ratio_classifier']:>7.2f}  {row['load'][:1]}"
+            f"{_si(row['classifier']['cell_steps_per_s']):>9} {_ratio(row['ratio_lookup']):>7} "
+            f"{_ratio(row['ratio_classifier']):>7}  {row['load'][:1]}"
         )
     b = r["best_config"]
     lines += ["", f"motors (threads={b['threads']}, compile={b['compile']})"]
@@ -705,7 +716,7 @@ def format_report(r: Mapping[str, Any]) -> str:
     for row in r["motors"]:
         lines.append(
             f"{row['n_motors']:>6} {row['n_cells']:>7} {_si(row['full']['cell_steps_per_s']):>9} "
-            f"{_si(row['lookup']['cell_steps_per_s']):>9} {row['ratio_lookup']:>7.2f}"
+            f"{_si(row['lookup']['cell_steps_per_s']):>9} {_ratio(row['ratio_lookup']):>7}"
         )
     lines += ["", "per-step split (us): randoms / fused kernel / rest = step"]
     for row in r["breakdown"]:

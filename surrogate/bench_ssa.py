@@ -1,19 +1,26 @@
 """SSA backends side by side on one SBML network (the E. coli CheY phosphorylation network).
 
-One run (``python scripts/bench_ssa.py``) measures, on ``network_amounts.xml`` at the adapted
-activity a* = 0.45 and windows dt = 0.05 s:
+One run (``python scripts/bench_ssa.py``) simulates, on ``network_amounts.xml`` at the adapted
+activity a* = 0.45, the same workload with every backend that compares: ``cells`` independent
+trajectories of ``t_end`` simulated seconds each, ``repeats`` times, and reports the best (and
+every) wall time as **cell-seconds per wall second** (cells x simulated seconds / wall seconds),
+per thread too. Enough simulated time (default 20 x 10 s) makes the event loop dominate what
+each backend pays once per call (process start, argument checks, output).
 
-* compiled SSA (numba, :class:`~surrogate.ctmc.CompiledSSA`): compile time cold (fresh process,
-  empty cache) and from numba's on-disk cache (fresh process), then events/s with 1 and 2
-  threads. Timed: ``advance`` calls only (argument checks, the kernel, result conversion).
-* batched torch SSA (:func:`~surrogate.ctmc.gillespie` with ``propensity=``) on the CPU, one
-  torch thread. Timed: the ``gillespie`` calls. It does not count events; its events are the
-  compiled run's measured events per cell per second times its cell-seconds (both are exact
-  samplers of the same law, so the expected counts are equal).
+* compiled SSA (numba, :class:`~surrogate.ctmc.CompiledSSA`), windows of dt: compile time cold
+  (fresh process, empty cache) and from numba's on-disk cache (fresh process), then the
+  workload with 1 and 2 threads. Timed: the ``advance`` calls (checks, kernel, conversion).
+  It counts its events: events/s are measured, for it alone.
 * GillesPy2's C++ SSA (``gillespy2.SSACSolver``, optional extra ``compare``) on the same file
-  imported with ``gillespy2.import_SBML``: the C++ build (solver construction) timed apart from
-  ``run``; ``run`` includes starting the solver process and parsing its text output. Events are
-  estimated like the torch ones; its final mean CheY-P is reported to show it read the same model.
+  imported with ``gillespy2.import_SBML``, one thread: the C++ build (solver construction)
+  timed apart from ``run``, which includes starting the solver process and parsing its text
+  output (three output times per trajectory, to keep that small). It counts no events, so none
+  are reported for it; its final mean CheY-P shows it read the same model. The ratio compiled
+  (one thread) / GillesPy2 is reported only over the equal workload.
+* batched torch SSA (:func:`~surrogate.ctmc.gillespie` with ``propensity=``) on the CPU, one
+  torch thread, on its own (smaller) workload: it is the CUDA path, and on the CPU its cost per
+  event round hardly depends on the number of cells, so its rate is not compared with the
+  others.
 
 Nothing is asserted; the numbers are printed as a table and written as JSON.
 """
@@ -36,8 +43,18 @@ import torch
 from surrogate.ctmc import CellStreams, CompiledSSA, gillespie
 from surrogate.io import write_json
 from surrogate.models.ecoli_phospho import NETWORK_AMOUNTS_PATH, calibrated, load_network
+from surrogate.simulate.population import steps_between
+from surrogate.simulate.speed import cell_steps_per_s
 
-__all__ = ["compile_times", "run_bench"]
+__all__ = [
+    "bench_compiled",
+    "bench_gillespy2",
+    "bench_torch",
+    "cell_seconds_per_s",
+    "compile_times",
+    "equal_workload_ratio",
+    "run_bench",
+]
 
 _COMPILE_CHILD = """
 import json, sys, time
@@ -89,71 +106,83 @@ def _machine() -> dict[str, Any]:
     }
 
 
-def bench_compiled(n_cells: int, windows: int, dt: float, threads: int) -> dict[str, Any]:
-    """Events/s of the compiled SSA on ``n_cells`` for ``windows`` windows (after a warm-up)."""
+def cell_seconds_per_s(cells: int, t_end: float, wall: float) -> float:
+    """Simulated cell-seconds per wall second of ``cells`` trajectories of ``t_end`` s: the
+    speed formula of the simulations (:func:`~surrogate.simulate.speed.cell_steps_per_s`) with
+    simulated seconds in place of steps."""
+    return cell_steps_per_s(cells, t_end, wall)
+
+
+def _best(walls: list[float], cells: int, t_end: float, threads: int) -> dict[str, Any]:
+    """The workload and its rates from the best of ``walls`` (every wall time kept)."""
+    wall = min(walls)
+    rate = cell_seconds_per_s(cells, t_end, wall)
+    return {"threads": threads, "cells": cells, "t_end_s": t_end, "repeats": len(walls),
+            "wall_s": wall, "walls_s": walls, "cell_s_per_s": rate,
+            "cell_s_per_s_per_thread": rate / threads}  # fmt: skip
+
+
+def bench_compiled(cells: int, t_end: float, dt: float, threads: int, repeats: int) -> dict:
+    """The compiled SSA on ``cells`` trajectories of ``t_end`` s in windows of ``dt`` (after a
+    warm-up window), ``repeats`` times; its events are counted."""
     import numba
 
     model = load_network(NETWORK_AMOUNTS_PATH)
     ssa = CompiledSSA(model.kinetics)
     ssa.compile()
     inputs = torch.tensor([calibrated().adapted_activity], dtype=torch.float64)
+    windows = steps_between(t_end, dt, "t_end")
     before = numba.get_num_threads()
     numba.set_num_threads(threads)
+    walls, events = [], []
     try:
-        streams = CellStreams.from_seed(0, n_cells)
-        state, _ = ssa.advance(model.initial_states(n_cells), inputs, dt, streams)  # warm-up
-        events = 0
-        start = time.perf_counter()
-        for _ in range(windows):
-            state, ev = ssa.advance(state, inputs, dt, streams)
-            events += int(ev.sum())
-        wall = time.perf_counter() - start
+        for repeat in range(repeats):
+            streams = CellStreams.from_seed(repeat, cells)
+            state, _ = ssa.advance(model.initial_states(cells), inputs, dt, streams)  # warm-up
+            count = 0
+            start = time.perf_counter()
+            for _ in range(windows):
+                state, ev = ssa.advance(state, inputs, dt, streams)
+                count += int(ev.sum())
+            walls.append(time.perf_counter() - start)
+            events.append(count)
     finally:
         numba.set_num_threads(before)
-    return {
-        "threads": threads,
-        "n_cells": n_cells,
-        "windows": windows,
-        "events": events,
-        "wall_s": wall,
-        "events_per_s": events / wall,
-        "events_per_s_per_thread": events / wall / threads,
-        "events_per_cell_per_dt": events / (n_cells * windows),
-    }
+    out = _best(walls, cells, t_end, threads)
+    best = walls.index(out["wall_s"])
+    out.update(events=events[best], events_per_s=events[best] / out["wall_s"],
+               events_per_cell_per_s=events[best] / (cells * t_end))  # fmt: skip
+    return out
 
 
-def bench_torch(n_cells: int, windows: int, dt: float, events_per_cell_per_s: float) -> dict:
-    """Wall time of the batched torch SSA (one thread) on the same network."""
+def bench_torch(cells: int, t_end: float, dt: float, repeats: int) -> dict[str, Any]:
+    """The batched torch SSA (one thread) on its own workload, ``repeats`` times."""
     model = load_network(NETWORK_AMOUNTS_PATH)
     inputs = torch.tensor([calibrated().adapted_activity], dtype=torch.float64)
-    inputs = inputs.expand(n_cells, 1).contiguous()
-    generator = torch.Generator().manual_seed(0)
+    inputs = inputs.expand(cells, 1).contiguous()
+    windows = steps_between(t_end, dt, "torch t_end")
     before = torch.get_num_threads()
     torch.set_num_threads(1)
+    walls = []
     try:
-        state = model.initial_states(n_cells)
-        start = time.perf_counter()
-        for _ in range(windows):
-            state = gillespie(
-                model.network, state, inputs, dt, generator, propensity=model.torch_propensity
-            )
-        wall = time.perf_counter() - start
+        for repeat in range(repeats):
+            generator = torch.Generator().manual_seed(repeat)
+            state = model.initial_states(cells)
+            start = time.perf_counter()
+            for _ in range(windows):
+                state = gillespie(model.network, state, inputs, dt, generator,
+                                  propensity=model.torch_propensity)  # fmt: skip
+            walls.append(time.perf_counter() - start)
     finally:
         torch.set_num_threads(before)
-    events = events_per_cell_per_s * n_cells * windows * dt
-    return {
-        "threads": 1,
-        "n_cells": n_cells,
-        "windows": windows,
-        "events_estimated": events,
-        "wall_s": wall,
-        "events_per_s": events / wall,
-        "mean_cheyp_end": float(state[:, model.species.index("CheYp")].double().mean()),
-    }
+    out = _best(walls, cells, t_end, 1)
+    out["mean_cheyp_end"] = float(state[:, model.species.index("CheYp")].double().mean())
+    return out
 
 
-def bench_gillespy2(trajectories: int, t_end: float, events_per_cell_per_s: float) -> dict:
-    """GillesPy2's SSACSolver on the same SBML file (skipped when gillespy2 is missing)."""
+def bench_gillespy2(cells: int, t_end: float, repeats: int) -> dict[str, Any]:
+    """GillesPy2's SSACSolver on the same SBML file and workload (skipped when gillespy2 is
+    missing): ``cells`` trajectories of ``t_end`` s per ``run``, ``repeats`` runs."""
     try:
         import gillespy2
     except ImportError:
@@ -165,31 +194,32 @@ def bench_gillespy2(trajectories: int, t_end: float, events_per_cell_per_s: floa
     start = time.perf_counter()
     solver = gillespy2.SSACSolver(model=model)
     build = time.perf_counter() - start
-    start = time.perf_counter()
-    results = solver.run(number_of_trajectories=trajectories, seed=1)
-    wall = time.perf_counter() - start
-    cheyp = float(np.mean([r["CheYp"][-1] for r in results]))
-    events = events_per_cell_per_s * trajectories * t_end
-    return {
-        "threads": 1,
-        "trajectories": trajectories,
-        "t_end_s": t_end,
-        "build_s": build,
-        "wall_s": wall,
-        "events_estimated": events,
-        "events_per_s": events / wall,
-        "mean_cheyp_end": cheyp,
-        "version": gillespy2.__version__,
-    }
+    walls, cheyp = [], []
+    for repeat in range(repeats):
+        start = time.perf_counter()
+        results = solver.run(number_of_trajectories=cells, seed=1 + repeat)
+        walls.append(time.perf_counter() - start)
+        cheyp.append(float(np.mean([r["CheYp"][-1] for r in results])))
+    return {**_best(walls, cells, t_end, 1), "build_s": build, "mean_cheyp_end": cheyp[-1],
+            "version": gillespy2.__version__}  # fmt: skip
+
+
+def equal_workload_ratio(a: dict[str, Any], b: dict[str, Any]) -> float | None:
+    """``a``'s cell-seconds per second per thread over ``b``'s, when both simulated the same
+    workload (cells and simulated time; None otherwise, or when either was skipped)."""
+    if "skipped" in a or "skipped" in b:
+        return None
+    if (a["cells"], a["t_end_s"]) != (b["cells"], b["t_end_s"]):
+        return None
+    return a["cell_s_per_s_per_thread"] / b["cell_s_per_s_per_thread"]
 
 
 def run_bench(
-    n_cells: int = 256,
-    windows: int = 20,
+    cells: int = 20,
+    t_end: float = 10.0,
+    repeats: int = 3,
     torch_cells: int = 256,
-    torch_windows: int = 1,
-    trajectories: int = 64,
-    t_end: float = 1.0,
+    torch_t_end: float = 0.05,
     dt: float = 0.05,
     output: Path | None = None,
 ) -> dict[str, Any]:
@@ -197,11 +227,11 @@ def run_bench(
     result: dict[str, Any] = {"machine": _machine(), "network": str(NETWORK_AMOUNTS_PATH)}
     result["dt"] = dt
     result["compile"] = compile_times()
-    result["compiled"] = [bench_compiled(n_cells, windows, dt, t) for t in (1, 2)]
-    rate = result["compiled"][0]["events_per_cell_per_dt"] / dt
-    result["events_per_cell_per_s"] = rate
-    result["torch"] = bench_torch(torch_cells, torch_windows, dt, rate)
-    result["gillespy2"] = bench_gillespy2(trajectories, t_end, rate)
+    result["compiled"] = [bench_compiled(cells, t_end, dt, t, repeats) for t in (1, 2)]
+    result["torch"] = bench_torch(torch_cells, torch_t_end, dt, repeats)
+    result["gillespy2"] = bench_gillespy2(cells, t_end, repeats)
+    result["compiled_vs_gillespy2"] = equal_workload_ratio(result["compiled"][0],
+                                                           result["gillespy2"])  # fmt: skip
     result["mean_cheyp_initial"] = int(load_network().initial_state[6])
     print(format_table(result))
     if output is not None:
@@ -212,35 +242,37 @@ def run_bench(
 def format_table(r: dict[str, Any]) -> str:
     """A plain-text table of a :func:`run_bench` result."""
     m = r["machine"]
+    c1 = r["compiled"][0]
     lines = [
         f"machine: {m['cpu']}, {m['cores']} cores, load {m['load_avg_1_5_15']}",
-        f"network: {r['network']}  ({r['events_per_cell_per_s'] * r['dt']:.0f} events/cell/dt,"
-        f" dt = {r['dt']})",
+        f"network: {r['network']}  ({c1['events_per_cell_per_s'] * r['dt']:.0f} events/cell/dt"
+        f" measured, dt = {r['dt']})",
         "compile (fresh process): cold {:.2f} s, from cache {:.2f} s".format(
             r["compile"]["cold"]["compile_s"], r["compile"]["cached"]["compile_s"]
         ),
-        f"{'backend':34s} {'threads':>7s} {'wall s':>8s} {'events/s':>12s} {'per thread':>12s}",
+        f"{'backend':30s} {'threads':>7s} {'workload':>14s} {'best wall s':>11s} "
+        f"{'cell-s/s':>10s} {'per thread':>10s} {'events/s':>10s}",
     ]
+
+    def row(name: str, x: dict[str, Any], events: str = "") -> str:
+        work = f"{x['cells']} x {x['t_end_s']:g} s"
+        return (f"{name:30s} {x['threads']:7d} {work:>14s} {x['wall_s']:11.2f} "
+                f"{x['cell_s_per_s']:10.3g} {x['cell_s_per_s_per_thread']:10.3g} {events:>10s}")  # fmt: skip
+
     for c in r["compiled"]:
-        lines.append(
-            f"{'compiled SSA (numba)':34s} {c['threads']:7d} {c['wall_s']:8.2f} "
-            f"{c['events_per_s']:12.3e} {c['events_per_s_per_thread']:12.3e}"
-        )
-    t = r["torch"]
-    lines.append(
-        f"{'batched torch SSA (CPU)':34s} {1:7d} {t['wall_s']:8.2f} {t['events_per_s']:12.3e} "
-        f"{t['events_per_s']:12.3e}"
-    )
+        lines.append(row("compiled SSA (numba)", c, f"{c['events_per_s']:.3g}"))
+    lines.append(row("batched torch SSA (CPU)", r["torch"]) + "  (own workload)")
     g = r["gillespy2"]
     if "skipped" in g:
-        lines.append(f"{'GillesPy2 SSACSolver':34s} skipped: {g['skipped']}")
+        lines.append(f"{'GillesPy2 SSACSolver':30s} skipped: {g['skipped']}")
     else:
+        lines.append(row("GillesPy2 SSACSolver (C++)", g) + f"  (C++ build {g['build_s']:.1f} s)")
         lines.append(
-            f"{'GillesPy2 SSACSolver (C++)':34s} {1:7d} {g['wall_s']:8.2f} "
-            f"{g['events_per_s']:12.3e} {g['events_per_s']:12.3e}   (C++ build {g['build_s']:.1f} s)"
+            f"compiled SSA (1 thread) / GillesPy2, equal workloads: "
+            f"{r['compiled_vs_gillespy2']:.2f}x per thread"
         )
         lines.append(
-            f"mean CheY-P at the end: torch {t['mean_cheyp_end']:.0f}, GillesPy2 "
+            f"mean CheY-P at the end: torch {r['torch']['mean_cheyp_end']:.0f}, GillesPy2 "
             f"{g['mean_cheyp_end']:.0f} (start {r['mean_cheyp_initial']})"
         )
     return "\n".join(lines)

@@ -21,3 +21,8 @@ class MissingArtefactError(ArtefactError, FileNotFoundError):
 
 class NumericalError(SurrogateError, FloatingPointError):
     """NaN or infinite values where finite numbers are required."""
+
+
+class CompileError(SurrogateError, RuntimeError):
+    """``torch.compile`` failed where the settings ask for a compiled run (its results would not
+    be the compiled run's)."""

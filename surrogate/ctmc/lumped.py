@@ -1,4 +1,4 @@
-"""Exact lumped switching probabilities of a small reaction network: the best two-state abstraction.
+"""Exact lumped switching probabilities of a small reaction network, for cells adapted to their inputs.
 
 A two-state abstraction replaces an internal network by a Markov chain over one boolean property
 phi of its state (e.g. RUN). For a network whose reachable state space is small (the four motors
@@ -9,8 +9,11 @@ probabilities can be computed exactly from the generator Q of the window's rates
 
 where pi is the stationary law of Q (the network adapted to the current inputs) and pi(. | phi)
 its restriction to lump phi, renormalised. ``psi_phi`` is P(phi' = 1 | phi) after one window dt.
-This is the reference a learned psi is scored against; a chain driven by it is the best any
-two-state abstraction built from stationary inputs can do.
+This is the psi of cells adapted to their current inputs (the internal state at its stationary
+law there), the reference a learned psi is scored against where the population lives. It is not
+the best a two-state chain can do: a moving cell's internal state lags its inputs, and psis
+learned from the full model's own transitions pass fidelity checks the chain driven by this one
+fails (the README's fidelity table).
 
 Everything is batched over cells: ``(n, R)`` rate constants give ``(n, K, K)`` generators.
 """

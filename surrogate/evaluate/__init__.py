@@ -1,7 +1,8 @@
 """Evaluation of an abstraction against the full model: statistics, figures and reports.
 
 ``statistics`` and ``report`` are re-exported here; import ``surrogate.evaluate.figures``
-explicitly (it needs matplotlib).
+explicitly (it needs matplotlib). Speed-ups: :func:`surrogate.simulate.speed.speedup` (one
+formula, per cell-step, for every speed figure).
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ from surrogate.evaluate.statistics import (
     mean_std_over_time,
     noise_floor_table,
     observable_at,
-    speedup,
 )
 
 __all__ = [
@@ -45,7 +45,6 @@ __all__ = [
     "mean_std_over_time",
     "noise_floor_table",
     "observable_at",
-    "speedup",
     "split_quantity",
     "table1_markdown",
     "write_comparison",

@@ -822,31 +822,6 @@ def combine_with_noise_floor(table: pd.DataFrame, floor_table: pd.DataFrame) -> 
     return out
 
 
-def speedup(
-    reference: SimulationRun, candidate: SimulationRun, per_cell_step: bool = False
-) -> float:
-    """Reference wall time / candidate wall time (``manifest["wall_time_s"]``).
-
-    With ``per_cell_step`` the ratio of throughputs ``cell_steps_per_s`` (candidate / reference)
-    instead, which stays fair when the two runs simulated different numbers of cell-steps.
-    """
-    if per_cell_step:
-        ref = _positive(reference, "cell_steps_per_s")
-        cand = _positive(candidate, "cell_steps_per_s")
-        return cand / ref
-    return _positive(reference, "wall_time_s") / _positive(candidate, "wall_time_s")
-
-
-def _positive(run: SimulationRun, key: str) -> float:
-    value = run.manifest.get(key)
-    if value is None:
-        raise ArtefactError(f"manifest of {run.label} has no {key!r}; re-run `{MADE_BY}`")
-    value = float(value)
-    if not value > 0 or not math.isfinite(value):
-        raise ArtefactError(f"manifest of {run.label} has {key}={value}; expected positive")
-    return value
-
-
 def mean_std_over_time(run: SimulationRun, name: str | None = None) -> pd.DataFrame:
     """Per record time: the mean, sample standard deviation (ddof=1) and count of observable
     ``name`` (default: the first one), over all cells (from the moments when the run has them).

@@ -214,6 +214,17 @@ class CachedPsi:
         """Latent mean and variance (``2 x n``) of both classifiers at raw inputs ``z``."""
         return self._latent(self._inputs(z), None)
 
+    def spread(self, phi: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
+        """psi at ``z`` (``n x d``) for origins ``phi`` (``(n,)``) and its posterior standard
+        deviation, ``phi(mu) sigma`` (the probit link's delta method: psi = Phi(f), f ~ N(mu,
+        sigma^2) under the variational posterior); both float32 on ``z``'s device."""
+        mean, var = self._latent(self._inputs(z), None)  # (2, n)
+        one = phi.to(self.device).reshape(-1).to(mean.dtype) > 0
+        mu, v = torch.where(one, mean[1], mean[0]), torch.where(one, var[1], var[0])
+        p = torch.special.ndtr(mu * torch.rsqrt(1.0 + v))
+        sd = torch.exp(-0.5 * mu * mu) / math.sqrt(2.0 * math.pi) * torch.sqrt(v.clamp_min(0.0))
+        return p.to(z.device, torch.float32), sd.to(z.device, torch.float32)
+
     def _inputs(self, z: Tensor) -> Tensor:
         """``z`` as ``n x d`` on the cache's device and dtype (a 1-D ``z`` for one input)."""
         d = len(self.input_names)

@@ -23,6 +23,7 @@ host and never mutates its inputs, so the simulator can fuse a whole step into o
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -376,6 +377,19 @@ def check_options(
     return {**allowed, **dict(options)}
 
 
+def burn_in_seconds(value: Any, name: str = "model.burn_in") -> float:
+    """A burn-in duration: a finite number of seconds >= 0, else a ConfigError naming
+    ``name`` (a negative one would silently mean none)."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or value < 0
+    ):
+        raise ConfigError(f"{name} must be a non-negative number of seconds, got {value!r}")
+    return float(value)
+
+
 __all__ = [
     "CELL_STEP_SECONDS",
     "CHEAP_COLLECTION",
@@ -390,6 +404,7 @@ __all__ = [
     "Model",
     "Perturbation",
     "Randoms",
+    "burn_in_seconds",
     "check_options",
     "has_exact_psi",
 ]

@@ -23,7 +23,7 @@ from surrogate.ctmc import ReactionNetwork, gillespie, mass_action_kinetics
 from surrogate.ctmc.kinetics import Expr, species_ref, torch_function
 from surrogate.ctmc.lumped import MAX_STATES, StateSpace, lumped_psi, stationary_distribution
 from surrogate.errors import ConfigError
-from surrogate.models.base import InternalState, Randoms
+from surrogate.models.base import InternalState, Randoms, burn_in_seconds
 from surrogate.sbml import SbmlModel
 from surrogate.sbml.formula import parse_formula
 
@@ -165,7 +165,7 @@ class NetworkInternalModel:
         if ssa not in SSA_BACKENDS:
             raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {ssa!r}")
         self.ssa = ssa
-        self.burn_in = float(burn_in)
+        self.burn_in = burn_in_seconds(burn_in, "burn_in")
         self.max_states = int(max_states)
         self.max_rounds = max_rounds
         self.signal_bounds = dict(signal_bounds) if signal_bounds else None

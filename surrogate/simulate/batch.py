@@ -142,7 +142,8 @@ class BatchSimulator(Simulator):
     Args:
         model: the agent model shared by every replicate.
         replicates: the runs, in block order; each needs its own decision-layer instance.
-        dt, device, check_finite, compile, backend: as for :class:`Simulator`.
+        dt, device, check_finite, compile, backend, compile_fallback: as for
+            :class:`Simulator`.
 
     Example:
         >>> from surrogate.fields import GaussianField, LinearField
@@ -164,6 +165,7 @@ class BatchSimulator(Simulator):
         check_finite: bool = True,
         compile: bool = False,
         backend: str = "torch",
+        compile_fallback: bool = True,
     ) -> None:
         self.replicates = list(replicates)
         if not self.replicates:
@@ -180,7 +182,8 @@ class BatchSimulator(Simulator):
             else:
                 blocks.append((r.field, r.n_cells))
         field = FieldBatch([f for f, _ in blocks], [n for _, n in blocks])
-        super().__init__(model, decision, field, dt, device, check_finite, compile, backend)
+        super().__init__(model, decision, field, dt, device, check_finite, compile, backend,
+                         compile_fallback)  # fmt: skip
         self.sizes = sizes
         self.slices = [slice(a, a + n) for a, n in zip(_offsets(sizes), sizes, strict=True)]
         self._blocks: list[RandomBlock] = []

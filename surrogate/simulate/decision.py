@@ -6,8 +6,9 @@ The outer loop is shared; only this layer differs between
 * :class:`AbstractDecision`: the two-state chain phi' ~ Bernoulli(psi_phi(z)), z the
   abstraction's inputs computed from x, psi a learned classifier or its lookup table
   (Algorithm 2);
-* :class:`ExactDecision`: the same chain driven by the internal model's exact lumped psi, the
-  best any two-state abstraction can do (where the state space is small enough to compute it).
+* :class:`ExactDecision`: the same chain driven by the internal model's exact lumped psi (where
+  the state space is small enough to compute it): the psi of cells adapted to their current
+  inputs, not a bound on what a two-state chain can do (moving cells are not adapted).
 
 Besides the eager protocol (``initialize`` / ``step``) each layer has a *pure* form the
 simulator fuses into its one-function step (and can ``torch.compile``): ``fused_step`` takes its

@@ -36,7 +36,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import ConfigError, NumericalError
+from surrogate.errors import CompileError, ConfigError, NumericalError
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
@@ -227,6 +227,9 @@ class Simulator:
             ``auto`` (numba where the model has a kernel for this decision layer and field on
             the CPU and ``compile`` is off, else torch; ``backend_note`` says why torch).
             :meth:`advance` uses it; :meth:`step` is always the torch step.
+        compile_fallback: with ``compile``, run eagerly (with a warning) where compiling
+            fails; False: raise :class:`~surrogate.errors.CompileError` instead (a stage whose
+            artefact's identity says ``compile=true`` must not hold an eager run).
 
     Example:
         >>> from surrogate.fields import GaussianField
@@ -248,6 +251,7 @@ class Simulator:
         check_finite: bool = True,
         compile: bool = False,
         backend: str = "torch",
+        compile_fallback: bool = True,
     ) -> None:
         self.model = model
         self.body = model.body
@@ -267,11 +271,18 @@ class Simulator:
         if self.kernel is not None:  # a compilation in flight fills numba's cache for its calls
             wait_for_precompile()
         self.compile = bool(compile)
+        self.compile_fallback = bool(compile_fallback)
         self.compile_error: str | None = None
         self._kernels: dict[str, Callable[..., Any]] = {}
         if self.compile and self.kernel is None:
             for name in ("_fused_step", "_advance"):
                 self._kernels[name] = torch.compile(_private_copy(getattr(self, name)))
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the torch step runs through ``torch.compile`` (asked for, the torch loop,
+        and not fallen back to eager so far)."""
+        return self.compile and self.kernel is None and self.compile_error is None
 
     @property
     def randoms(self) -> Randoms:
@@ -403,6 +414,12 @@ class Simulator:
             except Exception as exc:  # a compiler/backend failure: same function, eagerly
                 self.compile_error = f"{type(exc).__name__}: {exc}"
                 self._kernels.clear()
+                if not self.compile_fallback:
+                    raise CompileError(
+                        f"torch.compile of the simulation step failed ({self.compile_error}); "
+                        "this run's settings say compile=true, so it is not run eagerly under "
+                        "them: run with compile=false"
+                    ) from exc
                 warnings.warn(
                     f"torch.compile of the simulation step failed ({self.compile_error}); "
                     "running it eagerly",

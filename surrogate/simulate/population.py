@@ -43,8 +43,10 @@ class PopulationSummary:
 
     @property
     def cell_steps_per_s(self) -> float:
-        """Throughput of the time loop (cells x steps / loop seconds)."""
-        return self.n_cells * self.n_steps / max(self.loop_time_s, 1e-12)
+        """Throughput of the time loop (:func:`~surrogate.simulate.speed.cell_steps_per_s`)."""
+        from surrogate.simulate.speed import cell_steps_per_s
+
+        return cell_steps_per_s(self.n_cells, self.n_steps, max(self.loop_time_s, 1e-12))
 
 
 def steps_between(interval: float, dt: float, what: str) -> int:

@@ -1,23 +1,180 @@
-"""Speed of decision layers measured side by side, in one process, on the same population.
+"""Loop speed: one formula for every speed figure, and the side-by-side measurement.
 
+Every speed figure of the package (the benchmark, the speed stage, reproduce's measurement, the
+evaluate stage's speed-up) is a ratio of :func:`cell_steps_per_s` of two :class:`LoopTiming`\\ s
+through :func:`speedup`: per cell-step, so runs of different sizes (e.g. a full model on 20,000
+cells against an abstraction on 1,000,000) compare by what each did per cell and step, and only
+between loops timed on the same device with the same threads, loop and compile state.
+
+:func:`measure_speed` times decision layers side by side in one process on the same population.
 Runs simulated together in one batch share their steps, so a run's own loop time no longer
-exists; the speed of the full model against the abstraction is measured here instead, the same
+exists; the speed of the full model against the abstraction is measured there instead, the same
 way for each: the same model, field and number of cells, the same compile setting, after a
 warm-up (compile time reported separately), best of ``repeats``.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
+from surrogate.errors import ArtefactError, SurrogateError
 from surrogate.fields import Field
 from surrogate.models.base import Model
 from surrogate.simulate.decision import DecisionLayer
 from surrogate.simulate.loop import Simulator
+
+#: what must match for two loop times to compare (a difference in any one is not the model's)
+SETUP = ("device", "threads", "backend", "compiled")
+
+
+class IncomparableSpeeds(SurrogateError, ValueError):
+    """Two loops timed under different set-ups (device, threads, loop or compile state)."""
+
+
+def cell_steps_per_s(n_cells: int, steps: int, seconds: float) -> float:
+    """Throughput of a loop that advanced ``n_cells`` cells by ``steps`` steps in ``seconds``.
+
+    Args:
+        n_cells: cells simulated (> 0).
+        steps: steps of dt each cell took (> 0).
+        seconds: wall-clock seconds of those steps (finite, > 0).
+
+    Returns:
+        ``n_cells * steps / seconds``.
+    """
+    if not (n_cells > 0 and steps > 0):
+        raise ValueError(f"a timed loop needs cells and steps, got {n_cells} x {steps}")
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"a timed loop needs a positive finite time, got {seconds!r} s")
+    return n_cells * steps / seconds
+
+
+@dataclass(frozen=True)
+class LoopTiming:
+    """One timed simulation loop: its workload, its time and the set-up it ran under.
+
+    Attributes:
+        n_cells: cells simulated.
+        steps: steps of dt timed.
+        seconds: wall-clock seconds of those steps (the loop: no set-up, no compilation).
+        device: the device type (``cpu``, ``cuda``).
+        threads: torch's intra-op threads (merged shards with different counts: "1,2").
+        backend: the loop that ran (``torch``: the batched torch step; ``numba``: the model's
+            per-cell kernel). ``backend=auto`` picks per model, so a model without a kernel
+            (e.g. the classifier every step, or the SBML network) beside one with a kernel is
+            no comparison of the models.
+        compiled: whether the torch step ran through ``torch.compile`` (asked for and not
+            fallen back to eager).
+    """
+
+    n_cells: int
+    steps: int
+    seconds: float
+    device: str
+    threads: int | str
+    backend: str
+    compiled: bool
+
+    @property
+    def cell_steps_per_s(self) -> float:
+        """:func:`cell_steps_per_s` of this loop."""
+        return cell_steps_per_s(self.n_cells, self.steps, self.seconds)
+
+    def setup(self) -> dict[str, Any]:
+        """What must match for this loop's time to compare with another's (:data:`SETUP`)."""
+        return {key: getattr(self, key) for key in SETUP}
+
+    def with_seconds(self, seconds: float) -> LoopTiming:
+        """The same loop with another time (e.g. the wall time of the run around it)."""
+        return dataclasses.replace(self, seconds=float(seconds))
+
+    @classmethod
+    def of(cls, simulator: Simulator, n_cells: int, steps: int, seconds: float) -> LoopTiming:
+        """The timing of ``steps`` steps of ``n_cells`` cells by ``simulator``, on this
+        process's current thread count."""
+        return cls(int(n_cells), int(steps), float(seconds), simulator.device.type,
+                   torch.get_num_threads(), simulator.backend, simulator.compiled)  # fmt: skip
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> LoopTiming:
+        """A timing from a mapping with its fields (e.g. one :func:`measure_speed` entry)."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        missing = [n for n in names if n not in values]
+        if missing:
+            raise KeyError(f"a loop timing needs {missing}")
+        return cls(**{n: values[n] for n in names})
+
+    @classmethod
+    def from_manifest(cls, manifest: Mapping[str, Any], seconds: str = "loop_time_s") -> LoopTiming:
+        """The loop of a simulation run from its ``manifest.json`` (``seconds``: the time to
+        use, the loop's or ``wall_time_s``)."""
+        needed = ("n_cells", "n_steps", seconds, "device", "torch_threads", "loop_backend")
+        missing = [k for k in needed if manifest.get(k) is None]
+        if missing:
+            raise ArtefactError(f"a simulation manifest without {missing} has no loop timing; "
+                                "re-run the simulation")  # fmt: skip
+        threads = manifest["torch_threads"]  # merged shards with different counts: "1,2"
+        return cls(
+            n_cells=int(manifest["n_cells"]),
+            steps=int(manifest["n_steps"]),
+            seconds=float(manifest[seconds]),
+            device=str(manifest["device"]).split(":")[0],
+            threads=int(threads) if str(threads).isdigit() else str(threads),
+            backend=str(manifest["loop_backend"]),
+            compiled=bool(manifest.get("compiled", manifest.get("compile", False))),
+        )
+
+
+def differences(reference: LoopTiming, candidate: LoopTiming) -> list[str]:
+    """Why two loop times do not compare: one line per differing :data:`SETUP` entry (empty:
+    they compare)."""
+    a, b = reference.setup(), candidate.setup()
+    return [f"{key} {a[key]} vs {b[key]}" for key in SETUP if a[key] != b[key]]
+
+
+def speedup(reference: LoopTiming, candidate: LoopTiming) -> float:
+    """How many times faster ``candidate`` is than ``reference`` per cell-step.
+
+    Args:
+        reference: the loop compared against (e.g. the full model's).
+        candidate: the loop compared (e.g. the abstraction's), under the same set-up.
+
+    Returns:
+        ``candidate.cell_steps_per_s / reference.cell_steps_per_s``: over equal workloads the
+        ratio of loop times, over unequal ones what each does per cell and step.
+
+    Raises:
+        IncomparableSpeeds: the set-ups differ (:func:`differences` says how).
+    """
+    why = differences(reference, candidate)
+    if why:
+        raise IncomparableSpeeds(f"loop times under different set-ups do not compare: "
+                                 f"{'; '.join(why)}")  # fmt: skip
+    return candidate.cell_steps_per_s / reference.cell_steps_per_s
+
+
+def compare(
+    reference: LoopTiming | Mapping[str, Any], candidate: LoopTiming | Mapping[str, Any]
+) -> tuple[float | None, list[str]]:
+    """:func:`speedup` of ``candidate`` over ``reference`` where their set-ups match, else None;
+    and why not (:func:`differences`; empty when they match).
+
+    Args:
+        reference: a :class:`LoopTiming`, or a mapping with its fields (a
+            :func:`measure_speed` entry, a bench throughput result).
+        candidate: the same for the loop compared.
+    """
+    a, b = (t if isinstance(t, LoopTiming) else LoopTiming.from_mapping(t)
+            for t in (reference, candidate))  # fmt: skip
+    why = differences(a, b)
+    return (None if why else speedup(a, b)), why
 
 
 def measure_speed(
@@ -39,9 +196,9 @@ def measure_speed(
     The steps are taken ``chunk_steps`` per :meth:`Simulator.advance` call, as the simulate
     stage takes a record interval (20 steps: 1 s at dt 0.05) per call.
 
-    Returns, per name: ``seconds`` (best of ``repeats``), ``cell_steps_per_s``,
-    ``us_per_step``, ``compile_s`` (the warm-up), ``compile_error`` and ``backend`` (the
-    loop's, resolved).
+    Returns, per name: the :class:`LoopTiming` fields (``seconds``: best of ``repeats``;
+    ``backend``: the loop that ran), ``cell_steps_per_s``, ``us_per_step``, ``compile_s`` (the
+    warm-up) and ``compile_error``.
     """
     out = {}
     for name, decision in decisions.items():
@@ -60,17 +217,23 @@ def measure_speed(
                 if sim.device.type == "cuda":
                     torch.cuda.synchronize(sim.device)
                 best = min(best, time.perf_counter() - t0)
+        timing = LoopTiming.of(sim, n_cells, steps, best)
         out[name] = {
-            "seconds": best,
-            "cell_steps_per_s": n_cells * steps / best,
+            **dataclasses.asdict(timing),
+            "cell_steps_per_s": timing.cell_steps_per_s,
             "us_per_step": 1e6 * best / steps,
             "compile_s": compile_s,
             "compile_error": sim.compile_error,
-            "backend": sim.backend,
-            "n_cells": n_cells,
-            "steps": steps,
         }
     return out
 
 
-__all__ = ["measure_speed"]
+__all__ = [
+    "IncomparableSpeeds",
+    "LoopTiming",
+    "cell_steps_per_s",
+    "compare",
+    "differences",
+    "measure_speed",
+    "speedup",
+]

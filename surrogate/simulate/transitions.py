@@ -25,7 +25,7 @@ removes it).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import pandas as pd
@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
+from surrogate.simulate.design import GuidedJump
 from surrogate.simulate.loop import PopulationState, Simulator
 
 #: column of the expected label: P(phi' = 1 | the internal state at the window's start, x)
@@ -52,8 +53,10 @@ def _rows(
     perturb_rate: float = 0.0,
     blackout: int = 0,
     expected: bool = False,
+    guide: Callable[[], GuidedJump | None] | None = None,
 ) -> Iterator[dict[str, np.ndarray]]:
-    """Yield recorded rows step by step (see the module docstring)."""
+    """Yield recorded rows step by step (see the module docstring); ``guide()``: the guided
+    jumps of a sequential design at this step, if any (None: the perturbation as drawn)."""
     internal = simulator.decision.internal  # type: ignore[attr-defined]
     if expected and not can_expect(internal):
         raise ConfigError(
@@ -78,7 +81,11 @@ def _rows(
             k += 1
             if perturbation is not None:
                 jump = torch.rand(n_cells, device=device) < jump_probability
-                state.body = perturbation.apply(state.body, jump)
+                guided = guide() if guide is not None else None
+                if guided is not None:
+                    state.body = guided.apply(state.body, jump, state.phi, state.step * dt)
+                else:
+                    state.body = perturbation.apply(state.body, jump)
                 since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
             if k % record_every:
                 _one_step(simulator, state)
@@ -108,7 +115,10 @@ def _rows(
             if before is not None:
                 p_next = internal.expected_phi_next(before, x, dt)[rows]
                 chunk[EXPECTED] = p_next.float().cpu().numpy()
-            yield chunk
+            # the caller runs outside inference mode while this generator waits (e.g. a
+            # sequential design fits psi between rounds)
+            with torch.inference_mode(False):
+                yield chunk
 
 
 def _internal_state(simulator: Simulator) -> tuple[Tensor, ...]:
@@ -137,6 +147,80 @@ def _table(chunks: list[dict[str, np.ndarray]]) -> pd.DataFrame:
     table["phi"] = table["phi"].astype(np.int8)
     table["phi_next"] = table["phi_next"].astype(np.int8)
     return table
+
+
+class TransitionCollector:
+    """The perturbed full-model population of :func:`collect_transitions`, kept between calls:
+    each :meth:`take` goes on simulating it, so a sequential design collects in rounds (and may
+    set :attr:`guide` between them) without equilibrating a new population each time.
+
+    Args: as :func:`collect_transitions`.
+
+    Example:
+        >>> collector = TransitionCollector(simulator, perturbation, 500, 0.1)  # doctest: +SKIP
+        >>> first = collector.take(10_000)          # 10,000 rows per origin state
+        >>> collector.guide = GuidedJump(...)        # later jumps guided
+        >>> more = collector.take(10_000)            # the same cells, simulated on
+    """
+
+    def __init__(
+        self,
+        simulator: Simulator,
+        perturbation: Perturbation,
+        n_cells: int,
+        perturb_rate: float,
+        record_every: int = 1,
+        equilibration_time: float = 10.0,
+        max_time: float = 2000.0,
+        progress: bool = True,
+        blackout: int = 0,
+        expected: bool = False,
+    ) -> None:
+        self.max_time = float(max_time)
+        self.progress = progress
+        #: guided jumps of a sequential design (None: the perturbation as drawn)
+        self.guide: GuidedJump | None = None
+        self.kept = np.zeros(2, dtype=np.int64)
+        start = perturbation.start(n_cells, simulator.device)
+        max_steps = math.ceil(self.max_time / simulator.dt)
+        self._rows = _rows(simulator, n_cells, start, equilibration_time, record_every, max_steps,
+                           perturbation, perturb_rate, blackout, expected,
+                           lambda: self.guide)  # fmt: skip
+
+    def take(self, n_per_state: int) -> pd.DataFrame:
+        """Simulate on until ``n_per_state`` more transitions from each origin state are
+        recorded; return a random (seeded) subsample of exactly ``n_per_state`` per origin (the
+        rest of the last steps' rows is dropped)."""
+        chunks: list[dict[str, np.ndarray]] = []
+        counts = np.zeros(2, dtype=np.int64)
+        bar = tqdm(total=2 * n_per_state, desc="collect transitions", disable=not self.progress,
+                   mininterval=1.0)  # fmt: skip
+        for chunk in self._rows:
+            chunks.append(chunk)
+            new = np.bincount(chunk["phi"], minlength=2)
+            bar.update(int(np.minimum(counts + new, n_per_state).sum()
+                           - np.minimum(counts, n_per_state).sum()))  # fmt: skip
+            counts += new
+            if (counts >= n_per_state).all():
+                break
+        bar.close()
+        if not (counts >= n_per_state).all():
+            raise ConfigError(
+                f"collect reached collect.max_time={self.max_time:g} s with only "
+                f"{(self.kept + counts).tolist()} transitions (phi = 0, 1) of the "
+                f"{(self.kept + n_per_state).tolist()} wanted; raise collect.max_time or "
+                f"collect.n_cells, or lower collect.n_per_state"
+            )
+        table = _table(chunks)
+        # a random (seeded) subsample per origin spreads the kept rows over the whole take
+        gen = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
+        phi = table["phi"].to_numpy()
+        keep = np.concatenate([
+            np.sort(gen.choice(np.flatnonzero(phi == p), n_per_state, replace=False))
+            for p in (0, 1)
+        ])  # fmt: skip
+        self.kept += n_per_state
+        return table.iloc[np.sort(keep)].reset_index(drop=True)
 
 
 def collect_transitions(
@@ -168,37 +252,9 @@ def collect_transitions(
         expected: also record each window's expected label (``phi_next_expected``).
         max_time: simulated seconds before giving up (ConfigError).
     """
-    start = perturbation.start(n_cells, simulator.device)
-    max_steps = math.ceil(max_time / simulator.dt)
-    chunks: list[dict[str, np.ndarray]] = []
-    counts = np.zeros(2, dtype=np.int64)
-    bar = tqdm(total=2 * n_per_state, desc="collect transitions", disable=not progress,
-               mininterval=1.0)  # fmt: skip
-    rows = _rows(simulator, n_cells, start, equilibration_time, record_every, max_steps,
-                 perturbation, perturb_rate, blackout, expected)  # fmt: skip
-    for chunk in rows:
-        chunks.append(chunk)
-        new = np.bincount(chunk["phi"], minlength=2)
-        bar.update(int(np.minimum(counts + new, n_per_state).sum()
-                       - np.minimum(counts, n_per_state).sum()))  # fmt: skip
-        counts += new
-        if (counts >= n_per_state).all():
-            break
-    bar.close()
-    if not (counts >= n_per_state).all():
-        raise ConfigError(
-            f"collect reached collect.max_time={max_time:g} s with only {counts.tolist()} "
-            f"transitions (phi = 0, 1) of the {n_per_state} wanted per origin state; raise "
-            f"collect.max_time or collect.n_cells, or lower collect.n_per_state"
-        )
-    table = _table(chunks)
-    # a random (seeded) subsample per origin spreads the kept rows over the whole collection
-    gen = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
-    phi = table["phi"].to_numpy()
-    keep = np.concatenate(
-        [np.sort(gen.choice(np.flatnonzero(phi == p), n_per_state, replace=False)) for p in (0, 1)]
-    )
-    return table.iloc[np.sort(keep)].reset_index(drop=True)
+    collector = TransitionCollector(simulator, perturbation, n_cells, perturb_rate, record_every,
+                                    equilibration_time, max_time, progress, blackout, expected)  # fmt: skip
+    return collector.take(n_per_state)
 
 
 def record_occupancy(

@@ -38,6 +38,10 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 
+#: seconds between checks of the results pipe while close() waits for the feeding thread
+POLL_S = 0.05
+
+
 def worker_threads(threads: int) -> int:
     """A worker's share of a process's ``threads`` (half, at least one)."""
     return max(1, int(threads) // 2)
@@ -83,6 +87,7 @@ class Worker:
         self._send: Connection | None = None
         self._error: str | None = None
         self._started = threading.Event()
+        self._cancelled = threading.Event()
         self._t0 = time.perf_counter()
         self._thread = threading.Thread(target=self._feed, args=(after,), daemon=True)
         self._thread.start()
@@ -124,10 +129,21 @@ class Worker:
         return True
 
     def close(self) -> None:
-        """Let the worker finish its jobs and end; wait for it (reading what it sends: a
-        result left in the pipe could block it)."""
+        """Let the worker finish its jobs and end; wait for it, reading its results while the
+        last jobs are still being sent: a result and the next job each larger than a pipe's
+        buffer would otherwise block the worker, the feeding thread and this process on one
+        another."""
         self._jobs.put(None)
-        self._thread.join()
+        self._started.wait()  # bounded: waits for `after` at most
+        while self._thread.is_alive():
+            if (
+                self._receive is not None
+                and self._received < self._submitted
+                and self._poll(POLL_S)
+            ):
+                self._read_one()
+            else:
+                self._thread.join(POLL_S)
         while self._receive is not None and self._received < self._submitted:
             self._read_one()
         if self._process is not None:
@@ -139,19 +155,22 @@ class Worker:
 
     def cancel(self) -> None:
         """Stop the worker now (this process failed; its work is not needed): a job it did
-        not finish wrote nothing."""
+        not finish wrote nothing. The process ends first: the feeding thread may be blocked
+        sending it a job while it is blocked sending a result nobody reads."""
+        self._cancelled.set()
         self._jobs.put(None)
-        self._thread.join()  # bounded: waits for `after` at most
+        self._started.wait()  # bounded: waits for `after` at most
         if self._process is not None and self._process.poll() is None:
             self._process.terminate()
             self._process.wait()
+        self._thread.join()  # a send to the ended process fails at once
         if self._receive is not None:
             self._receive.close()
 
-    def _poll(self) -> bool:
+    def _poll(self, timeout: float = 0.0) -> bool:
         assert self._receive is not None
         try:
-            return self._receive.poll()
+            return self._receive.poll(timeout)
         except (OSError, EOFError):
             return True  # _read_one records the failure
 
@@ -179,7 +198,7 @@ class Worker:
         send = self._send
         assert send is not None
         try:
-            while (job := self._jobs.get()) is not None:
+            while (job := self._jobs.get()) is not None and not self._cancelled.is_set():
                 try:
                     send.send(job)
                 except (OSError, EOFError):

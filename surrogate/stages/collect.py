@@ -22,6 +22,7 @@ from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import collect_transitions
 from surrogate.stages import budget
+from surrogate.stages.design import collect_in_rounds
 from surrogate.stages.settings import CollectSettings
 
 log = logging.getLogger(__name__)
@@ -60,19 +61,21 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
     perturbation = model.body.perturbation(setup.field, model.perturbation_options)
     t0 = time.perf_counter()
-    table = collect_transitions(
-        simulator,
-        perturbation,
-        n_cells=int(c["n_cells"]),
-        n_per_state=int(c["n_per_state"]),
-        perturb_rate=float(c["perturb_rate"]),
-        record_every=int(c["record_every"]),
-        equilibration_time=float(c["equilibration_time"]),
-        max_time=float(c["max_time"]),
-        progress=job.progress,
-        blackout=round(float(c.get("blackout_time", 0.0)) / setup.dt),
-        expected=settings.expected_labels,
-    )
+    arguments = {
+        "n_cells": int(c["n_cells"]),
+        "perturb_rate": float(c["perturb_rate"]),
+        "record_every": int(c["record_every"]),
+        "equilibration_time": float(c["equilibration_time"]),
+        "max_time": float(c["max_time"]),
+        "blackout": round(float(c.get("blackout_time", 0.0)) / setup.dt),
+        "expected": settings.expected_labels,
+    }
+    design = None
+    if settings.design is not None:  # rounds until the posterior meets the target
+        table, design = collect_in_rounds(settings, simulator, perturbation, **arguments)
+    else:
+        table = collect_transitions(simulator, perturbation, n_per_state=int(c["n_per_state"]),
+                                    progress=job.progress, **arguments)  # fmt: skip
     wall = time.perf_counter() - t0
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
@@ -100,6 +103,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         counts=counts,
         lump_names=list(lumps),
         domain={n: [float(table[n].min()), float(table[n].max())] for n in columns},
+        **({"design": design} if design is not None else {}),
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
 

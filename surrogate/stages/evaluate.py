@@ -28,6 +28,7 @@ from surrogate.evaluate.statistics import (
     noise_floor_table,
 )
 from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
+from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages import budget
 from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
 from surrogate.stages.simulate import simulate
@@ -118,7 +119,11 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
         else "n/a"
     )
     speed = summary["speedup_loop"]
-    speed_text = f"{speed:.1f}x" if speed else "n/a (runs not timed comparably)"
+    speed_text = (
+        f"{speed:.1f}x per cell-step"
+        if speed
+        else f"n/a ({'; '.join(summary['speed_not_comparable'])})"
+    )
     log.info(
         "evaluate %s (%s): max KS vs full %.3f, noise floor %s; loop speed-up %s; artefacts "
         "in %s", settings.candidate.setup.field_name, settings.candidate.decision.name,
@@ -132,16 +137,19 @@ def mean_durations(run: SimulationRun) -> dict[str, float | None]:
 
 
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
-    """Headline figures: speed-ups (loop and wall time, only from runs measured comparably:
-    same compile setting and thread count, not simulated in one batch), the largest KS
-    distances, mean durations."""
+    """Headline figures: speed-ups per cell-step (:func:`~surrogate.simulate.speed.speedup`
+    of the loop times, and of the wall times; only for runs timed comparably: same device,
+    threads, loop (torch step or kernel) and compile state, each with a loop of its own, not
+    simulated in one batch; ``speed_not_comparable`` says why not), the largest KS distances,
+    mean durations."""
     full, cand = runs.full.manifest, runs.candidate.manifest
-    # runs simulated in one batch share one loop time: no speed of their own
-    comparable = all(
-        full.get(k) == cand.get(k) for k in ("compile", "torch_threads", "device", "loop_backend")
-    ) and not (full.get("batched") or cand.get("batched"))
-    speedup_loop = float(full["loop_time_s"]) / float(cand["loop_time_s"]) if comparable else None
-    speedup_wall = float(full["wall_time_s"]) / float(cand["wall_time_s"]) if comparable else None
+    loops = {"full": LoopTiming.from_manifest(full), "candidate": LoopTiming.from_manifest(cand)}
+    speedup_loop, why = compare(loops["full"], loops["candidate"])
+    speedup_wall, _ = compare(loops["full"].with_seconds(full["wall_time_s"]),
+                              loops["candidate"].with_seconds(cand["wall_time_s"]))  # fmt: skip
+    if full.get("batched") or cand.get("batched"):  # one loop time for several runs
+        why.insert(0, "simulated in a batch (no loop time of its own)")
+        speedup_loop = speedup_wall = None
     durations = {"full": mean_durations(runs.full), "candidate": mean_durations(runs.candidate)}
     if runs.full_repeat is not None:
         durations["full_repeat"] = mean_durations(runs.full_repeat)
@@ -149,15 +157,11 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
         "candidate": cand.get("decision"),
         "speedup_loop": speedup_loop,
         "speedup_wall": speedup_wall,
-        "speed_comparable": comparable,
-        "loop_time_s": {
-            "full": float(full["loop_time_s"]),
-            "candidate": float(cand["loop_time_s"]),
-        },
-        "cell_steps_per_s": {
-            "full": float(full["cell_steps_per_s"]),
-            "candidate": float(cand["cell_steps_per_s"]),
-        },
+        "speed_comparable": not why,
+        "speed_not_comparable": why,
+        "loop_time_s": {k: t.seconds for k, t in loops.items()},
+        "cell_steps": {k: t.n_cells * t.steps for k, t in loops.items()},
+        "cell_steps_per_s": {k: t.cell_steps_per_s for k, t in loops.items()},
         "max_ks": float(table["ks"].max()),
         "max_ks_noise_floor": float(table["ks_noise_floor"].max())
         if "ks_noise_floor" in table

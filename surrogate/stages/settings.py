@@ -51,6 +51,9 @@ DECISIONS = ("full", "abstract", "exact")
 DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
 #: keys of the gp group that are not GP hyperparameters
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels")
+#: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
+#: enter its identity resolved (threads: null means the job's count)
+GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
 #: gp.labels: the column each option trains on (auto: expected where the table has them)
 LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
 LABEL_CHOICES = ("auto", *LABEL_COLUMNS)
@@ -119,7 +122,8 @@ def _command(script: str, *parts: list[str]) -> str:
 
 @dataclass(frozen=True)
 class Job:
-    """Settings of a job that never change a result: where artefacts go, device, progress."""
+    """Settings of a job: where artefacts go, device, progress. Only the device type changes a
+    result (:attr:`device_type`, in the identities)."""
 
     data_dir: Path
     device: torch.device
@@ -133,6 +137,13 @@ class Job:
             resolve_device(cfg.get("device", "cpu")),
             bool(cfg.get("progress", True)),
         )
+
+    @property
+    def device_type(self) -> str:
+        """``cpu`` or ``cuda``: part of the identity of everything that draws random numbers
+        (CPU and CUDA generators give different streams from one seed; any one CUDA device
+        gives the same)."""
+        return self.device.type
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,6 +221,8 @@ class CollectSettings:
     job: Job
     #: the collect settings as given (null: the model's default budget), for the command
     given: dict[str, Any] | None = None
+    #: the fits of a sequential design (``collect.design.target_error`` set), else None
+    design: TrainSettings | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> CollectSettings:
@@ -244,7 +257,8 @@ class CollectSettings:
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
-        return cls(setup, c, Job.from_config(cfg), given)
+        return cls(setup, c, Job.from_config(cfg), given=given,
+                   design=_design_settings(cfg, c, rate))  # fmt: skip
 
     @property
     def expected_labels(self) -> bool:
@@ -255,9 +269,21 @@ class CollectSettings:
         wanted = bool(self.options.get("expected_labels", False))
         return wanted and can_expect(self.setup.model.internal)
 
+    @property
+    def target_error(self) -> float | None:
+        """The sequential design's target (``collect.design.target_error``), or None."""
+        return None if self.design is None else float(self.options["design"]["target_error"])
+
     def identity(self) -> dict[str, Any]:
-        """Everything that defines a transitions table."""
-        return {**self.setup.identity(), "collect": self.options}
+        """Everything that defines a transitions table: the device too (its random stream), and
+        the design's fits where it has one (a switched-off design leaves the fixed design's
+        identity as it was)."""
+        options = {k: v for k, v in self.options.items() if k != "design" or self.design}
+        out = {**self.setup.identity(), "collect": options, "device": self.job.device_type}
+        if self.design is not None:
+            # its rounds fit psi and score it on the diagnostic's occupancy run
+            out["design_fit"] = {**self.design.fit_identity(), "occupancy": self.design.diagnostic}
+        return out
 
     @functools.cached_property
     def directory(self) -> Path:
@@ -272,6 +298,51 @@ class CollectSettings:
     def _overrides(self) -> list[str]:
         given = self.options if self.given is None else self.given
         return group_overrides("collect", given, "default")[1:]
+
+
+#: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
+DESIGN_KEYS = ("target_error", "max_rounds", "candidates", "explore")
+
+
+def _design_settings(
+    cfg: Mapping[str, Any], options: dict[str, Any], perturb_rate: float
+) -> TrainSettings | None:
+    """Validate ``collect.design``; the settings of its fits where ``target_error`` is set."""
+    d = options.get("design")
+    if d is None:
+        return None
+    if not isinstance(d, Mapping):
+        raise ConfigError(f"collect.design must be a mapping of {list(DESIGN_KEYS)}, got {d!r}")
+    unknown = sorted(set(d) - set(DESIGN_KEYS))
+    if unknown:
+        raise ConfigError(
+            f"unknown collect.design setting(s) {unknown}; allowed: {list(DESIGN_KEYS)}"
+        )
+    if d.get("target_error") is None:
+        return None
+    target = positive(d, "target_error", "collect.design.")
+    if target >= 1.0:
+        raise ConfigError(
+            f"collect.design.target_error={target:g} is a relative error of psi: give a value "
+            f"in (0, 1), e.g. 0.02"
+        )
+    positive(d, "max_rounds", "collect.design.", integer=True)
+    positive(d, "candidates", "collect.design.", integer=True)
+    explore = non_negative(d, "explore", "collect.design.")
+    if explore > 1.0:
+        raise ConfigError(f"collect.design.explore={explore:g} is a share: give a value in [0, 1]")
+    if perturb_rate <= 0.0:
+        raise ConfigError(
+            "collect.design needs perturbations to guide: set collect.perturb_rate > 0"
+        )
+    if "gp" not in cfg:
+        raise ConfigError(
+            "collect.design.target_error needs the gp group (its rounds fit psi): run "
+            f"{TRAIN_CMD} collect.design.target_error={target:g} or add gp=svgp"
+        )
+    inner = to_dict(cfg)
+    inner["collect"] = {**options, "design": {**dict(d), "target_error": None}}
+    return TrainSettings.from_config(inner)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -302,7 +373,13 @@ class ExternalTable:
 
 @dataclass(frozen=True, eq=False)
 class TrainSettings:
-    """The train stage: transitions -> the two GP classifiers of the abstraction."""
+    """The train stage: transitions -> the two GP classifiers of the abstraction (the fit,
+    ``data/fit/``: what simulations use), and the train directory around it (``data/train/``:
+    the fit's files, its diagnostic where the population lives and its output grid).
+
+    ``fit_threads`` is the fit's torch thread count resolved when the settings are made
+    (``gp.threads``, else this process's count): the fit's result depends on it.
+    """
 
     setup: ModelSetup
     source: CollectSettings | ExternalTable
@@ -312,6 +389,7 @@ class TrainSettings:
     grid_size: tuple[int, ...] | None
     diagnostic: dict[str, Any]
     job: Job
+    fit_threads: int
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
@@ -365,7 +443,8 @@ class TrainSettings:
                     f"gp.labels=expected trains on expected labels, but {why}; use "
                     "gp.labels=outcome"
                 )
-        return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg))
+        return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
+                   int(threads) if threads is not None else torch.get_num_threads())  # fmt: skip
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
@@ -378,43 +457,57 @@ class TrainSettings:
         return LABEL_COLUMNS[labels]
 
     @property
-    def fit_threads(self) -> int | None:
-        """``gp.threads``: torch threads for the fit (None: the job's). The fit's result
-        depends on the count (float reductions), so it is part of the abstraction's identity."""
-        return self.gp_config.get("threads")
-
-    @property
     def seed(self) -> int:
         """The seed of the collection and of the training."""
         return self.setup.seed
 
-    def identity(self) -> dict[str, Any]:
-        """Everything that defines a trained abstraction: its data and the GP settings."""
+    def fit_identity(self) -> dict[str, Any]:
+        """Everything that defines the fitted classifiers: the data, the GP settings, the fit's
+        thread count (float reductions) and device type; not the diagnostic or the grid."""
         if isinstance(self.source, CollectSettings):
             data = self.source.identity()
         else:
             data = {"table": str(self.source.path), "sha256": self.source.sha256,
                     "model": self.setup.model_config, "seed": self.setup.seed}  # fmt: skip
-        return {**data, "gp": self.gp_config, "inputs": list(self.inputs)}
+        gp = {k: v for k, v in self.gp_config.items() if k not in GP_NOT_FIT}
+        return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
+                "device": self.job.device_type}  # fmt: skip
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that defines the train directory: the fit, the diagnostic's settings
+        and the output grid (a change in either re-runs them around the same fit)."""
+        sizes = list(self.grid_size) if self.grid_size is not None else None
+        return {"fit": self.fit_identity(), "grid_size": sizes, "diagnostic": self.diagnostic}
+
+    def _label(self) -> dict[str, Any]:
+        label = (self.setup.label() if isinstance(self.source, CollectSettings)
+                 else {"table": self.source.path.stem})  # fmt: skip
+        return {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
+                "inducing": self.gp.n_inducing, "seed": self.seed}  # fmt: skip
+
+    @functools.cached_property
+    def fit_directory(self) -> Path:
+        """``data/fit/model=..._field=..._dt=..._inputs=..._kernel=..._seed=...-<hash>``: the
+        classifiers the simulations use."""
+        return artefact_dir(self.job.data_dir, "fit", self._label(), self.fit_identity())
 
     @functools.cached_property
     def directory(self) -> Path:
         """``data/train/model=..._field=..._dt=..._inputs=..._kernel=..._seed=...-<hash>``."""
-        if isinstance(self.source, CollectSettings):
-            label = self.setup.label()
-        else:
-            label = {"table": self.source.path.stem}
-        label = {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
-                 "inducing": self.gp.n_inducing, "seed": self.seed}  # fmt: skip
-        return artefact_dir(self.job.data_dir, "train", label, self.identity())
+        return artefact_dir(self.job.data_dir, "train", self._label(), self.identity())
+
+    def gp_overrides(self) -> list[str]:
+        """The gp overrides that reproduce these settings (``gp.threads`` as resolved: a
+        command run with another thread count would make another fit)."""
+        return group_overrides("gp", {**self.gp_config, "threads": self.fit_threads}, "svgp")[1:]
 
     def command(self) -> str:
-        """The command that makes this artefact."""
+        """The command that makes this artefact (and the fit)."""
         if isinstance(self.source, CollectSettings):
             data = [*self.setup.overrides(), *self.source._overrides()]
         else:
             data = [f"transitions={self.source.path}", *self.setup.overrides()]
-        return _command(TRAIN_CMD, data, group_overrides("gp", self.gp_config, "svgp")[1:])
+        return _command(TRAIN_CMD, data, self.gp_overrides())
 
     def input_command(self) -> str:
         """The command that makes this stage's input (the collected transitions)."""
@@ -439,8 +532,9 @@ class OccupancySettings:
     made_by: str
 
     def identity(self) -> dict[str, Any]:
-        """Model, field, step, seed and the ``gp.diagnostic`` settings."""
-        return {**self.setup.identity(), "occupancy": self.options}
+        """Model, field, step, seed, the ``gp.diagnostic`` settings and the device type."""
+        return {**self.setup.identity(), "occupancy": self.options,
+                "device": self.job.device_type}  # fmt: skip
 
     @functools.cached_property
     def directory(self) -> Path:
@@ -534,10 +628,11 @@ class DecisionSettings:
         return cls(name, d, mode, sizes, train, train_field)
 
     def identity(self) -> dict[str, Any]:
-        """What of the decision defines a run (the abstraction by its own identity)."""
+        """What of the decision defines a run (the abstraction by its fit's identity: the
+        diagnostic and the output grid do not change the psi a run uses)."""
         out: dict[str, Any] = {"decision": self.config}
         if self.train is not None:
-            out["abstraction"] = self.train.identity()
+            out["abstraction"] = self.train.fit_identity()
         return out
 
 
@@ -596,12 +691,14 @@ class SimulateSettings:
 
     def identity(self) -> dict[str, Any]:
         """Everything that defines a population run (``compile`` and ``backend`` too: compiled
-        kernels round differently, so runs with one seed differ in the last bits)."""
+        kernels round differently, so runs with one seed differ in the last bits; the device
+        type: CPU and CUDA draw different random streams)."""
         out = {**self.setup.identity(), **self.decision.identity(), "n_cells": self.n_cells,
                "t_end": self.t_end, "record_interval": self.record_interval,
                "start": list(self.start), "equilibration_time": self.equilibration_time,
                "record_durations": self.record_durations, "compile": self.compile,
-               "record_cells": self.record_cells, "backend": self.backend}  # fmt: skip
+               "record_cells": self.record_cells, "backend": self.backend,
+               "device": self.job.device_type}  # fmt: skip
         if self.shard is not None:
             out["shard"] = self.shard
         if self.batch is not None:
@@ -637,7 +734,7 @@ class SimulateSettings:
             if shipped.get(k) != v or k in ("n_cells", "t_end")
         ]
         if self.decision.train is not None:
-            out += group_overrides("gp", self.decision.train.gp_config, "svgp")[1:]
+            out += self.decision.train.gp_overrides()
             if isinstance(self.decision.train.source, CollectSettings):
                 out += self.decision.train.source._overrides()
         if self.shard is not None:
@@ -840,9 +937,11 @@ class ReproduceSettings:
         return list(out.values())
 
     def identity(self) -> dict[str, Any]:
-        """The evaluations' identities (which include the abstraction's)."""
-        return {name: e.identity() for name, e in {**self.evaluations, **{
+        """The evaluations' identities (which include the abstraction's fit) and the train
+        directory's (its diagnostic is part of the report)."""
+        out = {name: e.identity() for name, e in {**self.evaluations, **{
             f"exact:{k}": v for k, v in self.exact.items()}}.items()}  # fmt: skip
+        return {**out, "train": self.train.identity()}
 
     @functools.cached_property
     def directory(self) -> Path:

@@ -65,6 +65,7 @@ from surrogate.simulate.recorders import (
     read_metadata,
     with_metadata,
 )
+from surrogate.simulate.speed import cell_steps_per_s
 from surrogate.stages.settings import SIMULATE_CMD, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -419,6 +420,7 @@ def merged_manifest(
         if values:
             extra[key] = max(values) if key == "lookup_max_deviation" else values[0]
     devices = sorted({str(m.get("device")) for m in manifests})
+    threads = sorted({int(m["torch_threads"]) for m in manifests if "torch_threads" in m})
     finals = [m.get("final_means") or {} for m in manifests]
     return {
         "stage": "simulate",
@@ -433,7 +435,9 @@ def merged_manifest(
         "compile": bool(manifests[0].get("compile", False)),
         "compiled": all(bool(m.get("compiled", False)) for m in manifests),
         "loop_backend": "/".join(sorted({str(m.get("loop_backend", "torch")) for m in manifests})),
-        "cell_steps_per_s": n_cells * n_steps / max(loop, 1e-12),
+        "cell_steps_per_s": cell_steps_per_s(n_cells, n_steps, max(loop, 1e-12)),
+        # the shards' threads (a speed compares only under one count), not this process's
+        "torch_threads": threads[0] if len(threads) == 1 else ",".join(map(str, threads)),
         "n_cells": n_cells,
         "n_steps": n_steps,
         "n_durations": n_durations,

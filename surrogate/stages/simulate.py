@@ -136,8 +136,10 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         use_compile_cache(job.data_dir / COMPILE_CACHE)
     seed_everything(setup.seed)
     decision, info = build_decision(settings)
+    # a compiled run that fell back to eager is not the run its identity (compile=true) names
     simulator = Simulator(setup.model, decision, setup.field, setup.dt, job.device,
-                          compile=settings.compile, backend=settings.backend)  # fmt: skip
+                          compile=settings.compile, backend=settings.backend,
+                          compile_fallback=False)  # fmt: skip
     _log_backend(simulator)
     # a rerun (force) must not leave the old manifest vouching for half-replaced tables
     (out / MANIFEST).unlink(missing_ok=True)
@@ -157,8 +159,8 @@ def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] |
         durations=None if settings.record_cells or not settings.record_durations else "all",
     )
     _write_manifest(settings, out, config, summary, time.perf_counter() - t0,
-                    compiled=simulator.compile_error is None and settings.compile,
-                    loop_backend=simulator.backend, **info)  # fmt: skip
+                    compiled=simulator.compiled, loop_backend=simulator.backend,
+                    **info)  # fmt: skip
 
 
 def _log_backend(simulator: Simulator) -> None:
@@ -235,8 +237,10 @@ def simulate_together(runs: Sequence[SimulateSettings]) -> list[Path]:
         else:  # a large population: alone (batching would only slow it down)
             simulate(s)
     for group in groups.values():
-        # decision-major order, so consecutive interchangeable layers merge into one
-        group.sort(key=lambda s: s.decision.name)
+        # one global order (by directory) whatever the caller's: two jobs sharing runs in
+        # opposite orders would otherwise each hold a lock the other waits for
+        # (_simulate_group orders the batch itself, decision-major)
+        group.sort(key=lambda s: str(s.directory))
         with contextlib.ExitStack() as stack:
             for s in group:
                 stack.enter_context(artefact_lock(s.directory))
@@ -302,7 +306,8 @@ def _simulate_batch(
     t0 = time.perf_counter()
     seed_everything(setup.seed)
     simulator = BatchSimulator(model, replicates, setup.dt, job.device,
-                               compile=first.compile, backend=first.backend)  # fmt: skip
+                               compile=first.compile, backend=first.backend,
+                               compile_fallback=False)  # fmt: skip
     _log_backend(simulator)
     log.info("simulating %d runs in one batch (%d cells, %d decision blocks, %d distinct fields; "
              "%s loop)", len(runs), sum(s.n_cells for s in runs),
@@ -319,7 +324,7 @@ def _simulate_batch(
     labels = [f"{s.decision.name}|{s.setup.label().get('field')}|seed={s.setup.seed}" for s in runs]
     for s, summary, info in zip(runs, summaries, infos, strict=True):
         _write_manifest(s, s.directory, None, summary, wall,
-                        compiled=simulator.compile_error is None and s.compile,
+                        compiled=simulator.compiled,
                         loop_backend=simulator.backend,
                         batched={"runs": labels, "n_cells": sum(r.n_cells for r in runs)},
                         **info)  # fmt: skip

@@ -21,7 +21,7 @@ import torch
 from surrogate.config import non_negative, positive, seed_everything, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir, write_json
-from surrogate.simulate.speed import measure_speed
+from surrogate.simulate.speed import compare, measure_speed
 from surrogate.stages.settings import SimulateSettings
 from surrogate.stages.simulate import build_decision
 
@@ -54,12 +54,13 @@ def run(cfg: Mapping[str, Any]) -> Path:
                            candidate.job.device, compile=candidate.compile,
                            start=candidate.start, repeats=repeats, backend=candidate.backend,
                            chunk_steps=round(candidate.record_interval / dt))  # fmt: skip
-    ratio = result["full"]["seconds"] / result["abstract"]["seconds"]
+    ratio, why = compare(result["full"], result["abstract"])
     identity = {**candidate.identity(), "steps": steps, "repeats": repeats}
     out = artefact_dir(candidate.job.data_dir, "speed", candidate.label(), identity)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / SPEED, {
-        "speedup": ratio, "n_cells": candidate.n_cells, "steps": steps, "dt": dt,
+        "speedup": ratio, "speed_not_comparable": why, "n_cells": candidate.n_cells,
+        "steps": steps, "dt": dt,
         "compile": candidate.compile, "backend": candidate.backend,
         "threads": torch.get_num_threads(),
         "device": str(candidate.job.device), "machine": platform.processor() or platform.machine(),
@@ -68,10 +69,14 @@ def run(cfg: Mapping[str, Any]) -> Path:
     })  # fmt: skip
     for name in ("full", "abstract"):
         r = result[name]
-        log.info("%-8s %8.2f s loop (%7.1f us/step, %.3g cell-steps/s, %s), compile %.1f s",
+        log.info("%-8s %8.2f s loop (%7.1f us/step, %.3g cell-steps/s, %s loop), compile %.1f s",
                  name, r["seconds"], r["us_per_step"], r["cell_steps_per_s"], r["backend"],
                  r["compile_s"])  # fmt: skip
-    log.info("abstraction speed-up %.1fx; written to %s", ratio, out / SPEED)
+    if ratio is None:
+        log.warning("no speed-up: the loops were timed under different set-ups (%s); written "
+                    "to %s", "; ".join(why), out / SPEED)  # fmt: skip
+    else:
+        log.info("abstraction speed-up %.1fx per cell-step; written to %s", ratio, out / SPEED)
     return out
 
 

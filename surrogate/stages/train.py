@@ -2,10 +2,13 @@
 
 ``python scripts/train.py [gp.inputs=signal|inputs|[names]] [gp.kernel=...]`` trains on the
 collected transitions of the same settings, or on any external table with ``transitions=PATH``
-(CSV or Parquet with the input columns, ``phi`` and ``phi_next``, e.g. tracked cells). It writes
-``psi.pt``, ``psi_grid.csv``, ``train_metrics.json`` (held-out scores, and the diagnostic: the
-switching probabilities' error where the full model's population lives), figures and the
-manifest. Also the Python API to load a trained abstraction::
+(CSV or Parquet with the input columns, ``phi`` and ``phi_next``, e.g. tracked cells). The fit
+(``data/fit/...``: ``psi.pt``, ``fit_metrics.json``, the training history; what simulations
+load) is reused whatever ``gp.diagnostic`` and ``gp.grid_size`` say; the train directory
+(``data/train/...``) holds a copy of it, ``psi_grid.csv``, ``train_metrics.json`` (held-out
+scores, and the diagnostic: the switching probabilities' error where the full model's
+population lives), figures and the manifest. Also the Python API to load a trained
+abstraction::
 
     from surrogate.stages.train import load_abstraction
     psi = load_abstraction("data/train/model=ecoli_...")
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,9 +46,12 @@ from surrogate.io import (
     MANIFEST,
     make_once,
     read_csv,
+    read_json,
+    read_manifest,
     read_parquet,
     require_artefact,
     save_figure,
+    write_atomic,
     write_csv,
     write_json,
     write_manifest,
@@ -61,6 +68,7 @@ log = logging.getLogger(__name__)
 
 PSI = "psi.pt"
 METRICS = "train_metrics.json"
+FIT_METRICS = "fit_metrics.json"
 GRID = "psi_grid.csv"
 SURFACES_FIGURE = "psi_surfaces.png"
 DIAGNOSTIC_FIGURE = "psi_diagnostic.png"
@@ -87,14 +95,31 @@ def train(
     force: bool = False,
     precompile: bool = True,
 ) -> Path:
-    """Run (or reuse) the train stage described by ``settings``. ``precompile``: compile the
-    model's kernel (for the diagnostic's occupancy run) in a background process during the fit
-    when it is not cached (False: another process compiles it)."""
+    """Run (or reuse) the train stage described by ``settings``: the fit (:func:`fit`, reused
+    whatever the diagnostic and grid settings), then this directory's copy of it, its
+    diagnostic, grid and figures. ``precompile``: compile the model's kernel (for the
+    diagnostic's occupancy run) in a background process during the fit when it is not cached
+    (False: another process compiles it)."""
     out = settings.directory
     return make_once(out, settings.identity(), settings.command(),
-                     lambda data: _train(settings, out, *data, config, precompile),
+                     lambda data: _train(settings, out, *data, config, precompile, force),
                      what="abstraction", force=force,
                      prepare=lambda: load_transitions(settings))  # fmt: skip
+
+
+def fit(
+    settings: TrainSettings,
+    table: pd.DataFrame,
+    source: str,
+    config: Mapping[str, Any] | None = None,
+    force: bool = False,
+) -> Path:
+    """Run (or reuse) the fit of ``settings`` on ``table`` (from ``source``): both classifiers,
+    their held-out scores and training history, in ``settings.fit_directory``."""
+    out = settings.fit_directory
+    return make_once(out, settings.fit_identity(), settings.command(),
+                     lambda _: _fit(settings, out, table, source, config), what="fit",
+                     force=force)  # fmt: skip
 
 
 def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
@@ -142,31 +167,27 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
     return table, where
 
 
-def _train(
+def _fit(
     settings: TrainSettings,
     out: Path,
     table: pd.DataFrame,
     source: str,
     config: Mapping[str, Any] | None,
-    precompile: bool = True,
 ) -> None:
-    """Fit both classifiers, score them, then write model, tables, figures and (last) the
-    manifest."""
+    """Fit both classifiers on ``settings.fit_threads`` threads, score them, then write the
+    classifiers, their metrics, the history figure and (last) the manifest."""
     job, model = settings.job, settings.setup.model
     lumps = model.internal.lump_names
     seed_everything(settings.seed)
-    if precompile:
-        precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
     t0 = time.perf_counter()
     threads = torch.get_num_threads()
-    fit_threads = settings.fit_threads or threads
     try:
-        torch.set_num_threads(fit_threads)
+        torch.set_num_threads(settings.fit_threads)
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
                       device=job.device, lump_names=lumps,
                       label=settings.label_column(table.columns))  # fmt: skip
     except NumericalError as exc:
-        # nothing was written: a previous complete abstraction in `out` (if any) is kept
+        # nothing was written: a previous complete fit in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")
         err.partial = getattr(exc, "partial", None)  # type: ignore[attr-defined]
         raise err from exc
@@ -174,6 +195,13 @@ def _train(
         torch.set_num_threads(threads)
     wall = time.perf_counter() - t0
     psi.to("cpu")
+    grid = psi_grid_frame(psi, psi.domain, psi.input_names)
+    if not np.isfinite(grid["p"].to_numpy()).all():
+        # a model that predicts NaN must not reach the simulations (NaN < u is always False)
+        raise NumericalError(
+            f"the trained classifiers predict NaN/inf on their own input domain; nothing was "
+            f"written to {out}. Try a smaller gp.lr (now {settings.gp.lr}) or more gp.epochs"
+        )
     metrics: dict[str, Any] = {
         f"psi_{phi}": {
             "origin": lumps[phi],
@@ -187,44 +215,25 @@ def _train(
     }
     metrics["train_seconds_total"] = wall
     metrics["inputs"] = list(settings.inputs)
-    grid = psi_grid_frame(psi, psi.domain, psi.input_names, settings.grid_size)
-    if not np.isfinite(grid["p"].to_numpy()).all():
-        # a model that predicts NaN must not reach the simulations (NaN < u is always False)
-        raise NumericalError(
-            f"the trained classifiers predict NaN/inf on their own input domain; nothing was "
-            f"written to {out}. Try a smaller gp.lr (now {settings.gp.lr}) or more gp.epochs"
-        )
-    exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
-    diagnostic, frame = diagnose(psi, settings, model, exact_fn)
-    metrics["diagnostic"] = diagnostic
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
-    save_psi(out / PSI, psi, {"settings": settings.identity(), "source": source})
-    write_json(out / METRICS, metrics)
-    write_csv(out / GRID, grid)
-    exact = _exact_curve(model, settings, exact_fn) if len(psi.input_names) == 1 else None
-    save_figure(out / SURFACES_FIGURE, plot_psi(psi, psi.domain, psi.input_names, table, lumps,
-                                                exact=exact))  # fmt: skip
-    if frame is not None:
-        save_figure(out / DIAGNOSTIC_FIGURE, plot_psi_errors(frame, psi.input_names, lumps))
+    save_psi(out / PSI, psi, {"settings": settings.fit_identity(), "source": source})
+    write_json(out / FIT_METRICS, metrics)
     save_figure(out / HISTORY_FIGURE, plot_training_history(
         {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
     write_manifest(
         out,
-        stage="train",
-        config=dict(config) if config is not None else settings.identity(),
+        stage="fit",
+        config=dict(config) if config is not None else settings.fit_identity(),
         seed=settings.seed,
-        settings=settings.identity(),
+        settings=settings.fit_identity(),
         source=source,
         device=str(job.device),
         wall_time_s=wall,
-        fit_threads=fit_threads,  # the fit's result depends on it (float reductions)
+        fit_threads=settings.fit_threads,  # the fit's result depends on it (float reductions)
         label_column=settings.label_column(table.columns),
         inputs=list(settings.inputs),
         domain={k: list(v) for k, v in psi.domain.items()},
-        brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},
-        brier_baseline={n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_0", "psi_1")},
-        diagnostic=diagnostic,
     )
     for name in ("psi_0", "psi_1"):
         v = metrics[name]["validation"]
@@ -232,6 +241,65 @@ def _train(
             "%s (from %s): held-out Brier %.4f (constant predictor %.4f), log predictive %.4f",
             name, metrics[name]["origin"], v["brier"], v["brier_baseline"], v["mean_log_predictive"],
         )  # fmt: skip
+    log.info("trained both classifiers in %.1f s on %d thread(s); fit in %s", wall,
+             settings.fit_threads, out)  # fmt: skip
+
+
+def _train(
+    settings: TrainSettings,
+    out: Path,
+    table: pd.DataFrame,
+    source: str,
+    config: Mapping[str, Any] | None,
+    precompile: bool = True,
+    force: bool = False,
+) -> None:
+    """The fit (made or reused), then its diagnostic, grid and figures; the fit's files are
+    copied in, the manifest written last."""
+    job, model = settings.job, settings.setup.model
+    lumps = model.internal.lump_names
+    if precompile:
+        precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
+    fit_dir = fit(settings, table, source, config, force)
+    psi, _ = load_psi(fit_dir / PSI)
+    fit_manifest = read_manifest(fit_dir, made_by=settings.command())
+    metrics: dict[str, Any] = read_json(fit_dir / FIT_METRICS, made_by=settings.command())
+    grid = psi_grid_frame(psi, psi.domain, psi.input_names, settings.grid_size)
+    if not np.isfinite(grid["p"].to_numpy()).all():
+        raise NumericalError(f"the classifiers of {fit_dir} predict NaN/inf on the grid "
+                             f"gp.grid_size={settings.grid_size}; nothing was written to {out}")  # fmt: skip
+    exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
+    diagnostic, frame = diagnose(psi, settings, model, exact_fn)
+    metrics["diagnostic"] = diagnostic
+    # from here the directory reads as incomplete until the new manifest is written last
+    (out / MANIFEST).unlink(missing_ok=True)
+    for name in (PSI, HISTORY_FIGURE):  # the fit's own files, for whoever reads this directory
+        write_atomic(out / name, lambda tmp, name=name: shutil.copyfile(fit_dir / name, tmp))
+    write_json(out / METRICS, metrics)
+    write_csv(out / GRID, grid)
+    exact = _exact_curve(model, settings, exact_fn) if len(psi.input_names) == 1 else None
+    save_figure(out / SURFACES_FIGURE, plot_psi(psi, psi.domain, psi.input_names, table, lumps,
+                                                exact=exact))  # fmt: skip
+    if frame is not None:
+        save_figure(out / DIAGNOSTIC_FIGURE, plot_psi_errors(frame, psi.input_names, lumps))
+    write_manifest(
+        out,
+        stage="train",
+        config=dict(config) if config is not None else settings.identity(),
+        seed=settings.seed,
+        settings=settings.identity(),
+        source=source,
+        fit=str(fit_dir),
+        device=str(job.device),
+        wall_time_s=metrics["train_seconds_total"],
+        fit_threads=fit_manifest["fit_threads"],
+        label_column=fit_manifest["label_column"],
+        inputs=list(settings.inputs),
+        domain=fit_manifest["domain"],
+        brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},
+        brier_baseline={n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_0", "psi_1")},
+        diagnostic=diagnostic,
+    )
     for p in (0, 1):
         d = diagnostic.get(f"phi{p}")
         if d:
@@ -241,7 +309,7 @@ def _train(
                 diagnostic["reference"], d["mean_switching_reference"], 100 * d["rel_bias"],
                 100 * d["mean_abs_rel_error"],
             )  # fmt: skip
-    log.info("trained both classifiers in %.1f s; artefacts in %s", wall, out)
+    log.info("abstraction of %s: diagnostic and grid in %s", fit_dir, out)
 
 
 def exact_psi_function(model: Model, dt: float) -> Any:
@@ -320,17 +388,19 @@ def _exact_curve(model: Model, settings: TrainSettings, exact_fn: Any) -> Any:
 
 
 def resolve_abstraction(settings: TrainSettings) -> Path:
-    """The train directory of ``settings``, or a clear error naming the command that makes it."""
-    directory = settings.directory
-    require_artefact(directory, settings.identity(), settings.command(), "trained abstraction",
-                     after=settings.input_command())  # fmt: skip
+    """The fit directory of ``settings`` (what simulations load), or a clear error naming the
+    command that makes it."""
+    directory = settings.fit_directory
+    require_artefact(directory, settings.fit_identity(), settings.command(),
+                     "trained abstraction", after=settings.input_command())  # fmt: skip
     return directory
 
 
 def load_abstraction(
     source: str | os.PathLike | Mapping[str, Any], device: str | torch.device = "cpu"
 ) -> PsiClassifier:
-    """Load a trained abstraction from its artefact directory (or from the config that made it).
+    """Load a trained abstraction from its train or fit directory (or from the config that made
+    it).
 
     Returns a :class:`~surrogate.gp.PsiClassifier`: ``psi(phi, z)`` gives p(phi' = 1 | phi, z)
     for ``z`` (``n x d``) in the order of ``psi.input_names``, under ``torch.no_grad()``.
@@ -345,8 +415,6 @@ def load_abstraction(
 
 def read_metrics(directory: str | Path) -> dict[str, Any]:
     """The ``train_metrics.json`` of a train directory."""
-    from surrogate.io import read_json
-
     return read_json(Path(directory) / METRICS, made_by="python scripts/train.py")
 
 

@@ -25,7 +25,6 @@ from surrogate.evaluate.statistics import (
     noise_floor_table,
     observable_at,
     observable_quantity,
-    speedup,
 )
 from surrogate.io import write_json, write_parquet
 
@@ -339,15 +338,6 @@ def test_noise_floor_warns_on_same_seed(tmp_path: Path) -> None:
     # subsamples are independent draws, so those differ)
     assert (floor["ks"].iloc[:4] == 0).all()
     assert (floor["ks_full"].iloc[4:] == 0).all()
-
-
-def test_speedup(runs: tuple[SimulationRun, SimulationRun]) -> None:
-    ref, cand = runs
-    assert speedup(ref, cand) == pytest.approx(8.0)
-    assert speedup(ref, cand, per_cell_step=True) == pytest.approx(8.0)
-    broken = SimulationRun(ref.observables, ref.durations, manifest={"wall_time_s": 0.0})
-    with pytest.raises(ArtefactError, match="wall_time_s"):
-        speedup(ref, broken)
 
 
 def test_mean_std_over_time(runs: tuple[SimulationRun, SimulationRun]) -> None:

@@ -27,12 +27,17 @@ SIM = ["n_cells=20", "t_end=2.0", "equilibration_time=1.0"]
 ABSTRACT = ["decision=abstract", "decision.lookup_size=[16]"]
 EVALUATE = ["evaluate.times=[1.0,2.0]", "evaluate.subsample=50"]
 
+# fidelity: one training seed, 20 cells for 2 s on one field
+FIDELITY = ["fidelity.train_seeds=[0]", "fidelity.fields=[gaussian]", "fidelity.n_cells=20",
+            "fidelity.t_end=2.0", "fidelity.equilibration_time=1.0"]  # fmt: skip
+
 STAGE_OVERRIDES = {
     "collect": COLLECT,
     "train": COLLECT + GP,
     "simulate": COLLECT + GP + SIM,
     "evaluate": COLLECT + GP + SIM + ["decision.lookup_size=[16]", *EVALUATE],
     "reproduce": COLLECT + GP + SIM + ["decision.lookup_size=[16]", *EVALUATE],
+    "fidelity": COLLECT + GP + FIDELITY,
 }
 
 Compose = Callable[..., DictConfig]
@@ -90,6 +95,13 @@ def train_dir(cfg: DictConfig) -> Path:
     from surrogate.stages.settings import TrainSettings
 
     return TrainSettings.from_config(cfg).directory
+
+
+def fit_dir(cfg: DictConfig) -> Path:
+    """The fit directory of ``cfg`` (the classifiers simulations load)."""
+    from surrogate.stages.settings import TrainSettings
+
+    return TrainSettings.from_config(cfg).fit_directory
 
 
 def simulate_dir(cfg: DictConfig) -> Path:

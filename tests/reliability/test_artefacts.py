@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
 
 from surrogate.errors import ArtefactError, MissingArtefactError
 from surrogate.evaluate.statistics import load_run
@@ -29,7 +30,7 @@ from surrogate.stages.collect import TRANSITIONS
 
 # ---------------------------------------------------------------------------------------------
 # missing inputs name the command that makes them
-from .conftest import collect_dir, train_dir
+from .conftest import collect_dir, fit_dir, train_dir
 
 
 def test_train_without_collect_names_the_collect_command(tiny) -> None:
@@ -51,13 +52,14 @@ def test_simulate_abstract_without_train_names_the_train_command(tiny) -> None:
         simulate_stage.run(cfg)
     text = str(info.value)
     assert "no trained abstraction" in text
-    # the whole command: every setting that differs from the shipped defaults
+    # the whole command: every setting that differs from the shipped defaults, and the fit's
+    # thread count as resolved (this process's: the command reproduces the same fit)
     assert (
         "Run `python scripts/train.py model=ecoli field=gaussian dt=0.05 seed=0 "
         "collect.n_per_state=200 collect.n_cells=50 collect.equilibration_time=1.0 "
         "gp.n_inducing=10 gp.epochs=2 gp.batch_size=100 gp.grid_size=[10] "
-        "gp.diagnostic.n_cells=50 gp.diagnostic.t_end=5.0` first (after `python "
-        "scripts/collect.py model=ecoli field=gaussian dt=0.05 seed=0" in text
+        f"gp.threads={torch.get_num_threads()} gp.diagnostic.n_cells=50 gp.diagnostic.t_end=5.0` "
+        "first (after `python scripts/collect.py model=ecoli field=gaussian dt=0.05 seed=0" in text
     )
 
 
@@ -112,7 +114,7 @@ def test_train_refuses_transitions_made_with_other_settings(tiny, copy_data) -> 
 
 def test_simulate_refuses_an_abstraction_made_with_other_settings(tiny, copy_data) -> None:
     cfg = tiny("simulate", ["decision=abstract"])
-    _tamper_settings(train_dir(tiny("train")), "gp", "n_inducing", 99)
+    _tamper_settings(fit_dir(tiny("train")), "gp", "n_inducing", 99)
     with pytest.raises(ArtefactError, match=r"gp: artefact has .*'n_inducing': 99"):
         simulate_stage.run(cfg)
 
@@ -140,8 +142,10 @@ def test_train_refuses_a_truncated_collect_artefact(
 
 
 @pytest.mark.parametrize("keep", [0.0, 0.5, 0.99])
-def test_a_truncated_psi_file_is_refused(tiny, copy_data, keep: float) -> None:
-    directory = train_dir(tiny("train"))
+@pytest.mark.parametrize("where", ["fit", "train"])
+def test_a_truncated_psi_file_is_refused(tiny, copy_data, keep: float, where: str) -> None:
+    """The fit's psi.pt (what simulations load) and the train directory's copy."""
+    directory = {"fit": fit_dir, "train": train_dir}[where](tiny("train"))
     _truncate(directory / train.PSI, keep)
     for load in (
         lambda: load_psi(directory / train.PSI),
@@ -150,16 +154,21 @@ def test_a_truncated_psi_file_is_refused(tiny, copy_data, keep: float) -> None:
         with pytest.raises(ArtefactError) as info:
             load()
         assert str(directory / train.PSI) in str(info.value)
-    with pytest.raises(ArtefactError, match="psi.pt"):
-        simulate_stage.run(tiny("simulate", ["decision=abstract"]))
+    if where == "fit":
+        with pytest.raises(ArtefactError, match="psi.pt"):
+            simulate_stage.run(tiny("simulate", ["decision=abstract"]))
 
 
 def test_a_truncated_train_manifest_is_refused(tiny, copy_data) -> None:
     cfg = tiny("train")
-    path = train_dir(cfg) / MANIFEST
+    path = fit_dir(cfg) / MANIFEST
     _truncate(path, 0.5)
     with pytest.raises(ArtefactError, match=f"{path}.*not valid JSON"):
         train.resolve_abstraction(train.validate(cfg))
+    with pytest.raises(ArtefactError, match=f"{path}.*not valid JSON"):
+        simulate_stage.run(tiny("simulate", ["decision=abstract"]))
+    path = train_dir(cfg) / MANIFEST
+    _truncate(path, 0.5)
     with pytest.raises(ArtefactError, match=f"{path}.*not valid JSON"):
         train.run(cfg)  # the stage does not reuse (or overwrite) a corrupt artefact silently
 

@@ -14,7 +14,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException
 
 from surrogate.config import CONF_DIR
 from surrogate.errors import ConfigError
-from surrogate.stages import collect, reproduce, train
+from surrogate.stages import collect, fidelity, reproduce, train
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages import simulate as simulate_stage
 
@@ -28,6 +28,7 @@ VALIDATORS: dict[str, Callable] = {
     "simulate": simulate_stage.validate,
     "evaluate": evaluate_stage.validate,
     "reproduce": reproduce.validate,
+    "fidelity": fidelity.validate,
 }
 
 # (stage, overrides, text the message must contain: the setting's name and what is allowed)
@@ -129,6 +130,40 @@ BAD_INPUTS = [
     ("reproduce", ["background=maybe"], "background must be true, false or auto"),
     ("reproduce", ["batch=1"], "batch must be true or false"),
     ("simulate", ["n_cells=2000000000000"], "split the population into shards"),
+    # fidelity: every setting read after training and simulation is refused before either
+    ("fidelity", ["fidelity.ks_max=abc"], "fidelity.ks_max must be a positive number"),
+    ("fidelity", ["fidelity.ks_factor=0"], "fidelity.ks_factor must be a positive number"),
+    ("fidelity", ["fidelity.sim_seed=x"], "fidelity.sim_seed must be a non-negative integer"),
+    ("fidelity", ["fidelity.sim_seed=-1"], "fidelity.sim_seed must be a non-negative integer"),
+    (
+        "fidelity",
+        ["fidelity.duration_tolerance=-1"],
+        "fidelity.duration_tolerance must be a positive number",
+    ),
+    ("fidelity", ["fidelity.noise_seed_offset=0"], "fidelity.noise_seed_offset must be a non-zero"),
+    (
+        "fidelity",
+        ["fidelity.sim_seed=10", "fidelity.noise_seed_offset=-4"],
+        "fidelity.noise_seed_offset must be a non-zero integer with sim_seed + k x offset",
+    ),
+    ("fidelity", ["fidelity.times=[a]"], "fidelity.times must be a list of times"),
+    ("fidelity", ["fidelity.times=[5.0]"], "fidelity.times 5 outside (0, t_end=2]"),
+    ("fidelity", ["fidelity.alpha=abc"], "fidelity.alpha must be one of [0.001, 0.01, 0.05]"),
+    ("fidelity", ["fidelity.mode=foo"], "fidelity.mode must be one of ['lookup', 'classifier']"),
+    ("fidelity", ["fidelity.lookup_size=[1]"], "fidelity.lookup_size"),
+    ("fidelity", ["fidelity.exact_psi=maybe"], "fidelity.exact_psi must be true or false"),
+    ("fidelity", ["fidelity.n_cells=null"], "fidelity.n_cells is required"),
+    ("fidelity", ["fidelity.start=[1.0]"], "fidelity.start must be two coordinates"),
+    (
+        "fidelity",
+        ["fidelity.equilibration_time=-1.0"],
+        "fidelity.equilibration_time must be a non-negative",
+    ),
+    (
+        "simulate",
+        ["model=ecoli_phospho", "model.burn_in=-1.0"],
+        "model.burn_in must be a non-negative number of seconds",
+    ),
 ]
 
 
@@ -194,6 +229,22 @@ def test_train_validates_before_loading_data(tiny, monkeypatch) -> None:
     # no collected data either: the bad setting is named, not the missing artefact
     with pytest.raises(ConfigError, match="gp.kernel"):
         train.run(tiny("train", ["gp.kernel=foo"]))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["fidelity.ks_max=abc"], "fidelity.ks_max"),
+        (["fidelity.noise_seed_offset=0"], "fidelity.noise_seed_offset"),
+    ],
+)
+def test_fidelity_validates_before_training(tiny, monkeypatch, overrides, message) -> None:
+    """Settings the fidelity stage reads only after training and simulating are refused
+    before either starts."""
+    _forbid(monkeypatch, "surrogate.stages.fidelity.collect")
+    _forbid(monkeypatch, "surrogate.stages.fidelity.train")
+    with pytest.raises(ConfigError, match=message):
+        fidelity.run(tiny("fidelity", overrides))
 
 
 @pytest.mark.parametrize(

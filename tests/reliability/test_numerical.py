@@ -18,7 +18,7 @@ from surrogate.stages import collect, train
 from surrogate.stages import simulate as simulate_stage
 from surrogate.stages.collect import TRANSITIONS
 
-from .conftest import collect_dir, simulate_dir, train_dir
+from .conftest import collect_dir, fit_dir, simulate_dir, train_dir
 
 
 class BadField(Field):
@@ -87,8 +87,9 @@ def test_diverging_gp_training_stops_and_keeps_the_last_good_model(tiny, copy_da
         train.run(cfg)
     text = str(info.value)
     assert "GP training diverged in epoch 2/3" in text and "gp.lr" in text
-    assert f"Nothing was written to {train_dir(cfg)}" in text
-    assert not (train_dir(cfg) / "psi.pt").exists() and not (train_dir(cfg) / MANIFEST).exists()
+    assert f"Nothing was written to {fit_dir(cfg)}" in text
+    for directory in (fit_dir(cfg), train_dir(cfg)):
+        assert not (directory / "psi.pt").exists() and not (directory / MANIFEST).exists()
     partial = info.value.partial
     assert isinstance(partial, FittedClassifier) and len(partial.history) == 1
     assert all(math.isfinite(v) for v in partial.history)

@@ -108,6 +108,46 @@ def test_close_reads_what_was_not_asked_for() -> None:
     assert time.perf_counter() - t0 < 60
 
 
+def _log_a_lot() -> None:
+    """A job whose result (its log records) is larger than a pipe's buffer (64 KiB)."""
+    logging.getLogger("surrogate.test").info("x" * 300_000)
+
+
+def _blocked_worker() -> Worker:
+    """A worker blocked on sending a large result while the next job, larger than the pipe's
+    buffer too, is being sent to it: nobody reads either pipe until the caller does."""
+    worker = Worker(threads=1)
+    worker.submit(_log_a_lot)
+    worker.submit(len, "y" * 1_000_000)
+    time.sleep(2.0)  # the first result fills its pipe, the second job fills the other
+    return worker
+
+
+@pytest.mark.timeout(60)
+def test_close_reads_results_while_the_last_jobs_are_sent() -> None:
+    """close() reads the results while the feeding thread still sends: a result and the next
+    job each above the pipe's buffer would otherwise block worker, thread and caller."""
+    worker = _blocked_worker()
+    try:
+        worker.close()
+        assert worker._received == 2 and worker._process.poll() == 0  # type: ignore[union-attr]
+    finally:
+        if worker._process is not None and worker._process.poll() is None:
+            worker._process.kill()
+
+
+@pytest.mark.timeout(60)
+def test_cancel_ends_a_worker_blocked_on_its_pipes() -> None:
+    worker = _blocked_worker()
+    try:
+        worker.cancel()
+        assert worker._process is not None and worker._process.poll() is not None
+        assert not worker._thread.is_alive()
+    finally:
+        if worker._process is not None and worker._process.poll() is None:
+            worker._process.kill()
+
+
 def test_the_worker_ends_when_its_parent_dies(tmp_path: Path) -> None:
     code = (
         "import os, sys, time\n"
@@ -218,6 +258,9 @@ def test_reproduce_with_a_worker_gives_the_report_without_one(
         assert "[background] full simulation" in caplog.text
         assert "[background] evaluate dynamic (abstract)" in caplog.text
     reference = reproduce.run(alone)
+    report = (out / "report.md").read_text()  # the exact chain: adapted cells, not a bound
+    assert "The exact lumped psi (cells adapted to their current input)" in report
+    assert "best two-state" not in report and "best any" not in report
     tables, expected = _report_tables(out), _report_tables(reference)
     assert tables.keys() == expected.keys() and len(tables) == 6
     for name, table in tables.items():

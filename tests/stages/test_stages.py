@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -109,8 +111,103 @@ def test_the_fit_runs_on_gp_threads(compose_cfg) -> None:
     out = train.run(cfg)
     assert torch.get_num_threads() == before
     manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["fit_threads"] == 2 and manifest["settings"]["gp"]["threads"] == 2
-    assert out != train.validate(compose_cfg("train", overrides)).directory
+    assert manifest["fit_threads"] == 2 and manifest["settings"]["fit"]["fit_threads"] == 2
+    assert out != train.validate(compose_cfg("train", [*overrides, "gp.threads=1"])).directory
+    assert "gp.threads=2" in train.validate(cfg).command()
+
+
+def test_the_fits_identity_holds_the_resolved_thread_count(compose_cfg) -> None:
+    """``gp.threads=null`` fits on the job's threads: one and two threads are two fits (psi
+    moves by up to 3 % between them), not one directory a single run and a sweep share; the
+    command names the count that reproduces it."""
+    overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    before = torch.get_num_threads()
+    made = {}
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            made[threads] = train.validate(compose_cfg("train", overrides))
+    finally:
+        torch.set_num_threads(before)
+    one, two = made[1], made[2]
+    assert (one.fit_threads, two.fit_threads) == (1, 2)
+    assert one.fit_identity()["fit_threads"] == 1 and two.fit_identity()["fit_threads"] == 2
+    assert one.fit_directory != two.fit_directory and one.directory != two.directory
+    assert "gp.threads=1" in one.command() and "gp.threads=2" in two.command()
+
+
+def test_the_device_type_is_part_of_every_random_streams_identity(compose_cfg) -> None:
+    """CPU and CUDA draw different random streams from one seed: collections, occupancy runs,
+    fits and simulations on each have their own directories."""
+    import dataclasses
+
+    from surrogate.stages.settings import SimulateSettings
+
+    cpu = SimulateSettings.from_config(compose_cfg("simulate", [*TINY, "decision=abstract"]))
+    job = dataclasses.replace(cpu.job, device=torch.device("cuda"))
+    train_cpu = cpu.decision.train
+    assert train_cpu is not None
+    train_cuda = dataclasses.replace(train_cpu, job=job,
+                                     source=dataclasses.replace(train_cpu.source, job=job))  # fmt: skip
+    pairs = [
+        (cpu, cpu.replace(job=job)),
+        (train_cpu.source, train_cuda.source),
+        (train_cpu.occupancy(), train_cuda.occupancy()),
+    ]
+    for a, b in pairs:
+        assert a.identity()["device"] == "cpu" and b.identity()["device"] == "cuda"
+        assert a.directory != b.directory
+    assert train_cpu.fit_directory != train_cuda.fit_directory
+
+
+def test_a_compiled_run_that_falls_back_to_eager_is_refused(compose_cfg, monkeypatch) -> None:
+    """torch.compile failing mid-stage must not leave an eager run in a directory whose
+    identity says compile=true: the stage stops, naming compile=false, and writes no manifest."""
+    from surrogate.errors import CompileError
+
+    def broken(fn, *args, **kwargs):
+        def call(*a, **k):
+            raise RuntimeError("no compiler here")
+
+        return call
+
+    monkeypatch.setattr(torch, "compile", broken)
+    run = [o for o in TINY if not o.startswith(("collect", "gp"))]
+    cfg = compose_cfg("simulate", [*run, "decision=full", "compile=true", "backend=torch"])
+    settings = simulate_stage.validate(cfg)
+    with pytest.raises(CompileError, match="compile=false"):
+        simulate_stage.simulate(settings)
+    assert not (settings.directory / "manifest.json").exists()
+
+
+def test_the_diagnostic_and_the_grid_do_not_refit(trained, compose_cfg, caplog) -> None:
+    """Other ``gp.diagnostic`` or ``gp.grid_size`` settings reuse the fit (same classifiers,
+    same simulations) and re-run only the diagnostic and the grid, in their own directory."""
+    cfg, _, train_dir = trained
+    first = train.validate(cfg)
+    overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    other_cfg = compose_cfg("train", [*overrides, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
+    other = train.validate(other_cfg)
+    assert other.fit_directory == first.fit_directory and other.directory != train_dir
+    assert other.fit_identity() == first.fit_identity()
+    before = (first.fit_directory / "psi.pt").stat().st_mtime_ns
+    with caplog.at_level(logging.INFO, logger="surrogate.io"):
+        out = train.run(other_cfg)
+    assert "fit exists, reusing" in caplog.text
+    assert (first.fit_directory / "psi.pt").stat().st_mtime_ns == before
+    assert (out / "psi.pt").read_bytes() == (first.fit_directory / "psi.pt").read_bytes()
+    assert len(pd.read_csv(out / "psi_grid.csv")) == 2 * 7
+    metrics = json.loads((out / "train_metrics.json").read_text())
+    assert metrics["diagnostic"]["n_occupancy"] == 50 * 200 // 10
+    old = json.loads((train_dir / "train_metrics.json").read_text())
+    assert old["diagnostic"]["n_occupancy"] == 100 * 200 // 10  # the first one's is kept
+    # a simulation of either uses the same abstraction: one run directory
+    sim = [*TINY, "decision=abstract"]
+    a = simulate_stage.validate(compose_cfg("simulate", sim))
+    b = simulate_stage.validate(
+        compose_cfg("simulate", [*sim, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
+    )
+    assert a.directory == b.directory
 
 
 def test_train_without_collect_names_the_command(compose_cfg) -> None:
@@ -232,6 +329,33 @@ def test_runs_simulated_together_are_the_standalone_runs(
             pd.read_parquet(s.directory / "duration_histogram.parquet"), durations
         )
         assert observables["cell"].nunique() == 16
+
+
+def test_runs_are_locked_in_one_global_order(compose_cfg, monkeypatch) -> None:
+    """simulate_together takes its runs' locks in one global order (by directory), whatever
+    order its caller lists them in: two jobs sharing runs in opposite orders (e.g.
+    ``fields=[gaussian,linear]`` and ``[linear,gaussian]``) cannot deadlock."""
+    from surrogate.stages.settings import SimulateSettings
+
+    run = [o for o in TINY if not o.startswith(("collect", "gp"))]
+    runs = [SimulateSettings.from_config(compose_cfg("simulate", [*run, "decision=full",
+                                                                   f"field={name}"]))
+            for name in ("linear", "gaussian")]  # fmt: skip
+    taken: list[Path] = []
+
+    @contextlib.contextmanager
+    def lock(directory):
+        taken.append(Path(directory))
+        yield Path(directory)
+
+    monkeypatch.setattr(simulate_stage, "artefact_lock", lock)
+    monkeypatch.setattr(simulate_stage, "_simulate_group", lambda group: None)
+    orders = []
+    for listed in (runs, runs[::-1]):
+        taken.clear()
+        simulate_stage.simulate_together(listed)
+        orders.append(list(taken))
+    assert len(orders[0]) == 2 and orders[0] == orders[1] == sorted(orders[0])
 
 
 def test_compiled_runs_of_a_batch_have_their_own_identity(compose_cfg) -> None:

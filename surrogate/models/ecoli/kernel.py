@@ -681,8 +681,13 @@ class EcoliKernel:
         un, zn = _numpy(u), _numpy(z)
         # as many kernel threads as torch uses (the threads setting; a sweep job's share), a
         # few pieces each (cells of one block cost alike; pieces balance what differs)
-        threads = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+        torch_threads = torch.get_num_threads()
+        threads = max(1, min(torch_threads, numba.config.NUMBA_NUM_THREADS))
         numba.set_num_threads(threads)
+        if torch.get_num_threads() != torch_threads:
+            # numba's OpenMP pool, started by its first use, sets the process's OpenMP count,
+            # which is torch's too: the job's thread setting must survive it
+            torch.set_num_threads(torch_threads)
         for b in self.blocks:
             count = n if b.count is None else b.count
             if count == 0:

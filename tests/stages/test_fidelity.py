@@ -1,0 +1,69 @@
+"""The fidelity stage's checks and report on synthetic runs (no training or simulation): the
+second full run is the noise floor, not a candidate, and the exact psi is described as what it
+is (the psi of cells adapted to their current input)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surrogate.stages import fidelity
+from surrogate.stages.fidelity import RunResult
+
+SMALL = ["collect.n_per_state=200", "collect.n_cells=50", "gp.n_inducing=10",
+         "fidelity.train_seeds=[0]", "fidelity.fields=[gaussian]", "fidelity.n_cells=200",
+         "fidelity.t_end=2.0"]  # fmt: skip
+
+
+def _run(rng: np.random.Generator, times: tuple[float, ...], shift: float) -> RunResult:
+    return RunResult(
+        observables={t: rng.normal(2.0 + shift, 0.5, 200) for t in times},
+        mean_durations={"tumble": 0.1 * (1 + shift), "run": 1.0 * (1 + shift)},
+        segments={"tumble": 500, "run": 500},
+    )
+
+
+@pytest.fixture
+def checked(compose_cfg):
+    settings = fidelity.validate(compose_cfg("fidelity", SMALL))
+    (candidate,) = settings.candidates
+    rng = np.random.default_rng(0)
+    results = {
+        "full|gaussian": _run(rng, settings.times, 0.0),
+        "full_repeat|gaussian": _run(rng, settings.times, 0.0),
+        "exact|gaussian": _run(rng, settings.times, 0.0),
+        f"{candidate.label}|gaussian": _run(rng, settings.times, 0.5),  # far off: fails
+    }
+    table = fidelity.check(settings, results)
+    return settings, results, table
+
+
+def test_the_second_full_run_is_the_floor_not_a_candidate(checked) -> None:
+    """Compared with itself as the floor, the second full run's checks could not fail: it is
+    no row of the table, only every row's noise floor."""
+    settings, results, table = checked
+    (candidate,) = settings.candidates
+    assert set(table["candidate"]) == {"exact", candidate.label}
+    full, repeat = results["full|gaussian"], results["full_repeat|gaussian"]
+    from scipy import stats
+
+    for t in settings.times:
+        rows = table[table["quantity"] == f"distance_t{t:g}"]
+        floor = stats.ks_2samp(repeat.observables[t], full.observables[t]).statistic
+        assert np.allclose(rows["noise_floor"], floor)
+    learned = table[table["candidate"] == candidate.label]
+    assert not learned["passed"].any()  # a shifted candidate fails every check
+    summary = fidelity.summarise(table, settings)
+    assert summary["checks"] == len(learned) and summary["passed"] == 0
+    assert set(summary["by_candidate"]) == {"exact", candidate.label}
+
+
+def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
+    settings, _, table = checked
+    summary = fidelity.summarise(table, settings)
+    text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
+    assert "full_repeat" not in text
+    assert "adapted to their current input" in text and "best" not in text
+    fig = fidelity.plot_ks(table, settings)
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    assert labels[0] == "noise floor" and "full_repeat" not in labels
