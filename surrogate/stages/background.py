@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import os
+import pickle
 import queue
 import subprocess
 import sys
@@ -200,12 +201,13 @@ class Worker:
         try:
             while (job := self._jobs.get()) is not None and not self._cancelled.is_set():
                 try:
-                    send.send(job)
-                except (OSError, EOFError):
-                    raise
+                    data = _dumps(job)
                 except Exception as exc:  # e.g. unpicklable: the job fails in its turn
-                    send.send((_fail, (f"{type(exc).__name__}: {exc}",)))
-            send.send(None)  # stop (not only EOF: another process may hold the pipe's end)
+                    data = _dumps((_fail, (f"{type(exc).__name__}: {exc}",)))
+                send.send_bytes(data)
+            send.send_bytes(
+                _dumps(None)
+            )  # stop (not only EOF: another process may hold the pipe's end)
         except (OSError, EOFError):
             pass  # the worker died: result() reports it
         finally:
@@ -242,6 +244,13 @@ def _fail(message: str) -> None:
     raise RuntimeError(message)
 
 
+def _dumps(obj: object) -> bytes:
+    """A plain pickle: ``Connection.send`` would use multiprocessing's reductions, with which
+    torch sends tensors through shared memory and an authenticated resource sharer that a worker
+    started with ``subprocess`` cannot reach (AuthenticationError); plain pickles copy them."""
+    return pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+
+
 def serve(jobs_fd: int, results_fd: int, parent: int | None = None) -> None:
     """The worker's loop (``python -c``; the thread count is its first argument): run each job
     received on ``jobs_fd`` and send ("ok", log records) or ("error", (message, traceback))
@@ -259,7 +268,7 @@ def serve(jobs_fd: int, results_fd: int, parent: int | None = None) -> None:
     jobs, results = Connection(jobs_fd), Connection(results_fd)
     while True:
         try:
-            item = jobs.recv()
+            item = pickle.loads(jobs.recv_bytes())
         except EOFError:
             break
         except Exception as exc:  # a job it cannot unpickle fails alone (the bytes were read)

@@ -302,3 +302,18 @@ def test_the_script_gives_its_worker_a_head_start(tmp_path: Path) -> None:
     assert tables.keys() == expected.keys() and len(tables) == 4
     for name, table in tables.items():
         pd.testing.assert_frame_equal(table, expected[name], obj=name)
+
+
+def test_a_job_holding_a_tensor_runs_in_the_worker(tmp_path: Path) -> None:
+    """Jobs go over the pipe as plain pickles: torch's multiprocessing reductions (shared
+    memory, an authenticated resource sharer) would fail in a worker that is not a
+    multiprocessing child (AuthenticationError), and the parent would do the job itself."""
+    import torch
+    import torch.multiprocessing  # registers the sharing reductions
+
+    worker = Worker(threads=1)
+    path = tmp_path / "tensor.pt"
+    saved = worker.submit(torch.save, torch.arange(5.0), path)
+    assert worker.result(saved)
+    worker.close()
+    torch.testing.assert_close(torch.load(path, weights_only=True), torch.arange(5.0))
