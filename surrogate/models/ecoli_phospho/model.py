@@ -30,7 +30,13 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, InternalState, KernelUnsupported, Model
+from surrogate.models.base import (
+    CellKernel,
+    InternalState,
+    KernelUnsupported,
+    Model,
+    burn_in_seconds,
+)
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
@@ -82,7 +88,7 @@ class PhosphoInternalModel(NetworkInternalModel):
             network, ("m", "L"), "N >= 2 && S == 0", lump_names=self.lump_names,
             features={"F": partial(receptor_energy, params=params),
                       "activity": partial(receptor_activity, params=params)},
-            ssa=ssa, burn_in=burn_in, signal_bounds={"activity": (0.0, 1.0)},
+            ssa=ssa, burn_in=burn_in_seconds(burn_in), signal_bounds={"activity": (0.0, 1.0)},
         )  # fmt: skip
         self._motor_columns = [species.index(m) for m in ("S", "C", "N")]
         self._motor_moves = _motor_moves(network, self._motor_columns)
