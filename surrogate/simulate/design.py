@@ -16,11 +16,9 @@ redrawn by applying the perturbation again.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -179,13 +177,4 @@ class GuidedJump:
         return state
 
 
-def acceptance(acquisition: Acquisition, phi: int, z: np.ndarray) -> float:
-    """Mean acceptance probability ``w / max w`` of proposals ``z`` (``n x d``) from origin
-    ``phi``: the share of guided draws accepted at once (a diagnostic of the design)."""
-    zt = torch.as_tensor(z, dtype=torch.float64).reshape(len(z), -1)
-    w = acquisition(torch.full((zt.shape[0],), phi), zt)
-    peak = float(acquisition.peak[phi])
-    return float(w.mean() / peak) if peak > 0 and math.isfinite(peak) else 0.0
-
-
-__all__ = ["GRID_CELLS", "Acquisition", "GuidedJump", "acceptance"]
+__all__ = ["GRID_CELLS", "Acquisition", "GuidedJump"]

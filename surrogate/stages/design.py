@@ -139,10 +139,9 @@ def collect_in_rounds(
             torch.from_numpy(occupied["phi"].to_numpy(np.int64)),
             torch.from_numpy(occupied[names].to_numpy(np.float64, copy=True)),
         )
-        options_ = settings.options["design"]
         collected.guide = GuidedJump(perturbation, model.body, simulator.field, featurize,
-                                     acquisition, int(options_["candidates"]),
-                                     float(options_["explore"]))  # fmt: skip
+                                     acquisition, int(options["candidates"]),
+                                     float(options["explore"]))  # fmt: skip
     if not met:
         log.warning("design: the target %.2f %% was not met in %d rounds (posterior errors "
                     "%s); raise collect.design.max_rounds or collect.n_per_state", 100 * target,
