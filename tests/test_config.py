@@ -58,7 +58,8 @@ def test_every_gp_config_builds_settings(compose_cfg, gp: str) -> None:
     cfg = compose_cfg("train", [f"gp={gp}"])
     settings = TrainSettings.from_config(cfg)
     assert settings.gp.n_inducing == cfg.gp.n_inducing
-    assert settings.inputs == ("dG",)  # the model's signal by default
+    # the model's signal by default, and the switch clock with gp.history=age
+    assert settings.inputs == (("dG", "phi_age") if cfg.gp.history == "age" else ("dG",))
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from surrogate.ctmc.network import ReactionNetwork, make_propensity_fn
 
-__all__ = ["StateSpace", "lumped_psi", "stationary_distribution"]
+__all__ = ["StateSpace", "lumped_age_psi", "lumped_psi", "stationary_distribution"]
 
 #: default bound on the number of enumerated states (a generator of K^2 float64 per cell)
 MAX_STATES = 5000
@@ -184,3 +184,51 @@ def lumped_psi(q: Tensor, lump: Tensor, dt: float) -> Tensor:
         w = pi * (lump == phi)
         out.append((w * to_one).sum(-1) / w.sum(-1))
     return torch.stack(out, -1).clamp(0.0, 1.0)
+
+
+def lumped_age_psi(q: Tensor, lump: Tensor, dt: float, max_steps: int) -> Tensor:
+    """Exact ``P(phi' = 1 | phi, age)`` of a chain observed every ``dt``, ``n x 2 x (A + 1)``.
+
+    The two-state chain's memory limit: ``age`` = k windows since phi last changed (k = 0: it
+    changed in the window just ended), ``A = max_steps``. Cells adapted to their inputs enter
+    lump ``phi`` with the stationary flux ``pi P[other lump -> s]`` (P = exp(Q dt)); k windows
+    later, having stayed, their state is that entrance law times ``P_phi,phi^k`` (P restricted to
+    the lump), renormalised; psi is that law's chance of ending the next window in lump 1. As k
+    grows the law tends to the lump's quasi-stationary law (not :func:`lumped_psi`'s
+    stationary restriction, which mixes all ages), so the last column stands for ages >= A.
+
+    Args:
+        q: ``n x K x K`` generators (rates held fixed).
+        lump: ``K`` bool, the property phi of each state.
+        dt: window length (s).
+        max_steps: the largest age ``A`` in windows.
+
+    Returns:
+        ``n x 2 x (A + 1)`` float64: ``[:, phi, k]`` = P(phi' = 1 | phi, age k).
+
+    Example:
+        >>> q = torch.tensor([[[-1.0, 1.0], [2.0, -2.0]]])  # one memoryless state per lump
+        >>> psi = lumped_age_psi(q, torch.tensor([False, True]), 0.1, 3)
+        >>> bool(torch.allclose(psi[0, 0], psi[0, 0, :1].expand(4)))  # no memory: flat in age
+        True
+    """
+    if max_steps < 0:
+        raise ValueError(f"max_steps must be >= 0, got {max_steps}")
+    lump = lump.to(q.device)
+    pi = stationary_distribution(q)
+    p = torch.linalg.matrix_exp(q.to(torch.float64) * dt).clamp_min(0.0)
+    p = p / p.sum(-1, keepdim=True)
+    to_one = p[:, :, lump].sum(-1)  # (n, K)
+    out = []
+    for phi in (False, True):
+        inside = (lump == phi).to(p.dtype)  # (K,)
+        # entrance law: from the other lump into each state of this one, in one window
+        law = torch.einsum("nk,nkj->nj", pi * (1.0 - inside), p) * inside
+        stay = p * inside[None, :, None] * inside[None, None, :]  # P restricted to the lump
+        ages = []
+        for _ in range(max_steps + 1):
+            law = law / law.sum(-1, keepdim=True)
+            ages.append((law * to_one).sum(-1))
+            law = torch.einsum("nk,nkj->nj", law, stay)
+        out.append(torch.stack(ages, -1))
+    return torch.stack(out, 1).clamp(0.0, 1.0)

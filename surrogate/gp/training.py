@@ -58,7 +58,9 @@ class GPSettings:
     natural_gradient: bool = False
     natural_lr: float = 0.1
     validation_fraction: float = 0.2
-    bins: int = 0
+    #: equal-width bins per (normalised) input axis, one count for every axis or one per axis
+    #: (e.g. ``[500, 25]``: a coarse axis for the switch clock); 0: no binning (minibatches)
+    bins: int | tuple[int, ...] = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -72,7 +74,12 @@ class GPSettings:
         for name in ("n_inducing", "epochs", "batch_size"):
             _check_int(name, getattr(self, name), minimum=1)
         _check_int("seed", self.seed, minimum=0)
-        _check_int("bins", self.bins, minimum=0)
+        if isinstance(self.bins, Sequence) and not isinstance(self.bins, str):
+            if not self.bins:
+                raise ConfigError("gp.bins: give one count for every axis or one per axis, got []")
+            self.bins = tuple(_check_int("bins", b, minimum=1) for b in self.bins)
+        else:
+            _check_int("bins", self.bins, minimum=0)
         for name in ("lr", "natural_lr"):
             value = _check_float(name, getattr(self, name))
             if value <= 0:
@@ -657,8 +664,9 @@ def _batches(n: int, settings: GPSettings, gen: torch.Generator, device: torch.d
     return torch.randperm(n, generator=gen).to(device).split(settings.batch_size)
 
 
-def bin_inputs(z: Tensor, y: Tensor, bins: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Aggregate points into equal-width bins of every (normalised) input column.
+def bin_inputs(z: Tensor, y: Tensor, bins: int | Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
+    """Aggregate points into equal-width bins of every (normalised) input column: ``bins`` per
+    column, or ``bins[j]`` for column ``j``.
 
     Returns the occupied bins' mean inputs ``b x d``, point counts ``n_b`` and counts of y = 1
     ``k_b``. With one input and hundreds of bins the bins are far narrower than any lengthscale
@@ -667,12 +675,15 @@ def bin_inputs(z: Tensor, y: Tensor, bins: int) -> tuple[Tensor, Tensor, Tensor]
     points left the fit measurably off; see the README).
     """
     d = z.shape[1]
+    per_axis = [bins] * d if isinstance(bins, int) else list(bins)
+    if len(per_axis) != d:
+        raise ConfigError(f"gp.bins has {len(per_axis)} counts for {d} input(s): give one or {d}")
     index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
-    for j in range(d):
+    for j, n in enumerate(per_axis):
         col = z[:, j].contiguous()  # bucketize copies (and warns) otherwise
-        edges = torch.linspace(float(col.min()), float(col.max()), bins + 1, device=z.device)
-        index = index * bins + torch.bucketize(col, edges[1:-1])
-    size = bins**d
+        edges = torch.linspace(float(col.min()), float(col.max()), n + 1, device=z.device)
+        index = index * n + torch.bucketize(col, edges[1:-1])
+    size = math.prod(per_axis)
     n_b = torch.bincount(index, minlength=size).to(z.dtype)
     k_b = torch.bincount(index, weights=y.to(z.dtype), minlength=size)
     sums = torch.stack(

@@ -21,7 +21,13 @@ from torch import Tensor
 
 from surrogate.ctmc import ReactionNetwork, gillespie, mass_action_kinetics
 from surrogate.ctmc.kinetics import Expr, species_ref, torch_function
-from surrogate.ctmc.lumped import MAX_STATES, StateSpace, lumped_psi, stationary_distribution
+from surrogate.ctmc.lumped import (
+    MAX_STATES,
+    StateSpace,
+    lumped_age_psi,
+    lumped_psi,
+    stationary_distribution,
+)
 from surrogate.errors import ConfigError
 from surrogate.models.base import InternalState, Randoms, burn_in_seconds
 from surrogate.sbml import SbmlModel
@@ -310,6 +316,20 @@ class NetworkInternalModel:
         assert space is not None
         q = space.generator(*self._generator_args(signal, is_signal=True))
         return lumped_psi(q, self._lump(space.states.to(q.device)), dt)
+
+    @property
+    def exact_age_psi(self) -> Callable[[Tensor, float, int], Tensor] | None:
+        """``exact_age_psi(signal (n x k), dt, max_steps) -> n x 2 x (max_steps + 1)``: the exact
+        ``P(phi' = 1 | phi, k windows since phi last changed)`` of adapted cells (the switch
+        clock's limit, :func:`surrogate.ctmc.lumped.lumped_age_psi`); None when the state space
+        is too large to enumerate."""
+        return self._exact_age_psi if self.state_space is not None else None
+
+    def _exact_age_psi(self, signal: Tensor, dt: float, max_steps: int) -> Tensor:
+        space = self.state_space
+        assert space is not None
+        q = space.generator(*self._generator_args(signal, is_signal=True))
+        return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
 
     def _generator_args(self, x: Tensor, is_signal: bool = False) -> tuple:
         inputs = self._kinetic_inputs(x) if is_signal else self.kinetic_inputs(x)

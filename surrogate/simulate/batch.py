@@ -209,7 +209,9 @@ class BatchSimulator(Simulator):
         for member, group in zip(self.decision.members, self.groups, strict=True):  # type: ignore[attr-defined]
             parts = [self.replicates[i].decision.fused_state() for i in group]
             if any(parts):
-                member.set_fused_state(internal.concat_states(parts))
+                # a layer with its own per-cell state (e.g. a switch clock) concatenates it
+                concat = getattr(member, "concat_states", internal.concat_states)
+                member.set_fused_state(concat(parts))
         self._checked_step = 0
         self._block, self._blocks = None, []
         body = {k: torch.cat([s.body[k] for s in states]) for k in states[0].body}
@@ -328,7 +330,7 @@ def _decision_blocks(
             first = members[k]
             table = StackedPsiLookup([m.run_probability for m in members[k:end]], cells)  # type: ignore[attr-defined]
             name = "+".join(dict.fromkeys(m.name for m in members[k:end]))
-            merged.append(AbstractDecision(table, first.internal, first.featurize, name=name))  # type: ignore[attr-defined]
+            merged.append(first.restacked(table, name))  # type: ignore[attr-defined]
             merged_groups.append([i for g in groups[k:end] for i in g])
         k = end
     return merged_groups, merged
@@ -340,6 +342,8 @@ def _stackable(a: DecisionLayer, b: DecisionLayer) -> bool:
     if not (isinstance(a, AbstractDecision) and isinstance(b, AbstractDecision)):
         return False
     if type(a).fused_step is not type(b).fused_step or a.randoms != b.randoms:
+        return False
+    if getattr(a, "max_age", None) != getattr(b, "max_age", None):  # switch clocks' caps
         return False
     # a table exists only if its module was imported (the engine does not import gp itself)
     lookup = sys.modules.get("surrogate.gp.lookup")

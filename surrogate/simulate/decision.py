@@ -8,7 +8,9 @@ The outer loop is shared; only this layer differs between
   (Algorithm 2);
 * :class:`ExactDecision`: the same chain driven by the internal model's exact lumped psi (where
   the state space is small enough to compute it): the psi of cells adapted to their current
-  inputs, not a bound on what a two-state chain can do (moving cells are not adapted).
+  inputs, not a bound on what a two-state chain can do (moving cells are not adapted);
+* :class:`~surrogate.simulate.memory.MemoryDecision` (its own module): the chain with a switch
+  clock.
 
 Besides the eager protocol (``initialize`` / ``step``) each layer has a *pure* form the
 simulator fuses into its one-function step (and can ``torch.compile``): ``fused_step`` takes its
@@ -156,6 +158,10 @@ class AbstractDecision:
         self.featurize = featurize
         self.name = name
         self._psi = getattr(run_probability, "evaluate", run_probability)
+
+    def restacked(self, run_probability: RunProbability, name: str) -> AbstractDecision:
+        """The same chain over another psi (e.g. several chains' tables stacked into one)."""
+        return AbstractDecision(run_probability, self.internal, self.featurize, name)
 
     def probability(self, phi: Tensor, x: Tensor) -> Tensor:
         """p(phi' = 1) ``(n,)`` for current phi and inputs x (pure, unchecked)."""

@@ -7,8 +7,11 @@ unperturbed from a start and records where the population actually lives, the we
 abstraction's diagnostic.
 
 Each row: the model's inputs (``x`` columns), its declared features, ``phi`` and ``phi_next``
-(the property before and after the window), ``cell``, ``t`` (start of the window) and
-``since_jump`` (steps since the cell was last perturbed; -1 if never); with ``expected``,
+(the property before and after the window), ``cell``, ``t`` (start of the window),
+``since_jump`` (steps since the cell was last perturbed; -1 if never), ``phi_age`` (s since the
+cell's phi last changed, at the window's start: the switch clock of
+:mod:`surrogate.simulate.memory`) and ``phi_age_censored`` (true while the cell has not switched
+since recording began: ``phi_age`` is then only a lower bound); with ``expected``,
 ``phi_next_expected``: the probability that phi is 1 after the window given the internal state at
 its start (the internal model's ``expected_phi_next``). Its mean given x is psi(x), like the 0/1
 outcome's, but without the window's own randomness: a Rao-Blackwellised label with a smaller
@@ -37,6 +40,7 @@ from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
 from surrogate.simulate.design import GuidedJump
 from surrogate.simulate.loop import PopulationState, Simulator
+from surrogate.simulate.memory import AGE, CENSORED, tick
 
 #: column of the expected label: P(phi' = 1 | the internal state at the window's start, x)
 EXPECTED = "phi_next_expected"
@@ -54,9 +58,12 @@ def _rows(
     blackout: int = 0,
     expected: bool = False,
     guide: Callable[[], GuidedJump | None] | None = None,
+    clock: bool = True,
 ) -> Iterator[dict[str, np.ndarray]]:
     """Yield recorded rows step by step (see the module docstring); ``guide()``: the guided
-    jumps of a sequential design at this step, if any (None: the perturbation as drawn)."""
+    jumps of a sequential design at this step, if any (None: the perturbation as drawn).
+    ``clock``: keep the switch clocks (every step one call; without it and without jumps the
+    unrecorded steps run in one call and the rows have no ``phi_age``)."""
     internal = simulator.decision.internal  # type: ignore[attr-defined]
     if expected and not can_expect(internal):
         raise ConfigError(
@@ -69,10 +76,13 @@ def _rows(
     jump_probability = perturb_rate * dt
     # steps since each cell's last jump (-1: never), on the device: no per-step host sync
     since = torch.full((n_cells,), -1, dtype=torch.int64, device=device)
+    # switch clocks (steps since phi last changed, or since recording began while censored)
+    age = torch.zeros(n_cells, dtype=torch.float32, device=device)
+    censored = torch.ones(n_cells, dtype=torch.bool, device=device)
     with torch.inference_mode():  # cheaper per op than no_grad
         k = 0
         while k < max_steps:
-            if perturbation is None:  # no jumps to draw per step: unrecorded steps in one call
+            if perturbation is None and not clock:  # unrecorded steps in one call
                 skip = min(record_every - 1 - k % record_every, max_steps - k)
                 if skip:
                     simulator.advance(state, skip)
@@ -87,11 +97,17 @@ def _rows(
                 else:
                     state.body = perturbation.apply(state.body, jump)
                 since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
+            age_before, censored_before = age, censored
             if k % record_every:
-                _one_step(simulator, state)
+                _, phi_before, phi_after = _one_step(simulator, state)
+                age, censored = (
+                    tick(age, phi_before, phi_after),
+                    censored & (phi_after == phi_before),
+                )
                 continue
             before = _internal_state(simulator) if expected else None
             x, phi_before, phi_after = _one_step(simulator, state)
+            age, censored = tick(age, phi_before, phi_after), censored & (phi_after == phi_before)
             # every cell on thinned steps, except those still inside the blackout after a jump
             rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
             if rows.numel() == 0:
@@ -112,6 +128,9 @@ def _rows(
                 t=np.full(rows.numel(), (k - 1) * dt),
                 since_jump=since[rows].cpu().numpy(),
             )
+            if clock:
+                chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
+                chunk[CENSORED] = censored_before[rows].cpu().numpy()
             if before is not None:
                 p_next = internal.expected_phi_next(before, x, dt)[rows]
                 chunk[EXPECTED] = p_next.float().cpu().numpy()
@@ -264,11 +283,14 @@ def record_occupancy(
     start: Sequence[float] | torch.Tensor,
     record_every: int = 5,
     equilibration_time: float = 10.0,
+    clock: bool = False,
 ) -> pd.DataFrame:
     """Where an unperturbed population lives: every ``record_every``-th step of every cell
-    from ``start`` for ``t_end`` seconds (the weights of the abstraction's diagnostic)."""
+    from ``start`` for ``t_end`` seconds (the weights of the abstraction's diagnostic);
+    ``clock``: with the switch clocks (``phi_age``; every step one call)."""
     steps = max(1, round(t_end / simulator.dt))
-    chunks = list(_rows(simulator, n_cells, start, equilibration_time, record_every, steps))
+    chunks = list(_rows(simulator, n_cells, start, equilibration_time, record_every, steps,
+                        clock=clock))  # fmt: skip
     if not chunks:
         raise ConfigError(
             f"gp.diagnostic: t_end={t_end:g} s records no step (record_every={record_every})"

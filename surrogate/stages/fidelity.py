@@ -60,10 +60,11 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.base import has_exact_psi
+from surrogate.models.base import FeatureMap, has_exact_psi
 from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
+from surrogate.simulate.memory import MemoryDecision, can_age, exact_age_table
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.stages.collect import collect
@@ -83,6 +84,8 @@ FIDELITY_CMD = "python scripts/fidelity.py"
 TABLE = "fidelity"
 SUMMARY = "summary.json"
 FIGURE = "ks_over_time.png"
+#: the drift itself: each run's mean observable over time on the full model's noise band
+DRIFT_FIGURE = "drift.png"
 #: c(alpha) of the asymptotic two-sample KS critical value, by alpha
 KS_C = {0.05: KS_C_ALPHA_05, 0.01: 1.628, 0.001: 1.949}
 #: longest segment (steps) the duration histograms resolve; longer ones go to the last bin
@@ -116,6 +119,8 @@ class FidelitySettings:
     compile: bool
     job: Job
     backend: str = "auto"
+    #: the clocks' caps (s) of an exact psi with a switch clock beside candidates with one
+    exact_clocks: tuple[float, ...] = ()
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> FidelitySettings:
@@ -157,9 +162,13 @@ class FidelitySettings:
         exact = bool(f.get("exact_psi", True)) and has_exact_psi(setup.model.internal)
         if exact and not getattr(setup.model.internal, "signal_bounds", None):
             exact = False
+        clocks: tuple[float, ...] = ()
+        if exact and can_age(setup.model.internal):
+            ages = sorted({c.train.max_age for c in candidates if c.train.history == "age"})
+            clocks = tuple(ages[:1])  # one reference row: the candidates share gp.max_age
         return cls(setup, fields, tuple(candidates), exact, f, times,
                    bool(c.get("compile", False)), Job.from_config(cfg),
-                   validate_backend(c))  # fmt: skip
+                   validate_backend(c), clocks)  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """The candidates' training identities, the fields and the run and check settings."""
@@ -169,6 +178,7 @@ class FidelitySettings:
             "fields": {name: field_config(name) for name in self.fields},
             "candidates": [c.train.identity() for c in self.candidates],
             "exact_psi": self.exact_psi,
+            **({"exact_clocks": list(self.exact_clocks)} if self.exact_clocks else {}),
             "fidelity": {**self.options, "times": list(self.times)},
             "compile": self.compile,
             "backend": self.backend,
@@ -187,6 +197,11 @@ class FidelitySettings:
         """The command that makes this artefact."""
         return " ".join([FIDELITY_CMD, *group_overrides("model", self.setup.model_config)])
 
+
+#: the candidate row of the exact psi with a switch clock
+EXACT_CLOCK = "exact+clock"
+#: reference rows (not learned abstractions): not counted in the summary's checks
+REFERENCES = ("exact", EXACT_CLOCK)
 
 #: decision.mode of the abstractions under test
 MODES = ("lookup", "classifier")
@@ -364,6 +379,14 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         for name in settings.fields:
             reps.append(Replicate(exact, fields[name], n, seed + 2 * offset, start))
             labels.append(f"exact|{name}")
+    for max_age in settings.exact_clocks:
+        # the exact psi with a switch clock: the limit of the candidates with gp.history=age
+        table = exact_age_table(model.internal, setup.dt, max_age).to(job.device)
+        featurize = FeatureMap(model.internal, model.internal.signal_names)
+        clocked = MemoryDecision(table, model.internal, featurize, max_age, EXACT_CLOCK)
+        for name in settings.fields:
+            reps.append(Replicate(clocked, fields[name], n, seed + 2 * offset, start))
+            labels.append(f"{EXACT_CLOCK}|{name}")
     for i, c in enumerate(settings.candidates):
         decision, _ = abstract_decision(model, c.train, str(o.get("mode", "lookup")),
                                         o.get("lookup_size"), job.device)  # fmt: skip
@@ -378,12 +401,21 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     (out / MANIFEST).unlink(missing_ok=True)
     write_csv(out / f"{TABLE}.csv", table)
     summary = summarise(table, settings)
+    # the drift itself: each run's mean observable per check time, with its standard error
+    summary["mean_observable"] = {
+        label: {f"{t:g}": [float(v.mean()), float(v.std(ddof=1) / math.sqrt(max(len(v), 1)))]
+                for t, v in r.observables.items()}
+        for label, r in results.items()
+    }  # fmt: skip
     summary["diagnostics"] = {c.label: read_metrics(c.train.directory).get("diagnostic")
                               for c in settings.candidates}  # fmt: skip
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
+    save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
     write_report(out / f"{TABLE}.md", report_sections(table, summary, settings), [
-        ("KS distance of the observable over time: candidates vs the noise floor", out / FIGURE)],
+        ("KS distance of the observable over time: candidates vs the noise floor", out / FIGURE),
+        ("The drift: mean observable over time, candidates on the full model's noise band",
+         out / DRIFT_FIGURE)],
         title=f"Fidelity at scale: {model.describe()}")  # fmt: skip
     write_manifest(out, stage="fidelity", config=dict(config), seed=seed,
                    settings=settings.identity(), wall_time_s=time.perf_counter() - t0,
@@ -404,7 +436,8 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
     crit = KS_C[alpha] * math.sqrt(2.0 / n)
     factor, ks_max, tol = float(o["ks_factor"]), float(o["ks_max"]), float(o["duration_tolerance"])
     lumps = settings.setup.model.internal.lump_names
-    candidates = (["exact"] if settings.exact_psi else []) + [
+    candidates = (["exact"] if settings.exact_psi else []) + (
+        [EXACT_CLOCK] if settings.exact_clocks else []) + [
         c.label for c in settings.candidates]  # fmt: skip
     rows = []
     for name in settings.fields:
@@ -432,7 +465,7 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
 
 def summarise(table: pd.DataFrame, settings: FidelitySettings) -> dict[str, Any]:
     """Counts of passing checks per candidate kind."""
-    learned = table[table["candidate"] != "exact"]
+    learned = table[~table["candidate"].isin(REFERENCES)]
     out: dict[str, Any] = {
         "checks": len(learned),
         "passed": int(learned["passed"].sum()),
@@ -540,4 +573,43 @@ def plot_ks(table: pd.DataFrame, settings: FidelitySettings) -> Any:
     return fig
 
 
-__all__ = ["FidelitySettings", "check", "run", "validate"]
+def plot_drift(mean_observable: Mapping[str, Mapping[str, list[float]]],
+               settings: FidelitySettings) -> Any:  # fmt: skip
+    """Mean observable against time per field, as the population drifts: the full model with
+    its noise band (the 95 % range of a second run's mean, +- 1.96 sqrt(2) s.e.), the second
+    full run and every candidate, so a gap (or its absence) is seen at a glance.
+
+    Args:
+        mean_observable: ``{"<run>|<field>": {"<t>": [mean, s.e.]}}`` (the summary's).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fields = list(settings.fields)
+    fig, axes = plt.subplots(1, len(fields), figsize=(4 * len(fields), 3.6),
+                             constrained_layout=True, squeeze=False)  # fmt: skip
+    name = settings.setup.model.body.observable_names[0]
+    for ax, field in zip(axes[0], fields, strict=True):
+        runs = {k.split("|")[0]: v for k, v in mean_observable.items() if k.endswith(f"|{field}")}
+        full = runs.pop("full")
+        t = [float(k) for k in full]
+        mean = [m for m, _ in full.values()]
+        half = [1.96 * math.sqrt(2.0) * se for _, se in full.values()]
+        ax.fill_between(t, [m - h for m, h in zip(mean, half, strict=True)],
+                        [m + h for m, h in zip(mean, half, strict=True)], color="k", alpha=0.15,
+                        label="full model, 95 % band")  # fmt: skip
+        ax.plot(t, mean, color="k", marker="o", label="full model")
+        for label, series in runs.items():
+            style = {"full_repeat": ("k", "--"), "exact": ("grey", ":")}.get(label, (None, "-"))
+            ax.plot([float(k) for k in series], [m for m, _ in series.values()], marker=".",
+                    color=style[0], ls=style[1], label=label)  # fmt: skip
+        ax.set_title(field)
+        ax.set_xlabel("t (s)")
+    axes[0][0].set_ylabel(f"mean {name}")
+    axes[0][-1].legend(fontsize=7)
+    return fig
+
+
+__all__ = ["FidelitySettings", "check", "plot_drift", "run", "validate"]

@@ -52,6 +52,7 @@ def _record(settings: OccupancySettings) -> None:
         torch.tensor(d["start"]),
         int(d["record_every"]),
         float(d["equilibration_time"]),
+        clock=bool(d.get("clock", False)),
     )
     out = settings.directory
     write_parquet(out / OCCUPANCY, table)

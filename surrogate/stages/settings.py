@@ -39,6 +39,7 @@ from surrogate.fields import Field
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
 from surrogate.models.base import Model, has_exact_psi
+from surrogate.simulate.memory import AGE, can_age, history_setting
 from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
 
 COLLECT_CMD = "python scripts/collect.py"
@@ -50,7 +51,10 @@ REPRODUCE_CMD = "python scripts/reproduce.py"
 DECISIONS = ("full", "abstract", "exact")
 DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
 #: keys of the gp group that are not GP hyperparameters
-GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels")
+GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
+            "clock_bins")  # fmt: skip
+#: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
+GP_CLOCK = ("history", "max_age", "clock_bins")
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
@@ -390,6 +394,9 @@ class TrainSettings:
     diagnostic: dict[str, Any]
     job: Job
     fit_threads: int
+    #: gp.history: none | age (psi also over the switch clock, its last input) and its cap (s)
+    history: str = "none"
+    max_age: float = 5.0
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
@@ -412,6 +419,14 @@ class TrainSettings:
                 f"held-out metrics), got {gp.validation_fraction!r}"
             )
         inputs = setup.model.abstraction_inputs(gp_config.get("inputs"))
+        history, max_age = history_setting(gp_config.get("history"),
+                                           gp_config.get("max_age", 5.0), "gp")  # fmt: skip
+        if history == "age":
+            if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
+                clock_bins = gp_config.get("clock_bins", gp.bins)
+                gp = GPSettings.from_config({**hyper, "seed": setup.seed,
+                                             "bins": [gp.bins] * len(inputs) + [clock_bins]})  # fmt: skip
+            inputs = (*inputs, AGE)
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
@@ -444,7 +459,8 @@ class TrainSettings:
                     "gp.labels=outcome"
                 )
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
-                   int(threads) if threads is not None else torch.get_num_threads())  # fmt: skip
+                   int(threads) if threads is not None else torch.get_num_threads(),
+                   history, max_age)  # fmt: skip
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
@@ -470,6 +486,8 @@ class TrainSettings:
             data = {"table": str(self.source.path), "sha256": self.source.sha256,
                     "model": self.setup.model_config, "seed": self.setup.seed}  # fmt: skip
         gp = {k: v for k, v in self.gp_config.items() if k not in GP_NOT_FIT}
+        if self.history == "none":  # fits without a clock keep the identity they had before it
+            gp = {k: v for k, v in gp.items() if k not in GP_CLOCK}
         return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
                 "device": self.job.device_type}  # fmt: skip
 
@@ -518,7 +536,10 @@ class TrainSettings:
     def occupancy(self) -> OccupancySettings:
         """The diagnostic's occupancy run: an unperturbed full-model population in the training
         field (``gp.diagnostic``: its size, start and length), seeded with this seed."""
-        return OccupancySettings(self.setup, dict(self.diagnostic), self.job, self.command())
+        options = dict(self.diagnostic)
+        if self.history == "age":  # the rows need the switch clocks
+            options["clock"] = True
+        return OccupancySettings(self.setup, options, self.job, self.command())
 
 
 @dataclass(frozen=True, eq=False)
@@ -577,6 +598,9 @@ class DecisionSettings:
     lookup_size: tuple[int, ...] | None = None
     train: TrainSettings | None = None
     train_field: str | None = None
+    #: decision=exact: none | age (the exact psi with a switch clock) and the clock's cap (s)
+    history: str = "none"
+    max_age: float = 5.0
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup) -> DecisionSettings:
@@ -604,6 +628,14 @@ class DecisionSettings:
                     f"network's state space is too large to enumerate); use decision=full (the "
                     f"model itself) or decision=abstract (the learned psi)"
                 )
+            history, max_age = history_setting(d.get("history"), d.get("max_age", 5.0),
+                                               "decision")  # fmt: skip
+            if history == "age" and (mode != "lookup" or not can_age(internal)):
+                raise ConfigError(
+                    f"decision.history=age needs decision.mode=lookup and a model with an exact "
+                    f"psi over one signal with a clock (exact_age_psi); model "
+                    f"{setup.model.name!r}, mode {mode!r}"
+                )
             sizes = None
             if mode == "lookup":
                 sizes = grid_size(d.get("lookup_size"), "decision.lookup_size",
@@ -613,7 +645,7 @@ class DecisionSettings:
                         f"decision.mode=lookup needs the model's signal bounds; model "
                         f"{setup.model.name!r} declares none: use decision.mode=direct"
                     )
-            return cls(name, d, mode, sizes)
+            return cls(name, d, mode, sizes, history=history, max_age=max_age)
         train_field = str(d.get("train_field"))
         train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
         train = TrainSettings.from_config(train_cfg)

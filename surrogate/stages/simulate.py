@@ -23,7 +23,7 @@ from surrogate.config import seed_everything, to_dict
 from surrogate.fields import Field
 from surrogate.gp import PsiLookupTable
 from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
-from surrogate.models.base import Model
+from surrogate.models.base import FeatureMap, Model
 from surrogate.simulate.decision import (
     AbstractDecision,
     DecisionLayer,
@@ -32,6 +32,7 @@ from surrogate.simulate.decision import (
     FullDecision,
 )
 from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
+from surrogate.simulate.memory import MemoryDecision, exact_age_table, has_history
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.stages import budget
 from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
@@ -76,6 +77,12 @@ def build_decision(
     if d.name == "full":
         return FullDecision(model.internal), {}
     if d.name == "exact":
+        if d.history == "age":
+            table = exact_age_table(model.internal, settings.setup.dt, d.max_age).to(device)
+            featurize = FeatureMap(model.internal, model.internal.signal_names)
+            log.info("exact psi with a switch clock: table %s over %s", table.shape,
+                     table.input_names)  # fmt: skip
+            return MemoryDecision(table, model.internal, featurize, d.max_age, "exact"), {}
         return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
     assert d.train is not None
     return abstract_decision(model, d.train, d.mode or "lookup", d.lookup_size, device)
@@ -112,14 +119,21 @@ def abstract_decision(
     directory = resolve_abstraction(train)
     psi = load_abstraction(directory, device=device)
     info: dict[str, Any] = {"abstraction_dir": str(directory), "inputs": list(psi.input_names)}
-    featurize = model.featurizer(psi.input_names)
+    memory = has_history(psi.input_names)
+    featurize = model.featurizer(psi.input_names[:-1] if memory else psi.input_names)
+
+    def layer(run_probability: Any) -> DecisionLayer:
+        if memory:  # the switch clock is psi's last input (gp.history=age)
+            return MemoryDecision(run_probability, model.internal, featurize, train.max_age)
+        return AbstractDecision(run_probability, model.internal, featurize)
+
     if mode == "lookup":
         ranges = [psi.domain[n] for n in psi.input_names]
         table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
         info["lookup_max_deviation"] = float(table.max_deviation(psi))
         log.info("lookup table %s: max |table - classifier| = %.2e", table.shape,
                  info["lookup_max_deviation"])  # fmt: skip
-        return AbstractDecision(table, model.internal, featurize), info
+        return layer(table), info
     # classifier every step: the same predictive in closed form with cached factors (no gpytorch,
     # no host sync per step); its agreement with the classifier is checked and recorded
     from surrogate.gp.fast import CachedPsi
@@ -127,7 +141,7 @@ def abstract_decision(
     cached = CachedPsi.from_classifier(psi)
     info["cached_max_deviation"] = cached.max_deviation(psi)
     log.info("cached classifier: max |cached - classifier| = %.2e", info["cached_max_deviation"])
-    return AbstractDecision(cached, model.internal, featurize), info
+    return layer(cached), info
 
 
 def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] | None) -> None:

@@ -58,6 +58,7 @@ from surrogate.io import (
 )
 from surrogate.models.base import Model, has_exact_psi
 from surrogate.simulate.decision import ExactPsi
+from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
 from surrogate.stages import budget
 from surrogate.stages.collect import TRANSITIONS
@@ -143,6 +144,15 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
+    if settings.history == "age":
+        try:
+            table = clock_rows(table, settings.max_age)
+        except KeyError as exc:
+            raise ArtefactError(
+                f"{where} has no switch clocks ({exc.args[0]}) for gp.history=age: it was "
+                f"collected before collect recorded them; delete it and re-run "
+                f"`{getattr(source, 'command', lambda: 'python3 scripts/collect.py')()}`"
+            ) from exc
     label = settings.label_column(table.columns)
     needed = list(dict.fromkeys([*settings.inputs, *LABELS, label]))
     missing = [c for c in needed if c not in table.columns]
@@ -342,6 +352,21 @@ def diagnose(
     t0 = time.perf_counter()
     rows = occupancy(settings.occupancy())  # recorded in reproduce's background worker, if any
     reference = None
+    if settings.history == "age":
+        rows = clock_rows(rows, settings.max_age)
+        # the exact psi with a clock where the model has one, else the empirical reference
+        exact_fn = None
+        if can_age(model.internal):
+            table = exact_age_table(model.internal, settings.setup.dt, settings.max_age)
+            names = [*model.internal.signal_names, AGE]
+
+            def reference(rows: pd.DataFrame) -> np.ndarray:
+                s = torch.from_numpy(rows[names].to_numpy(np.float32, copy=True))
+                n = len(rows)
+                return np.stack(
+                    [table(torch.full((n,), p), s).double().numpy() for p in (0, 1)], -1
+                )
+
     if exact_fn is not None:
         names = list(model.internal.signal_names)
 

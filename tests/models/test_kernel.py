@@ -37,6 +37,7 @@ from surrogate.models.base import KernelUnsupported
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.memory import AGE, MemoryDecision
 
 DT = 0.05
 N, STEPS = 400, 150  # 150 steps cross two blocks of random numbers (64 steps each)
@@ -75,6 +76,16 @@ def _decision(kind: str, model: EcoliModel):
         b = internal.signal_bounds["dG"]
         table = PsiLookupTable.from_function(internal_psi(model), [b], ("dG",), (1024,))
         return ExactDecision(internal, DT, table)
+    if kind == "clock":  # the switch clock (gp.history=age): likelier to switch the longer in
+        max_age = 2.0
+
+        def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+            leave = (0.02 + 0.2 * z[:, 1] / max_age) * torch.sigmoid(z[:, 0])
+            return torch.where(phi > 0, 1.0 - leave, 4.0 * leave)
+
+        b = internal.signal_bounds["dG"]
+        table = PsiLookupTable.from_function(psi, [b, (0.0, max_age)], ("dG", AGE), (64, 41))
+        return MemoryDecision(table, internal, model.featurizer(["dG"]), max_age)
     if kind == "raw_inputs":  # no feature map: the table reads x = (m, L) itself
         return AbstractDecision(_table(model, ("m", "L")), internal)
     if kind == "dG_narrow":  # a box narrower than the values: the interpolation clamps
@@ -118,12 +129,32 @@ def _assert_same_trajectories(a, b) -> None:
 
 
 @pytest.mark.parametrize(
-    "kind", ["full", "dG", "mL", "mLF", "exact", "cheyp", "raw_inputs", "dG_narrow"]
+    "kind", ["full", "dG", "mL", "mLF", "exact", "cheyp", "raw_inputs", "dG_narrow", "clock"]
 )
 def test_kernel_follows_the_torch_step(kind) -> None:
     model = EcoliModel()
     _assert_same_trajectories(_run(model, kind, GaussianField(), "torch"),
                               _run(model, kind, GaussianField(), "numba"))  # fmt: skip
+
+
+def test_kernel_keeps_the_switch_clocks_as_the_torch_step() -> None:
+    """The chain with a clock: each cell's clock (steps since phi changed) after the runs is
+    the torch step's, and the clocks matter (a cell's psi reads them)."""
+    model = EcoliModel()
+    clocks = {}
+    for backend in ("torch", "numba"):
+        torch.manual_seed(3)
+        decision = _decision("clock", model)
+        sim = Simulator(model, decision, GaussianField(), DT, backend=backend)
+        assert sim.backend == backend
+        with torch.inference_mode():
+            state = sim.initial_state(N, (2.0, 0.0), equilibration_time=1.0)
+            sim.warm_up(state)
+            for k in (7, 20, STEPS - 27):
+                sim.advance(state, k)
+        clocks[backend] = decision.fused_state()[0]
+    assert torch.equal(clocks["torch"], clocks["numba"])
+    assert int(clocks["torch"].max()) > 40 and int((clocks["torch"] == 0).sum()) > 0
 
 
 @pytest.mark.parametrize("kind", ["full", "dG"])
@@ -181,8 +212,10 @@ def test_kernel_replicates_in_a_batch_are_their_standalone_runs_bit_for_bit() ->
     stacked tables, three fields) gives each run exactly its standalone numbers."""
     model = EcoliModel()
     spec = [("full", GaussianField(), 50, 0), ("full", LinearField(), 70, 1),
-            ("dG", DynamicGaussianField(), 40, 2), ("exact", GaussianField(), 30, 3)]  # fmt: skip
-    decisions = {k: _decision(k, model) for k in ("dG", "exact")}
+            ("dG", DynamicGaussianField(), 40, 2), ("exact", GaussianField(), 30, 3),
+            ("clock", GaussianField(), 30, 4), ("clock2", LinearField(), 20, 5)]  # fmt: skip
+    decisions = {k: _decision(k, model) for k in ("dG", "exact", "clock")}
+    decisions["clock2"] = _decision("clock", model)  # another table: the clocks' tables stack
     alone = []
     for kind, field, n, seed in spec:
         torch.manual_seed(seed)
@@ -193,7 +226,8 @@ def test_kernel_replicates_in_a_batch_are_their_standalone_runs_bit_for_bit() ->
     reps = [Replicate(FullDecision(model.internal) if k == "full" else decisions[k], f, n, s)
             for k, f, n, s in spec]  # fmt: skip
     batch = BatchSimulator(model, reps, DT, backend="numba")
-    assert batch.backend == "numba" and len(batch.decision.members) == 2
+    assert batch.backend == "numba" and len(batch.decision.members) == 3
+    assert type(batch.decision.members[2]) is MemoryDecision
     state = batch.initial_state(equilibration_time=1.0)
     ended = torch.cat([batch.advance(state, 20) for _ in range(5)])
     for i, cells in enumerate(batch.slices):
@@ -520,7 +554,7 @@ def test_activity_feature_code_is_the_phospho_networks_activity_in_float32() -> 
     got = np.empty((n, 2), dtype=np.float32)
     for i, (m, ligand) in enumerate(x.numpy()):
         e, a, yp, dg = kernel._signal(m, kernel._log_receptor_terms(ligand, p32), p32)
-        got[i] = kernel._feature(2, m, ligand, e, a, yp, dg), kernel._feature(code, m, ligand, e,
-                                                                              a, yp, dg)  # fmt: skip
+        got[i] = (kernel._feature(2, m, ligand, e, a, yp, dg, 0.0),
+                  kernel._feature(code, m, ligand, e, a, yp, dg, 0.0))  # fmt: skip
     torch.testing.assert_close(torch.from_numpy(got), ref, atol=1e-5, rtol=1e-6)
     assert np.abs(got[:, 1] - ref[:, 1].numpy()).max() < 5e-7

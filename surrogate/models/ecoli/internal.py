@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from surrogate.ctmc import gillespie
+from surrogate.ctmc.lumped import lumped_age_psi
 from surrogate.models.base import InternalState, Randoms
 from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
@@ -22,6 +23,7 @@ from surrogate.models.ecoli.motors import (
     is_run,
     motor_thresholds,
     motor_transition_matrix,
+    population_space,
     rate_constants,
     run_flag_from_states,
     run_probability_after,
@@ -160,3 +162,12 @@ class MotorInternalModel:
         """Exact P(RUN after dt | TUMBLE / RUN now) ``n x 2`` at signals dG (``n x 1``)."""
         k_plus, k_minus = rates_from_delta_g(signal[:, 0], self.params)
         return exact_run_probability(k_plus, k_minus, dt, self.params)
+
+    def exact_age_psi(self, signal: Tensor, dt: float, max_steps: int) -> Tensor:
+        """Exact P(RUN after dt | TUMBLE / RUN now, k windows since the last switch),
+        ``n x 2 x (max_steps + 1)``, at signals dG (``n x 1``) (adapted cells; see
+        :func:`surrogate.ctmc.lumped.lumped_age_psi`)."""
+        k_plus, k_minus = rates_from_delta_g(signal[:, 0], self.params)
+        space = population_space(self.params.n_motors)
+        q = space.generator(rate_constants(k_plus.double(), k_minus.double(), self.params))
+        return lumped_age_psi(q, is_run(space.states), dt, max_steps)

@@ -53,6 +53,7 @@ from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import PopulationState
+from surrogate.simulate.memory import MemoryDecision
 
 # -- fields: kind codes and parameter columns of pack_field ------------------------------------
 CONSTANT, GAUSSIAN, LINEAR, DYNAMIC, EXPONENTIAL = 0, 1, 2, 3, 4
@@ -62,6 +63,8 @@ FIELD_COLUMNS = 8  # kind, peak x, peak y, then up to five parameters
 # what each name means here (its formula below); an internal model's feature of that name must
 # compute the same (the model that hands the kernel its internal model vouches for that)
 FEATURE_CODES = {"m": 0, "L": 1, "F": 2, "cheyp": 3, "dG": 4, "activity": 5}
+#: the switch clock (s since phi last changed, capped): psi's last input under gp.history=age
+CLOCK_CODE = 6
 
 # -- float32 constants (signalling, OU, movement) and float64 constants (motors) ----------------
 P32_NAMES = (
@@ -136,8 +139,10 @@ def _signal(m, lrt, p):
 
 
 @numba.njit(inline="always", **_JIT)
-def _feature(code, m, ligand, energy, act, yp, dg):
-    """The column of FEATURE_CODES ``code``."""
+def _feature(code, m, ligand, energy, act, yp, dg, clock):
+    """The column of FEATURE_CODES ``code`` (CLOCK_CODE: the switch clock ``clock``)."""
+    if code == CLOCK_CODE:
+        return clock
     if code == 0:
         return m
     if code == 1:
@@ -253,8 +258,8 @@ def _motors_step(dg, motors, j, c, s, u64, motor_row, q):
 
 
 @numba.njit(inline="always", **_JIT)
-def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, table, layer, shape, strides, origin,
-            scale, features):  # fmt: skip
+def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table, layer, shape, strides,
+            origin, scale, features):  # fmt: skip
     """p(phi' = 1): gp.lookup._interpolate in table ``tab`` (lower node per axis, then lerp
     along the last axis first)."""
     d = shape.shape[0]
@@ -263,7 +268,7 @@ def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, table, layer, shape, s
     fr1 = _F32(0.0)
     fr2 = _F32(0.0)
     for a in range(d):
-        value = _feature(features[a], m, ligand, energy, act, yp, dg)
+        value = _feature(features[a], m, ligand, energy, act, yp, dg, clock)
         top = _F32(shape[a] - 1)
         w = _clamp((value - origin[tab, a]) * scale[tab, a], _F32(0.0), top)
         # NaN stays NaN in w (and so in the probability); its index is clamped
@@ -296,6 +301,7 @@ def _advance_range(
     field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
+    ages, max_age,
 ):  # fmt: skip
     """``steps`` steps of cells ``start + lo`` to ``start + hi`` of a block that starts at
     population cell ``start``: the full model when ``motors`` (M x block float32, 0 = S,
@@ -304,7 +310,10 @@ def _advance_range(
     phi' ~ Bernoulli(psi_phi(z)) with the uniform of row ``decision_row``, psi a multilinear
     lookup over ``features`` (codes of FEATURE_CODES) in the flat float32 ``table``: cell
     ``start + j`` reads table ``table_of_cell[j]`` (offset ``2 * layer`` each) with its box
-    ``origin``/``scale`` (tables x d float32).
+    ``origin``/``scale`` (tables x d float32). With ``max_age > 0`` the chain has a switch
+    clock (:class:`~surrogate.simulate.memory.MemoryDecision`): cell ``start + j``'s clock in
+    steps is ``ages[j]`` (float32, in place), psi reads ``min(age dt, max_age)`` as feature
+    CLOCK_CODE, and the clock restarts at 0 when phi changes, else counts on (memory.tick).
 
     Arrays are the simulator's tensors (in place): position (n, 2), heading, meth (n,) float32,
     phi, complete (n,) uint8, seg (n,) int32; last_x (n, 2) the last step's inputs; ended
@@ -313,10 +322,14 @@ def _advance_range(
     """
     full = motors.shape[0] > 0
     dt = q[2]
+    clocked = max_age > 0
+    dt32 = _F32(dt)
+    cap = _F32(max_age)
     for j in range(lo, hi):
         c = start + j
         x, y, h, m = position[c, 0], position[c, 1], heading[c], meth[c]
         phi_now = _F32(phi[c])
+        age = ages[j] if clocked else _F32(0.0)
         f = fields[field_of_cell[c]]
         tab = 0 if full else table_of_cell[j]
         for s in range(steps):
@@ -328,9 +341,12 @@ def _advance_range(
             if full:
                 phi_after = _motors_step(dg, motors, j, c, s, u64, motor_row, q)
             else:
-                prob = _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, table, layer,
-                               shape, strides, origin, scale, features)  # fmt: skip
+                clock = min(age * dt32, cap)  # memory.with_age
+                prob = _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table,
+                               layer, shape, strides, origin, scale, features)  # fmt: skip
                 phi_after = _F32(1.0) if u[s, decision_row, c] < prob else _F32(0.0)
+                if clocked:  # memory.tick
+                    age = _F32(0.0) if phi_after != phi_now else age + _F32(1.0)
             x, y, h = _move_and_account(
                 c, s, phi_now, phi_after, x, y, h, u, body_row, gamma_k, per_tumble, p,
                 seg, complete, ended,
@@ -339,6 +355,8 @@ def _advance_range(
             phi_now = phi_after
         position[c, 0], position[c, 1], heading[c], meth[c] = x, y, h, m
         phi[c] = np.uint8(phi_now)
+        if clocked:
+            ages[j] = age
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -347,6 +365,7 @@ def advance_cells(
     field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
+    ages, max_age,
 ):  # fmt: skip
     """Cells ``start + lo`` to ``start + hi`` in ``pieces`` contiguous pieces (a few per
     thread: balanced) spread over numba's threads, each by :func:`_advance_range` (the other
@@ -359,7 +378,8 @@ def advance_cells(
             steps, step0, start, lo + (hi - lo) * k // pieces, lo + (hi - lo) * (k + 1) // pieces,
             position, heading, meth, phi, seg, complete, last_x, ended, field_of_cell, fields, u,
             u64, z, body_row, ou_row, gamma_k, per_tumble, p, q, motors, motor_row, table,
-            table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
+            table_of_cell, layer, shape, strides, origin, scale, features, decision_row, ages,
+            max_age,
         )  # fmt: skip
 
 
@@ -414,6 +434,7 @@ _NO_TABLE = (np.zeros(2, dtype=np.float32), np.zeros(1, dtype=np.int32), 1,
              np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
              np.zeros((1, 1), dtype=np.float32), np.zeros((1, 1), dtype=np.float32),
              np.zeros(1, dtype=np.int64), 0)  # fmt: skip
+_NO_CLOCK = (np.zeros(1, dtype=np.float32), 0.0)
 
 
 def _zero_cell_arguments() -> tuple[Any, ...]:
@@ -426,7 +447,7 @@ def _zero_cell_arguments() -> tuple[Any, ...]:
             np.zeros(1, u8), np.zeros(1, i32), np.zeros(1, u8), np.zeros((1, 2), f32),
             np.zeros((1, 1), i32), np.zeros(1, i32), np.zeros((1, FIELD_COLUMNS)),
             np.zeros((1, 1, 1), f32), _NO_U64, np.zeros((1, 1, 1), f32), 0, 0, 1, False,
-            p32, p64, _NO_MOTORS, 0, *_NO_TABLE)  # fmt: skip
+            p32, p64, _NO_MOTORS, 0, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
 
 
 def precompile() -> None:
@@ -471,9 +492,13 @@ class _Block:
     ) -> None:
         self.start, self.count, self.decision = start, count, decision
         kind = type(decision)
-        if kind not in (FullDecision, AbstractDecision, ExactDecision):
+        self.max_age = 0.0  # > 0: a chain with a switch clock (MemoryDecision)
+        if kind not in (FullDecision, AbstractDecision, ExactDecision, MemoryDecision):
             raise KernelUnsupported(f"decision layer {kind.__name__}")
-        if kind is not AbstractDecision and type(internal) is not MotorInternalModel:
+        if (
+            kind not in (AbstractDecision, MemoryDecision)
+            and type(internal) is not MotorInternalModel
+        ):
             raise KernelUnsupported(
                 f"a {kind.__name__} over {type(internal).__name__} (the kernel's full model and "
                 "exact chain are the E. coli motors)"
@@ -501,6 +526,9 @@ class _Block:
             )
         first = tables[0]
         codes = _feature_codes(decision, internal)
+        if kind is MemoryDecision:  # the clock is psi's last input
+            codes.append(CLOCK_CODE)
+            self.max_age = float(decision.max_age)
         if len(codes) != len(first.shape):
             raise KernelUnsupported(
                 f"{len(codes)} features for a lookup table over {len(first.shape)} axes"
@@ -625,15 +653,15 @@ class EcoliKernel:
             self._field_of_cell = np.repeat(np.arange(len(sizes), dtype=np.int32), sizes)
         return self._field_of_cell
 
-    def _own_motors(self, decision: FullDecision) -> Tensor:
-        """The layer's motor states, replaced once by a copy of its own (the kernel writes
-        into it in place; the torch step always makes new ones)."""
-        motors = decision.fused_state()[0]
-        if id(motors) not in self._owned:
-            motors = motors.clone(memory_format=torch.contiguous_format)
-            decision.set_fused_state((motors,))
-            self._owned.add(id(motors))
-        return motors
+    def _own_state(self, decision: FullDecision | MemoryDecision) -> Tensor:
+        """The layer's per-cell state (motor states, switch clocks), replaced once by a copy of
+        its own (the kernel writes into it in place; the torch step always makes new ones)."""
+        state = decision.fused_state()[0]
+        if id(state) not in self._owned:
+            state = state.clone(memory_format=torch.contiguous_format)
+            decision.set_fused_state((state,))
+            self._owned.add(id(state))
+        return state
 
     def advance(
         self, state: PopulationState, ended: Tensor, u: Tensor, u64: Tensor | None, z: Tensor
@@ -694,14 +722,18 @@ class EcoliKernel:
                 continue
             head = (steps, state.step, b.start, 0, 0 if dry else count, 4 * threads)
             if b.kind == "motors":
-                motors = b.decision.fused_state()[0] if dry else self._own_motors(b.decision)
+                motors = b.decision.fused_state()[0] if dry else self._own_state(b.decision)
                 advance_cells(*head, *common, un, _numpy(u64), zn, *self._body_args,
-                              _numpy(motors), b.motor_row, *_NO_TABLE)  # fmt: skip
+                              _numpy(motors), b.motor_row, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
             else:
                 table_of_cell = b.tables_for(n if b.count is None else b.count)
+                clock = _NO_CLOCK
+                if b.max_age > 0:
+                    ages = b.decision.fused_state()[0] if dry else self._own_state(b.decision)
+                    clock = (_numpy(ages), b.max_age)
                 advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
                               *self._body_args, _NO_MOTORS, 0, b.table, table_of_cell, b.layer,
                               b.shape, b.strides, b.origin, b.scale, b.features,
-                              b.decision_row)  # fmt: skip
+                              b.decision_row, *clock)  # fmt: skip
         if not dry:
             state.step += steps
