@@ -65,11 +65,46 @@ def _shipped(path: Path) -> dict[str, Any]:
 
 
 def group_config(group: str, name: str) -> dict[str, Any]:
-    """The shipped config ``conf/<group>/<name>.yaml`` as a plain dict."""
+    """The shipped config ``conf/<group>/<name>.yaml`` as a plain dict, composed as Hydra
+    composes it when it is selected (``<group>=<name>``): its ``defaults`` list, if it has one,
+    merged in order (see :func:`_compose_defaults`)."""
     path = CONF_DIR / group / f"{name}.yaml"
     if not path.exists():
         raise ConfigError(f"unknown {group} {name!r}; available: {group_options(group)}")
-    return _shipped(path)
+    return _compose_defaults(group, path)
+
+
+def _compose_defaults(group: str, path: Path) -> dict[str, Any]:
+    """A group config with its ``defaults`` list applied, for the entries the shipped group
+    configs use: another config of the same group (``ecoli``), one in a folder of the group
+    merged at the config's own level (``base/ecoli_cell@_here_``), and ``_self_`` (the file's
+    own keys; last when not listed, as in Hydra >= 1.1). Later entries override earlier ones.
+    """
+    data = _shipped(path)
+    defaults = data.pop("defaults", None)
+    if defaults is None:
+        return data
+    entries = list(defaults)
+    if "_self_" not in entries:
+        entries.append("_self_")
+    merged = OmegaConf.create()
+    for entry in entries:
+        if entry == "_self_":
+            part = data
+        else:
+            name, _, package = str(entry).partition("@")
+            same_level = package == "_here_" or (package == "" and "/" not in name)
+            if not isinstance(entry, str) or not name or name.startswith("/") or not same_level:
+                raise ConfigError(
+                    f"{path}: defaults entry {entry!r} is not one this reader composes (a config "
+                    f"of the group, `folder/name@_here_` or `_self_`)"
+                )
+            base = CONF_DIR / group / f"{name}.yaml"
+            if not base.exists():
+                raise ConfigError(f"{path}: defaults entry {entry!r}: no {base}")
+            part = _compose_defaults(group, base)
+        merged = OmegaConf.merge(merged, part)
+    return to_dict(merged)
 
 
 def field_config(name: str) -> dict[str, Any]:

@@ -7,8 +7,9 @@ import shlex
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
-from surrogate.config import CONF_DIR, build_field, build_model
+from surrogate.config import CONF_DIR, build_field, build_model, group_config, group_options
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import Model
@@ -89,6 +90,24 @@ def test_inputs_choice(compose_cfg) -> None:
     assert both == ("F", "L")
     with pytest.raises(ConfigError, match="gp.inputs.*provides inputs"):
         TrainSettings.from_config(compose_cfg("train", ["gp.inputs=[foo]"]))
+
+
+@pytest.mark.parametrize("name", group_options("model"))
+def test_group_config_is_the_composed_model(compose_cfg, name: str) -> None:
+    """``group_config`` (the base of a command's overrides) applies a model config's defaults
+    list as Hydra does: e.g. ecoli_phospho is the shared cell constants plus its own keys."""
+    composed = OmegaConf.to_container(compose_cfg("simulate", [f"model={name}"]).model)
+    assert group_config("model", name) == composed
+
+
+def test_the_phospho_commands_reproduce_the_settings(compose_cfg, tmp_path) -> None:
+    """A model whose config composes a shared base: its commands name only what differs."""
+    cfg = compose_cfg("collect", ["model=ecoli_phospho", "model.tau=20", "model.cheZ=4.0"])
+    settings = CollectSettings.from_config(cfg)
+    again = CollectSettings.from_config(
+        _compose_command(settings.command(), str(tmp_path / "data"))
+    )
+    assert again.identity() == settings.identity(), settings.command()
 
 
 def _compose_command(command: str, data_dir: str):

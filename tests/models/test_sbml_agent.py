@@ -4,8 +4,8 @@
   one seed, the same trajectories, transitions and learned abstraction as the hand-written
   plug-in ``model=ecoli_phospho``;
 * examples/gene_switch/model.yaml (a gene switch in a walker, nothing of E. coli) runs through
-  collect, train, simulate (full, learned, exact) and evaluate, and its exact psi is the toy
-  model's (the same network written in Python);
+  collect, train, simulate (full, learned, exact) and evaluate, and its exact psi is that of
+  examples/python_model (the same network written in Python);
 * a malformed yaml is refused before any simulation, naming the setting.
 """
 
@@ -19,6 +19,7 @@ import torch
 import yaml
 from hydra import compose, initialize_config_dir
 
+from examples.python_model.gene_switch import GeneSwitchModel
 from surrogate.config import CONF_DIR, build_model
 from surrogate.errors import ConfigError
 from surrogate.fields import ConstantField, GaussianField
@@ -27,7 +28,6 @@ from surrogate.models.ecoli_phospho import EcoliPhosphoModel
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.simulate import AbstractDecision, FullDecision, Simulator
 from surrogate.stages import collect, evaluate, simulate, train
-from tests.toy.gene_switch import GeneSwitchModel
 
 REPO = CONF_DIR.parent
 PHOSPHO = REPO / "examples" / "ecoli_phospho" / "model.yaml"
@@ -109,7 +109,7 @@ def test_the_phospho_yaml_collects_and_learns_what_the_plugin_does(tmp_path) -> 
 
 
 def test_the_gene_switch_yaml_is_the_toy_network() -> None:
-    """The SBML gene switch read with its yaml has the toy model's (Python) exact psi and
+    """The SBML gene switch read with its yaml has the Python model's (examples/python_model) exact psi and
     state space: the same network, written once in SBML."""
     config, toy = SbmlAgentModel(str(GENE_SWITCH)), GeneSwitchModel()
     assert config.internal.state_space.n_states == toy.internal.state_space.n_states == 25

@@ -6,8 +6,8 @@ phi = 0, with an Ornstein-Uhlenbeck methylation ``m`` (its adaptation, time scal
 hands its internal model ``x = (m, L)`` and derives from them the receptor cluster's free energy
 ``F(m, L)`` and activity ``activity = 1 / (1 + exp(F))`` (MWC), the input of a CheY
 phosphorylation network. Parameters: every constant of
-:class:`~surrogate.models.ecoli.parameters.EcoliParameters` (``conf/model/ecoli.yaml`` lists
-them with their sources; the motor constants are unused here), plus ``perturbation`` (collect's
+:class:`~surrogate.models.ecoli.parameters.EcoliParameters` (``conf/model/base/ecoli_cell.yaml``
+lists them with their sources; the motor constants are unused here), plus ``perturbation`` (collect's
 jumps into a disc around the peak: ``radius`` mm, ``sampling`` radius|area).
 """
 

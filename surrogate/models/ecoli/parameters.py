@@ -1,8 +1,10 @@
 """Constants of the E. coli chemotaxis model.
 
-Values and sources are listed in ``conf/model/ecoli.yaml`` (the reference C++ simulator of
-Sneddon, Pontius & Emonet, PNAS 2012, BHIVE/BHIVE). This dataclass is the typed, validated form
-of that config group.
+Values and sources are listed in ``conf/model/base/ecoli_cell.yaml`` (the cell's constants, shared
+by ``model=ecoli`` and ``model=ecoli_phospho``) and ``conf/model/ecoli.yaml`` (``motor_sampler``);
+the reference C++ simulator of Sneddon, Pontius & Emonet, PNAS 2012, BHIVE/BHIVE. This dataclass
+is the typed, validated form of those configs; its defaults equal them and serve where no config
+is read (``EcoliParameters()``, a yaml model's ``body: {kind: chemotaxis}``).
 """
 
 from __future__ import annotations

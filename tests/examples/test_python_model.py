@@ -1,8 +1,9 @@
 """A second model through every stage, with no edit to the package: the seams hold.
 
-The toy gene-switch walker (tests/toy/gene_switch.py) is selected only by ``model._target_``;
-collect, train (also from an external CSV table), simulate (full, learned, exact) and evaluate
-run on it unchanged, and its exact lumped psi drives a chain that matches its full model.
+The template for a Python model (examples/python_model/gene_switch.py, a gene switch in a walker)
+is selected only by ``model._target_``; collect, train (also from an external CSV table), simulate
+(full, learned, exact) and evaluate run on it unchanged, and its exact lumped psi drives a chain
+that matches its full model.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from examples.python_model.gene_switch import GeneSwitchModel
 from surrogate.config import CONF_DIR
 from surrogate.errors import ArtefactError
 from surrogate.fields import ConstantField
@@ -23,9 +25,10 @@ from surrogate.simulate import ExactDecision, FullDecision, Simulator, simulate_
 from surrogate.stages import collect, evaluate, simulate, train
 from surrogate.stages.settings import EvaluateSettings
 
-from .gene_switch import GeneSwitchModel
-
-TOY = {"_target_": "tests.toy.gene_switch.GeneSwitchModel", "perturbation": {"radius": 3.0}}
+TOY = {
+    "_target_": "examples.python_model.gene_switch.GeneSwitchModel",
+    "perturbation": {"radius": 3.0},
+}
 SMALL = [
     "collect.n_per_state=1500",
     "collect.n_cells=200",

@@ -1,7 +1,11 @@
-"""A toy agent model that uses no E. coli code: a gene switch with dimerisation inside a walker
-that moves faster when the switch is ON. It plugs into the package through the protocols of
-:mod:`surrogate.models.base` only (selected by ``model._target_``), which is what the tests in
-this folder prove.
+"""The template for a new Python model: a gene switch with dimerisation inside a walker that
+moves faster when the switch is ON, written against the protocols of :mod:`surrogate.models.base`
+only (no E. coli code) and selected by ``model._target_`` (README.md in this folder). Copy this
+file to start a model of your own: a :class:`~surrogate.models.Model` subclass whose constructor
+takes the config's keys and sets ``internal`` (here the generic reaction-network adapter),
+``body`` (here :class:`Walker`) and ``perturbation_options``. The same gene switch written as a
+yaml beside an SBML file, in the library's walker body, is ``examples/gene_switch``;
+``tests/examples/test_python_model.py`` runs this one through every stage.
 
 Internal network (8 protein molecules per cell, conserved): inactive I, active monomer P, dimer
 D. I -> P at ``k_act * s`` (``s``: the inducer concentration the body reads from the field),
@@ -98,7 +102,8 @@ class Walker:
 
 
 class GeneSwitchModel(Model):
-    """The toy model (see the module docstring); every constant is a keyword argument."""
+    """The gene switch in a walker (see the module docstring); every constant is a keyword
+    argument, so every key of the ``model`` config but ``_target_``."""
 
     name = "gene_switch"
 
