@@ -48,11 +48,13 @@ from typing import Any
 import torch
 
 from surrogate.config import build_field, build_model, grid_size, resolve_device, to_dict
+from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.io import load_tensors, save_tensors, write_json
 from surrogate.models.base import Model
 from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import Simulator
+from surrogate.simulate.memory import AGE, HISTORIES, MemoryDecision, has_history
 from surrogate.simulate.population import simulate_population
 from surrogate.simulate.precompile import precompiler_code
 from surrogate.simulate.speed import LoopTiming, compare
@@ -183,11 +185,16 @@ def train_abstraction(
 
 
 def make_decision(name: str, model: Model, tables: Mapping[str, Any]) -> Any:
-    """A decision layer: ``full``, ``lookup`` (table) or ``classifier`` (CachedPsi)."""
+    """A decision layer: ``full``, ``lookup`` (table) or ``classifier`` (CachedPsi); a psi
+    whose last input is the switch clock gets the chain with a clock (gp.history=age)."""
     if name == "full":
         return FullDecision(model.internal)
     psi = tables[name]
-    return AbstractDecision(psi, model.internal, model.featurizer(psi.input_names))
+    names = tuple(psi.input_names)
+    if has_history(names):
+        return MemoryDecision(psi, model.internal, model.featurizer(names[:-1]),
+                              psi.domain[AGE][1])  # fmt: skip
+    return AbstractDecision(psi, model.internal, model.featurizer(names))
 
 
 def make_simulator(
@@ -413,10 +420,12 @@ def memory_run(
 # the abstraction's loop alone (lookup_only=true)
 
 
-def function_table(model: Model, dt: float, size: Any = None) -> Any:
+def function_table(model: Model, dt: float, size: Any = None, max_age: float | None = None) -> Any:
     """A lookup table over the model's signal (its ``signal_bounds``) from a smooth psi with
     E. coli-like switching, no training: runs end at ~1/s and tumbles at ~5/s, each rate
-    scaled by 0.5-1.5 across the signal's range (so the lookup's inputs matter)."""
+    scaled by 0.5-1.5 across the signal's range (so the lookup's inputs matter). With
+    ``max_age`` (s) the table also spans the switch clock (its last axis, ``size`` nodes too):
+    the rates rise by up to 50 % with the time since the last switch."""
     from surrogate.gp import PsiLookupTable
 
     internal = model.internal
@@ -427,15 +436,21 @@ def function_table(model: Model, dt: float, size: Any = None) -> Any:
         raise ValueError(f"lookup_only needs the internal model's signal_bounds for {missing}")
     lo = torch.tensor([bounds[n][0] for n in names])
     width = torch.tensor([bounds[n][1] - bounds[n][0] for n in names])
+    k = len(names)
 
     def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        s = ((z - lo) / width).mean(1).clamp(0.0, 1.0) + 0.5
+        s = ((z[:, :k] - lo) / width).mean(1).clamp(0.0, 1.0) + 0.5
+        if max_age:
+            s = s * (1.0 + 0.5 * z[:, k] / max_age)
         stop = -torch.expm1(-s * dt)  # run -> tumble at ~1/s
         start = -torch.expm1(-5.0 * s * dt)  # tumble -> run at ~5/s
         return torch.where(phi > 0, 1.0 - stop, start)
 
+    ranges = [bounds[n] for n in names]
+    if max_age:
+        names, ranges = (*names, AGE), [*ranges, (0.0, float(max_age))]
     shape = grid_size(size, "lookup_size", len(names))
-    return PsiLookupTable.from_function(psi, [bounds[n] for n in names], names, shape)
+    return PsiLookupTable.from_function(psi, ranges, names, shape)
 
 
 def _setup(
@@ -458,31 +473,41 @@ def run_lookup_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print)
     """The abstraction's lookup throughput (cell-steps/s) for each thread count, (backend,
     compile) and size, over :func:`function_table`, one simulator per (threads, backend,
     compile) as :func:`run_bench`; each row records the backend that ran (``numba`` falls
-    back to torch where the model has no kernel)."""
+    back to torch where the model has no kernel). ``histories`` (``[none, age]``): each also
+    with the switch clock (gp.history=age), measured side by side, row after row."""
     s, device, model, field, dt, head = _setup(cfg)
     started = time.perf_counter()
-    table = function_table(model, dt, s.get("lookup_size")).to(device)
+    histories = list(s.get("histories") or ["none"])
+    unknown = [h for h in histories if h not in HISTORIES]
+    if unknown:
+        raise ConfigError(f"histories: unknown {unknown}; allowed {list(HISTORIES)}")
+    max_age = float(cfg.get("gp", {}).get("max_age", 5.0))
+    tables = {h: function_table(model, dt, s.get("lookup_size"),
+                                max_age if h == "age" else None).to(device)
+              for h in histories}  # fmt: skip
     results: dict[str, Any] = {
         **head,
         "model": model.name,
         "abstraction": {
             "source": "a smooth function of the signal (bench.function_table; no training)",
-            "inputs": list(table.input_names),
-            "lookup_size": list(table.shape),
+            "inputs": {h: list(t.input_names) for h, t in tables.items()},
+            "lookup_size": {h: list(t.shape) for h, t in tables.items()},
         },
     }
     rows = []
     for threads in s["threads"]:
         with num_threads(threads):
             for backend, compile in modes(s):
-                sim = make_simulator("lookup", model, field, dt, device, {"lookup": table},
-                                     compile, backend)  # fmt: skip
+                sims = {h: make_simulator("lookup", model, field, dt, device, {"lookup": t},
+                                          compile, backend)
+                        for h, t in tables.items()}  # fmt: skip
                 for n in s["sizes"]:
-                    log(f"lookup throughput: n={n} threads={threads} backend={backend} "
-                        f"compile={compile}")  # fmt: skip
-                    rows.append({"threads": threads, "backend": backend, "compile": compile,
-                                 "n_cells": n, "load": read_load(),
-                                 "lookup": throughput(sim, n, s)})  # fmt: skip
+                    for h, sim in sims.items():
+                        log(f"lookup throughput: n={n} threads={threads} backend={backend} "
+                            f"compile={compile} history={h}")  # fmt: skip
+                        rows.append({"threads": threads, "backend": backend, "compile": compile,
+                                     "n_cells": n, "history": h, "load": read_load(),
+                                     "lookup": throughput(sim, n, s)})  # fmt: skip
     results["throughput"] = rows
     results["machine"]["load_average_end"] = read_load()
     results["total_s"] = time.perf_counter() - started
@@ -498,16 +523,23 @@ def format_lookup_report(r: Mapping[str, Any]) -> str:
         f"model {r['model']}; abstraction: {a['source']}; lookup over {a['inputs']} "
         f"{a['lookup_size']}",
         "",
-        "lookup throughput (cell-steps/s; best of repeats)",
-        f"{'thr':>3} {'backend':>7} {'compile':>7} {'cells':>7} {'lookup':>9} {'ran':>5} "
-        f"{'us/step':>9}  load",
+        "lookup throughput (cell-steps/s; best of repeats); cost: per cell-step, relative to",
+        "the same row without the clock (history none)",
+        f"{'thr':>3} {'backend':>7} {'compile':>7} {'cells':>7} {'history':>7} {'lookup':>9} "
+        f"{'ran':>5} {'us/step':>9} {'cost':>5}  load",
     ]
+    plain: dict[tuple, float] = {}
     for row in r["throughput"]:
         k = row["lookup"]
+        key = (row["threads"], row["backend"], row["compile"], row["n_cells"])
+        history = row.get("history", "none")
+        if history == "none":
+            plain[key] = k["cell_steps_per_s"]
+        cost = plain[key] / k["cell_steps_per_s"] if key in plain else float("nan")
         lines.append(
             f"{row['threads']:>3} {row['backend']:>7} {row['compile']!s:>7} {row['n_cells']:>7} "
-            f"{_si(k['cell_steps_per_s']):>9} {k['backend']:>5} {k['us_per_step']:>9.1f}  "
-            f"{row['load'][:1]}"
+            f"{history:>7} {_si(k['cell_steps_per_s']):>9} {k['backend']:>5} "
+            f"{k['us_per_step']:>9.1f} {cost:>5.2f}  {row['load'][:1]}"
         )
     lines.append(f"\ntotal {r['total_s']:.0f} s")
     return "\n".join(lines)

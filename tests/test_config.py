@@ -161,3 +161,17 @@ def test_evaluation_times_follow_t_end_unless_set(compose_cfg) -> None:
     assert settings.evaluations["gaussian"].times == (7.5, 15.0, 22.5, 30.0)
     paper = EvaluateSettings.from_config(compose_cfg("evaluate", ["experiment=paper"]))
     assert paper.times == (125.0, 250.0, 375.0, 500.0)
+
+
+def test_the_clock_recipe_bins_its_axes_and_leaves_two_state_fits_as_they_were(
+    compose_cfg,
+) -> None:
+    """gp=clock: psi over (dG, phi_age) on 200 x 20 bins; the clock's keys enter a fit's
+    identity only when it has a clock (two-state fits keep their artefact directories)."""
+    clock = TrainSettings.from_config(compose_cfg("train", ["gp=clock"]))
+    assert clock.inputs == ("dG", "phi_age") and clock.gp.bins == (200, 20)
+    assert clock.fit_identity()["gp"]["history"] == "age"
+    plain = TrainSettings.from_config(compose_cfg("train"))
+    assert not {"history", "max_age", "clock_bins"} & set(plain.fit_identity()["gp"])
+    with pytest.raises(ConfigError, match="gp.history"):
+        TrainSettings.from_config(compose_cfg("train", ["gp.history=clock"]))

@@ -67,3 +67,25 @@ def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
     fig = fidelity.plot_ks(table, settings)
     labels = fig.axes[0].get_legend_handles_labels()[1]
     assert labels[0] == "noise floor" and "full_repeat" not in labels
+
+
+def test_a_clocked_recipe_is_checked_beside_the_exact_clock_which_is_a_reference(
+    compose_cfg,
+) -> None:
+    """gp.history=age: the exact psi with a clock joins the table as a reference (like `exact`,
+    not counted in the learned abstractions' checks), and the drift figure draws every run."""
+    settings = fidelity.validate(compose_cfg("fidelity", [*SMALL, "gp=clock"]))
+    (candidate,) = settings.candidates
+    assert candidate.train.inputs == ("dG", "phi_age") and settings.exact_clocks
+    rng = np.random.default_rng(0)
+    labels = ["full", "full_repeat", "exact", fidelity.EXACT_CLOCK, candidate.label]
+    results = {f"{k}|gaussian": _run(rng, settings.times, 0.0) for k in labels}
+    table = fidelity.check(settings, results)
+    summary = fidelity.summarise(table, settings)
+    learned = table[table["candidate"] == candidate.label]
+    assert set(table["candidate"]) == {"exact", fidelity.EXACT_CLOCK, candidate.label}
+    assert summary["checks"] == len(learned)
+    means = {f"{k}|gaussian": {f"{t:g}": [2.0, 0.01] for t in settings.times} for k in labels}
+    fig = fidelity.plot_drift(means, settings)
+    (ax,) = fig.axes
+    assert len(ax.lines) == len(labels)  # the full model, its repeat and three candidates
