@@ -54,7 +54,13 @@ from surrogate.io import load_tensors, save_tensors, write_json
 from surrogate.models.base import Model
 from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import Simulator
-from surrogate.simulate.memory import AGE, HISTORIES, MemoryDecision, has_history
+from surrogate.simulate.memory import (
+    AGE,
+    HISTORIES,
+    MemoryDecision,
+    has_history,
+    tabulate_with_clock,
+)
 from surrogate.simulate.population import simulate_population
 from surrogate.simulate.precompile import precompiler_code
 from surrogate.simulate.speed import LoopTiming, compare
@@ -184,7 +190,9 @@ def train_abstraction(
     return psi, facts
 
 
-def make_decision(name: str, model: Model, tables: Mapping[str, Any]) -> Any:
+def make_decision(
+    name: str, model: Model, tables: Mapping[str, Any], dt: float | None = None
+) -> Any:
     """A decision layer: ``full``, ``lookup`` (table) or ``classifier`` (CachedPsi); a psi
     whose last input is the switch clock gets the chain with a clock (gp.history=age)."""
     if name == "full":
@@ -193,7 +201,7 @@ def make_decision(name: str, model: Model, tables: Mapping[str, Any]) -> Any:
     names = tuple(psi.input_names)
     if has_history(names):
         return MemoryDecision(psi, model.internal, model.featurizer(names[:-1]),
-                              psi.domain[AGE][1])  # fmt: skip
+                              psi.domain[AGE][1], dt=dt)  # fmt: skip
     return AbstractDecision(psi, model.internal, model.featurizer(names))
 
 
@@ -210,7 +218,7 @@ def make_simulator(
     """A simulator for one decision layer (``backend`` numba falls back to torch where the
     model has no kernel, e.g. the classifier; the results say which ran)."""
     backend = "auto" if backend == "numba" else backend
-    return Simulator(model, make_decision(name, model, tables), field, dt, device,
+    return Simulator(model, make_decision(name, model, tables, dt), field, dt, device,
                      compile=compile, backend=backend)  # fmt: skip
 
 
@@ -447,8 +455,9 @@ def function_table(model: Model, dt: float, size: Any = None, max_age: float | N
         return torch.where(phi > 0, 1.0 - stop, start)
 
     ranges = [bounds[n] for n in names]
-    if max_age:
-        names, ranges = (*names, AGE), [*ranges, (0.0, float(max_age))]
+    if max_age:  # a clock node at every step, as the simulate stage tabulates a learned psi
+        lead = grid_size(size, "lookup_size", len(names)) if size else None
+        return tabulate_with_clock(psi, ranges, (*names, AGE), dt, max_age, lead)
     shape = grid_size(size, "lookup_size", len(names))
     return PsiLookupTable.from_function(psi, ranges, names, shape)
 

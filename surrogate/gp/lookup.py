@@ -163,6 +163,28 @@ class PsiLookupTable:
         out = _interpolate(self.table.view(-1), self.shape, self._strides, base, z, origin, scale)
         return out.to(out_device)
 
+    def evaluate_at_last_node(self, phi: Tensor, z: Tensor, node: Tensor) -> Tensor:
+        """Interpolation over every axis but the last, at node ``node`` of the last (e.g. a
+        switch clock in whole steps on a table with a node per step): one lerp per lead axis
+        instead of two, the same numbers as :meth:`evaluate` at that node's coordinate.
+
+        Args:
+            phi: ``(n,)`` 0/1.
+            z: ``n x (d - 1)`` the lead inputs.
+            node: ``(n,)`` integer node indices of the last axis (clamped into the grid).
+        """
+        dev = self.table.device
+        out_device = z.device
+        d = len(self.shape) - 1
+        z = z.to(dev, torch.float32).reshape(-1, d)
+        k = node.to(dev).reshape(-1).long().clamp(0, self.shape[-1] - 1)
+        base = phi.to(dev).reshape(-1).long() * self._layer + k * self._strides[-1]
+        origin = [self._affine[a, 0] for a in range(d)]
+        scale = [self._affine[a, 1] for a in range(d)]
+        out = _interpolate(self.table.view(-1), self.shape[:-1], self._strides[:-1], base, z,
+                           origin, scale)  # fmt: skip
+        return out.to(out_device)
+
     @torch.no_grad()
     def max_deviation(self, psi: PsiFunction, n_check: int | None = 4096, seed: int = 0) -> float:
         """Max |table - psi| over cell centres (midway between nodes on every axis), where
@@ -318,6 +340,20 @@ class StackedPsiLookup:
         base = self._block_base + phi.to(dev).reshape(-1).long() * self._layer
         flat = self.table.view(-1)
         out = _interpolate(flat, self.shape, self._strides, base, z, self._origin, self._scale)
+        return out.to(out_device)
+
+    def evaluate_at_last_node(self, phi: Tensor, z: Tensor, node: Tensor) -> Tensor:
+        """:meth:`PsiLookupTable.evaluate_at_last_node` for every cell in its block's table."""
+        dev = self.table.device
+        out_device = z.device
+        d = len(self.shape) - 1
+        z = z.to(dev, torch.float32).reshape(-1, d)
+        k = node.to(dev).reshape(-1).long().clamp(0, self.shape[-1] - 1)
+        base = (self._block_base + phi.to(dev).reshape(-1).long() * self._layer
+                + k * self._strides[-1])  # fmt: skip
+        flat = self.table.view(-1)
+        out = _interpolate(flat, self.shape[:-1], self._strides[:-1], base, z,
+                           self._origin[:-1], self._scale[:-1])  # fmt: skip
         return out.to(out_device)
 
     __call__ = evaluate

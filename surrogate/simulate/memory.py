@@ -48,6 +48,52 @@ def tick(age: Tensor, phi: Tensor, phi_next: Tensor) -> Tensor:
     return torch.where(phi_next != phi, 0.0, age + 1.0)
 
 
+def clock_steps(dt: float, max_age: float) -> int:
+    """The cap in whole steps: ``max_age / dt`` rounded down (at least 1)."""
+    return max(1, int(max_age / dt + 1e-9))
+
+
+def clock_nodes(run_probability: object, dt: float) -> int | None:
+    """``A`` when ``run_probability`` is a lookup table (or stacked tables) whose last axis is
+    the clock with a node at every step, ``0, dt, ..., A dt``: the chain then reads the node
+    of each cell's clock (one lerp less per step); else None (interpolation in seconds)."""
+    names = tuple(getattr(run_probability, "input_names", ()))
+    if not has_history(names) or not hasattr(run_probability, "evaluate_at_last_node"):
+        return None
+    tables = getattr(run_probability, "tables", [run_probability])
+    steps = int(run_probability.shape[-1]) - 1  # type: ignore[attr-defined]
+    for t in tables:
+        lo, hi = t.ranges[-1]
+        if lo != 0.0 or abs(hi - steps * dt) > 1e-6 * max(1.0, hi):
+            return None
+    return steps
+
+
+def tabulate_with_clock(
+    psi: RunProbability,
+    lead_ranges: list[tuple[float, float]],
+    input_names: tuple[str, ...],
+    dt: float,
+    max_age: float,
+    lead_size: tuple[int, ...] | None = None,
+) -> PsiLookupTable:
+    """``psi`` over (lead inputs, clock) as a lookup table with a clock node at every step up
+    to the cap (:func:`clock_nodes`), the lead axes as :meth:`PsiLookupTable.from_function`
+    sizes them (4,096 nodes for one axis, 256 each for more) unless ``lead_size`` is given.
+
+    Args:
+        psi: ``psi(phi, [z, a])``, the clock (s) last.
+        lead_ranges: ``(lo, hi)`` of each lead input.
+        input_names: every input's name, the clock (``AGE``) last.
+    """
+    steps = clock_steps(dt, max_age)
+    k = len(lead_ranges)
+    if lead_size is None:
+        lead_size = (4096,) if k == 1 else (256,) * k
+    return PsiLookupTable.from_function(psi, [*lead_ranges, (0.0, steps * dt)], input_names,
+                                        (*lead_size, steps + 1))  # fmt: skip
+
+
 def with_age(z: Tensor, age_steps: Tensor, dt: float, max_age: float) -> Tensor:
     """``[z, min(age dt, max_age)]``: the abstraction's inputs with the clock (s) appended.
 
@@ -113,6 +159,9 @@ class MemoryDecision(AbstractDecision):
         featurize: ``x (n x d) -> z (n x k)``, the abstraction's other inputs.
         max_age: the clock's cap (s).
         name: the layer's name in logs and manifests.
+        dt: the window the chain will step (s): with a table that has a clock node at every
+            step (:func:`tabulate_with_clock`) each cell reads its clock's node instead of
+            interpolating in seconds (cheaper; the same values up to float rounding).
 
     Example:
         >>> psi = lambda phi, z: (z[:, -1] >= 1.0).float()  # switch once 1 s in a state
@@ -126,20 +175,30 @@ class MemoryDecision(AbstractDecision):
         featurize: Callable[[Tensor], Tensor] | None = None,
         max_age: float = 5.0,
         name: str = "abstract",
+        dt: float | None = None,
     ) -> None:
         if not max_age > 0:
             raise ValueError(f"max_age must be > 0 s, got {max_age}")
         super().__init__(run_probability, internal, featurize, name)
         self.max_age = float(max_age)
+        self.dt = dt
+        #: the clock's last node (steps) when psi is a table with a node per step, else None
+        self.clock_nodes = None if dt is None else clock_nodes(run_probability, dt)
         self.age: Tensor | None = None  # (n,) float32 steps since phi last changed
 
     def restacked(self, run_probability: RunProbability, name: str) -> MemoryDecision:
         """The same chain with its clock over another psi (stacked tables)."""
-        return MemoryDecision(run_probability, self.internal, self.featurize, self.max_age, name)
+        return MemoryDecision(run_probability, self.internal, self.featurize, self.max_age, name,
+                              self.dt)  # fmt: skip
 
     def probability_at(self, phi: Tensor, x: Tensor, age: Tensor, dt: float) -> Tensor:
         """p(phi' = 1) ``(n,)`` at phi, inputs ``x`` (``n x d``) and clocks ``age`` (steps)."""
         z = x if self.featurize is None else self.featurize(x)
+        if self.clock_nodes is not None:
+            if dt != self.dt:
+                raise ValueError(f"a chain built for dt={self.dt} stepped with dt={dt}")
+            node = age.clamp(max=float(self.clock_nodes)).long()
+            return self.run_probability.evaluate_at_last_node(phi, z, node)  # type: ignore[attr-defined]
         return self._psi(phi, with_age(z, age, dt, self.max_age))
 
     def initialize(self, x: Tensor) -> Tensor:
@@ -212,7 +271,7 @@ def exact_age_table(
     names = tuple(internal.signal_names)
     if len(names) != 1 or not can_age(internal):
         raise ValueError(f"an exact psi with a clock needs one signal and exact_age_psi: {names}")
-    steps = max(1, int(max_age / dt + 1e-9))
+    steps = clock_steps(dt, max_age)
     lo, hi = internal.signal_bounds[names[0]]  # type: ignore[attr-defined]
     signal = torch.linspace(lo, hi, size, dtype=torch.float64).unsqueeze(1)
     psi = internal.exact_age_psi(signal, dt, steps)  # (size, 2, steps + 1)
@@ -227,10 +286,13 @@ __all__ = [
     "SETTLED",
     "MemoryDecision",
     "can_age",
+    "clock_nodes",
     "clock_rows",
+    "clock_steps",
     "exact_age_table",
     "has_history",
     "history_setting",
+    "tabulate_with_clock",
     "tick",
     "with_age",
 ]

@@ -383,7 +383,8 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         # the exact psi with a switch clock: the limit of the candidates with gp.history=age
         table = exact_age_table(model.internal, setup.dt, max_age).to(job.device)
         featurize = FeatureMap(model.internal, model.internal.signal_names)
-        clocked = MemoryDecision(table, model.internal, featurize, max_age, EXACT_CLOCK)
+        clocked = MemoryDecision(table, model.internal, featurize, max_age, EXACT_CLOCK,
+                                 setup.dt)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(clocked, fields[name], n, seed + 2 * offset, start))
             labels.append(f"{EXACT_CLOCK}|{name}")

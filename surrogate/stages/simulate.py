@@ -32,7 +32,12 @@ from surrogate.simulate.decision import (
     FullDecision,
 )
 from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
-from surrogate.simulate.memory import MemoryDecision, exact_age_table, has_history
+from surrogate.simulate.memory import (
+    MemoryDecision,
+    exact_age_table,
+    has_history,
+    tabulate_with_clock,
+)
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.stages import budget
 from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
@@ -82,7 +87,8 @@ def build_decision(
             featurize = FeatureMap(model.internal, model.internal.signal_names)
             log.info("exact psi with a switch clock: table %s over %s", table.shape,
                      table.input_names)  # fmt: skip
-            return MemoryDecision(table, model.internal, featurize, d.max_age, "exact"), {}
+            return MemoryDecision(table, model.internal, featurize, d.max_age, "exact",
+                                  settings.setup.dt), {}  # fmt: skip
         return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
     assert d.train is not None
     return abstract_decision(model, d.train, d.mode or "lookup", d.lookup_size, device)
@@ -121,15 +127,22 @@ def abstract_decision(
     info: dict[str, Any] = {"abstraction_dir": str(directory), "inputs": list(psi.input_names)}
     memory = has_history(psi.input_names)
     featurize = model.featurizer(psi.input_names[:-1] if memory else psi.input_names)
+    dt = train.setup.dt
 
     def layer(run_probability: Any) -> DecisionLayer:
         if memory:  # the switch clock is psi's last input (gp.history=age)
-            return MemoryDecision(run_probability, model.internal, featurize, train.max_age)
+            return MemoryDecision(run_probability, model.internal, featurize, train.max_age,
+                                  dt=dt)  # fmt: skip
         return AbstractDecision(run_probability, model.internal, featurize)
 
     if mode == "lookup":
         ranges = [psi.domain[n] for n in psi.input_names]
-        table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
+        if memory:  # a clock node at every step: each cell reads its clock's node
+            lead = tuple(size[:-1]) if size else None
+            table = tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, train.max_age,
+                                        lead).to(device)  # fmt: skip
+        else:
+            table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
         info["lookup_max_deviation"] = float(table.max_deviation(psi))
         log.info("lookup table %s: max |table - classifier| = %.2e", table.shape,
                  info["lookup_max_deviation"])  # fmt: skip

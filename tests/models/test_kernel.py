@@ -76,8 +76,8 @@ def _decision(kind: str, model: EcoliModel):
         b = internal.signal_bounds["dG"]
         table = PsiLookupTable.from_function(internal_psi(model), [b], ("dG",), (1024,))
         return ExactDecision(internal, DT, table)
-    if kind == "clock":  # the switch clock (gp.history=age): likelier to switch the longer in
-        max_age = 2.0
+    if kind in ("clock", "clock_nodes"):  # the switch clock (gp.history=age): likelier to
+        max_age = 2.0  # switch the longer in a state; clock_nodes: read at its node per step
 
         def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             leave = (0.02 + 0.2 * z[:, 1] / max_age) * torch.sigmoid(z[:, 0])
@@ -85,7 +85,10 @@ def _decision(kind: str, model: EcoliModel):
 
         b = internal.signal_bounds["dG"]
         table = PsiLookupTable.from_function(psi, [b, (0.0, max_age)], ("dG", AGE), (64, 41))
-        return MemoryDecision(table, internal, model.featurizer(["dG"]), max_age)
+        dt = DT if kind == "clock_nodes" else None
+        layer = MemoryDecision(table, internal, model.featurizer(["dG"]), max_age, dt=dt)
+        assert (layer.clock_nodes is not None) == (kind == "clock_nodes")
+        return layer
     if kind == "raw_inputs":  # no feature map: the table reads x = (m, L) itself
         return AbstractDecision(_table(model, ("m", "L")), internal)
     if kind == "dG_narrow":  # a box narrower than the values: the interpolation clamps
@@ -129,22 +132,25 @@ def _assert_same_trajectories(a, b) -> None:
 
 
 @pytest.mark.parametrize(
-    "kind", ["full", "dG", "mL", "mLF", "exact", "cheyp", "raw_inputs", "dG_narrow", "clock"]
-)
+    "kind",
+    ["full", "dG", "mL", "mLF", "exact", "cheyp", "raw_inputs", "dG_narrow", "clock",
+     "clock_nodes"],
+)  # fmt: skip
 def test_kernel_follows_the_torch_step(kind) -> None:
     model = EcoliModel()
     _assert_same_trajectories(_run(model, kind, GaussianField(), "torch"),
                               _run(model, kind, GaussianField(), "numba"))  # fmt: skip
 
 
-def test_kernel_keeps_the_switch_clocks_as_the_torch_step() -> None:
+@pytest.mark.parametrize("kind", ["clock", "clock_nodes"])
+def test_kernel_keeps_the_switch_clocks_as_the_torch_step(kind) -> None:
     """The chain with a clock: each cell's clock (steps since phi changed) after the runs is
     the torch step's, and the clocks matter (a cell's psi reads them)."""
     model = EcoliModel()
     clocks = {}
     for backend in ("torch", "numba"):
         torch.manual_seed(3)
-        decision = _decision("clock", model)
+        decision = _decision(kind, model)
         sim = Simulator(model, decision, GaussianField(), DT, backend=backend)
         assert sim.backend == backend
         with torch.inference_mode():

@@ -225,3 +225,36 @@ def test_bad_history_settings_are_refused_by_name(history, max_age):
 def test_history_setting_and_inputs():
     assert history_setting(None, 5, "gp") == ("none", 5.0)
     assert has_history(("dG", AGE)) and not has_history(("dG",)) and not has_history(())
+
+
+def test_a_table_with_a_clock_node_per_step_is_read_at_the_node():
+    """tabulate_with_clock puts a node at every step: the chain reads each cell's node (one
+    lerp less) and gets the interpolated value at that clock, alone or in stacked tables."""
+    from surrogate.gp.lookup import StackedPsiLookup
+    from surrogate.simulate.memory import tabulate_with_clock
+
+    internal = erlang_model()
+
+    def psi(phi, z):
+        return torch.sigmoid(z[:, 0] - z[:, 1]) * (0.5 + 0.5 * phi)
+
+    table = tabulate_with_clock(psi, [(0.0, 1.0)], ("s", AGE), DT, 2.0, (33,))
+    assert table.shape == (33, 21)
+    by_node = MemoryDecision(table, internal, max_age=2.0, dt=DT)
+    by_time = MemoryDecision(table, internal, max_age=2.0)
+    assert by_node.clock_nodes == 20 and by_time.clock_nodes is None
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(500, 1, generator=g)
+    phi = (torch.rand(500, generator=g) < 0.5).float()
+    age = torch.randint(0, 40, (500,), generator=g).float()
+    age[:3] = torch.tensor([0.0, 20.0, SETTLED])
+    node = by_node.probability_at(phi, x, age, DT)
+    torch.testing.assert_close(node, by_time.probability_at(phi, x, age, DT), atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="dt"):
+        by_node.probability_at(phi, x, age, 2 * DT)
+    other = tabulate_with_clock(lambda p, z: 0.3 + 0 * z[:, 0], [(0.0, 1.0)], ("s", AGE), DT,
+                                2.0, (33,))  # fmt: skip
+    stacked = StackedPsiLookup([table, other], [300, 200])
+    both = MemoryDecision(stacked, internal, max_age=2.0, dt=DT)
+    out = both.probability_at(phi, x, age, DT)
+    assert torch.equal(out[:300], node[:300]) and torch.allclose(out[300:], torch.tensor(0.3))

@@ -301,7 +301,7 @@ def _advance_range(
     field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
-    ages, max_age,
+    ages, max_age, clock_unit,
 ):  # fmt: skip
     """``steps`` steps of cells ``start + lo`` to ``start + hi`` of a block that starts at
     population cell ``start``: the full model when ``motors`` (M x block float32, 0 = S,
@@ -312,8 +312,10 @@ def _advance_range(
     ``start + j`` reads table ``table_of_cell[j]`` (offset ``2 * layer`` each) with its box
     ``origin``/``scale`` (tables x d float32). With ``max_age > 0`` the chain has a switch
     clock (:class:`~surrogate.simulate.memory.MemoryDecision`): cell ``start + j``'s clock in
-    steps is ``ages[j]`` (float32, in place), psi reads ``min(age dt, max_age)`` as feature
-    CLOCK_CODE, and the clock restarts at 0 when phi changes, else counts on (memory.tick).
+    steps is ``ages[j]`` (float32, in place), psi reads ``min(age clock_unit, max_age)`` as
+    feature CLOCK_CODE (seconds: unit dt; a table with a node per step: unit 1 on a unit
+    axis, so the node is exact, as the torch layer's clock_nodes), and the clock restarts at
+    0 when phi changes, else counts on (memory.tick).
 
     Arrays are the simulator's tensors (in place): position (n, 2), heading, meth (n,) float32,
     phi, complete (n,) uint8, seg (n,) int32; last_x (n, 2) the last step's inputs; ended
@@ -323,7 +325,7 @@ def _advance_range(
     full = motors.shape[0] > 0
     dt = q[2]
     clocked = max_age > 0
-    dt32 = _F32(dt)
+    unit = _F32(clock_unit)
     cap = _F32(max_age)
     for j in range(lo, hi):
         c = start + j
@@ -341,7 +343,7 @@ def _advance_range(
             if full:
                 phi_after = _motors_step(dg, motors, j, c, s, u64, motor_row, q)
             else:
-                clock = min(age * dt32, cap)  # memory.with_age
+                clock = min(age * unit, cap)  # memory.with_age
                 prob = _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table,
                                layer, shape, strides, origin, scale, features)  # fmt: skip
                 phi_after = _F32(1.0) if u[s, decision_row, c] < prob else _F32(0.0)
@@ -365,7 +367,7 @@ def advance_cells(
     field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
-    ages, max_age,
+    ages, max_age, clock_unit,
 ):  # fmt: skip
     """Cells ``start + lo`` to ``start + hi`` in ``pieces`` contiguous pieces (a few per
     thread: balanced) spread over numba's threads, each by :func:`_advance_range` (the other
@@ -379,7 +381,7 @@ def advance_cells(
             position, heading, meth, phi, seg, complete, last_x, ended, field_of_cell, fields, u,
             u64, z, body_row, ou_row, gamma_k, per_tumble, p, q, motors, motor_row, table,
             table_of_cell, layer, shape, strides, origin, scale, features, decision_row, ages,
-            max_age,
+            max_age, clock_unit,
         )  # fmt: skip
 
 
@@ -434,7 +436,7 @@ _NO_TABLE = (np.zeros(2, dtype=np.float32), np.zeros(1, dtype=np.int32), 1,
              np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
              np.zeros((1, 1), dtype=np.float32), np.zeros((1, 1), dtype=np.float32),
              np.zeros(1, dtype=np.int64), 0)  # fmt: skip
-_NO_CLOCK = (np.zeros(1, dtype=np.float32), 0.0)
+_NO_CLOCK = (np.zeros(1, dtype=np.float32), 0.0, 0.0)
 
 
 def _zero_cell_arguments() -> tuple[Any, ...]:
@@ -488,7 +490,13 @@ class _Block:
     (see :class:`EcoliKernel`)."""
 
     def __init__(
-        self, start: int, count: int | None, decision: Any, rows: Randoms, internal: Any
+        self,
+        start: int,
+        count: int | None,
+        decision: Any,
+        rows: Randoms,
+        internal: Any,
+        dt: float = 0.0,
     ) -> None:
         self.start, self.count, self.decision = start, count, decision
         kind = type(decision)
@@ -526,9 +534,10 @@ class _Block:
             )
         first = tables[0]
         codes = _feature_codes(decision, internal)
+        self.clock_unit = 0.0
         if kind is MemoryDecision:  # the clock is psi's last input
             codes.append(CLOCK_CODE)
-            self.max_age = float(decision.max_age)
+            self.max_age, self.clock_unit = float(decision.max_age), dt
         if len(codes) != len(first.shape):
             raise KernelUnsupported(
                 f"{len(codes)} features for a lookup table over {len(first.shape)} axes"
@@ -541,6 +550,10 @@ class _Block:
         affine = torch.stack([t._affine for t in tables]).numpy()  # (tables, d, 2) float32
         self.origin = np.ascontiguousarray(affine[:, :, 0])
         self.scale = np.ascontiguousarray(affine[:, :, 1])
+        if kind is MemoryDecision and decision.clock_nodes is not None:
+            # a node per step: the clock in steps on a unit axis (exact nodes, frac 0)
+            self.origin[:, -1], self.scale[:, -1] = 0.0, 1.0
+            self.max_age, self.clock_unit = float(decision.clock_nodes), 1.0
         self.layer = int(first._layer)
         self.shape = np.array(first.shape, dtype=np.int64)
         self.strides = np.array(first._strides, dtype=np.int64)
@@ -629,7 +642,7 @@ class EcoliKernel:
         self.blocks: list[_Block] = []
         start = 0
         for member, size in zip(members, sizes, strict=True):
-            self.blocks.append(_Block(start, size, member, rows, internal))
+            self.blocks.append(_Block(start, size, member, rows, internal, dt))
             start += size or 0
         self._total = None if sizes == [None] else start
         if isinstance(field, FieldBatch):
@@ -730,7 +743,7 @@ class EcoliKernel:
                 clock = _NO_CLOCK
                 if b.max_age > 0:
                     ages = b.decision.fused_state()[0] if dry else self._own_state(b.decision)
-                    clock = (_numpy(ages), b.max_age)
+                    clock = (_numpy(ages), b.max_age, b.clock_unit)
                 advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
                               *self._body_args, _NO_MOTORS, 0, b.table, table_of_cell, b.layer,
                               b.shape, b.strides, b.origin, b.scale, b.features,
