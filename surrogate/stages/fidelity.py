@@ -576,9 +576,9 @@ def plot_ks(table: pd.DataFrame, settings: FidelitySettings) -> Any:
 
 def plot_drift(mean_observable: Mapping[str, Mapping[str, list[float]]],
                settings: FidelitySettings) -> Any:  # fmt: skip
-    """Mean observable against time per field, as the population drifts: the full model with
-    its noise band (the 95 % range of a second run's mean, +- 1.96 sqrt(2) s.e.), the second
-    full run and every candidate, so a gap (or its absence) is seen at a glance.
+    """The drift per field: every run's mean observable minus the full model's, against time,
+    on the full model's noise band (the 95 % range of a second run's mean, +- 1.96 sqrt(2)
+    s.e., around 0), with the second full run, so a gap (or its absence) is seen at a glance.
 
     Args:
         mean_observable: ``{"<run>|<field>": {"<t>": [mean, s.e.]}}`` (the summary's).
@@ -589,26 +589,24 @@ def plot_drift(mean_observable: Mapping[str, Mapping[str, list[float]]],
     import matplotlib.pyplot as plt
 
     fields = list(settings.fields)
-    fig, axes = plt.subplots(1, len(fields), figsize=(4 * len(fields), 3.6),
+    fig, axes = plt.subplots(1, len(fields), figsize=(4 * len(fields), 3.8), sharey=True,
                              constrained_layout=True, squeeze=False)  # fmt: skip
     name = settings.setup.model.body.observable_names[0]
     for ax, field in zip(axes[0], fields, strict=True):
         runs = {k.split("|")[0]: v for k, v in mean_observable.items() if k.endswith(f"|{field}")}
         full = runs.pop("full")
         t = [float(k) for k in full]
-        mean = [m for m, _ in full.values()]
         half = [1.96 * math.sqrt(2.0) * se for _, se in full.values()]
-        ax.fill_between(t, [m - h for m, h in zip(mean, half, strict=True)],
-                        [m + h for m, h in zip(mean, half, strict=True)], color="k", alpha=0.15,
-                        label="full model, 95 % band")  # fmt: skip
-        ax.plot(t, mean, color="k", marker="o", label="full model")
+        ax.fill_between(t, [-h for h in half], half, color="k", alpha=0.15,
+                        label="full model's noise band (95 %)")  # fmt: skip
+        ax.axhline(0.0, color="k", lw=1)
         for label, series in runs.items():
             style = {"full_repeat": ("k", "--"), "exact": ("grey", ":")}.get(label, (None, "-"))
-            ax.plot([float(k) for k in series], [m for m, _ in series.values()], marker=".",
-                    color=style[0], ls=style[1], label=label)  # fmt: skip
+            gap = [series[k][0] - full[k][0] for k in full]
+            ax.plot(t, gap, marker=".", color=style[0], ls=style[1], label=label)
         ax.set_title(field)
         ax.set_xlabel("t (s)")
-    axes[0][0].set_ylabel(f"mean {name}")
+    axes[0][0].set_ylabel(f"mean {name} minus the full model's")
     axes[0][-1].legend(fontsize=7)
     return fig
 

@@ -88,4 +88,4 @@ def test_a_clocked_recipe_is_checked_beside_the_exact_clock_which_is_a_reference
     means = {f"{k}|gaussian": {f"{t:g}": [2.0, 0.01] for t in settings.times} for k in labels}
     fig = fidelity.plot_drift(means, settings)
     (ax,) = fig.axes
-    assert len(ax.lines) == len(labels)  # the full model, its repeat and three candidates
+    assert len(ax.lines) == len(labels)  # the full model (the zero line), its repeat, 3 candidates
