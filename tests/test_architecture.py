@@ -21,7 +21,7 @@ ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "model
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = ("surrogate.models", "surrogate.models.base", "surrogate.models.network")
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
-STAGE_USERS = ("surrogate/bench.py",)
+STAGE_USERS = ("surrogate/benchmarks/loop.py",)
 
 
 def _module_name(path: Path) -> str:
