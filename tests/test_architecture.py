@@ -1,8 +1,8 @@
 """House rules of the package layout, checked on the source (ast), not by convention.
 
 Engine packages (ctmc, simulate, gp, evaluate, sbml and the model protocols) never import a
-concrete model; nothing but the stages themselves, the scripts and the loop benchmark imports a stage;
-and every stage (a module with a ``run`` and a ``validate`` entry point) lives in
+concrete model; nothing but the stages themselves, the scripts and the loop benchmark imports a
+stage; and every stage (a module with a ``run`` and a ``validate`` entry point) lives in
 ``surrogate/stages``. The rules are checked over every module, so a new file is held to them
 too.
 """
