@@ -1,4 +1,4 @@
-"""Benchmark the simulators and the stages around them (see surrogate/bench.py).
+"""Benchmark the simulators and the stages around them (see surrogate/benchmarks/loop.py).
 
 python scripts/bench.py                 # full benchmark (a few minutes)
 python scripts/bench.py quick=true      # smoke run (seconds)
@@ -8,7 +8,7 @@ python scripts/bench.py threads=[1] compile=[true] output=data/bench/mine.json
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.bench import main as run_bench
+from surrogate.benchmarks.loop import main as run_bench
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="bench")

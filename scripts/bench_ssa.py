@@ -1,4 +1,4 @@
-"""Benchmark the SSA backends on the E. coli phospho network (see surrogate/bench_ssa.py).
+"""Benchmark the SSA backends on the E. coli phospho network (see surrogate/benchmarks/ssa.py).
 
 python scripts/bench_ssa.py [--cells 20] [--t-end 10] [--repeats 3] [--out data/bench/ssa.json]
 Every backend that compares simulates the same workload (cells x t_end simulated seconds);
@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from surrogate.bench_ssa import run_bench
+from surrogate.benchmarks.ssa import run_bench
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
 """House rules of the package layout, checked on the source (ast), not by convention.
 
 Engine packages (ctmc, simulate, gp, evaluate, sbml and the model protocols) never import a
-concrete model; nothing but the stages themselves, the scripts and the bench imports a stage;
-and every stage (a module with a ``run`` and a ``validate`` entry point) lives in
+concrete model; nothing but the stages themselves, the scripts and the loop benchmark imports a
+stage; and every stage (a module with a ``run`` and a ``validate`` entry point) lives in
 ``surrogate/stages``. The rules are checked over every module, so a new file is held to them
 too.
 """
@@ -21,7 +21,7 @@ ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "model
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = ("surrogate.models", "surrogate.models.base", "surrogate.models.network")
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
-STAGE_USERS = ("surrogate/bench.py",)
+STAGE_USERS = ("surrogate/benchmarks/loop.py",)
 
 
 def _module_name(path: Path) -> str:

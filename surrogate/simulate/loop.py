@@ -5,7 +5,7 @@ body.move(state, phi) (movement and slow internal processes); t += dt. Cells liv
 dimension; the only Python loop is over time steps. The loop knows no model: the body, the
 internal model and the decision layer are plug-ins (:mod:`surrogate.models.base`).
 
-Performance design (see ``surrogate.bench``):
+Performance design (see ``surrogate.benchmarks.loop``):
 
 * The random numbers of a step are drawn up front in at most four calls (float32 uniforms,
   float64 uniforms, normals, and a body's ``sample_extra``), their rows declared by each

@@ -60,11 +60,11 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.base import FeatureMap, has_exact_psi
+from surrogate.models.base import has_exact_psi
 from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
-from surrogate.simulate.memory import MemoryDecision, can_age, exact_age_table
+from surrogate.simulate.memory import can_age
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.stages.collect import collect
@@ -75,8 +75,13 @@ from surrogate.stages.settings import (
     group_overrides,
     validate_backend,
 )
-from surrogate.stages.simulate import COMPILE_CACHE, abstract_decision, exact_decision
-from surrogate.stages.train import read_metrics, train
+from surrogate.stages.simulate import (
+    COMPILE_CACHE,
+    abstract_decision,
+    exact_clock_decision,
+    exact_decision,
+)
+from surrogate.stages.train import load_abstraction, read_metrics, resolve_abstraction, train
 
 log = logging.getLogger(__name__)
 
@@ -381,16 +386,15 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
             labels.append(f"exact|{name}")
     for max_age in settings.exact_clocks:
         # the exact psi with a switch clock: the limit of the candidates with gp.history=age
-        table = exact_age_table(model.internal, setup.dt, max_age).to(job.device)
-        featurize = FeatureMap(model.internal, model.internal.signal_names)
-        clocked = MemoryDecision(table, model.internal, featurize, max_age, EXACT_CLOCK,
-                                 setup.dt)  # fmt: skip
+        clocked = exact_clock_decision(model, setup.dt, max_age, job.device, EXACT_CLOCK)
         for name in settings.fields:
             reps.append(Replicate(clocked, fields[name], n, seed + 2 * offset, start))
             labels.append(f"{EXACT_CLOCK}|{name}")
     for i, c in enumerate(settings.candidates):
-        decision, _ = abstract_decision(model, c.train, str(o.get("mode", "lookup")),
-                                        o.get("lookup_size"), job.device)  # fmt: skip
+        psi = load_abstraction(resolve_abstraction(c.train), device=job.device)
+        decision, _ = abstract_decision(model, psi, c.train.setup.dt, c.train.max_age,
+                                        str(o.get("mode", "lookup")), o.get("lookup_size"),
+                                        job.device)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")

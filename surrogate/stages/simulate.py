@@ -21,7 +21,7 @@ import torch
 
 from surrogate.config import seed_everything, to_dict
 from surrogate.fields import Field
-from surrogate.gp import PsiLookupTable
+from surrogate.gp import PsiClassifier, PsiLookupTable
 from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
 from surrogate.models.base import FeatureMap, Model
 from surrogate.simulate.decision import (
@@ -40,7 +40,7 @@ from surrogate.simulate.memory import (
 )
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.stages import budget
-from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
+from surrogate.stages.settings import SimulateSettings, batchable
 
 log = logging.getLogger(__name__)
 
@@ -83,15 +83,18 @@ def build_decision(
         return FullDecision(model.internal), {}
     if d.name == "exact":
         if d.history == "age":
-            table = exact_age_table(model.internal, settings.setup.dt, d.max_age).to(device)
-            featurize = FeatureMap(model.internal, model.internal.signal_names)
-            log.info("exact psi with a switch clock: table %s over %s", table.shape,
-                     table.input_names)  # fmt: skip
-            return MemoryDecision(table, model.internal, featurize, d.max_age, "exact",
-                                  settings.setup.dt), {}  # fmt: skip
+            return exact_clock_decision(model, settings.setup.dt, d.max_age, device), {}
         return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
     assert d.train is not None
-    return abstract_decision(model, d.train, d.mode or "lookup", d.lookup_size, device)
+    # the fit is found and loaded here, at the stage's edge (the train stage's module is
+    # imported only by runs that need it)
+    from surrogate.stages.train import load_abstraction, resolve_abstraction
+
+    directory = resolve_abstraction(d.train)
+    psi = load_abstraction(directory, device=device)
+    layer, info = abstract_decision(model, psi, d.train.setup.dt, d.train.max_age,
+                                    d.mode or "lookup", d.lookup_size, device)  # fmt: skip
+    return layer, {"abstraction_dir": str(directory), **info}
 
 
 def exact_decision(
@@ -111,35 +114,45 @@ def exact_decision(
     return ExactDecision(internal, dt, table), {"lookup_max_deviation": deviation}
 
 
+def exact_clock_decision(
+    model: Model, dt: float, max_age: float, device: torch.device, name: str = "exact"
+) -> MemoryDecision:
+    """The chain driven by the exact psi with a switch clock (``decision.history=age``): a
+    table over the signal and the clock, capped at ``max_age`` s; ``name`` labels the layer."""
+    table = exact_age_table(model.internal, dt, max_age).to(device)
+    featurize = FeatureMap(model.internal, model.internal.signal_names)
+    log.info("exact psi with a switch clock: table %s over %s", table.shape, table.input_names)
+    return MemoryDecision(table, model.internal, featurize, max_age, name, dt)
+
+
 def abstract_decision(
     model: Model,
-    train: TrainSettings,
+    psi: PsiClassifier,
+    dt: float,
+    max_age: float,
     mode: str,
     size: Sequence[int] | None,
     device: torch.device,
 ) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned abstraction of ``train`` (which must exist): a lookup table of it, or the
-    classifier every step in closed form with cached factors (checked against the classifier)."""
-    from surrogate.stages.train import load_abstraction, resolve_abstraction
-
-    directory = resolve_abstraction(train)
-    psi = load_abstraction(directory, device=device)
-    info: dict[str, Any] = {"abstraction_dir": str(directory), "inputs": list(psi.input_names)}
+    """The learned abstraction ``psi`` (loaded on ``device``) as a decision layer over
+    ``model``: a lookup table of it, or the classifier every step in closed form with cached
+    factors (checked against the classifier). With a switch clock (psi's last input, from
+    ``gp.history=age``) the chain keeps one per cell, capped at ``max_age`` s, ticking every
+    ``dt``; ``size`` is the table's nodes per input (null: the default)."""
+    info: dict[str, Any] = {"inputs": list(psi.input_names)}
     memory = has_history(psi.input_names)
     featurize = model.featurizer(psi.input_names[:-1] if memory else psi.input_names)
-    dt = train.setup.dt
 
     def layer(run_probability: Any) -> DecisionLayer:
         if memory:  # the switch clock is psi's last input (gp.history=age)
-            return MemoryDecision(run_probability, model.internal, featurize, train.max_age,
-                                  dt=dt)  # fmt: skip
+            return MemoryDecision(run_probability, model.internal, featurize, max_age, dt=dt)
         return AbstractDecision(run_probability, model.internal, featurize)
 
     if mode == "lookup":
         ranges = [psi.domain[n] for n in psi.input_names]
         if memory:  # a clock node at every step: each cell reads its clock's node
             lead = tuple(size[:-1]) if size else None
-            table = tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, train.max_age,
+            table = tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, max_age,
                                         lead).to(device)  # fmt: skip
         else:
             table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)

@@ -10,7 +10,7 @@ import types
 import numpy as np
 import pytest
 
-from surrogate import bench_ssa
+from surrogate.benchmarks import ssa
 
 
 def _fake_gillespy2(calls: list[tuple[int, int]]) -> types.ModuleType:
@@ -39,7 +39,7 @@ def _fake_gillespy2(calls: list[tuple[int, int]]) -> types.ModuleType:
 def test_gillespy2_is_timed_on_the_workload_it_ran(monkeypatch) -> None:
     calls: list[tuple[int, int]] = []
     monkeypatch.setitem(sys.modules, "gillespy2", _fake_gillespy2(calls))
-    g = bench_ssa.bench_gillespy2(cells=4, t_end=10.0, repeats=3)
+    g = ssa.bench_gillespy2(cells=4, t_end=10.0, repeats=3)
     assert calls == [(4, 1), (4, 2), (4, 3)]  # every repeat runs the whole workload
     assert (g["cells"], g["t_end_s"], g["repeats"], g["threads"]) == (4, 10.0, 3, 1)
     assert g["wall_s"] == min(g["walls_s"]) and g["wall_s"] >= 0.02
@@ -49,7 +49,7 @@ def test_gillespy2_is_timed_on_the_workload_it_ran(monkeypatch) -> None:
 
 
 def test_the_compiled_ssa_counts_its_events_on_the_same_workload() -> None:
-    c = bench_ssa.bench_compiled(cells=3, t_end=0.1, dt=0.05, threads=1, repeats=2)
+    c = ssa.bench_compiled(cells=3, t_end=0.1, dt=0.05, threads=1, repeats=2)
     assert (c["cells"], c["t_end_s"], c["repeats"]) == (3, 0.1, 2) and len(c["walls_s"]) == 2
     assert c["cell_s_per_s"] == pytest.approx(3 * 0.1 / c["wall_s"])
     assert c["events"] > 0 and c["events_per_s"] == pytest.approx(c["events"] / c["wall_s"])
@@ -61,6 +61,6 @@ def test_a_ratio_only_over_equal_workloads() -> None:
     def run(cells: int, t_end: float, rate: float) -> dict:
         return {"cells": cells, "t_end_s": t_end, "cell_s_per_s_per_thread": rate}
 
-    assert bench_ssa.equal_workload_ratio(run(20, 10.0, 80.0), run(20, 10.0, 20.0)) == 4.0
-    assert bench_ssa.equal_workload_ratio(run(256, 1.0, 80.0), run(64, 1.0, 20.0)) is None
-    assert bench_ssa.equal_workload_ratio(run(20, 10.0, 80.0), {"skipped": "missing"}) is None
+    assert ssa.equal_workload_ratio(run(20, 10.0, 80.0), run(20, 10.0, 20.0)) == 4.0
+    assert ssa.equal_workload_ratio(run(256, 1.0, 80.0), run(64, 1.0, 20.0)) is None
+    assert ssa.equal_workload_ratio(run(20, 10.0, 80.0), {"skipped": "missing"}) is None

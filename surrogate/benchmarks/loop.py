@@ -411,7 +411,9 @@ def memory_run(
         "record_interval": float(cfg["dt"]) * max(1, round(0.5 / float(cfg["dt"]))),
         "compile": bool(m.get("compile", False)),
     }
-    code = "import sys; from surrogate.bench import memory_child; memory_child(sys.argv[1])"
+    code = (
+        "import sys; from surrogate.benchmarks.loop import memory_child; memory_child(sys.argv[1])"
+    )
     proc = subprocess.run(
         [sys.executable, "-c", code, json.dumps(spec)],
         capture_output=True,

@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from surrogate.bench import format_lookup_report, format_report, main
+from surrogate.benchmarks.loop import format_lookup_report, format_report, main
 from surrogate.fields import GaussianField
 from surrogate.gp import PsiLookupTable
 from surrogate.models.ecoli import EcoliModel
@@ -110,7 +110,7 @@ def test_lookup_only_bench_times_the_abstraction_alone(compose_cfg, tmp_path, mo
 def test_kernel_compile_is_timed_cold_then_cached(tmp_path) -> None:
     """Two fresh processes share an empty numba cache: the first compiles the kernel, the
     second loads it (much faster)."""
-    from surrogate.bench import kernel_compile_times
+    from surrogate.benchmarks.loop import kernel_compile_times
 
     times = kernel_compile_times({"_target_": "surrogate.models.ecoli.EcoliModel"}, tmp_path)
     assert times["target"] == "surrogate.models.ecoli.kernel:precompile"
@@ -120,7 +120,7 @@ def test_kernel_compile_is_timed_cold_then_cached(tmp_path) -> None:
 
 @pytest.mark.parametrize("quick", [False, True])
 def test_shipped_bench_lookup_size_fits_the_default_inputs(compose_cfg, quick: bool) -> None:
-    from surrogate.bench import bench_settings
+    from surrogate.benchmarks.loop import bench_settings
     from surrogate.config import to_dict
     from surrogate.stages.settings import TrainSettings
 

@@ -1,0 +1,38 @@
+"""The benchmarks: measurements of speed and memory, never part of a stage's work.
+
+* :mod:`surrogate.benchmarks.loop`: the full and the abstracted simulation and the stages around
+  them (``python scripts/bench.py``, config ``conf/bench.yaml``);
+* :mod:`surrogate.benchmarks.ssa`: the SSA backends on the phospho network
+  (``python scripts/bench_ssa.py``).
+
+Both modules' public names are re-exported here (the SSA bench's ``run_bench`` as
+``run_ssa_bench``), each loaded on first use: the loop bench measures memory in fresh processes
+that import it, and must not pay for the SSA bench's imports (numba, scipy, the SBML model).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: public name -> (module, name in it)
+_EXPORTS = {
+    **{name: ("loop", name) for name in (
+        "bench_settings", "format_lookup_report", "format_report", "function_table",
+        "machine_info", "main", "run_bench", "run_lookup_bench")},
+    **{name: ("ssa", name) for name in (
+        "bench_compiled", "bench_gillespy2", "bench_torch", "cell_seconds_per_s",
+        "compile_times", "equal_workload_ratio")},
+    "run_ssa_bench": ("ssa", "run_bench"),
+}  # fmt: skip
+
+
+def __getattr__(name: str) -> Any:
+    """The public name ``name`` from its module (imported on first use)."""
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attr = _EXPORTS[name]
+    return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
+
+
+__all__ = sorted(_EXPORTS)

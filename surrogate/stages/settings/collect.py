@@ -1,0 +1,160 @@
+"""Settings of the collect stage: perturbed full-model runs -> transitions table (and the
+sequential design's fits, where ``collect.design.target_error`` is set)."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from surrogate.config import non_negative, positive, to_dict
+from surrogate.errors import ConfigError
+from surrogate.io import artefact_dir
+from surrogate.stages.settings.common import (
+    COLLECT_CMD,
+    TRAIN_CMD,
+    Job,
+    ModelSetup,
+    command_line,
+    group_overrides,
+)
+
+if TYPE_CHECKING:
+    from surrogate.stages.settings.train import TrainSettings
+
+
+@dataclass(frozen=True, eq=False)
+class CollectSettings:
+    """The collect stage: perturbed full-model runs -> transitions table."""
+
+    setup: ModelSetup
+    options: dict[str, Any]
+    job: Job
+    #: the collect settings as given (null: the model's default budget), for the command
+    given: dict[str, Any] | None = None
+    #: the fits of a sequential design (``collect.design.target_error`` set), else None
+    design: TrainSettings | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> CollectSettings:
+        """Validate the collect group (and the model's perturbation options); the budget left
+        null (``n_per_state``, ``n_cells``, ``record_every``) is the model's default, which
+        fits its cost (``Model.collect_defaults``)."""
+        setup = ModelSetup.from_config(cfg)
+        given = to_dict(cfg["collect"])
+        c = dict(given)
+        defaults = setup.model.collect_defaults(setup.dt)
+        for key in ("n_per_state", "n_cells", "record_every"):
+            if c.get(key) is None:
+                c[key] = defaults[key]
+        for key in ("n_per_state", "n_cells", "record_every"):
+            positive(c, key, "collect.", integer=True)
+        positive(c, "max_time", "collect.")
+        non_negative(c, "equilibration_time", "collect.")
+        non_negative(c, "blackout_time", "collect.")
+        rate = non_negative(c, "perturb_rate", "collect.")
+        if rate * setup.dt > 1.0:
+            raise ConfigError(
+                f"collect.perturb_rate={rate:g}/s cannot be met with dt={setup.dt:g} s: at most "
+                f"one perturbation per step, so the rate must be <= 1/dt = {1 / setup.dt:g}/s"
+            )
+        from surrogate.stages.budget import check_table_memory
+
+        internal = setup.model.internal
+        check_table_memory(int(c["n_per_state"]),
+                           len(internal.input_names) + len(internal.feature_names) + 7)  # fmt: skip
+        expected = c.get("expected_labels", False)
+        if not isinstance(expected, bool):
+            raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
+        # the body checks its own perturbation options now, not after simulating
+        setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
+        return cls(setup, c, Job.from_config(cfg), given=given,
+                   design=_design_settings(cfg, c, rate))  # fmt: skip
+
+    @property
+    def expected_labels(self) -> bool:
+        """Whether the table gets the expected labels (``collect.expected_labels`` and a model
+        whose internal model gives them)."""
+        from surrogate.simulate.transitions import can_expect
+
+        wanted = bool(self.options.get("expected_labels", False))
+        return wanted and can_expect(self.setup.model.internal)
+
+    @property
+    def target_error(self) -> float | None:
+        """The sequential design's target (``collect.design.target_error``), or None."""
+        return None if self.design is None else float(self.options["design"]["target_error"])
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that defines a transitions table: the device too (its random stream), and
+        the design's fits where it has one (a switched-off design leaves the fixed design's
+        identity as it was)."""
+        options = {k: v for k, v in self.options.items() if k != "design" or self.design}
+        out = {**self.setup.identity(), "collect": options, "device": self.job.device_type}
+        if self.design is not None:
+            # its rounds fit psi and score it on the diagnostic's occupancy run
+            out["design_fit"] = {**self.design.fit_identity(), "occupancy": self.design.diagnostic}
+        return out
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/collect/model=..._field=..._dt=..._seed=...-<hash>``."""
+        label = {**self.setup.label(), "seed": self.setup.seed}
+        return artefact_dir(self.job.data_dir, "collect", label, self.identity())
+
+    def command(self) -> str:
+        """The command that makes this artefact."""
+        return command_line(COLLECT_CMD, self.setup.overrides(), self._overrides())
+
+    def _overrides(self) -> list[str]:
+        given = self.options if self.given is None else self.given
+        return group_overrides("collect", given, "default")[1:]
+
+
+#: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
+DESIGN_KEYS = ("target_error", "max_rounds", "candidates", "explore")
+
+
+def _design_settings(
+    cfg: Mapping[str, Any], options: dict[str, Any], perturb_rate: float
+) -> TrainSettings | None:
+    """Validate ``collect.design``; the settings of its fits where ``target_error`` is set."""
+    d = options.get("design")
+    if d is None:
+        return None
+    if not isinstance(d, Mapping):
+        raise ConfigError(f"collect.design must be a mapping of {list(DESIGN_KEYS)}, got {d!r}")
+    unknown = sorted(set(d) - set(DESIGN_KEYS))
+    if unknown:
+        raise ConfigError(
+            f"unknown collect.design setting(s) {unknown}; allowed: {list(DESIGN_KEYS)}"
+        )
+    if d.get("target_error") is None:
+        return None
+    target = positive(d, "target_error", "collect.design.")
+    if target >= 1.0:
+        raise ConfigError(
+            f"collect.design.target_error={target:g} is a relative error of psi: give a value "
+            f"in (0, 1), e.g. 0.02"
+        )
+    positive(d, "max_rounds", "collect.design.", integer=True)
+    positive(d, "candidates", "collect.design.", integer=True)
+    explore = non_negative(d, "explore", "collect.design.")
+    if explore > 1.0:
+        raise ConfigError(f"collect.design.explore={explore:g} is a share: give a value in [0, 1]")
+    if perturb_rate <= 0.0:
+        raise ConfigError(
+            "collect.design needs perturbations to guide: set collect.perturb_rate > 0"
+        )
+    if "gp" not in cfg:
+        raise ConfigError(
+            "collect.design.target_error needs the gp group (its rounds fit psi): run "
+            f"{TRAIN_CMD} collect.design.target_error={target:g} or add gp=svgp"
+        )
+    from surrogate.stages.settings.train import TrainSettings  # train settings read collect's
+
+    inner = to_dict(cfg)
+    inner["collect"] = {**options, "design": {**dict(d), "target_error": None}}
+    return TrainSettings.from_config(inner)

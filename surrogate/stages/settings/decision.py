@@ -1,0 +1,98 @@
+"""Settings of a run's decision layer: the full model, the learned abstraction (located by
+its training settings) or the exact lumped psi."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from surrogate.config import field_config, grid_size, to_dict
+from surrogate.errors import ConfigError
+from surrogate.models.base import has_exact_psi
+from surrogate.simulate.memory import can_age, history_setting
+from surrogate.stages.settings.common import ModelSetup
+from surrogate.stages.settings.train import TrainSettings
+
+DECISIONS = ("full", "abstract", "exact")
+DECISION_MODES = {"abstract": ("lookup", "classifier"), "exact": ("lookup", "direct")}
+
+
+@dataclass(frozen=True, eq=False)
+class DecisionSettings:
+    """The decision layer of a run: full model, learned abstraction, or exact lumped psi."""
+
+    name: str
+    config: dict[str, Any]
+    mode: str | None = None
+    lookup_size: tuple[int, ...] | None = None
+    train: TrainSettings | None = None
+    train_field: str | None = None
+    #: decision=exact: none | age (the exact psi with a switch clock) and the clock's cap (s)
+    history: str = "none"
+    max_age: float = 5.0
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup) -> DecisionSettings:
+        """Validate the decision group (and, for an abstraction, the settings that locate it)."""
+        d = to_dict(cfg["decision"])
+        name = d.get("name")
+        if name not in DECISIONS:
+            raise ConfigError(
+                f"decision.name must be one of {list(DECISIONS)} (select with "
+                f"decision=full|abstract|exact), got {name!r}"
+            )
+        if name == "full":
+            return cls(name, d)
+        mode = d.get("mode")
+        if mode not in DECISION_MODES[name]:
+            raise ConfigError(
+                f"decision.mode must be one of {list(DECISION_MODES[name])} for "
+                f"decision={name}, got {mode!r}"
+            )
+        if name == "exact":
+            internal = setup.model.internal
+            if not has_exact_psi(internal):
+                raise ConfigError(
+                    f"decision=exact: model {setup.model.name!r} has no exact lumped psi (its "
+                    f"network's state space is too large to enumerate); use decision=full (the "
+                    f"model itself) or decision=abstract (the learned psi)"
+                )
+            history, max_age = history_setting(d.get("history"), d.get("max_age", 5.0),
+                                               "decision")  # fmt: skip
+            if history == "age" and (mode != "lookup" or not can_age(internal)):
+                raise ConfigError(
+                    f"decision.history=age needs decision.mode=lookup and a model with an exact "
+                    f"psi over one signal with a clock (exact_age_psi); model "
+                    f"{setup.model.name!r}, mode {mode!r}"
+                )
+            sizes = None
+            if mode == "lookup":
+                sizes = grid_size(d.get("lookup_size"), "decision.lookup_size",
+                                  len(internal.signal_names))  # fmt: skip
+                if not getattr(internal, "signal_bounds", None):
+                    raise ConfigError(
+                        f"decision.mode=lookup needs the model's signal bounds; model "
+                        f"{setup.model.name!r} declares none: use decision.mode=direct"
+                    )
+            return cls(name, d, mode, sizes, history=history, max_age=max_age)
+        train_field = str(d.get("train_field"))
+        train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
+        train = TrainSettings.from_config(train_cfg)
+        sizes = None
+        if mode == "lookup":
+            if len(train.inputs) > 3:
+                raise ConfigError(
+                    f"decision.mode=lookup tabulates at most 3 inputs, the abstraction has "
+                    f"{list(train.inputs)}: use decision.mode=classifier"
+                )
+            sizes = grid_size(d.get("lookup_size"), "decision.lookup_size", len(train.inputs))
+        return cls(name, d, mode, sizes, train, train_field)
+
+    def identity(self) -> dict[str, Any]:
+        """What of the decision defines a run (the abstraction by its fit's identity: the
+        diagnostic and the output grid do not change the psi a run uses)."""
+        out: dict[str, Any] = {"decision": self.config}
+        if self.train is not None:
+            out["abstraction"] = self.train.fit_identity()
+        return out

@@ -1,0 +1,143 @@
+"""Settings of the reproduce stage: collect -> train -> simulate and evaluate on several
+fields -> report, with the small runs marked as one batch."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from surrogate.config import field_config, group_config, to_dict
+from surrogate.errors import ConfigError
+from surrogate.io import artefact_dir
+from surrogate.models.base import has_exact_psi
+from surrogate.stages.settings.common import REPRODUCE_CMD, Job, command_line
+from surrogate.stages.settings.evaluate import EvaluateSettings
+from surrogate.stages.settings.simulate import SimulateSettings
+from surrogate.stages.settings.train import TrainSettings
+
+
+@dataclass(frozen=True, eq=False)
+class ReproduceSettings:
+    """collect -> train -> simulate and evaluate on several fields -> report."""
+
+    train: TrainSettings
+    evaluations: dict[str, EvaluateSettings]
+    exact: dict[str, EvaluateSettings]
+    job: Job
+    config: dict[str, Any] = field(repr=False)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> ReproduceSettings:
+        """Validate every stage's settings before any work starts."""
+        fields = [str(f) for f in (cfg.get("fields") or [])]
+        if not fields:
+            raise ConfigError(
+                "fields must list at least one field, e.g. [gaussian, linear, dynamic]"
+            )
+        for name in fields:
+            field_config(name)
+        c = to_dict(cfg)
+        for key in ("batch", "exact_psi", "exact_psi_figures"):
+            if not isinstance(c.get(key, True), bool):
+                raise ConfigError(f"{key} must be true or false, got {c[key]!r}")
+        background = c.get("background", "auto")
+        if not isinstance(background, bool) and background != "auto":
+            raise ConfigError(f"background must be true, false or auto, got {c['background']!r}")
+        evaluations = {
+            name: EvaluateSettings.from_config(_field_run(c, name, c["decision"]))
+            for name in fields
+        }
+        train = next(iter(evaluations.values())).candidate.decision.train
+        if train is None:
+            raise ConfigError("reproduce needs decision=abstract (the learned abstraction)")
+        exact = {}
+        if c.get("exact_psi") and has_exact_psi(train.setup.model.internal):
+            decision = {**group_config("decision", "exact")}
+            # the report shows the abstraction's figures only; the exact chain's are optional
+            figures = {"figures": bool(c.get("exact_psi_figures", False))}
+            exact = {
+                name: EvaluateSettings.from_config(_field_run(c, name, decision, **figures))
+                for name in fields
+            }
+        if c.get("batch", True) and c.get("compile", False):
+            evaluations, exact = _batched(evaluations, exact)
+        return cls(train, evaluations, exact, Job.from_config(cfg), c)
+
+    def runs(self) -> list[SimulateSettings]:
+        """Every population run the report needs (each once)."""
+        out: dict[Path, SimulateSettings] = {}
+        for e in [*self.evaluations.values(), *self.exact.values()]:
+            for s in (e.full, e.candidate, e.full_repeat):
+                if s is not None:
+                    out.setdefault(s.directory, s)
+        return list(out.values())
+
+    def identity(self) -> dict[str, Any]:
+        """The evaluations' identities (which include the abstraction's fit) and the train
+        directory's (its diagnostic is part of the report)."""
+        out = {name: e.identity() for name, e in {**self.evaluations, **{
+            f"exact:{k}": v for k, v in self.exact.items()}}.items()}  # fmt: skip
+        return {**out, "train": self.train.identity()}
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/reproduce/model=..._dt=..._n=..._T=..._inputs=..._seed=...-<hash>``."""
+        first = next(iter(self.evaluations.values())).candidate
+        label = {"model": first.setup.model.name, "dt": first.setup.dt, "n": first.n_cells,
+                 "T": first.t_end, "inputs": "+".join(self.train.inputs),
+                 "seed": first.setup.seed}  # fmt: skip
+        return artefact_dir(self.job.data_dir, "reproduce", label, self.identity())
+
+
+#: runs of at most this many cells are simulated in one batch (reproduce); larger ones alone:
+#: batching takes the per-step overhead out of small populations, and costs a large one
+#: ~1.4x (1e6 cells, measured) in assembling the batch's random numbers and fields
+BATCH_MAX_CELLS = 20_000
+
+
+def batchable(run: SimulateSettings) -> bool:
+    """Whether reproduce simulates ``run`` in its batch (small populations, unsharded)."""
+    return run.n_cells <= BATCH_MAX_CELLS and run.shard is None
+
+
+def _batched(
+    evaluations: dict[str, EvaluateSettings], exact: dict[str, EvaluateSettings]
+) -> tuple[dict[str, EvaluateSettings], dict[str, EvaluateSettings]]:
+    """The evaluations with their (compiled) runs marked as one batch: the batch's id is a hash
+    of its runs' identities; the command that makes them is reproduce's."""
+    from dataclasses import replace
+
+    everything = [*evaluations.values(), *exact.values()]
+    runs = {json.dumps(s.identity(), sort_keys=True, default=str)
+            for e in everything for s in (e.full, e.candidate, e.full_repeat)
+            if s is not None and batchable(s)}  # fmt: skip
+    batch = hashlib.sha256("\n".join(sorted(runs)).encode()).hexdigest()[:12]
+    first = everything[0].candidate
+    keep = [o for o in first.overrides() if not o.startswith(("field=", "decision"))]
+    made_by = command_line(REPRODUCE_CMD, keep)
+
+    def tagged(e: EvaluateSettings) -> EvaluateSettings:
+        def mark(s: SimulateSettings | None) -> SimulateSettings | None:
+            if s is None or not batchable(s):
+                return s
+            return s.replace(batch=batch, made_by=made_by)
+
+        return replace(e, candidate=mark(e.candidate), full=mark(e.full),
+                       full_repeat=mark(e.full_repeat))  # fmt: skip
+
+    return ({k: tagged(v) for k, v in evaluations.items()},
+            {k: tagged(v) for k, v in exact.items()})  # fmt: skip
+
+
+def _field_run(
+    cfg: dict[str, Any], name: str, decision: Mapping[str, Any], **evaluate: Any
+) -> dict[str, Any]:
+    """The evaluate config for one field: same settings, that field, missing runs simulated
+    (and any other ``evaluate`` options given)."""
+    return {**cfg, "field": field_config(name), "decision": dict(decision),
+            "evaluate": {**cfg["evaluate"], **evaluate, "run_missing": True}}  # fmt: skip

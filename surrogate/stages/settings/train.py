@@ -1,0 +1,251 @@
+"""Settings of the train stage: transitions (collected or an external table) -> the two GP
+classifiers of the abstraction (the fit), its diagnostic and its output grid."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from surrogate.config import grid_size, non_negative, positive, to_dict, validate_start
+from surrogate.errors import ConfigError
+from surrogate.gp.training import GPSettings
+from surrogate.io import artefact_dir
+from surrogate.simulate.memory import AGE, history_setting
+from surrogate.stages.settings.collect import CollectSettings
+from surrogate.stages.settings.common import (
+    TRAIN_CMD,
+    Job,
+    ModelSetup,
+    command_line,
+    group_overrides,
+)
+from surrogate.stages.settings.occupancy import OccupancySettings
+
+#: keys of the gp group that are not GP hyperparameters
+GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
+            "clock_bins")  # fmt: skip
+#: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
+GP_CLOCK = ("history", "max_age", "clock_bins")
+#: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
+#: enter its identity resolved (threads: null means the job's count)
+GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
+#: gp.labels: the column each option trains on (auto: expected where the table has them)
+LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
+LABEL_CHOICES = ("auto", *LABEL_COLUMNS)
+DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
+    "n_cells": 1000,
+    "t_end": 100.0,
+    "record_every": 10,  # as conf/gp/svgp.yaml
+    "start": [2.0, 0.0],
+    "equilibration_time": 10.0,
+}
+
+
+@dataclass(frozen=True)
+class ExternalTable:
+    """A transitions table from outside the pipeline (CSV or Parquet), identified by content."""
+
+    path: Path
+    sha256: str
+
+    @classmethod
+    def from_path(cls, path: str | Path) -> ExternalTable:
+        """Hash the file (its content defines what is trained on)."""
+        p = Path(path).expanduser().resolve()
+        if not p.is_file():
+            raise ConfigError(f"transitions={path}: no such file")
+        if p.suffix.lower() not in (".csv", ".parquet", ".pq"):
+            raise ConfigError(f"transitions={path}: expected a .csv or .parquet table")
+        digest = hashlib.sha256()
+        with open(p, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(chunk)
+        return cls(p, digest.hexdigest())
+
+
+@dataclass(frozen=True, eq=False)
+class TrainSettings:
+    """The train stage: transitions -> the two GP classifiers of the abstraction (the fit,
+    ``data/fit/``: what simulations use), and the train directory around it (``data/train/``:
+    the fit's files, its diagnostic where the population lives and its output grid).
+
+    ``fit_threads`` is the fit's torch thread count resolved when the settings are made
+    (``gp.threads``, else this process's count): the fit's result depends on it.
+    """
+
+    setup: ModelSetup
+    source: CollectSettings | ExternalTable
+    gp: GPSettings
+    gp_config: dict[str, Any]
+    inputs: tuple[str, ...]
+    grid_size: tuple[int, ...] | None
+    diagnostic: dict[str, Any]
+    job: Job
+    fit_threads: int
+    #: gp.history: none | age (psi also over the switch clock, its last input) and its cap (s)
+    history: str = "none"
+    max_age: float = 5.0
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
+        """Validate the gp group; the data is collected with ``cfg`` or read from
+        ``transitions`` (an external table)."""
+        external = cfg.get("transitions")
+        if external:
+            setup = ModelSetup.from_config(cfg)
+            source: CollectSettings | ExternalTable = ExternalTable.from_path(str(external))
+        else:
+            source = CollectSettings.from_config(cfg)
+            setup = source.setup
+        gp_config = to_dict(cfg["gp"])
+        hyper = {k: v for k, v in gp_config.items() if k not in GP_EXTRA}
+        gp = GPSettings.from_config({**hyper, "seed": setup.seed})
+        # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
+        if not 0.0 < gp.validation_fraction < 1.0:
+            raise ConfigError(
+                f"gp.validation_fraction must lie in (0, 1) for the train stage (it reports "
+                f"held-out metrics), got {gp.validation_fraction!r}"
+            )
+        inputs = setup.model.abstraction_inputs(gp_config.get("inputs"))
+        history, max_age = history_setting(gp_config.get("history"),
+                                           gp_config.get("max_age", 5.0), "gp")  # fmt: skip
+        if history == "age":
+            if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
+                clock_bins = gp_config.get("clock_bins", gp.bins)
+                gp = GPSettings.from_config({**hyper, "seed": setup.seed,
+                                             "bins": [gp.bins] * len(inputs) + [clock_bins]})  # fmt: skip
+            inputs = (*inputs, AGE)
+        if isinstance(source, CollectSettings):
+            n_per_state = source.options["n_per_state"]
+            n_train = n_per_state - round(gp.validation_fraction * n_per_state)
+            if gp.n_inducing > n_train:
+                raise ConfigError(
+                    f"gp.n_inducing={gp.n_inducing} exceeds the {n_train} training points per "
+                    f"classifier (collect.n_per_state={n_per_state} minus the validation "
+                    f"split); lower gp.n_inducing or raise collect.n_per_state"
+                )
+        sizes = grid_size(gp_config.get("grid_size"), "gp.grid_size", len(inputs))
+        diagnostic = _diagnostic(gp_config.get("diagnostic") or {})
+        threads = gp_config.get("threads")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                    or threads < 1):  # fmt: skip
+            raise ConfigError(f"gp.threads must be a positive integer or null, got {threads!r}")
+        labels = gp_config.get("labels", "outcome")
+        if labels not in LABEL_CHOICES:
+            raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
+        if labels == "expected":
+            if not gp.bins:
+                raise ConfigError("gp.labels=expected needs binned training (gp.bins > 0)")
+            if isinstance(source, CollectSettings) and not source.expected_labels:
+                why = (
+                    "collect.expected_labels=false"
+                    if not source.options.get("expected_labels", False)
+                    else f"model {setup.model.name!r} gives none (no expected_phi_next)"
+                )
+                raise ConfigError(
+                    f"gp.labels=expected trains on expected labels, but {why}; use "
+                    "gp.labels=outcome"
+                )
+        return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
+                   int(threads) if threads is not None else torch.get_num_threads(),
+                   history, max_age)  # fmt: skip
+
+    def label_column(self, columns: Sequence[str]) -> str:
+        """The column of a transitions table (with ``columns``) the classifiers are trained on
+        (``gp.labels``; ``auto``: the expected labels where the table has them, as collect
+        records them for models that give them; else the outcomes)."""
+        labels = self.gp_config.get("labels", "outcome")
+        if labels == "auto":
+            expected = LABEL_COLUMNS["expected"]
+            return expected if expected in columns else LABEL_COLUMNS["outcome"]
+        return LABEL_COLUMNS[labels]
+
+    @property
+    def seed(self) -> int:
+        """The seed of the collection and of the training."""
+        return self.setup.seed
+
+    def fit_identity(self) -> dict[str, Any]:
+        """Everything that defines the fitted classifiers: the data, the GP settings, the fit's
+        thread count (float reductions) and device type; not the diagnostic or the grid."""
+        if isinstance(self.source, CollectSettings):
+            data = self.source.identity()
+        else:
+            data = {"table": str(self.source.path), "sha256": self.source.sha256,
+                    "model": self.setup.model_config, "seed": self.setup.seed}  # fmt: skip
+        gp = {k: v for k, v in self.gp_config.items() if k not in GP_NOT_FIT}
+        if self.history == "none":  # fits without a clock keep the identity they had before it
+            gp = {k: v for k, v in gp.items() if k not in GP_CLOCK}
+        return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
+                "device": self.job.device_type}  # fmt: skip
+
+    def identity(self) -> dict[str, Any]:
+        """Everything that defines the train directory: the fit, the diagnostic's settings
+        and the output grid (a change in either re-runs them around the same fit)."""
+        sizes = list(self.grid_size) if self.grid_size is not None else None
+        return {"fit": self.fit_identity(), "grid_size": sizes, "diagnostic": self.diagnostic}
+
+    def _label(self) -> dict[str, Any]:
+        label = (self.setup.label() if isinstance(self.source, CollectSettings)
+                 else {"table": self.source.path.stem})  # fmt: skip
+        return {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
+                "inducing": self.gp.n_inducing, "seed": self.seed}  # fmt: skip
+
+    @functools.cached_property
+    def fit_directory(self) -> Path:
+        """``data/fit/model=..._field=..._dt=..._inputs=..._kernel=..._seed=...-<hash>``: the
+        classifiers the simulations use."""
+        return artefact_dir(self.job.data_dir, "fit", self._label(), self.fit_identity())
+
+    @functools.cached_property
+    def directory(self) -> Path:
+        """``data/train/model=..._field=..._dt=..._inputs=..._kernel=..._seed=...-<hash>``."""
+        return artefact_dir(self.job.data_dir, "train", self._label(), self.identity())
+
+    def gp_overrides(self) -> list[str]:
+        """The gp overrides that reproduce these settings (``gp.threads`` as resolved: a
+        command run with another thread count would make another fit)."""
+        return group_overrides("gp", {**self.gp_config, "threads": self.fit_threads}, "svgp")[1:]
+
+    def command(self) -> str:
+        """The command that makes this artefact (and the fit)."""
+        if isinstance(self.source, CollectSettings):
+            data = [*self.setup.overrides(), *self.source._overrides()]
+        else:
+            data = [f"transitions={self.source.path}", *self.setup.overrides()]
+        return command_line(TRAIN_CMD, data, self.gp_overrides())
+
+    def input_command(self) -> str:
+        """The command that makes this stage's input (the collected transitions)."""
+        if isinstance(self.source, CollectSettings):
+            return self.source.command()
+        return f"(the external table {self.source.path})"
+
+    def occupancy(self) -> OccupancySettings:
+        """The diagnostic's occupancy run: an unperturbed full-model population in the training
+        field (``gp.diagnostic``: its size, start and length), seeded with this seed."""
+        options = dict(self.diagnostic)
+        if self.history == "age":  # the rows need the switch clocks
+            options["clock"] = True
+        return OccupancySettings(self.setup, options, self.job, self.command())
+
+
+def _diagnostic(options: Mapping[str, Any]) -> dict[str, Any]:
+    unknown = sorted(set(options) - set(DIAGNOSTIC_DEFAULTS))
+    if unknown:
+        raise ConfigError(
+            f"unknown gp.diagnostic setting(s) {unknown}; allowed: {sorted(DIAGNOSTIC_DEFAULTS)}"
+        )
+    d = {**DIAGNOSTIC_DEFAULTS, **dict(options)}
+    positive(d, "n_cells", "gp.diagnostic.", integer=True)
+    positive(d, "t_end", "gp.diagnostic.")
+    positive(d, "record_every", "gp.diagnostic.", integer=True)
+    non_negative(d, "equilibration_time", "gp.diagnostic.")
+    d["start"] = list(validate_start(d, "start", "gp.diagnostic."))
+    return d
