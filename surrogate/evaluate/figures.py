@@ -145,6 +145,41 @@ def plot_observable_over_time(
     return fig
 
 
+def plot_drift(
+    reference: SimulationRun,
+    candidate: SimulationRun,
+    repeat: SimulationRun | None = None,
+    labels: tuple[str, str] = ("full", "abstract"),
+    name: str | None = None,
+    axis_label: str | None = None,
+) -> Figure:
+    """The drift at a glance: the candidate's mean observable minus the reference's, against
+    time, on the reference's noise band (the 95 % range of a second run's mean at the
+    reference's size: +- 1.96 sqrt(2) s.d. / sqrt(n)), with the second full run where there is
+    one. A gap outside the band is a drift the candidate gets wrong.
+    """
+    ref = mean_std_over_time(reference, name).set_index("t")
+    fig, axes = _panels((5.5, 3.5), 1, 0.15)
+    ax = axes[0]
+    t = ref.index.to_numpy()
+    half = 1.96 * np.sqrt(2.0) * ref["std"].fillna(0.0).to_numpy() / np.sqrt(ref["n"].to_numpy())
+    ax.fill_between(t, -half, half, color="grey", alpha=0.3, lw=0,
+                    label=f"{labels[0]}: 95 % band of a 2nd run")  # fmt: skip
+    ax.axhline(0.0, color="k", lw=1)
+    runs = [(candidate, labels[1], COLOURS[1], "-")]
+    if repeat is not None:
+        runs.append((repeat, f"2nd {labels[0]} run", "k", "--"))
+    for run, label, colour, style in runs:
+        ms = mean_std_over_time(run, name).set_index("t")
+        common = ref.index.intersection(ms.index)
+        gap = ms.loc[common, "mean"] - ref.loc[common, "mean"]
+        ax.plot(common.to_numpy(), gap.to_numpy(), color=colour, ls=style, lw=1.5, label=label)
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel(f"mean {axis_label or name or reference.observable_names[0]} - {labels[0]}'s")
+    ax.legend(fontsize=8)
+    return fig
+
+
 def _mean_band(ax: Axes, run: SimulationRun, label: str, colour: str, name: str | None) -> None:
     ms = mean_std_over_time(run, name)
     t, mean, std = ms["t"].to_numpy(), ms["mean"].to_numpy(), ms["std"].fillna(0.0).to_numpy()

@@ -182,6 +182,7 @@ def write_outputs(
     """Tables (CSV + Markdown) and, unless ``evaluate.figures=false``, figures (Figures 4 and 5
     of the paper, durations)."""
     from surrogate.evaluate.figures import (
+        plot_drift,
         plot_duration_histograms,
         plot_observable_histograms,
         plot_observable_over_time,
@@ -206,6 +207,8 @@ def write_outputs(
             runs.full, runs.candidate, settings.times, labels, name=name, axis_label=axis), crop=False)  # fmt: skip
         save_figure(out / f"{name}_over_time.png", plot_observable_over_time(
             runs.full, runs.candidate, labels, separate=True, name=name, axis_label=axis), crop=False)  # fmt: skip
+        save_figure(out / f"{name}_drift.png", plot_drift(
+            runs.full, runs.candidate, runs.full_repeat, labels, name=name, axis_label=axis), crop=False)  # fmt: skip
     write_csv(out / "observables_over_time.csv", pd.concat(frames, ignore_index=True))
     if figures:
         save_figure(out / "durations.png",

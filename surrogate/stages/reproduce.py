@@ -333,7 +333,13 @@ def report_sections(
         f"- {k}: `{os.path.relpath(v, out)}`" for k, v in artefacts.items())))  # fmt: skip
     from surrogate.stages.train import DIAGNOSTIC_FIGURE, SURFACES_FIGURE
 
-    figures = [("The learned psi (paper Figure 3)", train_dir / SURFACES_FIGURE)]
+    figures = []
+    for name, d in evaluations.items():  # next to Table 1: the drift, on the noise band
+        for obs in first.setup.model.body.observable_names:
+            if (d / f"{obs}_drift.png").exists():
+                figures.append((f"{name}: the drift, mean {model.observable_label(obs)} minus "
+                                f"the full model's, on its noise band", d / f"{obs}_drift.png"))  # fmt: skip
+    figures.append(("The learned psi (paper Figure 3)", train_dir / SURFACES_FIGURE))
     if (train_dir / DIAGNOSTIC_FIGURE).exists():
         figures.append(("The learned psi against the reference where the population lives",
                         train_dir / DIAGNOSTIC_FIGURE))  # fmt: skip

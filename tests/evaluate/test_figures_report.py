@@ -11,6 +11,7 @@ from matplotlib.figure import Figure
 from scipy import stats
 
 from surrogate.evaluate.figures import (
+    plot_drift,
     plot_duration_histograms,
     plot_observable_histograms,
     plot_observable_over_time,
@@ -119,6 +120,24 @@ def test_observable_over_time(
     np.testing.assert_allclose(lines[1].get_ydata(), mean_std_over_time(runs[1])["mean"])
     assert fig.axes[0].get_ylabel() == "distance"
     assert save_figure(tmp_path / "time.pdf", fig).stat().st_size > 1000
+
+
+def test_drift_is_the_gap_of_the_means_on_the_noise_band(
+    runs: tuple[SimulationRun, SimulationRun], tmp_path: Path
+) -> None:
+    """plot_drift draws mean(candidate) - mean(reference) per record time (and the second full
+    run's gap), on a band of +- 1.96 sqrt(2) s.d./sqrt(n) of the reference around zero."""
+    ref, cand = runs
+    fig = plot_drift(ref, cand, repeat=ref)
+    _zero, gap, repeat = fig.axes[0].get_lines()
+    want = mean_std_over_time(cand)["mean"] - mean_std_over_time(ref)["mean"]
+    np.testing.assert_allclose(gap.get_ydata(), want)
+    np.testing.assert_allclose(repeat.get_ydata(), 0.0)  # the reference against itself
+    ms = mean_std_over_time(ref)
+    (band,) = fig.axes[0].collections
+    top = band.get_paths()[0].vertices[:, 1].max()
+    assert top == pytest.approx(float((1.96 * np.sqrt(2) * ms["std"] / np.sqrt(ms["n"])).max()))
+    assert save_figure(tmp_path / "drift.png", fig).stat().st_size > 1000
 
 
 def test_observable_over_time_of_a_named_observable(tmp_path: Path) -> None:
