@@ -14,6 +14,18 @@ A user-defined field is any subclass of :class:`Field` (or any object with the s
     name: my_field
     some_parameter: 1.0
 
+A field can also be a formula, with no Python at all (:class:`ExpressionField`)::
+
+    # conf/field/ridge.yaml
+    _target_: surrogate.fields.ExpressionField
+    expression: "amplitude * exp(-0.5 * (x - peak_x)^2 / width^2)"
+    parameters: {amplitude: 0.1, width: 1.0}
+    peak: [0.0, 0.0]
+
+The built-in fields are formulas too (each class's ``expression``): their torch code and the
+compiled kernels' scalar code are generated from the one formula
+(:mod:`surrogate.field_formula`), so a formula field runs wherever a built-in one does.
+
 All fields are vectorised over cells: ``position`` is ``(n_cells, 2)``, the result ``(n_cells,)``.
 """
 
@@ -21,12 +33,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
+from surrogate.field_formula import FieldFormula, field_formula
 
 
 class Field:
@@ -58,6 +71,78 @@ class Field:
         return f"{type(self).__name__}({params})"
 
 
+class FormulaField(Field):
+    """A field whose L(x, y, t) is the formula ``expression`` (SBML infix text over x, y in mm,
+    t in s, ``peak_x``, ``peak_y`` and the names of :meth:`parameter_values`).
+
+    The torch step and the compiled kernels both run code generated from the formula, so a
+    subclass only states its formula and parameters; one that overrides ``__call__`` is a
+    Python field (the torch step only).
+    """
+
+    expression: str = ""
+
+    @property
+    def formula(self) -> FieldFormula:
+        """The parsed formula (cached per text and parameter names)."""
+        return field_formula(self.expression, tuple(self.parameter_values()))
+
+    def parameter_values(self) -> dict[str, float]:
+        """The named parameters of the formula (beyond the peak) and their values."""
+        return {}
+
+    def packed_parameters(self) -> tuple[float, ...]:
+        """The values of :attr:`FieldFormula.parameters`, in its order (the peak first)."""
+        return (*self.peak, *self.parameter_values().values())
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        values = self.parameter_values()
+        formula = field_formula(self.expression, tuple(values))
+        at_origin = self.peak == (0.0, 0.0)
+        return formula.torch_function(at_origin)(position, t, (*self.peak, *values.values()))
+
+
+class ExpressionField(FormulaField):
+    """A field given as a formula, e.g. from yaml (see the module docstring).
+
+    Args:
+        expression: L(x, y, t) in mM, SBML L3 infix: ``+ - * / ^``, ``exp``, ``ln``,
+            ``sqrt``, ``min``, ``max``, ``piecewise``, comparisons, ..., and ``hypot(a, b)``
+            (the norm of (a, b)); over ``x``, ``y`` (mm), ``t`` (s), ``peak_x``, ``peak_y``
+            and the names of ``parameters``.
+        parameters: Named constants of the formula.
+        peak: Where the field peaks (mm): the distances of the fidelity report are from it.
+
+    Raises:
+        ConfigError: an unparsable formula, an unknown name or function (named), or a
+            non-finite parameter.
+
+    Example:
+        >>> ridge = ExpressionField("a * exp(-0.5 * (x - 1)^2)", {"a": 0.1}, peak=(1.0, 0.0))
+        >>> ridge(torch.tensor([[1.0, 5.0]]), 0.0)
+        tensor([0.1000])
+    """
+
+    name = "expression"
+
+    def __init__(
+        self,
+        expression: str,
+        parameters: Mapping[str, float] | None = None,
+        peak: Sequence[float] = (0.0, 0.0),
+    ) -> None:
+        super().__init__(peak)
+        self.expression = expression
+        self.parameters = {str(k): float(v) for k, v in dict(parameters or {}).items()}
+        for key, value in self.parameters.items():
+            if not math.isfinite(value):
+                raise ConfigError(f"field.parameters.{key} must be finite, got {value!r}")
+        field_formula(expression, tuple(self.parameters))  # a bad formula fails here
+
+    def parameter_values(self) -> dict[str, float]:
+        return dict(self.parameters)
+
+
 def _positive(name: str, value: float) -> float:
     value = float(value)
     if not (math.isfinite(value) and value > 0):
@@ -65,10 +150,11 @@ def _positive(name: str, value: float) -> float:
     return value
 
 
-class ConstantField(Field):
+class ConstantField(FormulaField):
     """Uniform, static concentration (``value = 0`` is the zero field used as a control)."""
 
     name = "constant"
+    expression = "value"
 
     def __init__(self, value: float = 0.0, peak: Sequence[float] = (0.0, 0.0)) -> None:
         super().__init__(peak)
@@ -76,16 +162,15 @@ class ConstantField(Field):
             raise ConfigError(f"field.value must be a non-negative number, got {value!r}")
         self.value = float(value)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        return torch.full(
-            position.shape[:-1], self.value, dtype=position.dtype, device=position.device
-        )
+    def parameter_values(self) -> dict[str, float]:
+        return {"value": self.value}
 
 
-class GaussianField(Field):
+class GaussianField(FormulaField):
     """L1: ``amplitude * exp(-0.5 |r - peak|^2 / variance)``."""
 
     name = "gaussian"
+    expression = "amplitude * exp(((x - peak_x)^2 + (y - peak_y)^2) * (-0.5 / variance))"
 
     def __init__(
         self, amplitude: float = 0.1, variance: float = 3.0, peak: Sequence[float] = (0.0, 0.0)
@@ -94,15 +179,17 @@ class GaussianField(Field):
         self.amplitude = _positive("amplitude", amplitude)
         self.variance = _positive("variance", variance)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        r2 = self.offset(position).square().sum(-1)
-        return self.amplitude * torch.exp(r2 * (-0.5 / self.variance))
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "variance": self.variance}
 
 
-class LinearField(Field):
+class LinearField(FormulaField):
     """L2: ``max(floor, amplitude - slope * |A (r - peak)|)``, ``A = diag(scale_x, scale_y)``."""
 
     name = "linear"
+    expression = (
+        "max(amplitude - slope * hypot((x - peak_x) * scale_x, (y - peak_y) * scale_y), floor)"
+    )
 
     def __init__(
         self,
@@ -124,16 +211,19 @@ class LinearField(Field):
         if not (math.isfinite(self.floor) and 0 <= self.floor < self.amplitude):
             raise ConfigError(f"field.floor must lie in [0, amplitude), got {floor!r}")
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        scaled = self.offset(position) * position.new_tensor(self.scale)
-        value = self.amplitude - self.slope * torch.linalg.vector_norm(scaled, dim=-1)
-        return value.clamp_min(self.floor)
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "slope": self.slope, "scale_x": self.scale[0],
+                "scale_y": self.scale[1], "floor": self.floor}  # fmt: skip
 
 
-class DynamicGaussianField(Field):
+class DynamicGaussianField(FormulaField):
     """L3: a Gaussian whose variance grows in time, ``variance * (t / spread_time + 1)``."""
 
     name = "dynamic"
+    expression = (
+        "amplitude * exp(((x - peak_x)^2 + (y - peak_y)^2)"
+        " * (-0.5 / (variance * (t / spread_time + 1))))"
+    )
 
     def __init__(
         self,
@@ -151,16 +241,17 @@ class DynamicGaussianField(Field):
         """Variance of the Gaussian (mm^2) at time ``t``."""
         return self.variance * (t / self.spread_time + 1.0)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        r2 = self.offset(position).square().sum(-1)
-        return self.amplitude * torch.exp(r2 * (-0.5 / self.variance_at(t)))
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "variance": self.variance,
+                "spread_time": self.spread_time}  # fmt: skip
 
 
-class ExponentialField(Field):
+class ExponentialField(FormulaField):
     """A cone in log L: ``amplitude * exp(-|r - peak| / length)`` (constant d ln L / dr, so the
     cells see the same relative gradient everywhere; not one of the paper's fields)."""
 
     name = "exponential"
+    expression = "amplitude * exp(hypot(x - peak_x, y - peak_y) * (-1 / length))"
 
     def __init__(
         self, amplitude: float = 0.1, length: float = 1.0, peak: Sequence[float] = (0.0, 0.0)
@@ -169,9 +260,8 @@ class ExponentialField(Field):
         self.amplitude = _positive("amplitude", amplitude)
         self.length = _positive("length", length)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        r = torch.linalg.vector_norm(self.offset(position), dim=-1)
-        return self.amplitude * torch.exp(r * (-1.0 / self.length))
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "length": self.length}
 
 
 class FieldBatch(Field):
