@@ -67,28 +67,45 @@ class Field:
         return torch.linalg.vector_norm(self.offset(position), dim=-1)
 
     def __repr__(self) -> str:
-        params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items())
+        params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if not k.startswith("_"))
         return f"{type(self).__name__}({params})"
 
 
 class FormulaField(Field):
     """A field whose L(x, y, t) is the formula ``expression`` (SBML infix text over x, y in mm,
-    t in s, ``peak_x``, ``peak_y`` and the names of :meth:`parameter_values`).
+    t in s, ``peak_x``, ``peak_y`` and ``parameter_names``, whose values
+    :meth:`parameter_values` gives in that order).
 
     The torch step and the compiled kernels both run code generated from the formula, so a
     subclass only states its formula and parameters; one that overrides ``__call__`` is a
-    Python field (the torch step only).
+    Python field (the torch step only). The formula is parsed once per class (per instance
+    for :class:`ExpressionField`) and its code loaded at construction, so a call is only the
+    generated torch code (nothing for ``torch.compile`` to break its graph on).
     """
 
     expression: str = ""
+    parameter_names: tuple[str, ...] = ()
+    _formula: FieldFormula | None = None
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        if "expression" in cls.__dict__:  # a class with a formula of its own
+            cls._formula = field_formula(cls.expression, cls.parameter_names)
+
+    def __init__(self, peak: Sequence[float] = (0.0, 0.0)) -> None:
+        super().__init__(peak)
+        if self._formula is not None:
+            self._formula.torch_function(self.peak == (0.0, 0.0))  # generate and load it now
 
     @property
     def formula(self) -> FieldFormula:
-        """The parsed formula (cached per text and parameter names)."""
-        return field_formula(self.expression, tuple(self.parameter_values()))
+        """The parsed formula."""
+        if self._formula is None:
+            raise ConfigError(f"{type(self).__name__} has no expression")
+        return self._formula
 
     def parameter_values(self) -> dict[str, float]:
-        """The named parameters of the formula (beyond the peak) and their values."""
+        """The values of ``parameter_names``, in that order."""
         return {}
 
     def packed_parameters(self) -> tuple[float, ...]:
@@ -96,10 +113,8 @@ class FormulaField(Field):
         return (*self.peak, *self.parameter_values().values())
 
     def __call__(self, position: Tensor, t: float) -> Tensor:
-        values = self.parameter_values()
-        formula = field_formula(self.expression, tuple(values))
         at_origin = self.peak == (0.0, 0.0)
-        return formula.torch_function(at_origin)(position, t, (*self.peak, *values.values()))
+        return self.formula.torch_function(at_origin)(position, t, self.packed_parameters())
 
 
 class ExpressionField(FormulaField):
@@ -131,16 +146,28 @@ class ExpressionField(FormulaField):
         parameters: Mapping[str, float] | None = None,
         peak: Sequence[float] = (0.0, 0.0),
     ) -> None:
-        super().__init__(peak)
         self.expression = expression
         self.parameters = {str(k): float(v) for k, v in dict(parameters or {}).items()}
         for key, value in self.parameters.items():
             if not math.isfinite(value):
                 raise ConfigError(f"field.parameters.{key} must be finite, got {value!r}")
-        field_formula(expression, tuple(self.parameters))  # a bad formula fails here
+        self._formula = field_formula(expression, tuple(self.parameters))
+        super().__init__(peak)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:  # type: ignore[override]
+        return tuple(self.parameters)
 
     def parameter_values(self) -> dict[str, float]:
         return dict(self.parameters)
+
+    def __getstate__(self) -> dict:
+        """Picklable: the formula's text, not its generated code (parsed again on loading)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_formula"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._formula = field_formula(self.expression, tuple(self.parameters))
 
 
 def _positive(name: str, value: float) -> float:
@@ -154,6 +181,7 @@ class ConstantField(FormulaField):
     """Uniform, static concentration (``value = 0`` is the zero field used as a control)."""
 
     name = "constant"
+    parameter_names = ("value",)
     expression = "value"
 
     def __init__(self, value: float = 0.0, peak: Sequence[float] = (0.0, 0.0)) -> None:
@@ -170,6 +198,7 @@ class GaussianField(FormulaField):
     """L1: ``amplitude * exp(-0.5 |r - peak|^2 / variance)``."""
 
     name = "gaussian"
+    parameter_names = ("amplitude", "variance")
     expression = "amplitude * exp(((x - peak_x)^2 + (y - peak_y)^2) * (-0.5 / variance))"
 
     def __init__(
@@ -187,6 +216,7 @@ class LinearField(FormulaField):
     """L2: ``max(floor, amplitude - slope * |A (r - peak)|)``, ``A = diag(scale_x, scale_y)``."""
 
     name = "linear"
+    parameter_names = ("amplitude", "slope", "scale_x", "scale_y", "floor")
     expression = (
         "max(amplitude - slope * hypot((x - peak_x) * scale_x, (y - peak_y) * scale_y), floor)"
     )
@@ -220,6 +250,7 @@ class DynamicGaussianField(FormulaField):
     """L3: a Gaussian whose variance grows in time, ``variance * (t / spread_time + 1)``."""
 
     name = "dynamic"
+    parameter_names = ("amplitude", "variance", "spread_time")
     expression = (
         "amplitude * exp(((x - peak_x)^2 + (y - peak_y)^2)"
         " * (-0.5 / (variance * (t / spread_time + 1))))"
@@ -251,6 +282,7 @@ class ExponentialField(FormulaField):
     cells see the same relative gradient everywhere; not one of the paper's fields)."""
 
     name = "exponential"
+    parameter_names = ("amplitude", "length")
     expression = "amplitude * exp(hypot(x - peak_x, y - peak_y) * (-1 / length))"
 
     def __init__(

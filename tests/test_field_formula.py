@@ -130,3 +130,28 @@ def test_one_tree_gives_both_codes_and_no_user_text() -> None:
     torch_code, numba_code = formula.torch_source(), formula.numba_source("f")
     assert "vector_norm" in torch_code and "_hypot" in numba_code
     assert "len" not in torch_code + numba_code  # parameters are read by index
+
+
+def test_builtin_parameter_names_match_their_values() -> None:
+    for field, _ in BUILTINS:
+        assert tuple(field.parameter_values()) == field.parameter_names
+        assert field.formula.parameters == ("peak_x", "peak_y", *field.parameter_names)
+
+
+def test_an_expression_field_pickles_and_reads_the_same() -> None:
+    import pickle
+
+    field = ExpressionField(RIDGE, {"a": 0.1, "w": 1.5, "s": 100.0}, peak=(1.0, 0.0))
+    again = pickle.loads(pickle.dumps(field))
+    assert repr(again) == repr(field) and "_formula" not in repr(field)
+    assert torch.equal(again(_positions(), 3.0), field(_positions(), 3.0))
+
+
+@pytest.mark.parametrize("field", [DynamicGaussianField(), ExpressionField(RIDGE, {"a": 0.1,
+                                   "w": 1.5, "s": 100.0})])  # fmt: skip
+def test_torch_compile_traces_a_formula_field_in_one_graph(field) -> None:
+    """The compiled torch step keeps one graph: a call is only the generated code."""
+    import torch._dynamo as dynamo
+
+    explained = dynamo.explain(lambda p, t: field(p, t) * 2.0)(_positions(100), 0.5)
+    assert explained.graph_count == 1 and explained.graph_break_count == 0
