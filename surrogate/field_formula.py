@@ -259,19 +259,17 @@ class FieldFormula:
         ]
         return "\n".join(lines)
 
-    def numba_source(self, name: str) -> str:
-        """Source of the scalar ``name(x, y, t, row)``: float32 x, y, float64 t and the
-        packed float64 row (``row[1 + k]`` parameter ``k``) -> float32."""
+    def numba_lines(self, indent: str = "    ") -> list[str]:
+        """Body of a scalar numba function of ``x``, ``y`` (float32), ``t`` (float64) and the
+        packed float64 ``row`` (``row[1 + k]`` parameter ``k``) returning L (float32)."""
         emitter = _Emitter("numba")
-        lines = [
-            "@numba.njit(inline='always', **_JIT)",
-            f"def {name}(x, y, t, row):",
-            *self._prologue("np", self.expr),
-            f"    return {emitter.full(emitter.emit(self.expr))}",
-            "",
-            "",
-        ]
-        return "\n".join(lines)
+        lines = [line.strip() for line in self._prologue("np", self.expr)]
+        lines.append(f"return {emitter.full(emitter.emit(self.expr))}")
+        return [indent + line for line in lines]
+
+    def numba_source(self, name: str) -> str:
+        """Source of a standalone ``name(x, y, t, row)`` (see :meth:`numba_lines`)."""
+        return "\n".join([f"def {name}(x, y, t, row):", *self.numba_lines(), ""])
 
     def torch_function(
         self, at_origin: bool = False
@@ -314,8 +312,10 @@ def field_formula(
 
 
 def dispatcher_source(formulas: Sequence[FieldFormula], jit_options: str) -> str:
-    """Source of a module with one scalar numba function per formula and
-    ``field(row, x, y, t)``, which calls formula ``int(row[0])``'s (float32)."""
+    """Source of a module with ``field(fields, row, x, y, t)``: formula ``int(row[0])`` at
+    ``x``, ``y`` (float32), ``t`` (float64), float32; a plain function (the implementation of
+    :func:`surrogate.field_kernel.field_value`, which numba compiles into the kernel, inlined),
+    every formula's code in one branch of it."""
     lines = [
         "import numba",
         "import numpy as np",
@@ -328,13 +328,10 @@ def dispatcher_source(formulas: Sequence[FieldFormula], jit_options: str) -> str
         "    return np.sqrt(a * a + b * b)",
         "",
         "",
+        "def field(fields, row, x, y, t):",
+        "    k = int(row[0])",
     ]
-    for k, formula in enumerate(formulas):
-        lines.append(f"# formula {k}")
-        lines.append(formula.numba_source(f"_formula_{k}"))
-    lines += ["@numba.njit(inline='always', **_JIT)", "def field(row, x, y, t):",
-              "    k = int(row[0])"]  # fmt: skip
-    for k in range(len(formulas) - 1):
-        lines += [f"    if k == {k}:", f"        return _formula_{k}(x, y, t, row)"]
-    lines += [f"    return _formula_{len(formulas) - 1}(x, y, t, row)", ""]
+    for k, formula in enumerate(formulas[:-1]):
+        lines += [f"    if k == {k}:", *formula.numba_lines("        ")]
+    lines += [*formulas[-1].numba_lines("    "), ""]
     return "\n".join(lines)

@@ -134,9 +134,4 @@ def field_value(fields: FieldSet, row: np.ndarray, x: float, y: float, t: float)
 def _field_value(fields, row, x, y, t):
     if not isinstance(fields, FieldSetType):
         return None
-    dispatch = sys.modules[fields.module].field
-
-    def implementation(fields, row, x, y, t):
-        return dispatch(row, x, y, t)
-
-    return implementation
+    return sys.modules[fields.module].field
