@@ -8,9 +8,9 @@ beyond SBML's functions it may call ``hypot(a, b)`` (the norm of (a, b), as torc
 ``vector_norm``). From the one tree we generate
 
 * a torch function ``field(position (n, 2) float32, t, params) -> (n,) float32`` and
-* a scalar numba function ``f(x, y, t, row) -> float32`` (``row`` the float64 parameters,
-  ``row[1 + k]`` the ``k``-th of :attr:`FieldFormula.parameters`), called by a generated
-  dispatcher on the row's formula index (:func:`dispatcher_source`).
+* scalar numba code of ``x``, ``y`` (float32), ``t`` and ``row`` (the float64 parameters,
+  ``row[1 + k]`` the ``k``-th of :attr:`FieldFormula.parameters`) -> float32, one branch of
+  a generated dispatcher on the row's formula index (:func:`dispatcher_source`).
 
 Both keep one precision rule, the torch fields' own: a subtree of the parameters and ``t``
 only is computed in float64 (Python floats in torch, float64 in numba) and rounded to float32

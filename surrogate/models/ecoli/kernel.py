@@ -25,7 +25,7 @@ tests compare each against its torch original:
 
 Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
 :func:`~surrogate.field_kernel.pack_field`); ``cache=True`` keeps the machine code on disk, so
-only the first process compiles (~4 s), once per set of field formulas (the built-in fields'
+only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
 set is the precompiled one).
 """
 
