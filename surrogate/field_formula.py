@@ -16,7 +16,9 @@ Both keep one precision rule, the torch fields' own: a subtree of the parameters
 only is computed in float64 (Python floats in torch, float64 in numba) and rounded to float32
 where it meets a subtree of the position, which is float32 throughout (as a float32 tensor
 times a Python float). So a built-in field written in the same operation order as its torch
-code computes exactly the same numbers on the torch path. No ``eval``/``exec``: the source
+code computes exactly the same numbers on the torch path. (One difference: a division by
+zero or an overflow in such a scalar subtree raises in Python, where numba gives inf or nan.)
+No ``eval``/``exec``: the source
 holds only our templates, indices and ``repr`` of floats (see :mod:`surrogate.ctmc.codegen`).
 """
 
