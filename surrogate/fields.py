@@ -14,6 +14,18 @@ A user-defined field is any subclass of :class:`Field` (or any object with the s
     name: my_field
     some_parameter: 1.0
 
+A field can also be a formula, with no Python at all (:class:`ExpressionField`)::
+
+    # conf/field/ridge.yaml
+    _target_: surrogate.fields.ExpressionField
+    expression: "amplitude * exp(-0.5 * (x - peak_x)^2 / width^2)"
+    parameters: {amplitude: 0.1, width: 1.0}
+    peak: [0.0, 0.0]
+
+The built-in fields are formulas too (each class's ``expression``): their torch code and the
+compiled kernels' scalar code are generated from the one formula
+(:mod:`surrogate.field_formula`), so a formula field runs wherever a built-in one does.
+
 All fields are vectorised over cells: ``position`` is ``(n_cells, 2)``, the result ``(n_cells,)``.
 """
 
@@ -21,12 +33,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
+from surrogate.field_formula import FieldFormula, field_formula
 
 
 class Field:
@@ -54,8 +67,107 @@ class Field:
         return torch.linalg.vector_norm(self.offset(position), dim=-1)
 
     def __repr__(self) -> str:
-        params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items())
+        params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if not k.startswith("_"))
         return f"{type(self).__name__}({params})"
+
+
+class FormulaField(Field):
+    """A field whose L(x, y, t) is the formula ``expression`` (SBML infix text over x, y in mm,
+    t in s, ``peak_x``, ``peak_y`` and ``parameter_names``, whose values
+    :meth:`parameter_values` gives in that order).
+
+    The torch step and the compiled kernels both run code generated from the formula, so a
+    subclass only states its formula and parameters; one that overrides ``__call__`` is a
+    Python field (the torch step only). The formula is parsed once per class (per instance
+    for :class:`ExpressionField`) and its code loaded at construction, so a call is only the
+    generated torch code (nothing for ``torch.compile`` to break its graph on).
+    """
+
+    expression: str = ""
+    parameter_names: tuple[str, ...] = ()
+    _formula: FieldFormula | None = None
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        if "expression" in cls.__dict__:  # a class with a formula of its own
+            cls._formula = field_formula(cls.expression, cls.parameter_names)
+
+    def __init__(self, peak: Sequence[float] = (0.0, 0.0)) -> None:
+        super().__init__(peak)
+        if self._formula is not None:
+            self._formula.torch_function(self.peak == (0.0, 0.0))  # generate and load it now
+
+    @property
+    def formula(self) -> FieldFormula:
+        """The parsed formula."""
+        if self._formula is None:
+            raise ConfigError(f"{type(self).__name__} has no expression")
+        return self._formula
+
+    def parameter_values(self) -> dict[str, float]:
+        """The values of ``parameter_names``, in that order."""
+        return {}
+
+    def packed_parameters(self) -> tuple[float, ...]:
+        """The values of :attr:`FieldFormula.parameters`, in its order (the peak first)."""
+        return (*self.peak, *self.parameter_values().values())
+
+    def __call__(self, position: Tensor, t: float) -> Tensor:
+        at_origin = self.peak == (0.0, 0.0)
+        return self.formula.torch_function(at_origin)(position, t, self.packed_parameters())
+
+
+class ExpressionField(FormulaField):
+    """A field given as a formula, e.g. from yaml (see the module docstring).
+
+    Args:
+        expression: L(x, y, t) in mM, SBML L3 infix: ``+ - * / ^``, ``exp``, ``ln``,
+            ``sqrt``, ``min``, ``max``, ``piecewise``, comparisons, ..., and ``hypot(a, b)``
+            (the norm of (a, b)); over ``x``, ``y`` (mm), ``t`` (s), ``peak_x``, ``peak_y``
+            and the names of ``parameters``.
+        parameters: Named constants of the formula.
+        peak: Where the field peaks (mm): the distances of the fidelity report are from it.
+
+    Raises:
+        ConfigError: an unparsable formula, an unknown name or function (named), or a
+            non-finite parameter.
+
+    Example:
+        >>> ridge = ExpressionField("a * exp(-0.5 * (x - 1)^2)", {"a": 0.1}, peak=(1.0, 0.0))
+        >>> ridge(torch.tensor([[1.0, 5.0]]), 0.0)
+        tensor([0.1000])
+    """
+
+    name = "expression"
+
+    def __init__(
+        self,
+        expression: str,
+        parameters: Mapping[str, float] | None = None,
+        peak: Sequence[float] = (0.0, 0.0),
+    ) -> None:
+        self.expression = expression
+        self.parameters = {str(k): float(v) for k, v in dict(parameters or {}).items()}
+        for key, value in self.parameters.items():
+            if not math.isfinite(value):
+                raise ConfigError(f"field.parameters.{key} must be finite, got {value!r}")
+        self._formula = field_formula(expression, tuple(self.parameters))
+        super().__init__(peak)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:  # type: ignore[override]
+        return tuple(self.parameters)
+
+    def parameter_values(self) -> dict[str, float]:
+        return dict(self.parameters)
+
+    def __getstate__(self) -> dict:
+        """Picklable: the formula's text, not its generated code (parsed again on loading)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_formula"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._formula = field_formula(self.expression, tuple(self.parameters))
 
 
 def _positive(name: str, value: float) -> float:
@@ -65,10 +177,12 @@ def _positive(name: str, value: float) -> float:
     return value
 
 
-class ConstantField(Field):
+class ConstantField(FormulaField):
     """Uniform, static concentration (``value = 0`` is the zero field used as a control)."""
 
     name = "constant"
+    parameter_names = ("value",)
+    expression = "value"
 
     def __init__(self, value: float = 0.0, peak: Sequence[float] = (0.0, 0.0)) -> None:
         super().__init__(peak)
@@ -76,16 +190,16 @@ class ConstantField(Field):
             raise ConfigError(f"field.value must be a non-negative number, got {value!r}")
         self.value = float(value)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        return torch.full(
-            position.shape[:-1], self.value, dtype=position.dtype, device=position.device
-        )
+    def parameter_values(self) -> dict[str, float]:
+        return {"value": self.value}
 
 
-class GaussianField(Field):
+class GaussianField(FormulaField):
     """L1: ``amplitude * exp(-0.5 |r - peak|^2 / variance)``."""
 
     name = "gaussian"
+    parameter_names = ("amplitude", "variance")
+    expression = "amplitude * exp(((x - peak_x)^2 + (y - peak_y)^2) * (-0.5 / variance))"
 
     def __init__(
         self, amplitude: float = 0.1, variance: float = 3.0, peak: Sequence[float] = (0.0, 0.0)
@@ -94,15 +208,18 @@ class GaussianField(Field):
         self.amplitude = _positive("amplitude", amplitude)
         self.variance = _positive("variance", variance)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        r2 = self.offset(position).square().sum(-1)
-        return self.amplitude * torch.exp(r2 * (-0.5 / self.variance))
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "variance": self.variance}
 
 
-class LinearField(Field):
+class LinearField(FormulaField):
     """L2: ``max(floor, amplitude - slope * |A (r - peak)|)``, ``A = diag(scale_x, scale_y)``."""
 
     name = "linear"
+    parameter_names = ("amplitude", "slope", "scale_x", "scale_y", "floor")
+    expression = (
+        "max(amplitude - slope * hypot((x - peak_x) * scale_x, (y - peak_y) * scale_y), floor)"
+    )
 
     def __init__(
         self,
@@ -124,16 +241,20 @@ class LinearField(Field):
         if not (math.isfinite(self.floor) and 0 <= self.floor < self.amplitude):
             raise ConfigError(f"field.floor must lie in [0, amplitude), got {floor!r}")
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        scaled = self.offset(position) * position.new_tensor(self.scale)
-        value = self.amplitude - self.slope * torch.linalg.vector_norm(scaled, dim=-1)
-        return value.clamp_min(self.floor)
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "slope": self.slope, "scale_x": self.scale[0],
+                "scale_y": self.scale[1], "floor": self.floor}  # fmt: skip
 
 
-class DynamicGaussianField(Field):
+class DynamicGaussianField(FormulaField):
     """L3: a Gaussian whose variance grows in time, ``variance * (t / spread_time + 1)``."""
 
     name = "dynamic"
+    parameter_names = ("amplitude", "variance", "spread_time")
+    expression = (
+        "amplitude * exp(((x - peak_x)^2 + (y - peak_y)^2)"
+        " * (-0.5 / (variance * (t / spread_time + 1))))"
+    )
 
     def __init__(
         self,
@@ -151,16 +272,18 @@ class DynamicGaussianField(Field):
         """Variance of the Gaussian (mm^2) at time ``t``."""
         return self.variance * (t / self.spread_time + 1.0)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        r2 = self.offset(position).square().sum(-1)
-        return self.amplitude * torch.exp(r2 * (-0.5 / self.variance_at(t)))
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "variance": self.variance,
+                "spread_time": self.spread_time}  # fmt: skip
 
 
-class ExponentialField(Field):
+class ExponentialField(FormulaField):
     """A cone in log L: ``amplitude * exp(-|r - peak| / length)`` (constant d ln L / dr, so the
     cells see the same relative gradient everywhere; not one of the paper's fields)."""
 
     name = "exponential"
+    parameter_names = ("amplitude", "length")
+    expression = "amplitude * exp(hypot(x - peak_x, y - peak_y) * (-1 / length))"
 
     def __init__(
         self, amplitude: float = 0.1, length: float = 1.0, peak: Sequence[float] = (0.0, 0.0)
@@ -169,9 +292,8 @@ class ExponentialField(Field):
         self.amplitude = _positive("amplitude", amplitude)
         self.length = _positive("length", length)
 
-    def __call__(self, position: Tensor, t: float) -> Tensor:
-        r = torch.linalg.vector_norm(self.offset(position), dim=-1)
-        return self.amplitude * torch.exp(r * (-1.0 / self.length))
+    def parameter_values(self) -> dict[str, float]:
+        return {"amplitude": self.amplitude, "length": self.length}
 
 
 class FieldBatch(Field):

@@ -153,6 +153,16 @@ OPERATORS: dict[str, _Op] = {
         )
         for name, fn in _UNARY_NP.items()
     },
+    # the Euclidean norm of (a, b), as torch's vector_norm of the pair (the fields' distance)
+    "hypot": _Op(
+        2,
+        2,
+        REAL,
+        REAL,
+        lambda a, b: float(np.sqrt(np.float64(a) * a + np.float64(b) * b)),
+        "torch.linalg.vector_norm(torch.stack([{0}, {1}], -1), dim=-1)",
+        "np.sqrt({0} * {0} + {1} * {1})",
+    ),
     "lt": _Op(2, 2, REAL, BOOL, lambda a, b: a < b, "({0} < {1})", "({0} < {1})"),
     "leq": _Op(2, 2, REAL, BOOL, lambda a, b: a <= b, "({0} <= {1})", "({0} <= {1})"),
     "gt": _Op(2, 2, REAL, BOOL, lambda a, b: a > b, "({0} > {1})", "({0} > {1})"),

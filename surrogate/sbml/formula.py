@@ -40,6 +40,7 @@ def parse_formula(
     where: str,
     kind: str | None = None,
     what: str = "name",
+    operators: Mapping[str, str] | None = None,
 ) -> Expr:
     """Parse ``text`` into an expression over ``symbols``.
 
@@ -50,6 +51,8 @@ def parse_formula(
         where: the setting being parsed, named in every error (e.g. ``"model.lump"``).
         kind: ``"bool"`` (a condition) or ``"real"`` (a value) to require; None accepts both.
         what: what the symbols are, for the message on an unknown name (e.g. ``"species"``).
+        operators: function names beyond SBML's the text may call, each naming an operator of
+            :data:`~surrogate.ctmc.kinetics.OPERATORS` (e.g. ``{"hypot": "hypot"}``).
 
     Returns:
         The validated expression (constants folded).
@@ -76,7 +79,7 @@ def parse_formula(
             return symbols[name]
         raise SbmlError(f"{where}: unknown {what} {name!r} in {text!r}; known: {sorted(symbols)}")
 
-    expr = convert(ast, resolve, {}, f"{where} {text!r}")
+    expr = convert(ast, resolve, {}, f"{where} {text!r}", operators=operators)
     if kind is not None and expr.kind != kind:
         want = "a condition (e.g. N >= 2 and S == 0)" if kind == "bool" else "a number"
         raise SbmlError(f"{where}: {text!r} must be {want}")

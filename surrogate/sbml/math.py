@@ -84,6 +84,7 @@ def convert(
     where: str,
     _bound: Mapping[str, Expr] | None = None,
     _depth: int = 0,
+    operators: Mapping[str, str] | None = None,
 ) -> Expr:
     """Convert one MathML AST to an :class:`Expr`.
 
@@ -94,6 +95,8 @@ def convert(
         functions: The model's function definitions by id, inlined at each call.
         where: The element being converted, e.g. ``"kinetic law of reaction 'R1'"`` (used in
             every error message).
+        operators: Function names the text may call beyond SBML's, each an operator of
+            :data:`~surrogate.ctmc.kinetics.OPERATORS` (e.g. ``{"hypot": "hypot"}``).
 
     Raises:
         SbmlError: an unsupported construct or an ill-typed expression, naming ``where``.
@@ -116,6 +119,7 @@ def convert(
             where,
             bound if names is None else names,
             _depth + 1,
+            operators,
         )
 
     def apply(op: str, *args: Expr) -> Expr:
@@ -205,6 +209,8 @@ def convert(
     if t == libsbml.AST_FUNCTION:
         name = node.getName()
         definition = functions.get(name)
+        if definition is None and operators and name in operators:
+            return apply(operators[name], *(child(i) for i in range(n)))
         if definition is None:
             raise SbmlError(f"{where}: call of unknown function {name!r} in {_formula(node)!r}")
         return _inline(definition, [child(i) for i in range(n)], resolve, functions, where, _depth)

@@ -29,6 +29,8 @@ from surrogate.fields import (
     ConstantField,
     DynamicGaussianField,
     ExponentialField,
+    ExpressionField,
+    FieldBatch,
     GaussianField,
     LinearField,
 )
@@ -213,6 +215,27 @@ def test_kernel_follows_the_model_constants(constants) -> None:
                                   _run(model, kind, LinearField(), "numba"))  # fmt: skip
 
 
+#: formula fields: a ridge drifting along x in time; a patch with a hard edge (piecewise)
+RIDGE = ExpressionField("a * exp(-0.5 * (x - 2 - t / 10)^2 / w) + 0.001 * (1 + sin(y))",
+                        {"a": 0.1, "w": 2.0}, peak=(2.0, 0.0))  # fmt: skip
+PATCH = ExpressionField("piecewise(0.08, hypot(x - 2, y) < r && t > 1, 0.02 * exp(-abs(y)))",
+                        {"r": 1.5})  # fmt: skip
+
+
+@pytest.mark.parametrize("name", ["ridge", "batch"])
+def test_kernel_reads_an_expression_field_as_the_field_does(name) -> None:
+    """A formula field runs in the kernel (code generated from the tree the torch step's code
+    comes from), alone or beside built-in fields in one batch."""
+    if name == "ridge":
+        field = RIDGE
+    else:
+        field = FieldBatch([RIDGE, GaussianField(), PATCH, RIDGE], [N // 4] * 4)
+    model = EcoliModel()
+    for kind in ("full", "mL"):
+        _assert_same_trajectories(_run(model, kind, field, "torch"),
+                                  _run(model, kind, field, "numba"))  # fmt: skip
+
+
 def test_kernel_replicates_in_a_batch_are_their_standalone_runs_bit_for_bit() -> None:
     """Cells never interact, so a batch of kernel runs (two decision blocks, one of them two
     stacked tables, three fields) gives each run exactly its standalone numbers."""
@@ -289,23 +312,28 @@ def test_the_kernel_leaves_torchs_thread_count_alone() -> None:
 
 def test_precompile_compiles_the_signature_the_simulator_calls() -> None:
     """The background precompile calls the kernel with zero cells typed as the adaptor's
-    arguments: a simulation afterwards adds no second compiled signature."""
+    arguments: a simulation afterwards adds no second compiled signature (other tests here
+    compile others: one per set of field formulas)."""
     from surrogate.models.ecoli import kernel
 
     kernel.precompile()
+    precompiled = set(kernel.advance_cells.signatures)
     _run(EcoliModel(), "full", GaussianField(), "numba", n=20, steps=30)
-    _run(EcoliModel(), "mL", GaussianField(), "numba", n=20, steps=30)
-    assert len(kernel.advance_cells.signatures) == 1
+    _run(EcoliModel(), "mL", LinearField(), "numba", n=20, steps=30)
+    assert set(kernel.advance_cells.signatures) == precompiled
 
 
 class _UserField(GaussianField):
-    """A field the kernel cannot know (a user's subclass)."""
+    """A field the kernel cannot know: a user's subclass with its own Python ``__call__``."""
+
+    def __call__(self, position: torch.Tensor, t: float) -> torch.Tensor:
+        return super().__call__(position, t) * 0.5
 
 
 def test_auto_keeps_the_torch_step_where_the_kernel_cannot_run() -> None:
     model = EcoliModel()
     sim = Simulator(model, FullDecision(model.internal), _UserField(), DT, backend="auto")
-    assert sim.backend == "torch" and "_UserField" in sim.backend_note
+    assert sim.backend == "torch" and "_UserField (a Python field" in sim.backend_note
     classifier = AbstractDecision(lambda phi, z: torch.full_like(z[:, 0], 0.5), model.internal,
                                   model.featurizer(["dG"]))  # fmt: skip
     sim = Simulator(model, classifier, GaussianField(), DT, backend="auto")

@@ -12,7 +12,8 @@ Every formula here is the scalar transcription of one torch function, named besi
 same precision (float32 state and signalling, float64 motor rates and transition terms); the
 tests compare each against its torch original:
 
-* fields: :mod:`surrogate.fields` (constant, gaussian, linear, dynamic, exponential);
+* fields: generated from each field's formula (:mod:`surrogate.field_kernel`: the built-in
+  fields and :class:`~surrogate.fields.ExpressionField`), as their torch code is;
 * signalling: :func:`~surrogate.models.ecoli.signalling.log_receptor_terms`, ``free_energy``,
   ``cheyp_from_free_energy``, ``delta_g``, ``rates_from_delta_g``, ``ou_step``; the MWC activity
   1 / (1 + exp(F)) as ``torch.sigmoid(-F)`` (the abstraction's feature ``activity`` of models
@@ -22,8 +23,10 @@ tests compare each against its torch original:
 * the abstraction: :func:`surrogate.gp.lookup._interpolate` (multilinear, torch's lerp);
 * movement and bookkeeping: :meth:`ChemotacticBody.move`, :meth:`Simulator._advance`.
 
-Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and :func:`pack_field`);
-``cache=True`` keeps the machine code on disk, so only the first process compiles (~4 s).
+Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
+:func:`~surrogate.field_kernel.pack_field`); ``cache=True`` keeps the machine code on disk, so
+only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
+set is the precompiled one).
 """
 
 from __future__ import annotations
@@ -37,15 +40,8 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from surrogate.fields import (
-    ConstantField,
-    DynamicGaussianField,
-    ExponentialField,
-    Field,
-    FieldBatch,
-    GaussianField,
-    LinearField,
-)
+from surrogate.field_kernel import field_set, field_value, pack_field
+from surrogate.fields import Field, FieldBatch
 from surrogate.gp.lookup import PsiLookupTable, StackedPsiLookup
 from surrogate.models.base import FeatureMap, KernelUnsupported, Randoms
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
@@ -54,10 +50,6 @@ from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import PopulationState
 from surrogate.simulate.memory import MemoryDecision
-
-# -- fields: kind codes and parameter columns of pack_field ------------------------------------
-CONSTANT, GAUSSIAN, LINEAR, DYNAMIC, EXPONENTIAL = 0, 1, 2, 3, 4
-FIELD_COLUMNS = 8  # kind, peak x, peak y, then up to five parameters
 
 # -- features of the abstraction's lookup table --------------------------------------------------
 # what each name means here (its formula below); an internal model's feature of that name must
@@ -76,30 +68,6 @@ P64_NAMES = ("omega", "mu", "dt")
 
 _JIT = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _F32 = np.float32
-
-
-@numba.njit(inline="always", **_JIT)
-def _field(f, x, y, t):
-    """L(r, t) of one packed field row ``f`` at (x, y) (float32), as :mod:`surrogate.fields`."""
-    kind = int(f[0])
-    ox = x - _F32(f[1])
-    oy = y - _F32(f[2])
-    if kind == CONSTANT:
-        return _F32(f[3])
-    if kind == GAUSSIAN:  # amplitude * exp(r2 * (-0.5 / variance))
-        r2 = ox * ox + oy * oy
-        return _F32(f[3]) * np.exp(r2 * _F32(-0.5 / f[4]))
-    if kind == DYNAMIC:  # the variance grows as variance * (t / spread_time + 1)
-        r2 = ox * ox + oy * oy
-        return _F32(f[3]) * np.exp(r2 * _F32(-0.5 / (f[4] * (t / f[5] + 1.0))))
-    if kind == LINEAR:  # max(floor, amplitude - slope |diag(scale) r|)
-        sx = ox * _F32(f[5])
-        sy = oy * _F32(f[6])
-        value = _F32(f[3]) - _F32(f[4]) * np.sqrt(sx * sx + sy * sy)
-        return max(value, _F32(f[7]))
-    # EXPONENTIAL: amplitude * exp(-|r| / length)
-    r = np.sqrt(ox * ox + oy * oy)
-    return _F32(f[3]) * np.exp(r * _F32(-1.0 / f[4]))
 
 
 @numba.njit(inline="always", **_JIT)
@@ -298,7 +266,7 @@ def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table, layer, s
 @numba.njit(**_JIT)
 def _advance_range(
     steps, step0, start, lo, hi, position, heading, meth, phi, seg, complete, last_x, ended,
-    field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
+    field_of_cell, fields, field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
     ages, max_age, clock_unit,
@@ -316,6 +284,9 @@ def _advance_range(
     feature CLOCK_CODE (seconds: unit dt; a table with a node per step: unit 1 on a unit
     axis, so the node is exact, as the torch layer's clock_nodes), and the clock restarts at
     0 when phi changes, else counts on (memory.tick).
+
+    Cell ``c`` sees the field of row ``fields[field_of_cell[c]]`` (packed by
+    :func:`~surrogate.field_kernel.pack_field` for the formulas of ``field_set``).
 
     Arrays are the simulator's tensors (in place): position (n, 2), heading, meth (n,) float32,
     phi, complete (n,) uint8, seg (n,) int32; last_x (n, 2) the last step's inputs; ended
@@ -335,7 +306,7 @@ def _advance_range(
         f = fields[field_of_cell[c]]
         tab = 0 if full else table_of_cell[j]
         for s in range(steps):
-            ligand = _field(f, x, y, (step0 + s) * dt)
+            ligand = field_value(field_set, f, x, y, (step0 + s) * dt)
             last_x[c, 0] = m
             last_x[c, 1] = ligand
             lrt = _log_receptor_terms(ligand, p)
@@ -364,7 +335,7 @@ def _advance_range(
 @numba.njit(parallel=True, **_JIT)
 def advance_cells(
     steps, step0, start, lo, hi, pieces, position, heading, meth, phi, seg, complete, last_x, ended,
-    field_of_cell, fields, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
+    field_of_cell, fields, field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
     ages, max_age, clock_unit,
@@ -378,8 +349,8 @@ def advance_cells(
     for k in prange(pieces):
         _advance_range(
             steps, step0, start, lo + (hi - lo) * k // pieces, lo + (hi - lo) * (k + 1) // pieces,
-            position, heading, meth, phi, seg, complete, last_x, ended, field_of_cell, fields, u,
-            u64, z, body_row, ou_row, gamma_k, per_tumble, p, q, motors, motor_row, table,
+            position, heading, meth, phi, seg, complete, last_x, ended, field_of_cell, fields,
+            field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q, motors, motor_row, table,
             table_of_cell, layer, shape, strides, origin, scale, features, decision_row, ages,
             max_age, clock_unit,
         )  # fmt: skip
@@ -407,28 +378,6 @@ def pack_parameters(params: EcoliParameters, dt: float) -> tuple[np.ndarray, np.
     return p32, p64
 
 
-def pack_field(field: Field) -> np.ndarray:
-    """One field as a row of ``FIELD_COLUMNS`` float64 (kind, peak, parameters); raises
-    :class:`~surrogate.models.base.KernelUnsupported` for a field the kernel does not know."""
-    row = np.zeros(FIELD_COLUMNS, dtype=np.float64)
-    row[1:3] = field.peak
-    kind = type(field)
-    if kind is ConstantField:
-        row[[0, 3]] = CONSTANT, field.value
-    elif kind is GaussianField:
-        row[[0, 3, 4]] = GAUSSIAN, field.amplitude, field.variance
-    elif kind is DynamicGaussianField:
-        row[[0, 3, 4, 5]] = DYNAMIC, field.amplitude, field.variance, field.spread_time
-    elif kind is LinearField:
-        row[[0, 3, 4, 5, 6, 7]] = (LINEAR, field.amplitude, field.slope, *field.scale,
-                                   field.floor)  # fmt: skip
-    elif kind is ExponentialField:
-        row[[0, 3, 4]] = EXPONENTIAL, field.amplitude, field.length
-    else:
-        raise KernelUnsupported(f"field {kind.__name__} (the kernel knows the built-in fields)")
-    return row
-
-
 # placeholders for the arguments of the layer a block does not use (one compiled signature)
 _NO_MOTORS = np.zeros((0, 0), dtype=np.float32)
 _NO_U64 = np.zeros((1, 1, 1), dtype=np.float64)
@@ -437,6 +386,8 @@ _NO_TABLE = (np.zeros(2, dtype=np.float32), np.zeros(1, dtype=np.int32), 1,
              np.zeros((1, 1), dtype=np.float32), np.zeros((1, 1), dtype=np.float32),
              np.zeros(1, dtype=np.int64), 0)  # fmt: skip
 _NO_CLOCK = (np.zeros(1, dtype=np.float32), 0.0, 0.0)
+#: the built-in fields' formulas: the field set of the precompiled kernel
+_BUILTIN_FIELD_SET = field_set([])
 
 
 def _zero_cell_arguments() -> tuple[Any, ...]:
@@ -447,8 +398,8 @@ def _zero_cell_arguments() -> tuple[Any, ...]:
     p64 = np.zeros(len(P64_NAMES), dtype=np.float64)
     return (1, 0, 0, 0, 0, 1, np.zeros((1, 2), f32), np.zeros(1, f32), np.zeros(1, f32),
             np.zeros(1, u8), np.zeros(1, i32), np.zeros(1, u8), np.zeros((1, 2), f32),
-            np.zeros((1, 1), i32), np.zeros(1, i32), np.zeros((1, FIELD_COLUMNS)),
-            np.zeros((1, 1, 1), f32), _NO_U64, np.zeros((1, 1, 1), f32), 0, 0, 1, False,
+            np.zeros((1, 1), i32), np.zeros(1, i32), np.zeros((1, _BUILTIN_FIELD_SET.columns)),
+            _BUILTIN_FIELD_SET, np.zeros((1, 1, 1), f32), _NO_U64, np.zeros((1, 1, 1), f32), 0, 0, 1, False,
             p32, p64, _NO_MOTORS, 0, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
 
 
@@ -597,7 +548,7 @@ class EcoliKernel:
 
     Built by :meth:`EcoliModel.cell_kernel` (and the ``cell_kernel`` of other models on the
     E. coli body, e.g. ``ecoli_phospho``); raises
-    :class:`~surrogate.models.base.KernelUnsupported` for what it cannot run (other fields,
+    :class:`~surrogate.models.base.KernelUnsupported` for what it cannot run (Python fields,
     classifier or direct-exact decision layers, the SSA motor sampler, non-integer tumble
     shapes, a full model or exact chain over anything but the E. coli motors), so the
     simulator keeps the torch step for those.
@@ -645,12 +596,10 @@ class EcoliKernel:
             self.blocks.append(_Block(start, size, member, rows, internal, dt))
             start += size or 0
         self._total = None if sizes == [None] else start
-        if isinstance(field, FieldBatch):
-            self.fields = np.stack([pack_field(f) for f in field.fields])
-            self._field_sizes: list[int] | None = field.sizes
-        else:
-            self.fields = pack_field(field)[None]
-            self._field_sizes = None
+        fields = field.fields if isinstance(field, FieldBatch) else [field]
+        self.field_set = field_set(fields)
+        self.fields = np.stack([pack_field(f, self.field_set) for f in fields])
+        self._field_sizes: list[int] | None = field.sizes if isinstance(field, FieldBatch) else None
         self._field_total = None if self._field_sizes is None else sum(self._field_sizes)
         self._field_of_cell: np.ndarray | None = None
         self._owned: set[int] = set()  # ids of the motor tensors this kernel copied
@@ -718,7 +667,7 @@ class EcoliKernel:
         common = (_numpy(body["position"]), _numpy(body["heading"]), _numpy(body["m"]),
                   _numpy(state.phi), _numpy(state.segment_steps),
                   _numpy(state.segment_complete), _numpy(state.inputs), _numpy(ended),
-                  field_of_cell, self.fields)  # fmt: skip
+                  field_of_cell, self.fields, self.field_set)  # fmt: skip
         un, zn = _numpy(u), _numpy(z)
         # as many kernel threads as torch uses (the threads setting; a sweep job's share), a
         # few pieces each (cells of one block cost alike; pieces balance what differs)
