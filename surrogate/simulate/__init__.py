@@ -1,5 +1,6 @@
 """Population simulation: one outer time loop over any agent model, with a pluggable decision
-layer (the full internal model, its exact lumped psi, or a learned abstraction)."""
+layer (the full internal model, its exact lumped psi, or a learned abstraction, with or without
+a switch clock)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from surrogate.simulate.decision import (
     FullDecision,
 )
 from surrogate.simulate.loop import PopulationState, Simulator, StepRecord
+from surrogate.simulate.memory import MemoryDecision
 from surrogate.simulate.population import PopulationSummary, simulate_population
 
 __all__ = [
@@ -19,6 +21,7 @@ __all__ = [
     "ExactDecision",
     "ExactPsi",
     "FullDecision",
+    "MemoryDecision",
     "PopulationState",
     "PopulationSummary",
     "Simulator",

@@ -19,14 +19,17 @@ exact psi at ages 5 s and 20 s differs by <= 3e-5 over dG in [-1.5, 2.5] (README
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 import torch
 from torch import Tensor
 
+if TYPE_CHECKING:
+    from surrogate.gp.lookup import PsiLookupTable
+
 from surrogate.errors import ConfigError
-from surrogate.gp.lookup import PsiLookupTable
 from surrogate.models.base import InternalModel, InternalState
 from surrogate.simulate.decision import AbstractDecision, RunProbability
 
@@ -86,6 +89,8 @@ def tabulate_with_clock(
         lead_ranges: ``(lo, hi)`` of each lead input.
         input_names: every input's name, the clock (``AGE``) last.
     """
+    from surrogate.gp.lookup import PsiLookupTable  # the engine imports gp only where it tabulates
+
     steps = clock_steps(dt, max_age)
     k = len(lead_ranges)
     if lead_size is None:
@@ -268,6 +273,8 @@ def exact_age_table(
         max_age: the clock's cap (s); rounded down to whole steps.
         size: signal nodes.
     """
+    from surrogate.gp.lookup import PsiLookupTable  # the engine imports gp only where it tabulates
+
     names = tuple(internal.signal_names)
     if len(names) != 1 or not can_age(internal):
         raise ValueError(f"an exact psi with a clock needs one signal and exact_age_psi: {names}")
