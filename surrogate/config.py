@@ -172,7 +172,7 @@ def _instantiate(cfg: Mapping[str, Any], group: str, what: str) -> Any:
 def build_field(cfg_field: Mapping[str, Any]) -> Field:
     """Instantiate a field from its config (``_target_`` + keyword arguments)."""
     field = _instantiate(cfg_field, "field", "a Field class")
-    if not callable(field) or not hasattr(field, "distance_from_peak"):
+    if not isinstance(field, Field):
         raise ConfigError(
             f"field target {to_dict(cfg_field)['_target_']!r} is not a surrogate.fields.Field"
         )

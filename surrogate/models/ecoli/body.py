@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -77,6 +77,10 @@ class ChemotacticBody:
     """
 
     observable_names = ("distance",)
+    #: histogram grids of the observables (lo, hi, width): 0-20 mm in 2 um bins
+    histogram_grids: ClassVar[dict[str, tuple[float, float, float]]] = {
+        "distance": (0.0, 20.0, 0.002)
+    }
 
     def __init__(self, params: EcoliParameters) -> None:
         self.params = params
