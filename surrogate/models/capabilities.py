@@ -133,6 +133,14 @@ def randoms_of(obj: Any, name: str = "randoms") -> Randoms:
     return value if isinstance(value, Randoms) else Randoms()
 
 
+def start_size_of(body: Any) -> int | None:
+    """How many coordinates a start position of ``body`` has (``start_size``, e.g. 2 for a
+    body in the plane), checked when a stage reads its ``start``; None (the default): any
+    non-empty list, left to the body's ``initial_state``."""
+    size = getattr(body, "start_size", None)
+    return None if size is None else int(size)
+
+
 def histogram_grids_of(body: Any) -> dict[str, Any]:
     """``{observable: grid}`` a body declares for its histograms (``histogram_grids``, each
     ``(lo, hi, width)``, a mapping with those keys or a ``HistogramGrid``); default none."""
@@ -155,4 +163,5 @@ __all__ = [
     "is_fusable",
     "randoms_of",
     "signal_bounds_of",
+    "start_size_of",
 ]

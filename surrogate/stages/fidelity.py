@@ -60,7 +60,7 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
+from surrogate.models.capabilities import has_exact_psi, signal_bounds_of, start_size_of
 from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
@@ -154,7 +154,7 @@ class FidelitySettings:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         times = _times(f.get("times"), t_end, setup.dt)
-        _check_run_and_checks(f)
+        _check_run_and_checks(f, start_size_of(setup.model.body))
         for cand in candidates:
             if f.get("mode", "lookup") != "lookup":
                 continue
@@ -237,10 +237,10 @@ def _times(value: Any, t_end: float, dt: float) -> tuple[float, ...]:
     return times
 
 
-def _check_run_and_checks(f: Mapping[str, Any]) -> None:
+def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
     """The run settings (seeds, start, mode) and the check thresholds of the fidelity group,
     all read only after training and simulation: refused now, by name."""
-    validate_start(f, "start", "fidelity.")
+    validate_start(f, "start", "fidelity.", start_size)
     non_negative(f, "equilibration_time", "fidelity.")
     seed = f.get("sim_seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from examples.python_model.gene_switch import GeneSwitchModel
 from examples.python_model.minimal import TelegraphInternal, TelegraphModel
-from surrogate.config import CONF_DIR, build_model, group_config
+from surrogate.config import CONF_DIR, build_model, group_config, validate_start
 from surrogate.errors import ConfigError
 from surrogate.models import Randoms
 from surrogate.models.capabilities import (
@@ -28,6 +28,7 @@ from surrogate.models.capabilities import (
     is_fusable,
     randoms_of,
     signal_bounds_of,
+    start_size_of,
 )
 from surrogate.stages import collect, simulate, train
 from surrogate.stages.settings import SimulateSettings
@@ -88,6 +89,17 @@ def test_declared_capabilities_are_detected() -> None:
     assert signal_bounds_of(phospho.internal) == {"activity": (0.0, 1.0)}
     assert histogram_grids_of(TelegraphModel().body) == {"distance": (0.0, 20.0, 0.002)}
     assert histogram_grids_of(object()) == {}
+
+
+def test_a_start_position_has_the_size_the_body_declares() -> None:
+    assert start_size_of(TelegraphModel().body) == 2 and start_size_of(object()) is None
+    assert validate_start({"start": [1, 2, 3]}, size=None) == (1.0, 2.0, 3.0)
+    with pytest.raises(ConfigError, match=r"start must be two coordinates \[x, y\] in mm"):
+        validate_start({"start": [1.0]}, size=2)
+    with pytest.raises(ConfigError, match="start must be 3 coordinates"):
+        validate_start({"start": [1.0, 2.0]}, size=3)
+    with pytest.raises(ConfigError, match="start must be a non-empty list"):
+        validate_start({"start": []}, size=None)
 
 
 def test_features_of_names_an_unknown_input() -> None:

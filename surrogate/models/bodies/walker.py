@@ -46,6 +46,8 @@ class Walker:
         torch.Size([4, 1])
     """
 
+    #: a start position is [x, y] (mm)
+    start_size = 2
     observable_names = ("distance",)
     #: histogram grids of the observables (lo, hi, width): 0-20 mm in 2 um bins
     histogram_grids: ClassVar[dict[str, tuple[float, float, float]]] = {

@@ -76,6 +76,8 @@ class ChemotacticBody:
         torch.Size([3, 2])
     """
 
+    #: a start position is [x, y] (mm)
+    start_size = 2
     observable_names = ("distance",)
     #: histogram grids of the observables (lo, hi, width): 0-20 mm in 2 um bins
     histogram_grids: ClassVar[dict[str, tuple[float, float, float]]] = {
