@@ -399,7 +399,7 @@ def _as_simulated(psi: PsiClassifier) -> PsiClassifier | PsiLookupTable:
 def _exact_curve(model: Model, settings: TrainSettings, exact_fn: Any) -> Any:
     """For a 1-D psi over the model's signal: z -> exact (n x 2), for the figure."""
     internal = model.internal
-    if list(settings.inputs) != list(getattr(internal, "signal_names", [])):
+    if list(settings.inputs) != list(internal.signal_names):
         return None
     if exact_fn is None:
         return None
