@@ -22,7 +22,8 @@ capability                    what it is                                        
 ============================  ================================================  ==============
 
 A body's optional ``histogram_grids`` (``{observable: (lo, hi, width)}``) is read through
-:func:`histogram_grids_of` (default: none, the recorder then builds a grid from the data). A
+:func:`histogram_grids_of` (default: none, the recorder then builds a grid from the data), its
+``start_size`` (coordinates of a start position) through :func:`start_size_of`. A
 model's compiled per-cell kernel is a method of :class:`~surrogate.models.base.Model`
 (``cell_kernel``, ``kernel_precompiler``) whose base raises/returns None.
 """
