@@ -172,7 +172,7 @@ def _instantiate(cfg: Mapping[str, Any], group: str, what: str) -> Any:
 def build_field(cfg_field: Mapping[str, Any]) -> Field:
     """Instantiate a field from its config (``_target_`` + keyword arguments)."""
     field = _instantiate(cfg_field, "field", "a Field class")
-    if not callable(field) or not hasattr(field, "distance_from_peak"):
+    if not isinstance(field, Field):
         raise ConfigError(
             f"field target {to_dict(cfg_field)['_target_']!r} is not a surrogate.fields.Field"
         )
@@ -276,19 +276,23 @@ def grid_size(value: Any, name: str, axes: int | None = None) -> tuple[int, ...]
 
 
 def validate_start(
-    cfg: Mapping[str, Any], key: str = "start", prefix: str = ""
-) -> tuple[float, float]:
-    """A start position: two finite coordinates in mm."""
+    cfg: Mapping[str, Any], key: str = "start", prefix: str = "", size: int | None = 2
+) -> tuple[float, ...]:
+    """A start position: ``size`` finite coordinates (the body's ``start_size``, see
+    :func:`surrogate.models.capabilities.start_size_of`: two, [x, y] in mm, for the bodies in
+    the plane), or any non-empty list of finite numbers where ``size`` is None."""
     start = cfg.get(key)
+    want = "two coordinates [x, y] in mm" if size == 2 else (
+        f"{size} coordinates" if size else "a non-empty list of coordinates")  # fmt: skip
     try:
-        x, y = (float(v) for v in start)  # type: ignore[union-attr]
+        coords = tuple(float(v) for v in start)  # type: ignore[union-attr]
     except (TypeError, ValueError):
-        raise ConfigError(
-            f"{prefix}{key} must be two coordinates [x, y] in mm, got {start!r}"
-        ) from None
-    if not (math.isfinite(x) and math.isfinite(y)):
+        coords = ()
+    if not coords or (size is not None and len(coords) != size):
+        raise ConfigError(f"{prefix}{key} must be {want}, got {start!r}")
+    if not all(math.isfinite(v) for v in coords):
         raise ConfigError(f"{prefix}{key} must be finite, got {start!r}")
-    return x, y
+    return coords
 
 
 def seed_everything(seed: int) -> None:

@@ -17,10 +17,16 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
+          "models/capabilities.py",
           "fields.py", "field_formula.py", "field_kernel.py", "io.py", "config.py",
           "errors.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
-PROTOCOLS = ("surrogate.models", "surrogate.models.base", "surrogate.models.network")
+PROTOCOLS = (
+    "surrogate.models",
+    "surrogate.models.base",
+    "surrogate.models.capabilities",
+    "surrogate.models.network",
+)
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
 STAGE_USERS = ("surrogate/benchmarks/loop.py",)
 

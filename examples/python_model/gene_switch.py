@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -64,6 +64,10 @@ class Walker:
     """A 2-D walker: faster when ON, rotational diffusion, no slow internal process."""
 
     observable_names = ("distance",)
+    start_size = 2  # a start position is [x, y] (mm); default: any list, the body reads it
+    histogram_grids: ClassVar[dict[str, tuple[float, float, float]]] = {
+        "distance": (0.0, 20.0, 0.002)
+    }  # (lo, hi, width) in mm; default: from the data
     randoms = Randoms(normal=1)
     adapt_randoms = Randoms()
 

@@ -52,6 +52,7 @@ from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.io import load_tensors, save_tensors, write_json
 from surrogate.models.base import Model
+from surrogate.models.capabilities import signal_bounds_of
 from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.memory import (
@@ -440,7 +441,7 @@ def function_table(model: Model, dt: float, size: Any = None, max_age: float | N
 
     internal = model.internal
     names = tuple(internal.signal_names)
-    bounds = getattr(internal, "signal_bounds", None) or {}
+    bounds = signal_bounds_of(internal) or {}
     missing = [n for n in names if n not in bounds]
     if missing:
         raise ValueError(f"lookup_only needs the internal model's signal_bounds for {missing}")

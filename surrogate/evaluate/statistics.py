@@ -61,6 +61,8 @@ PAPER_SUBSAMPLE = 1000
 
 MADE_BY = "python scripts/simulate.py ..."
 
+#: the lump names of runs whose manifest records none: only runs written before the recorder
+#: stored them (E. coli's, the one model then); every run since names its model's lumps
 DEFAULT_LUMPS: tuple[str, str] = ("tumble", "run")
 
 COLUMNS: tuple[str, ...] = (

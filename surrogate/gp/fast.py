@@ -124,10 +124,10 @@ class CachedPsi:
         dtype: torch.dtype = torch.float32,
         split_rows: int = 4096,
     ) -> None:
-        tumble, run = factors
-        if tumble["nu"] != run["nu"] or tumble["z"].shape != run["z"].shape:
+        phi0, phi1 = factors  # the classifiers of origin phi = 0 and phi = 1
+        if phi0["nu"] != phi1["nu"] or phi0["z"].shape != phi1["z"].shape:
             raise ValueError("CachedPsi: both classifiers must share the kernel and inducing count")
-        self.nu: float | None = tumble["nu"]
+        self.nu: float | None = phi0["nu"]
         self.input_names = tuple(input_names)
         self.domain = dict(domain) if domain else {}
         self.dtype = dtype
@@ -135,12 +135,12 @@ class CachedPsi:
         # like PsiClassifier: refuse NaN/inf inputs on direct calls (a host sync per call; the
         # simulation loop turns it off and checks its state at record times instead)
         self.check_finite = True
-        self.n_inducing = int(tumble["z"].shape[0])
+        self.n_inducing = int(phi0["z"].shape[0])
         # RBF: k = exp(-|x - z|^2 / 2) in lengthscale units, so work with u = x / sqrt(2) and
         # get -|u - w|^2 = -r^2 / 2; Matern needs r itself: u = x, r = sqrt(|u - w|^2).
         half = 1.0 / math.sqrt(2.0) if self.nu is None else 1.0
         x_gain, x_bias, w_aug, g, d = [], [], [], [], []
-        for f in (tumble, run):
+        for f in (phi0, phi1):
             f64 = {k: v.to(torch.float64) for k, v in f.items() if isinstance(v, Tensor)}
             w = f64["z"] / f64["lengthscale"] * half  # inducing points in u units (M, d)
             centre = w.mean(0)
@@ -158,9 +158,9 @@ class CachedPsi:
         self.w_aug = torch.stack(w_aug).to(dtype)  # (2, d + 2, M)
         self.g = torch.stack(g).to(dtype)  # (2, M, M + 1), outputscale folded in
         self.d = torch.stack(d).to(dtype)  # (2, M) eigenvalues of S - I
-        self.mean = torch.tensor([tumble["mean"], run["mean"]], dtype=dtype)
-        self.prior_var = torch.tensor([tumble["prior_var"], run["prior_var"]], dtype=dtype)
-        self.to(tumble["z"].device)
+        self.mean = torch.tensor([phi0["mean"], phi1["mean"]], dtype=dtype)
+        self.prior_var = torch.tensor([phi0["prior_var"], phi1["prior_var"]], dtype=dtype)
+        self.to(phi0["z"].device)
 
     @classmethod
     def from_classifier(

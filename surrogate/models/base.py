@@ -138,20 +138,22 @@ class InternalModel(Protocol):
         ...
 
     def concat_states(self, states: Sequence[InternalState]) -> InternalState:
-        """Several populations' states as one, cells in order (for replicates in one batch)."""
+        """Several populations' states as one, cells in order (for replicates in one batch).
+        Optional: the engine's default concatenates each tensor along cells."""
         ...
 
     def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         """Exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` at signals ``signal`` (``n x k``, in the
-        order of ``signal_names``). Optional: a model without one sets ``exact_psi = None``
-        (see :func:`has_exact_psi`)."""
+        order of ``signal_names``). Optional: a model without one leaves it out or sets (or
+        returns, from a property) None."""
         ...
 
-    # Optional (detected by the collect stage, not required of a model):
-    #   expected_phi_next(state, x, dt) -> (n,) float: P(phi = 1 after a window dt | this
-    #   state, inputs x), the window's expected label. Its mean given x is psi(x), as the 0/1
-    #   outcome's, with less variance; collect records it (collect.expected_labels) and
-    #   gp.labels=auto trains on it (see surrogate.simulate.transitions).
+    # Optional, read only through surrogate.models.capabilities (which lists them all, with the
+    # engine's defaults): feature_names/features, concat_states, fusable/fused_advance/randoms,
+    # exact_psi, exact_age_psi(signal, dt, max_steps), signal_bounds ({signal: (lo, hi)}),
+    # expected_phi_next(state, x, dt) -> (n,) float (P(phi = 1 after a window dt | this state,
+    # inputs x), the window's expected label: collect.expected_labels, gp.labels=auto) and
+    # cell_step_seconds(dt).
 
 
 class Perturbation(Protocol):
@@ -175,6 +177,10 @@ class AgentBody(Protocol):
             ``("distance",)``.
         randoms: what :meth:`move` needs per step.
         adapt_randoms: what :meth:`adapt` needs per step.
+
+    Optional: ``histogram_grids``, ``{observable: (lo, hi, width)}`` for the recorded
+    histograms (read through :func:`surrogate.models.capabilities.histogram_grids_of`; an
+    observable without one gets a grid around its first recorded values).
     """
 
     observable_names: tuple[str, ...]
@@ -250,7 +256,9 @@ class Model:
         internal model's own estimate, ``cell_step_seconds(dt)``, where it gives one; the
         two-state chains and models without an estimate: :data:`CELL_STEP_SECONDS`). The stages
         multiply it by steps and cells to say, before they start, what a run will cost."""
-        estimate = getattr(self.internal, "cell_step_seconds", None)
+        from surrogate.models.capabilities import cell_step_seconds_of  # it imports this module
+
+        estimate = cell_step_seconds_of(self.internal)
         if decision == "full" and estimate is not None:
             return float(estimate(dt))
         return CELL_STEP_SECONDS
@@ -283,13 +291,16 @@ class Model:
             if choice == "inputs":
                 return tuple(internal.input_names)
             choice = [choice]
+        from surrogate.models.capabilities import feature_names_of  # it imports this module
+
         names = tuple(str(c) for c in choice)
-        known = (*internal.input_names, *internal.feature_names)
+        features = feature_names_of(internal)
+        known = (*internal.input_names, *features)
         unknown = [n for n in names if n not in known]
         if unknown or not names:
             raise ConfigError(
                 f"gp.inputs: {list(names)} - model {self.name!r} provides inputs "
-                f"{list(internal.input_names)} and features {list(internal.feature_names)}; use "
+                f"{list(internal.input_names)} and features {list(features)}; use "
                 f"one or more of those, 'signal' or 'inputs'"
             )
         return names
@@ -343,10 +354,13 @@ class FeatureMap:
         self.internal = internal
         self.names = tuple(names)
         self._identity = self.names == tuple(internal.input_names)
+        from surrogate.models.capabilities import features_fn_of  # it imports this module
+
+        self._features = features_fn_of(internal)
 
     def __call__(self, x: Tensor) -> Tensor:
         """The columns ``names`` at inputs ``x`` (``n x d``)."""
-        return x if self._identity else self.internal.features(x, self.names)
+        return x if self._identity else self._features(x, self.names)
 
     def __eq__(self, other: object) -> bool:
         return (
@@ -359,12 +373,6 @@ class FeatureMap:
 
     def __repr__(self) -> str:
         return f"FeatureMap({list(self.names)})"
-
-
-def has_exact_psi(internal: Any) -> bool:
-    """Whether an internal model offers the exact lumped psi: an ``exact_psi`` that is not None
-    (a model whose state space is too large declares it absent with ``exact_psi = None``)."""
-    return callable(getattr(internal, "exact_psi", None))
 
 
 def check_options(
@@ -406,5 +414,4 @@ __all__ = [
     "Randoms",
     "burn_in_seconds",
     "check_options",
-    "has_exact_psi",
 ]

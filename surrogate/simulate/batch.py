@@ -32,6 +32,7 @@ from tqdm.auto import tqdm
 
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import InternalState, Model, Randoms
+from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
 from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
@@ -210,7 +211,7 @@ class BatchSimulator(Simulator):
             parts = [self.replicates[i].decision.fused_state() for i in group]
             if any(parts):
                 # a layer with its own per-cell state (e.g. a switch clock) concatenates it
-                concat = getattr(member, "concat_states", internal.concat_states)
+                concat = getattr(member, "concat_states", None) or concat_states_of(internal)
                 member.set_fused_state(concat(parts))
         self._checked_step = 0
         self._block, self._blocks = None, []
@@ -424,6 +425,7 @@ def simulate_batch(
     n_steps = steps_between(t_end, dt, "t_end")
     every = steps_between(record_interval, dt, "record_interval")
     body, lumps = simulator.body, simulator.model.internal.lump_names
+    grids = {**histogram_grids_of(body), **dict(histogram_spec or {})}
     mode = durations if durations is not None else ("histogram" if record_durations else "none")
     t0 = time.perf_counter()
     recorders: list[RunRecorder] = []
@@ -432,7 +434,7 @@ def simulate_batch(
             recorders.append(RunRecorder(
                 Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=max(every, FLUSH_STEPS),
                 device=simulator.device, record_cells=record_cells,
-                durations=mode, histogram_spec=histogram_spec, seed=int(rep.seed)))  # fmt: skip
+                durations=mode, histogram_spec=grids, seed=int(rep.seed)))  # fmt: skip
         # the whole batch's segment ends, buffered on the device and handed to the replicates'
         # recorders a block at a time (not one call per replicate and step)
         n_total = sum(rep.n_cells for rep in simulator.replicates)

@@ -27,6 +27,8 @@ import torch
 from torch import Tensor
 
 from surrogate.models.base import FeatureMap, InternalModel, InternalState, Randoms
+from surrogate.models.capabilities import exact_psi_of, randoms_of
+from surrogate.models.capabilities import is_fusable as internal_fusable
 
 #: ``psi(phi (n,), z (n x k)) -> p(phi' = 1)`` float32 ``(n,)``; a learned classifier, its
 #: lookup table or the exact psi. An object may also offer ``evaluate(phi, z)``: the same
@@ -86,12 +88,12 @@ class FullDecision:
     @property
     def fusable(self) -> bool:
         """Whether the internal model has a pure window (the simulator then fuses it)."""
-        return bool(self.internal.fusable)
+        return internal_fusable(self.internal)
 
     @property
     def randoms(self) -> Randoms:
         """What the internal model's pure window needs."""
-        return self.internal.randoms
+        return randoms_of(self.internal)
 
     def initialize(self, x: Tensor) -> Tensor:
         """Internal states drawn from their stationary law at each cell's inputs."""
@@ -211,10 +213,14 @@ class ExactPsi:
         self.internal = internal
         self.dt = float(dt)
         self.input_names = tuple(internal.signal_names)
+        psi = exact_psi_of(internal)
+        if psi is None:
+            raise ValueError(f"{type(internal).__name__} has no exact lumped psi")
+        self._exact = psi
 
     def evaluate(self, phi: Tensor, signal: Tensor) -> Tensor:
         """p(phi' = 1) ``(n,)`` float32."""
-        psi = self.internal.exact_psi(signal, self.dt)  # (n, 2)
+        psi = self._exact(signal, self.dt)  # (n, 2)
         index = (phi.reshape(-1, 1) > 0).long()
         return psi.gather(1, index).squeeze(1).to(torch.float32)
 

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 from surrogate.errors import ConfigError
 from surrogate.models.base import InternalModel, InternalState
+from surrogate.models.capabilities import exact_age_psi_of, signal_bounds_of
 from surrogate.simulate.decision import AbstractDecision, RunProbability
 
 #: the clock's input column (collect records it in seconds; psi takes it as its last input)
@@ -252,9 +253,7 @@ class MemoryDecision(AbstractDecision):
 
 def can_age(internal: object) -> bool:
     """Whether ``internal`` gives the exact psi with a clock (``exact_age_psi``, optional)."""
-    return callable(getattr(internal, "exact_age_psi", None)) and bool(
-        getattr(internal, "signal_bounds", None)
-    )
+    return exact_age_psi_of(internal) is not None and signal_bounds_of(internal) is not None
 
 
 @torch.no_grad()
@@ -279,9 +278,9 @@ def exact_age_table(
     if len(names) != 1 or not can_age(internal):
         raise ValueError(f"an exact psi with a clock needs one signal and exact_age_psi: {names}")
     steps = clock_steps(dt, max_age)
-    lo, hi = internal.signal_bounds[names[0]]  # type: ignore[attr-defined]
+    lo, hi = signal_bounds_of(internal)[names[0]]  # type: ignore[index]
     signal = torch.linspace(lo, hi, size, dtype=torch.float64).unsqueeze(1)
-    psi = internal.exact_age_psi(signal, dt, steps)  # (size, 2, steps + 1)
+    psi = exact_age_psi_of(internal)(signal, dt, steps)  # type: ignore[misc]  # (size, 2, A+1)
     table = psi.permute(1, 0, 2).contiguous()
     return PsiLookupTable(table, [(lo, hi), (0.0, steps * dt)], (*names, AGE))
 

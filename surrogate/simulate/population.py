@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from surrogate.models.capabilities import histogram_grids_of
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.recorders import (
     DEFAULT_RECORD_CELLS,
@@ -103,7 +104,8 @@ def simulate_population(
         recorder = RunRecorder(out, n_cells, dt, body.observable_names,
                                simulator.model.internal.lump_names, block_steps=max(every, FLUSH_STEPS),
                                device=simulator.device, record_cells=record_cells,
-                               durations=mode, histogram_spec=histogram_spec, seed=seed)  # fmt: skip
+                               durations=mode, seed=seed,
+                               histogram_spec={**histogram_grids_of(body), **dict(histogram_spec or {})})  # fmt: skip
         steps_recorded = mode != "none"
         with torch.inference_mode():  # cheaper per op than no_grad
             state = simulator.initial_state(n_cells, start, equilibration_time)

@@ -122,9 +122,6 @@ class HistogramGrid:
         return self.lo + self.width * np.arange(self.n_bins + 1, dtype=np.float64)
 
 
-#: grids of observables a model reports: (lo, hi, width) in the observable's units
-DEFAULT_HISTOGRAM_SPEC: dict[str, tuple[float, float, float]] = {"distance": (0.0, 20.0, 0.002)}
-
 GridSpec = HistogramGrid | Sequence[float] | Mapping[str, float]
 
 
@@ -323,9 +320,10 @@ class RunRecorder:
         durations: ``"histogram"`` (lattice histogram + the recorded cells' segments),
             ``"all"`` (lattice histogram + every segment) or ``"none"``.
         histogram_spec: observable -> grid (``(lo, hi, width)``, a mapping with those keys or a
-            :class:`HistogramGrid`); observables it does not name get
-            :data:`DEFAULT_HISTOGRAM_SPEC`'s grid, else a fallback grid around the first
-            record's values (:meth:`HistogramGrid.around`, with a warning).
+            :class:`HistogramGrid`; the simulators pass the body's declared
+            ``histogram_grids`` under the caller's); observables it does not name get a grid
+            around the first record's values (:meth:`HistogramGrid.around`, with a warning
+            unless every cell's value is kept).
         seed: seeds the choice of recorded cells.
     """
 
@@ -357,7 +355,7 @@ class RunRecorder:
         self.mode = durations
         self.record_cells = None if record_cells is None else int(record_cells)
         self.seed = int(seed)
-        spec = {**DEFAULT_HISTOGRAM_SPEC, **dict(histogram_spec or {})}
+        spec = dict(histogram_spec or {})
         self.grids: dict[str, HistogramGrid | None] = {
             n: grid_from_spec(spec[n]) if n in spec else None for n in self.names
         }

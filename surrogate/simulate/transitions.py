@@ -38,6 +38,7 @@ from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
+from surrogate.models.capabilities import expected_phi_next_of, feature_names_of, features_of
 from surrogate.simulate.design import GuidedJump
 from surrogate.simulate.loop import PopulationState, Simulator
 from surrogate.simulate.memory import AGE, CENSORED, tick
@@ -70,7 +71,7 @@ def _rows(
             f"{type(internal).__name__} gives no expected labels (no expected_phi_next); "
             "collect them with collect.expected_labels=false"
         )
-    names = (*internal.input_names, *internal.feature_names)
+    names = (*internal.input_names, *feature_names_of(internal))
     device, dt = simulator.device, simulator.dt
     state = simulator.initial_state(n_cells, start, equilibration_time)
     jump_probability = perturb_rate * dt
@@ -112,7 +113,7 @@ def _rows(
             rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
             if rows.numel() == 0:
                 continue
-            values = internal.features(x[rows], names).float().cpu().numpy()
+            values = features_of(internal, x[rows], names).float().cpu().numpy()
             # the rows are on the host already, so the check is free; NaN/inf must not reach
             # the table
             if not np.isfinite(values).all():
@@ -132,7 +133,7 @@ def _rows(
                 chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
                 chunk[CENSORED] = censored_before[rows].cpu().numpy()
             if before is not None:
-                p_next = internal.expected_phi_next(before, x, dt)[rows]
+                p_next = expected_phi_next_of(internal)(before, x, dt)[rows]  # type: ignore[misc]
                 chunk[EXPECTED] = p_next.float().cpu().numpy()
             # the caller runs outside inference mode while this generator waits (e.g. a
             # sequential design fits psi between rounds)
@@ -149,7 +150,7 @@ def can_expect(internal: object) -> bool:
     """Whether an internal model gives the expected label of a window
     (``expected_phi_next(state, x, dt)``, an optional capability of
     :class:`~surrogate.models.base.InternalModel`)."""
-    return callable(getattr(internal, "expected_phi_next", None))
+    return expected_phi_next_of(internal) is not None
 
 
 def _one_step(simulator: Simulator, state: PopulationState) -> tuple[Tensor, Tensor, Tensor]:

@@ -18,6 +18,7 @@ import pandas as pd
 
 from surrogate.config import seed_everything, to_dict
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
+from surrogate.models.capabilities import feature_names_of
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import collect_transitions
@@ -89,7 +90,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         for phi in (0, 1)
         for nxt in (0, 1)
     }
-    columns = [*model.internal.input_names, *model.internal.feature_names]
+    columns = [*model.internal.input_names, *feature_names_of(model.internal)]
     write_manifest(
         out,
         stage="collect",

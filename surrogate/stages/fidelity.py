@@ -60,7 +60,7 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.base import has_exact_psi
+from surrogate.models.capabilities import has_exact_psi, signal_bounds_of, start_size_of
 from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
@@ -154,7 +154,7 @@ class FidelitySettings:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         times = _times(f.get("times"), t_end, setup.dt)
-        _check_run_and_checks(f)
+        _check_run_and_checks(f, start_size_of(setup.model.body))
         for cand in candidates:
             if f.get("mode", "lookup") != "lookup":
                 continue
@@ -165,8 +165,10 @@ class FidelitySettings:
                 )
             grid_size(f.get("lookup_size"), "fidelity.lookup_size", len(cand.train.inputs))
         exact = bool(f.get("exact_psi", True)) and has_exact_psi(setup.model.internal)
-        if exact and not getattr(setup.model.internal, "signal_bounds", None):
+        if exact and signal_bounds_of(setup.model.internal) is None:
             exact = False
+        if "exact_psi" in f:  # what runs: "also the exact chain where the model has one"
+            f = {**f, "exact_psi": exact}
         clocks: tuple[float, ...] = ()
         if exact and can_age(setup.model.internal):
             ages = sorted({c.train.max_age for c in candidates if c.train.history == "age"})
@@ -235,10 +237,10 @@ def _times(value: Any, t_end: float, dt: float) -> tuple[float, ...]:
     return times
 
 
-def _check_run_and_checks(f: Mapping[str, Any]) -> None:
+def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
     """The run settings (seeds, start, mode) and the check thresholds of the fidelity group,
     all read only after training and simulation: refused now, by name."""
-    validate_start(f, "start", "fidelity.")
+    validate_start(f, "start", "fidelity.", start_size)
     non_negative(f, "equilibration_time", "fidelity.")
     seed = f.get("sim_seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -471,6 +473,7 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
 def summarise(table: pd.DataFrame, settings: FidelitySettings) -> dict[str, Any]:
     """Counts of passing checks per candidate kind."""
     learned = table[~table["candidate"].isin(REFERENCES)]
+    observed = f"{settings.setup.model.body.observable_names[0]}_t"  # its KS rows
     out: dict[str, Any] = {
         "checks": len(learned),
         "passed": int(learned["passed"].sum()),
@@ -478,8 +481,8 @@ def summarise(table: pd.DataFrame, settings: FidelitySettings) -> dict[str, Any]
             c: {"checks": len(g), "passed": int(g["passed"].sum())}
             for c, g in table.groupby("candidate", sort=False)
         },
-        "max_distance_ks": {
-            c: float(g.loc[g["quantity"].str.startswith("distance"), "value"].max())
+        "max_distance_ks": {  # the key's name predates other observables (kept: summary.json)
+            c: float(g.loc[g["quantity"].str.startswith(observed), "value"].max())
             for c, g in table.groupby("candidate", sort=False)
         },
         "max_abs_duration_error": {
@@ -495,6 +498,7 @@ def report_sections(
 ) -> list[tuple[str, str]]:
     """The markdown report: setting, the target table per candidate, diagnostics."""
     o = settings.options
+    name = settings.setup.model.body.observable_names[0]
     crit = KS_C[float(o.get("alpha", 0.05))] * math.sqrt(2.0 / int(o["n_cells"]))
     setting = (
         f"{settings.setup.model.describe()}. {o['n_cells']} cells per run, {o['t_end']} s, "
@@ -502,7 +506,7 @@ def report_sections(
         f"`{settings.setup.field_name}` with seeds {sorted({c.train_seed for c in settings.candidates})} "
         f"(collection and training), inputs {sorted({'+'.join(c.train.inputs) for c in settings.candidates})}. "
         f"Full model seed {o['sim_seed']}, noise floor seed {int(o['sim_seed']) + int(o.get('noise_seed_offset', 1000))}. "
-        f"Check: distance KS <= min(max({o['ks_factor']} x full-vs-full KS, KS critical {crit:.4f} at "
+        f"Check: {name} KS <= min(max({o['ks_factor']} x full-vs-full KS, KS critical {crit:.4f} at "
         f"alpha {o.get('alpha', 0.05)}), {o['ks_max']}); mean segment durations within "
         f"{100 * float(o['duration_tolerance']):g} % of the full model's."
     )
@@ -512,8 +516,8 @@ def report_sections(
         for _, r in g.iterrows():
             q = r["quantity"]
             mark = "" if r["passed"] else " ✗"
-            if q.startswith("distance"):
-                row[q.replace("distance_", "KS ")] = (
+            if q.startswith(f"{name}_t"):
+                row[q.replace(f"{name}_", "KS ")] = (
                     f"{r['value']:.3f} ({r['noise_floor']:.3f}){mark}"
                 )
             else:
@@ -560,8 +564,9 @@ def plot_ks(table: pd.DataFrame, settings: FidelitySettings) -> Any:
     fields = list(settings.fields)
     fig, axes = plt.subplots(1, len(fields), figsize=(4 * len(fields), 3.6), sharey=True,
                              constrained_layout=True, squeeze=False)  # fmt: skip
-    dist = table[table["quantity"].str.startswith("distance")].copy()
-    dist["t"] = dist["quantity"].str.replace("distance_t", "").astype(float)
+    observed = f"{settings.setup.model.body.observable_names[0]}_t"
+    dist = table[table["quantity"].str.startswith(observed)].copy()
+    dist["t"] = dist["quantity"].str.replace(observed, "").astype(float)
     for ax, name in zip(axes[0], fields, strict=True):
         g = dist[dist["field"] == name]
         floor = g.groupby("t")["noise_floor"].first()

@@ -216,7 +216,7 @@ def _merge(
     manifests = [read_manifest(d) for d in dirs]
     sizes = shard_sizes(settings.n_cells, count)
     _check_shards(dirs, manifests, sizes)
-    names = list(manifests[0].get("observables") or ["distance"])
+    names = list(manifests[0].get("observables") or settings.setup.model.body.observable_names)
     facts = merge_runs(dirs, sizes, out, names, seed=settings.setup.seed)
     write_manifest(out, **merged_manifest(settings, count, config, manifests, dirs,
                                           facts["n_durations"]),

@@ -24,6 +24,7 @@ from surrogate.fields import Field
 from surrogate.gp import PsiClassifier, PsiLookupTable
 from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
 from surrogate.models.base import FeatureMap, Model
+from surrogate.models.capabilities import signal_bounds_of
 from surrogate.simulate.decision import (
     AbstractDecision,
     DecisionLayer,
@@ -105,7 +106,7 @@ def exact_decision(
     internal = model.internal
     if mode == "direct":
         return ExactDecision(internal, dt), {}
-    bounds = internal.signal_bounds  # type: ignore[attr-defined]
+    bounds = signal_bounds_of(internal) or {}
     ranges = [bounds[n] for n in internal.signal_names]
     exact = ExactPsi(internal, dt)
     table = PsiLookupTable.from_function(exact, ranges, internal.signal_names, size).to(device)

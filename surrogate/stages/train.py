@@ -56,7 +56,8 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.base import Model, has_exact_psi
+from surrogate.models.base import Model
+from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
@@ -330,7 +331,7 @@ def exact_psi_function(model: Model, dt: float) -> Any:
     if not has_exact_psi(internal):
         return None
     exact = ExactPsi(internal, dt)
-    bounds = getattr(internal, "signal_bounds", None)
+    bounds = signal_bounds_of(internal)
     try:
         if bounds:
             ranges = [bounds[n] for n in internal.signal_names]
@@ -398,7 +399,7 @@ def _as_simulated(psi: PsiClassifier) -> PsiClassifier | PsiLookupTable:
 def _exact_curve(model: Model, settings: TrainSettings, exact_fn: Any) -> Any:
     """For a 1-D psi over the model's signal: z -> exact (n x 2), for the figure."""
     internal = model.internal
-    if list(settings.inputs) != list(getattr(internal, "signal_names", [])):
+    if list(settings.inputs) != list(internal.signal_names):
         return None
     if exact_fn is None:
         return None

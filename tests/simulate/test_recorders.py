@@ -75,6 +75,10 @@ def observables_at(n_cells: int, k: int) -> dict[str, torch.Tensor]:
     return {"distance": distance, "speed": speed}
 
 
+#: the E. coli body's declared grid of its observable (mm)
+DISTANCE_GRID = (0.0, 20.0, 0.002)
+
+
 def record(
     out: Path,
     ends: np.ndarray,
@@ -84,7 +88,8 @@ def record(
     **kw,
 ) -> tuple[RunRecorder, dict, list[dict[str, torch.Tensor]]]:
     """Drive a recorder like simulate_population: observables at 0 and every ``every`` steps."""
-    kw = {"histogram_spec": {"speed": (0.0, 0.04, 1e-4)}, **kw}
+    # the grids a body declares (histogram_grids) come in through histogram_spec
+    kw = {"histogram_spec": {"distance": DISTANCE_GRID, "speed": (0.0, 0.04, 1e-4)}, **kw}
     r = RunRecorder(out, n_cells, DT, ("distance", "speed"), LUMPS, block_steps=every,
                     device=device, **kw)  # fmt: skip
     seen = [observables_at(n_cells, 0)]
@@ -131,8 +136,11 @@ def test_fallback_grid_covers_the_first_values_and_warns_only_when_subsampled(tm
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # every cell recorded: the grid is a detail, no warning
-        _, facts, _ = record(tmp_path / "b", ends, 30, 2, histogram_spec={})
+        _, facts, _ = record(
+            tmp_path / "b", ends, 30, 2, histogram_spec={"distance": DISTANCE_GRID}
+        )
     assert facts["histogram_grids"]["distance"] == [0.0, pytest.approx(20.0), 0.002]
+    assert facts["histogram_grids"]["speed"] != [0.0, pytest.approx(0.04), 1e-4]  # from the data
 
 
 def test_cell_subsample_is_seeded_uniform_and_complete_for_small_runs() -> None:

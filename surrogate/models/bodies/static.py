@@ -39,6 +39,8 @@ class StaticAgent:
         tensor([0.1000, 0.1000])
     """
 
+    #: a start position is [x, y] (mm)
+    start_size = 2
     observable_names = ("on_fraction",)
     variable_names = ("L",)
     randoms = Randoms()

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -46,7 +46,13 @@ class Walker:
         torch.Size([4, 1])
     """
 
+    #: a start position is [x, y] (mm)
+    start_size = 2
     observable_names = ("distance",)
+    #: histogram grids of the observables (lo, hi, width): 0-20 mm in 2 um bins
+    histogram_grids: ClassVar[dict[str, tuple[float, float, float]]] = {
+        "distance": (0.0, 20.0, 0.002)
+    }
     variable_names = ("L",)
     randoms = Randoms(normal=1)
     adapt_randoms = Randoms()

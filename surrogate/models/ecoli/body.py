@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -76,7 +76,13 @@ class ChemotacticBody:
         torch.Size([3, 2])
     """
 
+    #: a start position is [x, y] (mm)
+    start_size = 2
     observable_names = ("distance",)
+    #: histogram grids of the observables (lo, hi, width): 0-20 mm in 2 um bins
+    histogram_grids: ClassVar[dict[str, tuple[float, float, float]]] = {
+        "distance": (0.0, 20.0, 0.002)
+    }
 
     def __init__(self, params: EcoliParameters) -> None:
         self.params = params

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 from surrogate.config import non_negative, positive, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
+from surrogate.models.capabilities import feature_names_of
 from surrogate.stages.settings.common import (
     COLLECT_CMD,
     TRAIN_CMD,
@@ -64,7 +65,7 @@ class CollectSettings:
 
         internal = setup.model.internal
         check_table_memory(int(c["n_per_state"]),
-                           len(internal.input_names) + len(internal.feature_names) + 7)  # fmt: skip
+                           len(internal.input_names) + len(feature_names_of(internal)) + 7)  # fmt: skip
         expected = c.get("expected_labels", False)
         if not isinstance(expected, bool):
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")

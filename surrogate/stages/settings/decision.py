@@ -9,7 +9,7 @@ from typing import Any
 
 from surrogate.config import field_config, grid_size, to_dict
 from surrogate.errors import ConfigError
-from surrogate.models.base import has_exact_psi
+from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
 from surrogate.simulate.memory import can_age, history_setting
 from surrogate.stages.settings.common import ModelSetup
 from surrogate.stages.settings.train import TrainSettings
@@ -70,7 +70,7 @@ class DecisionSettings:
             if mode == "lookup":
                 sizes = grid_size(d.get("lookup_size"), "decision.lookup_size",
                                   len(internal.signal_names))  # fmt: skip
-                if not getattr(internal, "signal_bounds", None):
+                if signal_bounds_of(internal) is None:
                     raise ConfigError(
                         f"decision.mode=lookup needs the model's signal bounds; model "
                         f"{setup.model.name!r} declares none: use decision.mode=direct"

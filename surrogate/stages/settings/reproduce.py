@@ -14,7 +14,7 @@ from typing import Any
 from surrogate.config import field_config, group_config, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
-from surrogate.models.base import has_exact_psi
+from surrogate.models.capabilities import has_exact_psi
 from surrogate.stages.settings.common import REPRODUCE_CMD, Job, command_line
 from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.simulate import SimulateSettings

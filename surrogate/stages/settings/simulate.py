@@ -14,6 +14,7 @@ import torch
 from surrogate.config import non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
+from surrogate.models.capabilities import start_size_of
 from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
@@ -40,7 +41,7 @@ class SimulateSettings:
     n_cells: int
     t_end: float
     record_interval: float
-    start: tuple[float, float]
+    start: tuple[float, ...]
     equilibration_time: float
     record_durations: bool
     compile: bool
@@ -71,7 +72,7 @@ class SimulateSettings:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         eq = float(non_negative(cfg, "equilibration_time"))
-        start = validate_start(cfg)
+        start = validate_start(cfg, size=start_size_of(setup.model.body))
         decision = DecisionSettings.from_config(cfg, setup)
         job = Job.from_config(cfg)
         shards = (cfg.get("shard") or {}).get("count", 1)

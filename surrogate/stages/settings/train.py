@@ -16,6 +16,7 @@ from surrogate.config import grid_size, non_negative, positive, to_dict, validat
 from surrogate.errors import ConfigError
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
+from surrogate.models.capabilities import start_size_of
 from surrogate.simulate.memory import AGE, history_setting
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
@@ -131,7 +132,7 @@ class TrainSettings:
                     f"split); lower gp.n_inducing or raise collect.n_per_state"
                 )
         sizes = grid_size(gp_config.get("grid_size"), "gp.grid_size", len(inputs))
-        diagnostic = _diagnostic(gp_config.get("diagnostic") or {})
+        diagnostic = _diagnostic(gp_config.get("diagnostic") or {}, start_size_of(setup.model.body))
         threads = gp_config.get("threads")
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
                                     or threads < 1):  # fmt: skip
@@ -236,7 +237,7 @@ class TrainSettings:
         return OccupancySettings(self.setup, options, self.job, self.command())
 
 
-def _diagnostic(options: Mapping[str, Any]) -> dict[str, Any]:
+def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str, Any]:
     unknown = sorted(set(options) - set(DIAGNOSTIC_DEFAULTS))
     if unknown:
         raise ConfigError(
@@ -247,5 +248,5 @@ def _diagnostic(options: Mapping[str, Any]) -> dict[str, Any]:
     positive(d, "t_end", "gp.diagnostic.")
     positive(d, "record_every", "gp.diagnostic.", integer=True)
     non_negative(d, "equilibration_time", "gp.diagnostic.")
-    d["start"] = list(validate_start(d, "start", "gp.diagnostic."))
+    d["start"] = list(validate_start(d, "start", "gp.diagnostic.", start_size))
     return d
