@@ -13,7 +13,7 @@ This is the psi of cells adapted to their current inputs (the internal state at 
 law there), the reference a learned psi is scored against where the population lives. It is not
 the best a two-state chain can do: a moving cell's internal state lags its inputs, and psis
 learned from the full model's own transitions pass fidelity checks the chain driven by this one
-fails (the README's fidelity table).
+fails (the fidelity table of docs/fidelity.md).
 
 Everything is batched over cells: ``(n, R)`` rate constants give ``(n, K, K)`` generators.
 """

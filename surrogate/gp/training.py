@@ -672,7 +672,7 @@ def bin_inputs(z: Tensor, y: Tensor, bins: int | Sequence[int]) -> tuple[Tensor,
     ``k_b``. With one input and hundreds of bins the bins are far narrower than any lengthscale
     psi varies on, so placing a bin's points at their mean changes the fit negligibly, while a
     full-batch step on ~``bins`` rows is cheap enough to converge (minibatch training on the
-    points left the fit measurably off; see the README).
+    points left the fit measurably off; see docs/fidelity.md).
     """
     d = z.shape[1]
     per_axis = [bins] * d if isinstance(bins, int) else list(bins)

@@ -577,7 +577,7 @@ def _cell_kernel(
 ) -> tuple[Any, str | None]:
     """The model's per-cell kernel for ``backend`` (None: the torch step) and, for ``auto``
     falling back to torch, why. ``auto`` with ``compile`` is the compiled torch step (what
-    was asked for; the faster one from ~1e4 cells on, see the README's benchmark)."""
+    was asked for; the faster one from ~1e4 cells on, see docs/performance.md)."""
     if not kernel_wanted(check_backend(backend), compile):
         return None, ("compile=true asks for torch.compile of the torch step"
                       if backend == "auto" else None)  # fmt: skip

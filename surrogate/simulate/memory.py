@@ -13,7 +13,7 @@ transitions, the clock is one float per cell, and the chain stays a chain over p
   internal model with ``exact_age_psi`` (a small state space): the route's limit, measured.
 
 The clock is capped at ``max_age``: beyond it psi is taken as flat in ``a``. For E. coli the
-exact psi at ages 5 s and 20 s differs by <= 3e-5 over dG in [-1.5, 2.5] (README).
+exact psi at ages 5 s and 20 s differs by <= 3e-5 over dG in [-1.5, 2.5] (docs/fidelity.md).
 """
 
 from __future__ import annotations

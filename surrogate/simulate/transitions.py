@@ -15,7 +15,7 @@ since recording began: ``phi_age`` is then only a lower bound); with ``expected`
 ``phi_next_expected``: the probability that phi is 1 after the window given the internal state at
 its start (the internal model's ``expected_phi_next``). Its mean given x is psi(x), like the 0/1
 outcome's, but without the window's own randomness: a Rao-Blackwellised label with a smaller
-variance (measured for each model in the README).
+variance (measured for each model in docs/fidelity.md).
 
 No window within ``blackout`` steps after a perturbation is recorded: right after a jump the
 internal network's hidden state (which motors are where, within the current lump) still belongs

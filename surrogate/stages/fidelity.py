@@ -8,7 +8,7 @@ seed (the noise floor), the chain driven by the exact lumped psi (the psi of cel
 their current input, where the model has one; moving cells are not adapted, so a learned psi
 can do better) and every abstraction. It checks, per field and candidate (the exact chain and
 every abstraction; the second full run is the floor the checks are measured against, not a
-candidate: compared with itself it could not fail), the target of issue 10:
+candidate: compared with itself it could not fail):
 
 * the KS distance between the observable (distance from the peak) of the abstraction and of the
   full model at each evaluation time is at most ``max(ks_factor x the full-vs-full KS at that

@@ -41,7 +41,7 @@ def test_design_stops_at_its_target(compose_cfg) -> None:
     design = manifest["design"]
     assert design["target_met"] and len(design["rounds"]) == 1
     assert max(design["rounds"][0]["posterior_error"]) <= 0.9
-    # E. coli's expected labels scatter less around psi than the outcomes (README: 5x, 18x)
+    # E. coli's expected labels scatter less around psi than the outcomes (docs/fidelity.md: 5x, 18x)
     assert all(0.0 < r < 0.5 for r in design["rounds"][0]["noise_ratio"])
     assert len(table) == 800
 

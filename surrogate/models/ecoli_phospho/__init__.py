@@ -1,4 +1,4 @@
-"""E. coli with a stochastic CheY phosphorylation network (issue 12): the expensive inner model.
+"""E. coli with a stochastic CheY phosphorylation network: the expensive inner model.
 
 Same cell as ``models/ecoli`` (4 motors S, C, N with S -> C at mu, C -> N and S -> N at k+,
 N -> S at k-, k+- = omega exp(+-dG), dG = g0/4 - g1/2 Yp / (Yp + K_D)), but CheY-P is a molecule

@@ -13,7 +13,7 @@ frequencies.
 Unlike the first model, the internal state carries memory across windows beyond phi: CheY-P
 (relaxation ~33 ms, autocorrelation ~0.22 across one dt = 50 ms) and the motors' configuration
 within a lump. A two-state chain cannot carry it: that, not the learning, bounds how close the
-abstraction can get (measured in the README).
+abstraction can get (measured in docs/fidelity.md).
 """
 
 from __future__ import annotations
@@ -218,7 +218,7 @@ class EcoliPhosphoModel(Model):
 
     def collect_defaults(self, dt: float) -> dict[str, int]:
         """10,000 transitions per origin from 500 cells, every 5th window (experiment=phospho's
-        recipe, the README's figures): ~10,000 SSA events per cell-step make the first
+        recipe, the figures of docs/fidelity.md): ~10,000 SSA events per cell-step make the first
         model's 100,000 from 2,000 cells hours of work."""
         return {"n_per_state": 10_000, "n_cells": 500, "record_every": 5}
 
