@@ -31,7 +31,15 @@ from functools import lru_cache
 
 from torch import Tensor
 
-from surrogate.ctmc.kinetics import BOOL, OPERATORS, Expr, const, input_ref, substitute
+from surrogate.ctmc.kinetics import (
+    BOOL,
+    OPERATORS,
+    Expr,
+    combine_scalar,
+    const,
+    input_ref,
+    substitute,
+)
 from surrogate.errors import ConfigError
 
 __all__ = ["VARIABLES", "FieldFormula", "dispatcher_source", "field_formula"]
@@ -73,20 +81,9 @@ def _scalar(e: Expr, lib: str) -> str:
         return f"p{e.index}"
     args = [_scalar(a, lib) for a in e.args]
     spec = OPERATORS[e.op]
-    if e.op in ("plus", "times", "and", "or"):
-        return "(" + f" {spec.numba} ".join(args) + ")"
-    if e.op == "xor":
-        return "(" + " != ".join(args) + ")"
-    if e.op in ("min", "max"):
-        code = args[0]
-        for arg in args[1:]:
-            code = f"{e.op}({code}, {arg})"
-        return code
-    if e.op == "piecewise":
-        code = args[-1]
-        for k in range(len(args) - 3, -1, -2):
-            code = f"({args[k]} if {args[k + 1]} else {code})"
-        return code
+    combined = combine_scalar(e.op, args)
+    if combined is not None:
+        return combined
     if e.op == "hypot":
         return f"{lib}.sqrt({args[0]} * {args[0]} + {args[1]} * {args[1]})"
     if e.op in _MATH:

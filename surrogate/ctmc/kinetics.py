@@ -35,6 +35,7 @@ __all__ = [
     "Expr",
     "Kinetics",
     "call",
+    "combine_scalar",
     "const",
     "input_ref",
     "mass_action_kinetics",
@@ -369,21 +370,29 @@ def _numba_code(e: Expr) -> str:
         return f"s{e.index}"
     if e.op == "input":
         return f"p{e.index}"
-    spec = OPERATORS[e.op]
     args = [_numba_code(a) for a in e.args]
-    if e.op in ("plus", "times", "and", "or", "xor"):
+    combined = combine_scalar(e.op, args)
+    return combined if combined is not None else OPERATORS[e.op].numba.format(*args)
+
+
+def combine_scalar(op: str, args: Sequence[str]) -> str | None:
+    """Scalar code of the n-ary operators (``plus``, ``times``, ``and``, ``or``, ``xor``,
+    ``min``, ``max``, ``piecewise``) over their arguments' code; None for the others (their
+    ``OPERATORS[op].numba`` template). One place for every scalar code generator."""
+    spec = OPERATORS[op]
+    if op in ("plus", "times", "and", "or", "xor"):
         return "(" + f" {spec.numba} ".join(args) + ")"
-    if e.op in ("min", "max"):
+    if op in ("min", "max"):
         code = args[0]
         for arg in args[1:]:
             code = f"{spec.numba}({code}, {arg})"
         return code
-    if e.op == "piecewise":
+    if op == "piecewise":
         code = args[-1]
         for k in range(len(args) - 3, -1, -2):
             code = f"({args[k]} if {args[k + 1]} else {code})"
         return code
-    return spec.numba.format(*args)
+    return None
 
 
 def _torch_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
