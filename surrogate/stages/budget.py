@@ -212,12 +212,19 @@ def _summary(works: Sequence[Work]) -> str:
     )  # fmt: skip
 
 
+def free_memory_bytes() -> int | None:
+    """Free physical memory (bytes) of this machine; None where it cannot be read (non-POSIX)."""
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return None
+
+
 def check_table_memory(n_per_state: int, columns: int) -> None:
     """Refuse a collection whose table cannot fit in memory, naming ``collect.n_per_state``."""
     need = 2 * n_per_state * columns * TABLE_BYTES_PER_VALUE
-    try:
-        have = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+    have = free_memory_bytes()
+    if have is None:
         return
     if need > have:
         raise ConfigError(

@@ -16,6 +16,7 @@ from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import start_size_of
 from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
+from surrogate.stages.budget import free_memory_bytes
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     SIMULATE_CMD,
@@ -167,15 +168,9 @@ def _shipped_run_settings() -> dict[str, Any]:
 def check_memory(n_cells: int, device: torch.device) -> None:
     """Refuse a population that cannot fit in memory, before allocating it (naming sharding)."""
     need = n_cells * BYTES_PER_CELL
-    if device.type == "cuda":
-        have = torch.cuda.mem_get_info(device)[0]
-    else:
-        try:
-            import os
-
-            have = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
-            return
+    have = torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else free_memory_bytes()
+    if have is None:
+        return
     if need > have:
         raise ConfigError(
             f"n_cells={n_cells} needs about {need / 2**30:.1f} GiB (~{BYTES_PER_CELL} B per "
