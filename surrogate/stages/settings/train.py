@@ -6,7 +6,7 @@ from __future__ import annotations
 import functools
 import hashlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -119,8 +119,7 @@ class TrainSettings:
         if history == "age":
             if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
                 clock_bins = gp_config.get("clock_bins", gp.bins)
-                gp = GPSettings.from_config({**hyper, "seed": setup.seed,
-                                             "bins": [gp.bins] * len(inputs) + [clock_bins]})  # fmt: skip
+                gp = replace(gp, bins=[gp.bins] * len(inputs) + [clock_bins])  # validated again
             inputs = (*inputs, AGE)
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
