@@ -145,6 +145,15 @@ def plot_observable_over_time(
     return fig
 
 
+def drift_band(ax: Axes, t: np.ndarray, se: np.ndarray, label: str) -> None:
+    """The noise band of a drift plot: where a second run's mean falls 95 % of the time around
+    the reference's (+- 1.96 sqrt(2) s.e., the s.e. ``se`` of the reference's mean at times
+    ``t``), and the zero line."""
+    half = 1.96 * np.sqrt(2.0) * np.asarray(se, dtype=float)
+    ax.fill_between(t, -half, half, color="grey", alpha=0.3, lw=0, label=label)
+    ax.axhline(0.0, color="k", lw=1)
+
+
 def plot_drift(
     reference: SimulationRun,
     candidate: SimulationRun,
@@ -161,11 +170,8 @@ def plot_drift(
     ref = mean_std_over_time(reference, name).set_index("t")
     fig, axes = _panels((5.5, 3.5), 1, 0.15)
     ax = axes[0]
-    t = ref.index.to_numpy()
-    half = 1.96 * np.sqrt(2.0) * ref["std"].fillna(0.0).to_numpy() / np.sqrt(ref["n"].to_numpy())
-    ax.fill_between(t, -half, half, color="grey", alpha=0.3, lw=0,
-                    label=f"{labels[0]}: 95 % band of a 2nd run")  # fmt: skip
-    ax.axhline(0.0, color="k", lw=1)
+    se = ref["std"].fillna(0.0).to_numpy() / np.sqrt(ref["n"].to_numpy())
+    drift_band(ax, ref.index.to_numpy(), se, f"{labels[0]}: 95 % band of a 2nd run")
     runs = [(candidate, labels[1], COLOURS[1], "-")]
     if repeat is not None:
         runs.append((repeat, f"2nd {labels[0]} run", "k", "--"))

@@ -597,6 +597,8 @@ def plot_drift(mean_observable: Mapping[str, Mapping[str, list[float]]],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from surrogate.evaluate.figures import drift_band
+
     fields = list(settings.fields)
     fig, axes = plt.subplots(1, len(fields), figsize=(4 * len(fields), 3.8), sharey=True,
                              constrained_layout=True, squeeze=False)  # fmt: skip
@@ -605,10 +607,8 @@ def plot_drift(mean_observable: Mapping[str, Mapping[str, list[float]]],
         runs = {k.split("|")[0]: v for k, v in mean_observable.items() if k.endswith(f"|{field}")}
         full = runs.pop("full")
         t = [float(k) for k in full]
-        half = [1.96 * math.sqrt(2.0) * se for _, se in full.values()]
-        ax.fill_between(t, [-h for h in half], half, color="k", alpha=0.15,
-                        label="full model's noise band (95 %)")  # fmt: skip
-        ax.axhline(0.0, color="k", lw=1)
+        drift_band(ax, np.array(t), np.array([se for _, se in full.values()]),
+                   "full model's noise band (95 %)")  # fmt: skip
         for label, series in runs.items():
             style = {"full_repeat": ("k", "--"), "exact": ("grey", ":")}.get(label, (None, "-"))
             gap = [series[k][0] - full[k][0] for k in full]
