@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
 from surrogate.errors import ConfigError
 from surrogate.models.base import InternalModel, InternalState
-from surrogate.models.capabilities import exact_age_psi_of, signal_bounds_of
+from surrogate.models.capabilities import concat_states, exact_age_psi_of, signal_bounds_of
 from surrogate.simulate.decision import AbstractDecision, RunProbability
 
 #: the clock's input column (collect records it in seconds; psi takes it as its last input)
@@ -231,9 +231,8 @@ class MemoryDecision(AbstractDecision):
         """Store the clocks :meth:`fused_step` returned."""
         (self.age,) = state
 
-    def concat_states(self, states: list[InternalState]) -> InternalState:
-        """Several populations' clocks as one, cells in order."""
-        return (torch.cat([s[0] for s in states]),)
+    #: several populations' clocks as one, cells in order (the engine's default join)
+    concat_states = staticmethod(concat_states)
 
     def fused_step(
         self,
