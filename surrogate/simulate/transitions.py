@@ -80,65 +80,70 @@ def _rows(
     # switch clocks (steps since phi last changed, or since recording began while censored)
     age = torch.zeros(n_cells, dtype=torch.float32, device=device)
     censored = torch.ones(n_cells, dtype=torch.bool, device=device)
-    with torch.inference_mode():  # cheaper per op than no_grad
-        k = 0
-        while k < max_steps:
-            if perturbation is None and not clock:  # unrecorded steps in one call
-                skip = min(record_every - 1 - k % record_every, max_steps - k)
-                if skip:
-                    simulator.advance(state, skip)
-                    k += skip
-                    continue
-            k += 1
-            if perturbation is not None:
-                jump = torch.rand(n_cells, device=device) < jump_probability
-                guided = guide() if guide is not None else None
-                if guided is not None:
-                    state.body = guided.apply(state.body, jump, state.phi, state.step * dt)
-                else:
-                    state.body = perturbation.apply(state.body, jump)
-                since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
-            age_before, censored_before = age, censored
-            if k % record_every:
-                _, phi_before, phi_after = _one_step(simulator, state)
-                age, censored = (
-                    tick(age, phi_before, phi_after),
-                    censored & (phi_after == phi_before),
-                )
-                continue
-            before = _internal_state(simulator) if expected else None
-            x, phi_before, phi_after = _one_step(simulator, state)
-            age, censored = tick(age, phi_before, phi_after), censored & (phi_after == phi_before)
-            # every cell on thinned steps, except those still inside the blackout after a jump
-            rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
-            if rows.numel() == 0:
-                continue
-            values = features_of(internal, x[rows], names).float().cpu().numpy()
-            # the rows are on the host already, so the check is free; NaN/inf must not reach
-            # the table
-            if not np.isfinite(values).all():
-                raise NumericalError(
-                    f"NaN/inf in the recorded inputs at t={(k - 1) * dt:g} s; the field returned "
-                    f"NaN/inf values or the dynamics diverged"
-                )
-            chunk = {n: values[:, i] for i, n in enumerate(names)}
-            chunk.update(
-                phi=phi_before[rows].to(torch.int8).cpu().numpy(),
-                phi_next=phi_after[rows].to(torch.int8).cpu().numpy(),
-                cell=rows.cpu().numpy(),
-                t=np.full(rows.numel(), (k - 1) * dt),
-                since_jump=since[rows].cpu().numpy(),
+
+    def next_chunk() -> dict[str, np.ndarray] | None:
+        """One step (or a run of unrecorded ones); its recorded rows, if any."""
+        nonlocal k, since, age, censored
+        if perturbation is None and not clock:  # unrecorded steps in one call
+            skip = min(record_every - 1 - k % record_every, max_steps - k)
+            if skip:
+                simulator.advance(state, skip)
+                k += skip
+                return None
+        k += 1
+        if perturbation is not None:
+            jump = torch.rand(n_cells, device=device) < jump_probability
+            guided = guide() if guide is not None else None
+            if guided is not None:
+                state.body = guided.apply(state.body, jump, state.phi, state.step * dt)
+            else:
+                state.body = perturbation.apply(state.body, jump)
+            since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
+        recorded = k % record_every == 0
+        age_before, censored_before = age, censored
+        before = _internal_state(simulator) if expected and recorded else None
+        x, phi_before, phi_after = _one_step(simulator, state)
+        age, censored = tick(age, phi_before, phi_after), censored & (phi_after == phi_before)
+        if not recorded:
+            return None
+        # every cell on thinned steps, except those still inside the blackout after a jump
+        rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return None
+        values = features_of(internal, x[rows], names).float().cpu().numpy()
+        # the rows are on the host already, so the check is free; NaN/inf must not reach
+        # the table
+        if not np.isfinite(values).all():
+            raise NumericalError(
+                f"NaN/inf in the recorded inputs at t={(k - 1) * dt:g} s; the field returned "
+                f"NaN/inf values or the dynamics diverged"
             )
-            if clock:
-                chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
-                chunk[CENSORED] = censored_before[rows].cpu().numpy()
-            if before is not None:
-                p_next = expected_phi_next_of(internal)(before, x, dt)[rows]  # type: ignore[misc]
-                chunk[EXPECTED] = p_next.float().cpu().numpy()
-            # the caller runs outside inference mode while this generator waits (e.g. a
-            # sequential design fits psi between rounds)
-            with torch.inference_mode(False):
-                yield chunk
+        chunk = {n: values[:, i] for i, n in enumerate(names)}
+        chunk.update(
+            phi=phi_before[rows].to(torch.int8).cpu().numpy(),
+            phi_next=phi_after[rows].to(torch.int8).cpu().numpy(),
+            cell=rows.cpu().numpy(),
+            t=np.full(rows.numel(), (k - 1) * dt),
+            since_jump=since[rows].cpu().numpy(),
+        )
+        if clock:
+            chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
+            chunk[CENSORED] = censored_before[rows].cpu().numpy()
+        if before is not None:
+            p_next = expected_phi_next_of(internal)(before, x, dt)[rows]  # type: ignore[misc]
+            chunk[EXPECTED] = p_next.float().cpu().numpy()
+        return chunk
+
+    k = 0
+    while k < max_steps:
+        # each step in inference mode (cheaper per op than no_grad), none held across the
+        # yield: the caller runs outside it while this generator waits (e.g. a sequential
+        # design fits psi between rounds), and a generator closed later (garbage collected)
+        # must not switch the mode of whatever runs then
+        with torch.inference_mode():
+            chunk = next_chunk()
+        if chunk is not None:
+            yield chunk
 
 
 def _internal_state(simulator: Simulator) -> tuple[Tensor, ...]:

@@ -79,3 +79,29 @@ def test_expected_labels_average_to_the_switching_frequency() -> None:
         assert abs(diff.mean()) < 4 * se, (origin, diff.mean(), se)
         # lower variance than the outcomes (the point of them)
         assert rows[EXPECTED].var() < 0.5 * rows["phi_next"].var()
+
+
+def test_recorded_switch_clocks_follow_each_cells_phi() -> None:
+    """With clocks, each row's phi_age is the time since the cell's phi last changed, seen
+    from its rows (every step recorded): 0 after a window that changed phi, else the previous
+    row's clock + dt; censored until the cell's first switch (then its clock counts from the
+    start of recording), and the rows without clocks carry no clock columns."""
+    from surrogate.simulate.memory import AGE, CENSORED
+
+    torch.manual_seed(6)
+    table = record_occupancy(_simulator("torch"), 200, 10.0, (2.0, 0.0), 1, 1.0, clock=True)
+    table = table.sort_values(["cell", "t"])
+    prev = table.groupby("cell").shift(1)
+    inside = prev["t"].notna()
+    changed = (prev["phi_next"] != prev["phi"]) & inside
+    kept = ~changed & inside
+    assert changed.sum() > 500 and kept.sum() > 500
+    np.testing.assert_allclose(table.loc[changed, AGE], 0.0)
+    np.testing.assert_allclose(table.loc[kept, AGE], prev.loc[kept, AGE] + 0.05, atol=1e-5)
+    first = ~inside
+    assert table.loc[first, CENSORED].all() and np.allclose(table.loc[first, AGE], 0.0)
+    switched = table.groupby("cell")["phi"].transform(lambda p: (p != p.iloc[0]).cummax())
+    assert not table.loc[switched.astype(bool), CENSORED].any()
+    torch.manual_seed(6)
+    plain = record_occupancy(_simulator("torch"), 20, 1.0, (2.0, 0.0), 1, 1.0)
+    assert AGE not in plain and CENSORED not in plain
