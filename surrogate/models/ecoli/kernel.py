@@ -24,7 +24,9 @@ tests compare each against its torch original:
 * movement and bookkeeping: :meth:`ChemotacticBody.move`, :meth:`Simulator._advance`.
 
 Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
-:func:`~surrogate.field_kernel.pack_field`); ``cache=True`` keeps the machine code on disk, so
+:func:`~surrogate.field_kernel.pack_field`; the decision layer as the engine packed it,
+:class:`~surrogate.models.packed.PackedDecision`: the kernel never reads the engine's decision
+layers or lookup tables); ``cache=True`` keeps the machine code on disk, so
 only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
 set is the precompiled one).
 """
