@@ -1,10 +1,11 @@
 """House rules of the package layout, checked on the source (ast), not by convention.
 
 Engine packages (ctmc, simulate, gp, evaluate, sbml and the model protocols) never import a
-concrete model; nothing but the stages themselves, the scripts and the loop benchmark imports a
-stage; and every stage (a module with a ``run`` and a ``validate`` entry point) lives in
-``surrogate/stages``. The rules are checked over every module, so a new file is held to them
-too.
+concrete model; no model imports the engine above it (simulate, gp: the engine packs what a
+model's kernel needs into plain arrays); nothing but the stages themselves, the scripts and the
+loop benchmark imports a stage; and every stage (a module with a ``run`` and a ``validate``
+entry point) lives in ``surrogate/stages``. The rules are checked over every module, so a new
+file is held to them too.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
-          "models/capabilities.py",
+          "models/capabilities.py", "models/packed.py",
           "fields.py", "field_formula.py", "field_kernel.py", "io.py", "config.py",
           "errors.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
@@ -26,7 +27,10 @@ PROTOCOLS = (
     "surrogate.models.base",
     "surrogate.models.capabilities",
     "surrogate.models.network",
+    "surrogate.models.packed",
 )
+#: engine packages above the models: a model never imports them (the engine adapts the model)
+ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
 STAGE_USERS = ("surrogate/benchmarks/loop.py",)
 
@@ -86,6 +90,23 @@ def test_engine_never_imports_a_concrete_model_or_a_stage(entry: str) -> None:
     assert not offences, "\n".join(offences)
 
 
+def _is_above_models(module: str) -> bool:
+    return module in ABOVE_MODELS or module.startswith(tuple(f"{p}." for p in ABOVE_MODELS))
+
+
+def test_models_never_import_simulate_or_gp() -> None:
+    """Every module under surrogate/models (the protocols included) imports neither
+    :mod:`surrogate.simulate` nor :mod:`surrogate.gp`, not even inside a function: a model's
+    kernel receives its decision layer packed by the engine (surrogate.models.packed)."""
+    offences = [
+        f"{f.relative_to(PACKAGE.parent)} imports {m}"
+        for f in _files("models")
+        for m in _imports(f)
+        if _is_above_models(m)
+    ]
+    assert not offences, "\n".join(offences)
+
+
 def test_only_stages_and_the_bench_import_a_stage() -> None:
     offences = [
         f"{f.relative_to(PACKAGE.parent)} imports {m}"
@@ -112,20 +133,24 @@ def test_every_stage_lives_in_stages() -> None:
 
 def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch) -> None:
     """On a package that breaks them, the checks find a relative import of a model in the
-    engine, a stage imported by a model and a stage entry point outside stages."""
+    engine, a stage imported by a model, the engine imported (relatively, inside a function)
+    by a model and a stage entry point outside stages."""
     package = tmp_path / "surrogate"
-    for sub in ("gp", "models", "stages"):
+    for sub in ("gp", "models", "simulate", "stages"):
         (package / sub).mkdir(parents=True)
     (package / "gp" / "x.py").write_text("from ..models import ecoli\n")
     (package / "models" / "ecoli.py").write_text("")
     (package / "gp" / "stage.py").write_text("def run(cfg): ...\ndef validate(cfg): ...\n")
     (package / "models" / "m.py").write_text("from surrogate.stages import train\n")
+    (package / "models" / "k.py").write_text("def f():\n    from ..simulate import loop\n")
     (package / "stages" / "s.py").write_text("def run(cfg): ...\ndef validate(cfg): ...\n")
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
     with pytest.raises(AssertionError, match="gp/x.py imports surrogate.models.ecoli"):
         test_engine_never_imports_a_concrete_model_or_a_stage("gp")
     with pytest.raises(AssertionError, match="models/m.py imports surrogate.stages"):
         test_only_stages_and_the_bench_import_a_stage()
+    with pytest.raises(AssertionError, match="models/k.py imports surrogate.simulate"):
+        test_models_never_import_simulate_or_gp()
     with pytest.raises(AssertionError, match="gp/stage.py"):
         test_every_stage_lives_in_stages()
 

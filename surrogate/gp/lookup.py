@@ -91,6 +91,23 @@ class PsiLookupTable:
         return self.table.device
 
     @property
+    def affine(self) -> Tensor:
+        """``d x 2`` float32 (a copy): per axis its low end and grid nodes per unit, the map
+        from an input ``v`` to grid units ``(v - lo) * nodes_per_unit`` that
+        :meth:`evaluate` uses."""
+        return self._affine.clone()
+
+    @property
+    def strides(self) -> tuple[int, ...]:
+        """Elements between neighbouring nodes of each axis in a layer of the flat table."""
+        return tuple(self._strides)
+
+    @property
+    def layer_size(self) -> int:
+        """Elements per phi layer of the flat table (``prod(shape)``)."""
+        return int(self._layer)
+
+    @property
     def domain(self) -> dict[str, Range]:
         """``{input name: (lo, hi)}`` of the grid box."""
         return dict(zip(self.input_names, self.ranges, strict=True))

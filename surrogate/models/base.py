@@ -26,13 +26,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
+
+if TYPE_CHECKING:
+    from surrogate.models.packed import PackedDecision
 
 #: seconds per cell and step assumed for a full model that gives no estimate of its own, and
 #: for a two-state chain (abstraction or exact psi): the E. coli step's order (the numba kernel
@@ -305,11 +308,13 @@ class Model:
             )
         return names
 
-    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+    def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
         """The model's compiled per-cell kernel for this decision layer and field (the
         simulator's ``backend=numba``): many steps per call, the same random numbers as the
-        torch step. Raises :class:`KernelUnsupported` (naming what) where it has none; the base
-        model has none."""
+        torch step. ``decision`` is the simulator's layer as the engine packed it (plain
+        arrays, :mod:`surrogate.models.packed`); a kernel never reads the engine's classes.
+        Raises :class:`KernelUnsupported` (naming what) where it has none; the base model has
+        none."""
         raise KernelUnsupported(f"model {self.name!r} has no compiled per-cell kernel")
 
     def kernel_precompiler(self) -> str | None:

@@ -25,7 +25,9 @@ A body's optional ``histogram_grids`` (``{observable: (lo, hi, width)}``) is rea
 :func:`histogram_grids_of` (default: none, the recorder then builds a grid from the data), its
 ``start_size`` (coordinates of a start position) through :func:`start_size_of`. A
 model's compiled per-cell kernel is a method of :class:`~surrogate.models.base.Model`
-(``cell_kernel``, ``kernel_precompiler``) whose base raises/returns None.
+(``cell_kernel``, ``kernel_precompiler``) whose base raises/returns None; ``cell_kernel``
+receives the decision layer packed by the engine (:mod:`surrogate.models.packed`), never the
+layer itself.
 """
 
 from __future__ import annotations

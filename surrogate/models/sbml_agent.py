@@ -49,6 +49,7 @@ from surrogate.fields import Field
 from surrogate.models.base import CellKernel, KernelUnsupported, Model
 from surrogate.models.bodies import build_body
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
+from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml
 from surrogate.sbml.formula import parse_formula
 
@@ -272,7 +273,7 @@ class SbmlAgentModel(Model):
         """The body's check of the time step (e.g. dt below the adaptation time)."""
         self.body.validate(dt)
 
-    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+    def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
         """The body's compiled per-cell step (the chemotaxis body has the E. coli one, for
         lookup-table abstractions over its variables), where the body has one."""
         kernel = getattr(self.body, "cell_kernel", None)

@@ -584,7 +584,10 @@ def _cell_kernel(
     try:
         if device.type != "cpu":
             raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")
-        kernel = model.cell_kernel(decision, field, dt)
+        # imported here: the packer reads DecisionBatch, whose module imports this one
+        from surrogate.simulate.kernel_pack import pack_decision
+
+        kernel = model.cell_kernel(pack_decision(decision, dt), field, dt)
     except KernelUnsupported as exc:
         if backend == "numba":
             raise KernelUnsupported(

@@ -39,6 +39,7 @@ from surrogate.models.base import KernelUnsupported
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.kernel_pack import pack_decision
 from surrogate.simulate.memory import AGE, MemoryDecision
 
 DT = 0.05
@@ -557,7 +558,7 @@ def test_the_kernel_refuses_what_it_does_not_transcribe_for_the_phospho_model() 
             Simulator(model, decision, GaussianField(), DT, backend="numba")
     ecoli = EcoliModel()
     with pytest.raises(KernelUnsupported, match="another internal model"):
-        ecoli.cell_kernel(_phospho_decision(model), GaussianField(), DT)
+        ecoli.cell_kernel(pack_decision(_phospho_decision(model), DT), GaussianField(), DT)
 
 
 def test_activity_feature_code_is_the_phospho_networks_activity_in_float32() -> None:

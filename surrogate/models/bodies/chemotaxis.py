@@ -32,6 +32,7 @@ from surrogate.models.ecoli.body import (
 )
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
+from surrogate.models.packed import PackedDecision
 
 #: the derived variables the compiled kernel transcribes (models/ecoli/kernel.py FEATURE_CODES)
 KERNEL_VARIABLES = ("m", "L", "F", "activity")
@@ -92,7 +93,9 @@ class RunAndTumbleBody(ChemotacticBody):
         """Figure label of an observable."""
         return {"distance": "distance from the peak (mm)"}.get(name, name)
 
-    def cell_kernel(self, internal: Any, decision: Any, field: Field, dt: float) -> CellKernel:
+    def cell_kernel(
+        self, internal: Any, decision: PackedDecision, field: Field, dt: float
+    ) -> CellKernel:
         """The E. coli compiled per-cell step for a two-state chain over a lookup table of
         :data:`KERNEL_VARIABLES` (the internal model's columns of those names must be this
         body's, which the model that asks vouches for)."""

@@ -24,13 +24,16 @@ tests compare each against its torch original:
 * movement and bookkeeping: :meth:`ChemotacticBody.move`, :meth:`Simulator._advance`.
 
 Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
-:func:`~surrogate.field_kernel.pack_field`); ``cache=True`` keeps the machine code on disk, so
+:func:`~surrogate.field_kernel.pack_field`; the decision layer as the engine packed it,
+:class:`~surrogate.models.packed.PackedDecision`: the kernel never reads the engine's decision
+layers or lookup tables); ``cache=True`` keeps the machine code on disk, so
 only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
 set is the precompiled one).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -42,14 +45,11 @@ from torch import Tensor
 
 from surrogate.field_kernel import field_set, field_value, pack_field
 from surrogate.fields import Field, FieldBatch
-from surrogate.gp.lookup import PsiLookupTable, StackedPsiLookup
-from surrogate.models.base import FeatureMap, KernelUnsupported, Randoms
+from surrogate.models.base import KernelUnsupported, Randoms
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
 from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
-from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
-from surrogate.simulate.loop import PopulationState
-from surrogate.simulate.memory import MemoryDecision
+from surrogate.models.packed import CHAIN, EXACT, FULL, PackedBlock, PackedDecision
 
 # -- features of the abstraction's lookup table --------------------------------------------------
 # what each name means here (its formula below); an internal model's feature of that name must
@@ -431,94 +431,61 @@ def _numpy(t: Tensor) -> np.ndarray:
 
 
 class _Block:
-    """One decision block of the population: cells [start, start + count) and their layer
-    (``count`` None: every cell of the population, whatever its size).
+    """One packed decision block as the arguments of :func:`advance_cells`.
 
-    Only the exact classes whose formulas the kernels transcribe are accepted (a subclass may
-    override them), over this model's own internal model and constants: the motor blocks (the
-    full model, the exact chain) need the E. coli motors (:class:`MotorInternalModel`); a
-    lookup block reads features of FEATURE_CODES of any internal model the kernel was given
-    (see :class:`EcoliKernel`)."""
+    Only the kinds whose formulas the kernel transcribes are accepted, over this model's own
+    internal model and constants: the motor blocks (the full model, the exact chain) need the
+    E. coli motors (:class:`MotorInternalModel`); a chain over lookup tables reads features of
+    FEATURE_CODES of any internal model the kernel was given (see :class:`EcoliKernel`).
 
-    def __init__(
-        self,
-        start: int,
-        count: int | None,
-        decision: Any,
-        rows: Randoms,
-        internal: Any,
-        dt: float = 0.0,
-    ) -> None:
-        self.start, self.count, self.decision = start, count, decision
-        kind = type(decision)
-        self.max_age = 0.0  # > 0: a chain with a switch clock (MemoryDecision)
-        if kind not in (FullDecision, AbstractDecision, ExactDecision, MemoryDecision):
-            raise KernelUnsupported(f"decision layer {kind.__name__}")
-        if (
-            kind not in (AbstractDecision, MemoryDecision)
-            and type(internal) is not MotorInternalModel
-        ):
+    Raises:
+        KernelUnsupported: what the kernel does not run, naming it.
+    """
+
+    def __init__(self, block: PackedBlock, internal: Any) -> None:
+        self.start, self.count, self.state = block.start, block.count, block.state
+        self.clock = _NO_CLOCK_SETTINGS
+        if block.kind not in (FULL, CHAIN, EXACT):
+            raise KernelUnsupported(block.why or f"decision layer {block.layer}")
+        if block.kind != CHAIN and type(internal) is not MotorInternalModel:
             raise KernelUnsupported(
-                f"a {kind.__name__} over {type(internal).__name__} (the kernel's full model and "
+                f"a {block.layer} over {type(internal).__name__} (the kernel's full model and "
                 "exact chain are the E. coli motors)"
             )
-        if not is_fusable(decision):
-            raise KernelUnsupported(f"a {kind.__name__} without a pure window (motor SSA)")
-        if not _same_internal(decision.internal, internal):
+        if not block.fusable:
+            raise KernelUnsupported(f"a {block.layer} without a pure window (motor SSA)")
+        if not _same_internal(block.internal, internal):
             raise KernelUnsupported("a decision layer over another internal model")
-        if kind is FullDecision:
-            self.kind = "motors"
-            self.motor_row = rows.uniform64 - decision.randoms.uniform64
+        self.kind = "motors" if block.kind == FULL else "lookup"
+        if block.kind == FULL:
+            self.motor_row = block.motor_row
             return
-        self.kind = "lookup"
-        psi = decision.run_probability
-        if type(psi) is StackedPsiLookup:
-            tables, sizes = psi.tables, psi.sizes
-            if count is not None and sum(sizes) != count:
-                raise ValueError(f"stacked tables cover {sum(sizes)} cells, the block {count}")
-        elif type(psi) is PsiLookupTable:
-            tables, sizes = [psi], [0 if count is None else count]
-        else:
-            raise KernelUnsupported(
-                f"run probability {type(psi).__name__} (the kernel reads lookup tables: "
-                "decision.mode=lookup)"
-            )
-        first = tables[0]
-        codes = _feature_codes(decision, internal)
-        self.clock_unit = 0.0
-        if kind is MemoryDecision:  # the clock is psi's last input
+        tables = block.tables
+        if tables is None or block.why is not None:
+            raise KernelUnsupported(block.why or f"a {block.layer} without lookup tables")
+        codes = _feature_codes(block, internal)
+        if block.clock is not None:  # the clock is psi's last input
             codes.append(CLOCK_CODE)
-            self.max_age, self.clock_unit = float(decision.max_age), dt
-        if len(codes) != len(first.shape):
+            self.clock = (float(block.clock.cap), float(block.clock.unit))
+        if len(codes) != tables.shape.shape[0]:
             raise KernelUnsupported(
-                f"{len(codes)} features for a lookup table over {len(first.shape)} axes"
+                f"{len(codes)} features for a lookup table over {tables.shape.shape[0]} axes"
             )
-        if any(t.device.type != "cpu" for t in tables):
-            raise KernelUnsupported("lookup tables off the CPU")
-        self.table = torch.stack([t.table for t in tables]).reshape(-1).contiguous().numpy()
-        self.table_of_cell = np.repeat(np.arange(len(tables), dtype=np.int32), sizes)
-        self.stacked = len(tables) > 1
-        affine = torch.stack([t._affine for t in tables]).numpy()  # (tables, d, 2) float32
-        self.origin = np.ascontiguousarray(affine[:, :, 0])
-        self.scale = np.ascontiguousarray(affine[:, :, 1])
-        if kind is MemoryDecision and decision.clock_nodes is not None:
-            # a node per step: the clock in steps on a unit axis (exact nodes, frac 0)
-            self.origin[:, -1], self.scale[:, -1] = 0.0, 1.0
-            self.max_age, self.clock_unit = float(decision.clock_nodes), 1.0
-        self.layer = int(first._layer)
-        self.shape = np.array(first.shape, dtype=np.int64)
-        self.strides = np.array(first._strides, dtype=np.int64)
-        self.features = np.array(codes, dtype=np.int64)
-        self.decision_row = rows.uniform - 1  # the layer's one uniform, right-aligned
+        self.tables = tables
+        self.table_args = (tables.table, tables.layer, tables.shape, tables.strides,
+                           tables.origin, tables.scale, np.array(codes, dtype=np.int64),
+                           block.decision_row)  # fmt: skip
+        self._table_of_cell: np.ndarray | None = None
 
     def tables_for(self, n: int) -> np.ndarray:
         """Each cell's table for a block of ``n`` cells."""
-        if self.table_of_cell.shape[0] == n:
-            return self.table_of_cell
-        if self.stacked:  # a lone stacked table: its blocks must be the population
-            raise ValueError(f"stacked tables cover {self.table_of_cell.shape[0]} cells, not {n}")
-        self.table_of_cell = np.zeros(n, dtype=np.int32)
-        return self.table_of_cell
+        if self._table_of_cell is None or self._table_of_cell.shape[0] != n:
+            self._table_of_cell = self.tables.table_of_cell(n)
+        return self._table_of_cell
+
+
+#: no switch clock: (cap, unit)
+_NO_CLOCK_SETTINGS = (0.0, 0.0)
 
 
 def _same_internal(a: Any, b: Any) -> bool:
@@ -527,27 +494,29 @@ def _same_internal(a: Any, b: Any) -> bool:
     return a is b or (type(a) is type(b) is MotorInternalModel and a.params == b.params)
 
 
-def _feature_codes(decision: AbstractDecision, internal: Any) -> list[int]:
+def _feature_codes(block: PackedBlock, internal: Any) -> list[int]:
     """The kernel's codes of the abstraction's input columns: the raw inputs (m, L) without a
     feature map (as the torch layer feeds x itself), else the map's names, each one the
     internal model computes (its inputs and features) and the kernel transcribes."""
-    featurize = decision.featurize
-    if featurize is None:
+    if block.features is None:
         return [FEATURE_CODES[n] for n in INPUTS]
-    if type(featurize) is not FeatureMap or not _same_internal(featurize.internal, internal):
-        raise KernelUnsupported(f"feature map {featurize!r}")
+    if not _same_internal(block.features_of, internal):
+        raise KernelUnsupported(
+            f"a feature map over another internal model ({type(block.features_of).__name__})"
+        )
     known = (*internal.input_names, *internal.feature_names)
-    unknown = [n for n in featurize.names if n not in FEATURE_CODES or n not in known]
+    unknown = [n for n in block.features if n not in FEATURE_CODES or n not in known]
     if unknown:
         raise KernelUnsupported(f"features {unknown}")
-    return [FEATURE_CODES[n] for n in featurize.names]
+    return [FEATURE_CODES[n] for n in block.features]
 
 
 class EcoliKernel:
     """The E. coli step for a whole population, many steps per call (see the module docstring).
 
     Built by :meth:`EcoliModel.cell_kernel` (and the ``cell_kernel`` of other models on the
-    E. coli body, e.g. ``ecoli_phospho``); raises
+    E. coli body, e.g. ``ecoli_phospho``) from the decision layer the engine packed
+    (:class:`~surrogate.models.packed.PackedDecision`); raises
     :class:`~surrogate.models.base.KernelUnsupported` for what it cannot run (Python fields,
     classifier or direct-exact decision layers, the SSA motor sampler, non-integer tumble
     shapes, a full model or exact chain over anything but the E. coli motors), so the
@@ -559,13 +528,23 @@ class EcoliKernel:
     chains over lookup tables do, over its features of the names in FEATURE_CODES: the model
     that hands it over vouches that they compute the kernel's formulas (its ``cell_kernel``
     checks its internal model's class).
+
+    Args:
+        params: the model's constants.
+        internal: the model's internal model.
+        decision: the packed decision layer (blocks of cells, each its own layer).
+        field: the field (or a batch of fields, block by block).
+        dt: the time step (s).
     """
 
     def __init__(
-        self, params: EcoliParameters, internal: Any, decision: Any, field: Field, dt: float
+        self,
+        params: EcoliParameters,
+        internal: Any,
+        decision: PackedDecision,
+        field: Field,
+        dt: float,
     ) -> None:
-        from surrogate.simulate.batch import DecisionBatch
-
         if params.motor_sampler == "ssa":
             raise KernelUnsupported("model.motor_sampler=ssa")
         # an internal model without constants of its own has its features from the body's
@@ -586,23 +565,14 @@ class EcoliKernel:
         self.body_row, self.ou_row = rows.uniform, rows.normal
         self._body_args = (self.body_row, self.ou_row, self.gamma_k, self.per_tumble, self.p32,
                            self.p64)  # fmt: skip
-        if type(decision) is DecisionBatch:
-            members, sizes = decision.members, decision.sizes
-        else:
-            members, sizes = [decision], [None]
-        self.blocks: list[_Block] = []
-        start = 0
-        for member, size in zip(members, sizes, strict=True):
-            self.blocks.append(_Block(start, size, member, rows, internal, dt))
-            start += size or 0
-        self._total = None if sizes == [None] else start
+        self.blocks = [_Block(b, internal) for b in decision.blocks]
+        self._total = decision.total
         fields = field.fields if isinstance(field, FieldBatch) else [field]
         self.field_set = field_set(fields)
         self.fields = np.stack([pack_field(f, self.field_set) for f in fields])
         self._field_sizes: list[int] | None = field.sizes if isinstance(field, FieldBatch) else None
         self._field_total = None if self._field_sizes is None else sum(self._field_sizes)
         self._field_of_cell: np.ndarray | None = None
-        self._owned: set[int] = set()  # ids of the motor tensors this kernel copied
 
     def _cells(self, n: int) -> np.ndarray:
         """Each cell's field row, for a population of ``n`` cells (checked against the
@@ -615,33 +585,21 @@ class EcoliKernel:
             self._field_of_cell = np.repeat(np.arange(len(sizes), dtype=np.int32), sizes)
         return self._field_of_cell
 
-    def _own_state(self, decision: FullDecision | MemoryDecision) -> Tensor:
-        """The layer's per-cell state (motor states, switch clocks), replaced once by a copy of
-        its own (the kernel writes into it in place; the torch step always makes new ones)."""
-        state = decision.fused_state()[0]
-        if id(state) not in self._owned:
-            state = state.clone(memory_format=torch.contiguous_format)
-            decision.set_fused_state((state,))
-            self._owned.add(id(state))
-        return state
-
-    def advance(
-        self, state: PopulationState, ended: Tensor, u: Tensor, u64: Tensor | None, z: Tensor
-    ) -> None:
-        """Advance every cell of ``state`` by ``ended.shape[0]`` steps in place, writing each
-        step's ended segment lengths into ``ended`` (steps x n int32); ``u``, ``u64``, ``z``
-        are the steps' random numbers (steps x rows x n) in the simulator's layout."""
+    def advance(self, state: Any, ended: Tensor, u: Tensor, u64: Tensor | None, z: Tensor) -> None:
+        """Advance every cell of ``state`` (the simulator's ``PopulationState``) by
+        ``ended.shape[0]`` steps in place, writing each step's ended segment lengths into
+        ``ended`` (steps x n int32); ``u``, ``u64``, ``z`` are the steps' random numbers
+        (steps x rows x n) in the simulator's layout."""
         self._run(state, ended, u, u64, z, dry=False)
 
-    def warm_up(self, state: PopulationState) -> None:
+    def warm_up(self, state: Any) -> None:
         """Compile the kernels this population needs (or load them from numba's cache) by
         calling them on zero cells: nothing changes."""
         n = state.n_cells
-        copy = PopulationState(
-            body={k: v.clone() for k, v in state.body.items()}, phi=state.phi.clone(),
+        copy = dataclasses.replace(
+            state, body={k: v.clone() for k, v in state.body.items()}, phi=state.phi.clone(),
             segment_steps=state.segment_steps.clone(),
-            segment_complete=state.segment_complete.clone(),
-            inputs=torch.zeros((n, 2)), step=state.step,
+            segment_complete=state.segment_complete.clone(), inputs=torch.zeros((n, 2)),
         )  # fmt: skip
         r = self._rows
         u = torch.zeros((1, r.uniform, n))
@@ -651,7 +609,7 @@ class EcoliKernel:
 
     def _run(
         self,
-        state: PopulationState,
+        state: Any,
         ended: Tensor,
         u: Tensor,
         u64: Tensor | None,
@@ -683,19 +641,18 @@ class EcoliKernel:
             if count == 0:
                 continue
             head = (steps, state.step, b.start, 0, 0 if dry else count, 4 * threads)
+            # the per-cell state (motor states, clocks), advanced in place: the layer's own
+            # copy (a dry run only reads it)
+            own = None if b.state is None else (b.state.current() if dry else b.state.writable())
             if b.kind == "motors":
-                motors = b.decision.fused_state()[0] if dry else self._own_state(b.decision)
                 advance_cells(*head, *common, un, _numpy(u64), zn, *self._body_args,
-                              _numpy(motors), b.motor_row, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
+                              _numpy(own), b.motor_row, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
             else:
-                table_of_cell = b.tables_for(n if b.count is None else b.count)
-                clock = _NO_CLOCK
-                if b.max_age > 0:
-                    ages = b.decision.fused_state()[0] if dry else self._own_state(b.decision)
-                    clock = (_numpy(ages), b.max_age, b.clock_unit)
+                table, layer, shape, strides, origin, scale, features, row = b.table_args
+                clock = _NO_CLOCK if own is None else (_numpy(own), *b.clock)
                 advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
-                              *self._body_args, _NO_MOTORS, 0, b.table, table_of_cell, b.layer,
-                              b.shape, b.strides, b.origin, b.scale, b.features,
-                              b.decision_row, *clock)  # fmt: skip
+                              *self._body_args, _NO_MOTORS, 0, table, b.tables_for(count),
+                              layer, shape, strides, origin, scale, features, row,
+                              *clock)  # fmt: skip
         if not dry:
             state.step += steps

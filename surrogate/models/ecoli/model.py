@@ -13,6 +13,7 @@ from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.reference import PAPER_TABLE1
+from surrogate.models.packed import PackedDecision
 
 
 class EcoliModel(Model):
@@ -44,7 +45,7 @@ class EcoliModel(Model):
                 f"adaptation time, stepped by Euler-Maruyama); the paper uses dt=0.05"
             )
 
-    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+    def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
         """The compiled per-cell E. coli step (:class:`~surrogate.models.ecoli.kernel.EcoliKernel`)
         for the full model or a two-state chain over a lookup table, in a built-in field."""
         if type(self.internal) is not MotorInternalModel:  # the kernel transcribes the motors

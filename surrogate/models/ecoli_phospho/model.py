@@ -47,6 +47,7 @@ from surrogate.models.ecoli_phospho import (
     network_sbml,
 )
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
+from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlModel, read_sbml, read_sbml_string
 
 __all__ = ["SSA_BACKENDS", "EcoliPhosphoModel", "PhosphoInternalModel"]
@@ -230,7 +231,7 @@ class EcoliPhosphoModel(Model):
             return {"network": hashlib.sha256(Path(source).read_bytes()).hexdigest()}
         return {}
 
-    def cell_kernel(self, decision: Any, field: Field, dt: float) -> CellKernel:
+    def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
         """The first model's compiled per-cell step
         (:class:`~surrogate.models.ecoli.kernel.EcoliKernel`; the same body and signalling) for
         a two-state chain over a lookup table of m, L, F or the activity, in a built-in field.
