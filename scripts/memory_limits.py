@@ -1,7 +1,7 @@
 """The exact limits of two memory routes for E. coli, beside the full model (docs/fidelity.md,
 "Memory"): the two-state chain, the chain with a switch clock, and a K-state chain over
 (phi, number of CCW motors) driven by the exact class-to-class matrix of adapted cells (the
-"K lumps" route, measured here only at its limit: not part of the package).
+"K lumps" route at its limit: :func:`surrogate.simulate.classes.exact_class_table`).
 
 python scripts/memory_limits.py [--field gaussian|linear] [--cells 2000] [--abstract-cells N]
     [--runs full,full_repeat,exact,exact+clock,klumps] [--out limits.json]
@@ -11,8 +11,7 @@ two-sample KS test's power is set by the smaller sample, so 1e5 abstract cells a
 cells see what ``experiment=large``'s 1e6 see (critical value 0.0105 vs 0.0097 at 5 %).
 
 Seeds as `scripts/fidelity.py`'s defaults (full 5000, second full run 6000, exact chains 7000),
-so the full, two-state and clock rows reproduce that report's numbers. The K-state chain is an
-eager torch decision layer (not fused, not on the kernel): its loop time is not a cost figure.
+so the full, two-state and clock rows reproduce that report's numbers.
 """
 
 from __future__ import annotations
@@ -26,72 +25,17 @@ from pathlib import Path
 import torch
 from scipy import stats
 
-from surrogate.ctmc.lumped import stationary_distribution
 from surrogate.fields import GaussianField, LinearField
 from surrogate.gp import PsiLookupTable
 from surrogate.models.base import FeatureMap
 from surrogate.models.ecoli import EcoliModel
-from surrogate.models.ecoli.motors import is_run, population_space, rate_constants
-from surrogate.models.ecoli.signalling import rates_from_delta_g
 from surrogate.simulate import ExactDecision, FullDecision, MemoryDecision, Simulator
+from surrogate.simulate.classes import ClassDecision, exact_class_table
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import exact_age_table
 
 DT = 0.05
 KS_C = 1.358  # two-sample KS critical value factor at alpha = 0.05
-
-
-class ClassChain:
-    """A K-state chain over the classes (phi, number of CCW motors) of the motor population:
-    each window the class moves by the exact class-to-class matrix of cells adapted to their
-    current dG (the nearest of ``nodes`` grid points); phi is the class's. Eager, per step."""
-
-    name = "klumps"
-    fusable = False
-
-    def __init__(self, model: EcoliModel, nodes: int = 2048) -> None:
-        internal, p = model.internal, model.params
-        space = population_space(p.n_motors)
-        run = is_run(space.states)
-        keys = sorted({(int(r), int(s[2])) for r, s in zip(run, space.states, strict=True)})
-        member = torch.zeros(len(run), len(keys), dtype=torch.float64)
-        for i, (r, s) in enumerate(zip(run, space.states, strict=True)):
-            member[i, keys.index((int(r), int(s[2])))] = 1.0
-        self.lo, self.hi = internal.signal_bounds["dG"]
-        grid = torch.linspace(self.lo, self.hi, nodes, dtype=torch.float64)
-        k_plus, k_minus = rates_from_delta_g(grid, p)
-        q = space.generator(rate_constants(k_plus, k_minus, p))
-        pi = stationary_distribution(q)
-        step = torch.linalg.matrix_exp(q * DT).clamp_min(0.0)
-        step = step / step.sum(-1, keepdim=True)
-        flow = torch.einsum("sa,gs,gst,tb->gab", member, pi, step, member)
-        pi_class = pi @ member
-        self.cum_step = (flow / pi_class.unsqueeze(-1).clamp_min(1e-300)).cumsum(-1).float()
-        self.cum_pi = pi_class.cumsum(-1).float()
-        self.class_run = torch.tensor([k[0] == 1 for k in keys])
-        self.nodes, self.k = nodes, len(keys)
-        self.internal = internal
-        self.featurize = FeatureMap(internal, ("dG",))
-        self.state: torch.Tensor | None = None
-        self.keys = keys
-
-    def _node(self, x: torch.Tensor) -> torch.Tensor:
-        dg = self.featurize(x)[:, 0].double()
-        u = (dg - self.lo) / (self.hi - self.lo) * (self.nodes - 1)
-        return u.round().clamp(0, self.nodes - 1).long()
-
-    def initialize(self, x: torch.Tensor) -> torch.Tensor:
-        """Classes from the stationary law at each cell's dG."""
-        u = torch.rand(x.shape[0], 1)
-        self.state = (u > self.cum_pi[self._node(x)]).sum(-1).clamp(max=self.k - 1)
-        return self.class_run[self.state]
-
-    def step(self, phi: torch.Tensor, x: torch.Tensor, dt: float) -> torch.Tensor:
-        """One categorical draw per cell."""
-        assert self.state is not None
-        u = torch.rand(x.shape[0], 1)
-        self.state = (u > self.cum_step[self._node(x), self.state]).sum(-1).clamp(max=self.k - 1)
-        return self.class_run[self.state]
 
 
 def observe(model, decision, field, seed: int, n: int, times, backend: str = "auto"):
@@ -134,7 +78,16 @@ def main() -> None:
         "full_repeat": (FullDecision(internal), 6000, "auto"),
         "exact": (ExactDecision(internal, DT, two_state), 7000, "auto"),
         "exact+clock": (clocked, 7000, "auto"),
-        "klumps": (ClassChain(model), 7000, "torch"),
+        "klumps": (
+            ClassDecision(
+                exact_class_table(internal, DT, 2048),
+                internal,
+                FeatureMap(internal, ("dG",)),
+                "exact+classes",
+            ),
+            7000,
+            "auto",
+        ),
     }
     chosen = args.runs.split(",")
     unknown = sorted(set(chosen) - set(runs))

@@ -28,7 +28,13 @@ from torch import Tensor
 
 from surrogate.ctmc.network import ReactionNetwork, make_propensity_fn
 
-__all__ = ["StateSpace", "lumped_age_psi", "lumped_psi", "stationary_distribution"]
+__all__ = [
+    "StateSpace",
+    "lumped_age_psi",
+    "lumped_class_step",
+    "lumped_psi",
+    "stationary_distribution",
+]
 
 #: default bound on the number of enumerated states (a generator of K^2 float64 per cell)
 MAX_STATES = 5000
@@ -232,3 +238,34 @@ def lumped_age_psi(q: Tensor, lump: Tensor, dt: float, max_steps: int) -> Tensor
             law = torch.einsum("nk,nkj->nj", law, stay)
         out.append(torch.stack(ages, -1))
     return torch.stack(out, 1).clamp(0.0, 1.0)
+
+
+def lumped_class_step(q: Tensor, classes: Tensor, n_classes: int, dt: float) -> Tensor:
+    """Exact one-window class-to-class law of adapted cells, ``n x C x C`` float64.
+
+    The K-lumps route's limit: the states are grouped into ``C`` classes (finer than phi, e.g.
+    E. coli's (phi, number of CCW motors)); a cell adapted to its inputs sits in state s with
+    the stationary law pi, so ``P(class' = b | class = a) = sum_{s in a, t in b} pi_s P_st /
+    sum_{s in a} pi_s`` with ``P = exp(Q dt)``. Rows of classes with no stationary mass are
+    uniform (never read by a chain started from the stationary law).
+
+    Args:
+        q: ``n x K x K`` generators (rates held fixed over the window).
+        classes: ``K`` int64, the class of each state, in ``[0, n_classes)``.
+        n_classes: ``C``.
+        dt: window length (s).
+
+    Example:
+        >>> q = torch.tensor([[[-1.0, 1.0], [2.0, -2.0]]])  # two states, one class each
+        >>> step = lumped_class_step(q, torch.tensor([0, 1]), 2, 0.1)
+        >>> bool(torch.allclose(step[0], torch.linalg.matrix_exp(q[0].double() * 0.1)))
+        True
+    """
+    member = torch.nn.functional.one_hot(classes.to(q.device).long(), n_classes).to(torch.float64)
+    pi = stationary_distribution(q)  # (n, K)
+    p = torch.linalg.matrix_exp(q.to(torch.float64) * dt).clamp_min(0.0)
+    p = p / p.sum(-1, keepdim=True)
+    flow = torch.einsum("sa,ns,nst,tb->nab", member, pi, p, member)
+    mass = flow.sum(-1, keepdim=True)
+    uniform = torch.full_like(flow, 1.0 / n_classes)
+    return torch.where(mass > 0, flow / mass.clamp_min(1e-300), uniform)

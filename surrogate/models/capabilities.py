@@ -17,6 +17,8 @@ capability                    what it is                                        
 ``exact_psi``                 exact lumped ``P(phi' = 1 | phi)``                none
 ``exact_age_psi``             the same with a switch clock                      none
 ``signal_bounds``             ``{signal: (lo, hi)}`` where the signal lives     none
+``class_names``/``class_lumps``/``classes``  K lumps: classes finer than phi    none
+``exact_class_step``          exact one-window class-to-class law               none
 ``expected_phi_next``         a window's expected label                         none
 ``cell_step_seconds``         its cost per cell-step                            the base estimate
 ============================  ================================================  ==============
@@ -33,6 +35,7 @@ layer itself.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -60,6 +63,43 @@ def exact_age_psi_of(internal: Any) -> Callable[[Tensor, float, int], Tensor] | 
     """``exact_age_psi(signal (n x k), dt, max_steps) -> n x 2 x (max_steps + 1)`` of
     ``internal`` (the exact psi with a switch clock), or None."""
     return _callable(internal, "exact_age_psi")
+
+
+@dataclass(frozen=True)
+class LumpClasses:
+    """The K-lumps classes an internal model declares: finer than phi, each inside one lump.
+
+    Attributes:
+        names: ``C`` class names.
+        lumps: ``C`` ints, the phi (0/1) of each class.
+        classify: ``classes(state) -> (n,)`` int64, each cell's class.
+    """
+
+    names: tuple[str, ...]
+    lumps: tuple[int, ...]
+    classify: Callable[[InternalState], Tensor]
+
+
+def lump_classes_of(internal: Any) -> LumpClasses | None:
+    """``internal``'s K-lumps classes (``class_names``, ``class_lumps`` and ``classes(state)``),
+    or None where it declares none; a declaration that does not add up is an error."""
+    names = getattr(internal, "class_names", None)
+    classify = _callable(internal, "classes")
+    if not names or classify is None:
+        return None
+    lumps = tuple(int(v) for v in getattr(internal, "class_lumps", ()))
+    if len(lumps) != len(names) or set(lumps) != {0, 1}:
+        raise ValueError(
+            f"{type(internal).__name__}: class_lumps must give phi (0/1) for each of its "
+            f"{len(names)} class_names, both lumps present; got {lumps}"
+        )
+    return LumpClasses(tuple(str(n) for n in names), lumps, classify)
+
+
+def exact_class_step_of(internal: Any) -> Callable[[Tensor, float], Tensor] | None:
+    """``exact_class_step(signal (n x k), dt) -> n x C x C``: the exact class-to-class law of
+    adapted cells over a window, or None."""
+    return _callable(internal, "exact_class_step")
 
 
 def signal_bounds_of(internal: Any) -> dict[str, tuple[float, float]] | None:
@@ -152,10 +192,12 @@ def histogram_grids_of(body: Any) -> dict[str, Any]:
 
 
 __all__ = [
+    "LumpClasses",
     "cell_step_seconds_of",
     "concat_states",
     "concat_states_of",
     "exact_age_psi_of",
+    "exact_class_step_of",
     "exact_psi_of",
     "expected_phi_next_of",
     "feature_names_of",
@@ -164,6 +206,7 @@ __all__ = [
     "has_exact_psi",
     "histogram_grids_of",
     "is_fusable",
+    "lump_classes_of",
     "randoms_of",
     "signal_bounds_of",
     "start_size_of",

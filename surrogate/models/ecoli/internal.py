@@ -14,13 +14,16 @@ import torch
 from torch import Tensor
 
 from surrogate.ctmc import gillespie
-from surrogate.ctmc.lumped import lumped_age_psi
+from surrogate.ctmc.lumped import lumped_age_psi, lumped_class_step
 from surrogate.models.base import InternalState, Randoms
 from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
+    N,
+    class_index,
     counts_from_states,
     exact_run_probability,
     is_run,
+    motor_classes,
     motor_thresholds,
     motor_transition_matrix,
     population_space,
@@ -75,6 +78,11 @@ class MotorInternalModel:
         yp_max = params.alpha
         low = params.g0 / 4.0 - params.g1 / 2.0 * yp_max / (yp_max + params.k_d)
         self.signal_bounds = {"dG": (low, params.g0 / 4.0)}
+        # K lumps: (phi, number of CCW motors), e.g. "run/3 CCW"
+        keys = motor_classes(params.n_motors)
+        self.class_names = tuple(f"{self.lump_names[r]}/{c} CCW" for r, c in keys)
+        self.class_lumps = tuple(r for r, _ in keys)
+        self._class_index = class_index(params.n_motors)
 
     # -- inputs and features -----------------------------------------------------------------
     def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
@@ -147,6 +155,13 @@ class MotorInternalModel:
             return (counts.to(torch.int64),)
         return (states_from_counts(counts, m).contiguous(),)
 
+    def classes(self, state: InternalState) -> Tensor:
+        """Each cell's class (index into :attr:`class_names`: its phi and number of CCW
+        motors) ``(n,)`` int64."""
+        counts = self.counts(state).long()
+        index = self._class_index.to(counts.device)
+        return index[is_run(counts).long(), counts[:, N]]
+
     def expected_phi_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
         """Exact P(RUN after a window ``dt`` | this state, inputs ``x``) ``(n,)`` float64: each
         motor's row of its closed-form exp(Q dt) at the cell's rates (the expected label of
@@ -171,3 +186,13 @@ class MotorInternalModel:
         space = population_space(self.params.n_motors)
         q = space.generator(rate_constants(k_plus.double(), k_minus.double(), self.params))
         return lumped_age_psi(q, is_run(space.states), dt, max_steps)
+
+    def exact_class_step(self, signal: Tensor, dt: float) -> Tensor:
+        """Exact one-window class-to-class law of adapted cells ``n x C x C`` float64 at
+        signals dG (``n x 1``) (:func:`surrogate.ctmc.lumped.lumped_class_step`)."""
+        k_plus, k_minus = rates_from_delta_g(signal[:, 0], self.params)
+        space = population_space(self.params.n_motors)
+        q = space.generator(rate_constants(k_plus.double(), k_minus.double(), self.params))
+        states = space.states
+        classes = self._class_index[is_run(states).long(), states[:, N]]
+        return lumped_class_step(q, classes, len(self.class_names), dt)

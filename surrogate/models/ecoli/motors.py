@@ -270,6 +270,21 @@ def generic_transition_matrix(
 
 
 @functools.lru_cache(maxsize=8)
+def motor_classes(n_motors: int) -> tuple[tuple[int, int], ...]:
+    """The K-lumps classes of a cell's motors: every reachable (phi, number of CCW motors),
+    sorted (tumbles first). With 4 motors: tumble with 0-3 CCW, run with 2-4 CCW (7 classes)."""
+    states = population_space(n_motors).states
+    return tuple(sorted({(int(r), int(s[N])) for r, s in zip(is_run(states), states, strict=True)}))
+
+
+def class_index(n_motors: int) -> Tensor:
+    """``2 x (n_motors + 1)`` int64: the class of (phi, number of CCW motors), -1 if none."""
+    index = torch.full((2, int(n_motors) + 1), -1, dtype=torch.int64)
+    for k, (run, n_ccw) in enumerate(motor_classes(n_motors)):
+        index[run, n_ccw] = k
+    return index
+
+
 def population_space(n_motors: int) -> StateSpace:
     """The motor population's states (counts S, C, N summing to ``n_motors``): 15 for 4 motors."""
     return StateSpace.enumerate(FLAGELLA_NETWORK, torch.tensor([0, 0, int(n_motors)]))
