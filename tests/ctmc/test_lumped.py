@@ -182,3 +182,56 @@ def test_exact_psi_is_batched_and_run_property_consistent() -> None:
     torch.testing.assert_close(batched, single, rtol=1e-12, atol=0)
     assert batched.shape == (4, 2) and bool(((batched >= 0) & (batched <= 1)).all())
     assert FLAGELLA_NETWORK.n_species == 3
+
+
+@pytest.mark.parametrize(("kp", "km"), RATES)
+def test_the_class_step_lumps_back_to_the_two_state_law(kp: float, km: float) -> None:
+    """lumped_class_step on the motors' 7 classes (phi x number of CCW motors): rows are laws,
+    and summing destination classes into phi, origin classes weighted by their stationary
+    mass, gives lumped_psi (the two-state law) to round-off."""
+    from surrogate.ctmc.lumped import lumped_class_step
+    from surrogate.models.ecoli.motors import N, class_index
+
+    space = population_space(4)
+    f64 = torch.float64
+    q = space.generator(
+        rate_constants(torch.tensor([kp], dtype=f64), torch.tensor([km], dtype=f64), P)
+    )
+    internal = MotorInternalModel(P)
+    states = space.states
+    classes = class_index(4)[is_run(states).long(), states[:, N]]
+    c = len(internal.class_names)
+    step = lumped_class_step(q, classes, c, DT)[0]  # (C, C)
+    assert step.shape == (7, 7) and c == 7
+    torch.testing.assert_close(step.sum(-1), torch.ones(c, dtype=f64), rtol=0, atol=1e-12)
+    assert bool((step >= 0).all())
+    lumps = torch.tensor(internal.class_lumps)
+    assert torch.equal(lumps[classes], is_run(states).long())  # each class inside its lump
+    pi = stationary_distribution(q)[0]
+    mass = torch.zeros(c, dtype=f64).index_add_(0, classes, pi)
+    to_run = step[:, lumps == 1].sum(-1)  # (C,)
+    expected = lumped_psi(q, is_run(states), DT)[0]
+    for phi in (0, 1):
+        w = mass * (lumps == phi)
+        got = float((w * to_run).sum() / w.sum())
+        assert got == pytest.approx(float(expected[phi]), abs=1e-9)
+
+
+def test_the_class_step_with_one_state_per_class_is_the_matrix_exponential() -> None:
+    """Classes that are the states themselves (in a shuffled order): the class law is exp(Q dt),
+    rows and columns permuted."""
+    from surrogate.ctmc.lumped import lumped_class_step
+
+    space = population_space(4)
+    f64 = torch.float64
+    q = space.generator(
+        rate_constants(torch.tensor([2.43, 0.5], dtype=f64), torch.tensor([0.695, 3.38],
+                       dtype=f64), P)
+    )  # fmt: skip
+    k = space.n_states
+    order = torch.randperm(k, generator=torch.Generator().manual_seed(0))
+    step = lumped_class_step(q, order, k, DT)  # state s is class order[s]
+    expected = torch.from_numpy(np.stack([scipy.linalg.expm(qi.numpy() * DT) for qi in q]))
+    back = step[:, order][:, :, order]  # [s, t] = step[order[s], order[t]]
+    torch.testing.assert_close(back, expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(step.sum(-1), torch.ones(2, k, dtype=f64), rtol=0, atol=1e-12)

@@ -43,7 +43,9 @@ N_CELLS, STEPS = 1000, 300
 ALPHA_CRITICAL = 1.358  # two-sample KS: D_crit = 1.358 sqrt((n + m) / (n m)) at alpha = 0.05
 
 
-def erlang_model() -> NetworkInternalModel:
+def erlang_model(cls: type[NetworkInternalModel] = NetworkInternalModel) -> NetworkInternalModel:
+    """The cycle A0 -> A1 -> B -> A0 with phi = [B >= 1] (``cls``: a subclass adding
+    capabilities, e.g. K-lumps classes)."""
     net = ReactionNetwork.from_reactions(
         ["A0", "A1", "B"],
         [
@@ -53,7 +55,7 @@ def erlang_model() -> NetworkInternalModel:
         ],
     )
     rates = torch.tensor(RATES, dtype=torch.float64)
-    return NetworkInternalModel(
+    return cls(
         net,
         ["s"],
         "B >= 1",
