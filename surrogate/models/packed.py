@@ -18,6 +18,10 @@ The kinds (:data:`KINDS`):
   ``decision_row``;
 * ``"exact"``: the same chain whose tables are the internal model's exact psi
   (``ExactDecision``): a kernel may run it only where it computes that model's formulas;
+* ``"classes"``: the K-lumps chain over classes finer than phi (``ClassDecision``): each
+  cell's class (``state``, int64) moves by one categorical draw from a row of cumulative
+  probabilities (``classes``), picked by stochastic rounding to a grid node per input axis;
+  uniforms from row ``decision_row`` (one per axis, then the draw's); phi is the class's lump;
 * ``"unsupported"``: a layer the engine cannot pack (``why`` says which).
 
 This module imports nothing of the engine: models may import it (they may not import
@@ -35,9 +39,9 @@ from torch import Tensor
 
 from surrogate.models.base import Randoms
 
-FULL, CHAIN, EXACT, UNSUPPORTED = "full", "chain", "exact", "unsupported"
+FULL, CHAIN, EXACT, CLASSES, UNSUPPORTED = "full", "chain", "exact", "classes", "unsupported"
 #: the kinds a :class:`PackedBlock` may have
-KINDS = (FULL, CHAIN, EXACT, UNSUPPORTED)
+KINDS = (FULL, CHAIN, EXACT, CLASSES, UNSUPPORTED)
 
 
 @dataclass(frozen=True)
@@ -104,6 +108,42 @@ class PackedClock:
     unit: float
 
 
+@dataclass(frozen=True)
+class PackedClasses:
+    """A K-lumps chain's law (``surrogate.simulate.classes.ClassTable``) as flat arrays.
+
+    A cell in class ``a`` at inputs ``v`` (``d`` axes) reads row
+    ``a * origin_stride + sum(i_k * strides[k])``, where ``i_k`` is the lower node of axis
+    ``k`` (``w = clamp((v_k - origin[k]) * scale[k], 0, nodes[k] - 1)`` in float32, node
+    ``min(floor(w), nodes[k] - 2)``) plus 1 if that axis's uniform is below ``w - node``
+    (stochastic rounding); an axis of ``nodes[k] == 1`` (one node, or an empty span) stays
+    at node 0. The next class is the number of the row's ``C`` cumulative probabilities the
+    draw's uniform reaches (at most ``C - 1``); phi is its lump.
+
+    Attributes:
+        cdf: float32 ``(rows * C,)``: the cumulative rows, row after row.
+        origin: float32 ``(d,)``: each axis's low end.
+        scale: float32 ``(d,)``: grid units per unit of each axis.
+        nodes: int64 ``(d,)``: nodes per axis (1: the axis is constant).
+        strides: int64 ``(d,)``: rows between neighbouring nodes of each axis.
+        origin_stride: rows per origin class (``prod`` of the grid's shape).
+        lumps: float32 ``(C,)``: each class's phi (0/1).
+    """
+
+    cdf: np.ndarray
+    origin: np.ndarray
+    scale: np.ndarray
+    nodes: np.ndarray
+    strides: np.ndarray
+    origin_stride: int
+    lumps: np.ndarray
+
+    @property
+    def n_classes(self) -> int:
+        """``C``."""
+        return int(self.lumps.shape[0])
+
+
 class LayerState:
     """A decision layer's per-cell state tensor (motor states, switch clocks) for a kernel
     that advances it in place.
@@ -146,15 +186,18 @@ class PackedBlock:
         fusable: whether the layer has a pure window (else the SSA runs eagerly).
         why: what the engine could not pack (kind ``unsupported``; or the tables of a chain:
             then ``tables`` is None).
-        state: the per-cell state the kernel advances (``full``: motor states; a clock), or
-            None.
+        state: the per-cell state the kernel advances (``full``: motor states; a clock;
+            ``classes``: int64 classes), or None.
         motor_row: ``full``: the window's first float64 uniform row.
-        decision_row: chains: the row of the draw's uniform.
+        decision_row: chains: the row of the draw's uniform; ``classes``: the first of its
+            ``d + 1`` rows (one per input axis, then the categorical draw's).
         features: chains: psi's input names before the clock (None: the inputs x themselves,
             without a feature map).
         features_of: the internal model the feature map computes with (None without one).
         tables: chains: the lookup tables (None: see ``why``).
         clock: a chain's switch clock, or None.
+        classes: ``classes``: the chain's law (None: see ``why``); ``state`` holds each
+            cell's class (int64).
     """
 
     kind: str
@@ -171,6 +214,7 @@ class PackedBlock:
     features_of: Any = None
     tables: PackedTables | None = None
     clock: PackedClock | None = None
+    classes: PackedClasses | None = None
 
 
 @dataclass(frozen=True)
@@ -191,12 +235,14 @@ class PackedDecision:
 
 __all__ = [
     "CHAIN",
+    "CLASSES",
     "EXACT",
     "FULL",
     "KINDS",
     "UNSUPPORTED",
     "LayerState",
     "PackedBlock",
+    "PackedClasses",
     "PackedClock",
     "PackedDecision",
     "PackedTables",

@@ -18,6 +18,7 @@ vectorised body and a scalar tail), which leaves it identical in distribution.
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import time
@@ -198,17 +199,19 @@ class BatchSimulator(Simulator):
     ) -> PopulationState:
         """Every replicate's initial state exactly as a standalone run with its seed draws it
         (equilibration included); then each continues on its own generator."""
-        states, self.generators = [], []
+        states, self.generators, layer_states = [], [], []
         for rep in self.replicates:
             torch.manual_seed(int(rep.seed))
             alone = Simulator(self.model, rep.decision, rep.field, self.dt, self.device)
             states.append(alone.initial_state(rep.n_cells, rep.start, equilibration_time))
+            # read now: a layer object serving several replicates holds only the last one's
+            layer_states.append(rep.decision.fused_state())
             gen = torch.Generator(device=self.device)
             gen.set_state(_global_state(self.device))
             self.generators.append(gen)
         internal = self.model.internal
         for member, group in zip(self.decision.members, self.groups, strict=True):  # type: ignore[attr-defined]
-            parts = [self.replicates[i].decision.fused_state() for i in group]
+            parts = [layer_states[i] for i in group]
             if any(parts):
                 # a layer with its own per-cell state (e.g. a switch clock) concatenates it
                 concat = getattr(member, "concat_states", None) or concat_states_of(internal)
@@ -334,6 +337,13 @@ def _decision_blocks(
             merged.append(first.restacked(table, name))  # type: ignore[attr-defined]
             merged_groups.append([i for g in groups[k:end] for i in g])
         k = end
+    # one layer object in two blocks (replicates apart): the second gets a copy of its own,
+    # else the blocks would share one per-cell state (classes, clocks, motor states)
+    seen: set[int] = set()
+    for k, member in enumerate(merged):
+        if id(member) in seen:
+            merged[k] = copy.copy(member)
+        seen.add(id(member))
     return merged_groups, merged
 
 
@@ -367,7 +377,7 @@ def _interchangeable(a: DecisionLayer, b: DecisionLayer) -> bool:
     matmul-based, with code paths by row count) would give a replicate other last bits in a
     block than alone."""
     same = type(a) is type(b) and a.name == b.name
-    for attr in ("internal", "run_probability"):
+    for attr in ("internal", "run_probability", "table"):  # table: a K-lumps chain's law
         same = same and getattr(a, attr, None) is getattr(b, attr, None)
     psi = getattr(a, "run_probability", None)
     rowwise = psi is None or bool(getattr(psi, "rowwise", False))

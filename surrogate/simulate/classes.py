@@ -115,6 +115,16 @@ class ClassTable:
         return len(self.class_names)
 
     @property
+    def strides(self) -> tuple[int, ...]:
+        """Rows of :attr:`cdf` between neighbouring nodes of each input axis."""
+        return self._strides
+
+    @property
+    def origin_stride(self) -> int:
+        """Rows of :attr:`cdf` per origin class (the grid's node count)."""
+        return self._origin_stride
+
+    @property
     def device(self) -> torch.device:
         """Where the table lives."""
         return self.cdf.device

@@ -32,16 +32,19 @@ from surrogate.models.base import FeatureMap, Randoms
 from surrogate.models.capabilities import randoms_of
 from surrogate.models.packed import (
     CHAIN,
+    CLASSES,
     EXACT,
     FULL,
     UNSUPPORTED,
     LayerState,
     PackedBlock,
+    PackedClasses,
     PackedClock,
     PackedDecision,
     PackedTables,
 )
 from surrogate.simulate.batch import DecisionBatch
+from surrogate.simulate.classes import ClassDecision, ClassTable
 from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
 from surrogate.simulate.memory import MemoryDecision
 
@@ -135,18 +138,43 @@ def pack_tables(psi: Any, count: int | None) -> tuple[PackedTables | None, str |
     return packed, None
 
 
-def _chain_fields(layer: AbstractDecision, slot: Slot) -> dict[str, Any]:
-    """A two-state chain's draw row, feature names and tables (or why not)."""
-    tables, why = pack_tables(layer.run_probability, slot.count)
-    featurize = layer.featurize
+def _feature_fields(featurize: Any, why: str | None) -> dict[str, Any]:
+    """A layer's feature names and the internal model they are computed with (or why not)."""
     features, features_of = None, None
     if featurize is not None:
         if type(featurize) is FeatureMap:
             features, features_of = tuple(featurize.names), featurize.internal
         elif why is None:
             why = f"feature map {featurize!r}"
+    return {"features": features, "features_of": features_of, "why": why}
+
+
+def _chain_fields(layer: AbstractDecision, slot: Slot) -> dict[str, Any]:
+    """A two-state chain's draw row, feature names and tables (or why not)."""
+    tables, why = pack_tables(layer.run_probability, slot.count)
     return {"decision_row": slot.rows.uniform - 1,  # the layer's one uniform, right-aligned
-            "features": features, "features_of": features_of, "tables": tables, "why": why}  # fmt: skip
+            "tables": tables, **_feature_fields(layer.featurize, why)}  # fmt: skip
+
+
+def pack_class_table(table: ClassTable) -> tuple[PackedClasses | None, str | None]:
+    """A K-lumps law as flat arrays (see :class:`~surrogate.models.packed.PackedClasses`), or
+    None and why not (off the CPU). Each axis's origin and scale are the float32 numbers
+    ``ClassTable`` computes positions with (``lo`` and ``(n - 1) / (hi - lo)``)."""
+    if table.device.type != "cpu":
+        return None, "a class table off the CPU"
+    d = len(table.shape)
+    origin, scale = np.zeros(d, np.float32), np.zeros(d, np.float32)
+    nodes = np.ones(d, np.int64)
+    for j, (n, (lo, hi)) in enumerate(zip(table.shape, table.bounds, strict=True)):
+        if n > 1 and hi > lo:  # else the axis is constant (ClassTable._positions)
+            origin[j], scale[j], nodes[j] = lo, (n - 1) / (hi - lo), n
+    packed = PackedClasses(
+        cdf=table.cdf.reshape(-1).contiguous().numpy(), origin=origin, scale=scale,
+        nodes=nodes, strides=np.array(table.strides, dtype=np.int64),
+        origin_stride=table.origin_stride,
+        lumps=np.array(table.class_lumps, dtype=np.float32),
+    )  # fmt: skip
+    return packed, None
 
 
 def _pack_full(layer: FullDecision, slot: Slot) -> PackedBlock:
@@ -179,12 +207,22 @@ def _pack_memory(layer: MemoryDecision, slot: Slot) -> PackedBlock:
                        clock=clock)  # fmt: skip
 
 
+def _pack_classes(layer: ClassDecision, slot: Slot) -> PackedBlock:
+    """The K-lumps chain: its law, its ``d + 1`` uniform rows (right-aligned) and its
+    classes."""
+    classes, why = pack_class_table(layer.table)
+    return PackedBlock(CLASSES, **_common(layer, slot), **_feature_fields(layer.featurize, why),
+                       decision_row=slot.rows.uniform - layer.randoms.uniform,
+                       state=LayerState(layer), classes=classes)  # fmt: skip
+
+
 #: the packer of each decision layer class (exact classes: a subclass is not packed)
 PACKERS: dict[type, Callable[[Any, Slot], PackedBlock]] = {
     FullDecision: _pack_full,
     AbstractDecision: _pack_chain,
     ExactDecision: _pack_exact,
     MemoryDecision: _pack_memory,
+    ClassDecision: _pack_classes,
 }
 
-__all__ = ["PACKERS", "Slot", "pack_decision", "pack_layer", "pack_tables"]
+__all__ = ["PACKERS", "Slot", "pack_class_table", "pack_decision", "pack_layer", "pack_tables"]

@@ -39,6 +39,7 @@ from surrogate.models.base import KernelUnsupported
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.classes import ClassDecision, ClassTable, exact_class_table
 from surrogate.simulate.kernel_pack import pack_decision
 from surrogate.simulate.memory import AGE, MemoryDecision
 
@@ -92,6 +93,11 @@ def _decision(kind: str, model: EcoliModel):
         layer = MemoryDecision(table, internal, model.featurizer(["dG"]), max_age, dt=dt)
         assert (layer.clock_nodes is not None) == (kind == "clock_nodes")
         return layer
+    if kind == "classes":  # K lumps: the exact class chain over dG
+        return ClassDecision(exact_class_table(internal, DT, size=256), internal,
+                             model.featurizer(["dG"]))  # fmt: skip
+    if kind == "classes_mL":  # K lumps over (m, L) without a feature map, a narrow L axis
+        return ClassDecision(_class_table(model), internal)  # (clamped)
     if kind == "raw_inputs":  # no feature map: the table reads x = (m, L) itself
         return AbstractDecision(_table(model, ("m", "L")), internal)
     if kind == "dG_narrow":  # a box narrower than the values: the interpolation clamps
@@ -102,6 +108,23 @@ def _decision(kind: str, model: EcoliModel):
         return AbstractDecision(table, internal, model.featurizer(["dG"]))
     names = {"dG": ("dG",), "mL": ("m", "L"), "mLF": ("m", "L", "F"), "cheyp": ("cheyp",)}[kind]
     return AbstractDecision(_table(model, names), internal, model.featurizer(list(names)))
+
+
+def _class_table(model: EcoliModel) -> ClassTable:
+    """A class law over (m, L): class b drawn from class a with weight
+    exp(-(a - b)^2 / width) + 0.02, the width growing with m and L (narrow: cells mostly
+    stay; wide: they spread over the 7 classes of the motors); 17 x 9 nodes, L's box narrower
+    than the values (clamped)."""
+    internal = model.internal
+    c = len(internal.class_names)
+    a = torch.arange(c, dtype=torch.float64).reshape(c, 1, 1, 1)
+    b = a.reshape(1, 1, 1, c)
+    m = torch.linspace(1.5, 3.0, 17, dtype=torch.float64).reshape(1, 17, 1, 1)
+    ligand = torch.linspace(0.0, 0.03, 9, dtype=torch.float64).reshape(1, 1, 9, 1)
+    width = 0.2 + 4.0 * (m - 1.5) + 100.0 * ligand
+    p = torch.exp(-((a - b) ** 2) / width) + 0.02  # (C, 17, 9, C)
+    return ClassTable(p, [(1.5, 3.0), (0.0, 0.03)], ("m", "L"), internal.class_names,
+                      internal.class_lumps, DT)  # fmt: skip
 
 
 def internal_psi(model: EcoliModel):
@@ -137,7 +160,7 @@ def _assert_same_trajectories(a, b) -> None:
 @pytest.mark.parametrize(
     "kind",
     ["full", "dG", "mL", "mLF", "exact", "cheyp", "raw_inputs", "dG_narrow", "clock",
-     "clock_nodes"],
+     "clock_nodes", "classes", "classes_mL"],
 )  # fmt: skip
 def test_kernel_follows_the_torch_step(kind) -> None:
     model = EcoliModel()
@@ -164,6 +187,35 @@ def test_kernel_keeps_the_switch_clocks_as_the_torch_step(kind) -> None:
         clocks[backend] = decision.fused_state()[0]
     assert torch.equal(clocks["torch"], clocks["numba"])
     assert int(clocks["torch"].max()) > 40 and int((clocks["torch"] == 0).sum()) > 0
+
+
+@pytest.mark.parametrize("kind", ["classes", "classes_mL"])
+def test_kernel_draws_the_torch_steps_classes_step_by_step(kind) -> None:
+    """The K-lumps chain: every cell's class after every step is the torch step's (the same
+    uniforms in the same order, positions in the same float32 operations), and the classes
+    move (every class is visited, a good share of cells change class)."""
+    model = EcoliModel()
+    classes = {}
+    for backend in ("torch", "numba"):
+        torch.manual_seed(3)
+        decision = _decision(kind, model)
+        sim = Simulator(model, decision, GaussianField(), DT, backend=backend)
+        assert sim.backend == backend
+        out = []
+        with torch.inference_mode():
+            state = sim.initial_state(N, (2.0, 0.0), equilibration_time=1.0)
+            sim.warm_up(state)
+            out.append(decision.fused_state()[0].clone())
+            for _ in range(STEPS // 3):
+                sim.advance(state, 3)
+                out.append(decision.fused_state()[0].clone())
+                lumps = decision.table.lumps[out[-1]]
+                assert torch.equal(lumps.to(torch.uint8), state.phi.to(torch.uint8))
+        classes[backend] = torch.stack(out)
+    a, b = classes["torch"], classes["numba"]
+    assert a.dtype == b.dtype == torch.int64
+    assert torch.equal(a, b), f"{int((a != b).any(0).sum())} cells diverged"
+    assert len(set(a.reshape(-1).tolist())) == 7 and int((a[1:] != a[:-1]).sum()) > N
 
 
 @pytest.mark.parametrize("kind", ["full", "dG"])
@@ -266,6 +318,45 @@ def test_kernel_replicates_in_a_batch_are_their_standalone_runs_bit_for_bit() ->
             assert torch.equal(state.body[key][cells], a.body[key]), (i, key)
         assert torch.equal(state.phi[cells], a.phi)
         assert torch.equal(ended[:, cells], a_ended)
+
+
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_class_chains_in_a_batch_are_their_standalone_runs_bit_for_bit(backend) -> None:
+    """K-lumps chains beside other layers in one batch (their two uniform rows beside a
+    chain's one, a full model's float64 rows): each run gets exactly its standalone numbers,
+    classes included; one layer object serving two runs (consecutive: one block; apart: two)
+    keeps each run's classes."""
+    model = EcoliModel()
+    decisions = {k: _decision(k, model) for k in ("classes", "classes_mL", "dG")}
+    spec = [("classes", GaussianField(), 40, 0), ("classes", LinearField(), 30, 1),
+            ("dG", LinearField(), 30, 2), ("full", GaussianField(), 20, 3),
+            ("classes_mL", GaussianField(), 25, 4), ("classes", GaussianField(), 15, 5)]  # fmt: skip
+    alone = []
+    for kind, field, n, seed in spec:
+        torch.manual_seed(seed)
+        d = FullDecision(model.internal) if kind == "full" else decisions[kind]
+        sim = Simulator(model, d, field, DT, backend=backend)
+        state = sim.initial_state(n, (2.0, 0.0), equilibration_time=1.0)
+        ended = sim.advance(state, 100)
+        alone.append((state, ended, d.fused_state()[0].clone() if kind != "dG" else None))
+    reps = [Replicate(FullDecision(model.internal) if k == "full" else decisions[k], f, n, s)
+            for k, f, n, s in spec]  # fmt: skip
+    batch = BatchSimulator(model, reps, DT, backend=backend)
+    assert batch.backend == backend and len(batch.decision.members) == 5
+    state = batch.initial_state(equilibration_time=1.0)
+    ended = torch.cat([batch.advance(state, 20) for _ in range(5)])
+    members = batch.decision.members
+    for i, cells in enumerate(batch.slices):
+        a, a_ended, a_classes = alone[i]
+        for key in ("position", "heading", "m"):
+            assert torch.equal(state.body[key][cells], a.body[key]), (i, key)
+        assert torch.equal(state.phi[cells], a.phi), i
+        assert torch.equal(ended[:, cells], a_ended), i
+        if spec[i][0].startswith("classes"):
+            k = next(g for g, group in enumerate(batch.groups) if i in group)
+            offset = sum(spec[j][2] for j in batch.groups[k] if j < i)
+            got = members[k].fused_state()[0][offset : offset + spec[i][2]]
+            assert torch.equal(got, a_classes), i
 
 
 @pytest.mark.parametrize("kind", ["full", "dG"])

@@ -21,6 +21,8 @@ tests compare each against its torch original:
 * motors: :func:`~surrogate.models.ecoli.motors.motor_transition_terms` /
   ``motor_thresholds``, ``sample_motor_states``, ``run_flag_from_states``;
 * the abstraction: :func:`surrogate.gp.lookup._interpolate` (multilinear, torch's lerp);
+  the K-lumps chain's draw, ``surrogate.simulate.classes.ClassTable.draw`` (the same
+  uniforms in the same order: its classes follow the torch step's exactly);
 * movement and bookkeeping: :meth:`ChemotacticBody.move`, :meth:`Simulator._advance`.
 
 Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
@@ -49,7 +51,7 @@ from surrogate.models.base import KernelUnsupported, Randoms
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
 from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
-from surrogate.models.packed import CHAIN, EXACT, FULL, PackedBlock, PackedDecision
+from surrogate.models.packed import CHAIN, CLASSES, EXACT, FULL, PackedBlock, PackedDecision
 
 # -- features of the abstraction's lookup table --------------------------------------------------
 # what each name means here (its formula below); an internal model's feature of that name must
@@ -263,13 +265,44 @@ def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table, layer, s
     return _lerp(_lerp(v00, v01, fr1), _lerp(v10, v11, fr1), fr0)
 
 
+@numba.njit(inline="always", **_JIT)
+def _class_draw(cls, s, c, u, row, m, ligand, energy, act, yp, dg, cdf, origin_stride, nodes,
+                strides, origin, scale, features, lumps):  # fmt: skip
+    """The next class of a cell in class ``cls``: ClassTable.draw (stochastic rounding to a
+    node per axis with the uniforms of rows ``row``, ``row + 1``, ...; then the categorical
+    draw from one cumulative row with the uniform of row ``row + d``), its positions in
+    float32 in ClassTable._positions' order of operations."""
+    d = nodes.shape[0]
+    n_classes = lumps.shape[0]
+    index = cls * origin_stride
+    for a in range(d):
+        n = nodes[a]
+        if n <= 1:  # a constant axis: node 0
+            continue
+        value = _feature(features[a], m, ligand, energy, act, yp, dg, _F32(0.0))
+        w = _clamp((value - origin[0, a]) * scale[0, a], _F32(0.0), _F32(n - 1))
+        node = min(np.floor(w), _F32(n - 2))
+        # NaN: torch's index would be undefined; here the lower node, never rounded up
+        i = int(node) if node == node else 0
+        if u[s, row + a, c] < w - node:
+            i += 1
+        index += i * strides[a]
+    v = u[s, row + d, c]
+    base = index * n_classes
+    nxt = 0
+    for b in range(n_classes):
+        if v >= cdf[base + b]:
+            nxt += 1
+    return min(nxt, n_classes - 1)
+
+
 @numba.njit(**_JIT)
 def _advance_range(
     steps, step0, start, lo, hi, position, heading, meth, phi, seg, complete, last_x, ended,
     field_of_cell, fields, field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
-    ages, max_age, clock_unit,
+    ages, max_age, clock_unit, lumps, classes,
 ):  # fmt: skip
     """``steps`` steps of cells ``start + lo`` to ``start + hi`` of a block that starts at
     population cell ``start``: the full model when ``motors`` (M x block float32, 0 = S,
@@ -285,6 +318,14 @@ def _advance_range(
     axis, so the node is exact, as the torch layer's clock_nodes), and the clock restarts at
     0 when phi changes, else counts on (memory.tick).
 
+    With ``lumps`` (float32, the phi of each of ``C`` classes) non-empty, the block is a
+    K-lumps chain (:class:`~surrogate.simulate.classes.ClassDecision`, packed as
+    :class:`~surrogate.models.packed.PackedClasses`): cell ``start + j``'s class is
+    ``classes[j]`` (int64, in place), drawn by :func:`_class_draw` from the cumulative rows
+    ``table`` (``layer``: rows per origin class; ``shape``: nodes per axis, 1 for a constant
+    axis; ``strides``; ``origin``/``scale`` of shape ``1 x d``; ``features``) with the
+    ``d + 1`` uniforms from row ``decision_row``; phi is the class's lump.
+
     Cell ``c`` sees the field of row ``fields[field_of_cell[c]]`` (packed by
     :func:`~surrogate.field_kernel.pack_field` for the formulas of ``field_set``).
 
@@ -294,6 +335,7 @@ def _advance_range(
     z (steps, rows, n) float32. One function for both layers: one compilation.
     """
     full = motors.shape[0] > 0
+    classed = lumps.shape[0] > 0
     dt = q[2]
     clocked = max_age > 0
     unit = _F32(clock_unit)
@@ -303,8 +345,9 @@ def _advance_range(
         x, y, h, m = position[c, 0], position[c, 1], heading[c], meth[c]
         phi_now = _F32(phi[c])
         age = ages[j] if clocked else _F32(0.0)
+        cls = classes[j] if classed else 0
         f = fields[field_of_cell[c]]
-        tab = 0 if full else table_of_cell[j]
+        tab = 0 if full or classed else table_of_cell[j]
         for s in range(steps):
             ligand = field_value(field_set, f, x, y, (step0 + s) * dt)
             last_x[c, 0] = m
@@ -313,6 +356,10 @@ def _advance_range(
             energy, act, yp, dg = _signal(m, lrt, p)
             if full:
                 phi_after = _motors_step(dg, motors, j, c, s, u64, motor_row, q)
+            elif classed:
+                cls = _class_draw(cls, s, c, u, decision_row, m, ligand, energy, act, yp, dg,
+                                  table, layer, shape, strides, origin, scale, features, lumps)  # fmt: skip
+                phi_after = lumps[cls]
             else:
                 clock = min(age * unit, cap)  # memory.with_age
                 prob = _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table,
@@ -330,6 +377,8 @@ def _advance_range(
         phi[c] = np.uint8(phi_now)
         if clocked:
             ages[j] = age
+        if classed:
+            classes[j] = cls
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -338,7 +387,7 @@ def advance_cells(
     field_of_cell, fields, field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
     motors, motor_row,
     table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
-    ages, max_age, clock_unit,
+    ages, max_age, clock_unit, lumps, classes,
 ):  # fmt: skip
     """Cells ``start + lo`` to ``start + hi`` in ``pieces`` contiguous pieces (a few per
     thread: balanced) spread over numba's threads, each by :func:`_advance_range` (the other
@@ -352,7 +401,7 @@ def advance_cells(
             position, heading, meth, phi, seg, complete, last_x, ended, field_of_cell, fields,
             field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q, motors, motor_row, table,
             table_of_cell, layer, shape, strides, origin, scale, features, decision_row, ages,
-            max_age, clock_unit,
+            max_age, clock_unit, lumps, classes,
         )  # fmt: skip
 
 
@@ -386,6 +435,7 @@ _NO_TABLE = (np.zeros(2, dtype=np.float32), np.zeros(1, dtype=np.int32), 1,
              np.zeros((1, 1), dtype=np.float32), np.zeros((1, 1), dtype=np.float32),
              np.zeros(1, dtype=np.int64), 0)  # fmt: skip
 _NO_CLOCK = (np.zeros(1, dtype=np.float32), 0.0, 0.0)
+_NO_CLASSES = (np.zeros(0, dtype=np.float32), np.zeros(1, dtype=np.int64))
 #: the built-in fields' formulas: the field set of the precompiled kernel
 _BUILTIN_FIELD_SET = field_set([])
 
@@ -400,7 +450,7 @@ def _zero_cell_arguments() -> tuple[Any, ...]:
             np.zeros(1, u8), np.zeros(1, i32), np.zeros(1, u8), np.zeros((1, 2), f32),
             np.zeros((1, 1), i32), np.zeros(1, i32), np.zeros((1, _BUILTIN_FIELD_SET.columns)),
             _BUILTIN_FIELD_SET, np.zeros((1, 1, 1), f32), _NO_U64, np.zeros((1, 1, 1), f32), 0, 0, 1, False,
-            p32, p64, _NO_MOTORS, 0, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
+            p32, p64, _NO_MOTORS, 0, *_NO_TABLE, *_NO_CLOCK, *_NO_CLASSES)  # fmt: skip
 
 
 def precompile() -> None:
@@ -445,9 +495,9 @@ class _Block:
     def __init__(self, block: PackedBlock, internal: Any) -> None:
         self.start, self.count, self.state = block.start, block.count, block.state
         self.clock = _NO_CLOCK_SETTINGS
-        if block.kind not in (FULL, CHAIN, EXACT):
+        if block.kind not in (FULL, CHAIN, EXACT, CLASSES):
             raise KernelUnsupported(block.why or f"decision layer {block.layer}")
-        if block.kind != CHAIN and type(internal) is not MotorInternalModel:
+        if block.kind not in (CHAIN, CLASSES) and type(internal) is not MotorInternalModel:
             raise KernelUnsupported(
                 f"a {block.layer} over {type(internal).__name__} (the kernel's full model and "
                 "exact chain are the E. coli motors)"
@@ -456,9 +506,12 @@ class _Block:
             raise KernelUnsupported(f"a {block.layer} without a pure window (motor SSA)")
         if not _same_internal(block.internal, internal):
             raise KernelUnsupported("a decision layer over another internal model")
-        self.kind = "motors" if block.kind == FULL else "lookup"
+        self.kind = {FULL: "motors", CLASSES: "classes"}.get(block.kind, "lookup")
         if block.kind == FULL:
             self.motor_row = block.motor_row
+            return
+        if block.kind == CLASSES:
+            self._classes(block, internal)
             return
         tables = block.tables
         if tables is None or block.why is not None:
@@ -476,6 +529,21 @@ class _Block:
                            tables.origin, tables.scale, np.array(codes, dtype=np.int64),
                            block.decision_row)  # fmt: skip
         self._table_of_cell: np.ndarray | None = None
+
+    def _classes(self, block: PackedBlock, internal: Any) -> None:
+        """A K-lumps chain: its law's arrays in :func:`advance_cells`' table arguments."""
+        law = block.classes
+        if law is None or block.why is not None:
+            raise KernelUnsupported(block.why or f"a {block.layer} without its class table")
+        codes = _feature_codes(block, internal)
+        if len(codes) != law.nodes.shape[0]:
+            raise KernelUnsupported(
+                f"{len(codes)} features for a class table over {law.nodes.shape[0]} axes"
+            )
+        self.lumps = law.lumps
+        self.table_args = (law.cdf, law.origin_stride, law.nodes, law.strides,
+                           law.origin.reshape(1, -1), law.scale.reshape(1, -1),
+                           np.array(codes, dtype=np.int64), block.decision_row)  # fmt: skip
 
     def tables_for(self, n: int) -> np.ndarray:
         """Each cell's table for a block of ``n`` cells."""
@@ -646,13 +714,20 @@ class EcoliKernel:
             own = None if b.state is None else (b.state.current() if dry else b.state.writable())
             if b.kind == "motors":
                 advance_cells(*head, *common, un, _numpy(u64), zn, *self._body_args,
-                              _numpy(own), b.motor_row, *_NO_TABLE, *_NO_CLOCK)  # fmt: skip
+                              _numpy(own), b.motor_row, *_NO_TABLE, *_NO_CLOCK,
+                              *_NO_CLASSES)  # fmt: skip
+            elif b.kind == "classes":
+                cdf, layer, nodes, strides, origin, scale, features, row = b.table_args
+                advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
+                              *self._body_args, _NO_MOTORS, 0, cdf, _NO_TABLE[1], layer, nodes,
+                              strides, origin, scale, features, row, *_NO_CLOCK, b.lumps,
+                              _numpy(own))  # fmt: skip
             else:
                 table, layer, shape, strides, origin, scale, features, row = b.table_args
                 clock = _NO_CLOCK if own is None else (_numpy(own), *b.clock)
                 advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
                               *self._body_args, _NO_MOTORS, 0, table, b.tables_for(count),
                               layer, shape, strides, origin, scale, features, row,
-                              *clock)  # fmt: skip
+                              *clock, *_NO_CLASSES)  # fmt: skip
         if not dry:
             state.step += steps
