@@ -98,3 +98,36 @@ def test_a_clock_in_seconds_or_on_its_nodes_and_the_state_copied_once() -> None:
     own = block.state.writable()
     assert own is not held and layer.fused_state()[0] is own and block.state.writable() is own
     assert block.state.current() is own
+
+
+def test_a_class_chain_packs_its_rows_axes_lumps_and_classes() -> None:
+    """A K-lumps chain: the cumulative rows as they are, each axis's float32 origin and scale
+    (a constant axis: one node), the lumps, its d + 1 rows right-aligned beside a chain's one,
+    and its classes as the layer's state; a feature map the engine does not know: why."""
+    from surrogate.models.packed import CLASSES
+    from surrogate.simulate.classes import ClassDecision, ClassTable
+
+    model = EcoliModel()
+    internal = model.internal
+    c = len(internal.class_names)
+    p = torch.rand(c, 5, 1, c, generator=torch.Generator().manual_seed(0)) + 0.1
+    table = ClassTable(p, [(-1.0, 2.0), (0.0, 1.0)], ("dG", "m"), internal.class_names,
+                       internal.class_lumps, DT)  # fmt: skip
+    layer = ClassDecision(table, internal, model.featurizer(["dG", "m"]))
+    chain = AbstractDecision(PsiLookupTable.from_function(_psi, [(0.0, 1.0)], ("dG",), (8,)),
+                             internal, model.featurizer(["dG"]))  # fmt: skip
+    packed = pack_decision(DecisionBatch([chain, layer], [4, 6]), DT)
+    assert packed.randoms.uniform == 3
+    block = packed.blocks[1]
+    assert block.kind == CLASSES and block.why is None and block.start == 4
+    assert block.decision_row == 0 and packed.blocks[0].decision_row == 2
+    law = block.classes
+    assert np.array_equal(law.cdf, table.cdf.reshape(-1).numpy())
+    assert law.origin.tolist() == [-1.0, 0.0] and law.nodes.tolist() == [5, 1]
+    assert law.scale[0] == np.float32(4 / 3.0) and law.strides.tolist() == [1, 1]
+    assert law.origin_stride == 5 and law.lumps.tolist() == list(internal.class_lumps)
+    assert block.features == ("dG", "m")
+    layer.initialize(torch.tensor([[2.0, 0.0]]).expand(6, 2))
+    assert block.state.current() is layer.cls
+    odd = pack_decision(ClassDecision(table, internal, lambda x: x), DT).blocks[0]
+    assert odd.kind == CLASSES and "feature map" in odd.why
