@@ -15,7 +15,9 @@ since recording began: ``phi_age`` is then only a lower bound); with ``expected`
 ``phi_next_expected``: the probability that phi is 1 after the window given the internal state at
 its start (the internal model's ``expected_phi_next``). Its mean given x is psi(x), like the 0/1
 outcome's, but without the window's own randomness: a Rao-Blackwellised label with a smaller
-variance (measured for each model in docs/fidelity.md).
+variance (measured for each model in docs/fidelity.md). Where the internal model declares K-lumps
+classes (:mod:`surrogate.simulate.classes`), ``phi_class`` and ``phi_class_next``: the window's
+class before and after.
 
 No window within ``blackout`` steps after a perturbation is recorded: right after a jump the
 internal network's hidden state (which motors are where, within the current lump) still belongs
@@ -38,7 +40,13 @@ from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
-from surrogate.models.capabilities import expected_phi_next_of, feature_names_of, features_of
+from surrogate.models.capabilities import (
+    expected_phi_next_of,
+    feature_names_of,
+    features_of,
+    lump_classes_of,
+)
+from surrogate.simulate.classes import CLASS, CLASS_NEXT
 from surrogate.simulate.design import GuidedJump
 from surrogate.simulate.loop import PopulationState, Simulator
 from surrogate.simulate.memory import AGE, CENSORED, tick
@@ -72,6 +80,7 @@ def _rows(
             "collect them with collect.expected_labels=false"
         )
     names = (*internal.input_names, *feature_names_of(internal))
+    classes = lump_classes_of(internal)  # K lumps: each window's class before and after
     device, dt = simulator.device, simulator.dt
     state = simulator.initial_state(n_cells, start, equilibration_time)
     jump_probability = perturb_rate * dt
@@ -101,7 +110,9 @@ def _rows(
             since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
         recorded = k % record_every == 0
         age_before, censored_before = age, censored
-        before = _internal_state(simulator) if expected and recorded else None
+        before = (
+            _internal_state(simulator) if recorded and (expected or classes is not None) else None
+        )
         x, phi_before, phi_after = _one_step(simulator, state)
         age, censored = tick(age, phi_before, phi_after), censored & (phi_after == phi_before)
         if not recorded:
@@ -129,9 +140,13 @@ def _rows(
         if clock:
             chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
             chunk[CENSORED] = censored_before[rows].cpu().numpy()
-        if before is not None:
+        if expected:
             p_next = expected_phi_next_of(internal)(before, x, dt)[rows]  # type: ignore[misc]
             chunk[EXPECTED] = p_next.float().cpu().numpy()
+        if classes is not None:
+            after = simulator.decision.fused_state()  # type: ignore[attr-defined]
+            chunk[CLASS] = classes.classify(before)[rows].to(torch.int16).cpu().numpy()
+            chunk[CLASS_NEXT] = classes.classify(after)[rows].to(torch.int16).cpu().numpy()
         return chunk
 
     k = 0

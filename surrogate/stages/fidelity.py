@@ -60,8 +60,14 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.models.capabilities import has_exact_psi, signal_bounds_of, start_size_of
+from surrogate.models.capabilities import (
+    exact_class_step_of,
+    has_exact_psi,
+    signal_bounds_of,
+    start_size_of,
+)
 from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.classes import can_classify
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.memory import can_age
@@ -78,8 +84,10 @@ from surrogate.stages.settings import (
 from surrogate.stages.simulate import (
     COMPILE_CACHE,
     abstract_decision,
+    exact_class_decision,
     exact_clock_decision,
     exact_decision,
+    learned_class_decision,
 )
 from surrogate.stages.train import load_abstraction, read_metrics, resolve_abstraction, train
 
@@ -126,6 +134,8 @@ class FidelitySettings:
     backend: str = "auto"
     #: the clocks' caps (s) of an exact psi with a switch clock beside candidates with one
     exact_clocks: tuple[float, ...] = ()
+    #: the exact K-lumps chain beside candidates with gp.lumps=classes
+    exact_classes: bool = False
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> FidelitySettings:
@@ -173,9 +183,13 @@ class FidelitySettings:
         if exact and can_age(setup.model.internal):
             ages = sorted({c.train.max_age for c in candidates if c.train.history == "age"})
             clocks = tuple(ages[:1])  # one reference row: the candidates share gp.max_age
+        internal = setup.model.internal
+        exact_classes = (exact and any(c.train.lumps == "classes" for c in candidates)
+                         and can_classify(internal) and exact_class_step_of(internal) is not None
+                         and len(internal.signal_names) == 1)  # fmt: skip
         return cls(setup, fields, tuple(candidates), exact, f, times,
                    bool(c.get("compile", False)), Job.from_config(cfg),
-                   validate_backend(c), clocks)  # fmt: skip
+                   validate_backend(c), clocks, exact_classes)  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """The candidates' training identities, the fields and the run and check settings."""
@@ -186,6 +200,7 @@ class FidelitySettings:
             "candidates": [c.train.identity() for c in self.candidates],
             "exact_psi": self.exact_psi,
             **({"exact_clocks": list(self.exact_clocks)} if self.exact_clocks else {}),
+            **({"exact_classes": True} if self.exact_classes else {}),
             "fidelity": {**self.options, "times": list(self.times)},
             "compile": self.compile,
             "backend": self.backend,
@@ -207,8 +222,10 @@ class FidelitySettings:
 
 #: the candidate row of the exact psi with a switch clock
 EXACT_CLOCK = "exact+clock"
+#: the candidate row of the exact K-lumps chain
+EXACT_CLASSES = "exact+classes"
 #: reference rows (not learned abstractions): not counted in the summary's checks
-REFERENCES = ("exact", EXACT_CLOCK)
+REFERENCES = ("exact", EXACT_CLOCK, EXACT_CLASSES)
 
 #: decision.mode of the abstractions under test
 MODES = ("lookup", "classifier")
@@ -392,11 +409,21 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         for name in settings.fields:
             reps.append(Replicate(clocked, fields[name], n, seed + 2 * offset, start))
             labels.append(f"{EXACT_CLOCK}|{name}")
+    if settings.exact_classes:
+        # the exact K-lumps chain: the limit of the candidates with gp.lumps=classes
+        classed = exact_class_decision(model, setup.dt, job.device, EXACT_CLASSES)
+        for name in settings.fields:
+            reps.append(Replicate(classed, fields[name], n, seed + 2 * offset, start))
+            labels.append(f"{EXACT_CLASSES}|{name}")
     for i, c in enumerate(settings.candidates):
-        psi = load_abstraction(resolve_abstraction(c.train), device=job.device)
-        decision, _ = abstract_decision(model, psi, c.train.setup.dt, c.train.max_age,
-                                        str(o.get("mode", "lookup")), o.get("lookup_size"),
-                                        job.device)  # fmt: skip
+        directory = resolve_abstraction(c.train)
+        if c.train.lumps == "classes":
+            decision, _ = learned_class_decision(model, directory, job.device)
+        else:
+            psi = load_abstraction(directory, device=job.device)
+            decision, _ = abstract_decision(model, psi, c.train.setup.dt, c.train.max_age,
+                                            str(o.get("mode", "lookup")), o.get("lookup_size"),
+                                            job.device)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")
@@ -444,7 +471,8 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
     factor, ks_max, tol = float(o["ks_factor"]), float(o["ks_max"]), float(o["duration_tolerance"])
     lumps = settings.setup.model.internal.lump_names
     candidates = (["exact"] if settings.exact_psi else []) + (
-        [EXACT_CLOCK] if settings.exact_clocks else []) + [
+        [EXACT_CLOCK] if settings.exact_clocks else []) + (
+        [EXACT_CLASSES] if settings.exact_classes else []) + [
         c.label for c in settings.candidates]  # fmt: skip
     rows = []
     for name in settings.fields:

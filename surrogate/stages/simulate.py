@@ -25,6 +25,7 @@ from surrogate.gp import PsiClassifier, PsiLookupTable
 from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
 from surrogate.models.base import FeatureMap, Model
 from surrogate.models.capabilities import signal_bounds_of
+from surrogate.simulate.classes import ClassDecision, exact_class_table
 from surrogate.simulate.decision import (
     AbstractDecision,
     DecisionLayer,
@@ -83,6 +84,8 @@ def build_decision(
     if d.name == "full":
         return FullDecision(model.internal), {}
     if d.name == "exact":
+        if d.lumps == "classes":
+            return exact_class_decision(model, settings.setup.dt, device), {"lumps": "classes"}
         if d.history == "age":
             return exact_clock_decision(model, settings.setup.dt, d.max_age, device), {}
         return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
@@ -92,10 +95,41 @@ def build_decision(
     from surrogate.stages.train import load_abstraction, resolve_abstraction
 
     directory = resolve_abstraction(d.train)
-    psi = load_abstraction(directory, device=device)
-    layer, info = abstract_decision(model, psi, d.train.setup.dt, d.train.max_age,
-                                    d.mode or "lookup", d.lookup_size, device)  # fmt: skip
+    if d.train.lumps == "classes":
+        layer, info = learned_class_decision(model, directory, device)
+    else:
+        psi = load_abstraction(directory, device=device)
+        layer, info = abstract_decision(model, psi, d.train.setup.dt, d.train.max_age,
+                                        d.mode or "lookup", d.lookup_size, device)  # fmt: skip
     return layer, {"abstraction_dir": str(directory), **info}
+
+
+def learned_class_decision(
+    model: Model, directory: Path, device: torch.device, name: str = "abstract"
+) -> tuple[DecisionLayer, dict[str, Any]]:
+    """The learned K-lumps chain (``gp.lumps=classes``) of a fit directory on ``device``."""
+    from surrogate.stages.train import load_class_chain
+
+    table = load_class_chain(directory, device)
+    featurize = model.featurizer(table.input_names)
+    log.info("K-lumps chain over %d classes, table %s over %s", table.n_classes, table.shape,
+             table.input_names)  # fmt: skip
+    return ClassDecision(table, model.internal, featurize, name), {
+        "inputs": list(table.input_names),
+        "lumps": "classes",
+        "classes": list(table.class_names),
+    }
+
+
+def exact_class_decision(
+    model: Model, dt: float, device: torch.device, name: str = "exact"
+) -> ClassDecision:
+    """The K-lumps chain driven by the exact class-to-class law of adapted cells
+    (``decision.lumps=classes``): the limit of a learned one."""
+    table = exact_class_table(model.internal, dt).to(device)
+    featurize = FeatureMap(model.internal, model.internal.signal_names)
+    log.info("exact K-lumps chain over %d classes: table %s", table.n_classes, table.shape)
+    return ClassDecision(table, model.internal, featurize, name)
 
 
 def exact_decision(

@@ -41,9 +41,11 @@ from surrogate.gp import (
     psi_grid_frame,
     save_psi,
 )
+from surrogate.gp.classes import fit_class_law
 from surrogate.gp.diagnostics import plot_psi_errors, psi_errors
 from surrogate.io import (
     MANIFEST,
+    load_tensors,
     make_once,
     read_csv,
     read_json,
@@ -51,13 +53,15 @@ from surrogate.io import (
     read_parquet,
     require_artefact,
     save_figure,
+    save_tensors,
     write_atomic,
     write_csv,
     write_json,
     write_manifest,
 )
 from surrogate.models.base import Model
-from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
+from surrogate.models.capabilities import has_exact_psi, lump_classes_of, signal_bounds_of
+from surrogate.simulate.classes import ClassTable
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
@@ -75,6 +79,8 @@ GRID = "psi_grid.csv"
 SURFACES_FIGURE = "psi_surfaces.png"
 DIAGNOSTIC_FIGURE = "psi_diagnostic.png"
 HISTORY_FIGURE = "training_history.png"
+#: the K-lumps chain's learned law (gp.lumps=classes), a ClassTable's state
+CLASS_CHAIN = "class_chain.pt"
 LABELS = ("phi", "phi_next")
 
 
@@ -197,6 +203,9 @@ def _fit(
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
                       device=job.device, lump_names=lumps,
                       label=settings.label_column(table.columns))  # fmt: skip
+        chain = (
+            _fit_class_chain(settings, table, psi.domain) if settings.lumps == "classes" else None
+        )
     except NumericalError as exc:
         # nothing was written: a previous complete fit in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")
@@ -229,6 +238,10 @@ def _fit(
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     save_psi(out / PSI, psi, {"settings": settings.fit_identity(), "source": source})
+    if chain is not None:
+        table_state, metrics["class_chain"] = chain
+        save_tensors(out / CLASS_CHAIN, {"class_chain": table_state,
+                                         "metadata": {"settings": settings.fit_identity()}})  # fmt: skip
     write_json(out / FIT_METRICS, metrics)
     save_figure(out / HISTORY_FIGURE, plot_training_history(
         {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
@@ -254,6 +267,35 @@ def _fit(
         )  # fmt: skip
     log.info("trained both classifiers in %.1f s on %d thread(s); fit in %s", wall,
              settings.fit_threads, out)  # fmt: skip
+
+
+def _fit_class_chain(
+    settings: TrainSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The K-lumps chain (gp.lumps=classes) over the two-state fit's domain: its table's state
+    and its metrics."""
+    model = settings.setup.model
+    classes = lump_classes_of(model.internal)
+    assert classes is not None  # the settings checked it
+    law, metrics = fit_class_law(table, settings.inputs, len(classes.names), dict(domain),
+                                 settings.gp, progress=settings.job.progress,
+                                 device=settings.job.device)  # fmt: skip
+    chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
+                       classes.lumps, settings.setup.dt)  # fmt: skip
+    log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
+             metrics["classifiers"], metrics["constant_steps"])  # fmt: skip
+    return chain.to_state(), metrics
+
+
+def load_class_chain(
+    directory: str | os.PathLike, device: str | torch.device = "cpu"
+) -> ClassTable:
+    """The K-lumps chain's law of a fit or train directory (``gp.lumps=classes``)."""
+    path = Path(directory) / CLASS_CHAIN
+    obj = load_tensors(path, made_by="python scripts/train.py gp.lumps=classes")
+    if not isinstance(obj, dict) or "class_chain" not in obj:
+        raise ArtefactError(f"{path} is not a saved class chain (no 'class_chain' entry)")
+    return ClassTable.from_state(obj["class_chain"]).to(device)
 
 
 def _train(
@@ -284,7 +326,8 @@ def _train(
     metrics["diagnostic"] = diagnostic
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
-    for name in (PSI, HISTORY_FIGURE):  # the fit's own files, for whoever reads this directory
+    own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.lumps == "classes" else ()))
+    for name in own:  # the fit's own files, for whoever reads this directory
         write_atomic(out / name, lambda tmp, name=name: shutil.copyfile(fit_dir / name, tmp))
     write_json(out / METRICS, metrics)
     write_csv(out / GRID, grid)

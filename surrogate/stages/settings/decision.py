@@ -9,7 +9,8 @@ from typing import Any
 
 from surrogate.config import field_config, grid_size, to_dict
 from surrogate.errors import ConfigError
-from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
+from surrogate.models.capabilities import exact_class_step_of, has_exact_psi, signal_bounds_of
+from surrogate.simulate.classes import LUMPINGS, can_classify
 from surrogate.simulate.memory import can_age, history_setting
 from surrogate.stages.settings.common import ModelSetup
 from surrogate.stages.settings.train import TrainSettings
@@ -31,6 +32,8 @@ class DecisionSettings:
     #: decision=exact: none | age (the exact psi with a switch clock) and the clock's cap (s)
     history: str = "none"
     max_age: float = 5.0
+    #: decision=exact: phi | classes (the exact K-lumps chain over the model's classes)
+    lumps: str = "phi"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup) -> DecisionSettings:
@@ -75,11 +78,28 @@ class DecisionSettings:
                         f"decision.mode=lookup needs the model's signal bounds; model "
                         f"{setup.model.name!r} declares none: use decision.mode=direct"
                     )
-            return cls(name, d, mode, sizes, history=history, max_age=max_age)
+            lumps = d.get("lumps", "phi")
+            if lumps not in LUMPINGS:
+                raise ConfigError(f"decision.lumps must be one of {list(LUMPINGS)}, got {lumps!r}")
+            if lumps == "classes" and (
+                history != "none" or mode != "lookup" or not can_classify(internal)
+                or exact_class_step_of(internal) is None or len(internal.signal_names) != 1
+            ):  # fmt: skip
+                raise ConfigError(
+                    f"decision.lumps=classes needs decision.mode=lookup, no clock and a model "
+                    f"with classes and their exact law over one signal (exact_class_step); "
+                    f"model {setup.model.name!r}, mode {mode!r}, history {history!r}"
+                )
+            return cls(name, d, mode, sizes, history=history, max_age=max_age, lumps=lumps)
         train_field = str(d.get("train_field"))
         train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
         train = TrainSettings.from_config(train_cfg)
         sizes = None
+        if train.lumps == "classes" and mode != "lookup":
+            raise ConfigError(
+                "gp.lumps=classes: the K-lumps chain is a table (decision.mode=lookup), it has "
+                f"no classifier mode; got decision.mode={mode!r}"
+            )
         if mode == "lookup":
             if len(train.inputs) > 3:
                 raise ConfigError(
@@ -92,7 +112,10 @@ class DecisionSettings:
     def identity(self) -> dict[str, Any]:
         """What of the decision defines a run (the abstraction by its fit's identity: the
         diagnostic and the output grid do not change the psi a run uses)."""
-        out: dict[str, Any] = {"decision": self.config}
+        config = self.config
+        if config.get("lumps", "phi") == "phi":  # runs keep the identity they had before K lumps
+            config = {k: v for k, v in config.items() if k != "lumps"}
+        out: dict[str, Any] = {"decision": config}
         if self.train is not None:
             out["abstraction"] = self.train.fit_identity()
         return out

@@ -16,7 +16,8 @@ from surrogate.config import grid_size, non_negative, positive, to_dict, validat
 from surrogate.errors import ConfigError
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
-from surrogate.models.capabilities import start_size_of
+from surrogate.models.capabilities import lump_classes_of, start_size_of
+from surrogate.simulate.classes import LUMPINGS
 from surrogate.simulate.memory import AGE, history_setting
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
@@ -30,9 +31,11 @@ from surrogate.stages.settings.occupancy import OccupancySettings
 
 #: keys of the gp group that are not GP hyperparameters
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
-            "clock_bins")  # fmt: skip
+            "clock_bins", "lumps")  # fmt: skip
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
 GP_CLOCK = ("history", "max_age", "clock_bins")
+#: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
+GP_CLASSES = ("lumps",)
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
@@ -92,6 +95,9 @@ class TrainSettings:
     #: gp.history: none | age (psi also over the switch clock, its last input) and its cap (s)
     history: str = "none"
     max_age: float = 5.0
+    #: gp.lumps: phi (the two-state chain) | classes (also the K-lumps chain over the model's
+    #: classes, :mod:`surrogate.gp.classes`)
+    lumps: str = "phi"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
@@ -121,6 +127,17 @@ class TrainSettings:
                 clock_bins = gp_config.get("clock_bins", gp.bins)
                 gp = replace(gp, bins=[gp.bins] * len(inputs) + [clock_bins])  # validated again
             inputs = (*inputs, AGE)
+        lumps = gp_config.get("lumps", "phi")
+        if lumps not in LUMPINGS:
+            raise ConfigError(f"gp.lumps must be one of {list(LUMPINGS)}, got {lumps!r}")
+        if lumps == "classes":
+            if lump_classes_of(setup.model.internal) is None:
+                raise ConfigError(
+                    f"gp.lumps=classes: model {setup.model.name!r} declares no classes finer "
+                    f"than phi (class_names, class_lumps, classes on its internal model)"
+                )
+            if history != "none":
+                raise ConfigError("gp.lumps=classes takes no switch clock: use gp.history=none")
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
@@ -154,7 +171,7 @@ class TrainSettings:
                 )
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
                    int(threads) if threads is not None else torch.get_num_threads(),
-                   history, max_age)  # fmt: skip
+                   history, max_age, lumps)  # fmt: skip
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
@@ -182,6 +199,8 @@ class TrainSettings:
         gp = {k: v for k, v in self.gp_config.items() if k not in GP_NOT_FIT}
         if self.history == "none":  # fits without a clock keep the identity they had before it
             gp = {k: v for k, v in gp.items() if k not in GP_CLOCK}
+        if self.lumps == "phi":  # and two-state fits the one they had before K lumps
+            gp = {k: v for k, v in gp.items() if k not in GP_CLASSES}
         return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
                 "device": self.job.device_type}  # fmt: skip
 
@@ -194,8 +213,9 @@ class TrainSettings:
     def _label(self) -> dict[str, Any]:
         label = (self.setup.label() if isinstance(self.source, CollectSettings)
                  else {"table": self.source.path.stem})  # fmt: skip
+        lumps = {"lumps": self.lumps} if self.lumps != "phi" else {}
         return {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
-                "inducing": self.gp.n_inducing, "seed": self.seed}  # fmt: skip
+                "inducing": self.gp.n_inducing, **lumps, "seed": self.seed}  # fmt: skip
 
     @functools.cached_property
     def fit_directory(self) -> Path:
