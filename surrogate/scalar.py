@@ -3,7 +3,8 @@
 A formula is a plain Python function of scalars: arithmetic, comparisons, ``if``/``for`` on
 plain ints and bools, calls of other formulas and of the primitives of this module (``exp``,
 ``log``, ``log1p``, ``expm1``, ``cos``, ``sin``, ``sigmoid``, ``where``, ``clamp``,
-``clamp_min``, ``maximum``, ``minimum``, ``remainder``, ``to64``, ``f32``, ``flag``), taken
+``clamp_min``, ``maximum``, ``minimum``, ``remainder``, ``to64``, ``f32``, ``flag``,
+``choose``), taken
 as globals. Its module imports the primitives from here, so its functions *are* the torch
 versions (elementwise over tensors, Python floats as constants). :func:`numba_formulas`
 re-binds the same code objects to the numba primitives and ``numba.njit``-s them (inlined into
@@ -28,9 +29,25 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import (
+    Tensor,
+    clamp,
+    clamp_min,
+    cos,
+    exp,
+    expm1,
+    log,
+    log1p,
+    maximum,
+    minimum,
+    remainder,
+    sigmoid,
+    sin,
+    where,
+)
 
 __all__ = [
+    "choose",
     "clamp",
     "clamp_min",
     "cos",
@@ -52,22 +69,8 @@ __all__ = [
     "where",
 ]
 
-# -- the torch primitives (the formulas' own globals) ---------------------------------------
-exp = torch.exp
-log = torch.log
-log1p = torch.log1p
-expm1 = torch.expm1
-cos = torch.cos
-sin = torch.sin
-sigmoid = torch.sigmoid
-where = torch.where
-clamp = torch.clamp
-clamp_min = torch.clamp_min
-maximum = torch.maximum
-minimum = torch.minimum
-remainder = torch.remainder
 
-
+# -- the torch primitives (the formulas' own globals): torch's, and these three ----------------
 def to64(x: Tensor) -> Tensor:
     """``x`` in float64."""
     return x.to(torch.float64)
@@ -84,8 +87,17 @@ def flag(condition: Tensor) -> Tensor:
     return condition.to(torch.float32)
 
 
+def choose(index: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+    """``a``, ``b`` or ``c`` where ``index`` (float 0., 1., 2.; ``a``, ``b``, ``c`` broadcast
+    along its first dimension) is 0, 1 or 2: a gather from the stacked choices eagerly (about
+    twice as fast), ``where`` blends when compiled (SIMD lanes); the same values."""
+    if torch.compiler.is_compiling():
+        return torch.where(index == 0, a, torch.where(index == 1, b, c))
+    return torch.stack([a, b, c]).gather(0, index.long())
+
+
 PRIMITIVES = ("exp", "log", "log1p", "expm1", "cos", "sin", "sigmoid", "where", "clamp",
-              "clamp_min", "maximum", "minimum", "remainder", "to64", "f32", "flag")  # fmt: skip
+              "clamp_min", "maximum", "minimum", "remainder", "to64", "f32", "flag", "choose")  # fmt: skip
 
 #: numba options of the compiled formulas (those of the kernels that inline them)
 JIT_OPTIONS = {"nogil": True, "fastmath": False, "error_model": "numpy"}
@@ -128,8 +140,11 @@ def numba_primitives() -> dict[str, Any]:
     def flag(condition):
         return np.float32(1.0) if condition else np.float32(0.0)
 
+    def choose(index, a, b, c):
+        return a if index == 0 else (b if index == 1 else c)
+
     jitted = {f.__name__: jit(f) for f in (sigmoid, where, clamp, clamp_min, maximum, minimum,
-                                           remainder, flag)}  # fmt: skip
+                                           remainder, flag, choose)}  # fmt: skip
     return {
         "exp": np.exp, "log": np.log, "log1p": np.log1p, "expm1": np.expm1, "cos": np.cos,
         "sin": np.sin, "to64": np.float64, "f32": np.float32, **jitted,

@@ -38,3 +38,10 @@ def test_the_formulas_module_stays_as_it_was() -> None:
     """numba_formulas re-binds copies: the original functions still compute over tensors."""
     numba_formulas((_half,))
     assert torch.equal(_half(torch.ones(2)), torch.full((2,), 0.5))
+
+
+def test_both_namespaces_name_the_same_primitives() -> None:
+    from surrogate import scalar
+
+    assert set(scalar.numba_primitives()) == set(scalar.PRIMITIVES)
+    assert all(hasattr(scalar, name) for name in scalar.PRIMITIVES)

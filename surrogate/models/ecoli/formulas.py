@@ -21,6 +21,7 @@ from types import ModuleType
 from typing import Any
 
 from surrogate.scalar import (
+    choose,
     clamp,
     clamp_min,
     cos,
@@ -193,8 +194,8 @@ def motor_thresholds(k_plus, k_minus, dt, mu):
 
 def next_motor_state(state, u, t1_s, t1_c, t1_n, t2_cw, t2_n):
     """A motor's next state (float 0., 1., 2.) from its ``state`` and uniform ``u``."""
-    t1 = where(state == S, t1_s, where(state == N, t1_n, t1_c))
-    t2 = where(state == N, t2_n, t2_cw)
+    t1 = choose(state, t1_s, t1_c, t1_n)  # states S, C, N
+    t2 = choose(state, t2_cw, t2_cw, t2_n)
     return flag(u >= t1) + flag(u >= t2)
 
 

@@ -16,6 +16,7 @@ from torch import Tensor
 from surrogate.ctmc import gillespie
 from surrogate.ctmc.lumped import lumped_age_psi, lumped_class_step
 from surrogate.models.base import InternalState, Randoms
+from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
     N,
@@ -75,9 +76,8 @@ class MotorInternalModel:
         self.fusable = params.motor_sampler != "ssa"
         self.randoms = Randoms(uniform64=int(params.n_motors) if self.fusable else 0)
         # dG over CheY-P in [0, alpha]: the whole range the signal can take
-        yp_max = params.alpha
-        low = params.g0 / 4.0 - params.g1 / 2.0 * yp_max / (yp_max + params.k_d)
-        self.signal_bounds = {"dG": (low, params.g0 / 4.0)}
+        c = formulas.constants(params)
+        self.signal_bounds = {"dG": (formulas.delta_g(params.alpha, c), formulas.delta_g(0.0, c))}
         # K lumps: (phi, number of CCW motors), e.g. "run/3 CCW"
         keys = motor_classes(params.n_motors)
         self.class_names = tuple(f"{self.lump_names[r]}/{c} CCW" for r, c in keys)
