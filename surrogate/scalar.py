@@ -4,7 +4,7 @@ A formula is a plain Python function of scalars: arithmetic, comparisons, ``if``
 plain ints and bools, calls of other formulas and of the primitives of this module (``exp``,
 ``log``, ``log1p``, ``expm1``, ``cos``, ``sin``, ``sigmoid``, ``where``, ``clamp``,
 ``clamp_min``, ``maximum``, ``minimum``, ``remainder``, ``to64``, ``f32``, ``flag``,
-``choose``), taken
+``choose``, ``complement_product``), taken
 as globals. Its module imports the primitives from here, so its functions *are* the torch
 versions (elementwise over tensors, Python floats as constants). :func:`numba_formulas`
 re-binds the same code objects to the numba primitives and ``numba.njit``-s them (inlined into
@@ -50,6 +50,7 @@ __all__ = [
     "choose",
     "clamp",
     "clamp_min",
+    "complement_product",
     "cos",
     "exp",
     "expm1",
@@ -87,6 +88,12 @@ def flag(condition: Tensor) -> Tensor:
     return condition.to(torch.float32)
 
 
+def complement_product(u: Tensor, lo: int, hi: int) -> Tensor:
+    """The product of ``1 - u[j]`` for rows ``j`` from ``lo`` to ``hi - 1`` (at least one),
+    in row order (torch's reduction along the rows is sequential, as numba's loop)."""
+    return torch.prod(1.0 - u[lo:hi], dim=0)
+
+
 def choose(index: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
     """``a``, ``b`` or ``c`` where ``index`` (float 0., 1., 2.; ``a``, ``b``, ``c`` broadcast
     along its first dimension) is 0, 1 or 2: a gather from the stacked choices eagerly (about
@@ -97,7 +104,8 @@ def choose(index: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
 
 
 PRIMITIVES = ("exp", "log", "log1p", "expm1", "cos", "sin", "sigmoid", "where", "clamp",
-              "clamp_min", "maximum", "minimum", "remainder", "to64", "f32", "flag", "choose")  # fmt: skip
+              "clamp_min", "maximum", "minimum", "remainder", "to64", "f32", "flag", "choose",
+              "complement_product")  # fmt: skip
 
 #: numba options of the compiled formulas (those of the kernels that inline them)
 JIT_OPTIONS = {"nogil": True, "fastmath": False, "error_model": "numpy"}
@@ -140,11 +148,17 @@ def numba_primitives() -> dict[str, Any]:
     def flag(condition):
         return np.float32(1.0) if condition else np.float32(0.0)
 
+    def complement_product(u, lo, hi):
+        prod = np.float32(1.0) - u[lo]
+        for j in range(lo + 1, hi):
+            prod = prod * (np.float32(1.0) - u[j])
+        return prod
+
     def choose(index, a, b, c):
         return a if index == 0 else (b if index == 1 else c)
 
     jitted = {f.__name__: jit(f) for f in (sigmoid, where, clamp, clamp_min, maximum, minimum,
-                                           remainder, flag, choose)}  # fmt: skip
+                                           remainder, flag, choose, complement_product)}  # fmt: skip
     return {
         "exp": np.exp, "log": np.log, "log1p": np.log1p, "expm1": np.expm1, "cos": np.cos,
         "sin": np.sin, "to64": np.float64, "f32": np.float32, **jitted,

@@ -24,6 +24,7 @@ from surrogate.scalar import (
     choose,
     clamp,
     clamp_min,
+    complement_product,
     cos,
     exp,
     expm1,
@@ -137,15 +138,12 @@ def turning(phi_before, phi_after, per_tumble):
 
 
 def tumble_angle(u, first, k, scale):
-    """A Gamma(k, scale) angle from ``u[first]`` ... ``u[first + k - 1]`` (uniforms in [0, 1)):
-    scale * (sum of k Exp(1)) = -scale ln(prod of (1 - u)), the products in groups of 4
-    (1 - u lies in (0, 1], and a product of <= 4 of them stays a normal float32)."""
-    total = f32(0.0)
-    for i in range(0, k, 4):
-        prod = f32(1.0) - u[first + i]
-        for j in range(first + i + 1, first + min(i + 4, k)):
-            prod = prod * (f32(1.0) - u[j])
-        total = total + log(prod)
+    """A Gamma(k, scale) angle from ``u[first]`` ... ``u[first + k - 1]`` (uniforms in [0, 1),
+    k >= 1): scale * (sum of k Exp(1)) = -scale ln(prod of (1 - u)), the products in groups of
+    4 (1 - u lies in (0, 1], and a product of <= 4 of them stays a normal float32)."""
+    total = log(complement_product(u, first, first + min(4, k)))
+    for i in range(4, k, 4):
+        total = total + log(complement_product(u, first + i, first + min(i + 4, k)))
     return total * (-scale)
 
 

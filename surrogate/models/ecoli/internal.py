@@ -37,12 +37,7 @@ from surrogate.models.ecoli.motors import (
     states_from_counts,
 )
 from surrogate.models.ecoli.parameters import EcoliParameters
-from surrogate.models.ecoli.signalling import (
-    cheyp_from_free_energy,
-    delta_g,
-    free_energy,
-    rates_from_delta_g,
-)
+from surrogate.models.ecoli.signalling import rates_from_delta_g
 
 INPUTS = ("m", "L")
 FEATURES = ("F", "cheyp", "dG")
@@ -90,12 +85,11 @@ class MotorInternalModel:
         unknown = [n for n in names if n not in INPUTS + FEATURES]
         if unknown:
             raise KeyError(f"unknown feature(s) {unknown}; known: {list(INPUTS + FEATURES)}")
-        p = self.params
         cols = {"m": x[:, 0], "L": x[:, 1]}
         if any(n in FEATURES for n in names):  # F -> CheY-P -> dG, each computed once
-            cols["F"] = free_energy(cols["m"], cols["L"], p)
-            cols["cheyp"] = cheyp_from_free_energy(cols["F"], p)
-            cols["dG"] = delta_g(cols["cheyp"], p)
+            c = formulas.constants(self.params)
+            terms = formulas.log_receptor_terms(cols["L"], c)
+            cols["F"], _, cols["cheyp"], cols["dG"] = formulas.signal(cols["m"], terms, c)
         return torch.stack([cols[n] for n in names], -1)
 
     def rates(self, x: Tensor) -> tuple[Tensor, Tensor]:
