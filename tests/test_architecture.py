@@ -19,7 +19,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
           "models/capabilities.py", "models/packed.py",
-          "fields.py", "field_formula.py", "field_kernel.py", "io.py", "config.py",
+          "fields.py", "field_formula.py", "field_kernel.py", "scalar.py", "io.py", "config.py",
           "errors.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = (

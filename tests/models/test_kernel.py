@@ -7,10 +7,11 @@ cell elsewhere: none does in any case here), and after 150 steps (300 for the ph
 abstraction) positions and headings within ``MOVE_ATOL``, methylation and inputs within
 ``STATE_ATOL`` (float32 ulps at their scale, twice the largest differences measured over every
 case of this file; the transcendental functions of each step round differently in numba and
-torch, and those differences accumulate over the steps). This checks every formula
-the kernel transcribes (fields, signalling, motor transition terms and sampling, lookup
+torch, and those differences accumulate over the steps; the operations are the same, in the
+same order: the kernel compiles the torch step's formulas, surrogate.models.ecoli.formulas).
+This checks the kernel's loop (fields, signalling, motor transition terms and sampling, lookup
 interpolation over 1-3 features, movement, tumble angles, OU, segment bookkeeping) against the
-functions the rest of the package uses.
+torch step.
 """
 
 from __future__ import annotations

@@ -16,7 +16,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
@@ -30,6 +29,7 @@ from surrogate.models.ecoli.body import (
     disc_jump,
     disc_options,
 )
+from surrogate.models.ecoli.formulas import activity
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
 from surrogate.models.packed import PackedDecision
@@ -75,7 +75,7 @@ class RunAndTumbleBody(ChemotacticBody):
         return free_energy(x[:, 0], x[:, 1], self.params)
 
     def _activity(self, x: Tensor) -> Tensor:
-        return torch.sigmoid(-self._energy(x))
+        return activity(self._energy(x))
 
     def validate(self, dt: float) -> None:
         """The OU is stepped by Euler-Maruyama: dt must be well below tau."""

@@ -20,6 +20,7 @@ from torch import Tensor
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, Randoms, check_options
+from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import adapted_methylation, ou_step
 
@@ -130,29 +131,19 @@ class ChemotacticBody:
         one row for its sign; flags are float 0/1 (see :mod:`surrogate.models.base`).
         """
         position, heading = state["position"], state["heading"]
+        c = formulas.constants(self.params, dt)
         # x and y as separate columns keep a compiled kernel in SIMD lanes
-        step_len = phi_after * (self.params.speed * dt)
-        px = position[:, 0] + torch.cos(heading) * step_len
-        py = position[:, 1] + torch.sin(heading) * step_len
-        turning = phi_before * (1.0 - phi_after) if self.per_tumble else 1.0 - phi_after
-        angle = extra if extra is not None else self._gamma_angle(u)
-        signed = torch.where(u[-1] < 0.5, -angle, angle)
-        turned = torch.remainder(heading + signed, 2 * math.pi)
+        px, py = formulas.run_step(position[:, 0], position[:, 1], heading, phi_after, c)
+        turning = formulas.turning(phi_before, phi_after, self.per_tumble)
+        if extra is None:  # Gamma(k, scale) from the first gamma_k rows of u
+            extra = formulas.tumble_angle(u, 0, self.gamma_k, c[formulas.TUMBLE_SCALE])
+        turned = formulas.turn(heading, extra, u[-1], c)
         moved = {
             "position": torch.stack([px, py], -1),
             "heading": torch.where(turning > 0, turned, heading),
             "m": state["m"],
         }
         return self.adapt(moved, x, dt, u, z)
-
-    def _gamma_angle(self, u: Tensor) -> Tensor:
-        """Gamma(k, scale) = scale * (sum of k Exp(1)) = -scale ln(prod of k uniforms).
-
-        1 - u lies in (0, 1], and a product of <= 4 of them stays a normal float32.
-        """
-        k = self.gamma_k
-        logs = [torch.log(torch.prod(1.0 - u[i : min(i + 4, k)], dim=0)) for i in range(0, k, 4)]
-        return sum(logs[1:], logs[0]) * (-self.tumble_scale)
 
     def sample_extra(self, n_cells: int, device: torch.device) -> Tensor | None:
         """Gamma tumble angles ``(n,)`` for a non-integer shape (else None)."""

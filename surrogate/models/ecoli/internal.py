@@ -16,6 +16,7 @@ from torch import Tensor
 from surrogate.ctmc import gillespie
 from surrogate.ctmc.lumped import lumped_age_psi, lumped_class_step
 from surrogate.models.base import InternalState, Randoms
+from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
     N,
@@ -36,12 +37,7 @@ from surrogate.models.ecoli.motors import (
     states_from_counts,
 )
 from surrogate.models.ecoli.parameters import EcoliParameters
-from surrogate.models.ecoli.signalling import (
-    cheyp_from_free_energy,
-    delta_g,
-    free_energy,
-    rates_from_delta_g,
-)
+from surrogate.models.ecoli.signalling import rates_from_delta_g
 
 INPUTS = ("m", "L")
 FEATURES = ("F", "cheyp", "dG")
@@ -75,9 +71,8 @@ class MotorInternalModel:
         self.fusable = params.motor_sampler != "ssa"
         self.randoms = Randoms(uniform64=int(params.n_motors) if self.fusable else 0)
         # dG over CheY-P in [0, alpha]: the whole range the signal can take
-        yp_max = params.alpha
-        low = params.g0 / 4.0 - params.g1 / 2.0 * yp_max / (yp_max + params.k_d)
-        self.signal_bounds = {"dG": (low, params.g0 / 4.0)}
+        c = formulas.constants(params)
+        self.signal_bounds = {"dG": (formulas.delta_g(params.alpha, c), formulas.delta_g(0.0, c))}
         # K lumps: (phi, number of CCW motors), e.g. "run/3 CCW"
         keys = motor_classes(params.n_motors)
         self.class_names = tuple(f"{self.lump_names[r]}/{c} CCW" for r, c in keys)
@@ -90,12 +85,11 @@ class MotorInternalModel:
         unknown = [n for n in names if n not in INPUTS + FEATURES]
         if unknown:
             raise KeyError(f"unknown feature(s) {unknown}; known: {list(INPUTS + FEATURES)}")
-        p = self.params
         cols = {"m": x[:, 0], "L": x[:, 1]}
         if any(n in FEATURES for n in names):  # F -> CheY-P -> dG, each computed once
-            cols["F"] = free_energy(cols["m"], cols["L"], p)
-            cols["cheyp"] = cheyp_from_free_energy(cols["F"], p)
-            cols["dG"] = delta_g(cols["cheyp"], p)
+            c = formulas.constants(self.params)
+            terms = formulas.log_receptor_terms(cols["L"], c)
+            cols["F"], _, cols["cheyp"], cols["dG"] = formulas.signal(cols["m"], terms, c)
         return torch.stack([cols[n] for n in names], -1)
 
     def rates(self, x: Tensor) -> tuple[Tensor, Tensor]:

@@ -6,37 +6,36 @@ eager, ~0.12 ms compiled) whatever the number of cells; here one call advances e
 over threads with ``prange``. It consumes the *same* random numbers as the torch step (the
 simulator's :class:`~surrogate.simulate.loop.RandomBlock` rows, in the same layout), so with one
 seed it follows the torch path's trajectories up to float rounding (tested step by step against
-it); results never depend on the number of threads.
+it): both compute the same operations in the same order, but the elementary functions (exp,
+log, log1p, expm1, cos, sin) of torch's vectorised code and of numba's libm round differently
+by an ulp now and then. Results never depend on the number of threads.
 
-Every formula here is the scalar transcription of one torch function, named beside it, in the
-same precision (float32 state and signalling, float64 motor rates and transition terms); the
-tests compare each against its torch original:
-
-* fields: generated from each field's formula (:mod:`surrogate.field_kernel`: the built-in
-  fields and :class:`~surrogate.fields.ExpressionField`), as their torch code is;
-* signalling: :func:`~surrogate.models.ecoli.signalling.log_receptor_terms`, ``free_energy``,
-  ``cheyp_from_free_energy``, ``delta_g``, ``rates_from_delta_g``, ``ou_step``; the MWC activity
-  1 / (1 + exp(F)) as ``torch.sigmoid(-F)`` (the abstraction's feature ``activity`` of models
-  on this body whose internal model is driven by it, e.g. ``ecoli_phospho``);
-* motors: :func:`~surrogate.models.ecoli.motors.motor_transition_terms` /
-  ``motor_thresholds``, ``sample_motor_states``, ``run_flag_from_states``;
-* the abstraction: :func:`surrogate.gp.lookup._interpolate` (multilinear, torch's lerp);
-  the K-lumps chain's draw, ``surrogate.simulate.classes.ClassTable.draw`` (the same
-  uniforms in the same order: its classes follow the torch step's exactly);
-* movement and bookkeeping: :meth:`ChemotacticBody.move`, :meth:`Simulator._advance`.
+The body's formulas are not written here: the signal (receptor terms, F, activity, CheY-P,
+dG), the motor rates, the OU step, movement and tumble angles, and one motor's exact window
+(transition terms, thresholds, next state, RUN flag) are the scalar formulas of
+:mod:`surrogate.models.ecoli.formulas`, which the torch step evaluates over tensors and this
+kernel compiles per cell (:func:`surrogate.scalar.numba_formulas`), in the same operations and
+precision (float32 state and signalling, float64 motor rates and transition terms). Fields are
+generated from each field's formula (:mod:`surrogate.field_kernel`). What remains here is the
+loop: the lookup of the abstraction (:func:`surrogate.gp.lookup._interpolate`, multilinear,
+torch's lerp; the K-lumps chain's draw,
+``surrogate.simulate.classes.ClassTable.draw``, with the same uniforms in the same order), the
+per-cell control flow of the motors and the tumble (the torch step blends
+with ``where``) and :meth:`Simulator._advance`'s segment bookkeeping. The tests compare the
+kernel with the torch step.
 
 Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
 :func:`~surrogate.field_kernel.pack_field`; the decision layer as the engine packed it,
 :class:`~surrogate.models.packed.PackedDecision`: the kernel never reads the engine's decision
 layers or lookup tables); ``cache=True`` keeps the machine code on disk, so
 only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
-set is the precompiled one).
+set is the precompiled one) and again when the formulas' source changes
+(:func:`surrogate.scalar.renew_with`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import numba
@@ -45,9 +44,11 @@ import torch
 from numba import prange
 from torch import Tensor
 
+from surrogate import scalar
 from surrogate.field_kernel import field_set, field_value, pack_field
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import KernelUnsupported, Randoms
+from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
 from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
@@ -61,51 +62,17 @@ FEATURE_CODES = {"m": 0, "L": 1, "F": 2, "cheyp": 3, "dG": 4, "activity": 5}
 CLOCK_CODE = 6
 
 # -- float32 constants (signalling, OU, movement) and float64 constants (motors) ----------------
-P32_NAMES = (
-    "n_tar", "k_tar_off", "k_tar_on", "n_tsr", "k_tsr_off", "k_tsr_on", "eps0", "eps1", "alpha",
-    "g0_4", "g1_2", "k_d", "m0_offset", "dt_tau", "ou_scale", "m_min", "m_max", "step_len",
-    "tumble_scale", "two_pi",
-)  # fmt: skip
+P32_NAMES = formulas.CONSTANTS
 P64_NAMES = ("omega", "mu", "dt")
 
 _JIT = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _F32 = np.float32
 
 
-@numba.njit(inline="always", **_JIT)
-def _clamp(value, lo, hi):
-    """torch.clamp: NaN passes through (min/max would replace it by a bound)."""
-    if value < lo:
-        return lo
-    if value > hi:
-        return hi
-    return value
-
-
-@numba.njit(inline="always", **_JIT)
-def _log_receptor_terms(ligand, p):
-    """signalling.log_receptor_terms (float32)."""
-    tar = p[0] * (np.log1p(ligand / p[1]) - np.log1p(ligand / p[2]))
-    tsr = p[3] * (np.log1p(ligand / p[4]) - np.log1p(ligand / p[5]))
-    return tar + tsr
-
-
-@numba.njit(inline="always", **_JIT)
-def _activity(energy):
-    """The MWC activity torch.sigmoid(-F) = 1 / (1 + exp(F)) (float32), as
-    signalling.activity and the phospho network's input."""
-    return _F32(1.0) / (_F32(1.0) + np.exp(energy))
-
-
-@numba.njit(inline="always", **_JIT)
-def _signal(m, lrt, p):
-    """(F, activity, CheY-P, dG) from m and the receptor terms: signalling.free_energy,
-    :func:`_activity`, cheyp_from_free_energy (alpha sigmoid(-F)) and delta_g (float32)."""
-    energy = p[6] + p[7] * m + lrt
-    act = _activity(energy)
-    yp = p[8] * act
-    dg = p[9] - p[10] * yp / (yp + p[11])
-    return energy, act, yp, dg
+#: the body's formulas compiled (:mod:`surrogate.models.ecoli.formulas`), inlined here
+_F = formulas.compiled()
+_clamp = scalar.numba_primitives()["clamp"]  # torch.clamp: NaN passes through
+_log_receptor_terms, _activity, _signal = _F.log_receptor_terms, _F.activity, _F.signal
 
 
 @numba.njit(inline="always", **_JIT)
@@ -127,12 +94,6 @@ def _feature(code, m, ligand, energy, act, yp, dg, clock):
 
 
 @numba.njit(inline="always", **_JIT)
-def _h(x):
-    """motors._h: (1 - e^{-x}) / x, 1 at 0 (float64)."""
-    return -math.expm1(-x) / x if x > 0.0 else 1.0
-
-
-@numba.njit(inline="always", **_JIT)
 def _lerp(a, b, w):
     """torch.lerp's formula (float32)."""
     if abs(w) < _F32(0.5):
@@ -145,27 +106,14 @@ def _move_and_account(
     c, s, phi_before, phi_after, x, y, heading, u, body_row, gamma_k, per_tumble, p,
     seg, complete, ended,
 ):  # fmt: skip
-    """ChemotacticBody.move (without the OU step) and Simulator._advance's bookkeeping.
+    """ChemotacticBody.move (without the OU step; the angle drawn only when turning) and
+    Simulator._advance's bookkeeping.
 
     Returns the new (x, y, heading); writes the cell's segment state and ``ended[s, c]``."""
-    step_len = phi_after * p[17]
-    nx = x + np.cos(heading) * step_len
-    ny = y + np.sin(heading) * step_len
-    turning = phi_before * (_F32(1.0) - phi_after) if per_tumble else _F32(1.0) - phi_after
-    if turning > 0:
-        angle = _F32(0.0)
-        i = 0
-        while i < gamma_k:  # -scale * sum over groups of 4 of ln(prod(1 - u))
-            prod = _F32(1.0)
-            for j in range(i, min(i + 4, gamma_k)):
-                prod = prod * (_F32(1.0) - u[s, body_row + j, c])
-            angle = angle + np.log(prod)
-            i += 4
-        angle = angle * (-p[18])
-        if u[s, body_row + gamma_k, c] < _F32(0.5):
-            angle = -angle
-        mod = np.fmod(heading + angle, p[19])  # torch.remainder (fmod, then into [0, 2 pi))
-        heading = mod + p[19] if mod < 0 else mod
+    nx, ny = _F.run_step(x, y, heading, phi_after, p)
+    if _F.turning(phi_before, phi_after, per_tumble) > 0:
+        angle = _F.tumble_angle(u[s, :, c], body_row, gamma_k, p[formulas.TUMBLE_SCALE])
+        heading = _F.turn(heading, angle, u[s, body_row + gamma_k, c], p)
     # a segment ends when phi switches; the first one is left-censored
     switched = 1 if phi_after != phi_before else 0
     length = seg[c] + 1
@@ -177,54 +125,20 @@ def _move_and_account(
 
 
 @numba.njit(inline="always", **_JIT)
-def _ou(m, lrt, z, p):
-    """signalling.ou_step with the receptor terms already computed (float32)."""
-    m0 = (p[12] - lrt) / p[7]
-    value = m + (m0 - m) * p[13] + p[14] * z
-    return _clamp(value, p[15], p[16])
-
-
-@numba.njit(inline="always", **_JIT)
 def _motors_step(dg, motors, j, c, s, u64, motor_row, q):
-    """One exact window of cell c's motors (``motors[:, j]``, in place) at dG; its RUN flag.
-
-    motors.motor_transition_terms / motor_thresholds (float64), sample_motor_states and
-    run_flag_from_states."""
-    dt = q[2]
-    dg64 = np.float64(dg)
-    kp = q[0] * math.exp(dg64)
-    km = q[0] * math.exp(-dg64)
-    a = q[1] + kp
-    b = kp + km
-    em1_a = math.expm1(-a * dt)
-    em1_b = math.expm1(-b * dt)
-    g = -em1_a / a
-    lo = 1.0 + max(em1_a, em1_b)
-    ff = lo * dt * _h(abs(a - b) * dt)
-    relax = -em1_b / b
-    to_n = kp * relax
-    from_n = km * relax
-    cross = kp * km / b
-    p_cs = cross * max(g - ff, 0.0)
-    p_ss = (1.0 + em1_a) + p_cs
-    p_ns = min(cross * g + (km * km / b) * ff, from_n)
-    t2_cw = 1.0 - to_n
+    """One exact window of cell c's motors (``motors[:, j]``, in place) at dG; its RUN flag
+    (as motors.sample_motor_states and run_flag_from_states, motor by motor)."""
+    kp, km = _F.rates(dg, q[0])
+    t1_s, t1_c, t1_n, t2_cw, t2_n = _F.motor_thresholds(kp, km, q[2], q[1])
     n_ccw = _F32(0.0)
     lowest = _F32(2.0)
     for i in range(motors.shape[0]):
-        state = motors[i, j]
-        v = u64[s, motor_row + i, c]
-        if state == 0:
-            t1, t2 = p_ss, t2_cw
-        elif state == 2:
-            t1, t2 = p_ns, from_n
-        else:
-            t1, t2 = p_cs, t2_cw
-        new = _F32(1.0 if v >= t1 else 0.0) + _F32(1.0 if v >= t2 else 0.0)
+        new = _F.next_motor_state(motors[i, j], u64[s, motor_row + i, c], t1_s, t1_c, t1_n,
+                                  t2_cw, t2_n)  # fmt: skip
         motors[i, j] = new
-        n_ccw += max(new - _F32(1.0), _F32(0.0))
+        n_ccw += _F.ccw(new)
         lowest = min(lowest, new)
-    return _F32(1.0) if (n_ccw >= 2 and lowest > 0) else _F32(0.0)
+    return _F.run_flag(n_ccw, lowest)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -371,7 +285,7 @@ def _advance_range(
                 c, s, phi_now, phi_after, x, y, h, u, body_row, gamma_k, per_tumble, p,
                 seg, complete, ended,
             )  # fmt: skip
-            m = _ou(m, lrt, z[s, ou_row, c], p)
+            m = _F.ou_step(m, lrt, z[s, ou_row, c], p)
             phi_now = phi_after
         position[c, 0], position[c, 1], heading[c], meth[c] = x, y, h, m
         phi[c] = np.uint8(phi_now)
@@ -405,25 +319,19 @@ def advance_cells(
         )  # fmt: skip
 
 
+# numba's cache follows this file only: also the formulas' (inlined above)
+scalar.renew_with((_advance_range, advance_cells), (formulas, scalar))
+
+
 # ---------------------------------------------------------------------------------------------
 # The adaptor: from the simulator's objects (decision layers, fields, tensors) to flat arrays.
 # ---------------------------------------------------------------------------------------------
 def pack_parameters(params: EcoliParameters, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """The constants of the kernels: float32 ``P32_NAMES`` and float64 ``P64_NAMES``, each
-    computed in double as the torch code computes its Python-float factors, then rounded."""
-    p = params
-    values32 = {
-        "n_tar": p.n_tar, "k_tar_off": p.k_tar_off, "k_tar_on": p.k_tar_on,
-        "n_tsr": p.n_tsr, "k_tsr_off": p.k_tsr_off, "k_tsr_on": p.k_tsr_on,
-        "eps0": p.eps0, "eps1": p.eps1, "alpha": p.alpha,
-        "g0_4": p.g0 / 4.0, "g1_2": p.g1 / 2.0, "k_d": p.k_d,
-        "m0_offset": math.log(p.alpha / p.yp_adapted - 1.0) - p.eps0,
-        "dt_tau": dt / p.tau, "ou_scale": p.sigma_m * math.sqrt(2.0 * dt / p.tau),
-        "m_min": p.m_min, "m_max": p.m_max, "step_len": p.speed * dt,
-        "tumble_scale": math.radians(p.tumble_scale_deg), "two_pi": 2 * math.pi,
-    }  # fmt: skip
-    p32 = np.array([values32[k] for k in P32_NAMES], dtype=np.float32)
-    p64 = np.array([p.omega, p.mu, dt], dtype=np.float64)
+    """The constants of the kernels: float32 ``P32_NAMES`` (the torch step's Python floats,
+    :func:`~surrogate.models.ecoli.formulas.constants`, rounded as torch rounds them) and
+    float64 ``P64_NAMES``."""
+    p32 = np.array(formulas.constants(params, dt), dtype=np.float32)
+    p64 = np.array([params.omega, params.mu, dt], dtype=np.float64)
     return p32, p64
 
 

@@ -38,10 +38,11 @@ from surrogate.ctmc import (
     unit_transition_matrix,
 )
 from surrogate.ctmc.lumped import StateSpace, lumped_psi
+from surrogate.models.ecoli import formulas
+from surrogate.models.ecoli.formulas import C, N, S
 from surrogate.models.ecoli.parameters import EcoliParameters
 
 SPECIES = ("S", "C", "N")
-S, C, N = 0, 1, 2
 MOTOR_DTYPE = torch.float32  # dtype of per-motor state tensors (values 0., 1., 2.)
 
 FLAGELLA_NETWORK = ReactionNetwork.from_reactions(
@@ -67,19 +68,16 @@ def is_run(counts: Tensor) -> Tensor:
 
 
 def is_run_states(motors: Tensor) -> Tensor:
-    """phi_RUN from per-motor states ``motors`` (M, n) (0 = S, 1 = C, 2 = N) -> bool (n,).
-
-    N count as sum(clamp(state - 1, 0)) and "no S" as min(state) > 0: plain float reductions
-    along the motor axis (several times faster eagerly than counting boolean masks).
-    """
-    n_ccw = (motors - 1).clamp(min=0).sum(0)
-    return (n_ccw >= 2) & (motors.amin(0) > S)
+    """phi_RUN from per-motor states ``motors`` (M, n) (0 = S, 1 = C, 2 = N) -> bool (n,)."""
+    return run_flag_from_states(motors) > 0
 
 
 def run_flag_from_states(motors: Tensor) -> Tensor:
-    """:func:`is_run_states` as float 0/1 (no boolean algebra: cheaper in compiled kernels)."""
-    n_ccw = (motors - 1).clamp(min=0).sum(0)
-    return (n_ccw >= 2).to(motors.dtype) * (motors.amin(0) > S).to(motors.dtype)
+    """phi_RUN as float 0/1 (n,) (no boolean algebra: cheaper in compiled kernels): the N count
+    as a sum of :func:`~surrogate.models.ecoli.formulas.ccw` and "no S" from the lowest state,
+    plain float reductions along the motor axis (several times faster eagerly than counting
+    boolean masks)."""
+    return formulas.run_flag(formulas.ccw(motors).sum(0), motors.amin(0))
 
 
 def counts_from_states(motors: Tensor) -> Tensor:
@@ -119,36 +117,17 @@ def sample_stationary_states(k_plus: Tensor, k_minus: Tensor, p: EcoliParameters
     return ((v > c1).to(MOTOR_DTYPE) + (v > c2).to(MOTOR_DTYPE)).contiguous()
 
 
-def _h(x: Tensor) -> Tensor:
-    """(1 - e^{-x}) / x for x >= 0 (1 at x = 0), to full relative precision."""
-    return torch.where(x > 0, -torch.expm1(-x) / x, torch.ones_like(x))
-
-
 def motor_transition_terms(
     k_plus: Tensor, k_minus: Tensor, dt: float, mu: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The six independent entries of one motor's exp(Q dt), elementwise, in float64:
     (P_SS, P_CS, P_NS, P_SN = P_CN, P_NN, 1 - P_NN). P_xC = 1 - P_xS - P_xN.
 
-    See the module docstring for the derivation; accurate to ~1e-16 absolute for any rates.
+    See the module docstring for the derivation (the formula:
+    :func:`surrogate.models.ecoli.formulas.motor_transition_terms`); accurate to ~1e-16
+    absolute for any rates.
     """
-    kp = k_plus.to(torch.float64)
-    km = k_minus.to(torch.float64)
-    a = mu + kp
-    b = kp + km
-    em1_a = torch.expm1(-a * dt)  # e^{-A dt} - 1, in [-1, 0]
-    em1_b = torch.expm1(-b * dt)
-    g = -em1_a / a  # (1 - e^{-A dt}) / A
-    lo = 1.0 + torch.maximum(em1_a, em1_b)  # e^{-min(A, B) dt}
-    f = lo * dt * _h((a - b).abs() * dt)  # (e^{-B dt} - e^{-A dt}) / (A - B)
-    relax = -em1_b / b  # (1 - e^{-B dt}) / B
-    to_n = kp * relax  # P_SN = P_CN
-    from_n = km * relax  # 1 - P_NN = P_NS + P_NC
-    cross = kp * km / b
-    p_cs = cross * (g - f).clamp_min(0.0)
-    p_ss = (1.0 + em1_a) + p_cs
-    p_ns = cross * g + (km * km / b) * f
-    return p_ss, p_cs, p_ns, to_n, 1.0 - from_n, from_n
+    return formulas.motor_transition_terms(k_plus, k_minus, dt, mu)
 
 
 def motor_transition_matrix(k_plus: Tensor, k_minus: Tensor, dt: float, mu: float) -> Tensor:
@@ -172,8 +151,7 @@ def motor_thresholds(
     t1 = P_sS and t2 = P_sS + P_sC = 1 - P_sN. Returns (t1_S, t1_C, t1_N, t2_CW, t2_N): t2 is
     1 - P_SN = 1 - P_CN for both CW states (lumpability) and 1 - P_NN for N.
     """
-    p_ss, p_cs, p_ns, to_n, _, from_n = motor_transition_terms(k_plus, k_minus, dt, mu)
-    return p_ss, p_cs, torch.minimum(p_ns, from_n), 1.0 - to_n, from_n
+    return formulas.motor_thresholds(k_plus, k_minus, dt, mu)
 
 
 def sample_motor_states(motors: Tensor, thresholds: Tensor, u: Tensor) -> Tensor:
@@ -182,22 +160,9 @@ def sample_motor_states(motors: Tensor, thresholds: Tensor, u: Tensor) -> Tensor
     ``motors`` (M, n) states 0 = S, 1 = C, 2 = N (float, see :data:`MOTOR_DTYPE`);
     ``thresholds`` (5, n) = the rows of :func:`motor_thresholds` stacked; ``u`` (M, n) uniforms
     in [0, 1) (float64 gives the probabilities a 2^-53 resolution). Pure, fixed cost, no host
-    sync. Two equivalent formulations (identical results): ``where`` blends, which
-    ``torch.compile`` turns into SIMD blends, and ``gather`` from (3, n) tables, which is about
-    twice as fast eagerly.
+    sync: :func:`surrogate.models.ecoli.formulas.next_motor_state` over every motor.
     """
-    t1_s, t1_c, t1_n, t2_cw, t2_n = thresholds.unbind(0)
-    if torch.compiler.is_compiling():
-        in_s = motors == S
-        in_n = motors == N
-        t1 = torch.where(in_s, t1_s, torch.where(in_n, t1_n, t1_c))
-        t2 = torch.where(in_n, t2_n, t2_cw)
-    else:
-        index = motors.long()
-        t1 = torch.stack([t1_s, t1_c, t1_n]).gather(0, index)
-        t2 = torch.stack([t2_cw, t2_cw, t2_n]).gather(0, index)
-    u = u.to(thresholds.dtype)
-    return (u >= t1).to(motors.dtype) + (u >= t2).to(motors.dtype)
+    return formulas.next_motor_state(motors, u.to(thresholds.dtype), *thresholds.unbind(0))
 
 
 def run_probability_after(motors: Tensor, transition: Tensor) -> Tensor:

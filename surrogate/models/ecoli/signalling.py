@@ -1,42 +1,42 @@
 """Receptor signalling: MWC activity, CheY-P, motor switching rates, adapted methylation, OU step.
 
-Every formula is written once here; composite functions call the pieces, so the fused simulation
-step, the exact lumped psi and the abstraction's features all share them. All functions are
-elementwise over tensors of any shape (cells in the batch dimension). Formulas:
-``ecoli-parameters.md`` (Sneddon et al. 2012); the paper's Yp formula has a typo in the TSR
-factor, corrected here (K_TSR_on in the TSR denominator).
+The torch step's functions of (m, L) and the model's parameters: each evaluates the scalar
+formulas of :mod:`surrogate.models.ecoli.formulas` (the one source the compiled kernel is made
+from too) over tensors with the parameters' :func:`~surrogate.models.ecoli.formulas.constants`;
+composite functions call the pieces, so the fused simulation step, the exact lumped psi and the
+abstraction's features all share them. All functions are elementwise over tensors of any shape
+(cells in the batch dimension).
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
+from surrogate.models.ecoli import formulas
+from surrogate.models.ecoli.formulas import constants
 from surrogate.models.ecoli.parameters import EcoliParameters
 
 
 def log_receptor_terms(ligand: Tensor, p: EcoliParameters) -> Tensor:
     """ln(TarTerm(L)) + ln(TsrTerm(L)), with TarTerm = ((1 + L/K_off) / (1 + L/K_on))^n_TAR."""
-    tar = p.n_tar * (torch.log1p(ligand / p.k_tar_off) - torch.log1p(ligand / p.k_tar_on))
-    tsr = p.n_tsr * (torch.log1p(ligand / p.k_tsr_off) - torch.log1p(ligand / p.k_tsr_on))
-    return tar + tsr
+    return formulas.log_receptor_terms(ligand, constants(p))
 
 
 def free_energy(methylation: Tensor, ligand: Tensor, p: EcoliParameters) -> Tensor:
     """Receptor-cluster free energy F(m, L) = eps0 + eps1 m + ln TarTerm + ln TsrTerm (kT)."""
-    return p.eps0 + p.eps1 * methylation + log_receptor_terms(ligand, p)
+    c = constants(p)
+    return formulas.free_energy(methylation, formulas.log_receptor_terms(ligand, c), c)
 
 
 def cheyp_from_free_energy(energy: Tensor, p: EcoliParameters) -> Tensor:
     """Yp = alpha a with the MWC activity a = 1 / (1 + exp(F)) (uM)."""
-    return p.alpha * torch.sigmoid(-energy)  # stable for large |F|
+    return formulas.cheyp(formulas.activity(energy), constants(p))
 
 
 def activity(methylation: Tensor, ligand: Tensor, p: EcoliParameters) -> Tensor:
     """MWC cluster activity a(m, L) = 1 / (1 + exp(F(m, L)))."""
-    return torch.sigmoid(-free_energy(methylation, ligand, p))
+    return formulas.activity(free_energy(methylation, ligand, p))
 
 
 def cheyp(methylation: Tensor, ligand: Tensor, p: EcoliParameters) -> Tensor:
@@ -46,13 +46,12 @@ def cheyp(methylation: Tensor, ligand: Tensor, p: EcoliParameters) -> Tensor:
 
 def delta_g(yp: Tensor, p: EcoliParameters) -> Tensor:
     """dG = g0/4 - (g1/2) Yp / (Yp + K_D) (kT): the motor's CW/CCW free-energy difference."""
-    return p.g0 / 4.0 - p.g1 / 2.0 * yp / (yp + p.k_d)
+    return formulas.delta_g(yp, constants(p))
 
 
 def rates_from_delta_g(dg: Tensor, p: EcoliParameters) -> tuple[Tensor, Tensor]:
     """(k+, k-) = omega exp(+-dG) in 1/s, float64 (k+ reaches ~3e4/s at Yp = 0)."""
-    dg = dg.to(torch.float64)
-    return p.omega * torch.exp(dg), p.omega * torch.exp(-dg)
+    return formulas.rates(dg, p.omega)
 
 
 def motor_rates(methylation: Tensor, ligand: Tensor, p: EcoliParameters) -> tuple[Tensor, Tensor]:
@@ -70,9 +69,8 @@ def adapted_methylation(ligand: Tensor, p: EcoliParameters) -> Tensor:
 
     m0(L) = [ln(alpha/Yp* - 1) - eps0 - ln TarTerm(L) - ln TsrTerm(L)] / eps1 (~2.199 at L = 0).
     """
-    return (
-        math.log(p.alpha / p.yp_adapted - 1.0) - p.eps0 - log_receptor_terms(ligand, p)
-    ) / p.eps1
+    c = constants(p)
+    return formulas.adapted_methylation(formulas.log_receptor_terms(ligand, c), c)
 
 
 def ou_step(
@@ -83,6 +81,5 @@ def ou_step(
     m += (m0(L) - m) dt / tau + sigma_m sqrt(2 dt / tau) * noise, with ``noise`` ~ N(0, 1).
     Pure (returns a new tensor).
     """
-    drift = (adapted_methylation(ligand, p) - methylation) * (dt / p.tau)
-    diffusion = p.sigma_m * math.sqrt(2.0 * dt / p.tau) * noise
-    return (methylation + drift + diffusion).clamp(p.m_min, p.m_max)
+    c = constants(p, dt)
+    return formulas.ou_step(methylation, formulas.log_receptor_terms(ligand, c), noise, c)

@@ -37,6 +37,7 @@ from surrogate.models.base import (
     Model,
     burn_in_seconds,
 )
+from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
@@ -150,7 +151,7 @@ def receptor_energy(x: Tensor, params: EcoliParameters) -> Tensor:
 
 def receptor_activity(x: Tensor, params: EcoliParameters) -> Tensor:
     """The receptor activity 1 / (1 + exp(F(m, L))): the network's input."""
-    return torch.sigmoid(-receptor_energy(x, params))
+    return formulas.activity(receptor_energy(x, params))
 
 
 def _motor_moves(network: SbmlModel, columns: Sequence[int]) -> list[tuple[int, int, int]]:
