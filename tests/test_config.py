@@ -175,3 +175,30 @@ def test_the_clock_recipe_bins_its_axes_and_leaves_two_state_fits_as_they_were(
     assert not {"history", "max_age", "clock_bins"} & set(plain.fit_identity()["gp"])
     with pytest.raises(ConfigError, match="gp.history"):
         TrainSettings.from_config(compose_cfg("train", ["gp.history=clock"]))
+
+
+def test_the_classes_recipe_is_checked_and_leaves_two_state_identities_as_they_were(
+    compose_cfg,
+) -> None:
+    """gp=classes: the K-lumps chain's key enters a fit's identity (and its directory's name)
+    only when set; an unknown lumping, a clock beside classes, or a classifier-mode run of the
+    chain (a table) are refused by name."""
+    classes = TrainSettings.from_config(compose_cfg("train", ["gp=classes"]))
+    assert classes.lumps == "classes" and classes.fit_identity()["gp"]["lumps"] == "classes"
+    assert "lumps=classes" in classes.fit_directory.name
+    plain = TrainSettings.from_config(compose_cfg("train"))
+    assert plain.lumps == "phi" and "lumps" not in plain.fit_identity()["gp"]
+    with pytest.raises(ConfigError, match="gp.lumps"):
+        TrainSettings.from_config(compose_cfg("train", ["gp.lumps=motors"]))
+    with pytest.raises(ConfigError, match="no switch clock"):
+        TrainSettings.from_config(compose_cfg("train", ["gp=classes", "gp.history=age"]))
+    with pytest.raises(ConfigError, match="no classifier mode"):
+        SimulateSettings.from_config(
+            compose_cfg("simulate", ["decision=abstract", "gp=classes", "decision.mode=classifier"])
+        )
+    exact = SimulateSettings.from_config(compose_cfg("simulate", ["decision=exact"]))
+    assert "lumps" not in exact.identity()["decision"]
+    with pytest.raises(ConfigError, match="decision.lumps"):
+        SimulateSettings.from_config(
+            compose_cfg("simulate", ["decision=exact", "decision.lumps=x"])
+        )
