@@ -1,16 +1,16 @@
 """The K-lumps chain's law learned from transitions: one GP per (origin class, destination).
 
 A chain over ``C`` classes needs, per origin class ``a``, the law ``P(class' = b | a, z)`` over
-``C`` destinations. It is learned as a *continuation-ratio* sequence of binary classifiers, each
-one the probit SVGP of the two-state abstraction on binned 0/1 outcomes
-(:func:`~surrogate.gp.training.fit_classifiers`, all of them side by side as one batched GP):
-with the destinations of ``a`` in decreasing order of their counts ``b_1, b_2, ...``, classifier
-``h_i(z) = P(class' = b_i | class' not in {b_1..b_(i-1)}, a, z)`` is fitted on the rows from
-``a`` that did not go to an earlier destination. The law is then
-``P(b_i) = h_i prod_(j < i) (1 - h_j)`` (the last destination takes the rest): a proper law at
-every z whatever each classifier's error, and each classifier sees every row it can use.
-Destinations never reached from ``a`` in the data get probability 0, and a step with too few
-events to learn a surface (``min_events``) its constant maximum-likelihood rate.
+``C`` destinations. It is learned *one destination against the rest*: for each destination ``b``
+reached from ``a`` a probit SVGP of the two-state abstraction's kind, ``g_b(z) ~ P(b | a, z)``,
+on binned labels of the rows from ``a`` (:func:`~surrogate.gp.training.fit_classifiers`: all of
+them side by side as one batched GP); the law is ``g_b / sum_b' g_b'`` (each ``g_b`` is already
+a probability, so the normalisation only absorbs their small disagreement). The labels are the
+windows' *expected* class laws where collect recorded them (``phi_class_next_expected_<b>``:
+P(class' = b | the internal state at the window's start), a Rao-Blackwellised label with far less
+variance than the 0/1 outcome; for a class that pins the internal state, none), else the 0/1
+outcomes. Destinations never reached from ``a`` get probability 0, and one with too few events
+to learn a surface (``min_events``) its constant mean label.
 
 The result is tabulated on a grid of the inputs (the chain reads it as a
 :class:`~surrogate.simulate.classes.ClassTable`).
@@ -52,6 +52,7 @@ def fit_class_law(
     progress: bool = True,
     device: torch.device | str = "cpu",
     min_events: int = 50,
+    expected: bool = True,
 ) -> tuple[Tensor, dict[str, Any]]:
     """Learn ``P(class' | class, z)`` and tabulate it.
 
@@ -65,13 +66,15 @@ def fit_class_law(
         nodes: grid nodes per input (default :func:`class_law_nodes`).
         progress: show the fit's progress bar.
         device: where to fit.
-        min_events: a binary step with fewer events of either outcome (or fewer rows than
-            twice the inducing points) gets the constant maximum-likelihood rate, not a GP.
+        min_events: a destination with fewer events of either outcome (or an origin with fewer
+            rows than twice the inducing points) gets its constant mean label, not a GP.
+        expected: train on the expected class laws where the table has them (else, or with
+            False, the 0/1 outcomes).
 
     Returns:
-        ``C x n_1..n_d x C`` float64 probabilities (rows sum to 1), and metrics: per origin its
-        rows, its destinations in fitting order with their counts, and each classifier's
-        held-out Brier score.
+        ``C x n_1..n_d x C`` float64 probabilities (rows sum to 1), and metrics: the labels
+        used, per origin its rows, its destinations with their counts, and each classifier's
+        held-out Brier score (on the 0/1 outcomes).
 
     Example:
         >>> law, metrics = fit_class_law(table, ["dG"], 7, {"dG": (-1.5, 2.5)})  # doctest: +SKIP
@@ -88,14 +91,16 @@ def fit_class_law(
     b_col = data[destination].to_numpy().astype(np.int64)
     if ((a_col < 0) | (a_col >= n_classes) | (b_col < 0) | (b_col >= n_classes)).any():
         raise ArtefactError(f"class columns must lie in [0, {n_classes})")
+    columns = [f"{destination}_expected_{b}" for b in range(n_classes)]
+    use_expected = expected and all(c in data.columns for c in columns)
+    labels = (data[columns].to_numpy(dtype="float32") if use_expected
+              else np.eye(n_classes, dtype=np.float32)[b_col])  # fmt: skip
     z_all = torch.tensor(data[names].to_numpy(dtype="float32"))
-    problems: list[tuple[Tensor, Tensor]] = []
-    plan: list[tuple[int, list[int], list[int | float]]] = []
     # rows a binary classifier needs: its inducing points within the training split
-    need = math.ceil(
-        2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction)
-    )  # origin, ordered destinations, problems
-    metrics: dict[str, Any] = {}
+    need = math.ceil(2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction))
+    problems: list[tuple[Tensor, Tensor, Tensor]] = []
+    plan: list[tuple[int, dict[int, int | float]]] = []  # origin, {destination: problem or rate}
+    metrics: dict[str, Any] = {"labels": "expected" if use_expected else "outcome"}
     for a in range(n_classes):
         rows = np.flatnonzero(a_col == a)
         if rows.size == 0:
@@ -103,46 +108,45 @@ def fit_class_law(
                 f"transition data has no rows from class {a}: collect more (collect.n_per_state)"
             )
         counts = np.bincount(b_col[rows], minlength=n_classes)
-        order = [int(b) for b in np.argsort(-counts, kind="stable") if counts[b] > 0]
-        fitted_here = []
-        remaining = rows
-        for b in order[:-1]:
-            hit = b_col[remaining] == b
-            if min(int(hit.sum()), int((~hit).sum())) >= min_events and remaining.size >= need:
-                problems.append((z_all[remaining], torch.tensor(hit.astype(np.float32))))
-                fitted_here.append(len(problems) - 1)
-            else:  # too few events to learn a surface: the constant maximum-likelihood rate
-                fitted_here.append(float(hit.mean()))
-            remaining = remaining[~hit]
-        plan.append((a, order, fitted_here))
+        mass = labels[rows].sum(0)
+        reached = [b for b in range(n_classes) if counts[b] > 0 or mass[b] > 0]
+        steps: dict[int, int | float] = {}
+        for b in reached:
+            events = min(int(counts[b]), int(rows.size - counts[b]))
+            if len(reached) > 1 and events >= min_events and rows.size >= need:
+                hit = torch.tensor((b_col[rows] == b).astype(np.float32))
+                problems.append((z_all[rows], torch.tensor(labels[rows, b]), hit))
+                steps[b] = len(problems) - 1
+            else:  # too few events to learn a surface: the constant mean label
+                steps[b] = float(mass[b] / rows.size)
+        plan.append((a, steps))
         metrics[str(a)] = {"rows": int(rows.size),
-                           "destinations": {str(b): int(counts[b]) for b in order}}  # fmt: skip
+                           "destinations": {str(b): int(counts[b]) for b in reached}}  # fmt: skip
     fitted = fit_classifiers(problems, settings, progress=progress, device=device,
                              desc="class chain") if problems else []  # fmt: skip
     bounds = [domain[n] for n in names]
     sizes = class_law_nodes(len(names), nodes)
     grid = _grid(bounds, sizes)
     law = torch.zeros(n_classes, grid.shape[0], n_classes, dtype=torch.float64)
-    for a, order, fitted_here in plan:
-        rest = torch.ones(grid.shape[0], dtype=torch.float64)
-        briers = []
-        for b, index in zip(order[:-1], fitted_here, strict=True):
-            if isinstance(index, float):
-                h = torch.full((grid.shape[0],), index, dtype=torch.float64)
-                briers.append(None)
-            else:
-                clf = fitted[index]
-                with torch.no_grad():
-                    h = clf.predict_proba(grid.to(clf.device)).double().cpu().clamp(0.0, 1.0)
-                briers.append(clf.validation.get("brier") if clf.validation else None)
-            law[a, :, b] = rest * h
-            rest = rest * (1.0 - h)
-        law[a, :, order[-1]] = rest
+    for a, steps in plan:
+        briers = {}
+        for b, step in steps.items():
+            if isinstance(step, float):
+                law[a, :, b] = step
+                continue
+            clf = fitted[step]
+            with torch.no_grad():
+                law[a, :, b] = clf.predict_proba(grid.to(clf.device)).double().cpu().clamp(0, 1)
+            briers[str(b)] = clf.validation.get("brier") if clf.validation else None
+        total = law[a].sum(-1, keepdim=True)
+        if bool((total <= 0).any()):
+            raise ArtefactError(f"the class chain's law from class {a} vanishes on its domain")
+        law[a] = law[a] / total
         metrics[str(a)]["brier"] = briers
     if not torch.isfinite(law).all():
         raise ArtefactError("the class chain's classifiers predict NaN/inf on their domain")
     metrics["classifiers"] = len(problems)
-    metrics["constant_steps"] = sum(isinstance(i, float) for _, _, f in plan for i in f)
+    metrics["constant_steps"] = sum(isinstance(v, float) for _, st in plan for v in st.values())
     metrics["nodes"] = sizes
     metrics["train_seconds"] = max((c.train_seconds for c in fitted), default=0.0)
     return law.reshape(n_classes, *sizes, n_classes), metrics

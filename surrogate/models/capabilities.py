@@ -19,6 +19,7 @@ capability                    what it is                                        
 ``signal_bounds``             ``{signal: (lo, hi)}`` where the signal lives     none
 ``class_names``/``class_lumps``/``classes``  K lumps: classes finer than phi    none
 ``exact_class_step``          exact one-window class-to-class law               none
+``expected_class_next``       a window's expected class law                     none
 ``expected_phi_next``         a window's expected label                         none
 ``cell_step_seconds``         its cost per cell-step                            the base estimate
 ============================  ================================================  ==============
@@ -94,6 +95,14 @@ def lump_classes_of(internal: Any) -> LumpClasses | None:
             f"{len(names)} class_names, both lumps present; got {lumps}"
         )
     return LumpClasses(tuple(str(n) for n in names), lumps, classify)
+
+
+def expected_class_next_of(
+    internal: Any,
+) -> Callable[[InternalState, Tensor, float], Tensor] | None:
+    """``expected_class_next(state, x, dt) -> n x C``: the law of the class after a window
+    given the state now (the K-lumps chain's expected label), or None."""
+    return _callable(internal, "expected_class_next")
 
 
 def exact_class_step_of(internal: Any) -> Callable[[Tensor, float], Tensor] | None:
@@ -199,6 +208,7 @@ __all__ = [
     "exact_age_psi_of",
     "exact_class_step_of",
     "exact_psi_of",
+    "expected_class_next_of",
     "expected_phi_next_of",
     "feature_names_of",
     "features_fn_of",

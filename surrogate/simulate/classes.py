@@ -39,6 +39,13 @@ from surrogate.models.capabilities import (
 
 #: collect's class columns (the class at the window's start and end)
 CLASS, CLASS_NEXT = "phi_class", "phi_class_next"
+
+
+def expected_class_column(b: int) -> str:
+    """Collect's column of P(class after the window = ``b`` | the state at its start)."""
+    return f"{CLASS_NEXT}_expected_{b}"
+
+
 #: gp.lumps choices
 LUMPINGS = ("phi", "classes")
 
@@ -336,4 +343,5 @@ __all__ = [
     "ClassTable",
     "can_classify",
     "exact_class_table",
+    "expected_class_column",
 ]

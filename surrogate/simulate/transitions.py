@@ -17,7 +17,9 @@ its start (the internal model's ``expected_phi_next``). Its mean given x is psi(
 outcome's, but without the window's own randomness: a Rao-Blackwellised label with a smaller
 variance (measured for each model in docs/fidelity.md). Where the internal model declares K-lumps
 classes (:mod:`surrogate.simulate.classes`), ``phi_class`` and ``phi_class_next``: the window's
-class before and after.
+class before and after; with ``expected`` and a model that gives it
+(``expected_class_next``), ``phi_class_next_expected_<b>``: the law of the class after the window
+given the internal state at its start.
 
 No window within ``blackout`` steps after a perturbation is recorded: right after a jump the
 internal network's hidden state (which motors are where, within the current lump) still belongs
@@ -41,12 +43,13 @@ from tqdm.auto import tqdm
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
 from surrogate.models.capabilities import (
+    expected_class_next_of,
     expected_phi_next_of,
     feature_names_of,
     features_of,
     lump_classes_of,
 )
-from surrogate.simulate.classes import CLASS, CLASS_NEXT
+from surrogate.simulate.classes import CLASS, CLASS_NEXT, expected_class_column
 from surrogate.simulate.design import GuidedJump
 from surrogate.simulate.loop import PopulationState, Simulator
 from surrogate.simulate.memory import AGE, CENSORED, tick
@@ -147,6 +150,11 @@ def _rows(
             after = simulator.decision.fused_state()  # type: ignore[attr-defined]
             chunk[CLASS] = classes.classify(before)[rows].to(torch.int16).cpu().numpy()
             chunk[CLASS_NEXT] = classes.classify(after)[rows].to(torch.int16).cpu().numpy()
+            expected_class = expected_class_next_of(internal) if expected else None
+            if expected_class is not None:
+                law = expected_class(before, x, dt)[rows].float().cpu().numpy()
+                for b in range(law.shape[1]):
+                    chunk[expected_class_column(b)] = law[:, b]
         return chunk
 
     k = 0

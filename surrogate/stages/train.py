@@ -60,8 +60,13 @@ from surrogate.io import (
     write_manifest,
 )
 from surrogate.models.base import Model
-from surrogate.models.capabilities import has_exact_psi, lump_classes_of, signal_bounds_of
-from surrogate.simulate.classes import ClassTable
+from surrogate.models.capabilities import (
+    expected_class_next_of,
+    has_exact_psi,
+    lump_classes_of,
+    signal_bounds_of,
+)
+from surrogate.simulate.classes import ClassTable, expected_class_column
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
@@ -277,9 +282,19 @@ def _fit_class_chain(
     model = settings.setup.model
     classes = lump_classes_of(model.internal)
     assert classes is not None  # the settings checked it
+    expected = settings.gp_config.get("labels", "outcome") != "outcome"
+    columns = [expected_class_column(b) for b in range(len(classes.names))]
+    if (expected and expected_class_next_of(model.internal) is not None
+            and isinstance(settings.source, CollectSettings)
+            and not all(c in table.columns for c in columns)):  # fmt: skip
+        raise ArtefactError(
+            f"the transitions of {settings.input_command()} lack the expected class labels "
+            f"{columns[0]}..: they were collected before the model gave them; delete "
+            f"{settings.source.directory} and collect again, or train with gp.labels=outcome"
+        )
     law, metrics = fit_class_law(table, settings.inputs, len(classes.names), dict(domain),
                                  settings.gp, progress=settings.job.progress,
-                                 device=settings.job.device)  # fmt: skip
+                                 device=settings.job.device, expected=expected)  # fmt: skip
     chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
                        classes.lumps, settings.setup.dt)  # fmt: skip
     log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),

@@ -27,6 +27,7 @@ from surrogate.models.ecoli.motors import (
     generic_transition_matrix,
     is_run,
     is_run_states,
+    motor_classes,
     motor_thresholds,
     motor_transition_matrix,
     rate_constants,
@@ -297,4 +298,35 @@ def test_expected_labels_from_counts_equal_those_from_states() -> None:
     by_counts = (counts_from_states(state[0]),)
     torch.testing.assert_close(
         states.expected_phi_next(state, x, DT), counts.expected_phi_next(by_counts, x, DT)
+    )
+
+
+def test_expected_class_laws_are_the_sum_over_every_end_configuration() -> None:
+    """K lumps' expected label: P(class after the window | every motor now) equals the brute
+    sum over the 3^M end configurations mapped to (phi, number of CCW motors), to 1e-12; its
+    lumps sum to the expected RUN label; and from counts it is the same as from states."""
+    model = MotorInternalModel(P)
+    gen = torch.Generator().manual_seed(3)
+    n = 300
+    x = torch.stack([2.2 + 0.5 * torch.randn(n, generator=gen), torch.zeros(n)], 1)
+    torch.manual_seed(3)
+    state = model.initial_state(x)
+    got = model.expected_class_next(state, x, DT)
+    kp, km = model.rates(x)
+    transition = motor_transition_matrix(kp, km, DT, P.mu)
+    motors, cells = state[0], torch.arange(n)
+    keys = list(motor_classes(P.n_motors))
+    want = torch.zeros(n, len(keys), dtype=torch.float64)
+    for ends in itertools.product(range(3), repeat=P.n_motors):
+        weight = torch.ones(n, dtype=torch.float64)
+        for i, end in enumerate(ends):
+            weight = weight * transition[cells, motors[i].long(), end]
+        run = int(ends.count(2) >= 2 and 0 not in ends)
+        want[:, keys.index((run, ends.count(2)))] += weight
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+    run_classes = torch.tensor(model.class_lumps, dtype=torch.bool)
+    torch.testing.assert_close(got[:, run_classes].sum(1), model.expected_phi_next(state, x, DT))
+    by_counts = MotorInternalModel(EcoliParameters(motor_sampler="ssa"))
+    torch.testing.assert_close(
+        by_counts.expected_class_next((counts_from_states(state[0]),), x, DT), got
     )

@@ -21,6 +21,7 @@ from surrogate.models.ecoli.motors import (
     FLAGELLA_NETWORK,
     N,
     class_index,
+    class_probability_after,
     counts_from_states,
     exact_run_probability,
     is_run,
@@ -155,6 +156,14 @@ class MotorInternalModel:
         counts = self.counts(state).long()
         index = self._class_index.to(counts.device)
         return index[is_run(counts).long(), counts[:, N]]
+
+    def expected_class_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
+        """Exact P(class after a window ``dt`` | this state, inputs ``x``) ``n x C`` float64:
+        the K-lumps chain's expected label (:func:`class_probability_after`)."""
+        motors = state[0] if self.fusable else states_from_counts(state[0], self.params.n_motors)
+        k_plus, k_minus = self.rates(x)
+        transition = motor_transition_matrix(k_plus, k_minus, dt, self.params.mu)
+        return class_probability_after(motors, transition, self._class_index)
 
     def expected_phi_next(self, state: InternalState, x: Tensor, dt: float) -> Tensor:
         """Exact P(RUN after a window ``dt`` | this state, inputs ``x``) ``(n,)`` float64: each

@@ -191,6 +191,42 @@ def run_probability_after(motors: Tensor, transition: Tensor) -> Tensor:
     return (no_s - none_n - one_n).clamp(0.0, 1.0)
 
 
+def class_probability_after(motors: Tensor, transition: Tensor, index: Tensor) -> Tensor:
+    """P(class after the window | every motor's state now) ``n x C`` float64: the K-lumps
+    chain's expected label (see :func:`run_probability_after`), class = (phi, number of CCW
+    motors) through ``index`` (:func:`class_index`).
+
+    The law of (number in N, any in S) after the window, accumulated motor by motor over the
+    ``2 x (M + 1)`` pairs (M multiply-adds of ``n x (M + 1)`` tensors).
+
+    Args:
+        motors: per-motor states ``M x n`` (0 = S, 1 = C, 2 = N), any dtype.
+        transition: each cell's one-motor transition matrix ``n x 3 x 3`` (rows S, C, N).
+        index: ``2 x (M + 1)`` int64 class of (phi, number of CCW motors), -1 where none.
+    """
+    state = motors.long()  # (M, n)
+    m = state.shape[0]
+    rows = transition.unsqueeze(0).expand(m, -1, -1, -1)
+    after = rows.gather(2, state[..., None, None].expand(*state.shape, 1, 3)).squeeze(2)
+    n = after.shape[1]
+    # law[:, k, s]: k motors in N so far, s = 1 if any in S
+    law = after.new_zeros(n, m + 1, 2)
+    law[:, 0, 0] = 1.0
+    for p in after:  # (n, 3): this motor's law after the window
+        shifted = torch.zeros_like(law)
+        shifted[:, 1:] = law[:, :-1] * p[:, N, None, None]
+        to_s = law.sum(2) * p[:, S, None]  # any S from here on
+        law = shifted + law * p[:, C, None, None]
+        law[:, :, 1] += to_s
+    n_ccw = torch.arange(m + 1, device=after.device)
+    run = torch.stack([(n_ccw >= 2) & True, torch.zeros_like(n_ccw, dtype=torch.bool)], 1)
+    classes = index.to(after.device)[run.long(), n_ccw[:, None].expand(-1, 2)]  # (M + 1, 2)
+    out = after.new_zeros(n, int(index.max()) + 1)
+    valid = classes >= 0
+    out.index_add_(1, classes[valid], law[:, valid])
+    return out
+
+
 def states_from_counts(counts: Tensor, n_motors: int) -> Tensor:
     """Per-motor states ``M x n`` (float, see :data:`MOTOR_DTYPE`) with the given counts
     ``n x 3`` (S, C, N; motors are exchangeable, so any order of them)."""
