@@ -11,7 +11,7 @@ import functools
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.cli import execute, exit_when_done, hydra_context
+from surrogate.cli import execute, exit_when_done, hydra_context, prepared_job
 from surrogate.stages.head_start import head_start
 
 
@@ -19,7 +19,8 @@ from surrogate.stages.head_start import head_start
 def main(cfg: DictConfig) -> str | None:
     """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
     ctx = hydra_context()
-    worker = head_start(cfg, ctx)  # its imports overlap ours (torch: below)
+    job = prepared_job(cfg, ctx)
+    worker = head_start(*job) if job is not None else None  # its imports overlap ours (torch)
     from surrogate.stages.reproduce import run
 
     return execute("reproduce", functools.partial(run, worker=worker), cfg, ctx)

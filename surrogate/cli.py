@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from surrogate.errors import ConfigError, SurrogateError
 
@@ -57,7 +57,6 @@ def hydra_context() -> JobContext:
     """The context of the running Hydra job (an empty single-run context outside Hydra)."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
-    from omegaconf import OmegaConf
 
     if not HydraConfig.initialized():
         return JobContext()
@@ -152,6 +151,22 @@ def prepare_config(cfg: DictConfig, ctx: JobContext) -> None:
         cfg.data_dir = str(ctx.original_cwd / str(data_dir))
     if ctx.multirun and "progress" in cfg and not _overridden("progress", ctx.overrides):
         cfg.progress = False
+
+
+def prepared_job(cfg: DictConfig, ctx: JobContext) -> tuple[dict[str, Any], int] | None:
+    """The job's config after its per-job adjustments (:func:`prepare_config`), resolved to
+    plain containers, and its thread count (the available cores when ``threads`` is null and
+    the launcher sets none): what a process started ahead of the job's own validation is given
+    (``scripts/reproduce.py``'s head start). None for a config the job will refuse (its own
+    validation, with its status file, says why)."""
+    try:
+        prepare_config(cfg, ctx)
+        threads = resolve_threads(cfg, ctx.launcher) or available_cores()
+        config = OmegaConf.to_container(cfg, resolve=True)
+    except Exception as exc:
+        log.debug("no prepared job (%s)", exc)
+        return None
+    return (config, threads) if isinstance(config, dict) else None
 
 
 def _overridden(key: str, overrides: list[str]) -> bool:

@@ -161,3 +161,228 @@ def test_cli_and_sweep_do_not_import_each_other() -> None:
     tree = ast.parse((PACKAGE / "cli.py").read_text())
     top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
     assert all(getattr(n, "module", None) != "surrogate.sweep" for n in top)
+
+
+def _is_docstring(node: ast.stmt) -> bool:
+    return (
+        isinstance(node, ast.Expr)
+        and isinstance(node.value, ast.Constant)
+        and isinstance(node.value.value, str)
+    )
+
+
+def _re_export_only(node: ast.stmt, first: bool) -> bool:
+    """Whether ``node`` (a statement at a package ``__init__``'s top level) only re-exports:
+    the docstring, an import (also under ``if TYPE_CHECKING:``), ``__all__`` or
+    ``__version__``, or a lazy re-export (PEP 562 ``__getattr__``)."""
+    if first and _is_docstring(node):
+        return True
+    if isinstance(node, ast.Import | ast.ImportFrom):
+        return True
+    if isinstance(node, ast.If) and ast.unparse(node.test) in (
+        "TYPE_CHECKING",
+        "typing.TYPE_CHECKING",
+    ):
+        return not node.orelse and all(
+            isinstance(n, ast.Import | ast.ImportFrom) for n in node.body
+        )
+    if isinstance(node, ast.Assign | ast.AugAssign | ast.AnnAssign):
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+        return all(isinstance(t, ast.Name) and t.id in ("__all__", "__version__") for t in targets)
+    return isinstance(node, ast.FunctionDef) and node.name == "__getattr__"
+
+
+def test_package_inits_only_re_export() -> None:
+    """A package's ``__init__.py`` holds a docstring, imports and ``__all__`` (a lazy
+    ``__getattr__`` re-export and ``__version__`` allowed): its code lives in a module."""
+    offences = [
+        f"{f.relative_to(PACKAGE.parent)}:{node.lineno} {ast.unparse(node).splitlines()[0]}"
+        for f in sorted(PACKAGE.rglob("__init__.py"))
+        for i, node in enumerate(ast.parse(f.read_text()).body)
+        if not _re_export_only(node, i == 0)
+    ]
+    assert not offences, "\n".join(offences)
+
+
+def _module_level_imports(path: Path) -> set[str]:
+    """The package's modules that importing ``path`` imports at once (its top level, not under
+    ``if TYPE_CHECKING:`` nor inside functions): ``from p import name`` counts ``p`` (its
+    ``__init__`` runs), ``from p import module`` counts ``p.module`` (and ``p`` unless ``p`` is
+    a package above ``path``, which is imported first anyway)."""
+    me = _module_name(path)
+    package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+
+    def top(body: list[ast.stmt]) -> list[ast.stmt]:
+        out: list[ast.stmt] = []
+        for n in body:
+            if isinstance(n, ast.If) and "TYPE_CHECKING" in ast.unparse(n.test):
+                out += top(n.orelse)
+            elif isinstance(n, ast.If | ast.Try):
+                out += top([*n.body, *n.orelse, *getattr(n, "finalbody", [])])
+                for handler in getattr(n, "handlers", []):
+                    out += top(handler.body)
+            else:
+                out.append(n)
+        return out
+
+    edges: set[str] = set()
+    for node in top(ast.parse(path.read_text()).body):
+        if isinstance(node, ast.Import):
+            edges |= {a.name for a in node.names if a.name.split(".")[0] == "surrogate"}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")
+                anchor = anchor[: len(anchor) - (node.level - 1)]
+                base = ".".join([*anchor, *([base] if base else [])])
+            if base.split(".")[0] != "surrogate":
+                continue
+            above = me == base or me.startswith(f"{base}.")
+            for a in node.names:
+                if _is_module(f"{base}.{a.name}"):
+                    edges.add(f"{base}.{a.name}")
+                    if not above:
+                        edges.add(base)
+                else:
+                    edges.add(base)
+    edges.discard(me)
+    return edges
+
+
+def _import_cycles() -> list[list[str]]:
+    """The cycles of module-level imports in the package (strongly connected components)."""
+    graph = {_module_name(f): _module_level_imports(f) for f in sorted(PACKAGE.rglob("*.py"))}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in graph:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_import_cycles() -> None:
+    """No two modules import each other at their top levels, through packages included: a
+    submodule importing names from its own package's ``__init__`` that imports it works only
+    as long as the ``__init__`` defines them before that import."""
+    assert not _import_cycles()
+
+
+def test_the_cycle_check_sees_a_cycle(tmp_path: Path, monkeypatch) -> None:
+    """A package whose ``__init__`` imports a submodule that imports names from the package
+    (ecoli_phospho's old layout) is a cycle; the same names imported from their module are not."""
+    package = tmp_path / "surrogate"
+    (package / "m").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "m" / "constants.py").write_text("C = 1\n")
+    (package / "m" / "model.py").write_text("from surrogate.m import C\n")
+    (package / "m" / "__init__.py").write_text(
+        "from surrogate.m.constants import C\nfrom surrogate.m.model import *\n"
+    )
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
+    assert _import_cycles() == [["surrogate.m", "surrogate.m.model"]]
+    (package / "m" / "model.py").write_text("from surrogate.m.constants import C\n")
+    assert _import_cycles() == []
+
+
+_IMPORT_ALONE = """
+import importlib, os, sys, traceback
+
+
+def forked(job):
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # a process with no module of the package imported
+        os.close(read)
+        try:
+            out = job()
+        except BaseException:
+            traceback.print_exc()
+            os._exit(1)
+        os.write(write, out.encode())
+        os._exit(0)
+    os.close(write)
+    with os.fdopen(read) as f:
+        out = f.read()
+    return os.waitpid(pid, 0)[1] == 0, out
+
+
+def everything():
+    for name in sys.argv[1:]:
+        importlib.import_module(name)
+    return " ".join(m for m in sys.modules if m.split(".")[0] != "surrogate")
+
+
+# what the package imports of other libraries, imported once here: the forks pay only for the
+# package's own modules
+ok, others = forked(everything)
+for name in others.split() if ok else []:
+    try:
+        importlib.import_module(name)
+    except BaseException:
+        pass
+
+
+def alone(name):
+    return lambda: importlib.import_module(name) and ""
+
+
+failed = [name for name in sys.argv[1:] if not forked(alone(name))[0]]
+print("FAILED", failed)
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_every_module_imports_alone() -> None:
+    """Each module of the package imports by itself, in a process where no other module of the
+    package was imported first (one fresh interpreter imports the other libraries the package
+    uses once, then forks a process per module): an import cycle or a missing import that another
+    module's import would hide fails here."""
+    import os
+    import subprocess
+
+    modules = [_module_name(f) for f in sorted(PACKAGE.rglob("*.py"))]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(PACKAGE.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}  # fmt: skip
+    result = subprocess.run(
+        [sys.executable, "-c", _IMPORT_ALONE, *modules],
+        capture_output=True, text=True, env=env, cwd=PACKAGE.parent, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-4000:]
+    assert "FAILED []" in result.stdout, result.stderr[-4000:]
+
+
+def test_stages_never_import_the_cli() -> None:
+    """The cli sits above the stages (scripts call both): a stage is given what the cli knows
+    (the job's config, its threads), it never reaches up for it."""
+    offences = [
+        f"{f.relative_to(PACKAGE.parent)} imports {m}"
+        for f in _files("stages")
+        for m in _imports(f)
+        if m == "surrogate.cli"
+    ]
+    assert not offences, "\n".join(offences)

@@ -14,29 +14,38 @@ from __future__ import annotations
 
 from typing import Any
 
-#: public name -> (module, name in it)
-_EXPORTS = {
-    **{name: ("loop", name) for name in (
-        "bench_settings", "format_lookup_report", "format_report", "function_table",
-        "machine_info", "main", "run_bench", "run_lookup_bench")},
-    **{name: ("ssa", name) for name in (
-        "bench_compiled", "bench_gillespy2", "bench_torch", "cell_seconds_per_s",
-        "compile_times", "equal_workload_ratio")},
-    "run_ssa_bench": ("ssa", "run_bench"),
-}  # fmt: skip
+#: both benches' public names
+__all__ = [
+    "bench_compiled",
+    "bench_gillespy2",
+    "bench_settings",
+    "bench_torch",
+    "cell_seconds_per_s",
+    "compile_times",
+    "equal_workload_ratio",
+    "format_lookup_report",
+    "format_report",
+    "function_table",
+    "machine_info",
+    "main",
+    "run_bench",
+    "run_lookup_bench",
+    "run_ssa_bench",
+]
 
 
 def __getattr__(name: str) -> Any:
-    """The public name ``name`` from its module (imported on first use)."""
-    if name not in _EXPORTS:
+    """The public name ``name`` from its module (imported on first use): the SSA bench's
+    (``run_ssa_bench`` is its ``run_bench``) or else the loop bench's."""
+    ssa = {"bench_compiled", "bench_gillespy2", "bench_torch", "cell_seconds_per_s",
+           "compile_times", "equal_workload_ratio", "run_ssa_bench"}  # fmt: skip
+    if name not in __all__:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    module, attr = _EXPORTS[name]
     # plain imports of the two known submodules (no import by computed name: see test_safety)
-    if module == "loop":
-        from surrogate.benchmarks import loop as mod
-    else:
+    if name in ssa:
         from surrogate.benchmarks import ssa as mod
-    return getattr(mod, attr)
 
+        return getattr(mod, "run_bench" if name == "run_ssa_bench" else name)
+    from surrogate.benchmarks import loop as mod
 
-__all__ = sorted(_EXPORTS)
+    return getattr(mod, name)

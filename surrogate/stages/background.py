@@ -258,11 +258,7 @@ def serve(jobs_fd: int, results_fd: int, parent: int | None = None) -> None:
     (checked every 0.5 s): a killed reproduce leaves no worker behind."""
     import torch
 
-    from surrogate.cli import QUIET_LOGGERS
-
     torch.set_num_threads(max(1, int(sys.argv[1])))
-    for name in QUIET_LOGGERS:  # as in the parent: their chatter would be re-emitted there
-        logging.getLogger(name).setLevel(logging.WARNING)
     if parent is not None:
         threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
     jobs, results = Connection(jobs_fd), Connection(results_fd)

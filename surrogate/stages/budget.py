@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -43,9 +42,6 @@ log = logging.getLogger(__name__)
 STEP_SECONDS = 1e-4
 #: estimates above this are logged as warnings, naming the settings that make them
 WARN_SECONDS = 600.0
-#: bytes per value of a transitions table while it is collected (float64 columns, generous for
-#: the rows gathered before the per-origin subsample)
-TABLE_BYTES_PER_VALUE = 32
 
 
 @dataclass(frozen=True)
@@ -212,32 +208,9 @@ def _summary(works: Sequence[Work]) -> str:
     )  # fmt: skip
 
 
-def free_memory_bytes() -> int | None:
-    """Free physical memory (bytes) of this machine; None where it cannot be read (non-POSIX)."""
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
-        return None
-
-
-def check_table_memory(n_per_state: int, columns: int) -> None:
-    """Refuse a collection whose table cannot fit in memory, naming ``collect.n_per_state``."""
-    need = 2 * n_per_state * columns * TABLE_BYTES_PER_VALUE
-    have = free_memory_bytes()
-    if have is None:
-        return
-    if need > have:
-        raise ConfigError(
-            f"collect.n_per_state={n_per_state}: the transitions table ({columns} columns) "
-            f"needs about {need / 2**30:.1f} GiB while collected, but {have / 2**30:.1f} GiB "
-            f"are free; lower collect.n_per_state"
-        )
-
-
 __all__ = [
     "Work",
     "check",
-    "check_table_memory",
     "collect_work",
     "duration",
     "evaluate_work",

@@ -23,13 +23,11 @@ from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import collect_transitions
 from surrogate.stages import budget
+from surrogate.stages.artefacts import COVERAGE_FIGURE, TRANSITIONS
 from surrogate.stages.design import collect_in_rounds
 from surrogate.stages.settings import CollectSettings
 
 log = logging.getLogger(__name__)
-
-TRANSITIONS = "transitions.parquet"
-COVERAGE_FIGURE = "coverage.png"
 
 
 def validate(cfg: Mapping[str, Any]) -> CollectSettings:

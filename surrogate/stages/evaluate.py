@@ -30,14 +30,11 @@ from surrogate.evaluate.statistics import (
 from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
 from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages import budget
+from surrogate.stages.artefacts import COMPARISON, NOISE_FLOOR, SUMMARY
 from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
 from surrogate.stages.simulate import simulate
 
 log = logging.getLogger(__name__)
-
-SUMMARY = "summary.json"
-COMPARISON = "comparison"
-NOISE_FLOOR = "noise_floor"
 
 
 @dataclass

@@ -3,10 +3,11 @@
 Half of ``reproduce``'s work does not depend on the abstraction: the collection, the train
 diagnostic's occupancy run, the runs of the full model and of the exact psi. ``reproduce``
 hands it to a :class:`~surrogate.stages.background.Worker` while it trains;
-``scripts/reproduce.py`` starts that worker from the composed config (:func:`head_start`) before
-it imports torch, pandas and scipy (~2.5 s): the worker validates the same config and makes
-that work in the order it is needed (:func:`prepare`); the train stage here waits for the
-collection under the artefact's lock, then reuses it. This module imports nothing heavy at
+``scripts/reproduce.py`` starts that worker (:func:`head_start`, given the job's final config
+and threads by :func:`surrogate.cli.prepared_job`) before it imports torch, pandas and scipy
+(~2.5 s): the worker validates the same config (its process's edge) and makes that work in the
+order it is needed (:func:`prepare`); the train stage here waits for the collection under the
+artefact's lock, then reuses it. This module imports nothing heavy at
 import (the worker imports only what its jobs need).
 """
 
@@ -18,12 +19,9 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from omegaconf import DictConfig, OmegaConf
-
 from surrogate.stages.background import Worker, worker_threads
 
 if TYPE_CHECKING:
-    from surrogate.cli import JobContext
     from surrogate.stages.settings import (
         EvaluateSettings,
         OccupancySettings,
@@ -41,23 +39,15 @@ SUPPORTED = os.name == "posix"
 WORKER_NICE = 10
 
 
-def head_start(cfg: DictConfig, ctx: JobContext) -> Worker | None:
-    """Start the worker of a reproduce job on :func:`prepare` of ``cfg`` where the config asks
-    for one (``batch``, and ``background`` true, or auto with two or more threads for this job
-    on the CPU); None otherwise, and for any config the job will refuse or cannot prepare (its
-    own validation, inside the job, says why). Makes the job's per-job adjustments of ``cfg``
-    first (:func:`surrogate.cli.prepare_config`: the worker sees the final config)."""
-    from surrogate.cli import available_cores, prepare_config, resolve_threads
-
-    try:
-        prepare_config(cfg, ctx)
-        threads = resolve_threads(cfg, ctx.launcher) or available_cores()
-        if not wants_worker(cfg.get("background", "auto"), cfg.get("batch", True), threads,
-                            cfg.get("device", "cpu")):  # fmt: skip
-            return None
-        config = OmegaConf.to_container(cfg, resolve=True)
-    except Exception as exc:  # the job reports it, with its status file
-        log.debug("no head start (%s)", exc)
+def head_start(config: Mapping[str, Any] | None, threads: int = 1) -> Worker | None:
+    """Start the worker of a reproduce job on :func:`prepare` of ``config`` (the job's final
+    config, plain containers: :func:`surrogate.cli.prepared_job`) where it asks for one
+    (``batch``, and ``background`` true, or auto with two or more ``threads`` for this job on
+    the CPU); None otherwise, and for no config (one the job will refuse: its own validation,
+    inside the job, says why)."""
+    if config is None or not wants_worker(config.get("background", "auto"),
+                                          config.get("batch", True), threads,
+                                          config.get("device", "cpu")):  # fmt: skip
         return None
     worker = Worker(worker_threads(threads), nice=WORKER_NICE)
     worker.submit(prepare, config)

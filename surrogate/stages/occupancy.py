@@ -21,11 +21,10 @@ from surrogate.io import make_once, read_parquet, write_manifest, write_parquet
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import record_occupancy
+from surrogate.stages.artefacts import OCCUPANCY
 from surrogate.stages.settings import OccupancySettings
 
 log = logging.getLogger(__name__)
-
-OCCUPANCY = "occupancy.parquet"
 
 
 def occupancy(settings: OccupancySettings) -> pd.DataFrame:

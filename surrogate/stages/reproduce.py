@@ -36,6 +36,7 @@ from surrogate.simulate.precompile import (
 )
 from surrogate.stages import budget
 from surrogate.stages import evaluate as evaluate_stage
+from surrogate.stages.artefacts import DIAGNOSTIC_FIGURE, REPORT, SURFACES_FIGURE
 from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
 from surrogate.stages.head_start import (
@@ -53,7 +54,6 @@ from surrogate.stages.train import read_metrics, train
 
 log = logging.getLogger(__name__)
 
-REPORT = "report.md"
 SPEED_FORMATS = {"full cell-steps/s": ".3g", "abstract cell-steps/s": ".3g", "speed-up": ".1f"}
 
 
@@ -87,7 +87,7 @@ def reproduce(
     setting asks for it (:func:`start_worker`)."""
     t0 = time.perf_counter()
     tr = settings.train
-    batch = settings.config.get("batch", True)
+    batch = settings.batch
     model = tr.setup.model
     runs = settings.runs()
     kernel = tr.job.device.type == "cpu" and any(kernel_wanted(r.backend, r.compile) for r in runs)
@@ -95,8 +95,7 @@ def reproduce(
     if worker is None:
         if kernel:
             precompile_in_background(model, tr.job.device)  # overlaps collect and train
-        background = settings.config.get("background", "auto")
-        if wants_worker(background, batch, threads, tr.job.device):
+        if wants_worker(settings.background, batch, threads, tr.job.device):
             worker = start_worker(settings)  # what needs no abstraction, during training
     # with a worker, its first kernel call compiles the kernel where it is not cached: not twice
     compiling_elsewhere = worker is not None and kernel and model.kernel_precompiler() is not None
@@ -331,8 +330,6 @@ def report_sections(
         artefacts = {"collect": collect_dir, **artefacts}
     sections.append(("Artefacts", "\n".join(
         f"- {k}: `{os.path.relpath(v, out)}`" for k, v in artefacts.items())))  # fmt: skip
-    from surrogate.stages.train import DIAGNOSTIC_FIGURE, SURFACES_FIGURE
-
     figures = []
     for name, d in evaluations.items():  # next to Table 1: the drift, on the noise band
         for obs in first.setup.model.body.observable_names:

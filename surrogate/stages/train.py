@@ -71,21 +71,22 @@ from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
 from surrogate.stages import budget
-from surrogate.stages.collect import TRANSITIONS
+from surrogate.stages.artefacts import (
+    CLASS_CHAIN,
+    DIAGNOSTIC_FIGURE,
+    FIT_METRICS,
+    GRID,
+    HISTORY_FIGURE,
+    METRICS,
+    PSI,
+    SURFACES_FIGURE,
+    TRANSITIONS,
+)
 from surrogate.stages.occupancy import occupancy
 from surrogate.stages.settings import CollectSettings, TrainSettings
 
 log = logging.getLogger(__name__)
 
-PSI = "psi.pt"
-METRICS = "train_metrics.json"
-FIT_METRICS = "fit_metrics.json"
-GRID = "psi_grid.csv"
-SURFACES_FIGURE = "psi_surfaces.png"
-DIAGNOSTIC_FIGURE = "psi_diagnostic.png"
-HISTORY_FIGURE = "training_history.png"
-#: the K-lumps chain's learned law (gp.lumps=classes), a ClassTable's state
-CLASS_CHAIN = "class_chain.pt"
 LABELS = ("phi", "phi_next")
 
 
@@ -481,16 +482,25 @@ def resolve_abstraction(settings: TrainSettings) -> Path:
 
 
 def load_abstraction(
-    source: str | os.PathLike | Mapping[str, Any], device: str | torch.device = "cpu"
+    source: str | os.PathLike | TrainSettings, device: str | torch.device = "cpu"
 ) -> PsiClassifier:
-    """Load a trained abstraction from its train or fit directory (or from the config that made
-    it).
+    """Load a trained abstraction from its train or fit directory, or from the train settings
+    that made it (``load_abstraction(validate(cfg))`` for a config: settings are built once, at
+    the caller's edge).
 
     Returns a :class:`~surrogate.gp.PsiClassifier`: ``psi(phi, z)`` gives p(phi' = 1 | phi, z)
     for ``z`` (``n x d``) in the order of ``psi.input_names``, under ``torch.no_grad()``.
+
+    Raises:
+        TypeError: for a raw config (a mapping): build its settings first.
     """
-    if isinstance(source, Mapping):
-        directory = resolve_abstraction(TrainSettings.from_config(source))
+    if isinstance(source, TrainSettings):
+        directory = resolve_abstraction(source)
+    elif isinstance(source, Mapping):
+        raise TypeError(
+            "load_abstraction takes a directory or TrainSettings, not a config: "
+            "load_abstraction(surrogate.stages.train.validate(cfg))"
+        )
     else:
         directory = Path(source)
     psi, _ = load_psi(directory / PSI, device=device)

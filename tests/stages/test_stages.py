@@ -82,8 +82,10 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
     # the saved grid is reproduced exactly by the reloaded model
     p = psi(torch.tensor(grid["phi"].to_numpy()), torch.tensor(grid[["dG"]].to_numpy()))
     np.testing.assert_allclose(p.numpy(), grid["p"].to_numpy(), rtol=0, atol=1e-6)
-    # the same abstraction is found from the config alone
-    psi2 = train.load_abstraction(cfg)
+    # the same abstraction is found from the settings of its config alone
+    psi2 = train.load_abstraction(train.validate(cfg))
+    with pytest.raises(TypeError, match="validate"):  # never a raw config below the edge
+        train.load_abstraction(cfg)
     z = torch.tensor([[0.3], [0.9]])
     assert torch.equal(psi2(torch.tensor([1, 0]), z), psi(torch.tensor([1, 0]), z))
     metrics = json.loads((train_dir / "train_metrics.json").read_text())

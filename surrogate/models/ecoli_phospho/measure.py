@@ -18,13 +18,13 @@ import numpy as np
 import torch
 
 from surrogate.ctmc import CellStreams, CompiledSSA
-from surrogate.models.ecoli_phospho import (
+from surrogate.models.ecoli_phospho.constants import (
     calibrated,
     cw_bias,
-    load_network,
     mean_field_steady_state,
     relaxation_rates,
 )
+from surrogate.models.ecoli_phospho.sbml_writer import load_network
 
 __all__ = ["measure"]
 

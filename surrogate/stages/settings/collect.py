@@ -18,6 +18,7 @@ from surrogate.stages.settings.common import (
     TRAIN_CMD,
     Job,
     ModelSetup,
+    check_table_memory,
     command_line,
     group_overrides,
 )
@@ -61,8 +62,6 @@ class CollectSettings:
                 f"collect.perturb_rate={rate:g}/s cannot be met with dt={setup.dt:g} s: at most "
                 f"one perturbation per step, so the rate must be <= 1/dt = {1 / setup.dt:g}/s"
             )
-        from surrogate.stages.budget import check_table_memory
-
         internal = setup.model.internal
         check_table_memory(int(c["n_per_state"]),
                            len(internal.input_names) + len(feature_names_of(internal)) + 7)  # fmt: skip

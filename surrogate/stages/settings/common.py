@@ -1,9 +1,10 @@
 """What every stage's settings share: the job (where artefacts go, the device), the model
-setup (model, field, dt, seed), the scripts' commands and the overrides that reproduce a
-setting."""
+setup (model, field, dt, seed), the scripts' commands, the overrides that reproduce a setting
+and the memory checks that refuse a setting before it is allocated."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,7 @@ from surrogate.config import (
     seed_setting,
     to_dict,
 )
+from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import Model
 
@@ -30,6 +32,10 @@ TRAIN_CMD = "python scripts/train.py"
 SIMULATE_CMD = "python scripts/simulate.py"
 EVALUATE_CMD = "python scripts/evaluate.py"
 REPRODUCE_CMD = "python scripts/reproduce.py"
+
+#: bytes per value of a transitions table while it is collected (float64 columns, generous for
+#: the rows gathered before the per-origin subsample)
+TABLE_BYTES_PER_VALUE = 32
 
 
 # ----------------------------------------------------------------------------------------------
@@ -171,3 +177,29 @@ class ModelSetup:
         """The same setup with another seed."""
         return ModelSetup(self.model_config, self.field_config, self.model, self.field, self.dt,
                           int(seed))  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# memory: what a setting would need, refused before it is allocated
+
+
+def free_memory_bytes() -> int | None:
+    """Free physical memory (bytes) of this machine; None where it cannot be read (non-POSIX)."""
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return None
+
+
+def check_table_memory(n_per_state: int, columns: int) -> None:
+    """Refuse a collection whose table cannot fit in memory, naming ``collect.n_per_state``."""
+    need = 2 * n_per_state * columns * TABLE_BYTES_PER_VALUE
+    have = free_memory_bytes()
+    if have is None:
+        return
+    if need > have:
+        raise ConfigError(
+            f"collect.n_per_state={n_per_state}: the transitions table ({columns} columns) "
+            f"needs about {need / 2**30:.1f} GiB while collected, but {have / 2**30:.1f} GiB "
+            f"are free; lower collect.n_per_state"
+        )

@@ -7,7 +7,7 @@ import functools
 import hashlib
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +29,10 @@ class ReproduceSettings:
     evaluations: dict[str, EvaluateSettings]
     exact: dict[str, EvaluateSettings]
     job: Job
-    config: dict[str, Any] = field(repr=False)
+    #: every run of the report in one batch (``batch``)
+    batch: bool = True
+    #: the second process for the work that needs no abstraction: true, false or "auto"
+    background: bool | str = "auto"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> ReproduceSettings:
@@ -66,7 +69,8 @@ class ReproduceSettings:
             }
         if c.get("batch", True) and c.get("compile", False):
             evaluations, exact = _batched(evaluations, exact)
-        return cls(train, evaluations, exact, Job.from_config(cfg), c)
+        return cls(train, evaluations, exact, Job.from_config(cfg), c.get("batch", True),
+                   background)  # fmt: skip
 
     def runs(self) -> list[SimulateSettings]:
         """Every population run the report needs (each once)."""

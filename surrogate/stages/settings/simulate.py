@@ -16,7 +16,6 @@ from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import start_size_of
 from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
-from surrogate.stages.budget import free_memory_bytes
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     SIMULATE_CMD,
@@ -24,6 +23,7 @@ from surrogate.stages.settings.common import (
     ModelSetup,
     command_line,
     format_value,
+    free_memory_bytes,
     group_overrides,
 )
 from surrogate.stages.settings.decision import DecisionSettings

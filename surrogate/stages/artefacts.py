@@ -1,0 +1,53 @@
+"""The file names of the stages' artefacts, in one place.
+
+A stage that reads another's artefact (train reads collect's transitions, reproduce links
+train's figures) takes the name from here, not from the module of the stage that writes it: the
+reader then imports nothing of the writer. The simulation recorders' files are named in
+:mod:`surrogate.simulate.recorders`, the manifest in :mod:`surrogate.io`.
+"""
+
+from __future__ import annotations
+
+#: collect: the transitions table and the coverage figure
+TRANSITIONS = "transitions.parquet"
+COVERAGE_FIGURE = "coverage.png"
+
+#: occupancy: the train diagnostic's unperturbed population
+OCCUPANCY = "occupancy.parquet"
+
+#: fit and train: the classifiers, their scores, the grid and the figures
+PSI = "psi.pt"
+METRICS = "train_metrics.json"
+FIT_METRICS = "fit_metrics.json"
+GRID = "psi_grid.csv"
+SURFACES_FIGURE = "psi_surfaces.png"
+DIAGNOSTIC_FIGURE = "psi_diagnostic.png"
+HISTORY_FIGURE = "training_history.png"
+#: the K-lumps chain's learned law (gp.lumps=classes), a ClassTable's state
+CLASS_CHAIN = "class_chain.pt"
+
+#: evaluate: the summary (also read by sweep summaries) and the tables' stems (.csv, .md)
+SUMMARY = "summary.json"
+COMPARISON = "comparison"
+NOISE_FLOOR = "noise_floor"
+
+#: reproduce: the report
+REPORT = "report.md"
+
+__all__ = [
+    "CLASS_CHAIN",
+    "COMPARISON",
+    "COVERAGE_FIGURE",
+    "DIAGNOSTIC_FIGURE",
+    "FIT_METRICS",
+    "GRID",
+    "HISTORY_FIGURE",
+    "METRICS",
+    "NOISE_FLOOR",
+    "OCCUPANCY",
+    "PSI",
+    "REPORT",
+    "SUMMARY",
+    "SURFACES_FIGURE",
+    "TRANSITIONS",
+]
