@@ -4,7 +4,7 @@
 "K lumps" route at its limit: :func:`surrogate.simulate.classes.exact_class_table`).
 
 python scripts/memory_limits.py [--field gaussian|linear] [--cells 2000] [--abstract-cells N]
-    [--runs full,full_repeat,exact,exact+clock,klumps] [--out limits.json]
+    [--runs full,full_repeat,exact,exact+clock,klumps] [--learned FIT_DIR ...] [--out limits.json]
 
 ``--abstract-cells`` (default ``--cells``) sizes the abstract runs apart from the full ones: the
 two-sample KS test's power is set by the smaller sample, so 1e5 abstract cells against 20,000 full
@@ -33,6 +33,7 @@ from surrogate.simulate import ExactDecision, FullDecision, MemoryDecision, Simu
 from surrogate.simulate.classes import ClassDecision, exact_class_table
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import exact_age_table
+from surrogate.stages.train import load_class_chain
 
 DT = 0.05
 KS_C = 1.358  # two-sample KS critical value factor at alpha = 0.05
@@ -63,6 +64,13 @@ def main() -> None:
     parser.add_argument("--cells", type=int, default=2000)
     parser.add_argument("--abstract-cells", type=int, default=None)
     parser.add_argument("--runs", default="full,full_repeat,exact,exact+clock,klumps")
+    parser.add_argument(
+        "--learned",
+        nargs="*",
+        default=[],
+        type=Path,
+        help="fit directories of gp.lumps=classes: their learned chains too",
+    )
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     model = EcoliModel()
@@ -89,7 +97,12 @@ def main() -> None:
             "auto",
         ),
     }
-    chosen = args.runs.split(",")
+    for directory in args.learned:  # learned K-lumps chains (gp.lumps=classes)
+        table = load_class_chain(directory)
+        learned = ClassDecision(table, internal, FeatureMap(internal, table.input_names),
+                                "abstract")  # fmt: skip
+        runs[f"learned:{directory.name}"] = (learned, 7000, "auto")
+    chosen = args.runs.split(",") + [f"learned:{d.name}" for d in args.learned]
     unknown = sorted(set(chosen) - set(runs))
     if unknown or not {"full", "full_repeat"} <= set(chosen):
         parser.error(f"--runs: unknown {unknown} or missing full/full_repeat; known {list(runs)}")
