@@ -6,24 +6,17 @@ python scripts/reproduce.py -m hydra/launcher=joblib gp.kernel=rbf,matern52 dt=0
                                                  # a sweep, one job per core (docs/sweeps.md)
 """
 
-import functools
-
 import hydra
 from omegaconf import DictConfig
 
-from surrogate.cli import execute, exit_when_done, hydra_context, prepared_job
-from surrogate.stages.head_start import head_start
+from surrogate.cli import exit_when_done, run_stage
+from surrogate.stages.reproduce import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="reproduce")
 def main(cfg: DictConfig) -> str | None:
     """Hydra entry point (multirun jobs record failures instead of aborting the sweep)."""
-    ctx = hydra_context()
-    job = prepared_job(cfg, ctx)
-    worker = head_start(*job) if job is not None else None  # its imports overlap ours (torch)
-    from surrogate.stages.reproduce import run
-
-    return execute("reproduce", functools.partial(run, worker=worker), cfg, ctx)
+    return run_stage("reproduce", run, cfg)
 
 
 if __name__ == "__main__":

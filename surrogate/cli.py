@@ -153,22 +153,6 @@ def prepare_config(cfg: DictConfig, ctx: JobContext) -> None:
         cfg.progress = False
 
 
-def prepared_job(cfg: DictConfig, ctx: JobContext) -> tuple[dict[str, Any], int] | None:
-    """The job's config after its per-job adjustments (:func:`prepare_config`), resolved to
-    plain containers, and its thread count (the available cores when ``threads`` is null and
-    the launcher sets none): what a process started ahead of the job's own validation is given
-    (``scripts/reproduce.py``'s head start). None for a config the job will refuse (its own
-    validation, with its status file, says why)."""
-    try:
-        prepare_config(cfg, ctx)
-        threads = resolve_threads(cfg, ctx.launcher) or available_cores()
-        config = OmegaConf.to_container(cfg, resolve=True)
-    except Exception as exc:
-        log.debug("no prepared job (%s)", exc)
-        return None
-    return (config, threads) if isinstance(config, dict) else None
-
-
 def _overridden(key: str, overrides: list[str]) -> bool:
     return any(o.lstrip("+~").split("=", 1)[0] == key for o in overrides)
 
@@ -216,7 +200,7 @@ def execute(
         configure_logging()
         threads = resolve_threads(cfg, ctx.launcher)
         if threads is not None:
-            import torch  # here, not at import: a script may start work before torch loads
+            import torch  # here, not at import: this module imports nothing heavy
 
             torch.set_num_threads(threads)
         prepare_config(cfg, ctx)

@@ -186,7 +186,7 @@ class NetworkInternalModel:
         return SpeciesCondition(parse_formula(lump, symbols, "model.lump", "bool", what="species"))
 
     def __getstate__(self) -> dict:
-        """Picklable (a background worker receives models): without the compiled SSA, which
+        """Picklable (a model may be sent to another process): without the compiled SSA, which
         is rebuilt (from numba's cache) on first use."""
         return {**self.__dict__, "_compiled": None}
 

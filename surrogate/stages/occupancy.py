@@ -3,9 +3,8 @@
 An artefact of its own (``data/occupancy/.../occupancy.parquet``: the abstraction's inputs,
 ``phi`` and ``phi_next`` of every ``record_every``-th step of every cell), made once per model,
 training field, step, seed and ``gp.diagnostic`` settings. It does not depend on the learned
-psi, so reproduce records it in its background worker while the classifiers train; the train
-stage reads it (or makes it) for its diagnostic. Seeded with the run's seed, so the diagnostic's
-reference is the same whatever the GP recipe.
+psi; the train stage reads it (or makes it) for its diagnostic. Seeded with the run's seed, so
+the diagnostic's reference is the same whatever the GP recipe.
 """
 
 from __future__ import annotations

@@ -29,22 +29,11 @@ from surrogate.io import (
     read_manifest,
     write_manifest,
 )
-from surrogate.simulate.precompile import (
-    kernel_wanted,
-    precompile_in_background,
-    wait_for_precompile,
-)
+from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.stages import budget
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.artefacts import DIAGNOSTIC_FIGURE, REPORT, SURFACES_FIGURE
-from surrogate.stages.background import Worker, worker_threads
 from surrogate.stages.collect import collect
-from surrogate.stages.head_start import (
-    WORKER_NICE,
-    independent_work,
-    needs_training,
-    wants_worker,
-)
 from surrogate.stages.settings import (
     CollectSettings,
     ReproduceSettings,
@@ -65,90 +54,36 @@ def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
     return settings
 
 
-def run(cfg: Mapping[str, Any], worker: Worker | None = None) -> Path:
-    """Run every stage (reusing what exists) and write the report; return its directory.
-    ``worker``: one started on :func:`~surrogate.stages.head_start.prepare` of this config (``scripts/reproduce.py``'s head
-    start, see :mod:`surrogate.stages.head_start`), stopped if this run fails."""
-    try:
-        return reproduce(validate(cfg), config=to_dict(cfg), worker=worker)
-    except BaseException:
-        if worker is not None:
-            worker.cancel()
-        raise
+def run(cfg: Mapping[str, Any]) -> Path:
+    """Run every stage (reusing what exists) and write the report; return its directory."""
+    return reproduce(validate(cfg), config=to_dict(cfg))
 
 
-def reproduce(
-    settings: ReproduceSettings,
-    config: Mapping[str, Any] | None = None,
-    worker: Worker | None = None,
-) -> Path:
-    """Run the pipeline of ``settings`` and write ``report.md``. Without ``worker`` (one whose
-    first job is :func:`~surrogate.stages.head_start.prepare` of these settings), start one where the ``background``
-    setting asks for it (:func:`start_worker`)."""
+def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = None) -> Path:
+    """Run the pipeline of ``settings`` and write ``report.md``."""
     t0 = time.perf_counter()
     tr = settings.train
     batch = settings.batch
     model = tr.setup.model
     runs = settings.runs()
-    kernel = tr.job.device.type == "cpu" and any(kernel_wanted(r.backend, r.compile) for r in runs)
-    threads = torch.get_num_threads()
-    if worker is None:
-        if kernel:
-            precompile_in_background(model, tr.job.device)  # overlaps collect and train
-        if wants_worker(settings.background, batch, threads, tr.job.device):
-            worker = start_worker(settings)  # what needs no abstraction, during training
-    # with a worker, its first kernel call compiles the kernel where it is not cached: not twice
-    compiling_elsewhere = worker is not None and kernel and model.kernel_precompiler() is not None
+    if tr.job.device.type == "cpu" and any(kernel_wanted(r.backend, r.compile) for r in runs):
+        precompile_in_background(model, tr.job.device)  # overlaps collect and train
+    collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
+    train_dir = train(tr)
+    speed = None
+    if batch:  # every missing run in one batch; the loop speed measured once per report
+        simulate_together(runs)
+        previous = settings.directory / MANIFEST
+        speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
+        speed = speed or measure_stage_speed(settings)
     evaluations: dict[str, Path] = {}
+    for name, e in settings.evaluations.items():
+        log.info("field %s: full and abstracted simulations, evaluation", name)
+        evaluations[name] = evaluate_stage.evaluate(e)
     exact: dict[str, Path] = {}
-    try:
-        _share_threads(worker, threads)
-        if worker is not None:
-            _warm_up()  # while the worker collects (main then waits for its lock), or before
-        collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
-        # every thread for the fit, worker or not: its result depends on the thread count (up
-        # to 3 % of psi at the default recipe), so it is the one scripts/train.py would give
-        torch.set_num_threads(threads)
-        train_dir = train(tr, precompile=worker is None)
-        handed: dict[str, int] = {}
-        if worker is not None:  # the abstraction's runs here, meanwhile the worker ends its own
-            if compiling_elsewhere and model.kernel_precompiler() is not None:
-                worker.result(0)  # still compiling: wait for it (result() answers once)
-            _share_threads(worker, threads)
-            if not any(s.batch is not None for s in runs):  # compiled runs stay in one batch
-                simulate_together([s for s in runs if needs_training(s)])
-            worker.result(0)
-            _share_threads(worker, threads)
-        if batch:  # every missing run in one batch (none, or what the worker did not make)
-            simulate_together(runs)
-        speed = None
-        if batch:  # measured once per report (reused on a rerun), before evaluations share cores
-            previous = settings.directory / MANIFEST
-            speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
-            speed = speed or measure_stage_speed(settings)
-        if worker is not None:
-            handed = hand_evaluations(worker, settings)
-            _share_threads(worker, threads)
-        for name, e in settings.evaluations.items():
-            if name not in handed:
-                log.info("field %s: full and abstracted simulations, evaluation", name)
-                evaluations[name] = evaluate_stage.evaluate(e)
-        if worker is not None:
-            for ticket in handed.values():
-                worker.result(ticket)
-            worker.close()
-            worker = None
-            torch.set_num_threads(threads)
-        for name, e in settings.evaluations.items():  # reused, or made here if the worker failed
-            if name in handed:
-                evaluations[name] = evaluate_stage.evaluate(e)
-        for name, e in settings.exact.items():
-            log.info("field %s: the chain driven by the exact lumped psi", name)
-            exact[name] = evaluate_stage.evaluate(e)
-    finally:
-        if worker is not None:  # this process failed: the worker's work is not needed now
-            worker.cancel()
-        torch.set_num_threads(threads)
+    for name, e in settings.exact.items():
+        log.info("field %s: the chain driven by the exact lumped psi", name)
+        exact[name] = evaluate_stage.evaluate(e)
     out = settings.directory
     with artefact_lock(out):  # also removes the temporaries of killed runs
         sections, figures = report_sections(
@@ -166,48 +101,6 @@ def reproduce(
                        wall_time_s=time.perf_counter() - t0)  # fmt: skip
     log.info("report written to %s", out / REPORT)
     return out
-
-
-def start_worker(settings: ReproduceSettings) -> Worker | None:
-    """Start a :class:`~surrogate.stages.background.Worker` on the report's
-    :class:`~surrogate.stages.head_start.IndependentWork` (its first job, ticket 0), after the
-    kernel's background compilation, which it would otherwise repeat; None when there is none."""
-    work = independent_work(settings)
-    if work is None:
-        return None
-    worker = Worker(worker_threads(torch.get_num_threads()), after=wait_for_precompile,
-                    nice=WORKER_NICE)  # fmt: skip
-    worker.submit(work)
-    log.info("in a background process (%d thread(s)) during training: %d runs and %d "
-             "evaluations that need no abstraction%s", worker.threads, len(work.runs),
-             len(work.exact), ", the diagnostic's occupancy run" if work.occupancy_run else "")  # fmt: skip
-    return worker
-
-
-def hand_evaluations(worker: Worker, settings: ReproduceSettings) -> dict[str, int]:
-    """Give ``worker`` the last third of the abstraction's evaluations (about as long as the
-    exact psi's it made, plus one: the rest, made here meanwhile, take as long). Returns their
-    tickets by field name."""
-    names = list(settings.evaluations)
-    return {name: worker.submit(evaluate_stage.evaluate, settings.evaluations[name])
-            for name in names[len(names) - len(names) // 3:]}  # fmt: skip
-
-
-def _warm_up() -> None:
-    """Import what this process imports later on the way anyway, at a time it would otherwise
-    wait for the worker's collection: torch.optim's first optimizer imports torch._dynamo
-    (0.7-1.5 s), the figures matplotlib's pyplot (~0.4 s)."""
-    import matplotlib.pyplot  # noqa: F401
-    import torch._dynamo  # noqa: F401
-
-
-def _share_threads(worker: Worker | None, threads: int) -> None:
-    """This process's threads: all of them while the worker is idle (or gone), else what the
-    worker leaves (two busy threads on one core slow both; idle OpenMP threads spin)."""
-    if worker is None or worker.idle():
-        torch.set_num_threads(threads)
-    else:  # never below half: the worker's count may come from logical cores, ours physical
-        torch.set_num_threads(max(1, threads - min(worker.threads, threads // 2)))
 
 
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'
@@ -410,9 +303,8 @@ def _measured_speed_text(speed: Mapping[str, Any]) -> str:
              "cell-steps/s": speed[k]["cell_steps_per_s"], "compile (s)": speed[k]["compile_s"]}
             for k in ("full", "abstract")]  # fmt: skip
     return (
-        f"The runs above were simulated in batches (one loop for several runs; with a background "
-        f"worker, one batch there and one here), so they have no loop time of their own. Loop "
-        f"speed measured side by side in this process (with no background work running): "
+        f"The runs above were simulated in one batch (one loop for several runs), so they have "
+        f"no loop time of their own. Loop speed measured side by side in this process: "
         f"{speed['n_cells']} cells x {speed['steps']} steps in field {speed['field']}, "
         f"backend {speed.get('backend', 'torch')}, "
         f"compile={str(speed['compile']).lower()}, {speed['threads']} thread(s), best of two, "

@@ -107,16 +107,14 @@ def train(
     settings: TrainSettings,
     config: Mapping[str, Any] | None = None,
     force: bool = False,
-    precompile: bool = True,
 ) -> Path:
     """Run (or reuse) the train stage described by ``settings``: the fit (:func:`fit`, reused
     whatever the diagnostic and grid settings), then this directory's copy of it, its
-    diagnostic, grid and figures. ``precompile``: compile the model's kernel (for the
-    diagnostic's occupancy run) in a background process during the fit when it is not cached
-    (False: another process compiles it)."""
+    diagnostic, grid and figures. The model's kernel (for the diagnostic's occupancy run) is
+    compiled in a background process during the fit when it is not cached."""
     out = settings.directory
     return make_once(out, settings.identity(), settings.command(),
-                     lambda data: _train(settings, out, *data, config, precompile, force),
+                     lambda data: _train(settings, out, *data, config, force),
                      what="abstraction", force=force,
                      prepare=lambda: load_transitions(settings))  # fmt: skip
 
@@ -320,15 +318,13 @@ def _train(
     table: pd.DataFrame,
     source: str,
     config: Mapping[str, Any] | None,
-    precompile: bool = True,
     force: bool = False,
 ) -> None:
     """The fit (made or reused), then its diagnostic, grid and figures; the fit's files are
     copied in, the manifest written last."""
     job, model = settings.job, settings.setup.model
     lumps = model.internal.lump_names
-    if precompile:
-        precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
+    precompile_in_background(model, job.device)  # the diagnostic's kernel, during the fit
     fit_dir = fit(settings, table, source, config, force)
     psi, _ = load_psi(fit_dir / PSI)
     fit_manifest = read_manifest(fit_dir, made_by=settings.command())
@@ -410,7 +406,7 @@ def diagnose(
     model's :func:`exact_psi_function` (None: the empirical reference). The learned psi is
     scored as the simulations use it (:func:`_as_simulated`)."""
     t0 = time.perf_counter()
-    rows = occupancy(settings.occupancy())  # recorded in reproduce's background worker, if any
+    rows = occupancy(settings.occupancy())
     reference = None
     if settings.history == "age":
         rows = clock_rows(rows, settings.max_age)

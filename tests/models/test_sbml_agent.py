@@ -266,7 +266,7 @@ def test_an_input_computed_by_sbml_math(tmp_path) -> None:
 
 @pytest.mark.parametrize("which", ["phospho_plugin", "phospho_yaml", "gene_switch_formula"])
 def test_models_pickle_before_and_after_use(which) -> None:
-    """Reproduce's background worker receives settings with their model: network models
+    """Settings may travel to another process with their model: network models
     pickle (expressions, not generated code or the compiled SSA) before and after a window,
     and the copy computes the same features and phi."""
     import pickle

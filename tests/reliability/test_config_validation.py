@@ -127,7 +127,8 @@ BAD_INPUTS = [
     ("evaluate", ["decision.name=full"], "use decision=abstract"),
     ("reproduce", ["n_cells=0"], "n_cells must be a positive number"),
     ("reproduce", ["decision.lookup_size=[0,4]"], "decision.lookup_size"),
-    ("reproduce", ["background=maybe"], "background must be true, false or auto"),
+    ("reproduce", ["background=false"], "background was removed: reproduce's second process"),
+    ("reproduce", ["background=auto"], "background was removed"),
     ("reproduce", ["batch=1"], "batch must be true or false"),
     ("simulate", ["n_cells=2000000000000"], "split the population into shards"),
     # fidelity: every setting read after training and simulation is refused before either

@@ -81,13 +81,6 @@ def _imports() -> list[tuple[str, int, str]]:
 
 
 UNSAFE_MODULES = {"pickle", "cPickle", "_pickle", "dill", "cloudpickle", "shelve", "marshal"}
-#: (file, module) pairs allowed, each with why: nothing untrusted reaches them
-TRUSTED_PICKLE = {
-    # the pipe between reproduce and the worker process it starts itself (what multiprocessing's
-    # Connection.recv does anyway); plain pickles, since torch's reductions for it need an
-    # authenticated resource sharer that worker cannot reach
-    ("surrogate/stages/background.py", "pickle"),
-}
 UNSAFE_CALLS = {
     "eval",
     "exec",
@@ -105,9 +98,7 @@ UNSAFE_CALLS = {
 
 def test_no_unsafe_deserialisation_or_eval_in_the_package() -> None:
     offences = [
-        f"{f}:{line}: import {m}"
-        for f, line, m in _imports()
-        if m.split(".")[0] in UNSAFE_MODULES and (f, m) not in TRUSTED_PICKLE
+        f"{f}:{line}: import {m}" for f, line, m in _imports() if m.split(".")[0] in UNSAFE_MODULES
     ]
     for f, line, name, _ in _calls():
         if name in UNSAFE_CALLS or name.endswith(".read_pickle"):

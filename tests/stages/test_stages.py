@@ -417,3 +417,44 @@ def test_train_manifest_names_the_labels(trained) -> None:
     _, _, train_dir = trained
     manifest = json.loads((train_dir / "manifest.json").read_text())
     assert manifest["label_column"] == "phi_next_expected"
+
+
+def test_the_occupancy_run_is_seeded_and_reused(compose_cfg, caplog) -> None:
+    from surrogate.stages.occupancy import OCCUPANCY, occupancy
+    from surrogate.stages.settings import TrainSettings
+
+    train_only = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    settings = TrainSettings.from_config(compose_cfg("train", train_only)).occupancy()
+    rows = occupancy(settings)
+    assert len(rows) == 100 * 200 // 10 and {"dG", "phi", "phi_next"} <= set(rows.columns)
+    manifest = json.loads((settings.directory / "manifest.json").read_text())
+    assert manifest["stage"] == "occupancy" and manifest["rows"] == len(rows)
+    again = pd.read_parquet(settings.directory / OCCUPANCY)
+    (settings.directory / "manifest.json").unlink()  # incomplete: made again, the same rows
+    pd.testing.assert_frame_equal(occupancy(settings), again)
+    with caplog.at_level(logging.INFO, logger="surrogate.io"):
+        occupancy(settings)
+    assert "occupancy run exists, reusing" in caplog.text
+
+
+def test_reproduce_writes_the_report_of_every_field(compose_cfg) -> None:
+    """reproduce (one process) makes every run, the learned and the exact chain's evaluations
+    on each field, and the report; a rerun reuses all of it."""
+    from surrogate.stages import reproduce
+    from surrogate.stages.settings import ReproduceSettings
+
+    cfg = compose_cfg("reproduce", [*TINY, "fields=[gaussian,linear,dynamic]", "record_cells=16"])
+    out = reproduce.run(cfg)
+    report = (out / "report.md").read_text()  # the exact chain: adapted cells, not a bound
+    assert "The exact lumped psi (cells adapted to their current input)" in report
+    assert "best two-state" not in report and "best any" not in report
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert set(manifest["evaluations"]) == set(manifest["exact"]) == {"gaussian", "linear",
+                                                                        "dynamic"}  # fmt: skip
+    for d in [*manifest["evaluations"].values(), *manifest["exact"].values()]:
+        assert (Path(d) / "comparison.csv").exists()
+    settings = ReproduceSettings.from_config(cfg)
+    assert all((s.directory / "manifest.json").exists() for s in settings.runs())
+    assert manifest["speed"]["field"] == "gaussian"
+    assert reproduce.run(cfg) == out
+    assert json.loads((out / "manifest.json").read_text())["speed"] == manifest["speed"]

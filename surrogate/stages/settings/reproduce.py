@@ -20,6 +20,12 @@ from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.simulate import SimulateSettings
 from surrogate.stages.settings.train import TrainSettings
 
+#: why ``background`` is refused: its second process was removed (issue 28, docs/performance.md)
+REMOVED_BACKGROUND = (
+    "background was removed: reproduce's second process gained nothing measurable end to end "
+    "and slowed the fit under load (docs/performance.md); drop the setting"
+)
+
 
 @dataclass(frozen=True, eq=False)
 class ReproduceSettings:
@@ -31,8 +37,6 @@ class ReproduceSettings:
     job: Job
     #: every run of the report in one batch (``batch``)
     batch: bool = True
-    #: the second process for the work that needs no abstraction: true, false or "auto"
-    background: bool | str = "auto"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> ReproduceSettings:
@@ -48,9 +52,8 @@ class ReproduceSettings:
         for key in ("batch", "exact_psi", "exact_psi_figures"):
             if not isinstance(c.get(key, True), bool):
                 raise ConfigError(f"{key} must be true or false, got {c[key]!r}")
-        background = c.get("background", "auto")
-        if not isinstance(background, bool) and background != "auto":
-            raise ConfigError(f"background must be true, false or auto, got {c['background']!r}")
+        if c.get("background") is not None:
+            raise ConfigError(REMOVED_BACKGROUND)
         evaluations = {
             name: EvaluateSettings.from_config(_field_run(c, name, c["decision"]))
             for name in fields
@@ -69,8 +72,7 @@ class ReproduceSettings:
             }
         if c.get("batch", True) and c.get("compile", False):
             evaluations, exact = _batched(evaluations, exact)
-        return cls(train, evaluations, exact, Job.from_config(cfg), c.get("batch", True),
-                   background)  # fmt: skip
+        return cls(train, evaluations, exact, Job.from_config(cfg), c.get("batch", True))
 
     def runs(self) -> list[SimulateSettings]:
         """Every population run the report needs (each once)."""
