@@ -176,9 +176,13 @@ class ClassTable:
         index = origin * self._origin_stride
         for j, (node, frac) in enumerate(self._positions(z)):
             index = index + (node + (u[j] < frac).long()) * self._strides[j]
-        rows = self.cdf[index]  # (n, C)
-        nxt = (u[-1].unsqueeze(1) >= rows).sum(1)
-        return nxt.clamp(max=self.n_classes - 1)
+        # class' = how many cumulative probabilities the uniform passes: one gather per class
+        # (a fused loop when compiled, no n x C intermediate); the last is 1, never passed
+        flat, base, last = self.cdf.reshape(-1), index * self.n_classes, u[-1]
+        nxt = (last >= flat[base]).long()
+        for b in range(1, self.n_classes - 1):
+            nxt = nxt + (last >= flat[base + b]).long()
+        return nxt
 
     def law(self, origin: Tensor, z: Tensor) -> Tensor:
         """P(class' | class = ``origin``, z) ``n x C``: the multilinear interpolation of the
