@@ -53,6 +53,7 @@ from surrogate.fields import Field
 from surrogate.io import load_tensors, save_tensors, write_json
 from surrogate.models.base import Model
 from surrogate.models.capabilities import signal_bounds_of
+from surrogate.simulate.classes import ClassDecision, ClassTable, exact_class_table
 from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusable
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.memory import (
@@ -200,6 +201,8 @@ def make_decision(
         return FullDecision(model.internal)
     psi = tables[name]
     names = tuple(psi.input_names)
+    if isinstance(psi, ClassTable):  # the K-lumps chain (gp.lumps=classes)
+        return ClassDecision(psi, model.internal, model.featurizer(names))
     if has_history(names):
         return MemoryDecision(psi, model.internal, model.featurizer(names[:-1]),
                               psi.domain[AGE][1], dt=dt)  # fmt: skip
@@ -485,18 +488,29 @@ def run_lookup_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print)
     """The abstraction's lookup throughput (cell-steps/s) for each thread count, (backend,
     compile) and size, over :func:`function_table`, one simulator per (threads, backend,
     compile) as :func:`run_bench`; each row records the backend that ran (``numba`` falls
-    back to torch where the model has no kernel). ``histories`` (``[none, age]``): each also
-    with the switch clock (gp.history=age), measured side by side, row after row."""
+    back to torch where the model has no kernel). ``histories`` (``[none, age, classes]``): each
+    also with the switch clock (gp.history=age) and the K-lumps chain over the model's exact
+    class law (gp.lumps=classes; the same number of signal nodes), side by side, row after
+    row."""
     s, device, model, field, dt, head = _setup(cfg)
     started = time.perf_counter()
     histories = list(s.get("histories") or ["none"])
-    unknown = [h for h in histories if h not in HISTORIES]
+    allowed = (*HISTORIES, "classes")
+    unknown = [h for h in histories if h not in allowed]
     if unknown:
-        raise ConfigError(f"histories: unknown {unknown}; allowed {list(HISTORIES)}")
+        raise ConfigError(f"histories: unknown {unknown}; allowed {list(allowed)}")
     max_age = float(cfg.get("gp", {}).get("max_age", 5.0))
-    tables = {h: function_table(model, dt, s.get("lookup_size"),
-                                max_age if h == "age" else None).to(device)
-              for h in histories}  # fmt: skip
+
+    def table(h: str) -> Any:
+        if h == "classes":
+            nodes = grid_size(s.get("lookup_size"), "lookup_size", 1)
+            try:
+                return exact_class_table(model.internal, dt, nodes[0] if nodes else 4096)
+            except ValueError as exc:
+                raise ConfigError(f"histories=classes: {exc}") from None
+        return function_table(model, dt, s.get("lookup_size"), max_age if h == "age" else None)
+
+    tables = {h: table(h).to(device) for h in histories}
     results: dict[str, Any] = {
         **head,
         "model": model.name,
@@ -536,7 +550,7 @@ def format_lookup_report(r: Mapping[str, Any]) -> str:
         f"{a['lookup_size']}",
         "",
         "lookup throughput (cell-steps/s; best of repeats); cost: per cell-step, relative to",
-        "the same row without the clock (history none)",
+        "the same row of the two-state chain (history none)",
         f"{'thr':>3} {'backend':>7} {'compile':>7} {'cells':>7} {'history':>7} {'lookup':>9} "
         f"{'ran':>5} {'us/step':>9} {'cost':>5}  load",
     ]
