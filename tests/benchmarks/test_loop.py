@@ -81,9 +81,9 @@ def test_quick_bench_writes_all_sections(
 def test_lookup_only_bench_times_the_abstraction_alone(compose_cfg, tmp_path, model) -> None:
     """lookup_only=true: a table from a function of the signal (no training, no full model),
     each backend's rows saying which loop ran; E. coli also with the switch clock (its
-    table has a node per step up to gp.max_age), side by side."""
+    table has a node per step up to gp.max_age) and the K-lumps chain, side by side."""
     out = tmp_path / "bench.json"
-    histories = ["none", "age"] if model == "ecoli" else ["none"]
+    histories = ["none", "age", "classes"] if model == "ecoli" else ["none"]
     cfg = compose_cfg("bench", [
         "quick=true", "lookup_only=true", f"output={out}", f"model={model}",
         "quick_settings.sizes=[30]", "quick_settings.threads=[1]",
@@ -93,8 +93,8 @@ def test_lookup_only_bench_times_the_abstraction_alone(compose_cfg, tmp_path, mo
     assert main(cfg) == out
     r = json.loads(out.read_text())
     signal = {"ecoli": "dG", "ecoli_phospho": "activity"}[model]
-    inputs = {"none": [signal], "age": [signal, "phi_age"]}
-    sizes = {"none": [64], "age": [64, 101]}  # 5 s of clock at dt 0.05: a node per step
+    inputs = {"none": [signal], "age": [signal, "phi_age"], "classes": [signal]}
+    sizes = {"none": [64], "age": [64, 101], "classes": [64]}  # 5 s of clock: a node per step
     assert r["model"] == model
     assert r["abstraction"]["inputs"] == {h: inputs[h] for h in histories}
     assert r["abstraction"]["lookup_size"] == {h: sizes[h] for h in histories}
@@ -103,7 +103,7 @@ def test_lookup_only_bench_times_the_abstraction_alone(compose_cfg, tmp_path, mo
     ]
     for row in r["throughput"]:
         assert row["lookup"]["cell_steps_per_s"] > 0
-        assert row["lookup"]["backend"] == row["backend"]  # the clock runs on the kernel too
+        assert row["lookup"]["backend"] == row["backend"]  # clock and classes: on the kernel too
     assert "collect" not in r and "lookup throughput" in format_lookup_report(r)
 
 
