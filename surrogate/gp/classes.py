@@ -18,7 +18,6 @@ The result is tabulated on a grid of the inputs (the chain reads it as a
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -29,15 +28,10 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError
+from surrogate.gp.lookup import grid_nodes
 from surrogate.gp.training import GPSettings, fit_classifiers
 
 Domain = dict[str, tuple[float, float]]
-
-
-def _grid(bounds: Sequence[tuple[float, float]], nodes: Sequence[int]) -> Tensor:
-    """Every node of an evenly spaced grid ``prod(nodes) x d`` (last axis fastest)."""
-    axes = [torch.linspace(lo, hi, n) for (lo, hi), n in zip(bounds, nodes, strict=True)]
-    return torch.tensor(list(itertools.product(*[a.tolist() for a in axes])), dtype=torch.float32)
 
 
 def fit_class_law(
@@ -126,7 +120,7 @@ def fit_class_law(
                              desc="class chain") if problems else []  # fmt: skip
     bounds = [domain[n] for n in names]
     sizes = class_law_nodes(len(names), nodes)
-    grid = _grid(bounds, sizes)
+    grid = grid_nodes(bounds, sizes).to(torch.float32)
     law = torch.zeros(n_classes, grid.shape[0], n_classes, dtype=torch.float64)
     for a, steps in plan:
         briers = {}

@@ -142,12 +142,7 @@ class PsiLookupTable:
         for r in ranges:
             _check_range(r)
         device = getattr(psi, "device", torch.device("cpu"))
-        axes = [
-            torch.linspace(float(lo), float(hi), n, dtype=torch.float64)
-            for (lo, hi), n in zip(ranges, size, strict=True)
-        ]
-        grid = torch.stack([g.reshape(-1) for g in torch.meshgrid(*axes, indexing="ij")], -1)
-        grid = grid.to(device)
+        grid = grid_nodes(ranges, size).to(device)
         layers = []
         for phi in (0, 1):
             phis = torch.full((grid.shape[0],), phi, dtype=torch.long, device=device)
@@ -251,6 +246,15 @@ class PsiLookupTable:
             )
         ranges = [tuple(r) for r in state["ranges"]]
         return cls(state["table"].to(device), ranges, state["input_names"])
+
+
+def grid_nodes(ranges: Sequence[Range], size: Sequence[int]) -> Tensor:
+    """Every node of a regular grid, ``prod(size) x d`` float64, the last axis fastest."""
+    axes = [
+        torch.linspace(float(lo), float(hi), int(n), dtype=torch.float64)
+        for (lo, hi), n in zip(ranges, size, strict=True)
+    ]
+    return torch.stack([g.reshape(-1) for g in torch.meshgrid(*axes, indexing="ij")], -1)
 
 
 def _check_range(r: Sequence[float]) -> None:
@@ -376,4 +380,4 @@ class StackedPsiLookup:
     __call__ = evaluate
 
 
-__all__ = ["PsiFunction", "PsiLookupTable", "StackedPsiLookup"]
+__all__ = ["PsiFunction", "PsiLookupTable", "StackedPsiLookup", "grid_nodes"]

@@ -83,13 +83,12 @@ from surrogate.stages.settings import (
 )
 from surrogate.stages.simulate import (
     COMPILE_CACHE,
-    abstract_decision,
     exact_class_decision,
     exact_clock_decision,
     exact_decision,
-    learned_class_decision,
+    learned_decision,
 )
-from surrogate.stages.train import load_abstraction, read_metrics, resolve_abstraction, train
+from surrogate.stages.train import read_metrics, resolve_abstraction, train
 
 log = logging.getLogger(__name__)
 
@@ -416,14 +415,9 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
             reps.append(Replicate(classed, fields[name], n, seed + 2 * offset, start))
             labels.append(f"{EXACT_CLASSES}|{name}")
     for i, c in enumerate(settings.candidates):
-        directory = resolve_abstraction(c.train)
-        if c.train.lumps == "classes":
-            decision, _ = learned_class_decision(model, directory, job.device)
-        else:
-            psi = load_abstraction(directory, device=job.device)
-            decision, _ = abstract_decision(model, psi, c.train.setup.dt, c.train.max_age,
-                                            str(o.get("mode", "lookup")), o.get("lookup_size"),
-                                            job.device)  # fmt: skip
+        decision, _ = learned_decision(model, c.train, resolve_abstraction(c.train),
+                                       str(o.get("mode", "lookup")), o.get("lookup_size"),
+                                       job.device)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")

@@ -42,7 +42,7 @@ from surrogate.simulate.memory import (
 )
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.stages import budget
-from surrogate.stages.settings import SimulateSettings, batchable
+from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
 
 log = logging.getLogger(__name__)
 
@@ -92,16 +92,31 @@ def build_decision(
     assert d.train is not None
     # the fit is found and loaded here, at the stage's edge (the train stage's module is
     # imported only by runs that need it)
-    from surrogate.stages.train import load_abstraction, resolve_abstraction
+    from surrogate.stages.train import resolve_abstraction
 
     directory = resolve_abstraction(d.train)
-    if d.train.lumps == "classes":
-        layer, info = learned_class_decision(model, directory, device)
-    else:
-        psi = load_abstraction(directory, device=device)
-        layer, info = abstract_decision(model, psi, d.train.setup.dt, d.train.max_age,
-                                        d.mode or "lookup", d.lookup_size, device)  # fmt: skip
+    layer, info = learned_decision(model, d.train, directory, d.mode or "lookup", d.lookup_size,
+                                   device)  # fmt: skip
     return layer, {"abstraction_dir": str(directory), **info}
+
+
+def learned_decision(
+    model: Model,
+    train: TrainSettings,
+    directory: Path,
+    mode: str,
+    size: Sequence[int] | None,
+    device: torch.device,
+) -> tuple[DecisionLayer, dict[str, Any]]:
+    """The learned abstraction of the fit ``directory`` (made by ``train``) as a decision layer
+    over ``model`` on ``device``: the K-lumps chain (``gp.lumps=classes``, a table) or the chain
+    over phi (:func:`abstract_decision`: a lookup table of psi or the classifier itself)."""
+    if train.lumps == "classes":
+        return learned_class_decision(model, directory, device)
+    from surrogate.stages.train import load_abstraction
+
+    psi = load_abstraction(directory, device=device)
+    return abstract_decision(model, psi, train.setup.dt, train.max_age, mode, size, device)
 
 
 def learned_class_decision(

@@ -165,6 +165,14 @@ def sample_motor_states(motors: Tensor, thresholds: Tensor, u: Tensor) -> Tensor
     return formulas.next_motor_state(motors, u.to(thresholds.dtype), *thresholds.unbind(0))
 
 
+def motor_laws_after(motors: Tensor, transition: Tensor) -> Tensor:
+    """Each motor's law over (S, C, N) after the window, ``M x n x 3``: its cell's
+    ``transition`` row (``n x 3 x 3``) at its state (``motors``, ``M x n``)."""
+    index = motors.long()  # (M, n)
+    rows = transition.unsqueeze(0).expand(index.shape[0], -1, -1, -1)
+    return rows.gather(2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(2)
+
+
 def run_probability_after(motors: Tensor, transition: Tensor) -> Tensor:
     """P(RUN after the window | every motor's state now), ``(n,)`` float64: the expected RUN
     flag of the next window given the current configuration (a Rao-Blackwellised label).
@@ -178,9 +186,7 @@ def run_probability_after(motors: Tensor, transition: Tensor) -> Tensor:
         motors: per-motor states ``M x n`` (0 = S, 1 = C, 2 = N), any dtype.
         transition: each cell's one-motor transition matrix ``n x 3 x 3`` (rows S, C, N).
     """
-    index = motors.long()  # (M, n)
-    rows = transition.unsqueeze(0).expand(index.shape[0], -1, -1, -1)
-    after = rows.gather(2, index[..., None, None].expand(*index.shape, 1, 3)).squeeze(2)
+    after = motor_laws_after(motors, transition)
     no_s = torch.ones_like(after[0, :, 0])
     none_n = torch.ones_like(no_s)
     one_n = torch.zeros_like(no_s)
@@ -204,10 +210,8 @@ def class_probability_after(motors: Tensor, transition: Tensor, index: Tensor) -
         transition: each cell's one-motor transition matrix ``n x 3 x 3`` (rows S, C, N).
         index: ``2 x (M + 1)`` int64 class of (phi, number of CCW motors), -1 where none.
     """
-    state = motors.long()  # (M, n)
-    m = state.shape[0]
-    rows = transition.unsqueeze(0).expand(m, -1, -1, -1)
-    after = rows.gather(2, state[..., None, None].expand(*state.shape, 1, 3)).squeeze(2)
+    after = motor_laws_after(motors, transition)
+    m = after.shape[0]
     n = after.shape[1]
     # law[:, k, s]: k motors in N so far, s = 1 if any in S
     law = after.new_zeros(n, m + 1, 2)
