@@ -188,6 +188,18 @@ def test_the_classes_recipe_is_checked_and_leaves_two_state_identities_as_they_w
     assert "lumps=classes" in classes.fit_directory.name
     plain = TrainSettings.from_config(compose_cfg("train"))
     assert plain.lumps == "phi" and "lumps" not in plain.fit_identity()["gp"]
+    # the class law's own keys: resolved in its identity, absent from a two-state fit's
+    gp = classes.fit_identity()["gp"]
+    assert gp["min_events"] is None and gp["max_label_weight"] == 1000.0
+    assert not {"min_events", "max_label_weight"} & set(plain.fit_identity()["gp"])
+    lighter = TrainSettings.from_config(
+        compose_cfg("train", ["gp=classes", "gp.max_label_weight=1"])
+    )
+    assert lighter.max_label_weight == 1.0 and lighter.fit_directory != classes.fit_directory
+    for bad in ("gp.max_label_weight=0.5", "gp.max_label_weight=inf", "gp.min_events=-1",
+                "gp.min_events=many"):  # fmt: skip
+        with pytest.raises(ConfigError, match=bad.split("=")[0]):
+            TrainSettings.from_config(compose_cfg("train", ["gp=classes", bad]))
     with pytest.raises(ConfigError, match="gp.lumps"):
         TrainSettings.from_config(compose_cfg("train", ["gp.lumps=motors"]))
     with pytest.raises(ConfigError, match="no switch clock"):

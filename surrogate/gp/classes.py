@@ -10,7 +10,12 @@ windows' *expected* class laws where collect recorded them (``phi_class_next_exp
 P(class' = b | the internal state at the window's start), a Rao-Blackwellised label with far less
 variance than the 0/1 outcome; for a class that pins the internal state, none), else the 0/1
 outcomes. Destinations never reached from ``a`` get probability 0, and one with too few events
-to learn a surface (``min_events``) its constant mean label.
+to learn a surface (``min_events``) its constant mean label. With expected labels the events are
+counted as the GP sees them, by label mass (the expected number of events), and a handful do:
+each row carries its window's exact law, not one Bernoulli draw, so a rare destination's surface
+is learned where a constant would put its mean over the collection's inputs everywhere (E. coli,
+run with 2 CCW motors to tumble with none: 2.4x too likely where cells live with the old
+threshold of 50 outcomes; docs/fidelity.md, "Memory").
 
 The result is tabulated on a grid of the inputs (the chain reads it as a
 :class:`~surrogate.simulate.classes.ClassTable`).
@@ -29,9 +34,16 @@ from torch import Tensor
 
 from surrogate.errors import ArtefactError
 from surrogate.gp.lookup import grid_nodes
-from surrogate.gp.training import GPSettings, fit_classifiers
+from surrogate.gp.training import GPSettings, fit_classifiers, label_weight
 
 Domain = dict[str, tuple[float, float]]
+
+#: events a destination needs for a GP surface, by the labels trained on: 0/1 outcomes are
+#: one Bernoulli draw per row; expected labels, counted by mass, carry each window's law
+MIN_EVENTS = {"outcome": 50, "expected": 1.0}
+#: the most Bernoulli draws one expected label counts as (its inverse dispersion, clipped):
+#: 1,000 trusts a noise-free label like a thousand outcomes, enough for the rare tails
+DEFAULT_MAX_LABEL_WEIGHT = 1000.0
 
 
 def fit_class_law(
@@ -45,8 +57,9 @@ def fit_class_law(
     destination: str = "phi_class_next",
     progress: bool = True,
     device: torch.device | str = "cpu",
-    min_events: int = 50,
+    min_events: float | None = None,
     expected: bool = True,
+    max_weight: float | None = None,
 ) -> tuple[Tensor, dict[str, Any]]:
     """Learn ``P(class' | class, z)`` and tabulate it.
 
@@ -61,9 +74,14 @@ def fit_class_law(
         progress: show the fit's progress bar.
         device: where to fit.
         min_events: a destination with fewer events of either outcome (or an origin with fewer
-            rows than twice the inducing points) gets its constant mean label, not a GP.
+            rows than twice the inducing points) gets its constant mean label, not a GP; events
+            are the label mass with expected labels. Default :data:`MIN_EVENTS` for the labels
+            used.
         expected: train on the expected class laws where the table has them (else, or with
             False, the 0/1 outcomes).
+        max_weight: with expected labels, each GP's rows count as up to this many draws: the
+            labels' inverse dispersion (:func:`~surrogate.gp.training.label_weight`); 1: as
+            0/1 outcomes.
 
     Returns:
         ``C x n_1..n_d x C`` float64 probabilities (rows sum to 1), and metrics: the labels
@@ -89,12 +107,16 @@ def fit_class_law(
     use_expected = expected and all(c in data.columns for c in columns)
     labels = (data[columns].to_numpy(dtype="float32") if use_expected
               else np.eye(n_classes, dtype=np.float32)[b_col])  # fmt: skip
+    label_kind = "expected" if use_expected else "outcome"
+    min_events = MIN_EVENTS[label_kind] if min_events is None else min_events
+    max_weight = DEFAULT_MAX_LABEL_WEIGHT if max_weight is None else max_weight
     z_all = torch.tensor(data[names].to_numpy(dtype="float32"))
     # rows a binary classifier needs: its inducing points within the training split
     need = math.ceil(2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction))
     problems: list[tuple[Tensor, Tensor, Tensor]] = []
+    weights: list[float] = []
     plan: list[tuple[int, dict[int, int | float]]] = []  # origin, {destination: problem or rate}
-    metrics: dict[str, Any] = {"labels": "expected" if use_expected else "outcome"}
+    metrics: dict[str, Any] = {"labels": label_kind, "min_events": min_events}
     for a in range(n_classes):
         rows = np.flatnonzero(a_col == a)
         if rows.size == 0:
@@ -106,10 +128,14 @@ def fit_class_law(
         reached = [b for b in range(n_classes) if counts[b] > 0 or mass[b] > 0]
         steps: dict[int, int | float] = {}
         for b in reached:
-            events = min(int(counts[b]), int(rows.size - counts[b]))
+            hits = float(mass[b]) if use_expected else float(counts[b])
+            events = min(hits, rows.size - hits)
             if len(reached) > 1 and events >= min_events and rows.size >= need:
                 hit = torch.tensor((b_col[rows] == b).astype(np.float32))
-                problems.append((z_all[rows], torch.tensor(labels[rows, b]), hit))
+                y = torch.tensor(labels[rows, b])
+                problems.append((z_all[rows], y, hit))
+                weights.append(label_weight(z_all[rows], y, settings.bins or 100, max_weight)
+                               if use_expected and max_weight > 1 else 1.0)  # fmt: skip
                 steps[b] = len(problems) - 1
             else:  # too few events to learn a surface: the constant mean label
                 steps[b] = float(mass[b] / rows.size)
@@ -117,13 +143,13 @@ def fit_class_law(
         metrics[str(a)] = {"rows": int(rows.size),
                            "destinations": {str(b): int(counts[b]) for b in reached}}  # fmt: skip
     fitted = fit_classifiers(problems, settings, progress=progress, device=device,
-                             desc="class chain") if problems else []  # fmt: skip
+                             desc="class chain", weights=weights) if problems else []  # fmt: skip
     bounds = [domain[n] for n in names]
     sizes = class_law_nodes(len(names), nodes)
     grid = grid_nodes(bounds, sizes).to(torch.float32)
     law = torch.zeros(n_classes, grid.shape[0], n_classes, dtype=torch.float64)
     for a, steps in plan:
-        briers = {}
+        briers, row_weights = {}, {}
         for b, step in steps.items():
             if isinstance(step, float):
                 law[a, :, b] = step
@@ -132,11 +158,13 @@ def fit_class_law(
             with torch.no_grad():
                 law[a, :, b] = clf.predict_proba(grid.to(clf.device)).double().cpu().clamp(0, 1)
             briers[str(b)] = clf.validation.get("brier") if clf.validation else None
+            row_weights[str(b)] = round(weights[step], 1)
         total = law[a].sum(-1, keepdim=True)
         if bool((total <= 0).any()):
             raise ArtefactError(f"the class chain's law from class {a} vanishes on its domain")
         law[a] = law[a] / total
         metrics[str(a)]["brier"] = briers
+        metrics[str(a)]["row_weight"] = row_weights
     if not torch.isfinite(law).all():
         raise ArtefactError("the class chain's classifiers predict NaN/inf on their domain")
     metrics["classifiers"] = len(problems)
@@ -154,4 +182,4 @@ def class_law_nodes(n_inputs: int, nodes: Sequence[int] | None) -> list[int]:
     return [1024] if n_inputs == 1 else [max(2, int(math.pow(4096, 1 / n_inputs)))] * n_inputs
 
 
-__all__ = ["class_law_nodes", "fit_class_law"]
+__all__ = ["DEFAULT_MAX_LABEL_WEIGHT", "MIN_EVENTS", "class_law_nodes", "fit_class_law"]

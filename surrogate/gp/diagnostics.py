@@ -20,6 +20,7 @@ reference over occupied points) and its 90th percentile.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -116,6 +117,63 @@ def _scores(learned: np.ndarray, reference: np.ndarray, weight: np.ndarray) -> d
         "mean_abs_rel_error": float((w * rel).sum()),
         "p90_abs_rel_error": p90,
     }
+
+
+@torch.no_grad()
+def class_law_errors(
+    law: Callable[[Tensor, Tensor], Tensor],
+    occupancy: pd.DataFrame,
+    inputs: list[str] | tuple[str, ...],
+    class_names: tuple[str, ...],
+    class_lumps: tuple[int, ...],
+    exact: Callable[[pd.DataFrame], np.ndarray] | None = None,
+    origin: str = "phi_class",
+    destination: str = "phi_class_next",
+) -> dict[str, Any]:
+    """Score a K-lumps chain's law where the population lives: per origin class, the
+    occupancy-weighted probability of leaving its lump (the switch the agent feels), learned
+    against a reference, as :func:`psi_errors` scores psi.
+
+    Args:
+        law: ``(origin classes (n,), inputs (n x d)) -> n x C``, the chain's law
+            (:meth:`~surrogate.simulate.classes.ClassTable.law`).
+        occupancy: rows of an unperturbed full-model run with ``inputs``, ``origin`` and
+            ``destination`` (classes).
+        inputs: the law's input columns.
+        class_names: the ``C`` classes' names; class_lumps: each one's phi.
+        exact: ``rows -> n x C``, the exact law from each row's class (then the per-row
+            scores of :func:`psi_errors`); None: the rows' observed switches (the mean only,
+            with its binomial standard error).
+
+    Returns:
+        ``{class name: scores}`` for every class the population visits, each with ``share``
+        (its part of the occupancy), and ``reference``.
+    """
+    a_col = occupancy[origin].to_numpy(np.int64)
+    z = torch.from_numpy(occupancy[list(inputs)].to_numpy(np.float32, copy=True))
+    lumps = np.asarray(class_lumps)
+    out: dict[str, Any] = {"reference": "exact" if exact is not None else "empirical"}
+    for a, name in enumerate(class_names):
+        sel = np.flatnonzero(a_col == a)
+        if sel.size == 0:
+            continue
+        other = lumps != lumps[a]
+        learned = law(torch.full((sel.size,), a), z[sel]).double().cpu().numpy()[:, other].sum(1)
+        if exact is not None:
+            reference = exact(occupancy.iloc[sel])[:, other].sum(1)
+            scores: dict[str, Any] = _scores(learned, reference, np.ones(sel.size))
+        else:
+            nxt = occupancy[destination].to_numpy(np.int64)[sel]
+            observed = float((lumps[nxt] != lumps[a]).mean())
+            mean_l = float(learned.mean())
+            scores = {"n": int(sel.size), "mean_switching_learned": mean_l,
+                      "mean_switching_reference": observed,
+                      "rel_bias": (mean_l - observed) / observed if observed > 0 else float("nan"),
+                      "rel_se": math.sqrt((1 - observed) / (observed * sel.size))
+                      if observed > 0 else float("nan")}  # fmt: skip
+        scores["share"] = sel.size / len(a_col)
+        out[name] = scores
+    return out
 
 
 def plot_psi_errors(

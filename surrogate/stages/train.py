@@ -42,7 +42,7 @@ from surrogate.gp import (
     save_psi,
 )
 from surrogate.gp.classes import fit_class_law
-from surrogate.gp.diagnostics import plot_psi_errors, psi_errors
+from surrogate.gp.diagnostics import class_law_errors, plot_psi_errors, psi_errors
 from surrogate.io import (
     MANIFEST,
     load_tensors,
@@ -61,12 +61,13 @@ from surrogate.io import (
 )
 from surrogate.models.base import Model
 from surrogate.models.capabilities import (
+    exact_class_step_of,
     expected_class_next_of,
     has_exact_psi,
     lump_classes_of,
     signal_bounds_of,
 )
-from surrogate.simulate.classes import ClassTable, expected_class_column
+from surrogate.simulate.classes import CLASS, ClassTable, expected_class_column
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
@@ -293,7 +294,9 @@ def _fit_class_chain(
         )
     law, metrics = fit_class_law(table, settings.inputs, len(classes.names), dict(domain),
                                  settings.gp, progress=settings.job.progress,
-                                 device=settings.job.device, expected=expected)  # fmt: skip
+                                 device=settings.job.device, expected=expected,
+                                 min_events=settings.min_events,
+                                 max_weight=settings.max_label_weight)  # fmt: skip
     chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
                        classes.lumps, settings.setup.dt)  # fmt: skip
     log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
@@ -336,6 +339,8 @@ def _train(
     exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
     diagnostic, frame = diagnose(psi, settings, model, exact_fn)
     metrics["diagnostic"] = diagnostic
+    if settings.lumps == "classes":
+        metrics["class_diagnostic"] = diagnose_classes(load_class_chain(fit_dir), settings, model)
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.lumps == "classes" else ()))
@@ -375,7 +380,40 @@ def _train(
                 diagnostic["reference"], d["mean_switching_reference"], 100 * d["rel_bias"],
                 100 * d["mean_abs_rel_error"],
             )  # fmt: skip
+    for name, d in metrics.get("class_diagnostic", {}).items():
+        if isinstance(d, dict):
+            log.info(
+                "K lumps, leaving %s (%.0f %% of the population) where it lives: %.4f vs %s "
+                "%.4f (bias %+.1f %%)", name, 100 * d["share"], d["mean_switching_learned"],
+                metrics["class_diagnostic"]["reference"], d["mean_switching_reference"],
+                100 * d["rel_bias"],
+            )  # fmt: skip
     log.info("abstraction of %s: diagnostic and grid in %s", fit_dir, out)
+
+
+def diagnose_classes(chain: ClassTable, settings: TrainSettings, model: Model) -> dict[str, Any]:
+    """The K-lumps chain's law where an unperturbed full-model population lives (the occupancy
+    run of :func:`diagnose`): per origin class, the chance of leaving its lump, learned against
+    the model's exact class law of adapted cells where it has one (else the run's observed
+    switches; :func:`~surrogate.gp.diagnostics.class_law_errors`)."""
+    rows = occupancy(settings.occupancy())
+    internal = model.internal
+    if CLASS not in rows.columns:  # an occupancy run made before the model declared classes
+        return {"reference": None, "note": f"the occupancy run has no {CLASS} column"}
+    exact_step = exact_class_step_of(internal)
+    exact = None
+    if exact_step is not None:
+        names = list(internal.signal_names)
+        dt = settings.setup.dt
+
+        def exact(part: pd.DataFrame) -> np.ndarray:
+            s = torch.from_numpy(part[names].to_numpy(np.float64, copy=True))
+            laws = exact_step(s, dt)  # n x C x C
+            a = torch.from_numpy(part[CLASS].to_numpy(np.int64))
+            return laws[torch.arange(len(part)), a].numpy()
+
+    return class_law_errors(chain.law, rows, list(settings.inputs), chain.class_names,
+                            chain.class_lumps, exact)  # fmt: skip
 
 
 def exact_psi_function(model: Model, dt: float) -> Any:

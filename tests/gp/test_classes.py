@@ -1,4 +1,5 @@
-"""The K-lumps chain's learned law (surrogate.gp.classes): continuation-ratio binary GPs."""
+"""The K-lumps chain's learned law (surrogate.gp.classes): one-vs-rest binary GPs, and the
+weight of an expected label (surrogate.gp.training.label_weight)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import torch
 
 from surrogate.errors import ArtefactError
 from surrogate.gp.classes import fit_class_law
-from surrogate.gp.training import GPSettings
+from surrogate.gp.training import GPSettings, fit_classifiers, label_weight
 
 SETTINGS = GPSettings(seed=0, bins=50, epochs=300, n_inducing=16, kernel="matern52")
 
@@ -69,3 +70,114 @@ def test_a_table_without_class_columns_or_with_an_empty_class_is_refused() -> No
         fit_class_law(data.drop(columns="phi_class"), ["z"], 3, {"z": (0.0, 1.0)}, SETTINGS)
     with pytest.raises(ArtefactError, match="no rows from class 3"):
         fit_class_law(data, ["z"], 4, {"z": (0.0, 1.0)}, SETTINGS, progress=False)
+
+
+def test_an_expected_labels_weight_is_its_inverse_dispersion() -> None:
+    """Labels that are means of m Bernoulli draws have dispersion 1/m: the weight is m (within
+    5 %; the chi-square estimate's standard error at 100,000 rows is ~0.5 %); 0/1 outcomes get
+    1 (clipped from ~1), noise-free labels the cap."""
+    rng = np.random.default_rng(0)
+    z = torch.tensor(rng.uniform(0.0, 1.0, (100_000, 1)), dtype=torch.float32)
+    p = 0.1 + 0.6 * z[:, 0].double().numpy()
+    for m in (1, 10):
+        y = torch.tensor(rng.binomial(m, p) / m)
+        raw = label_weight(z, y, 100, cap=1e9)
+        assert raw == pytest.approx(m, rel=0.05)
+        assert label_weight(z, y, 100, cap=1000.0) == max(1.0, raw)
+    assert label_weight(z, torch.tensor(p), 100, cap=1000.0) == 1000.0
+    with pytest.raises(ValueError, match="3 weights for 1"):
+        fit_classifiers([(z[:100], torch.tensor(p[:100]).float())], SETTINGS, weights=[1, 2, 3])
+
+
+def tail_table(n: int, seed: int = 0) -> tuple[pd.DataFrame, np.ndarray]:
+    """Two classes; z ~ Beta(1, 4), so rows thin out towards z = 1; from class 0 the chance
+    of class 1 is q(z) = 0.01 exp(3 z), and each row carries it as its expected label (a
+    class that pins the internal state: noise-free labels)."""
+    rng = np.random.default_rng(seed)
+    z = rng.beta(1.0, 4.0, n)
+    q = 0.01 * np.exp(3.0 * z)
+    nxt = (rng.uniform(size=n) < q).astype(int)
+    table = pd.DataFrame({"z": z, "phi_class": 0, "phi_class_next": nxt,
+                          "phi_class_next_expected_0": 1 - q, "phi_class_next_expected_1": q})  # fmt: skip
+    back = pd.DataFrame({"z": z[:2000], "phi_class": 1, "phi_class_next": 1,
+                         "phi_class_next_expected_0": 0.0, "phi_class_next_expected_1": 1.0})  # fmt: skip
+    return pd.concat([table, back], ignore_index=True), z
+
+
+def test_weighted_expected_labels_pin_a_sparse_tail() -> None:
+    """Noise-free expected labels, weighted by their inverse dispersion (capped at 1,000),
+    hold the law where rows are sparse: at the 95th and 99th percentiles of z (~600 and ~120
+    rows in a 0.1-wide window of 20,000) within 4 standard errors of a binomial proportion
+    over 1,000 x those rows; counted as 0/1 draws (weight 1) the same data is not held to
+    that band there (the fit bends towards its prior where rows are few)."""
+    table, z = tail_table(20_000)
+    nodes = np.linspace(0.0, 1.0, 101)
+    errors = {}
+    for cap in (1000.0, 1.0):
+        law, metrics = fit_class_law(table, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS, nodes=[101],
+                                     progress=False, max_weight=cap)  # fmt: skip
+        assert metrics["0"]["row_weight"]["1"] == pytest.approx(min(cap, 1000.0))
+        errors[cap] = law[0, :, 1].numpy() - 0.01 * np.exp(3.0 * nodes)
+    for quantile in (0.95, 0.99):
+        at = float(np.quantile(z, quantile))
+        k = round(at * 100)
+        q = 0.01 * np.exp(3.0 * at)
+        rows = int(((z > at - 0.05) & (z < at + 0.05)).sum())
+        band = 4 * math.sqrt(q * (1 - q) / (1000 * rows))
+        assert abs(errors[1000.0][k]) <= band, (quantile, errors[1000.0][k], band)
+    worst = max(abs(errors[1.0][round(float(np.quantile(z, x)) * 100)]) for x in (0.95, 0.99))
+    assert worst > 4 * math.sqrt(q * (1 - q) / (1000 * rows))
+
+
+def test_a_rare_destination_with_expected_labels_gets_its_surface() -> None:
+    """With expected labels, events are counted by label mass: a destination with ~5 expected
+    events (q from 0.0003 to 0.006) gets a GP that follows q(z)'s trend (from z = 0.1 to 0.9 it
+    grows e^2.4 = 11x: the GP's within a factor 2 of that, its constant mean label 1x), while
+    0/1 outcomes keep the constant."""
+    rng = np.random.default_rng(1)
+    z = rng.uniform(0.0, 1.0, 2000)
+    q = 0.0003 * np.exp(3.0 * z)
+    table = pd.DataFrame({"z": z, "phi_class": 0, "phi_class_next": (rng.uniform(size=2000) < q).astype(int),
+                          "phi_class_next_expected_0": 1 - q, "phi_class_next_expected_1": q})  # fmt: skip
+    back = table.assign(phi_class=1, phi_class_next=1, phi_class_next_expected_0=0.0,
+                        phi_class_next_expected_1=1.0)  # fmt: skip
+    data = pd.concat([table, back], ignore_index=True)
+    law, metrics = fit_class_law(data, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS, nodes=[11],
+                                 progress=False)  # fmt: skip
+    assert metrics["min_events"] == 1.0 and "1" in metrics["0"]["row_weight"]
+    growth = float(law[0, 9, 1] / law[0, 1, 1])
+    assert math.exp(2.4) / 2 < growth < 2 * math.exp(2.4), growth
+    _, outcome = fit_class_law(data, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS, nodes=[11],
+                               progress=False, expected=False)  # fmt: skip
+    assert outcome["min_events"] == 50 and outcome["constant_steps"] >= 1
+
+
+def test_the_class_diagnostic_scores_leaving_the_lump_where_cells_live() -> None:
+    """class_law_errors: a law equal to the reference has no bias; one whose switch out of class
+    1's lump is 10 % too likely has +10 % exactly; the empirical reference is the rows' observed
+    switches (a class never visited is left out). Classes a | b, c are the two lumps."""
+    from surrogate.gp.diagnostics import class_law_errors
+
+    data = sample(20_000)
+    names, lumps = ("a", "b", "c"), (0, 1, 1)
+
+    def truth(rows: pd.DataFrame) -> np.ndarray:
+        return true_law(rows["z"].to_numpy())[np.arange(len(rows)), rows["phi_class"].to_numpy()]
+
+    def law(origin: torch.Tensor, z: torch.Tensor, boost: float = 1.0) -> torch.Tensor:
+        p = torch.tensor(true_law(z[:, 0].double().numpy()))[torch.arange(len(z)), origin]
+        p[:, 0] = torch.where(origin == 1, p[:, 0] * boost, p[:, 0])  # b -> a leaves b's lump
+        return p / p.sum(1, keepdim=True) if boost == 1.0 else p
+
+    exact = class_law_errors(law, data, ["z"], names, lumps, truth)
+    assert exact["reference"] == "exact"
+    assert all(abs(exact[n]["rel_bias"]) < 1e-6 for n in ("a", "b"))  # z in float32
+    assert exact["c"]["mean_switching_reference"] == 0.0  # c never leaves its lump: no bias
+    boosted = class_law_errors(lambda o, z: law(o, z, 1.1), data, ["z"], names, lumps, truth)
+    assert boosted["b"]["rel_bias"] == pytest.approx(0.1, abs=1e-6)
+    empirical = class_law_errors(law, data[data.phi_class < 2], ["z"], names, lumps)
+    assert "c" not in empirical and empirical["a"]["share"] + empirical["b"]["share"] == 1.0
+    left = data[(data.phi_class == 0)]
+    assert empirical["a"]["mean_switching_reference"] == pytest.approx(
+        (left.phi_class_next > 0).mean()
+    )

@@ -458,3 +458,27 @@ def test_reproduce_writes_the_report_of_every_field(compose_cfg) -> None:
     assert manifest["speed"]["field"] == "gaussian"
     assert reproduce.run(cfg) == out
     assert json.loads((out / "manifest.json").read_text())["speed"] == manifest["speed"]
+
+
+def test_the_k_lumps_chain_trains_is_diagnosed_and_simulates(compose_cfg, caplog) -> None:
+    """gp=classes end to end on tiny settings: the class chain is written beside psi, scored
+    against E. coli's exact class law where the occupancy run lives (every class the run
+    visits, their shares adding up to 1), and `decision=abstract gp=classes` runs it."""
+    tiny = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    cfg = compose_cfg("train", ["gp=classes", *tiny, "gp.n_inducing=8"])
+    collect.run(cfg)
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.train"):
+        train_dir = train.run(cfg)
+    assert (train_dir / "class_chain.pt").exists()
+    chain = train.load_class_chain(train_dir)
+    diagnostic = json.loads((train_dir / "train_metrics.json").read_text())["class_diagnostic"]
+    assert diagnostic["reference"] == "exact"
+    visited = {k: v for k, v in diagnostic.items() if isinstance(v, dict)}
+    assert set(visited) <= set(chain.class_names) and len(visited) >= 4
+    assert sum(v["share"] for v in visited.values()) == pytest.approx(1.0)
+    assert all(np.isfinite(v["rel_bias"]) for v in visited.values())
+    assert "K lumps, leaving" in caplog.text
+    sim = compose_cfg("simulate", ["decision=abstract", "gp=classes", *TINY, "gp.n_inducing=8"])
+    run_dir = simulate_stage.run(sim)
+    run = load_run(run_dir)
+    assert run.observables["cell"].nunique() == 40 and run.manifest["decision"] == "abstract"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -14,6 +15,7 @@ import torch
 
 from surrogate.config import grid_size, non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
+from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import lump_classes_of, start_size_of
@@ -31,11 +33,11 @@ from surrogate.stages.settings.occupancy import OccupancySettings
 
 #: keys of the gp group that are not GP hyperparameters
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
-            "clock_bins", "lumps")  # fmt: skip
+            "clock_bins", "lumps", "min_events", "max_label_weight")  # fmt: skip
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
 GP_CLOCK = ("history", "max_age", "clock_bins")
 #: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
-GP_CLASSES = ("lumps",)
+GP_CLASSES = ("lumps", "min_events", "max_label_weight")
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
@@ -98,6 +100,12 @@ class TrainSettings:
     #: gp.lumps: phi (the two-state chain) | classes (also the K-lumps chain over the model's
     #: classes, :mod:`surrogate.gp.classes`)
     lumps: str = "phi"
+    #: gp.min_events: events a destination of the K-lumps chain needs for a GP surface (None:
+    #: by the labels, :data:`surrogate.gp.classes.MIN_EVENTS`)
+    min_events: float | None = None
+    #: gp.max_label_weight: the most draws one expected label counts as in the K-lumps chain's
+    #: GPs (:func:`surrogate.gp.training.label_weight`; 1: as a 0/1 outcome)
+    max_label_weight: float = DEFAULT_MAX_LABEL_WEIGHT
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
@@ -138,6 +146,17 @@ class TrainSettings:
                 )
             if history != "none":
                 raise ConfigError("gp.lumps=classes takes no switch clock: use gp.history=none")
+        min_events = gp_config.get("min_events")
+        if min_events is not None and (isinstance(min_events, bool)
+                                       or not isinstance(min_events, int | float)
+                                       or not min_events >= 0):  # fmt: skip
+            raise ConfigError(f"gp.min_events must be a number >= 0 or null, got {min_events!r}")
+        max_label_weight = gp_config.get("max_label_weight", DEFAULT_MAX_LABEL_WEIGHT)
+        if (isinstance(max_label_weight, bool) or not isinstance(max_label_weight, int | float)
+                or not 1 <= max_label_weight < math.inf):  # fmt: skip
+            raise ConfigError(
+                f"gp.max_label_weight must be a finite number >= 1, got {max_label_weight!r}"
+            )
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
@@ -171,7 +190,7 @@ class TrainSettings:
                 )
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
                    int(threads) if threads is not None else torch.get_num_threads(),
-                   history, max_age, lumps)  # fmt: skip
+                   history, max_age, lumps, min_events, float(max_label_weight))  # fmt: skip
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
@@ -201,6 +220,9 @@ class TrainSettings:
             gp = {k: v for k, v in gp.items() if k not in GP_CLOCK}
         if self.lumps == "phi":  # and two-state fits the one they had before K lumps
             gp = {k: v for k, v in gp.items() if k not in GP_CLASSES}
+        else:  # always named: their defaults changed (50 outcomes whatever the labels; 1)
+            gp["min_events"] = self.min_events
+            gp["max_label_weight"] = self.max_label_weight
         return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
                 "device": self.job.device_type}  # fmt: skip
 
