@@ -289,12 +289,31 @@ def _diagnostic_text(metrics: Mapping[str, Any], lumps: tuple[str, str]) -> str:
     if not rows:
         return "No diagnostic was computed."
     o = d.get("settings", {})
-    return (
+    text = (
         f"The learned switching probabilities against the {d['reference']} psi, weighted by "
         f"where an unperturbed full-model population lives ({o.get('n_cells')} cells from "
         f"{o.get('start')} for {o.get('t_end')} s in the training field; {d['n_occupancy']} "
         "occupied points). The bias predicts the relative error of the mean segment duration "
         "(with the opposite sign).\n\n" + format_markdown_table(pd.DataFrame(rows), ".4f")
+    )
+    return text + _class_diagnostic_text(metrics.get("class_diagnostic") or {})
+
+
+def _class_diagnostic_text(d: Mapping[str, Any]) -> str:
+    """The K-lumps chain's law (what a gp.lumps=classes run simulates) where the population
+    lives: per origin class, its chance of leaving the lump (empty without one)."""
+    rows = [{"leaving class": name, "share": f"{100 * s['share']:.1f} %",
+             "switching prob., learned": s["mean_switching_learned"],
+             f"{d['reference']} reference": s["mean_switching_reference"],
+             "bias": f"{100 * s['rel_bias']:+.1f} %"}
+            for name, s in d.items() if isinstance(s, dict)]  # fmt: skip
+    if not rows:
+        return ""
+    return (
+        "\n\nThe simulated chain is the K-lumps chain over the model's classes; its law, scored "
+        "the same way per origin class (the chance of leaving the class's lump; share: the "
+        "class's part of the occupied points):\n\n"
+        + format_markdown_table(pd.DataFrame(rows), ".4f")
     )
 
 

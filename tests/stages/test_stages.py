@@ -478,6 +478,12 @@ def test_the_k_lumps_chain_trains_is_diagnosed_and_simulates(compose_cfg, caplog
     assert sum(v["share"] for v in visited.values()) == pytest.approx(1.0)
     assert all(np.isfinite(v["rel_bias"]) for v in visited.values())
     assert "K lumps, leaving" in caplog.text
+    # the report scores the chain it simulates, class by class
+    from surrogate.stages.reproduce import _diagnostic_text
+
+    metrics = json.loads((train_dir / "train_metrics.json").read_text())
+    text = _diagnostic_text(metrics, ("tumble", "run"))
+    assert "K-lumps chain" in text and all(f"| {name} |" in text for name in visited)
     sim = compose_cfg("simulate", ["decision=abstract", "gp=classes", *TINY, "gp.n_inducing=8"])
     run_dir = simulate_stage.run(sim)
     run = load_run(run_dir)
