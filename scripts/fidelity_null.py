@@ -1,10 +1,11 @@
 """The fidelity check's own false-failure rate: the full model itself as the candidate.
 
 For each field and each of ``--pairs`` reference pairs (a full run and a second full run, the
-noise floor), six more full runs (the "training seeds") are checked exactly as
-``scripts/fidelity.py`` checks a learned abstraction: distance KS at 125 / 250 / 375 / 500 s
-within min(max(1.5 x floor, 5 % critical value), 0.06). A chain that cannot be told from the
-full model fails about as many checks as this (docs/fidelity.md, "Memory: K lumps").
+noise floor), six more full runs (the "training seeds") get the distance checks of
+``scripts/fidelity.py``: distance KS at 125 / 250 / 375 / 500 s within min(max(ks_factor x
+floor, critical value at alpha), ks_max), the values of conf/fidelity.yaml (the duration checks
+are left out). A chain that cannot be told from the full model fails about as many of them as
+this (docs/fidelity.md, "Memory: K lumps").
 
 python scripts/fidelity_null.py [--pairs 3] [--cells 2000] [--fields gaussian,linear,...]
 
@@ -19,19 +20,22 @@ import argparse
 import json
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 from scipy import stats
 
 from surrogate.config import build_field, field_config
 from surrogate.fields import Field
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import FullDecision, Simulator
+from surrogate.stages.fidelity import KS_C
 
 DT = 0.05
 TIMES = (125.0, 250.0, 375.0, 500.0)
-KS_C = 1.358  # two-sample KS critical value factor at alpha = 0.05
+CHECK = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "fidelity.yaml").fidelity
 FIELDS = "gaussian,linear,dynamic,exponential"
 
 
@@ -58,7 +62,7 @@ def main() -> None:
     parser.add_argument("--fields", default=FIELDS)
     args = parser.parse_args()
     model = EcoliModel()
-    crit = KS_C * math.sqrt(2.0 / args.cells)
+    crit = KS_C[float(CHECK.alpha)] * math.sqrt(2.0 / args.cells)
     fails, checks, largest = 0, 0, 0.0
     t0 = time.perf_counter()
     for name in args.fields.split(","):
@@ -66,14 +70,15 @@ def main() -> None:
         for p in range(args.pairs):
             ref = distances(model, field, 5000 + 10 * p, args.cells)
             floor = distances(model, field, 6000 + 10 * p, args.cells)
+            limits = {t: min(max(CHECK.ks_factor * stats.ks_2samp(floor[t], ref[t]).statistic,
+                                 crit), CHECK.ks_max) for t in TIMES}  # fmt: skip
             for k in range(6):
                 cand = distances(model, field, 7000 + 100 * p + k, args.cells)
                 for t in TIMES:
-                    noise = stats.ks_2samp(floor[t], ref[t]).statistic
-                    ks = stats.ks_2samp(cand[t], ref[t]).statistic
+                    ks = float(stats.ks_2samp(cand[t], ref[t]).statistic)
                     checks += 1
-                    fails += int(ks > min(max(1.5 * noise, crit), 0.06))
-                    largest = max(largest, float(ks))
+                    fails += int(ks > limits[t])
+                    largest = max(largest, ks)
             print(f"{name} pair {p}: {fails} of {checks} checks failed so far "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)  # fmt: skip
     per_96 = 96 * fails / checks

@@ -190,7 +190,7 @@ def test_the_classes_recipe_is_checked_and_leaves_two_state_identities_as_they_w
     assert plain.lumps == "phi" and "lumps" not in plain.fit_identity()["gp"]
     # the class law's own keys: resolved in its identity, absent from a two-state fit's
     gp = classes.fit_identity()["gp"]
-    assert gp["min_events"] is None and gp["max_label_weight"] == 1000.0
+    assert gp["min_events"] == {"outcome": 50, "expected": 1.0} and gp["max_label_weight"] == 1000.0
     assert not {"min_events", "max_label_weight"} & set(plain.fit_identity()["gp"])
     lighter = TrainSettings.from_config(
         compose_cfg("train", ["gp=classes", "gp.max_label_weight=1"])

@@ -44,6 +44,9 @@ MIN_EVENTS = {"outcome": 50, "expected": 1.0}
 #: the most Bernoulli draws one expected label counts as (its inverse dispersion, clipped):
 #: 1,000 trusts a noise-free label like a thousand outcomes, enough for the rare tails
 DEFAULT_MAX_LABEL_WEIGHT = 1000.0
+#: the class law's fit for the same data and settings, in every K-lumps fit's identity (bump it
+#: when a change here or in label_weight changes the fit): 2, weighted labels and label mass
+CLASS_LAW_VERSION = 2
 
 
 def fit_class_law(
@@ -182,4 +185,10 @@ def class_law_nodes(n_inputs: int, nodes: Sequence[int] | None) -> list[int]:
     return [1024] if n_inputs == 1 else [max(2, int(math.pow(4096, 1 / n_inputs)))] * n_inputs
 
 
-__all__ = ["DEFAULT_MAX_LABEL_WEIGHT", "MIN_EVENTS", "class_law_nodes", "fit_class_law"]
+__all__ = [
+    "CLASS_LAW_VERSION",
+    "DEFAULT_MAX_LABEL_WEIGHT",
+    "MIN_EVENTS",
+    "class_law_nodes",
+    "fit_class_law",
+]

@@ -147,7 +147,8 @@ def class_law_errors(
 
     Returns:
         ``{class name: scores}`` for every class the population visits, each with ``share``
-        (its part of the occupancy), and ``reference``.
+        (its part of the occupancy; ``rel_bias`` None where the reference never leaves the
+        lump), and ``reference``.
     """
     a_col = occupancy[origin].to_numpy(np.int64)
     z = torch.from_numpy(occupancy[list(inputs)].to_numpy(np.float32, copy=True))
@@ -171,6 +172,8 @@ def class_law_errors(
                       "rel_bias": (mean_l - observed) / observed if observed > 0 else float("nan"),
                       "rel_se": math.sqrt((1 - observed) / (observed * sel.size))
                       if observed > 0 else float("nan")}  # fmt: skip
+        if not math.isfinite(scores["rel_bias"]):  # a class that never leaves its lump
+            scores["rel_bias"] = None
         scores["share"] = sel.size / len(a_col)
         out[name] = scores
     return out

@@ -607,6 +607,7 @@ def fit_classifiers(
 
 
 def _check_weight(weight: float, settings: GPSettings) -> None:
+    """A likelihood weight is finite and positive, and other than 1 only for binned training."""
     if not (math.isfinite(weight) and weight > 0):
         raise ValueError(f"a likelihood weight must be finite and > 0, got {weight!r}")
     if weight != 1.0 and not settings.bins:
@@ -734,8 +735,9 @@ def bin_inputs(z: Tensor, y: Tensor, bins: int | Sequence[int]) -> tuple[Tensor,
 
 def label_weight(z: Tensor, y: Tensor, bins: int | Sequence[int], cap: float) -> float:
     """How many Bernoulli draws one expected label is worth: the inverse of the quasi-binomial
-    dispersion, Pearson's estimate within equal-width bins of ``z`` (``n x d``),
-    ``sum_b n_b p_b (1 - p_b) / sum_i (y_i - p_b(i))^2`` with ``p_b`` the bin's mean label,
+    dispersion, Pearson's pooled estimate within equal-width bins of ``z`` (``n x d``),
+    ``sum_b (n_b - 1) p_b (1 - p_b) / sum_i (y_i - p_b(i))^2`` over bins with two rows or more
+    (``p_b`` the bin's mean label; ``n_b - 1``: the bin's mean uses up one degree of freedom),
     clipped to ``[1, cap]``.
 
     A 0/1 outcome has the binomial variance p (1 - p); an expected label, the window's law given
@@ -744,15 +746,22 @@ def label_weight(z: Tensor, y: Tensor, bins: int | Sequence[int], cap: float) ->
     so without this weight a GP trusts noise-free labels as little as coin flips and bends
     where they are sparse (E. coli, run with 2 CCW motors leaving at the top of the occupied
     band: +28 % at 90 rows; docs/fidelity.md, "Memory"). Weighting the likelihood by it is the
-    quasi-likelihood fit of a GLM with estimated dispersion.
+    quasi-likelihood fit of a GLM with estimated dispersion. The bins span ``z``'s own range,
+    as the training's bins span its (normalised) training split's: the same equal-width bins up
+    to the held-out rows.
     """
+    if not cap >= 1.0:
+        raise ValueError(f"label_weight: cap must be >= 1, got {cap!r}")
+    if not (bool(torch.isfinite(z).all()) and bool(torch.isfinite(y).all())):
+        raise NumericalError("label_weight: inputs and labels must be finite")
     index, size = _bin_index(z, bins)
     y = y.to(torch.float64)
     n_b = torch.bincount(index, minlength=size).to(torch.float64)
     p_b = torch.bincount(index, weights=y, minlength=size) / n_b.clamp(min=1)
-    binomial = float((n_b * p_b * (1 - p_b)).sum())
-    residual = float(((y - p_b[index]) ** 2).sum())
-    if binomial <= 0.0:
+    pooled = n_b >= 2  # a bin of one row says nothing about the spread around its mean
+    binomial = float(((n_b - 1) * p_b * (1 - p_b))[pooled].sum())
+    residual = float(((y - p_b[index]) ** 2)[pooled[index]].sum())
+    if binomial <= 0.0:  # every pooled bin all 0 or all 1: nothing to weigh
         return 1.0
     return float(min(cap, max(1.0, binomial / residual))) if residual > 0 else float(cap)
 

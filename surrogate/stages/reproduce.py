@@ -39,7 +39,7 @@ from surrogate.stages.settings import (
     ReproduceSettings,
 )
 from surrogate.stages.simulate import build_decision, simulate_together
-from surrogate.stages.train import read_metrics, train
+from surrogate.stages.train import percent, read_metrics, train
 
 log = logging.getLogger(__name__)
 
@@ -305,7 +305,7 @@ def _class_diagnostic_text(d: Mapping[str, Any]) -> str:
     rows = [{"leaving class": name, "share": f"{100 * s['share']:.1f} %",
              "switching prob., learned": s["mean_switching_learned"],
              f"{d['reference']} reference": s["mean_switching_reference"],
-             "bias": f"{100 * s['rel_bias']:+.1f} %"}
+             "bias": percent(s["rel_bias"])}
             for name, s in d.items() if isinstance(s, dict)]  # fmt: skip
     if not rows:
         return ""

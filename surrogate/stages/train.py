@@ -384,11 +384,16 @@ def _train(
         if isinstance(d, dict):
             log.info(
                 "K lumps, leaving %s (%.0f %% of the population) where it lives: %.4f vs %s "
-                "%.4f (bias %+.1f %%)", name, 100 * d["share"], d["mean_switching_learned"],
+                "%.4f (bias %s)", name, 100 * d["share"], d["mean_switching_learned"],
                 metrics["class_diagnostic"]["reference"], d["mean_switching_reference"],
-                100 * d["rel_bias"],
+                percent(d["rel_bias"]),
             )  # fmt: skip
     log.info("abstraction of %s: diagnostic and grid in %s", fit_dir, out)
+
+
+def percent(fraction: float | None) -> str:
+    """A relative error as ``+1.2 %`` (``-`` where there is none)."""
+    return "-" if fraction is None else f"{100 * fraction:+.1f} %"
 
 
 def diagnose_classes(chain: ClassTable, settings: TrainSettings, model: Model) -> dict[str, Any]:

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from surrogate.errors import ArtefactError
+from surrogate.errors import ArtefactError, NumericalError
 from surrogate.gp.classes import fit_class_law
 from surrogate.gp.training import GPSettings, fit_classifiers, label_weight
 
@@ -73,18 +73,30 @@ def test_a_table_without_class_columns_or_with_an_empty_class_is_refused() -> No
 
 
 def test_an_expected_labels_weight_is_its_inverse_dispersion() -> None:
-    """Labels that are means of m Bernoulli draws have dispersion 1/m: the weight is m (within
-    5 %; the chi-square estimate's standard error at 100,000 rows is ~0.5 %); 0/1 outcomes get
-    1 (clipped from ~1), noise-free labels the cap."""
+    """Labels that are means of 10 Bernoulli draws have dispersion 1/10: the weight is 10,
+    within 5 % at 100,000 rows (the estimate's s.d. there is 0.05, measured over replicates),
+    and on average over 50 draws of 200 rows in 100 bins within 10 % (s.d. of that mean 0.2;
+    without the bins' lost degree of freedom it came out 17); 0/1 outcomes get 1, noise-free
+    labels the cap; non-finite labels and a cap below 1 are refused."""
     rng = np.random.default_rng(0)
-    z = torch.tensor(rng.uniform(0.0, 1.0, (100_000, 1)), dtype=torch.float32)
-    p = 0.1 + 0.6 * z[:, 0].double().numpy()
-    for m in (1, 10):
-        y = torch.tensor(rng.binomial(m, p) / m)
-        raw = label_weight(z, y, 100, cap=1e9)
-        assert raw == pytest.approx(m, rel=0.05)
-        assert label_weight(z, y, 100, cap=1000.0) == max(1.0, raw)
+
+    def draw(n: int, m: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+        z = torch.tensor(rng.uniform(0.0, 1.0, (n, 1)), dtype=torch.float32)
+        p = 0.1 + 0.6 * z[:, 0].double().numpy()
+        return z, torch.tensor(rng.binomial(m, p) / m), p
+
+    z, y, p = draw(100_000, 10)
+    assert label_weight(z, y, 100, cap=1e9) == pytest.approx(10.0, rel=0.05)
+    assert label_weight(z, y, 100, cap=5.0) == 5.0
+    small = [label_weight(*draw(200, 10)[:2], 100, cap=1e9) for _ in range(50)]
+    assert float(np.mean(small)) == pytest.approx(10.0, rel=0.10)
+    z1, y1, _ = draw(100_000, 1)
+    assert label_weight(z1, y1, 100, cap=1000.0) == pytest.approx(1.0, abs=0.05)
     assert label_weight(z, torch.tensor(p), 100, cap=1000.0) == 1000.0
+    with pytest.raises(ValueError, match="cap"):
+        label_weight(z, y, 100, cap=0.5)
+    with pytest.raises(NumericalError, match="finite"):
+        label_weight(z, torch.full_like(y, float("nan")), 100, cap=10.0)
     with pytest.raises(ValueError, match="3 weights for 1"):
         fit_classifiers([(z[:100], torch.tensor(p[:100]).float())], SETTINGS, weights=[1, 2, 3])
 
@@ -108,8 +120,10 @@ def test_weighted_expected_labels_pin_a_sparse_tail() -> None:
     """Noise-free expected labels, weighted by their inverse dispersion (capped at 1,000),
     hold the law where rows are sparse: at the 95th and 99th percentiles of z (~600 and ~120
     rows in a 0.1-wide window of 20,000) within 4 standard errors of a binomial proportion
-    over 1,000 x those rows; counted as 0/1 draws (weight 1) the same data is not held to
-    that band there (the fit bends towards its prior where rows are few)."""
+    over 1,000 x those rows (the noise the weighted likelihood assumes; the labels have none,
+    so the band bounds the fit's smoothing bias, a heuristic bound); counted as 0/1 draws
+    (weight 1) the same data leaves that band at one of them at least (the fit bends towards
+    its prior where rows are few)."""
     table, z = tail_table(20_000)
     nodes = np.linspace(0.0, 1.0, 101)
     errors = {}
@@ -118,6 +132,7 @@ def test_weighted_expected_labels_pin_a_sparse_tail() -> None:
                                      progress=False, max_weight=cap)  # fmt: skip
         assert metrics["0"]["row_weight"]["1"] == pytest.approx(min(cap, 1000.0))
         errors[cap] = law[0, :, 1].numpy() - 0.01 * np.exp(3.0 * nodes)
+    outside = []
     for quantile in (0.95, 0.99):
         at = float(np.quantile(z, quantile))
         k = round(at * 100)
@@ -125,8 +140,8 @@ def test_weighted_expected_labels_pin_a_sparse_tail() -> None:
         rows = int(((z > at - 0.05) & (z < at + 0.05)).sum())
         band = 4 * math.sqrt(q * (1 - q) / (1000 * rows))
         assert abs(errors[1000.0][k]) <= band, (quantile, errors[1000.0][k], band)
-    worst = max(abs(errors[1.0][round(float(np.quantile(z, x)) * 100)]) for x in (0.95, 0.99))
-    assert worst > 4 * math.sqrt(q * (1 - q) / (1000 * rows))
+        outside.append(abs(errors[1.0][k]) > band)
+    assert any(outside)
 
 
 def test_a_rare_destination_with_expected_labels_gets_its_surface() -> None:

@@ -15,7 +15,7 @@ import torch
 
 from surrogate.config import grid_size, non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
-from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
+from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import lump_classes_of, start_size_of
@@ -189,8 +189,9 @@ class TrainSettings:
                     "gp.labels=outcome"
                 )
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
-                   int(threads) if threads is not None else torch.get_num_threads(),
-                   history, max_age, lumps, min_events, float(max_label_weight))  # fmt: skip
+                   int(threads) if threads is not None else torch.get_num_threads(), history,
+                   max_age, lumps, None if min_events is None else float(min_events),
+                   float(max_label_weight))  # fmt: skip
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
@@ -220,9 +221,10 @@ class TrainSettings:
             gp = {k: v for k, v in gp.items() if k not in GP_CLOCK}
         if self.lumps == "phi":  # and two-state fits the one they had before K lumps
             gp = {k: v for k, v in gp.items() if k not in GP_CLASSES}
-        else:  # always named: their defaults changed (50 outcomes whatever the labels; 1)
-            gp["min_events"] = self.min_events
+        else:  # resolved, and the law's fit version: a change in either refits
+            gp["min_events"] = dict(MIN_EVENTS) if self.min_events is None else self.min_events
             gp["max_label_weight"] = self.max_label_weight
+            gp["class_law_version"] = CLASS_LAW_VERSION
         return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
                 "device": self.job.device_type}  # fmt: skip
 
