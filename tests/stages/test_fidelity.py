@@ -64,6 +64,10 @@ def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
     text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
     assert "full_repeat" not in text
     assert "adapted to their current input" in text and "best" not in text
+    # the chance failures: alpha x the learned candidates' KS checks (the references' excluded)
+    learned = table[~table["candidate"].isin(fidelity.REFERENCES)]
+    n_ks = int(learned["quantity"].str.startswith("distance_t").sum())
+    assert f"up to {0.05 * n_ks:.1f} of these {n_ks} KS checks by chance" in text
     fig = fidelity.plot_ks(table, settings)
     labels = fig.axes[0].get_legend_handles_labels()[1]
     assert labels[0] == "noise floor" and "full_repeat" not in labels
