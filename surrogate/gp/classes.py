@@ -137,8 +137,9 @@ def fit_class_law(
                 hit = torch.tensor((b_col[rows] == b).astype(np.float32))
                 y = torch.tensor(labels[rows, b])
                 problems.append((z_all[rows], y, hit))
-                weights.append(label_weight(z_all[rows], y, settings.bins or 100, max_weight)
-                               if use_expected and max_weight > 1 else 1.0)  # fmt: skip
+                weights.append(label_weight(z_all[rows], y, settings.bins, max_weight)
+                               if use_expected and max_weight > 1 and settings.bins
+                               else 1.0)  # fmt: skip
                 steps[b] = len(problems) - 1
             else:  # too few events to learn a surface: the constant mean label
                 steps[b] = float(mass[b] / rows.size)

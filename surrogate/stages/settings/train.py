@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -146,17 +145,13 @@ class TrainSettings:
                 )
             if history != "none":
                 raise ConfigError("gp.lumps=classes takes no switch clock: use gp.history=none")
-        min_events = gp_config.get("min_events")
-        if min_events is not None and (isinstance(min_events, bool)
-                                       or not isinstance(min_events, int | float)
-                                       or not min_events >= 0):  # fmt: skip
-            raise ConfigError(f"gp.min_events must be a number >= 0 or null, got {min_events!r}")
-        max_label_weight = gp_config.get("max_label_weight", DEFAULT_MAX_LABEL_WEIGHT)
-        if (isinstance(max_label_weight, bool) or not isinstance(max_label_weight, int | float)
-                or not 1 <= max_label_weight < math.inf):  # fmt: skip
-            raise ConfigError(
-                f"gp.max_label_weight must be a finite number >= 1, got {max_label_weight!r}"
-            )
+        min_events = gp_config.get("min_events")  # null: by the labels
+        if min_events is not None:
+            min_events = non_negative(gp_config, "min_events", "gp.")
+        max_label_weight = positive({"max_label_weight": DEFAULT_MAX_LABEL_WEIGHT, **gp_config},
+                                    "max_label_weight", "gp.")  # fmt: skip
+        if max_label_weight < 1:
+            raise ConfigError(f"gp.max_label_weight must be >= 1, got {max_label_weight!r}")
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
