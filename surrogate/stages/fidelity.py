@@ -27,16 +27,14 @@ import functools
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 from scipy import stats
-from tqdm.auto import tqdm
 
 from surrogate.config import (
     build_field,
@@ -66,14 +64,17 @@ from surrogate.models.capabilities import (
     signal_bounds_of,
     start_size_of,
 )
-from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.batch import Replicate
 from surrogate.simulate.classes import can_classify
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.memory import can_age
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
+from surrogate.stages import reference
 from surrogate.stages.collect import collect
+from surrogate.stages.reference import ReferenceSettings
+from surrogate.stages.runs import RunResult, mean_observables, simulate_runs
 from surrogate.stages.settings import (
     Job,
     ModelSetup,
@@ -100,8 +101,6 @@ FIGURE = "ks_over_time.png"
 DRIFT_FIGURE = "drift.png"
 #: c(alpha) of the asymptotic two-sample KS critical value, by alpha
 KS_C = {0.05: KS_C_ALPHA_05, 0.01: 1.628, 0.001: 1.949}
-#: longest segment (steps) the duration histograms resolve; longer ones go to the last bin
-MAX_SEGMENT_STEPS = 1 << 14
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,6 +134,8 @@ class FidelitySettings:
     exact_clocks: tuple[float, ...] = ()
     #: the exact K-lumps chain beside candidates with gp.lumps=classes
     exact_classes: bool = False
+    #: the full model and its noise floor read from stored references (fidelity.reference=stored)
+    references: ReferenceSettings | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> FidelitySettings:
@@ -186,9 +187,10 @@ class FidelitySettings:
         exact_classes = (exact and any(c.train.lumps == "classes" for c in candidates)
                          and can_classify(internal) and exact_class_step_of(internal) is not None
                          and len(internal.signal_names) == 1)  # fmt: skip
+        references = _stored_references(c, f, times)
         return cls(setup, fields, tuple(candidates), exact, f, times,
                    bool(c.get("compile", False)), Job.from_config(cfg),
-                   validate_backend(c), clocks, exact_classes)  # fmt: skip
+                   validate_backend(c), clocks, exact_classes, references)  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """The candidates' training identities, the fields and the run and check settings."""
@@ -204,7 +206,9 @@ class FidelitySettings:
             "compile": self.compile,
             "backend": self.backend,
             "device": self.job.device_type,
-        }
+            **({"references": [r.directory.name for r in self.references.runs]}
+               if self.references is not None else {}),
+        }  # fmt: skip
 
     @functools.cached_property
     def directory(self) -> Path:
@@ -228,6 +232,8 @@ REFERENCES = ("exact", EXACT_CLOCK, EXACT_CLASSES)
 
 #: decision.mode of the abstractions under test
 MODES = ("lookup", "classifier")
+#: fidelity.reference: simulate the full model beside the candidates, or read stored runs
+REFERENCE_CHOICES = ("run", "stored")
 
 
 def _times(value: Any, t_end: float, dt: float) -> tuple[float, ...]:
@@ -251,6 +257,24 @@ def _times(value: Any, t_end: float, dt: float) -> tuple[float, ...]:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
     return times
+
+
+def _stored_references(
+    c: Mapping[str, Any], f: Mapping[str, Any], times: Sequence[float]
+) -> ReferenceSettings | None:
+    """``fidelity.reference=stored``: the stored runs the check reads, each present and
+    keeping ``times`` (refused now, before any training, naming the command that makes them or
+    the settings that differ); None for ``run``."""
+    choice = f.get("reference", "run")
+    if choice not in REFERENCE_CHOICES:
+        raise ConfigError(f"fidelity.reference must be one of {list(REFERENCE_CHOICES)}, got "
+                          f"{choice!r}")  # fmt: skip
+    if choice == "run":
+        return None
+    settings = ReferenceSettings.from_config(c)
+    for r in settings.runs:
+        reference.load(r, settings.command, times)  # present, and at these times
+    return settings
 
 
 def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
@@ -297,79 +321,6 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
                      force=force)  # fmt: skip
 
 
-# ----------------------------------------------------------------------------------------------
-# simulation: every run in batches, observables at the check times, duration sums on the device
-
-
-@dataclass
-class RunResult:
-    """What the checks need of one run."""
-
-    observables: dict[float, np.ndarray]  # time -> values (n,)
-    mean_durations: dict[str, float]  # lump name -> mean completed segment duration (s)
-    segments: dict[str, int]
-
-
-#: steps per Simulator.advance call between check times
-CHUNK_STEPS = 20
-
-
-def _simulate_batch(
-    settings: FidelitySettings, replicates: list[Replicate], labels: list[str]
-) -> dict[str, RunResult]:
-    """Simulate ``replicates`` as one population; record what the checks need."""
-    setup, o, job = settings.setup, settings.options, settings.job
-    model = setup.model
-    sim = BatchSimulator(model, replicates, setup.dt, job.device, compile=settings.compile,
-                         backend=settings.backend, compile_fallback=False)  # fmt: skip
-    log.info("simulating %d runs in one batch (%d cells, %s loop)", len(replicates),
-             sum(sim.sizes), sim.backend)  # fmt: skip
-    with torch.inference_mode():  # cheaper per op than no_grad
-        state = sim.initial_state(equilibration_time=float(o["equilibration_time"]))
-        sim.warm_up(state)
-        n_steps = steps_between(float(o["t_end"]), setup.dt, "t_end")
-        record = {steps_between(t, setup.dt, "times"): t for t in settings.times}
-        # per replicate and lump: completed segments and their total length (steps)
-        r = len(replicates)
-        replicate_of = torch.repeat_interleave(
-            torch.arange(r, device=job.device), torch.tensor(sim.sizes, device=job.device)
-        )
-        totals = torch.zeros(2 * r, dtype=torch.float64, device=job.device)
-        counts = torch.zeros(2 * r, dtype=torch.float64, device=job.device)
-        observed: dict[float, np.ndarray] = {}
-        name = model.body.observable_names[0]
-        k = 0
-        with tqdm(total=n_steps, desc="fidelity", disable=not job.progress,
-                  mininterval=1.0) as bar:  # fmt: skip
-            while k < n_steps:  # up to the next check time, CHUNK_STEPS steps per call
-                upcoming = [s for s in record if s > k]
-                steps = min(min(upcoming, default=n_steps) - k, n_steps - k, CHUNK_STEPS)
-                ended = sim.advance(state, steps)  # steps x n
-                key = 2 * replicate_of + (ended > 0).long()
-                totals.index_add_(0, key.reshape(-1), ended.abs().double().reshape(-1))
-                counts.index_add_(0, key.reshape(-1), (ended != 0).double().reshape(-1))
-                k += steps
-                bar.update(steps)
-                if k in record:
-                    sim.check_state(state)
-                    observed[record[k]] = (
-                        model.body.observables(state.body, sim.field)[name].double().cpu().numpy()
-                    )
-    lumps = model.internal.lump_names
-    totals, counts = totals.cpu().numpy(), counts.cpu().numpy()
-    out = {}
-    for i, (label, cells) in enumerate(zip(labels, sim.slices, strict=True)):
-        out[label] = RunResult(
-            observables={t: v[cells] for t, v in observed.items()},
-            mean_durations={
-                lumps[p]: float(totals[2 * i + p] / max(counts[2 * i + p], 1) * setup.dt)
-                for p in (0, 1)
-            },
-            segments={lumps[p]: int(counts[2 * i + p]) for p in (0, 1)},
-        )
-    return out
-
-
 def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) -> None:
     t0 = time.perf_counter()
     setup, o, job = settings.setup, settings.options, settings.job
@@ -393,10 +344,17 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     offset = int(o.get("noise_seed_offset", 1000))
     t1 = time.perf_counter()
     reps, labels = [], []
-    for which, s in (("full", seed), ("full_repeat", seed + offset)):
-        for name in settings.fields:
-            reps.append(Replicate(FullDecision(model.internal), fields[name], n, s, start))
-            labels.append(f"{which}|{name}")
+    stored: dict[str, RunResult] = {}
+    if settings.references is not None:  # the full model and its floor, made once
+        refs = settings.references
+        for r in refs.runs:
+            stored[f"{r.which}|{r.field_name}"] = reference.load(r, refs.command, settings.times)
+            log.info("fidelity: the %s read from %s", r.describe(), r.directory)
+    else:
+        for which, s in (("full", seed), ("full_repeat", seed + offset)):
+            for name in settings.fields:
+                reps.append(Replicate(FullDecision(model.internal), fields[name], n, s, start))
+                labels.append(f"{which}|{name}")
     if settings.exact_psi:
         exact, _ = exact_decision(model, setup.dt, "lookup", None, job.device)
         for name in settings.fields:
@@ -422,7 +380,13 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")
     seed_everything(seed)
-    results = _simulate_batch(settings, reps, labels)
+    results = simulate_runs(model, reps, labels, dt=setup.dt, times=settings.times,
+                            t_end=float(o["t_end"]),
+                            equilibration_time=float(o["equilibration_time"]),
+                            device=job.device, compile=settings.compile,
+                            backend=settings.backend, progress=job.progress,
+                            desc="fidelity")  # fmt: skip
+    results.update(stored)
     sim_s = time.perf_counter() - t1
     # 3. the checks
     table = check(settings, results)
@@ -430,11 +394,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     write_csv(out / f"{TABLE}.csv", table)
     summary = summarise(table, settings)
     # the drift itself: each run's mean observable per check time, with its standard error
-    summary["mean_observable"] = {
-        label: {f"{t:g}": [float(v.mean()), float(v.std(ddof=1) / math.sqrt(max(len(v), 1)))]
-                for t, v in r.observables.items()}
-        for label, r in results.items()
-    }  # fmt: skip
+    summary["mean_observable"] = mean_observables(results)
     summary["diagnostics"] = {c.label: read_metrics(c.train.directory).get("diagnostic")
                               for c in settings.candidates}  # fmt: skip
     write_json(out / SUMMARY, summary)
@@ -649,4 +609,4 @@ def plot_drift(mean_observable: Mapping[str, Mapping[str, list[float]]],
     return fig
 
 
-__all__ = ["FidelitySettings", "check", "plot_drift", "run", "validate"]
+__all__ = ["FidelitySettings", "RunResult", "check", "plot_drift", "run", "validate"]
