@@ -1,5 +1,6 @@
-"""One speed formula behind every speed figure: per cell-step, only between loops timed under
-one set-up (device, threads, loop setting, compile state)."""
+"""One speed formula behind every speed figure: per cell-step, only between loops timed on one
+machine set-up and population size (device, threads, cells), loop for loop (same loop and
+compile state) or each model on its fastest loop."""
 
 from __future__ import annotations
 
@@ -13,9 +14,11 @@ from surrogate.evaluate.statistics import SimulationRun
 from surrogate.simulate.speed import (
     IncomparableSpeeds,
     LoopTiming,
+    best_loop_speedup,
     cell_steps_per_s,
     compare,
     differences,
+    speed_summary,
     speedup,
 )
 from surrogate.stages import evaluate as evaluate_stage
@@ -32,20 +35,47 @@ def test_throughput_is_cells_times_steps_per_second() -> None:
             cell_steps_per_s(*bad)
 
 
-def test_speedup_over_unequal_workloads_is_per_cell_step() -> None:
-    """The issue's case: a full run of 20k cells in 20 s against 1e6 abstract cells in 500 s
-    (same steps): 1e7 against 2e7 cell-steps/s, a speed-up of 2.0, not 20/500 = 0.04."""
+def test_speedup_is_per_cell_step_and_refused_between_population_sizes() -> None:
+    """Equal cells: the ratio of throughputs (over equal steps, of loop times; over unequal
+    steps, per cell-step). A full run of 20k cells against 1e6 abstract cells is refused: a
+    loop's throughput per cell-step changes several-fold with the population's size."""
+    assert speedup(LOOP, LOOP.with_seconds(0.5)) == pytest.approx(4.0)
+    longer = dataclasses.replace(LOOP, steps=4000, seconds=4.0)  # 1e5 against 5e4 cell-steps/s
+    assert speedup(LOOP, longer) == pytest.approx(2.0)
     full = dataclasses.replace(LOOP, n_cells=20_000, steps=10_000, seconds=20.0)
     abstract = dataclasses.replace(LOOP, n_cells=1_000_000, steps=10_000, seconds=500.0)
-    assert speedup(full, abstract) == pytest.approx(2.0)
-    # equal workloads: the ratio of loop times
-    assert speedup(LOOP, LOOP.with_seconds(0.5)) == pytest.approx(4.0)
+    assert differences(full, abstract) == ["n_cells 20000 vs 1000000"]
+    with pytest.raises(IncomparableSpeeds, match="n_cells 20000 vs 1000000"):
+        speedup(full, abstract)
+
+
+def test_each_model_on_its_fastest_loop() -> None:
+    """The full model's torch step (its only loop) against the abstraction's kernel and torch
+    step: the best of each, whatever the loops; the same-loop ratio where both ran one."""
+    full_torch = dataclasses.replace(LOOP, backend="torch", seconds=40.0)
+    abstract_torch = dataclasses.replace(LOOP, backend="torch", seconds=0.4)
+    abstract_kernel = dataclasses.replace(LOOP, backend="numba", seconds=0.01)
+    ratio, best_full, best_abstract = best_loop_speedup([full_torch],
+                                                        [abstract_torch, abstract_kernel])  # fmt: skip
+    assert ratio == pytest.approx(4000.0)
+    assert best_full is full_torch and best_abstract is abstract_kernel
+    summary = speed_summary([full_torch], [abstract_torch, abstract_kernel])
+    assert summary["speedup"] == pytest.approx(4000.0)
+    assert summary["fastest"] == {"full": "torch step", "abstract": "numba kernel"}
+    assert summary["same_loop"] == {"torch step": pytest.approx(100.0)}
+    # another size, device or thread count on either side: no figure, and why
+    for change in ({"n_cells": 1000}, {"device": "cuda"}, {"threads": 1}):
+        other = dataclasses.replace(abstract_kernel, **change)
+        with pytest.raises(IncomparableSpeeds, match="fastest loops compare only"):
+            best_loop_speedup([full_torch], [abstract_torch, other])
+        refused = speed_summary([full_torch], [other])
+        assert refused["speedup"] is None and refused["speed_not_comparable"]
 
 
 @pytest.mark.parametrize(
     ("change", "reason"),
     [({"device": "cuda"}, "device cpu vs cuda"), ({"threads": 1}, "threads 2 vs 1"),
-     ({"backend": "torch"}, "backend numba vs torch"),
+     ({"n_cells": 1000}, "n_cells 100 vs 1000"), ({"backend": "torch"}, "backend numba vs torch"),
      ({"compiled": True}, "compiled False vs True")],
 )  # fmt: skip
 def test_loops_under_different_setups_do_not_compare(change: dict, reason: str) -> None:
@@ -75,16 +105,18 @@ def _summary(full: dict[str, Any], candidate: dict[str, Any]) -> dict[str, Any]:
     return evaluate_stage.summarise(runs, pd.DataFrame({"ks": [0.1]}))
 
 
-def test_evaluate_compares_a_small_full_run_with_a_large_abstraction_per_cell_step() -> None:
-    """``evaluate.full_n_cells`` (experiment=large): 20,000 full cells in 20 s against 1e6
-    abstract cells in 500 s is a 2.0x speed-up per cell-step (the old ratio of loop times said
-    0.04x and called it comparable)."""
+def test_evaluate_gives_no_speed_up_between_runs_of_different_sizes() -> None:
+    """``evaluate.full_n_cells`` (experiment=large): 20,000 full cells against 1e6 abstract
+    cells report their throughputs but no ratio, and say why; equal sizes give the ratio."""
     summary = _summary(_manifest(20_000, 10_000, 20.0), _manifest(1_000_000, 10_000, 500.0))
-    assert summary["speedup_loop"] == pytest.approx(2.0)
-    assert summary["speed_comparable"] and summary["speed_not_comparable"] == []
+    assert summary["speedup_loop"] is None and summary["speedup_wall"] is None
+    assert not summary["speed_comparable"]
+    assert summary["speed_not_comparable"] == ["n_cells 20000 vs 1000000"]
     assert summary["cell_steps_per_s"] == {"full": 1e7, "candidate": 2e7}
+    same = _summary(_manifest(1000, 10_000, 20.0), _manifest(1000, 10_000, 5.0))
+    assert same["speedup_loop"] == pytest.approx(4.0)
     # the wall times (loop + 1 s each) through the same formula
-    assert summary["speedup_wall"] == pytest.approx((1e6 / 501) / (2e4 / 21))
+    assert same["speedup_wall"] == pytest.approx(21 / 6)
 
 
 def test_evaluate_names_why_loops_do_not_compare() -> None:

@@ -136,9 +136,9 @@ def mean_durations(run: SimulationRun) -> dict[str, float | None]:
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
     """Headline figures: speed-ups per cell-step (:func:`~surrogate.simulate.speed.speedup`
     of the loop times, and of the wall times; only for runs timed comparably: same device,
-    threads, loop (torch step or kernel) and compile state, each with a loop of its own, not
-    simulated in one batch; ``speed_not_comparable`` says why not), the largest KS distances,
-    mean durations."""
+    threads, number of cells, loop (torch step or kernel) and compile state, each with a loop of
+    its own, not simulated in one batch; ``speed_not_comparable`` says why not), the largest KS
+    distances, mean durations."""
     full, cand = runs.full.manifest, runs.candidate.manifest
     loops = {"full": LoopTiming.from_manifest(full), "candidate": LoopTiming.from_manifest(cand)}
     speedup_loop, why = compare(loops["full"], loops["candidate"])

@@ -110,9 +110,9 @@ SPEED_MAX_CELLS = 100_000
 
 def measure_stage_speed(settings: ReproduceSettings) -> dict[str, Any]:
     """Loop speed of the full model and of the abstraction on the first field, measured side by
-    side in this process as the runs are set up (cells, compile, device): runs simulated in one
-    batch have no loop time of their own."""
-    from surrogate.simulate.speed import compare, measure_speed
+    side in this process as the runs are set up (cells, compile, device, each model on the loop
+    ``backend`` picks for it): runs simulated in one batch have no loop time of their own."""
+    from surrogate.simulate.speed import LoopTiming, measure_speed, speed_summary
 
     name, e = next(iter(settings.evaluations.items()))
     run = e.candidate
@@ -125,12 +125,12 @@ def measure_stage_speed(settings: ReproduceSettings) -> dict[str, Any]:
                            run.job.device, compile=run.compile, start=run.start,
                            backend=run.backend,
                            chunk_steps=round(run.record_interval / setup.dt))  # fmt: skip
-    ratio, why = compare(result["full"], result["abstract"])
+    summary = speed_summary([LoopTiming.from_mapping(result["full"])],
+                            [LoopTiming.from_mapping(result["abstract"])])  # fmt: skip
     loops = {v["backend"] for v in result.values()}
     return {"field": name, "n_cells": n, "steps": steps, "compile": run.compile,
-            "backend": "/".join(sorted(loops)),
-            "threads": torch.get_num_threads(), "speedup": ratio,
-            "speed_not_comparable": why,
+            "backend": "/".join(sorted(loops)), "threads": torch.get_num_threads(),
+            **summary,
             **{k: {kk: vv for kk, vv in v.items() if kk != "compile_error"}
                for k, v in result.items()}}  # fmt: skip
 
@@ -318,20 +318,30 @@ def _class_diagnostic_text(d: Mapping[str, Any]) -> str:
 
 
 def _measured_speed_text(speed: Mapping[str, Any]) -> str:
-    rows = [{"model": k, "loop (s)": speed[k]["seconds"], "us/step": speed[k]["us_per_step"],
+    from surrogate.simulate.speed import LoopTiming, loop_name
+
+    rows = [{"model": k, "loop": loop_name(LoopTiming.from_mapping(speed[k])),
+             "loop (s)": speed[k]["seconds"], "us/step": speed[k]["us_per_step"],
              "cell-steps/s": speed[k]["cell_steps_per_s"], "compile (s)": speed[k]["compile_s"]}
             for k in ("full", "abstract")]  # fmt: skip
+    same = speed.get("same_loop") or {}
+    fastest = speed.get("fastest") or {}
+    if speed["speedup"]:
+        ratio = (f"**{speed['speedup']:.4g}x** per cell-step, each model on the loop "
+                 f"`backend={speed.get('backend', 'torch')}` picks for it (full: "
+                 f"{fastest.get('full')}, abstraction: {fastest.get('abstract')}); "
+                 + ("on the same loop: " + ", ".join(f"{k} {v:.4g}x" for k, v in same.items())
+                    if same else "the two loops differ, so no same-loop ratio here "
+                    "(`python scripts/speed.py` times both models on every loop)")
+                 + " (excluding collection and training, as in the paper). ")  # fmt: skip
+    else:
+        ratio = f"none: {'; '.join(speed.get('speed_not_comparable', []))}. "
     return (
         f"The runs above were simulated in one batch (one loop for several runs), so they have "
         f"no loop time of their own. Loop speed measured side by side in this process: "
         f"{speed['n_cells']} cells x {speed['steps']} steps in field {speed['field']}, "
-        f"backend {speed.get('backend', 'torch')}, "
         f"compile={str(speed['compile']).lower()}, {speed['threads']} thread(s), best of two, "
-        f"after a warm-up (compile time separate). Abstraction speed-up per cell-step: "
-        + (f"**{speed['speedup']:.2f}x** (excluding collection and training, as in the paper). "
-           if speed["speedup"] else
-           f"none: the loops ran under different set-ups "
-           f"({'; '.join(speed.get('speed_not_comparable', []))}). ")
+        f"after a warm-up (compile time separate). Abstraction speed-up: " + ratio
         + "Both models are batched over cells, so the ratio is far smaller than against a "
         "per-cell implementation.\n\n"
         + format_markdown_table(pd.DataFrame(rows), {"loop (s)": ".3f", "us/step": ".1f",
@@ -352,14 +362,14 @@ def _speed_text(summaries: Mapping[str, Mapping[str, Any]]) -> str:
         })  # fmt: skip
     note = "" if all(s["speed_comparable"] for s in summaries.values()) else (
         "\n\nA speed-up is shown only for loops timed comparably (same device, thread count, "
-        "loop and compile state, each run with a loop of its own); nan marks the "
-        "others.")  # fmt: skip
+        "number of cells, loop and compile state, each run with a loop of its own); nan marks "
+        "the others.")  # fmt: skip
     return (
         "Wall-clock time of the simulation loops, measured on this machine (excluding "
         "collection and training, as in the paper); the speed-up is per cell-step (the "
-        "abstraction's cell-steps per second over the full model's, which compares runs of "
-        "different sizes). Both models are batched over cells, so the "
-        "ratio is far smaller than against a per-cell implementation; see the README's "
+        "abstraction's cell-steps per second over the full model's, between runs of the same "
+        "size: throughput per cell-step changes with the population's size). Both models are "
+        "batched over cells, so the ratio is far smaller than against a per-cell implementation; see the README's "
         "benchmark for throughput at larger populations.\n\n"
         + format_markdown_table(pd.DataFrame(rows), SPEED_FORMATS)
         + note

@@ -389,11 +389,20 @@ def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
     out = speed.run(cfg)
     result = json.loads((out / "speed.json").read_text())
     assert result["steps"] == 5 and result["n_cells"] == 40
-    for name in ("full", "abstract"):
-        assert result[name]["steps"] == 5 and result[name]["seconds"] > 0
-    assert result["speedup"] == pytest.approx(
-        result["full"]["seconds"] / result["abstract"]["seconds"]
-    )
+    loops = result["loops"]
+    for name in ("full", "abstract"):  # E. coli: both models on both loops
+        assert set(loops[name]) == {"torch", "numba"}
+        for entry in loops[name].values():
+            assert entry["steps"] == 5 and entry["seconds"] > 0 and entry["n_cells"] == 40
+    best = {name: max(loops[name].values(), key=lambda e: e["cell_steps_per_s"])
+            for name in ("full", "abstract")}  # fmt: skip
+    assert result["speedup"] == pytest.approx(best["full"]["seconds"] / best["abstract"]["seconds"])
+    for loop, label in (("torch", "torch step"), ("numba", "numba kernel")):
+        assert result["same_loop"][label] == pytest.approx(
+            loops["full"][loop]["seconds"] / loops["abstract"][loop]["seconds"]
+        )
+    with pytest.raises(ConfigError, match="loops must be auto or a list"):
+        speed.run(compose_cfg("speed", [*TINY, "decision.lookup_size=[64]", "loops=[gpu]"]))
     with pytest.raises(ConfigError, match="decision=abstract"):
         speed.run(compose_cfg("speed", [*TINY, "decision=full"]))
 
