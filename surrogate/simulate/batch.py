@@ -22,7 +22,7 @@ import copy
 import os
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +37,7 @@ from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
 from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
+from surrogate.simulate.support import TrainedRange, trained_range_of
 
 if TYPE_CHECKING:
     from surrogate.simulate.population import PopulationSummary
@@ -226,6 +227,13 @@ class BatchSimulator(Simulator):
             segment_complete=torch.cat([s.segment_complete for s in states]),
             inputs=torch.cat([s.inputs for s in states]),  # type: ignore[misc]
         )
+
+    def support_blocks(
+        self,
+    ) -> list[tuple[slice, Callable[[Tensor], Tensor] | None, TrainedRange | None]]:
+        """Per replicate: its cells, its decision's features and its trained range."""
+        return [(cells, getattr(rep.decision, "featurize", None), trained_range_of(rep.decision))
+                for rep, cells in zip(self.replicates, self.slices, strict=True)]  # fmt: skip
 
     def _replicate_randoms(self, i: int) -> Randoms:
         decision = self.replicates[i].decision
@@ -479,6 +487,7 @@ def simulate_batch(
                     bar.update(steps)
                     if k % every == 0:
                         simulator.check_state(state)
+                        simulator.observe_support(state)
                         _record(recorders, simulator, state, k * dt)
             if mode != "none" and filled:
                 hand_over()
@@ -492,6 +501,7 @@ def simulate_batch(
             rec.abort()
         raise
     wall = time.perf_counter() - t0
+    support = simulator.support_report()
     return [
         PopulationSummary(
             n_cells=rep.n_cells,
@@ -505,8 +515,11 @@ def simulate_batch(
             means=rec.means,
             n_durations=f["n_durations"],
             recording=f,
+            outside_training=outside,
         )
-        for rep, rec, f in zip(simulator.replicates, recorders, facts, strict=True)
+        for rep, rec, f, outside in zip(
+            simulator.replicates, recorders, facts, support, strict=True
+        )
     ]
 
 

@@ -41,6 +41,7 @@ from surrogate.fields import Field
 from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.precompile import kernel_wanted, wait_for_precompile
+from surrogate.simulate.support import SupportMonitor, TrainedRange, trained_range_of
 
 
 @dataclass
@@ -274,6 +275,7 @@ class Simulator:
         self.compile_fallback = bool(compile_fallback)
         self.compile_error: str | None = None
         self._kernels: dict[str, Callable[..., Any]] = {}
+        self._support: SupportMonitor | None = None
         if self.compile and self.kernel is None:
             for name in ("_fused_step", "_advance"):
                 self._kernels[name] = torch.compile(_private_copy(getattr(self, name)))
@@ -471,6 +473,37 @@ class Simulator:
         return time.perf_counter() - t0
 
     # ------------------------------------------------------------------------------------
+    def support_blocks(
+        self,
+    ) -> list[tuple[slice, Callable[[Tensor], Tensor] | None, TrainedRange | None]]:
+        """Per run of this loop: its cells, its decision's features and its trained range (None
+        where the decision is not learned); one run here."""
+        decision = self.decision
+        return [(slice(0, None), getattr(decision, "featurize", None),
+                 trained_range_of(decision))]  # fmt: skip
+
+    def observe_support(self, state: PopulationState) -> None:
+        """Count the cells whose abstraction inputs are outside their trained range now
+        (:class:`~surrogate.simulate.support.SupportMonitor`; no host sync). The drivers call
+        it every record interval (or chunk of steps)."""
+        if state.inputs is None:
+            return
+        if self._support is None:
+            blocks = [(c, f, r) for c, f, r in self.support_blocks() if r is not None]
+            if not blocks:
+                return
+            self._support = SupportMonitor(blocks)
+        self._support.observe(state.inputs)
+
+    def support_report(self) -> list[dict[str, Any] | None]:
+        """Per run (:meth:`support_blocks` order): the monitor's report, None where the run has
+        no learned decision or was never observed."""
+        blocks = self.support_blocks()
+        if self._support is None:
+            return [None] * len(blocks)
+        reports = iter(self._support.report())
+        return [next(reports) if r is not None else None for _, _, r in blocks]
+
     def check_state(self, state: PopulationState) -> None:
         """Raise :class:`NumericalError` if the body's state is NaN/inf or its last inputs are
         bad (the body's own check, e.g. negative concentrations). One host sync.

@@ -41,6 +41,8 @@ class PopulationSummary:
     means: dict[str, list[float]] = field(default_factory=dict)  # observable -> mean per record
     n_durations: int = 0
     recording: dict[str, Any] = field(default_factory=dict)  # RunRecorder.commit()'s facts
+    #: inputs outside the abstraction's trained range (SupportMonitor.report; None: not learned)
+    outside_training: dict[str, Any] | None = None
 
     @property
     def cell_steps_per_s(self) -> float:
@@ -129,6 +131,7 @@ def simulate_population(
                     bar.update(steps)
                     if k % every == 0:
                         simulator.check_state(state)
+                        simulator.observe_support(state)
                         recorder.record_observables(k * dt, body.observables(state.body, field_))
             simulator.check_state(state)  # the tail after the last record time
             if simulator.device.type == "cuda":
@@ -153,6 +156,7 @@ def simulate_population(
         n_durations=facts["n_durations"],
         compile_time_s=compile_time,
         recording=facts,
+        outside_training=simulator.support_report()[0],
     )
 
 

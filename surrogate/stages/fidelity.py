@@ -71,6 +71,7 @@ from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.memory import can_age
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
+from surrogate.simulate.support import warn_outside
 from surrogate.stages import reference
 from surrogate.stages.collect import collect
 from surrogate.stages.reference import ReferenceSettings
@@ -380,13 +381,17 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")
     seed_everything(seed)
+    info: dict[str, Any] = {}
     results = simulate_runs(model, reps, labels, dt=setup.dt, times=settings.times,
                             t_end=float(o["t_end"]),
                             equilibration_time=float(o["equilibration_time"]),
                             device=job.device, compile=settings.compile,
                             backend=settings.backend, progress=job.progress,
-                            desc="fidelity")  # fmt: skip
+                            desc="fidelity", info=info)  # fmt: skip
     results.update(stored)
+    outside = {k: v for k, v in info.get("outside_training", {}).items() if v is not None}
+    for label, report in outside.items():
+        warn_outside(report, job.outside_warning, f"fidelity run {label}")
     sim_s = time.perf_counter() - t1
     # 3. the checks
     table = check(settings, results)
@@ -397,6 +402,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     summary["mean_observable"] = mean_observables(results)
     summary["diagnostics"] = {c.label: read_metrics(c.train.directory).get("diagnostic")
                               for c in settings.candidates}  # fmt: skip
+    summary["outside_training"] = outside
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
     save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
@@ -535,10 +541,24 @@ def report_sections(
     diag = ("The learned switching probabilities against the reference where the population "
             "lives (train_metrics.json of each abstraction).\n\n"
             + (format_markdown_table(pd.DataFrame(diag_rows)) if diag_rows else "none"))  # fmt: skip
+    outside = summary.get("outside_training") or {}
+    support = (
+        "The share of each run's cell-steps (sampled every few steps) whose abstraction inputs "
+        "lay outside the range its training data covered (each input's min and max over the "
+        "training rows; the lookup clamps there, so those steps use the psi at the edge).\n\n"
+        + format_markdown_table(pd.DataFrame([
+            {"run": label, "outside": f"{100 * r['share_outside']:.2f} %",
+             "inputs": "; ".join(
+                 f"{n} seen [{v['seen'][0]:.3g}, {v['seen'][1]:.3g}], trained "
+                 f"[{v['trained'][0]:.3g}, {v['trained'][1]:.3g}]"
+                 for n, v in r["inputs"].items())}
+            for label, r in outside.items()]))
+        if outside else "No learned run.")  # fmt: skip
     return [
         ("Setting", setting),
         ("The target", target),
         ("The learned psi where cells live", diag),
+        ("Inputs outside the training data", support),
     ]
 
 

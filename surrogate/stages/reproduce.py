@@ -208,6 +208,7 @@ def report_sections(
     sections.append(
         ("The abstraction where the population lives", _diagnostic_text(metrics, lumps))
     )
+    sections.append(("Inputs outside the training data", _outside_text(settings)))
     sections.append(
         ("Speed", _speed_text(summaries) if speed is None else _measured_speed_text(speed))
     )
@@ -314,6 +315,32 @@ def _class_diagnostic_text(d: Mapping[str, Any]) -> str:
         "the same way per origin class (the chance of leaving the class's lump; share: the "
         "class's part of the occupied points):\n\n"
         + format_markdown_table(pd.DataFrame(rows), ".4f")
+    )
+
+
+def _outside_text(settings: ReproduceSettings) -> str:
+    """Per field: the share of the abstraction's sampled cell-steps whose inputs left the range
+    its training data covered (its run's manifest, ``outside_training``)."""
+    rows = []
+    for name, e in settings.evaluations.items():
+        report = read_manifest(e.candidate.directory).get("outside_training")
+        if not report:
+            continue
+        for input_name, r in report["inputs"].items():
+            rows.append({"field": name, "input": input_name,
+                         "outside": f"{100 * report['share_outside']:.2f} %",
+                         "below": f"{100 * r['share_below']:.2f} %",
+                         "above": f"{100 * r['share_above']:.2f} %",
+                         "seen": f"[{r['seen'][0]:.4g}, {r['seen'][1]:.4g}]",
+                         "trained": f"[{r['trained'][0]:.4g}, {r['trained'][1]:.4g}]"})  # fmt: skip
+    if not rows:
+        return "The abstraction's runs recorded no inputs (runs made before this was recorded)."
+    return (
+        "The share of the abstraction's cell-steps (sampled every record interval) whose inputs "
+        "lay outside the range its training transitions covered (each input's min and max over "
+        "the training rows). The lookup table clamps there, so those steps use the psi at the "
+        "range's edge, not a learned value; a run warns above `outside_warning` (default 1 %)."
+        "\n\n" + format_markdown_table(pd.DataFrame(rows))
     )
 
 

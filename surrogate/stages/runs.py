@@ -106,7 +106,8 @@ def simulate_runs(
         device, compile, backend: the loop (:class:`~surrogate.simulate.Simulator`).
         progress: a progress bar over the steps.
         desc: the progress bar's label.
-        info: if given, filled with the loop that ran (``loop_backend``).
+        info: if given, filled with the loop that ran (``loop_backend``) and, per label, the
+            share of sampled cell-steps outside the trained range (``outside_training``).
 
     Returns:
         ``{label: RunResult}`` with segment histograms and exact totals.
@@ -139,6 +140,7 @@ def simulate_runs(
                 upcoming = [s for s in record if s > k]
                 steps = min(min(upcoming, default=n_steps) - k, n_steps - k, CHUNK_STEPS)
                 ended = sim.advance(state, steps)  # steps x n: +-length of ended segments
+                sim.observe_support(state)
                 done = ended != 0
                 row = (2 * replicate_of + (ended > 0).long())[done]
                 length = ended.abs().long()[done]
@@ -152,6 +154,8 @@ def simulate_runs(
                     observed[record[k]] = (
                         model.body.observables(state.body, sim.field)[name].double().cpu().numpy()
                     )
+    if info is not None:
+        info["outside_training"] = dict(zip(labels, sim.support_report(), strict=True))
     lumps = model.internal.lump_names
     hist_np = hist.reshape(2 * r, width).cpu().numpy()
     totals_np = totals.cpu().numpy()

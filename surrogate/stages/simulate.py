@@ -22,7 +22,14 @@ import torch
 from surrogate.config import seed_everything, to_dict
 from surrogate.fields import Field
 from surrogate.gp import PsiClassifier, PsiLookupTable
-from surrogate.io import MANIFEST, artefact_lock, existing_artefact, make_once, write_manifest
+from surrogate.io import (
+    MANIFEST,
+    artefact_lock,
+    existing_artefact,
+    make_once,
+    read_manifest,
+    write_manifest,
+)
 from surrogate.models.base import FeatureMap, Model
 from surrogate.models.capabilities import signal_bounds_of
 from surrogate.simulate.classes import ClassDecision, exact_class_table
@@ -35,12 +42,14 @@ from surrogate.simulate.decision import (
 )
 from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
 from surrogate.simulate.memory import (
+    AGE,
     MemoryDecision,
     exact_age_table,
     has_history,
     tabulate_with_clock,
 )
 from surrogate.simulate.population import PopulationSummary, simulate_population
+from surrogate.simulate.support import TrainedRange, warn_outside
 from surrogate.stages import budget
 from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
 
@@ -110,13 +119,24 @@ def learned_decision(
 ) -> tuple[DecisionLayer, dict[str, Any]]:
     """The learned abstraction of the fit ``directory`` (made by ``train``) as a decision layer
     over ``model`` on ``device``: the K-lumps chain (``gp.lumps=classes``, a table) or the chain
-    over phi (:func:`abstract_decision`: a lookup table of psi or the classifier itself)."""
-    if train.lumps == "classes":
-        return learned_class_decision(model, directory, device)
+    over phi (:func:`abstract_decision`: a lookup table of psi or the classifier itself).
+
+    The layer carries the range its training data covered (``trained_range``: each input's
+    min and max over the training rows, the fit's ``domain``; the switch clock, capped by
+    construction, excepted), which the simulator's support monitor checks the cells against."""
     from surrogate.stages.train import load_abstraction
 
-    psi = load_abstraction(directory, device=device)
-    return abstract_decision(model, psi, train.setup.dt, train.max_age, mode, size, device)
+    if train.lumps == "classes":
+        layer, info = learned_class_decision(model, directory, device)
+    else:
+        psi = load_abstraction(directory, device=device)
+        layer, info = abstract_decision(model, psi, train.setup.dt, train.max_age, mode, size,
+                                        device)  # fmt: skip
+    domain = read_manifest(directory).get("domain") or {}
+    names = [n for n in info["inputs"] if n != AGE]
+    if names and all(n in domain for n in names):
+        layer.trained_range = TrainedRange.from_domain(domain, names)  # type: ignore[attr-defined]
+    return layer, info
 
 
 def learned_class_decision(
@@ -286,8 +306,11 @@ def _write_manifest(
         final_means={k: v[-1] for k, v in summary.means.items()},
         observables=list(setup.model.body.observable_names),
         lump_names=list(setup.model.internal.lump_names),
+        outside_training=summary.outside_training,
         **facts,
     )
+    warn_outside(summary.outside_training, settings.job.outside_warning,
+                 f"{settings.decision.name} run in {setup.field_name} ({out.name})")  # fmt: skip
     batch = facts.get("batched")
     speed = (f"one loop of {len(batch['runs'])} runs, {batch['n_cells']} cells" if batch
              else f"{summary.cell_steps_per_s:.3g} cell-steps/s")  # fmt: skip

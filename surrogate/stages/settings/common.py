@@ -93,20 +93,28 @@ def command_line(script: str, *parts: list[str]) -> str:
 
 @dataclass(frozen=True)
 class Job:
-    """Settings of a job: where artefacts go, device, progress. Only the device type changes a
-    result (:attr:`device_type`, in the identities)."""
+    """Settings of a job: where artefacts go, device, progress, when to warn of inputs outside
+    an abstraction's training data. Only the device type changes a result
+    (:attr:`device_type`, in the identities)."""
 
     data_dir: Path
     device: torch.device
     progress: bool
+    #: share of sampled cell-steps outside the trained range above which a run warns
+    outside_warning: float = 0.01
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> Job:
         """Validated job settings."""
+        warn = cfg.get("outside_warning", 0.01)
+        if isinstance(warn, bool) or not isinstance(warn, int | float) or not 0 <= warn <= 1:
+            raise ConfigError(f"outside_warning must be a share in [0, 1] of the cell-steps, "
+                              f"got {warn!r}")  # fmt: skip
         return cls(
             Path(str(cfg.get("data_dir", "data"))),
             resolve_device(cfg.get("device", "cpu")),
             bool(cfg.get("progress", True)),
+            float(warn),
         )
 
     @property
