@@ -2,23 +2,31 @@
 
 The yaml (``model.spec``, or the same keys in the model config itself) names
 
-* ``network``: the SBML file (a path relative to the yaml);
-* ``inputs``: which of its global parameters are the agent's inputs and where each comes from:
-  a variable of the body (``L``, the field's value where the agent is, in every body; ``m``,
-  ``F``, ``activity`` in the chemotaxis body) or a formula over them (``"1 / (1 + exp(F))"``);
-  a formula may also live in the SBML file as an assignment rule over an input parameter;
-* ``lump``: the property phi as a condition on species counts (``"N >= 2 and S == 0"``), and
-  ``lump_names`` (phi = 0, phi = 1);
-* ``body``: a body of the library (:mod:`surrogate.models.bodies`) by ``kind`` with its
-  parameters;
-* optionally ``name``, ``ssa`` (auto|compiled|batched), ``burn_in`` (s), ``max_states``,
-  ``signal_bounds`` (``{input: [lo, hi]}``, lets the exact psi be tabulated) and ``collect``
-  (the model's default collection budget: ``n_per_state``, ``n_cells``, ``record_every``).
+* ``network`` (required): the SBML file (a path relative to the yaml);
+* ``inputs`` (required, at least one): which of its parameters are the agent's inputs and
+  where each comes from. A parameter is a global one by its id (``inducer``) or a reaction's
+  local (kinetic-law) one as ``<reaction id>.<parameter id>`` (``Transcription.k2``); its
+  source is a variable of the body (``L``, the field's value where the agent is, in every body;
+  ``m``, ``F``, ``activity`` in the chemotaxis body) or a formula over them
+  (``"1 / (1 + exp(F))"``); a formula may also live in the SBML file as an assignment rule over
+  an input parameter;
+* ``lump`` (required): the property phi as a condition on species counts
+  (``"N >= 2 and S == 0"``), and ``lump_names`` (phi = 0, phi = 1);
+* ``body`` (required): a body of the library (:mod:`surrogate.models.bodies`) by ``kind`` with
+  its parameters;
+* optionally ``name``, ``substance_units`` (``items``: read the file's amounts as molecule
+  counts whatever substance units it declares, e.g. a StochSS export's ``mole``), ``ssa``
+  (auto|compiled|batched), ``burn_in`` (s), ``max_states``, ``signal_bounds``
+  (``{input: [lo, hi]}``, lets the exact psi be tabulated) and ``collect`` (the model's default
+  collection budget: ``n_per_state``, ``n_cells``, ``record_every``).
 
-Formulas are parsed by libsbml's formula parser (:mod:`surrogate.sbml.formula`), never
-evaluated as Python; everything is checked when the model is built, before any simulation: an
-unknown species in the lump, an input that is not a parameter of the file, a body parameter of
-the wrong type are each refused with a message naming the setting and the yaml.
+The file is read by :func:`surrogate.sbml.read_sbml` (its module docstring has the rules: local
+inputs, shadowing, one-way reversible laws, substance units). Formulas are parsed by libsbml's
+formula parser (:mod:`surrogate.sbml.formula`), never evaluated as Python; everything is
+checked when the model is built, before any simulation: a missing required key, a key of the
+wrong type, an unknown species in the lump, an input that is not a parameter of the file, a
+body parameter of the wrong type are each refused with a message naming the setting and the
+yaml.
 
 Example (``examples/gene_switch/model.yaml``)::
 
@@ -34,6 +42,7 @@ Example (``examples/gene_switch/model.yaml``)::
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
@@ -52,22 +61,32 @@ from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml
 from surrogate.sbml.formula import parse_formula
+from surrogate.sbml.reader import SUBSTANCE_UNITS
 
-__all__ = ["SPEC_DEFAULTS", "SbmlAgentModel", "load_spec"]
+__all__ = ["REQUIRED_KEYS", "SPEC_DEFAULTS", "SbmlAgentModel", "load_spec"]
 
 #: every key of a spec and its default (None: required, or optional without a default)
 SPEC_DEFAULTS: dict[str, Any] = {
     "name": None,
     "network": None,
-    "inputs": {},
+    "inputs": None,
     "lump": None,
     "lump_names": ["off", "on"],
     "body": None,
+    "substance_units": None,
     "ssa": "auto",
     "burn_in": 50.0,
     "max_states": 5000,
     "signal_bounds": None,
     "collect": None,
+}
+#: the keys a spec must give, and what each is (for the message when one is missing)
+REQUIRED_KEYS: dict[str, str] = {
+    "network": "the SBML file, a path relative to the yaml",
+    "inputs": "which SBML parameters are the agent's inputs and where each comes from, e.g. "
+    "`inputs: {k: L}` (a global parameter) or `inputs: {Transcription.k2: L}` (a local one)",
+    "lump": 'the property phi as a condition on species counts, e.g. `lump: "P >= 20"`',
+    "body": "a body of the library by kind, e.g. `body: {kind: walker}`",
 }
 #: collection settings a model may carry as its default budget
 COLLECT_KEYS = ("n_per_state", "n_cells", "record_every")
@@ -153,20 +172,19 @@ class SbmlAgentModel(Model):
             raise type(error)(f"{error}{where}") from None
 
     def _build(self, s: dict[str, Any], base: Path) -> None:
-        for key in ("network", "lump", "body"):
-            if s[key] is None:
-                raise ConfigError(f"model.{key} is required (see surrogate/models/sbml_agent.py)")
-        network = Path(str(s["network"])).expanduser()
+        self._check_types(s)
+        network = Path(s["network"]).expanduser()
         self.network_path = network if network.is_absolute() else base / network
         if not self.network_path.is_file():
             raise ConfigError(f"model.network={s['network']}: no such SBML file "
                               f"({self.network_path})")  # fmt: skip
-        inputs = s["inputs"] or {}
-        if not isinstance(inputs, Mapping):
-            raise ConfigError(f"model.inputs must map SBML parameters to their sources, got "
-                              f"{inputs!r}")  # fmt: skip
+        inputs = s["inputs"]
         try:
-            sbml = read_sbml(self.network_path, inputs=[str(k) for k in inputs])
+            sbml = read_sbml(
+                self.network_path,
+                inputs=list(inputs),
+                substance_units=s["substance_units"],
+            )
         except SbmlError as error:
             raise SbmlError(f"model.network / model.inputs: {error}") from None
         self.body = build_body(s["body"])
@@ -185,10 +203,6 @@ class SbmlAgentModel(Model):
                               f"got {names!r}{hint}")  # fmt: skip
         if s["ssa"] not in SSA_BACKENDS:
             raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {s['ssa']!r}")
-        for key in ("burn_in", "max_states"):
-            value = s[key]
-            if isinstance(value, bool) or not isinstance(value, int | float) or value < 0:
-                raise ConfigError(f"model.{key} must be a non-negative number, got {value!r}")
         self.internal = NetworkInternalModel(
             sbml,
             self.body.variable_names,
@@ -206,6 +220,42 @@ class SbmlAgentModel(Model):
         self._collect_budget = self._collect(s["collect"])
         self.settings = s
 
+    @staticmethod
+    def _check_types(s: Mapping[str, Any]) -> None:
+        """The required keys are given and the plain keys have their types (the body, lump
+        names, signal bounds and collection budget are checked where they are built)."""
+        missing = [key for key in REQUIRED_KEYS if s[key] is None]
+        if missing:
+            what = "; ".join(f"model.{key} is required ({REQUIRED_KEYS[key]})" for key in missing)
+            raise ConfigError(f"{what}; see surrogate/models/sbml_agent.py")
+        for key in ("network", "lump"):
+            if not isinstance(s[key], str) or not s[key].strip():
+                raise ConfigError(f"model.{key} must be a non-empty string ({REQUIRED_KEYS[key]}), "
+                                  f"got {s[key]!r}")  # fmt: skip
+        inputs = s["inputs"]
+        if not isinstance(inputs, Mapping) or not inputs:
+            raise ConfigError(f"model.inputs must map at least one SBML parameter to its source "
+                              f"({REQUIRED_KEYS['inputs']}), got {inputs!r}")  # fmt: skip
+        bad = [k for k in inputs if not isinstance(k, str) or not k]
+        if bad:
+            raise ConfigError(f"model.inputs: parameter names must be SBML ids (strings), got "
+                              f"{bad}")  # fmt: skip
+        if s["name"] is not None and (not isinstance(s["name"], str) or not s["name"]):
+            raise ConfigError(f"model.name must be a non-empty string, got {s['name']!r}")
+        if s["substance_units"] not in SUBSTANCE_UNITS:
+            raise ConfigError(f"model.substance_units must be items (read the file's amounts "
+                              f"as molecule counts) or unset, got "
+                              f"{s['substance_units']!r}")  # fmt: skip
+        burn_in = s["burn_in"]
+        if (isinstance(burn_in, bool) or not isinstance(burn_in, int | float)
+                or not math.isfinite(burn_in) or burn_in < 0):  # fmt: skip
+            raise ConfigError(f"model.burn_in must be a finite number of seconds >= 0, got "
+                              f"{burn_in!r}")  # fmt: skip
+        max_states = s["max_states"]
+        if isinstance(max_states, bool) or not isinstance(max_states, int) or max_states < 0:
+            raise ConfigError(f"model.max_states must be a non-negative integer, got "
+                              f"{max_states!r}")  # fmt: skip
+
     def _mapped_inputs(self, inputs: Mapping[str, Any]) -> dict[str, Any]:
         """The features that supply the SBML input parameters: a body variable under another
         name, or a formula over the body's variables (compiled from its expression tree)."""
@@ -217,8 +267,10 @@ class SbmlAgentModel(Model):
             if isinstance(source, int | float) and not isinstance(source, bool):
                 source = repr(float(source))
             if not isinstance(source, str):
+                hint = (" (a reaction's local parameter is one key, `reaction.parameter`, in the "
+                        "yaml's inputs)" if isinstance(source, Mapping) else "")  # fmt: skip
                 raise ConfigError(f"{where} must be a body variable {list(variables)} or a "
-                                  f"formula over them, got {source!r}")  # fmt: skip
+                                  f"formula over them, got {source!r}{hint}")  # fmt: skip
             name = source.strip()
             if name in variables:
                 if param != name:

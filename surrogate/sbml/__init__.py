@@ -7,7 +7,14 @@ device) and ``surrogate.ctmc.CompiledSSA(model.kinetics)`` (numba, per cell).
 
 from __future__ import annotations
 
-from surrogate.sbml.errors import SbmlError
+from surrogate.sbml.errors import SbmlError, SbmlWarning
 from surrogate.sbml.reader import SbmlModel, SbmlReaction, read_sbml, read_sbml_string
 
-__all__ = ["SbmlError", "SbmlModel", "SbmlReaction", "read_sbml", "read_sbml_string"]
+__all__ = [
+    "SbmlError",
+    "SbmlModel",
+    "SbmlReaction",
+    "SbmlWarning",
+    "read_sbml",
+    "read_sbml_string",
+]

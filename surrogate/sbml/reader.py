@@ -6,22 +6,46 @@ model test suite):
 * Species are molecule counts. A species' initial value is its ``initialAmount``, or
   ``initialConcentration x compartment size`` (rounded to the nearest integer), or the value of
   an initial assignment. Substance units must be items (or unset / dimensionless): a model in
-  moles is refused rather than silently rescaled.
+  other units (moles, grams) is refused rather than silently rescaled, every such species in
+  one message, unless the caller declares the amounts counts (``substance_units="items"``, the
+  yaml's ``substance_units: items``): exporters of stochastic models such as StochSS write
+  ``substanceUnits="mole"`` and mean counts.
 * In a kinetic law a species symbol is its amount when ``hasOnlySubstanceUnits`` is true, else
   its concentration ``amount / compartment size``. The kinetic law's value is the reaction's
   propensity (events per unit time).
 * Boundary-condition and constant species are never changed by reactions.
-* Global parameters named in ``inputs`` are per-cell inputs, supplied with the state at every
-  window; every other parameter and every compartment size is a constant. Local (kinetic-law)
-  parameters shadow globals. Function definitions are inlined. Assignment rules whose variable
-  is a parameter are inlined where the parameter is used (they are functions of the state).
+* Parameters named in ``inputs`` are per-cell inputs, supplied with the state at every window;
+  every other parameter and every compartment size is a constant. An input is a global
+  parameter by its id (``k``) or a reaction's local (kinetic-law) parameter as
+  ``<reaction id>.<parameter id>`` (``Transcription.k2``; SBML ids hold no dot, so the name is
+  never ambiguous). Local parameters shadow globals of the same id in their law, so a global
+  input that some reaction shadows is refused (naming the input, the reactions and the fix):
+  there it would have no effect. An input naming neither is refused with the lists of global
+  and local parameters. Function definitions are inlined. Assignment rules whose variable is a
+  parameter are inlined where the parameter is used (they are functions of the state).
+* A reaction flagged reversible is one propensity only if its law is one-way. The rule, on the
+  law after inlining (functions, rules, local parameters): the *negated parts* of a law are the
+  subtrahend ``b`` of every ``a - b``, the operand of every ``-b``, and every product or
+  quotient with a negated factor or a negative constant factor (``-kr * B``, ``(-2) * B``). The
+  law is a *net rate* (forward minus backward) when some negated part depends on a product
+  species of the reaction (boundary species included), e.g. ``kf * A - kr * B`` with product
+  ``B``, or ``k * A * (1 - B / K)``; it is refused, naming the reaction, its law and the
+  product (write the reaction as two irreversible ones). Otherwise the law is one-way (e.g.
+  ``alpha / (1 + V^beta)``, ``mu * U``, or ``k1 * A - k2 * C`` with ``C`` not a product) and the
+  reaction is read as irreversible, with one :class:`~surrogate.sbml.errors.SbmlWarning`
+  listing every such reaction. A propensity that turns out negative at run time is refused by
+  both simulators (the compiled SSA names the reaction).
 
 A compartment may lack a size (Level 3, every species an amount) unless something needs it.
 
+A document with SBML errors (libsbml's reading) is refused listing each error (the first ten and
+a count of the rest) with its line, severity, libsbml's message, the detail that names the
+element, and the section of the SBML specification to check.
+
 Refused, with an :class:`~surrogate.sbml.errors.SbmlError` naming the construct and the element
 id (every model-level construct of a file in one message): events, rate and algebraic rules,
-assignment rules on species or compartments, delays, the time / rateOf csymbols, fast or
-reversible reactions (write a reversible reaction as two irreversible ones), non-integer or
+assignment rules on species or compartments, delays, the time / rateOf csymbols, fast
+reactions, reversible reactions with a net-rate law (above), non-integer or
 variable stoichiometry, initial assignments that depend on something other than constants,
 conversion factors, packages the file marks required (e.g. ``distrib``), unknown MathML.
 """
@@ -29,6 +53,7 @@ conversion factors, packages the file marks required (e.g. ``distrib``), unknown
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,10 +64,16 @@ from torch import Tensor
 
 from surrogate.ctmc.kinetics import Expr, Kinetics, call, const, input_ref, species_ref
 from surrogate.ctmc.network import ReactionNetwork
-from surrogate.sbml.errors import SbmlError
+from surrogate.sbml.errors import SbmlError, SbmlWarning
 from surrogate.sbml.math import convert
 
-__all__ = ["SbmlModel", "SbmlReaction", "read_sbml", "read_sbml_string"]
+__all__ = ["SUBSTANCE_UNITS", "SbmlModel", "SbmlReaction", "read_sbml", "read_sbml_string"]
+
+#: values of ``substance_units``: None (amounts must be in items) or "items" (read the file's
+#: amounts as molecule counts whatever units it declares)
+SUBSTANCE_UNITS = (None, "items")
+#: libsbml errors listed in full before the rest are only counted
+MAX_LISTED_ERRORS = 10
 
 
 @dataclass(frozen=True)
@@ -150,20 +181,32 @@ class SbmlModel:
         return self.initial_state.unsqueeze(0).expand(n, -1).clone()
 
 
-def read_sbml(path: str | Path, inputs: Sequence[str] = ()) -> SbmlModel:
+def read_sbml(
+    path: str | Path, inputs: Sequence[str] = (), substance_units: str | None = None
+) -> SbmlModel:
     """Read an SBML file (levels 2 and 3) as a stochastic reaction network.
 
     Args:
         path: The ``.xml`` / ``.sbml`` file.
-        inputs: Global parameter ids supplied per cell at run time (``inputs (n, P)`` columns
-            in this order); all other parameters are constants.
+        inputs: Parameters supplied per cell at run time (``inputs (n, P)`` columns in this
+            order): a global parameter by its id (``"k"``), or a reaction's local
+            (kinetic-law) parameter as ``"<reaction id>.<parameter id>"``
+            (``"Transcription.k2"``); all other parameters are constants.
+        substance_units: ``None`` (species amounts must be in items, else refused) or
+            ``"items"``: read the amounts as molecule counts whatever substance units the file
+            declares (exporters of stochastic models such as StochSS write ``"mole"`` and mean
+            counts).
 
     Returns:
         The :class:`SbmlModel`.
 
     Raises:
-        SbmlError: unreadable file, SBML errors, or an unsupported construct (the message
-            names it and the element id).
+        SbmlError: unreadable file, SBML errors (all listed, up to ten), or an unsupported
+            construct (the message names it and the element id).
+
+    Warns:
+        SbmlWarning: once, listing every reaction flagged reversible whose law is one-way
+            (read as irreversible; see the module docstring).
 
     Example::
 
@@ -176,33 +219,63 @@ def read_sbml(path: str | Path, inputs: Sequence[str] = ()) -> SbmlModel:
     if not path.is_file():
         raise SbmlError(f"SBML file {str(path)!r} does not exist")
     document = libsbml.readSBMLFromFile(str(path))
-    return _read_document(document, inputs, str(path), path)
+    return _read_document(document, inputs, str(path), path, substance_units)
 
 
-def read_sbml_string(text: str, inputs: Sequence[str] = ()) -> SbmlModel:
+def read_sbml_string(
+    text: str, inputs: Sequence[str] = (), substance_units: str | None = None
+) -> SbmlModel:
     """Like :func:`read_sbml`, from the SBML document's text."""
     document = libsbml.readSBMLFromString(text)
-    return _read_document(document, inputs, "<string>", None)
+    return _read_document(document, inputs, "<string>", None, substance_units)
 
 
 def _read_document(
-    document: libsbml.SBMLDocument, inputs: Sequence[str], label: str, source: Path | None
+    document: libsbml.SBMLDocument,
+    inputs: Sequence[str],
+    label: str,
+    source: Path | None,
+    substance_units: str | None = None,
 ) -> SbmlModel:
+    if substance_units not in SUBSTANCE_UNITS:
+        raise SbmlError(
+            f"substance_units must be 'items' (read the file's amounts as molecule counts) or "
+            f"unset, got {substance_units!r}"
+        )
     errors = [
         document.getError(i)
         for i in range(document.getNumErrors())
         if document.getError(i).getSeverity() >= libsbml.LIBSBML_SEV_ERROR
     ]
     if errors:
-        first = errors[0]
-        raise SbmlError(
-            f"{label}: {len(errors)} SBML error(s); first at line {first.getLine()}: "
-            f"{first.getMessage().strip()}"
-        )
+        raise SbmlError(_error_listing(label, errors))
     model = document.getModel()
     if model is None:
         raise SbmlError(f"{label}: the document has no model")
-    return _Reader(model, tuple(inputs), label).read(source)
+    return _Reader(model, tuple(inputs), label, substance_units).read(source)
+
+
+def _error_listing(label: str, errors: Sequence[libsbml.SBMLError]) -> str:
+    """Every libsbml error (the first :data:`MAX_LISTED_ERRORS`, then a count), one a line:
+    its line, severity, libsbml's short message, the detail that names the element, and the
+    section of the SBML specification to check."""
+    n = len(errors)
+    lines = [
+        f"{label}: {n} SBML error{'s' if n > 1 else ''} (libsbml "
+        f"{libsbml.getLibSBMLDottedVersion()}); fix them in the file, each at its line:"
+    ]
+    for error in errors[:MAX_LISTED_ERRORS]:
+        rule, _, rest = error.getMessage().partition("\nReference:")
+        reference, _, detail = rest.partition("\n")
+        hint = detail.strip() or rule.strip()
+        check = f" (see {reference.strip()})" if reference.strip() else ""
+        lines.append(
+            f"  line {error.getLine()}, {error.getSeverityAsString().lower()} "
+            f"[{error.getCategoryAsString()}]: {error.getShortMessage().strip()}: {hint}{check}"
+        )
+    if n > MAX_LISTED_ERRORS:
+        lines.append(f"  ... and {n - MAX_LISTED_ERRORS} more")
+    return "\n".join(lines)
 
 
 def _ids(items: Iterable) -> list[str]:
@@ -212,10 +285,21 @@ def _ids(items: Iterable) -> list[str]:
 class _Reader:
     """One pass over a libsbml Model; builds the SbmlModel or raises on the first problem."""
 
-    def __init__(self, model: libsbml.Model, inputs: tuple[str, ...], label: str) -> None:
+    def __init__(
+        self,
+        model: libsbml.Model,
+        inputs: tuple[str, ...],
+        label: str,
+        substance_units: str | None = None,
+    ) -> None:
         self.model = model
         self.label = label
         self.inputs = inputs
+        self.substance_units = substance_units
+        self.local_parameters = {
+            r.getId(): {p.getId(): p for p in _local_parameters(r)}
+            for r in model.getListOfReactions()
+        }
         self.functions = {f.getId(): f for f in model.getListOfFunctionDefinitions()}
         self.species = list(model.getListOfSpecies())
         self.species_index = {sp.getId(): s for s, sp in enumerate(self.species)}
@@ -278,35 +362,81 @@ class _Reader:
         if found:
             plural = "s" if len(found) > 1 else ""
             raise SbmlError(f"{self.label}: unsupported construct{plural}: " + "; ".join(found))
+
+    def _check_inputs(self) -> None:
+        """Each input is a global parameter not shadowed by a reaction's local parameter of the
+        same id, or an existing ``reaction.local`` parameter; unique; never initially assigned."""
+        if len(set(self.inputs)) != len(self.inputs):
+            raise SbmlError(f"{self.label}: inputs must be unique, got {list(self.inputs)}")
+        local_names = [f"{rid}.{pid}" for rid, ps in self.local_parameters.items() for pid in ps]
         for name in self.inputs:
+            rid, dot, pid = name.partition(".")
+            if dot and rid in self.local_parameters:
+                if pid not in self.local_parameters[rid]:
+                    raise SbmlError(
+                        f"{self.label}: input {name!r}: reaction {rid!r} has no local parameter "
+                        f"{pid!r}; its local parameters: {sorted(self.local_parameters[rid])}"
+                    )
+                continue
             if name not in self.parameters:
-                known = sorted(self.parameters)
+                where = f"reaction {rid!r} does not exist; " if dot else ""
                 raise SbmlError(
-                    f"{self.label}: input {name!r} is not a global parameter of the model; "
-                    f"global parameters: {known}"
+                    f"{self.label}: input {name!r} is not a global parameter of the model nor a "
+                    f"local one (<reaction id>.<parameter id>): {where}global parameters: "
+                    f"{_listing(sorted(self.parameters))}; local parameters: "
+                    f"{_listing(local_names)}"
                 )
             if name in self.initial_assignments:
                 raise SbmlError(f"{self.label}: input parameter {name!r} has an initial assignment")
-        if len(set(self.inputs)) != len(self.inputs):
-            raise SbmlError(f"{self.label}: inputs must be unique, got {list(self.inputs)}")
-        for sp in self.species:
-            self._check_substance_units(sp.getSubstanceUnits() or model.getSubstanceUnits(), sp)
+            shadowing = [rid for rid, ps in self.local_parameters.items() if name in ps]
+            if shadowing:
+                listed = ", ".join(f"{rid!r}" for rid in shadowing)
+                raise SbmlError(
+                    f"{self.label}: input {name!r} is a global parameter, but reaction"
+                    f"{'s' if len(shadowing) > 1 else ''} {listed} declare"
+                    f"{'' if len(shadowing) > 1 else 's'} a local parameter {name!r} that "
+                    f"shadows it in its kinetic law, where the input would have no effect; "
+                    f"name the local one as the input ({shadowing[0]}.{name}), or rename or "
+                    "remove the local parameter in the file"
+                )
 
-    def _check_substance_units(self, units: str, sp: libsbml.Species) -> None:
-        if not units or units in ("item", "dimensionless"):
+    def _check_substance_units(self) -> None:
+        """Species amounts must be in items (or unset / dimensionless) unless the reader was told
+        to read them as counts (``substance_units="items"``); every offender in one message."""
+        if self.substance_units == "items":
             return
-        if units in ("mole", "gram", "kilogram", "avogadro"):
-            kinds = [units]
-        else:
-            definition = self.model.getUnitDefinition(units)
-            if definition is None:
-                return
-            kinds = [libsbml.UnitKind_toString(u.getKind()) for u in definition.getListOfUnits()]
-        if any(k not in ("item", "dimensionless") for k in kinds):
+        offenders: list[str] = []
+        for sp in self.species:
+            units = sp.getSubstanceUnits() or self.model.getSubstanceUnits()
+            if not units or units in ("item", "dimensionless"):
+                continue
+            if units in ("mole", "gram", "kilogram", "avogadro"):
+                kinds = [units]
+            else:
+                definition = self.model.getUnitDefinition(units)
+                if definition is None:
+                    continue
+                kinds = [
+                    libsbml.UnitKind_toString(u.getKind()) for u in definition.getListOfUnits()
+                ]
+            if any(k not in ("item", "dimensionless") for k in kinds):
+                shown = units if kinds == [units] else f"{units} = {kinds}"
+                offenders.append(f"{sp.getId()!r} ({shown})")
+        if offenders:
             raise SbmlError(
-                f"{self.label}: species {sp.getId()!r} has substance units {units!r} "
-                f"({kinds}); the stochastic reading needs molecule counts (item)"
+                f"{self.label}: species {', '.join(offenders)} "
+                f"{'have' if len(offenders) > 1 else 'has'} substance units other than items; "
+                "the stochastic reading needs molecule counts. If the amounts are counts (as "
+                "StochSS and other stochastic exporters write them), read them as such: "
+                "`substance_units: items` in the model yaml, or "
+                "read_sbml(..., substance_units='items')"
             )
+
+    def _input_default(self, name: str) -> float:
+        """The file's value of an input parameter (global or ``reaction.local``), NaN if unset."""
+        rid, dot, pid = name.partition(".")
+        p = self.local_parameters[rid][pid] if dot else self.parameters[name]
+        return float(p.getValue()) if p.isSetValue() else math.nan
 
     # -- values of constants ------------------------------------------------------------
 
@@ -417,14 +547,13 @@ class _Reader:
 
     # -- kinetic laws ---------------------------------------------------------------------
 
-    def expression(
-        self, math_node: libsbml.ASTNode, local: Mapping[str, float], where: str
-    ) -> Expr:
-        """Convert a kinetic law (or an assignment rule's math) to a propensity expression."""
+    def expression(self, math_node: libsbml.ASTNode, local: Mapping[str, Expr], where: str) -> Expr:
+        """Convert a kinetic law (or an assignment rule's math) to a propensity expression;
+        ``local``: the law's local parameters (constants, or inputs)."""
 
         def resolve(name: str) -> Expr:
             if name in local:
-                return const(local[name])
+                return local[name]
             if name in self.species_index:
                 s = self.species_index[name]
                 sp = self.species[s]
@@ -501,6 +630,8 @@ class _Reader:
 
     def read(self, source: Path | None) -> SbmlModel:
         self._refuse_unsupported()
+        self._check_inputs()
+        self._check_substance_units()
         model = self.model
         if not self.species:
             raise SbmlError(f"{self.label}: the model has no species")
@@ -513,15 +644,12 @@ class _Reader:
         n_species = len(species_ids)
         reactants = torch.zeros((model.getNumReactions(), n_species), dtype=torch.int64)
         products = torch.zeros_like(reactants)
+        one_way: list[str] = []  # flagged reversible, read as irreversible
+        net_rates: list[str] = []  # flagged reversible with a net-rate law: refused
         for r, reaction in enumerate(model.getListOfReactions()):
             rid = reaction.getId()
             if reaction.isSetFast() and reaction.getFast():
                 raise SbmlError(f"reaction {rid!r}: unsupported construct: fast reaction")
-            if reaction.getReversible():
-                raise SbmlError(
-                    f"reaction {rid!r}: unsupported construct: reversible reaction (a kinetic "
-                    "law is one propensity; write it as two irreversible reactions)"
-                )
             consumed = self._stoichiometry(reaction, reaction.getListOfReactants(), "reactant")
             produced = self._stoichiometry(reaction, reaction.getListOfProducts(), "product")
             modifiers = tuple(m.getSpecies() for m in reaction.getListOfModifiers())
@@ -531,17 +659,26 @@ class _Reader:
             law = reaction.getKineticLaw()
             if law is None:
                 raise SbmlError(f"reaction {rid!r}: no kinetic law (needed as the propensity)")
-            local = {}
-            params = (
-                law.getListOfLocalParameters()
-                if model.getLevel() >= 3
-                else law.getListOfParameters()
-            )
-            for p in params:
-                if not p.isSetValue():
-                    raise SbmlError(f"reaction {rid!r}: local parameter {p.getId()!r} has no value")
-                local[p.getId()] = float(p.getValue())
-            exprs.append(self.expression(law.getMath(), local, f"kinetic law of reaction {rid!r}"))
+            local: dict[str, Expr] = {}
+            for pid, p in self.local_parameters[rid].items():
+                if f"{rid}.{pid}" in self.inputs:
+                    local[pid] = input_ref(self.inputs.index(f"{rid}.{pid}"), f"{rid}.{pid}")
+                elif not p.isSetValue():
+                    raise SbmlError(f"reaction {rid!r}: local parameter {pid!r} has no value")
+                else:
+                    local[pid] = const(float(p.getValue()))
+            expr = self.expression(law.getMath(), local, f"kinetic law of reaction {rid!r}")
+            if reaction.getReversible():
+                backward = _net_rate_products(expr, {self.species_index[s] for s in produced})
+                if backward:
+                    formula = libsbml.formulaToL3String(law.getMath())
+                    net_rates.append(
+                        f"{rid!r} (its law {formula!r} subtracts a term that depends on its "
+                        f"product{'s' if len(backward) > 1 else ''} {', '.join(backward)})"
+                    )
+                else:
+                    one_way.append(rid)
+            exprs.append(expr)
             for sid, coeff in consumed.items():
                 if sid not in fixed:
                     reactants[r, self.species_index[sid]] = coeff
@@ -549,6 +686,22 @@ class _Reader:
                 if sid not in fixed:
                     products[r, self.species_index[sid]] = coeff
             reactions.append(SbmlReaction(rid, consumed, produced, modifiers))
+        if net_rates:
+            raise SbmlError(
+                f"{self.label}: reversible reaction{'s' if len(net_rates) > 1 else ''} "
+                f"{'; '.join(net_rates)}: a net rate (forward minus backward) is not one "
+                "event's propensity and can be negative; write each as two irreversible "
+                "reactions, one per direction"
+            )
+        if one_way:
+            warnings.warn(
+                f"{self.label}: {len(one_way)} reaction{'s' if len(one_way) > 1 else ''} "
+                f"flagged reversible with a one-way kinetic law (no subtracted term depends on "
+                f"a product) read as irreversible: {', '.join(repr(r) for r in one_way)}; a "
+                "propensity that turns negative is refused when simulated",
+                SbmlWarning,
+                stacklevel=4,  # the caller of read_sbml / read_sbml_string
+            )
         network = ReactionNetwork(
             species=species_ids,
             reactants=reactants,
@@ -571,12 +724,7 @@ class _Reader:
                     if name in self.initial_assignments:
                         raise
                     constants[name] = math.nan  # declared without a value and never used
-        defaults = {
-            name: float(self.parameters[name].getValue())
-            if self.parameters[name].isSetValue()
-            else math.nan
-            for name in self.inputs
-        }
+        defaults = {name: self._input_default(name) for name in self.inputs}
         return SbmlModel(
             id=model.getId(),
             kinetics=kinetics,
@@ -588,3 +736,56 @@ class _Reader:
             source=source,
             species_compartments={sp.getId(): sp.getCompartment() for sp in self.species},
         )
+
+
+def _local_parameters(reaction: libsbml.Reaction) -> list:
+    """The local (kinetic-law) parameters of a reaction (Level 3 localParameters, Level 2
+    parameters), in file order; none without a law."""
+    law = reaction.getKineticLaw()
+    if law is None:
+        return []
+    if reaction.getLevel() >= 3:
+        return list(law.getListOfLocalParameters())
+    return list(law.getListOfParameters())
+
+
+def _listing(names: Sequence[str], limit: int = 20) -> str:
+    """``names`` for a message: all of them, or the first ``limit`` and a count."""
+    if len(names) <= limit:
+        return str(list(names))
+    return f"{list(names[:limit])} and {len(names) - limit} more"
+
+
+def _negated_parts(expr: Expr) -> Iterable[Expr]:
+    """The subterms of ``expr`` that enter it with a minus sign: the subtrahend of ``a - b``,
+    the operand of ``-b``, and a whole product or quotient one of whose factors is negated
+    (``-k * B``) or a negative constant (``(-2) * B``)."""
+    if expr.op == "minus":
+        yield expr.args[1]
+    elif expr.op == "negate":
+        yield expr.args[0]
+    elif expr.op in ("times", "divide") and any(
+        a.op == "negate" or (a.is_const and a.kind == "real" and a.value < 0) for a in expr.args
+    ):
+        yield expr
+    for arg in expr.args:
+        yield from _negated_parts(arg)
+
+
+def _net_rate_products(expr: Expr, products: set[int]) -> list[str]:
+    """The products (by name) that some negated part of a reversible reaction's law depends on:
+    a non-empty list marks the law a net rate (forward minus backward). See the module
+    docstring."""
+    names: dict[int, str] = {}
+    for part in _negated_parts(expr):
+        for node in _leaves(part):
+            if node.op == "species" and node.index in products:
+                names[node.index] = repr(node.name)
+    return [names[i] for i in sorted(names)]
+
+
+def _leaves(expr: Expr) -> Iterable[Expr]:
+    if not expr.args:
+        yield expr
+    for arg in expr.args:
+        yield from _leaves(arg)

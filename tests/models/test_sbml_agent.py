@@ -26,12 +26,16 @@ from surrogate.fields import ConstantField, GaussianField
 from surrogate.gp import PsiLookupTable
 from surrogate.models.ecoli_phospho import EcoliPhosphoModel
 from surrogate.models.sbml_agent import SbmlAgentModel
+from surrogate.sbml import SbmlError, SbmlWarning
 from surrogate.simulate import AbstractDecision, FullDecision, Simulator
 from surrogate.stages import collect, evaluate, simulate, train
 
 REPO = CONF_DIR.parent
 PHOSPHO = REPO / "examples" / "ecoli_phospho" / "model.yaml"
 GENE_SWITCH = REPO / "examples" / "gene_switch" / "model.yaml"
+TOGGLE = REPO / "examples" / "toggle_switch" / "model.yaml"
+AUTOREGULATION = REPO / "examples" / "autoregulation" / "model.yaml"
+DROP = object()  # a key to remove from the spec
 
 
 def compose_config(data_dir: Path, overrides: list[str]):
@@ -172,7 +176,9 @@ def _spec(**changes) -> dict:
     spec = yaml.safe_load(GENE_SWITCH.read_text())
     spec["network"] = str(GENE_SWITCH.parent / "gene_switch.xml")
     for key, value in changes.items():
-        if isinstance(value, dict) and isinstance(spec.get(key), dict):
+        if value is DROP:
+            spec.pop(key)
+        elif isinstance(value, dict) and isinstance(spec.get(key), dict):
             spec[key] = {**spec[key], **value}
         else:
             spec[key] = value
@@ -199,6 +205,22 @@ def _spec(**changes) -> dict:
         ({"signal_bounds": {"inducer": [1.0, 0.0]}}, "model.signal_bounds must give [lo, hi]"),
         ({"collect": {"n_per_state": 0}}, "model.collect.n_per_state must be a positive integer"),
         ({"colour": "red"}, "unknown model setting(s) ['colour']"),
+        # issue 37: required keys, types, local inputs, substance units
+        ({"inputs": DROP}, "model.inputs is required (which SBML parameters are the agent's"),
+        ({"lump": DROP}, "model.lump is required (the property phi"),
+        ({"body": DROP}, "model.body is required (a body of the library"),
+        ({"network": DROP}, "model.network is required (the SBML file"),
+        ({"inputs": None}, "model.inputs is required"),
+        ({"inputs": "L"}, "model.inputs must map at least one SBML parameter to its source"),
+        ({"inputs": ["inducer"]}, "model.inputs must map at least one SBML parameter"),
+        ({"lump": 5}, "model.lump must be a non-empty string"),
+        ({"network": 3}, "model.network must be a non-empty string"),
+        ({"name": ["a"]}, "model.name must be a non-empty string, got ['a']"),
+        ({"burn_in": float("inf")}, "model.burn_in must be a finite number of seconds >= 0"),
+        ({"max_states": 2.5}, "model.max_states must be a non-negative integer, got 2.5"),
+        ({"substance_units": "moles"}, "model.substance_units must be items"),
+        ({"inputs": {"R1.k": "L"}}, "input 'R1.k' is not a global parameter of the model nor a"),
+        ({"inputs": {"inducer": {"k": "L"}}}, "a reaction's local parameter is one key"),
     ],
 )
 def test_a_malformed_yaml_is_refused_by_name(tmp_path, changes, message) -> None:
@@ -290,3 +312,81 @@ def test_models_pickle_before_and_after_use(which) -> None:
     assert torch.equal(
         copy.internal.phi(sim.decision.state), model.internal.phi(sim.decision.state)
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# issue 37: public files read as published
+
+
+def test_the_published_examples_load_through_their_yamls() -> None:
+    """The vendored StochSS toggle switch (substance units declared items, one-way reversible
+    laws read as irreversible with one warning) and Wilkinson's auto-regulatory network (a
+    local-parameter input) load as published, and their inputs reach the propensities."""
+    with pytest.warns(SbmlWarning, match="'cu', 'cv', 'du', 'dv'"):
+        toggle = SbmlAgentModel(str(TOGGLE))
+    assert toggle.internal.signal_names == ("alpha1",) and toggle.internal.species == ("U", "V")
+    x = torch.tensor([[0.02], [0.08]])  # L: alpha1 = 20 L = 0.4, 1.6
+    counts = torch.tensor([[3, 2], [3, 2]])
+    rates = toggle.internal.kinetics.propensities(counts, toggle.internal.kinetic_inputs(x))
+    torch.testing.assert_close(rates[:, 0], 20 * x[:, 0].double() / (1 + 2**2))
+
+    ar = SbmlAgentModel(str(AUTOREGULATION))
+    assert ar.internal.signal_names == ("Transcription.k2",)
+    counts = torch.tensor([[7, 3, 4, 25, 30], [7, 3, 4, 25, 30]])
+    rates = ar.internal.kinetics.propensities(counts, ar.internal.kinetic_inputs(x))
+    r = ar.internal.kinetics.network.reaction_names.index("Transcription")
+    torch.testing.assert_close(rates[:, r], 0.4 * x[:, 0].double() * 7)  # k2 = 0.4 L, 7 genes
+    lows = counts.clone()
+    lows[1, 3] = 19
+    assert ar.internal.phi((lows,)).tolist() == [1.0, 0.0]  # P = 25 >= 20, P = 19 < 20
+
+
+def test_a_stochss_export_without_substance_units_is_refused_with_the_fix(tmp_path) -> None:
+    spec = yaml.safe_load(TOGGLE.read_text())
+    spec.pop("substance_units")
+    spec["network"] = str(TOGGLE.parent / spec["network"])
+    with pytest.raises(SbmlError, match=r"species 'U' \(mole\), 'V' \(mole\) have substance "
+                       r"units other than items.*`substance_units: items` in the model yaml"):  # fmt: skip
+        SbmlAgentModel(**spec)
+
+
+def test_a_global_input_in_a_file_with_only_local_constants_lists_them(tmp_path) -> None:
+    spec = yaml.safe_load(AUTOREGULATION.read_text())
+    spec["network"] = str(AUTOREGULATION.parent / spec["network"])
+    spec["inputs"] = {"k2": "L"}
+    with pytest.raises(SbmlError) as info:
+        SbmlAgentModel(**spec)
+    assert "input 'k2' is not a global parameter of the model nor a local one" in str(info.value)
+    assert "'Transcription.k2'" in str(info.value) and "global parameters: []" in str(info.value)
+
+
+def test_a_shadowed_global_input_in_a_yaml_is_refused(tmp_path) -> None:
+    from tests.sbml.builder import Reaction, Species, build
+
+    (tmp_path / "net.xml").write_text(build("shadow", [Species("X", amount=5)], {"k": 1.0}, [
+        Reaction("Make", "k", {}, {"X": 1}),
+        Reaction("Decay", "k * X", {"X": 1}, local={"k": 0.1}),
+    ]))  # fmt: skip
+    spec = {**_spec(network=str(tmp_path / "net.xml"), signal_bounds=None), "lump": "X >= 3"}
+    with pytest.raises(SbmlError, match=r"input 'k' is a global parameter, but reaction 'Decay' "
+                       r"declares a local parameter 'k'.*\(Decay\.k\)"):  # fmt: skip
+        SbmlAgentModel(**{**spec, "inputs": {"k": "L"}})
+    agent = SbmlAgentModel(**{**spec, "inputs": {"Decay.k": "L"}})
+    rates = agent.internal.kinetics.propensities(
+        torch.tensor([[5]]), agent.internal.kinetic_inputs(torch.tensor([[0.3]]))
+    )
+    torch.testing.assert_close(rates, torch.tensor([[1.0, 0.3 * 5]], dtype=torch.float64))
+
+
+def test_a_yaml_without_inputs_is_refused_before_collect_runs(tmp_path) -> None:
+    """The issue's case: the yaml passed validation, then collect died with ``stack expects a
+    non-empty TensorList``; now collect's validation names the key and writes nothing."""
+    spec = _spec(inputs=DROP)
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    cfg = compose_config(tmp_path / "data", ["model=sbml", f"model.spec={path}"])
+    with pytest.raises(ConfigError, match=r"model\.inputs is required"):
+        collect.validate(cfg)
+    assert not (tmp_path / "data").exists()
+    with pytest.raises(ConfigError, match=r"model\.inputs must map at least one SBML parameter"):
+        SbmlAgentModel(**{**spec, "inputs": {}})

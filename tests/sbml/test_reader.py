@@ -4,14 +4,21 @@
 from __future__ import annotations
 
 import math
+import warnings
+from pathlib import Path
 
 import libsbml
 import pytest
 import torch
 
+from surrogate.ctmc import CellStreams, CompiledSSA, gillespie
 from surrogate.errors import ConfigError
-from surrogate.sbml import SbmlError, read_sbml, read_sbml_string
+from surrogate.sbml import SbmlError, SbmlWarning, read_sbml, read_sbml_string
 from tests.sbml.builder import Reaction, Species, build
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+TOGGLE = EXAMPLES / "toggle_switch" / "Genetic_Toggle_Switch.sbml"
+AUTOREGULATION = EXAMPLES / "autoregulation" / "ch07-ar-stoch.xml"
 
 
 def parse(formula: str) -> libsbml.ASTNode:
@@ -187,16 +194,11 @@ def test_function_body_with_free_name_refused():
     refused(text, "function definition 'f'", "'k'")
 
 
-def test_fast_and_reversible_reactions_refused():
+def test_fast_reactions_refused():
     def fast(model):
         model.getReaction("R1").setFast(True)
 
     refused(simple(edit=fast), "fast reaction", "R1")
-    text = simple(
-        reactions=[Reaction("R1", "k * X", {"X": 1}, {"Y": 1}, reversible=True)],
-        species=[Species("X", amount=1), Species("Y", amount=0)],
-    )
-    refused(text, "reversible reaction", "R1")
 
 
 def test_stoichiometry_refused():
@@ -260,3 +262,233 @@ def test_bad_inputs_and_missing_pieces_refused():
         read_sbml("/nonexistent/model.xml")
     with pytest.raises(SbmlError, match="SBML error"):
         read_sbml_string("<sbml>not really</sbml>")
+
+
+# ----------------------------------------------------------------------------------------------
+# reaction-local parameters as inputs (issue 37)
+
+
+def two_reactions(level: int = 3, version: int = 1, parameters=None) -> str:
+    """X -> 0 at k X with a local k = 5 in R1; X -> 0 at k X with the global k = 2 in R2."""
+    return simple(
+        reactions=[
+            Reaction("R1", "k * X", {"X": 1}, local={"k": 5.0}),
+            Reaction("R2", "k * X", {"X": 1}),
+        ],
+        parameters=parameters or {},
+        level=level,
+        version=version,
+    )
+
+
+@pytest.mark.parametrize(("level", "version"), [(3, 1), (2, 4)])
+def test_a_local_parameter_is_an_input_as_reaction_dot_parameter(level, version):
+    """``R1.k`` feeds R1's law only (its propensity scales with the input, R2's global k does
+    not), and its default is the file's local value."""
+    model = read_sbml_string(two_reactions(level, version), inputs=["R1.k"])
+    assert model.input_names == ("R1.k",) and model.input_defaults == {"R1.k": 5.0}
+    state = torch.tensor([[10], [10]])
+    rates = model.propensities(state, torch.tensor([[0.5], [3.0]], dtype=torch.float64))
+    assert rates.tolist() == [[5.0, 20.0], [30.0, 20.0]]
+    assert model.default_inputs().tolist() == [5.0]
+    assert "R1.k" not in model.constants and model.constants["k"] == 2.0
+
+
+def test_a_published_file_with_only_local_constants_takes_a_local_input():
+    """Wilkinson's auto-regulatory network (L2V1, every constant local): Transcription's
+    propensity is input x Gene, the other reactions keep the file's constants."""
+    model = read_sbml(AUTOREGULATION, inputs=["Transcription.k2"])
+    state = torch.tensor([[7, 3, 4, 25, 30]])  # Gene, P2Gene, Rna, P, P2
+    low, high = (model.propensities(state, torch.tensor([v])) for v in (0.02, 0.06))
+    r = model.reaction_names.index("Transcription")
+    assert low[0, r].item() == pytest.approx(0.02 * 7) and high[0, r].item() == pytest.approx(0.42)
+    others = [i for i in range(len(model.reaction_names)) if i != r]
+    assert torch.equal(low[0, others], high[0, others])
+    assert model.input_defaults == {"Transcription.k2": 0.02}
+
+
+def test_a_local_input_needs_no_value_in_the_file():
+    def unset(model):
+        model.getReaction("R1").getKineticLaw().getLocalParameter("k").unsetValue()
+
+    model = read_sbml_string(simple(edit=unset, reactions=[
+        Reaction("R1", "k * X", {"X": 1}, local={"k": 5.0})]), inputs=["R1.k"])  # fmt: skip
+    assert math.isnan(model.input_defaults["R1.k"])
+    with pytest.raises(SbmlError, match=r"inputs \['R1.k'\] have no value in the file"):
+        model.default_inputs()
+
+
+def test_a_global_input_shadowed_by_a_local_parameter_is_refused():
+    message = refused(two_reactions(), inputs=["k"])
+    for needle in ("input 'k' is a global parameter", "reaction 'R1'", "local parameter 'k'",
+                   "no effect", "(R1.k)"):  # fmt: skip
+        assert needle in message, needle
+    text = simple(
+        reactions=[
+            Reaction("R1", "k * X", {"X": 1}, local={"k": 5.0}),
+            Reaction("R2", "k * X", {"X": 1}, local={"k": 1.0}),
+        ]
+    )
+    refused(text, "reactions 'R1', 'R2' declare a local parameter 'k'", inputs=["k"])
+
+
+def test_an_input_that_names_no_parameter_lists_what_exists():
+    text = two_reactions(parameters={"a": 1.0})
+    message = refused(text, "input 'nope' is not a global parameter", inputs=["nope"])
+    assert "global parameters: ['a', 'k']" in message and "local parameters: ['R1.k']" in message
+    refused(text, "reaction 'R1' has no local parameter 'q'", "its local parameters: ['k']",
+            inputs=["R1.q"])  # fmt: skip
+    refused(text, "input 'R9.k'", "reaction 'R9' does not exist", "local parameters: ['R1.k']",
+            inputs=["R9.k"])  # fmt: skip
+    refused(text, "inputs must be unique", inputs=["R1.k", "R1.k"])
+
+
+# ----------------------------------------------------------------------------------------------
+# reactions flagged reversible (issue 37)
+
+
+def flagged(*laws: str) -> str:
+    """One reaction A -> B flagged reversible per law (R1, R2, ...), plus a species C that is
+    neither reactant nor product."""
+    return simple(
+        reactions=[
+            Reaction(f"R{i}", law, {"A": 1}, {"B": 1}, reversible=True)
+            for i, law in enumerate(laws, 1)
+        ],
+        species=[Species("A", amount=5), Species("B", amount=3), Species("C", amount=1)],
+        parameters={"kf": 2.0, "kr": 0.5, "K": 10.0},
+    )
+
+
+def test_one_way_reversible_laws_are_read_as_irreversible_with_one_warning():
+    """Laws whose negated parts depend on no product: one warning names every such reaction,
+    and the propensities are the laws as written."""
+    text = flagged("kf * A", "kf * A / (1 + B^2)", "kf * A - kr * C", "kf * A + k")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = read_sbml_string(text)
+    ours = [w for w in caught if issubclass(w.category, SbmlWarning)]
+    assert len(ours) == 1, [str(w.message) for w in caught]
+    message = str(ours[0].message)
+    assert "4 reactions flagged reversible" in message
+    assert "read as irreversible: 'R1', 'R2', 'R3', 'R4'" in message
+    rates = model.propensities(torch.tensor([[5, 3, 1]]), torch.zeros(0))
+    assert rates.tolist() == [[10.0, 1.0, 9.5, 12.0]]
+    assert model.network.stoichiometry.tolist() == [[-1, 1, 0]] * 4
+
+
+def test_an_irreversible_model_reads_without_a_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_sbml(AUTOREGULATION, inputs=["Transcription.k2"])
+
+
+@pytest.mark.parametrize(
+    "law",
+    [
+        "kf * A - kr * B",  # forward minus backward
+        "kf * A + (-kr) * B",  # a negated factor makes the product a negated part
+        "kf * A - 2 * B",  # a constant rate, subtracted
+        "kf * A * (1 - B / K)",  # logistic: negative above B = K
+        "-(kr * B) + kf * A",  # unary minus
+    ],
+)
+def test_a_net_rate_reversible_law_is_refused(law):
+    message = refused(flagged(law), "reversible reaction 'R1'", "subtracts a term",
+                      "on its product 'B'", "two irreversible reactions")  # fmt: skip
+    assert "law '" in message  # the law as written
+
+
+def test_every_net_rate_law_is_named_at_once():
+    refused(flagged("kf * A - kr * B", "kf * A", "kf * A - kr * B"), "reactions 'R1'", "'R3'")
+
+
+def test_a_negative_propensity_is_refused_by_both_simulators():
+    """A reversible-flagged law that is one-way by the rule (its subtracted part depends on a
+    reactant, not a product) but negative below A = 4 is read; the simulators refuse it when it
+    turns negative (the compiled SSA names the reaction)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SbmlWarning)
+        model = read_sbml_string(flagged("kf * (A - 4)"))
+    state = torch.tensor([[3, 0, 0]] * 4)
+    with pytest.raises(ValueError, match="propensity of reaction 'R1' is negative"):
+        CompiledSSA(model.kinetics).advance(state, torch.zeros(0), 1.0, CellStreams.from_seed(0, 4))
+    with pytest.raises(ValueError, match="negative or non-finite"):
+        gillespie(model.network, state, torch.zeros(4, 0), 1.0, propensity=model.torch_propensity)
+
+
+# ----------------------------------------------------------------------------------------------
+# substance units (issue 37)
+
+
+def test_substance_units_other_than_items_are_refused_with_the_fix():
+    def model_in_moles(model):
+        model.setSubstanceUnits("mole")
+
+    text = simple(edit=model_in_moles, species=[Species("X", amount=10), Species("Y", amount=2)])
+    message = refused(text, "species 'X' (mole), 'Y' (mole) have substance units other than")
+    assert "substance_units: items" in message and "substance_units='items'" in message
+
+    def grams(model):
+        unit = model.createUnitDefinition()
+        unit.setId("mass")
+        u = unit.createUnit()
+        u.setKind(libsbml.UNIT_KIND_GRAM)
+        u.setExponent(1)
+        u.setScale(0)
+        u.setMultiplier(1)
+        model.getSpecies("X").setSubstanceUnits("mass")
+
+    refused(simple(edit=grams), "species 'X' (mass = ['gram']) has substance units")
+
+
+def test_substance_units_items_reads_the_amounts_as_counts():
+    """The StochSS toggle switch (substanceUnits="mole", all reactions flagged reversible with
+    one-way laws) is read as published once the amounts are declared counts."""
+    with pytest.raises(SbmlError, match="substance_units: items"):
+        read_sbml(TOGGLE)
+    with pytest.warns(SbmlWarning, match="'cu', 'cv', 'du', 'dv'"):
+        model = read_sbml(TOGGLE, inputs=["alpha1"], substance_units="items")
+    assert model.species == ("U", "V") and model.initial_state.tolist() == [10, 10]
+    rates = model.propensities(torch.tensor([[3, 2]]), torch.tensor([0.5]))
+    assert rates.tolist() == [[0.5 / (1 + 2**2), 1 / (1 + 3**2), 3.0, 2.0]]
+
+
+def test_an_unknown_substance_units_option_is_refused():
+    with pytest.raises(SbmlError, match="substance_units must be 'items'.*got 'moles'"):
+        read_sbml_string(simple(), substance_units="moles")
+
+
+# ----------------------------------------------------------------------------------------------
+# libsbml's errors, all of them (issue 37)
+
+
+def test_every_sbml_error_is_listed_with_its_line_up_to_ten():
+    species = "".join(f'<species id="S{i}" compartment="c"/>\n' for i in range(6))
+    text = (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<sbml xmlns="http://www.sbml.org/sbml/level3/version2/core" level="3" version="2">\n'
+        '<model id="m">\n<listOfCompartments><compartment id="c" size="1"/>'
+        "</listOfCompartments>\n"
+        f"<listOfSpecies>\n{species}</listOfSpecies>\n</model>\n</sbml>\n"
+    )
+    # the compartment lacks `constant` (line 4); each species (lines 6-11) lacks
+    # hasOnlySubstanceUnits, boundaryCondition and constant: 19 errors
+    message = refused(text, "<string>: 19 SBML errors")
+    lines = message.splitlines()
+    assert len(lines) == 1 + 10 + 1 and lines[-1] == "  ... and 9 more"
+    assert lines[1].startswith("  line 4, error [SBML component consistency]: ")
+    assert "'constant' is missing from the <compartment> with the id 'c'" in lines[1]
+    assert "(see L3V2 Section 4.5)" in lines[1]
+    assert all(line.startswith("  line ") and ", error [" in line for line in lines[1:11])
+    assert "<species> with the id 'S0'" in lines[2] and lines[2].startswith("  line 6, ")
+
+
+def test_malformed_xml_is_listed_at_its_line():
+    text = (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<sbml xmlns="http://www.sbml.org/sbml/level3/version2/core" level="3" version="2">\n'
+        '<model id="m">\n<listOfSpecies>\n</model>\n</sbml>\n'
+    )
+    message = refused(text, "<string>: 1 SBML error ", "line 5, error [XML content]: XML tag ")
+    assert "... and" not in message
