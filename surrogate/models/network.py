@@ -25,11 +25,13 @@ from surrogate.ctmc.lumped import (
     MAX_STATES,
     StateSpace,
     lumped_age_psi,
+    lumped_class_step,
     lumped_psi,
     stationary_distribution,
 )
 from surrogate.errors import ConfigError
 from surrogate.models.base import InternalState, Randoms, burn_in_seconds
+from surrogate.models.count_classes import CountClasses, CountClassifier
 from surrogate.sbml import SbmlModel
 from surrogate.sbml.formula import parse_formula
 
@@ -97,6 +99,11 @@ class NetworkInternalModel:
         max_rounds: passed to the batched SSA (guards against unexpectedly stiff rates).
         signal_bounds: ``{signal name: (lo, hi)}`` where the signal lives (lets the exact psi
             be tabulated); optional.
+        classes: classes finer than phi for the K-lumps chain (``gp=classes``): each lump split
+            into bins of a count (:class:`~surrogate.models.count_classes.CountClasses`);
+            optional. With them the model declares ``class_names``, ``class_lumps`` and
+            ``classes(state)``, and, where the state space is enumerable, the exact
+            class-to-class law of adapted cells (``exact_class_step``).
 
     State: ``(counts,)`` (``n x S`` int64) on the batched SSA with a mass-action network,
     else ``(counts, streams)`` with the compiled SSA's per-cell xoshiro256** states (``n x 4``
@@ -130,6 +137,7 @@ class NetworkInternalModel:
         max_states: int = MAX_STATES,
         max_rounds: int | None = None,
         signal_bounds: Mapping[str, tuple[float, float]] | None = None,
+        classes: CountClasses | None = None,
     ) -> None:
         self.network = network
         self.input_names = tuple(input_names)
@@ -177,6 +185,16 @@ class NetworkInternalModel:
         self.signal_bounds = dict(signal_bounds) if signal_bounds else None
         self._space: StateSpace | bool | None = None  # False: too large to enumerate
         self._compiled = None
+        self.set_classes(classes)
+
+    def set_classes(self, classes: CountClasses | None) -> None:
+        """Declare (or drop, with None) the K-lumps classes of this network."""
+        self.count_classes = classes
+        self._classify = (None if classes is None
+                          else CountClassifier(classes, self.species, "model.classes"))  # fmt: skip
+        #: the K-lumps classes' names and lumps (None: none declared)
+        self.class_names = None if classes is None else classes.names
+        self.class_lumps = None if classes is None else classes.lumps
 
     def _lump_function(self, lump: Lump) -> Callable[[Tensor], Tensor]:
         if callable(lump):
@@ -263,9 +281,15 @@ class NetworkInternalModel:
             idx = torch.multinomial(pi, 1).squeeze(1)
             counts = space.states.to(x.device)[idx]
             return (counts, *self._new_streams(n, x.device))
-        counts = self.initial_counts.to(x.device).expand(n, -1).clone()
-        state = (counts, *self._new_streams(n, x.device))
-        return self.advance(state, x, self.burn_in) if self.burn_in > 0 else state
+        return self.burn_in_at(self.kinetic_inputs(x))
+
+    def burn_in_at(self, inputs: Tensor) -> InternalState:
+        """``initial_counts`` then ``burn_in`` seconds at the kinetic inputs ``inputs``
+        (``n x P``, e.g. :meth:`kinetic_inputs`), with fresh random streams."""
+        n = inputs.shape[0]
+        counts = self.initial_counts.to(inputs.device).expand(n, -1).clone()
+        state = (counts, *self._new_streams(n, inputs.device))
+        return self.advance_at(state, inputs, self.burn_in) if self.burn_in > 0 else state
 
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
         if not self._streams(device):
@@ -277,9 +301,12 @@ class NetworkInternalModel:
 
     def advance(self, state: InternalState, x: Tensor, dt: float) -> InternalState:
         """One exact window (every reaction event) with the inputs held fixed."""
+        return self.advance_at(state, self.kinetic_inputs(x), dt)
+
+    def advance_at(self, state: InternalState, inputs: Tensor, dt: float) -> InternalState:
+        """One exact window at the kinetic inputs ``inputs`` (``n x P`` float64)."""
         counts = state[0]
-        inputs = self.kinetic_inputs(x)
-        if self.backend(x.device) == "compiled":
+        if self.backend(inputs.device) == "compiled":
             from surrogate.ctmc import CellStreams
 
             streams = CellStreams(state[1].numpy().view(np.uint64))  # shares memory
@@ -303,6 +330,17 @@ class NetworkInternalModel:
     def concat_states(self, states: Sequence[InternalState]) -> InternalState:
         """Counts (and streams) joined along cells."""
         return tuple(torch.cat(parts) for parts in zip(*states, strict=True))
+
+    def classes(self, state: InternalState) -> Tensor:
+        """Each cell's K-lumps class ``(n,)`` int64 (index into :attr:`class_names`).
+
+        Raises:
+            TypeError: the model declares no classes.
+        """
+        if self._classify is None:
+            raise TypeError(f"{type(self).__name__} declares no classes")
+        counts = state[0]
+        return self._classify(counts, self._lump(counts).long())
 
     # -- optional capabilities -----------------------------------------------------------------
     @property
@@ -330,6 +368,23 @@ class NetworkInternalModel:
         assert space is not None
         q = space.generator(*self._generator_args(signal, is_signal=True))
         return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
+
+    @property
+    def exact_class_step(self) -> Callable[[Tensor, float], Tensor] | None:
+        """``exact_class_step(signal (n x k), dt) -> n x C x C``: the exact class-to-class law
+        of adapted cells (:func:`surrogate.ctmc.lumped.lumped_class_step`); None without
+        classes or when the state space is too large to enumerate."""
+        if self._classify is None or self.state_space is None:
+            return None
+        return self._exact_class_step
+
+    def _exact_class_step(self, signal: Tensor, dt: float) -> Tensor:
+        space = self.state_space
+        assert space is not None and self._classify is not None
+        q = space.generator(*self._generator_args(signal, is_signal=True))
+        states = space.states.to(q.device)
+        classes = self._classify(states, self._lump(states).long())
+        return lumped_class_step(q, classes, len(self.class_names or ()), dt)
 
     def _generator_args(self, x: Tensor, is_signal: bool = False) -> tuple:
         inputs = self._kinetic_inputs(x) if is_signal else self.kinetic_inputs(x)

@@ -17,8 +17,12 @@ The yaml (``model.spec``, or the same keys in the model config itself) names
 * optionally ``name``, ``substance_units`` (``items``: read the file's amounts as molecule
   counts whatever substance units it declares, e.g. a StochSS export's ``mole``), ``ssa``
   (auto|compiled|batched), ``burn_in`` (s), ``max_states``, ``signal_bounds``
-  (``{input: [lo, hi]}``, lets the exact psi be tabulated) and ``collect`` (the model's default
-  collection budget: ``n_per_state``, ``n_cells``, ``record_every``).
+  (``{input: [lo, hi]}``, lets the exact psi be tabulated), ``collect`` (the model's default
+  collection budget: ``n_per_state``, ``n_cells``, ``record_every``) and ``classes``: classes
+  finer than phi for the K-lumps chain (``gp=classes``), each lump split into bins of a count,
+  ``{species: P2, edges: [10, 30]}`` (or ``expression: "P + 2 * P2"``; edges shared by both
+  lumps or ``{<lump name>: [...]}``), or ``auto`` (chosen by a short simulation at the file's
+  parameter values, :mod:`surrogate.models.count_classes`).
 
 The file is read by :func:`surrogate.sbml.read_sbml` (its module docstring has the rules: local
 inputs, shadowing, one-way reversible laws, substance units). Formulas are parsed by libsbml's
@@ -42,6 +46,7 @@ Example (``examples/gene_switch/model.yaml``)::
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 from collections.abc import Mapping
 from functools import partial
@@ -57,11 +62,14 @@ from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import CellKernel, KernelUnsupported, Model
 from surrogate.models.bodies import build_body
+from surrogate.models.count_classes import CountClasses, choose_count_classes, parse_classes
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml
 from surrogate.sbml.formula import parse_formula
 from surrogate.sbml.reader import SUBSTANCE_UNITS
+
+log = logging.getLogger(__name__)
 
 __all__ = ["REQUIRED_KEYS", "SPEC_DEFAULTS", "SbmlAgentModel", "load_spec"]
 
@@ -79,6 +87,7 @@ SPEC_DEFAULTS: dict[str, Any] = {
     "max_states": 5000,
     "signal_bounds": None,
     "collect": None,
+    "classes": None,
 }
 #: the keys a spec must give, and what each is (for the message when one is missing)
 REQUIRED_KEYS: dict[str, str] = {
@@ -88,6 +97,8 @@ REQUIRED_KEYS: dict[str, str] = {
     "lump": 'the property phi as a condition on species counts, e.g. `lump: "P >= 20"`',
     "body": "a body of the library by kind, e.g. `body: {kind: walker}`",
 }
+#: the window (s) ``classes: auto`` scores the candidate classes over (the default dt)
+AUTO_CLASSES_DT = 0.05
 #: collection settings a model may carry as its default budget
 COLLECT_KEYS = ("n_per_state", "n_cells", "record_every")
 
@@ -215,10 +226,38 @@ class SbmlAgentModel(Model):
             max_states=int(s["max_states"]),
             signal_bounds=self._bounds(s["signal_bounds"], sbml.input_names),
         )
+        self.class_report: dict[str, Any] | None = None
+        if s["classes"] is not None:
+            self.internal.set_classes(self._classes(s["classes"], sbml))
         self.perturbation_options = self.body.perturbation_options
         self.name = str(s["name"] or sbml.id or "sbml")
         self._collect_budget = self._collect(s["collect"])
         self.settings = s
+
+    def _classes(self, value: Any, sbml: Any) -> CountClasses:
+        """``classes``: declared (``{species|expression: ..., edges: ...}``) or ``auto``, chosen
+        by :func:`~surrogate.models.count_classes.choose_count_classes` at the file's parameter
+        values (its report is kept in :attr:`class_report` and logged)."""
+        internal = self.internal
+        if value != "auto":
+            return parse_classes(value, internal.species, internal.lump_names)
+        values = [sbml.input_defaults.get(n, math.nan) for n in internal.kinetics.input_names]
+        unset = [n for n, v in zip(internal.kinetics.input_names, values, strict=True) if v != v]
+        if unset:
+            raise ConfigError(f"model.classes=auto chooses the classes at the SBML file's "
+                              f"parameter values, but {unset} have none in the file; declare "
+                              f"model.classes={{species: ..., edges: [...]}} instead")  # fmt: skip
+        classes, report = choose_count_classes(internal, torch.tensor(values, dtype=torch.float64),
+                                               AUTO_CLASSES_DT)  # fmt: skip
+        self.class_report = report
+        gains = ", ".join(f"{c['species']} {c['gain_nats_per_window']:.2e}"
+                          for c in report["candidates"])  # fmt: skip
+        log.info("model.classes=auto: bins of %s (%s), chosen by held-out log-likelihood gain per "
+                 "window over phi alone (%s)%s", classes.variable, classes.to_config()["edges"],
+                 gains, "" if report["significant"] else
+                 "; the gain is within two standard errors: the two-state chain holds about as "
+                 "much")  # fmt: skip
+        return classes
 
     @staticmethod
     def _check_types(s: Mapping[str, Any]) -> None:
@@ -346,10 +385,15 @@ class SbmlAgentModel(Model):
         return {**super().collect_defaults(dt), **self._collect_budget}
 
     def sources(self) -> dict[str, str]:
-        """sha256 of the files this model is read from (part of every artefact's identity)."""
+        """sha256 of the files this model is read from, and the digest of its K-lumps classes
+        where it has any (``classes: auto`` resolves them by a measurement): part of every
+        artefact's identity."""
         out = {"network": _sha256(self.network_path)}
         if self.spec is not None:
             out["spec"] = _sha256(self.spec)
+        classes = self.internal.count_classes
+        if classes is not None:
+            out["classes"] = classes.digest()
         return out
 
     def observable_label(self, name: str) -> str:

@@ -339,10 +339,10 @@ def _simulate_shards(
 
 
 def _worker_init(threads: int) -> None:
-    """A worker process: its thread counts and logging."""
-    from surrogate.cli import configure_logging
-
-    configure_logging()
+    """A worker process: its thread counts, and INFO logging of this package to stderr."""
+    logging.basicConfig(level=logging.WARNING,
+                        format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")  # fmt: skip
+    logging.getLogger("surrogate").setLevel(logging.INFO)
     _set_threads(threads)
 
 

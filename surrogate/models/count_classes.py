@@ -1,0 +1,360 @@
+"""Classes finer than phi for any reaction network: bins of a count (K lumps for networks).
+
+The two-state chain over phi forgets everything but phi; a network whose switching depends on a
+slowly changing hidden count (a protein reservoir that drains for minutes) cannot be held by it.
+:class:`CountClasses` splits each lump into bins of one count (a species, or a formula over the
+species such as ``"P + 2 * P2"``), so the K-lumps chain (``gp=classes``) carries where in that
+count a cell is. A model declares them (yaml ``classes: {species: P2, edges: [...]}``, edges
+shared by both lumps or per lump name), or lets :func:`choose_count_classes` choose them:
+
+* **How**: the network alone is simulated at fixed inputs (the SBML file's parameter values)
+  from its initial state for its burn-in, then ``windows`` windows of ``dt`` for ``cells`` cells
+  (seeded). Every species with more than one value is a candidate count; its bins are the
+  quantiles of its values within each lump (``bins`` per lump, so every class occurs). Each
+  candidate is scored by how much better its classes predict the next phi than phi alone: the
+  held-out log-likelihood gain per window of P(phi' | class) over P(phi' | phi), both estimated
+  on half the cells and scored on the other half, with a standard error from the per-cell means.
+  The candidate with the largest gain is chosen; ``report["significant"]`` says whether its gain
+  exceeds two standard errors (if not, the two-state chain holds about as much).
+* The choice is deterministic (seeded) and cached on disk by everything it depends on, so every
+  stage of a pipeline sees the same classes; its digest is part of the model's identity.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import logging
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from surrogate.ctmc.kinetics import Expr, species_ref, torch_function
+from surrogate.errors import ConfigError
+from surrogate.io import write_text
+from surrogate.sbml.formula import parse_formula
+
+log = logging.getLogger(__name__)
+
+#: the chooser's version: part of its cache key and of the model's identity
+CHOOSER_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class CountClasses:
+    """Each lump split into bins of one count: class = (phi, bin of the count in that lump).
+
+    Args:
+        variable: the count's formula over the species (a species id or e.g. ``"P + 2 * P2"``).
+        edges: per lump (phi = 0, 1), the increasing bin edges: bin ``j`` holds values in
+            ``[edges[j - 1], edges[j])`` (the first bin everything below ``edges[0]``, the last
+            everything from ``edges[-1]`` on), so ``len(edges) + 1`` bins per lump.
+        lump_names: the names of phi = 0 and 1 (for the class names).
+    """
+
+    variable: str
+    edges: tuple[tuple[float, ...], tuple[float, ...]]
+    lump_names: tuple[str, str] = ("off", "on")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """``C`` names, e.g. ``on|P2<12``, ``on|12<=P2<30``, ``on|P2>=30``."""
+        out = []
+        for phi in (0, 1):
+            e = self.edges[phi]
+            bounds = [-math.inf, *e, math.inf]
+            for lo, hi in itertools.pairwise(bounds):
+                if lo == -math.inf and hi == math.inf:
+                    what = "all"
+                elif lo == -math.inf:
+                    what = f"{self.variable}<{hi:g}"
+                elif hi == math.inf:
+                    what = f"{self.variable}>={lo:g}"
+                else:
+                    what = f"{lo:g}<={self.variable}<{hi:g}"
+                out.append(f"{self.lump_names[phi]}|{what}")
+        return tuple(out)
+
+    @property
+    def lumps(self) -> tuple[int, ...]:
+        """The phi (0/1) of each class."""
+        return tuple(phi for phi in (0, 1) for _ in range(len(self.edges[phi]) + 1))
+
+    def to_config(self) -> dict[str, Any]:
+        """The yaml form: ``{expression: ..., edges: {<lump>: [...], ...}}``."""
+        return {"expression": self.variable,
+                "edges": {self.lump_names[p]: list(self.edges[p]) for p in (0, 1)}}  # fmt: skip
+
+    def digest(self) -> str:
+        """A short digest of the classes (part of the model's identity)."""
+        blob = json.dumps(self.to_config(), sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+class CountClassifier:
+    """``classify(counts (n x S), phi (n,)) -> (n,)`` int64 class indices of
+    :class:`CountClasses` over a network's species; picklable (compiled on first use)."""
+
+    def __init__(self, classes: CountClasses, species: Sequence[str], where: str) -> None:
+        symbols = {name: species_ref(s, name) for s, name in enumerate(species)}
+        self.expr: Expr = parse_formula(classes.variable, symbols, where, "real", what="species")
+        self.classes = classes
+        self._function: Any = None
+
+    def values(self, counts: Tensor) -> Tensor:
+        """The count's value per cell, float64 ``(n,)``."""
+        if self._function is None:
+            self._function = torch_function([self.expr])
+        return self._function(counts, counts.new_zeros((counts.shape[0], 0)))[:, 0].double()
+
+    def __call__(self, counts: Tensor, phi: Tensor) -> Tensor:
+        value = self.values(counts)
+        out = torch.empty(counts.shape[0], dtype=torch.int64, device=counts.device)
+        offset = 0
+        for p in (0, 1):
+            edges = torch.tensor(self.classes.edges[p], dtype=torch.float64, device=counts.device)
+            bins = torch.bucketize(value, edges, right=True)  # edges[j-1] <= v < edges[j] -> j
+            out = torch.where(phi == p, offset + bins, out)
+            offset += len(self.classes.edges[p]) + 1
+        return out
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_function": None}
+
+
+def parse_classes(
+    value: Any, species: Sequence[str], lump_names: tuple[str, str], where: str = "model.classes"
+) -> CountClasses:
+    """A declared ``classes`` mapping (``species`` or ``expression``, and ``edges``: one list
+    for both lumps or ``{<lump name>: [...]}``), validated; ``auto`` is resolved elsewhere."""
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where} must be auto or a mapping {{species: <id>, edges: [...]}} "
+                          f"(or expression: <formula over species>), got {value!r}")  # fmt: skip
+    unknown = sorted(set(value) - {"species", "expression", "edges"})
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; it takes species (or "
+                          "expression) and edges")  # fmt: skip
+    if ("species" in value) == ("expression" in value):
+        raise ConfigError(f"{where} needs exactly one of species (a species id) or expression "
+                          f"(a formula over the species), got {sorted(value)}")  # fmt: skip
+    variable = value.get("species", value.get("expression"))
+    if not isinstance(variable, str) or not variable.strip():
+        raise ConfigError(f"{where}: the count must be a species id or formula, got {variable!r}")
+    if "species" in value and variable not in species:
+        raise ConfigError(f"{where}.species={variable!r} is not a species of the network "
+                          f"{list(species)}")  # fmt: skip
+    edges = value.get("edges")
+    if isinstance(edges, Mapping):
+        missing = [n for n in lump_names if n not in edges]
+        extra = sorted(set(edges) - set(lump_names))
+        if missing or extra:
+            raise ConfigError(f"{where}.edges by lump needs exactly the lumps {list(lump_names)}, "
+                              f"got {sorted(edges)}")  # fmt: skip
+        per_lump = [edges[n] for n in lump_names]
+    else:
+        per_lump = [edges, edges]
+    checked = []
+    for name, e in zip(lump_names, per_lump, strict=True):
+        if not isinstance(e, Sequence) or isinstance(e, str | bytes):
+            raise ConfigError(f"{where}.edges ({name}) must be a list of numbers, got {e!r}")
+        nums = []
+        for v in e:
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{where}.edges ({name}) must be finite numbers, got {v!r}")
+            nums.append(float(v))
+        if any(b <= a for a, b in itertools.pairwise(nums)):
+            raise ConfigError(f"{where}.edges ({name}) must increase strictly, got {nums}")
+        checked.append(tuple(nums))
+    if not checked[0] and not checked[1]:
+        raise ConfigError(f"{where}.edges is empty: the classes would be the lumps themselves "
+                          "(the two-state chain, gp=svgp)")  # fmt: skip
+    classes = CountClasses(variable.strip(), (checked[0], checked[1]), lump_names)
+    CountClassifier(classes, species, where)  # the formula parses over the species
+    return classes
+
+
+# ----------------------------------------------------------------------------------------------
+# choosing them
+
+
+def choose_count_classes(
+    internal: Any,
+    kinetic_inputs: Tensor,
+    dt: float,
+    *,
+    cells: int = 200,
+    windows: int = 1000,
+    bins: int = 3,
+    seed: int = 0,
+    cache_dir: Path | None = None,
+) -> tuple[CountClasses, dict[str, Any]]:
+    """Choose the count and its bins that best carry the memory phi alone forgets (see the
+    module docstring); cached on disk.
+
+    Args:
+        internal: a :class:`~surrogate.models.network.NetworkInternalModel`.
+        kinetic_inputs: ``(P,)`` the network's input parameters, held fixed.
+        dt: the window (s).
+        cells, windows: the simulated sample: ``cells`` cells, ``windows`` windows each.
+        bins: bins per lump.
+        seed: the simulation's seed.
+        cache_dir: where the choice is cached (default ``$SURROGATE_CACHE_DIR`` or
+            ``~/.cache/surrogate``, under ``classes/``).
+
+    Returns:
+        ``(classes, report)``: the report has every candidate's gain (nats per window) and
+        standard error, the chosen one, whether its gain is significant, and the sample.
+    """
+    key = {"version": CHOOSER_VERSION, "kinetics": _kinetics_digest(internal),
+           "lump": str(getattr(internal, "lump_formula", internal._lump)),
+           "initial": internal.initial_counts.tolist(), "burn_in": internal.burn_in,
+           "inputs": [float(v) for v in kinetic_inputs.tolist()], "dt": float(dt),
+           "cells": cells, "windows": windows, "bins": bins, "seed": seed}  # fmt: skip
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
+    root = cache_dir or _cache_dir()
+    path = root / f"{digest}.json"
+    if path.exists():
+        saved = json.loads(path.read_text())
+        classes = CountClasses(saved["variable"], (tuple(saved["edges"][0]),
+                                                   tuple(saved["edges"][1])),
+                               internal.lump_names)  # fmt: skip
+        return classes, saved["report"]
+    counts, phi = _sample(internal, kinetic_inputs, dt, cells, windows, seed)
+    classes, report = _choose(counts, phi, internal.species, internal.lump_names, bins)
+    report["sample"] = {"cells": cells, "windows": windows, "dt": dt, "seed": seed,
+                        "inputs": key["inputs"]}  # fmt: skip
+    root.mkdir(parents=True, exist_ok=True)
+    write_text(path, json.dumps({"variable": classes.variable,
+                                 "edges": [list(e) for e in classes.edges],
+                                 "report": report}, indent=1))  # fmt: skip
+    return classes, report
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("SURROGATE_CACHE_DIR")
+    return (Path(root) if root else Path.home() / ".cache" / "surrogate") / "classes"
+
+
+def _kinetics_digest(internal: Any) -> str:
+    kin = internal.kinetics
+    blob = json.dumps({"species": list(internal.species), "source": kin.numba_source},
+                      sort_keys=True)  # fmt: skip
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _sample(
+    internal: Any, kinetic_inputs: Tensor, dt: float, cells: int, windows: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``windows + 1`` states of ``cells`` cells at fixed inputs after the burn-in: counts
+    ``(W + 1) x n x S`` and phi ``(W + 1) x n``."""
+    gen_state = torch.random.get_rng_state()
+    try:
+        torch.manual_seed(seed)
+        inputs = kinetic_inputs.reshape(1, -1).to(torch.float64).expand(cells, -1).contiguous()
+        state = internal.burn_in_at(inputs)
+        counts = [state[0].clone()]
+        for _ in range(windows):
+            state = internal.advance_at(state, inputs, dt)
+            counts.append(state[0].clone())
+    finally:
+        torch.random.set_rng_state(gen_state)
+    stacked = torch.stack(counts)
+    phi = torch.stack([internal._lump(c) for c in counts]).to(torch.int8)
+    return stacked.numpy(), phi.numpy()
+
+
+def _choose(
+    counts: np.ndarray,
+    phi: np.ndarray,
+    species: Sequence[str],
+    lump_names: tuple[str, str],
+    bins: int,
+) -> tuple[CountClasses, dict[str, Any]]:
+    n_cells = counts.shape[1]
+    train = np.arange(n_cells) < n_cells // 2
+    before, after = phi[:-1], phi[1:]
+    occupancy = float(phi.mean())
+    if min(occupancy, 1 - occupancy) * phi.size < 10 * bins:
+        raise ConfigError(
+            f"choosing classes: phi is 1 in {100 * occupancy:.3g} % of {phi.size} sampled "
+            "windows at the file's parameter values, too few of one lump to bin; declare "
+            "model.classes={species: ..., edges: [...]} (scripts/inspect_model.py measures "
+            "the occupancy across the inputs)"
+        )
+    base = _loglik(before, after, before.astype(np.int64), train)
+    candidates = []
+    for j, name in enumerate(species):
+        values = counts[:-1, :, j].astype(np.float64)
+        if values.min() == values.max():
+            continue
+        edges = tuple(_edges(values[before == p], bins) for p in (0, 1))
+        cls = _classify(values, before, edges)
+        gain = _loglik(before, after, cls, train) - base
+        mean, se = _per_cell(gain, ~train)
+        candidates.append({"species": name, "edges": [list(e) for e in edges],
+                           "gain_nats_per_window": mean, "se": se})  # fmt: skip
+    if not candidates:
+        raise ConfigError("choosing classes: no species changes in the sampled windows")
+    best = max(candidates, key=lambda c: c["gain_nats_per_window"])
+    classes = CountClasses(best["species"], (tuple(best["edges"][0]), tuple(best["edges"][1])),
+                           lump_names)  # fmt: skip
+    report = {"chosen": best["species"], "candidates": candidates, "occupancy": occupancy,
+              "significant": best["gain_nats_per_window"] > 2 * best["se"]}  # fmt: skip
+    return classes, report
+
+
+def _edges(values: np.ndarray, bins: int) -> tuple[float, ...]:
+    """Interior bin edges at the quantiles of ``values`` (integers: counts), unique."""
+    if values.size == 0:
+        return ()
+    qs = np.quantile(values, [k / bins for k in range(1, bins)])
+    edges = sorted({float(math.ceil(q)) for q in qs if values.min() < math.ceil(q) <= values.max()})
+    return tuple(edges)
+
+
+def _classify(
+    values: np.ndarray, phi: np.ndarray, edges: tuple[tuple[float, ...], ...]
+) -> np.ndarray:
+    out = np.empty(values.shape, dtype=np.int64)
+    offset = 0
+    for p in (0, 1):
+        bins = np.searchsorted(np.asarray(edges[p]), values, side="right")
+        out = np.where(phi == p, offset + bins, out)
+        offset += len(edges[p]) + 1
+    return out
+
+
+def _loglik(
+    before: np.ndarray, after: np.ndarray, cls: np.ndarray, train: np.ndarray
+) -> np.ndarray:
+    """Per window (``W x n``): log P(phi' | class) with P estimated on the training cells
+    (add-one smoothing)."""
+    k = int(cls.max()) + 1
+    on = np.bincount(cls[:, train].ravel(), weights=after[:, train].ravel(), minlength=k)
+    total = np.bincount(cls[:, train].ravel(), minlength=k)
+    p1 = (on + 1) / (total + 2)
+    p = p1[cls]
+    return np.where(after == 1, np.log(p), np.log1p(-p))
+
+
+def _per_cell(values: np.ndarray, cells: np.ndarray) -> tuple[float, float]:
+    """Mean over the held-out cells' windows, and its standard error over cells."""
+    per_cell = values[:, cells].mean(0)
+    return float(per_cell.mean()), float(per_cell.std(ddof=1) / math.sqrt(len(per_cell)))
+
+
+__all__ = [
+    "CHOOSER_VERSION",
+    "CountClasses",
+    "CountClassifier",
+    "choose_count_classes",
+    "parse_classes",
+]
