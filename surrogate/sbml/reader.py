@@ -588,16 +588,12 @@ class _Reader:
             )
         return tuple(events)
 
-    def _initial_counts(self, kinetics: Kinetics) -> Tensor:
+    def _initial_counts(self, kinetics: Kinetics, inputs: Sequence[float]) -> Tensor:
         """``(S,)`` initial counts; a species assigned by a rule takes the rule's value there
-        (with the inputs' values in the file; left 0 where an input has none: the SSAs set it
-        from each cell's inputs at every window's start)."""
+        (with ``inputs``, the file's values of the inputs; left 0 where one has none: the SSAs
+        set it from each cell's inputs at every window's start)."""
         counts = [
             0 if sp.getId() in self.species_rules else self.initial_count(sp) for sp in self.species
-        ]
-        inputs = [
-            float(self.parameters[n].getValue()) if self.parameters[n].isSetValue() else math.nan
-            for n in self.inputs
         ]
         for rule in kinetics.rules:
             value = float(rule.expr.evaluate(counts, inputs))
@@ -674,7 +670,13 @@ class _Reader:
                                 events=self._events())  # fmt: skip
         except ValueError as error:
             raise SbmlError(f"{self.label}: {error}") from None
-        initial = self._initial_counts(kinetics)
+        defaults = {
+            name: float(self.parameters[name].getValue())
+            if self.parameters[name].isSetValue()
+            else math.nan
+            for name in self.inputs
+        }
+        initial = self._initial_counts(kinetics, [defaults[name] for name in self.inputs])
         constants = {  # NaN: a compartment without a size (legal where no law needs one)
             name: self.constant_value(name, f"compartment {name!r}")
             if self.compartments[name].isSetSize() or name in self.initial_assignments
@@ -689,12 +691,6 @@ class _Reader:
                     if name in self.initial_assignments:
                         raise
                     constants[name] = math.nan  # declared without a value and never used
-        defaults = {
-            name: float(self.parameters[name].getValue())
-            if self.parameters[name].isSetValue()
-            else math.nan
-            for name in self.inputs
-        }
         return SbmlModel(
             id=model.getId(),
             kinetics=kinetics,

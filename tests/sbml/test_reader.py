@@ -369,3 +369,19 @@ def test_bad_inputs_and_missing_pieces_refused():
         read_sbml("/nonexistent/model.xml")
     with pytest.raises(SbmlError, match="SBML error"):
         read_sbml_string("<sbml>not really</sbml>")
+
+
+def test_a_rule_on_an_input_without_a_value_is_set_from_each_cells_inputs():
+    """y = X + a, with the input a unset in the file: y starts at 0 in the file's state (the
+    SSAs set it from each cell's a at every window's start); with a = 2 in the file, X + 2."""
+
+    def edit(model):
+        rule = model.createAssignmentRule()
+        rule.setVariable("y")
+        rule.setMath(parse("X + a"))
+
+    species = [Species("X", amount=3), Species("y", amount=0)]
+    unset = simple(edit=edit, species=species, parameters={"a": None})
+    assert read_sbml_string(unset, inputs=["a"]).initial_state.tolist() == [3, 0]
+    given = simple(edit=edit, species=species, parameters={"a": 2.0})
+    assert read_sbml_string(given, inputs=["a"]).initial_state.tolist() == [3, 5]
