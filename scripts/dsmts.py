@@ -1,11 +1,13 @@
 """Run the SBML discrete stochastic test suite (DSMTS) and write its table into docs/sbml.md.
 
 python scripts/dsmts.py --suite <sbml-test-suite>/cases/stochastic [--runs 10000] [--seed 1]
-                        [--cases 00001 00002 ...] [--doc docs/sbml.md]
+                        [--cases 00001 00002 ...] [--ssa compiled|batched] [--doc docs/sbml.md]
 
 The suite: git clone https://github.com/sbmlteam/sbml-test-suite (LGPL 2.1+). Every case is
-read, simulated ``--runs`` times by the compiled SSA and checked with the suite's Z and Y at
-its time points (surrogate/sbml/dsmts.py); a failing case is run again with the next seed.
+read, simulated ``--runs`` times by the compiled SSA (or the batched torch SSA) and checked with
+the suite's Z and Y at its time points (surrogate/sbml/dsmts.py); a failing case is run again
+with the next seed. With ``--cases``, only those rows of the table in ``--doc`` are replaced
+(the summary recounted over every row, and saying which rows were run when).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import re
 import time
 from pathlib import Path
 
-from surrogate.sbml.dsmts import DsmtsCase, DsmtsResult, run_case_twice
+from surrogate.sbml.dsmts import SSAS, DsmtsCase, DsmtsResult, run_case_twice
 
 BEGIN, END = "<!-- dsmts-table: begin -->", "<!-- dsmts-table: end -->"
 
@@ -33,13 +35,16 @@ def _row(case: DsmtsCase, r: DsmtsResult) -> str:
             f"{r.seconds:.1f} | {note} |")  # fmt: skip
 
 
-def table(cases: list[DsmtsCase], results: list[DsmtsResult], runs: int, seed: int) -> str:
+def table(
+    cases: list[DsmtsCase], results: list[DsmtsResult], runs: int, seed: int, ssa: str = "compiled"
+) -> str:
     """The markdown table and its summary."""
     counts = {s: sum(r.status == s for r in results) for s in ("passed", "failed", "refused")}
     retried = sum(r.retried is not None for r in results)
     lines = [
         f"`python3 scripts/dsmts.py --suite <sbml-test-suite>/cases/stochastic --runs {runs} "
-        f"--seed {seed}` ({time.strftime('%Y-%m-%d')}): {len(results)} cases, "
+        f"--seed {seed}{'' if ssa == 'compiled' else f' --ssa {ssa}'}` "
+        f"({time.strftime('%Y-%m-%d')}): {len(results)} cases, "
         f"**{counts['passed']} passed**, {counts['failed']} failed, {counts['refused']} "
         f"refused (the reader names the construct); {runs} runs per case, seed {seed} "
         f"({retried} case(s) run again with the next seed after a first failure).",
@@ -49,6 +54,32 @@ def table(cases: list[DsmtsCase], results: list[DsmtsResult], runs: int, seed: i
     ]
     lines += [_row(c, r) for c, r in zip(cases, results, strict=True)]
     return "\n".join(lines)
+
+
+def merge_rows(content: str, text: str, cases: list[str]) -> str:
+    """The table of ``text`` (the cases run now) merged into the one in ``content``: its rows
+    for ``cases`` replaced, the summary's counts recounted over every row."""
+    old = content.split(BEGIN, 1)[1].split(END, 1)[0].strip().splitlines()
+    new = text.splitlines()
+    rows = {line.split("|")[1].strip(): line for line in old if line.startswith("| 0")}
+    rows.update({line.split("|")[1].strip(): line for line in new if line.startswith("| 0")})
+    merged = [rows[case] for case in sorted(rows)]
+    status = [line.split("|")[3].strip() for line in merged]
+    counts = {s: status.count(s) for s in ("passed", "failed", "refused")}
+    retried = sum(bool(re.search(r"\| seed \d+: .*; seed \d+: ", line)) for line in merged)
+    first = re.search(r"\((\d{4}-\d{2}-\d{2})[;)]", old[0])
+    since = first.group(1) if first else "an earlier run"
+    command, _, _ = new[0].partition(" (")
+    ids = sorted(cases)
+    listed = ", ".join(ids) if len(ids) <= 8 else f"{', '.join(ids[:6])}, ... {ids[-1]}"
+    summary = (
+        f"{command} ({since}; {len(ids)} case(s) run again with `--cases` on "
+        f"{time.strftime('%Y-%m-%d')}: {listed}): {len(merged)} cases, "
+        f"**{counts['passed']} passed**, "
+        f"{counts['failed']} failed, {counts['refused']} refused (the reader names the "
+        f"construct); {retried} case(s) run again with the next seed after a first failure."
+    )
+    return "\n".join([summary, "", *new[2:4], *merged])
 
 
 def write_table(doc: Path, text: str) -> None:
@@ -72,6 +103,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=10_000, help="runs per case (>= 1,000)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--cases", nargs="*", help="case ids (default: every folder)")
+    parser.add_argument("--ssa", choices=SSAS, default="compiled", help="the SSA that runs")
     parser.add_argument("--doc", type=Path, default=Path("docs/sbml.md"))
     args = parser.parse_args()
     folders = sorted(
@@ -82,11 +114,14 @@ def main() -> None:
     cases, results = [], []
     for folder in folders:
         case = DsmtsCase.load(folder)
-        result = run_case_twice(case, args.runs, args.seed)
+        result = run_case_twice(case, args.runs, args.seed, ssa=args.ssa)
         cases.append(case)
         results.append(result)
         print(_row(case, result), flush=True)
-    text = table(cases, results, args.runs, args.seed)
+    text = table(cases, results, args.runs, args.seed, args.ssa)
+    content = args.doc.read_text() if args.doc.exists() else ""
+    if args.cases and BEGIN in content:
+        text = merge_rows(content, text, [c.id for c in cases])
     write_table(args.doc, text)
     print(text)
 

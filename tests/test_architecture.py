@@ -18,7 +18,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
-          "models/capabilities.py", "models/packed.py",
+          "models/capabilities.py", "models/packed.py", "models/count_classes.py",
           "fields.py", "field_formula.py", "field_kernel.py", "scalar.py", "io.py", "config.py",
           "errors.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
@@ -28,6 +28,7 @@ PROTOCOLS = (
     "surrogate.models.capabilities",
     "surrogate.models.network",
     "surrogate.models.packed",
+    "surrogate.models.count_classes",
 )
 #: engine packages above the models: a model never imports them (the engine adapts the model)
 ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")

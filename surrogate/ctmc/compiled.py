@@ -14,6 +14,10 @@ never on the number of threads. Usage::
     ssa = CompiledSSA(kinetics)
     streams = CellStreams.from_seed(seed=0, n=1000)
     state, events = ssa.advance(state, inputs, dt=0.05, streams=streams)
+
+Kinetics with species assignment rules or events (:mod:`surrogate.ctmc.events`) get a kernel of
+their own; with events each cell also carries its clock (``start_events``, then
+``advance(..., clock=clock)``).
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from torch import Tensor
 from surrogate.ctmc import _direct_method
 from surrogate.ctmc._xoshiro import seed_streams
 from surrogate.ctmc.codegen import default_cache_dir, load_generated
+from surrogate.ctmc.events import MAX_CASCADE, WHOLE_TOLERANCE, EventState
+from surrogate.ctmc.events import numba_source as events_numba_source
 from surrogate.ctmc.kinetics import Kinetics
 
 __all__ = ["CellStreams", "CompiledSSA", "default_cache_dir"]
@@ -46,9 +52,15 @@ from surrogate.ctmc._xoshiro import next_double
 MAX_EVENTS = {max_events}
 BAD_PROPENSITY = {bad_propensity}
 NEGATIVE_COUNT = {negative_count}
-
+{event_codes}
 
 '''
+_EVENT_CODES = """BAD_ASSIGNMENT = {bad_assignment}
+BAD_RULE = {bad_rule}
+EVENT_CASCADE = {event_cascade}
+MAX_CASCADE = {max_cascade}
+WHOLE_TOLERANCE = {whole_tolerance!r}
+"""
 
 
 @dataclass
@@ -78,15 +90,32 @@ class CellStreams:
 
 
 def _kernel_source(kinetics: Kinetics, parallel: bool) -> str:
+    plain = not kinetics.has_rules_or_events
+    codes = _EVENT_CODES.format(
+        bad_assignment=_direct_method.BAD_ASSIGNMENT,
+        bad_rule=_direct_method.BAD_RULE,
+        event_cascade=_direct_method.EVENT_CASCADE,
+        max_cascade=MAX_CASCADE,
+        whole_tolerance=WHOLE_TOLERANCE,
+    )
+    if plain:  # the plain kernel's source (and numba cache) as before
+        codes = ""
     header = _HEADER.format(
         max_events=_direct_method.MAX_EVENTS,
         bad_propensity=_direct_method.BAD_PROPENSITY,
         negative_count=_direct_method.NEGATIVE_COUNT,
+        event_codes=codes,
     )
     propensity = "@numba.njit(cache=True, error_model='numpy', inline='always')\n"
     propensity += kinetics.numba_source
+    if not plain:  # the rules' and events' functions and the kernel's helpers
+        propensity += events_numba_source(kinetics) + "\n"
+        for helper in (_direct_method.store_whole, _direct_method.check_events):
+            propensity += "@numba.njit(cache=True, error_model='numpy')\n"
+            propensity += inspect.getsource(helper) + "\n\n"
     kernel = f"@numba.njit(parallel={parallel}, cache=True, error_model='numpy', nogil=True)\n"
-    body = inspect.getsource(_direct_method.advance_cells)
+    template = _direct_method.advance_cells if plain else _direct_method.advance_cells_events
+    body = inspect.getsource(template)
     kernel += body if parallel else body.replace("prange(n)", "range(n)")
     return header + propensity + "\n" + kernel
 
@@ -119,6 +148,14 @@ class CompiledSSA:
         self._change_species = cols.astype(np.int64)
         self._change_delta = stoich[rows, cols].astype(np.int64)
         self.source = _kernel_source(kinetics, self.parallel)
+        self._events = kinetics.events
+        assignments = [[c for c, _ in event.assignments] for event in self._events]
+        self._assign_ptr = np.cumsum([0, *map(len, assignments)]).astype(np.int64)
+        self._assign_col = np.array([c for cols in assignments for c in cols], dtype=np.int64)
+        self._persistent = np.array([e.persistent for e in self._events], dtype=np.bool_)
+        self._early = np.array(
+            [e.use_values_from_trigger_time for e in self._events], dtype=np.bool_
+        )
         self._module: ModuleType | None = None
         self.compile_seconds: float | None = None
 
@@ -138,9 +175,7 @@ class CompiledSSA:
         dt = np.full(1, 1e-300)
         out = np.zeros((1, 3), dtype=np.int64)
         rng = seed_streams(0, 1)
-        self.module.advance_cells(
-            x, p, dt, rng, self._change_ptr, self._change_species, self._change_delta, 0, out
-        )
+        self._run(x, p, dt, rng, 0, out, EventState.initial(self.kinetics, 1))
         self.compile_seconds = time.perf_counter() - start
         return self.compile_seconds
 
@@ -152,6 +187,7 @@ class CompiledSSA:
         streams: CellStreams,
         *,
         max_events: int = 10**9,
+        clock: EventState | None = None,
     ) -> tuple[Tensor, Tensor] | tuple[np.ndarray, np.ndarray]:
         """Simulate every cell exactly over its window, with its inputs held fixed.
 
@@ -162,6 +198,9 @@ class CompiledSSA:
             dt: Window length (> 0): a float or ``(n,)`` per-cell lengths.
             streams: The cells' random streams (``streams.n == n``), advanced in place.
             max_events: Raise ``RuntimeError`` if a cell would make more events than this.
+            clock: The cells' :class:`~surrogate.ctmc.events.EventState` (CPU), required when
+                the kinetics have events (from :func:`~surrogate.ctmc.events.start_events`);
+                advanced in place by ``dt``.
 
         Returns:
             ``(state, events)``: ``n x S`` int64 counts at the window end and ``(n,)`` int64
@@ -169,31 +208,54 @@ class CompiledSSA:
 
         Raises:
             ValueError: bad shapes, dtypes or values (naming the argument), a propensity that
-                is negative or not finite, or an event that drives a count negative (naming the
-                reaction and the cell).
-            RuntimeError: ``max_events`` exceeded (naming the cell).
+                is negative or not finite, an event that drives a count negative (naming the
+                reaction and the cell), or a rule or event that assigns a count that is not a
+                whole number >= 0 (naming it).
+            RuntimeError: ``max_events`` exceeded (naming the cell), or events that keep
+                firing each other at one instant.
         """
         as_torch = isinstance(state, Tensor)
         x, p, window = self._check(state, inputs, dt, streams)
-        out = np.zeros((x.shape[0], 3), dtype=np.int64)
+        n = x.shape[0]
+        if clock is None and self._events:
+            raise ValueError(
+                f"the kinetics have events {[e.name for e in self._events]}: pass each cell's "
+                "clock (state, clock = start_events(kinetics, state, inputs); then "
+                "advance(..., clock=clock) every window)"
+            )
+        if clock is not None:
+            clock.check(n, len(self._events), torch.device("cpu"))
+        out = np.zeros((n, 3), dtype=np.int64)
         if self.compile_seconds is None:
             self.compile()
-        self.module.advance_cells(
-            x,
-            p,
-            window,
-            streams.state,
-            self._change_ptr,
-            self._change_species,
-            self._change_delta,
-            int(max_events),
-            out,
-        )
+        self._run(x, p, window, streams.state, int(max_events), out, clock)
         self._raise_on_status(out, x)
         events = out[:, 0].copy()
         if as_torch:
             return torch.from_numpy(x), torch.from_numpy(events)
         return x, events
+
+    def _run(
+        self,
+        x: np.ndarray,
+        p: np.ndarray,
+        window: np.ndarray,
+        rng: np.ndarray,
+        max_events: int,
+        out: np.ndarray,
+        clock: EventState | None,
+    ) -> None:
+        stoich = (self._change_ptr, self._change_species, self._change_delta)
+        if not self.kinetics.has_rules_or_events:
+            self.module.advance_cells(x, p, window, rng, *stoich, max_events, out)
+            return
+        if clock is None:  # rules only: the time is not read
+            clock = EventState.initial(self.kinetics, x.shape[0])
+        self.module.advance_cells_events(
+            x, p, window, rng, *stoich, max_events, out, clock.time.numpy(),
+            clock.triggers.numpy(), self._assign_ptr, self._assign_col, self._persistent,
+            self._early,
+        )  # fmt: skip
 
     def _check(
         self,
@@ -262,6 +324,24 @@ class CompiledSSA:
         where = f"cell {i} ({failed.size} cells failed)"
         if status == _direct_method.MAX_EVENTS:
             raise RuntimeError(f"compiled SSA: {where} exceeded max_events={out[i, 0]}")
+        if status == _direct_method.BAD_ASSIGNMENT:
+            event = self._events[detail]
+            raise ValueError(
+                f"compiled SSA: {where}: event {event.name!r} assigns "
+                f"{[self.kinetics.network.species[c] for c, _ in event.assignments]} a value "
+                f"that is not a whole number of molecules >= 0 (state {x[i].tolist()})"
+            )
+        if status == _direct_method.BAD_RULE:
+            species = self.kinetics.network.species[self.kinetics.rules[detail].column]
+            raise ValueError(
+                f"compiled SSA: {where}: the rule for species {species!r} gives a value that "
+                f"is not a whole number of molecules >= 0 (state {x[i].tolist()})"
+            )
+        if status == _direct_method.EVENT_CASCADE:
+            raise RuntimeError(
+                f"compiled SSA: {where}: events {[e.name for e in self._events]} still fired "
+                f"each other after {MAX_CASCADE} rounds at one instant"
+            )
         if status == _direct_method.BAD_PROPENSITY:
             raise ValueError(
                 f"compiled SSA: {where}: propensity of reaction {names[detail]!r} is negative or "

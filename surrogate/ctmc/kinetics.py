@@ -23,12 +23,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from surrogate.ctmc.network import ReactionNetwork
+
+if TYPE_CHECKING:
+    from surrogate.ctmc.events import Event, SpeciesRule
 
 __all__ = [
     "OPERATORS",
@@ -39,7 +43,10 @@ __all__ = [
     "const",
     "input_ref",
     "mass_action_kinetics",
+    "scalar_code",
+    "scalar_locals",
     "species_ref",
+    "time_ref",
     "torch_function",
 ]
 
@@ -185,7 +192,7 @@ class Expr:
     :func:`input_ref` and :func:`call` (which check and fold), not directly.
 
     Attributes:
-        op: ``"const"``, ``"species"``, ``"input"`` or a key of ``OPERATORS``.
+        op: ``"const"``, ``"species"``, ``"input"``, ``"time"`` or a key of ``OPERATORS``.
         args: Child nodes (operators only).
         value: The value of a constant (a bool for boolean constants).
         index: Column of a species (in the state) or an input (in the inputs).
@@ -205,22 +212,31 @@ class Expr:
         """True for a constant leaf (every constant subtree is folded into one)."""
         return self.op == "const"
 
-    def evaluate(self, species: Sequence[float], inputs: Sequence[float]) -> float | bool:
-        """Evaluate at one state with plain float64 scalar arithmetic (a reference, not fast)."""
+    def evaluate(
+        self, species: Sequence[float], inputs: Sequence[float], time: float = math.nan
+    ) -> float | bool:
+        """Evaluate at one state (and ``time``, for the time leaf) with plain float64 scalar
+        arithmetic (a reference, not fast)."""
         if self.op == "const":
             return self.value
         if self.op == "species":
             return float(species[self.index])
         if self.op == "input":
             return float(inputs[self.index])
+        if self.op == "time":
+            return float(time)
         if self.op == "piecewise":
             pieces = self.args
             for k in range(0, len(pieces) - 1, 2):
-                if pieces[k + 1].evaluate(species, inputs):
-                    return pieces[k].evaluate(species, inputs)
-            return pieces[-1].evaluate(species, inputs) if len(pieces) % 2 else math.nan
-        values = [arg.evaluate(species, inputs) for arg in self.args]
+                if pieces[k + 1].evaluate(species, inputs, time):
+                    return pieces[k].evaluate(species, inputs, time)
+            return pieces[-1].evaluate(species, inputs, time) if len(pieces) % 2 else math.nan
+        values = [arg.evaluate(species, inputs, time) for arg in self.args]
         return OPERATORS[self.op].fold(*values)
+
+    def uses_time(self) -> bool:
+        """True if the time leaf occurs in this expression."""
+        return self.op == "time" or any(arg.uses_time() for arg in self.args)
 
     def species_used(self) -> set[int]:
         """Columns of the species this expression reads."""
@@ -254,6 +270,12 @@ def input_ref(index: int, name: str) -> Expr:
     if index < 0:
         raise ValueError(f"input {name!r}: column must be >= 0, got {index}")
     return Expr("input", index=index, name=name)
+
+
+def time_ref() -> Expr:
+    """The network's time (a cell's own clock; only event triggers may use it, in comparisons
+    with expressions free of time, see :mod:`surrogate.ctmc.events`)."""
+    return Expr("time", name="time")
 
 
 def call(op: str, *args: Expr) -> Expr:
@@ -336,6 +358,8 @@ def _torch_code(e: Expr, tensor: bool = False) -> str:
         return f"x[:, {e.index}]"
     if e.op == "input":
         return f"p[:, {e.index}]"
+    if e.op == "time":
+        return "t"
     spec = OPERATORS[e.op]
     if e.op in ("plus", "times"):
         return "(" + f" {spec.torch} ".join(_torch_code(a) for a in e.args) + ")"
@@ -370,6 +394,8 @@ def _numba_code(e: Expr) -> str:
         return f"s{e.index}"
     if e.op == "input":
         return f"p{e.index}"
+    if e.op == "time":
+        return "t"
     args = [_numba_code(a) for a in e.args]
     combined = combine_scalar(e.op, args)
     return combined if combined is not None else OPERATORS[e.op].numba.format(*args)
@@ -395,9 +421,9 @@ def combine_scalar(op: str, args: Sequence[str]) -> str | None:
     return None
 
 
-def _torch_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
+def _torch_source(exprs: Sequence[Expr], name: str = "propensities", time: bool = False) -> str:
     lines = [
-        f"def {name}(state, inputs):",
+        f"def {name}(state, inputs{', t' if time else ''}):",
         "    x = state.to(torch.float64)",
         "    p = inputs.to(device=state.device, dtype=torch.float64)",
         "    _z = torch.zeros(state.shape[0], dtype=torch.float64, device=state.device)",
@@ -408,12 +434,23 @@ def _torch_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
     return "\n".join(lines)
 
 
+def scalar_code(e: Expr) -> str:
+    """Scalar numba code of ``e`` over the locals of :func:`scalar_locals` (and ``t``, the
+    time)."""
+    return _numba_code(e)
+
+
+def scalar_locals(exprs: Sequence[Expr], indent: str = "    ") -> list[str]:
+    """Lines binding the locals ``s<j> = float(x[j])`` and ``p<j> = p[j]`` that ``exprs`` read
+    (``x`` one cell's counts, ``p`` its inputs), for :func:`scalar_code`."""
+    used_s = sorted(set().union(set(), *(e.species_used() for e in exprs)))
+    used_p = sorted(set().union(set(), *(e.inputs_used() for e in exprs)))
+    lines = [f"{indent}s{j} = float(x[{j}])" for j in used_s]
+    return lines + [f"{indent}p{j} = p[{j}]" for j in used_p]
+
+
 def _numba_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
-    used_s = sorted(set().union(*(e.species_used() for e in exprs)))
-    used_p = sorted(set().union(*(e.inputs_used() for e in exprs)))
-    lines = [f"def {name}(x, p, a):"]
-    lines += [f"    s{j} = float(x[{j}])" for j in used_s]
-    lines += [f"    p{j} = p[{j}]" for j in used_p]
+    lines = [f"def {name}(x, p, a):", *scalar_locals(exprs)]
     lines += [f"    a[{r}] = {_numba_code(e)}" for r, e in enumerate(exprs)]
     lines += ["", ""]
     return "\n".join(lines)
@@ -428,12 +465,19 @@ class Kinetics:
             holds fixed (boundary or constant species) have zero net change.
         input_names: Names of the per-cell inputs, in column order of the ``inputs`` tensor.
         propensity_exprs: One expression per reaction (events per unit time), over species
-            counts and inputs.
+            counts and inputs (not the time).
+        rules: Species whose count is a function of the others, recomputed after every
+            reaction and event (:class:`~surrogate.ctmc.events.SpeciesRule`; their columns
+            change by no reaction, and no rule reads another's column).
+        events: Discrete events (:class:`~surrogate.ctmc.events.Event`), simulated exactly by
+            both SSAs (see :mod:`surrogate.ctmc.events`).
     """
 
     network: ReactionNetwork
     input_names: tuple[str, ...]
     propensity_exprs: tuple[Expr, ...]
+    rules: tuple[SpeciesRule, ...] = ()
+    events: tuple[Event, ...] = ()
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -455,6 +499,57 @@ class Kinetics:
                 raise ValueError(f"reaction {name!r}: species column out of range")
             if e.inputs_used() and max(e.inputs_used()) >= len(names):
                 raise ValueError(f"reaction {name!r}: input column out of range")
+            if e.uses_time():
+                raise ValueError(
+                    f"reaction {name!r}: propensity depends on the time (only event triggers "
+                    "may read it)"
+                )
+        self._check_rules_and_events()
+
+    def _check_rules_and_events(self) -> None:
+        rules, events = tuple(self.rules), tuple(self.events)
+        object.__setattr__(self, "rules", rules)
+        object.__setattr__(self, "events", events)
+        species = self.network.species
+
+        def check_columns(e: Expr, where: str) -> None:
+            if e.species_used() and max(e.species_used()) >= self.network.n_species:
+                raise ValueError(f"{where}: species column out of range")
+            if e.inputs_used() and max(e.inputs_used()) >= self.n_inputs:
+                raise ValueError(f"{where}: input column out of range")
+
+        ruled = [rule.column for rule in rules]
+        if any(not 0 <= c < self.network.n_species for c in ruled) or len(set(ruled)) != len(ruled):
+            raise ValueError(f"rule columns must be distinct species columns, got {ruled}")
+        changed = self.network.stoichiometry[:, ruled].ne(0).any(0).tolist() if ruled else []
+        for rule, moved in zip(rules, changed, strict=True):
+            where = f"rule for species {species[rule.column]!r}"
+            check_columns(rule.expr, where)
+            if moved:
+                raise ValueError(f"{where}: the species is also changed by a reaction")
+            read = sorted(rule.expr.species_used() & set(ruled))
+            if read:
+                raise ValueError(
+                    f"{where}: reads {[species[c] for c in read]}, assigned by rules "
+                    "themselves (inline their expressions)"
+                )
+        for event in events:
+            where = f"event {event.name!r}"
+            check_columns(event.trigger, where)
+            for column, expr in event.assignments:
+                check_columns(expr, where)
+                if not 0 <= column < self.network.n_species:
+                    raise ValueError(f"{where}: assigned species column {column} out of range")
+                if column in ruled:
+                    raise ValueError(
+                        f"{where}: assigns species {species[column]!r}, which a rule assigns"
+                    )
+
+    @property
+    def has_rules_or_events(self) -> bool:
+        """True if the network has species assignment rules or events (simulated by the
+        SSAs' event kernels, not by the generator of :mod:`surrogate.ctmc.lumped`)."""
+        return bool(self.rules or self.events)
 
     def __getstate__(self) -> dict:
         """Picklable: the expressions, not the generated code (loaded again on first use)."""
@@ -574,7 +669,7 @@ def substitute(e: Expr, bindings: Mapping[str, Expr]) -> Expr:
     return call(e.op, *(substitute(a, bindings) for a in e.args))
 
 
-def torch_function(exprs: Sequence[Expr]) -> Callable[[Tensor, Tensor], Tensor]:
+def torch_function(exprs: Sequence[Expr], time: bool = False) -> Callable[..., Tensor]:
     """``f(state (n, S), inputs (n, P)) -> (n, K)``: the values of ``exprs`` per cell.
 
     The same code generation as the propensities (from the validated trees only; no ``eval``),
@@ -583,6 +678,8 @@ def torch_function(exprs: Sequence[Expr]) -> Callable[[Tensor, Tensor], Tensor]:
 
     Args:
         exprs: ``K`` expressions over species columns of ``state`` and inputs columns.
+        time: The expressions may read the time leaf: ``f(state, inputs, t)`` with ``t`` the
+            ``(n,)`` float64 time of each cell.
 
     Example:
         >>> from surrogate.ctmc.kinetics import call, const, species_ref, torch_function
@@ -596,5 +693,7 @@ def torch_function(exprs: Sequence[Expr]) -> Callable[[Tensor, Tensor], Tensor]:
         raise ValueError(f"need one or more expressions of one kind, got kinds {sorted(kinds)}")
     from surrogate.ctmc.codegen import load_generated
 
-    source = "import torch\n\n\n" + _torch_source(exprs, "columns")
+    if not time and any(e.uses_time() for e in exprs):
+        raise ValueError("an expression reads the time; build the function with time=True")
+    source = "import torch\n\n\n" + _torch_source(exprs, "columns", time)
     return load_generated(source, prefix="columns").columns

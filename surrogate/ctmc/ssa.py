@@ -7,6 +7,10 @@ window the exponential waiting time is memoryless, so the state at that moment i
 at the window end. Finished cells are dropped from the working set (compaction), so the cost of a
 round is proportional to the number of cells still active and a few fast cells do not slow the
 bulk. Each round costs exactly one host-device sync (the count of active cells).
+
+Networks with species assignment rules or events (:mod:`surrogate.ctmc.events`) run the same
+rounds with each cell's own time: a cell whose trigger may switch before its next reaction stops
+there, fires its events and draws afresh (one more sync per round, for the events).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import math
 import torch
 from torch import Tensor
 
+from surrogate.ctmc.events import EventProgram, EventState
 from surrogate.ctmc.network import PropensityFn, ReactionNetwork, make_propensity_fn
 
 __all__ = ["gillespie"]
@@ -51,6 +56,8 @@ def gillespie(
     *,
     max_rounds: int | None = None,
     propensity: PropensityFn | None = None,
+    events: EventProgram | None = None,
+    clock: EventState | None = None,
 ) -> Tensor:
     """Sample the states of ``n`` independent chains after a window of length ``dt``.
 
@@ -74,6 +81,12 @@ def gillespie(
             but may have any width ``P``. Propensities that are negative or not finite, and
             events that drive a count negative, raise ``ValueError`` after the window (checked
             without extra host syncs per round).
+        events: The rules and events of the kinetics
+            (:meth:`~surrogate.ctmc.events.EventProgram.of`), if it has any; ``rate_constants``
+            are then its inputs.
+        clock: The cells' :class:`~surrogate.ctmc.events.EventState` on the device of
+            ``state``, required with events (from :func:`~surrogate.ctmc.events.start_events`);
+            advanced in place by ``dt``.
 
     Returns:
         ``(n, S)`` int64 counts at the window end, on the device of ``state``. A cell in an
@@ -97,9 +110,11 @@ def gillespie(
     general = propensity is not None
     if propensity is None:
         propensity = make_propensity_fn(network.reactants, device)
+    if events is not None:
+        return _gillespie_events(network, state, rates, remaining, generator, max_rounds,
+                                 propensity, general, events, clock)  # fmt: skip
     invalid = torch.zeros((), dtype=torch.bool, device=device)  # general kinetics only
     stoich = network.stoichiometry.to(device)
-    last = network.n_reactions - 1
 
     # Working set: states, rates, time left and original row of the cells still active.
     x = state.clone()
@@ -111,18 +126,8 @@ def gillespie(
         if general:
             # Accumulated on the device: one check (and one sync) after the window.
             invalid = invalid | ~((a >= 0) & (a < math.inf)).all()
-        cum = a.cumsum(dim=1)
-        total = cum[:, -1]
-        u = torch.rand((x.shape[0], 2), generator=generator, device=device, dtype=torch.float64)
-        # 1 - u lies in (0, 1]: finite waiting times, and a threshold > 0 that never selects
-        # a reaction of zero propensity (see below).
-        tau = torch.where(total > 0, -torch.log1p(-u[:, 0]) / total, math.inf)
+        tau, chosen = _draw(a, generator)
         fire = tau < remaining
-        # First reaction whose cumulative propensity reaches the threshold in (0, total]: this
-        # has probability a_r / total, and a zero-propensity reaction r never wins because
-        # cum[r] == cum[r - 1] then. cum is non-decreasing even in floating point.
-        threshold = (1.0 - u[:, 1]) * total
-        chosen = (cum < threshold.unsqueeze(1)).sum(dim=1).clamp_max(last)
         x = x + stoich.index_select(0, chosen) * fire.unsqueeze(1)
         if general:
             invalid = invalid | (x < 0).any()
@@ -153,6 +158,103 @@ def gillespie(
             "reaction fired that drove a count negative, during the window (check the kinetic "
             "laws: a reaction's propensity must be 0 when it lacks the molecules it consumes)"
         )
+    return out
+
+
+def _draw(a: Tensor, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+    """``(tau, chosen)``: each row's waiting time (inf when its total propensity is 0) and
+    reaction, drawn by the direct method from propensities ``a`` (``m x R``)."""
+    cum = a.cumsum(dim=1)
+    total = cum[:, -1]
+    u = torch.rand((a.shape[0], 2), generator=generator, device=a.device, dtype=torch.float64)
+    # 1 - u lies in (0, 1]: finite waiting times, and a threshold > 0 that never selects
+    # a reaction of zero propensity (see below).
+    tau = torch.where(total > 0, -torch.log1p(-u[:, 0]) / total, math.inf)
+    # First reaction whose cumulative propensity reaches the threshold in (0, total]: this
+    # has probability a_r / total, and a zero-propensity reaction r never wins because
+    # cum[r] == cum[r - 1] then. cum is non-decreasing even in floating point.
+    threshold = (1.0 - u[:, 1]) * total
+    chosen = (cum < threshold.unsqueeze(1)).sum(dim=1).clamp_max(a.shape[1] - 1)
+    return tau, chosen
+
+
+def _gillespie_events(
+    network: ReactionNetwork,
+    state: Tensor,
+    rates: Tensor,
+    window: Tensor,
+    generator: torch.Generator | None,
+    max_rounds: int | None,
+    propensity: PropensityFn,
+    general: bool,
+    events: EventProgram,
+    clock: EventState | None,
+) -> Tensor:
+    """:func:`gillespie`'s rounds with rules and events, each cell on its own clock."""
+    device, n = state.device, state.shape[0]
+    if clock is None:
+        if events.n_events:
+            names = [e.name for e in events.events]
+            raise ValueError(
+                f"the kinetics have events {names}: pass each cell's clock (state, clock = "
+                "start_events(kinetics, state, inputs); then gillespie(..., clock=clock))"
+            )
+        clock = EventState.initial(events.kinetics, n, device)  # rules only: time not read
+    clock.check(n, events.n_events, device)
+    invalid = torch.zeros((), dtype=torch.bool, device=device)
+    stoich = network.stoichiometry.to(device)
+    c = rates.to(torch.float64)
+    t, end = clock.time.clone(), clock.time + window
+    # inputs may have changed since the last window: rules and triggers read them
+    x = events.apply_rules(state.clone(), c)
+    x, fired = events.check(x, c, t, clock.triggers.clone())
+    out, out_fired = x.clone(), fired.clone()
+    index = torch.arange(n, device=device)
+    rounds = 0
+    while True:
+        a = propensity(x, c)
+        if general:
+            invalid = invalid | ~((a >= 0) & (a < math.inf)).all()
+        tau, chosen = _draw(a, generator)
+        reaction_time = t + tau
+        switch = events.next_threshold(x, c, t)
+        # a trigger may switch first: stop there, the next waiting time drawn afresh from
+        # there (exact: it is memoryless)
+        at_switch = (switch <= end) & (switch <= reaction_time)
+        fire = ~at_switch & (reaction_time < end)
+        x = x + stoich.index_select(0, chosen) * fire.unsqueeze(1)
+        if general:
+            invalid = invalid | (x < 0).any()
+        # a finished cell is put at its window's end: no switch or reaction is left before it
+        t = torch.where(at_switch, switch, torch.where(fire, reaction_time, end))
+        x = events.apply_rules(x, c)
+        x, fired = events.check(x, c, t, fired)
+        rounds += 1
+        active = (fire | at_switch).nonzero().squeeze(1)
+        n_active = active.shape[0]
+        if n_active == 0:
+            break
+        if max_rounds is not None and rounds >= max_rounds:
+            raise RuntimeError(
+                f"gillespie: {n_active} of {n} cells still active after max_rounds={max_rounds} "
+                "event rounds; the rate constants are too large for this window (or raise "
+                "max_rounds)"
+            )
+        if n_active < _COMPACT_BELOW * x.shape[0]:
+            out.index_copy_(0, index, x)
+            out_fired.index_copy_(0, index, fired)
+            x, c, fired = x.index_select(0, active), c.index_select(0, active), fired[active]
+            t, end, index = t.index_select(0, active), end[active], index.index_select(0, active)
+    out.index_copy_(0, index, x)
+    out_fired.index_copy_(0, index, fired)
+    if general and bool(invalid):
+        raise ValueError(
+            "gillespie: the propensity function returned a negative or non-finite value, or a "
+            "reaction fired that drove a count negative, during the window (check the kinetic "
+            "laws: a reaction's propensity must be 0 when it lacks the molecules it consumes)"
+        )
+    clock.time.add_(window)
+    clock.triggers.copy_(out_fired)
     return out
 
 

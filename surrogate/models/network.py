@@ -9,6 +9,13 @@ formula (``"N >= 2 and S == 0"``, parsed by :mod:`surrogate.sbml.formula`). Wind
 the compiled per-cell SSA (numba, CPU) or the batched event-round SSA (torch, any device).
 Where the reachable state space is small the stationary law and the exact lumped psi come from
 the generator (:mod:`surrogate.ctmc.lumped`).
+
+Species assignment rules and state-triggered events (:mod:`surrogate.ctmc.events`) run in
+every window, each cell carrying its triggers' values from window to window (a trigger on an
+input fires where the input changes, at a window's start). Time-triggered events are refused
+here: the abstraction learns psi as a function of the inputs alone (a time-homogeneous chain),
+and the network's own clock would not be the simulation's (burn-in and collection run their
+own time); the SSAs and the DSMTS runner simulate them exactly.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import torch
 from torch import Tensor
 
 from surrogate.ctmc import ReactionNetwork, gillespie, mass_action_kinetics
+from surrogate.ctmc.events import EventProgram, EventState, start_events
 from surrogate.ctmc.kinetics import Expr, species_ref, torch_function
 from surrogate.ctmc.lumped import (
     MAX_STATES,
@@ -107,7 +115,8 @@ class NetworkInternalModel:
 
     State: ``(counts,)`` (``n x S`` int64) on the batched SSA with a mass-action network,
     else ``(counts, streams)`` with the compiled SSA's per-cell xoshiro256** states (``n x 4``
-    int64), seeded from torch's generator, so from the run's seed.
+    int64), seeded from torch's generator, so from the run's seed; with events also each
+    cell's network time (``(n,)`` float64) and trigger values (``n x E`` bool).
 
     Example:
         >>> net = ReactionNetwork.from_reactions(
@@ -158,6 +167,15 @@ class NetworkInternalModel:
                 )
             default_signal: tuple[str, ...] = network.input_names
             initial = network.initial_state if initial_counts is None else initial_counts
+            timed = [event.name for event in network.kinetics.events if event.uses_time]
+            if timed:
+                raise ConfigError(
+                    f"the SBML model's event(s) {timed} are triggered by the time: an agent's "
+                    "internal network may have state-triggered events only (psi is learned as "
+                    "a function of the inputs alone, and the network's clock would not be the "
+                    "simulation's); simulate it with the SSAs directly (CompiledSSA, gillespie, "
+                    "or scripts/dsmts.py), or trigger the event on a species or an input"
+                )
         else:
             if rate_constants is None:
                 raise ValueError("a mass-action ReactionNetwork needs rate_constants")
@@ -241,7 +259,10 @@ class NetworkInternalModel:
 
     @property
     def state_space(self) -> StateSpace | None:
-        """The enumerated state space, or None when more than ``max_states`` are reachable."""
+        """The enumerated state space, or None when more than ``max_states`` are reachable
+        (or the network has rules or events, which its generator does not hold)."""
+        if self._space is None and self.kinetics.has_rules_or_events:
+            self._space = False
         if self._space is None:
             try:
                 self._space = StateSpace.enumerate(
@@ -284,11 +305,16 @@ class NetworkInternalModel:
         return self.burn_in_at(self.kinetic_inputs(x))
 
     def burn_in_at(self, inputs: Tensor) -> InternalState:
-        """``initial_counts`` then ``burn_in`` seconds at the kinetic inputs ``inputs``
-        (``n x P``, e.g. :meth:`kinetic_inputs`), with fresh random streams."""
+        """``initial_counts`` (rules applied, events at t = 0 fired) then ``burn_in`` seconds
+        at the kinetic inputs ``inputs`` (``n x P``, e.g. :meth:`kinetic_inputs`), with fresh
+        random streams."""
         n = inputs.shape[0]
         counts = self.initial_counts.to(inputs.device).expand(n, -1).clone()
-        state = (counts, *self._new_streams(n, inputs.device))
+        clock: tuple[Tensor, ...] = ()
+        if self.kinetics.has_rules_or_events:  # rules applied, events at t = 0 fired
+            counts, start = start_events(self.kinetics, counts, inputs)
+            clock = (start.time, start.triggers) if self.kinetics.events else ()
+        state = (counts, *self._new_streams(n, inputs.device), *clock)
         return self.advance_at(state, inputs, self.burn_in) if self.burn_in > 0 else state
 
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
@@ -306,16 +332,20 @@ class NetworkInternalModel:
     def advance_at(self, state: InternalState, inputs: Tensor, dt: float) -> InternalState:
         """One exact window at the kinetic inputs ``inputs`` (``n x P`` float64)."""
         counts = state[0]
+        # each window moves the clock of a copy: the state handed in stays as it was
+        clock = EventState(state[2].clone(), state[3].clone()) if self.kinetics.events else None
+        after = () if clock is None else (clock.time, clock.triggers)
         if self.backend(inputs.device) == "compiled":
             from surrogate.ctmc import CellStreams
 
             streams = CellStreams(state[1].numpy().view(np.uint64))  # shares memory
-            counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams)
-            return (counts, state[1])
+            counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams, clock=clock)
+            return (counts, state[1], *after)
         propensity = None if self.mass_action else self.kinetics.torch_propensity
+        events = EventProgram.of(self.kinetics) if self.kinetics.has_rules_or_events else None
         counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=self.max_rounds,
-                           propensity=propensity)  # fmt: skip
-        return (counts, *state[1:])
+                           propensity=propensity, events=events, clock=clock)  # fmt: skip
+        return (counts, *state[1 : len(state) - len(after)], *after)
 
     def fused_advance(
         self, state: InternalState, x: Tensor, dt: float, u: Tensor, u64: Tensor | None

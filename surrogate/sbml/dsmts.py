@@ -5,8 +5,9 @@ A case is a folder ``cases/stochastic/NNNNN`` of github.com/sbmlteam/sbml-test-s
 duration, steps, the output variables as amounts or concentrations, the accepted ranges) and
 the exact (or long-run) mean and standard deviation of every output at ``steps + 1`` evenly
 spaced times (``NNNNN-results.csv``). ``n`` independent runs go through the compiled per-cell
-SSA (:class:`~surrogate.ctmc.CompiledSSA`), window by window from one output time to the next;
-at every time and output the suite's statistics (DSMTS user guide 3.1 and 3.2):
+SSA (:class:`~surrogate.ctmc.CompiledSSA`; or the batched torch SSA), window by window from one
+output time to the next, each run on its own clock for the model's events; at every time and
+output the suite's statistics (DSMTS user guide 3.1 and 3.2):
 
     Z_t = sqrt(n) (mean_t - mu_t) / sigma_t                      in meanRange, e.g. (-3, 3)
     Y_t = sqrt(n / 2) (S_t^2 / sigma_t^2 - 1),  S_t^2 = sum_i (X_t^(i) - mu_t)^2 / n
@@ -15,8 +16,8 @@ at every time and output the suite's statistics (DSMTS user guide 3.1 and 3.2):
 (where sigma_t = 0 every run must equal mu_t). The guide asks for n >= 1,000 (10,000 to see
 small errors) and expects a correct simulator to fail a few of the suite's thousands of checks by
 chance, so a case that fails once is run again with another seed before it is called a
-failure (:func:`run_case_twice`). A model the reader refuses (events, rules, packages, ...) is
-reported with the reader's message, which names the construct.
+failure (:func:`run_case_twice`). A model the reader refuses (rate rules, event delays,
+packages, ...) is reported with the reader's message, which names the construct.
 
 Example::
 
@@ -180,6 +181,9 @@ def _outputs(case: DsmtsCase, model: SbmlModel) -> tuple[list[int], np.ndarray]:
     return columns, np.array(scale)
 
 
+SSAS = ("compiled", "batched")
+
+
 def simulate_outputs(
     model: SbmlModel,
     columns: Sequence[int],
@@ -187,19 +191,37 @@ def simulate_outputs(
     n_runs: int,
     seed: int,
     parallel: bool = True,
+    ssa: str = "compiled",
 ) -> np.ndarray:
     """``T x n x V`` outputs of ``n_runs`` independent runs at ``times`` (from ``times[0]``,
-    the initial state), window by window with the compiled SSA."""
-    from surrogate.ctmc import CellStreams, CompiledSSA
+    the initial state, events at t = 0 fired), window by window with the compiled SSA
+    (``ssa="compiled"``) or the batched torch SSA on the CPU (``"batched"``)."""
+    from surrogate.ctmc import CellStreams, CompiledSSA, gillespie
+    from surrogate.ctmc.events import EventProgram, start_events
 
-    ssa = CompiledSSA(model.kinetics, parallel=parallel)
-    streams = CellStreams.from_seed(seed, n_runs)
-    state = model.initial_states(n_runs)
+    if ssa not in SSAS:
+        raise ValueError(f"ssa must be one of {SSAS}, got {ssa!r}")
+    kinetics = model.kinetics
     inputs = torch.zeros((n_runs, 0), dtype=torch.float64)
+    state, clock = model.initial_states(n_runs), None
+    if kinetics.has_rules_or_events:
+        state, clock = start_events(kinetics, state, inputs)
+    if ssa == "compiled":
+        compiled = CompiledSSA(kinetics, parallel=parallel)
+        streams = CellStreams.from_seed(seed, n_runs)
+    else:
+        generator = torch.Generator().manual_seed(seed)
+        program = EventProgram.of(kinetics) if kinetics.has_rules_or_events else None
     out = np.empty((len(times), n_runs, len(columns)))
     out[0] = state[:, list(columns)].numpy()
     for k in range(1, len(times)):
-        state, _ = ssa.advance(state, inputs, float(times[k] - times[k - 1]), streams)
+        dt = float(times[k] - times[k - 1])
+        if ssa == "compiled":
+            state, _ = compiled.advance(state, inputs, dt, streams, clock=clock)
+        else:
+            state = gillespie(kinetics.network, state, inputs, dt, generator,
+                              propensity=kinetics.torch_propensity, events=program,
+                              clock=clock)  # fmt: skip
         out[k] = state[:, list(columns)].numpy()
     return out
 
@@ -230,8 +252,11 @@ def statistics(values: np.ndarray, mean: np.ndarray, sd: np.ndarray) -> tuple[np
     return z, y, degenerate & ~exact, spread
 
 
-def run_case(case: DsmtsCase, n_runs: int, seed: int, parallel: bool = True) -> DsmtsResult:
-    """Simulate ``n_runs`` runs of ``case`` and check the suite's Z and Y at every time."""
+def run_case(
+    case: DsmtsCase, n_runs: int, seed: int, parallel: bool = True, ssa: str = "compiled"
+) -> DsmtsResult:
+    """Simulate ``n_runs`` runs of ``case`` (with ``ssa``, see :func:`simulate_outputs`) and
+    check the suite's Z and Y at every time."""
     t0 = time.perf_counter()
     try:
         model = read_sbml(case.model_path)
@@ -239,7 +264,7 @@ def run_case(case: DsmtsCase, n_runs: int, seed: int, parallel: bool = True) -> 
     except SbmlError as error:
         reason = str(error).replace(f"{case.model_path}: ", "")
         return DsmtsResult(case.id, "refused", reason=reason, seconds=time.perf_counter() - t0)
-    values = simulate_outputs(model, columns, case.times, n_runs, seed, parallel) / scale
+    values = simulate_outputs(model, columns, case.times, n_runs, seed, parallel, ssa) / scale
     z, y, wrong, spread = statistics(values, case.mean.to_numpy(float), case.sd.to_numpy(float))
     (zlo, zhi), (ylo, yhi) = case.mean_range, case.sd_range
     checked = ~np.isnan(z)
@@ -277,13 +302,15 @@ def run_case(case: DsmtsCase, n_runs: int, seed: int, parallel: bool = True) -> 
     )
 
 
-def run_case_twice(case: DsmtsCase, n_runs: int, seed: int, parallel: bool = True) -> DsmtsResult:
+def run_case_twice(
+    case: DsmtsCase, n_runs: int, seed: int, parallel: bool = True, ssa: str = "compiled"
+) -> DsmtsResult:
     """:func:`run_case`; a failure is run once more with ``seed + 1`` (a marginal Z or Y at
     one time is expected now and then of a correct simulator) and the second result, carrying
     the first as ``retried``, decides."""
-    first = run_case(case, n_runs, seed, parallel)
+    first = run_case(case, n_runs, seed, parallel, ssa)
     if first.status != "failed":
         return first
-    second = run_case(case, n_runs, seed + 1, parallel)
+    second = run_case(case, n_runs, seed + 1, parallel, ssa)
     second.retried = first
     return second

@@ -85,6 +85,7 @@ def convert(
     _bound: Mapping[str, Expr] | None = None,
     _depth: int = 0,
     operators: Mapping[str, str] | None = None,
+    time: Expr | None = None,
 ) -> Expr:
     """Convert one MathML AST to an :class:`Expr`.
 
@@ -97,6 +98,8 @@ def convert(
             every error message).
         operators: Function names the text may call beyond SBML's, each an operator of
             :data:`~surrogate.ctmc.kinetics.OPERATORS` (e.g. ``{"hypot": "hypot"}``).
+        time: What the time csymbol reads (e.g. :func:`~surrogate.ctmc.kinetics.time_ref` in
+            an event trigger); None refuses it.
 
     Raises:
         SbmlError: an unsupported construct or an ill-typed expression, naming ``where``.
@@ -120,6 +123,7 @@ def convert(
             bound if names is None else names,
             _depth + 1,
             operators,
+            time,
         )
 
     def apply(op: str, *args: Expr) -> Expr:
@@ -147,6 +151,8 @@ def convert(
         if name in bound:
             return bound[name]
         return resolve(name)
+    if t == libsbml.AST_NAME_TIME and time is not None:
+        return time
     if t in _NAMED_UNSUPPORTED:
         raise SbmlError(
             f"{where}: unsupported construct: {_NAMED_UNSUPPORTED[t]} in {_formula(node)!r}"

@@ -35,6 +35,14 @@ model test suite):
   reaction is read as irreversible, with one :class:`~surrogate.sbml.errors.SbmlWarning`
   listing every such reaction. A propensity that turns out negative at run time is refused by
   both simulators (the compiled SSA names the reaction).
+* An assignment rule on a species makes its count that function of the others (an amount, or
+  a concentration x size), recomputed after every reaction and event and at every window's
+  start; wherever the species is used, the rule's formula is inlined. Its initial value is
+  the rule's at the initial state.
+* Events (:mod:`surrogate.ctmc.events`, simulated exactly by both SSAs) assign species when
+  their trigger goes from false to true, with the trigger's ``initialValue`` and
+  ``persistent`` and the event's ``useValuesFromTriggerTime``; a trigger may read the time
+  csymbol only compared with a formula free of time (``t >= 25``).
 
 A compartment may lack a size (Level 3, every species an amount) unless something needs it.
 
@@ -43,8 +51,9 @@ a count of the rest) with its line, severity, libsbml's message, the detail that
 element, and the section of the SBML specification to check.
 
 Refused, with an :class:`~surrogate.sbml.errors.SbmlError` naming the construct and the element
-id (every model-level construct of a file in one message): events, rate and algebraic rules,
-assignment rules on species or compartments, delays, the time / rateOf csymbols, fast
+id (every model-level construct of a file in one message): rate and algebraic rules,
+assignment rules on compartments, event delays and priorities, event assignments to anything
+but a species, delays, the time csymbol outside event triggers and assignments, rateOf, fast
 reactions, reversible reactions with a net-rate law (above), non-integer or
 variable stoichiometry, initial assignments that depend on something other than constants,
 conversion factors, packages the file marks required (e.g. ``distrib``), unknown MathML.
@@ -62,7 +71,8 @@ import libsbml
 import torch
 from torch import Tensor
 
-from surrogate.ctmc.kinetics import Expr, Kinetics, call, const, input_ref, species_ref
+from surrogate.ctmc.events import Event, SpeciesRule, whole_counts
+from surrogate.ctmc.kinetics import Expr, Kinetics, call, const, input_ref, species_ref, time_ref
 from surrogate.ctmc.network import ReactionNetwork
 from surrogate.sbml.errors import SbmlError, SbmlWarning
 from surrogate.sbml.math import convert
@@ -307,6 +317,7 @@ class _Reader:
         self.parameters = {p.getId(): p for p in model.getListOfParameters()}
         self.initial_assignments = {a.getSymbol(): a for a in model.getListOfInitialAssignments()}
         self.assignment_rules: dict[str, libsbml.Rule] = {}
+        self.species_rules: dict[str, libsbml.Rule] = {}
         self._values: dict[str, float] = {}
         self._resolving: list[str] = []
 
@@ -314,16 +325,12 @@ class _Reader:
 
     def _refuse_unsupported(self) -> None:
         """Refuse every construct the stochastic reading has no meaning for, all of them in one
-        message (events, rules other than parameter assignments, conversion factors, required
-        packages): ``unsupported construct(s): event 'E0' (1 event in the model); rate rule
-        for 't'; package 'distrib' (required)``."""
+        message (rate and algebraic rules, rules on compartments, event delays, priorities
+        and assignments to other than species, conversion factors, required packages):
+        ``unsupported construct(s): delay of event 'E0'; rate rule for 't'; package 'distrib'
+        (required)``."""
         model = self.model
-        found: list[str] = []
-        if model.getNumEvents():
-            event = model.getEvent(0)
-            count = model.getNumEvents()
-            found.append(f"event {event.getId() or '(no id)'!r} ({count} event"
-                         f"{'s' if count > 1 else ''} in the model)")  # fmt: skip
+        found: list[str] = self._unsupported_in_events()
         if model.isSetConversionFactor():
             found.append(f"model conversionFactor {model.getConversionFactor()!r}")
         for rule in model.getListOfRules():
@@ -334,10 +341,11 @@ class _Reader:
             variable = rule.getVariable()
             if rule.isRate():
                 found.append(f"rate rule for {variable!r}")
+            elif variable in self.species_index:
+                self.species_rules[variable] = rule
             elif variable not in self.parameters:
-                found.append(f"assignment rule for {variable!r} (only parameters may be assigned "
-                             "by rules; species change by reactions only and compartments are "
-                             "fixed)")  # fmt: skip
+                found.append(f"assignment rule for {variable!r} (only parameters and species may "
+                             "be assigned by rules; compartments are fixed)")  # fmt: skip
             elif variable in self.inputs:
                 raise SbmlError(
                     f"{self.label}: parameter {variable!r} is declared an input but is "
@@ -485,6 +493,8 @@ class _Reader:
         def resolve(name: str) -> Expr:
             if name in self.inputs:
                 raise SbmlError(f"{where}: depends on input parameter {name!r}")
+            if name in self.species_rules:
+                raise SbmlError(f"{where}: depends on species {name!r}, assigned by a rule")
             if name in self.species_index and name not in self.initial_assignments:
                 sp = self.species[self.species_index[name]]
                 amount = self._initial_amount(sp)
@@ -547,13 +557,22 @@ class _Reader:
 
     # -- kinetic laws ---------------------------------------------------------------------
 
-    def expression(self, math_node: libsbml.ASTNode, local: Mapping[str, Expr], where: str) -> Expr:
-        """Convert a kinetic law (or an assignment rule's math) to a propensity expression;
-        ``local``: the law's local parameters (constants, or inputs)."""
+    def expression(
+        self,
+        math_node: libsbml.ASTNode,
+        local: Mapping[str, Expr],
+        where: str,
+        time: Expr | None = None,
+    ) -> Expr:
+        """Convert a kinetic law (or a rule's or event's math) to an expression; ``local``: the
+        law's local parameters (constants, or inputs); ``time``: what the time csymbol reads
+        (None: refused)."""
 
         def resolve(name: str) -> Expr:
             if name in local:
                 return local[name]
+            if name in self.species_rules:
+                return self._inlined(name, self.species_rules, where)
             if name in self.species_index:
                 s = self.species_index[name]
                 sp = self.species[s]
@@ -566,14 +585,7 @@ class _Reader:
             if name in self.inputs:
                 return input_ref(self.inputs.index(name), name)
             if name in self.assignment_rules:
-                if name in self._resolving:
-                    raise SbmlError(f"{where}: circular assignment rules through {name!r}")
-                self._resolving.append(name)
-                try:
-                    rule = self.assignment_rules[name]
-                    return self.expression(rule.getMath(), {}, f"assignment rule for {name!r}")
-                finally:
-                    self._resolving.pop()
+                return self._inlined(name, self.assignment_rules, where)
             if name in self.parameters:
                 return const(self.constant_value(name, where))
             if self.model.getReaction(name) is not None:
@@ -586,7 +598,17 @@ class _Reader:
                 )
             raise SbmlError(f"{where}: unknown symbol {name!r}")
 
-        return convert(math_node, resolve, self.functions, where)
+        return convert(math_node, resolve, self.functions, where, time=time)
+
+    def _inlined(self, name: str, rules: Mapping[str, libsbml.Rule], where: str) -> Expr:
+        """The formula of the rule assigning ``name`` (a parameter or species), inlined."""
+        if name in self._resolving:
+            raise SbmlError(f"{where}: circular assignment rules through {name!r}")
+        self._resolving.append(name)
+        try:
+            return self.expression(rules[name].getMath(), {}, f"assignment rule for {name!r}")
+        finally:
+            self._resolving.pop()
 
     def _is_species_reference(self, name: str) -> bool:
         for reaction in self.model.getListOfReactions():
@@ -627,6 +649,95 @@ class _Reader:
                 )
             out[sid] = out.get(sid, 0) + int(coeff)
         return out
+
+    # -- species assignment rules and events ----------------------------------------------
+
+    def _unsupported_in_events(self) -> list[str]:
+        """What events do that is not simulated: delays, priorities, assignments to other than
+        variable species (for the refusal's one message)."""
+        found = []
+        for k, event in enumerate(self.model.getListOfEvents()):
+            name = event.getId() or f"#{k + 1}"
+            if event.isSetDelay():
+                found.append(f"delay of event {name!r}")
+            if event.isSetPriority():
+                found.append(f"priority of event {name!r}")
+            for assignment in event.getListOfEventAssignments():
+                var = assignment.getVariable()
+                if var in self.species_index:
+                    if self.species[self.species_index[var]].getConstant():
+                        found.append(f"event {name!r} assigning constant species {var!r}")
+                    continue
+                kind = "parameter" if var in self.parameters else (
+                    "compartment" if var in self.compartments else "symbol")  # fmt: skip
+                found.append(f"event {name!r} assigning {kind} {var!r} (events may assign "
+                             "species only)")  # fmt: skip
+        return found
+
+    def _amount(self, sp: libsbml.Species, value: Expr, where: str) -> Expr:
+        """The count of ``sp`` whose symbol has ``value`` (a concentration unless
+        hasOnlySubstanceUnits)."""
+        if sp.getHasOnlySubstanceUnits():
+            return value
+        return call("times", value, const(self._compartment_size(sp, where)))
+
+    def _rules(self) -> tuple[SpeciesRule, ...]:
+        rules = []
+        for sid in self.species_rules:
+            sp = self.species[self.species_index[sid]]
+            where = f"assignment rule for {sid!r}"
+            value = self._inlined(sid, self.species_rules, where)
+            rules.append(SpeciesRule(self.species_index[sid], self._amount(sp, value, where)))
+        return tuple(rules)
+
+    def _events(self) -> tuple[Event, ...]:
+        events = []
+        for k, event in enumerate(self.model.getListOfEvents()):
+            name = event.getId() or f"#{k + 1}"
+            where = f"event {name!r}"
+            trigger = event.getTrigger()
+            if trigger is None or trigger.getMath() is None:
+                raise SbmlError(f"{self.label}: {where} has no trigger")
+            condition = self.expression(trigger.getMath(), {}, f"trigger of {where}", time_ref())
+            assignments = []
+            for assignment in event.getListOfEventAssignments():
+                sid = assignment.getVariable()
+                sp = self.species[self.species_index[sid]]
+                value = self.expression(
+                    assignment.getMath(), {}, f"{where}: assignment to {sid!r}", time_ref()
+                )
+                assignments.append((self.species_index[sid], self._amount(sp, value, where)))
+            events.append(
+                Event(
+                    name,
+                    condition,
+                    tuple(assignments),
+                    initial_value=trigger.getInitialValue(),
+                    persistent=trigger.getPersistent(),
+                    use_values_from_trigger_time=event.getUseValuesFromTriggerTime(),
+                )
+            )
+        return tuple(events)
+
+    def _initial_counts(self, kinetics: Kinetics, inputs: Sequence[float]) -> Tensor:
+        """``(S,)`` initial counts; a species assigned by a rule takes the rule's value there
+        (with ``inputs``, the file's values of the inputs; left 0 where one has none: the SSAs
+        set it from each cell's inputs at every window's start)."""
+        counts = [
+            0 if sp.getId() in self.species_rules else self.initial_count(sp) for sp in self.species
+        ]
+        for rule in kinetics.rules:
+            value = float(rule.expr.evaluate(counts, inputs))
+            if math.isnan(value) and rule.expr.inputs_used():
+                continue
+            count, ok = whole_counts(torch.tensor([value], dtype=torch.float64))
+            if not bool(ok):
+                raise SbmlError(
+                    f"assignment rule for {self.species[rule.column].getId()!r}: its value at "
+                    f"the initial state, {value!r}, is not a whole number of molecules >= 0"
+                )
+            counts[rule.column] = int(count)
+        return torch.tensor(counts, dtype=torch.int64)
 
     def read(self, source: Path | None) -> SbmlModel:
         self._refuse_unsupported()
@@ -708,8 +819,14 @@ class _Reader:
             products=products,
             reaction_names=tuple(r.id for r in reactions),
         )
-        kinetics = Kinetics(network=network, input_names=self.inputs, propensity_exprs=tuple(exprs))
-        initial = torch.tensor([self.initial_count(sp) for sp in self.species], dtype=torch.int64)
+        try:
+            kinetics = Kinetics(network=network, input_names=self.inputs,
+                                propensity_exprs=tuple(exprs), rules=self._rules(),
+                                events=self._events())  # fmt: skip
+        except ValueError as error:
+            raise SbmlError(f"{self.label}: {error}") from None
+        defaults = {name: self._input_default(name) for name in self.inputs}
+        initial = self._initial_counts(kinetics, [defaults[name] for name in self.inputs])
         constants = {  # NaN: a compartment without a size (legal where no law needs one)
             name: self.constant_value(name, f"compartment {name!r}")
             if self.compartments[name].isSetSize() or name in self.initial_assignments
@@ -724,7 +841,6 @@ class _Reader:
                     if name in self.initial_assignments:
                         raise
                     constants[name] = math.nan  # declared without a value and never used
-        defaults = {name: self._input_default(name) for name in self.inputs}
         return SbmlModel(
             id=model.getId(),
             kinetics=kinetics,

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from surrogate.ctmc import CellStreams, CompiledSSA, gillespie
+from surrogate.ctmc.kinetics import const
 from surrogate.errors import ConfigError
 from surrogate.sbml import SbmlError, SbmlWarning, read_sbml, read_sbml_string
 from tests.sbml.builder import Reaction, Species, build
@@ -124,20 +125,127 @@ def test_initial_concentration_rounds_to_nearest_count():
 # what is refused
 
 
-def test_event_refused():
-    def edit(model):
-        event = model.createEvent()
-        event.setId("ev1")
-        event.setUseValuesFromTriggerTime(True)
-        trigger = event.createTrigger()
-        trigger.setMath(parse("X > 5"))
-        trigger.setInitialValue(True)
-        trigger.setPersistent(True)
+def add_event(model, trigger="X > 5", assignments=(("X", "0"),), eid="ev1", **flags):
+    """An event with L3 flags (initialValue, persistent, useValuesFromTriggerTime)."""
+    event = model.createEvent()
+    event.setId(eid)
+    event.setUseValuesFromTriggerTime(flags.get("use_values", True))
+    t = event.createTrigger()
+    t.setMath(parse(trigger))
+    t.setInitialValue(flags.get("initial_value", True))
+    t.setPersistent(flags.get("persistent", True))
+    for variable, formula in assignments:
         assignment = event.createEventAssignment()
-        assignment.setVariable("X")
-        assignment.setMath(parse("0"))
+        assignment.setVariable(variable)
+        assignment.setMath(parse(formula))
+    return event
 
-    refused(simple(edit=edit), "event", "ev1")
+
+def test_an_event_is_read_with_its_flags_and_counts():
+    """The trigger reads the time csymbol and a species; a concentration species is assigned
+    its concentration x size; parameters are inlined."""
+
+    def edit(model):
+        add_event(model, "X > 5 && time >= k", (("X", "k + 1"), ("C", "1.5")),
+                  initial_value=False, persistent=False, use_values=False)  # fmt: skip
+
+    species = [Species("X", amount=10), Species("C", concentration=0.5, only_substance=False)]
+    model = read_sbml_string(simple(edit=edit, species=species, compartments={"cell": 4.0}))
+    (event,) = model.kinetics.events
+    assert event.name == "ev1" and event.uses_time and event.thresholds == (const(2.0),)
+    assert (event.initial_value, event.persistent, event.use_values_from_trigger_time) == (
+        False,
+        False,
+        False,
+    )
+    assert [(c, e.evaluate([0, 0], [])) for c, e in event.assignments] == [(0, 3.0), (1, 6.0)]
+    assert event.trigger.evaluate([6, 0], [], 2.0) and not event.trigger.evaluate([6, 0], [], 1.9)
+
+
+def test_a_species_assignment_rule_is_inlined_and_sets_the_initial_count():
+    """y = 2 X (an amount) and z = X / 2 as a concentration in a compartment of size 4 (so
+    2 X molecules); a law reading y reads 2 X."""
+
+    def edit(model):
+        for variable, formula in (("y", "2 * X"), ("z", "X / 2")):
+            rule = model.createAssignmentRule()
+            rule.setVariable(variable)
+            rule.setMath(parse(formula))
+
+    species = [
+        Species("X", amount=3),
+        Species("y", amount=0),
+        Species("z", concentration=0, only_substance=False),
+    ]
+    text = simple(law="k * y", edit=edit, species=species, compartments={"cell": 4.0})
+    model = read_sbml_string(text)
+    assert model.initial_state.tolist() == [3, 6, 6]
+    assert [(r.column, r.expr.evaluate([5, 0, 0], [])) for r in model.kinetics.rules] == [
+        (1, 10.0),
+        (2, 10.0),
+    ]
+    assert model.propensities(torch.tensor([[5, 0, 0]]), torch.zeros(0)).item() == 2.0 * 10
+
+
+def test_what_events_do_beyond_species_assignments_is_refused_in_one_message():
+    def edit(model):
+        event = add_event(model, assignments=(("X", "0"), ("k", "3"), ("cell", "2")))
+        event.createDelay().setMath(parse("1"))
+        event.createPriority().setMath(parse("1"))
+        add_event(model, eid="ev2", assignments=(("G", "1"),))
+
+    species = [Species("X", amount=10), Species("G", amount=1, constant=True)]
+    refused(
+        simple(edit=edit, species=species),
+        "delay of event 'ev1'",
+        "priority of event 'ev1'",
+        "event 'ev1' assigning parameter 'k' (events may assign species only)",
+        "event 'ev1' assigning compartment 'cell'",
+        "event 'ev2' assigning constant species 'G'",
+    )
+
+
+@pytest.mark.parametrize(
+    ("trigger", "needles"),
+    [
+        ("time == 5", ["event 'ev1'", "only be compared"]),
+        ("2 * time > 5", ["event 'ev1'", "only be compared"]),
+        ("X + 1", ["event 'ev1'", "must be a condition"]),
+        ("delay(X, 1) > 2", ["trigger of event 'ev1'", "delay"]),
+    ],
+)
+def test_a_trigger_the_simulation_cannot_follow_exactly_is_refused(trigger, needles):
+    refused(simple(edit=lambda model: add_event(model, trigger)), *needles)
+
+
+def test_rules_on_species_that_cannot_hold_are_refused():
+    def rule(variable, formula):
+        def edit(model):
+            r = model.createAssignmentRule()
+            r.setVariable(variable)
+            r.setMath(parse(formula))
+
+        return edit
+
+    species = [Species("X", amount=3), Species("y", amount=0)]
+    # X is changed by R1 and assigned by a rule
+    refused(simple(edit=rule("X", "5")), "rule for species 'X'", "changed by a reaction")
+    refused(simple(edit=rule("y", "X / 2"), species=species), "'y'", "1.5", "whole number")
+    refused(simple(edit=rule("y", "time"), species=species), "assignment rule for 'y'", "time")
+
+    def from_rule(model):
+        rule("y", "2 * X")(model)
+        ia = model.createInitialAssignment()
+        ia.setSymbol("X")
+        ia.setMath(parse("y + 1"))
+
+    refused(simple(edit=from_rule, species=species), "depends on species 'y'", "rule")
+
+    def twice(model):
+        rule("y", "2 * X")(model)
+        add_event(model, "X > 5", (("y", "1"),))
+
+    refused(simple(edit=twice, species=species), "event 'ev1'", "'y', which a rule assigns")
 
 
 def test_rules_refused():
@@ -157,14 +265,15 @@ def test_rules_refused():
         rule.setVariable("p2")
         rule.setMath(parse("1"))
 
-    def species_assignment(model):
+    def compartment_assignment(model):
+        model.getCompartment("cell").setConstant(False)
         rule = model.createAssignmentRule()
-        rule.setVariable("X")
-        rule.setMath(parse("5"))
+        rule.setVariable("cell")
+        rule.setMath(parse("2"))
 
     refused(simple(edit=algebraic), "algebraic rule", "p1 - 1")
     refused(simple(edit=rate), "rate rule", "p2")
-    refused(simple(edit=species_assignment), "assignment rule", "'X'")
+    refused(simple(edit=compartment_assignment), "assignment rule for 'cell'", "compartments")
 
 
 @pytest.mark.parametrize(
@@ -492,3 +601,19 @@ def test_malformed_xml_is_listed_at_its_line():
     )
     message = refused(text, "<string>: 1 SBML error ", "line 5, error [XML content]: XML tag ")
     assert "... and" not in message
+
+
+def test_a_rule_on_an_input_without_a_value_is_set_from_each_cells_inputs():
+    """y = X + a, with the input a unset in the file: y starts at 0 in the file's state (the
+    SSAs set it from each cell's a at every window's start); with a = 2 in the file, X + 2."""
+
+    def edit(model):
+        rule = model.createAssignmentRule()
+        rule.setVariable("y")
+        rule.setMath(parse("X + a"))
+
+    species = [Species("X", amount=3), Species("y", amount=0)]
+    unset = simple(edit=edit, species=species, parameters={"a": None})
+    assert read_sbml_string(unset, inputs=["a"]).initial_state.tolist() == [3, 0]
+    given = simple(edit=edit, species=species, parameters={"a": 2.0})
+    assert read_sbml_string(given, inputs=["a"]).initial_state.tolist() == [3, 5]
