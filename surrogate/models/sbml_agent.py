@@ -200,6 +200,9 @@ class SbmlAgentModel(Model):
             burn_in=float(s["burn_in"]),
             max_states=int(s["max_states"]),
             signal_bounds=self._bounds(s["signal_bounds"], sbml.input_names),
+            input_labels={
+                str(k): f"model.inputs.{k} ({str(v).strip()!r})" for k, v in inputs.items()
+            },
         )
         self.perturbation_options = self.body.perturbation_options
         self.name = str(s["name"] or sbml.id or "sbml")

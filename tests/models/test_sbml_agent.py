@@ -290,3 +290,71 @@ def test_models_pickle_before_and_after_use(which) -> None:
     assert torch.equal(
         copy.internal.phi(sim.decision.state), model.internal.phi(sim.decision.state)
     )
+
+
+def _agent(**changes) -> SbmlAgentModel:
+    return SbmlAgentModel(**{**_spec(**changes), "signal_bounds": None})
+
+
+def test_an_infinite_constant_in_the_lump_gives_the_exact_law() -> None:
+    """``D < INF`` (always true) is code, not the name ``inf``: the exact stationary law and
+    psi are computed, every state ON (the OFF lump has no mass: NaN, as documented)."""
+    agent = _agent(lump="D < INF")
+    x = torch.tensor([[0.01], [0.05]])
+    assert agent.internal.phi(agent.internal.initial_state(x)).tolist() == [1.0, 1.0]
+    psi = agent.internal.exact_psi(x.double(), 0.05)
+    assert psi[:, 0].isnan().all() and torch.equal(psi[:, 1], torch.ones(2, dtype=psi.dtype))
+
+
+@pytest.mark.parametrize(
+    ("formula", "good", "at", "message"),
+    [
+        ("NaN", 0.02, 0.05, r"model\.inputs\.inducer \('NaN'\) is nan where (L|inducer) = "),
+        ("1 / L", 0.02, 0.0, r"model\.inputs\.inducer \('1 / L'\) is inf where (L = 0|inducer = inf):"),
+        ("-L", 0.0, 0.05, r"reaction 'activate' has rate -20 \(negative or not finite\) in "
+                          r"state \{'I': 8, 'P': 0, 'D': 0\} where (L|inducer) = -?0\.05 "
+                          r"\(model\.inputs\.inducer \('-L'\) = -0\.05\)"),
+    ],
+)  # fmt: skip
+def test_bad_rates_from_an_input_formula_are_refused_by_name(formula, good, at, message) -> None:
+    """A formula whose values are not finite, or give a negative rate, is refused where the
+    exact law is built (stationary law, exact psi) and where a window runs (both SSAs), naming
+    model.inputs.<param>; never a torch multinomial crash or a silent generator with negative
+    off-diagonal rates."""
+    x = torch.tensor([[good], [at]])  # the second cell's rates are bad
+    agent = _agent(inputs={"inducer": formula})
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.initial_state(x)
+    signal = agent.internal.features(x, agent.internal.signal_names).double()
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.exact_psi(signal, 0.05)
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.exact_age_psi(signal, 0.05, 3)
+    for ssa in ("compiled", "batched"):  # too many states for the exact law: burn-in windows
+        windows = _agent(inputs={"inducer": formula}, max_states=2, ssa=ssa, burn_in=0.1)
+        assert windows.internal.state_space is None
+        with pytest.raises(ConfigError, match=message):
+            windows.internal.initial_state(x)
+
+
+def test_a_piecewise_rate_without_otherwise_is_refused_where_no_piece_holds(tmp_path) -> None:
+    """SBML allows ``piecewise`` without ``otherwise`` (undefined where no condition holds): the
+    rate is NaN there, and a NaN rate is refused naming the reaction, by the exact law as by
+    the compiled SSA, while the inputs where a piece holds give the law of the piece."""
+    import libsbml
+
+    document = libsbml.readSBMLFromFile(str(GENE_SWITCH.parent / "gene_switch.xml"))
+    law = document.getModel().getReaction("deactivate").getKineticLaw()
+    law.setMath(libsbml.parseL3Formula("piecewise(k_deact * P, inducer < 0.08)"))
+    path = tmp_path / "switch.xml"
+    path.write_text(libsbml.writeSBMLToString(document))
+    agent, plain = _agent(network=str(path)), _agent()
+    inside = torch.tensor([[0.01], [0.05]], dtype=torch.float64)
+    torch.testing.assert_close(agent.internal.exact_psi(inside, 0.05),
+                               plain.internal.exact_psi(inside, 0.05), rtol=0, atol=0)  # fmt: skip
+    message = r"reaction 'deactivate' has rate nan \(negative or not finite\) in state"
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.exact_psi(torch.tensor([[0.09]], dtype=torch.float64), 0.05)
+    windows = _agent(network=str(path), max_states=2, burn_in=0.1)
+    with pytest.raises(ConfigError, match=message):
+        windows.internal.initial_state(torch.tensor([[0.09]]))
