@@ -34,6 +34,7 @@ Example (``examples/gene_switch/model.yaml``)::
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
@@ -46,7 +47,13 @@ from torch import Tensor
 from surrogate.ctmc.kinetics import Expr, input_ref, torch_function
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported, Model
+from surrogate.models.base import (
+    CellKernel,
+    KernelUnsupported,
+    Model,
+    burn_in_seconds,
+    yaml_hint,
+)
 from surrogate.models.bodies import build_body
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
@@ -185,10 +192,16 @@ class SbmlAgentModel(Model):
                               f"got {names!r}{hint}")  # fmt: skip
         if s["ssa"] not in SSA_BACKENDS:
             raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {s['ssa']!r}")
-        for key in ("burn_in", "max_states"):
-            value = s[key]
-            if isinstance(value, bool) or not isinstance(value, int | float) or value < 0:
-                raise ConfigError(f"model.{key} must be a non-negative number, got {value!r}")
+        burn_in = burn_in_seconds(s["burn_in"])
+        max_states = s["max_states"]
+        if (
+            isinstance(max_states, bool)
+            or not isinstance(max_states, int | float)
+            or not (math.isfinite(max_states) and max_states == int(max_states) >= 0)
+        ):
+            raise ConfigError(f"model.max_states must be a non-negative integer (the most states "
+                              f"enumerated for the exact law), got {max_states!r}"
+                              f"{yaml_hint(max_states)}")  # fmt: skip
         self.internal = NetworkInternalModel(
             sbml,
             self.body.variable_names,
@@ -197,8 +210,8 @@ class SbmlAgentModel(Model):
             features=features,
             signal_names=sbml.input_names or None,
             ssa=s["ssa"],
-            burn_in=float(s["burn_in"]),
-            max_states=int(s["max_states"]),
+            burn_in=burn_in,
+            max_states=int(max_states),
             signal_bounds=self._bounds(s["signal_bounds"], sbml.input_names),
             input_labels={
                 str(k): f"model.inputs.{k} ({str(v).strip()!r})" for k, v in inputs.items()
@@ -253,11 +266,15 @@ class SbmlAgentModel(Model):
             return None
         ok = isinstance(bounds, Mapping) and set(bounds) == set(names) and all(
             isinstance(v, list | tuple) and len(v) == 2
-            and all(isinstance(b, int | float) and not isinstance(b, bool) for b in v)
+            and all(isinstance(b, int | float) and not isinstance(b, bool) and math.isfinite(b)
+                    for b in v)
             and v[0] < v[1] for v in bounds.values())  # fmt: skip
         if not ok:
-            raise ConfigError(f"model.signal_bounds must give [lo, hi] (lo < hi) for each input "
-                              f"{list(names)}, got {bounds!r}")  # fmt: skip
+            values = bounds.values() if isinstance(bounds, Mapping) else []
+            hints = [yaml_hint(b) for v in values if isinstance(v, list | tuple) for b in v]
+            raise ConfigError(f"model.signal_bounds must give finite [lo, hi] (lo < hi) for each "
+                              f"input {list(names)}, got {bounds!r}"
+                              f"{next((h for h in hints if h), '')}")  # fmt: skip
         return {k: (float(v[0]), float(v[1])) for k, v in bounds.items()}
 
     @staticmethod

@@ -192,11 +192,20 @@ def _spec(**changes) -> dict:
         ({"body": {"speed_off": -1.0}}, "model.body.speed_off must be >= 0"),
         ({"body": {"wings": 2}}, "unknown model.body setting(s) ['wings']"),
         ({"body": {"kind": "flyer"}}, "model.body.kind must be one of"),
-        ({"body": {"perturbation": {"radius": 0}}}, "model.body.perturbation.radius must be > 0"),
+        ({"body": {"perturbation": {"radius": 0}}}, "perturbation.radius must be a finite number"),
+        ({"body": {"perturbation": {"radius": float("inf")}}}, "> 0 mm, got inf"),
+        ({"body": {"perturbation": {"radius": "1e308"}}}, "as a string: write 1.0e+308"),
+        ({"body": {"perturbation": 3}}, "perturbation must be a mapping of settings ['radius', "),
+        ({"body": {"speed_on": "1e-3"}}, "got '1e-3' (YAML reads 1e-3 as a"),
         ({"network": "/nonexistent.xml"}, "model.network=/nonexistent.xml: no such SBML file"),
         ({"lump_names": [False, True]}, "write them in quotes"),
         ({"ssa": "gpu"}, "model.ssa must be one of"),
-        ({"signal_bounds": {"inducer": [1.0, 0.0]}}, "model.signal_bounds must give [lo, hi]"),
+        ({"signal_bounds": {"inducer": [1.0, 0.0]}}, "model.signal_bounds must give finite [lo"),
+        ({"signal_bounds": {"inducer": [0.0, float("inf")]}}, "signal_bounds must give finite"),
+        ({"signal_bounds": {"inducer": [0.0, "1e308"]}}, "as a string: write 1.0e+308"),
+        ({"max_states": 2.5}, "model.max_states must be a non-negative integer"),
+        ({"max_states": "5e3"}, "got '5e3' (YAML reads 5e3 as a string: write 5.0e+3)"),
+        ({"burn_in": float("inf")}, "model.burn_in must be a non-negative number of seconds"),
         ({"collect": {"n_per_state": 0}}, "model.collect.n_per_state must be a positive integer"),
         ({"colour": "red"}, "unknown model setting(s) ['colour']"),
     ],
@@ -210,11 +219,33 @@ def test_a_malformed_yaml_is_refused_by_name(tmp_path, changes, message) -> None
     assert f"model.spec={path}" in str(info.value)  # the message names the yaml
 
 
+@pytest.mark.parametrize("kind", ["walker", "static", "chemotaxis"])
+def test_every_body_refuses_a_perturbation_that_is_not_a_mapping_or_infinite(kind) -> None:
+    """A number where the perturbation's settings go, or an infinite radius (jumps to inf),
+    is refused naming the setting in every body, as in the E. coli models."""
+    from surrogate.models.bodies import build_body
+    from surrogate.models.ecoli import EcoliModel
+
+    with pytest.raises(ConfigError, match=r"model\.body\.perturbation must be a mapping of "
+                                          r"settings \['radius', 'sampling'\], got 3"):  # fmt: skip
+        build_body({"kind": kind, "perturbation": 3})
+    with pytest.raises(ConfigError, match=r"model\.body\.perturbation\.radius must be a finite"):
+        build_body({"kind": kind, "perturbation": {"radius": float("inf")}})
+    with pytest.raises(ConfigError, match=r"model\.perturbation must be a mapping"):
+        EcoliModel(perturbation=3)
+    with pytest.raises(ConfigError, match=r"model\.perturbation must be a mapping"):
+        EcoliPhosphoModel(perturbation=3)
+
+
 def test_the_chemotaxis_body_names_its_constants_under_the_body(tmp_path) -> None:
     spec = yaml.safe_load(PHOSPHO.read_text())
     spec["network"] = str((PHOSPHO.parent / spec["network"]).resolve())
     spec["body"] = {"kind": "chemotaxis", "tau": "slow"}
     with pytest.raises(ConfigError, match=r"model\.body\.tau must be a finite number, got 'slow'"):
+        SbmlAgentModel(**spec)
+    spec["body"] = {"kind": "chemotaxis", "tau": "2e1"}
+    with pytest.raises(ConfigError, match=r"model\.body\.tau must be a finite number, got '2e1' "
+                                          r"\(YAML reads 2e1 as a string: write 2\.0e\+1\)"):  # fmt: skip
         SbmlAgentModel(**spec)
     spec["body"] = {"kind": "chemotaxis", "tau": 0.04}
     with pytest.raises(ConfigError, match=r"dt=0.05 s must be smaller than model\.body\.tau"):

@@ -121,7 +121,7 @@ BAD_INPUTS = [
     (
         "collect",
         [*GENE, "+model.body.perturbation.radius=-1"],
-        "model.body.perturbation.radius must be > 0",
+        "model.body.perturbation.radius must be a finite number > 0",
     ),
     ("collect", [*PHOSPHO_YAML, "dt=20.0"], "must be smaller than model.body.tau=15 s"),
     ("simulate", [*PHOSPHO_YAML, "+model.body.tau=slow"], "model.body.tau must be a finite"),

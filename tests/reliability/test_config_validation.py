@@ -70,7 +70,7 @@ BAD_INPUTS = [
     ("simulate", ["+model.foo=1"], "unknown model setting(s) ['foo']"),
     ("simulate", ["model._target_=builtins.dict"], "did not return a surrogate.models.Model"),
     ("simulate", ["~model._target_"], "model config needs a `_target_`"),
-    ("collect", ["model.perturbation.radius=-1.0"], "model.perturbation.radius must be > 0"),
+    ("collect", ["model.perturbation.radius=-1.0"], "radius must be a finite number > 0"),
     ("collect", ["model.perturbation.sampling=foo"], "model.perturbation.sampling must be one of"),
     ("collect", ["+model.perturbation.foo=1"], "unknown model.perturbation setting(s) ['foo']"),
     ("simulate", ["field._target_=surrogate.fields.Nope"], "surrogate.fields.Nope"),
