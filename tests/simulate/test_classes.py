@@ -80,6 +80,26 @@ def test_a_table_reads_back_its_probabilities_and_state() -> None:
     torch.testing.assert_close(table.law(torch.tensor([2]), z)[0], p[2, 0, 2])
 
 
+def test_a_nan_input_draws_from_the_first_node_as_the_kernel_does() -> None:
+    """A NaN input (on any axis) is node 0 of that axis, never rounded up: the draw is the
+    draw at the axis's lower bound with the same uniforms (the compiled kernel's rule), where
+    it used to index far outside the table; the law there is NaN (it says nothing)."""
+    table = _toy_table(3, (4, 3), seed=2)
+    n = 4000
+    g = torch.Generator().manual_seed(3)
+    origin = torch.randint(0, 3, (n,), generator=g)
+    z = torch.stack([torch.rand(n, generator=g) * 3 - 1, torch.rand(n, generator=g) * 0.5], 1)
+    u = torch.rand(3, n, generator=g)
+    for axis in (0, 1):
+        nan, low = z.clone(), z.clone()
+        nan[:, axis] = float("nan")
+        low[:, axis] = table.bounds[axis][0]
+        assert torch.equal(table.draw(origin, nan, u), table.draw(origin, low, u)), axis
+        assert table.law(origin[:2], nan[:2]).isnan().all()
+    # the lower bound's draw differs from the original inputs' (the comparison has teeth)
+    assert not torch.equal(table.draw(origin, low, u), table.draw(origin, z, u))
+
+
 def _ecoli_layer(size: int = 64) -> tuple[EcoliModel, ClassDecision]:
     model = EcoliModel()
     table = exact_class_table(model.internal, DT, size=size)
