@@ -258,7 +258,9 @@ class Model:
         """Estimated wall time of one cell and step (s) under ``decision`` (``full``: the
         internal model's own estimate, ``cell_step_seconds(dt)``, where it gives one; the
         two-state chains and models without an estimate: :data:`CELL_STEP_SECONDS`). The stages
-        multiply it by steps and cells to say, before they start, what a run will cost."""
+        multiply it by steps and cells to say, before they start, what a run will cost: an order
+        of magnitude to refuse absurd runs by, with no accuracy guarantee
+        (:mod:`surrogate.stages.budget`)."""
         from surrogate.models.capabilities import cell_step_seconds_of  # it imports this module
 
         estimate = cell_step_seconds_of(self.internal)

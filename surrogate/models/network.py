@@ -410,7 +410,8 @@ class NetworkInternalModel:
 
     def cell_step_seconds(self, dt: float) -> float:
         """Estimated wall time of one cell and step of the full model (s), from the events of
-        a window at the initial state and the measured cost of an event on this SSA."""
+        a window at the initial state and the measured cost of an event on this SSA (no
+        accuracy guarantee: events far from the initial counts and default inputs differ)."""
         events = self.events_per_window(dt)
         if events != events:  # no estimate of the inputs: one event per window
             events = 1.0
