@@ -162,8 +162,8 @@ class _Emitter:
             base, exponent = args
             if not exponent.cell and e.args[1].is_const:
                 value = float(e.args[1].value)
-                if torch:
-                    return _Code(f"({base.text} ** {value!r})", True, e.kind)
+                if torch:  # the constant's code: inf and nan are not Python names
+                    return _Code(f"({base.text} ** {_scalar(e.args[1], 'math')})", True, e.kind)
                 if value in _NUMBA_POWERS:
                     return _Code(_NUMBA_POWERS[value].format(base.text), True, e.kind)
             if torch and not base.cell:

@@ -155,3 +155,11 @@ def test_torch_compile_traces_a_formula_field_in_one_graph(field) -> None:
 
     explained = dynamo.explain(lambda p, t: field(p, t) * 2.0)(_positions(100), 0.5)
     assert explained.graph_count == 1 and explained.graph_break_count == 0
+
+
+def test_an_infinite_constant_exponent_is_code_not_a_name() -> None:
+    """``x ^ INF`` (a constant exponent torch raises to directly) is ``math.inf`` in the
+    generated torch code, not the undefined name ``inf``: 0, 1 and inf as IEEE powers give."""
+    field = ExpressionField("(x / 2) ^ INF", {})
+    got = field(torch.tensor([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]), 0.0)
+    assert got.tolist() == [0.0, 1.0, float("inf")]

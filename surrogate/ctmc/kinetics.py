@@ -346,13 +346,23 @@ def _fold_piecewise(args: Sequence[Expr]) -> Expr:
 # code generation
 
 
+def _float_literal(value: float) -> str:
+    """Python source for a float constant, NaN and +-inf included (``repr`` gives the bare
+    names ``nan`` and ``inf``, which are not defined in generated code)."""
+    if math.isnan(value):
+        return "float('nan')"
+    if math.isinf(value):
+        return "float('inf')" if value > 0 else "(-float('inf'))"
+    return repr(value)
+
+
 def _torch_code(e: Expr, tensor: bool = False) -> str:
     """Torch expression over ``x`` (n, S) float64 and ``p`` (n, P) float64; ``_z`` is an
     (n,) float64 zero vector used to turn constants into tensors where torch needs one."""
     if e.op == "const":
         if e.kind == BOOL:
             return "(_z == 0)" if e.value else "(_z != 0)"
-        text = repr(float(e.value))
+        text = _float_literal(float(e.value))
         return f"(_z + {text})" if tensor else f"({text})"
     if e.op == "species":
         return f"x[:, {e.index}]"

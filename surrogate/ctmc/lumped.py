@@ -124,6 +124,24 @@ class StateSpace:
         rates = rate_constants.to(torch.float64).repeat_interleave(k, dim=0)  # (n K, R)
         return fn(states, rates).reshape(n, k, r)
 
+    def propensities(
+        self, rate_constants: Tensor, propensity: Callable[[Tensor, Tensor], Tensor] | None = None
+    ) -> Tensor:
+        """Propensities ``n x K x R`` of every reaction in every state (float64).
+
+        Args:
+            rate_constants: ``n x R`` mass-action rate constants, or ``n x P`` parameters of
+                ``propensity``.
+            propensity: optional ``f(states (m x S) float64, params (m x P)) -> (m x R)`` for
+                non-mass-action kinetics; ``None`` means mass action.
+        """
+        if propensity is None:
+            return self.mass_action(rate_constants)
+        n, k = rate_constants.shape[0], self.n_states
+        states = self.states.to(rate_constants.device, torch.float64).repeat(n, 1)
+        params = rate_constants.to(torch.float64).repeat_interleave(k, dim=0)
+        return propensity(states, params).reshape(n, k, -1).to(torch.float64)
+
     def generator(
         self, rate_constants: Tensor, propensity: Callable[[Tensor, Tensor], Tensor] | None = None
     ) -> Tensor:
@@ -135,15 +153,18 @@ class StateSpace:
             propensity: optional ``f(states (m x S) float64, params (m x P)) -> (m x R)`` for
                 non-mass-action kinetics; ``None`` means mass action.
         """
-        n = rate_constants.shape[0]
-        k = self.n_states
-        device = rate_constants.device
-        if propensity is None:
-            a = self.mass_action(rate_constants)
-        else:
-            states = self.states.to(device, torch.float64).repeat(n, 1)
-            params = rate_constants.to(torch.float64).repeat_interleave(k, dim=0)
-            a = propensity(states, params).reshape(n, k, -1).to(torch.float64)
+        return self.generator_of(self.propensities(rate_constants, propensity))
+
+    def generator_of(self, a: Tensor) -> Tensor:
+        """Generators ``n x K x K`` (float64, rows summing to 0) from propensities.
+
+        Args:
+            a: ``n x K x R`` propensities of every reaction in every state
+                (:meth:`propensities`); not checked (negative or non-finite ones give a
+                generator that is not one).
+        """
+        n, k = a.shape[0], self.n_states
+        device = a.device
         src, tgt, rxn = (t.to(device) for t in (self.source, self.target, self.reaction))
         rates = a[:, src, rxn]  # (n, T)
         q = torch.zeros((n, k * k), dtype=torch.float64, device=device)

@@ -749,6 +749,18 @@ def label_weight(z: Tensor, y: Tensor, bins: int | Sequence[int], cap: float) ->
     quasi-likelihood fit of a GLM with estimated dispersion. The bins span ``z``'s own range,
     as the training's bins span its (normalised) training split's: the same equal-width bins up
     to the held-out rows.
+
+    One weight for all of a GP's rows, pooled over the bins: a per-bin estimate would be noise
+    where rows are sparse (90 rows in 100 bins), which is where the weight matters. Pooling is
+    right when the rows share one dispersion: labels of one kind from one collection (collect
+    writes expected labels for every row or for none, so each GP of the pipeline gets one
+    kind). Where it varies, rows with dispersions ``1/w_k`` in shares ``f_k`` get the inverse
+    of the mean dispersion, ``1 / sum_k f_k / w_k``: the noisier rows are over-weighted and the
+    quieter under-weighted. E.g. a table mixing noise-free expected labels with 0/1 outcomes
+    copied into the expected column, half each, gets ~2: the outcomes count ~2x what they are
+    worth. So do not mix label sources in one table; within one source the dispersion still
+    varies with ``z`` where the class pins the internal state in places and not in others
+    (E. coli's hidden S/C split), and the weight is then that average.
     """
     if not cap >= 1.0:
         raise ValueError(f"label_weight: cap must be >= 1, got {cap!r}")

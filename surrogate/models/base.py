@@ -258,7 +258,9 @@ class Model:
         """Estimated wall time of one cell and step (s) under ``decision`` (``full``: the
         internal model's own estimate, ``cell_step_seconds(dt)``, where it gives one; the
         two-state chains and models without an estimate: :data:`CELL_STEP_SECONDS`). The stages
-        multiply it by steps and cells to say, before they start, what a run will cost."""
+        multiply it by steps and cells to say, before they start, what a run will cost: an order
+        of magnitude to refuse absurd runs by, with no accuracy guarantee
+        (:mod:`surrogate.stages.budget`)."""
         from surrogate.models.capabilities import cell_step_seconds_of  # it imports this module
 
         estimate = cell_step_seconds_of(self.internal)
@@ -383,11 +385,40 @@ class FeatureMap:
 def check_options(
     options: Mapping[str, Any], allowed: Mapping[str, Any], where: str
 ) -> dict[str, Any]:
-    """Merge ``options`` over ``allowed`` defaults, refusing unknown keys by name."""
+    """Merge ``options`` over ``allowed`` defaults, refusing unknown keys (and anything but a
+    mapping, e.g. a bare number) by name."""
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"{where} must be a mapping of settings {sorted(allowed)}, got "
+                          f"{options!r}{yaml_hint(options)}")  # fmt: skip
     unknown = sorted(set(options) - set(allowed))
     if unknown:
         raise ConfigError(f"unknown {where} setting(s) {unknown}; allowed: {sorted(allowed)}")
     return {**allowed, **dict(options)}
+
+
+def yaml_hint(value: Any) -> str:
+    """A hint for a number YAML read as a string, else ``""``: PyYAML reads ``1e308`` or
+    ``1e-3`` (no decimal point, or an unsigned exponent) as text, and a quoted number too.
+
+    Example:
+        >>> yaml_hint("1e308")
+        ' (YAML reads 1e308 as a string: write 1.0e+308)'
+    """
+    if not isinstance(value, str):
+        return ""
+    text = value.strip()
+    try:
+        finite = math.isfinite(float(text))
+    except ValueError:
+        return ""
+    if not finite:  # nan, inf: YAML's own spellings are .nan, .inf
+        return ""
+    mantissa, e, exponent = text.lower().partition("e")
+    if not e:
+        return f" (a number in quotes is a string: write {text} without them)"
+    mantissa += "" if "." in mantissa else ".0"
+    exponent = exponent if exponent[:1] in ("+", "-") else f"+{exponent}"
+    return f" (YAML reads {text} as a string: write {mantissa}e{exponent})"
 
 
 def burn_in_seconds(value: Any, name: str = "model.burn_in") -> float:
@@ -399,7 +430,8 @@ def burn_in_seconds(value: Any, name: str = "model.burn_in") -> float:
         or not math.isfinite(value)
         or value < 0
     ):
-        raise ConfigError(f"{name} must be a non-negative number of seconds, got {value!r}")
+        raise ConfigError(f"{name} must be a finite number of seconds >= 0, got {value!r}"
+                          f"{yaml_hint(value)}")  # fmt: skip
     return float(value)
 
 
@@ -419,4 +451,5 @@ __all__ = [
     "Randoms",
     "burn_in_seconds",
     "check_options",
+    "yaml_hint",
 ]

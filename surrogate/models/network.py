@@ -20,6 +20,7 @@ own time); the SSAs and the DSMTS runner simulate them exactly.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -112,6 +113,15 @@ class NetworkInternalModel:
             optional. With them the model declares ``class_names``, ``class_lumps`` and
             ``classes(state)``, and, where the state space is enumerable, the exact
             class-to-class law of adapted cells (``exact_class_step``).
+        input_labels: ``{kinetic input: label}``, how an error names where an input of the
+            kinetics comes from (the yaml model: ``model.inputs.<param>``); default ``input
+            parameter '<name>'`` (SBML) or ``rate constant '<name>'`` (mass action).
+
+    Rates are checked where they are used, as the compiled SSA checks them: a kinetic input
+    that is not finite, or a propensity that is negative or not finite in a reachable state,
+    is refused with a :class:`ConfigError` naming the input (its label and value) and the
+    reaction, when the generator is built (exact stationary law, exact psi: one host sync per
+    generator) and when a window's SSA fails (the SSA's own check, no extra sync per window).
 
     State: ``(counts,)`` (``n x S`` int64) on the batched SSA with a mass-action network,
     else ``(counts, streams)`` with the compiled SSA's per-cell xoshiro256** states (``n x 4``
@@ -147,6 +157,7 @@ class NetworkInternalModel:
         max_rounds: int | None = None,
         signal_bounds: Mapping[str, tuple[float, float]] | None = None,
         classes: CountClasses | None = None,
+        input_labels: Mapping[str, str] | None = None,
     ) -> None:
         self.network = network
         self.input_names = tuple(input_names)
@@ -201,6 +212,9 @@ class NetworkInternalModel:
         self.max_states = int(max_states)
         self.max_rounds = max_rounds
         self.signal_bounds = dict(signal_bounds) if signal_bounds else None
+        what = "rate constant" if self.mass_action else "input parameter"
+        labels = dict(input_labels or {})
+        self.input_labels = {n: labels.get(n, f"{what} {n!r}") for n in self.kinetics.input_names}
         self._space: StateSpace | bool | None = None  # False: too large to enumerate
         self._compiled = None
         self.set_classes(classes)
@@ -298,16 +312,16 @@ class NetworkInternalModel:
         n = x.shape[0]
         space = self.state_space
         if space is not None:
-            pi = stationary_distribution(space.generator(*self._generator_args(x)))
+            pi = stationary_distribution(self._generator(x))
             idx = torch.multinomial(pi, 1).squeeze(1)
             counts = space.states.to(x.device)[idx]
             return (counts, *self._new_streams(n, x.device))
-        return self.burn_in_at(self.kinetic_inputs(x))
+        return self.burn_in_at(self.kinetic_inputs(x), x)
 
-    def burn_in_at(self, inputs: Tensor) -> InternalState:
+    def burn_in_at(self, inputs: Tensor, x: Tensor | None = None) -> InternalState:
         """``initial_counts`` (rules applied, events at t = 0 fired) then ``burn_in`` seconds
-        at the kinetic inputs ``inputs`` (``n x P``, e.g. :meth:`kinetic_inputs`), with fresh
-        random streams."""
+        at the kinetic inputs ``inputs`` (``n x P``, e.g. :meth:`kinetic_inputs`; ``x``: the
+        inputs they came from, named in an error), with fresh random streams."""
         n = inputs.shape[0]
         counts = self.initial_counts.to(inputs.device).expand(n, -1).clone()
         clock: tuple[Tensor, ...] = ()
@@ -315,7 +329,7 @@ class NetworkInternalModel:
             counts, start = start_events(self.kinetics, counts, inputs)
             clock = (start.time, start.triggers) if self.kinetics.events else ()
         state = (counts, *self._new_streams(n, inputs.device), *clock)
-        return self.advance_at(state, inputs, self.burn_in) if self.burn_in > 0 else state
+        return self.advance_at(state, inputs, self.burn_in, x) if self.burn_in > 0 else state
 
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
         if not self._streams(device):
@@ -327,24 +341,38 @@ class NetworkInternalModel:
 
     def advance(self, state: InternalState, x: Tensor, dt: float) -> InternalState:
         """One exact window (every reaction event) with the inputs held fixed."""
-        return self.advance_at(state, self.kinetic_inputs(x), dt)
+        return self.advance_at(state, self.kinetic_inputs(x), dt, x)
 
-    def advance_at(self, state: InternalState, inputs: Tensor, dt: float) -> InternalState:
-        """One exact window at the kinetic inputs ``inputs`` (``n x P`` float64)."""
+    def advance_at(
+        self, state: InternalState, inputs: Tensor, dt: float, x: Tensor | None = None
+    ) -> InternalState:
+        """One exact window at the kinetic inputs ``inputs`` (``n x P`` float64; ``x``: the
+        inputs they came from, named in an error)."""
         counts = state[0]
         # each window moves the clock of a copy: the state handed in stays as it was
         clock = EventState(state[2].clone(), state[3].clone()) if self.kinetics.events else None
         after = () if clock is None else (clock.time, clock.triggers)
-        if self.backend(inputs.device) == "compiled":
-            from surrogate.ctmc import CellStreams
+        try:
+            if self.backend(inputs.device) == "compiled":
+                from surrogate.ctmc import CellStreams
 
-            streams = CellStreams(state[1].numpy().view(np.uint64))  # shares memory
-            counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams, clock=clock)
-            return (counts, state[1], *after)
-        propensity = None if self.mass_action else self.kinetics.torch_propensity
-        events = EventProgram.of(self.kinetics) if self.kinetics.has_rules_or_events else None
-        counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=self.max_rounds,
-                           propensity=propensity, events=events, clock=clock)  # fmt: skip
+                streams = CellStreams(state[1].numpy().view(np.uint64))  # shares memory
+                counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams, clock=clock)
+                return (counts, state[1], *after)
+            propensity = None if self.mass_action else self.kinetics.torch_propensity
+            events = EventProgram.of(self.kinetics) if self.kinetics.has_rules_or_events else None
+            counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=self.max_rounds,
+                               propensity=propensity, events=events, clock=clock)  # fmt: skip
+        except ValueError as error:
+            # The SSA refused the window: name the input or rate at fault where the window
+            # started (its own check costs nothing when all is well; this runs only on failure).
+            a = self.kinetics.torch_propensity(counts, inputs).unsqueeze(1)  # (n, 1, R)
+            if bool((~torch.isfinite(inputs)).any() | ~((a >= 0) & (a < math.inf)).all()):
+                where, names = (x, self.input_names) if x is not None else (
+                    inputs, self.kinetics.input_names)  # fmt: skip
+                message = self._bad_rates(where, names, inputs, counts[:, None], a)
+                raise ConfigError(message) from error
+            raise
         return (counts, *state[1 : len(state) - len(after)], *after)
 
     def fused_advance(
@@ -382,7 +410,7 @@ class NetworkInternalModel:
     def _exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         space = self.state_space
         assert space is not None
-        q = space.generator(*self._generator_args(signal, is_signal=True))
+        q = self._generator(signal, is_signal=True)
         return lumped_psi(q, self._lump(space.states.to(q.device)), dt)
 
     @property
@@ -396,7 +424,7 @@ class NetworkInternalModel:
     def _exact_age_psi(self, signal: Tensor, dt: float, max_steps: int) -> Tensor:
         space = self.state_space
         assert space is not None
-        q = space.generator(*self._generator_args(signal, is_signal=True))
+        q = self._generator(signal, is_signal=True)
         return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
 
     @property
@@ -411,14 +439,51 @@ class NetworkInternalModel:
     def _exact_class_step(self, signal: Tensor, dt: float) -> Tensor:
         space = self.state_space
         assert space is not None and self._classify is not None
-        q = space.generator(*self._generator_args(signal, is_signal=True))
+        q = self._generator(signal, is_signal=True)
         states = space.states.to(q.device)
         classes = self._classify(states, self._lump(states).long())
         return lumped_class_step(q, classes, len(self.class_names or ()), dt)
 
-    def _generator_args(self, x: Tensor, is_signal: bool = False) -> tuple:
+    def _generator(self, x: Tensor, is_signal: bool = False) -> Tensor:
+        """Generators ``n x K x K`` at inputs ``x`` (``n x d``; the signal features with
+        ``is_signal``), refusing inputs and rates the SSA would refuse (one host sync)."""
+        space = self.state_space
+        assert space is not None
         inputs = self._kinetic_inputs(x) if is_signal else self.kinetic_inputs(x)
-        return (inputs, None if self.mass_action else self.kinetics.torch_propensity)
+        a = space.propensities(inputs, None if self.mass_action else self.kinetics.torch_propensity)
+        if bool((~torch.isfinite(inputs)).any() | ~((a >= 0) & (a < math.inf)).all()):
+            names = self.signal_names if is_signal else self.input_names
+            states = space.states.to(a.device).expand(a.shape[0], -1, -1)
+            raise ConfigError(self._bad_rates(x, names, inputs, states, a))
+        return space.generator_of(a)
+
+    def _bad_rates(
+        self, x: Tensor, names: Sequence[str], inputs: Tensor, states: Tensor, a: Tensor
+    ) -> str:
+        """The message for the first cell whose kinetic inputs are not finite or whose
+        propensities ``a`` (``n x K x R``, in ``states`` ``n x K x S``) are negative or not
+        finite.
+
+        Args:
+            x: ``n x d`` the cells' inputs (or signal features), named ``names``.
+            inputs: ``n x P`` the kinetic inputs at ``x``.
+        """
+        bad_input = ~torch.isfinite(inputs)
+        bad_rate = ~((a >= 0) & (a < math.inf))
+        cell = int(torch.nonzero(bad_input.any(-1) | bad_rate.flatten(1).any(-1))[0])
+        at = ", ".join(f"{n} = {float(v):g}" for n, v in zip(names, x[cell].tolist(), strict=True))
+        params = self.kinetics.input_names
+        if bool(bad_input[cell].any()):
+            j = int(torch.nonzero(bad_input[cell])[0])
+            return (f"{self.input_labels[params[j]]} is {float(inputs[cell, j])} where {at}: "
+                    "the reaction rates need finite inputs wherever the cells go")  # fmt: skip
+        k, r = (int(v) for v in torch.nonzero(bad_rate[cell])[0])
+        state = dict(zip(self.species, states[cell, k].tolist(), strict=True))
+        given = "; ".join(f"{self.input_labels[n]} = {float(v):g}"
+                          for n, v in zip(params, inputs[cell].tolist(), strict=True))  # fmt: skip
+        return (f"reaction {self.reactions.reaction_names[r]!r} has rate {float(a[cell, k, r]):g} "
+                f"(negative or not finite) in state {state} where {at} ({given}): a rate must "
+                "be finite and >= 0 wherever the cells go (the SSA refuses it too)")  # fmt: skip
 
     def events_per_window(self, dt: float, inputs: Tensor | None = None) -> float:
         """Expected SSA events in a window ``dt`` from the initial counts at ``inputs`` (``(P,)``
@@ -435,7 +500,8 @@ class NetworkInternalModel:
 
     def cell_step_seconds(self, dt: float) -> float:
         """Estimated wall time of one cell and step of the full model (s), from the events of
-        a window at the initial state and the measured cost of an event on this SSA."""
+        a window at the initial state and the measured cost of an event on this SSA (no
+        accuracy guarantee: events far from the initial counts and default inputs differ)."""
         events = self.events_per_window(dt)
         if events != events:  # no estimate of the inputs: one event per window
             events = 1.0

@@ -60,7 +60,13 @@ from torch import Tensor
 from surrogate.ctmc.kinetics import Expr, input_ref, torch_function
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported, Model
+from surrogate.models.base import (
+    CellKernel,
+    KernelUnsupported,
+    Model,
+    burn_in_seconds,
+    yaml_hint,
+)
 from surrogate.models.bodies import build_body
 from surrogate.models.count_classes import CountClasses, choose_count_classes, parse_classes
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
@@ -214,6 +220,16 @@ class SbmlAgentModel(Model):
                               f"got {names!r}{hint}")  # fmt: skip
         if s["ssa"] not in SSA_BACKENDS:
             raise ConfigError(f"model.ssa must be one of {list(SSA_BACKENDS)}, got {s['ssa']!r}")
+        burn_in = burn_in_seconds(s["burn_in"])
+        max_states = s["max_states"]
+        if (
+            isinstance(max_states, bool)
+            or not isinstance(max_states, int | float)
+            or not (math.isfinite(max_states) and max_states == int(max_states) >= 0)
+        ):
+            raise ConfigError(f"model.max_states must be a non-negative integer (the most states "
+                              f"enumerated for the exact law), got {max_states!r}"
+                              f"{yaml_hint(max_states)}")  # fmt: skip
         self.internal = NetworkInternalModel(
             sbml,
             self.body.variable_names,
@@ -222,9 +238,12 @@ class SbmlAgentModel(Model):
             features=features,
             signal_names=sbml.input_names or None,
             ssa=s["ssa"],
-            burn_in=float(s["burn_in"]),
-            max_states=int(s["max_states"]),
+            burn_in=burn_in,
+            max_states=int(max_states),
             signal_bounds=self._bounds(s["signal_bounds"], sbml.input_names),
+            input_labels={
+                str(k): f"model.inputs.{k} ({str(v).strip()!r})" for k, v in inputs.items()
+            },
         )
         self.class_report: dict[str, Any] | None = None
         if s["classes"] is not None:
@@ -285,15 +304,6 @@ class SbmlAgentModel(Model):
             raise ConfigError(f"model.substance_units must be items (read the file's amounts "
                               f"as molecule counts) or unset, got "
                               f"{s['substance_units']!r}")  # fmt: skip
-        burn_in = s["burn_in"]
-        if (isinstance(burn_in, bool) or not isinstance(burn_in, int | float)
-                or not math.isfinite(burn_in) or burn_in < 0):  # fmt: skip
-            raise ConfigError(f"model.burn_in must be a finite number of seconds >= 0, got "
-                              f"{burn_in!r}")  # fmt: skip
-        max_states = s["max_states"]
-        if isinstance(max_states, bool) or not isinstance(max_states, int) or max_states < 0:
-            raise ConfigError(f"model.max_states must be a non-negative integer, got "
-                              f"{max_states!r}")  # fmt: skip
 
     def _mapped_inputs(self, inputs: Mapping[str, Any]) -> dict[str, Any]:
         """The features that supply the SBML input parameters: a body variable under another
@@ -341,11 +351,15 @@ class SbmlAgentModel(Model):
             return None
         ok = isinstance(bounds, Mapping) and set(bounds) == set(names) and all(
             isinstance(v, list | tuple) and len(v) == 2
-            and all(isinstance(b, int | float) and not isinstance(b, bool) for b in v)
+            and all(isinstance(b, int | float) and not isinstance(b, bool) and math.isfinite(b)
+                    for b in v)
             and v[0] < v[1] for v in bounds.values())  # fmt: skip
         if not ok:
-            raise ConfigError(f"model.signal_bounds must give [lo, hi] (lo < hi) for each input "
-                              f"{list(names)}, got {bounds!r}")  # fmt: skip
+            values = bounds.values() if isinstance(bounds, Mapping) else []
+            hints = [yaml_hint(b) for v in values if isinstance(v, list | tuple) for b in v]
+            raise ConfigError(f"model.signal_bounds must give finite [lo, hi] (lo < hi) for each "
+                              f"input {list(names)}, got {bounds!r}"
+                              f"{next((h for h in hints if h), '')}")  # fmt: skip
         return {k: (float(v[0]), float(v[1])) for k, v in bounds.items()}
 
     @staticmethod

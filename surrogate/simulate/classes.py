@@ -148,7 +148,12 @@ class ClassTable:
         return torch.diff(cdf, dim=-1, prepend=torch.zeros_like(cdf[..., :1]))
 
     def _positions(self, z: Tensor) -> list[tuple[Tensor, Tensor]]:
-        """Per axis: the lower node (int64) and the fraction towards the next one."""
+        """Per axis: the lower node (int64) and the fraction towards the next one.
+
+        A NaN input gets node 0 and a NaN fraction (never rounded up), as the compiled
+        kernel does: the draw reads the first node's law and :meth:`law` is NaN; the NaN
+        reaches :meth:`Simulator.check_state` through the body's check of its inputs.
+        """
         out = []
         for j, n in enumerate(self.shape):
             lo, hi = self.bounds[j]
@@ -158,7 +163,8 @@ class ClassTable:
                 continue
             pos = ((z[:, j].to(torch.float32) - lo) * ((n - 1) / (hi - lo))).clamp(0.0, n - 1.0)
             node = pos.floor().clamp(max=n - 2)
-            out.append((node.long(), pos - node))
+            # NaN stays NaN through clamp and floor; as an index it would be undefined
+            out.append((node.nan_to_num(0.0).long(), pos - node))
         return out
 
     def draw(self, origin: Tensor, z: Tensor, u: Tensor) -> Tensor:

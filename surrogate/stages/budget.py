@@ -9,6 +9,10 @@ the model (:meth:`~surrogate.models.base.Model.cell_step_seconds`: for a network
 per window at the initial state times the measured cost of an SSA event), so ``dt=1e-9`` or
 ``collect.n_per_state=1e9`` is refused in milliseconds, not found out hours later.
 
+The estimate is a guard against runs of hours or years, not a forecast: it has no accuracy
+guarantee (measured runs took 0.37x to 1.64x of it on the three shipped models, none bounds it
+on others; docs/performance.md, "The cost estimate").
+
 Example::
 
     settings = SimulateSettings.from_config(cfg)

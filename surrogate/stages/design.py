@@ -12,14 +12,16 @@ jumps are guided to where occupancy x posterior sd is largest
 (:class:`~surrogate.simulate.design.GuidedJump`), so the budget goes where it lowers the error
 where cells live; a share ``explore`` of jumps stays as drawn, for fields not trained on.
 
-The rule is conservative with expected labels: the classifiers' likelihood treats them as
+The rule was conservative with expected labels where measured: the likelihood treats them as
 Bernoulli trials, so the posterior sees their noise as the outcomes' (measured on E. coli, 30,000
 per origin, seeds 0 and 1: posterior 3.5-4.1 % and 4.9-5.8 % against actual mean absolute errors
 of 0.6-1.0 % and 0.9-1.5 % vs the exact psi). Rescaling it by the labels' residual variance
 (:func:`noise_ratio`, recorded per round: 0.035 and 0.003 of the outcomes') understates it
 instead (0.65-0.76 % and 0.28-0.33 %): what is
-left then is the fit's approximation error, which the posterior does not see. So the design may
-collect more than needed, never less.
+left then is the fit's approximation error, which the posterior does not see. So in those two
+runs the design collected more than needed, not less; that is measured there (E. coli, expected
+labels, seeds 0 and 1), not guaranteed: with 0/1 outcomes, or where the fit's approximation
+error exceeds its posterior sd, the design could stop early.
 """
 
 from __future__ import annotations

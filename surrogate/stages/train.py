@@ -171,6 +171,7 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
                 f"`{getattr(source, 'command', lambda: 'python3 scripts/collect.py')()}`"
             ) from exc
     label = settings.label_column(table.columns)
+    settings.check_label_column(label, where)
     needed = list(dict.fromkeys([*settings.inputs, *LABELS, label]))
     missing = [c for c in needed if c not in table.columns]
     if missing:

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from surrogate.ctmc import CompiledSSA, ReactionNetwork, gillespie, mass_action_kinetics
-from surrogate.ctmc.kinetics import call, const, input_ref, species_ref
+from surrogate.ctmc.kinetics import call, const, input_ref, species_ref, torch_function
 from surrogate.sbml import read_sbml
 from tests.sbml.builder import DATA, MODELS
 
@@ -76,6 +76,35 @@ def test_piecewise_without_otherwise_is_nan_where_no_piece_holds():
     e = call("piecewise", const(2.0), call("lt", species_ref(0, "X"), input_ref(0, "a")))
     assert e.evaluate([1.0], [3.0]) == 2.0
     assert math.isnan(e.evaluate([5.0], [3.0]))
+
+
+def test_nan_and_inf_constants_generate_valid_code_on_both_paths():
+    """NaN and +-inf constants (a piecewise without otherwise, INF in a formula) are numbers in
+    the torch code as in the numba code: both agree with the tree, NaN where no piece holds."""
+    x, a = species_ref(0, "X"), input_ref(0, "a")
+    exprs = (
+        call("piecewise", call("times", a, x), call("lt", x, const(4.0))),  # NaN for X >= 4
+        call("min", x, const(math.inf)),
+        call("piecewise", a, call("gt", x, const(-math.inf)), const(math.nan)),
+        call("times", a, call("piecewise", const(1.0), call("lt", x, const(math.inf)))),
+    )
+    from surrogate.ctmc.kinetics import Kinetics
+
+    net = ReactionNetwork.from_reactions(["X"], [(f"r{k}", {}, {"X": 1}) for k in range(4)])
+    kinetics = Kinetics(net, ("a",), exprs)
+    state = torch.arange(8).reshape(8, 1)
+    params = torch.full((8, 1), 0.5, dtype=torch.float64)
+    got_torch = kinetics.torch_propensity(state, params).numpy()
+    module = CompiledSSA(kinetics).module
+    got_numba = np.empty_like(got_torch)
+    for i in range(8):
+        module.propensities(state[i].numpy(), params[i].numpy(), got_numba[i])
+    reference = np.array([[e.evaluate(s, [0.5]) for e in exprs] for s in state.tolist()])
+    assert np.isnan(reference[4:, 0]).all() and not np.isnan(reference[:4]).any()
+    np.testing.assert_array_equal(got_torch, reference)
+    np.testing.assert_array_equal(got_numba, reference)
+    condition = torch_function([call("lt", x, const(math.inf))])
+    assert condition(state, params)[:, 0].all()
 
 
 def _decay():

@@ -482,6 +482,34 @@ def test_nan_in_the_state_survives_the_kernel_as_in_the_torch_step(kind) -> None
             sim.check_state(state)
 
 
+@pytest.mark.parametrize("kind", ["classes", "classes_mL"])
+def test_a_nan_input_draws_the_same_classes_in_the_kernel_and_the_torch_step(kind) -> None:
+    """K lumps with a NaN methylation (so a NaN table input, dG or m): both loops draw from
+    the axis's first node, the same classes step by step (the torch step used to index outside
+    the table), and the NaN reaches the simulator's check at the next record time."""
+    from surrogate.errors import NumericalError
+
+    model = EcoliModel()
+    classes = {}
+    for backend in ("torch", "numba"):
+        torch.manual_seed(0)
+        decision = _decision(kind, model)
+        sim = Simulator(model, decision, GaussianField(), DT, backend=backend)
+        assert sim.backend == backend
+        state = sim.initial_state(N, (2.0, 0.0))
+        state.body["m"][::4] = float("nan")
+        out = []
+        for _ in range(10):
+            sim.advance(state, 3)
+            out.append(decision.fused_state()[0].clone())
+        classes[backend] = torch.stack(out)
+        with pytest.raises(NumericalError, match="NaN"):
+            sim.check_state(state)
+    a, b = classes["torch"], classes["numba"]
+    assert torch.equal(a, b), f"{int((a != b).any(0).sum())} cells diverged"
+    assert bool((a[1:, ::4] != a[:-1, ::4]).any())  # the NaN cells still change class
+
+
 def test_kernel_at_the_clamps() -> None:
     """Methylation at its upper bound (m_max just above the adapted level) and cells on the
     linear field's floor (beyond 10 mm along x)."""

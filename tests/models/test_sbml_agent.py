@@ -198,11 +198,20 @@ def _spec(**changes) -> dict:
         ({"body": {"speed_off": -1.0}}, "model.body.speed_off must be >= 0"),
         ({"body": {"wings": 2}}, "unknown model.body setting(s) ['wings']"),
         ({"body": {"kind": "flyer"}}, "model.body.kind must be one of"),
-        ({"body": {"perturbation": {"radius": 0}}}, "model.body.perturbation.radius must be > 0"),
+        ({"body": {"perturbation": {"radius": 0}}}, "perturbation.radius must be a finite number"),
+        ({"body": {"perturbation": {"radius": float("inf")}}}, "> 0 mm, got inf"),
+        ({"body": {"perturbation": {"radius": "1e308"}}}, "as a string: write 1.0e+308"),
+        ({"body": {"perturbation": 3}}, "perturbation must be a mapping of settings ['radius', "),
+        ({"body": {"speed_on": "1e-3"}}, "got '1e-3' (YAML reads 1e-3 as a"),
         ({"network": "/nonexistent.xml"}, "model.network=/nonexistent.xml: no such SBML file"),
         ({"lump_names": [False, True]}, "write them in quotes"),
         ({"ssa": "gpu"}, "model.ssa must be one of"),
-        ({"signal_bounds": {"inducer": [1.0, 0.0]}}, "model.signal_bounds must give [lo, hi]"),
+        ({"signal_bounds": {"inducer": [1.0, 0.0]}}, "model.signal_bounds must give finite [lo"),
+        ({"signal_bounds": {"inducer": [0.0, float("inf")]}}, "signal_bounds must give finite"),
+        ({"signal_bounds": {"inducer": [0.0, "1e308"]}}, "as a string: write 1.0e+308"),
+        ({"max_states": 2.5}, "model.max_states must be a non-negative integer"),
+        ({"max_states": "5e3"}, "got '5e3' (YAML reads 5e3 as a string: write 5.0e+3)"),
+        ({"burn_in": float("inf")}, "model.burn_in must be a finite number of seconds >= 0"),
         ({"collect": {"n_per_state": 0}}, "model.collect.n_per_state must be a positive integer"),
         ({"colour": "red"}, "unknown model setting(s) ['colour']"),
         # issue 37: required keys, types, local inputs, substance units
@@ -217,7 +226,7 @@ def _spec(**changes) -> dict:
         ({"network": 3}, "model.network must be a non-empty string"),
         ({"name": ["a"]}, "model.name must be a non-empty string, got ['a']"),
         ({"burn_in": float("inf")}, "model.burn_in must be a finite number of seconds >= 0"),
-        ({"max_states": 2.5}, "model.max_states must be a non-negative integer, got 2.5"),
+        ({"max_states": 2.5}, "model.max_states must be a non-negative integer (the most states enumerated for the exact law), got 2.5"),
         ({"substance_units": "moles"}, "model.substance_units must be items"),
         ({"inputs": {"R1.k": "L"}}, "input 'R1.k' is not a global parameter of the model nor a"),
         ({"inputs": {"inducer": {"k": "L"}}}, "a reaction's local parameter is one key"),
@@ -232,11 +241,33 @@ def test_a_malformed_yaml_is_refused_by_name(tmp_path, changes, message) -> None
     assert f"model.spec={path}" in str(info.value)  # the message names the yaml
 
 
+@pytest.mark.parametrize("kind", ["walker", "static", "chemotaxis"])
+def test_every_body_refuses_a_perturbation_that_is_not_a_mapping_or_infinite(kind) -> None:
+    """A number where the perturbation's settings go, or an infinite radius (jumps to inf),
+    is refused naming the setting in every body, as in the E. coli models."""
+    from surrogate.models.bodies import build_body
+    from surrogate.models.ecoli import EcoliModel
+
+    with pytest.raises(ConfigError, match=r"model\.body\.perturbation must be a mapping of "
+                                          r"settings \['radius', 'sampling'\], got 3"):  # fmt: skip
+        build_body({"kind": kind, "perturbation": 3})
+    with pytest.raises(ConfigError, match=r"model\.body\.perturbation\.radius must be a finite"):
+        build_body({"kind": kind, "perturbation": {"radius": float("inf")}})
+    with pytest.raises(ConfigError, match=r"model\.perturbation must be a mapping"):
+        EcoliModel(perturbation=3)
+    with pytest.raises(ConfigError, match=r"model\.perturbation must be a mapping"):
+        EcoliPhosphoModel(perturbation=3)
+
+
 def test_the_chemotaxis_body_names_its_constants_under_the_body(tmp_path) -> None:
     spec = yaml.safe_load(PHOSPHO.read_text())
     spec["network"] = str((PHOSPHO.parent / spec["network"]).resolve())
     spec["body"] = {"kind": "chemotaxis", "tau": "slow"}
     with pytest.raises(ConfigError, match=r"model\.body\.tau must be a finite number, got 'slow'"):
+        SbmlAgentModel(**spec)
+    spec["body"] = {"kind": "chemotaxis", "tau": "2e1"}
+    with pytest.raises(ConfigError, match=r"model\.body\.tau must be a finite number, got '2e1' "
+                                          r"\(YAML reads 2e1 as a string: write 2\.0e\+1\)"):  # fmt: skip
         SbmlAgentModel(**spec)
     spec["body"] = {"kind": "chemotaxis", "tau": 0.04}
     with pytest.raises(ConfigError, match=r"dt=0.05 s must be smaller than model\.body\.tau"):
@@ -390,3 +421,71 @@ def test_a_yaml_without_inputs_is_refused_before_collect_runs(tmp_path) -> None:
     assert not (tmp_path / "data").exists()
     with pytest.raises(ConfigError, match=r"model\.inputs must map at least one SBML parameter"):
         SbmlAgentModel(**{**spec, "inputs": {}})
+
+
+def _agent(**changes) -> SbmlAgentModel:
+    return SbmlAgentModel(**{**_spec(**changes), "signal_bounds": None})
+
+
+def test_an_infinite_constant_in_the_lump_gives_the_exact_law() -> None:
+    """``D < INF`` (always true) is code, not the name ``inf``: the exact stationary law and
+    psi are computed, every state ON (the OFF lump has no mass: NaN, as documented)."""
+    agent = _agent(lump="D < INF")
+    x = torch.tensor([[0.01], [0.05]])
+    assert agent.internal.phi(agent.internal.initial_state(x)).tolist() == [1.0, 1.0]
+    psi = agent.internal.exact_psi(x.double(), 0.05)
+    assert psi[:, 0].isnan().all() and torch.equal(psi[:, 1], torch.ones(2, dtype=psi.dtype))
+
+
+@pytest.mark.parametrize(
+    ("formula", "good", "at", "message"),
+    [
+        ("NaN", 0.02, 0.05, r"model\.inputs\.inducer \('NaN'\) is nan where (L|inducer) = "),
+        ("1 / L", 0.02, 0.0, r"model\.inputs\.inducer \('1 / L'\) is inf where (L = 0|inducer = inf):"),
+        ("-L", 0.0, 0.05, r"reaction 'activate' has rate -20 \(negative or not finite\) in "
+                          r"state \{'I': 8, 'P': 0, 'D': 0\} where (L|inducer) = -?0\.05 "
+                          r"\(model\.inputs\.inducer \('-L'\) = -0\.05\)"),
+    ],
+)  # fmt: skip
+def test_bad_rates_from_an_input_formula_are_refused_by_name(formula, good, at, message) -> None:
+    """A formula whose values are not finite, or give a negative rate, is refused where the
+    exact law is built (stationary law, exact psi) and where a window runs (both SSAs), naming
+    model.inputs.<param>; never a torch multinomial crash or a silent generator with negative
+    off-diagonal rates."""
+    x = torch.tensor([[good], [at]])  # the second cell's rates are bad
+    agent = _agent(inputs={"inducer": formula})
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.initial_state(x)
+    signal = agent.internal.features(x, agent.internal.signal_names).double()
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.exact_psi(signal, 0.05)
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.exact_age_psi(signal, 0.05, 3)
+    for ssa in ("compiled", "batched"):  # too many states for the exact law: burn-in windows
+        windows = _agent(inputs={"inducer": formula}, max_states=2, ssa=ssa, burn_in=0.1)
+        assert windows.internal.state_space is None
+        with pytest.raises(ConfigError, match=message):
+            windows.internal.initial_state(x)
+
+
+def test_a_piecewise_rate_without_otherwise_is_refused_where_no_piece_holds(tmp_path) -> None:
+    """SBML allows ``piecewise`` without ``otherwise`` (undefined where no condition holds): the
+    rate is NaN there, and a NaN rate is refused naming the reaction, by the exact law as by
+    the compiled SSA, while the inputs where a piece holds give the law of the piece."""
+    import libsbml
+
+    document = libsbml.readSBMLFromFile(str(GENE_SWITCH.parent / "gene_switch.xml"))
+    law = document.getModel().getReaction("deactivate").getKineticLaw()
+    law.setMath(libsbml.parseL3Formula("piecewise(k_deact * P, inducer < 0.08)"))
+    path = tmp_path / "switch.xml"
+    path.write_text(libsbml.writeSBMLToString(document))
+    agent, plain = _agent(network=str(path)), _agent()
+    inside = torch.tensor([[0.01], [0.05]], dtype=torch.float64)
+    torch.testing.assert_close(agent.internal.exact_psi(inside, 0.05),
+                               plain.internal.exact_psi(inside, 0.05), rtol=0, atol=0)  # fmt: skip
+    message = r"reaction 'deactivate' has rate nan \(negative or not finite\) in state"
+    with pytest.raises(ConfigError, match=message):
+        agent.internal.exact_psi(torch.tensor([[0.09]], dtype=torch.float64), 0.05)
+    windows = _agent(network=str(path), max_states=2, burn_in=0.1)
+    with pytest.raises(ConfigError, match=message):
+        windows.internal.initial_state(torch.tensor([[0.09]]))

@@ -121,7 +121,7 @@ BAD_INPUTS = [
     (
         "collect",
         [*GENE, "+model.body.perturbation.radius=-1"],
-        "model.body.perturbation.radius must be > 0",
+        "model.body.perturbation.radius must be a finite number > 0",
     ),
     ("collect", [*PHOSPHO_YAML, "dt=20.0"], "must be smaller than model.body.tau=15 s"),
     ("simulate", [*PHOSPHO_YAML, "+model.body.tau=slow"], "model.body.tau must be a finite"),
@@ -180,3 +180,29 @@ def test_a_default_budget_is_the_same_artefact_as_the_same_budget_given(tmp_path
     a, b = CollectSettings.from_config(default), CollectSettings.from_config(given)
     assert a.directory == b.directory
     assert "n_per_state" not in a.command() and "collect.n_per_state=100000" in b.command()
+
+
+def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> None:
+    """The estimate's formula, pinned with numbers computed here (its accuracy is measured,
+    not guaranteed: docs/performance.md): a collection's steps are the equilibration's plus
+    2 n_per_state record_every / n_cells, each costing STEP_SECONDS plus n_cells cell-steps;
+    the gene switch's cell-step is the SSA overhead plus its expected events per window at the
+    file's counts and inputs (8 inactive proteins, inducer 0.05: only activation fires, at
+    k_act inducer I = 50 x 0.05 x 8 = 20 per s) times the compiled SSA's cost of an event;
+    E. coli gives no estimate of its own (the base CELL_STEP_SECONDS)."""
+    from surrogate.models.base import CELL_STEP_SECONDS
+    from surrogate.models.network import COMPILED_EVENT_SECONDS, STEP_OVERHEAD_SECONDS
+    from surrogate.stages.budget import STEP_SECONDS, collect_work
+
+    sizes = ["collect.n_per_state=1000", "collect.n_cells=50", "collect.record_every=2",
+             "collect.equilibration_time=1.0", "dt=0.05"]  # fmt: skip
+    steps = 1.0 / 0.05 + 2 * 1000 * 2 / 50
+    for model, cell_step in (
+        (GENE, STEP_OVERHEAD_SECONDS + 20.0 * 0.05 * COMPILED_EVENT_SECONDS),
+        (["model=ecoli"], CELL_STEP_SECONDS),
+    ):
+        [work] = collect_work(CollectSettings.from_config(
+            compose_in(tmp_path / "data", "collect", [*model, *sizes])))  # fmt: skip
+        assert work.cell_step_seconds == pytest.approx(cell_step, rel=1e-12), model
+        assert work.steps == pytest.approx(steps, rel=1e-12)
+        assert work.seconds == pytest.approx(steps * (STEP_SECONDS + 50 * cell_step), rel=1e-12)

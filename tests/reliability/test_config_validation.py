@@ -17,6 +17,8 @@ from surrogate.errors import ConfigError
 from surrogate.stages import collect, fidelity, reproduce, train
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.settings.train import TrainSettings
+from surrogate.stages.train import load_transitions
 
 from .conftest import compose_in
 
@@ -70,7 +72,7 @@ BAD_INPUTS = [
     ("simulate", ["+model.foo=1"], "unknown model setting(s) ['foo']"),
     ("simulate", ["model._target_=builtins.dict"], "did not return a surrogate.models.Model"),
     ("simulate", ["~model._target_"], "model config needs a `_target_`"),
-    ("collect", ["model.perturbation.radius=-1.0"], "model.perturbation.radius must be > 0"),
+    ("collect", ["model.perturbation.radius=-1.0"], "radius must be a finite number > 0"),
     ("collect", ["model.perturbation.sampling=foo"], "model.perturbation.sampling must be one of"),
     ("collect", ["+model.perturbation.foo=1"], "unknown model.perturbation setting(s) ['foo']"),
     ("simulate", ["field._target_=surrogate.fields.Nope"], "surrogate.fields.Nope"),
@@ -106,7 +108,13 @@ BAD_INPUTS = [
         ["gp.labels=expected", "collect.expected_labels=false"],
         "gp.labels=expected trains on expected labels, but collect.expected_labels=false",
     ),
-    ("train", ["gp.labels=expected", "gp.bins=0"], "gp.labels=expected needs binned training"),
+    ("train", ["gp.labels=expected", "gp.bins=0"], "gp.labels=expected trains on the expected"),
+    (
+        "train",
+        ["gp.bins=0"],  # gp.labels=auto (the default): the collection records expected labels
+        "gp.labels=auto picks, where the table has them, the expected labels (fractions), which "
+        "need binned training, but gp.bins=0",
+    ),
     ("collect", ["collect.expected_labels=maybe"], "collect.expected_labels must be true or false"),
     (
         "train",
@@ -163,7 +171,7 @@ BAD_INPUTS = [
     (
         "simulate",
         ["model=ecoli_phospho", "model.burn_in=-1.0"],
-        "model.burn_in must be a non-negative number of seconds",
+        "model.burn_in must be a finite number of seconds >= 0",
     ),
 ]
 
@@ -272,6 +280,33 @@ def test_evaluate_validates_before_simulating(tiny, monkeypatch) -> None:
     _forbid(monkeypatch, "surrogate.stages.simulate.run")
     with pytest.raises(ConfigError, match="evaluate.noise_seed_offset"):
         evaluate_stage.run(tiny("evaluate", ["evaluate.noise_seed_offset=0"]))
+
+
+def test_train_refuses_minibatch_expected_labels_before_collecting(tiny, monkeypatch) -> None:
+    """gp.bins=0 with gp.labels=auto (default) and a collection that records expected labels
+    is refused when the settings are read, not after the collection; with gp.labels=outcome
+    the same collection trains by minibatch."""
+    _forbid(monkeypatch, "surrogate.stages.collect.collect_transitions")
+    _forbid(monkeypatch, "surrogate.stages.train.load_transitions")
+    with pytest.raises(ConfigError, match=r"gp\.labels=auto .* gp\.bins=0"):
+        train.run(tiny("train", ["gp.bins=0"]))
+    TrainSettings.from_config(tiny("train", ["gp.bins=0", "gp.labels=outcome"]))
+
+
+def test_an_external_table_with_expected_labels_and_minibatch_is_refused(tmp_path) -> None:
+    """An external table's columns are known only when it is read: its expected labels picked
+    by gp.labels=auto with gp.bins=0 are refused there, naming the table and both settings."""
+    import pandas as pd
+
+    path = tmp_path / "table.csv"
+    pd.DataFrame({"dG": [0.1, 0.2], "phi": [0.0, 1.0], "phi_next": [0.0, 1.0],
+                  "phi_next_expected": [0.2, 0.9]}).to_csv(path, index=False)  # fmt: skip
+    settings = TrainSettings.from_config(
+        compose_in(tmp_path / "data", "train", ["gp.bins=0", f"+transitions={path}"])
+    )
+    with pytest.raises(ConfigError, match=rf"{path} has expected labels: gp\.labels=auto .* "
+                                          r"gp\.bins=0 \(minibatch"):  # fmt: skip
+        load_transitions(settings)
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,8 @@ class chain, at the two-sample KS critical value of its dwell times.
 The draw test: at inputs between grid nodes the drawn class has the multilinear interpolation
 of the nodes' laws (:meth:`ClassTable.law`); a chi-square goodness-of-fit test at alpha = 1e-3
 per (origin, input) case, with 20,000 draws each (the same counts reject the law of the nearest
-node, so the test has power).
+node, so the test has power). Because that test reads the grid positions through the law
+itself, a separate test places the nodes from the bounds alone (a wrong spacing fails it).
 """
 
 from __future__ import annotations
@@ -78,6 +79,54 @@ def test_a_table_reads_back_its_probabilities_and_state() -> None:
     # at a node the law is the node's row
     z = torch.tensor([[table.bounds[0][0], table.bounds[1][1]]])
     torch.testing.assert_close(table.law(torch.tensor([2]), z)[0], p[2, 0, 2])
+
+
+@pytest.mark.parametrize("shape", [(5,), (4, 3)])
+def test_the_grid_puts_node_k_at_lo_plus_k_spacings(shape: tuple[int, ...]) -> None:
+    """The nodes are evenly spaced from lo to hi, node k at lo + k (hi - lo) / (n - 1),
+    computed here from the bounds alone: at every node the law and the draw are that node's
+    row, and halfway between two nodes the law is their mean (the draw test compares the draw
+    with :meth:`ClassTable.law`, which reads the same positions, so it cannot see a wrong grid)."""
+    table = _toy_table(3, shape, seed=4)
+    p = table.probabilities()
+    axes = [torch.linspace(lo, hi, n, dtype=torch.float64)
+            for (lo, hi), n in zip(table.bounds, shape, strict=True)]  # fmt: skip
+    nodes = torch.cartesian_prod(*[torch.arange(n) for n in shape]).reshape(-1, len(shape))
+    z = torch.stack([axes[j][nodes[:, j]] for j in range(len(shape))], 1).float()
+    g = torch.Generator().manual_seed(5)
+    for origin in range(3):
+        a = torch.full((len(nodes),), origin)
+        rows = p[(origin, *nodes.T)]
+        torch.testing.assert_close(table.law(a, z), rows, rtol=0, atol=1e-6)
+        # at a node no uniform rounds up: the draw is the categorical draw from its row
+        u = torch.rand(len(shape) + 1, len(nodes), generator=g)
+        cdf = table.cdf.reshape(3, *shape, 3)[(origin, *nodes.T)]
+        expected = (u[-1].unsqueeze(1) >= cdf[:, :-1]).sum(1)
+        assert torch.equal(table.draw(a, z, u), expected)
+    # halfway along the first axis between nodes 1 and 2 (the other axes at their node 0)
+    half = torch.tensor([[0.5 * float(axes[0][1] + axes[0][2]), *[float(x[0]) for x in axes[1:]]]])
+    mean = 0.5 * (p[(1, 1, *[0] * (len(shape) - 1))] + p[(1, 2, *[0] * (len(shape) - 1))])
+    torch.testing.assert_close(table.law(torch.tensor([1]), half)[0], mean, rtol=0, atol=1e-6)
+
+
+def test_a_nan_input_draws_from_the_first_node_as_the_kernel_does() -> None:
+    """A NaN input (on any axis) is node 0 of that axis, never rounded up: the draw is the
+    draw at the axis's lower bound with the same uniforms (the compiled kernel's rule), where
+    it used to index far outside the table; the law there is NaN (it says nothing)."""
+    table = _toy_table(3, (4, 3), seed=2)
+    n = 4000
+    g = torch.Generator().manual_seed(3)
+    origin = torch.randint(0, 3, (n,), generator=g)
+    z = torch.stack([torch.rand(n, generator=g) * 3 - 1, torch.rand(n, generator=g) * 0.5], 1)
+    u = torch.rand(3, n, generator=g)
+    for axis in (0, 1):
+        nan, low = z.clone(), z.clone()
+        nan[:, axis] = float("nan")
+        low[:, axis] = table.bounds[axis][0]
+        assert torch.equal(table.draw(origin, nan, u), table.draw(origin, low, u)), axis
+        assert table.law(origin[:2], nan[:2]).isnan().all()
+    # the lower bound's draw differs from the original inputs' (the comparison has teeth)
+    assert not torch.equal(table.draw(origin, low, u), table.draw(origin, z, u))
 
 
 def _ecoli_layer(size: int = 64) -> tuple[EcoliModel, ClassDecision]:

@@ -20,8 +20,7 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported
-from surrogate.models.bodies.options import split_options
+from surrogate.models.base import CellKernel, KernelUnsupported, check_options
 from surrogate.models.ecoli.body import (
     PERTURBATION_DEFAULTS,
     ChemotacticBody,
@@ -56,7 +55,7 @@ class RunAndTumbleBody(ChemotacticBody):
 
     def __init__(self, options: Mapping[str, Any] | None = None, where: str = "model.body") -> None:
         options = dict(options or {})
-        perturbation = options.pop("perturbation", None) or {}
+        perturbation = options.pop("perturbation", None)
         try:
             params = EcoliParameters.from_config(options)
         except ConfigError as error:  # its messages name model.<constant>
@@ -66,8 +65,10 @@ class RunAndTumbleBody(ChemotacticBody):
             ) from None
         super().__init__(params)
         self.where = where
-        self.perturbation_options = split_options(perturbation, PERTURBATION_DEFAULTS,
-                                                  f"{where}.perturbation")  # fmt: skip
+        self.perturbation_options = check_options(
+            {} if perturbation is None else perturbation, PERTURBATION_DEFAULTS,
+            f"{where}.perturbation",
+        )  # fmt: skip
         disc_options(self.perturbation_options, f"{where}.perturbation")
         self.derived = {"F": self._energy, "activity": self._activity}
 

@@ -7,8 +7,9 @@ from collections.abc import Mapping
 from typing import Any
 
 from surrogate.errors import ConfigError
+from surrogate.models.base import yaml_hint
 
-__all__ = ["number", "split_options"]
+__all__ = ["number"]
 
 
 def number(options: Mapping[str, Any], key: str, where: str, minimum: float = 0.0) -> float:
@@ -16,17 +17,7 @@ def number(options: Mapping[str, Any], key: str, where: str, minimum: float = 0.
     ``where.key`` and the value (a string, a bool or a list are the wrong type)."""
     value = options[key]
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ConfigError(f"{where}.{key} must be a finite number, got {value!r}")
+        raise ConfigError(f"{where}.{key} must be a finite number, got {value!r}{yaml_hint(value)}")
     if value < minimum:
         raise ConfigError(f"{where}.{key} must be >= {minimum:g}, got {value!r}")
     return float(value)
-
-
-def split_options(
-    options: Mapping[str, Any], defaults: Mapping[str, Any], where: str
-) -> dict[str, Any]:
-    """``defaults`` updated with ``options``, refusing keys it does not name (typos)."""
-    unknown = sorted(set(options) - set(defaults))
-    if unknown:
-        raise ConfigError(f"unknown {where} setting(s) {unknown}; allowed: {sorted(defaults)}")
-    return {**defaults, **dict(options)}

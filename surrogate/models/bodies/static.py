@@ -16,8 +16,7 @@ import torch
 from torch import Tensor
 
 from surrogate.fields import Field
-from surrogate.models.base import BodyState, Randoms
-from surrogate.models.bodies.options import split_options
+from surrogate.models.base import BodyState, Randoms, check_options
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
 
 #: parameters of the static agent and their defaults
@@ -47,9 +46,11 @@ class StaticAgent:
     adapt_randoms = Randoms()
 
     def __init__(self, options: Mapping[str, Any] | None = None, where: str = "model.body") -> None:
-        o = split_options(options or {}, STATIC_DEFAULTS, where)
-        self.perturbation_options = split_options(
-            o["perturbation"] or {}, PERTURBATION_DEFAULTS, f"{where}.perturbation"
+        o = check_options({} if options is None else options, STATIC_DEFAULTS, where)
+        self.perturbation_options = check_options(
+            {} if o["perturbation"] is None else o["perturbation"],
+            PERTURBATION_DEFAULTS,
+            f"{where}.perturbation",
         )
         disc_options(self.perturbation_options, f"{where}.perturbation")
         self.where = where

@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from surrogate.fields import Field
-from surrogate.models.base import BodyState, Randoms
-from surrogate.models.bodies.options import number, split_options
+from surrogate.models.base import BodyState, Randoms, check_options
+from surrogate.models.bodies.options import number
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
 
 #: parameters of the walker and their defaults (units: mm, s, rad)
@@ -58,12 +58,14 @@ class Walker:
     adapt_randoms = Randoms()
 
     def __init__(self, options: Mapping[str, Any] | None = None, where: str = "model.body") -> None:
-        o = split_options(options or {}, WALKER_DEFAULTS, where)
+        o = check_options({} if options is None else options, WALKER_DEFAULTS, where)
         self.speed_on = number(o, "speed_on", where)
         self.speed_off = number(o, "speed_off", where)
         self.rotation = number(o, "rotation", where)
-        self.perturbation_options = split_options(
-            o["perturbation"] or {}, PERTURBATION_DEFAULTS, f"{where}.perturbation"
+        self.perturbation_options = check_options(
+            {} if o["perturbation"] is None else o["perturbation"],
+            PERTURBATION_DEFAULTS,
+            f"{where}.perturbation",
         )
         disc_options(self.perturbation_options, f"{where}.perturbation")
         self.where = where

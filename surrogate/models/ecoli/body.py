@@ -19,7 +19,7 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import BodyState, Randoms, check_options
+from surrogate.models.base import BodyState, Randoms, check_options, yaml_hint
 from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import adapted_methylation, ou_step
@@ -187,8 +187,10 @@ def disc_options(options: Mapping[str, Any], where: str) -> tuple[float, str]:
     ``"model.perturbation"``)."""
     o = check_options(options, PERTURBATION_DEFAULTS, where)
     radius = o["radius"]
-    if isinstance(radius, bool) or not isinstance(radius, int | float) or not radius > 0:
-        raise ConfigError(f"{where}.radius must be > 0 mm, got {radius!r}")
+    if (isinstance(radius, bool) or not isinstance(radius, int | float)
+            or not 0 < radius < math.inf):  # fmt: skip
+        raise ConfigError(f"{where}.radius must be a finite number > 0 mm, got {radius!r}"
+                          f"{yaml_hint(radius)}")  # fmt: skip
     if o["sampling"] not in SAMPLINGS:
         raise ConfigError(
             f"{where}.sampling must be one of {list(SAMPLINGS)}, got {o['sampling']!r}"

@@ -196,7 +196,7 @@ def _class_draw(cls, s, c, u, row, m, ligand, energy, act, yp, dg, cdf, origin_s
         value = _feature(features[a], m, ligand, energy, act, yp, dg, _F32(0.0))
         w = _clamp((value - origin[0, a]) * scale[0, a], _F32(0.0), _F32(n - 1))
         node = min(np.floor(w), _F32(n - 2))
-        # NaN: torch's index would be undefined; here the lower node, never rounded up
+        # NaN: node 0, never rounded up (as ClassTable._positions)
         i = int(node) if node == node else 0
         if u[s, row + a, c] < w - node:
             i += 1

@@ -8,7 +8,7 @@ from typing import Any
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported, Model
+from surrogate.models.base import CellKernel, KernelUnsupported, Model, check_options
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
@@ -35,7 +35,10 @@ class EcoliModel(Model):
         self.params = EcoliParameters.from_config(constants)
         self.internal = MotorInternalModel(self.params)
         self.body = ChemotacticBody(self.params)
-        self.perturbation_options = {**PERTURBATION_DEFAULTS, **dict(perturbation or {})}
+        self.perturbation_options = check_options(
+            {} if perturbation is None else perturbation, PERTURBATION_DEFAULTS,
+            "model.perturbation",
+        )  # fmt: skip
 
     def validate(self, dt: float) -> None:
         """The OU is stepped by Euler-Maruyama: dt must be well below tau."""

@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from surrogate.errors import ConfigError
+from surrogate.models.base import yaml_hint
 
 TUMBLE_MODES = ("per_step", "per_tumble")
 MOTOR_SAMPLERS = ("transition_matrix", "ssa")
@@ -69,7 +70,8 @@ class EcoliParameters:
             value = getattr(self, f.name)
             if f.type in ("int", "float") and not _is_number(value):
                 # checked first, so the range checks below never compare a string or a bool
-                raise ConfigError(f"model.{f.name} must be a finite number, got {value!r}")
+                raise ConfigError(f"model.{f.name} must be a finite number, got {value!r}"
+                                  f"{yaml_hint(value)}")  # fmt: skip
         for name in positive:
             value = getattr(self, name)
             if not value > 0:

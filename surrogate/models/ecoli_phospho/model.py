@@ -36,6 +36,7 @@ from surrogate.models.base import (
     KernelUnsupported,
     Model,
     burn_in_seconds,
+    check_options,
 )
 from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
@@ -207,7 +208,10 @@ class EcoliPhosphoModel(Model):
         self._network_given = network is not None
         self.internal = PhosphoInternalModel(p, sbml, ssa, burn_in)
         self.body = ChemotacticBody(p)
-        self.perturbation_options = {**PERTURBATION_DEFAULTS, **dict(perturbation or {})}
+        self.perturbation_options = check_options(
+            {} if perturbation is None else perturbation, PERTURBATION_DEFAULTS,
+            "model.perturbation",
+        )  # fmt: skip
 
     def validate(self, dt: float) -> None:
         """The OU is stepped by Euler-Maruyama: dt must be well below tau."""

@@ -52,6 +52,14 @@ DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
 }
 
 
+def bins_labels_conflict(labels: str) -> str:
+    """Why ``gp.bins=0`` cannot train on the expected labels ``gp.labels=<labels>`` picks."""
+    picks = "trains on" if labels == "expected" else "picks, where the table has them,"
+    return (f"gp.labels={labels} {picks} the expected labels (fractions), which need binned "
+            f"training, but gp.bins=0 (minibatch training) takes 0/1 outcomes only; set "
+            f"gp.bins > 0 (default 500) or gp.labels=outcome")  # fmt: skip
+
+
 @dataclass(frozen=True)
 class ExternalTable:
     """A transitions table from outside the pipeline (CSV or Parquet), identified by content."""
@@ -170,9 +178,13 @@ class TrainSettings:
         labels = gp_config.get("labels", "outcome")
         if labels not in LABEL_CHOICES:
             raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
+        if not gp.bins and (
+            labels == "expected"
+            or (labels == "auto" and isinstance(source, CollectSettings) and source.expected_labels)
+        ):
+            # minibatch training reads 0/1 labels only; found here, not after the collection
+            raise ConfigError(bins_labels_conflict(labels))
         if labels == "expected":
-            if not gp.bins:
-                raise ConfigError("gp.labels=expected needs binned training (gp.bins > 0)")
             if isinstance(source, CollectSettings) and not source.expected_labels:
                 why = (
                     "collect.expected_labels=false"
@@ -187,6 +199,13 @@ class TrainSettings:
                    int(threads) if threads is not None else torch.get_num_threads(), history,
                    max_age, lumps, None if min_events is None else float(min_events),
                    float(max_label_weight))  # fmt: skip
+
+    def check_label_column(self, column: str, where: str) -> None:
+        """Refuse training ``where``'s expected labels (``column``, e.g. an external table's,
+        picked by ``gp.labels=auto``) with minibatch training (``gp.bins=0``)."""
+        if column == LABEL_COLUMNS["expected"] and not self.gp.bins:
+            labels = self.gp_config.get("labels", "outcome")
+            raise ConfigError(f"{where} has expected labels: {bins_labels_conflict(labels)}")
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
