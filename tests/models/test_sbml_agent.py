@@ -226,7 +226,10 @@ def _spec(**changes) -> dict:
         ({"network": 3}, "model.network must be a non-empty string"),
         ({"name": ["a"]}, "model.name must be a non-empty string, got ['a']"),
         ({"burn_in": float("inf")}, "model.burn_in must be a finite number of seconds >= 0"),
-        ({"max_states": 2.5}, "model.max_states must be a non-negative integer (the most states enumerated for the exact law), got 2.5"),
+        (
+            {"max_states": 2.5},
+            "model.max_states must be a non-negative integer (the most states enumerated for the exact law), got 2.5",
+        ),
         ({"substance_units": "moles"}, "model.substance_units must be items"),
         ({"inputs": {"R1.k": "L"}}, "input 'R1.k' is not a global parameter of the model nor a"),
         ({"inputs": {"inducer": {"k": "L"}}}, "a reaction's local parameter is one key"),

@@ -382,6 +382,29 @@ def test_compiled_runs_of_a_batch_have_their_own_identity(compose_cfg) -> None:
     assert all("batch" not in s.identity() for s in unbatched.runs())
 
 
+def test_a_run_outside_the_trained_inputs_warns_with_the_share(compose_cfg, caplog) -> None:
+    """An abstraction over the raw inputs (m, L) trained in L1 (L <= 0.1 mM), simulated in a
+    field ten times as strong: L leaves the trained range in (nearly) every sampled cell-step,
+    which the manifest records per input and one warning names; in L1 itself it stays inside."""
+    tiny = [*TINY, "gp.inputs=inputs", "record_interval=1.0"]
+    cfg = compose_cfg("train", [o for o in tiny if o.split(".")[0] in ("collect", "gp")])
+    collect.run(cfg)
+    train.run(cfg)
+    inside = simulate_stage.run(compose_cfg("simulate", [*tiny, "decision=abstract"]))
+    with caplog.at_level(logging.WARNING, logger="surrogate.simulate.support"):
+        outside = simulate_stage.run(
+            compose_cfg("simulate", [*tiny, "decision=abstract", "field.amplitude=1.0"])
+        )
+    home = json.loads((inside / "manifest.json").read_text())["outside_training"]
+    away = json.loads((outside / "manifest.json").read_text())["outside_training"]
+    assert home["share_outside"] <= 0.01 and away["share_outside"] > 0.9
+    assert away["sampled_cell_steps"] == 40 * 20  # 40 cells, every 1 s of 20 s
+    L = away["inputs"]["L"]
+    assert L["share_above"] > 0.9 and L["seen"][1] > 0.5 > 0.1 >= L["trained"][1]
+    (record,) = [r for r in caplog.records if "outside its training data" in r.getMessage()]
+    assert f"L seen [{L['seen'][0]:.4g}, {L['seen'][1]:.4g}]" in record.getMessage()
+
+
 def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
     from surrogate.stages import speed
 
