@@ -1,0 +1,146 @@
+"""Classes finer than phi for any network (bins of a count): declared, chosen, validated, and
+used: a network whose switching depends on a hidden count fails with the two-state chain and
+passes with the classes, at the KS critical value of the duration samples."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from surrogate.errors import ConfigError
+from surrogate.evaluate.statistics import ExactSample, compare_distributions
+from surrogate.models.count_classes import (
+    CountClasses,
+    CountClassifier,
+    choose_count_classes,
+    parse_classes,
+)
+from surrogate.models.sbml_agent import SbmlAgentModel
+from surrogate.simulate import FullDecision
+from surrogate.simulate.batch import Replicate
+from surrogate.stages.runs import simulate_runs
+from surrogate.stages.simulate import exact_class_decision, exact_decision
+from tests.sbml.builder import Reaction, Species, build
+
+#: c(alpha) of the asymptotic two-sample KS critical value at alpha = 0.001
+KS_C_ALPHA_001 = 1.949
+
+
+def _hidden_gene(tmp_path, **spec) -> SbmlAgentModel:
+    """Three slow gene copies (G0 <-> G1 at 0.05/s each) and a fast switch S turned on at
+    k G1 and off at 1/s; phi = S1 >= 1. While no copy is active the switch cannot turn on: the
+    off periods are a mixture over the hidden count G1 that phi does not show."""
+    text = build(
+        "hidden_gene",
+        [Species("G0", amount=3), Species("G1", amount=0), Species("S0", amount=1),
+         Species("S1", amount=0)],
+        {"a": 0.05, "k": 2.0, "c": 1.0},
+        [Reaction("act", "a * G0", {"G0": 1}, {"G1": 1}),
+         Reaction("deact", "a * G1", {"G1": 1}, {"G0": 1}),
+         Reaction("on", "k * G1 * S0", {"S0": 1}, {"S1": 1}),
+         Reaction("off", "c * S1", {"S1": 1}, {"S0": 1})],
+    )  # fmt: skip
+    (tmp_path / "hidden.xml").write_text(text)
+    base = {"network": "hidden.xml", "inputs": {"k": "40 * L"}, "lump": "S1 >= 1",
+            "signal_bounds": {"k": [0.0, 4.0]}, "body": {"kind": "static"}, "burn_in": 0.0}  # fmt: skip
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump({**base, **spec}))
+    return SbmlAgentModel(str(path))
+
+
+def test_classes_name_and_bin_counts_within_each_lump() -> None:
+    classes = CountClasses("P", ((2.0, 5.0), (10.0,)), ("low", "high"))
+    assert classes.names == ("low|P<2", "low|2<=P<5", "low|P>=5", "high|P<10", "high|P>=10")
+    assert classes.lumps == (0, 0, 0, 1, 1)
+    classify = CountClassifier(classes, ["P"], "model.classes")
+    counts = torch.tensor([[0], [2], [4], [5], [9], [9], [10]])
+    phi = torch.tensor([0, 0, 0, 0, 0, 1, 1])
+    assert classify(counts, phi).tolist() == [0, 1, 1, 2, 2, 3, 4]
+    expression = CountClassifier(CountClasses("P + 2 * Q", ((3.0,), (3.0,))), ["P", "Q"], "c")
+    assert expression(torch.tensor([[1, 0], [1, 1]]), torch.tensor([0, 1])).tolist() == [0, 3]
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("some", "must be auto or a mapping"),
+        ({"edges": [1]}, "needs exactly one of species"),
+        ({"species": "X", "expression": "X", "edges": [1]}, "needs exactly one of species"),
+        ({"species": "Y", "edges": [1]}, "is not a species of the network"),
+        ({"species": "X", "edges": [3, 2]}, "must increase strictly"),
+        ({"species": "X", "edges": [1, math.inf]}, "must be finite numbers"),
+        ({"species": "X", "edges": []}, "the classes would be the lumps themselves"),
+        ({"species": "X", "edges": {"off": [1]}}, "needs exactly the lumps"),
+        ({"species": "X", "edges": "1, 2"}, "must be a list of numbers"),
+        ({"species": "X", "edges": [1], "bins": 3}, "unknown key"),
+        ({"expression": "X +", "edges": [1]}, "model.classes"),
+    ],
+)
+def test_bad_classes_are_refused_by_name(value, message) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_classes(value, ["X"], ("off", "on"))
+
+
+def test_the_yaml_declares_classes_and_the_exact_class_law(tmp_path) -> None:
+    model = _hidden_gene(tmp_path, classes={"species": "G1", "edges": [1, 2, 3]})
+    internal = model.internal
+    assert (
+        internal.class_names[:2] == ("off|G1<1", "off|1<=G1<2") and len(internal.class_names) == 8
+    )
+    step = internal.exact_class_step(torch.tensor([[2.0]], dtype=torch.float64), 0.05)
+    assert step.shape == (1, 8, 8)
+    assert torch.allclose(step.sum(-1), torch.ones(1, 8, dtype=torch.float64))
+    # the classes are part of the model's identity
+    other = _hidden_gene(tmp_path, classes={"species": "G1", "edges": [1]})
+    assert model.sources()["classes"] != other.sources()["classes"]
+
+
+def test_auto_chooses_the_hidden_count(tmp_path) -> None:
+    """The chooser's held-out gain is largest for the hidden gene count G1 (the switch
+    species add nothing beyond phi, which they are) and significant."""
+    model = _hidden_gene(tmp_path)
+    classes, report = choose_count_classes(model.internal, torch.tensor([2.0]), 0.05,
+                                           cells=200, windows=400, cache_dir=tmp_path)  # fmt: skip
+    assert classes.variable in ("G1", "G0")  # one determines the other
+    assert report["significant"]
+    gains = {c["species"]: c["gain_nats_per_window"] for c in report["candidates"]}
+    assert gains[classes.variable] > 10 * max(abs(gains["S0"]), abs(gains["S1"]), 1e-6)
+    # cached: the same choice again, read back
+    again, _ = choose_count_classes(model.internal, torch.tensor([2.0]), 0.05, cells=200,
+                                    windows=400, cache_dir=tmp_path)  # fmt: skip
+    assert again.to_config() == classes.to_config()
+
+
+def test_a_hidden_count_fails_two_states_and_passes_with_classes(tmp_path) -> None:
+    """Static cells at one input: the full network, the exact two-state chain and the exact
+    K-lumps chain over bins of G1. Off-period durations (tens of thousands each): the two-state
+    chain's geometric law is far from the full model's mixture (KS above the 0.1 % critical
+    value), the class chain's is within it."""
+    model = _hidden_gene(tmp_path, classes={"species": "G1", "edges": [1, 2, 3]})
+    dt, n = 0.05, 1000
+    torch.manual_seed(0)
+    two_state, _ = exact_decision(model, dt, "lookup", None, torch.device("cpu"))
+    classes = exact_class_decision(model, dt, torch.device("cpu"))
+    from surrogate.fields import GaussianField
+
+    field = GaussianField()
+    reps = [Replicate(FullDecision(model.internal), field, n, 1, (2.0, 0.0)),
+            Replicate(two_state, field, n, 2, (2.0, 0.0)),
+            Replicate(classes, field, n, 3, (2.0, 0.0))]  # fmt: skip
+    runs = simulate_runs(model, reps, ["full", "two", "classes"], dt=dt, times=[100.0],
+                         t_end=100.0, equilibration_time=0.0, progress=False)  # fmt: skip
+
+    def off(label: str) -> ExactSample:
+        counts = runs[label].histograms["off"]
+        k = np.nonzero(counts)[0]
+        return ExactSample(k.astype(np.float64), counts[k])
+
+    full = off("full")
+    for label, passes in (("two", False), ("classes", True)):
+        res = compare_distributions(full, off(label))
+        critical = KS_C_ALPHA_001 * math.sqrt((res["n_a"] + res["n_b"]) / (res["n_a"] * res["n_b"]))
+        assert (res["ks"] <= critical) == passes, (label, res["ks"], critical)
