@@ -14,8 +14,19 @@ inputs and phi at sampled steps):
 
 Per origin state: ``rel_bias`` = (mean learned - mean reference) / mean reference of the
 occupancy-weighted switching probability (it predicts the relative error of the mean segment
-duration, with the opposite sign), ``mean_abs_rel_error`` (the mean of |learned - reference| /
-reference over occupied points) and its 90th percentile.
+duration, with the opposite sign: ``predicted_duration_error`` = 1 / (1 + rel_bias) - 1),
+``mean_abs_rel_error`` (the mean of |learned - reference| / reference over occupied points) and
+its 90th percentile. With the empirical reference, also (the statistics to trust it by):
+
+* ``rel_bias_se``: the bias's standard error, cluster-robust over cells (a cell's windows are
+  not independent), so a bias within about two of them is not distinguishable from none;
+* ``calibration_chi2``, ``calibration_dof``, ``calibration_p``: a calibration test over the
+  bins: sum of ((observed - learned) / se)^2, se the binomial standard error of the learned
+  value (the null) times the bin's design effect (its cluster-robust over binomial variance),
+  against chi-square with one degree of freedom per bin (a small p: the learned psi departs
+  from the full model somewhere the population lives);
+* ``settling_z``: the observed switching frequency of the run's first half minus its second
+  half, in standard errors (a population still drifting from its start: a large |z|).
 """
 
 from __future__ import annotations
@@ -27,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 import torch
+from scipy import stats
 from torch import Tensor
 
 if TYPE_CHECKING:
@@ -61,7 +73,7 @@ def psi_errors(
     Returns:
         (metrics dict, per-row (exact) or per-bin (empirical) frame for figures).
     """
-    phi = occupancy["phi"].to_numpy(np.int64)
+    phi = occupancy["phi"].to_numpy(np.int64, copy=True)
     z = torch.from_numpy(occupancy[list(inputs)].to_numpy(np.float32, copy=True))
     learned = switching(phi, psi(torch.as_tensor(phi), z).double().cpu().numpy())
     out: dict[str, Any] = {"reference": "exact" if exact is not None else "empirical",
@@ -77,6 +89,9 @@ def psi_errors(
         return out, frame
     # empirical: equal-count bins of the first input, per origin state
     observed = (occupancy["phi_next"].to_numpy() != phi).astype(float)
+    cells = (occupancy["cell"].to_numpy() if "cell" in occupancy
+             else np.arange(len(occupancy)))  # fmt: skip
+    times = occupancy["t"].to_numpy(float) if "t" in occupancy else np.zeros(len(occupancy))
     rows = []
     for p in (0, 1):
         sel = np.flatnonzero(phi == p)
@@ -90,21 +105,58 @@ def psi_errors(
             if m.sum() == 0:
                 continue
             f = observed[sel][m].mean()
-            rows.append({"phi": p, inputs[0]: float(x[m].mean()), "n": int(m.sum()),
-                         "learned": float(learned[sel][m].mean()), "reference": float(f),
-                         "reference_se": float(np.sqrt(max(f * (1 - f), 1e-12) / m.sum()))})  # fmt: skip
+            n_b, lb = int(m.sum()), float(learned[sel][m].mean())
+            binomial = float(np.sqrt(max(f * (1 - f), 1e-12) / n_b))
+            clustered = cluster_se(observed[sel][m], cells[sel][m])
+            # the design effect of a cell's correlated windows, applied to the standard error
+            # the learned value would give (the test's null: the learned psi is right)
+            deff = max(1.0, (clustered / binomial) ** 2) if 0 < f < 1 else 1.0
+            rows.append({"phi": p, inputs[0]: float(x[m].mean()), "n": n_b,
+                         "learned": lb, "reference": float(f),
+                         "reference_se": max(clustered, binomial),
+                         "null_se": float(np.sqrt(max(lb * (1 - lb), 1e-12) * deff / n_b))})  # fmt: skip
     frame = pd.DataFrame(rows)
     for p in (0, 1):
         f = frame[frame["phi"] == p]
-        if len(f):
-            out[f"phi{p}"] = _scores(f["learned"].to_numpy(), f["reference"].to_numpy(),
-                                     f["n"].to_numpy(float))  # fmt: skip
+        if not len(f):
+            continue
+        scores = _scores(f["learned"].to_numpy(), f["reference"].to_numpy(),
+                         f["n"].to_numpy(float))  # fmt: skip
+        sel = phi == p
+        mean_obs = float(observed[sel].mean())
+        se = cluster_se(observed[sel], cells[sel])
+        bias = scores["rel_bias"]
+        scores["rel_bias_se"] = (1 + bias) * se / mean_obs if mean_obs > 0 else float("nan")
+        z = (f["reference"] - f["learned"]) / f["null_se"]
+        chi2 = float((z**2).sum())
+        scores.update(calibration_chi2=chi2, calibration_dof=len(f),
+                      calibration_p=float(stats.chi2.sf(chi2, len(f))))  # fmt: skip
+        half = times[sel] < np.median(times[sel])
+        a, b = observed[sel][half], observed[sel][~half]
+        se_ab = math.hypot(cluster_se(a, cells[sel][half]), cluster_se(b, cells[sel][~half]))
+        scores["settling_z"] = float((a.mean() - b.mean()) / se_ab) if se_ab > 0 else 0.0
+        out[f"phi{p}"] = scores
     return out, frame
+
+
+def cluster_se(values: np.ndarray, clusters: np.ndarray) -> float:
+    """Standard error of the mean of ``values``, cluster-robust over ``clusters`` (e.g. the
+    cells whose windows they are): sqrt(sum_c (sum_{i in c} (v_i - mean))^2) / n, with the
+    small-sample factor G / (G - 1) over G clusters."""
+    n = values.size
+    if n < 2:
+        return float("nan")
+    _, idx = np.unique(clusters, return_inverse=True)
+    g = int(idx.max()) + 1
+    sums = np.bincount(idx, weights=values - values.mean(), minlength=g)
+    factor = g / (g - 1) if g > 1 else 1.0
+    return float(math.sqrt(factor * (sums**2).sum()) / n)
 
 
 def _scores(learned: np.ndarray, reference: np.ndarray, weight: np.ndarray) -> dict[str, float]:
     w = weight / weight.sum()
     mean_l, mean_r = float((w * learned).sum()), float((w * reference).sum())
+    bias = (mean_l - mean_r) / mean_r if mean_r > 0 else float("nan")
     rel = np.abs(learned - reference) / np.maximum(reference, 1e-12)
     order = np.argsort(rel)
     cdf = np.cumsum(w[order])
@@ -113,7 +165,8 @@ def _scores(learned: np.ndarray, reference: np.ndarray, weight: np.ndarray) -> d
         "n": int(weight.sum()),
         "mean_switching_learned": mean_l,
         "mean_switching_reference": mean_r,
-        "rel_bias": (mean_l - mean_r) / mean_r if mean_r > 0 else float("nan"),
+        "rel_bias": bias,
+        "predicted_duration_error": 1 / (1 + bias) - 1 if bias > -1 else float("nan"),
         "mean_abs_rel_error": float((w * rel).sum()),
         "p90_abs_rel_error": p90,
     }
@@ -229,4 +282,4 @@ def exact_reference(internal: Any, dt: float) -> Callable[[pd.DataFrame], np.nda
     return reference
 
 
-__all__ = ["exact_reference", "plot_psi_errors", "psi_errors", "switching"]
+__all__ = ["cluster_se", "exact_reference", "plot_psi_errors", "psi_errors", "switching"]
