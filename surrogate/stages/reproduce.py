@@ -103,6 +103,8 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     return out
 
 
+#: the mean-duration error a learned psi's bias is judged by (the fidelity check's default)
+DURATION_TOLERANCE = 0.03
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'
 SPEED_STEPS = 1000
 SPEED_MAX_CELLS = 100_000
@@ -181,7 +183,8 @@ def report_sections(
         "value above both the noise floor and the KS 5 % critical value.\n\n"
         + table1_markdown(tables, speedups, model.reference_table())
     )
-    sections = [("Setting", setting), ("Table 1: abstracted vs full model", table1)]
+    sections = [("Setting", setting), ("Table 1: abstracted vs full model", table1),
+                ("Trust it, or what to try next", _verdict(settings, tables, metrics))]  # fmt: skip
     noise_lines = []
     for name, table in tables.items():
         if "ks_noise_floor" not in table:
@@ -194,7 +197,7 @@ def report_sections(
                else f"above noise: {', '.join(above)}.")
         )  # fmt: skip
     sections.append(("Against sampling noise", "\n".join(noise_lines) or "No noise floor."))
-    sections.append(("Segment durations", _durations_table(summaries, exact, lumps)))
+    sections.append(("Segment durations", _durations_table(summaries, exact, lumps, metrics)))
     if exact:
         sections.append((
             "The exact lumped psi (cells adapted to their current input)",
@@ -245,26 +248,96 @@ def report_sections(
 
 
 def _durations_table(
-    summaries: Mapping[str, Mapping[str, Any]], exact: Mapping[str, Path], lumps: tuple[str, str]
+    summaries: Mapping[str, Mapping[str, Any]],
+    exact: Mapping[str, Path],
+    lumps: tuple[str, str],
+    metrics: Mapping[str, Any] | None = None,
 ) -> str:
     exact_summaries = {n: evaluate_stage.read_summary(d) for n, d in exact.items()}
+    diagnostic = (metrics or {}).get("diagnostic") or {}
     rows = []
     for name, s in summaries.items():
         md = s["mean_durations"]
         row: dict[str, Any] = {"field": name}
-        for kind in reversed(lumps):
+        for p, kind in reversed(list(enumerate(lumps))):
             full = md["full"][kind]
             row[f"{kind} full (s)"] = full
             row[f"{kind} abstract (s)"] = md["candidate"][kind]
             row[f"{kind} abstract vs full"] = _rel(md["candidate"][kind], full)
+            bias = (diagnostic.get(f"phi{p}") or {}).get("rel_bias")
+            predicted = None if bias is None or bias <= -1 else 1 / (1 + bias) - 1
+            if predicted is not None and name == next(iter(summaries)):
+                row[f"{kind} predicted by the bias"] = f"{100 * predicted:+.1f} %"
             if name in exact_summaries:
                 ex = exact_summaries[name]["mean_durations"]["candidate"][kind]
                 row[f"{kind} exact psi vs full"] = _rel(ex, full)
         rows.append(row)
+    note = ("" if not diagnostic else " *Predicted by the bias*: the error of the mean "
+            "duration that the learned psi's bias where the population lives implies (1 / (1 + "
+            "bias) - 1), in the training field, where the diagnostic measured it.")  # fmt: skip
     return (
-        "Mean segment duration of each model (all completed segments).\n\n"
-        + format_markdown_table(pd.DataFrame(rows), ".4f")
+        "Mean segment duration of each model (all completed segments)."
+        + note
+        + "\n\n"
+        + format_markdown_table(pd.DataFrame(rows).fillna(""), ".4f")
     )
+
+
+def _per_lump(classes: Mapping[str, Any], internal: Any) -> dict[str, Any]:
+    """The K-lumps chain's class diagnostic as per-lump scores: the share-weighted chance of
+    leaving each lump, learned against the reference (the standard error, where the reference
+    is empirical, from the classes' binomial errors)."""
+    from surrogate.models.capabilities import lump_classes_of
+
+    declared = lump_classes_of(internal)
+    out: dict[str, Any] = {"reference": classes.get("reference")}
+    if declared is None:
+        return out
+    for p in (0, 1):
+        rows = [classes[n] for n, lump in zip(declared.names, declared.lumps, strict=True)
+                if lump == p and isinstance(classes.get(n), dict)]  # fmt: skip
+        w = sum(r["share"] for r in rows)
+        if not rows or w <= 0:
+            continue
+        learned = sum(r["share"] * r["mean_switching_learned"] for r in rows) / w
+        ref = sum(r["share"] * r["mean_switching_reference"] for r in rows) / w
+        if ref <= 0:
+            continue
+        scores: dict[str, Any] = {"rel_bias": learned / ref - 1}
+        if all(r.get("rel_se") is not None for r in rows):  # empirical reference
+            var = sum((r["share"] * r["mean_switching_reference"] * r["rel_se"]) ** 2
+                      for r in rows) / (w * ref) ** 2  # fmt: skip
+            scores["rel_bias_se"] = (1 + scores["rel_bias"]) * var**0.5
+        out[f"phi{p}"] = scores
+    return out
+
+
+def _verdict(
+    settings: ReproduceSettings,
+    tables: Mapping[str, pd.DataFrame],
+    metrics: Mapping[str, Any],
+) -> str:
+    """Whether to trust the abstraction, and what to try next (:mod:`surrogate.stages.advice`)."""
+    from surrogate.models.network import NetworkInternalModel
+    from surrogate.stages.advice import verdict
+
+    tr = settings.train
+    failures = {name: table.loc[~table["within_noise"].astype(bool), "quantity"].tolist()
+                if "within_noise" in table else [] for name, table in tables.items()}  # fmt: skip
+    outside = {name: read_manifest(e.candidate.directory).get("outside_training")
+               for name, e in settings.evaluations.items()}  # fmt: skip
+    source = tr.source
+    n_per_state = (int(source.options["n_per_state"])
+                   if isinstance(source, CollectSettings) else None)  # fmt: skip
+    diagnostic = metrics.get("diagnostic")
+    if tr.lumps == "classes" and metrics.get("class_diagnostic"):
+        diagnostic = _per_lump(metrics["class_diagnostic"], tr.setup.model.internal)
+    v = verdict(diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names,
+                failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
+                tolerance=DURATION_TOLERANCE, lumps=tr.lumps, history=tr.history,
+                network=isinstance(tr.setup.model.internal, NetworkInternalModel),
+                n_per_state=n_per_state)  # fmt: skip
+    return v.markdown()
 
 
 def _rel(value: float | None, reference: float | None) -> str:

@@ -1,0 +1,183 @@
+"""Whether to trust an abstraction, and what to try next, from what a run measured.
+
+A report's tables say where an abstraction differs from its full model; a user new to the method
+needs the reading: is this within noise, and if not, which setting to change. :func:`verdict`
+reads the measurements a reproduce run has (the evaluations against the full model and its noise
+floor, the learned psi's diagnostic where the population lives, the inputs outside the trained
+range) and names, in order, the first causes that apply:
+
+1. **Outside the training data** (any run's share of cell-steps with an input outside the trained
+   range above ``outside_warning``): the psi there is the range's edge, not learned: collect
+   where the cells go.
+2. **Not settled** (the diagnostic population's switching frequency differs between the first
+   and second half of its run by more than 4 standard errors): the full model's cells were
+   still drifting from their start: the burn-in is too short.
+3. **Biased psi** (|bias| above two standard errors and above the duration tolerance): the
+   learned switching probability where cells live is off, and the mean durations with it (the
+   predicted error beside the measured): more transitions. A reference too noisy to tell (its
+   standard error above the tolerance): a larger diagnostic population.
+4. **Memory** (the runs differ from the full model beyond the noise floor while the psi is
+   unbiased within its error): the chain over phi forgets what the network remembers: classes
+   finer than phi (``gp=classes``, with ``model.classes=auto`` for a network) or a switch clock
+   (``gp=clock``).
+
+None applying: every comparison is within the noise floor or the critical value at this
+population size; trust it there and check at scale (``scripts/fidelity.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+#: |first half - second half| of the diagnostic's switching, in standard errors, above which
+#: its population was still settling
+SETTLING_Z = 4.0
+#: a bias is significant above this many standard errors
+BIAS_Z = 2.0
+
+
+@dataclass
+class Verdict:
+    """The reading of a run's measurements.
+
+    Attributes:
+        trust: no cause applies: within the noise floor at this size.
+        causes: each cause that applies: ``(name, what was measured, the next step)``.
+    """
+
+    trust: bool
+    causes: list[tuple[str, str, str]] = field(default_factory=list)
+
+    def markdown(self) -> str:
+        """The verdict as report text."""
+        if self.trust:
+            return ("**Trust it at this size**: every comparison is within the full model's "
+                    "noise floor or the KS critical value, the learned psi is unbiased where the "
+                    "population lives within its error, and no run left the training data. "
+                    "Small differences hide at small populations: confirm at scale with "
+                    "`python3 scripts/fidelity.py` (thousands of cells, several training "
+                    "seeds).")  # fmt: skip
+        lines = ["**Do not trust it yet.** In order (the first is the likeliest cause of the "
+                 "others):", ""]  # fmt: skip
+        for i, (name, measured, step) in enumerate(self.causes, 1):
+            lines.append(f"{i}. **{name}**: {measured} Next: {step}")
+        return "\n".join(lines)
+
+
+def verdict(
+    *,
+    diagnostic: Mapping[str, Any] | None,
+    lump_names: Sequence[str],
+    failures: Mapping[str, Sequence[str]],
+    outside: Mapping[str, Mapping[str, Any] | None],
+    outside_warning: float,
+    tolerance: float,
+    lumps: str,
+    history: str,
+    network: bool,
+    n_per_state: int | None,
+) -> Verdict:
+    """Read the measurements (see the module docstring).
+
+    Args:
+        diagnostic: the learned psi's diagnostic (``train_metrics.json["diagnostic"]``).
+        lump_names: phi = 0 and 1's names.
+        failures: per field, the quantities above the noise floor and critical value.
+        outside: per field, the abstraction run's ``outside_training`` report.
+        outside_warning: the share above which a run is outside its training data.
+        tolerance: the mean-duration tolerance a bias is judged by (e.g. 0.03).
+        lumps: ``phi`` or ``classes`` (the chain that ran); history: ``none`` or ``age``.
+        network: whether the model is a reaction network (``model.classes=auto`` applies).
+        n_per_state: the collection's transitions per origin (for the advice).
+    """
+    causes: list[tuple[str, str, str]] = []
+    away = {f: r for f, r in outside.items() if r and r["share_outside"] > outside_warning}
+    if away:
+        parts = []
+        for f, r in away.items():
+            inputs = [f"{n} seen [{v['seen'][0]:.3g}, {v['seen'][1]:.3g}] vs trained "
+                      f"[{v['trained'][0]:.3g}, {v['trained'][1]:.3g}]"
+                      for n, v in r["inputs"].items() if v["share_below"] or v["share_above"]]  # fmt: skip
+            parts.append(
+                f"{f}: {100 * r['share_outside']:.1f} % of cell-steps ({'; '.join(inputs)})"
+            )
+        causes.append((
+            "Outside the training data",
+            "the abstraction ran outside the inputs it was trained on in " + "; ".join(parts)
+            + ", where its lookup clamps to the range's edge.",
+            "collect transitions where these cells go: `collect.* field=<that field>`, or a "
+            "wider collection (`model.body.perturbation.radius`, a field with that range).",
+        ))  # fmt: skip
+    d = diagnostic or {}
+    scores = {p: d.get(f"phi{p}") for p in (0, 1)}
+    settling = [(p, s["settling_z"]) for p, s in scores.items()
+                if s and abs(s.get("settling_z") or 0.0) > SETTLING_Z]  # fmt: skip
+    if settling:
+        what = ", ".join(f"leaving {lump_names[p]}: {z:+.1f} standard errors"
+                         for p, z in settling)  # fmt: skip
+        causes.append((
+            "Not settled",
+            f"the full model's diagnostic population switched at different rates in the first "
+            f"and second half of its run ({what}): its cells were still drifting from where they "
+            f"started, so its transitions (and the collection's) are not those of settled cells.",
+            "a longer burn-in (`model.burn_in`, where the model has one; `python3 "
+            "scripts/inspect_model.py` measures the settling time), or a longer "
+            "`equilibration_time`.",
+        ))  # fmt: skip
+    biased, noisy = [], []
+    for p, s in scores.items():
+        if not s or s.get("rel_bias") is None:
+            continue
+        se = s.get("rel_bias_se")
+        bias = s["rel_bias"]
+        if se is not None and se > tolerance:
+            noisy.append(f"leaving {lump_names[p]}: {100 * bias:+.1f} % +- {100 * se:.1f} %")
+        elif abs(bias) > tolerance and (se is None or abs(bias) > BIAS_Z * se):
+            pred = s.get("predicted_duration_error") or (1 / (1 + bias) - 1)
+            err = f"+- {100 * se:.1f} %" if se is not None else "(exact reference)"
+            biased.append(f"leaving {lump_names[p]}: {100 * bias:+.1f} % {err}, which predicts "
+                          f"{100 * pred:+.1f} % in the mean {lump_names[p]} duration")  # fmt: skip
+    if biased:
+        more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
+            "a larger `collect.n_per_state`"  # fmt: skip
+        causes.append((
+            "Biased switching probabilities",
+            "where the population lives the learned psi is off: " + "; ".join(biased) + ".",
+            f"more transitions ({more}: the bias of a GP fit falls with its data), and "
+            "check `gp.epochs`/`gp.n_inducing` converged (the training history figure).",
+        ))  # fmt: skip
+    if noisy:
+        causes.append((
+            "A reference too noisy to judge",
+            "the diagnostic's full-model reference cannot tell the learned psi's bias from "
+            "none: " + "; ".join(noisy) + ".",
+            "a larger diagnostic population (`gp.diagnostic.n_cells`, `gp.diagnostic.t_end`).",
+        ))  # fmt: skip
+    failing = {f: list(q) for f, q in failures.items() if q}
+    if failing and not biased and not away:
+        what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
+        if lumps == "classes":
+            step = ("more classes or other bins (`model.classes`), or more transitions per "
+                    "class (`collect.n_per_state`).")  # fmt: skip
+        else:
+            classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the "
+                       "count that holds the memory)" if network else
+                       "`gp=classes` where the model declares classes")  # fmt: skip
+            step = (
+                f"classes finer than phi, {classes}, or the switch clock `gp=clock`"
+                + (" (already on: try classes)" if history == "age" else "")
+                + "."
+            )
+        causes.append((
+            "Memory the chain over phi does not hold",
+            f"the runs differ from the full model beyond its noise floor ({what}) while the "
+            "learned switching probabilities match the full model's where the population "
+            "lives: what phi alone forgets (the network's hidden state) shapes the runs.",
+            step,
+        ))  # fmt: skip
+    return Verdict(trust=not causes, causes=causes)
+
+
+__all__ = ["BIAS_Z", "SETTLING_Z", "Verdict", "verdict"]

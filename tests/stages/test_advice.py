@@ -1,0 +1,71 @@
+"""The report's reading of a run: trust it, or which cause applies and which setting to try."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from surrogate.stages.advice import verdict
+
+
+def _score(bias: float, se: float | None = 0.01, settling: float = 0.0) -> dict[str, Any]:
+    return {"rel_bias": bias, "rel_bias_se": se, "settling_z": settling,
+            "predicted_duration_error": 1 / (1 + bias) - 1}  # fmt: skip
+
+
+def _outside(share: float) -> dict[str, Any]:
+    return {"share_outside": share, "sampled_cell_steps": 1000,
+            "inputs": {"L": {"share_below": 0.0, "share_above": share, "seen": [0.0, 0.5],
+                             "trained": [0.0, 0.1]}}}  # fmt: skip
+
+
+def _read(**changes: Any):
+    args: dict[str, Any] = {
+        "diagnostic": {"reference": "empirical", "phi0": _score(0.0), "phi1": _score(0.005)},
+        "lump_names": ("off", "on"), "failures": {"gaussian": []},
+        "outside": {"gaussian": _outside(0.0)}, "outside_warning": 0.01, "tolerance": 0.03,
+        "lumps": "phi", "history": "none", "network": True, "n_per_state": 10_000,
+    }  # fmt: skip
+    return verdict(**{**args, **changes})
+
+
+def test_within_noise_and_unbiased_is_trusted() -> None:
+    v = _read()
+    assert v.trust and not v.causes
+    assert "Trust it at this size" in v.markdown() and "fidelity.py" in v.markdown()
+
+
+def test_a_bias_within_its_error_or_the_tolerance_is_no_cause() -> None:
+    assert _read(diagnostic={"phi0": _score(0.05, se=0.03)}).trust  # within two errors
+    assert _read(diagnostic={"phi0": _score(0.02, se=0.001)}).trust  # within the tolerance
+
+
+def test_each_cause_names_its_measurement_and_next_step() -> None:
+    away = _read(outside={"gaussian": _outside(0.2)})
+    assert [c[0] for c in away.causes] == ["Outside the training data"]
+    assert "20.0 % of cell-steps" in away.causes[0][1] and "L seen [0, 0.5]" in away.causes[0][1]
+    drifting = _read(diagnostic={"phi0": _score(0.0, settling=-6.0)})
+    assert drifting.causes[0][0] == "Not settled" and "model.burn_in" in drifting.causes[0][2]
+    biased = _read(diagnostic={"phi0": _score(0.15, se=0.02)})
+    (cause,) = biased.causes
+    assert cause[0] == "Biased switching probabilities"
+    assert "+15.0 % +- 2.0 %" in cause[1] and "-13.0 % in the mean off duration" in cause[1]
+    assert "collect.n_per_state=40000" in cause[2]
+    noisy = _read(diagnostic={"phi0": _score(0.15, se=0.1)})
+    assert noisy.causes[0][0] == "A reference too noisy to judge"
+    assert "gp.diagnostic.n_cells" in noisy.causes[0][2]
+
+
+def test_failing_runs_with_an_unbiased_psi_point_to_memory() -> None:
+    memory = _read(failures={"gaussian": ["on_fraction_t100", "off"]})
+    (cause,) = memory.causes
+    assert cause[0] == "Memory the chain over phi does not hold"
+    assert "gaussian: on_fraction_t100, off" in cause[1]
+    assert "model.classes=auto" in cause[2] and "gp=clock" in cause[2]
+    python_model = _read(failures={"gaussian": ["off"]}, network=False)
+    assert "model.classes=auto" not in python_model.causes[0][2]
+    classes = _read(failures={"gaussian": ["off"]}, lumps="classes")
+    assert "model.classes" in classes.causes[0][2] and "gp=clock" not in classes.causes[0][2]
+    # a biased psi explains failing runs by itself: memory is not claimed then
+    both = _read(failures={"gaussian": ["off"]}, diagnostic={"phi0": _score(0.2, se=0.02)})
+    assert [c[0] for c in both.causes] == ["Biased switching probabilities"]
+    assert "Do not trust it yet" in both.markdown()
