@@ -179,11 +179,14 @@ class NetworkInternalModel:
         self._compiled = None
 
     def _lump_function(self, lump: Lump) -> Callable[[Tensor], Tensor]:
+        #: the lump's parsed condition over the species (None for a Python function)
+        self.lump_expr: Expr | None = None
         if callable(lump):
             return lump
         symbols = {name: species_ref(s, name) for s, name in enumerate(self.species)}
         self.lump_formula = lump
-        return SpeciesCondition(parse_formula(lump, symbols, "model.lump", "bool", what="species"))
+        self.lump_expr = parse_formula(lump, symbols, "model.lump", "bool", what="species")
+        return SpeciesCondition(self.lump_expr)
 
     def __getstate__(self) -> dict:
         """Picklable (a model may be sent to another process): without the compiled SSA, which
@@ -259,13 +262,18 @@ class NetworkInternalModel:
         n = x.shape[0]
         space = self.state_space
         if space is not None:
-            pi = stationary_distribution(space.generator(*self._generator_args(x)))
+            pi = stationary_distribution(self.generator(x))
             idx = torch.multinomial(pi, 1).squeeze(1)
             counts = space.states.to(x.device)[idx]
             return (counts, *self._new_streams(n, x.device))
-        counts = self.initial_counts.to(x.device).expand(n, -1).clone()
-        state = (counts, *self._new_streams(n, x.device))
+        state = self.start_state(n, x.device)
         return self.advance(state, x, self.burn_in) if self.burn_in > 0 else state
+
+    def start_state(self, n: int, device: torch.device) -> InternalState:
+        """``n`` cells at ``initial_counts`` (no burn-in), with fresh random streams (from
+        torch's generator): where a network's own settling is measured from."""
+        counts = self.initial_counts.to(device).expand(n, -1).clone()
+        return (counts, *self._new_streams(n, device))
 
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
         if not self._streams(device):
@@ -331,6 +339,14 @@ class NetworkInternalModel:
         q = space.generator(*self._generator_args(signal, is_signal=True))
         return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
 
+    def generator(self, x: Tensor) -> Tensor:
+        """Generators ``n x K x K`` (float64) of the enumerated state space at inputs ``x``
+        (``n x d``); ValueError when the state space is too large to enumerate."""
+        space = self.state_space
+        if space is None:
+            raise ValueError(f"more than max_states={self.max_states} states are reachable")
+        return space.generator(*self._generator_args(x))
+
     def _generator_args(self, x: Tensor, is_signal: bool = False) -> tuple:
         inputs = self._kinetic_inputs(x) if is_signal else self.kinetic_inputs(x)
         return (inputs, None if self.mass_action else self.kinetics.torch_propensity)
@@ -348,10 +364,12 @@ class NetworkInternalModel:
         rates = self.kinetics.propensities(state, inputs.reshape(1, -1).to(torch.float64))
         return float(rates.clamp_min(0).sum()) * dt
 
-    def cell_step_seconds(self, dt: float) -> float:
+    def cell_step_seconds(self, dt: float, events: float | None = None) -> float:
         """Estimated wall time of one cell and step of the full model (s), from the events of
-        a window at the initial state and the measured cost of an event on this SSA."""
-        events = self.events_per_window(dt)
+        a window (``events``; default: :meth:`events_per_window` at the initial state) and the
+        measured cost of an event on this SSA."""
+        if events is None:
+            events = self.events_per_window(dt)
         if events != events:  # no estimate of the inputs: one event per window
             events = 1.0
         per_event = COMPILED_EVENT_SECONDS if self.backend(torch.device("cpu")) == "compiled" \
