@@ -33,6 +33,7 @@ __all__ = [
     "lumped_age_psi",
     "lumped_class_step",
     "lumped_psi",
+    "relaxation_time",
     "stationary_distribution",
 ]
 
@@ -188,6 +189,27 @@ def stationary_distribution(q: Tensor) -> Tensor:
     b[:, -1] = 1.0
     pi = torch.linalg.solve(a, b).clamp_min(0.0)
     return pi / pi.sum(-1, keepdim=True)
+
+
+def relaxation_time(q: Tensor) -> Tensor:
+    """``1 / spectral gap`` ``(n,)`` of generators ``q`` (``n x K x K``, irreducible), float64.
+
+    The gap is the smallest decay rate ``-Re(lambda)`` over the non-zero eigenvalues of Q: the
+    slowest mode of the chain, so the autocorrelation of any function of the state (e.g. the
+    lump phi) decays at least as fast as ``exp(-lag / tau)`` at long lags (exactly so when that
+    function has a component along the slowest mode). ``inf`` for a chain with one state.
+
+    Example:
+        >>> q = torch.tensor([[[-1.0, 1.0], [2.0, -2.0]]])  # a telegraph: gap = 1 + 2
+        >>> relaxation_time(q)
+        tensor([0.3333], dtype=torch.float64)
+    """
+    q = q.to(torch.float64)
+    if q.shape[-1] < 2:
+        return torch.full(q.shape[:1], torch.inf, dtype=torch.float64, device=q.device)
+    rates = -torch.linalg.eigvals(q).real  # (n, K): one ~0 (the stationary law), the rest > 0
+    slowest = rates.sort(-1).values[:, 1]
+    return 1.0 / slowest.clamp_min(1e-300)
 
 
 def lumped_psi(q: Tensor, lump: Tensor, dt: float) -> Tensor:

@@ -229,11 +229,14 @@ class NetworkInternalModel:
         self.class_lumps = None if classes is None else classes.lumps
 
     def _lump_function(self, lump: Lump) -> Callable[[Tensor], Tensor]:
+        #: the lump's parsed condition over the species (None for a Python function)
+        self.lump_expr: Expr | None = None
         if callable(lump):
             return lump
         symbols = {name: species_ref(s, name) for s, name in enumerate(self.species)}
         self.lump_formula = lump
-        return SpeciesCondition(parse_formula(lump, symbols, "model.lump", "bool", what="species"))
+        self.lump_expr = parse_formula(lump, symbols, "model.lump", "bool", what="species")
+        return SpeciesCondition(self.lump_expr)
 
     def __getstate__(self) -> dict:
         """Picklable (a model may be sent to another process): without the compiled SSA, which
@@ -319,17 +322,27 @@ class NetworkInternalModel:
         return self.burn_in_at(self.kinetic_inputs(x), x)
 
     def burn_in_at(self, inputs: Tensor, x: Tensor | None = None) -> InternalState:
-        """``initial_counts`` (rules applied, events at t = 0 fired) then ``burn_in`` seconds
-        at the kinetic inputs ``inputs`` (``n x P``, e.g. :meth:`kinetic_inputs`; ``x``: the
-        inputs they came from, named in an error), with fresh random streams."""
-        n = inputs.shape[0]
-        counts = self.initial_counts.to(inputs.device).expand(n, -1).clone()
+        """:meth:`start_state` then ``burn_in`` seconds at the kinetic inputs ``inputs``
+        (``n x P``, e.g. :meth:`kinetic_inputs`; ``x``: the inputs they came from, named in an
+        error)."""
+        state = self.start_state(inputs.shape[0], inputs.device, inputs)
+        return self.advance_at(state, inputs, self.burn_in, x) if self.burn_in > 0 else state
+
+    def start_state(
+        self, n: int, device: torch.device, inputs: Tensor | None = None
+    ) -> InternalState:
+        """``n`` cells at ``initial_counts`` (no burn-in; rules applied and events at t = 0
+        fired at the kinetic inputs ``inputs``, ``n x P``, where the network has any), with
+        fresh random streams (from torch's generator): where a network's own settling is
+        measured from."""
+        counts = self.initial_counts.to(device).expand(n, -1).clone()
         clock: tuple[Tensor, ...] = ()
         if self.kinetics.has_rules_or_events:  # rules applied, events at t = 0 fired
+            if inputs is None:
+                raise ValueError("a network with rules or events starts from its inputs")
             counts, start = start_events(self.kinetics, counts, inputs)
             clock = (start.time, start.triggers) if self.kinetics.events else ()
-        state = (counts, *self._new_streams(n, inputs.device), *clock)
-        return self.advance_at(state, inputs, self.burn_in, x) if self.burn_in > 0 else state
+        return (counts, *self._new_streams(n, device), *clock)
 
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
         if not self._streams(device):
@@ -444,6 +457,13 @@ class NetworkInternalModel:
         classes = self._classify(states, self._lump(states).long())
         return lumped_class_step(q, classes, len(self.class_names or ()), dt)
 
+    def generator(self, x: Tensor) -> Tensor:
+        """Generators ``n x K x K`` (float64) of the enumerated state space at inputs ``x``
+        (``n x d``); ValueError when the state space is too large to enumerate."""
+        if self.state_space is None:
+            raise ValueError(f"more than max_states={self.max_states} states are reachable")
+        return self._generator(x)
+
     def _generator(self, x: Tensor, is_signal: bool = False) -> Tensor:
         """Generators ``n x K x K`` at inputs ``x`` (``n x d``; the signal features with
         ``is_signal``), refusing inputs and rates the SSA would refuse (one host sync)."""
@@ -498,11 +518,13 @@ class NetworkInternalModel:
         rates = self.kinetics.propensities(state, inputs.reshape(1, -1).to(torch.float64))
         return float(rates.clamp_min(0).sum()) * dt
 
-    def cell_step_seconds(self, dt: float) -> float:
+    def cell_step_seconds(self, dt: float, events: float | None = None) -> float:
         """Estimated wall time of one cell and step of the full model (s), from the events of
-        a window at the initial state and the measured cost of an event on this SSA (no
-        accuracy guarantee: events far from the initial counts and default inputs differ)."""
-        events = self.events_per_window(dt)
+        a window (``events``; default: :meth:`events_per_window` at the initial state) and the
+        measured cost of an event on this SSA (no accuracy guarantee: events far from the
+        initial counts and default inputs differ)."""
+        if events is None:
+            events = self.events_per_window(dt)
         if events != events:  # no estimate of the inputs: one event per window
             events = 1.0
         per_event = COMPILED_EVENT_SECONDS if self.backend(torch.device("cpu")) == "compiled" \

@@ -120,6 +120,10 @@ class SbmlModel:
         reactions: The reactions as written (including fixed species and modifiers).
         source: The file read, or ``None`` for a string.
         species_compartments: The compartment of each species (by id).
+        parameters: The file's value of every global parameter by id, inputs included (NaN
+            where it has none or a rule assigns it): what the file says, for reports.
+        local_parameters: The file's value of every reaction-local (kinetic-law) parameter,
+            by ``<reaction id>.<parameter id>`` (NaN where it has none), inputs included.
     """
 
     id: str
@@ -131,6 +135,8 @@ class SbmlModel:
     reactions: tuple[SbmlReaction, ...]
     source: Path | None = None
     species_compartments: Mapping[str, str] = field(default_factory=dict)
+    parameters: Mapping[str, float] = field(default_factory=dict)
+    local_parameters: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def network(self) -> ReactionNetwork:
@@ -443,8 +449,7 @@ class _Reader:
     def _input_default(self, name: str) -> float:
         """The file's value of an input parameter (global or ``reaction.local``), NaN if unset."""
         rid, dot, pid = name.partition(".")
-        p = self.local_parameters[rid][pid] if dot else self.parameters[name]
-        return float(p.getValue()) if p.isSetValue() else math.nan
+        return _file_value(self.local_parameters[rid][pid] if dot else self.parameters[name])
 
     # -- values of constants ------------------------------------------------------------
 
@@ -841,6 +846,10 @@ class _Reader:
                     if name in self.initial_assignments:
                         raise
                     constants[name] = math.nan  # declared without a value and never used
+        globals_ = {name: math.nan if name in self.assignment_rules else _file_value(p)
+                    for name, p in self.parameters.items()}  # fmt: skip
+        locals_ = {f"{rid}.{pid}": _file_value(p) for rid, ps in self.local_parameters.items()
+                   for pid, p in ps.items()}  # fmt: skip
         return SbmlModel(
             id=model.getId(),
             kinetics=kinetics,
@@ -851,7 +860,14 @@ class _Reader:
             reactions=tuple(reactions),
             source=source,
             species_compartments={sp.getId(): sp.getCompartment() for sp in self.species},
+            parameters=globals_,
+            local_parameters=locals_,
         )
+
+
+def _file_value(parameter: libsbml.Parameter) -> float:
+    """A parameter's ``value`` attribute as written, NaN where unset."""
+    return float(parameter.getValue()) if parameter.isSetValue() else math.nan
 
 
 def _local_parameters(reaction: libsbml.Reaction) -> list:

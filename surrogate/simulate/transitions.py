@@ -56,6 +56,14 @@ from surrogate.simulate.memory import AGE, CENSORED, tick
 
 #: column of the expected label: P(phi' = 1 | the internal state at the window's start, x)
 EXPECTED = "phi_next_expected"
+#: collect checks each origin's rate of rows once this share of ``max_time`` is recorded ...
+EARLY_CHECK_SHARE = 0.05
+#: ... and stops when the rows one origin would reach by ``max_time`` fall short of those
+#: wanted by more than this factor (a lump almost never or always true where cells live: more
+#: time would not help, a different lump would)
+FAR_SHORT = 10.0
+#: a lump seen in fewer windows than this share is called rare in collect's messages
+RARE = 0.05
 
 
 def _rows(
@@ -226,6 +234,8 @@ class TransitionCollector:
     ) -> None:
         self.max_time = float(max_time)
         self.progress = progress
+        self.n_cells, self.dt = int(n_cells), float(simulator.dt)
+        self.lump_names = tuple(simulator.decision.internal.lump_names)  # type: ignore[attr-defined]
         #: guided jumps of a sequential design (None: the perturbation as drawn)
         self.guide: GuidedJump | None = None
         self.kept = np.zeros(2, dtype=np.int64)
@@ -243,22 +253,25 @@ class TransitionCollector:
         counts = np.zeros(2, dtype=np.int64)
         bar = tqdm(total=2 * n_per_state, desc="collect transitions", disable=not self.progress,
                    mininterval=1.0)  # fmt: skip
+        first = now = None
         for chunk in self._rows:
             chunks.append(chunk)
             new = np.bincount(chunk["phi"], minlength=2)
             bar.update(int(np.minimum(counts + new, n_per_state).sum()
                            - np.minimum(counts, n_per_state).sum()))  # fmt: skip
             counts += new
+            now = float(chunk["t"][0]) + self.dt  # the end of the window just recorded
+            first = now - self.dt if first is None else first
             if (counts >= n_per_state).all():
                 break
+            if now - first >= EARLY_CHECK_SHARE * self.max_time:
+                projected = counts * (self.max_time - first) / (now - first)
+                if (projected * FAR_SHORT < n_per_state).any():
+                    bar.close()
+                    raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=True))
         bar.close()
         if not (counts >= n_per_state).all():
-            raise ConfigError(
-                f"collect reached collect.max_time={self.max_time:g} s with only "
-                f"{(self.kept + counts).tolist()} transitions (phi = 0, 1) of the "
-                f"{(self.kept + n_per_state).tolist()} wanted; raise collect.max_time or "
-                f"collect.n_cells, or lower collect.n_per_state"
-            )
+            raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=False))
         table = _table(chunks)
         # a random (seeded) subsample per origin spreads the kept rows over the whole take
         gen = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
@@ -269,6 +282,43 @@ class TransitionCollector:
         ])  # fmt: skip
         self.kept += n_per_state
         return table.iloc[np.sort(keep)].reset_index(drop=True)
+
+    def _shortfall(
+        self, counts: np.ndarray, wanted: int, first: float | None, now: float | None, early: bool
+    ) -> str:
+        """Why collect stops short of ``wanted`` rows per origin (``counts`` so far, recorded
+        from ``first`` to ``now`` s), with the occupancy measured and the fix that fits: a lump
+        almost never (or always) true is changed or inspected; a slow but steady rate is given
+        time or cells."""
+        lumps, total = self.lump_names, int(counts.sum())
+        start = first if first is not None else 0.0
+        span = max((now if now is not None else start) - start, self.dt)
+        short = int(np.argmin(counts))
+        name, share = lumps[short], counts[short] / max(total, 1)
+        # rows of each origin grow in proportion to the recorded time and to the cells
+        projected = counts[short] * (self.max_time - start) / span
+        measured = (f"phi = {lumps[1]} in {counts[1] / max(total, 1):.3%} of the {total} "
+                    f"windows recorded in {span:g} s (rows from {lumps[0]}, {lumps[1]}: "
+                    f"{counts.tolist()}; {wanted} wanted from each)")  # fmt: skip
+        if counts[short] == 0:
+            need = f"{name} was never recorded"
+        else:
+            time = start + wanted * span / counts[short]
+            need = (f"at the measured rate {name} would reach them at collect.max_time ~ "
+                    f"{time:.3g} s, or with collect.n_cells ~ "
+                    f"{self.n_cells * wanted / projected:.3g}")  # fmt: skip
+        inspect = ("`python3 scripts/inspect_model.py` with the same model settings measures "
+                   "phi's occupancy across the inputs the fields give")  # fmt: skip
+        if early:
+            return (f"collect stopped early: {measured}. By collect.max_time={self.max_time:g} s "
+                    f"{name} would give ~{projected:.3g} rows, less than 1/{FAR_SHORT:g} of those "
+                    f"wanted ({need}): the lump is (almost) never {name} where cells live. "
+                    f"Change the lump (model.lump) so that both lumps are common; "
+                    f"{inspect}")  # fmt: skip
+        rare = (f" {name} is rare ({share:.3%} of the windows): if it is so where cells live, "
+                f"change the lump (model.lump) instead;" if share < RARE else "")  # fmt: skip
+        return (f"collect reached collect.max_time={self.max_time:g} s short of the rows wanted: "
+                f"{measured}; {need} (or lower collect.n_per_state).{rare} {inspect}")  # fmt: skip
 
 
 def collect_transitions(

@@ -31,8 +31,14 @@ SUMMARY = "summary.json"
 COMPARISON = "comparison"
 NOISE_FLOOR = "noise_floor"
 
-#: reproduce: the report
+#: reproduce and inspect: the report
 REPORT = "report.md"
+
+#: inspect: its figures as numbers, and its figures
+INSPECTION = "inspect.json"
+INPUT_OCCUPANCY_FIGURE = "occupancy.png"
+SETTLING_FIGURE = "settling.png"
+MEMORY_FIGURE = "memory.png"
 
 __all__ = [
     "CLASS_CHAIN",
@@ -42,11 +48,15 @@ __all__ = [
     "FIT_METRICS",
     "GRID",
     "HISTORY_FIGURE",
+    "INPUT_OCCUPANCY_FIGURE",
+    "INSPECTION",
+    "MEMORY_FIGURE",
     "METRICS",
     "NOISE_FLOOR",
     "OCCUPANCY",
     "PSI",
     "REPORT",
+    "SETTLING_FIGURE",
     "SUMMARY",
     "SURFACES_FIGURE",
     "TRANSITIONS",

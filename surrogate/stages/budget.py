@@ -59,6 +59,9 @@ class Work:
         cell_step_seconds: the model's estimated cost of one cell-step under its decision.
         settings: the settings that set its size, as they would be written on the command line.
         model: the model's name.
+        decision: the decision layer it runs (``full``: the internal network, whose cost per
+            cell-step is the model's; the chains cost :data:`~surrogate.models.base.
+            CELL_STEP_SECONDS`).
     """
 
     what: str
@@ -67,6 +70,7 @@ class Work:
     cell_step_seconds: float
     settings: str
     model: str
+    decision: str = "full"
 
     @property
     def seconds(self) -> float:
@@ -92,15 +96,16 @@ def duration(seconds: float) -> str:
     return f"{seconds / 86400:.2g} days"
 
 
-def _exists(directory: Any) -> bool:
-    return (directory / MANIFEST).exists()
+def _exists(directory: Any, reuse: bool = True) -> bool:
+    return reuse and (directory / MANIFEST).exists()
 
 
-def collect_work(settings: CollectSettings) -> list[Work]:
+def collect_work(settings: CollectSettings, reuse: bool = True) -> list[Work]:
     """The collection's windows, at least: the equilibration of every cell, then twice
     ``n_per_state`` recorded windows (both origins equally common, none in a blackout), each
-    every ``record_every``-th window of a cell."""
-    if _exists(settings.directory):
+    every ``record_every``-th window of a cell. ``reuse=False``: the cost even where the
+    artefact exists (for every function here)."""
+    if _exists(settings.directory, reuse):
         return []
     setup, c = settings.setup, settings.options
     n, every, cells = int(c["n_per_state"]), int(c["record_every"]), int(c["n_cells"])
@@ -113,15 +118,15 @@ def collect_work(settings: CollectSettings) -> list[Work]:
                  where, setup.model.name)]  # fmt: skip
 
 
-def train_work(settings: TrainSettings) -> list[Work]:
+def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
     """The collection it needs (if missing) and its diagnostic's full-model population."""
     from surrogate.stages.settings import CollectSettings
 
     works: list[Work] = []
     if isinstance(settings.source, CollectSettings):
-        works += collect_work(settings.source)
+        works += collect_work(settings.source, reuse)
     occupancy = settings.occupancy()
-    if not _exists(occupancy.directory):
+    if not _exists(occupancy.directory, reuse):
         d, setup = occupancy.options, settings.setup
         span = float(d["t_end"]) + float(d["equilibration_time"])
         where = (f"gp.diagnostic.n_cells={d['n_cells']}, gp.diagnostic.t_end={d['t_end']:g} s "
@@ -133,9 +138,9 @@ def train_work(settings: TrainSettings) -> list[Work]:
     return works
 
 
-def run_work(settings: SimulateSettings) -> list[Work]:
+def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
     """One population run (if its artefact is missing)."""
-    if _exists(settings.directory):
+    if _exists(settings.directory, reuse):
         return []
     setup, name = settings.setup, settings.decision.name
     span = settings.t_end + settings.equilibration_time
@@ -144,7 +149,8 @@ def run_work(settings: SimulateSettings) -> list[Work]:
     label = {"full": "the full-model run", "abstract": "the abstraction's run",
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
     return [Work(label, settings.n_cells, span / setup.dt,
-                 setup.model.cell_step_seconds(setup.dt, name), where, setup.model.name)]  # fmt: skip
+                 setup.model.cell_step_seconds(setup.dt, name), where, setup.model.name,
+                 name)]  # fmt: skip
 
 
 def evaluate_work(settings: EvaluateSettings) -> list[Work]:
@@ -161,11 +167,12 @@ def evaluate_work(settings: EvaluateSettings) -> list[Work]:
     return works
 
 
-def reproduce_work(settings: ReproduceSettings) -> list[Work]:
+def reproduce_work(settings: ReproduceSettings, reuse: bool = True) -> list[Work]:
     """Collection, training diagnostic and every population run of the report."""
-    works = train_work(settings.train) if not _exists(settings.train.directory) else []
+    train = settings.train
+    works = train_work(train, reuse) if not _exists(train.directory, reuse) else []
     for run in settings.runs():
-        works += run_work(run)
+        works += run_work(run, reuse)
     return works
 
 

@@ -16,7 +16,9 @@ One module per stage, each importing only those before it:
 * ``decision``: :class:`DecisionSettings` (full, abstract, exact);
 * ``simulate``: :class:`SimulateSettings`, :func:`check_memory`, :func:`validate_backend`;
 * ``evaluate``: :class:`EvaluateSettings`;
-* ``reproduce``: :class:`ReproduceSettings`, :func:`batchable`.
+* ``reproduce``: :class:`ReproduceSettings`, :func:`batchable`;
+* ``inspection``: :class:`InspectSettings` (a model checked before collection; its costs are
+  reproduce's).
 
 Every public name is re-exported here: ``from surrogate.stages.settings import X``.
 """
@@ -36,6 +38,7 @@ from surrogate.stages.settings.common import (
 )
 from surrogate.stages.settings.decision import DECISION_MODES, DECISIONS, DecisionSettings
 from surrogate.stages.settings.evaluate import EvaluateSettings
+from surrogate.stages.settings.inspection import INSPECT_CMD, InspectSettings
 from surrogate.stages.settings.occupancy import OccupancySettings
 from surrogate.stages.settings.reproduce import BATCH_MAX_CELLS, ReproduceSettings, batchable
 from surrogate.stages.settings.simulate import (
@@ -67,6 +70,7 @@ __all__ = [
     "GP_CLOCK",
     "GP_EXTRA",
     "GP_NOT_FIT",
+    "INSPECT_CMD",
     "LABEL_CHOICES",
     "LABEL_COLUMNS",
     "REPRODUCE_CMD",
@@ -76,6 +80,7 @@ __all__ = [
     "DecisionSettings",
     "EvaluateSettings",
     "ExternalTable",
+    "InspectSettings",
     "Job",
     "ModelSetup",
     "OccupancySettings",

@@ -1,0 +1,1055 @@
+"""The inspect stage: a model measured before any collection, and an abstraction recommended.
+
+``python3 scripts/inspect_model.py model=sbml model.spec=examples/toggle_switch/model.yaml``
+writes ``report.md``, ``inspect.json`` and figures under ``data/inspect/<settings>/`` in about a
+minute for a small network. Every figure is a measurement (the definitions are here and in
+:mod:`surrogate.evaluate.dynamics`):
+
+1. **The network** (internal models that are reaction networks): species and initial counts,
+   global and reaction-local parameters, and for each input parameter the reactions whose
+   propensities it enters and its *sensitivity*: for reaction r,
+   ``S_r = sum_s |a_r(s, p_hi) - a_r(s, p_lo)| / sum_s (a_r(s, p_lo) + a_r(s, p_hi)) / 2``
+   over network states s sampled from the population runs (item 2), with the input at the low
+   and the high quantile of the values the fields give it and every other input at its median
+   (``a_r`` the kinetics' own generated propensity function; 0 where the reaction never fires
+   in those states). An input that enters no reaction, or moves no propensity by more than
+   ``inspect.effect_threshold``, is flagged; so is one whose range is a single value.
+2. **The inputs the fields give**: the inputs the body hands the internal model (and the
+   network's input parameters computed from them) in a full-model population of
+   ``inspect.population_cells`` cells for ``inspect.population_share`` of ``t_end`` in each field
+   of ``fields``, from reproduce's ``start`` after its ``equilibration_time`` (fewer cells, then
+   a shorter run, where the model's estimated cost exceeds a quarter of ``inspect.max_seconds``).
+3. **phi's occupancy across that range**: at a grid of inputs (``inspect.grid_points`` values of
+   each input from the low to the high quantile, the others at their median, and the point
+   where every input is at its median), the stationary P(phi = 1): exactly, from the generator,
+   where the state space has at most ``inspect.exact_max_states`` states; else the mean over
+   ``inspect.n_cells`` cells at fixed inputs of each cell's average over the samples of the
+   second half of a run from the file's counts (item 4), with its standard error across cells.
+   A lump whose occupancy is below ``inspect.min_occupancy`` (or above 1 minus it) at every grid
+   point is refused (ConfigError) once the report is written.
+4. **Settling and relaxation**: from the file's initial counts at each grid point, the settling
+   time of each species' mean count and of phi's occupancy
+   (:func:`~surrogate.evaluate.dynamics.settling_time`: the time after which the mean stays
+   within ``inspect.settle_tolerance`` of its final value or within the noise); simulated runs
+   double their horizon from ``inspect.min_time`` until every grid point has settled in the
+   first half (or ``inspect.max_time``, or the budget). The lump's relaxation time at the
+   median inputs: ``1 / spectral gap`` of the generator where enumerable, else the decay time
+   of phi's autocorrelation over ``inspect.record_windows`` windows of dt at stationarity
+   (:func:`~surrogate.evaluate.dynamics.relaxation_from_series`). ``model.burn_in`` is compared
+   with ``inspect.burn_in_factor`` x the settling time.
+5. **Cost**: SSA events per window (the model's estimate from the file's initial state, which
+   the stages' budgets use, and the mean at stationarity), the estimated cost of each stage of
+   ``scripts/reproduce.py`` with the same settings (:mod:`surrogate.stages.budget`, at both
+   rates), and the collection the switching implies: ``inspect.min_switches`` switches from
+   each origin at the measured switching probability per window.
+6. **A recommended abstraction**: at the median inputs at stationarity, the hazard of leaving
+   phi against the time since phi last changed (exact from the lumped chain where enumerable,
+   :func:`~surrogate.ctmc.lumped.lumped_age_psi`; else
+   :func:`~surrogate.evaluate.dynamics.switch_hazards` with a chi-square test). A constant
+   hazard: the two-state chain (``gp=svgp``, the default). One that depends on the age by more
+   than ``inspect.memory_effect`` (and significantly): classes over bins of the species when
+   the lump is a threshold on one species count (``gp=classes`` with ``classes: {species: P,
+   edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold),
+   else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens).
+
+Models whose internal model is not a network (``model=ecoli``) get items 2, 3, 4 (relaxation),
+5 and 6 by simulation from their own initial state (their stationary law).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from surrogate.config import seed_everything, to_dict
+from surrogate.ctmc.lumped import (
+    lumped_age_psi,
+    lumped_psi,
+    relaxation_time,
+    stationary_distribution,
+)
+from surrogate.errors import ConfigError
+from surrogate.evaluate.dynamics import (
+    relaxation_from_series,
+    settling_from_cells,
+    settling_time,
+    switch_hazards,
+)
+from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
+from surrogate.models.base import Model
+from surrogate.models.network import NetworkInternalModel
+from surrogate.sbml import SbmlModel
+from surrogate.simulate.decision import FullDecision
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.transitions import record_occupancy
+from surrogate.stages import budget
+from surrogate.stages.artefacts import (
+    INPUT_OCCUPANCY_FIGURE,
+    INSPECTION,
+    MEMORY_FIGURE,
+    REPORT,
+    SETTLING_FIGURE,
+)
+from surrogate.stages.inspection_report import (
+    plot_memory,
+    plot_occupancy,
+    plot_settling,
+    relaxation_text,
+    report_markdown,
+    settling_text,
+)
+from surrogate.stages.settings import CollectSettings, InspectSettings
+
+log = logging.getLogger(__name__)
+
+#: shares of ``inspect.max_seconds``: the population runs (item 2) at most this ...
+POPULATION_BUDGET = 0.25
+#: ... and the settling runs at most this of what is left (the stationary record gets the rest)
+SETTLING_BUDGET = 0.7
+#: samples per doubling of a settling run's horizon
+SAMPLES = 64
+#: cells per grid point below which a settling run stops rather than thins its cells
+MIN_CELLS = 16
+#: network states sampled for the sensitivities
+MAX_STATES_SAMPLED = 2000
+#: population records per cell (item 2)
+RECORDS_PER_CELL = 50
+
+
+def validate(cfg: Mapping[str, Any]) -> InspectSettings:
+    """The inspection's settings (the model built and checked), before any simulation."""
+    settings = InspectSettings.from_config(cfg)
+    log.info("inspect: at most ~%s of simulation (inspect.max_seconds=%g)",
+             budget.duration(settings.options["max_seconds"]),
+             settings.options["max_seconds"])  # fmt: skip
+    return settings
+
+
+def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
+    """Inspect the model of ``cfg`` (or reuse the report); return the report's directory."""
+    return inspect(validate(cfg), config=to_dict(cfg), force=force)
+
+
+def inspect(
+    settings: InspectSettings, config: Mapping[str, Any] | None = None, force: bool = False
+) -> Path:
+    """Run (or reuse) the inspection of ``settings``; log where its report is."""
+    out = settings.directory
+    make_once(out, settings.identity(), settings.command(),
+              lambda _: _inspect(settings, out, config), what="inspection", force=force)  # fmt: skip
+    log.info("inspection report: %s", out / REPORT)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# item 2: the inputs the fields give
+
+
+@dataclass
+class Population:
+    """The inputs a short full-model population sees in each field (item 2).
+
+    Attributes:
+        x: ``rows x d`` the body's inputs, every field's records pooled.
+        kinetic: ``rows x P`` the network's input parameters computed from them (networks).
+        states: ``m x S`` network states at the runs' ends (networks).
+        fields: per field: cells, duration, quantiles of every input, the share of phi = 1.
+        notes: what was reduced to fit the budget.
+        cost: the estimated seconds of simulation.
+    """
+
+    x: np.ndarray
+    kinetic: np.ndarray | None
+    states: Tensor | None
+    fields: dict[str, dict[str, Any]]
+    notes: list[str]
+    cost: float
+
+
+def _network(model: Model) -> NetworkInternalModel | None:
+    internal = model.internal
+    return internal if isinstance(internal, NetworkInternalModel) else None
+
+
+def population_inputs(settings: InspectSettings, seconds: float) -> Population:
+    """Item 2: a full-model population in each field of ``settings.fields``, within ``seconds``
+    of estimated simulation (the model's cost per cell-step, as every stage's budget)."""
+    setup, o, run_ = settings.setup, settings.options, settings.run
+    model, dt = setup.model, setup.dt
+    network = _network(model)
+    _numba_threads_as_torch()
+    names = tuple(model.internal.input_names)
+    kinetic_names = network.kinetics.input_names if network is not None else ()
+    step_cost = model.cell_step_seconds(dt)
+    burn_in = network.burn_in if network is not None and network.state_space is None else 0.0
+    share = seconds / len(settings.fields)
+    xs, kins, states, per_field, notes, spent = [], [], [], {}, [], 0.0
+    equilibration = float(run_["equilibration_time"])
+
+    def estimate(cells: int, span: float) -> float:
+        steps = (span + equilibration + burn_in) / dt
+        return steps * (budget.STEP_SECONDS + cells * step_cost)
+
+    for name in settings.fields:
+        cells, span = int(o["population_cells"]), o["population_share"] * float(run_["t_end"])
+        if estimate(cells, span) > share:
+            full = (cells, span)
+            steps = (span + equilibration + burn_in) / dt
+            cells = max(MIN_CELLS, int((share / steps - budget.STEP_SECONDS) / step_cost))
+            cells = min(cells, full[0])
+            if estimate(cells, span) > share:  # even the fewest cells: a shorter run
+                per_step = budget.STEP_SECONDS + cells * step_cost
+                span = max(10 * dt, share / per_step * dt - equilibration - burn_in)
+            notes.append(f"{name}: {cells} cells for {span:.3g} s (not {full[0]} for "
+                         f"{full[1]:.3g} s), within the budget")  # fmt: skip
+        spent += estimate(cells, span)
+        fsetup = settings.field_setup(name)
+        seed_everything(setup.seed)
+        simulator = Simulator(model, FullDecision(model.internal), fsetup.field, dt,
+                              settings.job.device, backend="auto")  # fmt: skip
+        steps = max(1, round(span / dt))
+        table = record_occupancy(simulator, cells, span, torch.tensor(run_["start"]),
+                                 max(1, steps // RECORDS_PER_CELL), equilibration)  # fmt: skip
+        x = table[list(names)].to_numpy(np.float64)
+        xs.append(x)
+        summary: dict[str, Any] = {"cells": cells, "seconds": span,
+                                   "phi_share": float(table["phi"].mean()), "inputs": {}}  # fmt: skip
+        columns = {n: x[:, i] for i, n in enumerate(names)}
+        if network is not None:
+            kin = network.kinetic_inputs(torch.tensor(x, dtype=torch.float32)).numpy()
+            kins.append(kin)
+            columns.update({n: kin[:, j] for j, n in enumerate(kinetic_names) if n not in columns})
+            states.append(simulator.decision.fused_state()[0].cpu())
+        q = o["quantiles"]
+        for n, v in columns.items():
+            summary["inputs"][n] = {"low": float(np.quantile(v, q[0])),
+                                    "median": float(np.median(v)),
+                                    "high": float(np.quantile(v, q[1])),
+                                    "min": float(v.min()), "max": float(v.max())}  # fmt: skip
+        per_field[name] = summary
+    pooled_states = None
+    if states:
+        pooled_states = torch.cat(states)
+        if pooled_states.shape[0] > MAX_STATES_SAMPLED:
+            gen = torch.Generator().manual_seed(setup.seed)
+            pick = torch.randperm(pooled_states.shape[0], generator=gen)[:MAX_STATES_SAMPLED]
+            pooled_states = pooled_states[pick]
+    return Population(np.concatenate(xs), np.concatenate(kins) if kins else None,
+                      pooled_states, per_field, notes, spent)  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# the grid of fixed inputs (items 3, 4, 6)
+
+
+@dataclass
+class Grid:
+    """Fixed inputs: row 0 every input at its median, then ``points`` values of each input
+    from its low to its high quantile with the others at their median (an input whose range
+    is one value gets none).
+
+    Attributes:
+        names: the body's inputs (columns of ``x``).
+        x: ``G x d`` the grid points.
+        axis: ``(G,)`` the input varied at each point (-1: the median point).
+        low, median, high: ``(d,)`` the range of each input.
+    """
+
+    names: tuple[str, ...]
+    x: np.ndarray
+    axis: np.ndarray
+    low: np.ndarray
+    median: np.ndarray
+    high: np.ndarray
+
+    @classmethod
+    def from_inputs(
+        cls, x: np.ndarray, names: Sequence[str], quantiles: Sequence[float], points: int
+    ) -> Grid:
+        """The grid over the range of the pooled inputs ``x`` (``rows x d``)."""
+        low, high = np.quantile(x, quantiles[0], axis=0), np.quantile(x, quantiles[1], axis=0)
+        median = np.median(x, axis=0)
+        rows, axis = [median], [-1]
+        for i in range(x.shape[1]):
+            if not high[i] > low[i]:
+                continue
+            for value in np.linspace(low[i], high[i], points):
+                point = median.copy()
+                point[i] = value
+                rows.append(point)
+                axis.append(i)
+        return cls(tuple(names), np.stack(rows), np.array(axis), low, median, high)
+
+    def describe(self, g: int) -> str:
+        """``L = 0.05`` (the input varied) or ``median``."""
+        i = int(self.axis[g])
+        return "median" if i < 0 else f"{self.names[i]} = {self.x[g, i]:.4g}"
+
+
+# ----------------------------------------------------------------------------------------------
+# item 1: the network
+
+
+def propensity_change(kinetics: Any, states: Tensor, low: Tensor, high: Tensor) -> np.ndarray:
+    """The sensitivity of every reaction's propensity to a change of the inputs from ``low``
+    to ``high`` (``(P,)`` each), over ``states`` (``m x S`` counts):
+    ``sum_s |a_r(s, high) - a_r(s, low)| / sum_s (a_r(s, low) + a_r(s, high)) / 2``, 0 where the
+    reaction never fires in those states. ``(R,)``."""
+    m = states.shape[0]
+    a_low = kinetics.torch_propensity(states, low.reshape(1, -1).expand(m, -1))
+    a_high = kinetics.torch_propensity(states, high.reshape(1, -1).expand(m, -1))
+    change = (a_high - a_low).abs().sum(0)
+    mean = ((a_low + a_high) / 2).sum(0)
+    return torch.where(mean > 0, change / mean.clamp_min(1e-300), 0.0).numpy()
+
+
+def describe_network(
+    network: NetworkInternalModel, population: Population, grid: Grid, options: Mapping[str, Any]
+) -> dict[str, Any]:
+    """Item 1: species, parameters, and what each input feeds and whether it has an effect."""
+    kinetics = network.kinetics
+    reactions = network.reactions.reaction_names
+    sbml = network.network if isinstance(network.network, SbmlModel) else None
+    initial = network.initial_counts.tolist()
+    out: dict[str, Any] = {
+        "species": {s: int(c) for s, c in zip(network.species, initial, strict=True)},
+        "reactions": list(reactions),
+        "global_parameters": dict(sbml.parameters) if sbml else {},
+        "local_parameters": dict(sbml.local_parameters) if sbml else {},
+        "file_inputs": bool(sbml),
+    }
+    states = population.states
+    assert states is not None and population.kinetic is not None
+    kin = population.kinetic
+    q = options["quantiles"]
+    low, high = np.quantile(kin, q[0], axis=0), np.quantile(kin, q[1], axis=0)
+    median = np.median(kin, axis=0)
+    as_tensor = lambda v: torch.as_tensor(v, dtype=torch.float64)  # noqa: E731
+    inputs = []
+    for j, name in enumerate(kinetics.input_names):
+        enters = [reactions[r] for r, e in enumerate(kinetics.propensity_exprs)
+                  if j in e.inputs_used()]  # fmt: skip
+        lo, hi = median.copy(), median.copy()
+        lo[j], hi[j] = low[j], high[j]
+        sens = propensity_change(kinetics, states, as_tensor(lo), as_tensor(hi))
+        effect = {reactions[r]: float(sens[r]) for r in range(len(reactions))
+                  if reactions[r] in enters}  # fmt: skip
+        flags = []
+        if not enters:
+            flags.append("feeds no reaction")
+        elif not high[j] > low[j]:
+            flags.append("one value over the fields' range")
+        elif max(effect.values()) < options["effect_threshold"]:
+            flags.append("no effect on its reactions' propensities in the states sampled")
+        inputs.append({"name": name, "low": float(low[j]), "median": float(median[j]),
+                       "high": float(high[j]), "reactions": enters, "sensitivity": effect,
+                       "flags": flags})  # fmt: skip
+    out["inputs"] = inputs
+    # the body's inputs, through the model's features and input formulas
+    body = []
+    for i, name in enumerate(grid.names):
+        xl, xh = grid.median.copy(), grid.median.copy()
+        xl[i], xh[i] = grid.low[i], grid.high[i]
+        both = network.kinetic_inputs(torch.as_tensor(np.stack([xl, xh]), dtype=torch.float32))
+        sens = propensity_change(kinetics, states, both[0], both[1])
+        body.append({"name": name, "low": float(grid.low[i]), "high": float(grid.high[i]),
+                     "sensitivity": {reactions[r]: float(sens[r]) for r in range(len(reactions))
+                                     if sens[r] > 0},
+                     "effect": float(sens.max()) if sens.size else 0.0})  # fmt: skip
+    out["body_inputs"] = body
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# items 3, 4 and 6 at fixed inputs
+
+
+@dataclass
+class FixedInputs:
+    """Occupancy, settling, relaxation and memory of phi at the grid's fixed inputs.
+
+    Attributes:
+        method: ``exact`` (the generator) or ``simulated``.
+        occupancy, occupancy_se: ``(G,)`` the stationary P(phi = 1) at each grid point.
+        settled: ``(G,)`` whether the point settled within the horizon.
+        settle_phi: ``(G,)`` the settling time of phi's occupancy (s).
+        settle_network: ``(G,)`` the largest settling time of a species' mean count (s).
+        species_settle: per species, its settling time at the median point (s).
+        curves: the median point's mean counts and occupancy over time (for the figure).
+        horizon: the run's (or the exact curve's) length (s).
+        relaxation: the lump's relaxation time at the median point (s) and how it was
+            measured.
+        hazards: per origin, the hazard of leaving it against the time since phi changed.
+        memory: whether phi's switching has memory at the median point (None: it never
+            switches there).
+        switch: ``(2,)`` P(phi changes over a window | phi = 0, 1) at the median point.
+        events: mean SSA events per window at stationarity at the median point (networks).
+        species_law: per species, its stationary values and weights at the median point.
+        cells: cells per grid point (simulated).
+        notes: what the budget cut.
+        cost: estimated seconds of simulation.
+    """
+
+    method: str
+    occupancy: np.ndarray
+    occupancy_se: np.ndarray
+    settled: np.ndarray
+    settle_phi: np.ndarray
+    settle_network: np.ndarray | None
+    species_settle: dict[str, float]
+    curves: dict[str, Any]
+    horizon: float
+    relaxation: dict[str, Any]
+    hazards: list[dict[str, Any] | None]
+    memory: bool | None
+    switch: np.ndarray
+    events: float | None
+    species_law: dict[str, tuple[np.ndarray, np.ndarray]]
+    cells: int = 0
+    notes: list[str] = field(default_factory=list)
+    cost: float = 0.0
+
+
+def _hazard_dict(h: Any, dt: float) -> dict[str, Any] | None:
+    if h is None:
+        return None
+    return {"age_s": (h.edges * dt).tolist(), "rows": h.rows.tolist(),
+            "hazard": h.hazard.tolist(), "se": h.se.tolist(), "pooled": h.pooled,
+            "chi2": h.chi2, "df": h.df, "p_value": h.p_value, "effect": h.effect,
+            "flat_from_s": h.flat_from * dt}  # fmt: skip
+
+
+def exact_fixed_inputs(
+    network: NetworkInternalModel, grid: Grid, options: Mapping[str, Any], dt: float
+) -> FixedInputs:
+    """Items 3, 4 and 6 from the generator of an enumerable network (no simulation)."""
+    space = network.state_space
+    assert space is not None
+    q = network.generator(torch.as_tensor(grid.x, dtype=torch.float32))  # (G, K, K)
+    pi = stationary_distribution(q)
+    states = space.states.to(torch.float64)
+    lump = network.phi((space.states,)).to(torch.float64)
+    occupancy = (pi @ lump).numpy()
+    tau = relaxation_time(q).numpy()
+    # settling from the file's counts: the law p0 exp(Q t) on a grid of times, doubled
+    g_count, k = pi.shape
+    rel = options["settle_tolerance"]
+    finite = tau[np.isfinite(tau)]
+    horizon = min(max(8 * float(finite.max()) if finite.size else 0.0, options["min_time"]),
+                  options["max_time"])  # fmt: skip
+    while True:
+        steps = 512
+        step = torch.linalg.matrix_exp(q * (horizon / steps))
+        law = torch.zeros(g_count, k, dtype=torch.float64)
+        law[:, 0] = 1.0  # states[0] is the initial state
+        laws = [law]
+        for _ in range(steps):
+            law = torch.einsum("gk,gkj->gj", law, step)
+            laws.append(law)
+        laws_t = torch.stack(laws)  # (T, G, K)
+        means = (laws_t @ states).numpy()  # (T, G, S)
+        phi = (laws_t @ lump).numpy()  # (T, G)
+        final_means, final_phi = (pi @ states).numpy(), occupancy
+        times = np.linspace(0.0, horizon, steps + 1)
+        zero = np.zeros(times.size)
+        settle_phi = np.array([settling_time(times, phi[:, g], zero, final_phi[g], rel_tol=rel)
+                               for g in range(g_count)])  # fmt: skip
+        settle_species = np.array([[settling_time(times, means[:, g, s], zero,
+                                                  final_means[g, s], rel_tol=rel)
+                                    for s in range(states.shape[1])]
+                                   for g in range(g_count)])  # fmt: skip
+        settled = np.maximum(settle_phi, settle_species.max(1)) <= horizon / 2
+        if settled.all() or horizon >= options["max_time"]:
+            break
+        horizon = min(2 * horizon, options["max_time"])
+    # memory at the median inputs: the exact hazard against the age
+    q0 = q[:1]
+    tau0 = float(tau[0]) if math.isfinite(tau[0]) else dt
+    ages = int(min(max(math.ceil(5 * tau0 / dt), 16), 2000))
+    age_psi = lumped_age_psi(q0, lump > 0, dt, ages)[0].numpy()  # (2, A + 1)
+    psi = lumped_psi(q0, lump > 0, dt)[0].numpy()
+    hazards: list[dict[str, Any] | None] = []
+    effects = []
+    for v in (0, 1):
+        h = age_psi[v] if v == 0 else 1.0 - age_psi[v]
+        pooled = psi[v] if v == 0 else 1.0 - psi[v]
+        mass = occupancy[0] if v == 1 else 1.0 - occupancy[0]
+        if not (mass > 0 and pooled > 0 and np.isfinite(h).all()):
+            hazards.append(None)
+            continue
+        effect = float(np.abs(h - pooled).max() / pooled)
+        flat = settling_time(np.arange(h.size), h, np.zeros(h.size), float(h[-1]), rel_tol=rel)
+        effects.append(effect)
+        hazards.append({"age_s": (np.arange(h.size) * dt).tolist(), "rows": None,
+                        "hazard": h.tolist(), "se": None, "pooled": float(pooled),
+                        "chi2": None, "df": None, "p_value": None, "effect": effect,
+                        "flat_from_s": float(flat) * dt})  # fmt: skip
+    memory = None if len(effects) < 2 else max(effects) > options["memory_effect"]
+    switch = np.array([psi[0], 1.0 - psi[1]])
+    median_inputs = network.kinetic_inputs(torch.as_tensor(grid.x[:1], dtype=torch.float32))
+    a0 = network.kinetics.torch_propensity(space.states, median_inputs.expand(k, -1)).sum(1)
+    events = float((pi[0] * a0).sum()) * dt
+    species_law = {s: (space.states[:, j].numpy(), pi[0].numpy())
+                   for j, s in enumerate(network.species)}  # fmt: skip
+    curves = {"times": times.tolist(), "species": {s: means[:, 0, j].tolist()
+                                                   for j, s in enumerate(network.species)},
+              "final": {s: float(final_means[0, j]) for j, s in enumerate(network.species)},
+              "phi": phi[:, 0].tolist(), "phi_final": float(final_phi[0])}  # fmt: skip
+    relaxation = {"tau_s": float(tau[0]), "se": 0.0, "bound": "",
+                  "method": "1 / spectral gap of the generator"}  # fmt: skip
+    return FixedInputs("exact", occupancy, np.zeros_like(occupancy), settled, settle_phi,
+                       settle_species.max(1),
+                       {s: float(settle_species[0, j]) for j, s in enumerate(network.species)},
+                       curves, horizon, relaxation, hazards, memory, switch, events,
+                       species_law)  # fmt: skip
+
+
+def _take(state: tuple[Tensor, ...], index: Tensor) -> tuple[Tensor, ...]:
+    return tuple(t.index_select(0, index.to(t.device)) for t in state)
+
+
+def simulate_fixed_inputs(
+    model: Model, grid: Grid, options: Mapping[str, Any], dt: float, device: torch.device,
+    seconds: float,
+) -> FixedInputs:  # fmt: skip
+    """Items 3, 4 and 6 by simulation: ``inspect.n_cells`` cells at each grid point from the
+    file's counts (a network) or the model's own initial state, run with a horizon doubled
+    until every point has settled, then the median point's cells window by window at
+    stationarity; within ``seconds`` of estimated simulation."""
+    internal = model.internal
+    network = _network(model)
+    _numba_threads_as_torch()
+    g_count, n = grid.x.shape[0], int(options["n_cells"])
+    rel, alpha = options["settle_tolerance"], options["markov_alpha"]
+    notes: list[str] = []
+    x_grid = torch.as_tensor(grid.x, dtype=torch.float32, device=device)
+    group = torch.arange(g_count).repeat_interleave(n)
+    x = x_grid[group.to(device)]
+    kin = network.kinetic_inputs(x) if network is not None else None
+    state = network.start_state(x.shape[0], device, kin) if network is not None else \
+        internal.initial_state(x)  # fmt: skip
+    step_cost = model.cell_step_seconds(dt)
+
+    def cost(state: tuple[Tensor, ...], kin: Tensor | None, cells: int, span: float) -> float:
+        """Estimated seconds of advancing ``cells`` cells by ``span`` (the events expected at
+        the cells' current states, at the model's cost per event)."""
+        if network is None:
+            return cells * span / dt * step_cost
+        a0 = network.kinetics.torch_propensity(state[0], kin).sum(1)
+        return cells * network.cell_step_seconds(span, float(a0.mean()) * span)
+
+    def sample(state: tuple[Tensor, ...]) -> tuple[np.ndarray, np.ndarray | None]:
+        phi = internal.phi(state).cpu().numpy()
+        counts = state[0].cpu().numpy().astype(np.float64) if network is not None else None
+        return phi, counts
+
+    budget_settle = SETTLING_BUDGET * seconds
+    times, phis, counts = [0.0], [], []
+    p, c = sample(state)
+    phis.append(p)
+    counts.append(c)
+    t, horizon, spent = 0.0, max(options["min_time"], SAMPLES * dt), 0.0
+    wall = time.perf_counter()
+    while True:
+        span = (horizon - t) / SAMPLES
+        projected = SAMPLES * cost(state, kin, group.numel(), span)
+        # a network's state holds its cells in rows (another model's is opaque: never thinned)
+        while spent + projected > budget_settle and n // 2 >= MIN_CELLS and network is not None:
+            old, n = n, n // 2  # thin every grid point's cells, keep the horizon growing
+            keep = torch.cat([torch.arange(g * old, g * old + n) for g in range(g_count)])
+            state, x = _take(state, keep), x[keep.to(device)]
+            kin = kin[keep.to(device)] if kin is not None else None
+            group = group[keep]
+            phis = [v[keep.numpy()] for v in phis]
+            counts = [v[keep.numpy()] if v is not None else None for v in counts]
+            projected *= n / old
+            notes.append(f"{n} cells per grid point from {t:g} s on (inspect.max_seconds)")
+        if spent + projected > budget_settle:
+            if t > 0:
+                notes.append(f"the settling run stopped at {t:g} s (inspect.max_seconds)")
+                break
+            # not even the first horizon fits: a shorter one (the settling is then a bound)
+            horizon = max(2 * dt, horizon * budget_settle / projected)
+            span = horizon / SAMPLES
+            notes.append(f"a first horizon of {horizon:g} s (inspect.max_seconds)")
+        for _ in range(SAMPLES):
+            spent += cost(state, kin, group.numel(), span)
+            state = internal.advance(state, x, span)
+            t += span
+            p, c = sample(state)
+            times.append(t)
+            phis.append(p)
+            counts.append(c)
+        settle = _settling(np.array(times), np.stack(phis, 1), counts, group.numpy(), g_count,
+                           rel)  # fmt: skip
+        if settle["settled"].all() or horizon >= options["max_time"]:
+            if not settle["settled"].all():
+                notes.append(f"not settled by inspect.max_time={options['max_time']:g} s")
+            break
+        horizon = min(2 * horizon, options["max_time"])
+    settle_wall = time.perf_counter() - wall
+    # the stationary record at the median point, window by window (a network's median cells
+    # alone; another model's whole population, its state being opaque)
+    median = (group == 0).nonzero().squeeze(1)
+    windows = int(options["record_windows"])
+    left = max(seconds - spent, 0.0)
+    if network is not None:
+        state_m, x_m, kin_m = _take(state, median), x[median.to(device)], kin[median.to(device)]
+        per_window = cost(state_m, kin_m, 1, dt)
+        affordable = left / max(per_window * windows, 1e-300)
+        cells_m = int(min(median.numel(), max(affordable, MIN_CELLS)))
+        state_m, x_m = _take(state_m, torch.arange(cells_m)), x_m[:cells_m]
+        rows = slice(None)
+    else:
+        state_m, x_m, kin_m = state, x, None
+        per_window = cost(state, None, 1, dt)
+        cells_m, rows = group.numel(), median.numpy()
+    if cells_m * per_window * windows > left:
+        windows = max(200, int(left / max(cells_m * per_window, 1e-300)))
+        notes.append(f"{windows} windows recorded at stationarity (inspect.max_seconds)")
+    series = np.empty((median.numel() if network is None else cells_m, windows + 1), np.int8)
+    series[:, 0] = internal.phi(state_m).cpu().numpy()[rows]
+    snapshots = []
+    every = max(1, windows // 8)
+    for k in range(1, windows + 1):
+        state_m = internal.advance(state_m, x_m, dt)
+        series[:, k] = internal.phi(state_m).cpu().numpy()[rows]
+        if network is not None and k % every == 0:
+            snapshots.append(state_m[0].cpu())
+    spent += cells_m * windows * per_window
+    cells_m = series.shape[0]
+    relax = relaxation_from_series(series, dt, max_lag=max(1, windows // 4))
+    hz = switch_hazards(series, alpha)
+    hazards = [_hazard_dict(h, dt) for h in hz]
+    memory = None
+    if hz[0] is not None and hz[1] is not None:
+        memory = any(h.p_value < alpha and h.effect > options["memory_effect"]
+                     for h in (hz[0], hz[1]))  # fmt: skip
+    before, after = series[:, :-1], series[:, 1:]
+    switch = np.array([(after[before == v] != v).mean() if (before == v).any() else np.nan
+                       for v in (0, 1)])  # fmt: skip
+    events, species_law = None, {}
+    if network is not None:
+        pooled = torch.cat(snapshots) if snapshots else state_m[0].cpu()
+        assert kin_m is not None
+        a0 = network.kinetics.torch_propensity(pooled, kin_m[:1].expand(pooled.shape[0], -1))
+        events = float(a0.sum(1).mean()) * dt
+        weights = np.full(pooled.shape[0], 1.0 / pooled.shape[0])
+        species_law = {s: (pooled[:, j].numpy(), weights) for j, s in enumerate(network.species)}
+    relaxation = {"tau_s": relax.tau, "se": relax.tau_se, "amplitude": relax.amplitude,
+                  "bound": relax.bound,
+                  "lags": relax.lags, "acf": relax.rho.tolist(), "acf_se": relax.rho_se.tolist(),
+                  "max_lag_s": (relax.rho.size - 1) * dt, "acf_at_max_lag": float(relax.rho[-1]),
+                  "method": f"decay of phi's autocorrelation over {windows} windows of "
+                            f"{cells_m} cells"}  # fmt: skip
+    curves, species_settle = settle["curves"], {}
+    if network is not None:
+        species_settle = {s: r.time for s, r in zip(network.species, settle["species"],
+                                                     strict=True)}  # fmt: skip
+        curves["species"] = {s: np.asarray(curves["species"])[j].tolist()
+                             for j, s in enumerate(network.species)}  # fmt: skip
+        curves["final"] = dict(zip(network.species, curves["final"], strict=True))
+    result = FixedInputs(
+        "simulated", settle["occupancy"], settle["occupancy_se"], settle["settled"],
+        settle["phi"], settle["network"], species_settle, curves, t, relaxation,
+        hazards, memory, switch, events, species_law, int(n), notes, spent,
+    )  # fmt: skip
+    result.curves["wall_s"] = settle_wall
+    return result
+
+
+def _settling(
+    times: np.ndarray,
+    phi: np.ndarray,
+    counts: list[np.ndarray | None],
+    group: np.ndarray,
+    g_count: int,
+    rel: float,
+) -> dict[str, Any]:
+    """Settling and occupancy of every grid point from a run's samples (``phi``: cells x T).
+    The noise bands share a family-wise level of 5 % over every curve tested (each point's phi
+    and species), so that a run at its plateau is not taken for a drifting one by chance."""
+    has_counts = counts[0] is not None
+    c = np.stack(counts, 2) if has_counts else None  # (cells, S, T)
+    alpha = 0.05 / (g_count * (1 + (c.shape[1] if c is not None else 0)))
+    out: dict[str, Any] = {k: np.zeros(g_count) for k in
+                           ("occupancy", "occupancy_se", "phi", "network")}  # fmt: skip
+    out["settled"] = np.zeros(g_count, dtype=bool)
+    out["species"], out["curves"] = {}, {}
+    for g in range(g_count):
+        rows = group == g
+        s_phi = settling_from_cells(times, phi[rows], rel, alpha)
+        out["occupancy"][g], out["occupancy_se"][g] = s_phi.final, s_phi.final_se
+        out["phi"][g] = s_phi.time
+        settled = s_phi.settled
+        worst = 0.0
+        if c is not None:
+            per_species = [
+                settling_from_cells(times, c[rows, s], rel, alpha) for s in range(c.shape[1])
+            ]
+            worst = max(s.time for s in per_species)
+            settled = settled and all(s.settled for s in per_species)
+            if g == 0:
+                out["species"] = per_species
+                out["curves"] = {"times": times.tolist(),
+                                 "species": c[rows].mean(0).tolist(),
+                                 "final": [s.final for s in per_species],
+                                 "phi": phi[rows].mean(0).tolist(), "phi_final": s_phi.final}  # fmt: skip
+        elif g == 0:
+            out["curves"] = {"times": times.tolist(), "phi": phi[rows].mean(0).tolist(),
+                             "phi_final": s_phi.final}  # fmt: skip
+        out["network"][g] = worst
+        out["settled"][g] = settled
+    if not has_counts:
+        out["network"] = None
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# item 5: cost
+
+
+def stage_costs(settings: InspectSettings, measured_step: float) -> dict[str, Any]:
+    """The estimated cost of every stage of ``scripts/reproduce.py`` with the same settings,
+    artefacts that exist counted as well (:mod:`surrogate.stages.budget`): at the model's cost
+    per cell-step (what the stages' budgets say) and at ``measured_step`` (the events
+    measured at stationarity); the full-model works only change."""
+    try:
+        rs = settings.reproduce
+    except ConfigError as error:
+        return {"rows": [], "note": f"not estimated: {error}"}
+    source = rs.train.source
+    collect = budget.collect_work(source, reuse=False) if isinstance(source, CollectSettings) \
+        else []  # fmt: skip
+    train = budget.train_work(rs.train, reuse=False)[len(collect) :]
+    runs = [w for r in rs.runs() for w in budget.run_work(r, reuse=False)]
+    rows: dict[tuple, dict[str, Any]] = {}  # identical works (one per field) counted once
+    for stage, works in (("collect", collect), ("train", train), ("simulate", runs)):
+        for w in works:
+            at = replace(w, cell_step_seconds=measured_step) if w.decision == "full" else w
+            key = (stage, w.what, w.cells, w.steps, w.cell_step_seconds)
+            row = rows.setdefault(key, {"stage": stage, "what": w.what, "count": 0,
+                                        "cells": w.cells, "steps": w.steps,
+                                        "estimate_s": w.seconds, "at_measured_s": at.seconds,
+                                        "settings": w.settings})  # fmt: skip
+            row["count"] += 1
+    return {"rows": list(rows.values()), "note": ""}
+
+
+def collection_budget(
+    settings: InspectSettings,
+    fixed: FixedInputs,
+    population: Population,
+    measured_step: float,
+) -> dict[str, Any]:
+    """The rows per origin that give ``inspect.min_switches`` switches from each origin at the
+    switching probability per window measured at the median inputs, what collecting them
+    costs, and the simulated time it takes at the population's occupancy of each lump."""
+    o = settings.options
+    try:
+        source = settings.reproduce.train.source
+    except ConfigError:
+        return {}
+    if not isinstance(source, CollectSettings):
+        return {}
+    c, dt = source.options, settings.setup.dt
+    needed = [math.ceil(o["min_switches"] / p) if p > 0 else math.inf for p in fixed.switch]
+    rows = max(needed)
+    out: dict[str, Any] = {"switch_per_window": fixed.switch.tolist(), "rows_needed": needed,
+                           "n_per_state": int(c["n_per_state"])}  # fmt: skip
+    if not math.isfinite(rows):
+        return out
+    out["recommended_n_per_state"] = max(int(rows), int(c["n_per_state"]))
+    more = replace(source, options={**c, "n_per_state": out["recommended_n_per_state"]})
+    work = budget.collect_work(more, reuse=False)
+    out["cost_s"] = sum(replace(w, cell_step_seconds=measured_step).seconds for w in work)
+    field = settings.setup.field_name
+    share1 = population.fields.get(field, next(iter(population.fields.values())))["phi_share"]
+    times = []
+    for share in (1.0 - share1, share1):
+        rate = int(c["n_cells"]) * share / (int(c["record_every"]) * dt)  # rows per second
+        times.append(float(c["equilibration_time"]) + out["recommended_n_per_state"] / rate
+                     if rate > 0 else math.inf)  # fmt: skip
+    out["seconds_needed"] = times
+    out["max_time"] = float(c["max_time"])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# item 6: the abstraction
+
+
+def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
+    """``(species, edge, upper)`` where the lump is a threshold on one species count: phi = 1
+    iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
+    expr = getattr(internal, "lump_expr", None)
+    if expr is None or expr.op not in ("geq", "gt", "leq", "lt"):
+        return None
+    a, b = expr.args
+    op = expr.op
+    if a.op == "species" and b.is_const:
+        species, c = a, float(b.value)
+    elif b.op == "species" and a.is_const:
+        species, c = b, float(a.value)
+        op = {"geq": "leq", "gt": "lt", "leq": "geq", "lt": "gt"}[op]
+    else:
+        return None
+    edge = {"geq": math.ceil(c), "gt": math.floor(c) + 1, "leq": math.floor(c) + 1,
+            "lt": math.ceil(c)}[op]  # fmt: skip
+    return species.name, int(edge), op in ("geq", "gt")
+
+
+def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order])
+    return float(values[order][min(np.searchsorted(cum, q * cum[-1]), values.size - 1)])
+
+
+def class_edges(values: np.ndarray, weights: np.ndarray, edge: int, per_side: int) -> list[int]:
+    """Bins of a species count for K lumps: the threshold ``edge`` and, on each side, edges at
+    the ``j / per_side`` quantiles of the species' stationary law there (integers strictly
+    inside the side; a side without mass gets none)."""
+    edges = {int(edge)}
+    below = values < edge
+    for low in (True, False):
+        w = weights * (below if low else ~below)
+        if not w.sum() > 0:
+            continue
+        for j in range(1, per_side):
+            cut = math.ceil(_weighted_quantile(values, w, j / per_side))
+            if (low and 0 < cut < edge) or (not low and cut > edge):
+                edges.add(cut)
+    return sorted(e for e in edges if e > 0)
+
+
+def recommend(
+    model: Model, fixed: FixedInputs, options: Mapping[str, Any], dt: float
+) -> dict[str, Any]:
+    """Item 6: the abstraction the memory measured at the median inputs calls for."""
+    internal = model.internal
+    hazards = fixed.hazards
+    if fixed.memory is None:
+        return {"abstraction": None, "command": "", "yaml": "",
+                "reason": "phi does not switch both ways at the median inputs, so its memory "
+                          "cannot be measured there"}  # fmt: skip
+    exact = fixed.method == "exact"
+
+    def describe(h: dict[str, Any], v: int) -> str:
+        name = internal.lump_names[v]
+        first = h["hazard"][0]
+        if exact:
+            test = f", departing from it by up to {h['effect']:.0%} with the age"
+        else:
+            departs = (f"age bins departing by up to {h['effect']:.0%} (beyond 3 standard "
+                       f"errors)" if h["effect"] > 0 else "no age bin beyond 3 standard "
+                       "errors")  # fmt: skip
+            test = f", {departs}, chi-square p = {h['p_value']:.2g} over {h['df'] + 1} bins"
+        return (f"leaving {name}: {first:.3g} per window at age 0 against {h['pooled']:.3g} "
+                f"overall{test}")  # fmt: skip
+
+    facts = "; ".join(describe(h, v) for v, h in enumerate(hazards) if h is not None)
+    if not fixed.memory:
+        return {"abstraction": "two-state", "command": "gp=svgp (the default)", "yaml": "",
+                "reason": f"the hazard of leaving each lump does not depend on the time since "
+                          f"phi last changed ({facts}): phi's switching is Markov in the "
+                          f"current input, as the two-state chain assumes"}  # fmt: skip
+    threshold = threshold_lump(internal)
+    if threshold is not None and threshold[0] in fixed.species_law:
+        species, edge, _ = threshold
+        values, weights = fixed.species_law[species]
+        edges = class_edges(np.asarray(values, float), np.asarray(weights, float), edge,
+                            int(options["classes_per_side"]))  # fmt: skip
+        yaml = f"classes: {{species: {species}, edges: [{', '.join(str(e) for e in edges)}]}}"
+        return {"abstraction": "classes", "command": "gp=classes", "yaml": yaml,
+                "edges": edges, "species": species,
+                "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
+                          f"{species}: {len(edges) + 1} classes over bins of {species} at its "
+                          f"stationary quantiles on each side of {edge} carry the hidden "
+                          f"count"}  # fmt: skip
+    flat = max(h["flat_from_s"] for h in hazards if h is not None)
+    max_age = float(f"{max(flat, dt):.2g}")
+    return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
+            "max_age": max_age,
+            "reason": f"phi's switching has memory ({facts}); the lump is not a threshold on one "
+                      f"species, so the switch clock carries it: the hazard is flat from "
+                      f"{flat:.3g} s since the last change"}  # fmt: skip
+
+
+def _round_up(value: float) -> float:
+    """``value`` rounded up to two significant digits (a setting to recommend)."""
+    if not (value > 0 and math.isfinite(value)):
+        return value
+    scale = 10 ** (math.floor(math.log10(value)) - 1)
+    return math.ceil(value / scale - 1e-9) * scale
+
+
+def burn_in_advice(
+    network: NetworkInternalModel | None, fixed: FixedInputs, factor: float
+) -> dict[str, Any]:
+    """``model.burn_in`` against ``factor`` x the longest settling time over the grid (the
+    network's counts and phi, from the file's counts at each point's inputs)."""
+    if network is None:
+        return {"applies": False, "text": "the internal model draws its own initial state (no "
+                                          "burn-in setting)"}  # fmt: skip
+    if network.state_space is not None:
+        return {"applies": False, "text": "not used: initial states are drawn from the exact "
+                                          "stationary law (an enumerable network)"}  # fmt: skip
+    settle = fixed.settle_phi if fixed.settle_network is None else \
+        np.maximum(fixed.settle_phi, fixed.settle_network)  # fmt: skip
+    settled = bool(fixed.settled.all())
+    finite = settle[np.isfinite(settle)]
+    worst = float(finite.max()) if finite.size else 0.0
+    if not settled:
+        worst = max(worst, fixed.horizon / 2)
+    needed = _round_up(factor * worst)
+    have = float(network.burn_in)
+    return {"applies": True, "settling_s": worst, "settled": settled, "needed_s": needed,
+            "burn_in_s": have, "enough": have >= needed if settled else False,
+            "text": ""}  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# the stage
+
+
+def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | None) -> None:
+    """Measure, then write inspect.json, the figures, report.md and (last) the manifest; a
+    lump (almost) never or always true is refused after the report is written."""
+    t0 = time.perf_counter()
+    setup, o = settings.setup, settings.options
+    model, dt = setup.model, setup.dt
+    internal, network = model.internal, _network(model)
+    seed_everything(setup.seed)
+    population = population_inputs(settings, POPULATION_BUDGET * o["max_seconds"])
+    grid = Grid.from_inputs(population.x, internal.input_names, o["quantiles"],
+                            o["grid_points"])  # fmt: skip
+    net = describe_network(network, population, grid, o) if network is not None else None
+    seed_everything(setup.seed)
+    space = network.state_space if network is not None else None
+    left = max(o["max_seconds"] - population.cost, (1 - POPULATION_BUDGET) * o["max_seconds"])
+    if network is not None and space is not None and space.n_states <= o["exact_max_states"]:
+        fixed = exact_fixed_inputs(network, grid, o, dt)
+    else:
+        fixed = simulate_fixed_inputs(model, grid, o, dt, settings.job.device, left)
+    model_events = network.events_per_window(dt) if network is not None else None
+    step_model = model.cell_step_seconds(dt)
+    step_measured = network.cell_step_seconds(dt, fixed.events) if network is not None \
+        and fixed.events is not None else step_model  # fmt: skip
+    costs = stage_costs(settings, step_measured)
+    collection = collection_budget(settings, fixed, population, step_measured)
+    burn = burn_in_advice(network, fixed, o["burn_in_factor"])
+    advice = recommend(model, fixed, o, dt)
+    lump = getattr(internal, "lump_formula", None) or "the model's own property"
+    low = o["min_occupancy"]
+    never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
+    summary = {
+        "model": model.describe(), "command": settings.command(), "lump": lump,
+        "settings": dict(o),
+        "lump_names": list(internal.lump_names), "dt": dt, "fields": list(settings.fields),
+        "network": net,
+        "population": {"fields": population.fields, "notes": population.notes,
+                       "estimated_s": population.cost},
+        "grid": {"inputs": list(grid.names), "x": grid.x.tolist(), "axis": grid.axis.tolist(),
+                 "low": grid.low.tolist(), "median": grid.median.tolist(),
+                 "high": grid.high.tolist()},
+        "occupancy": {"method": fixed.method, "value": fixed.occupancy.tolist(),
+                      "se": fixed.occupancy_se.tolist(), "settled": fixed.settled.tolist(),
+                      "never": never, "always": always, "threshold": low},
+        "settling": {"horizon_s": fixed.horizon, "phi_s": fixed.settle_phi.tolist(),
+                     "network_s": None if fixed.settle_network is None
+                     else fixed.settle_network.tolist(),
+                     "species_s_at_median": fixed.species_settle, "cells": fixed.cells,
+                     "notes": fixed.notes, "estimated_s": fixed.cost},
+        "relaxation": {k: v for k, v in fixed.relaxation.items() if k not in ("acf", "acf_se")},
+        "burn_in": burn,
+        "memory": {"memory": fixed.memory, "hazards": fixed.hazards},
+        "cost": {"events_per_window_model": model_events,
+                 "events_per_window_stationary": fixed.events,
+                 "cell_step_s_model": step_model, "cell_step_s_measured": step_measured,
+                 "stages": costs, "collection": collection},
+        "recommendation": advice,
+    }  # fmt: skip
+    save_figure(out / INPUT_OCCUPANCY_FIGURE, plot_occupancy(grid, fixed, str(lump), low),
+                crop=False)  # fmt: skip
+    if fixed.curves and "phi" in fixed.curves:
+        burn_in = burn.get("burn_in_s") if burn.get("applies") else None
+        save_figure(out / SETTLING_FIGURE, plot_settling(fixed, burn_in), crop=False)
+    save_figure(out / MEMORY_FIGURE, plot_memory(fixed, dt, internal.lump_names), crop=False)
+    # refused once measured at stationarity; a run cut short only warns
+    refusal = _refusal(summary, grid, fixed) if (never or always) else None
+    settled = bool(fixed.settled.all())
+    summary["refused"] = refusal if settled else None
+    summary["warning"] = None if settled or refusal is None else (
+        f"{refusal}; measured at the end of a run that had not settled: it is refused if so "
+        f"at stationarity (raise inspect.max_seconds to see)")  # fmt: skip
+    summary["wall_time_s"] = time.perf_counter() - t0
+    write_json(out / INSPECTION, summary)
+    write_text(out / REPORT, report_markdown(summary, fixed))
+    if summary["refused"] is not None:
+        raise ConfigError(f"{refusal} (report: {out / REPORT})")
+    write_manifest(out, stage="inspect", config=dict(config) if config is not None
+                   else settings.identity(), seed=setup.seed, settings=settings.identity(),
+                   device=str(settings.job.device), wall_time_s=summary["wall_time_s"],
+                   occupancy=fixed.occupancy.tolist(), recommendation=advice["abstraction"])  # fmt: skip
+    log.info("inspect: %s iff %s; occupancy %.3g-%.3g over the grid (%s); settling %s; "
+             "relaxation %s; recommended: %s; %.1f s", internal.lump_names[1], lump,
+             float(fixed.occupancy.min()), float(fixed.occupancy.max()), fixed.method,
+             settling_text(summary), relaxation_text(summary["relaxation"]),
+             advice["abstraction"], summary["wall_time_s"])  # fmt: skip
+
+
+def _numba_threads_as_torch() -> None:
+    """The compiled SSA's threads (numba's pool) as many as the job's torch threads (setting
+    ``threads``): its per-window parallel loop over cells otherwise waits on every core, which
+    on a busy machine costs more than the window (measured: 50x per window of 200 cells with
+    2 threads on 2 loaded cores). numba's pool first: starting it resets torch's count."""
+    import numba
+
+    threads = torch.get_num_threads()
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    torch.set_num_threads(threads)
+
+
+def _refusal(summary: dict[str, Any], grid: Grid, fixed: FixedInputs) -> str:
+    """The refusal of a lump (almost) never or always true over the input range."""
+    occ, se = fixed.occupancy, fixed.occupancy_se
+    which = "never" if summary["occupancy"]["never"] else "always"
+    worst = int(np.argmax(occ)) if which == "never" else int(np.argmin(occ))
+    ranges = ", ".join(f"{n} in [{lo:.4g}, {hi:.4g}]" for n, lo, hi in
+                       zip(grid.names, grid.low, grid.high, strict=True))  # fmt: skip
+    return (f"the lump {summary['lump']!r} is (almost) {which} true over the input range the "
+            f"fields give ({ranges}): P(phi = 1) = {occ[worst]:.3%} +- {se[worst]:.2%} at its "
+            f"{'highest' if which == 'never' else 'lowest'} ({grid.describe(worst)}; "
+            f"{fixed.method}), beyond inspect.min_occupancy="
+            f"{summary['occupancy']['threshold']:g} at all {occ.size} grid points; collect "
+            f"could not see both lumps. Choose a lump that holds part of the time (model.lump; "
+            f"the report gives the stationary counts)")  # fmt: skip
+
+
+__all__ = [
+    "FixedInputs",
+    "Grid",
+    "Population",
+    "burn_in_advice",
+    "class_edges",
+    "describe_network",
+    "exact_fixed_inputs",
+    "inspect",
+    "population_inputs",
+    "propensity_change",
+    "recommend",
+    "run",
+    "simulate_fixed_inputs",
+    "stage_costs",
+    "threshold_lump",
+    "validate",
+]

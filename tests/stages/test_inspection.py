@@ -1,0 +1,382 @@
+"""The inspect stage's figures against networks with known answers.
+
+* a birth-death process (0 -> X at k s, X -> 0 at g X): X ~ Poisson(k s / g) at stationarity,
+  so the occupancy of X >= m is the Poisson tail; the generator's relaxation time is 1 / g; the
+  mean from X = 0 is (k s / g)(1 - exp(-g t)), which settles within 5 % at ln(20) / g. Exactly
+  (its state space closed by a reservoir it practically never runs out of) and simulated;
+* inputs that feed nothing or have no effect flagged; a lump always true refused with its
+  occupancy; collect stopping early, with the occupancy, when one lump is (almost) never seen;
+* a telegraph gene (memoryless: two-state) and a slowly degraded protein with a threshold lump
+  (a hidden count: classes over bins of the protein at its stationary quantiles).
+
+Tolerances come from the statistics: standard errors across independent cells, or the time
+grid of an exact curve.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from scipy import stats
+
+from surrogate.errors import ConfigError
+from surrogate.evaluate.dynamics import settling_time
+from surrogate.fields import ConstantField
+from surrogate.io import read_json
+from surrogate.models.sbml_agent import SbmlAgentModel
+from surrogate.simulate.decision import FullDecision
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.transitions import collect_transitions
+from surrogate.stages import inspection
+from surrogate.stages.settings.inspection import inspect_defaults
+from tests.sbml.builder import Reaction, Species, build
+
+K, G = 2.0, 1.0  # birth k s and death g X: mean 2 s, relaxation 1 s
+DT = 0.05
+
+
+def network_model(
+    tmp_path: Path,
+    name: str,
+    species: list[Species],
+    parameters: dict[str, float],
+    reactions: list[Reaction],
+    inputs: dict[str, str],
+    lump: str,
+) -> tuple[SbmlAgentModel, Path]:
+    """A yaml model (static agent, x = (L,)) over an SBML network written into ``tmp_path``."""
+    (tmp_path / f"{name}.xml").write_text(build(name, species, parameters, reactions))
+    spec = tmp_path / f"{name}.yaml"
+    spec.write_text(yaml.safe_dump({"name": name, "network": f"{name}.xml", "inputs": inputs,
+                                    "lump": lump, "lump_names": ["off", "on"],
+                                    "body": {"kind": "static"}, "burn_in": 1.0}))  # fmt: skip
+    return SbmlAgentModel(str(spec)), spec
+
+
+def birth_death(tmp_path: Path, lump: str, reservoir: bool) -> tuple[SbmlAgentModel, Path]:
+    """0 -> X at k s, X -> 0 at g X (s = L); with a reservoir R (40 molecules) that closes the
+    state space (41 states) without changing the law of X beyond 1e-20 (the stationary law is
+    the Poisson law truncated at 40; mean <= 6 here)."""
+    if reservoir:
+        species = [Species("X", amount=0), Species("R", amount=40)]
+        reactions = [Reaction("birth", "piecewise(k * s, R >= 1, 0)", {"R": 1}, {"X": 1}),
+                     Reaction("death", "g * X", {"X": 1}, {"R": 1})]  # fmt: skip
+    else:
+        species = [Species("X", amount=0)]
+        reactions = [Reaction("birth", "k * s", {}, {"X": 1}),
+                     Reaction("death", "g * X", {"X": 1}, {})]  # fmt: skip
+    name = "bd_closed" if reservoir else "bd_open"
+    return network_model(tmp_path, name, species, {"k": K, "g": G, "s": 1.0}, reactions,
+                         {"s": "L"}, lump)  # fmt: skip
+
+
+def grid_of(values: list[float]) -> inspection.Grid:
+    """Fixed inputs L = values (the first one the median)."""
+    v = np.asarray(values, dtype=float)
+    return inspection.Grid(("L",), v[:, None], np.array([-1] + [0] * (v.size - 1)),
+                           v.min(keepdims=True), v[:1], v.max(keepdims=True))  # fmt: skip
+
+
+def options(**changes) -> dict:
+    return {**inspect_defaults(), **changes}
+
+
+def poisson_tail(m: int, mean: np.ndarray) -> np.ndarray:
+    return stats.poisson.sf(m - 1, mean)
+
+
+# ----------------------------------------------------------------------------------------------
+# the birth-death process
+
+
+def test_birth_death_exactly_occupancy_relaxation_and_settling(tmp_path) -> None:
+    """Exact path (41 states): the occupancy is the Poisson tail, the relaxation 1 / g, the
+    mean's and phi's settling where the closed forms leave the 5 % band (to the time grid)."""
+    model, _ = birth_death(tmp_path, "X >= 3", reservoir=True)
+    grid = grid_of([1.5, 0.5, 3.0])
+    fixed = inspection.exact_fixed_inputs(model.internal, grid, options(), DT)
+    mean = K * grid.x[:, 0] / G
+    assert fixed.method == "exact"
+    np.testing.assert_allclose(fixed.occupancy, poisson_tail(3, mean), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fixed.relaxation["tau_s"], 1 / G, rtol=1e-6)
+    step = fixed.horizon / 512  # the exact curves' time grid
+    assert abs(fixed.species_settle["X"] - math.log(20) / G) <= step
+    # phi's occupancy from X = 0: X(t) ~ Poisson(mean (1 - exp(-g t))), to the same tolerance
+    t = np.linspace(0, fixed.horizon, 20001)
+    curve = poisson_tail(3, mean[0] * (1 - np.exp(-G * t)))
+    expected = settling_time(t, curve, np.zeros(t.size), float(poisson_tail(3, mean[:1])[0]))
+    assert abs(fixed.settle_phi[0] - expected) <= step
+    assert fixed.settled.all()
+    # events per window at stationarity: birth k s + death g E[X] = 2 k s
+    assert fixed.events == pytest.approx(2 * K * 1.5 * DT, rel=1e-9)
+
+
+def test_birth_death_simulated_matches_the_closed_forms(tmp_path) -> None:
+    """Simulated path (the open network): the occupancy within 4 standard errors of the
+    Poisson tail at every grid point; the mean's settling time within the sampling spacing and
+    3 standard deviations of the crossing (SE / slope) of ln(20) / g."""
+    model, _ = birth_death(tmp_path, "X >= 3", reservoir=False)
+    assert model.internal.state_space is None
+    grid = grid_of([1.5, 0.5, 3.0])
+    torch.manual_seed(3)
+    n = 2000  # SE of the mean count 0.055, well inside the 5 % band (0.15)
+    fixed = inspection.simulate_fixed_inputs(
+        model, grid, options(n_cells=n, record_windows=400, max_seconds=60.0), DT,
+        torch.device("cpu"), 60.0)  # fmt: skip
+    mean = K * grid.x[:, 0] / G
+    assert fixed.method == "simulated" and fixed.settled.all()
+    z = np.abs(fixed.occupancy - poisson_tail(3, mean)) / fixed.occupancy_se
+    assert (z < 4).all(), z
+    spacing = fixed.horizon / inspection.SAMPLES
+    crossing = 3 * math.sqrt(mean[0] / n) / (G * 0.05 * mean[0])
+    assert abs(fixed.species_settle["X"] - math.log(20) / G) <= spacing + crossing
+    # stationary events per window: 2 k s dt, within 4 standard errors of the snapshot mean
+    assert fixed.events == pytest.approx(2 * K * 1.5 * DT, rel=4 * math.sqrt(mean[0] / 8 / n)
+                                         / mean[0] + 0.02)  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# the network's inputs
+
+
+def test_an_input_that_feeds_nothing_and_one_without_effect_are_flagged(tmp_path) -> None:
+    """`unused` enters no law; `dead` scales a reaction of a species that is never made (its
+    propensity is 0 in every state); `s` moves the birth propensity by its range."""
+    model, _ = network_model(
+        tmp_path, "flags", [Species("X", amount=0), Species("Z", amount=0)],
+        {"s": 1.0, "unused": 1.0, "dead": 1.0, "g": 1.0},
+        [Reaction("birth", "s", {}, {"X": 1}), Reaction("death", "g * X", {"X": 1}, {}),
+         Reaction("leak", "dead * Z", {"Z": 1}, {})],
+        {"s": "L", "unused": "2 * L", "dead": "L"}, "X >= 1")  # fmt: skip
+    network = model.internal
+    x = torch.linspace(0.5, 1.5, 200)[:, None]
+    torch.manual_seed(0)
+    states = network.advance(network.start_state(200, torch.device("cpu")), x, 5.0)[0]
+    kinetic = network.kinetic_inputs(x).numpy()
+    population = inspection.Population(x.numpy(), kinetic, states, {}, [], 0.0)
+    grid = inspection.Grid.from_inputs(x.numpy(), ("L",), [0.01, 0.99], 7)
+    net = inspection.describe_network(network, population, grid, options())
+    flags = {i["name"]: i["flags"] for i in net["inputs"]}
+    assert flags["s"] == [] and flags["unused"] == ["feeds no reaction"]
+    assert flags["dead"] and "no effect" in flags["dead"][0]
+    by_name = {i["name"]: i for i in net["inputs"]}
+    assert by_name["s"]["reactions"] == ["birth"] and by_name["dead"]["reactions"] == ["leak"]
+    # the birth propensity is s itself: |hi - lo| / mean over the states = the range's share
+    lo, hi = by_name["s"]["low"], by_name["s"]["high"]
+    assert by_name["s"]["sensitivity"]["birth"] == pytest.approx((hi - lo) / ((hi + lo) / 2))
+    assert net["local_parameters"] == {} and net["global_parameters"]["g"] == 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# memory: which abstraction
+
+
+def telegraph(tmp_path: Path, on_rate: float, off_rate: float) -> SbmlAgentModel:
+    """A gene switching off -> on at on_rate s, on -> off at off_rate (s = L): memoryless."""
+    model, _ = network_model(
+        tmp_path, "telegraph", [Species("Off", amount=1), Species("On", amount=0)],
+        {"a": on_rate, "b": off_rate, "s": 1.0},
+        [Reaction("up", "a * s * Off", {"Off": 1}, {"On": 1}),
+         Reaction("down", "b * On", {"On": 1}, {"Off": 1})], {"s": "L"}, "On >= 1")  # fmt: skip
+    return model
+
+
+def test_a_telegraph_gene_is_recommended_two_states(tmp_path) -> None:
+    """Simulated: the hazard is flat (chi-square above the level for both lumps), the relaxation
+    time 1 / (a + b) within 4 jackknife standard errors, the occupancy a / (a + b) within 4;
+    exactly: the same, from the generator."""
+    model = telegraph(tmp_path, 1.0, 1.0)
+    grid = grid_of([1.0])
+    o = options(n_cells=200, record_windows=2000, exact_max_states=0)
+    torch.manual_seed(1)
+    fixed = inspection.simulate_fixed_inputs(model, grid, o, DT, torch.device("cpu"), 30.0)
+    assert fixed.memory is False
+    assert all(h["p_value"] > o["markov_alpha"] for h in fixed.hazards)
+    r = fixed.relaxation
+    assert abs(r["tau_s"] - 0.5) < 4 * r["se"], r
+    assert abs(fixed.occupancy[0] - 0.5) < 4 * fixed.occupancy_se[0]
+    advice = inspection.recommend(model, fixed, o, DT)
+    assert advice["abstraction"] == "two-state" and advice["command"].startswith("gp=svgp")
+    exact = inspection.exact_fixed_inputs(model.internal, grid, options(), DT)
+    assert exact.memory is False and exact.relaxation["tau_s"] == pytest.approx(0.5)
+    assert inspection.recommend(model, exact, options(), DT)["abstraction"] == "two-state"
+
+
+def test_a_model_that_is_not_a_network_is_inspected_by_its_protocol() -> None:
+    """examples/python_model/minimal.py (a telegraph with only the required protocol, an opaque
+    state drawn from its stationary law): settled from the start, the occupancy k_on s / (k_on
+    s + k_off) and the relaxation time 1 / (k_on s + k_off) within 4 standard errors, memoryless.
+    """
+    from examples.python_model.minimal import TelegraphModel
+
+    model = TelegraphModel(k_on=50.0, k_off=2.0)
+    grid = grid_of([0.04, 0.02, 0.08])
+    o = options(n_cells=200, record_windows=2000)
+    torch.manual_seed(4)
+    fixed = inspection.simulate_fixed_inputs(model, grid, o, DT, torch.device("cpu"), 30.0)
+    rate = 50.0 * grid.x[:, 0] + 2.0
+    assert fixed.settled.all() and fixed.settle_network is None and fixed.events is None
+    assert (np.abs(fixed.occupancy - 50.0 * grid.x[:, 0] / rate) < 4 * fixed.occupancy_se).all()
+    r = fixed.relaxation
+    assert abs(r["tau_s"] - 1 / rate[0]) < 4 * r["se"], r
+    assert fixed.memory is False
+    assert inspection.recommend(model, fixed, o, DT)["abstraction"] == "two-state"
+
+
+def protein(tmp_path: Path, reservoir: bool) -> SbmlAgentModel:
+    """A protein made at 2 s /s and degraded at 0.05 /s per molecule (mean 40 at s = 1, a
+    relaxation of 20 s) with phi = P >= 40: the count hidden behind phi is slow, so a cell
+    that just crossed the threshold is likely to cross back (a hazard falling with age)."""
+    if reservoir:
+        species = [Species("P", amount=0), Species("R", amount=120)]  # Poisson(40) beyond: 1e-20
+        reactions = [Reaction("make", "piecewise(2 * s, R >= 1, 0)", {"R": 1}, {"P": 1}),
+                     Reaction("decay", "0.05 * P", {"P": 1}, {"R": 1})]  # fmt: skip
+    else:
+        species = [Species("P", amount=0)]
+        reactions = [Reaction("make", "2 * s", {}, {"P": 1}),
+                     Reaction("decay", "0.05 * P", {"P": 1}, {})]  # fmt: skip
+    model, _ = network_model(tmp_path, "protein", species, {"s": 1.0}, reactions, {"s": "L"},
+                             "P >= 40")  # fmt: skip
+    return model
+
+
+def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
+    """Exactly: memory, and classes over P with the threshold and the conditional medians of
+    the stationary law (Poisson(40)) on each side as edges. Simulated: the memory is
+    significant (chi-square below the level, departures above the setting)."""
+    exact_model = protein(tmp_path, reservoir=True)
+    grid = grid_of([1.0])
+    exact = inspection.exact_fixed_inputs(exact_model.internal, grid, options(), DT)
+    assert exact.memory is True
+    advice = inspection.recommend(exact_model, exact, options(), DT)
+    assert advice["abstraction"] == "classes" and advice["command"] == "gp=classes"
+    law = stats.poisson(40.0)
+    low = int(law.ppf(0.5 * law.cdf(39)))  # the median of P given P < 40
+    high = int(law.ppf(law.cdf(39) + 0.5 * law.sf(39)))  # ... given P >= 40
+    assert advice["edges"] == [low, 40, high]
+    assert advice["yaml"] == f"classes: {{species: P, edges: [{low}, 40, {high}]}}"
+    model = protein(tmp_path, reservoir=False)
+    o = options(n_cells=100, record_windows=2000, min_time=40.0)
+    torch.manual_seed(2)
+    fixed = inspection.simulate_fixed_inputs(model, grid, o, DT, torch.device("cpu"), 30.0)
+    assert fixed.memory is True
+    assert any(h["p_value"] < o["markov_alpha"] and h["effect"] > o["memory_effect"]
+               for h in fixed.hazards)  # fmt: skip
+    simulated = inspection.recommend(model, fixed, o, DT)
+    assert simulated["abstraction"] == "classes" and 40 in simulated["edges"]
+
+
+def test_a_threshold_lump_is_read_from_its_formula(tmp_path) -> None:
+    """``count >= edge`` or ``count < edge`` from any comparison of one species and a number;
+    other lumps give None (the clock is recommended for them)."""
+
+    class Lump:
+        def __init__(self, formula: str) -> None:
+            from surrogate.ctmc.kinetics import species_ref
+            from surrogate.sbml.formula import parse_formula
+
+            symbols = {"P": species_ref(0, "P"), "Q": species_ref(1, "Q")}
+            self.lump_expr = parse_formula(formula, symbols, "lump", "bool", what="species")
+
+    cases = {
+        "P >= 20": ("P", 20, True),
+        "P > 19.5": ("P", 20, True),
+        "P <= 4": ("P", 5, False),
+        "P < 5": ("P", 5, False),
+        "20 <= P": ("P", 20, True),
+        "3 > Q": ("Q", 3, False),
+    }
+    for formula, want in cases.items():
+        assert inspection.threshold_lump(Lump(formula)) == want, formula
+    assert inspection.threshold_lump(Lump("P >= 2 and Q == 0")) is None
+    assert inspection.threshold_lump(Lump("P > Q")) is None
+
+
+# ----------------------------------------------------------------------------------------------
+# the stage, refusal and collect's early stop
+
+
+def test_the_stage_writes_its_report_and_refuses_an_always_true_lump(tmp_path, compose_cfg) -> None:
+    """End to end (exact network, one field; static cells, so one input value L): report.md,
+    inspect.json and the manifest, the occupancy the Poisson tail at k L / g, reused the second
+    time; a lump true in every state is refused with its occupancy measured."""
+    _, spec = birth_death(tmp_path, "X >= 1", reservoir=True)
+    small = ["model=sbml", f"model.spec={spec}", "fields=[gaussian]", "t_end=20",
+             "equilibration_time=1", "inspect.population_cells=20", "inspect.max_seconds=5"]  # fmt: skip
+    out = inspection.run(compose_cfg("inspect", small))
+    summary = read_json(out / "inspect.json")
+    assert (out / "report.md").exists() and (out / "manifest.json").exists()
+    assert summary["occupancy"]["method"] == "exact" and summary["refused"] is None
+    level = summary["grid"]["median"][0]
+    assert summary["occupancy"]["value"] == pytest.approx([poisson_tail(1, K * level / G)])
+    assert "## Recommended abstraction" in (out / "report.md").read_text()
+    assert inspection.run(compose_cfg("inspect", small)) == out  # reused
+    (tmp_path / "always").mkdir()
+    _, always = birth_death(tmp_path / "always", "X >= 0", reservoir=True)
+    with pytest.raises(ConfigError, match=r"always true.*P\(phi = 1\) = 100\.000%"):
+        inspection.run(compose_cfg("inspect", [*small, f"model.spec={always}"]))
+
+
+def test_collect_stops_early_when_one_lump_is_almost_never_seen(tmp_path) -> None:
+    """A gene ON 1e-4 of the time: collect stops at 5 % of collect.max_time with the occupancy
+    measured and the advice to change the lump or inspect it, not to raise max_time."""
+    model = telegraph(tmp_path, 1e-4, 1.0)
+    field = ConstantField(1.0)
+    torch.manual_seed(0)
+    sim = Simulator(model, FullDecision(model.internal), field, DT)
+    perturbation = model.body.perturbation(field, model.perturbation_options)
+    with pytest.raises(ConfigError) as error:
+        collect_transitions(sim, perturbation, n_cells=20, n_per_state=5000, perturb_rate=0.1,
+                            record_every=1, equilibration_time=1.0, max_time=400.0,
+                            progress=False)  # fmt: skip
+    message = str(error.value)
+    assert message.startswith("collect stopped early") and "inspect_model.py" in message
+    assert "phi = on in 0.000% of the" in message and "recorded in 20 s" in message
+    assert "change the lump" in message.lower() and "raise collect.max_time" not in message
+
+
+def test_collect_at_max_time_says_what_time_or_cells_would_do(tmp_path) -> None:
+    """A lump ON 30 % of the time with too little time: the message gives the measured
+    occupancy and the max_time at which the rows would be reached (~5000 / 120 per s + 1 s)."""
+    model = telegraph(tmp_path, 0.43, 1.0)
+    field = ConstantField(1.0)
+    torch.manual_seed(0)
+    sim = Simulator(model, FullDecision(model.internal), field, DT)
+    perturbation = model.body.perturbation(field, model.perturbation_options)
+    with pytest.raises(ConfigError) as error:
+        collect_transitions(sim, perturbation, n_cells=20, n_per_state=5000, perturb_rate=0.1,
+                            record_every=1, equilibration_time=1.0, max_time=20.0,
+                            progress=False)  # fmt: skip
+    message = str(error.value)
+    assert message.startswith("collect reached collect.max_time=20 s")
+    needed = float(message.split("collect.max_time ~ ")[1].split(" s")[0])
+    assert 30 < needed < 60, message
+
+
+def test_bad_inspect_settings_are_refused_by_name_and_the_command_reproduces(compose_cfg) -> None:
+    """An unknown inspect key, quantiles out of order, a share outside (0, 1) are refused naming
+    the setting; the command the report prints composes to the same identity."""
+    from hydra import compose, initialize_config_dir
+
+    from surrogate.config import CONF_DIR
+    from surrogate.stages.settings import InspectSettings
+
+    for override, message in (("+inspect.cells=3", r"unknown inspect setting\(s\) \['cells'\]"),
+                              ("inspect.quantiles=[0.9,0.1]", "inspect.quantiles must be"),
+                              ("inspect.min_occupancy=1.5", "inspect.min_occupancy must be a share")):  # fmt: skip
+        with pytest.raises(ConfigError, match=message):
+            InspectSettings.from_config(compose_cfg("inspect", [override]))
+    given = ["fields=[gaussian]", "t_end=40", "inspect.n_cells=30", "collect.n_per_state=500",
+             "gp=clock", "seed=2"]  # fmt: skip
+    settings = InspectSettings.from_config(compose_cfg("inspect", given))
+    words = settings.command().split()[2:]
+    data = f"data_dir={settings.job.data_dir}"
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        again = InspectSettings.from_config(compose(config_name="inspect",
+                                                    overrides=[data, *words]))  # fmt: skip
+    assert again.identity() == settings.identity(), settings.command()
