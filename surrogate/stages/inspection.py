@@ -186,7 +186,6 @@ def population_inputs(settings: InspectSettings, seconds: float) -> Population:
     setup, o, run_ = settings.setup, settings.options, settings.run
     model, dt = setup.model, setup.dt
     network = _network(model)
-    _numba_threads_as_torch()
     names = tuple(model.internal.input_names)
     kinetic_names = network.kinetics.input_names if network is not None else ()
     step_cost = model.cell_step_seconds(dt)
@@ -527,7 +526,6 @@ def simulate_fixed_inputs(
     stationarity; within ``seconds`` of estimated simulation."""
     internal = model.internal
     network = _network(model)
-    _numba_threads_as_torch()
     g_count, n = grid.x.shape[0], int(options["n_cells"])
     rel, alpha = options["settle_tolerance"], options["markov_alpha"]
     notes: list[str] = []
@@ -1005,18 +1003,6 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
              float(fixed.occupancy.min()), float(fixed.occupancy.max()), fixed.method,
              settling_text(summary), relaxation_text(summary["relaxation"]),
              advice["abstraction"], summary["wall_time_s"])  # fmt: skip
-
-
-def _numba_threads_as_torch() -> None:
-    """The compiled SSA's threads (numba's pool) as many as the job's torch threads (setting
-    ``threads``): its per-window parallel loop over cells otherwise waits on every core, which
-    on a busy machine costs more than the window (measured: 50x per window of 200 cells with
-    2 threads on 2 loaded cores). numba's pool first: starting it resets torch's count."""
-    import numba
-
-    threads = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-    torch.set_num_threads(threads)
 
 
 def _refusal(summary: dict[str, Any], grid: Grid, fixed: FixedInputs) -> str:

@@ -55,6 +55,7 @@ from surrogate.config import (
     to_dict,
     validate_start,
 )
+from surrogate.ctmc.compiled import match_torch_threads
 from surrogate.errors import ArtefactError, ConfigError, MissingArtefactError
 from surrogate.io import (
     MANIFEST,
@@ -347,12 +348,9 @@ def _worker_init(threads: int) -> None:
 
 
 def _set_threads(threads: int) -> None:
-    """``threads`` for numba's compiled SSA and torch: numba's pool first, since starting it
-    sets the process's OpenMP count, which is torch's too."""
-    import numba
-
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    """``threads`` for torch and numba's compiled SSA."""
     torch.set_num_threads(threads)
+    match_torch_threads()
 
 
 @functools.lru_cache(maxsize=1)

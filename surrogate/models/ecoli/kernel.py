@@ -45,6 +45,7 @@ from numba import prange
 from torch import Tensor
 
 from surrogate import scalar
+from surrogate.ctmc.compiled import match_torch_threads
 from surrogate.field_kernel import field_set, field_value, pack_field
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import KernelUnsupported, Randoms
@@ -605,13 +606,7 @@ class EcoliKernel:
         un, zn = _numpy(u), _numpy(z)
         # as many kernel threads as torch uses (the threads setting; a sweep job's share), a
         # few pieces each (cells of one block cost alike; pieces balance what differs)
-        torch_threads = torch.get_num_threads()
-        threads = max(1, min(torch_threads, numba.config.NUMBA_NUM_THREADS))
-        numba.set_num_threads(threads)
-        if torch.get_num_threads() != torch_threads:
-            # numba's OpenMP pool, started by its first use, sets the process's OpenMP count,
-            # which is torch's too: the job's thread setting must survive it
-            torch.set_num_threads(torch_threads)
+        threads = match_torch_threads()
         for b in self.blocks:
             count = n if b.count is None else b.count
             if count == 0:
