@@ -5,7 +5,8 @@ not depend on the number of cells. Independent runs of one model - other seeds, 
 full-vs-full noise-floor run, other fields, even other decision layers - can share every step
 instead: block i of the population is replicate i, with its own field
 (:class:`~surrogate.fields.FieldBatch`), its own decision layer (:class:`DecisionBatch`) and its
-own random stream.
+own random stream. A coupled field (:mod:`surrogate.grid`) is a replicate's own state: each
+replicate gets its own copy, stepped with its own cells only.
 
 Each replicate draws its initial state from the global generator seeded with its own seed, then
 continues on a private ``torch.Generator`` that carries on from exactly that state, drawing its
@@ -19,6 +20,7 @@ vectorised body and a scalar tail), which leaves it identical in distribution.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import os
 import sys
 import time
@@ -32,6 +34,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from surrogate.fields import Field, FieldBatch
+from surrogate.grid.coupled import is_coupled
 from surrogate.models.base import InternalState, Model, Randoms
 from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
@@ -170,7 +173,7 @@ class BatchSimulator(Simulator):
         backend: str = "torch",
         compile_fallback: bool = True,
     ) -> None:
-        self.replicates = list(replicates)
+        self.replicates = _own_coupled_fields(replicates)
         if not self.replicates:
             raise ValueError("a batch needs at least one replicate")
         sizes = [r.n_cells for r in self.replicates]
@@ -226,6 +229,7 @@ class BatchSimulator(Simulator):
             segment_steps=torch.cat([s.segment_steps for s in states]),
             segment_complete=torch.cat([s.segment_complete for s in states]),
             inputs=torch.cat([s.inputs for s in states]),  # type: ignore[misc]
+            fields=tuple(f.state for f, _ in self._coupled),
         )
 
     def support_blocks(
@@ -299,6 +303,21 @@ class BatchSimulator(Simulator):
         finally:
             _set_global_state(self.device, saved)
         return extra
+
+
+def _own_coupled_fields(replicates: Sequence[Replicate]) -> list[Replicate]:
+    """The replicates, each coupled field (:mod:`surrogate.grid`) its replicate's own: a
+    replicate whose field object an earlier one already has gets a deep copy (a coupled
+    field's state is its cells', so replicates never share one; each starts from the initial
+    state at :meth:`BatchSimulator.initial_state`)."""
+    seen: set[int] = set()
+    out = []
+    for rep in replicates:
+        if is_coupled(rep.field) and id(rep.field) in seen:
+            rep = dataclasses.replace(rep, field=copy.deepcopy(rep.field))
+        seen.add(id(rep.field))
+        out.append(rep)
+    return out
 
 
 def _groups(decisions: Sequence[DecisionLayer]) -> list[list[int]]:

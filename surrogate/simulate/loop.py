@@ -39,6 +39,7 @@ from torch import Tensor
 from surrogate.errors import CompileError, ConfigError, NumericalError
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
+from surrogate.simulate.coupling import check_coupled_run, coupled_blocks, positions_of
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.precompile import kernel_wanted, wait_for_precompile
 from surrogate.simulate.support import SupportMonitor, TrainedRange, trained_range_of
@@ -55,6 +56,8 @@ class PopulationState:
         segment_complete: bool ``(n,)``, the current segment began with a switch (not censored).
         inputs: ``n x d``, the inputs of the last step (checked at record times), or None.
         step: steps taken.
+        fields: the coupled fields' states after the last step (:mod:`surrogate.grid`: the
+            field objects hold them and the simulator advances them); empty for given fields.
     """
 
     body: BodyState
@@ -63,6 +66,7 @@ class PopulationState:
     segment_complete: Tensor
     inputs: Tensor | None = None
     step: int = 0
+    fields: tuple[Any, ...] = ()
     #: ids of the tensors :meth:`make_private` copied (the state's own, written in place)
     _own: tuple[int, ...] = field(default=(), repr=False, compare=False)
 
@@ -232,6 +236,12 @@ class Simulator:
             fails; False: raise :class:`~surrogate.errors.CompileError` instead (a stage whose
             artefact's identity says ``compile=true`` must not hold an eager run).
 
+    A coupled field (:class:`~surrogate.grid.CoupledField`, e.g. a
+    :class:`~surrogate.grid.GridField`) is part of the population's state: reset by
+    :meth:`initial_state`, advanced by :meth:`step` after the agents (their uptake and
+    secretion at their new positions, then diffusion), on the torch step only (the per-cell
+    kernel and ``compile`` are refused by name: :mod:`surrogate.simulate.coupling`).
+
     Example:
         >>> from surrogate.fields import GaussianField
         >>> from surrogate.models.ecoli import EcoliModel
@@ -269,6 +279,9 @@ class Simulator:
         self.kernel, self.backend_note = _cell_kernel(backend, model, decision, field, self.dt,
                                                       self.device, bool(compile))  # fmt: skip
         self.backend = "torch" if self.kernel is None else "numba"
+        self._coupled = coupled_blocks(field)
+        for coupled, _ in self._coupled:
+            check_coupled_run(coupled, dt=self.dt, compile=bool(compile))
         if self.kernel is not None:  # a compilation in flight fills numba's cache for its calls
             wait_for_precompile()
         self.compile = bool(compile)
@@ -305,7 +318,10 @@ class Simulator:
         law), the decision layer its initial phi (the internal model's stationary law at each
         cell's inputs); then ``equilibration_time`` seconds of internal dynamics (decision and
         the body's slow processes, no movement) let the decision layer's own state settle.
+        Coupled fields start from their initial state (the equilibration does not change them).
         """
+        for coupled, _ in self._coupled:
+            coupled.reset(self.device)
         body = self.body.initial_state(
             n_cells, torch.as_tensor(start, device=self.device), self.field, self.dt
         )
@@ -325,6 +341,7 @@ class Simulator:
             segment_steps=torch.zeros(n_cells, dtype=torch.int32, device=self.device),
             segment_complete=torch.zeros(n_cells, dtype=torch.bool, device=self.device),
             inputs=x,
+            fields=tuple(f.state for f, _ in self._coupled),
         )
 
     # ------------------------------------------------------------------------------------
@@ -358,7 +375,17 @@ class Simulator:
         state.segment_complete = complete8.view(torch.bool)
         state.inputs = x
         state.step += 1
+        if self._coupled:
+            self._step_fields(state)
         return StepRecord(x, phi_before, phi, ended)
+
+    def _step_fields(self, state: PopulationState) -> None:
+        """Each coupled field's step with its cells' new positions and phi (after the agents'
+        step: the exchange of step n enters the field step n + 1 reads)."""
+        for coupled, cells in self._coupled:
+            position = positions_of(state.body, coupled)
+            coupled.step(position[cells], state.phi[cells], self.dt)
+        state.fields = tuple(f.state for f, _ in self._coupled)
 
     def advance(self, state: PopulationState, steps: int, out: Tensor | None = None) -> Tensor:
         """Advance every cell by ``steps`` steps; return each step's ended segment lengths
@@ -520,6 +547,8 @@ class Simulator:
         if state.inputs is not None:
             bad_inputs = self.body.check_inputs(state.inputs)
             problem = bad_inputs or problem
+        for coupled, _ in self._coupled:
+            problem = problem or coupled.check()
         if problem is not None:
             t0, t1 = self._checked_step * self.dt, state.step * self.dt
             when = f"at t={t1:g} s" if t0 == t1 else f"between t={t0:g} s and t={t1:g} s"
@@ -617,6 +646,9 @@ def _cell_kernel(
     try:
         if device.type != "cpu":
             raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")
+        if coupled_blocks(field):
+            raise KernelUnsupported(f"a coupled field ({type(field).__name__}: the agents change "
+                                    "it every step; the torch step runs it)")  # fmt: skip
         # imported here: the packer reads DecisionBatch, whose module imports this one
         from surrogate.simulate.kernel_pack import pack_decision
 

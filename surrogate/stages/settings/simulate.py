@@ -13,8 +13,10 @@ import torch
 
 from surrogate.config import non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
+from surrogate.grid import is_coupled
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import start_size_of
+from surrogate.simulate.coupling import check_coupled_run
 from surrogate.simulate.recorders import DEFAULT_RECORD_CELLS
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
@@ -82,9 +84,13 @@ class SimulateSettings:
         record_cells = cfg.get("record_cells", DEFAULT_RECORD_CELLS)
         if record_cells is not None:
             record_cells = int(positive(cfg, "record_cells", integer=True))
+        backend, compile = validate_backend(cfg), bool(cfg.get("compile", False))
+        check_coupled_run(setup.field, dt=setup.dt, backend=backend, compile=compile,
+                          shards=shards)  # fmt: skip
+        check_field_memory(setup.field, job.device)
         return cls(setup, decision, n_cells, t_end, interval, start, eq,
-                   bool(cfg.get("record_durations", True)), bool(cfg.get("compile", False)), job,
-                   record_cells=record_cells, backend=validate_backend(cfg))  # fmt: skip
+                   bool(cfg.get("record_durations", True)), compile, job,
+                   record_cells=record_cells, backend=backend)  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """Everything that defines a population run (``compile`` and ``backend`` too: compiled
@@ -177,6 +183,20 @@ def check_memory(n_cells: int, device: torch.device) -> None:
             f"cell) but {have / 2**30:.1f} GiB are free on {device}; split the population "
             f"into shards (`{SIMULATE_CMD} -m shard.count=K shard.index='range(K)' "
             f"n_cells={n_cells}`, then scripts/merge_shards.py)"
+        )
+
+
+def check_field_memory(field: Any, device: torch.device) -> None:
+    """Refuse a coupled field whose grid cannot fit in memory, naming ``field.shape``."""
+    if not is_coupled(field):
+        return
+    need = field.memory_bytes()
+    have = torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else free_memory_bytes()
+    if have is not None and need > have:
+        raise ConfigError(
+            f"field.shape={list(field.grid.shape)}: the grid field needs about "
+            f"{need / 2**30:.1f} GiB ({len(field.species)} species) but {have / 2**30:.1f} GiB "
+            f"are free on {device}; lower field.shape"
         )
 
 

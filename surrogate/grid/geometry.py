@@ -1,0 +1,191 @@
+"""A regular 2-D grid of cells (finite volumes) and the bilinear stencil that couples agents to it.
+
+Cell ``(i, j)`` is the rectangle of width ``h_x``, ``h_y`` whose centre is
+``lower + (i + 1/2, j + 1/2) * h``; a concentration is one value per cell (its mean), an amount
+is concentration times the cell's volume ``h_x h_y depth`` (the grid is a thin layer of depth
+``depth``: a channel's cross-section is ``h_y x depth`` per row of cells).
+
+Agents read the grid by bilinear interpolation between the four cell centres around them
+(:meth:`Stencil.interpolate`) and write to it by the adjoint of that interpolation
+(:meth:`Stencil.deposit`: the same four cells, the same weights, ``index_add_``), so for any
+grid function ``f`` and agent amounts ``w``, ``<interpolate(f), w> = <f, deposit(w)>``, and the
+weights of each agent sum to one: what an agent gives or takes is exactly what the grid gets or
+loses (to float64 rounding). Weights are computed in float64 from the float32 positions.
+
+Boundaries, per axis: ``periodic`` (indices wrap; positions are read modulo the domain) or
+``no_flux`` (a wall at the domain's edge: between the wall and the first cell centre the value
+is the first cell's, the interpolant of a zero-gradient wall; an agent beyond the wall
+exchanges with the nearest point inside, so nothing leaves the grid).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+
+__all__ = ["BOUNDARIES", "Grid", "Stencil"]
+
+#: the boundary conditions an axis may have
+BOUNDARIES = ("periodic", "no_flux")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The geometry of a field's grid (see the module docstring).
+
+    Attributes:
+        lower: the domain's lower corner (mm).
+        upper: the domain's upper corner (mm).
+        shape: cells along x and y.
+        boundary: each axis's boundary condition (:data:`BOUNDARIES`).
+        depth: the layer's depth (mm): a cell holds ``h_x h_y depth`` mm^3.
+    """
+
+    lower: tuple[float, float]
+    upper: tuple[float, float]
+    shape: tuple[int, int]
+    boundary: tuple[str, str]
+    depth: float
+
+    @classmethod
+    def from_config(
+        cls,
+        domain: Sequence[Sequence[float]],
+        shape: Sequence[int],
+        boundary: str | Sequence[str],
+        depth: float,
+        where: str = "field",
+    ) -> Grid:
+        """A checked grid: ``domain`` ``[[x_lo, x_hi], [y_lo, y_hi]]`` (mm), ``shape``
+        ``[n_x, n_y]`` (integers >= 2), ``boundary`` one name or one per axis, ``depth`` > 0.
+
+        Raises:
+            ConfigError: naming ``<where>.domain``, ``.shape``, ``.boundary`` or ``.depth``.
+        """
+        try:
+            bounds = [(float(a), float(b)) for a, b in domain]
+        except (TypeError, ValueError):
+            bounds = []
+        if len(bounds) != 2 or not all(
+            math.isfinite(a) and math.isfinite(b) and a < b for a, b in bounds
+        ):
+            raise ConfigError(
+                f"{where}.domain must be [[x_lo, x_hi], [y_lo, y_hi]] in mm with lo < hi, "
+                f"got {domain!r}"
+            )
+        if (
+            isinstance(shape, str | bytes)
+            or len(shape) != 2
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 2 for n in shape)
+        ):
+            raise ConfigError(f"{where}.shape must be two integers >= 2 (cells along x, y), "
+                              f"got {shape!r}")  # fmt: skip
+        names = (boundary, boundary) if isinstance(boundary, str) else tuple(boundary)
+        if len(names) != 2 or any(b not in BOUNDARIES for b in names):
+            raise ConfigError(f"{where}.boundary must be one of {list(BOUNDARIES)} or one per "
+                              f"axis [x, y], got {boundary!r}")  # fmt: skip
+        depth = float(depth)
+        if not (math.isfinite(depth) and depth > 0):
+            raise ConfigError(f"{where}.depth must be a positive number (mm), got {depth!r}")
+        lower = (bounds[0][0], bounds[1][0])
+        upper = (bounds[0][1], bounds[1][1])
+        return cls(lower, upper, (int(shape[0]), int(shape[1])), names, depth)  # type: ignore[arg-type]
+
+    @property
+    def spacing(self) -> tuple[float, float]:
+        """Cell widths ``(h_x, h_y)`` (mm)."""
+        return tuple((b - a) / n for a, b, n in zip(self.lower, self.upper, self.shape,
+                                                     strict=True))  # type: ignore[return-value]  # fmt: skip
+
+    @property
+    def cell_volume(self) -> float:
+        """Volume of one cell (mm^3)."""
+        hx, hy = self.spacing
+        return hx * hy * self.depth
+
+    @property
+    def n_cells(self) -> int:
+        """Cells of the grid."""
+        return self.shape[0] * self.shape[1]
+
+    def centres(self, device: torch.device | str = "cpu") -> Tensor:
+        """Every cell's centre, ``(n_x, n_y, 2)`` float64 (mm)."""
+        axes = [
+            lo + (torch.arange(n, dtype=torch.float64, device=device) + 0.5) * h
+            for lo, n, h in zip(self.lower, self.shape, self.spacing, strict=True)
+        ]
+        gx, gy = torch.meshgrid(*axes, indexing="ij")
+        return torch.stack([gx, gy], -1)
+
+    def stencil(self, position: Tensor) -> Stencil:
+        """The bilinear stencil of agents at ``position`` (``(n, 2)``, mm)."""
+        p = position.to(torch.float64)
+        idx, wts = [], []
+        for axis in range(2):
+            n, h = self.shape[axis], self.spacing[axis]
+            g = (p[:, axis] - self.lower[axis]) / h - 0.5  # in units of cells, from centre 0
+            if self.boundary[axis] == "no_flux":
+                g = g.clamp(-0.5, n - 0.5)  # beyond a wall: the nearest point inside
+            first = torch.floor(g)
+            frac = g - first
+            i0 = first.to(torch.int64)
+            i1 = i0 + 1
+            if self.boundary[axis] == "periodic":
+                i0, i1 = i0.remainder(n), i1.remainder(n)
+            else:  # mirrored ghost cells: a zero-gradient wall
+                i0, i1 = i0.clamp(0, n - 1), i1.clamp(0, n - 1)
+            idx.append((i0, i1))
+            wts.append((1.0 - frac, frac))
+        ny = self.shape[1]
+        index = torch.stack([ix * ny + iy for ix in idx[0] for iy in idx[1]], -1)
+        weight = torch.stack([wx * wy for wx in wts[0] for wy in wts[1]], -1)
+        return Stencil(index, weight, self.shape)
+
+
+@dataclass(frozen=True)
+class Stencil:
+    """Four cells and their bilinear weights per agent.
+
+    Attributes:
+        index: int64 ``(n, 4)``, flat cell indices (``i * n_y + j``).
+        weight: float64 ``(n, 4)``, the weights (each row sums to one).
+        shape: the grid's ``(n_x, n_y)``.
+    """
+
+    index: Tensor
+    weight: Tensor
+    shape: tuple[int, int]
+
+    def interpolate(self, values: Tensor) -> Tensor:
+        """The grid's values at the agents.
+
+        Args:
+            values: ``(..., n_x, n_y)`` per cell.
+
+        Returns:
+            ``(..., n)`` at the agents, in ``values``' dtype (the weights are float64).
+        """
+        flat = values.reshape(*values.shape[:-2], -1)
+        picked = flat[..., self.index]  # (..., n, 4)
+        return (picked * self.weight.to(values.dtype)).sum(-1)
+
+    def deposit(self, amounts: Tensor) -> Tensor:
+        """The adjoint of :meth:`interpolate`: each agent's amount spread over its four cells.
+
+        Args:
+            amounts: ``(..., n)`` per agent (float64 for exact accounting).
+
+        Returns:
+            ``(..., n_x, n_y)`` per cell; its sum is ``amounts``' sum (to rounding).
+        """
+        lead = amounts.shape[:-1]
+        spread = (amounts[..., None] * self.weight.to(amounts.dtype)).reshape(*lead, -1)
+        out = amounts.new_zeros(*lead, self.shape[0] * self.shape[1])
+        out.index_add_(-1, self.index.reshape(-1), spread)
+        return out.reshape(*lead, *self.shape)

@@ -1,0 +1,134 @@
+"""Agents and the grid: bilinear reading, its adjoint deposit, Michaelis-Menten uptake (capped by
+what a cell holds) and phi-dependent secretion, with exact accounting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+
+from surrogate.grid import MOLECULES_PER_NMOL, Grid, GridField
+
+EPS = float(np.finfo(np.float64).eps)
+
+
+def _grid(boundary) -> Grid:
+    return Grid.from_config([[-1.0, 2.0], [0.0, 1.0]], [12, 8], boundary, depth=0.1)
+
+
+def _inside(grid: Grid, n: int, seed: int) -> torch.Tensor:
+    """Positions between the first and the last cell centre of each axis (float32)."""
+    g = torch.Generator().manual_seed(seed)
+    lo = torch.tensor(grid.lower) + torch.tensor(grid.spacing) / 2
+    hi = torch.tensor(grid.upper) - torch.tensor(grid.spacing) / 2
+    return (lo + (hi - lo) * torch.rand(n, 2, generator=g, dtype=torch.float64)).float()
+
+
+@pytest.mark.parametrize("boundary", ["no_flux", "periodic"])
+def test_bilinear_reading_is_exact_for_linear_fields(boundary: str) -> None:
+    grid = _grid(boundary)
+    centres = grid.centres()
+    f = 0.3 + 1.7 * centres[..., 0] - 0.4 * centres[..., 1]
+    p = _inside(grid, 500, 0)
+    p64 = p.double()
+    want = 0.3 + 1.7 * p64[:, 0] - 0.4 * p64[:, 1]
+    got = grid.stencil(p).interpolate(f)
+    assert torch.allclose(got, want, rtol=0, atol=16 * EPS * float(want.abs().max()))
+
+
+def test_a_no_flux_wall_reads_the_first_cell_and_a_periodic_edge_wraps() -> None:
+    wall, ring = _grid("no_flux"), _grid("periodic")
+    f = torch.arange(96, dtype=torch.float64).reshape(12, 8)
+    hx, hy = wall.spacing
+    near_wall = torch.tensor([[-1.0 + hx / 4, 0.5 * hy], [-5.0, -3.0]])  # inside and beyond
+    assert wall.stencil(near_wall).interpolate(f).tolist() == [0.0, 0.0]
+    p = _inside(ring, 50, 1)
+    shifted = p + torch.tensor([3.0, -2.0])  # whole periods
+    got, want = ring.stencil(shifted).interpolate(f), ring.stencil(p).interpolate(f)
+    assert torch.allclose(got, want, rtol=0, atol=1e-5 * float(f.max()))  # float32 positions
+
+
+@pytest.mark.parametrize("boundary", ["no_flux", "periodic", ["periodic", "no_flux"]])
+def test_the_deposit_is_the_adjoint_of_the_reading(boundary) -> None:
+    """<interpolate(f), w> = <f, deposit(w)> for any f and w, agents anywhere (also outside)."""
+    grid = _grid(boundary)
+    g = torch.Generator().manual_seed(2)
+    p = (torch.rand(300, 2, generator=g) * 6 - 2).float()  # many outside the domain
+    f = torch.rand(2, *grid.shape, generator=g, dtype=torch.float64)
+    w = torch.rand(2, 300, generator=g, dtype=torch.float64)
+    stencil = grid.stencil(p)
+    lhs = (stencil.interpolate(f) * w).sum()
+    rhs = (f * stencil.deposit(w)).sum()
+    assert abs(float(lhs - rhs)) <= 8 * EPS * float((f.abs().max() * w.abs()).sum())
+    # each agent's weights sum to one: the grid gets exactly what the agents give
+    assert torch.allclose(stencil.deposit(w).sum((-2, -1)), w.sum(-1), rtol=4 * EPS, atol=0)
+
+
+def _uniform_population(per_cell: int, vmax: float, km: float, c0: float):
+    field = GridField([[0, 1], [0, 1]], [8, 8], {"a": {"diffusion": 1e-3, "initial": c0,
+                      "uptake": {"vmax": vmax, "km": km}}}, depth=0.1, boundary="periodic")  # fmt: skip
+    centres = field.grid.centres().reshape(-1, 2).float()
+    position = centres.repeat_interleave(per_cell, 0)
+    return field, position, per_cell / field.grid.cell_volume  # agents per mm^3
+
+
+def test_a_uniform_populations_uptake_follows_the_ode() -> None:
+    """Agents on every cell centre deplete a uniform field as dc/dt = -rho vmax c / (K + c)
+    (rho agents per mm^3, vmax in nmol/s): forward Euler's global error is at most
+    t dt / 2 max|c''| (the ODE contracts: dt |f'| < 2), and halves with dt."""
+    vmax, km, c0, t = 1.2e9, 0.05, 0.1, 40.0
+    errors = []
+    for dt in (0.1, 0.05):
+        field, position, rho = _uniform_population(4, vmax, km, c0)
+        field.reset()
+        phi = torch.zeros(len(position), dtype=torch.bool)
+        for _ in range(round(t / dt)):
+            field.step(position, phi, dt)
+        a = rho * vmax / MOLECULES_PER_NMOL  # mM/s at saturation
+
+        def rate(_, c, a=a):
+            return -a * c / (km + c)
+
+        exact = solve_ivp(rate, (0, t), [c0], rtol=1e-12, atol=1e-15, dense_output=True)
+        grid_c = field.state.concentration[0]
+        assert float(grid_c.max() - grid_c.min()) <= 64 * EPS * c0  # stays uniform
+        c_path = exact.sol(np.linspace(0, t, 2001))[0]
+        second = (a * km / (km + c_path) ** 2) * (a * c_path / (km + c_path))  # |c''| = f' f
+        bound = t * dt / 2 * second.max()
+        error = abs(float(grid_c.mean()) - exact.sol(t)[0])
+        assert error <= bound, (dt, error, bound)
+        assert float(field.state.taken[0]) == pytest.approx(
+            float(field.state.initial[0] - field.mass()[0]), rel=1e-12)  # fmt: skip
+        errors.append(error)
+    assert 1.8 < errors[0] / errors[1] < 2.2, errors  # first order: the scheme's, not noise
+
+
+def test_uptake_never_takes_more_than_a_cell_holds() -> None:
+    """Agents demanding far more than their cells hold empty those cells exactly (never below
+    zero) and take what they held, no more."""
+    field = GridField([[0, 1], [0, 1]], [8, 8], {"a": {"diffusion": 0.0, "initial": 0.1,
+                      "uptake": {"vmax": 1e15, "km": 1e-3}}}, depth=0.1)  # fmt: skip
+    field.reset()
+    g = torch.Generator().manual_seed(3)
+    position = torch.rand(50, 2, generator=g) * 0.4 + 0.05  # the lower-left quarter
+    touched = field.grid.stencil(position).deposit(torch.ones(2, 50, dtype=torch.float64))[0] > 0
+    held = 0.1 * field.grid.cell_volume * int(touched.sum())
+    field.step(position, torch.zeros(50), dt=0.1)
+    c = field.state.concentration[0]
+    assert float(c[touched].abs().max()) <= 64 * EPS * 0.1
+    assert float((c[~touched] - 0.1).abs().max()) <= 64 * EPS * 0.1  # the transforms' rounding
+    assert float(field.state.taken[0]) == pytest.approx(held, rel=64 * EPS * 50)
+    assert abs(float(field.balance()[0])) <= 64 * EPS * float(field.state.initial[0])
+
+
+def test_secretion_follows_phi() -> None:
+    field = GridField([[0, 1], [0, 1]], [4, 4], {"s": {"diffusion": 1e-3, "initial": 0.0,
+                      "secretion": {"rate_on": 1e6, "rate_off": 1e5}}}, depth=0.1)  # fmt: skip
+    field.reset()
+    position = torch.rand(10, 2)
+    phi = torch.tensor([True] * 3 + [False] * 7)
+    field.step(position, phi, dt=0.5)
+    want = (3 * 1e6 + 7 * 1e5) * 0.5 / MOLECULES_PER_NMOL
+    assert float(field.state.secreted[0]) == pytest.approx(want, rel=1e-14)
+    assert float(field.mass()[0]) == pytest.approx(want, rel=1e-12)

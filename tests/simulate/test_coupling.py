@@ -1,0 +1,150 @@
+"""A population coupled to a grid field: the order of a step, mass conserved over a whole run
+for every decision layer, replicates with their own fields, and what is refused by name."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from surrogate.errors import ConfigError
+from surrogate.fields import ConstantField, FieldBatch
+from surrogate.grid import MOLECULES_PER_NMOL, GridField
+from surrogate.models.base import KernelUnsupported
+from surrogate.models.ecoli import EcoliModel
+from surrogate.simulate import AbstractDecision, FullDecision, Simulator
+from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.coupling import coupled_blocks
+
+MODEL = EcoliModel()
+DT = 0.05
+EPS = float(np.finfo(np.float64).eps)
+
+
+def channel(diffusion: float = 8e-4, rate_on: float = 2e5) -> GridField:
+    """A 4 mm x 0.5 mm channel: a consumed attractant (what the cells read) and a signal they
+    secrete while running."""
+    return GridField(
+        [[0.0, 4.0], [-0.25, 0.25]], [64, 8],
+        {"attractant": {"diffusion": diffusion, "initial": 0.1,
+                        "uptake": {"vmax": 1e8, "km": 0.01}},
+         "signal": {"diffusion": diffusion, "decay": 0.01,
+                    "secretion": {"rate_on": rate_on, "rate_off": 0.0}}},
+        depth=0.1,
+    )  # fmt: skip
+
+
+def flipping(model: EcoliModel) -> AbstractDecision:
+    """A fused two-state chain whose phi flips every step (so phi before and after differ)."""
+
+    def psi(phi: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return torch.where(phi.reshape(-1) > 0, 0.0, 1.0).to(torch.float32)
+
+    return AbstractDecision(psi, model.internal)
+
+
+@pytest.mark.parametrize("decision", ["full", "abstract"])
+def test_mass_is_conserved_over_a_whole_coupled_run(decision: str) -> None:
+    """field + taken + decayed - secreted - supplied = initial, per species, to float64
+    rounding (a few ulps of the mass per step), whatever decides phi."""
+    torch.manual_seed(0)
+    field = channel()
+    layer = FullDecision(MODEL.internal) if decision == "full" else flipping(MODEL)
+    sim = Simulator(MODEL, layer, field, DT)
+    state = sim.initial_state(200, (1.0, 0.0))
+    steps = 200
+    sim.advance(state, steps)
+    sim.check_state(state)
+    ledger = field.state
+    assert ledger.steps == steps and state.fields == (ledger,)
+    assert float(ledger.taken[0]) > 0.01 * float(ledger.initial[0])  # the cells consumed
+    assert float(ledger.secreted[1]) > 0 and float(ledger.decayed[1]) > 0
+    scale = ledger.initial + ledger.secreted + ledger.supplied
+    assert bool((field.balance().abs() <= steps * 64 * EPS * scale).all()), field.balance()
+
+
+def test_a_step_reads_the_field_then_the_field_takes_the_cells_exchange() -> None:
+    """The order of a step: the cells read the field as it was (their inputs), move, then the
+    field takes their secretion at their new positions with their phi after the window."""
+    torch.manual_seed(1)
+    field = channel(diffusion=0.0, rate_on=1e6)  # no diffusion: the deposit stays put
+    sim = Simulator(MODEL, flipping(MODEL), field, DT)
+    state = sim.initial_state(100, (1.0, 0.0))
+    before = field(state.body["position"], 0.0)
+    signal_before = field.concentration("signal").clone()
+    record = sim.step(state)
+    assert torch.equal(record.inputs[:, 1], before)  # L read before the field changed
+    assert not torch.equal(record.phi_after, record.phi_before)
+    on = state.phi.to(torch.float64)  # phi after the window
+    assert float(field.state.secreted[1]) == pytest.approx(
+        float(on.sum()) * 1e6 * DT / MOLECULES_PER_NMOL, rel=1e-14)  # fmt: skip
+    # where it went: the deposit at the positions after the move (decayed for one step)
+    amounts = on * (1e6 * DT / MOLECULES_PER_NMOL)
+    added = field.grid.stencil(state.body["position"]).deposit(amounts) / field.grid.cell_volume
+    got = field.concentration("signal") - signal_before
+    assert torch.allclose(got, added * np.exp(-0.01 * DT), rtol=1e-12, atol=1e-20)
+
+
+def test_batched_replicates_each_advance_their_own_field_bit_for_bit() -> None:
+    """Two replicates given one field object: each gets its own state, and each replicate
+    (cells and field) is its standalone run exactly (eager CPU)."""
+    shared = channel()
+    reps = [Replicate(flipping(MODEL), shared, 60, seed=s, start=(1.0, 0.0)) for s in (3, 4)]
+    batch = BatchSimulator(MODEL, reps, DT)
+    assert batch.replicates[0].field is shared and batch.replicates[1].field is not shared
+    state = batch.initial_state()
+    batch.advance(state, 40)
+    for rep, cells in zip(batch.replicates, batch.slices, strict=True):
+        torch.manual_seed(rep.seed)
+        alone_field = channel()
+        alone = Simulator(MODEL, flipping(MODEL), alone_field, DT)
+        solo = alone.initial_state(rep.n_cells, rep.start)
+        alone.advance(solo, 40)
+        assert torch.equal(state.body["position"][cells], solo.body["position"])
+        assert torch.equal(rep.field.state.concentration, alone_field.state.concentration)
+
+
+def test_the_kernel_and_compile_are_refused_by_name_and_auto_runs_torch() -> None:
+    with pytest.raises(KernelUnsupported, match="backend=numba cannot run a coupled field"):
+        Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, backend="numba")
+    with pytest.raises(ConfigError, match="compile=true.*coupled"):
+        Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, compile=True)
+    auto = Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, backend="auto")
+    assert auto.backend == "torch" and "coupled field" in auto.backend_note
+
+
+def test_one_coupled_field_in_two_blocks_apart_is_refused() -> None:
+    shared = channel()
+    batch = FieldBatch([shared, ConstantField(0.1), shared], [10, 10, 10])
+    with pytest.raises(ConfigError, match="one coupled field object serves two blocks"):
+        coupled_blocks(batch)
+    assert [c for _, c in coupled_blocks(FieldBatch([ConstantField(), channel()], [5, 7]))] == [
+        slice(5, 12)
+    ]
+
+
+def test_a_body_without_positions_is_refused_by_name() -> None:
+    class NoPosition:
+        def __init__(self, body):
+            self.inner = body
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def move(self, state, *args):
+            moved = self.inner.move({**state, "position": state["where"]}, *args)
+            return {"where": moved.pop("position"), **moved}
+
+        def initial_state(self, *args):
+            state = self.inner.initial_state(*args)
+            return {"where": state.pop("position"), **state}
+
+        def inputs(self, state, field, t):
+            return self.inner.inputs({**state, "position": state["where"]}, field, t)
+
+    model = EcoliModel()
+    model.body = NoPosition(model.body)  # type: ignore[assignment]
+    sim = Simulator(model, FullDecision(model.internal), channel(), DT)
+    state = sim.initial_state(5, (1.0, 0.0))
+    with pytest.raises(ConfigError, match="needs a body whose state has a 'position'"):
+        sim.step(state)
