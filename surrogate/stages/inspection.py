@@ -862,13 +862,19 @@ def recommend(
                           f"current input, as the two-state chain assumes"}  # fmt: skip
     threshold = threshold_lump(internal)
     if threshold is not None and threshold[0] in fixed.species_law:
-        species, edge, _ = threshold
+        species, edge, upper = threshold
         values, weights = fixed.species_law[species]
         edges = class_edges(np.asarray(values, float), np.asarray(weights, float), edge,
                             int(options["classes_per_side"]))  # fmt: skip
-        yaml = f"classes: {{species: {species}, edges: [{', '.join(str(e) for e in edges)}]}}"
+        # each lump's bins on its own side of the threshold (model.classes' edges by lump)
+        below, above = [e for e in edges if e < edge], [e for e in edges if e > edge]
+        by_lump = dict(zip(internal.lump_names, (below, above) if upper else (above, below),
+                           strict=True))  # fmt: skip
+        # quoted: YAML reads bare off/on/yes/no as booleans
+        listed = ", ".join(f'"{n}": [{", ".join(str(e) for e in v)}]' for n, v in by_lump.items())
+        yaml = f"classes: {{species: {species}, edges: {{{listed}}}}}"
         return {"abstraction": "classes", "command": "gp=classes", "yaml": yaml,
-                "edges": edges, "species": species,
+                "edges": edges, "edges_by_lump": by_lump, "species": species,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
                           f"{species}: {len(edges) + 1} classes over bins of {species} at its "
                           f"stationary quantiles on each side of {edge} carry the hidden "

@@ -259,7 +259,14 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     low = int(law.ppf(0.5 * law.cdf(39)))  # the median of P given P < 40
     high = int(law.ppf(law.cdf(39) + 0.5 * law.sf(39)))  # ... given P >= 40
     assert advice["edges"] == [low, 40, high]
-    assert advice["yaml"] == f"classes: {{species: P, edges: [{low}, 40, {high}]}}"
+    # each lump's bins on its own side (no class that cannot occur), read by model.classes
+    assert advice["yaml"] == (f'classes: {{species: P, edges: {{"off": [{low}], "on": [{high}]}}}}')
+    import yaml
+
+    from surrogate.models.count_classes import parse_classes
+
+    declared = parse_classes(yaml.safe_load(advice["yaml"])["classes"], ["P"], ("off", "on"))
+    assert declared.names == (f"off|P<{low}", f"off|P>={low}", f"on|P<{high}", f"on|P>={high}")
     model = protein(tmp_path, reservoir=False)
     o = options(n_cells=100, record_windows=2000, min_time=40.0)
     torch.manual_seed(2)
