@@ -103,6 +103,8 @@ REQUIRED_KEYS: dict[str, str] = {
     "lump": 'the property phi as a condition on species counts, e.g. `lump: "P >= 20"`',
     "body": "a body of the library by kind, e.g. `body: {kind: walker}`",
 }
+#: the classes=auto choices this process has logged (by digest)
+_LOGGED_CHOICES: set[str] = set()
 #: the window (s) ``classes: auto`` scores the candidate classes over (the default dt)
 AUTO_CLASSES_DT = 0.05
 #: collection settings a model may carry as its default budget
@@ -269,6 +271,9 @@ class SbmlAgentModel(Model):
         classes, report = choose_count_classes(internal, torch.tensor(values, dtype=torch.float64),
                                                AUTO_CLASSES_DT)  # fmt: skip
         self.class_report = report
+        if classes.digest() in _LOGGED_CHOICES:  # once per process: models are rebuilt often
+            return classes
+        _LOGGED_CHOICES.add(classes.digest())
         gains = ", ".join(f"{c['species']} {c['gain_nats_per_window']:.2e}"
                           for c in report["candidates"])  # fmt: skip
         log.info("model.classes=auto: bins of %s (%s), chosen by held-out log-likelihood gain per "

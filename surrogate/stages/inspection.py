@@ -872,13 +872,22 @@ def recommend(
                            strict=True))  # fmt: skip
         # quoted: YAML reads bare off/on/yes/no as booleans
         listed = ", ".join(f'"{n}": [{", ".join(str(e) for e in v)}]' for n, v in by_lump.items())
-        yaml = f"classes: {{species: {species}, edges: {{{listed}}}}}"
+        declared = f"classes: {{species: {species}, edges: {{{listed}}}}}"
+        # a network can let the toolkit choose the count by measurement (the slow count that
+        # holds the memory need not be the lump's species): model.classes=auto
+        auto = isinstance(internal, NetworkInternalModel)
+        yaml = "classes: auto" if auto else declared
         return {"abstraction": "classes", "command": "gp=classes", "yaml": yaml,
-                "edges": edges, "edges_by_lump": by_lump, "species": species,
+                "declared": declared, "edges": edges, "edges_by_lump": by_lump,
+                "species": species,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
-                          f"{species}: {len(edges) + 1} classes over bins of {species} at its "
-                          f"stationary quantiles on each side of {edge} carry the hidden "
-                          f"count"}  # fmt: skip
+                          f"{species}: classes over bins of a count carry the hidden state"
+                          + (f" (`classes: auto` chooses the count whose bins best predict "
+                             f"the next phi, by a short seeded run; bins of the lump's own "
+                             f"species at its stationary quantiles on each side of {edge} "
+                             f"would be `{declared}`)" if auto else
+                             f": bins of {species} at its stationary quantiles on each side of "
+                             f"{edge}")}  # fmt: skip
     flat = max(h["flat_from_s"] for h in hazards if h is not None)
     max_age = float(f"{max(flat, dt):.2g}")
     return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",

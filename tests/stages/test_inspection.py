@@ -260,12 +260,16 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     high = int(law.ppf(law.cdf(39) + 0.5 * law.sf(39)))  # ... given P >= 40
     assert advice["edges"] == [low, 40, high]
     # each lump's bins on its own side (no class that cannot occur), read by model.classes
-    assert advice["yaml"] == (f'classes: {{species: P, edges: {{"off": [{low}], "on": [{high}]}}}}')
+    # a network: the count chosen by measurement; the lump species' bins beside it
+    assert advice["yaml"] == "classes: auto"
+    assert advice["declared"] == (
+        f'classes: {{species: P, edges: {{"off": [{low}], "on": [{high}]}}}}'
+    )
     import yaml
 
     from surrogate.models.count_classes import parse_classes
 
-    declared = parse_classes(yaml.safe_load(advice["yaml"])["classes"], ["P"], ("off", "on"))
+    declared = parse_classes(yaml.safe_load(advice["declared"])["classes"], ["P"], ("off", "on"))
     assert declared.names == (f"off|P<{low}", f"off|P>={low}", f"on|P<{high}", f"on|P>={high}")
     model = protein(tmp_path, reservoir=False)
     o = options(n_cells=100, record_windows=2000, min_time=40.0)
