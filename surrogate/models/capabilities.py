@@ -130,6 +130,16 @@ def cell_step_seconds_of(internal: Any) -> Callable[[float], float] | None:
     return _callable(internal, "cell_step_seconds")
 
 
+def burn_in_of(internal: Any) -> float:
+    """Seconds of internal dynamics each cell's initial state is simulated for (``burn_in``,
+    where the model draws its initial state by simulating from fixed counts: a network too
+    large to enumerate; 0 where the stationary law is drawn exactly)."""
+    seconds = float(getattr(internal, "burn_in", 0.0) or 0.0)
+    if seconds <= 0 or getattr(internal, "state_space", None) is not None:
+        return 0.0
+    return seconds
+
+
 def feature_names_of(internal: Any) -> tuple[str, ...]:
     """The derived inputs ``internal`` can compute (``feature_names``; default none)."""
     return tuple(getattr(internal, "feature_names", None) or ())
@@ -202,6 +212,7 @@ def histogram_grids_of(body: Any) -> dict[str, Any]:
 
 __all__ = [
     "LumpClasses",
+    "burn_in_of",
     "cell_step_seconds_of",
     "concat_states",
     "concat_states_of",

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST
+from surrogate.models.capabilities import burn_in_of
 
 if TYPE_CHECKING:
     from surrogate.stages.settings import (
@@ -115,7 +116,7 @@ def collect_work(settings: CollectSettings, reuse: bool = True) -> list[Work]:
              f"of collect.n_cells={cells}, collect.equilibration_time="
              f"{float(c['equilibration_time']):g} s, dt={setup.dt:g} s")  # fmt: skip
     return [Work("collect (at least)", cells, steps, setup.model.cell_step_seconds(setup.dt),
-                 where, setup.model.name)]  # fmt: skip
+                 where, setup.model.name), *burn_in_work(setup.model, cells, setup.dt)]  # fmt: skip
 
 
 def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
@@ -135,6 +136,7 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
         works.append(Work("the train diagnostic's full-model population", int(d["n_cells"]),
                           span / setup.dt, setup.model.cell_step_seconds(setup.dt), where,
                           setup.model.name))  # fmt: skip
+        works += burn_in_work(setup.model, int(d["n_cells"]), setup.dt)
     return works
 
 
@@ -150,7 +152,18 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
     return [Work(label, settings.n_cells, span / setup.dt,
                  setup.model.cell_step_seconds(setup.dt, name), where, setup.model.name,
-                 name)]  # fmt: skip
+                 name), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
+
+
+def burn_in_work(model: Any, cells: int, dt: float) -> list[Work]:
+    """The full model's burn-in of ``cells`` initial states, where the model simulates one
+    (:func:`~surrogate.models.capabilities.burn_in_of`; every decision layer starts its cells
+    from the internal model's initial state)."""
+    seconds = burn_in_of(model.internal)
+    if seconds <= 0:
+        return []
+    return [Work("the initial states' burn-in", cells, seconds / dt,
+                 model.cell_step_seconds(dt), f"model.burn_in={seconds:g} s", model.name)]  # fmt: skip
 
 
 def evaluate_work(settings: EvaluateSettings) -> list[Work]:
