@@ -364,15 +364,15 @@ def test_the_published_examples_load_through_their_yamls() -> None:
     rates = toggle.internal.kinetics.propensities(counts, toggle.internal.kinetic_inputs(x))
     torch.testing.assert_close(rates[:, 0], 20 * x[:, 0].double() / (1 + 2**2))
 
-    ar = SbmlAgentModel(str(AUTOREGULATION))
+    ar = SbmlAgentModel(str(AUTOREGULATION), classes=None)  # no classes: auto (a long run)
     assert ar.internal.signal_names == ("Transcription.k2",)
     counts = torch.tensor([[7, 3, 4, 25, 30], [7, 3, 4, 25, 30]])
     rates = ar.internal.kinetics.propensities(counts, ar.internal.kinetic_inputs(x))
     r = ar.internal.kinetics.network.reaction_names.index("Transcription")
     torch.testing.assert_close(rates[:, r], 0.4 * x[:, 0].double() * 7)  # k2 = 0.4 L, 7 genes
     lows = counts.clone()
-    lows[1, 3] = 19
-    assert ar.internal.phi((lows,)).tolist() == [1.0, 0.0]  # P = 25 >= 20, P = 19 < 20
+    lows[:, 3] = torch.tensor([35, 34])
+    assert ar.internal.phi((lows,)).tolist() == [1.0, 0.0]  # P = 35 >= 35, P = 34 < 35
 
 
 def test_a_stochss_export_without_substance_units_is_refused_with_the_fix(tmp_path) -> None:
