@@ -224,9 +224,17 @@ class NetworkInternalModel:
         self.count_classes = classes
         self._classify = (None if classes is None
                           else CountClassifier(classes, self.species, "model.classes"))  # fmt: skip
-        #: the K-lumps classes' names and lumps (None: none declared)
-        self.class_names = None if classes is None else classes.names
-        self.class_lumps = None if classes is None else classes.lumps
+
+    # properties, not instance attributes, so a subclass may declare its own as class attributes
+    @property
+    def class_names(self) -> tuple[str, ...] | None:
+        """The K-lumps classes' names (None: none declared)."""
+        return None if self.count_classes is None else self.count_classes.names
+
+    @property
+    def class_lumps(self) -> tuple[int, ...] | None:
+        """Each class's lump, phi (None: none declared)."""
+        return None if self.count_classes is None else self.count_classes.lumps
 
     def _lump_function(self, lump: Lump) -> Callable[[Tensor], Tensor]:
         #: the lump's parsed condition over the species (None for a Python function)

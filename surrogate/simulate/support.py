@@ -143,6 +143,31 @@ class SupportMonitor:
         return out
 
 
+def merge_reports(reports: Sequence[Mapping[str, Any] | None]) -> dict[str, Any] | None:
+    """One report for runs of the same abstraction (e.g. a run's shards): shares weighted by
+    each run's sampled cell-steps, the ranges seen joined. None where no run was observed."""
+    seen = [r for r in reports if r is not None]
+    if not seen:
+        return None
+    rows = [int(r["sampled_cell_steps"]) for r in seen]
+    total = sum(rows)
+
+    def share(get: Callable[[Mapping[str, Any]], float]) -> float:
+        return sum(n * float(get(r)) for n, r in zip(rows, seen, strict=True)) / total
+
+    inputs = {}
+    for name, first in seen[0]["inputs"].items():
+        mine = [r["inputs"][name] for r in seen]
+        inputs[name] = {
+            "share_below": share(lambda r, k=name: r["inputs"][k]["share_below"]),
+            "share_above": share(lambda r, k=name: r["inputs"][k]["share_above"]),
+            "seen": [min(m["seen"][0] for m in mine), max(m["seen"][1] for m in mine)],
+            "trained": list(first["trained"]),
+        }
+    return {"sampled_cell_steps": total,
+            "share_outside": share(lambda r: r["share_outside"]), "inputs": inputs}  # fmt: skip
+
+
 def describe_outside(report: Mapping[str, Any]) -> str:
     """One line: the share outside and, per input that left its range, the range seen against
     the range trained."""

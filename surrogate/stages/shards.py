@@ -66,6 +66,7 @@ from surrogate.simulate.recorders import (
     with_metadata,
 )
 from surrogate.simulate.speed import cell_steps_per_s
+from surrogate.simulate.support import merge_reports
 from surrogate.stages.settings import SIMULATE_CMD, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -449,6 +450,7 @@ def merged_manifest(
         },
         "observables": manifests[0].get("observables"),
         "lump_names": manifests[0].get("lump_names"),
+        "outside_training": merge_reports([m.get("outside_training") for m in manifests]),
         **extra,
         "shard_count": count,
         "shards": [str(d) for d in dirs],
