@@ -81,7 +81,9 @@ BUILTINS = [
 ]
 
 
-@pytest.mark.parametrize(("field", "reference"), BUILTINS, ids=lambda v: repr(v)[:40])
+@pytest.mark.parametrize(
+    ("field", "reference"), BUILTINS, ids=lambda v: getattr(v, "__name__", repr(v)[:40])
+)
 def test_builtin_fields_compute_their_former_torch_code_bit_for_bit(field, reference) -> None:
     for n in (7, 5000):
         for t in (0.0, 0.85, 7.45):
