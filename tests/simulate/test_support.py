@@ -19,6 +19,7 @@ from surrogate.simulate.support import (
     SupportMonitor,
     TrainedRange,
     describe_outside,
+    merge_reports,
     warn_outside,
 )
 
@@ -39,6 +40,31 @@ def test_counts_are_exact_per_input_and_side() -> None:
     assert (b["share_below"], b["share_above"]) == (pytest.approx(1 / 7), pytest.approx(1 / 7))
     assert a["seen"] == [-0.1, 2.0] and b["trained"] == [-1.0, 1.0]  # the edges are inside
     assert "a seen [-0.1, 2] vs trained [0, 1]" in describe_outside(report)
+
+
+def test_shards_reports_merge_into_the_report_of_all_their_rows() -> None:
+    """Merging the reports of a run's parts (its shards) gives what one monitor over all their
+    rows reports: shares weighted by sampled cell-steps, ranges joined; unobserved parts skip."""
+    trained = TrainedRange(("a", "b"), (0.0, -1.0), (1.0, 1.0))
+    gen = torch.Generator().manual_seed(3)
+    parts = [torch.randn(n, 2, generator=gen, dtype=torch.float64) * 1.5 for n in (7, 30, 2)]
+    whole = SupportMonitor([(slice(0, None), None, trained)])
+    reports = []
+    for x in parts:
+        whole.observe(x)
+        one = SupportMonitor([(slice(0, None), None, trained)])
+        one.observe(x)
+        reports.extend(one.report())
+    (want,) = whole.report()
+    got = merge_reports([None, *reports])
+    assert got is not None and got["sampled_cell_steps"] == want["sampled_cell_steps"] == 39
+    assert got["share_outside"] == pytest.approx(want["share_outside"])
+    for name in ("a", "b"):
+        g, w = got["inputs"][name], want["inputs"][name]
+        assert g["share_below"] == pytest.approx(w["share_below"])
+        assert g["share_above"] == pytest.approx(w["share_above"])
+        assert g["seen"] == pytest.approx(w["seen"]) and g["trained"] == w["trained"]
+    assert merge_reports([None, None]) is None
 
 
 def test_the_features_are_checked_not_the_raw_inputs() -> None:
