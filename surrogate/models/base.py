@@ -282,6 +282,14 @@ class Model:
         reuses artefacts of its old content. The base model reads none."""
         return {}
 
+    def full_model_identity(self, config: Mapping[str, Any]) -> dict[str, Any]:
+        """What defines the full model's law, from the model's ``config``: a stored full-model
+        reference's model identity (:mod:`surrogate.stages.reference`). The config and
+        :meth:`sources`; a model whose config or files also carry abstraction-only settings
+        (classes, a collection budget) leaves them out, so changing those keeps its reference."""
+        sources = self.sources()
+        return {"model": config, **({"model_sources": sources} if sources else {})}
+
     def validate(self, dt: float) -> None:
         """Refuse a time step this model cannot be simulated with (ConfigError naming why)."""
 

@@ -7,13 +7,17 @@ species such as ``"P + 2 * P2"``), so the K-lumps chain (``gp=classes``) carries
 count a cell is. A model declares them (yaml ``classes: {species: P2, edges: [...]}``, edges
 shared by both lumps or per lump name), or lets :func:`choose_count_classes` choose them:
 
-* **How**: the network alone is simulated at fixed inputs (the SBML file's parameter values)
-  from its initial state for its burn-in, then ``windows`` windows of ``dt`` for ``cells`` cells
-  (seeded). Every species with more than one value is a candidate count; its bins are the
+* **How**: the network alone is simulated at fixed inputs from its initial state for its
+  burn-in, then ``windows`` windows of ``dt`` for ``cells`` cells (seeded). The inputs are the
+  SBML file's parameter values, or (``classes: {auto: {over: {<input>: [lo, hi]}}}``, what the
+  inspector recommends from the inputs the fields give) spread evenly over those ranges, one
+  value per cell, so the bins cover the counts the population will carry rather than those at
+  one input: with bins chosen at one input, cells at the range's ends all sit in an open-ended
+  bin whose mix the training data does not share (measured in docs/fidelity.md). Every species with more than one value is a candidate count; its bins are the
   quantiles of its values within each lump (``bins`` per lump, so every class occurs). Each
   candidate is scored by how much better its classes predict the next phi than phi alone: the
   held-out log-likelihood gain per window of P(phi' | class) over P(phi' | phi), both estimated
-  on half the cells and scored on the other half, with a standard error from the per-cell means.
+  on every other cell and scored on the rest, with a standard error from the per-cell means.
   The candidate with the largest gain is chosen; ``report["significant"]`` says whether its gain
   exceeds two standard errors (if not, the two-state chain holds about as much).
 * The choice is deterministic (seeded) and cached on disk by everything it depends on, so every
@@ -45,7 +49,14 @@ from surrogate.sbml.formula import parse_formula
 log = logging.getLogger(__name__)
 
 #: the chooser's version: part of its cache key and of the model's identity
-CHOOSER_VERSION = 1
+CHOOSER_VERSION = 2
+#: the default bins per lump of ``classes: auto``
+AUTO_BINS = 8
+#: how ``classes: auto`` places its bin edges (see :func:`choose_count_classes`)
+PLACEMENTS = ("quantiles", "homogeneous")
+AUTO_PLACEMENT = "homogeneous"
+#: the fine quantile bins :func:`_homogeneous_edges` merges
+FINE_BINS = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,7 +203,8 @@ def choose_count_classes(
     *,
     cells: int = 200,
     windows: int = 1000,
-    bins: int = 3,
+    bins: int = AUTO_BINS,
+    placement: str = "quantiles",
     seed: int = 0,
     cache_dir: Path | None = None,
 ) -> tuple[CountClasses, dict[str, Any]]:
@@ -201,10 +213,13 @@ def choose_count_classes(
 
     Args:
         internal: a :class:`~surrogate.models.network.NetworkInternalModel`.
-        kinetic_inputs: ``(P,)`` the network's input parameters, held fixed.
+        kinetic_inputs: ``(P,)`` the network's input parameters, held fixed, or ``cells x P``:
+            each cell's own (e.g. :func:`spread_inputs`).
         dt: the window (s).
         cells, windows: the simulated sample: ``cells`` cells, ``windows`` windows each.
         bins: bins per lump.
+        placement: ``quantiles`` (equal windows per bin) or ``homogeneous`` (bins over which the
+            chance of leaving the lump varies least, :func:`_homogeneous_edges`).
         seed: the simulation's seed.
         cache_dir: where the choice is cached (default ``$SURROGATE_CACHE_DIR`` or
             ``~/.cache/surrogate``, under ``classes/``).
@@ -213,11 +228,16 @@ def choose_count_classes(
         ``(classes, report)``: the report has every candidate's gain (nats per window) and
         standard error, the chosen one, whether its gain is significant, and the sample.
     """
+    kinetic_inputs = kinetic_inputs.to(torch.float64)
+    if kinetic_inputs.dim() == 2 and kinetic_inputs.shape[0] != cells:
+        raise ValueError(f"kinetic_inputs: {kinetic_inputs.shape[0]} rows for {cells} cells")
     key = {"version": CHOOSER_VERSION, "kinetics": _kinetics_digest(internal),
            "lump": str(getattr(internal, "lump_formula", internal._lump)),
            "initial": internal.initial_counts.tolist(), "burn_in": internal.burn_in,
-           "inputs": [float(v) for v in kinetic_inputs.tolist()], "dt": float(dt),
+           "inputs": kinetic_inputs.tolist(), "dt": float(dt),
            "cells": cells, "windows": windows, "bins": bins, "seed": seed}  # fmt: skip
+    if placement != "quantiles":  # keeps the cache keys of quantile choices
+        key["placement"] = placement
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
     root = cache_dir or _cache_dir()
     path = root / f"{digest}.json"
@@ -228,14 +248,31 @@ def choose_count_classes(
                                internal.lump_names)  # fmt: skip
         return classes, saved["report"]
     counts, phi = _sample(internal, kinetic_inputs, dt, cells, windows, seed)
-    classes, report = _choose(counts, phi, internal.species, internal.lump_names, bins)
+    classes, report = _choose(counts, phi, internal.species, internal.lump_names, bins, placement)
+    spread = kinetic_inputs.reshape(-1, kinetic_inputs.shape[-1])
     report["sample"] = {"cells": cells, "windows": windows, "dt": dt, "seed": seed,
-                        "inputs": key["inputs"]}  # fmt: skip
+                        "inputs_min": spread.min(0).values.tolist(),
+                        "inputs_max": spread.max(0).values.tolist()}  # fmt: skip
     root.mkdir(parents=True, exist_ok=True)
     write_text(path, json.dumps({"variable": classes.variable,
                                  "edges": [list(e) for e in classes.edges],
                                  "report": report}, indent=1))  # fmt: skip
     return classes, report
+
+
+def spread_inputs(
+    defaults: Sequence[float], ranges: Mapping[int, tuple[float, float]], cells: int
+) -> Tensor:
+    """``cells x P`` kinetic inputs: each input at its default, those in ``ranges`` (by index)
+    spread evenly over ``[lo, hi]`` (cell ``i`` at ``lo + (i + 1/2) (hi - lo) / cells``; with
+    several ranged inputs each is spread independently, in a seeded shuffled order, so their
+    pairs cover the box rather than its diagonal)."""
+    out = torch.tensor(list(defaults), dtype=torch.float64).reshape(1, -1).repeat(cells, 1)
+    gen = torch.Generator().manual_seed(0)
+    for k, (j, (lo, hi)) in enumerate(sorted(ranges.items())):
+        grid = lo + (torch.arange(cells, dtype=torch.float64) + 0.5) * (hi - lo) / cells
+        out[:, j] = grid if k == 0 else grid[torch.randperm(cells, generator=gen)]
+    return out
 
 
 def _cache_dir() -> Path:
@@ -258,7 +295,9 @@ def _sample(
     gen_state = torch.random.get_rng_state()
     try:
         torch.manual_seed(seed)
-        inputs = kinetic_inputs.reshape(1, -1).to(torch.float64).expand(cells, -1).contiguous()
+        inputs = kinetic_inputs.to(torch.float64)
+        inputs = inputs if inputs.dim() == 2 else inputs.reshape(1, -1)
+        inputs = inputs.expand(cells, -1).contiguous()
         state = internal.burn_in_at(inputs)
         counts = [state[0].clone()]
         for _ in range(windows):
@@ -277,15 +316,18 @@ def _choose(
     species: Sequence[str],
     lump_names: tuple[str, str],
     bins: int,
+    placement: str = "quantiles",
 ) -> tuple[CountClasses, dict[str, Any]]:
     n_cells = counts.shape[1]
-    train = np.arange(n_cells) < n_cells // 2
+    # every other cell: with inputs spread over a range (cell i at the i-th value) both halves
+    # span it
+    train = np.arange(n_cells) % 2 == 0
     before, after = phi[:-1], phi[1:]
     occupancy = float(phi.mean())
     if min(occupancy, 1 - occupancy) * phi.size < 10 * bins:
         raise ConfigError(
             f"choosing classes: phi is 1 in {100 * occupancy:.3g} % of {phi.size} sampled "
-            "windows at the file's parameter values, too few of one lump to bin; declare "
+            "windows at the sampled inputs, too few of one lump to bin; declare "
             "model.classes={species: ..., edges: [...]} (scripts/inspect_model.py measures "
             "the occupancy across the inputs)"
         )
@@ -295,7 +337,11 @@ def _choose(
         values = counts[:-1, :, j].astype(np.float64)
         if values.min() == values.max():
             continue
-        edges = tuple(_edges(values[before == p], bins) for p in (0, 1))
+        if placement == "quantiles":
+            edges = tuple(_edges(values[:, train][before[:, train] == p], bins) for p in (0, 1))
+        else:
+            edges = tuple(_homogeneous_edges(values[:, train], before[:, train],
+                                             after[:, train], p, bins) for p in (0, 1))  # fmt: skip
         cls = _classify(values, before, edges)
         gain = _loglik(before, after, cls, train) - base
         mean, se = _per_cell(gain, ~train)
@@ -309,6 +355,53 @@ def _choose(
     report = {"chosen": best["species"], "candidates": candidates, "occupancy": occupancy,
               "significant": best["gain_nats_per_window"] > 2 * best["se"]}  # fmt: skip
     return classes, report
+
+
+def _homogeneous_edges(
+    values: np.ndarray, before: np.ndarray, after: np.ndarray, phi: int, bins: int
+) -> tuple[float, ...]:
+    """Interior edges of at most ``bins`` bins of the count within lump ``phi`` in which the
+    chance of leaving it varies least: the count's values are first cut at ``FINE_BINS``
+    quantiles, each fine bin's log-odds of leaving the lump estimated, and the fine bins merged
+    into contiguous groups minimising the windows-weighted within-group variance of those
+    log-odds (exact, by dynamic programming). A bin over which the chance of leaving is flat
+    holds no memory a different mix of its cells could reveal; quantile bins put as much mass in
+    a steep tail as in a flat middle."""
+    mask = before == phi
+    v, left = values[mask], (after[mask] != phi).astype(np.float64)
+    fine = _edges(v, FINE_BINS)
+    if len(fine) + 1 <= bins:
+        return fine
+    idx = np.searchsorted(np.asarray(fine), v, side="right")
+    n = np.bincount(idx, minlength=len(fine) + 1).astype(np.float64)
+    k = np.bincount(idx, weights=left, minlength=len(fine) + 1)
+    p = (k + 0.5) / (n + 1.0)
+    logit = np.log(p) - np.log1p(-p)
+    # prefix sums: the weighted within-group sum of squares of fine bins i..j-1 in O(1)
+    c_n = np.concatenate([[0.0], np.cumsum(n)])
+    c_x = np.concatenate([[0.0], np.cumsum(n * logit)])
+    c_xx = np.concatenate([[0.0], np.cumsum(n * logit**2)])
+    m = len(n)
+
+    def cost(i: np.ndarray, j: int) -> np.ndarray:
+        w = c_n[j] - c_n[i]
+        sx = c_x[j] - c_x[i]
+        return np.where(w > 0, (c_xx[j] - c_xx[i]) - sx**2 / np.maximum(w, 1e-300), 0.0)
+
+    best = np.full((bins + 1, m + 1), np.inf)
+    arg = np.zeros((bins + 1, m + 1), dtype=np.int64)
+    best[0, 0] = 0.0
+    for g in range(1, bins + 1):
+        for j in range(1, m + 1):
+            i = np.arange(j)
+            total = best[g - 1, i] + cost(i, j)
+            arg[g, j] = int(np.argmin(total))
+            best[g, j] = total[arg[g, j]]
+    cuts, j = [], m
+    for g in range(bins, 0, -1):
+        j = int(arg[g, j])
+        cuts.append(j)
+    return tuple(fine[c - 1] for c in sorted(cuts) if c > 0)
 
 
 def _edges(values: np.ndarray, bins: int) -> tuple[float, ...]:
@@ -352,9 +445,13 @@ def _per_cell(values: np.ndarray, cells: np.ndarray) -> tuple[float, float]:
 
 
 __all__ = [
+    "AUTO_BINS",
+    "AUTO_PLACEMENT",
     "CHOOSER_VERSION",
+    "PLACEMENTS",
     "CountClasses",
     "CountClassifier",
     "choose_count_classes",
     "parse_classes",
+    "spread_inputs",
 ]

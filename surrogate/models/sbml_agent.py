@@ -21,8 +21,10 @@ The yaml (``model.spec``, or the same keys in the model config itself) names
   collection budget: ``n_per_state``, ``n_cells``, ``record_every``) and ``classes``: classes
   finer than phi for the K-lumps chain (``gp=classes``), each lump split into bins of a count,
   ``{species: P2, edges: [10, 30]}`` (or ``expression: "P + 2 * P2"``; edges shared by both
-  lumps or ``{<lump name>: [...]}``), or ``auto`` (chosen by a short simulation at the file's
-  parameter values, :mod:`surrogate.models.count_classes`).
+  lumps or ``{<lump name>: [...]}``), or chosen by a short simulation
+  (:mod:`surrogate.models.count_classes`): ``auto`` at the file's parameter values, or
+  ``{auto: {over: {Transcription.k2: [0.007, 0.036]}, bins: 4}}`` over the inputs' range the
+  fields give (what ``scripts/inspect_model.py`` recommends, with the range it measured).
 
 The file is read by :func:`surrogate.sbml.read_sbml` (its module docstring has the rules: local
 inputs, shadowing, one-way reversible laws, substance units). Formulas are parsed by libsbml's
@@ -46,9 +48,10 @@ Example (``examples/gene_switch/model.yaml``)::
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -68,7 +71,15 @@ from surrogate.models.base import (
     yaml_hint,
 )
 from surrogate.models.bodies import build_body
-from surrogate.models.count_classes import CountClasses, choose_count_classes, parse_classes
+from surrogate.models.count_classes import (
+    AUTO_BINS,
+    AUTO_PLACEMENT,
+    PLACEMENTS,
+    CountClasses,
+    choose_count_classes,
+    parse_classes,
+    spread_inputs,
+)
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml
@@ -107,6 +118,10 @@ REQUIRED_KEYS: dict[str, str] = {
 _LOGGED_CHOICES: set[str] = set()
 #: the window (s) ``classes: auto`` scores the candidate classes over (the default dt)
 AUTO_CLASSES_DT = 0.05
+#: the cells ``classes: auto`` simulates (at one input each where it spreads them over ranges)
+AUTO_CLASSES_CELLS = 200
+#: spec keys that shape only the abstraction, not the full model's law
+ABSTRACTION_KEYS = ("classes", "collect")
 #: collection settings a model may carry as its default budget
 COLLECT_KEYS = ("n_per_state", "n_cells", "record_every")
 
@@ -256,29 +271,40 @@ class SbmlAgentModel(Model):
         self.settings = s
 
     def _classes(self, value: Any, sbml: Any) -> CountClasses:
-        """``classes``: declared (``{species|expression: ..., edges: ...}``) or ``auto``, chosen
-        by :func:`~surrogate.models.count_classes.choose_count_classes` at the file's parameter
-        values (its report is kept in :attr:`class_report` and logged)."""
+        """``classes``: declared (``{species|expression: ..., edges: ...}``) or chosen by
+        :func:`~surrogate.models.count_classes.choose_count_classes`: ``auto`` at the file's
+        parameter values, ``{auto: {over: {<input>: [lo, hi]}, bins: K}}`` with those inputs
+        spread over their ranges (its report is kept in :attr:`class_report` and logged)."""
         internal = self.internal
-        if value != "auto":
+        if not _is_auto(value):
             return parse_classes(value, internal.species, internal.lump_names)
-        values = [sbml.input_defaults.get(n, math.nan) for n in internal.kinetics.input_names]
-        unset = [n for n, v in zip(internal.kinetics.input_names, values, strict=True) if v != v]
+        ranges, bins, placement = _auto_options(value, internal.kinetics.input_names)
+        names = internal.kinetics.input_names
+        values = [sbml.input_defaults.get(n, math.nan) for n in names]
+        unset = [n for j, (n, v) in enumerate(zip(names, values, strict=True))
+                 if v != v and j not in ranges]  # fmt: skip
         if unset:
             raise ConfigError(f"model.classes=auto chooses the classes at the SBML file's "
-                              f"parameter values, but {unset} have none in the file; declare "
-                              f"model.classes={{species: ..., edges: [...]}} instead")  # fmt: skip
-        classes, report = choose_count_classes(internal, torch.tensor(values, dtype=torch.float64),
-                                               AUTO_CLASSES_DT)  # fmt: skip
+                              f"parameter values, but {unset} have none in the file; give "
+                              f"their range (model.classes={{auto: {{over: {{{unset[0]}: "
+                              f"[lo, hi]}}}}}}) or declare model.classes={{species: ..., "
+                              f"edges: [...]}} instead")  # fmt: skip
+        cells = AUTO_CLASSES_CELLS
+        kinetic = (spread_inputs([0.0 if v != v else v for v in values], ranges, cells)
+                   if ranges else torch.tensor(values, dtype=torch.float64))  # fmt: skip
+        classes, report = choose_count_classes(internal, kinetic, AUTO_CLASSES_DT, cells=cells,
+                                               bins=bins, placement=placement)  # fmt: skip
         self.class_report = report
         if classes.digest() in _LOGGED_CHOICES:  # once per process: models are rebuilt often
             return classes
         _LOGGED_CHOICES.add(classes.digest())
         gains = ", ".join(f"{c['species']} {c['gain_nats_per_window']:.2e}"
                           for c in report["candidates"])  # fmt: skip
-        log.info("model.classes=auto: bins of %s (%s), chosen by held-out log-likelihood gain per "
-                 "window over phi alone (%s)%s", classes.variable, classes.to_config()["edges"],
-                 gains, "" if report["significant"] else
+        where = (", ".join(f"{names[j]} over [{lo:g}, {hi:g}]" for j, (lo, hi) in ranges.items())
+                 if ranges else "the file's parameter values")  # fmt: skip
+        log.info("model.classes=auto: bins of %s (%s) at %s, chosen by held-out log-likelihood "
+                 "gain per window over phi alone (%s)%s", classes.variable,
+                 classes.to_config()["edges"], where, gains, "" if report["significant"] else
                  "; the gain is within two standard errors: the two-state chain holds about as "
                  "much")  # fmt: skip
         return classes
@@ -415,6 +441,17 @@ class SbmlAgentModel(Model):
             out["classes"] = classes.digest()
         return out
 
+    def full_model_identity(self, config: Mapping[str, Any]) -> dict[str, Any]:
+        """The full model's law: the network file's digest and the spec's settings without
+        the abstraction-only keys (:data:`ABSTRACTION_KEYS`), so changing the classes or the
+        collection budget keeps a stored reference (the yaml's comments never counted)."""
+        law = {k: v for k, v in self.settings.items() if k not in ABSTRACTION_KEYS}
+        blob = json.dumps(law, sort_keys=True, default=str)
+        sources = {"network": _sha256(self.network_path),
+                   "settings": hashlib.sha256(blob.encode()).hexdigest()}  # fmt: skip
+        kept = {k: v for k, v in config.items() if k not in ABSTRACTION_KEYS}
+        return {"model": kept, "model_sources": sources}
+
     def observable_label(self, name: str) -> str:
         """The body's figure labels."""
         return self.body.observable_label(name)
@@ -433,3 +470,57 @@ class SbmlAgentModel(Model):
         """The resolved spec (for manifests)."""
         return {"name": self.name, **{k: v for k, v in self.settings.items() if k != "name"},
                 "network": str(self.network_path)}  # fmt: skip
+
+
+def _is_auto(value: Any) -> bool:
+    return value == "auto" or (isinstance(value, Mapping) and "auto" in value)
+
+
+def _auto_options(
+    value: Any, input_names: Sequence[str]
+) -> tuple[dict[int, tuple[float, float]], int, str]:
+    """``classes: auto`` or ``{auto: {over: {<input>: [lo, hi]}, bins: K}}`` (``auto: {}`` or
+    ``auto: true`` as plain auto) -> (ranges by input index, bins per lump), validated."""
+    where = "model.classes"
+    if value == "auto":
+        return {}, AUTO_BINS, AUTO_PLACEMENT
+    if set(value) != {"auto"}:
+        raise ConfigError(f"{where}: auto takes its options inside it, "
+                          f"{{auto: {{over: {{<input>: [lo, hi]}}, bins: K}}}}; got the "
+                          f"extra key(s) {sorted(set(value) - {'auto'})}")  # fmt: skip
+    options = value["auto"]
+    if options is True or options is None:
+        options = {}
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"{where}.auto must be a mapping {{over: {{<input>: [lo, hi]}}, "
+                          f"bins: K}}, got {options!r}")  # fmt: skip
+    unknown = sorted(set(options) - {"over", "bins", "placement"})
+    if unknown:
+        raise ConfigError(f"{where}.auto: unknown key(s) {unknown}; it takes over, bins and "
+                          "placement")  # fmt: skip
+    placement = options.get("placement", AUTO_PLACEMENT)
+    if placement not in PLACEMENTS:
+        raise ConfigError(f"{where}.auto.placement must be one of {list(PLACEMENTS)}, got "
+                          f"{placement!r}")  # fmt: skip
+    bins = options.get("bins", AUTO_BINS)
+    if isinstance(bins, bool) or not isinstance(bins, int) or not 2 <= bins <= 20:
+        raise ConfigError(f"{where}.auto.bins must be an integer from 2 to 20 (bins per lump), "
+                          f"got {bins!r}")  # fmt: skip
+    over = options.get("over", {})
+    if not isinstance(over, Mapping):
+        raise ConfigError(f"{where}.auto.over must map input parameters to [lo, hi], got "
+                          f"{over!r}")  # fmt: skip
+    ranges: dict[int, tuple[float, float]] = {}
+    for name, span in over.items():
+        if name not in input_names:
+            raise ConfigError(f"{where}.auto.over.{name}: not an input parameter of the network "
+                              f"{list(input_names)}")  # fmt: skip
+        ok = (isinstance(span, Sequence) and not isinstance(span, str) and len(span) == 2
+              and all(isinstance(v, int | float) and not isinstance(v, bool)
+                      and math.isfinite(v) for v in span))  # fmt: skip
+        if not ok or not 0 <= span[0] < span[1]:
+            raise ConfigError(f"{where}.auto.over.{name} must be [lo, hi] with 0 <= lo < hi "
+                              f"(the kinetic input's range the fields give), got "
+                              f"{span!r}")  # fmt: skip
+        ranges[list(input_names).index(name)] = (float(span[0]), float(span[1]))
+    return ranges, bins, placement

@@ -90,7 +90,12 @@ from surrogate.stages.simulate import (
     exact_decision,
     learned_decision,
 )
-from surrogate.stages.train import read_metrics, resolve_abstraction, train
+from surrogate.stages.train import (
+    class_diagnostic_by_lump,
+    read_metrics,
+    resolve_abstraction,
+    train,
+)
 
 log = logging.getLogger(__name__)
 
@@ -400,8 +405,13 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     summary = summarise(table, settings)
     # the drift itself: each run's mean observable per check time, with its standard error
     summary["mean_observable"] = mean_observables(results)
-    summary["diagnostics"] = {c.label: read_metrics(c.train.directory).get("diagnostic")
-                              for c in settings.candidates}  # fmt: skip
+    metrics = {c.label: read_metrics(c.train.directory) for c in settings.candidates}
+    summary["diagnostics"] = {label: m.get("diagnostic") for label, m in metrics.items()}
+    # the K-lumps chain's own switching, class-weighted where cells live (the two-state psi
+    # fitted beside it is not what it simulates)
+    summary["class_diagnostics"] = {
+        label: class_diagnostic_by_lump(m["class_diagnostic"], settings.setup.model.internal)
+        for label, m in metrics.items() if m.get("class_diagnostic")}  # fmt: skip
     summary["outside_training"] = outside
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
@@ -529,17 +539,26 @@ def report_sections(
         + format_markdown_table(pd.DataFrame(rows))
     )
     diag_rows = []
+    classes = summary.get("class_diagnostics") or {}
     for label, d in (summary.get("diagnostics") or {}).items():
         if not d:
             continue
         for p in (0, 1):
             s = d.get(f"phi{p}")
-            if s:
-                diag_rows.append({"abstraction": label, "leaving": settings.setup.model.internal.lump_names[p],
-                                  "bias": f"{100 * s['rel_bias']:+.1f} %",
-                                  "mean abs. rel. error": f"{100 * s['mean_abs_rel_error']:.1f} %"})  # fmt: skip
+            if not s:
+                continue
+            row = {"abstraction": label, "leaving": settings.setup.model.internal.lump_names[p],
+                   "bias": f"{100 * s['rel_bias']:+.1f} %",
+                   "mean abs. rel. error": f"{100 * s['mean_abs_rel_error']:.1f} %"}  # fmt: skip
+            k = (classes.get(label) or {}).get(f"phi{p}")
+            if k:
+                se = f" +- {100 * k['rel_bias_se']:.1f} %" if "rel_bias_se" in k else ""
+                row["K-lumps chain, class-weighted bias"] = f"{100 * k['rel_bias']:+.1f} %{se}"
+            diag_rows.append(row)
     diag = ("The learned switching probabilities against the reference where the population "
-            "lives (train_metrics.json of each abstraction).\n\n"
+            "lives (train_metrics.json of each abstraction): the two-state psi's, and for a "
+            "K-lumps chain its classes' switching out of each lump weighted by the population's "
+            "class shares (what it simulates, if its class shares stay the population's).\n\n"
             + (format_markdown_table(pd.DataFrame(diag_rows)) if diag_rows else "none"))  # fmt: skip
     outside = summary.get("outside_training") or {}
     support = (

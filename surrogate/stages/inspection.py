@@ -61,7 +61,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -829,10 +829,44 @@ def class_edges(values: np.ndarray, weights: np.ndarray, edge: int, per_side: in
     return sorted(e for e in edges if e > 0)
 
 
+def input_ranges(
+    network: NetworkInternalModel | None, population: Population
+) -> dict[str, tuple[float, float]]:
+    """Each kinetic input's range over the fields (the lowest low and highest high quantile of
+    :attr:`Population.fields`), widened outward to two significant digits; inputs the fields
+    leave at one value are left out."""
+    if network is None:
+        return {}
+    out = {}
+    for name in network.kinetics.input_names:
+        spans = [f["inputs"][name] for f in population.fields.values() if name in f["inputs"]]
+        if not spans:
+            continue
+        lo, hi = min(s["low"] for s in spans), max(s["high"] for s in spans)
+        if hi > lo:
+            out[name] = (_round_sig(lo, math.floor), _round_sig(hi, math.ceil))
+    return out
+
+
+def _round_sig(value: float, to: Callable[[float], int], digits: int = 2) -> float:
+    """``value`` rounded with ``to`` (floor / ceil) at ``digits`` significant digits."""
+    if value == 0:
+        return 0.0
+    scale = 10 ** (digits - 1 - math.floor(math.log10(abs(value))))
+    return to(value * scale) / scale
+
+
 def recommend(
-    model: Model, fixed: FixedInputs, options: Mapping[str, Any], dt: float
+    model: Model,
+    fixed: FixedInputs,
+    options: Mapping[str, Any],
+    dt: float,
+    input_ranges: Mapping[str, tuple[float, float]] | None = None,
 ) -> dict[str, Any]:
-    """Item 6: the abstraction the memory measured at the median inputs calls for."""
+    """Item 6: the abstraction the memory measured at the median inputs calls for.
+
+    ``input_ranges``: the network's kinetic inputs' range the fields give (:func:`input_ranges`):
+    ``classes: auto`` then chooses its bins over that range, not at the file's values alone."""
     internal = model.internal
     hazards = fixed.hazards
     if fixed.memory is None:
@@ -876,14 +910,18 @@ def recommend(
         # a network can let the toolkit choose the count by measurement (the slow count that
         # holds the memory need not be the lump's species): model.classes=auto
         auto = isinstance(internal, NetworkInternalModel)
-        yaml = "classes: auto" if auto else declared
+        over = ", ".join(f"{n}: [{lo!r}, {hi!r}]" for n, (lo, hi) in (input_ranges or {}).items())
+        yaml = (f"classes: {{auto: {{over: {{{over}}}}}}}" if over else "classes: auto") if auto \
+            else declared  # fmt: skip
         return {"abstraction": "classes", "command": "gp=classes", "yaml": yaml,
                 "declared": declared, "edges": edges, "edges_by_lump": by_lump,
                 "species": species,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
                           f"{species}: classes over bins of a count carry the hidden state"
-                          + (f" (`classes: auto` chooses the count whose bins best predict "
-                             f"the next phi, by a short seeded run; bins of the lump's own "
+                          + (" (`classes: auto` chooses the count whose bins best predict "
+                             "the next phi, by a short seeded run"
+                             + (" over the inputs' range the fields give" if over else "")
+                             + f"; bins of the lump's own "
                              f"species at its stationary quantiles on each side of {edge} "
                              f"would be `{declared}`)" if auto else
                              f": bins of {species} at its stationary quantiles on each side of "
@@ -960,7 +998,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     costs = stage_costs(settings, step_measured)
     collection = collection_budget(settings, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o["burn_in_factor"])
-    advice = recommend(model, fixed, o, dt)
+    advice = recommend(model, fixed, o, dt, input_ranges(network, population))
     lump = getattr(internal, "lump_formula", None) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())

@@ -14,8 +14,9 @@ shards, :func:`~surrogate.stages.shards.shard_seed`), ``reference.workers`` proc
   atomically, manifest last, under a lock): a stopped run continues from its finished shards, and
   two commands started together share the work.
 * **Content-addressed.** A run's directory is named after a hash of its identity
-  (:meth:`ReferenceRun.identity`: the model's config and the digests of the files it is read
-  from, dt, the field, size, duration, start, equilibration, seed, shard size and the format's
+  (:meth:`ReferenceRun.identity`: the full model's identity, ``Model.full_model_identity``: its
+  config and the digests of the files it is read from, less what shapes only the abstraction,
+  such as a yaml model's classes and collection budget; dt, the field, size, duration, start, equilibration, seed, shard size and the format's
   version): what defines the full model's law and the sample. The device, loop and threads a
   shard ran on are recorded in its manifest, not its identity: they change the random stream,
   not the law, so a reference made on one machine serves a check on another.
@@ -137,14 +138,14 @@ class ReferenceRun:
 
     def identity(self) -> dict[str, Any]:
         """What defines the run's law and sample (not the device, loop or threads: recorded)."""
-        out = {"version": REFERENCE_VERSION, "model": self.setup.model_config,
-               "dt": self.setup.dt, "field": field_config(self.field_name),
+        out = {"version": REFERENCE_VERSION, "dt": self.setup.dt,
+               **self.setup.model.full_model_identity(self.setup.model_config),
+               "field": field_config(self.field_name),
                "n_cells": self.n_cells, "t_end": self.t_end,
                "record_interval": self.record_interval, "start": list(self.start),
                "equilibration_time": self.equilibration_time, "seed": self.seed,
                "shard_cells": self.shard_cells}  # fmt: skip
-        sources = self.setup.model.sources()
-        return {**out, "model_sources": sources} if sources else out
+        return out
 
     def label(self) -> dict[str, Any]:
         """Readable part of the directory names."""

@@ -39,7 +39,7 @@ from surrogate.stages.settings import (
     ReproduceSettings,
 )
 from surrogate.stages.simulate import build_decision, simulate_together
-from surrogate.stages.train import percent, read_metrics, train
+from surrogate.stages.train import class_diagnostic_by_lump, percent, read_metrics, train
 
 log = logging.getLogger(__name__)
 
@@ -283,35 +283,6 @@ def _durations_table(
     )
 
 
-def _per_lump(classes: Mapping[str, Any], internal: Any) -> dict[str, Any]:
-    """The K-lumps chain's class diagnostic as per-lump scores: the share-weighted chance of
-    leaving each lump, learned against the reference (the standard error, where the reference
-    is empirical, from the classes' binomial errors)."""
-    from surrogate.models.capabilities import lump_classes_of
-
-    declared = lump_classes_of(internal)
-    out: dict[str, Any] = {"reference": classes.get("reference")}
-    if declared is None:
-        return out
-    for p in (0, 1):
-        rows = [classes[n] for n, lump in zip(declared.names, declared.lumps, strict=True)
-                if lump == p and isinstance(classes.get(n), dict)]  # fmt: skip
-        w = sum(r["share"] for r in rows)
-        if not rows or w <= 0:
-            continue
-        learned = sum(r["share"] * r["mean_switching_learned"] for r in rows) / w
-        ref = sum(r["share"] * r["mean_switching_reference"] for r in rows) / w
-        if ref <= 0:
-            continue
-        scores: dict[str, Any] = {"rel_bias": learned / ref - 1}
-        if all(r.get("rel_se") is not None for r in rows):  # empirical reference
-            var = sum((r["share"] * r["mean_switching_reference"] * r["rel_se"]) ** 2
-                      for r in rows) / (w * ref) ** 2  # fmt: skip
-            scores["rel_bias_se"] = (1 + scores["rel_bias"]) * var**0.5
-        out[f"phi{p}"] = scores
-    return out
-
-
 def _verdict(
     settings: ReproduceSettings,
     tables: Mapping[str, pd.DataFrame],
@@ -331,7 +302,7 @@ def _verdict(
                    if isinstance(source, CollectSettings) else None)  # fmt: skip
     diagnostic = metrics.get("diagnostic")
     if tr.lumps == "classes" and metrics.get("class_diagnostic"):
-        diagnostic = _per_lump(metrics["class_diagnostic"], tr.setup.model.internal)
+        diagnostic = class_diagnostic_by_lump(metrics["class_diagnostic"], tr.setup.model.internal)
     v = verdict(diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names,
                 failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
                 tolerance=DURATION_TOLERANCE, lumps=tr.lumps, history=tr.history,

@@ -406,6 +406,33 @@ def percent(fraction: float | None) -> str:
 EXACT_CLASS_NODES = 4096
 
 
+def class_diagnostic_by_lump(classes: Mapping[str, Any], internal: Any) -> dict[str, Any]:
+    """The K-lumps chain's class diagnostic as per-lump scores: the share-weighted chance of
+    leaving each lump, learned against the reference (the standard error, where the reference
+    is empirical, from the classes' binomial errors)."""
+    declared = lump_classes_of(internal)
+    out: dict[str, Any] = {"reference": classes.get("reference")}
+    if declared is None:
+        return out
+    for p in (0, 1):
+        rows = [classes[n] for n, lump in zip(declared.names, declared.lumps, strict=True)
+                if lump == p and isinstance(classes.get(n), dict)]  # fmt: skip
+        w = sum(r["share"] for r in rows)
+        if not rows or w <= 0:
+            continue
+        learned = sum(r["share"] * r["mean_switching_learned"] for r in rows) / w
+        ref = sum(r["share"] * r["mean_switching_reference"] for r in rows) / w
+        if ref <= 0:
+            continue
+        scores: dict[str, Any] = {"rel_bias": learned / ref - 1}
+        if all(r.get("rel_se") is not None for r in rows):  # empirical reference
+            var = sum((r["share"] * r["mean_switching_reference"] * r["rel_se"]) ** 2
+                      for r in rows) / (w * ref) ** 2  # fmt: skip
+            scores["rel_bias_se"] = (1 + scores["rel_bias"]) * var**0.5
+        out[f"phi{p}"] = scores
+    return out
+
+
 def diagnose_classes(chain: ClassTable, settings: TrainSettings, model: Model) -> dict[str, Any]:
     """The K-lumps chain's law where an unperturbed full-model population lives (the occupancy
     run of :func:`diagnose`): per origin class, the chance of leaving its lump, learned against

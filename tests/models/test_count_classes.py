@@ -15,9 +15,12 @@ from surrogate.errors import ConfigError
 from surrogate.evaluate.statistics import ExactSample, compare_distributions
 from surrogate.models.count_classes import (
     CountClasses,
+    _edges,
+    _homogeneous_edges,
     CountClassifier,
     choose_count_classes,
     parse_classes,
+    spread_inputs,
 )
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.simulate import FullDecision
@@ -144,3 +147,97 @@ def test_a_hidden_count_fails_two_states_and_passes_with_classes(tmp_path) -> No
         res = compare_distributions(full, off(label))
         critical = KS_C_ALPHA_001 * math.sqrt((res["n_a"] + res["n_b"]) / (res["n_a"] * res["n_b"]))
         assert (res["ks"] <= critical) == passes, (label, res["ks"], critical)
+
+
+def _input_driven(tmp_path, **spec) -> SbmlAgentModel:
+    """A count X born at the input's rate b and lost at 0.5/s (stationary mean 2 b) drives a
+    switch S (on at 0.2 X, off at 1/s); phi = S1 >= 1. The file's b is 2 (X ~ 4); the fields
+    may give b up to 20 (X ~ 40)."""
+    text = build(
+        "input_driven",
+        [Species("X", amount=4), Species("S0", amount=1), Species("S1", amount=0)],
+        {"b": 2.0, "d": 0.5, "c": 0.2, "e": 1.0},
+        [Reaction("birth", "b", {}, {"X": 1}),
+         Reaction("death", "d * X", {"X": 1}, {}),
+         Reaction("on", "c * X * S0", {"S0": 1}, {"S1": 1}),
+         Reaction("off", "e * S1", {"S1": 1}, {"S0": 1})],
+    )  # fmt: skip
+    (tmp_path / "driven.xml").write_text(text)
+    base = {"network": "driven.xml", "inputs": {"b": "100 * L"}, "lump": "S1 >= 1",
+            "body": {"kind": "static"}, "burn_in": 20.0}  # fmt: skip
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump({**base, **spec}))
+    return SbmlAgentModel(str(path))
+
+
+def test_spread_inputs_cover_each_range_evenly() -> None:
+    grid = spread_inputs([1.0, 5.0, 7.0], {0: (0.0, 1.0), 2: (10.0, 20.0)}, 4)
+    assert grid[:, 0].tolist() == [0.125, 0.375, 0.625, 0.875]
+    assert grid[:, 1].tolist() == [5.0] * 4  # not ranged: its default
+    assert sorted(grid[:, 2].tolist()) == [11.25, 13.75, 16.25, 18.75]  # shuffled, same values
+
+
+def test_auto_over_a_range_bins_the_counts_the_range_gives(monkeypatch, tmp_path) -> None:
+    """At the file's input alone X stays near 4, so its bins end where the fields' cells only
+    begin; spread over b in [2, 20] the bins reach X's values across the range (stationary
+    X ~ Poisson(2 b): up to ~40), with ``bins`` per lump."""
+    monkeypatch.setenv("SURROGATE_CACHE_DIR", str(tmp_path / "cache"))
+    at_file = _input_driven(tmp_path, classes="auto")
+    spread = _input_driven(tmp_path, classes={"auto": {"over": {"b": [2.0, 20.0]}, "bins": 4}})
+    one, many = at_file.internal.count_classes, spread.internal.count_classes
+    assert one.variable == many.variable == "X"
+    assert max(max(e) for e in one.edges) < 10
+    assert max(max(e) for e in many.edges) > 20
+    assert all(len(e) <= 3 for e in many.edges) and max(len(e) for e in many.edges) == 3
+    sample = spread.class_report["sample"]
+    assert sample["inputs_min"][0] == pytest.approx(2.0, abs=0.1)
+    assert sample["inputs_max"][0] == pytest.approx(20.0, abs=0.1)
+    assert spread.class_report["significant"]
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ({"auto": 3}, r"model.classes.auto must be a mapping"),
+        ({"auto": {}, "edges": [1]}, "auto takes its options inside it"),
+        ({"auto": {"width": 2}}, "unknown key"),
+        ({"auto": {"bins": 1}}, "bins must be an integer from 2 to 20"),
+        ({"auto": {"bins": 2.5}}, "bins must be an integer from 2 to 20"),
+        ({"auto": {"over": {"zz": [0, 1]}}}, "not an input parameter"),
+        ({"auto": {"over": {"b": [20, 2]}}}, r"must be \[lo, hi\] with 0 <= lo < hi"),
+        ({"auto": {"over": {"b": [-1, 2]}}}, r"must be \[lo, hi\] with 0 <= lo < hi"),
+        ({"auto": {"over": {"b": [1, math.inf]}}}, r"must be \[lo, hi\]"),
+        ({"auto": {"over": [1, 2]}}, "must map input parameters"),
+    ],
+)
+def test_bad_auto_classes_are_refused_before_any_simulation(tmp_path, value, message) -> None:
+    with pytest.raises(ConfigError, match=message):
+        _input_driven(tmp_path, classes=value)
+
+
+def test_the_full_model_identity_leaves_out_the_abstraction_settings(tmp_path) -> None:
+    """A stored full-model reference serves any classes and collection budget (they shape only
+    the abstraction), not another lump or burn-in."""
+    config = {"_target_": "surrogate.models.sbml_agent.SbmlAgentModel", "spec": "model.yaml"}
+    plain = _input_driven(tmp_path).full_model_identity(config)
+    with_classes = _input_driven(
+        tmp_path, classes={"species": "X", "edges": [5]}, collect={"n_per_state": 10}
+    ).full_model_identity({**config, "classes": {"species": "X", "edges": [5]}})
+    assert with_classes == plain
+    assert _input_driven(tmp_path, lump="S1 >= 2").full_model_identity(config) != plain
+    assert _input_driven(tmp_path, burn_in=30.0).full_model_identity(config) != plain
+
+
+def test_homogeneous_edges_cut_where_the_chance_of_leaving_changes() -> None:
+    """A count uniform over 0..49 whose chance of leaving lump 0 is 0.1 below 15, 0.5 up to 45
+    and 0.9 from 45: three bins placed where the chance of leaving varies least are [0, 15),
+    [15, 45), [45, 50) (equal-mass quantile bins would cut at 16 and 33)."""
+    rng = np.random.default_rng(0)
+    values = rng.integers(0, 50, size=(2000, 100)).astype(np.float64)
+    chance = np.where(values < 15, 0.1, np.where(values < 45, 0.5, 0.9))
+    before = np.zeros(values.shape, dtype=np.int8)
+    after = (rng.random(values.shape) < chance).astype(np.int8)
+    assert _homogeneous_edges(values, before, after, 0, 3) == (15.0, 45.0)
+    assert _edges(values.ravel(), 3) == (16.0, 33.0)
+    # fewer distinct values than bins: every value its own bin
+    assert _homogeneous_edges(values % 3, before, after, 0, 8) == (1.0, 2.0)

@@ -282,6 +282,29 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     assert simulated["abstraction"] == "classes" and 40 in simulated["edges"]
 
 
+def test_classes_auto_is_recommended_over_the_inputs_range_the_fields_give(tmp_path) -> None:
+    """The fields' range of each kinetic input (lowest low and highest high quantile over the
+    fields, widened outward to two significant digits) goes into the recommended yaml, which a
+    model reads back as ``classes: {auto: {over: ...}}``."""
+    model = protein(tmp_path, reservoir=True)
+    fields = {"a": {"inputs": {"s": {"low": 0.8123, "high": 1.234}, "L": {"low": 0, "high": 9}}},
+              "b": {"inputs": {"s": {"low": 0.9, "high": 1.5612}}}}  # fmt: skip
+    population = inspection.Population(np.zeros((1, 1)), None, None, fields, [], 0.0)
+    ranges = inspection.input_ranges(model.internal, population)
+    assert ranges == {"s": (0.81, 1.6)}
+    assert inspection.input_ranges(None, population) == {}
+    flat = {"a": {"inputs": {"s": {"low": 1.0, "high": 1.0}}}}
+    assert inspection.input_ranges(model.internal, inspection.Population(
+        np.zeros((1, 1)), None, None, flat, [], 0.0)) == {}  # fmt: skip
+    exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    advice = inspection.recommend(model, exact, options(), DT, ranges)
+    assert advice["yaml"] == "classes: {auto: {over: {s: [0.81, 1.6]}}}"
+    assert yaml.safe_load(advice["yaml"]) == {"classes": {"auto": {"over": {"s": [0.81, 1.6]}}}}
+    assert "over the inputs' range the fields give" in advice["reason"]
+    assert inspection._round_sig(1234.0, math.floor) == 1200.0
+    assert inspection._round_sig(0.0334, math.ceil) == 0.034
+
+
 def test_a_threshold_lump_is_read_from_its_formula(tmp_path) -> None:
     """``count >= edge`` or ``count < edge`` from any comparison of one species and a number;
     other lumps give None (the clock is recommended for them)."""
