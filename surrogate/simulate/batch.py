@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -41,11 +41,14 @@ from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
 from surrogate.simulate.decision_batch import DecisionBatch
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
-from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
+from surrogate.simulate.population import PopulationSummary, steps_between
+from surrogate.simulate.recorders import (
+    BUFFER_BYTES,
+    DEFAULT_RECORD_CELLS,
+    FLUSH_STEPS,
+    RunRecorder,
+)
 from surrogate.simulate.support import TrainedRange, trained_range_of
-
-if TYPE_CHECKING:
-    from surrogate.simulate.population import PopulationSummary
 
 
 @dataclass
@@ -374,8 +377,6 @@ def simulate_batch(
     its standalone run's (its seed also chooses its recorded cells). ``record_cells`` None
     records every cell; ``durations`` as for :func:`~surrogate.simulate.simulate_population`.
     """
-    from surrogate.simulate.population import PopulationSummary, steps_between
-    from surrogate.simulate.recorders import RunRecorder
 
     if len(out_dirs) != len(simulator.replicates):
         raise ValueError("simulate_batch needs one output directory per replicate")
