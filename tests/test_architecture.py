@@ -19,8 +19,8 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
           "models/capabilities.py", "models/packed.py", "models/count_classes.py",
-          "fields.py", "field_formula.py", "field_kernel.py", "grid", "scalar.py", "io.py",
-          "config.py", "errors.py"]  # fmt: skip
+          "models/randoms.py", "fields.py", "field_formula.py", "field_kernel.py", "grid",
+          "scalar.py", "io.py", "config.py", "errors.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = (
     "surrogate.models",
@@ -29,6 +29,7 @@ PROTOCOLS = (
     "surrogate.models.network",
     "surrogate.models.packed",
     "surrogate.models.count_classes",
+    "surrogate.models.randoms",
 )
 #: engine packages above the models: a model never imports them (the engine adapts the model)
 ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
@@ -33,6 +32,8 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
+from surrogate.models.capabilities import cell_step_seconds_of, feature_names_of, features_fn_of
+from surrogate.models.randoms import Randoms
 
 if TYPE_CHECKING:
     from surrogate.models.packed import PackedDecision
@@ -53,21 +54,6 @@ COSTLY_COLLECTION: dict[str, int] = {"n_per_state": 10_000, "n_cells": 500, "rec
 InternalState = tuple[Tensor, ...]
 #: the body's outer state: named per-cell tensors, cells in dimension 0
 BodyState = dict[str, Tensor]
-
-
-@dataclass(frozen=True)
-class Randoms:
-    """Random numbers a pure function needs per cell and step, drawn by the simulator in bulk.
-
-    Attributes:
-        uniform: rows of float32 U[0, 1).
-        uniform64: rows of float64 U[0, 1) (probabilities below float32 resolution).
-        normal: rows of float32 N(0, 1).
-    """
-
-    uniform: int = 0
-    uniform64: int = 0
-    normal: int = 0
 
 
 class KernelUnsupported(ConfigError):
@@ -261,8 +247,6 @@ class Model:
         multiply it by steps and cells to say, before they start, what a run will cost: an order
         of magnitude to refuse absurd runs by, with no accuracy guarantee
         (:mod:`surrogate.stages.budget`)."""
-        from surrogate.models.capabilities import cell_step_seconds_of  # it imports this module
-
         estimate = cell_step_seconds_of(self.internal)
         if decision == "full" and estimate is not None:
             return float(estimate(dt))
@@ -304,8 +288,6 @@ class Model:
             if choice == "inputs":
                 return tuple(internal.input_names)
             choice = [choice]
-        from surrogate.models.capabilities import feature_names_of  # it imports this module
-
         names = tuple(str(c) for c in choice)
         features = feature_names_of(internal)
         known = (*internal.input_names, *features)
@@ -369,8 +351,6 @@ class FeatureMap:
         self.internal = internal
         self.names = tuple(names)
         self._identity = self.names == tuple(internal.input_names)
-        from surrogate.models.capabilities import features_fn_of  # it imports this module
-
         self._features = features_fn_of(internal)
 
     def __call__(self, x: Tensor) -> Tensor:

@@ -37,12 +37,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-from surrogate.models.base import InternalState, Randoms
+from surrogate.models.randoms import Randoms
+
+if TYPE_CHECKING:
+    from surrogate.models.base import InternalState
 
 
 def _callable(obj: Any, name: str) -> Callable[..., Any] | None:

@@ -4,9 +4,10 @@ Small populations pay a per-step cost (Python, kernel launches, random-number ca
 not depend on the number of cells. Independent runs of one model - other seeds, the
 full-vs-full noise-floor run, other fields, even other decision layers - can share every step
 instead: block i of the population is replicate i, with its own field
-(:class:`~surrogate.fields.FieldBatch`), its own decision layer (:class:`DecisionBatch`) and its
-own random stream. A coupled field (:mod:`surrogate.grid`) is a replicate's own state: each
-replicate gets its own copy, stepped with its own cells only.
+(:class:`~surrogate.fields.FieldBatch`), its own decision layer
+(:class:`~surrogate.simulate.decision_batch.DecisionBatch`) and its own random stream. A
+coupled field (:mod:`surrogate.grid`) is a replicate's own state: each replicate gets its own
+copy, stepped with its own cells only.
 
 Each replicate draws its initial state from the global generator seeded with its own seed, then
 continues on a private ``torch.Generator`` that carries on from exactly that state, drawing its
@@ -27,7 +28,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -35,96 +36,19 @@ from tqdm.auto import tqdm
 
 from surrogate.fields import Field, FieldBatch
 from surrogate.grid.coupled import is_coupled
-from surrogate.models.base import InternalState, Model, Randoms
+from surrogate.models.base import Model, Randoms
 from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
+from surrogate.simulate.decision_batch import DecisionBatch
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
-from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
+from surrogate.simulate.population import PopulationSummary, steps_between
+from surrogate.simulate.recorders import (
+    BUFFER_BYTES,
+    DEFAULT_RECORD_CELLS,
+    FLUSH_STEPS,
+    RunRecorder,
+)
 from surrogate.simulate.support import TrainedRange, trained_range_of
-
-if TYPE_CHECKING:
-    from surrogate.simulate.population import PopulationSummary
-
-
-class DecisionBatch:
-    """Decision layers side by side: block i of ``sizes[i]`` cells is decided by ``members[i]``.
-
-    Fusable when every member is; the fused step runs each member on its block, with its own
-    rows of the random numbers (right-aligned in the decision block, see :class:`BatchSimulator`)
-    and its own state, and concatenates the results.
-    """
-
-    def __init__(self, members: Sequence[DecisionLayer], sizes: Sequence[int]) -> None:
-        if len(members) != len(sizes) or not members:
-            raise ValueError("DecisionBatch needs one size per decision layer")
-        self.members = list(members)
-        self.sizes = [int(n) for n in sizes]
-        self.name = "+".join(dict.fromkeys(m.name for m in self.members))
-        self.fusable = all(is_fusable(m) for m in self.members)
-        rs = [m.randoms for m in self.members] if self.fusable else [Randoms()]
-        self.randoms = Randoms(
-            max(r.uniform for r in rs), max(r.uniform64 for r in rs), max(r.normal for r in rs)
-        )
-        self._state_lengths: list[int] = []
-
-    @property
-    def internal(self):
-        """The internal model of the first member (all members share one model)."""
-        return self.members[0].internal  # type: ignore[attr-defined]
-
-    def _split(self, tensor: Tensor) -> list[Tensor]:
-        return list(torch.split(tensor, self.sizes, dim=0))
-
-    def initialize(self, x: Tensor) -> Tensor:
-        """Each member's initial phi on its block."""
-        return torch.cat(
-            [m.initialize(b) for m, b in zip(self.members, self._split(x), strict=True)]
-        )
-
-    def step(self, phi: Tensor, x: Tensor, dt: float) -> Tensor:
-        """Each member's eager window on its block."""
-        blocks = zip(self.members, self._split(phi), self._split(x), strict=True)
-        return torch.cat([m.step(p, b, dt) for m, p, b in blocks])
-
-    def fused_state(self) -> InternalState:
-        """The members' states, one after the other."""
-        states = [m.fused_state() for m in self.members]
-        self._state_lengths = [len(s) for s in states]
-        return tuple(t for s in states for t in s)
-
-    def set_fused_state(self, state: InternalState) -> None:
-        """Give every member its part of ``state``."""
-        k = 0
-        for m, n in zip(self.members, self._state_lengths, strict=True):
-            m.set_fused_state(tuple(state[k : k + n]))
-            k += n
-
-    def fused_step(
-        self,
-        phi: Tensor,
-        x: Tensor,
-        dt: float,
-        u: Tensor,
-        u64: Tensor | None,
-        state: InternalState,
-    ) -> tuple[Tensor, InternalState, tuple[Tensor, ...]]:
-        """Pure: every member's fused step on its block."""
-        outs, states, auxes = [], [], []
-        k, col = 0, 0
-        r = self.randoms
-        for m, n, length in zip(self.members, self.sizes, self._state_lengths, strict=True):
-            mr = m.randoms
-            cols = slice(col, col + n)
-            mu = u[r.uniform - mr.uniform : r.uniform, cols]
-            mu64 = None if u64 is None else u64[r.uniform64 - mr.uniform64 : r.uniform64, cols]
-            out, s, aux = m.fused_step(
-                phi[cols], x[cols], dt, mu, mu64, tuple(state[k : k + length])
-            )
-            outs.append(out.to(torch.float32))
-            states += list(s)
-            auxes += list(aux)
-            k, col = k + length, col + n
-        return torch.cat(outs), tuple(states), tuple(auxes)
 
 
 @dataclass
@@ -453,8 +377,6 @@ def simulate_batch(
     its standalone run's (its seed also chooses its recorded cells). ``record_cells`` None
     records every cell; ``durations`` as for :func:`~surrogate.simulate.simulate_population`.
     """
-    from surrogate.simulate.population import PopulationSummary, steps_between
-    from surrogate.simulate.recorders import RunRecorder
 
     if len(out_dirs) != len(simulator.replicates):
         raise ValueError("simulate_batch needs one output directory per replicate")

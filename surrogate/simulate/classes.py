@@ -29,13 +29,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.models.base import InternalModel, InternalState, Randoms
-from surrogate.models.capabilities import (
-    concat_states,
-    exact_class_step_of,
-    lump_classes_of,
-    signal_bounds_of,
-)
+from surrogate.models.base import InternalModel, Randoms
+from surrogate.models.capabilities import exact_class_step_of, lump_classes_of, signal_bounds_of
+from surrogate.simulate.stateful import StatefulDecision, carried_alias
 
 #: collect's class columns (the class at the window's start and end)
 CLASS, CLASS_NEXT = "phi_class", "phi_class_next"
@@ -224,7 +220,7 @@ class ClassTable:
                    state["dt"])  # fmt: skip
 
 
-class ClassDecision:
+class ClassDecision(StatefulDecision):
     """The K-lumps chain: class' drawn from the table's law at each cell's inputs; phi is the
     class's lump.
 
@@ -237,7 +233,7 @@ class ClassDecision:
         name: the layer's name in logs and manifests.
     """
 
-    fusable = True
+    cls = carried_alias("(n,) int64: each cell's class; None before initialize.")
 
     def __init__(
         self,
@@ -260,7 +256,6 @@ class ClassDecision:
         self.name = name
         self.randoms = Randoms(uniform=len(table.input_names) + 1)
         self._classify = declared.classify
-        self.cls: Tensor | None = None  # (n,) int64
 
     def _inputs(self, x: Tensor) -> Tensor:
         if self.table.device != x.device:
@@ -277,42 +272,22 @@ class ClassDecision:
         self.cls = self._classify(self.internal.initial_state(x)).to(x.device)
         return self.table.lumps[self.cls] > 0
 
-    def step(self, phi: Tensor, x: Tensor, dt: float) -> Tensor:
-        """One categorical draw per cell."""
-        if self.cls is None:
-            raise RuntimeError("ClassDecision.step called before initialize()")
+    def _eager_step(
+        self, phi: Tensor, x: Tensor, dt: float, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """One categorical draw per cell (bool phi')."""
         self._check_dt(dt)
         z = self._inputs(x)
         u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
-        self.cls = self.table.draw(self.cls, z, u)
-        return self.table.lumps[self.cls] > 0
+        cls = self.table.draw(carried, z, u)
+        return self.table.lumps[cls] > 0, cls
 
-    def fused_state(self) -> InternalState:
-        """The classes."""
-        if self.cls is None:
-            raise RuntimeError("ClassDecision: not initialised")
-        return (self.cls,)
-
-    def set_fused_state(self, state: InternalState) -> None:
-        """Store the classes :meth:`fused_step` returned."""
-        (self.cls,) = state
-
-    #: several populations' classes as one, cells in order (the engine's default join)
-    concat_states = staticmethod(concat_states)
-
-    def fused_step(
-        self,
-        phi: Tensor,
-        x: Tensor,
-        dt: float,
-        u: Tensor,
-        u64: Tensor | None,
-        state: InternalState,
-    ) -> tuple[Tensor, InternalState, tuple[Tensor, ...]]:
-        """Pure: class' from the uniforms ``u`` (``(d + 1) x n``); phi' as float 0/1."""
-        (cls,) = state
-        nxt = self.table.draw(cls, self._inputs(x), u)
-        return self.table.lumps[nxt], (nxt,), ()
+    def _pure_step(
+        self, phi: Tensor, x: Tensor, dt: float, u: Tensor, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Class' from the uniforms ``u`` (``(d + 1) x n``); phi' as float 0/1."""
+        nxt = self.table.draw(carried, self._inputs(x), u)
+        return self.table.lumps[nxt], nxt
 
 
 @torch.no_grad()

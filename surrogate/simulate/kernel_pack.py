@@ -20,6 +20,7 @@ Example:
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -27,7 +28,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from surrogate.gp.lookup import PsiLookupTable, StackedPsiLookup
 from surrogate.models.base import FeatureMap, Randoms
 from surrogate.models.capabilities import randoms_of
 from surrogate.models.packed import (
@@ -43,9 +43,9 @@ from surrogate.models.packed import (
     PackedDecision,
     PackedTables,
 )
-from surrogate.simulate.batch import DecisionBatch
 from surrogate.simulate.classes import ClassDecision, ClassTable
 from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
+from surrogate.simulate.decision_batch import DecisionBatch
 from surrogate.simulate.memory import MemoryDecision
 
 
@@ -62,8 +62,9 @@ class Slot:
 
 
 def pack_decision(decision: Any, dt: float) -> PackedDecision:
-    """``decision`` (a layer, or a :class:`~surrogate.simulate.batch.DecisionBatch` of layers
-    side by side) as blocks of plain arrays for a model's kernel.
+    """``decision`` (a layer, or a
+    :class:`~surrogate.simulate.decision_batch.DecisionBatch` of layers side by side) as blocks
+    of plain arrays for a model's kernel.
 
     Args:
         decision: the simulator's decision layer.
@@ -113,11 +114,14 @@ def pack_tables(psi: Any, count: int | None) -> tuple[PackedTables | None, str |
     Raises:
         ValueError: stacked tables that do not cover ``count`` cells.
     """
-    if type(psi) is StackedPsiLookup:
+    # a table exists only if gp's lookup module was imported: the engine does not import gp
+    # itself (the loop imports this module at its top; gp brings gpytorch)
+    lookup = sys.modules.get("surrogate.gp.lookup")
+    if type(psi) is getattr(lookup, "StackedPsiLookup", None):
         tables, sizes = psi.tables, psi.sizes
         if count is not None and sum(sizes) != count:
             raise ValueError(f"stacked tables cover {sum(sizes)} cells, the block {count}")
-    elif type(psi) is PsiLookupTable:
+    elif type(psi) is getattr(lookup, "PsiLookupTable", None):
         tables, sizes = [psi], [0 if count is None else count]
     else:
         return None, (f"run probability {type(psi).__name__} (the kernel reads lookup tables: "

@@ -41,6 +41,7 @@ from surrogate.fields import Field
 from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
 from surrogate.simulate.coupling import check_coupled_run, coupled_blocks, positions_of
 from surrogate.simulate.decision import DecisionLayer, is_fusable
+from surrogate.simulate.kernel_pack import pack_decision
 from surrogate.simulate.precompile import kernel_wanted, wait_for_precompile
 from surrogate.simulate.support import SupportMonitor, TrainedRange, trained_range_of
 
@@ -649,9 +650,6 @@ def _cell_kernel(
         if coupled_blocks(field):
             raise KernelUnsupported(f"a coupled field ({type(field).__name__}: the agents change "
                                     "it every step; the torch step runs it)")  # fmt: skip
-        # imported here: the packer reads DecisionBatch, whose module imports this one
-        from surrogate.simulate.kernel_pack import pack_decision
-
         kernel = model.cell_kernel(pack_decision(decision, dt), field, dt)
     except KernelUnsupported as exc:
         if backend == "numba":

@@ -30,9 +30,10 @@ if TYPE_CHECKING:
     from surrogate.gp.lookup import PsiLookupTable
 
 from surrogate.errors import ConfigError
-from surrogate.models.base import InternalModel, InternalState
-from surrogate.models.capabilities import concat_states, exact_age_psi_of, signal_bounds_of
+from surrogate.models.base import InternalModel
+from surrogate.models.capabilities import exact_age_psi_of, signal_bounds_of
 from surrogate.simulate.decision import AbstractDecision, RunProbability
+from surrogate.simulate.stateful import StatefulDecision, carried_alias
 
 #: the clock's input column (collect records it in seconds; psi takes it as its last input)
 AGE = "phi_age"
@@ -152,7 +153,7 @@ def clock_rows(table: pd.DataFrame, max_age: float) -> pd.DataFrame:
     return out.reset_index(drop=True)
 
 
-class MemoryDecision(AbstractDecision):
+class MemoryDecision(StatefulDecision, AbstractDecision):
     """The chain with a switch clock: phi' ~ Bernoulli(psi_phi(z, a)).
 
     ``a`` is the time (s) since the cell's phi last changed (0 right after a window that changed
@@ -174,6 +175,8 @@ class MemoryDecision(AbstractDecision):
         >>> layer = MemoryDecision(psi, internal, max_age=2.0)  # doctest: +SKIP
     """
 
+    age = carried_alias("(n,) float32: steps since phi last changed; None before initialize.")
+
     def __init__(
         self,
         run_probability: RunProbability,
@@ -190,7 +193,6 @@ class MemoryDecision(AbstractDecision):
         self.dt = dt
         #: the clock's last node (steps) when psi is a table with a node per step, else None
         self.clock_nodes = None if dt is None else clock_nodes(run_probability, dt)
-        self.age: Tensor | None = None  # (n,) float32 steps since phi last changed
 
     def restacked(self, run_probability: RunProbability, name: str) -> MemoryDecision:
         """The same chain with its clock over another psi (stacked tables)."""
@@ -212,42 +214,21 @@ class MemoryDecision(AbstractDecision):
         self.age = torch.full((x.shape[0],), SETTLED, dtype=torch.float32, device=x.device)
         return super().initialize(x)
 
-    def step(self, phi: Tensor, x: Tensor, dt: float) -> Tensor:
+    def _eager_step(
+        self, phi: Tensor, x: Tensor, dt: float, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
         """One Bernoulli draw per cell; the clocks tick."""
-        if self.age is None:
-            raise RuntimeError("MemoryDecision.step called before initialize()")
-        p = self.probability_at(phi, x, self.age, dt)
+        p = self.probability_at(phi, x, carried, dt)
         nxt = torch.rand_like(p) < p
-        self.age = tick(self.age, phi.bool(), nxt)
-        return nxt
+        return nxt, tick(carried, phi.bool(), nxt)
 
-    def fused_state(self) -> InternalState:
-        """The clocks."""
-        if self.age is None:
-            raise RuntimeError("MemoryDecision: not initialised")
-        return (self.age,)
-
-    def set_fused_state(self, state: InternalState) -> None:
-        """Store the clocks :meth:`fused_step` returned."""
-        (self.age,) = state
-
-    #: several populations' clocks as one, cells in order (the engine's default join)
-    concat_states = staticmethod(concat_states)
-
-    def fused_step(
-        self,
-        phi: Tensor,
-        x: Tensor,
-        dt: float,
-        u: Tensor,
-        u64: Tensor | None,
-        state: InternalState,
-    ) -> tuple[Tensor, InternalState, tuple[Tensor, ...]]:
-        """Pure: phi' = [u < psi_phi(z, a)]; the clocks tick (phi as float 0/1)."""
-        (age,) = state
-        p = self.probability_at(phi, x, age, dt)
+    def _pure_step(
+        self, phi: Tensor, x: Tensor, dt: float, u: Tensor, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """phi' = [u < psi_phi(z, a)]; the clocks tick (phi as float 0/1)."""
+        p = self.probability_at(phi, x, carried, dt)
         nxt = (u[0] < p).to(torch.float32)
-        return nxt, (tick(age, phi.to(torch.float32), nxt),), ()
+        return nxt, tick(carried, phi.to(torch.float32), nxt)
 
 
 def can_age(internal: object) -> bool:

@@ -14,6 +14,7 @@ import torch
 from tqdm.auto import tqdm
 
 from surrogate.models.capabilities import histogram_grids_of
+from surrogate.simulate import speed
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.recorders import (
     DEFAULT_RECORD_CELLS,
@@ -47,9 +48,7 @@ class PopulationSummary:
     @property
     def cell_steps_per_s(self) -> float:
         """Throughput of the time loop (:func:`~surrogate.simulate.speed.cell_steps_per_s`)."""
-        from surrogate.simulate.speed import cell_steps_per_s
-
-        return cell_steps_per_s(self.n_cells, self.n_steps, max(self.loop_time_s, 1e-12))
+        return speed.cell_steps_per_s(self.n_cells, self.n_steps, max(self.loop_time_s, 1e-12))
 
 
 def steps_between(interval: float, dt: float, what: str) -> int:
