@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 
 if TYPE_CHECKING:
@@ -68,11 +68,6 @@ class Randoms:
     uniform: int = 0
     uniform64: int = 0
     normal: int = 0
-
-
-class KernelUnsupported(ConfigError):
-    """A model's compiled per-cell kernel cannot run this combination (the message says what);
-    ``backend=auto`` then keeps the torch step."""
 
 
 class CellKernel(Protocol):

@@ -58,11 +58,10 @@ import yaml
 from torch import Tensor
 
 from surrogate.ctmc.kinetics import Expr, input_ref, torch_function
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.base import (
     CellKernel,
-    KernelUnsupported,
     Model,
     burn_in_seconds,
     yaml_hint,

@@ -18,9 +18,9 @@ from typing import Any
 
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported, check_options
+from surrogate.models.base import CellKernel, check_options
 from surrogate.models.ecoli.body import (
     PERTURBATION_DEFAULTS,
     ChemotacticBody,

@@ -46,9 +46,10 @@ from torch import Tensor
 
 from surrogate import scalar
 from surrogate.ctmc.compiled import match_torch_threads
+from surrogate.errors import KernelUnsupported
 from surrogate.field_kernel import field_set, field_value, pack_field
 from surrogate.fields import Field, FieldBatch
-from surrogate.models.base import KernelUnsupported, Randoms
+from surrogate.models.base import Randoms
 from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
 from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
@@ -494,7 +495,7 @@ class EcoliKernel:
     Built by :meth:`EcoliModel.cell_kernel` (and the ``cell_kernel`` of other models on the
     E. coli body, e.g. ``ecoli_phospho``) from the decision layer the engine packed
     (:class:`~surrogate.models.packed.PackedDecision`); raises
-    :class:`~surrogate.models.base.KernelUnsupported` for what it cannot run (Python fields,
+    :class:`~surrogate.errors.KernelUnsupported` for what it cannot run (Python fields,
     classifier or direct-exact decision layers, the SSA motor sampler, non-integer tumble
     shapes, a full model or exact chain over anything but the E. coli motors), so the
     simulator keeps the torch step for those.

@@ -28,12 +28,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.base import (
     CellKernel,
     InternalState,
-    KernelUnsupported,
     Model,
     burn_in_seconds,
     check_options,
