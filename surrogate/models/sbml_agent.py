@@ -58,7 +58,7 @@ import yaml
 from torch import Tensor
 
 from surrogate.ctmc.kinetics import Expr, input_ref, torch_function
-from surrogate.errors import ConfigError, KernelUnsupported
+from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import (
     CellKernel,
@@ -384,13 +384,11 @@ class SbmlAgentModel(Model):
 
     def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
         """The body's compiled per-cell step (the chemotaxis body has the E. coli one, for
-        lookup-table abstractions over its variables), where the body has one."""
+        lookup-table abstractions over its variables), where the body has one; the body refuses
+        (KernelUnsupported) an internal model its kernel cannot run."""
         kernel = getattr(self.body, "cell_kernel", None)
         if kernel is None:
             return super().cell_kernel(decision, field, dt)
-        mapped = set(self.internal.feature_names) - set(self.body.derived)
-        if mapped & {"cheyp", "dG"}:  # names the kernel computes with the body's formulas
-            raise KernelUnsupported(f"inputs {sorted(mapped)} named like the kernel's features")
         return kernel(self.internal, decision, field, dt)
 
     def kernel_precompiler(self) -> str | None:

@@ -9,11 +9,12 @@ from typing import Any
 from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.base import CellKernel, Model, check_options
-from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
+from surrogate.models.ecoli.body import ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.reference import PAPER_TABLE1
 from surrogate.models.packed import PackedDecision
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS
 
 
 class EcoliModel(Model):

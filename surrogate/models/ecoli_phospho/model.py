@@ -38,13 +38,14 @@ from surrogate.models.base import (
     check_options,
 )
 from surrogate.models.ecoli import formulas
-from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
+from surrogate.models.ecoli.body import ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
 from surrogate.models.ecoli_phospho.constants import PhosphoConstants, calibrated
 from surrogate.models.ecoli_phospho.sbml_writer import NETWORK_PATH, network_sbml
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS
 from surrogate.sbml import SbmlModel, read_sbml, read_sbml_string
 
 __all__ = ["SSA_BACKENDS", "EcoliPhosphoModel", "PhosphoInternalModel"]
