@@ -66,7 +66,7 @@ from surrogate.models.base import (
     burn_in_seconds,
     yaml_hint,
 )
-from surrogate.models.bodies import build_body
+from surrogate.models.bodies import LibraryBody, build_body
 from surrogate.models.count_classes import CountClasses, choose_count_classes, parse_classes
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
@@ -180,6 +180,9 @@ class SbmlAgentModel(Model):
         >>> model.internal.input_names, model.internal.signal_names, model.internal.lump_names
         (('L',), ('inducer',), ('off', 'on'))
     """
+
+    internal: NetworkInternalModel
+    body: LibraryBody
 
     def __init__(self, spec: str | None = None, **settings: Any) -> None:
         self.spec = None if spec is None else Path(str(spec)).expanduser()

@@ -39,7 +39,12 @@ from surrogate.models.base import InternalState, Model, Randoms
 from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
-from surrogate.simulate.recorders import BUFFER_BYTES, DEFAULT_RECORD_CELLS, FLUSH_STEPS
+from surrogate.simulate.recorders import (
+    BUFFER_BYTES,
+    DEFAULT_RECORD_CELLS,
+    FLUSH_STEPS,
+    DurationMode,
+)
 from surrogate.simulate.support import TrainedRange, trained_range_of
 
 if TYPE_CHECKING:
@@ -162,6 +167,9 @@ class BatchSimulator(Simulator):
         >>> state = sim.initial_state(equilibration_time=1.0)
     """
 
+    decision: DecisionBatch
+    field: FieldBatch
+
     def __init__(
         self,
         model: Model,
@@ -195,7 +203,7 @@ class BatchSimulator(Simulator):
         self._blocks: list[RandomBlock] = []
         self.generators: list[torch.Generator] = []
 
-    def initial_state(  # type: ignore[override]
+    def initial_state(
         self,
         n_cells: int | None = None,
         start: Sequence[float] | Tensor | None = None,
@@ -214,7 +222,7 @@ class BatchSimulator(Simulator):
             gen.set_state(_global_state(self.device))
             self.generators.append(gen)
         internal = self.model.internal
-        for member, group in zip(self.decision.members, self.groups, strict=True):  # type: ignore[attr-defined]
+        for member, group in zip(self.decision.members, self.groups, strict=True):
             parts = [layer_states[i] for i in group]
             if any(parts):
                 # a layer with its own per-cell state (e.g. a switch clock) concatenates it
@@ -392,7 +400,7 @@ def _stackable(a: DecisionLayer, b: DecisionLayer) -> bool:
     return (
         a.internal is b.internal
         and a.featurize == b.featurize
-        and (ta.shape, ta.input_names, ta.device) == (tb.shape, tb.input_names, tb.device)  # type: ignore[attr-defined]
+        and (ta.shape, ta.input_names, ta.device) == (tb.shape, tb.input_names, tb.device)
         and is_fusable(a)
         and is_fusable(b)
     )
@@ -442,7 +450,7 @@ def simulate_batch(
     progress: bool = True,
     *,
     record_cells: int | None = DEFAULT_RECORD_CELLS,
-    durations: str | None = None,
+    durations: DurationMode | None = None,
     histogram_spec: Mapping[str, Any] | None = None,
 ) -> list[PopulationSummary]:
     """:func:`~surrogate.simulate.simulate_population` for every replicate of a batch at once:

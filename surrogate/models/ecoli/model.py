@@ -31,6 +31,8 @@ class EcoliModel(Model):
     """
 
     name = "ecoli"
+    internal: MotorInternalModel
+    body: ChemotacticBody
 
     def __init__(self, perturbation: Mapping[str, Any] | None = None, **constants: Any) -> None:
         self.params = EcoliParameters.from_config(constants)

@@ -68,6 +68,7 @@ class PhosphoInternalModel(NetworkInternalModel):
     """
 
     lump_names = ("tumble", "run")
+    network: SbmlModel
     #: sub-windows of the CheY-P path in expected_phi_next (its only approximation)
     expected_substeps = 10
 
@@ -187,6 +188,8 @@ class EcoliPhosphoModel(Model):
     """
 
     name = "ecoli_phospho"
+    internal: PhosphoInternalModel
+    body: ChemotacticBody
 
     def __init__(
         self,
