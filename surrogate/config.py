@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from surrogate.errors import ConfigError
 from surrogate.fields import BUILTIN_FIELDS, Field
@@ -87,7 +87,7 @@ def _compose_defaults(group: str, path: Path) -> dict[str, Any]:
     entries = list(defaults)
     if "_self_" not in entries:
         entries.append("_self_")
-    merged = OmegaConf.create()
+    merged: DictConfig | ListConfig = OmegaConf.create()
     for entry in entries:
         if entry == "_self_":
             part = data

@@ -174,7 +174,7 @@ class RandomBlock:
     ) -> None:
         self.steps = block_steps(n, randoms) if steps is None else steps
         k, r = self.steps, randoms
-        kw = {"device": device, "generator": generator}
+        kw: dict[str, Any] = {"device": device, "generator": generator}
         self.u = (
             torch.rand((k, r.uniform, n), **kw)
             if r.uniform

@@ -542,6 +542,7 @@ def simulate_fixed_inputs(
         the cells' current states, at the model's cost per event)."""
         if network is None:
             return cells * span / dt * step_cost
+        assert kin is not None  # a network's kinetic inputs
         a0 = network.kinetics.torch_propensity(state[0], kin).sum(1)
         return cells * network.cell_step_seconds(span, float(a0.mean()) * span)
 
@@ -600,7 +601,9 @@ def simulate_fixed_inputs(
     median = (group == 0).nonzero().squeeze(1)
     windows = int(options["record_windows"])
     left = max(seconds - spent, 0.0)
+    rows: slice | np.ndarray
     if network is not None:
+        assert kin is not None  # a network's kinetic inputs
         state_m, x_m, kin_m = _take(state, median), x[median.to(device)], kin[median.to(device)]
         per_window = cost(state_m, kin_m, 1, dt)
         affordable = left / max(per_window * windows, 1e-300)
@@ -677,7 +680,7 @@ def _settling(
     The noise bands share a family-wise level of 5 % over every curve tested (each point's phi
     and species), so that a run at its plateau is not taken for a drifting one by chance."""
     has_counts = counts[0] is not None
-    c = np.stack(counts, 2) if has_counts else None  # (cells, S, T)
+    c = np.stack([k for k in counts if k is not None], 2) if has_counts else None  # (cells, S, T)
     alpha = 0.05 / (g_count * (1 + (c.shape[1] if c is not None else 0)))
     out: dict[str, Any] = {k: np.zeros(g_count) for k in
                            ("occupancy", "occupancy_se", "phi", "network")}  # fmt: skip
@@ -964,7 +967,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     lump = getattr(internal, "lump_formula", None) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
-    summary = {
+    summary: dict[str, Any] = {
         "model": model.describe(), "command": settings.command(), "lump": lump,
         "settings": dict(o),
         "lump_names": list(internal.lump_names), "dt": dt, "fields": list(settings.fields),

@@ -67,7 +67,7 @@ CLOCK_CODE = 6
 P32_NAMES = formulas.CONSTANTS
 P64_NAMES = ("omega", "mu", "dt")
 
-_JIT = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _F32 = np.float32
 
 
@@ -617,11 +617,13 @@ class EcoliKernel:
             # copy (a dry run only reads it)
             own = None if b.state is None else (b.state.current() if dry else b.state.writable())
             if b.kind == "motors":
+                assert own is not None and u64 is not None  # motor states, one u64 per motor
                 advance_cells(*head, *common, un, _numpy(u64), zn, *self._body_args,
                               _numpy(own), b.motor_row, *_NO_TABLE, *_NO_CLOCK,
                               *_NO_CLASSES)  # fmt: skip
             elif b.kind == "classes":
                 cdf, layer, nodes, strides, origin, scale, features, row = b.table_args
+                assert own is not None  # each cell's class
                 advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
                               *self._body_args, _NO_MOTORS, 0, cdf, _NO_TABLE[1], layer, nodes,
                               strides, origin, scale, features, row, *_NO_CLOCK, b.lumps,
