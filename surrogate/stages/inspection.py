@@ -86,6 +86,7 @@ from surrogate.evaluate.dynamics import (
 )
 from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
 from surrogate.models.base import Model
+from surrogate.models.capabilities import lump_expr_of, lump_formula_of
 from surrogate.models.network import NetworkInternalModel
 from surrogate.sbml import SbmlModel
 from surrogate.simulate.decision import FullDecision
@@ -792,7 +793,7 @@ def collection_budget(
 def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
     """``(species, edge, upper)`` where the lump is a threshold on one species count: phi = 1
     iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
-    expr = getattr(internal, "lump_expr", None)
+    expr = lump_expr_of(internal)
     if expr is None or expr.op not in ("geq", "gt", "leq", "lt"):
         return None
     a, b = expr.args
@@ -964,7 +965,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     collection = collection_budget(settings, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o["burn_in_factor"])
     advice = recommend(model, fixed, o, dt)
-    lump = getattr(internal, "lump_formula", None) or "the model's own property"
+    lump = lump_formula_of(internal) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
     summary: dict[str, Any] = {
