@@ -60,8 +60,10 @@ def hydra_context() -> JobContext:
 
     if not HydraConfig.initialized():
         return JobContext()
-    hc = HydraConfig.get()
-    launcher = OmegaConf.to_container(hc.launcher, resolve=False) if "launcher" in hc else {}
+    # hydra types get() as its HydraConf schema; at run time it is the DictConfig node (whose
+    # .get and `in` this reads: unset keys such as job.num in a single run are MISSING)
+    hc: DictConfig = HydraConfig.get()  # type: ignore[assignment]
+    launcher: Any = OmegaConf.to_container(hc.launcher, resolve=False) if "launcher" in hc else {}
     num = hc.job.get("num")
     return JobContext(
         multirun=hc.mode == RunMode.MULTIRUN,

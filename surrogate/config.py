@@ -27,11 +27,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from surrogate.errors import ConfigError
 from surrogate.fields import BUILTIN_FIELDS, Field
 from surrogate.models.base import Model
+from surrogate.models.capabilities import check_members
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -87,7 +88,7 @@ def _compose_defaults(group: str, path: Path) -> dict[str, Any]:
     entries = list(defaults)
     if "_self_" not in entries:
         entries.append("_self_")
-    merged = OmegaConf.create()
+    merged: DictConfig | ListConfig = OmegaConf.create()
     for entry in entries:
         if entry == "_self_":
             part = data
@@ -180,13 +181,19 @@ def build_field(cfg_field: Mapping[str, Any]) -> Field:
 
 
 def build_model(cfg_model: Mapping[str, Any]) -> Model:
-    """Instantiate an agent model from the ``model`` config group (``_target_`` + settings)."""
+    """Instantiate an agent model from the ``model`` config group (``_target_`` + settings),
+    refusing an internal model with a misspelt optional member
+    (:func:`~surrogate.models.capabilities.check_members`)."""
     model = _instantiate(cfg_model, "model", "a surrogate.models.Model, e.g. EcoliModel")
+    target = to_dict(cfg_model)["_target_"]
     if not isinstance(model, Model):
         raise ConfigError(
-            f"model target {to_dict(cfg_model)['_target_']!r} did not return a "
-            f"surrogate.models.Model (got {type(model).__name__})"
+            f"model target {target!r} did not return a surrogate.models.Model (got "
+            f"{type(model).__name__})"
         )
+    internal = getattr(model, "internal", None)  # a model without one fails where it is used
+    if internal is not None:
+        check_members(internal, f"model target {target!r}")
     return model
 
 

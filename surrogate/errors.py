@@ -11,6 +11,11 @@ class ConfigError(SurrogateError, ValueError):
     """A setting is invalid; the message names the setting and what is allowed."""
 
 
+class KernelUnsupported(ConfigError):
+    """A model's compiled per-cell kernel cannot run this combination (the message says what);
+    ``backend=auto`` then keeps the torch step."""
+
+
 class ArtefactError(SurrogateError, RuntimeError):
     """An artefact is corrupt, truncated or was made with other settings."""
 

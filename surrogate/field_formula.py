@@ -183,24 +183,24 @@ class _Emitter:
             return _Code(text, True, e.kind)
         if e.op in ("and", "or", "xor"):
             if torch:
-                code = self.full(args[0])
+                text = self.full(args[0])
                 for arg in args[1:]:
-                    code = f"torch.logical_{e.op}({code}, {self.full(arg)})"
-                return _Code(code, True, e.kind)
+                    text = f"torch.logical_{e.op}({text}, {self.full(arg)})"
+                return _Code(text, True, e.kind)
             symbol = "!=" if e.op == "xor" else e.op
             return _Code("(" + f" {symbol} ".join(a.text for a in args) + ")", True, e.kind)
         if e.op == "not":
             text = f"torch.logical_not({args[0].text})" if torch else f"(not {args[0].text})"
             return _Code(text, True, e.kind)
         if e.op == "piecewise":
-            code = self.full(args[-1])
+            text = self.full(args[-1])
             for k in range(len(args) - 3, -1, -2):
-                value, cond = self.full(args[k]), args[k + 1]
+                then, cond = self.full(args[k]), args[k + 1]
                 if torch:
-                    code = f"torch.where({self.full(cond)}, {value}, {code})"
+                    text = f"torch.where({self.full(cond)}, {then}, {text})"
                 else:
-                    code = f"({value} if {cond.text} else {code})"
-            return _Code(code, True, e.kind)
+                    text = f"({then} if {cond.text} else {text})"
+            return _Code(text, True, e.kind)
         # a unary function: torch.<fn>(a) / np.<fn>(a), float32 in and out
         spec = OPERATORS[e.op]
         return _Code((spec.torch if torch else spec.numba).format(args[0].text), True, e.kind)

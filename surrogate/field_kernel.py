@@ -20,9 +20,9 @@ import numpy as np
 from numba.core import types
 from numba.extending import NativeValue, models, overload, register_model, typeof_impl, unbox
 
+from surrogate.errors import KernelUnsupported
 from surrogate.field_formula import FieldFormula, dispatcher_source
 from surrogate.fields import BUILTIN_FIELDS, Field, FormulaField
-from surrogate.models.base import KernelUnsupported
 
 __all__ = ["BUILTIN_FORMULAS", "FieldSet", "field_set", "field_value", "pack_field"]
 

@@ -50,7 +50,7 @@ class Field:
     def __init__(self, peak: Sequence[float] = (0.0, 0.0)) -> None:
         if len(peak) != 2:
             raise ConfigError(f"field.peak must have two coordinates (mm), got {list(peak)!r}")
-        self.peak = tuple(float(v) for v in peak)
+        self.peak: tuple[float, float] = (float(peak[0]), float(peak[1]))
 
     def __call__(self, position: Tensor, t: float) -> Tensor:
         """Ligand concentration (mM) at ``position`` (n, 2) and time ``t`` (s)."""
@@ -323,7 +323,7 @@ class FieldBatch(Field):
         self._order: Tensor | None = None  # position of each cell in the concatenated results
         if len(self.distinct) < len(self.fields):
             starts = [0, *itertools.accumulate(self.sizes)][:-1]
-            cells = {k: [] for k in distinct}
+            cells: dict[int, list[Tensor]] = {k: [] for k in distinct}
             for f, a, n in zip(self.fields, starts, self.sizes, strict=True):
                 cells[id(f)].append(torch.arange(a, a + n))
             self._cells = [torch.cat(c) for c in cells.values()]

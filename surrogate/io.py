@@ -46,7 +46,7 @@ os.umask(_UMASK)
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success rename it onto ``path``.
 
     On any exception (or a kill) the temporary file is removed or left under a ``.tmp`` name
@@ -65,7 +65,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp_path.unlink()
 
 
-def publish(tmp_path: str | os.PathLike, path: str | os.PathLike) -> None:
+def publish(tmp_path: str | os.PathLike[str], path: str | os.PathLike[str]) -> None:
     """Make a finished temporary file the artefact ``path``: usual permissions (mkstemp gives
     0600), flushed to disk, then renamed into place in one atomic step."""
     os.chmod(tmp_path, 0o666 & ~_UMASK)
@@ -75,7 +75,7 @@ def publish(tmp_path: str | os.PathLike, path: str | os.PathLike) -> None:
     fsync_directory(Path(path).parent)  # the rename itself survives a crash only once synced
 
 
-def fsync_directory(directory: str | os.PathLike) -> None:
+def fsync_directory(directory: str | os.PathLike[str]) -> None:
     """Flush a directory's entries (e.g. a rename into it) to disk, where the OS allows it."""
     try:
         fd = os.open(directory, os.O_RDONLY)
@@ -89,7 +89,7 @@ def fsync_directory(directory: str | os.PathLike) -> None:
         os.close(fd)
 
 
-def clean_stale_tmp(directory: str | os.PathLike) -> list[Path]:
+def clean_stale_tmp(directory: str | os.PathLike[str]) -> list[Path]:
     """Remove the ``.*.tmp`` files a killed run left in ``directory``; return what was removed.
 
     Only safe while no other process writes into ``directory``: call it under
@@ -109,7 +109,7 @@ def clean_stale_tmp(directory: str | os.PathLike) -> list[Path]:
 
 
 @contextmanager
-def artefact_lock(directory: str | os.PathLike) -> Iterator[Path]:
+def artefact_lock(directory: str | os.PathLike[str]) -> Iterator[Path]:
     """Hold an exclusive lock on a stage's artefact directory while the stage writes it.
 
     Two jobs with the same settings (hence the same directory) take turns instead of writing
@@ -150,14 +150,14 @@ def _flock(fd: int, directory: Path) -> bool:
     return True
 
 
-def write_atomic(path: str | os.PathLike, writer: Callable[[Path], None]) -> Path:
+def write_atomic(path: str | os.PathLike[str], writer: Callable[[Path], object]) -> Path:
     """Call ``writer(tmp_path)`` and atomically move the result to ``path``."""
     with atomic_path(path) as tmp:
         writer(tmp)
     return Path(path)
 
 
-def write_json(path: str | os.PathLike, obj: Any) -> Path:
+def write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     """Write ``obj`` as indented JSON, atomically."""
 
     def _w(tmp: Path) -> None:
@@ -166,27 +166,27 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     return write_atomic(path, _w)
 
 
-def write_text(path: str | os.PathLike, text: str) -> Path:
+def write_text(path: str | os.PathLike[str], text: str) -> Path:
     """Write a text file atomically."""
     return write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
-def write_parquet(path: str | os.PathLike, df: pd.DataFrame) -> Path:
+def write_parquet(path: str | os.PathLike[str], df: pd.DataFrame) -> Path:
     """Write a DataFrame as Parquet, atomically."""
     return write_atomic(path, lambda tmp: df.to_parquet(tmp, index=False))
 
 
-def write_csv(path: str | os.PathLike, df: pd.DataFrame) -> Path:
+def write_csv(path: str | os.PathLike[str], df: pd.DataFrame) -> Path:
     """Write a DataFrame as CSV (no index), atomically."""
     return write_atomic(path, lambda tmp: df.to_csv(tmp, index=False))
 
 
-def save_tensors(path: str | os.PathLike, obj: Mapping[str, Any]) -> Path:
+def save_tensors(path: str | os.PathLike[str], obj: Mapping[str, Any]) -> Path:
     """``torch.save`` a dict of tensors / plain Python values, atomically."""
     return write_atomic(path, lambda tmp: torch.save(dict(obj), tmp))
 
 
-def save_figure(path: str | os.PathLike, fig: Any, crop: bool | None = None) -> Path:
+def save_figure(path: str | os.PathLike[str], fig: Any, crop: bool | None = None) -> Path:
     """Save a matplotlib figure atomically (format from the suffix) and close it.
 
     ``crop=True`` crops the image to its contents (``bbox_inches="tight"``, which costs a
@@ -222,17 +222,18 @@ def _json_default(obj: Any) -> Any:
 # safe reads
 
 
-def read_json(path: str | os.PathLike, made_by: str | None = None) -> dict[str, Any]:
+def read_json(path: str | os.PathLike[str], made_by: str | None = None) -> dict[str, Any]:
     """Read a JSON file, with a clear error when it is missing or corrupt."""
     path = Path(path)
     _require(path, made_by)
     try:
-        return json.loads(path.read_text())
+        data: dict[str, Any] = json.loads(path.read_text())  # the artefacts' JSON is an object
+        return data
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ArtefactError(f"{path} is corrupt or truncated (not valid JSON: {exc})") from exc
 
 
-def read_csv(path: str | os.PathLike, made_by: str | None = None) -> pd.DataFrame:
+def read_csv(path: str | os.PathLike[str], made_by: str | None = None) -> pd.DataFrame:
     """Read a CSV table, with a clear error when it is missing, empty or unparsable."""
     path = Path(path)
     _require(path, made_by)
@@ -244,7 +245,7 @@ def read_csv(path: str | os.PathLike, made_by: str | None = None) -> pd.DataFram
         ) from exc
 
 
-def read_parquet(path: str | os.PathLike, made_by: str | None = None) -> pd.DataFrame:
+def read_parquet(path: str | os.PathLike[str], made_by: str | None = None) -> pd.DataFrame:
     """Read a Parquet file, with a clear error when it is missing or corrupt."""
     path = Path(path)
     _require(path, made_by)
@@ -257,13 +258,14 @@ def read_parquet(path: str | os.PathLike, made_by: str | None = None) -> pd.Data
 
 
 def load_tensors(
-    path: str | os.PathLike, made_by: str | None = None, map_location: Any = "cpu"
+    path: str | os.PathLike[str], made_by: str | None = None, map_location: Any = "cpu"
 ) -> dict[str, Any]:
     """``torch.load(weights_only=True)`` with clear errors; never unpickles arbitrary objects."""
     path = Path(path)
     _require(path, made_by)
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        tensors: dict[str, Any] = torch.load(path, map_location=map_location, weights_only=True)
+        return tensors
     except Exception as exc:
         raise ArtefactError(
             f"{path} is corrupt, truncated or not a safe tensor file: {exc}"
@@ -299,7 +301,7 @@ def _numbers_as_floats(value: Any) -> Any:
 
 
 def artefact_dir(
-    root: str | os.PathLike, stage: str, label: Mapping[str, Any], settings: Mapping[str, Any]
+    root: str | os.PathLike[str], stage: str, label: Mapping[str, Any], settings: Mapping[str, Any]
 ) -> Path:
     """``root/stage/k1=v1_k2=v2-<hash>``: readable label plus a hash of all defining settings."""
     readable = "_".join(f"{k}={_fmt(v)}" for k, v in label.items())
@@ -332,7 +334,7 @@ def versions() -> dict[str, str]:
 
 
 def write_manifest(
-    directory: str | os.PathLike,
+    directory: str | os.PathLike[str],
     *,
     stage: str,
     config: Mapping[str, Any],
@@ -353,7 +355,7 @@ def write_manifest(
     return write_json(Path(directory) / MANIFEST, manifest)
 
 
-def read_manifest(directory: str | os.PathLike, made_by: str | None = None) -> dict[str, Any]:
+def read_manifest(directory: str | os.PathLike[str], made_by: str | None = None) -> dict[str, Any]:
     """Read a stage's ``manifest.json`` (the last file a stage writes, so its presence means done)."""
     path = Path(directory) / MANIFEST
     manifest = read_json(path, made_by=made_by)
@@ -380,7 +382,7 @@ def check_settings(
 
 
 def existing_artefact(
-    directory: str | os.PathLike, settings: Mapping[str, Any], made_by: str
+    directory: str | os.PathLike[str], settings: Mapping[str, Any], made_by: str
 ) -> dict[str, Any] | None:
     """The manifest of the complete artefact in ``directory``, or None when there is none.
 
@@ -405,7 +407,7 @@ def _normalise(v: Any) -> Any:
 
 
 def require_artefact(
-    directory: str | os.PathLike,
+    directory: str | os.PathLike[str],
     settings: Mapping[str, Any],
     made_by: str,
     what: str,
@@ -426,7 +428,7 @@ def require_artefact(
 
 
 def make_once(
-    directory: str | os.PathLike,
+    directory: str | os.PathLike[str],
     settings: Mapping[str, Any],
     made_by: str,
     make: Callable[[Any], None],

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import types
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -108,7 +109,7 @@ PRIMITIVES = ("exp", "log", "log1p", "expm1", "cos", "sin", "sigmoid", "where", 
               "complement_product")  # fmt: skip
 
 #: numba options of the compiled formulas (those of the kernels that inline them)
-JIT_OPTIONS = {"nogil": True, "fastmath": False, "error_model": "numpy"}
+JIT_OPTIONS: dict[str, Any] = {"nogil": True, "fastmath": False, "error_model": "numpy"}
 
 
 @functools.cache
@@ -166,7 +167,7 @@ def numba_primitives() -> dict[str, Any]:
 
 
 def numba_formulas(
-    functions: Iterable[Callable[..., Any]], constants: Mapping[str, Any] = ()
+    functions: Iterable[Callable[..., Any]], constants: Mapping[str, Any] | None = None
 ) -> types.ModuleType:
     """``numba.njit``-ed (inlined) copies of ``functions`` (formulas of one module, callees
     before callers), each bound to the numba primitives, ``constants`` (ints, floats: the
@@ -175,7 +176,7 @@ def numba_formulas(
     import numba
 
     functions = list(functions)
-    namespace: dict[str, Any] = {"__name__": functions[0].__module__, **dict(constants)}
+    namespace: dict[str, Any] = {"__name__": functions[0].__module__, **dict(constants or {})}
     namespace |= numba_primitives()
     jit = numba.njit(inline="always", **JIT_OPTIONS)
     out = {}
@@ -192,7 +193,7 @@ def renew_with(dispatchers: Iterable[Any], modules: Iterable[types.ModuleType]) 
     the source of ``modules`` changes, as it is when their own file changes: numba stamps a
     cached function with its own file only, not with the files of the formulas it inlines.
     (Where numba's cache internals differ, nothing is done.)"""
-    digest = hashlib.sha256(b"".join(Path(m.__file__).read_bytes() for m in modules))
+    digest = hashlib.sha256(b"".join(Path(inspect.getfile(m)).read_bytes() for m in modules))
     for dispatcher in dispatchers:
         try:
             cache_file = dispatcher._cache._cache_file

@@ -109,6 +109,24 @@ def test_models_never_import_simulate_or_gp() -> None:
     assert not offences, "\n".join(offences)
 
 
+#: generic model pieces (library bodies, the network-backed and SBML models, the shared
+#: perturbation): they serve any network, so they import no concrete model
+GENERIC_MODELS = ["models/bodies/walker.py", "models/bodies/static.py", "models/bodies/options.py",
+                  "models/perturbation.py", "models/network.py", "models/sbml_agent.py"]  # fmt: skip
+CONCRETE_MODELS = ("surrogate.models.ecoli", "surrogate.models.ecoli_phospho")
+
+
+@pytest.mark.parametrize("entry", GENERIC_MODELS)
+def test_generic_models_never_import_a_concrete_model(entry: str) -> None:
+    offences = [
+        f"{f.relative_to(PACKAGE.parent)} imports {m}"
+        for f in _files(entry)
+        for m in _imports(f)
+        if m in CONCRETE_MODELS or m.startswith(tuple(f"{c}." for c in CONCRETE_MODELS))
+    ]
+    assert not offences, "\n".join(offences)
+
+
 def test_only_stages_and_the_bench_import_a_stage() -> None:
     offences = [
         f"{f.relative_to(PACKAGE.parent)} imports {m}"

@@ -43,9 +43,9 @@ def __getattr__(name: str) -> Any:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     # plain imports of the two known submodules (no import by computed name: see test_safety)
     if name in ssa:
-        from surrogate.benchmarks import ssa as mod
+        from surrogate.benchmarks import ssa as ssa_module
 
-        return getattr(mod, "run_bench" if name == "run_ssa_bench" else name)
-    from surrogate.benchmarks import loop as mod
+        return getattr(ssa_module, "run_bench" if name == "run_ssa_bench" else name)
+    from surrogate.benchmarks import loop as loop_module
 
-    return getattr(mod, name)
+    return getattr(loop_module, name)

@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
+from typing import overload
 
 import numba
 import numpy as np
@@ -129,7 +130,9 @@ def match_torch_threads() -> int:
     numba's pool is set first, since starting it resets the process's OpenMP count, which is
     torch's too."""
     threads = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    # numba.config sets its settings through globals() at import: no stub declares them
+    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
+    numba.set_num_threads(max(1, min(threads, most)))
     if torch.get_num_threads() != threads:
         torch.set_num_threads(threads)
     return threads
@@ -193,6 +196,30 @@ class CompiledSSA:
         self._run(x, p, dt, rng, 0, out, EventState.initial(self.kinetics, 1))
         self.compile_seconds = time.perf_counter() - start
         return self.compile_seconds
+
+    @overload
+    def advance(
+        self,
+        state: Tensor,
+        inputs: Tensor | np.ndarray,
+        dt: float | Tensor | np.ndarray,
+        streams: CellStreams,
+        *,
+        max_events: int = ...,
+        clock: EventState | None = ...,
+    ) -> tuple[Tensor, Tensor]: ...
+
+    @overload
+    def advance(
+        self,
+        state: np.ndarray,
+        inputs: Tensor | np.ndarray,
+        dt: float | Tensor | np.ndarray,
+        streams: CellStreams,
+        *,
+        max_events: int = ...,
+        clock: EventState | None = ...,
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
     def advance(
         self,

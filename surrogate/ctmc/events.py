@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -260,7 +260,10 @@ class EventProgram:
         self.events = kinetics.events
         self.n_events = len(self.events)
         events, rules = self.events, kinetics.rules
-        self._triggers = self._exact = self._thresholds = self._rules = None
+        self._triggers: Callable[..., Tensor] | None = None
+        self._exact: Callable[..., Tensor] | None = None
+        self._thresholds: Callable[..., Tensor] | None = None
+        self._rules: Callable[..., Tensor] | None = None
         if events:
             self._triggers = torch_function([right_limit(e.trigger) for e in events], time=True)
             self._exact = torch_function([e.trigger for e in events], time=True)
@@ -359,6 +362,7 @@ class EventProgram:
         if self.n_events == 0:
             return x, fired
         triggers = self._exact if exact else self._triggers
+        assert triggers is not None  # there are events
         for _ in range(MAX_CASCADE):
             now = triggers(x, p, t)
             pending = now & ~fired

@@ -83,6 +83,7 @@ def unit_transition_matrix(q: Tensor, dt: float | Tensor) -> Tensor:
     """
     if not isinstance(q, Tensor) or q.dim() < 2 or q.shape[-1] != q.shape[-2]:
         raise ValueError("q must be a tensor of shape (..., K, K)")
+    step: Tensor | float
     if isinstance(dt, Tensor):
         step = dt.to(device=q.device, dtype=torch.float64)
         if not bool(((step > 0) & torch.isfinite(step)).all()):

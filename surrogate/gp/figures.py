@@ -194,6 +194,7 @@ def _plot_surfaces(
         if (data is not None and len(data)) or guide is not None:
             ax.legend(loc="upper left", fontsize=7, markerscale=3, framealpha=0.6)
     axes[0].set_ylabel(a)
+    assert contour is not None  # one panel per phi
     fig.colorbar(contour, ax=list(axes), label=f"p(phi' = {lump_names[1]})")
     return fig
 

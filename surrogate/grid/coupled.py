@@ -23,6 +23,10 @@ __all__ = ["CoupledField", "is_coupled"]
 class CoupledField(Field):
     """Base of the fields the agents change (see the module docstring)."""
 
+    #: the current state (what :meth:`reset` or :meth:`step` last returned), which the simulator
+    #: keeps in its population state
+    state: Any
+
     def reset(self, device: torch.device | str = "cpu") -> Any:
         """Set the state to its initial value on ``device``; return the state."""
         raise NotImplementedError

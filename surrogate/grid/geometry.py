@@ -95,7 +95,7 @@ class Grid:
             raise ConfigError(f"{where}.depth must be a positive number (mm), got {depth!r}")
         lower = (bounds[0][0], bounds[1][0])
         upper = (bounds[0][1], bounds[1][1])
-        return cls(lower, upper, (int(shape[0]), int(shape[1])), names, depth)  # type: ignore[arg-type]
+        return cls(lower, upper, (int(shape[0]), int(shape[1])), names, depth)
 
     @property
     def spacing(self) -> tuple[float, float]:

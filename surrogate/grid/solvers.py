@@ -82,7 +82,8 @@ class SpectralSolver:
         self._rate = diffusion[:, None, None] * (ex[:, None] + ey[None, :]) + decay[:, None, None]
         self._source = None if source is None else self.forward(source)
         self._dt: float | None = None
-        self._factor = self._gain = None
+        self._factor: Tensor | None = None
+        self._gain: Tensor | None = None
 
     def forward(self, c: Tensor) -> Tensor:
         """``(S, n_x, n_y)`` values -> their coefficients in the modes of the step."""
@@ -115,6 +116,7 @@ class SpectralSolver:
         """``c`` (``(S, n_x, n_y)``, mM) advanced by ``dt`` seconds."""
         if dt != self._dt:
             self._prepare(dt)
+        assert self._factor is not None  # set by _prepare
         coeff = self.forward(c) * self._factor
         if self._gain is not None:
             coeff = coeff + self._gain
@@ -180,7 +182,10 @@ class ExplicitSolver:
         return self.decay * mass * dt
 
 
-SOLVERS = {"spectral": SpectralSolver, "explicit": ExplicitSolver}
+SOLVERS: dict[str, type[SpectralSolver] | type[ExplicitSolver]] = {
+    "spectral": SpectralSolver,
+    "explicit": ExplicitSolver,
+}
 
 
 def make_solver(

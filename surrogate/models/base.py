@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.capabilities import cell_step_seconds_of, feature_names_of, features_fn_of
 from surrogate.models.randoms import Randoms
@@ -54,11 +54,6 @@ COSTLY_COLLECTION: dict[str, int] = {"n_per_state": 10_000, "n_cells": 500, "rec
 InternalState = tuple[Tensor, ...]
 #: the body's outer state: named per-cell tensors, cells in dimension 0
 BodyState = dict[str, Tensor]
-
-
-class KernelUnsupported(ConfigError):
-    """A model's compiled per-cell kernel cannot run this combination (the message says what);
-    ``backend=auto`` then keeps the torch step."""
 
 
 class CellKernel(Protocol):
@@ -93,12 +88,20 @@ class InternalModel(Protocol):
             data-dependent number of events is not.
     """
 
-    input_names: tuple[str, ...]
-    feature_names: tuple[str, ...]
-    signal_names: tuple[str, ...]
-    lump_names: tuple[str, str]
-    randoms: Randoms
-    fusable: bool
+    # read-only for the engine: a plain attribute or a property satisfies each (a class attribute
+    # may be narrower, e.g. tuple[str, str])
+    @property
+    def input_names(self) -> tuple[str, ...]: ...
+    @property
+    def feature_names(self) -> tuple[str, ...]: ...
+    @property
+    def signal_names(self) -> tuple[str, ...]: ...
+    @property
+    def lump_names(self) -> tuple[str, str]: ...
+    @property
+    def randoms(self) -> Randoms: ...
+    @property
+    def fusable(self) -> bool: ...
 
     def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
         """Inputs or derived features ``names`` at inputs ``x`` (``n x d``) -> ``n x len(names)``."""
@@ -131,10 +134,11 @@ class InternalModel(Protocol):
         Optional: the engine's default concatenates each tensor along cells."""
         ...
 
-    def exact_psi(self, signal: Tensor, dt: float) -> Tensor:
-        """Exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` at signals ``signal`` (``n x k``, in the
-        order of ``signal_names``). Optional: a model without one leaves it out or sets (or
-        returns, from a property) None."""
+    @property
+    def exact_psi(self) -> Callable[[Tensor, float], Tensor] | None:
+        """``exact_psi(signal, dt)``: exact lumped ``P(phi' = 1 | phi)`` ``n x 2`` at signals
+        ``signal`` (``n x k``, in the order of ``signal_names``). Optional: a model gives it as
+        a method, or leaves it out or sets (or returns, from a property) None."""
         ...
 
     # Optional, read only through surrogate.models.capabilities (which lists them all, with the
@@ -172,9 +176,12 @@ class AgentBody(Protocol):
     observable without one gets a grid around its first recorded values).
     """
 
-    observable_names: tuple[str, ...]
-    randoms: Randoms
-    adapt_randoms: Randoms
+    @property
+    def observable_names(self) -> tuple[str, ...]: ...
+    @property
+    def randoms(self) -> Randoms: ...
+    @property
+    def adapt_randoms(self) -> Randoms: ...
 
     def initial_state(self, n_cells: int, start: Tensor, field: Field, dt: float) -> BodyState:
         """``n_cells`` bodies at ``start`` (what :meth:`Perturbation.start` or the user gives),

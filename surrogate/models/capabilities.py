@@ -22,7 +22,15 @@ capability                    what it is                                        
 ``expected_class_next``       a window's expected class law                     none
 ``expected_phi_next``         a window's expected label                         none
 ``cell_step_seconds``         its cost per cell-step                            the base estimate
+``burn_in``/``state_space``   simulated burn-in of the initial state            none
+``lump_formula``/``lump_expr``  the lump as a formula (inspect's report)        none
 ============================  ================================================  ==============
+
+:data:`OPTIONAL_MEMBERS` lists these names once; the readers below take their names from it.
+Since a misspelt optional member would be silently absent, :func:`check_members` (run by
+:func:`surrogate.config.build_model` on every model it builds) refuses a public attribute of an
+internal model that is not part of the contract but is one or two edits from an optional name
+(``exact_psy`` for ``exact_psi``).
 
 A body's optional ``histogram_grids`` (``{observable: (lo, hi, width)}``) is read through
 :func:`histogram_grids_of` (default: none, the recorder then builds a grid from the data), its
@@ -35,6 +43,7 @@ layer itself.
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -42,15 +51,84 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from surrogate.errors import ConfigError
 from surrogate.models.randoms import Randoms
 
 if TYPE_CHECKING:
     from surrogate.models.base import InternalState
 
+#: what an internal model must give (:class:`~surrogate.models.base.InternalModel`)
+REQUIRED_MEMBERS: tuple[str, ...] = ("input_names", "signal_names", "lump_names", "initial_state",
+                                     "advance", "phi")  # fmt: skip
+#: the optional members the engine reads of an internal model, all through this module (the
+#: table above): the one list of them
+OPTIONAL_MEMBERS: tuple[str, ...] = (
+    "feature_names", "features", "concat_states", "fusable", "fused_advance", "randoms",
+    "exact_psi", "exact_age_psi", "signal_bounds", "class_names", "class_lumps", "classes",
+    "exact_class_step", "expected_class_next", "expected_phi_next", "cell_step_seconds",
+    "burn_in", "state_space", "lump_formula", "lump_expr",
+)  # fmt: skip
+#: the most edits (insert, delete, substitute, swap two neighbours) between an attribute and an
+#: optional name for the attribute to be taken for a misspelling of it
+MAX_EDITS = 2
+_OPTIONAL = frozenset(OPTIONAL_MEMBERS)
+
+
+def _optional(obj: Any, name: str, default: Any = None) -> Any:
+    """``obj``'s optional member ``name`` (one of :data:`OPTIONAL_MEMBERS`), else ``default``."""
+    if name not in _OPTIONAL:
+        raise KeyError(f"{name!r} is not in capabilities.OPTIONAL_MEMBERS; add it there")
+    return getattr(obj, name, default)
+
 
 def _callable(obj: Any, name: str) -> Callable[..., Any] | None:
-    value = getattr(obj, name, None)
+    value = _optional(obj, name)
     return value if callable(value) else None
+
+
+def edit_distance(a: str, b: str) -> int:
+    """Edits (insert, delete, substitute, swap of two neighbours) turning ``a`` into ``b``."""
+    before, row = None, list(range(len(b) + 1))
+    for i, ca in enumerate(a, 1):
+        current = [i]
+        for j, cb in enumerate(b, 1):
+            cost = min(row[j] + 1, current[j - 1] + 1, row[j - 1] + (ca != cb))
+            if before is not None and i > 1 and j > 1 and ca == b[j - 2] and a[i - 2] == cb:
+                cost = min(cost, before[j - 2] + 1)
+            current.append(cost)
+        before, row = row, current
+    return row[-1]
+
+
+def misspelt_members(internal: Any) -> dict[str, str]:
+    """``{attribute: optional name}`` for each public attribute of ``internal`` outside the
+    contract that is at most :data:`MAX_EDITS` edits from an optional name (the closest, by
+    :func:`difflib.get_close_matches`). Reads only the names (``dir``), never the values."""
+    known = _OPTIONAL | set(REQUIRED_MEMBERS)
+    out = {}
+    for name in dir(internal):
+        if name.startswith("_") or name in known:
+            continue
+        near = [o for o in OPTIONAL_MEMBERS
+                if abs(len(o) - len(name)) <= MAX_EDITS and edit_distance(name, o) <= MAX_EDITS]  # fmt: skip
+        if near:
+            out[name] = (difflib.get_close_matches(name, near, n=1, cutoff=0.0) or near)[0]
+    return out
+
+
+def check_members(internal: Any, where: str = "model") -> None:
+    """Refuse (ConfigError) an internal model with a public attribute that looks like a
+    misspelt optional member (:func:`misspelt_members`): the engine would read the capability
+    as absent and silently fall back to its default."""
+    found = misspelt_members(internal)
+    if found:
+        names = "; ".join(f"{type(internal).__name__}.{name}: did you mean {meant!r}?"
+                          for name, meant in found.items())  # fmt: skip
+        raise ConfigError(
+            f"{where}: not a member of the internal-model contract: {names} (a misspelt optional "
+            f"member would be silently absent; rename it, or prefix it with '_' if it is the "
+            f"model's own; the optional members: surrogate.models.capabilities.OPTIONAL_MEMBERS)"
+        )
 
 
 def exact_psi_of(internal: Any) -> Callable[[Tensor, float], Tensor] | None:
@@ -87,11 +165,11 @@ class LumpClasses:
 def lump_classes_of(internal: Any) -> LumpClasses | None:
     """``internal``'s K-lumps classes (``class_names``, ``class_lumps`` and ``classes(state)``),
     or None where it declares none; a declaration that does not add up is an error."""
-    names = getattr(internal, "class_names", None)
+    names = _optional(internal, "class_names")
     classify = _callable(internal, "classes")
     if not names or classify is None:
         return None
-    lumps = tuple(int(v) for v in getattr(internal, "class_lumps", ()))
+    lumps = tuple(int(v) for v in _optional(internal, "class_lumps", ()))
     if len(lumps) != len(names) or set(lumps) != {0, 1}:
         raise ValueError(
             f"{type(internal).__name__}: class_lumps must give phi (0/1) for each of its "
@@ -117,7 +195,7 @@ def exact_class_step_of(internal: Any) -> Callable[[Tensor, float], Tensor] | No
 def signal_bounds_of(internal: Any) -> dict[str, tuple[float, float]] | None:
     """``{signal name: (lo, hi)}`` where ``internal``'s signal lives, or None where it declares
     none (an empty mapping counts as none)."""
-    bounds = getattr(internal, "signal_bounds", None)
+    bounds = _optional(internal, "signal_bounds")
     return dict(bounds) if bounds else None
 
 
@@ -137,15 +215,28 @@ def burn_in_of(internal: Any) -> float:
     """Seconds of internal dynamics each cell's initial state is simulated for (``burn_in``,
     where the model draws its initial state by simulating from fixed counts: a network too
     large to enumerate; 0 where the stationary law is drawn exactly)."""
-    seconds = float(getattr(internal, "burn_in", 0.0) or 0.0)
-    if seconds <= 0 or getattr(internal, "state_space", None) is not None:
+    seconds = float(_optional(internal, "burn_in", 0.0) or 0.0)
+    if seconds <= 0 or _optional(internal, "state_space") is not None:
         return 0.0
     return seconds
 
 
+def lump_formula_of(internal: Any) -> str | None:
+    """The lump as the formula it was written as (``lump_formula``, e.g. ``"D >= 2"``), or
+    None where the model's phi is its own code."""
+    formula = _optional(internal, "lump_formula")
+    return None if formula is None else str(formula)
+
+
+def lump_expr_of(internal: Any) -> Any:
+    """The lump's parsed expression (``lump_expr``, a :class:`~surrogate.ctmc.kinetics.Expr`
+    over species counts), or None."""
+    return _optional(internal, "lump_expr")
+
+
 def feature_names_of(internal: Any) -> tuple[str, ...]:
     """The derived inputs ``internal`` can compute (``feature_names``; default none)."""
-    return tuple(getattr(internal, "feature_names", None) or ())
+    return tuple(_optional(internal, "feature_names") or ())
 
 
 def features_fn_of(internal: Any) -> Callable[[Tensor, Sequence[str]], Tensor]:
@@ -186,7 +277,7 @@ def is_fusable(internal: Any) -> bool:
     """Whether ``internal`` has a pure window (``fusable`` true and a ``fused_advance``);
     otherwise the simulator runs its eager ``advance``."""
     return (
-        bool(getattr(internal, "fusable", False))
+        bool(_optional(internal, "fusable", False))
         and _callable(internal, "fused_advance") is not None
     )
 
@@ -214,11 +305,16 @@ def histogram_grids_of(body: Any) -> dict[str, Any]:
 
 
 __all__ = [
+    "MAX_EDITS",
+    "OPTIONAL_MEMBERS",
+    "REQUIRED_MEMBERS",
     "LumpClasses",
     "burn_in_of",
     "cell_step_seconds_of",
+    "check_members",
     "concat_states",
     "concat_states_of",
+    "edit_distance",
     "exact_age_psi_of",
     "exact_class_step_of",
     "exact_psi_of",
@@ -231,6 +327,9 @@ __all__ = [
     "histogram_grids_of",
     "is_fusable",
     "lump_classes_of",
+    "lump_expr_of",
+    "lump_formula_of",
+    "misspelt_members",
     "randoms_of",
     "signal_bounds_of",
     "start_size_of",

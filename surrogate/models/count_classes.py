@@ -332,7 +332,7 @@ def _choose(
             "the occupancy across the inputs)"
         )
     base = _loglik(before, after, before.astype(np.int64), train)
-    candidates = []
+    candidates: list[dict[str, Any]] = []
     for j, name in enumerate(species):
         values = counts[:-1, :, j].astype(np.float64)
         if values.min() == values.max():

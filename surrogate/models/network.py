@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
@@ -43,6 +44,9 @@ from surrogate.models.base import InternalState, Randoms, burn_in_seconds
 from surrogate.models.count_classes import CountClasses, CountClassifier
 from surrogate.sbml import SbmlModel
 from surrogate.sbml.formula import parse_formula
+
+if TYPE_CHECKING:  # numba: imported on first use
+    from surrogate.ctmc import CompiledSSA
 
 Feature = Callable[[Tensor], Tensor]
 Lump = Callable[[Tensor], Tensor] | str
@@ -215,8 +219,8 @@ class NetworkInternalModel:
         what = "rate constant" if self.mass_action else "input parameter"
         labels = dict(input_labels or {})
         self.input_labels = {n: labels.get(n, f"{what} {n!r}") for n in self.kinetics.input_names}
-        self._space: StateSpace | bool | None = None  # False: too large to enumerate
-        self._compiled = None
+        self._space: StateSpace | Literal[False] | None = None  # False: too large to enumerate
+        self._compiled: CompiledSSA | None = None
         self.set_classes(classes)
 
     def set_classes(self, classes: CountClasses | None) -> None:
@@ -309,7 +313,7 @@ class NetworkInternalModel:
     def _streams(self, device: torch.device) -> bool:
         return not (self.mass_action and self.backend(device) == "batched")
 
-    def _compiled_ssa(self):  # lazily built: numba compiles once per process
+    def _compiled_ssa(self) -> CompiledSSA:  # lazily built: numba compiles once per process
         if self._compiled is None:
             from surrogate.ctmc import CompiledSSA
 

@@ -6,7 +6,7 @@ engine's decision layers or lookup tables. The simulator packs the layer it runs
 :class:`PackedBlock` per block of cells (a batch of runs has one per run), each with a ``kind``
 code, the random rows it draws from, and its numbers (lookup tables, switch clock) as numpy
 arrays and ints. A kernel runs the kinds it knows and raises
-:class:`~surrogate.models.base.KernelUnsupported` for the others (``why`` names what the engine
+:class:`~surrogate.errors.KernelUnsupported` for the others (``why`` names what the engine
 could not pack), so the simulator keeps its torch step for those.
 
 The kinds (:data:`KINDS`):

@@ -65,12 +65,11 @@ from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.models.base import (
     CellKernel,
-    KernelUnsupported,
     Model,
     burn_in_seconds,
     yaml_hint,
 )
-from surrogate.models.bodies import build_body
+from surrogate.models.bodies import LibraryBody, build_body
 from surrogate.models.count_classes import (
     AUTO_BINS,
     AUTO_PLACEMENT,
@@ -196,6 +195,9 @@ class SbmlAgentModel(Model):
         >>> model.internal.input_names, model.internal.signal_names, model.internal.lump_names
         (('L',), ('inducer',), ('off', 'on'))
     """
+
+    internal: NetworkInternalModel
+    body: LibraryBody
 
     def __init__(self, spec: str | None = None, **settings: Any) -> None:
         self.spec = None if spec is None else Path(str(spec)).expanduser()
@@ -411,13 +413,11 @@ class SbmlAgentModel(Model):
 
     def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
         """The body's compiled per-cell step (the chemotaxis body has the E. coli one, for
-        lookup-table abstractions over its variables), where the body has one."""
+        lookup-table abstractions over its variables), where the body has one; the body refuses
+        (KernelUnsupported) an internal model its kernel cannot run."""
         kernel = getattr(self.body, "cell_kernel", None)
         if kernel is None:
             return super().cell_kernel(decision, field, dt)
-        mapped = set(self.internal.feature_names) - set(self.body.derived)
-        if mapped & {"cheyp", "dG"}:  # names the kernel computes with the body's formulas
-            raise KernelUnsupported(f"inputs {sorted(mapped)} named like the kernel's features")
         return kernel(self.internal, decision, field, dt)
 
     def kernel_precompiler(self) -> str | None:

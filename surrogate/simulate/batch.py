@@ -46,6 +46,7 @@ from surrogate.simulate.recorders import (
     BUFFER_BYTES,
     DEFAULT_RECORD_CELLS,
     FLUSH_STEPS,
+    DurationMode,
     RunRecorder,
 )
 from surrogate.simulate.support import TrainedRange, trained_range_of
@@ -86,6 +87,9 @@ class BatchSimulator(Simulator):
         >>> state = sim.initial_state(equilibration_time=1.0)
     """
 
+    decision: DecisionBatch
+    field: FieldBatch
+
     def __init__(
         self,
         model: Model,
@@ -119,7 +123,7 @@ class BatchSimulator(Simulator):
         self._blocks: list[RandomBlock] = []
         self.generators: list[torch.Generator] = []
 
-    def initial_state(  # type: ignore[override]
+    def initial_state(
         self,
         n_cells: int | None = None,
         start: Sequence[float] | Tensor | None = None,
@@ -138,7 +142,7 @@ class BatchSimulator(Simulator):
             gen.set_state(_global_state(self.device))
             self.generators.append(gen)
         internal = self.model.internal
-        for member, group in zip(self.decision.members, self.groups, strict=True):  # type: ignore[attr-defined]
+        for member, group in zip(self.decision.members, self.groups, strict=True):
             parts = [layer_states[i] for i in group]
             if any(parts):
                 # a layer with its own per-cell state (e.g. a switch clock) concatenates it
@@ -316,7 +320,7 @@ def _stackable(a: DecisionLayer, b: DecisionLayer) -> bool:
     return (
         a.internal is b.internal
         and a.featurize == b.featurize
-        and (ta.shape, ta.input_names, ta.device) == (tb.shape, tb.input_names, tb.device)  # type: ignore[attr-defined]
+        and (ta.shape, ta.input_names, ta.device) == (tb.shape, tb.input_names, tb.device)
         and is_fusable(a)
         and is_fusable(b)
     )
@@ -366,7 +370,7 @@ def simulate_batch(
     progress: bool = True,
     *,
     record_cells: int | None = DEFAULT_RECORD_CELLS,
-    durations: str | None = None,
+    durations: DurationMode | None = None,
     histogram_spec: Mapping[str, Any] | None = None,
 ) -> list[PopulationSummary]:
     """:func:`~surrogate.simulate.simulate_population` for every replicate of a batch at once:

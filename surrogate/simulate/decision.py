@@ -39,9 +39,13 @@ RunProbability = Callable[[Tensor, Tensor], Tensor]
 class DecisionLayer(Protocol):
     """What the simulator needs of a decision layer."""
 
-    name: str
-    fusable: bool
-    randoms: Randoms
+    # read-only for the simulator: a plain attribute or a property satisfies each
+    @property
+    def name(self) -> str: ...
+    @property
+    def fusable(self) -> bool: ...
+    @property
+    def randoms(self) -> Randoms: ...
 
     def initialize(self, x: Tensor) -> Tensor:
         """Initial phi (bool ``(n,)``) of cells adapted to inputs ``x`` (``n x d``)."""

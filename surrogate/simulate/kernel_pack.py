@@ -5,7 +5,7 @@ The simulator hands a model's :meth:`~surrogate.models.base.Model.cell_kernel` a
 layers or lookup tables: the kernel computes, the engine knows its own classes. Only the exact
 classes of :data:`PACKERS` are packed (a subclass may override what a kernel would transcribe);
 anything else is a block of kind ``unsupported`` naming it, which the kernel refuses
-(:class:`~surrogate.models.base.KernelUnsupported`), so the simulator keeps the torch step.
+(:class:`~surrogate.errors.KernelUnsupported`), so the simulator keeps the torch step.
 
 A new decision layer gets a kernel in two places: a packer here (a function
 ``(layer, slot) -> PackedBlock`` with a kind of its own, added to :data:`PACKERS`, building on

@@ -36,9 +36,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import CompileError, ConfigError, NumericalError
+from surrogate.errors import CompileError, ConfigError, KernelUnsupported, NumericalError
 from surrogate.fields import Field
-from surrogate.models.base import BodyState, KernelUnsupported, Model, Randoms
+from surrogate.models.base import BodyState, Model, Randoms
 from surrogate.simulate.coupling import check_coupled_run, coupled_blocks, positions_of
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.kernel_pack import pack_decision
@@ -175,7 +175,7 @@ class RandomBlock:
     ) -> None:
         self.steps = block_steps(n, randoms) if steps is None else steps
         k, r = self.steps, randoms
-        kw = {"device": device, "generator": generator}
+        kw: dict[str, Any] = {"device": device, "generator": generator}
         self.u = (
             torch.rand((k, r.uniform, n), **kw)
             if r.uniform

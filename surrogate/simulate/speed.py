@@ -44,12 +44,12 @@ class IncomparableSpeeds(SurrogateError, ValueError):
     """Two loops timed under different set-ups (device, threads, cells, loop or compile state)."""
 
 
-def cell_steps_per_s(n_cells: int, steps: int, seconds: float) -> float:
+def cell_steps_per_s(n_cells: int, steps: float, seconds: float) -> float:
     """Throughput of a loop that advanced ``n_cells`` cells by ``steps`` steps in ``seconds``.
 
     Args:
         n_cells: cells simulated (> 0).
-        steps: steps of dt each cell took (> 0).
+        steps: steps of dt each cell took (> 0; the SSA benchmark passes simulated seconds).
         seconds: wall-clock seconds of those steps (finite, > 0).
 
     Returns:

@@ -152,20 +152,26 @@ def merge_reports(reports: Sequence[Mapping[str, Any] | None]) -> dict[str, Any]
     rows = [int(r["sampled_cell_steps"]) for r in seen]
     total = sum(rows)
 
-    def share(get: Callable[[Mapping[str, Any]], float]) -> float:
-        return sum(n * float(get(r)) for n, r in zip(rows, seen, strict=True)) / total
+    def share(*path: str) -> float:  # the reports' r[path[0]][path[1]]... weighted by rows
+        out = 0.0
+        for n, r in zip(rows, seen, strict=True):
+            value: Any = r
+            for key in path:
+                value = value[key]
+            out += n * float(value)
+        return out / total
 
     inputs = {}
     for name, first in seen[0]["inputs"].items():
         mine = [r["inputs"][name] for r in seen]
         inputs[name] = {
-            "share_below": share(lambda r, k=name: r["inputs"][k]["share_below"]),
-            "share_above": share(lambda r, k=name: r["inputs"][k]["share_above"]),
+            "share_below": share("inputs", name, "share_below"),
+            "share_above": share("inputs", name, "share_above"),
             "seen": [min(m["seen"][0] for m in mine), max(m["seen"][1] for m in mine)],
             "trained": list(first["trained"]),
         }
     return {"sampled_cell_steps": total,
-            "share_outside": share(lambda r: r["share_outside"]), "inputs": inputs}  # fmt: skip
+            "share_outside": share("share_outside"), "inputs": inputs}  # fmt: skip
 
 
 def describe_outside(report: Mapping[str, Any]) -> str:

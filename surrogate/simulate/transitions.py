@@ -85,7 +85,8 @@ def _rows(
     ``clock``: keep the switch clocks (every step one call; without it and without jumps the
     unrecorded steps run in one call and the rows have no ``phi_age``)."""
     internal = simulator.decision.internal  # type: ignore[attr-defined]
-    if expected and not can_expect(internal):
+    expected_phi = expected_phi_next_of(internal) if expected else None
+    if expected and expected_phi is None:
         raise ConfigError(
             f"{type(internal).__name__} gives no expected labels (no expected_phi_next); "
             "collect them with collect.expected_labels=false"
@@ -100,6 +101,7 @@ def _rows(
     # switch clocks (steps since phi last changed, or since recording began while censored)
     age = torch.zeros(n_cells, dtype=torch.float32, device=device)
     censored = torch.ones(n_cells, dtype=torch.bool, device=device)
+    k = 0
 
     def next_chunk() -> dict[str, np.ndarray] | None:
         """One step (or a run of unrecorded ones); its recorded rows, if any."""
@@ -151,11 +153,13 @@ def _rows(
         if clock:
             chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
             chunk[CENSORED] = censored_before[rows].cpu().numpy()
-        if expected:
-            p_next = expected_phi_next_of(internal)(before, x, dt)[rows]  # type: ignore[misc]
+        if expected_phi is not None:
+            assert before is not None  # kept on recorded steps
+            p_next = expected_phi(before, x, dt)[rows]
             chunk[EXPECTED] = p_next.float().cpu().numpy()
         if classes is not None:
-            after = simulator.decision.fused_state()  # type: ignore[attr-defined]
+            assert before is not None  # kept on recorded steps
+            after = simulator.decision.fused_state()
             chunk[CLASS] = classes.classify(before)[rows].to(torch.int16).cpu().numpy()
             chunk[CLASS_NEXT] = classes.classify(after)[rows].to(torch.int16).cpu().numpy()
             expected_class = expected_class_next_of(internal) if expected else None
@@ -165,7 +169,6 @@ def _rows(
                     chunk[expected_class_column(b)] = law[:, b]
         return chunk
 
-    k = 0
     while k < max_steps:
         # each step in inference mode (cheaper per op than no_grad), none held across the
         # yield: the caller runs outside it while this generator waits (e.g. a sequential
@@ -179,7 +182,7 @@ def _rows(
 
 def _internal_state(simulator: Simulator) -> tuple[Tensor, ...]:
     """A copy of the full decision layer's internal state (a kernel writes it in place)."""
-    return tuple(t.clone() for t in simulator.decision.fused_state())  # type: ignore[attr-defined]
+    return tuple(t.clone() for t in simulator.decision.fused_state())
 
 
 def can_expect(internal: object) -> bool:
@@ -195,6 +198,7 @@ def _one_step(simulator: Simulator, state: PopulationState) -> tuple[Tensor, Ten
     kernel writes the state in place, so phi before is a copy."""
     phi_before = state.phi.clone()
     simulator.advance(state, 1)
+    assert state.inputs is not None  # set by every step
     return state.inputs, phi_before, state.phi
 
 

@@ -60,7 +60,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
     perturbation = model.body.perturbation(setup.field, model.perturbation_options)
     t0 = time.perf_counter()
-    arguments = {
+    arguments: dict[str, Any] = {
         "n_cells": int(c["n_cells"]),
         "perturb_rate": float(c["perturb_rate"]),
         "record_every": int(c["record_every"]),
@@ -131,9 +131,10 @@ def plot_coverage(table: pd.DataFrame, model: Any) -> Any:
         ax.set_xlabel(x)
         ax.set_ylabel(y)
         ax.legend(markerscale=3, fontsize=8)
+    lo, hi = np.quantile(table[signal], [0.001, 0.999])
     for phi in (0, 1):
         values = table.loc[table["phi"] == phi, signal].to_numpy(float)
-        axes[2].hist(values, bins=np.linspace(*np.quantile(table[signal], [0.001, 0.999]), 80),
+        axes[2].hist(values, bins=np.linspace(lo, hi, 80),
                      alpha=0.6, label=f"from {lumps[phi]}")  # fmt: skip
     axes[2].set_xlabel(f"signal {signal}")
     axes[2].set_ylabel("transitions")

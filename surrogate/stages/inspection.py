@@ -86,6 +86,7 @@ from surrogate.evaluate.dynamics import (
 )
 from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
 from surrogate.models.base import Model
+from surrogate.models.capabilities import lump_expr_of, lump_formula_of
 from surrogate.models.network import NetworkInternalModel
 from surrogate.sbml import SbmlModel
 from surrogate.simulate.decision import FullDecision
@@ -542,6 +543,7 @@ def simulate_fixed_inputs(
         the cells' current states, at the model's cost per event)."""
         if network is None:
             return cells * span / dt * step_cost
+        assert kin is not None  # a network's kinetic inputs
         a0 = network.kinetics.torch_propensity(state[0], kin).sum(1)
         return cells * network.cell_step_seconds(span, float(a0.mean()) * span)
 
@@ -600,7 +602,9 @@ def simulate_fixed_inputs(
     median = (group == 0).nonzero().squeeze(1)
     windows = int(options["record_windows"])
     left = max(seconds - spent, 0.0)
+    rows: slice | np.ndarray
     if network is not None:
+        assert kin is not None  # a network's kinetic inputs
         state_m, x_m, kin_m = _take(state, median), x[median.to(device)], kin[median.to(device)]
         per_window = cost(state_m, kin_m, 1, dt)
         affordable = left / max(per_window * windows, 1e-300)
@@ -677,7 +681,7 @@ def _settling(
     The noise bands share a family-wise level of 5 % over every curve tested (each point's phi
     and species), so that a run at its plateau is not taken for a drifting one by chance."""
     has_counts = counts[0] is not None
-    c = np.stack(counts, 2) if has_counts else None  # (cells, S, T)
+    c = np.stack([k for k in counts if k is not None], 2) if has_counts else None  # (cells, S, T)
     alpha = 0.05 / (g_count * (1 + (c.shape[1] if c is not None else 0)))
     out: dict[str, Any] = {k: np.zeros(g_count) for k in
                            ("occupancy", "occupancy_se", "phi", "network")}  # fmt: skip
@@ -789,7 +793,7 @@ def collection_budget(
 def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
     """``(species, edge, upper)`` where the lump is a threshold on one species count: phi = 1
     iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
-    expr = getattr(internal, "lump_expr", None)
+    expr = lump_expr_of(internal)
     if expr is None or expr.op not in ("geq", "gt", "leq", "lt"):
         return None
     a, b = expr.args
@@ -999,10 +1003,10 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     collection = collection_budget(settings, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o["burn_in_factor"])
     advice = recommend(model, fixed, o, dt, input_ranges(network, population))
-    lump = getattr(internal, "lump_formula", None) or "the model's own property"
+    lump = lump_formula_of(internal) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
-    summary = {
+    summary: dict[str, Any] = {
         "model": model.describe(), "command": settings.command(), "lump": lump,
         "settings": dict(o),
         "lump_names": list(internal.lump_names), "dt": dt, "fields": list(settings.fields),

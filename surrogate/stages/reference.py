@@ -217,12 +217,15 @@ class ReferenceSettings:
                               f"reference.record_interval={interval:g} s")  # fmt: skip
         start = validate_start(f, "start", "fidelity.", start_size_of(setup.model.body))
         eq = float(non_negative(f, "equilibration_time", "fidelity."))
-        seed = f.get("sim_seed")
-        offset = f.get("noise_seed_offset", 1000)
-        for key, value in (("fidelity.sim_seed", seed), ("fidelity.noise_seed_offset", offset)):
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ConfigError(f"{key} must be an integer, got {value!r}")
-        if offset == 0 or seed < 0 or seed + offset < 0:  # type: ignore[operator]
+        seeds = {
+            "sim_seed": f.get("sim_seed"),
+            "noise_seed_offset": f.get("noise_seed_offset", 1000),
+        }
+        for key, given in seeds.items():
+            if isinstance(given, bool) or not isinstance(given, int):
+                raise ConfigError(f"fidelity.{key} must be an integer, got {given!r}")
+        seed, offset = int(seeds["sim_seed"]), int(seeds["noise_seed_offset"])
+        if offset == 0 or seed < 0 or seed + offset < 0:
             raise ConfigError(f"fidelity.sim_seed ({seed!r}) and sim_seed + noise_seed_offset "
                               f"({offset!r}) must be two different non-negative seeds")  # fmt: skip
         job = Job.from_config(c)
@@ -231,7 +234,7 @@ class ReferenceSettings:
             ReferenceRun(setup.with_field(field_config(name)), which, name, n_cells, t_end,
                          interval, start, eq, int(s), shard_cells, root, job.data_dir)
             for name in fields
-            for which, s in zip(WHICH, (seed, seed + offset), strict=True)  # type: ignore[operator]
+            for which, s in zip(WHICH, (seed, seed + offset), strict=True)
         )  # fmt: skip
         return cls(runs, int(workers), job, _command(c, setup), c)
 

@@ -23,9 +23,8 @@ from typing import Any
 import torch
 
 from surrogate.config import non_negative, positive, seed_everything, to_dict
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.io import artefact_dir, write_json
-from surrogate.models.base import KernelUnsupported
 from surrogate.simulate.speed import LoopTiming, loop_name, measure_speed, speed_summary
 from surrogate.stages.settings import SimulateSettings
 from surrogate.stages.simulate import build_decision

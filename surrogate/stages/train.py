@@ -22,6 +22,7 @@ import os
 import shutil
 import time
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -119,8 +120,11 @@ def train(
     diagnostic, grid and figures. The model's kernel (for the diagnostic's occupancy run) is
     compiled in a background process during the fit when it is not cached."""
     out = settings.directory
-    return make_once(out, settings.identity(), settings.command(),
-                     lambda data: _train(settings, out, *data, config, force),
+
+    def make(data: tuple[pd.DataFrame, str]) -> None:  # data: load_transitions' (table, source)
+        _train(settings, out, *data, config, force)
+
+    return make_once(out, settings.identity(), settings.command(), make,
                      what="abstraction", force=force,
                      prepare=lambda: load_transitions(settings))  # fmt: skip
 
@@ -351,7 +355,7 @@ def _train(
     (out / MANIFEST).unlink(missing_ok=True)
     own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.lumps == "classes" else ()))
     for name in own:  # the fit's own files, for whoever reads this directory
-        write_atomic(out / name, lambda tmp, name=name: shutil.copyfile(fit_dir / name, tmp))
+        write_atomic(out / name, partial(shutil.copyfile, fit_dir / name))
     write_json(out / METRICS, metrics)
     write_csv(out / GRID, grid)
     exact = _exact_curve(model, settings, exact_fn) if len(psi.input_names) == 1 else None

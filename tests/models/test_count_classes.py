@@ -15,9 +15,9 @@ from surrogate.errors import ConfigError
 from surrogate.evaluate.statistics import ExactSample, compare_distributions
 from surrogate.models.count_classes import (
     CountClasses,
+    CountClassifier,
     _edges,
     _homogeneous_edges,
-    CountClassifier,
     choose_count_classes,
     parse_classes,
     spread_inputs,

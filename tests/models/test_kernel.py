@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import (
     ConstantField,
     DynamicGaussianField,
@@ -36,7 +36,6 @@ from surrogate.fields import (
     LinearField,
 )
 from surrogate.gp import PsiLookupTable
-from surrogate.models.base import KernelUnsupported
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate

@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import ConstantField, FieldBatch
 from surrogate.grid import MOLECULES_PER_NMOL, GridField
-from surrogate.models.base import KernelUnsupported
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate

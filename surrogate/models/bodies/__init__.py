@@ -13,8 +13,8 @@ field's value where the agent is) and offers ``derived`` variables computed from
 """
 
 from surrogate.models.bodies.chemotaxis import RunAndTumbleBody
-from surrogate.models.bodies.registry import BODY_KINDS, build_body
+from surrogate.models.bodies.registry import BODY_KINDS, LibraryBody, build_body
 from surrogate.models.bodies.static import StaticAgent
 from surrogate.models.bodies.walker import Walker
 
-__all__ = ["BODY_KINDS", "RunAndTumbleBody", "StaticAgent", "Walker", "build_body"]
+__all__ = ["BODY_KINDS", "LibraryBody", "RunAndTumbleBody", "StaticAgent", "Walker", "build_body"]

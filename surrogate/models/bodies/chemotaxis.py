@@ -18,23 +18,21 @@ from typing import Any
 
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported, check_options
-from surrogate.models.ecoli.body import (
-    PERTURBATION_DEFAULTS,
-    ChemotacticBody,
-    DiscJump,
-    disc_jump,
-    disc_options,
-)
+from surrogate.models.base import CellKernel, check_options
+from surrogate.models.ecoli.body import ChemotacticBody
 from surrogate.models.ecoli.formulas import activity
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
 from surrogate.models.packed import PackedDecision
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
 
 #: the derived variables the compiled kernel transcribes (models/ecoli/kernel.py FEATURE_CODES)
 KERNEL_VARIABLES = ("m", "L", "F", "activity")
+#: features the kernel computes with the E. coli formulas (FEATURE_CODES' other names): an
+#: internal model's input mapped under one of these names would be read as the kernel's
+KERNEL_COMPUTED = ("cheyp", "dG")
 
 
 class RunAndTumbleBody(ChemotacticBody):
@@ -100,6 +98,11 @@ class RunAndTumbleBody(ChemotacticBody):
         """The E. coli compiled per-cell step for a two-state chain over a lookup table of
         :data:`KERNEL_VARIABLES` (the internal model's columns of those names must be this
         body's, which the model that asks vouches for)."""
+        # the SBML agent's inputs mapped by formula (not derived here) must not take the names
+        # of features the kernel computes with the body's own formulas
+        mapped = set(internal.feature_names) - set(self.derived)
+        if mapped & set(KERNEL_COMPUTED):
+            raise KernelUnsupported(f"inputs {sorted(mapped)} named like the kernel's features")
         if tuple(internal.input_names) != self.variable_names:
             raise KernelUnsupported("an internal model with other inputs than the body's (m, L)")
         from surrogate.models.ecoli.kernel import EcoliKernel  # numba: imported on demand

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, Randoms, check_options
-from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
 
 #: parameters of the static agent and their defaults
 STATIC_DEFAULTS: dict[str, Any] = {"perturbation": {"radius": 4.0, "sampling": "radius"}}

@@ -19,7 +19,7 @@ from torch import Tensor
 from surrogate.fields import Field
 from surrogate.models.base import BodyState, Randoms, check_options
 from surrogate.models.bodies.options import number
-from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS, DiscJump, disc_jump, disc_options
 
 #: parameters of the walker and their defaults (units: mm, s, rad)
 WALKER_DEFAULTS: dict[str, Any] = {
@@ -123,5 +123,6 @@ class Walker:
         return None if bool(torch.isfinite(x).all()) else "the field returned NaN/inf values"
 
     def perturbation(self, field: Field, options: Mapping[str, Any]) -> DiscJump:
-        """Jumps into a disc around the field's peak (the E. coli body's perturbation)."""
+        """Jumps into a disc around the field's peak (the shared
+        :class:`~surrogate.models.perturbation.DiscJump`)."""
         return disc_jump(field, options, f"{self.where}.perturbation")

@@ -6,7 +6,7 @@ plus :class:`ChemotacticBody` (run-and-tumble movement, OU methylation).
 
 from __future__ import annotations
 
-from surrogate.models.ecoli.body import ChemotacticBody, DiscJump, random_in_disc
+from surrogate.models.ecoli.body import ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.model import EcoliModel
 from surrogate.models.ecoli.motors import (
@@ -28,6 +28,7 @@ from surrogate.models.ecoli.signalling import (
     motor_rates,
     ou_step,
 )
+from surrogate.models.perturbation import DiscJump, random_in_disc
 
 __all__ = [
     "FLAGELLA_NETWORK",

@@ -124,6 +124,7 @@ class MotorInternalModel:
             raise RuntimeError("motor_sampler=ssa has no fused window")
         k_plus, k_minus = self.rates(x)
         thresholds = torch.stack(motor_thresholds(k_plus, k_minus, dt, self.params.mu))
+        assert u64 is not None  # self.randoms asks for uniform64 rows
         return (sample_motor_states(state[0], thresholds, u64),), (thresholds,)
 
     def phi(self, state: InternalState) -> Tensor:

@@ -46,9 +46,10 @@ from torch import Tensor
 
 from surrogate import scalar
 from surrogate.ctmc.compiled import match_torch_threads
+from surrogate.errors import KernelUnsupported
 from surrogate.field_kernel import field_set, field_value, pack_field
 from surrogate.fields import Field, FieldBatch
-from surrogate.models.base import KernelUnsupported, Randoms
+from surrogate.models.base import Randoms
 from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.body import MAX_GAMMA_UNIFORMS
 from surrogate.models.ecoli.internal import INPUTS, MotorInternalModel
@@ -66,7 +67,7 @@ CLOCK_CODE = 6
 P32_NAMES = formulas.CONSTANTS
 P64_NAMES = ("omega", "mu", "dt")
 
-_JIT = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
 _F32 = np.float32
 
 
@@ -494,7 +495,7 @@ class EcoliKernel:
     Built by :meth:`EcoliModel.cell_kernel` (and the ``cell_kernel`` of other models on the
     E. coli body, e.g. ``ecoli_phospho``) from the decision layer the engine packed
     (:class:`~surrogate.models.packed.PackedDecision`); raises
-    :class:`~surrogate.models.base.KernelUnsupported` for what it cannot run (Python fields,
+    :class:`~surrogate.errors.KernelUnsupported` for what it cannot run (Python fields,
     classifier or direct-exact decision layers, the SSA motor sampler, non-integer tumble
     shapes, a full model or exact chain over anything but the E. coli motors), so the
     simulator keeps the torch step for those.
@@ -616,11 +617,13 @@ class EcoliKernel:
             # copy (a dry run only reads it)
             own = None if b.state is None else (b.state.current() if dry else b.state.writable())
             if b.kind == "motors":
+                assert own is not None and u64 is not None  # motor states, one u64 per motor
                 advance_cells(*head, *common, un, _numpy(u64), zn, *self._body_args,
                               _numpy(own), b.motor_row, *_NO_TABLE, *_NO_CLOCK,
                               *_NO_CLASSES)  # fmt: skip
             elif b.kind == "classes":
                 cdf, layer, nodes, strides, origin, scale, features, row = b.table_args
+                assert own is not None  # each cell's class
                 advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
                               *self._body_args, _NO_MOTORS, 0, cdf, _NO_TABLE[1], layer, nodes,
                               strides, origin, scale, features, row, *_NO_CLOCK, b.lumps,

@@ -6,14 +6,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
-from surrogate.models.base import CellKernel, KernelUnsupported, Model, check_options
-from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
+from surrogate.models.base import CellKernel, Model, check_options
+from surrogate.models.ecoli.body import ChemotacticBody
 from surrogate.models.ecoli.internal import MotorInternalModel
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.reference import PAPER_TABLE1
 from surrogate.models.packed import PackedDecision
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS
 
 
 class EcoliModel(Model):
@@ -30,6 +31,8 @@ class EcoliModel(Model):
     """
 
     name = "ecoli"
+    internal: MotorInternalModel
+    body: ChemotacticBody
 
     def __init__(self, perturbation: Mapping[str, Any] | None = None, **constants: Any) -> None:
         self.params = EcoliParameters.from_config(constants)

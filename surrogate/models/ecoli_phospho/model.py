@@ -28,24 +28,24 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.base import (
     CellKernel,
     InternalState,
-    KernelUnsupported,
     Model,
     burn_in_seconds,
     check_options,
 )
 from surrogate.models.ecoli import formulas
-from surrogate.models.ecoli.body import PERTURBATION_DEFAULTS, ChemotacticBody
+from surrogate.models.ecoli.body import ChemotacticBody
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
 from surrogate.models.ecoli_phospho.constants import PhosphoConstants, calibrated
 from surrogate.models.ecoli_phospho.sbml_writer import NETWORK_PATH, network_sbml
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
+from surrogate.models.perturbation import PERTURBATION_DEFAULTS
 from surrogate.sbml import SbmlModel, read_sbml, read_sbml_string
 
 __all__ = ["SSA_BACKENDS", "EcoliPhosphoModel", "PhosphoInternalModel"]
@@ -68,6 +68,7 @@ class PhosphoInternalModel(NetworkInternalModel):
     """
 
     lump_names = ("tumble", "run")
+    network: SbmlModel
     #: sub-windows of the CheY-P path in expected_phi_next (its only approximation)
     expected_substeps = 10
 
@@ -187,6 +188,8 @@ class EcoliPhosphoModel(Model):
     """
 
     name = "ecoli_phospho"
+    internal: PhosphoInternalModel
+    body: ChemotacticBody
 
     def __init__(
         self,

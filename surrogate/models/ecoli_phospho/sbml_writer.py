@@ -30,6 +30,7 @@ def network_sbml(c: PhosphoConstants | None = None, *, amounts: bool = False) ->
     import libsbml
 
     c = c if c is not None and c.k_a is not None else calibrated(c)
+    assert c.k_a is not None  # calibrated
     ap, yp = mean_field_steady_state(c, c.adapted_activity)
     n = c.n_per_um
     document = libsbml.SBMLDocument(3, 1)

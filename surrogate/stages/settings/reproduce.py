@@ -128,13 +128,12 @@ def _batched(
     made_by = command_line(REPRODUCE_CMD, keep)
 
     def tagged(e: EvaluateSettings) -> EvaluateSettings:
-        def mark(s: SimulateSettings | None) -> SimulateSettings | None:
-            if s is None or not batchable(s):
-                return s
-            return s.replace(batch=batch, made_by=made_by)
+        def mark(s: SimulateSettings) -> SimulateSettings:
+            return s.replace(batch=batch, made_by=made_by) if batchable(s) else s
 
+        repeat = e.full_repeat
         return replace(e, candidate=mark(e.candidate), full=mark(e.full),
-                       full_repeat=mark(e.full_repeat))  # fmt: skip
+                       full_repeat=None if repeat is None else mark(repeat))  # fmt: skip
 
     return ({k: tagged(v) for k, v in evaluations.items()},
             {k: tagged(v) for k, v in exact.items()})  # fmt: skip

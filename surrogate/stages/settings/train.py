@@ -140,7 +140,7 @@ class TrainSettings:
         if history == "age":
             if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
                 clock_bins = gp_config.get("clock_bins", gp.bins)
-                gp = replace(gp, bins=[gp.bins] * len(inputs) + [clock_bins])  # validated again
+                gp = replace(gp, bins=(*[gp.bins] * len(inputs), clock_bins))  # validated again
             inputs = (*inputs, AGE)
         lumps = gp_config.get("lumps", "phi")
         if lumps not in LUMPINGS:
