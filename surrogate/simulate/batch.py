@@ -307,7 +307,10 @@ def _stackable(a: DecisionLayer, b: DecisionLayer) -> bool:
     :func:`_decision_blocks`): same fused protocol, internal model, features and grid."""
     if not (isinstance(a, AbstractDecision) and isinstance(b, AbstractDecision)):
         return False
-    if type(a).fused_step is not type(b).fused_step or a.randoms != b.randoms:
+    # stateful layers share StatefulDecision.fused_step: their window rule is _pure_step
+    same_rule = (type(a).fused_step is type(b).fused_step
+                 and getattr(type(a), "_pure_step", None) is getattr(type(b), "_pure_step", None))  # fmt: skip
+    if not same_rule or a.randoms != b.randoms:
         return False
     if getattr(a, "max_age", None) != getattr(b, "max_age", None):  # switch clocks' caps
         return False
