@@ -189,6 +189,7 @@ def test_auto_over_a_range_bins_the_counts_the_range_gives(monkeypatch, tmp_path
     assert max(max(e) for e in one.edges) < 10
     assert max(max(e) for e in many.edges) > 20
     assert all(len(e) <= 3 for e in many.edges) and max(len(e) for e in many.edges) == 3
+    assert many.edges[0] == many.edges[1]  # shared: a flip of phi keeps X's bin
     sample = spread.class_report["sample"]
     assert sample["inputs_min"][0] == pytest.approx(2.0, abs=0.1)
     assert sample["inputs_max"][0] == pytest.approx(20.0, abs=0.1)
@@ -237,7 +238,12 @@ def test_homogeneous_edges_cut_where_the_chance_of_leaving_changes() -> None:
     chance = np.where(values < 15, 0.1, np.where(values < 45, 0.5, 0.9))
     before = np.zeros(values.shape, dtype=np.int8)
     after = (rng.random(values.shape) < chance).astype(np.int8)
-    assert _homogeneous_edges(values, before, after, 0, 3) == (15.0, 45.0)
+    assert _homogeneous_edges(values, before, after, 3, lumps=(0,)) == (15.0, 45.0)
     assert _edges(values.ravel(), 3) == (16.0, 33.0)
     # fewer distinct values than bins: every value its own bin
-    assert _homogeneous_edges(values % 3, before, after, 0, 8) == (1.0, 2.0)
+    assert _homogeneous_edges(values % 3, before, after, 8, lumps=(0,)) == (1.0, 2.0)
+    # shared by two lumps: a bin must hold windows of both, so the lump-1 windows (values 20-29
+    # only) bound the bins to the values both lumps reach
+    before = np.where(values < 20, 0, np.where(values < 30, rng.integers(0, 2, values.shape), 0))
+    shared = _homogeneous_edges(values, before.astype(np.int8), after, 3)
+    assert all(20.0 <= e <= 30.0 for e in shared)
