@@ -201,6 +201,61 @@ def parse_classes(
     return classes
 
 
+def is_auto(value: Any) -> bool:
+    """Whether a ``classes`` setting asks for a chosen set (``auto`` or ``{auto: ...}``)."""
+    return value == "auto" or (isinstance(value, Mapping) and "auto" in value)
+
+
+def parse_auto_classes(
+    value: Any, input_names: Sequence[str]
+) -> tuple[dict[int, tuple[float, float]], int, str]:
+    """``classes: auto`` or ``{auto: {over: {<input>: [lo, hi]}, bins: K}}`` (``auto: {}`` or
+    ``auto: true`` as plain auto) -> (ranges by input index, bins per lump), validated."""
+    where = "model.classes"
+    if value == "auto":
+        return {}, AUTO_BINS, AUTO_PLACEMENT
+    if set(value) != {"auto"}:
+        raise ConfigError(f"{where}: auto takes its options inside it, "
+                          f"{{auto: {{over: {{<input>: [lo, hi]}}, bins: K}}}}; got the "
+                          f"extra key(s) {sorted(set(value) - {'auto'})}")  # fmt: skip
+    options = value["auto"]
+    if options is True or options is None:
+        options = {}
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"{where}.auto must be a mapping {{over: {{<input>: [lo, hi]}}, "
+                          f"bins: K}}, got {options!r}")  # fmt: skip
+    unknown = sorted(set(options) - {"over", "bins", "placement"})
+    if unknown:
+        raise ConfigError(f"{where}.auto: unknown key(s) {unknown}; it takes over, bins and "
+                          "placement")  # fmt: skip
+    placement = options.get("placement", AUTO_PLACEMENT)
+    if placement not in PLACEMENTS:
+        raise ConfigError(f"{where}.auto.placement must be one of {list(PLACEMENTS)}, got "
+                          f"{placement!r}")  # fmt: skip
+    bins = options.get("bins", AUTO_BINS)
+    if isinstance(bins, bool) or not isinstance(bins, int) or not 2 <= bins <= 20:
+        raise ConfigError(f"{where}.auto.bins must be an integer from 2 to 20 (bins per lump), "
+                          f"got {bins!r}")  # fmt: skip
+    over = options.get("over", {})
+    if not isinstance(over, Mapping):
+        raise ConfigError(f"{where}.auto.over must map input parameters to [lo, hi], got "
+                          f"{over!r}")  # fmt: skip
+    ranges: dict[int, tuple[float, float]] = {}
+    for name, span in over.items():
+        if name not in input_names:
+            raise ConfigError(f"{where}.auto.over.{name}: not an input parameter of the network "
+                              f"{list(input_names)}")  # fmt: skip
+        ok = (isinstance(span, Sequence) and not isinstance(span, str) and len(span) == 2
+              and all(isinstance(v, int | float) and not isinstance(v, bool)
+                      and math.isfinite(v) for v in span))  # fmt: skip
+        if not ok or not 0 <= span[0] < span[1]:
+            raise ConfigError(f"{where}.auto.over.{name} must be [lo, hi] with 0 <= lo < hi "
+                              f"(the kinetic input's range the fields give), got "
+                              f"{span!r}")  # fmt: skip
+        ranges[list(input_names).index(name)] = (float(span[0]), float(span[1]))
+    return ranges, bins, placement
+
+
 # ----------------------------------------------------------------------------------------------
 # choosing them
 
@@ -472,6 +527,8 @@ __all__ = [
     "CountClasses",
     "CountClassifier",
     "choose_count_classes",
+    "is_auto",
+    "parse_auto_classes",
     "parse_classes",
     "spread_inputs",
 ]
