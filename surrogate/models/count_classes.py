@@ -301,8 +301,7 @@ def choose_count_classes(
            "initial": internal.initial_counts.tolist(), "burn_in": internal.burn_in,
            "inputs": kinetic_inputs.tolist(), "dt": float(dt),
            "cells": cells, "windows": windows, "bins": bins, "seed": seed}  # fmt: skip
-    if placement != "quantiles":  # keeps the cache keys of quantile choices
-        key["placement"] = placement
+    key["placement"] = placement
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
     root = cache_dir or _cache_dir()
     path = root / f"{digest}.json"
