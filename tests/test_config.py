@@ -177,6 +177,33 @@ def test_the_clock_recipe_bins_its_axes_and_leaves_two_state_fits_as_they_were(
         TrainSettings.from_config(compose_cfg("train", ["gp.history=clock"]))
 
 
+def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(compose_cfg) -> None:
+    """gp.class_moves: learned fits keep their identity; relaxation enters it with its sample's
+    settings; bad values, a two-state fit and classes that are not shared bins (E. coli's
+    motor counts) are refused by name."""
+    classes = TrainSettings.from_config(compose_cfg("train", ["gp=classes"]))
+    assert classes.class_moves == "learned"
+    assert not {"class_moves", "relaxation"} & set(classes.fit_identity()["gp"])
+    for bad, message in (
+        ("gp.class_moves=drift", "gp.class_moves must be one of"),
+        ("gp.relaxation.n_cells=3", "gp.relaxation.n_cells"),
+        ("gp.relaxation.lags=[100,50]", "gp.relaxation.lags"),
+        ("gp.relaxation.lags=[50]", "gp.relaxation.lags"),
+        ("gp.relaxation=7", "gp.relaxation must be a mapping"),
+        ("+gp.relaxation.every=1", "unknown key"),
+        ("gp.class_moves=relaxation", "shared by both"),  # E. coli: motor counts, not bins
+    ):
+        with pytest.raises(ConfigError, match=message):
+            TrainSettings.from_config(compose_cfg("train", ["gp=classes", bad]))
+    with pytest.raises(ConfigError, match="K-lumps option"):
+        TrainSettings.from_config(compose_cfg("train", ["+gp.class_moves=relaxation"]))
+    relax = TrainSettings.from_config(compose_cfg("train", [
+        "model=sbml", "model.spec=examples/autoregulation/model.yaml", "gp=classes",
+        "gp.class_moves=relaxation"]))  # fmt: skip
+    moves = relax.fit_identity()["gp"]["class_moves"]
+    assert moves["kind"] == "relaxation" and moves["cells"] == 600 and len(moves["lags"]) == 4
+
+
 def test_the_classes_recipe_is_checked_and_leaves_two_state_identities_as_they_were(
     compose_cfg,
 ) -> None:

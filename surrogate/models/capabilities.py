@@ -18,6 +18,7 @@ capability                    what it is                                        
 ``exact_age_psi``             the same with a switch clock                      none
 ``signal_bounds``             ``{signal: (lo, hi)}`` where the signal lives     none
 ``class_names``/``class_lumps``/``classes``  K lumps: classes finer than phi    none
+``class_bins``                each class's bin of a count both lumps share       none
 ``exact_class_step``          exact one-window class-to-class law               none
 ``expected_class_next``       a window's expected class law                     none
 ``expected_phi_next``         a window's expected label                         none
@@ -65,7 +66,7 @@ REQUIRED_MEMBERS: tuple[str, ...] = ("input_names", "signal_names", "lump_names"
 OPTIONAL_MEMBERS: tuple[str, ...] = (
     "feature_names", "features", "concat_states", "fusable", "fused_advance", "randoms",
     "exact_psi", "exact_age_psi", "signal_bounds", "class_names", "class_lumps", "classes",
-    "exact_class_step", "expected_class_next", "expected_phi_next", "cell_step_seconds",
+    "class_bins", "exact_class_step", "expected_class_next", "expected_phi_next", "cell_step_seconds",
     "burn_in", "state_space", "lump_formula", "lump_expr",
 )  # fmt: skip
 #: the most edits (insert, delete, substitute, swap two neighbours) between an attribute and an
@@ -176,6 +177,13 @@ def lump_classes_of(internal: Any) -> LumpClasses | None:
             f"{len(names)} class_names, both lumps present; got {lumps}"
         )
     return LumpClasses(tuple(str(n) for n in names), lumps, classify)
+
+
+def class_bins_of(internal: Any) -> tuple[int, ...] | None:
+    """Each class's bin of one count whose bins both lumps share (a flip keeps the bin), or
+    None (:mod:`surrogate.gp.class_relaxation`)."""
+    bins = _optional(internal, "class_bins")
+    return None if bins is None else tuple(int(b) for b in bins)
 
 
 def expected_class_next_of(
@@ -312,6 +320,7 @@ __all__ = [
     "burn_in_of",
     "cell_step_seconds_of",
     "check_members",
+    "class_bins_of",
     "concat_states",
     "concat_states_of",
     "edit_distance",

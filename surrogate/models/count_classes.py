@@ -108,6 +108,14 @@ class CountClasses:
         """The phi (0/1) of each class."""
         return tuple(phi for phi in (0, 1) for _ in range(len(self.edges[phi]) + 1))
 
+    @property
+    def bins(self) -> tuple[int, ...] | None:
+        """Each class's bin where both lumps share the edges (a flip keeps the bin), else
+        None."""
+        if self.edges[0] != self.edges[1]:
+            return None
+        return tuple(b for phi in (0, 1) for b in range(len(self.edges[phi]) + 1))
+
     def to_config(self) -> dict[str, Any]:
         """The yaml form: ``{expression: ..., edges: {<lump>: [...], ...}}``."""
         return {"expression": self.variable,

@@ -240,6 +240,12 @@ class NetworkInternalModel:
         """Each class's lump, phi (None: none declared)."""
         return None if self.count_classes is None else self.count_classes.lumps
 
+    @property
+    def class_bins(self) -> tuple[int, ...] | None:
+        """Each class's bin of the count where both lumps share its edges (None: no classes,
+        or each lump its own edges)."""
+        return None if self.count_classes is None else self.count_classes.bins
+
     def _lump_function(self, lump: Lump) -> Callable[[Tensor], Tensor]:
         #: the lump's parsed condition over the species (None for a Python function)
         self.lump_expr: Expr | None = None

@@ -359,6 +359,56 @@ def collect_transitions(
     return collector.take(n_per_state)
 
 
+def record_stationary_bins(
+    simulator: Simulator,
+    perturbation: Perturbation,
+    n_cells: int,
+    lags: Sequence[float],
+    names: Sequence[str],
+    class_bins: Sequence[int],
+    chunk: float = 10.0,
+) -> pd.DataFrame:
+    """Burned-in full-model cells where collect starts them, held at their inputs: each cell's
+    inputs ``names`` and the bin of its class (``class_bins``) now and after each lag (the
+    stationary sample of :mod:`surrogate.gp.class_relaxation`).
+
+    Args:
+        simulator: a simulator whose decision layer is the full internal model.
+        perturbation: the body's perturbation (its ``start`` places the cells).
+        n_cells: cells.
+        lags: increasing lags (s) after which the bins are read again, inputs held fixed.
+        names: the abstraction's inputs to record.
+        class_bins: the bin of each class.
+        chunk: seconds per call of the internal model's ``advance`` (bounds one call's work).
+
+    Returns:
+        ``n_cells`` rows: the ``names`` columns and ``bin_0 .. bin_L``.
+    """
+    internal = simulator.model.internal
+    declared = lump_classes_of(internal)
+    if declared is None:
+        raise ConfigError(f"{type(internal).__name__} declares no classes")
+    if any(b <= a for a, b in zip([0.0, *lags], lags, strict=False)):
+        raise ConfigError(f"the lags must be positive and increase, got {list(lags)}")
+    device = simulator.device
+    to_bin = torch.tensor(list(class_bins), dtype=torch.int64, device=device)
+    state = simulator.initial_state(n_cells, perturbation.start(n_cells, device))
+    x = state.inputs
+    assert x is not None
+    internal_state = simulator.decision.fused_state()
+    out = {n: features_of(internal, x, names)[:, i].float().cpu().numpy()
+           for i, n in enumerate(names)}  # fmt: skip
+    out["bin_0"] = to_bin[declared.classify(internal_state).to(device)].cpu().numpy()
+    now = 0.0
+    for j, lag in enumerate(lags, start=1):
+        while now < lag - 1e-9:
+            step = min(chunk, lag - now)
+            internal_state = internal.advance(internal_state, x, step)
+            now += step
+        out[f"bin_{j}"] = to_bin[declared.classify(internal_state).to(device)].cpu().numpy()
+    return pd.DataFrame(out)
+
+
 def record_occupancy(
     simulator: Simulator,
     n_cells: int,

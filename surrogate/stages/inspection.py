@@ -917,7 +917,17 @@ def recommend(
         over = ", ".join(f"{n}: [{lo!r}, {hi!r}]" for n, (lo, hi) in (input_ranges or {}).items())
         yaml = (f"classes: {{auto: {{over: {{{over}}}}}}}" if over else "classes: auto") if auto \
             else declared  # fmt: skip
-        return {"abstraction": "classes", "command": "gp=classes", "yaml": yaml,
+        # a count that settles over many windows moves between bins too rarely per window to
+        # learn, and its jitter across an edge reads as moves: its bins relax instead
+        settling = slowest_settling(fixed)
+        slow = auto and settling >= SLOW_SETTLING_WINDOWS * dt
+        command = "gp=classes gp.class_moves=relaxation" if slow else "gp=classes"
+        relax = (f"; the network settles over {settling:.3g} s ({settling / dt:,.0f} windows), so "
+                 f"the bins move by relaxation to their stationary law "
+                 f"(`gp.class_moves=relaxation`), not by a one-window law learned from rare, "
+                 f"jittery crossings" if slow else "")  # fmt: skip
+        return {"abstraction": "classes", "command": command, "yaml": yaml,
+                "settling_s": settling,
                 "declared": declared, "edges": edges, "edges_by_lump": by_lump,
                 "species": species,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
@@ -929,7 +939,7 @@ def recommend(
                              f"species at its stationary quantiles on each side of {edge} "
                              f"would be `{declared}`)" if auto else
                              f": bins of {species} at its stationary quantiles on each side of "
-                             f"{edge}")}  # fmt: skip
+                             f"{edge}") + relax}  # fmt: skip
     flat = max(h["flat_from_s"] for h in hazards if h is not None)
     max_age = float(f"{max(flat, dt):.2g}")
     return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
@@ -947,6 +957,23 @@ def _round_up(value: float) -> float:
     return math.ceil(value / scale - 1e-9) * scale
 
 
+#: a network settling (from the file's counts) over at least this many windows gets classes
+#: whose bins relax (:mod:`surrogate.gp.class_relaxation`). Set between the measured cases: the
+#: auto-regulatory network settles over ~21,000 windows (1,060 s at dt 0.05) and its learned
+#: moves between bins, ~1e-3 per window from 5-30 collected events each, mix the bins ~30x
+#: too fast; a protein relaxing in 20 s settles over ~1,800
+SLOW_SETTLING_WINDOWS = 10_000
+
+
+def slowest_settling(fixed: FixedInputs) -> float:
+    """The longest settling time (s) over the grid of the network's counts and phi (0 where
+    none is finite)."""
+    settle = fixed.settle_phi if fixed.settle_network is None else \
+        np.maximum(fixed.settle_phi, fixed.settle_network)  # fmt: skip
+    finite = settle[np.isfinite(settle)]
+    return float(finite.max()) if finite.size else 0.0
+
+
 def burn_in_advice(
     network: NetworkInternalModel | None, fixed: FixedInputs, factor: float
 ) -> dict[str, Any]:
@@ -958,11 +985,8 @@ def burn_in_advice(
     if network.state_space is not None:
         return {"applies": False, "text": "not used: initial states are drawn from the exact "
                                           "stationary law (an enumerable network)"}  # fmt: skip
-    settle = fixed.settle_phi if fixed.settle_network is None else \
-        np.maximum(fixed.settle_phi, fixed.settle_network)  # fmt: skip
     settled = bool(fixed.settled.all())
-    finite = settle[np.isfinite(settle)]
-    worst = float(finite.max()) if finite.size else 0.0
+    worst = slowest_settling(fixed)
     if not settled:
         worst = max(worst, fixed.horizon / 2)
     needed = _round_up(factor * worst)

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
+from torch import Tensor
 
 from surrogate.config import seed_everything, to_dict
 from surrogate.errors import ArtefactError, NumericalError
@@ -42,6 +43,7 @@ from surrogate.gp import (
     psi_grid_frame,
     save_psi,
 )
+from surrogate.gp.class_relaxation import fit_relaxation_law
 from surrogate.gp.classes import fit_class_law
 from surrogate.gp.diagnostics import class_law_errors, plot_psi_errors, psi_errors
 from surrogate.io import (
@@ -62,6 +64,7 @@ from surrogate.io import (
 )
 from surrogate.models.base import Model
 from surrogate.models.capabilities import (
+    class_bins_of,
     exact_class_step_of,
     expected_class_next_of,
     has_exact_psi,
@@ -74,9 +77,11 @@ from surrogate.simulate.classes import (
     exact_class_table,
     expected_class_column,
 )
-from surrogate.simulate.decision import ExactPsi
+from surrogate.simulate.decision import ExactPsi, FullDecision
+from surrogate.simulate.loop import Simulator
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
+from surrogate.simulate.transitions import record_stationary_bins
 from surrogate.stages import budget
 from surrogate.stages.artefacts import (
     CLASS_CHAIN,
@@ -307,11 +312,49 @@ def _fit_class_chain(
                                  device=settings.job.device, expected=expected,
                                  min_events=settings.min_events,
                                  max_weight=settings.max_label_weight)  # fmt: skip
-    chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
-                       classes.lumps, settings.setup.dt)  # fmt: skip
     log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
              metrics["classifiers"], metrics["constant_steps"])  # fmt: skip
+    if settings.class_moves == "relaxation":
+        law, metrics["relaxation"] = _relaxation_law(settings, law, domain)
+    chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
+                       classes.lumps, settings.setup.dt)  # fmt: skip
     return chain.to_state(), metrics
+
+
+#: the stationary sample's seed is the fit's plus this (its cells are not collect's first cells)
+RELAXATION_SEED_OFFSET = 1_000_003
+
+
+def _relaxation_law(
+    settings: TrainSettings, learned: Tensor, domain: Mapping[str, tuple[float, float]]
+) -> tuple[Tensor, dict[str, Any]]:
+    """The learned law with bins that relax (gp.class_moves=relaxation): a stationary sample
+    of burned-in full-model cells where collect starts them, held at their inputs."""
+    setup, job = settings.setup, settings.job
+    model = setup.model
+    declared = lump_classes_of(model.internal)
+    bins = class_bins_of(model.internal)
+    assert declared is not None and bins is not None  # the settings checked them
+    seed_everything(settings.seed + RELAXATION_SEED_OFFSET)
+    t0 = time.perf_counter()
+    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
+    perturbation = model.body.perturbation(setup.field, model.perturbation_options)
+    log.info("class moves by relaxation: %d burned-in full-model cells held at their inputs "
+             "for %g s", settings.relaxation_cells, settings.relaxation_lags[-1])  # fmt: skip
+    sample = record_stationary_bins(simulator, perturbation, settings.relaxation_cells,
+                                    settings.relaxation_lags, settings.inputs, bins)  # fmt: skip
+    sizes = list(learned.shape[1:-1])
+    law, metrics = fit_relaxation_law(learned, sample, settings.inputs, domain, sizes, bins,
+                                      declared.lumps, settings.relaxation_lags, setup.dt,
+                                      settings.gp, progress=job.progress,
+                                      device=job.device)  # fmt: skip
+    metrics["seconds"] = time.perf_counter() - t0
+    log.info("the count's relaxation time %.0f s (correlation %s at lags %s s); its bins kept "
+             "per window with probability %.6f", metrics["relaxation_time"],
+             ", ".join(f"{r:.3f}" for r in metrics["correlation"]),
+             ", ".join(f"{v:g}" for v in settings.relaxation_lags),
+             metrics["keep_bin_per_window"])  # fmt: skip
+    return law, metrics
 
 
 def load_class_chain(

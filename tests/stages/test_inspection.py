@@ -15,6 +15,7 @@ grid of an exact curve.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -255,6 +256,13 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     assert exact.memory is True
     advice = inspection.recommend(exact_model, exact, options(), DT)
     assert advice["abstraction"] == "classes" and advice["command"] == "gp=classes"
+    # P relaxes in 20 s and settles from the file's 0 in ~92 s (1,840 windows); a network
+    # settling over >= 10,000 windows gets bins that relax, and the reason says why
+    assert advice["settling_s"] < inspection.SLOW_SETTLING_WINDOWS * DT
+    slow = dataclasses.replace(exact, settle_phi=np.full_like(exact.settle_phi, 15000 * DT))
+    relaxed = inspection.recommend(exact_model, slow, options(), DT)
+    assert relaxed["command"] == "gp=classes gp.class_moves=relaxation"
+    assert "15,000 windows" in relaxed["reason"] and "relax" in relaxed["reason"]
     law = stats.poisson(40.0)
     low = int(law.ppf(0.5 * law.cdf(39)))  # the median of P given P < 40
     high = int(law.ppf(law.cdf(39) + 0.5 * law.sf(39)))  # ... given P >= 40

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import itertools
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -14,10 +16,17 @@ import torch
 
 from surrogate.config import grid_size, non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
+from surrogate.gp.class_relaxation import (
+    CLASS_MOVES,
+    DEFAULT_CELLS,
+    DEFAULT_LAGS,
+    RELAXATION_VERSION,
+    check_shared_bins,
+)
 from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
-from surrogate.models.capabilities import lump_classes_of, start_size_of
+from surrogate.models.capabilities import class_bins_of, lump_classes_of, start_size_of
 from surrogate.simulate.classes import LUMPINGS
 from surrogate.simulate.memory import AGE, history_setting
 from surrogate.stages.settings.collect import CollectSettings
@@ -32,11 +41,12 @@ from surrogate.stages.settings.occupancy import OccupancySettings
 
 #: keys of the gp group that are not GP hyperparameters
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
-            "clock_bins", "lumps", "min_events", "max_label_weight")  # fmt: skip
+            "clock_bins", "lumps", "min_events", "max_label_weight", "class_moves",
+            "relaxation")  # fmt: skip
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
 GP_CLOCK = ("history", "max_age", "clock_bins")
 #: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
-GP_CLASSES = ("lumps", "min_events", "max_label_weight")
+GP_CLASSES = ("lumps", "min_events", "max_label_weight", "class_moves", "relaxation")
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
@@ -50,6 +60,38 @@ DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "start": [2.0, 0.0],
     "equilibration_time": 10.0,
 }
+
+
+def _class_moves(
+    gp_config: Mapping[str, Any], lumps: str, setup: ModelSetup
+) -> tuple[str, int, tuple[float, ...]]:
+    """``gp.class_moves`` and ``gp.relaxation`` ({n_cells, lags}) validated."""
+    moves = gp_config.get("class_moves") or "learned"
+    if moves not in CLASS_MOVES:
+        raise ConfigError(f"gp.class_moves must be one of {list(CLASS_MOVES)}, got {moves!r}")
+    options = gp_config.get("relaxation") or {}
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"gp.relaxation must be a mapping {{n_cells, lags}}, got {options!r}")
+    unknown = sorted(set(options) - {"n_cells", "lags"})
+    if unknown:
+        raise ConfigError(f"gp.relaxation: unknown key(s) {unknown}; it takes n_cells and lags")
+    cells = options.get("n_cells", DEFAULT_CELLS)
+    if isinstance(cells, bool) or not isinstance(cells, int) or cells < 10:
+        raise ConfigError(f"gp.relaxation.n_cells must be an integer >= 10, got {cells!r}")
+    lags = options.get("lags", DEFAULT_LAGS)
+    if (not isinstance(lags, Sequence) or isinstance(lags, str) or len(lags) < 2
+            or any(isinstance(v, bool) or not isinstance(v, int | float) or not v > 0
+                   or not math.isfinite(v) for v in lags)
+            or any(b <= a for a, b in itertools.pairwise(lags))):  # fmt: skip
+        raise ConfigError(f"gp.relaxation.lags must be at least two positive, increasing "
+                          f"seconds, got {lags!r}")  # fmt: skip
+    if moves == "relaxation":
+        if lumps != "classes":
+            raise ConfigError("gp.class_moves=relaxation is a K-lumps option: use gp=classes")
+        declared = lump_classes_of(setup.model.internal)
+        assert declared is not None  # lumps=classes checked it
+        check_shared_bins(class_bins_of(setup.model.internal), declared.lumps)
+    return moves, int(cells), tuple(float(v) for v in lags)
 
 
 def bins_labels_conflict(labels: str) -> str:
@@ -113,6 +155,12 @@ class TrainSettings:
     #: gp.max_label_weight: the most draws one expected label counts as in the K-lumps chain's
     #: GPs (:func:`surrogate.gp.training.label_weight`; 1: as a 0/1 outcome)
     max_label_weight: float = DEFAULT_MAX_LABEL_WEIGHT
+    #: gp.class_moves: learned (every class move from the windows) | relaxation (bins of a
+    #: slow count relax to their stationary law, :mod:`surrogate.gp.class_relaxation`)
+    class_moves: str = "learned"
+    #: gp.relaxation: the stationary sample's cells and lags (s), for class_moves=relaxation
+    relaxation_cells: int = DEFAULT_CELLS
+    relaxation_lags: tuple[float, ...] = DEFAULT_LAGS
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
@@ -160,6 +208,7 @@ class TrainSettings:
                                     "max_label_weight", "gp.")  # fmt: skip
         if max_label_weight < 1:
             raise ConfigError(f"gp.max_label_weight must be >= 1, got {max_label_weight!r}")
+        class_moves, relaxation_cells, relaxation_lags = _class_moves(gp_config, lumps, setup)
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
@@ -198,7 +247,8 @@ class TrainSettings:
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
                    int(threads) if threads is not None else torch.get_num_threads(), history,
                    max_age, lumps, None if min_events is None else float(min_events),
-                   float(max_label_weight))  # fmt: skip
+                   float(max_label_weight), class_moves, relaxation_cells,
+                   relaxation_lags)  # fmt: skip
 
     def check_label_column(self, column: str, where: str) -> None:
         """Refuse training ``where``'s expected labels (``column``, e.g. an external table's,
@@ -239,6 +289,12 @@ class TrainSettings:
             gp["min_events"] = dict(MIN_EVENTS) if self.min_events is None else self.min_events
             gp["max_label_weight"] = self.max_label_weight
             gp["class_law_version"] = CLASS_LAW_VERSION
+            gp.pop("class_moves", None)
+            gp.pop("relaxation", None)
+            if self.class_moves == "relaxation":  # learned fits keep the identity they had
+                gp["class_moves"] = {"kind": self.class_moves, "cells": self.relaxation_cells,
+                                     "lags": list(self.relaxation_lags),
+                                     "version": RELAXATION_VERSION}  # fmt: skip
         return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
                 "device": self.job.device_type}  # fmt: skip
 
