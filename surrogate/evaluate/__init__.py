@@ -1,7 +1,9 @@
 """Evaluation of an abstraction against the full model: statistics, figures and reports.
 
 ``statistics`` and ``report`` are re-exported here; import ``surrogate.evaluate.figures``
-explicitly (it needs matplotlib). Speed-ups: :func:`surrogate.simulate.speed.speedup` (one
+and ``surrogate.evaluate.kymograph`` explicitly (they need matplotlib), and
+``surrogate.evaluate.band`` (a travelling band's position and speed from a grid-field run's
+profiles). Speed-ups: :func:`surrogate.simulate.speed.speedup` (one
 formula, per cell-step, for every speed figure).
 """
 

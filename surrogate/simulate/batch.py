@@ -38,10 +38,12 @@ from surrogate.fields import Field, FieldBatch
 from surrogate.grid.coupled import is_coupled
 from surrogate.models.base import Model, Randoms
 from surrogate.models.capabilities import concat_states_of, histogram_grids_of
+from surrogate.simulate.coupling import positions_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
 from surrogate.simulate.decision_batch import DecisionBatch
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
 from surrogate.simulate.population import PopulationSummary, steps_between
+from surrogate.simulate.profiles import ProfileRecorder
 from surrogate.simulate.recorders import (
     BUFFER_BYTES,
     DEFAULT_RECORD_CELLS,
@@ -383,6 +385,7 @@ def simulate_batch(
     The loop time is the batch's (shared by its replicates); a replicate's cells are seeded as
     its standalone run's (its seed also chooses its recorded cells). ``record_cells`` None
     records every cell; ``durations`` as for :func:`~surrogate.simulate.simulate_population`.
+    A replicate in a grid field also records its profiles along x (its own field and cells).
     """
 
     if len(out_dirs) != len(simulator.replicates):
@@ -395,12 +398,14 @@ def simulate_batch(
     mode = durations if durations is not None else ("histogram" if record_durations else "none")
     t0 = time.perf_counter()
     recorders: list[RunRecorder] = []
+    profiles: list[ProfileRecorder | None] = []
     try:
         for rep, out in zip(simulator.replicates, out_dirs, strict=True):
             recorders.append(RunRecorder(
                 Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=max(every, FLUSH_STEPS),
                 device=simulator.device, record_cells=record_cells,
                 durations=mode, histogram_spec=grids, seed=int(rep.seed)))  # fmt: skip
+            profiles.append(ProfileRecorder.of(Path(out), rep.field, rep.n_cells))
         # the whole batch's segment ends, buffered on the device and handed to the replicates'
         # recorders a block at a time (not one call per replicate and step)
         n_total = sum(rep.n_cells for rep in simulator.replicates)
@@ -415,7 +420,7 @@ def simulate_batch(
         with torch.inference_mode():  # cheaper per op than no_grad
             state = simulator.initial_state(equilibration_time=equilibration_time)
             simulator.check_state(state)
-            _record(recorders, simulator, state, 0.0)
+            _record(recorders, profiles, simulator, state, 0.0)
             compile_time = simulator.warm_up(state)
             loop_start = time.perf_counter()
             k = 0
@@ -436,7 +441,7 @@ def simulate_batch(
                     if k % every == 0:
                         simulator.check_state(state)
                         simulator.observe_support(state)
-                        _record(recorders, simulator, state, k * dt)
+                        _record(recorders, profiles, simulator, state, k * dt)
             if mode != "none" and filled:
                 hand_over()
             simulator.check_state(state)
@@ -444,9 +449,11 @@ def simulate_batch(
                 torch.cuda.synchronize(simulator.device)
             loop_time = time.perf_counter() - loop_start
         facts = [rec.commit() for rec in recorders]
+        profile_facts = [p.commit() if p is not None else None for p in profiles]
     except BaseException:
-        for rec in recorders:
-            rec.abort()
+        for rec in [*recorders, *profiles]:
+            if rec is not None:
+                rec.abort()
         raise
     wall = time.perf_counter() - t0
     support = simulator.support_report()
@@ -464,19 +471,27 @@ def simulate_batch(
             n_durations=f["n_durations"],
             recording=f,
             outside_training=outside,
+            profiles=p,
         )
-        for rep, rec, f, outside in zip(
-            simulator.replicates, recorders, facts, support, strict=True
+        for rep, rec, f, outside, p in zip(
+            simulator.replicates, recorders, facts, support, profile_facts, strict=True
         )
     ]
 
 
 def _record(
-    recorders: Sequence[Any], simulator: BatchSimulator, state: PopulationState, t: float
+    recorders: Sequence[Any],
+    profiles: Sequence[ProfileRecorder | None],
+    simulator: BatchSimulator,
+    state: PopulationState,
+    t: float,
 ) -> None:
     observed = simulator.body.observables(state.body, simulator.field)
     for rec, cells in zip(recorders, simulator.slices, strict=True):
         rec.record_observables(t, {k: v[cells] for k, v in observed.items()})
+    for prof, cells in zip(profiles, simulator.slices, strict=True):
+        if prof is not None:
+            prof.record(t, positions_of(state.body, prof.field)[cells])
 
 
 __all__ = ["BatchSimulator", "DecisionBatch", "Replicate", "simulate_batch"]

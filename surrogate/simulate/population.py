@@ -15,7 +15,9 @@ from tqdm.auto import tqdm
 
 from surrogate.models.capabilities import histogram_grids_of
 from surrogate.simulate import speed
+from surrogate.simulate.coupling import positions_of
 from surrogate.simulate.loop import Simulator
+from surrogate.simulate.profiles import ProfileRecorder
 from surrogate.simulate.recorders import (
     DEFAULT_RECORD_CELLS,
     DURATIONS,
@@ -44,6 +46,8 @@ class PopulationSummary:
     recording: dict[str, Any] = field(default_factory=dict)  # RunRecorder.commit()'s facts
     #: inputs outside the abstraction's trained range (SupportMonitor.report; None: not learned)
     outside_training: dict[str, Any] | None = None
+    #: ProfileRecorder.commit()'s facts (a run in a grid field); None for a given field
+    profiles: dict[str, Any] | None = None
 
     @property
     def cell_steps_per_s(self) -> float:
@@ -80,9 +84,12 @@ def simulate_population(
     once the run completes): the observables at record times (histograms and moments over all
     cells, exact values of ``record_cells`` seeded random cells; None: every cell) and the completed phi segments
     (exact lattice histogram; ``durations="histogram"`` keeps the recorded cells' segments in
-    ``durations.parquet``, ``"all"`` every segment, ``"none"`` nothing). ``durations`` defaults
-    to ``"histogram"``, or ``"none"`` when ``record_durations`` is false. ``recorder_seed``
-    (default ``torch.initial_seed()``) seeds the choice of recorded cells.
+    ``durations.parquet``, ``"all"`` every segment, ``"none"`` nothing); in a grid field, also
+    the density and concentration profiles along x at the record times
+    (:class:`~surrogate.simulate.profiles.ProfileRecorder`: ``profiles.parquet``).
+    ``durations`` defaults to ``"histogram"``, or ``"none"`` when ``record_durations`` is
+    false. ``recorder_seed`` (default ``torch.initial_seed()``) seeds the choice of recorded
+    cells.
 
     The state is checked for NaN/inf at every record time (:meth:`Simulator.check_state`,
     raising :class:`~surrogate.errors.NumericalError` with the time window), not every step,
@@ -100,6 +107,7 @@ def simulate_population(
     mode = durations if durations is not None else ("histogram" if record_durations else "none")
     seed = torch.initial_seed() if recorder_seed is None else recorder_seed
     recorder: RunRecorder | None = None
+    profiles: ProfileRecorder | None = None
     try:
         # created inside the try, so an interrupt right at the start drops its temporaries too
         recorder = RunRecorder(out, n_cells, dt, body.observable_names,
@@ -107,11 +115,14 @@ def simulate_population(
                                device=simulator.device, record_cells=record_cells,
                                durations=mode, seed=seed,
                                histogram_spec={**histogram_grids_of(body), **dict(histogram_spec or {})})  # fmt: skip
+        profiles = ProfileRecorder.of(out, field_, n_cells)
         steps_recorded = mode != "none"
         with torch.inference_mode():  # cheaper per op than no_grad
             state = simulator.initial_state(n_cells, start, equilibration_time)
             simulator.check_state(state)
             recorder.record_observables(0.0, body.observables(state.body, field_))
+            if profiles is not None:
+                profiles.record(0.0, positions_of(state.body, profiles.field))
             compile_time = simulator.warm_up(state)
             # the objects alive now (models, compiled graphs, caches) are set aside from the
             # cyclic GC for the loop, so its frequent young-generation passes stay short (they
@@ -132,16 +143,20 @@ def simulate_population(
                         simulator.check_state(state)
                         simulator.observe_support(state)
                         recorder.record_observables(k * dt, body.observables(state.body, field_))
+                        if profiles is not None:
+                            profiles.record(k * dt, positions_of(state.body, profiles.field))
             simulator.check_state(state)  # the tail after the last record time
             if simulator.device.type == "cuda":
                 torch.cuda.synchronize(simulator.device)
             loop_time = time.perf_counter() - loop_start
             gc.unfreeze()
         facts = recorder.commit()
+        profile_facts = profiles.commit() if profiles is not None else None
     except BaseException:
         gc.unfreeze()
-        if recorder is not None:
-            recorder.abort()
+        for rec in (recorder, profiles):
+            if rec is not None:
+                rec.abort()
         raise
     return PopulationSummary(
         n_cells=n_cells,
@@ -156,6 +171,7 @@ def simulate_population(
         compile_time_s=compile_time,
         recording=facts,
         outside_training=simulator.support_report()[0],
+        profiles=profile_facts,
     )
 
 

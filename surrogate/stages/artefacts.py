@@ -26,6 +26,9 @@ HISTORY_FIGURE = "training_history.png"
 #: the K-lumps chain's learned law (gp.lumps=classes), a ClassTable's state
 CLASS_CHAIN = "class_chain.pt"
 
+#: simulate and evaluate, a run in a grid field: density and concentration over x and t
+KYMOGRAPH_FIGURE = "kymograph.png"
+
 #: evaluate: the summary (also read by sweep summaries) and the tables' stems (.csv, .md)
 SUMMARY = "summary.json"
 COMPARISON = "comparison"
@@ -50,6 +53,7 @@ __all__ = [
     "HISTORY_FIGURE",
     "INPUT_OCCUPANCY_FIGURE",
     "INSPECTION",
+    "KYMOGRAPH_FIGURE",
     "MEMORY_FIGURE",
     "METRICS",
     "NOISE_FLOOR",

@@ -30,7 +30,7 @@ from surrogate.evaluate.statistics import (
 from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
 from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages import budget
-from surrogate.stages.artefacts import COMPARISON, NOISE_FLOOR, SUMMARY
+from surrogate.stages.artefacts import COMPARISON, KYMOGRAPH_FIGURE, NOISE_FLOOR, SUMMARY
 from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -177,7 +177,7 @@ def write_outputs(
     settings: EvaluateSettings,
 ) -> None:
     """Tables (CSV + Markdown) and, unless ``evaluate.figures=false``, figures (Figures 4 and 5
-    of the paper, durations)."""
+    of the paper, durations; for runs in a grid field, their kymographs side by side)."""
     from surrogate.evaluate.figures import (
         plot_drift,
         plot_duration_histograms,
@@ -210,6 +210,22 @@ def write_outputs(
     if figures:
         save_figure(out / "durations.png",
                     plot_duration_histograms(runs.full, runs.candidate, labels), crop=False)  # fmt: skip
+        write_kymograph(out, (runs.full, runs.candidate), labels)
+
+
+def write_kymograph(
+    out: Path, runs: tuple[SimulationRun, ...], labels: tuple[str, ...]
+) -> Path | None:
+    """``kymograph.png``: the runs' density and concentration over x and t side by side, when
+    every one of them ran in a grid field (kept its profiles); else nothing (None)."""
+    from surrogate.evaluate.kymograph import plot_kymograph
+    from surrogate.simulate.profiles import PROFILES, read_profiles
+
+    paths = [r.path for r in runs]
+    if not all(p is not None and (p / PROFILES).exists() for p in paths):
+        return None
+    profiles = [read_profiles(p) for p in paths if p is not None]
+    return save_figure(out / KYMOGRAPH_FIGURE, plot_kymograph(profiles, labels), crop=False)
 
 
 def read_summary(directory: str | Path) -> dict[str, Any]:
@@ -225,4 +241,5 @@ __all__ = [
     "run",
     "summarise",
     "validate",
+    "write_kymograph",
 ]

@@ -3,7 +3,10 @@
 ``python scripts/simulate.py [decision=full|abstract|exact] [field=...] [n_cells=...]`` writes
 the recorders' files (:mod:`surrogate.simulate.recorders`: ``observables.parquet``,
 ``observable_histograms.parquet``, ``observable_moments.parquet``,
-``duration_histogram.parquet``, ``durations.parquet``) and, last, ``manifest.json``.
+``duration_histogram.parquet``, ``durations.parquet``), for a run in a grid field
+(``field=channel_consumed``) also its profiles along x (:mod:`surrogate.simulate.profiles`:
+``profiles.parquet``) and their kymograph (``kymograph.png``), and, last, ``manifest.json``
+(with the band's speed for a run in a grid field, :func:`~surrogate.evaluate.band.band_summary`).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from surrogate.io import (
     existing_artefact,
     make_once,
     read_manifest,
+    save_figure,
     write_manifest,
 )
 from surrogate.models.base import FeatureMap, Model
@@ -51,6 +55,7 @@ from surrogate.simulate.memory import (
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.simulate.support import TrainedRange, warn_outside
 from surrogate.stages import budget
+from surrogate.stages.artefacts import KYMOGRAPH_FIGURE
 from surrogate.stages.settings import SimulateSettings, TrainSettings, batchable
 
 log = logging.getLogger(__name__)
@@ -287,6 +292,8 @@ def _write_manifest(
     **facts: Any,
 ) -> None:
     setup = settings.setup
+    if summary.profiles is not None:
+        facts = {**facts, **profile_outputs(out, summary.profiles, settings.decision.name)}
     write_manifest(
         out,
         stage="simulate",
@@ -318,6 +325,27 @@ def _write_manifest(
         "%s simulation of %d cells x %d steps: %.2f s (%s); artefacts in %s",
         settings.decision.name, summary.n_cells, summary.n_steps, summary.loop_time_s, speed, out,
     )  # fmt: skip
+
+
+def profile_outputs(out: Path, profiles: Mapping[str, Any], label: str) -> dict[str, Any]:
+    """A run in a grid field: its kymograph (``kymograph.png``) and the manifest's facts about
+    its profiles (``profiles``: the recorder's facts) and band (``band``: speeds from the front
+    and the density's peak, :func:`~surrogate.evaluate.band.band_summary`)."""
+    from surrogate.evaluate.band import band_summary
+    from surrogate.evaluate.kymograph import plot_kymograph
+    from surrogate.simulate.profiles import read_profiles
+
+    data = read_profiles(out)
+    save_figure(out / KYMOGRAPH_FIGURE, plot_kymograph([data], [label]), crop=False)
+    band = band_summary(data)
+    front = band["front"]
+    if front["speed"] is None:
+        log.info("no band speed from the front: %d of %d records have one (the read "
+                 "species depleted to half inside the channel)", front["n"], len(data.t))  # fmt: skip
+    else:
+        log.info("band front: %.4g mm/s (s.e. %s) over %d records", front["speed"],
+                 front["stderr"], front["n"])  # fmt: skip
+    return {"profiles": dict(profiles), "band": band}
 
 
 def batch_key(settings: SimulateSettings) -> str:
