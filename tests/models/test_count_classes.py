@@ -16,10 +16,15 @@ from surrogate.evaluate.statistics import ExactSample, compare_distributions
 from surrogate.models.count_classes import (
     CountClasses,
     CountClassifier,
+    _choose,
     _edges,
+    _formula,
     _homogeneous_edges,
+    _readable,
+    _sample,
     choose_count_classes,
     parse_classes,
+    slow_combinations,
     spread_inputs,
 )
 from surrogate.models.sbml_agent import SbmlAgentModel
@@ -247,3 +252,66 @@ def test_homogeneous_edges_cut_where_the_chance_of_leaving_changes() -> None:
     before = np.where(values < 20, 0, np.where(values < 30, rng.integers(0, 2, values.shape), 0))
     shared = _homogeneous_edges(values, before.astype(np.int8), after, 3)
     assert all(20.0 <= e <= 30.0 for e in shared)
+
+
+def _dimer(tmp_path) -> SbmlAgentModel:
+    """P made at k = 5/s, degraded at 0.05/s per monomer, dimerising fast (2P <-> P2, hundreds
+    of firings per second): the total protein P + 2 P2 is what the fast pair leaves alone."""
+    text = build(
+        "dimer",
+        [Species("P", amount=20), Species("P2", amount=40)],
+        {"k": 5.0, "kd": 2.0, "ku": 200.0},
+        [Reaction("make", "k", {}, {"P": 1}),
+         Reaction("decay", "0.05 * P", {"P": 1}, {}),
+         Reaction("dim", "kd * P * (P - 1) / 2", {"P": 2}, {"P2": 1}),
+         Reaction("dis", "ku * P2", {"P2": 1}, {"P": 2})],
+    )  # fmt: skip
+    (tmp_path / "dimer.xml").write_text(text)
+    spec = {"network": "dimer.xml", "inputs": {"k": "50 * L"}, "lump": "P >= 10",
+            "body": {"kind": "static"}, "burn_in": 0.0}  # fmt: skip
+    path = tmp_path / "dimer.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return SbmlAgentModel(str(path))
+
+
+def test_slow_combinations_are_what_the_fast_reactions_leave_unchanged(tmp_path) -> None:
+    """The dimer network: the fast reactions are the dimerisation pair (their mean firings per
+    window from the sample's propensities), and the one combination is P + 2 P2."""
+    internal = _dimer(tmp_path).internal
+    inputs = torch.tensor([5.0])
+    counts, _ = _sample(internal, inputs, 0.05, cells=20, windows=50, seed=0)
+    combos, fast = slow_combinations(internal, counts, inputs, 0.05)
+    assert fast == ["dim", "dis"]
+    assert [(f, v.tolist()) for f, v in combos] == [("P + 2 * P2", [1, 2])]
+    # nothing is fast at a window 1,000 times shorter: no combination beyond the species
+    assert slow_combinations(internal, counts, inputs, 5e-5) == ([], [])
+
+
+def test_combinations_read_as_counts_with_positive_terms() -> None:
+    species = ["Gene", "P2Gene", "Rna", "P", "P2"]
+    # 2 Gene - P - 2 P2 with Gene + P2Gene conserved: the total protein, less a constant
+    assert _readable([2, 0, 0, -1, -2], [[1, 1, 0, 0, 0]]) == [0, 2, 0, 1, 2]
+    assert _formula([0, 2, 0, 1, 2], species) == "2 * P2Gene + P + 2 * P2"
+    assert _formula([-1, 0, 0, 1, 0], species) == "-Gene + P"
+    assert _readable([1, -1], []) == [1, -1]
+
+
+def test_a_steady_count_is_preferred_to_a_jittery_one_of_equal_gain() -> None:
+    """Two candidates that carry the same hidden count (equal held-out gains): the one the fast
+    reactions change is passed over for the steady one; without fast reactions the first
+    (a species) is kept."""
+    rng = np.random.default_rng(0)
+    n, w = 200, 400
+    hidden = rng.integers(0, 4, n)
+    leave = np.array([0.05, 0.2, 0.4, 0.6])[hidden]
+    phi = np.zeros((w + 1, n), dtype=np.int8)
+    for t in range(w):
+        flip = rng.random(n) < leave
+        phi[t + 1] = np.where(flip, 1 - phi[t], phi[t])
+    counts = np.broadcast_to(hidden[None, :, None], (w + 1, n, 1)).astype(np.int64)
+    combos = [("X + 0 * X", np.array([1]))]
+    chosen, report = _choose(counts, phi, ["X"], ("off", "on"), 3, "homogeneous", combos, {"X"})
+    assert chosen.variable == "X + 0 * X"
+    assert [c["fast_changed"] for c in report["candidates"]] == [True, False]
+    kept, _ = _choose(counts, phi, ["X"], ("off", "on"), 3, "homogeneous", combos, set())
+    assert kept.variable == "X"
