@@ -4,6 +4,7 @@ reproduce them."""
 from __future__ import annotations
 
 import shlex
+from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
@@ -177,7 +178,9 @@ def test_the_clock_recipe_bins_its_axes_and_leaves_two_state_fits_as_they_were(
         TrainSettings.from_config(compose_cfg("train", ["gp.history=clock"]))
 
 
-def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(compose_cfg) -> None:
+def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(
+    compose_cfg, tmp_path
+) -> None:
     """gp.class_moves: learned fits keep their identity; relaxation enters it with its sample's
     settings; bad values, a two-state fit and classes that are not shared bins (E. coli's
     motor counts) are refused by name."""
@@ -197,8 +200,18 @@ def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(compo
             TrainSettings.from_config(compose_cfg("train", ["gp=classes", bad]))
     with pytest.raises(ConfigError, match="K-lumps option"):
         TrainSettings.from_config(compose_cfg("train", ["+gp.class_moves=relaxation"]))
+    # the auto-regulatory network with declared bins shared by both lumps (its yaml's
+    # classes: auto would run the chooser, a minute of simulation)
+    import yaml
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "autoregulation" / "model.yaml"
+    spec = yaml.safe_load(example.read_text())
+    spec.update(network=str(example.parent / spec["network"]),
+                classes={"expression": "P + 2 * P2", "edges": [747, 881, 1134]})  # fmt: skip
+    declared = tmp_path / "ar.yaml"
+    declared.write_text(yaml.safe_dump(spec))
     relax = TrainSettings.from_config(compose_cfg("train", [
-        "model=sbml", "model.spec=examples/autoregulation/model.yaml", "gp=classes",
+        "model=sbml", f"model.spec={declared}", "gp=classes",
         "gp.class_moves=relaxation"]))  # fmt: skip
     moves = relax.fit_identity()["gp"]["class_moves"]
     assert moves["kind"] == "relaxation" and moves["cells"] == 600 and len(moves["lags"]) == 4
