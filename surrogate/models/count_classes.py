@@ -284,7 +284,7 @@ def choose_count_classes(
     cells: int = 200,
     windows: int = 1000,
     bins: int = AUTO_BINS,
-    placement: str = "quantiles",
+    placement: str = AUTO_PLACEMENT,
     seed: int = 0,
     cache_dir: Path | None = None,
 ) -> tuple[CountClasses, dict[str, Any]]:
@@ -489,7 +489,7 @@ def _choose(
     species: Sequence[str],
     lump_names: tuple[str, str],
     bins: int,
-    placement: str = "quantiles",
+    placement: str = AUTO_PLACEMENT,
     combinations: Sequence[tuple[str, np.ndarray]] = (),
     jittery: frozenset[str] | set[str] = frozenset(),
 ) -> tuple[CountClasses, dict[str, Any]]:
