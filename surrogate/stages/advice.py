@@ -16,7 +16,11 @@ range) and names, in order, the first causes that apply:
    learned switching probability where cells live is off, and the mean durations with it (the
    predicted error beside the measured): more transitions. A reference too noisy to tell (its
    standard error above the tolerance): a larger diagnostic population.
-4. **Memory** (the runs differ from the full model beyond the noise floor while the psi is
+4. **Class shares drift** (a K-lumps chain whose classes, run as the diagnostic's full-model
+   population was, end in shares the chi-square test tells from the full model's): its moves
+   between classes are off although each class may switch right: bins of a slow count moving
+   by relaxation (``gp.class_moves=relaxation``), or more transitions per class.
+5. **Memory** (the runs differ from the full model beyond the noise floor while the psi is
    unbiased within its error): the chain over phi forgets what the network remembers: classes
    finer than phi (``gp=classes``, with ``model.classes=auto`` for a network) or a switch clock
    (``gp=clock``).
@@ -78,6 +82,8 @@ def verdict(
     history: str,
     network: bool,
     n_per_state: int | None,
+    class_shares: Mapping[str, Any] | None = None,
+    class_moves: str = "learned",
 ) -> Verdict:
     """Read the measurements (see the module docstring).
 
@@ -91,6 +97,8 @@ def verdict(
         lumps: ``phi`` or ``classes`` (the chain that ran); history: ``none`` or ``age``.
         network: whether the model is a reaction network (``model.classes=auto`` applies).
         n_per_state: the collection's transitions per origin (for the advice).
+        class_shares: a K-lumps chain's class shares against the full model's
+            (``train_metrics.json["class_shares"]``); class_moves: how its classes moved.
     """
     causes: list[tuple[str, str, str]] = []
     away = {f: r for f, r in outside.items() if r and r["share_outside"] > outside_warning}
@@ -155,8 +163,26 @@ def verdict(
             "none: " + "; ".join(noisy) + ".",
             "a larger diagnostic population (`gp.diagnostic.n_cells`, `gp.diagnostic.t_end`).",
         ))  # fmt: skip
+    shares = class_shares or {}
+    drift = lumps == "classes" and bool(shares.get("drift"))
+    if drift:
+        more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
+            "a larger `collect.n_per_state`"  # fmt: skip
+        step = (f"more transitions per class ({more}) or other classes (`model.classes`)"
+                if class_moves == "relaxation" else
+                "`gp.class_moves=relaxation` where the classes are bins of a slow count (the "
+                "learned moves between bins, rare per window and mostly a count jittering "
+                f"across an edge, mix them faster than the count moves), else {more}")  # fmt: skip
+        causes.append((
+            "Class shares drift",
+            f"run as the diagnostic's full-model population was, the chain's classes after "
+            f"{shares['t']:g} s are {100 * shares['total_variation']:.1f} % (total variation) "
+            f"from the full model's, chi-square p = {shares['p_value']:.2g}: its moves between "
+            "classes are off, whatever each class's switching.",
+            step + ".",
+        ))  # fmt: skip
     failing = {f: list(q) for f, q in failures.items() if q}
-    if failing and not biased and not away:
+    if failing and not biased and not away and not drift:
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
         if lumps == "classes":
             step = ("more classes or other bins (`model.classes`), or more transitions per "

@@ -307,7 +307,8 @@ def _verdict(
                 failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
                 tolerance=DURATION_TOLERANCE, lumps=tr.lumps, history=tr.history,
                 network=isinstance(tr.setup.model.internal, NetworkInternalModel),
-                n_per_state=n_per_state)  # fmt: skip
+                n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
+                class_moves=tr.class_moves)  # fmt: skip
     return v.markdown()
 
 
@@ -341,7 +342,27 @@ def _diagnostic_text(metrics: Mapping[str, Any], lumps: tuple[str, str]) -> str:
         "occupied points). The bias predicts the relative error of the mean segment duration "
         "(with the opposite sign).\n\n" + format_markdown_table(pd.DataFrame(rows), ".4f")
     )
-    return text + _class_diagnostic_text(metrics.get("class_diagnostic") or {})
+    return (
+        text
+        + _class_diagnostic_text(metrics.get("class_diagnostic") or {})
+        + _class_shares_text(metrics.get("class_shares") or {})
+    )
+
+
+def _class_shares_text(d: Mapping[str, Any]) -> str:
+    """The K-lumps chain's class shares against the full model's (empty without them)."""
+    if d.get("p_value") is None:
+        return ""
+    rows = [{"class": n, "full model": f"{100 * d['full'][n]:.1f} %",
+             "chain": f"{100 * d['chain'][n]:.1f} %"} for n in d["full"]]  # fmt: skip
+    return (
+        f"\n\nThe chain's class shares, run as the diagnostic's population was ({d['n_chain']} "
+        f"cells, {d['t']:g} s), against the full model's ({d['n_full']}): total variation "
+        f"{100 * d['total_variation']:.1f} %, chi-square p = {d['p_value']:.2g}"
+        + (" (they drift)" if d["drift"] else "")
+        + ".\n\n"
+        + format_markdown_table(pd.DataFrame(rows), ".4f")
+    )
 
 
 def _class_diagnostic_text(d: Mapping[str, Any]) -> str:

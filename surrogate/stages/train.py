@@ -21,7 +21,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
+from scipy import stats
 from torch import Tensor
 
 from surrogate.config import seed_everything, to_dict
@@ -73,6 +74,7 @@ from surrogate.models.capabilities import (
 )
 from surrogate.simulate.classes import (
     CLASS,
+    ClassDecision,
     ClassTable,
     exact_class_table,
     expected_class_column,
@@ -393,7 +395,9 @@ def _train(
     diagnostic, frame = diagnose(psi, settings, model, exact_fn)
     metrics["diagnostic"] = diagnostic
     if settings.lumps == "classes":
-        metrics["class_diagnostic"] = diagnose_classes(load_class_chain(fit_dir), settings, model)
+        chain = load_class_chain(fit_dir)
+        metrics["class_diagnostic"] = diagnose_classes(chain, settings, model)
+        metrics["class_shares"] = class_share_drift(chain, settings, model)
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.lumps == "classes" else ()))
@@ -441,6 +445,11 @@ def _train(
                 metrics["class_diagnostic"]["reference"], d["mean_switching_reference"],
                 percent(d["rel_bias"]),
             )  # fmt: skip
+    shares = metrics.get("class_shares") or {}
+    if shares.get("p_value") is not None:
+        log.info("K lumps, class shares after %g s: the chain's against the full model's, total "
+                 "variation %.3f, chi-square p = %.2g%s", shares["t"], shares["total_variation"],
+                 shares["p_value"], " (they drift)" if shares["drift"] else "")  # fmt: skip
     log.info("abstraction of %s: diagnostic and grid in %s", fit_dir, out)
 
 
@@ -504,6 +513,61 @@ def diagnose_classes(chain: ClassTable, settings: TrainSettings, model: Model) -
 
     return class_law_errors(chain.law, rows, list(settings.inputs), chain.class_names,
                             chain.class_lumps, exact)  # fmt: skip
+
+
+#: the chain's share run's seed is the fit's plus this (not the occupancy run's cells)
+SHARES_SEED_OFFSET = 2_000_003
+#: class shares drift where the chi-square test of the chain's against the full model's rejects
+#: at this level (one test per fit)
+SHARES_ALPHA = 1e-3
+
+
+def class_share_drift(chain: ClassTable, settings: TrainSettings, model: Model) -> dict[str, Any]:
+    """Whether the K-lumps chain keeps the full model's class shares: the chain run as the
+    diagnostic's occupancy run was (its cells, start, equilibration and duration, in the
+    training field), its classes at the end against the full model's at its last record, by a
+    chi-square test of homogeneity (cells are independent; classes neither population holds
+    dropped). A chain whose every class switches right where cells live can still drift into
+    other classes when its moves between classes are wrong (docs/fidelity.md: the
+    auto-regulatory network's bins)."""
+    rows = occupancy(settings.occupancy())
+    names = chain.class_names
+    if CLASS not in rows.columns:
+        return {"p_value": None, "note": f"the occupancy run has no {CLASS} column"}
+    last = rows[rows["t"] == rows["t"].max()]
+    full = np.bincount(last[CLASS].to_numpy(np.int64), minlength=len(names))
+    d = settings.diagnostic
+    seed_everything(settings.seed + SHARES_SEED_OFFSET)
+    device = settings.job.device
+    layer = ClassDecision(chain.to(device), model.internal,
+                          model.featurizer(chain.input_names), "abstract")  # fmt: skip
+    simulator = Simulator(model, layer, settings.setup.field, settings.setup.dt, device,
+                          backend="torch")  # fmt: skip
+    state = simulator.initial_state(int(d["n_cells"]), torch.tensor(d["start"]),
+                                    float(d["equilibration_time"]))  # fmt: skip
+    simulator.advance(state, max(1, round(float(last["t"].iloc[0]) / settings.setup.dt)))
+    ours = np.bincount(layer.cls.cpu().numpy(), minlength=len(names))
+    chain.to("cpu")
+    return share_test(full, ours, float(last["t"].iloc[0]), names)
+
+
+def share_test(
+    full: np.ndarray, chain: np.ndarray, t: float, names: Sequence[str]
+) -> dict[str, Any]:
+    """Chi-square test of homogeneity of two populations' class counts ``(C,)`` each."""
+    keep = (full + chain) > 0
+    p_full, p_chain = full / max(full.sum(), 1), chain / max(chain.sum(), 1)
+    out: dict[str, Any] = {
+        "t": t, "n_full": int(full.sum()), "n_chain": int(chain.sum()),
+        "full": {n: float(v) for n, v in zip(names, p_full, strict=True)},
+        "chain": {n: float(v) for n, v in zip(names, p_chain, strict=True)},
+        "total_variation": float(0.5 * np.abs(p_full - p_chain).sum()),
+    }  # fmt: skip
+    if keep.sum() < 2:
+        return {**out, "chi2": 0.0, "p_value": 1.0, "drift": False}
+    test = stats.chi2_contingency(np.stack([full[keep], chain[keep]]))
+    return {**out, "chi2": float(test.statistic), "p_value": float(test.pvalue),
+            "drift": bool(test.pvalue < SHARES_ALPHA)}  # fmt: skip
 
 
 def exact_psi_function(model: Model, dt: float) -> Any:

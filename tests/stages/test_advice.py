@@ -69,3 +69,22 @@ def test_failing_runs_with_an_unbiased_psi_point_to_memory() -> None:
     both = _read(failures={"gaussian": ["off"]}, diagnostic={"phi0": _score(0.2, se=0.02)})
     assert [c[0] for c in both.causes] == ["Biased switching probabilities"]
     assert "Do not trust it yet" in both.markdown()
+
+
+def test_drifting_class_shares_point_to_relaxation_then_to_more_data() -> None:
+    """A K-lumps chain whose class shares drift: the cause names the total variation and the
+    test's p, and the next step is bins that relax (learned moves) or more transitions per
+    class (relaxation already on); the memory cause is not added on top, and a two-state chain
+    ignores class shares."""
+    shares = {"t": 100.0, "total_variation": 0.12, "p_value": 1e-9, "drift": True}
+    failing = {"gaussian": ["mean_low"]}
+    v = _read(lumps="classes", class_shares=shares, failures=failing)
+    names = [c[0] for c in v.causes]
+    assert names == ["Class shares drift"]
+    assert "12.0 %" in v.causes[0][1] and "p = 1e-09" in v.causes[0][1]
+    assert "gp.class_moves=relaxation" in v.causes[0][2]
+    relaxed = _read(lumps="classes", class_shares=shares, class_moves="relaxation")
+    assert "collect.n_per_state=40000" in relaxed.causes[0][2]
+    assert "relaxation" not in relaxed.causes[0][2].split("(")[0]
+    assert _read(lumps="phi", class_shares=shares).trust
+    assert _read(lumps="classes", class_shares={**shares, "drift": False}).trust
