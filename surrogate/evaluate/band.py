@@ -27,6 +27,15 @@ standard error ``sqrt(s^2 / sum (t - mean t)^2)`` (s^2: the residuals' variance,
 degrees of freedom). :func:`slope_resolution` is the most a slope can move when every
 position is off by at most ``e`` (a column's half-width for a position read off the grid):
 ``e sum|t - mean t| / sum (t - mean t)^2``, about ``3 e / duration``.
+
+**Mass balance** (:func:`mass_balance_speed`): the speed a front must have when everything
+the cells take up comes out of the attractant ahead of it, the band carrying a region emptied
+of it along: ``v = U / (A c_ahead)``, with ``U`` the cells' Michaelis-Menten uptake
+``sum_j n_j q c_j / (K + c_j)`` (``n_j`` cells in column ``j``, ``c_j`` its y-averaged
+concentration, ``q = vmax``), ``A`` the channel's cross-section and ``c_ahead`` the
+concentration ahead (the initial profile's largest value). Saturated uptake by ``N`` cells
+gives the issue's ``q N / (A c_ahead)``; diffusion only moves the attractant, so the measured
+front speed meets it as the depleted profile keeps its shape.
 """
 
 from __future__ import annotations
@@ -39,6 +48,7 @@ import numpy as np
 import pandas as pd
 from scipy.ndimage import gaussian_filter1d
 
+from surrogate.grid.species import MOLECULES_PER_NMOL
 from surrogate.simulate.profiles import Profiles
 
 __all__ = [
@@ -47,6 +57,7 @@ __all__ = [
     "band_summary",
     "band_table",
     "front_position",
+    "mass_balance_speed",
     "peak_position",
     "slope_resolution",
 ]
@@ -211,6 +222,32 @@ def slope_resolution(t: np.ndarray, error: float) -> float:
     return float(error * np.abs(dt).sum() / sxx) if sxx > 0 else math.inf
 
 
+def mass_balance_speed(
+    profiles: Profiles, vmax: float, km: float, c_ahead: float | None = None
+) -> np.ndarray:
+    """The front's speed by mass balance at each record time (module docstring).
+
+    Args:
+        profiles: a run's profiles (its cross-section and its read species).
+        vmax: the read species' uptake per cell (molecules/s).
+        km: its Michaelis constant (mM).
+        c_ahead: the concentration ahead of the band (mM; default: the first record's largest).
+
+    Returns:
+        ``(T,)`` mm/s: the cells' uptake (nmol/s) over ``A c_ahead`` (nmol/mm).
+    """
+    if vmax < 0 or km <= 0:
+        raise ValueError(f"vmax must be >= 0 and km > 0, got {vmax}, {km}")
+    c = np.clip(profiles.read_concentration(), 0.0, None)
+    ahead = float(c[0].max()) if c_ahead is None else float(c_ahead)
+    area = profiles.cross_section
+    if not (ahead > 0 and math.isfinite(area) and area > 0):
+        raise ValueError(f"no mass balance without a concentration ahead ({ahead}) and a "
+                         f"cross-section ({area} mm^2)")  # fmt: skip
+    uptake = (profiles.counts * c / (km + c)).sum(axis=1) * (vmax / MOLECULES_PER_NMOL)
+    return uptake / (area * ahead)
+
+
 def _beyond(profiles: Profiles, direction: int) -> float | None:
     """The far edge, in the band's direction, of the columns the cells fill at the first
     record: the initial region's end."""
@@ -237,11 +274,18 @@ def band_table(
 
 
 def band_summary(
-    profiles: Profiles, direction: int = 1, t_min: float | None = None, **kwargs: Any
+    profiles: Profiles,
+    direction: int = 1,
+    t_min: float | None = None,
+    uptake: tuple[float, float] | None = None,
+    **kwargs: Any,
 ) -> dict[str, Any]:
     """The band's speed from its front and from its peak (:class:`BandSpeed`, NaN as None), the
     slopes' resolution from the column width (:func:`slope_resolution` with half a column over
-    the times each fitted), and the last finite positions; for a manifest or a report."""
+    the times each fitted), and the first and last finite positions; with ``uptake`` (the read
+    species' ``(vmax, km)``) also ``mass_balance``: :func:`mass_balance_speed`'s mean over the
+    records the front's speed was fitted on (and its range there), the speed the front's should
+    meet. For a manifest or a report."""
     table = band_table(profiles, direction, **kwargs)
     out: dict[str, Any] = {"direction": direction, "column_width": profiles.width}
     for name in ("front", "peak"):
@@ -253,6 +297,21 @@ def band_summary(
             **fit.as_dict(),
             "resolution": slope_resolution(finite["t"].to_numpy(), profiles.width / 2)
             if fit.n >= 2 else None,
+            "first": float(finite[name].iloc[0]) if len(finite) else None,
             "last": float(finite[name].iloc[-1]) if len(finite) else None,
         }  # fmt: skip
+    if uptake is not None:
+        front = out["front"]
+        balance = mass_balance_speed(profiles, *uptake)
+        fitted = np.zeros(len(profiles.t), dtype=bool)
+        if front["n"] >= 2:
+            fitted = (table["front"].notna() & (table["t"] >= front["t_min"])
+                      & (table["t"] <= front["t_max"])).to_numpy()  # fmt: skip
+        values = balance[fitted]
+        out["mass_balance"] = {
+            "speed": float(values.mean()) if values.size else None,
+            "min": float(values.min()) if values.size else None,
+            "max": float(values.max()) if values.size else None,
+            "n": int(values.size),
+        }
     return out

@@ -293,7 +293,8 @@ def _write_manifest(
 ) -> None:
     setup = settings.setup
     if summary.profiles is not None:
-        facts = {**facts, **profile_outputs(out, summary.profiles, settings.decision.name)}
+        facts = {**facts, **profile_outputs(out, summary.profiles, settings.decision.name,
+                                            uptake=read_uptake(setup.field))}  # fmt: skip
     write_manifest(
         out,
         stage="simulate",
@@ -327,24 +328,47 @@ def _write_manifest(
     )  # fmt: skip
 
 
-def profile_outputs(out: Path, profiles: Mapping[str, Any], label: str) -> dict[str, Any]:
+def read_uptake(field: Field) -> tuple[float, float] | None:
+    """The uptake ``(vmax, km)`` of the species a grid field's cells read, None if it has none
+    (or the field is not a grid)."""
+    from surrogate.grid import GridField
+
+    if not isinstance(field, GridField):
+        return None
+    species = field.species[field.species_names.index(field.read)]
+    return None if species.uptake is None else (species.uptake.vmax, species.uptake.km)
+
+
+def profile_outputs(
+    out: Path,
+    profiles: Mapping[str, Any],
+    label: str,
+    uptake: tuple[float, float] | None = None,
+) -> dict[str, Any]:
     """A run in a grid field: its kymograph (``kymograph.png``) and the manifest's facts about
     its profiles (``profiles``: the recorder's facts) and band (``band``: speeds from the front
-    and the density's peak, :func:`~surrogate.evaluate.band.band_summary`)."""
+    and the density's peak, :func:`~surrogate.evaluate.band.band_summary`, and with ``uptake``,
+    the read species' ``(vmax, km)``, the front's speed by mass balance)."""
     from surrogate.evaluate.band import band_summary
     from surrogate.evaluate.kymograph import plot_kymograph
     from surrogate.simulate.profiles import read_profiles
 
     data = read_profiles(out)
     save_figure(out / KYMOGRAPH_FIGURE, plot_kymograph([data], [label]), crop=False)
-    band = band_summary(data)
+    band = band_summary(data, uptake=uptake)
     front = band["front"]
     if front["speed"] is None:
         log.info("no band speed from the front: %d of %d records have one (the read "
                  "species depleted to half inside the channel)", front["n"], len(data.t))  # fmt: skip
     else:
-        log.info("band front: %.4g mm/s (s.e. %s) over %d records", front["speed"],
-                 front["stderr"], front["n"])  # fmt: skip
+        log.info("band front: %.4g mm/s (s.e. %s) over %d records, from %.4g to %.4g mm",
+                 front["speed"], front["stderr"], front["n"], front["first"],
+                 front["last"])  # fmt: skip
+        balance = band.get("mass_balance") or {}
+        if balance.get("speed") is not None:
+            log.info("band front by mass balance (the cells' uptake / (A c_ahead)): %.4g mm/s "
+                     "(%.4g to %.4g over those records)", balance["speed"], balance["min"],
+                     balance["max"])  # fmt: skip
     return {"profiles": dict(profiles), "band": band}
 
 

@@ -5,6 +5,7 @@ record times."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,9 +17,11 @@ from surrogate.evaluate.band import (
     band_summary,
     band_table,
     front_position,
+    mass_balance_speed,
     peak_position,
     slope_resolution,
 )
+from surrogate.grid.species import MOLECULES_PER_NMOL
 from surrogate.simulate.profiles import Profiles
 
 H = 0.05  # mm, the columns' width
@@ -180,3 +183,32 @@ def test_band_table_and_summary_from_profiles() -> None:
             slope_resolution(T[1:], H / 2))  # fmt: skip
         assert abs(got["speed"] - SPEED) <= got["resolution"]
     assert summary["column_width"] == pytest.approx(H)
+
+
+def test_mass_balance_speed_is_the_uptake_over_the_attractant_ahead() -> None:
+    """``v = sum_j n_j q c_j / (K + c_j) / (A c_ahead)``: cells at K take half their vmax,
+    cells where the attractant is gone none, saturated cells all of it; the summary averages
+    it over the records the front was fitted on."""
+    vmax, km, area = 1.57e5, 0.01, 0.04  # molecules/s, mM, mm^2
+    q = vmax / MOLECULES_PER_NMOL  # nmol/s
+    profiles = replace(profiles_of(bump_counts(None, 1000, 0.3, behind=0.0)), cross_section=area)
+    c = np.zeros((T.size, X.size))
+    c[:, :40] = km  # columns 0-39 at K, 40-59 empty, the rest at 10^4 K
+    c[:, 60:] = 1e4 * km
+    counts = np.zeros((T.size, X.size), dtype=np.int64)
+    counts[:, 5], counts[:, 50], counts[:, 100] = 300, 200, 100
+    data = replace(profiles, counts=counts, concentration={"s": c})
+    want = (300 * q / 2 + 100 * q * 1e4 / (1 + 1e4)) / (area * 1e4 * km)
+    assert mass_balance_speed(data, vmax, km) == pytest.approx(np.full(T.size, want), rel=1e-12)
+    assert mass_balance_speed(data, vmax, km, c_ahead=km) == pytest.approx(want * 1e4, rel=1e-12)
+    # the summary: its mean over the front's fitted records (here one value at every record)
+    summary = band_summary(profiles, uptake=(vmax, km))
+    balance = summary["mass_balance"]
+    fitted = T[1:]  # the front exists from the second record on
+    expected = mass_balance_speed(profiles, vmax, km)[1:]
+    assert balance["n"] == fitted.size and balance["speed"] == pytest.approx(expected.mean())
+    assert summary["front"]["first"] == pytest.approx(1.0 + SPEED * T[1], abs=1e-3)
+    with pytest.raises(ValueError, match="cross-section"):
+        mass_balance_speed(profiles_of(bump_counts(None, 10, 0.3, behind=0.0)), vmax, km)
+    with pytest.raises(ValueError, match="km > 0"):
+        mass_balance_speed(data, vmax, 0.0)
