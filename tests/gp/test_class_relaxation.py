@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from surrogate.config import build_field, field_config, seed_everything
 from surrogate.errors import ConfigError
@@ -26,7 +25,7 @@ from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import record_stationary_bins
-from tests.sbml.builder import Reaction, Species, build
+from tests.models.test_count_classes import _hidden_gene as hidden_gene
 
 LUMPS = (0, 0, 0, 1, 1, 1)
 BINS = (0, 1, 2, 0, 1, 2)
@@ -120,25 +119,13 @@ def test_stationary_bin_law_follows_the_inputs() -> None:
 
 
 def _hidden_gene(tmp_path, edges) -> SbmlAgentModel:
-    """Three gene copies flipping on and off at a = 0.05/s each (the count G1 ~ Binomial(3, 1/2)
-    at stationarity, its correlation exp(-2 a t): tau = 10 s) and a fast switch on G1."""
-    text = build(
-        "hidden_gene",
-        [Species("G0", amount=3), Species("G1", amount=0), Species("S0", amount=1),
-         Species("S1", amount=0)],
-        {"a": 0.05, "k": 2.0, "c": 1.0},
-        [Reaction("act", "a * G0", {"G0": 1}, {"G1": 1}),
-         Reaction("deact", "a * G1", {"G1": 1}, {"G0": 1}),
-         Reaction("on", "k * G1 * S0", {"S0": 1}, {"S1": 1}),
-         Reaction("off", "c * S1", {"S1": 1}, {"S0": 1})],
-    )  # fmt: skip
-    (tmp_path / "hidden.xml").write_text(text)
-    spec = {"network": "hidden.xml", "inputs": {"k": "40 * L"}, "lump": "S1 >= 1",
-            "body": {"kind": "static", "perturbation": {"radius": 3.0}}, "burn_in": 100.0,
-            "classes": {"species": "G1", "edges": edges}}  # fmt: skip
-    path = tmp_path / "model.yaml"
-    path.write_text(yaml.safe_dump(spec))
-    return SbmlAgentModel(str(path))
+    """The hidden-gene network of tests/models/test_count_classes.py (three copies flipping on
+    and off at a = 0.05/s each: G1 ~ Binomial(3, 1/2) at stationarity, its correlation
+    exp(-2 a t), tau = 10 s), burned in, started where a disc perturbation starts cells, with
+    classes over G1."""
+    return hidden_gene(tmp_path, burn_in=100.0,
+                       body={"kind": "static", "perturbation": {"radius": 3.0}},
+                       classes={"species": "G1", "edges": edges})  # fmt: skip
 
 
 def test_the_stationary_sample_measures_a_known_count(tmp_path) -> None:
