@@ -429,12 +429,14 @@ class SbmlAgentModel(Model):
         return {**super().collect_defaults(dt), **self._collect_budget}
 
     def sources(self) -> dict[str, str]:
-        """sha256 of the files this model is read from, and the digest of its K-lumps classes
-        where it has any (``classes: auto`` resolves them by a measurement): part of every
-        artefact's identity."""
+        """sha256 of the network file, of the spec's settings as read (comments and layout do
+        not count), and the digest of its K-lumps classes where it has any (``classes: auto``
+        resolves them by a measurement): part of every artefact's identity."""
         out = {"network": _sha256(self.network_path)}
         if self.spec is not None:
-            out["spec"] = _sha256(self.spec)
+            # the yaml's settings as read, not its bytes: editing a comment keeps every artefact
+            blob = json.dumps(self.settings, sort_keys=True, default=str)
+            out["spec"] = hashlib.sha256(blob.encode()).hexdigest()
         classes = self.internal.count_classes
         if classes is not None:
             out["classes"] = classes.digest()

@@ -294,6 +294,26 @@ def test_an_edited_file_changes_the_artefacts_identity(tmp_path) -> None:
     assert before["model_sources"]["network"] != after["model_sources"]["network"]
 
 
+def test_a_comment_in_the_yaml_keeps_the_artefacts_identity(tmp_path) -> None:
+    """The spec's digest is of its settings as read: a comment or layout edit keeps every
+    artefact (collections cost minutes to hours), a changed setting does not."""
+    from surrogate.stages.settings import ModelSetup
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "gene_switch.xml").write_text((GENE_SWITCH.parent / "gene_switch.xml").read_text())
+    spec = folder / "model.yaml"
+    spec.write_text(GENE_SWITCH.read_text())
+    cfg = compose_config(tmp_path / "data", ["model=sbml", f"model.spec={spec}"])
+    before = ModelSetup.from_config(cfg).identity()["model_sources"]
+    spec.write_text("# a note the user added\n" + GENE_SWITCH.read_text() + "\n# and another\n")
+    assert ModelSetup.from_config(cfg).identity()["model_sources"] == before
+    edited = yaml.safe_load(GENE_SWITCH.read_text())
+    edited["burn_in"] = float(edited.get("burn_in", 50.0)) + 1.0
+    spec.write_text(yaml.safe_dump(edited))
+    assert ModelSetup.from_config(cfg).identity()["model_sources"]["spec"] != before["spec"]
+
+
 def test_an_input_computed_by_sbml_math(tmp_path) -> None:
     """An input's formula may live in the SBML file: ``inducer`` assigned by a rule over the
     input parameter ``signal``, which the yaml maps to the field's value."""
