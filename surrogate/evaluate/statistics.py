@@ -100,6 +100,40 @@ def ks_critical_value(n_a: int, n_b: int, c_alpha: float = KS_C_ALPHA_05) -> flo
     return c_alpha * math.sqrt((n_a + n_b) / (n_a * n_b))
 
 
+def ks_c_alpha(alpha: float) -> float:
+    """c(alpha) of :func:`ks_critical_value`: ``sqrt(-ln(alpha / 2) / 2)``, the leading term of
+    Kolmogorov's limit law (``scipy.stats.kstwobign.isf(alpha)`` within 3e-6 relative for
+    alpha <= 0.05, 2e-5 at 0.1): 1.358 at 0.05, 1.628 at 0.01."""
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    return math.sqrt(-math.log(alpha / 2.0) / 2.0)
+
+
+def noise_threshold(
+    floor: ArrayLike, critical: ArrayLike, factor: float = 1.0, cap: float = math.inf
+) -> np.ndarray:
+    """The rule a candidate's distance from the full model is judged by, everywhere: it is
+    within the noise when it is at most ``min(max(factor x floor, critical), cap)``.
+
+    ``floor`` is the same distance between two full runs with different seeds (what sampling
+    alone gives), ``critical`` the smallest distance the test can tell from none (the KS
+    critical value at the sample sizes; a resolution for a position), so a floor that happens
+    to be tiny does not make the rule stricter than the test can see. A NaN floor (no second
+    full run) leaves ``critical`` alone.
+
+    Args:
+        floor: the full-vs-full distances, any shape.
+        critical: the critical values, broadcast against ``floor``.
+        factor: how far above the floor a candidate may be (the fidelity stage's ``ks_factor``).
+        cap: an absolute upper limit (the fidelity stage's ``ks_max``).
+
+    Returns:
+        The thresholds, ``floor`` and ``critical`` broadcast.
+    """
+    scaled = float(factor) * np.asarray(floor, dtype=np.float64)
+    return np.minimum(np.fmax(scaled, np.asarray(critical, dtype=np.float64)), float(cap))
+
+
 def compare_samples(
     a: ArrayLike,
     b: ArrayLike,
@@ -816,10 +850,9 @@ def combine_with_noise_floor(table: pd.DataFrame, floor_table: pd.DataFrame) -> 
     out = table.drop(
         columns=["ks_noise_floor", "wasserstein_noise_floor", "within_noise"], errors="ignore"
     ).merge(floor, on="quantity", how="left", validate="one_to_one")
-    # fmax ignores a NaN floor, falling back to the critical value
-    threshold = np.fmax(
-        out["ks_noise_floor"].to_numpy(float), out["ks_critical_05"].to_numpy(float)
-    )
+    # a NaN floor falls back to the critical value
+    threshold = noise_threshold(out["ks_noise_floor"].to_numpy(float),
+                                out["ks_critical_05"].to_numpy(float))  # fmt: skip
     out["within_noise"] = out["ks"].to_numpy(float) <= threshold
     return out
 

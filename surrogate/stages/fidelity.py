@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -48,7 +47,7 @@ from surrogate.config import (
 )
 from surrogate.errors import ConfigError
 from surrogate.evaluate.report import format_markdown_table, write_report
-from surrogate.evaluate.statistics import KS_C_ALPHA_05
+from surrogate.evaluate.statistics import KS_C_ALPHA_05, ks_critical_value, noise_threshold
 from surrogate.io import (
     MANIFEST,
     artefact_dir,
@@ -437,7 +436,7 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
     o = settings.options
     alpha = float(o.get("alpha", 0.05))
     n = int(o["n_cells"])
-    crit = KS_C[alpha] * math.sqrt(2.0 / n)
+    crit = ks_critical_value(n, n, KS_C[alpha])
     factor, ks_max, tol = float(o["ks_factor"]), float(o["ks_max"]), float(o["duration_tolerance"])
     lumps = settings.setup.model.internal.lump_names
     candidates = (["exact"] if settings.exact_psi else []) + (
@@ -452,7 +451,7 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
             for t in settings.times:
                 ks = float(stats.ks_2samp(run.observables[t], full.observables[t]).statistic)
                 floor = float(stats.ks_2samp(repeat.observables[t], full.observables[t]).statistic)
-                limit = min(max(factor * floor, crit), ks_max)
+                limit = float(noise_threshold(floor, crit, factor, ks_max))
                 rows.append({"field": name, "candidate": cand, "quantity": f"distance_t{t:g}",
                              "value": ks, "noise_floor": floor, "threshold": limit,
                              "passed": ks <= limit})  # fmt: skip
@@ -497,7 +496,8 @@ def report_sections(
     """The markdown report: setting, the target table per candidate, diagnostics."""
     o = settings.options
     name = settings.setup.model.body.observable_names[0]
-    crit = KS_C[float(o.get("alpha", 0.05))] * math.sqrt(2.0 / int(o["n_cells"]))
+    n = int(o["n_cells"])
+    crit = ks_critical_value(n, n, KS_C[float(o.get("alpha", 0.05))])
     setting = (
         f"{settings.setup.model.describe()}. {o['n_cells']} cells per run, {o['t_end']} s, "
         f"dt {settings.setup.dt:g} s, start {list(o['start'])}; abstractions trained on "
