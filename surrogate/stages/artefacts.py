@@ -33,6 +33,9 @@ KYMOGRAPH_FIGURE = "kymograph.png"
 SUMMARY = "summary.json"
 COMPARISON = "comparison"
 NOISE_FLOOR = "noise_floor"
+#: evaluate, runs in a grid field: the band against the full model's and the floor (.csv, .md,
+#: .png)
+BAND_FIDELITY = "band_fidelity"
 
 #: reproduce and inspect: the report
 REPORT = "report.md"
@@ -44,6 +47,7 @@ SETTLING_FIGURE = "settling.png"
 MEMORY_FIGURE = "memory.png"
 
 __all__ = [
+    "BAND_FIDELITY",
     "CLASS_CHAIN",
     "COMPARISON",
     "COVERAGE_FIGURE",

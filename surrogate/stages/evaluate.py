@@ -2,7 +2,9 @@
 full run in the same field, beside the noise floor.
 
 The noise floor is the same statistics between two full runs with different seeds: a reader sees
-whether the candidate's distance from the full model is larger than sampling noise.
+whether the candidate's distance from the full model is larger than sampling noise. Runs in a
+grid field (experiment=band) also compare their bands, judged against that floor by one rule
+(:mod:`surrogate.evaluate.band_fidelity`: ``band_fidelity.csv/.md/.png``).
 ``python scripts/evaluate.py [field=...] [decision=abstract|exact] [evaluate.run_missing=true]``.
 """
 
@@ -27,14 +29,25 @@ from surrogate.evaluate.statistics import (
     mean_std_over_time,
     noise_floor_table,
 )
+from surrogate.grid import GridField
 from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
+from surrogate.simulate.profiles import Profiles
 from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages import budget
-from surrogate.stages.artefacts import COMPARISON, KYMOGRAPH_FIGURE, NOISE_FLOOR, SUMMARY
+from surrogate.stages.artefacts import (
+    BAND_FIDELITY,
+    COMPARISON,
+    KYMOGRAPH_FIGURE,
+    NOISE_FLOOR,
+    SUMMARY,
+)
 from surrogate.stages.settings import EVALUATE_CMD, EvaluateSettings, SimulateSettings
 from surrogate.stages.simulate import simulate
 
 log = logging.getLogger(__name__)
+
+#: the second full run's label in the band comparison (the summary's keys say ``full_repeat``)
+FLOOR = "full_repeat"
 
 
 @dataclass
@@ -81,14 +94,35 @@ def ensure_run(settings: SimulateSettings, run_missing: bool) -> Path:
     return directory
 
 
+def runs_of(settings: EvaluateSettings) -> dict[str, SimulateSettings]:
+    """The runs an evaluation compares, by role: ``full``, ``candidate``, ``full_repeat``."""
+    runs = {"full": settings.full, "candidate": settings.candidate}
+    if settings.full_repeat is not None:
+        runs["full_repeat"] = settings.full_repeat
+    return runs
+
+
+def check_runs(settings: EvaluateSettings) -> None:
+    """Without ``evaluate.run_missing``, every run must exist before anything is read: refused
+    at once, naming the command that makes each missing one (the full runs of a coupled field
+    at ``evaluate.full_n_cells`` with their scaled ``field.depth``)."""
+    if settings.run_missing:
+        return
+    runs = runs_of(settings).values()
+    missing = [s for s in runs if not (s.directory / MANIFEST).exists()]
+    if missing:
+        commands = "\n".join(f"  `{s.command()}`" for s in missing)
+        raise MissingArtefactError(
+            f"missing simulation(s) of this evaluation ({len(missing)} of {len(runs)}). Run "
+            f"first\n{commands}\n(or evaluate with evaluate.run_missing=true)."
+        )
+
+
 def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] | None) -> None:
     """Make sure the runs exist, compare them, then write tables, figures and (last) the
     manifest."""
-    runs_missing = settings.run_missing
-    dirs = {"full": ensure_run(settings.full, runs_missing),
-            "candidate": ensure_run(settings.candidate, runs_missing)}  # fmt: skip
-    if settings.full_repeat is not None:
-        dirs["full_repeat"] = ensure_run(settings.full_repeat, runs_missing)
+    check_runs(settings)
+    dirs = {k: ensure_run(s, settings.run_missing) for k, s in runs_of(settings).items()}
     t0 = time.perf_counter()
     runs = RunSet(load_run(dirs["full"]), load_run(dirs["candidate"]),
                   load_run(dirs["full_repeat"]) if "full_repeat" in dirs else None)  # fmt: skip
@@ -101,9 +135,14 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
                                   subsample=settings.subsample, seed=seed)  # fmt: skip
         table = combine_with_noise_floor(table, floor)
     summary = summarise(runs, table)
+    band = band_runs(settings, dirs)
+    if band is not None:
+        band_table, summary["band_fidelity"] = band_comparison(band, settings)
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     write_outputs(out, table, floor, runs, settings)
+    if band is not None:
+        write_band_fidelity(out, band, band_table, summary["band_fidelity"], settings)
     write_json(out / SUMMARY, summary)
     write_manifest(out, stage="evaluate",
                    config=dict(config) if config is not None else settings.identity(), seed=seed,
@@ -126,6 +165,9 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
         "in %s", settings.candidate.setup.field_name, settings.candidate.decision.name,
         summary["max_ks"], floor_text, speed_text, out,
     )  # fmt: skip
+    if band is not None:
+        log.info("band fidelity (%s): %s", BAND_FIDELITY, "passed" if summary["band_fidelity"][
+            "passed"] else "FAILED")  # fmt: skip
 
 
 def mean_durations(run: SimulationRun) -> dict[str, float | None]:
@@ -228,18 +270,111 @@ def write_kymograph(
     return save_figure(out / KYMOGRAPH_FIGURE, plot_kymograph(profiles, labels), crop=False)
 
 
+def band_runs(settings: EvaluateSettings, dirs: Mapping[str, Path]) -> dict[str, Profiles] | None:
+    """The runs' profiles by label (the full run first, then ``full_repeat``, then the
+    candidate under its decision's name) when they ran in a grid field, else None.
+
+    Raises:
+        ArtefactError: a run in a grid field without its profiles (made before they were kept:
+            rerun it).
+    """
+    from surrogate.simulate.profiles import read_profiles
+
+    if not isinstance(settings.candidate.setup.field, GridField):
+        return None
+    labels = {"full": "full", "full_repeat": FLOOR, "candidate": settings.candidate.decision.name}
+    order = [k for k in ("full", "full_repeat", "candidate") if k in dirs]
+    return {labels[k]: read_profiles(dirs[k]) for k in order}
+
+
+def band_comparison(
+    band: Mapping[str, Profiles], settings: EvaluateSettings
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Every run's band against the full run's, the candidate judged against the floor
+    (:func:`~surrogate.evaluate.band_fidelity.band_fidelity`)."""
+    from surrogate.evaluate.band_fidelity import band_fidelity
+
+    full, *others = band.items()
+    floor = FLOOR if FLOOR in band else None
+    return band_fidelity(full[1], dict(others), floor,
+                         factor=float(settings.options.get("band_factor", 1.5)))  # fmt: skip
+
+
+def write_band_fidelity(
+    out: Path,
+    band: Mapping[str, Profiles],
+    table: pd.DataFrame,
+    summary: Mapping[str, Any],
+    settings: EvaluateSettings,
+) -> None:
+    """``band_fidelity.csv`` (per run and record time), ``band_fidelity.md`` (the setting, the
+    rule, the checks, the figures) and, unless ``evaluate.figures=false``, ``band_fidelity.png``
+    (fronts over time, KS over time against the floor and the critical value)."""
+    from surrogate.evaluate.band_fidelity import band_markdown, plot_band_fidelity
+    from surrogate.evaluate.report import format_markdown_table, write_report
+    from surrogate.io import write_csv
+
+    write_csv(out / f"{BAND_FIDELITY}.csv", table)
+    figures: list[tuple[str, Path]] = []
+    if settings.options.get("figures", True):
+        floor = summary["floor"]
+        thresholds = {label: next(c["threshold"] for c in cs if c["check"] == "max_ks")
+                      for label, cs in summary["checks"].items()}  # fmt: skip
+        tables = {label: g for label, g in table.groupby("run", sort=False)}
+        fig = plot_band_fidelity(band, tables, floor, thresholds)
+        figures = [("The depletion front of every run over time (left); the KS distance of each "
+                    "run's cells' x from the full model's over time, the floor dashed, with the "
+                    "critical value and the threshold on the largest (right)",
+                    save_figure(out / f"{BAND_FIDELITY}.png", fig))]  # fmt: skip
+        if (out / KYMOGRAPH_FIGURE).exists():
+            figures.append(("Density and concentration over x and t, full and candidate",
+                            out / KYMOGRAPH_FIGURE))  # fmt: skip
+    runs = runs_of(settings)
+    setting = "; ".join(
+        f"{label}: {p.n_cells} cells, seed {runs[role].setup.seed}, depth "
+        f"{runs[role].setup.field_config.get('depth')} mm, {p.t.size} records"
+        for (role, label), p in zip(_roles(band), band.values(), strict=True)
+    )  # fmt: skip
+    rule = (
+        f"Each run's band against the full run's at every record time they share (the "
+        f"candidate's, and the second full run's: the noise floor). A check passes when the "
+        f"candidate's figure is at most max({summary['factor']:g} x the floor's, its critical "
+        f"value): the largest KS over the record times of the cells' x (from the counts per "
+        f"grid column, each run's over its own total; critical value at alpha "
+        f"{summary['alpha']:g} for the two sizes), the RMS difference of the depletion front "
+        f"(critical: half a column) and the difference of the front's least-squares speed "
+        f"(critical: z x its combined standard error). "
+        f"{'All pass.' if summary['passed'] else 'Not all pass.'}"
+    )
+    per_time = format_markdown_table(table, floatfmt=".4g")
+    write_report(out / f"{BAND_FIDELITY}.md", [
+        ("Setting", setting), ("The rule", rule), ("Checks", band_markdown(summary)),
+        ("Per record time", per_time)], figures, title="Band fidelity")  # fmt: skip
+
+
+def _roles(band: Mapping[str, Profiles]) -> list[tuple[str, str]]:
+    """``(role, label)`` of each run of :func:`band_runs`, in its order."""
+    roles = {"full": "full", FLOOR: "full_repeat"}
+    return [(roles.get(label, "candidate"), label) for label in band]
+
+
 def read_summary(directory: str | Path) -> dict[str, Any]:
     """The summary.json of an evaluation directory."""
     return read_json(Path(directory) / SUMMARY, made_by=EVALUATE_CMD)
 
 
 __all__ = [
+    "band_comparison",
+    "band_runs",
+    "check_runs",
     "ensure_run",
     "evaluate",
     "mean_durations",
     "read_summary",
     "run",
+    "runs_of",
     "summarise",
     "validate",
+    "write_band_fidelity",
     "write_kymograph",
 ]

@@ -131,6 +131,8 @@ BAD_INPUTS = [
     ("evaluate", ["evaluate.times=[5.0]"], "evaluate.times [5.0] lie outside"),
     ("evaluate", ["evaluate.subsample=0"], "evaluate.subsample must be a positive"),
     ("evaluate", ["evaluate.figures=maybe"], "evaluate.figures must be true or false"),
+    ("evaluate", ["evaluate.full_seed=-1"], "evaluate.full_seed must be a non-negative"),
+    ("evaluate", ["evaluate.band_factor=0"], "evaluate.band_factor"),
     ("evaluate", ["decision.mode=foo"], "decision.mode must be one of"),
     ("evaluate", ["decision.name=full"], "use decision=abstract"),
     ("reproduce", ["n_cells=0"], "n_cells must be a positive number"),

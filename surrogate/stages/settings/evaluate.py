@@ -10,6 +10,7 @@ from typing import Any
 
 from surrogate.config import positive, to_dict
 from surrogate.errors import ConfigError
+from surrogate.grid import GridField
 from surrogate.io import artefact_dir
 from surrogate.stages.settings.common import EVALUATE_CMD, Job, command_line
 from surrogate.stages.settings.simulate import SimulateSettings
@@ -41,8 +42,17 @@ class EvaluateSettings:
         e = to_dict(cfg["evaluate"])
         full_cfg = {**to_dict(cfg), "decision": {"name": "full"}}
         if e.get("full_n_cells") is not None:  # the full model on fewer cells (large runs)
-            full_cfg["n_cells"] = int(positive(e, "full_n_cells", "evaluate.", integer=True))
+            full_n = int(positive(e, "full_n_cells", "evaluate.", integer=True))
+            full_cfg["n_cells"] = full_n
+            full_cfg["field"] = scaled_field(candidate, full_n)
+        full_seed = e.get("full_seed")
+        if full_seed is not None:  # candidates of several training seeds against one full run
+            if isinstance(full_seed, bool) or not isinstance(full_seed, int) or full_seed < 0:
+                raise ConfigError(f"evaluate.full_seed must be a non-negative integer or null "
+                                  f"(null: seed), got {full_seed!r}")  # fmt: skip
+            full_cfg["seed"] = full_seed
         full = SimulateSettings.from_config(full_cfg)
+        positive(e, "band_factor", "evaluate.")
         subsample = int(positive(e, "subsample", "evaluate.", integer=True))
         if not isinstance(e.get("figures", True), bool):
             raise ConfigError(f"evaluate.figures must be true or false, got {e['figures']!r}")
@@ -66,7 +76,7 @@ class EvaluateSettings:
         repeat = None
         if e.get("noise_floor", True):
             offset = e.get("noise_seed_offset")
-            seed = candidate.setup.seed
+            seed = full.setup.seed
             # offset 0 would compare the full run with itself: a noise floor of exactly zero
             if (
                 isinstance(offset, bool)
@@ -76,7 +86,8 @@ class EvaluateSettings:
             ):
                 raise ConfigError(
                     f"evaluate.noise_seed_offset must be a non-zero integer with seed + offset "
-                    f">= 0 (the noise floor's second full run uses seed + offset), got {offset!r}"
+                    f">= 0 (the noise floor's second full run uses seed + offset; seed: "
+                    f"evaluate.full_seed where set), got {offset!r}"
                 )
             repeat = full.replace(seed=seed + offset)
         options = {k: v for k, v in e.items() if k != "run_missing"}
@@ -96,3 +107,21 @@ class EvaluateSettings:
     def command(self) -> str:
         """The command that makes this evaluation."""
         return command_line(EVALUATE_CMD, self.candidate.overrides())
+
+
+def scaled_field(candidate: SimulateSettings, full_n: int) -> dict[str, Any]:
+    """The full runs' field config for ``full_n`` cells against the candidate's ``n_cells``.
+
+    A given field is the candidate's. A coupled grid field has its ``depth`` scaled by
+    ``full_n / n_cells``, so that both populations put the same cells per unit cross-section
+    into the channel: uptake per volume, the only thing the field's dynamics sees
+    (docs/fields.md, "A travelling band"), so each full cell stands for more bacteria. The depth
+    is rounded to 12 significant digits, so that it equals the number a user types for the same
+    run (``field.depth=0.032``) and the run is found again.
+    """
+    field = to_dict(candidate.setup.field_config)
+    grid_field = candidate.setup.field
+    if not isinstance(grid_field, GridField) or full_n == candidate.n_cells:
+        return field
+    depth = float(grid_field.grid.depth) * full_n / candidate.n_cells
+    return {**field, "depth": float(f"{depth:.12g}")}
