@@ -406,9 +406,9 @@ class SbmlAgentModel(Model):
         self.body.validate(dt)
 
     def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
-        """The body's compiled per-cell step (the chemotaxis body has the E. coli one, for
-        lookup-table abstractions over its variables), where the body has one; the body refuses
-        (KernelUnsupported) an internal model its kernel cannot run."""
+        """The body's compiled per-cell step (for lookup-table abstractions over its
+        variables), where the body has one; the body refuses (KernelUnsupported) an internal
+        model its kernel cannot run."""
         kernel = getattr(self.body, "cell_kernel", None)
         if kernel is None:
             return super().cell_kernel(decision, field, dt)
