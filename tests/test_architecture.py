@@ -339,6 +339,103 @@ def test_no_import_cycles() -> None:
     assert not _import_cycles()
 
 
+#: function-level imports that hide a cycle (the module they import imports this one at its
+#: top level, through packages included), each with the reason it stays
+HIDDEN_CYCLES = {
+    "surrogate/stages/settings/collect.py -> surrogate.stages.settings.train": (
+        "collect.design's rounds fit psi: CollectSettings holds the design's TrainSettings, "
+        "whose source is a CollectSettings (both validated up front, at collect's edge)"
+    ),
+}
+
+
+def _with_parents(module: str) -> list[str]:
+    """``a.b.c`` -> ``[a, a.b, a.b.c]``: importing a module runs its packages first."""
+    parts = module.split(".")
+    return [".".join(parts[: i + 1]) for i in range(len(parts))]
+
+
+def _function_level_imports() -> list[tuple[str, int, list[str]]]:
+    """``(file, line, modules)`` for each import of the package inside a function: the modules
+    it runs, parent packages included (``from p import m`` counts ``p.m`` where m is a module,
+    else ``p``)."""
+    out = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        me = _module_name(path)
+        package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+        seen: set[int] = set()
+        for fn in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+                continue
+            for node in ast.walk(fn):
+                if id(node) in seen or not isinstance(node, ast.Import | ast.ImportFrom):
+                    continue
+                seen.add(id(node))
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                else:
+                    base = node.module or ""
+                    if node.level:
+                        anchor = package.split(".")
+                        anchor = anchor[: len(anchor) - (node.level - 1)]
+                        base = ".".join([*anchor, *([base] if base else [])])
+                    names = [f"{base}.{a.name}" if _is_module(f"{base}.{a.name}") else base
+                             for a in node.names]  # fmt: skip
+                parts = {p for n in names if n.split(".")[0] == "surrogate"
+                         for p in _with_parents(n)}  # fmt: skip
+                if parts:
+                    out.append((str(path.relative_to(PACKAGE.parent)), node.lineno, sorted(parts)))
+    return out
+
+
+def _hidden_cycles() -> dict[str, list[str]]:
+    """``{"file -> module": [file, line, ...]}`` for each function-level import of a module
+    that imports the importing module back at its top level (directly or through others)."""
+    graph = {_module_name(f): _module_level_imports(f) for f in sorted(PACKAGE.rglob("*.py"))}
+
+    def reaches(start: str, goal: str) -> bool:
+        seen, todo = {start}, [start]
+        while todo:
+            for w in graph.get(todo.pop(), ()):
+                if w == goal:
+                    return True
+                if w not in seen:
+                    seen.add(w)
+                    todo.append(w)
+        return False
+
+    hidden: dict[str, list[str]] = {}
+    for rel, line, modules in _function_level_imports():
+        me = _module_name(PACKAGE.parent / rel)
+        mine = set(_with_parents(me))
+        for m in modules:
+            if m not in mine and reaches(m, me):
+                hidden.setdefault(f"{rel} -> {m}", []).append(f"{rel}:{line}")
+    return hidden
+
+
+def test_function_level_imports_hide_no_other_cycle() -> None:
+    """An import inside a function is for start-up cost (numba kernels, matplotlib, the GP
+    stack imported on demand), never to hide a cycle: each one that does is listed in
+    :data:`HIDDEN_CYCLES` with its reason, and the list holds no resolved one."""
+    hidden = _hidden_cycles()
+    assert set(hidden) == set(HIDDEN_CYCLES), (
+        f"new: {sorted(set(hidden) - set(HIDDEN_CYCLES))}; "
+        f"resolved (remove from HIDDEN_CYCLES): {sorted(set(HIDDEN_CYCLES) - set(hidden))}"
+    )
+
+
+def test_the_hidden_cycle_check_sees_one(tmp_path: Path, monkeypatch) -> None:
+    package = tmp_path / "surrogate"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("from surrogate.b import B\n")
+    (package / "b.py").write_text("B = 1\ndef f():\n    from surrogate import a\n")
+    (package / "c.py").write_text("def g():\n    from surrogate.b import B\n")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
+    assert _hidden_cycles() == {"surrogate/b.py -> surrogate.a": ["surrogate/b.py:3"]}
+
+
 def test_the_cycle_check_sees_a_cycle(tmp_path: Path, monkeypatch) -> None:
     """A package whose ``__init__`` imports a submodule that imports names from the package
     (ecoli_phospho's old layout) is a cycle; the same names imported from their module are not."""
@@ -434,3 +531,12 @@ def test_stages_never_import_the_cli() -> None:
         if m == "surrogate.cli"
     ]
     assert not offences, "\n".join(offences)
+
+
+if __name__ == "__main__":  # the listing: python tests/test_architecture.py
+    imports = _function_level_imports()
+    for rel, line, modules in imports:
+        print(f"{rel}:{line} {' '.join(modules)}")
+    print(f"{len(imports)} function-level imports of the package; hiding a cycle:")
+    for key, where in _hidden_cycles().items():
+        print(f"  {key} ({', '.join(where)})")

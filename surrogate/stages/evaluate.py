@@ -27,7 +27,15 @@ from surrogate.evaluate.statistics import (
     mean_std_over_time,
     noise_floor_table,
 )
-from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
+from surrogate.io import (
+    MANIFEST,
+    make_once,
+    read_json,
+    save_figure,
+    write_csv,
+    write_json,
+    write_manifest,
+)
 from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages import budget
 from surrogate.stages.artefacts import COMPARISON, KYMOGRAPH_FIGURE, NOISE_FLOOR, SUMMARY
@@ -185,7 +193,6 @@ def write_outputs(
         plot_observable_over_time,
     )
     from surrogate.evaluate.report import write_comparison
-    from surrogate.io import write_csv
 
     model = settings.candidate.setup.model
     labels = ("full", settings.candidate.decision.name)
