@@ -22,6 +22,7 @@ from typing import Any
 import pandas as pd
 import torch
 
+from surrogate import __version__
 from surrogate.errors import ArtefactError, MissingArtefactError
 
 try:  # POSIX only; without it stages run unlocked and leave stale temporaries alone
@@ -320,10 +321,8 @@ def versions() -> dict[str, str]:
     import numpy
     import scipy
 
-    import surrogate
-
     return {
-        "surrogate": surrogate.__version__,
+        "surrogate": __version__,
         "python": platform.python_version(),
         "torch": torch.__version__,
         "gpytorch": gpytorch.__version__,

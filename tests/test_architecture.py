@@ -20,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
           "models/capabilities.py", "models/packed.py", "models/count_classes.py",
           "models/randoms.py", "fields.py", "field_formula.py", "field_kernel.py", "grid",
-          "scalar.py", "io.py", "config.py", "errors.py"]  # fmt: skip
+          "scalar.py", "io.py", "config.py", "errors.py", "validation.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = (
     "surrogate.models",
@@ -109,22 +109,43 @@ def test_models_never_import_simulate_or_gp() -> None:
     assert not offences, "\n".join(offences)
 
 
-#: generic model pieces (library bodies, the network-backed and SBML models, the shared
-#: perturbation): they serve any network, so they import no concrete model
-GENERIC_MODELS = ["models/bodies/walker.py", "models/bodies/static.py", "models/bodies/options.py",
-                  "models/perturbation.py", "models/network.py", "models/sbml_agent.py"]  # fmt: skip
-CONCRETE_MODELS = ("surrogate.models.ecoli", "surrogate.models.ecoli_phospho")
+#: the concrete models, and E. coli's body in the library (it runs the E. coli signalling)
+CONCRETE_MODELS = ("surrogate.models.ecoli", "surrogate.models.ecoli_phospho",
+                   "surrogate.models.bodies.chemotaxis")  # fmt: skip
+#: where a concrete model may be imported: the models themselves, E. coli's body and the
+#: library's body registry (``kind: chemotaxis``)
+CONCRETE_HOMES = ("models/ecoli/", "models/ecoli_phospho/", "models/bodies/chemotaxis.py",
+                  "models/bodies/registry.py")  # fmt: skip
+#: the other modules that import one, each with its reason
+CONCRETE_USERS = {
+    "surrogate/models/bodies/__init__.py": "re-exports the registry's bodies",
+    "surrogate/benchmarks/ssa.py": "times the SSA backends on the E. coli phospho network",
+}
 
 
-@pytest.mark.parametrize("entry", GENERIC_MODELS)
-def test_generic_models_never_import_a_concrete_model(entry: str) -> None:
+def _is_concrete(module: str) -> bool:
+    return module.startswith(tuple(f"{c}." for c in CONCRETE_MODELS)) or module in CONCRETE_MODELS
+
+
+def test_only_the_models_import_a_concrete_model() -> None:
+    """Every module of the package outside the concrete models (``models/ecoli*``), E. coli's
+    body and the body registry imports no concrete model, not even inside a function: the
+    engine, the stages, the generic bodies and the network and SBML models serve any model.
+    The few exceptions are listed with their reason (:data:`CONCRETE_USERS`)."""
     offences = [
-        f"{f.relative_to(PACKAGE.parent)} imports {m}"
-        for f in _files(entry)
+        f"{rel} imports {m}"
+        for f in sorted(PACKAGE.rglob("*.py"))
+        if not str(f.relative_to(PACKAGE)).startswith(CONCRETE_HOMES)
+        and (rel := str(f.relative_to(PACKAGE.parent))) not in CONCRETE_USERS
         for m in _imports(f)
-        if m in CONCRETE_MODELS or m.startswith(tuple(f"{c}." for c in CONCRETE_MODELS))
+        if _is_concrete(m)
     ]
     assert not offences, "\n".join(offences)
+    stale = [
+        rel for rel in CONCRETE_USERS
+        if not any(_is_concrete(m) for m in _imports(PACKAGE.parent / rel))
+    ]  # fmt: skip
+    assert not stale, f"CONCRETE_USERS lists modules that import no concrete model: {stale}"
 
 
 def test_only_stages_and_the_bench_import_a_stage() -> None:
@@ -163,6 +184,10 @@ def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch) -> None:
     (package / "gp" / "stage.py").write_text("def run(cfg): ...\ndef validate(cfg): ...\n")
     (package / "models" / "m.py").write_text("from surrogate.stages import train\n")
     (package / "models" / "k.py").write_text("def f():\n    from ..simulate import loop\n")
+    (package / "models" / "bodies").mkdir()
+    (package / "models" / "bodies" / "walker.py").write_text(
+        "def step():\n    from surrogate.models.ecoli.formulas import tumble_angle\n"
+    )
     (package / "stages" / "s.py").write_text("def run(cfg): ...\ndef validate(cfg): ...\n")
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
     with pytest.raises(AssertionError, match="gp/x.py imports surrogate.models.ecoli"):
@@ -173,6 +198,9 @@ def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch) -> None:
         test_models_never_import_simulate_or_gp()
     with pytest.raises(AssertionError, match="gp/stage.py"):
         test_every_stage_lives_in_stages()
+    monkeypatch.setattr(sys.modules[__name__], "CONCRETE_USERS", {})
+    with pytest.raises(AssertionError, match="walker.py imports surrogate.models.ecoli.formulas"):
+        test_only_the_models_import_a_concrete_model()
 
 
 def test_cli_and_sweep_do_not_import_each_other() -> None:
@@ -311,6 +339,103 @@ def test_no_import_cycles() -> None:
     assert not _import_cycles()
 
 
+#: function-level imports that hide a cycle (the module they import imports this one at its
+#: top level, through packages included), each with the reason it stays
+HIDDEN_CYCLES = {
+    "surrogate/stages/settings/collect.py -> surrogate.stages.settings.train": (
+        "collect.design's rounds fit psi: CollectSettings holds the design's TrainSettings, "
+        "whose source is a CollectSettings (both validated up front, at collect's edge)"
+    ),
+}
+
+
+def _with_parents(module: str) -> list[str]:
+    """``a.b.c`` -> ``[a, a.b, a.b.c]``: importing a module runs its packages first."""
+    parts = module.split(".")
+    return [".".join(parts[: i + 1]) for i in range(len(parts))]
+
+
+def _function_level_imports() -> list[tuple[str, int, list[str]]]:
+    """``(file, line, modules)`` for each import of the package inside a function: the modules
+    it runs, parent packages included (``from p import m`` counts ``p.m`` where m is a module,
+    else ``p``)."""
+    out = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        me = _module_name(path)
+        package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+        seen: set[int] = set()
+        for fn in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+                continue
+            for node in ast.walk(fn):
+                if id(node) in seen or not isinstance(node, ast.Import | ast.ImportFrom):
+                    continue
+                seen.add(id(node))
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                else:
+                    base = node.module or ""
+                    if node.level:
+                        anchor = package.split(".")
+                        anchor = anchor[: len(anchor) - (node.level - 1)]
+                        base = ".".join([*anchor, *([base] if base else [])])
+                    names = [f"{base}.{a.name}" if _is_module(f"{base}.{a.name}") else base
+                             for a in node.names]  # fmt: skip
+                parts = {p for n in names if n.split(".")[0] == "surrogate"
+                         for p in _with_parents(n)}  # fmt: skip
+                if parts:
+                    out.append((str(path.relative_to(PACKAGE.parent)), node.lineno, sorted(parts)))
+    return out
+
+
+def _hidden_cycles() -> dict[str, list[str]]:
+    """``{"file -> module": [file, line, ...]}`` for each function-level import of a module
+    that imports the importing module back at its top level (directly or through others)."""
+    graph = {_module_name(f): _module_level_imports(f) for f in sorted(PACKAGE.rglob("*.py"))}
+
+    def reaches(start: str, goal: str) -> bool:
+        seen, todo = {start}, [start]
+        while todo:
+            for w in graph.get(todo.pop(), ()):
+                if w == goal:
+                    return True
+                if w not in seen:
+                    seen.add(w)
+                    todo.append(w)
+        return False
+
+    hidden: dict[str, list[str]] = {}
+    for rel, line, modules in _function_level_imports():
+        me = _module_name(PACKAGE.parent / rel)
+        mine = set(_with_parents(me))
+        for m in modules:
+            if m not in mine and reaches(m, me):
+                hidden.setdefault(f"{rel} -> {m}", []).append(f"{rel}:{line}")
+    return hidden
+
+
+def test_function_level_imports_hide_no_other_cycle() -> None:
+    """An import inside a function is for start-up cost (numba kernels, matplotlib, the GP
+    stack imported on demand), never to hide a cycle: each one that does is listed in
+    :data:`HIDDEN_CYCLES` with its reason, and the list holds no resolved one."""
+    hidden = _hidden_cycles()
+    assert set(hidden) == set(HIDDEN_CYCLES), (
+        f"new: {sorted(set(hidden) - set(HIDDEN_CYCLES))}; "
+        f"resolved (remove from HIDDEN_CYCLES): {sorted(set(HIDDEN_CYCLES) - set(hidden))}"
+    )
+
+
+def test_the_hidden_cycle_check_sees_one(tmp_path: Path, monkeypatch) -> None:
+    package = tmp_path / "surrogate"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("from surrogate.b import B\n")
+    (package / "b.py").write_text("B = 1\ndef f():\n    from surrogate import a\n")
+    (package / "c.py").write_text("def g():\n    from surrogate.b import B\n")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
+    assert _hidden_cycles() == {"surrogate/b.py -> surrogate.a": ["surrogate/b.py:3"]}
+
+
 def test_the_cycle_check_sees_a_cycle(tmp_path: Path, monkeypatch) -> None:
     """A package whose ``__init__`` imports a submodule that imports names from the package
     (ecoli_phospho's old layout) is a cycle; the same names imported from their module are not."""
@@ -406,3 +531,12 @@ def test_stages_never_import_the_cli() -> None:
         if m == "surrogate.cli"
     ]
     assert not offences, "\n".join(offences)
+
+
+if __name__ == "__main__":  # the listing: python tests/test_architecture.py
+    imports = _function_level_imports()
+    for rel, line, modules in imports:
+        print(f"{rel}:{line} {' '.join(modules)}")
+    print(f"{len(imports)} function-level imports of the package; hiding a cycle:")
+    for key, where in _hidden_cycles().items():
+        print(f"  {key} ({', '.join(where)})")

@@ -193,7 +193,7 @@ def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(
         ("gp.relaxation.lags=[100,50]", "gp.relaxation.lags"),
         ("gp.relaxation.lags=[50]", "gp.relaxation.lags"),
         ("gp.relaxation=7", "gp.relaxation must be a mapping"),
-        ("+gp.relaxation.every=1", "unknown key"),
+        ("+gp.relaxation.every=1", r"unknown gp.relaxation setting\(s\) \['every'\]"),
         ("gp.class_moves=relaxation", "shared by both"),  # E. coli: motor counts, not bins
     ):
         with pytest.raises(ConfigError, match=message):

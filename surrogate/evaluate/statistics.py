@@ -4,10 +4,10 @@ The paper compares the two models with the two-sample Kolmogorov-Smirnov (KS) st
 
 * the body's observables at a few record times (for E. coli the cells' distance from the
   field's peak; one value per cell, so 100 values per model for a 100-cell population), and
-* the durations of the property's segments (run and tumble) pooled over the whole trajectory
-  (~60,000 values per model), of which a random 1,000 are drawn from each model before the
-  test, because with tens of thousands of values any approximation error, however small, gives
-  a vanishing p-value.
+* the durations of the property's segments (the lumps the run names; E. coli: run and
+  tumble) pooled over the whole trajectory (~60,000 values per model), of which a random 1,000
+  are drawn from each model before the test, because with tens of thousands of values any
+  approximation error, however small, gives a vanishing p-value.
 
 Besides the KS statistic and its p-value we report the 1-Wasserstein distance (in the data's
 units, so it says *how far* apart the distributions are, not only whether they differ) and the
@@ -60,10 +60,6 @@ PAPER_TIMES: tuple[float, ...] = (125.0, 250.0, 375.0, 500.0)
 PAPER_SUBSAMPLE = 1000
 
 MADE_BY = "python scripts/simulate.py ..."
-
-#: the lump names of runs whose manifest records none: only runs written before the recorder
-#: stored them (E. coli's, the one model then); every run since names its model's lumps
-DEFAULT_LUMPS: tuple[str, str] = ("tumble", "run")
 
 COLUMNS: tuple[str, ...] = (
     "quantity",
@@ -500,8 +496,16 @@ class SimulationRun:
 
     @property
     def lump_names(self) -> tuple[str, str]:
-        """Names of phi = 0 and phi = 1 (the duration kinds)."""
-        names = self.manifest.get("lump_names") or self.recording.get("lump_names") or DEFAULT_LUMPS
+        """Names of phi = 0 and phi = 1 (the duration kinds), as the run recorded its model's.
+
+        Raises:
+            ArtefactError: The run records none (written before runs named their lumps).
+        """
+        names = self.manifest.get("lump_names") or self.recording.get("lump_names")
+        if not names:
+            raise ArtefactError(f"{self.path or 'the run'} does not name its lumps (the manifest's "
+                                f"lump_names: phi = 0 and 1's names, recorded since runs name "
+                                f"their model's); re-run `{MADE_BY}`")  # fmt: skip
         return (str(names[0]), str(names[1]))
 
     @property

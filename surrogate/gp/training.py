@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import KERNELS, PsiGP
+from surrogate.validation import known_keys
 
 PREDICT_CHUNK = 65_536
 #: classifiers are trained side by side (one batched GP) up to this many occupied bins each:
@@ -94,13 +95,7 @@ class GPSettings:
         if mapping is None:
             return cls()
         allowed = [f.name for f in fields(cls)]
-        values = {str(k): v for k, v in dict(mapping).items()}
-        unknown = sorted(set(values) - set(allowed))
-        if unknown:
-            raise ConfigError(
-                f"unknown GP setting(s) {', '.join('gp.' + k for k in unknown)}; "
-                f"allowed keys are {allowed}"
-            )
+        values = known_keys({str(k): v for k, v in dict(mapping).items()}, allowed, "gp")
         # Config files may write 1 for 1.0; store the declared type so the state dict is stable.
         for name in ("lr", "natural_lr", "validation_fraction"):
             v = values.get(name)

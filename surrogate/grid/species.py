@@ -39,6 +39,7 @@ from torch import Tensor
 from surrogate.errors import ConfigError
 from surrogate.fields import ExpressionField
 from surrogate.grid.geometry import Grid, Stencil
+from surrogate.validation import known_keys
 
 __all__ = ["MOLECULES_PER_NMOL", "Secretion", "Species", "Uptake"]
 
@@ -55,15 +56,6 @@ def _number(value: Any, where: str, positive: bool = False) -> float:
         want = "a positive number" if positive else "a non-negative number"
         raise ConfigError(f"{where} must be {want}, got {value!r}")
     return value
-
-
-def _keys(spec: Any, known: tuple[str, ...], where: str) -> dict[str, Any]:
-    if not isinstance(spec, Mapping):
-        raise ConfigError(f"{where} must be a mapping of {list(known)}, got {spec!r}")
-    unknown = sorted(set(spec) - set(known))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {list(known)}")
-    return dict(spec)
 
 
 @dataclass(frozen=True)
@@ -122,7 +114,7 @@ class Species:
         """A checked species from its yaml mapping (unknown keys, negative rates and a
         non-positive ``km`` are refused, named ``<where>.<name>.<key>``)."""
         at = f"{where}.{name}"
-        s = _keys(spec, _KEYS, at)
+        s = known_keys(spec, _KEYS, at)
         if "diffusion" not in s:
             raise ConfigError(f"{at}.diffusion is required (mm^2/s; 0 for a species that does "
                               "not diffuse)")  # fmt: skip
@@ -133,13 +125,13 @@ class Species:
         profiles = {key: _profile(s.get(key, 0.0), f"{at}.{key}") for key in ("initial", "source")}
         uptake = secretion = None
         if s.get("uptake") is not None:
-            u = _keys(s["uptake"], ("vmax", "km"), f"{at}.uptake")
+            u = known_keys(s["uptake"], ("vmax", "km"), f"{at}.uptake", required=("vmax", "km"))
             if set(u) != {"vmax", "km"}:
                 raise ConfigError(f"{at}.uptake needs vmax (molecules/s per cell) and km (mM)")
             uptake = Uptake(_number(u["vmax"], f"{at}.uptake.vmax"),
                             _number(u["km"], f"{at}.uptake.km", positive=True))  # fmt: skip
         if s.get("secretion") is not None:
-            r = _keys(s["secretion"], ("rate_on", "rate_off"), f"{at}.secretion")
+            r = known_keys(s["secretion"], ("rate_on", "rate_off"), f"{at}.secretion")
             secretion = Secretion(_number(r.get("rate_on", 0.0), f"{at}.secretion.rate_on"),
                                   _number(r.get("rate_off", 0.0), f"{at}.secretion.rate_off"))  # fmt: skip
         return cls(

@@ -34,6 +34,7 @@ from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.capabilities import cell_step_seconds_of, feature_names_of, features_fn_of
 from surrogate.models.randoms import Randoms
+from surrogate.validation import known_keys, yaml_hint
 
 if TYPE_CHECKING:
     from surrogate.models.packed import PackedDecision
@@ -382,38 +383,7 @@ def check_options(
 ) -> dict[str, Any]:
     """Merge ``options`` over ``allowed`` defaults, refusing unknown keys (and anything but a
     mapping, e.g. a bare number) by name."""
-    if not isinstance(options, Mapping):
-        raise ConfigError(f"{where} must be a mapping of settings {sorted(allowed)}, got "
-                          f"{options!r}{yaml_hint(options)}")  # fmt: skip
-    unknown = sorted(set(options) - set(allowed))
-    if unknown:
-        raise ConfigError(f"unknown {where} setting(s) {unknown}; allowed: {sorted(allowed)}")
-    return {**allowed, **dict(options)}
-
-
-def yaml_hint(value: Any) -> str:
-    """A hint for a number YAML read as a string, else ``""``: PyYAML reads ``1e308`` or
-    ``1e-3`` (no decimal point, or an unsigned exponent) as text, and a quoted number too.
-
-    Example:
-        >>> yaml_hint("1e308")
-        ' (YAML reads 1e308 as a string: write 1.0e+308)'
-    """
-    if not isinstance(value, str):
-        return ""
-    text = value.strip()
-    try:
-        finite = math.isfinite(float(text))
-    except ValueError:
-        return ""
-    if not finite:  # nan, inf: YAML's own spellings are .nan, .inf
-        return ""
-    mantissa, e, exponent = text.lower().partition("e")
-    if not e:
-        return f" (a number in quotes is a string: write {text} without them)"
-    mantissa += "" if "." in mantissa else ".0"
-    exponent = exponent if exponent[:1] in ("+", "-") else f"+{exponent}"
-    return f" (YAML reads {text} as a string: write {mantissa}e{exponent})"
+    return {**allowed, **known_keys(options, sorted(allowed), where)}
 
 
 def burn_in_seconds(value: Any, name: str = "model.burn_in") -> float:
@@ -446,5 +416,4 @@ __all__ = [
     "Randoms",
     "burn_in_seconds",
     "check_options",
-    "yaml_hint",
 ]

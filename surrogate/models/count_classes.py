@@ -56,6 +56,7 @@ from surrogate.ctmc.kinetics import Expr, species_ref, torch_function
 from surrogate.errors import ConfigError
 from surrogate.io import write_text
 from surrogate.sbml.formula import parse_formula
+from surrogate.validation import known_keys
 
 log = logging.getLogger(__name__)
 
@@ -171,13 +172,9 @@ def parse_classes(
 ) -> CountClasses:
     """A declared ``classes`` mapping (``species`` or ``expression``, and ``edges``: one list
     for both lumps or ``{<lump name>: [...]}``), validated; ``auto`` is resolved elsewhere."""
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"{where} must be auto or a mapping {{species: <id>, edges: [...]}} "
-                          f"(or expression: <formula over species>), got {value!r}")  # fmt: skip
-    unknown = sorted(set(value) - {"species", "expression", "edges"})
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; it takes species (or "
-                          "expression) and edges")  # fmt: skip
+    value = known_keys(value, ("species", "expression", "edges"), where, required=("edges",),
+                       shape="auto or a mapping {species: <id>, edges: [...]} (or expression: "
+                       "<formula over species>)")  # fmt: skip
     if ("species" in value) == ("expression" in value):
         raise ConfigError(f"{where} needs exactly one of species (a species id) or expression "
                           f"(a formula over the species), got {sorted(value)}")  # fmt: skip
@@ -237,13 +234,8 @@ def parse_auto_classes(
     options = value["auto"]
     if options is True or options is None:
         options = {}
-    if not isinstance(options, Mapping):
-        raise ConfigError(f"{where}.auto must be a mapping {{over: {{<input>: [lo, hi]}}, "
-                          f"bins: K}}, got {options!r}")  # fmt: skip
-    unknown = sorted(set(options) - {"over", "bins", "placement"})
-    if unknown:
-        raise ConfigError(f"{where}.auto: unknown key(s) {unknown}; it takes over, bins and "
-                          "placement")  # fmt: skip
+    options = known_keys(options, ("over", "bins", "placement"), f"{where}.auto",
+                         shape="a mapping {over: {<input>: [lo, hi]}, bins: K}")  # fmt: skip
     placement = options.get("placement", AUTO_PLACEMENT)
     if placement not in PLACEMENTS:
         raise ConfigError(f"{where}.auto.placement must be one of {list(PLACEMENTS)}, got "

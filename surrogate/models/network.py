@@ -321,7 +321,7 @@ class NetworkInternalModel:
 
     def _compiled_ssa(self) -> CompiledSSA:  # lazily built: numba compiles once per process
         if self._compiled is None:
-            from surrogate.ctmc import CompiledSSA
+            from surrogate.ctmc import CompiledSSA  # numba: imported on demand
 
             self._compiled = CompiledSSA(self.kinetics)
         return self._compiled
@@ -365,7 +365,7 @@ class NetworkInternalModel:
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
         if not self._streams(device):
             return ()
-        from surrogate.ctmc import CellStreams
+        from surrogate.ctmc import CellStreams  # numba: imported on demand
 
         seed = int(torch.randint(0, 2**62, (1,)).item())
         return (torch.from_numpy(CellStreams.from_seed(seed, n).state.view(np.int64)).to(device),)
@@ -385,7 +385,7 @@ class NetworkInternalModel:
         after = () if clock is None else (clock.time, clock.triggers)
         try:
             if self.backend(inputs.device) == "compiled":
-                from surrogate.ctmc import CellStreams
+                from surrogate.ctmc import CellStreams  # numba: imported on demand
 
                 streams = CellStreams(state[1].numpy().view(np.uint64))  # shares memory
                 counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams, clock=clock)

@@ -14,7 +14,8 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
-from surrogate.models.base import BodyState, check_options, yaml_hint
+from surrogate.models.base import BodyState, check_options
+from surrogate.validation import yaml_hint
 
 __all__ = [
     "PERTURBATION_DEFAULTS",

@@ -67,7 +67,6 @@ from surrogate.models.base import (
     CellKernel,
     Model,
     burn_in_seconds,
-    yaml_hint,
 )
 from surrogate.models.bodies import LibraryBody, build_body
 from surrogate.models.count_classes import (
@@ -83,6 +82,7 @@ from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml
 from surrogate.sbml.formula import parse_formula
 from surrogate.sbml.reader import SUBSTANCE_UNITS
+from surrogate.validation import known_keys, yaml_hint
 
 log = logging.getLogger(__name__)
 
@@ -146,11 +146,7 @@ def load_spec(spec: str | Path | None, settings: Mapping[str, Any]) -> tuple[dic
             data[key] = {**data[key], **value}
         else:
             data[key] = value
-    unknown = sorted(set(data) - set(SPEC_DEFAULTS))
-    if unknown:
-        raise ConfigError(f"unknown model setting(s) {unknown}; allowed: "
-                          f"{sorted(['spec', *SPEC_DEFAULTS])}")  # fmt: skip
-    return {**SPEC_DEFAULTS, **data}, base
+    return {**SPEC_DEFAULTS, **known_keys(data, sorted(SPEC_DEFAULTS), "model")}, base
 
 
 def _sha256(path: Path) -> str:
@@ -398,12 +394,11 @@ class SbmlAgentModel(Model):
     def _collect(options: Any) -> dict[str, int]:
         if options is None:
             return {}
-        if not isinstance(options, Mapping) or set(options) - set(COLLECT_KEYS):
-            raise ConfigError(f"model.collect may set {list(COLLECT_KEYS)}, got {options!r}")
-        for key, value in options.items():
+        checked = known_keys(options, COLLECT_KEYS, "model.collect")
+        for key, value in checked.items():
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"model.collect.{key} must be a positive integer, got {value!r}")
-        return dict(options)
+        return checked
 
     # -- the model's hooks -----------------------------------------------------------------------
     def validate(self, dt: float) -> None:
@@ -411,9 +406,9 @@ class SbmlAgentModel(Model):
         self.body.validate(dt)
 
     def cell_kernel(self, decision: PackedDecision, field: Field, dt: float) -> CellKernel:
-        """The body's compiled per-cell step (the chemotaxis body has the E. coli one, for
-        lookup-table abstractions over its variables), where the body has one; the body refuses
-        (KernelUnsupported) an internal model its kernel cannot run."""
+        """The body's compiled per-cell step (for lookup-table abstractions over its
+        variables), where the body has one; the body refuses (KernelUnsupported) an internal
+        model its kernel cannot run."""
         kernel = getattr(self.body, "cell_kernel", None)
         if kernel is None:
             return super().cell_kernel(decision, field, dt)

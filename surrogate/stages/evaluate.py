@@ -30,7 +30,15 @@ from surrogate.evaluate.statistics import (
     noise_floor_table,
 )
 from surrogate.grid import GridField
-from surrogate.io import MANIFEST, make_once, read_json, save_figure, write_json, write_manifest
+from surrogate.io import (
+    MANIFEST,
+    make_once,
+    read_json,
+    save_figure,
+    write_csv,
+    write_json,
+    write_manifest,
+)
 from surrogate.simulate.profiles import Profiles
 from surrogate.simulate.speed import LoopTiming, compare
 from surrogate.stages import budget
@@ -227,7 +235,6 @@ def write_outputs(
         plot_observable_over_time,
     )
     from surrogate.evaluate.report import write_comparison
-    from surrogate.io import write_csv
 
     model = settings.candidate.setup.model
     labels = ("full", settings.candidate.decision.name)
@@ -312,7 +319,6 @@ def write_band_fidelity(
     (fronts over time, KS over time against the floor and the critical value)."""
     from surrogate.evaluate.band_fidelity import band_markdown, plot_band_fidelity
     from surrogate.evaluate.report import format_markdown_table, write_report
-    from surrogate.io import write_csv
 
     write_csv(out / f"{BAND_FIDELITY}.csv", table)
     figures: list[tuple[str, Path]] = []

@@ -25,6 +25,7 @@ import torch
 from surrogate.config import seed_everything, to_dict
 from surrogate.fields import Field
 from surrogate.gp import PsiClassifier, PsiLookupTable
+from surrogate.grid import GridField
 from surrogate.io import (
     MANIFEST,
     artefact_lock,
@@ -331,8 +332,6 @@ def _write_manifest(
 def read_uptake(field: Field) -> tuple[float, float] | None:
     """The uptake ``(vmax, km)`` of the species a grid field's cells read, None if it has none
     (or the field is not a grid)."""
-    from surrogate.grid import GridField
-
     if not isinstance(field, GridField):
         return None
     species = field.species[field.species_names.index(field.read)]

@@ -41,12 +41,13 @@ def write_synthetic_run(
     n_durations: int = 3000,
     wall_time_s: float = 10.0,
     extra_observable: bool = False,
-    lump_names: tuple[str, str] | None = None,
+    lump_names: tuple[str, str] | None = ("tumble", "run"),
 ) -> Path:
     """Write observables.parquet, durations.parquet and manifest.json like a simulation run.
 
     ``extra_observable`` adds a second observable ``speed`` (after ``distance``);
-    ``lump_names`` renames the duration kinds (tumble, run) and records them in the manifest.
+    ``lump_names`` renames the duration kinds (tumble, run) and records them in the manifest
+    (None: a run that records none, as runs did before they named their lumps).
     """
     rng = np.random.default_rng(seed)
     times = np.arange(0.0, t_end + dt / 2, dt)
@@ -198,7 +199,7 @@ def test_load_run_reads_the_old_file_name_no_more(tmp_path: Path) -> None:
 def test_run_observables_and_lumps(tmp_path: Path) -> None:
     run = load_run(write_synthetic_run(tmp_path / "a", seed=0, extra_observable=True))
     assert run.observable_names == ["distance", "speed"]
-    assert run.lump_names == ("tumble", "run")  # the default without manifest["lump_names"]
+    assert run.lump_names == ("tumble", "run")  # as the manifest records them
     assert run.durations_of("run").size == 3000 and run.durations_of("tumble").size == 1500
     with pytest.raises(ValueError, match="duration kind"):
         run.durations_of("swim")
@@ -209,6 +210,10 @@ def test_run_observables_and_lumps(tmp_path: Path) -> None:
     assert other.durations_of("on").size == 40 and other.durations_of("off").size == 20
     with pytest.raises(ValueError, match="duration kind"):
         other.durations_of("run")
+    # no lump names are assumed (the engine knows no run and tumble): a run must record them
+    unnamed = load_run(write_synthetic_run(tmp_path / "c", seed=0, n_durations=40, lump_names=None))
+    with pytest.raises(ArtefactError, match="does not name its lumps"):
+        unnamed.lump_names
 
 
 def test_observable_at(tmp_path: Path) -> None:

@@ -62,8 +62,15 @@ BAD = [
         {"species": {"s": {"diffusion": 1e-3, "secretion": {"rate_on": -1.0}}}},
         r"field.species.s.secretion.rate_on",
     ),
-    ({"species": {"serine": {**GOOD, "difusion": 1e-3}}}, r"unknown key\(s\) \['difusion'\]"),
+    (
+        {"species": {"serine": {**GOOD, "difusion": 1e-3}}},
+        r"unknown field.species.serine setting\(s\) \['difusion'\]",
+    ),
     ({"species": {"serine": {"initial": 0.1}}}, r"field.species.serine.diffusion is required"),
+    (
+        {"species": {"serine": {**GOOD, "uptake": {"vmax": 5.0}}}},
+        r"field.species.serine.uptake needs the setting\(s\) \['km'\]",
+    ),
     ({"species": {"serine": {**GOOD, "initial": "foo * x"}}}, r"field.species.serine.initial.*foo"),
     ({"species": {}}, r"field.species must declare at least one species"),
     ({"read": "aspartate"}, r"field.read='aspartate' is not a declared species.*serine"),

@@ -84,7 +84,11 @@ def test_classes_name_and_bin_counts_within_each_lump() -> None:
         ({"species": "X", "edges": []}, "the classes would be the lumps themselves"),
         ({"species": "X", "edges": {"off": [1]}}, "needs exactly the lumps"),
         ({"species": "X", "edges": "1, 2"}, "must be a list of numbers"),
-        ({"species": "X", "edges": [1], "bins": 3}, "unknown key"),
+        (
+            {"species": "X", "edges": [1], "bins": 3},
+            r"unknown model.classes setting\(s\) \['bins'\]",
+        ),
+        ({"species": "X"}, r"model.classes needs the setting\(s\) \['edges'\]"),
         ({"expression": "X +", "edges": [1]}, "model.classes"),
     ],
 )
@@ -206,7 +210,7 @@ def test_auto_over_a_range_bins_the_counts_the_range_gives(monkeypatch, tmp_path
     [
         ({"auto": 3}, r"model.classes.auto must be a mapping"),
         ({"auto": {}, "edges": [1]}, "auto takes its options inside it"),
-        ({"auto": {"width": 2}}, "unknown key"),
+        ({"auto": {"width": 2}}, r"unknown model.classes.auto setting\(s\) \['width'\]"),
         ({"auto": {"bins": 1}}, "bins must be an integer from 2 to 20"),
         ({"auto": {"bins": 2.5}}, "bins must be an integer from 2 to 20"),
         ({"auto": {"over": {"zz": [0, 1]}}}, "not an input parameter"),

@@ -66,7 +66,7 @@ BAD_INPUTS = [
     ("simulate", ["decision=abstract", "gp.inputs=[m,L,F,cheyp]"], "at most 3 inputs"),
     ("simulate", ["decision=abstract", "gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'"),
     ("train", ["gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'; allowed values"),
-    ("train", ["+gp.foo=1"], "gp.foo"),
+    ("train", ["+gp.foo=1"], "unknown gp setting(s) ['foo']"),
     ("simulate", ["model.motor_sampler=foo"], "model.motor_sampler must be one of"),
     ("simulate", ["model.tumble_mode=foo"], "model.tumble_mode must be one of"),
     ("simulate", ["+model.foo=1"], "unknown model setting(s) ['foo']"),

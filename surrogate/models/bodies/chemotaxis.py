@@ -111,6 +111,6 @@ class RunAndTumbleBody(ChemotacticBody):
 
     def kernel_precompiler(self) -> str | None:
         """The E. coli kernel's precompile while numba's cache lacks it."""
-        from surrogate.models.ecoli import kernel
+        from surrogate.models.ecoli import kernel  # numba: imported on demand
 
         return None if kernel.is_compiled_on_disk() else f"{kernel.__name__}:precompile"

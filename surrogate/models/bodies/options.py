@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from surrogate.errors import ConfigError
-from surrogate.models.base import yaml_hint
+from surrogate.validation import yaml_hint
 
 __all__ = ["number"]
 

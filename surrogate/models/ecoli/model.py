@@ -63,7 +63,7 @@ class EcoliModel(Model):
     def kernel_precompiler(self) -> str | None:
         """:func:`surrogate.models.ecoli.kernel.precompile` while numba's cache lacks the
         kernel (one signature serves every decision layer and field)."""
-        from surrogate.models.ecoli import kernel
+        from surrogate.models.ecoli import kernel  # numba: imported on demand
 
         return None if kernel.is_compiled_on_disk() else f"{kernel.__name__}:precompile"
 

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from surrogate.errors import ConfigError
-from surrogate.models.base import yaml_hint
+from surrogate.validation import known_keys, yaml_hint
 
 TUMBLE_MODES = ("per_step", "per_tumble")
 MOTOR_SAMPLERS = ("transition_matrix", "ssa")
@@ -98,12 +98,8 @@ class EcoliParameters:
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> EcoliParameters:
         """Build from a ``model`` config group, refusing unknown keys (typos) by name."""
-        known = {f.name for f in fields(cls)}
         data = {k: v for k, v in dict(cfg).items() if not k.startswith("_") and k != "name"}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"unknown model setting(s) {unknown}; allowed: {sorted(known)}")
-        return cls(**data)
+        return cls(**known_keys(data, sorted(f.name for f in fields(cls)), "model"))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict of all constants (for manifests)."""

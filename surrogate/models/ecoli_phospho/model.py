@@ -39,6 +39,7 @@ from surrogate.models.base import (
 )
 from surrogate.models.ecoli import formulas
 from surrogate.models.ecoli.body import ChemotacticBody
+from surrogate.models.ecoli.motors import run_probability_after, states_from_counts
 from surrogate.models.ecoli.parameters import EcoliParameters
 from surrogate.models.ecoli.signalling import free_energy
 from surrogate.models.ecoli_phospho.constants import PhosphoConstants, calibrated
@@ -112,8 +113,6 @@ class PhosphoInternalModel(NetworkInternalModel):
         network's own per-motor propensities at its two ends (CheY-P relaxes in ~33 ms; dt is
         50 ms). :func:`~surrogate.models.ecoli.motors.run_probability_after` then gives P(RUN).
         """
-        from surrogate.models.ecoli.motors import run_probability_after, states_from_counts
-
         counts, streams = state
         activity = self.features(x, ("activity",)).to(torch.float64).to(counts.device)
         h = dt / self.expected_substeps
@@ -250,7 +249,7 @@ class EcoliPhosphoModel(Model):
     def kernel_precompiler(self) -> str | None:
         """:func:`surrogate.models.ecoli.kernel.precompile` while numba's cache lacks the
         kernel (the first model's: one signature serves both models)."""
-        from surrogate.models.ecoli import kernel
+        from surrogate.models.ecoli import kernel  # numba: imported on demand
 
         return None if kernel.is_compiled_on_disk() else f"{kernel.__name__}:precompile"
 

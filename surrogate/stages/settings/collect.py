@@ -22,6 +22,7 @@ from surrogate.stages.settings.common import (
     command_line,
     group_overrides,
 )
+from surrogate.validation import known_keys
 
 if TYPE_CHECKING:
     from surrogate.stages.settings.train import TrainSettings
@@ -124,13 +125,7 @@ def _design_settings(
     d = options.get("design")
     if d is None:
         return None
-    if not isinstance(d, Mapping):
-        raise ConfigError(f"collect.design must be a mapping of {list(DESIGN_KEYS)}, got {d!r}")
-    unknown = sorted(set(d) - set(DESIGN_KEYS))
-    if unknown:
-        raise ConfigError(
-            f"unknown collect.design setting(s) {unknown}; allowed: {list(DESIGN_KEYS)}"
-        )
+    d = known_keys(d, DESIGN_KEYS, "collect.design")
     if d.get("target_error") is None:
         return None
     target = positive(d, "target_error", "collect.design.")

@@ -34,6 +34,7 @@ from surrogate.stages.settings.common import (
     group_overrides,
 )
 from surrogate.stages.settings.reproduce import ReproduceSettings
+from surrogate.validation import known_keys
 
 INSPECT_CMD = "python3 scripts/inspect_model.py"
 #: the top-level run settings the costs and the population runs are read from
@@ -80,14 +81,9 @@ class InspectSettings:
             raise ConfigError("fields must list at least one field, e.g. [gaussian, linear]")
         for name in fields:
             field_config(name)
-        given = c.get("inspect") or {}
-        if not isinstance(given, Mapping):
-            raise ConfigError(f"inspect must be a mapping of settings, got {given!r}")
         defaults = inspect_defaults()
-        unknown = sorted(set(given) - set(defaults))
-        if unknown:
-            raise ConfigError(f"unknown inspect setting(s) {unknown}; allowed: {sorted(defaults)}")
-        o = {**defaults, **dict(given)}
+        given = known_keys(c.get("inspect") or {}, sorted(defaults), "inspect")
+        o = {**defaults, **given}
         for key in POSITIVE:
             positive(o, key, "inspect.")
         for key in INTEGERS:

@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from surrogate.config import non_negative, positive, to_dict, validate_start
+from surrogate.config import CONF_DIR, non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
 from surrogate.grid import is_coupled
 from surrogate.io import artefact_dir
@@ -164,8 +164,6 @@ class SimulateSettings:
 def _shipped_run_settings() -> dict[str, Any]:
     """The run settings of the shipped ``conf/simulate.yaml`` (what a command need not repeat)."""
     from omegaconf import OmegaConf
-
-    from surrogate.config import CONF_DIR
 
     data = to_dict(OmegaConf.load(CONF_DIR / "simulate.yaml"))
     return {k: v for k, v in data.items() if k != "defaults"}

@@ -38,6 +38,7 @@ from surrogate.stages.settings.common import (
     group_overrides,
 )
 from surrogate.stages.settings.occupancy import OccupancySettings
+from surrogate.validation import known_keys
 
 #: keys of the gp group that are not GP hyperparameters
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
@@ -69,12 +70,7 @@ def _class_moves(
     moves = gp_config.get("class_moves") or "learned"
     if moves not in CLASS_MOVES:
         raise ConfigError(f"gp.class_moves must be one of {list(CLASS_MOVES)}, got {moves!r}")
-    options = gp_config.get("relaxation") or {}
-    if not isinstance(options, Mapping):
-        raise ConfigError(f"gp.relaxation must be a mapping {{n_cells, lags}}, got {options!r}")
-    unknown = sorted(set(options) - {"n_cells", "lags"})
-    if unknown:
-        raise ConfigError(f"gp.relaxation: unknown key(s) {unknown}; it takes n_cells and lags")
+    options = known_keys(gp_config.get("relaxation") or {}, ("n_cells", "lags"), "gp.relaxation")
     cells = options.get("n_cells", DEFAULT_CELLS)
     if isinstance(cells, bool) or not isinstance(cells, int) or cells < 10:
         raise ConfigError(f"gp.relaxation.n_cells must be an integer >= 10, got {cells!r}")
@@ -351,12 +347,8 @@ class TrainSettings:
 
 
 def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str, Any]:
-    unknown = sorted(set(options) - set(DIAGNOSTIC_DEFAULTS))
-    if unknown:
-        raise ConfigError(
-            f"unknown gp.diagnostic setting(s) {unknown}; allowed: {sorted(DIAGNOSTIC_DEFAULTS)}"
-        )
-    d = {**DIAGNOSTIC_DEFAULTS, **dict(options)}
+    d = {**DIAGNOSTIC_DEFAULTS,
+         **known_keys(options, sorted(DIAGNOSTIC_DEFAULTS), "gp.diagnostic")}  # fmt: skip
     positive(d, "n_cells", "gp.diagnostic.", integer=True)
     positive(d, "t_end", "gp.diagnostic.")
     positive(d, "record_every", "gp.diagnostic.", integer=True)
