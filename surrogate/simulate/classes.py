@@ -33,6 +33,11 @@ from surrogate.models.base import InternalModel, Randoms
 from surrogate.models.capabilities import exact_class_step_of, lump_classes_of, signal_bounds_of
 from surrogate.simulate.stateful import StatefulDecision, carried_alias
 
+#: where a chain's cells start: the internal model's initial law, or the chain's stationary law
+STARTS = ("internal", "stationary")
+#: repeated squarings of a node's law for its stationary law (2^40 windows at most)
+STATIONARY_SQUARINGS = 40
+
 #: collect's class columns (the class at the window's start and end)
 CLASS, CLASS_NEXT = "phi_class", "phi_class_next"
 
@@ -111,6 +116,7 @@ class ClassTable:
         self._strides = tuple(reversed(strides))
         self._origin_stride = s
         self.lumps = torch.tensor(self.class_lumps, dtype=torch.float32)
+        self._start_cdf: Tensor | None = None  # the stationary law's rows, made when drawn
 
     @property
     def n_classes(self) -> int:
@@ -201,6 +207,41 @@ class ClassTable:
             out = out + weight.unsqueeze(1) * p[index]
         return out
 
+    def stationary(self) -> Tensor:
+        """Each node's stationary law ``n_1..n_d x C`` (float64): the law after infinitely many
+        windows from uniform classes, by repeated squaring of the node's ``C x C`` law (2^k
+        windows after k squarings; a relaxing bin keeps its class ~3e4 windows, so ~30 do)."""
+        c = self.n_classes
+        p = self.probabilities().double().reshape(c, -1, c).transpose(0, 1).cpu()
+        for _ in range(STATIONARY_SQUARINGS):
+            q = p @ p
+            q = q / q.sum(-1, keepdim=True)
+            converged = bool((q - p).abs().max() < 1e-12)
+            p = q
+            if converged:
+                break
+        return p.mean(1).reshape(*self.shape, c)
+
+    def draw_start(self, z: Tensor, u: Tensor) -> Tensor:
+        """Each cell's class drawn from the chain's stationary law at its inputs (the node
+        picked by stochastic rounding, as :meth:`draw` does).
+
+        Args:
+            z: ``n x d`` the abstraction's inputs.
+            u: ``(d + 1) x n`` uniforms in [0, 1): one per axis, the last for the class.
+
+        Returns:
+            ``(n,)`` int64 classes.
+        """
+        if self._start_cdf is None or self._start_cdf.device != self.cdf.device:
+            cdf = self.stationary().reshape(-1, self.n_classes).cumsum(-1)
+            cdf[:, -1] = 1.0  # a uniform in [0, 1) never passes the last class
+            self._start_cdf = cdf.to(torch.float32).to(self.cdf.device)
+        index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
+        for j, (node, frac) in enumerate(self._positions(z)):
+            index = index + (node + (u[j] < frac).long()) * self._strides[j]
+        return (u[-1][:, None] >= self._start_cdf[index][:, :-1]).sum(-1)
+
     def to_state(self) -> dict[str, Any]:
         """Plain tensors and lists (``torch.save``-able, loads with ``weights_only=True``)."""
         return {
@@ -231,6 +272,10 @@ class ClassDecision(StatefulDecision):
             drawn from its stationary law at their inputs (as the full model's cells do).
         featurize: ``x (n x d) -> z (n x k)``, the table's inputs; identity by default.
         name: the layer's name in logs and manifests.
+        start: where cells start: ``internal``, the class of an internal state from the
+            model's initial law at their inputs (the full model's start; for a network, its
+            burn-in), or ``stationary``, the chain's own stationary law at their inputs
+            (:meth:`ClassTable.draw_start`: no internal state is simulated).
     """
 
     cls = carried_alias("(n,) int64: each cell's class; None before initialize.")
@@ -241,7 +286,10 @@ class ClassDecision(StatefulDecision):
         internal: InternalModel,
         featurize: Callable[[Tensor], Tensor] | None = None,
         name: str = "classes",
+        start: str = "internal",
     ) -> None:
+        if start not in STARTS:
+            raise ValueError(f"start must be one of {list(STARTS)}, got {start!r}")
         declared = lump_classes_of(internal)
         if declared is None:
             raise ValueError(f"{type(internal).__name__} declares no classes (class_names)")
@@ -254,6 +302,7 @@ class ClassDecision(StatefulDecision):
         self.internal = internal
         self.featurize = featurize
         self.name = name
+        self.start = start
         self.randoms = Randoms(uniform=len(table.input_names) + 1)
         self._classify = declared.classify
 
@@ -267,9 +316,13 @@ class ClassDecision(StatefulDecision):
             raise ValueError(f"a class chain built for dt={self.table.dt} stepped with dt={dt}")
 
     def initialize(self, x: Tensor) -> Tensor:
-        """Classes of internal states drawn from their stationary law at each cell's inputs."""
-        self._inputs(x)
-        self.cls = self._classify(self.internal.initial_state(x)).to(x.device)
+        """Each cell's first class (see ``start``) at its inputs ``x`` (``n x d``)."""
+        z = self._inputs(x)
+        if self.start == "stationary":
+            u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
+            self.cls = self.table.draw_start(z, u)
+        else:
+            self.cls = self._classify(self.internal.initial_state(x)).to(x.device)
         return self.table.lumps[self.cls] > 0
 
     def _eager_step(
@@ -324,6 +377,7 @@ __all__ = [
     "CLASS",
     "CLASS_NEXT",
     "LUMPINGS",
+    "STARTS",
     "ClassDecision",
     "ClassTable",
     "can_classify",

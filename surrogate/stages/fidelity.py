@@ -80,6 +80,7 @@ from surrogate.stages.settings import (
     ModelSetup,
     TrainSettings,
     group_overrides,
+    resolve_start,
     validate_backend,
 )
 from surrogate.stages.simulate import (
@@ -115,6 +116,8 @@ class Candidate:
     inputs: str
     train_seed: int
     train: TrainSettings
+    #: where its cells start (``fidelity.initial`` resolved, :func:`resolve_start`)
+    start: str = "internal"
 
     @property
     def label(self) -> str:
@@ -160,7 +163,9 @@ class FidelitySettings:
         for choice in choices:
             for seed in seeds:
                 tc = {**c, "seed": seed, "gp": {**c["gp"], "inputs": choice}}
-                candidates.append(Candidate(str(choice), seed, TrainSettings.from_config(tc)))
+                train = TrainSettings.from_config(tc)
+                start = resolve_start(f.get("initial", "auto"), train, "fidelity.initial")
+                candidates.append(Candidate(str(choice), seed, train, start))
         setup = candidates[0].train.setup
         positive(f, "n_cells", "fidelity.", integer=True)
         t_end = float(positive(f, "t_end", "fidelity."))
@@ -204,10 +209,14 @@ class FidelitySettings:
             "dt": self.setup.dt,
             "fields": {name: field_config(name) for name in self.fields},
             "candidates": [c.train.identity() for c in self.candidates],
+            # checks whose candidates start as before keep the identity they had
+            **({"initial": [c.start for c in self.candidates]}
+               if any(c.start != "internal" for c in self.candidates) else {}),
             "exact_psi": self.exact_psi,
             **({"exact_clocks": list(self.exact_clocks)} if self.exact_clocks else {}),
             **({"exact_classes": True} if self.exact_classes else {}),
-            "fidelity": {**self.options, "times": list(self.times)},
+            "fidelity": {**{k: v for k, v in self.options.items() if k != "initial"},
+                         "times": list(self.times)},
             "compile": self.compile,
             "backend": self.backend,
             "device": self.job.device_type,
@@ -380,7 +389,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     for i, c in enumerate(settings.candidates):
         decision, _ = learned_decision(model, c.train, resolve_abstraction(c.train),
                                        str(o.get("mode", "lookup")), o.get("lookup_size"),
-                                       job.device)  # fmt: skip
+                                       job.device, start=c.start)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")

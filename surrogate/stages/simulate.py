@@ -111,7 +111,7 @@ def build_decision(
 
     directory = resolve_abstraction(d.train)
     layer, info = learned_decision(model, d.train, directory, d.mode or "lookup", d.lookup_size,
-                                   device)  # fmt: skip
+                                   device, start=d.start)  # fmt: skip
     return layer, {"abstraction_dir": str(directory), **info}
 
 
@@ -122,10 +122,12 @@ def learned_decision(
     mode: str,
     size: Sequence[int] | None,
     device: torch.device,
+    start: str = "internal",
 ) -> tuple[DecisionLayer, dict[str, Any]]:
     """The learned abstraction of the fit ``directory`` (made by ``train``) as a decision layer
-    over ``model`` on ``device``: the K-lumps chain (``gp.lumps=classes``, a table) or the chain
-    over phi (:func:`abstract_decision`: a lookup table of psi or the classifier itself).
+    over ``model`` on ``device``: the K-lumps chain (``gp.lumps=classes``, a table; its cells
+    start as ``start`` says, see :class:`ClassDecision`) or the chain over phi
+    (:func:`abstract_decision`: a lookup table of psi or the classifier itself).
 
     The layer carries the range its training data covered (``trained_range``: each input's
     min and max over the training rows, the fit's ``domain``; the switch clock, capped by
@@ -133,7 +135,7 @@ def learned_decision(
     from surrogate.stages.train import load_abstraction
 
     if train.lumps == "classes":
-        layer, info = learned_class_decision(model, directory, device)
+        layer, info = learned_class_decision(model, directory, device, start=start)
     else:
         psi = load_abstraction(directory, device=device)
         layer, info = abstract_decision(model, psi, train.setup.dt, train.max_age, mode, size,
@@ -146,19 +148,25 @@ def learned_decision(
 
 
 def learned_class_decision(
-    model: Model, directory: Path, device: torch.device, name: str = "abstract"
+    model: Model,
+    directory: Path,
+    device: torch.device,
+    name: str = "abstract",
+    start: str = "internal",
 ) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned K-lumps chain (``gp.lumps=classes``) of a fit directory on ``device``."""
+    """The learned K-lumps chain (``gp.lumps=classes``) of a fit directory on ``device``, its
+    cells starting as ``start`` says (:class:`ClassDecision`)."""
     from surrogate.stages.train import load_class_chain
 
     table = load_class_chain(directory, device)
     featurize = model.featurizer(table.input_names)
     log.info("K-lumps chain over %d classes, table %s over %s", table.n_classes, table.shape,
              table.input_names)  # fmt: skip
-    return ClassDecision(table, model.internal, featurize, name), {
+    return ClassDecision(table, model.internal, featurize, name, start=start), {
         "inputs": list(table.input_names),
         "lumps": "classes",
         "classes": list(table.class_names),
+        "start": start,
     }
 
 

@@ -59,6 +59,21 @@ def test_the_law_keeps_the_stationary_bins_and_relaxes_at_tau() -> None:
         assert torch.allclose(pi[node] @ want, pi[node], atol=1e-12)
 
 
+def test_a_relaxing_chain_starts_with_the_bins_stationary_law() -> None:
+    """The chain's own stationary law (where ``decision.initial=auto`` starts its cells) has
+    the bins' law pi at every node, whatever the learned flips."""
+    from surrogate.simulate.classes import ClassTable
+
+    n_nodes = 5
+    pi = torch.tensor([[0.2, 0.5, 0.3]] * n_nodes, dtype=torch.float64)
+    pi[3] = torch.tensor([0.6, 0.3, 0.1])
+    law = relaxation_class_law(_learned(n_nodes), pi, BINS, LUMPS, 1500.0, 0.05)
+    names = [f"c{k}" for k in range(6)]
+    start = ClassTable(law, [(0.0, 1.0)], ("z",), names, LUMPS, 0.05).stationary()
+    by_bin = torch.stack([start[:, [b, b + 3]].sum(-1) for b in range(3)], -1)
+    assert torch.allclose(by_bin, pi, atol=2e-3)  # float32 table, redraws of 3e-5 per window
+
+
 def test_the_law_keeps_the_learned_flips_within_a_bin() -> None:
     learned = _learned()
     law = relaxation_class_law(learned, torch.full((5, 3), 1 / 3, dtype=torch.float64), BINS,
@@ -159,3 +174,22 @@ def test_bins_of_each_lump_its_own_are_refused(tmp_path) -> None:
         check_shared_bins((0, 1, 2, 0, 1, 1), LUMPS)
     model = _hidden_gene(tmp_path, {"off": [1, 2], "on": [1, 3]})
     assert class_bins_of(model.internal) is None
+
+
+def test_auto_starts_only_a_relaxing_chain_from_its_stationary_law() -> None:
+    """``decision.initial=auto``: stationary for relaxing bins, the internal model's law for a
+    chain of learned moves and for the two-state chain; ``stationary`` needs a K-lumps chain."""
+    from types import SimpleNamespace
+
+    from surrogate.stages.settings import resolve_start
+
+    relaxing = SimpleNamespace(lumps="classes", class_moves="relaxation")
+    learned = SimpleNamespace(lumps="classes", class_moves="learned")
+    two_state = SimpleNamespace(lumps="phi", class_moves="learned")
+    assert resolve_start("auto", relaxing, "decision.initial") == "stationary"  # type: ignore[arg-type]
+    assert resolve_start("auto", learned, "decision.initial") == "internal"  # type: ignore[arg-type]
+    assert resolve_start("auto", two_state, "decision.initial") == "internal"  # type: ignore[arg-type]
+    assert resolve_start("internal", relaxing, "decision.initial") == "internal"  # type: ignore[arg-type]
+    assert resolve_start("stationary", learned, "x") == "stationary"  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="x=stationary starts a K-lumps chain"):
+        resolve_start("stationary", two_state, "x")  # type: ignore[arg-type]

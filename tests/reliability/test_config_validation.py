@@ -63,6 +63,13 @@ BAD_INPUTS = [
     ("simulate", ["decision=abstract", "decision.train_field=foo"], "unknown field 'foo'"),
     ("simulate", ["decision=abstract", "decision.lookup_size=[1]"], "decision.lookup_size"),
     ("simulate", ["decision=abstract", "decision.lookup_size=[8,8]"], "decision.lookup_size"),
+    ("simulate", ["decision=abstract", "decision.initial=burned"], "decision.initial must be one"),
+    (
+        "simulate",
+        ["decision=abstract", "decision.initial=stationary"],
+        "decision.initial=stationary starts a K-lumps chain",
+    ),
+    ("fidelity", ["fidelity.initial=stationary"], "fidelity.initial=stationary starts a K-lumps"),
     ("simulate", ["decision=abstract", "gp.inputs=[m,L,F,cheyp]"], "at most 3 inputs"),
     ("simulate", ["decision=abstract", "gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'"),
     ("train", ["gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'; allowed values"),

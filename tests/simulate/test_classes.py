@@ -180,6 +180,78 @@ def test_ecoli_classes_sit_in_their_lumps() -> None:
     assert len(internal.class_names) == 7 and sorted(set(internal.class_lumps)) == [0, 1]
 
 
+def test_the_stationary_law_of_each_node_solves_pi_p_equals_pi() -> None:
+    """Each node's stationary law is the left fixed point of its law (and, for two classes, the
+    closed form b / (a + b), a / (a + b)), also for a chain that keeps its class ~3e4 windows."""
+    table = _toy_table(3, (4, 3), seed=5)
+    pi = table.stationary()
+    p = table.probabilities().double()
+    for i in range(4):
+        for j in range(3):
+            assert float(pi[i, j].sum()) == pytest.approx(1.0, abs=1e-12)
+            assert torch.allclose(pi[i, j] @ p[:, i, j, :], pi[i, j], atol=1e-6)
+    a = torch.tensor([3e-5, 1e-3, 0.2], dtype=torch.float64)  # leaving class 0 per window
+    b = torch.tensor([1e-5, 4e-3, 0.5], dtype=torch.float64)  # leaving class 1
+    law = torch.stack([torch.stack([1 - a, a], -1), torch.stack([b, 1 - b], -1)])  # 2 x 3 x 2
+    slow = ClassTable(law, [(0.0, 1.0)], ("z",), ("off", "on"), (0, 1), DT)
+    want = torch.stack([b / (a + b), a / (a + b)], -1)
+    assert torch.allclose(slow.stationary(), want, atol=2e-3)  # float32 table: rates to ~1e-3
+
+
+@pytest.mark.parametrize("shape", [(5,), (4, 3)])
+def test_cells_start_from_the_interpolated_stationary_law(shape: tuple[int, ...]) -> None:
+    """``draw_start``: at inputs between nodes the classes follow the multilinear interpolation
+    of the nodes' stationary laws (a chi-square test at ALPHA, DRAWS cells per point)."""
+    table = _toy_table(3, shape, seed=7)
+    pi = table.stationary().reshape(-1, 3)
+    g = torch.Generator().manual_seed(2)
+    d = len(shape)
+    for point in POINTS[d]:
+        z = torch.tensor(point).expand(DRAWS, d)
+        counts = torch.bincount(table.draw_start(z, torch.rand(d + 1, DRAWS, generator=g)),
+                                minlength=3).double()  # fmt: skip
+        want = torch.zeros(3, dtype=torch.float64)
+        positions = table._positions(z[:1])
+        for corner in range(2**d):
+            index, weight = 0, 1.0
+            for j, (node, frac) in enumerate(positions):
+                up = (corner >> j) & 1
+                index += (int(node[0]) + up) * table.strides[j]
+                weight *= float(frac[0]) if up else 1.0 - float(frac[0])
+            want += weight * pi[index]
+        assert chisquare(counts.numpy(), (DRAWS * want / want.sum()).numpy()).pvalue > ALPHA
+
+
+def test_a_chain_started_stationary_simulates_no_internal_state() -> None:
+    """``start=stationary`` never asks the internal model for a state (a network's burn-in),
+    and its classes at the start are the stationary law's (ALPHA); other starts are refused."""
+    model, exact = _ecoli_layer(size=8)
+
+    class NoStates:
+        def __getattr__(self, name: str):
+            if name == "initial_state":
+                raise AssertionError("the internal model's initial state was simulated")
+            return getattr(model.internal, name)
+
+    layer = ClassDecision(exact.table, NoStates(), model.featurizer(["dG"]), start="stationary")  # type: ignore[arg-type]
+    x = _inputs(1, 0).expand(DRAWS, 2)
+    phi = layer.initialize(x)
+    assert torch.equal(phi, layer.table.lumps[layer.cls] > 0)
+    z = model.featurizer(["dG"])(x[:1])
+    pi = layer.table.stationary().reshape(-1, 7)
+    node, frac = layer.table._positions(z)[0]
+    want = (1 - float(frac[0])) * pi[int(node[0])] + float(frac[0]) * pi[int(node[0]) + 1]
+    counts = torch.bincount(layer.cls, minlength=7).double()
+    keep = want > 1e-9
+    assert counts[~keep].sum() == 0
+    assert (
+        chisquare(counts[keep].numpy(), (DRAWS * want[keep] / want[keep].sum()).numpy()).pvalue
+        > ALPHA
+    )
+    with pytest.raises(ValueError, match="start must be one of"):
+        ClassDecision(exact.table, model.internal, None, start="burned")
+
+
 def test_the_layer_refuses_another_models_classes_and_another_dt() -> None:
     model, layer = _ecoli_layer(size=8)
     t = layer.table

@@ -36,7 +36,13 @@ from surrogate.stages.settings.common import (
     ModelSetup,
     group_overrides,
 )
-from surrogate.stages.settings.decision import DECISION_MODES, DECISIONS, DecisionSettings
+from surrogate.stages.settings.decision import (
+    DECISION_MODES,
+    DECISIONS,
+    START_SETTINGS,
+    DecisionSettings,
+    resolve_start,
+)
 from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.inspection import INSPECT_CMD, InspectSettings
 from surrogate.stages.settings.occupancy import OccupancySettings
@@ -75,6 +81,7 @@ __all__ = [
     "LABEL_COLUMNS",
     "REPRODUCE_CMD",
     "SIMULATE_CMD",
+    "START_SETTINGS",
     "TRAIN_CMD",
     "CollectSettings",
     "DecisionSettings",
@@ -90,5 +97,6 @@ __all__ = [
     "batchable",
     "check_memory",
     "group_overrides",
+    "resolve_start",
     "validate_backend",
 ]

@@ -9,8 +9,9 @@ from typing import Any
 
 from surrogate.config import field_config, grid_size, to_dict
 from surrogate.errors import ConfigError
+from surrogate.gp.class_relaxation import chain_start
 from surrogate.models.capabilities import exact_class_step_of, has_exact_psi, signal_bounds_of
-from surrogate.simulate.classes import LUMPINGS, can_classify
+from surrogate.simulate.classes import LUMPINGS, STARTS, can_classify
 from surrogate.simulate.memory import can_age, history_setting
 from surrogate.stages.settings.common import ModelSetup
 from surrogate.stages.settings.train import TrainSettings
@@ -34,6 +35,8 @@ class DecisionSettings:
     max_age: float = 5.0
     #: decision=exact: phi | classes (the exact K-lumps chain over the model's classes)
     lumps: str = "phi"
+    #: decision=abstract: where cells start (``decision.initial`` resolved: internal | stationary)
+    start: str = "internal"
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup) -> DecisionSettings:
@@ -107,7 +110,8 @@ class DecisionSettings:
                     f"{list(train.inputs)}: use decision.mode=classifier"
                 )
             sizes = grid_size(d.get("lookup_size"), "decision.lookup_size", len(train.inputs))
-        return cls(name, d, mode, sizes, train, train_field)
+        start = resolve_start(d.get("initial", "auto"), train, "decision.initial")
+        return cls(name, d, mode, sizes, train, train_field, start=start)
 
     def identity(self) -> dict[str, Any]:
         """What of the decision defines a run (the abstraction by its fit's identity: the
@@ -115,7 +119,32 @@ class DecisionSettings:
         config = self.config
         if config.get("lumps", "phi") == "phi":  # runs keep the identity they had before K lumps
             config = {k: v for k, v in config.items() if k != "lumps"}
+        # runs starting as before keep the identity they had before decision.initial
+        config = {k: v for k, v in config.items() if k != "initial"}
         out: dict[str, Any] = {"decision": config}
         if self.train is not None:
             out["abstraction"] = self.train.fit_identity()
+        if self.start != "internal":
+            out["initial"] = self.start
         return out
+
+
+#: decision.initial: auto (the abstraction's own choice, :func:`chain_start`) or either start
+START_SETTINGS = ("auto", *STARTS)
+
+
+def resolve_start(value: Any, train: TrainSettings, where: str) -> str:
+    """``decision.initial`` (or ``fidelity.initial``) as ``internal`` or
+    ``stationary``: ``auto`` is the chain's own choice (:func:`chain_start`); ``stationary``
+    needs a K-lumps chain (the two-state chain starts from the internal model's law)."""
+    if value not in START_SETTINGS:
+        raise ConfigError(f"{where} must be one of {list(START_SETTINGS)}, got {value!r}")
+    if value == "auto":
+        return chain_start(train.class_moves) if train.lumps == "classes" else "internal"
+    if value == "stationary" and train.lumps != "classes":
+        raise ConfigError(
+            f"{where}=stationary starts a K-lumps chain from its stationary law (gp=classes); "
+            f"the two-state chain starts from the internal model's initial law: use "
+            f"{where}=internal or auto"
+        )
+    return str(value)
