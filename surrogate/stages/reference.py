@@ -38,6 +38,7 @@ import logging
 import math
 import multiprocessing
 import os
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -374,9 +375,56 @@ def _make_shard(settings: ReferenceSettings, run_index: int, shard: int, force: 
     r = settings.runs[run_index]
     out = r.shard_dir(shard)
     make_once(out, r.shard_identity(shard), settings.command,
-              lambda _: _simulate_shard(r, shard, out, settings), what="reference shard",
-              force=force)  # fmt: skip
+              lambda _: _adopt_or_simulate(r, shard, out, settings, force),
+              what="reference shard", force=force)  # fmt: skip
     return time.perf_counter() - t0
+
+
+def equivalent_shard(r: ReferenceRun, index: int) -> Path | None:
+    """A finished shard ``index`` of another size of the same run, if one exists: shard i
+    draws from child i of ``SeedSequence(seed)`` whatever the shard count, so a run of the same
+    law, seed and shard size (only ``n_cells`` differs) has the very same cells there, and
+    extending a stored run from 1,000 to 4,000 cells pays for the 3,000 new ones only."""
+    size = shard_sizes(r.n_cells, r.shard_count)[index]
+    want = _normalised({k: v for k, v in r.shard_identity(index).items() if k != "n_cells"})
+    root = r.data_dir / SHARDS_DIR / r.setup.model.name
+    for d in sorted(root.glob(f"*/shard-{index:04d}")):
+        if d == r.shard_dir(index) or not (d / MANIFEST).exists():
+            continue
+        try:
+            m = read_manifest(d)
+        except ArtefactError:
+            continue
+        theirs = m.get("settings") or {}
+        if (m.get("n_cells") == size
+                and _normalised({k: v for k, v in theirs.items() if k != "n_cells"}) == want):  # fmt: skip
+            return d
+    return None
+
+
+def _normalised(identity: Mapping[str, Any]) -> str:
+    return json.dumps(identity, sort_keys=True, default=str)
+
+
+def _adopt_or_simulate(
+    r: ReferenceRun, shard: int, out: Path, settings: ReferenceSettings, force: bool
+) -> None:
+    """Shard ``shard`` copied from an equivalent one (:func:`equivalent_shard`), else simulated."""
+    source = None if force else equivalent_shard(r, shard)
+    if source is None:
+        _simulate_shard(r, shard, out, settings)
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    for name in (OBSERVABLES, SEGMENTS):  # the manifest, written last, marks the shard done
+        shutil.copyfile(source / name, out / name)
+    kept = {k: v for k, v in read_manifest(source).items()
+            if k not in ("stage", "config", "seed", "settings", "versions", "torch_threads",
+                         "host")}  # fmt: skip
+    log.info("reference: shard %d of the %s is shard %d of %s (same cells), copied", shard,
+             r.describe(), shard, source.parent.name)  # fmt: skip
+    write_manifest(out, stage="reference_shard", config=settings.config,
+                   seed=shard_seed(r.seed, r.shard_count, shard),
+                   settings=r.shard_identity(shard), copied_from=str(source), **kept)  # fmt: skip
 
 
 def _simulate_shard(r: ReferenceRun, shard: int, out: Path, settings: ReferenceSettings) -> None:

@@ -160,3 +160,34 @@ def test_worker_processes_make_the_same_bytes(compose_cfg, tmp_path) -> None:
     for t in one.observables:
         np.testing.assert_array_equal(one.observables[t], two.observables[t])
     assert one.segments == two.segments and one.total_steps == two.total_steps
+
+
+def test_a_larger_run_copies_the_shards_a_smaller_one_made(
+    stored, compose_cfg, monkeypatch
+) -> None:
+    """Shard i of a run is the same cells whatever the run's size (child i of the seed), so a
+    run of 16 cells (4 shards of 4) simulates only its new shard and copies the 12-cell run's three: the merged
+    run's first 12 cells are the stored run's, byte for byte."""
+    overrides, small = stored
+    made = []
+    simulate_shard = reference._simulate_shard
+
+    def spy(r, shard, out, s):
+        made.append((r.which, shard))
+        simulate_shard(r, shard, out, s)
+
+    monkeypatch.setattr(reference, "_simulate_shard", spy)
+    larger = reference.validate(compose_cfg("fidelity", [*overrides, "fidelity.n_cells=16"]))
+    reference.make(larger)
+    assert sorted(made) == [("full", 3), ("full_repeat", 3)]
+    r, r12 = larger.run_for("gaussian", "full"), small.run_for("gaussian", "full")
+    got = reference.load(r, larger.command, r.record_times)
+    old = reference.load(r12, small.command, r12.record_times)
+    for t in r.record_times:
+        np.testing.assert_array_equal(got.observables[t][:12], old.observables[t])
+        assert len(got.observables[t]) == 16
+    # another shard size is other cells: nothing to copy
+    made.clear()
+    other = reference.validate(compose_cfg("fidelity", [*overrides, "reference.shard_cells=4"]))
+    reference.make(other)
+    assert len(made) == 6
