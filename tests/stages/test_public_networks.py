@@ -1,0 +1,93 @@
+"""Networks written as public repositories export them (StochSS's L3V2: amounts in "mole",
+every reaction flagged reversible, laws in counts), run as a new user runs them: a yaml with
+no `signal_bounds`, the inspector, reproduce's settings. Each test reproduces one rough edge
+such a file hit, in a few states written here (no public file is copied)."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import pytest
+import yaml
+
+from surrogate.sbml import SbmlWarning
+
+#: a StochSS-style export: a monomer dimerising reversibly, 12 monomers (7 states)
+DIMERISATION = """<?xml version="1.0" encoding="UTF-8"?>
+<sbml xmlns="http://www.sbml.org/sbml/level3/version2/core" level="3" version="2">
+  <model name="Dimers">
+    <listOfCompartments>
+      <compartment id="vol" spatialDimensions="3" size="1" constant="true"/>
+    </listOfCompartments>
+    <listOfSpecies>
+      <species id="M" compartment="vol" initialAmount="12" substanceUnits="mole"
+               hasOnlySubstanceUnits="false" boundaryCondition="false" constant="false"/>
+      <species id="D" compartment="vol" initialAmount="0" substanceUnits="mole"
+               hasOnlySubstanceUnits="false" boundaryCondition="false" constant="false"/>
+    </listOfSpecies>
+    <listOfParameters>
+      <parameter id="k_c" value="0.05" constant="true"/>
+      <parameter id="k_d" value="0.5" constant="true"/>
+    </listOfParameters>
+    <listOfReactions>
+      <reaction id="bind" reversible="true">
+        <listOfReactants><speciesReference species="M" stoichiometry="2" constant="true"/>
+        </listOfReactants>
+        <listOfProducts><speciesReference species="D" stoichiometry="1" constant="true"/>
+        </listOfProducts>
+        <kineticLaw><math xmlns="http://www.w3.org/1998/Math/MathML">
+          <apply><divide/><apply><times/><cn>0.5</cn><ci>k_c</ci><ci>M</ci>
+            <apply><minus/><ci>M</ci><cn type="integer">1</cn></apply></apply><ci>vol</ci>
+          </apply></math></kineticLaw>
+      </reaction>
+      <reaction id="unbind" reversible="true">
+        <listOfReactants><speciesReference species="D" stoichiometry="1" constant="true"/>
+        </listOfReactants>
+        <listOfProducts><speciesReference species="M" stoichiometry="2" constant="true"/>
+        </listOfProducts>
+        <kineticLaw><math xmlns="http://www.w3.org/1998/Math/MathML">
+          <apply><times/><ci>k_d</ci><ci>D</ci></apply></math></kineticLaw>
+      </reaction>
+    </listOfReactions>
+  </model>
+</sbml>
+"""
+
+WALKER = {"kind": "walker", "speed_on": 0.02, "speed_off": 0.005}
+
+
+def write_model(tmp_path: Path, sbml: str, **spec: object) -> Path:
+    """The SBML text beside a yaml naming it (``spec`` adds or overrides keys)."""
+    (tmp_path / "net.sbml").write_text(sbml)
+    keys = {"network": "net.sbml", "substance_units": "items", "body": WALKER, **spec}
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump(keys))
+    return path
+
+
+def test_reproduce_runs_the_exact_chain_directly_without_signal_bounds(
+    compose_cfg, tmp_path
+) -> None:
+    """An enumerable network whose yaml declares no `signal_bounds` (none of the examples'
+    keys a new user copies): reproduce's exact chain computes exp(Q dt) at each cell's inputs
+    (decision.mode=direct) rather than refusing the whole run with advice that names the
+    abstraction's decision; with bounds it keeps its table."""
+    from surrogate.errors import ConfigError
+    from surrogate.stages.settings import ReproduceSettings, SimulateSettings
+
+    spec = write_model(tmp_path, DIMERISATION, inputs={"k_c": "L"}, lump="D >= 2")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SbmlWarning)
+        overrides = ["model=sbml", f"model.spec={spec}"]
+        settings = ReproduceSettings.from_config(compose_cfg("reproduce", overrides))
+        assert settings.exact, "the network is enumerable: its exact chain runs"
+        assert {e.candidate.decision.mode for e in settings.exact.values()} == {"direct"}
+        with pytest.raises(ConfigError, match="signal_bounds"):  # asked for by name
+            SimulateSettings.from_config(compose_cfg("simulate", [*overrides, "decision=exact"]))
+        bounded = write_model(tmp_path, DIMERISATION, inputs={"k_c": "L"}, lump="D >= 2",
+                              signal_bounds={"k_c": [0.0, 0.1]})  # fmt: skip
+        table = ReproduceSettings.from_config(
+            compose_cfg("reproduce", ["model=sbml", f"model.spec={bounded}"])
+        )
+        assert {e.candidate.decision.mode for e in table.exact.values()} == {"lookup"}
