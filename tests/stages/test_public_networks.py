@@ -91,3 +91,44 @@ def test_reproduce_runs_the_exact_chain_directly_without_signal_bounds(
             compose_cfg("reproduce", ["model=sbml", f"model.spec={bounded}"])
         )
         assert {e.candidate.decision.mode for e in table.exact.values()} == {"lookup"}
+
+
+def decay_model(tmp_path: Path, **spec: object) -> Path:
+    """StochSS's Degradation written small: X -> 0 at k X from 12 molecules (k = L), nothing
+    makes X: every cell ends at X = 0, where no reaction can fire."""
+    from tests.sbml.builder import Reaction, Species, build
+
+    text = build("decay", [Species("X", amount=12)], {"k": 0.5},
+                 [Reaction("decay", "k * X", {"X": 1}, {})])  # fmt: skip
+    return write_model(tmp_path, text, inputs={"k": "20 * L"}, lump="X >= 6", **spec)
+
+
+@pytest.mark.parametrize("max_states", [5000, 0], ids=["exact", "simulated"])
+def test_a_network_that_runs_down_is_refused_as_such(compose_cfg, tmp_path, max_states) -> None:
+    """StochSS's Degradation, Michaelis-Menten and Schlogl exports run down to a state where
+    no reaction fires (the substrate used up): the inspector used to advise "choose a lump that
+    holds part of the time" (none can) and flag the input `k` as having "no effect". Now it
+    says the network stops, with the state it stops in, exactly (the generator) and by
+    simulation; the input is flagged as unseen, not as without effect."""
+    from surrogate.errors import ConfigError
+    from surrogate.io import read_json
+    from surrogate.stages import inspection
+
+    spec = decay_model(tmp_path, max_states=max_states)
+    small = ["model=sbml", f"model.spec={spec}", "fields=[gaussian]", "t_end=20",
+             "equilibration_time=1", "inspect.population_cells=20", "inspect.max_seconds=5",
+             "inspect.n_cells=20", "inspect.record_windows=200", "threads=1"]  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SbmlWarning)
+        with pytest.raises(ConfigError) as info:
+            inspection.run(compose_cfg("inspect", small))
+    message = str(info.value)
+    assert "the network stops" in message and "(e.g. X = 0)" in message, message
+    assert "Choose a lump" not in message
+    report = next((tmp_path / "data" / "inspect").glob("*/inspect.json"))
+    summary = read_json(report)
+    assert summary["occupancy"]["method"] == ("exact" if max_states else "simulated")
+    assert summary["stopped"]["share"] == pytest.approx(1.0)
+    assert summary["stopped"]["state"] == {"X": 0}
+    flags = summary["network"]["inputs"][0]["flags"]
+    assert flags and "never fires" in flags[0], flags
