@@ -9,6 +9,7 @@ import warnings
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 from surrogate.sbml import SbmlWarning
@@ -132,3 +133,32 @@ def test_a_network_that_runs_down_is_refused_as_such(compose_cfg, tmp_path, max_
     assert summary["stopped"]["state"] == {"X": 0}
     flags = summary["network"]["inputs"][0]["flags"]
     assert flags and "never fires" in flags[0], flags
+
+
+def test_species_in_laws_from_the_yaml_and_the_identity_of_older_models(tmp_path) -> None:
+    """The yaml's `species_in_laws: counts` reaches the reader (a StochSS export with volume
+    1000 is read over counts); unset, the key stays out of the spec's digests (the full
+    model's law, every artefact's sources), so yamls written before it keep their artefacts."""
+    import hashlib
+    import json
+
+    from surrogate.models.sbml_agent import ABSTRACTION_KEYS, SbmlAgentModel
+    from tests.sbml.test_reader import stochss_export
+
+    text = stochss_export(1000.0)
+    counts = SbmlAgentModel(str(write_model(tmp_path, text, inputs={"k1": "L"}, lump="X >= 20",
+                                            species_in_laws="counts")))  # fmt: skip
+    kinetics = counts.internal.kinetics
+    state = torch.tensor([[20, 10]])
+    assert (
+        kinetics.propensities(state, torch.tensor([[5.0]]))[0, 1].item() == 0.5 * 10 * 20 * 19 / 2
+    )
+    unset = SbmlAgentModel(str(write_model(tmp_path, DIMERISATION, inputs={"k_c": "L"},
+                                           lump="D >= 2")))  # fmt: skip
+    law = {k: v for k, v in unset.settings.items()
+           if k not in ABSTRACTION_KEYS and k != "species_in_laws"}  # fmt: skip
+    digest = hashlib.sha256(json.dumps(law, sort_keys=True, default=str).encode()).hexdigest()
+    assert unset.full_model_identity({})["model_sources"]["settings"] == digest
+    read = {k: v for k, v in unset.settings.items() if k != "species_in_laws"}
+    spec = hashlib.sha256(json.dumps(read, sort_keys=True, default=str).encode()).hexdigest()
+    assert unset.sources()["spec"] == spec  # every artefact's identity, as before the key
