@@ -822,6 +822,24 @@ class _Reader:
         """``(S,)`` initial counts; a species assigned by a rule takes the rule's value there
         (with ``inputs``, the file's values of the inputs; left 0 where one has none: the SSAs
         set it from each cell's inputs at every window's start)."""
+        fractional = [
+            f"{sp.getId()!r} ({sp.getInitialAmount():g})"
+            for sp in self.species
+            if sp.getId() not in self.species_rules
+            and sp.isSetInitialAmount()
+            and sp.getId() not in self.initial_assignments
+            and math.isfinite(sp.getInitialAmount())
+            and not float(sp.getInitialAmount()).is_integer()
+        ]
+        if fractional:
+            raise SbmlError(
+                f"{self.label}: the initialAmount of species {', '.join(fractional)} "
+                f"{'is' if len(fractional) == 1 else 'are'} not a whole number of molecules: "
+                "the stochastic reading needs counts, and these amounts are not (a model "
+                "written for ODEs, in concentrations or moles?). Rescale it to molecule counts "
+                "in the file (amounts, and the rate constants of reactions of order 2 and "
+                "more by the volume), or use a deterministic simulator"
+            )
         counts = [
             0 if sp.getId() in self.species_rules else self.initial_count(sp) for sp in self.species
         ]

@@ -587,6 +587,18 @@ def stochss_export(volume: float) -> str:
     )  # fmt: skip
 
 
+def test_fractional_amounts_are_refused_all_at_once_with_the_reason():
+    """StochSS's Lotka-Volterra export (an ODE model: R = 0.0095, W = 0.008 "mole") was refused
+    at its first species, without the file or what to do: now every such species, the file
+    and the fix are named."""
+    species = [Species("R", amount=0.0095), Species("W", amount=0.008), Species("Z", amount=3)]
+    reactions = [Reaction("R1", "k * R", {"R": 1}), Reaction("R2", "k * W", {"W": 1})]
+    message = refused(simple(species=species, reactions=reactions),
+                      "<string>: the initialAmount of species 'R' (0.0095), 'W' (0.008) are not "
+                      "a whole number of molecules", "Rescale it to molecule counts")  # fmt: skip
+    assert "'Z'" not in message
+
+
 def test_a_stochss_export_with_a_volume_says_how_its_species_read_in_laws():
     """Such an export with volume 1000 used to be read silently as concentrations (X / 1000 in
     every law: the cubic propensity 1e9 times too small, the Brusselator never oscillated):
