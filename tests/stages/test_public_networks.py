@@ -162,3 +162,34 @@ def test_species_in_laws_from_the_yaml_and_the_identity_of_older_models(tmp_path
     read = {k: v for k, v in unset.settings.items() if k != "species_in_laws"}
     spec = hashlib.sha256(json.dumps(read, sort_keys=True, default=str).encode()).hexdigest()
     assert unset.sources()["spec"] == spec  # every artefact's identity, as before the key
+
+
+def test_a_waste_counter_does_not_hold_the_settling_run_back(tmp_path) -> None:
+    """StochSS's Brusselator counts its waste (C, D: made, never consumed nor read): their
+    means grow for ever, so the settling run used to double its horizon until the budget and
+    call every grid point unsettled (the occupancy refusal then only a warning, the burn-in
+    advice a lower bound). A birth-death X with a waste counter W now settles, W's growth is
+    reported, and the counter is named in the notes."""
+    import numpy as np
+
+    from surrogate.models.sbml_agent import SbmlAgentModel
+    from surrogate.stages import inspection
+    from surrogate.stages.settings.inspection import inspect_defaults
+    from tests.sbml.builder import Reaction, Species, build
+
+    text = build("waste", [Species("X", amount=0), Species("W", amount=0)], {"k": 2.0, "g": 1.0},
+                 [Reaction("birth", "k", {}, {"X": 1}),
+                  Reaction("death", "g * X", {"X": 1}, {"W": 1})])  # fmt: skip
+    model = SbmlAgentModel(str(write_model(tmp_path, text, inputs={"k": "40 * L"}, lump="X >= 3",
+                                           body={"kind": "static"})))  # fmt: skip
+    assert inspection.counter_species(model.internal) == [1]
+    v = np.array([0.05, 0.04, 0.06])
+    grid = inspection.Grid(("L",), v[:, None], np.array([-1, 0, 0]), v.min(keepdims=True),
+                           v[:1], v.max(keepdims=True))  # fmt: skip
+    torch.manual_seed(0)
+    options = {**inspect_defaults(), "n_cells": 200, "record_windows": 200, "max_time": 80.0}
+    fixed = inspection.simulate_fixed_inputs(model, grid, options, 0.05, torch.device("cpu"),
+                                             30.0)  # fmt: skip
+    assert fixed.settled.all(), fixed.notes
+    assert any("not waited for: W" in note for note in fixed.notes)
+    assert fixed.horizon < 80.0  # settled on X and phi, not stopped at max_time
