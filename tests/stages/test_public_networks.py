@@ -223,3 +223,23 @@ def test_a_start_the_noise_hides_is_not_taken_for_a_settled_curve() -> None:
     near = cells(25)
     near[:, 0] = near[:, 1:].mean()
     assert settling_from_cells(times, near).settled
+
+
+def test_the_noise_lines_name_each_quantity_beside_its_own_floor() -> None:
+    """The Tyson oscillator's report said "linear: largest KS 0.340 vs noise floor 0.360;
+    above noise: on, off": the largest KS (t=25 s) and the largest floor were one quantity,
+    while `on` and `off` were above their own floors. Each quantity above noise is now named
+    with its KS and its floor."""
+    import pandas as pd
+
+    from surrogate.stages.reproduce import noise_line
+
+    table = pd.DataFrame({"quantity": ["t=25 s", "on", "off"], "ks": [0.34, 0.199, 0.145],
+                          "ks_noise_floor": [0.36, 0.101, 0.067],
+                          "within_noise": [True, False, False]})  # fmt: skip
+    assert noise_line("linear", table) == (
+        "- **linear**: above noise: on (KS 0.199 vs noise floor 0.101), off (KS 0.145 vs "
+        "noise floor 0.067)."
+    )
+    table["within_noise"] = True
+    assert "every quantity within" in noise_line("linear", table)
