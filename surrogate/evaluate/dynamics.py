@@ -60,7 +60,9 @@ class Settling:
             which defines the final value, is then all within the band) and the cells' mean
             change from the quarter before it to the second half is within the tolerance or
             the noise of that paired change: a drift slow against the record is not taken for
-            a plateau.
+            a plateau. Over cells that all start from one state, not settled either where that
+            start lies beyond the tolerance from the final value but within the noise band:
+            the record has too few cells to see the curve leave its start.
     """
 
     time: float
@@ -144,6 +146,16 @@ def settling_from_cells(
     z = bonferroni_z(t.size, alpha)
     time = settling_time(t, v.mean(0), se, final, final_se, rel_tol, alpha)
     settled = time <= t[-1] / 2
+    start = v[:, 0]
+    if settled and n > 1 and float(np.ptp(start)) == 0.0:
+        # every cell starts from one known state: if its distance from the plateau exceeds the
+        # tolerance yet lies within the noise band, the record cannot see the start depart
+        # from the plateau, so "settled at once" would be an artefact of too few cells (an
+        # oscillator's cells, spread over its cycle, make the plateau's variance huge)
+        departure = abs(float(start[0]) - final)
+        band = z * math.sqrt(float(se[0]) ** 2 + final_se**2)
+        if rel_tol * abs(final) < departure <= band:
+            settled = False
     before = (t > t[-1] / 4) & ~late
     if settled and before.any() and n > 1:
         # each cell's change between the two spans: what persists in a cell (a slow hidden

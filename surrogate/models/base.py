@@ -315,7 +315,7 @@ class Model:
         arrays, :mod:`surrogate.models.packed`); a kernel never reads the engine's classes.
         Raises :class:`KernelUnsupported` (naming what) where it has none; the base model has
         none."""
-        raise KernelUnsupported(f"model {self.name!r} has no compiled per-cell kernel")
+        raise KernelUnsupported(f"model {self.name!r} (it has no compiled per-cell step)")
 
     def kernel_precompiler(self) -> str | None:
         """``"module:function"`` of a zero-argument function that compiles this model's

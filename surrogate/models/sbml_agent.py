@@ -15,7 +15,10 @@ The yaml (``model.spec``, or the same keys in the model config itself) names
 * ``body`` (required): a body of the library (:mod:`surrogate.models.bodies`) by ``kind`` with
   its parameters;
 * optionally ``name``, ``substance_units`` (``items``: read the file's amounts as molecule
-  counts whatever substance units it declares, e.g. a StochSS export's ``mole``), ``ssa``
+  counts whatever substance units it declares, e.g. a StochSS export's ``mole``),
+  ``species_in_laws`` (``counts``: a species symbol in the file's formulas is its count, as
+  StochSS and GillesPy2 write propensities; ``concentrations``: SBML's reading; required where
+  the two differ in a file read with ``substance_units: items``), ``ssa``
   (auto|compiled|batched), ``burn_in`` (s), ``max_states``, ``signal_bounds``
   (``{input: [lo, hi]}``, lets the exact psi be tabulated), ``collect`` (the model's default
   collection budget: ``n_per_state``, ``n_cells``, ``record_every``) and ``classes``: classes
@@ -81,7 +84,7 @@ from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml
 from surrogate.sbml.formula import parse_formula
-from surrogate.sbml.reader import SUBSTANCE_UNITS
+from surrogate.sbml.reader import SPECIES_IN_LAWS, SUBSTANCE_UNITS
 from surrogate.validation import known_keys, yaml_hint
 
 log = logging.getLogger(__name__)
@@ -97,6 +100,7 @@ SPEC_DEFAULTS: dict[str, Any] = {
     "lump_names": ["off", "on"],
     "body": None,
     "substance_units": None,
+    "species_in_laws": None,
     "ssa": "auto",
     "burn_in": 50.0,
     "max_states": 5000,
@@ -104,6 +108,9 @@ SPEC_DEFAULTS: dict[str, Any] = {
     "collect": None,
     "classes": None,
 }
+#: keys added after artefacts were stored: left out of the spec's digests (the full model's
+#: law, the artefacts' sources) while unset, so those artefacts keep their identity
+LATER_KEYS = ("species_in_laws",)
 #: the keys a spec must give, and what each is (for the message when one is missing)
 REQUIRED_KEYS: dict[str, str] = {
     "network": "the SBML file, a path relative to the yaml",
@@ -215,6 +222,7 @@ class SbmlAgentModel(Model):
                 self.network_path,
                 inputs=list(inputs),
                 substance_units=s["substance_units"],
+                species_in_laws=s["species_in_laws"],
             )
         except SbmlError as error:
             raise SbmlError(f"model.network / model.inputs: {error}") from None
@@ -332,6 +340,11 @@ class SbmlAgentModel(Model):
             raise ConfigError(f"model.substance_units must be items (read the file's amounts "
                               f"as molecule counts) or unset, got "
                               f"{s['substance_units']!r}")  # fmt: skip
+        if s["species_in_laws"] not in SPECIES_IN_LAWS:
+            raise ConfigError(f"model.species_in_laws must be counts (a species symbol in the "
+                              f"file's formulas is its count, as StochSS and GillesPy2 write "
+                              f"propensities), concentrations (SBML's reading) or unset, got "
+                              f"{s['species_in_laws']!r}")  # fmt: skip
 
     def _mapped_inputs(self, inputs: Mapping[str, Any]) -> dict[str, Any]:
         """The features that supply the SBML input parameters: a body variable under another
@@ -430,18 +443,23 @@ class SbmlAgentModel(Model):
         out = {"network": _sha256(self.network_path)}
         if self.spec is not None:
             # the yaml's settings as read, not its bytes: editing a comment keeps every artefact
-            blob = json.dumps(self.settings, sort_keys=True, default=str)
+            blob = json.dumps(self._settings_as_read(), sort_keys=True, default=str)
             out["spec"] = hashlib.sha256(blob.encode()).hexdigest()
         classes = self.internal.count_classes
         if classes is not None:
             out["classes"] = classes.digest()
         return out
 
+    def _settings_as_read(self) -> dict[str, Any]:
+        """The spec's settings for digests: :data:`LATER_KEYS` left out while unset, so the
+        artefacts of yamls written before those keys keep their identity."""
+        return {k: v for k, v in self.settings.items() if not (k in LATER_KEYS and v is None)}
+
     def full_model_identity(self, config: Mapping[str, Any]) -> dict[str, Any]:
         """The full model's law: the network file's digest and the spec's settings without
         the abstraction-only keys (:data:`ABSTRACTION_KEYS`), so changing the classes or the
         collection budget keeps a stored reference (the yaml's comments never counted)."""
-        law = {k: v for k, v in self.settings.items() if k not in ABSTRACTION_KEYS}
+        law = {k: v for k, v in self._settings_as_read().items() if k not in ABSTRACTION_KEYS}
         blob = json.dumps(law, sort_keys=True, default=str)
         sources = {"network": _sha256(self.network_path),
                    "settings": hashlib.sha256(blob.encode()).hexdigest()}  # fmt: skip

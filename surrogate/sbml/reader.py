@@ -12,7 +12,14 @@ model test suite):
   ``substanceUnits="mole"`` and mean counts.
 * In a kinetic law a species symbol is its amount when ``hasOnlySubstanceUnits`` is true, else
   its concentration ``amount / compartment size``. The kinetic law's value is the reaction's
-  propensity (events per unit time).
+  propensity (events per unit time). StochSS and GillesPy2 export their propensities, written
+  over counts (``rate3 * Y * X * (X - 1) / 2``), as kinetic laws of species without
+  ``hasOnlySubstanceUnits`` in a compartment of the model's volume: ``species_in_laws="counts"``
+  (the yaml's ``species_in_laws: counts``) reads every species symbol in laws, rules and events
+  as its count; ``"concentrations"`` states SBML's reading. Where the two differ (such a
+  species in a formula, its compartment's size not 1) and the amounts were declared counts
+  (``substance_units="items"``, the mark of such an export) without saying which, the file is
+  refused naming the species, the compartment and both settings.
 * Boundary-condition and constant species are never changed by reactions.
 * Parameters named in ``inputs`` are per-cell inputs, supplied with the state at every window;
   every other parameter and every compartment size is a constant. An input is a global
@@ -77,11 +84,23 @@ from surrogate.ctmc.network import ReactionNetwork
 from surrogate.sbml.errors import SbmlError, SbmlWarning
 from surrogate.sbml.math import convert
 
-__all__ = ["SUBSTANCE_UNITS", "SbmlModel", "SbmlReaction", "read_sbml", "read_sbml_string"]
+__all__ = [
+    "SPECIES_IN_LAWS",
+    "SUBSTANCE_UNITS",
+    "SbmlModel",
+    "SbmlReaction",
+    "read_sbml",
+    "read_sbml_string",
+]
 
 #: values of ``substance_units``: None (amounts must be in items) or "items" (read the file's
 #: amounts as molecule counts whatever units it declares)
 SUBSTANCE_UNITS = (None, "items")
+#: values of ``species_in_laws``: None (SBML's reading: a species symbol in a formula is its
+#: concentration unless ``hasOnlySubstanceUnits``; refused where ambiguous, see the module
+#: docstring), "concentrations" (the same, stated) or "counts" (every species symbol is its
+#: count, as StochSS and GillesPy2 write propensities)
+SPECIES_IN_LAWS = (None, "concentrations", "counts")
 #: libsbml errors listed in full before the rest are only counted
 MAX_LISTED_ERRORS = 10
 
@@ -198,7 +217,10 @@ class SbmlModel:
 
 
 def read_sbml(
-    path: str | Path, inputs: Sequence[str] = (), substance_units: str | None = None
+    path: str | Path,
+    inputs: Sequence[str] = (),
+    substance_units: str | None = None,
+    species_in_laws: str | None = None,
 ) -> SbmlModel:
     """Read an SBML file (levels 2 and 3) as a stochastic reaction network.
 
@@ -212,6 +234,11 @@ def read_sbml(
             ``"items"``: read the amounts as molecule counts whatever substance units the file
             declares (exporters of stochastic models such as StochSS write ``"mole"`` and mean
             counts).
+        species_in_laws: How a species symbol without ``hasOnlySubstanceUnits`` reads in a
+            kinetic law, rule or event: ``None`` or ``"concentrations"`` (SBML's reading,
+            ``amount / compartment size``) or ``"counts"`` (its count, as StochSS and GillesPy2
+            write propensities). With ``substance_units="items"`` and a compartment size other
+            than 1 where such a species is used, it must be given (see the module docstring).
 
     Returns:
         The :class:`SbmlModel`.
@@ -235,15 +262,18 @@ def read_sbml(
     if not path.is_file():
         raise SbmlError(f"SBML file {str(path)!r} does not exist")
     document = libsbml.readSBMLFromFile(str(path))
-    return _read_document(document, inputs, str(path), path, substance_units)
+    return _read_document(document, inputs, str(path), path, substance_units, species_in_laws)
 
 
 def read_sbml_string(
-    text: str, inputs: Sequence[str] = (), substance_units: str | None = None
+    text: str,
+    inputs: Sequence[str] = (),
+    substance_units: str | None = None,
+    species_in_laws: str | None = None,
 ) -> SbmlModel:
     """Like :func:`read_sbml`, from the SBML document's text."""
     document = libsbml.readSBMLFromString(text)
-    return _read_document(document, inputs, "<string>", None, substance_units)
+    return _read_document(document, inputs, "<string>", None, substance_units, species_in_laws)
 
 
 def _read_document(
@@ -252,11 +282,18 @@ def _read_document(
     label: str,
     source: Path | None,
     substance_units: str | None = None,
+    species_in_laws: str | None = None,
 ) -> SbmlModel:
     if substance_units not in SUBSTANCE_UNITS:
         raise SbmlError(
             f"substance_units must be 'items' (read the file's amounts as molecule counts) or "
             f"unset, got {substance_units!r}"
+        )
+    if species_in_laws not in SPECIES_IN_LAWS:
+        raise SbmlError(
+            f"species_in_laws must be 'counts' (a species symbol in a formula is its count, as "
+            f"StochSS and GillesPy2 write propensities), 'concentrations' (SBML's reading) or "
+            f"unset, got {species_in_laws!r}"
         )
     errors = [
         document.getError(i)
@@ -268,7 +305,7 @@ def _read_document(
     model = document.getModel()
     if model is None:
         raise SbmlError(f"{label}: the document has no model")
-    return _Reader(model, tuple(inputs), label, substance_units).read(source)
+    return _Reader(model, tuple(inputs), label, substance_units, species_in_laws).read(source)
 
 
 def _error_listing(label: str, errors: Sequence[libsbml.SBMLError]) -> str:
@@ -307,11 +344,13 @@ class _Reader:
         inputs: tuple[str, ...],
         label: str,
         substance_units: str | None = None,
+        species_in_laws: str | None = None,
     ) -> None:
         self.model = model
         self.label = label
         self.inputs = inputs
         self.substance_units = substance_units
+        self.species_in_laws = species_in_laws
         self.local_parameters = {
             r.getId(): {p.getId(): p for p in _local_parameters(r)}
             for r in model.getListOfReactions()
@@ -445,6 +484,61 @@ class _Reader:
                 "`substance_units: items` in the model yaml, or "
                 "read_sbml(..., substance_units='items')"
             )
+
+    def _symbol_is_amount(self, sp: libsbml.Species) -> bool:
+        """Whether the symbol of ``sp`` in a formula is its count (``hasOnlySubstanceUnits``,
+        or ``species_in_laws="counts"``), not its concentration."""
+        return sp.getHasOnlySubstanceUnits() or self.species_in_laws == "counts"
+
+    def _check_species_in_laws(self) -> None:
+        """With amounts declared counts (``substance_units="items"``, a StochSS export's mark)
+        and ``species_in_laws`` unset, refuse a file whose formulas read a species without
+        ``hasOnlySubstanceUnits`` in a compartment whose size is not 1: there SBML's reading
+        (a concentration) and the exporter's (a count) give different propensities."""
+        if self.substance_units != "items" or self.species_in_laws is not None:
+            return
+        maths = [
+            r.getKineticLaw().getMath()
+            for r in self.model.getListOfReactions()
+            if r.getKineticLaw() is not None and r.getKineticLaw().isSetMath()
+        ]
+        maths += [r.getMath() for r in self.model.getListOfRules() if r.isSetMath()]
+        for event in self.model.getListOfEvents():
+            trigger = event.getTrigger()
+            if trigger is not None and trigger.isSetMath():
+                maths.append(trigger.getMath())
+            maths += [a.getMath() for a in event.getListOfEventAssignments() if a.isSetMath()]
+        used: set[str] = set()
+        for node in maths:
+            used |= _names(node)
+        for definition in self.functions.values():  # a species named inside a function
+            if definition.isSetMath():
+                used |= _names(definition.getMath())
+        ambiguous: dict[str, list[str]] = {}
+        for sp in self.species:
+            if sp.getId() not in used or sp.getHasOnlySubstanceUnits():
+                continue
+            compartment = self.compartments.get(sp.getCompartment())
+            if compartment is None or not compartment.isSetSize():
+                continue
+            if compartment.getSize() != 1:
+                ambiguous.setdefault(sp.getCompartment(), []).append(sp.getId())
+        if not ambiguous:
+            return
+        where = "; ".join(
+            f"{', '.join(repr(i) for i in ids)} in compartment {cid!r} of size "
+            f"{self.compartments[cid].getSize():g}"
+            for cid, ids in ambiguous.items()
+        )
+        raise SbmlError(
+            f"{self.label}: species {where} appear in kinetic laws (or rules, events) without "
+            "hasOnlySubstanceUnits, so SBML reads each there as its concentration (count / "
+            "size), while StochSS and GillesPy2 write their propensities over counts (e.g. "
+            "`k * X * (X - 1) / 2`) and export them so: the two readings give different "
+            "propensities. Say which the file means in the model yaml: `species_in_laws: "
+            "counts` (a StochSS or GillesPy2 export, as they simulate it) or `species_in_laws: "
+            "concentrations` (SBML's reading); or read_sbml(..., species_in_laws=...)"
+        )
 
     def _input_default(self, name: str) -> float:
         """The file's value of an input parameter (global or ``reaction.local``), NaN if unset."""
@@ -582,7 +676,7 @@ class _Reader:
                 s = self.species_index[name]
                 sp = self.species[s]
                 x = species_ref(s, name)
-                if sp.getHasOnlySubstanceUnits():
+                if self._symbol_is_amount(sp):
                     return x
                 return call("divide", x, const(self._compartment_size(sp, where)))
             if name in self.compartments:
@@ -681,8 +775,8 @@ class _Reader:
 
     def _amount(self, sp: libsbml.Species, value: Expr, where: str) -> Expr:
         """The count of ``sp`` whose symbol has ``value`` (a concentration unless
-        hasOnlySubstanceUnits)."""
-        if sp.getHasOnlySubstanceUnits():
+        hasOnlySubstanceUnits or species_in_laws="counts")."""
+        if self._symbol_is_amount(sp):
             return value
         return call("times", value, const(self._compartment_size(sp, where)))
 
@@ -728,6 +822,24 @@ class _Reader:
         """``(S,)`` initial counts; a species assigned by a rule takes the rule's value there
         (with ``inputs``, the file's values of the inputs; left 0 where one has none: the SSAs
         set it from each cell's inputs at every window's start)."""
+        fractional = [
+            f"{sp.getId()!r} ({sp.getInitialAmount():g})"
+            for sp in self.species
+            if sp.getId() not in self.species_rules
+            and sp.isSetInitialAmount()
+            and sp.getId() not in self.initial_assignments
+            and math.isfinite(sp.getInitialAmount())
+            and not float(sp.getInitialAmount()).is_integer()
+        ]
+        if fractional:
+            raise SbmlError(
+                f"{self.label}: the initialAmount of species {', '.join(fractional)} "
+                f"{'is' if len(fractional) == 1 else 'are'} not a whole number of molecules: "
+                "the stochastic reading needs counts, and these amounts are not (a model "
+                "written for ODEs, in concentrations or moles?). Rescale it to molecule counts "
+                "in the file (amounts, and the rate constants of reactions of order 2 and "
+                "more by the volume), or use a deterministic simulator"
+            )
         counts = [
             0 if sp.getId() in self.species_rules else self.initial_count(sp) for sp in self.species
         ]
@@ -748,6 +860,7 @@ class _Reader:
         self._refuse_unsupported()
         self._check_inputs()
         self._check_substance_units()
+        self._check_species_in_laws()
         model = self.model
         if not self.species:
             raise SbmlError(f"{self.label}: the model has no species")
@@ -914,6 +1027,14 @@ def _net_rate_products(expr: Expr, products: set[int]) -> list[str]:
             if node.op == "species" and node.index in products:
                 names[node.index] = repr(node.name)
     return [names[i] for i in sorted(names)]
+
+
+def _names(node: libsbml.ASTNode) -> set[str]:
+    """The names (``ci`` symbols) a MathML tree reads."""
+    out = {node.getName()} if node.isName() and node.getName() else set()
+    for i in range(node.getNumChildren()):
+        out |= _names(node.getChild(i))
+    return out
 
 
 def _leaves(expr: Expr) -> Iterable[Expr]:

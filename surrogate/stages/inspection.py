@@ -312,6 +312,19 @@ def propensity_change(kinetics: Any, states: Tensor, low: Tensor, high: Tensor) 
     return torch.where(mean > 0, change / mean.clamp_min(1e-300), 0.0).numpy()
 
 
+def _fires(
+    kinetics: Any, states: Tensor, low: Tensor, high: Tensor, enters: list[str],
+    reactions: tuple[str, ...],
+) -> bool:  # fmt: skip
+    """Whether some reaction of ``enters`` has a positive propensity in some of ``states`` at
+    ``low`` or ``high`` inputs."""
+    m = states.shape[0]
+    columns = [reactions.index(r) for r in enters]
+    both = [kinetics.torch_propensity(states, x.reshape(1, -1).expand(m, -1))[:, columns]
+            for x in (low, high)]  # fmt: skip
+    return bool(any((a > 0).any() for a in both))
+
+
 def describe_network(
     network: NetworkInternalModel, population: Population, grid: Grid, options: Mapping[str, Any]
 ) -> dict[str, Any]:
@@ -348,6 +361,12 @@ def describe_network(
             flags.append("feeds no reaction")
         elif not high[j] > low[j]:
             flags.append("one value over the fields' range")
+        elif not _fires(kinetics, states, as_tensor(lo), as_tensor(hi), enters, reactions):
+            which = "its reactions never fire" if len(enters) > 1 else "its reaction never fires"
+            flags.append(
+                f"no effect seen: {which} in the states sampled (propensity 0 at "
+                "both ends of the range: a species it needs is absent or used up)"
+            )
         elif max(effect.values()) < options["effect_threshold"]:
             flags.append("no effect on its reactions' propensities in the states sampled")
         inputs.append({"name": name, "low": float(low[j]), "median": float(median[j]),
@@ -394,6 +413,11 @@ class FixedInputs:
         switch: ``(2,)`` P(phi changes over a window | phi = 0, 1) at the median point.
         events: mean SSA events per window at stationarity at the median point (networks).
         species_law: per species, its stationary values and weights at the median point.
+        stopped: the stationary share of the median point's cells (or probability, exactly)
+            in a state where no reaction can fire (networks; None otherwise): near 1, the
+            network runs down to an absorbing state (a closed system that consumes its
+            substrate, a decay with no source) and phi stops changing.
+        stopped_state: the most frequent such state (``{species: count}``), for the message.
         cells: cells per grid point (simulated).
         notes: what the budget cut.
         cost: estimated seconds of simulation.
@@ -414,6 +438,8 @@ class FixedInputs:
     switch: np.ndarray
     events: float | None
     species_law: dict[str, tuple[np.ndarray, np.ndarray]]
+    stopped: float | None = None
+    stopped_state: dict[str, int] | None = None
     cells: int = 0
     notes: list[str] = field(default_factory=list)
     cost: float = 0.0
@@ -498,6 +524,12 @@ def exact_fixed_inputs(
     median_inputs = network.kinetic_inputs(torch.as_tensor(grid.x[:1], dtype=torch.float32))
     a0 = network.kinetics.torch_propensity(space.states, median_inputs.expand(k, -1)).sum(1)
     events = float((pi[0] * a0).sum()) * dt
+    dead = a0 <= 0
+    stopped = float(pi[0][dead].sum())
+    stopped_state = None
+    if bool(dead.any()):
+        where = int(torch.argmax(torch.where(dead, pi[0], -1.0)))
+        stopped_state = dict(zip(network.species, space.states[where].tolist(), strict=True))
     species_law = {s: (space.states[:, j].numpy(), pi[0].numpy())
                    for j, s in enumerate(network.species)}  # fmt: skip
     curves = {"times": times.tolist(), "species": {s: means[:, 0, j].tolist()
@@ -510,7 +542,31 @@ def exact_fixed_inputs(
                        settle_species.max(1),
                        {s: float(settle_species[0, j]) for j, s in enumerate(network.species)},
                        curves, horizon, relaxation, hazards, memory, switch, events,
-                       species_law)  # fmt: skip
+                       species_law, stopped, stopped_state)  # fmt: skip
+
+
+def counter_species(network: NetworkInternalModel) -> list[int]:
+    """The columns of species that only count events: made by some reaction, consumed by
+    none, read by no propensity, rule, event or the lump (a waste product such as StochSS's
+    Brusselator's C and D). Their means grow for ever and change nothing else, so a settling
+    run does not wait for them."""
+    kinetics = network.kinetics
+    reactions = kinetics.network
+    read: set[int] = set()
+    for expr in kinetics.propensity_exprs:
+        read |= expr.species_used()
+    for rule in kinetics.rules:
+        read |= rule.expr.species_used() | {rule.column}
+    for event in kinetics.events:
+        read |= event.trigger.species_used()
+        for column, expr in event.assignments:
+            read |= expr.species_used() | {column}
+    if network.lump_expr is not None:
+        read |= network.lump_expr.species_used()
+    consumed = (reactions.reactants > 0).any(0).tolist()
+    made = (reactions.products > 0).any(0).tolist()
+    return [j for j in range(len(network.species))
+            if made[j] and not consumed[j] and j not in read]  # fmt: skip
 
 
 def _take(state: tuple[Tensor, ...], index: Tensor) -> tuple[Tensor, ...]:
@@ -553,6 +609,12 @@ def simulate_fixed_inputs(
         return phi, counts
 
     budget_settle = SETTLING_BUDGET * seconds
+    counters = counter_species(network) if network is not None else []
+    if counters:
+        assert network is not None
+        names = ", ".join(network.species[j] for j in counters)
+        notes.append(f"not waited for: {names}, made and never consumed nor read (counters "
+                     "of events: their means grow for ever and change nothing else)")  # fmt: skip
     times, phis, counts = [0.0], [], []
     p, c = sample(state)
     phis.append(p)
@@ -590,7 +652,7 @@ def simulate_fixed_inputs(
             phis.append(p)
             counts.append(c)
         settle = _settling(np.array(times), np.stack(phis, 1), counts, group.numpy(), g_count,
-                           rel)  # fmt: skip
+                           rel, counters)  # fmt: skip
         if settle["settled"].all() or horizon >= options["max_time"]:
             if not settle["settled"].all():
                 notes.append(f"not settled by inspect.max_time={options['max_time']:g} s")
@@ -640,11 +702,18 @@ def simulate_fixed_inputs(
     switch = np.array([(after[before == v] != v).mean() if (before == v).any() else np.nan
                        for v in (0, 1)])  # fmt: skip
     events, species_law = None, {}
+    stopped, stopped_state = None, None
     if network is not None:
         pooled = torch.cat(snapshots) if snapshots else state_m[0].cpu()
         assert kin_m is not None
         a0 = network.kinetics.torch_propensity(pooled, kin_m[:1].expand(pooled.shape[0], -1))
         events = float(a0.sum(1).mean()) * dt
+        dead = a0.sum(1) <= 0
+        stopped = float(dead.double().mean())
+        if bool(dead.any()):
+            values, counts = torch.unique(pooled[dead], dim=0, return_counts=True)
+            state_row = values[int(torch.argmax(counts))].tolist()
+            stopped_state = dict(zip(network.species, state_row, strict=True))
         weights = np.full(pooled.shape[0], 1.0 / pooled.shape[0])
         species_law = {s: (pooled[:, j].numpy(), weights) for j, s in enumerate(network.species)}
     relaxation = {"tau_s": relax.tau, "se": relax.tau_se, "amplitude": relax.amplitude,
@@ -663,7 +732,8 @@ def simulate_fixed_inputs(
     result = FixedInputs(
         "simulated", settle["occupancy"], settle["occupancy_se"], settle["settled"],
         settle["phi"], settle["network"], species_settle, curves, t, relaxation,
-        hazards, memory, switch, events, species_law, int(n), notes, spent,
+        hazards, memory, switch, events, species_law, stopped, stopped_state, int(n), notes,
+        spent,
     )  # fmt: skip
     result.curves["wall_s"] = settle_wall
     return result
@@ -676,10 +746,13 @@ def _settling(
     group: np.ndarray,
     g_count: int,
     rel: float,
+    counters: list[int] | None = None,
 ) -> dict[str, Any]:
     """Settling and occupancy of every grid point from a run's samples (``phi``: cells x T).
     The noise bands share a family-wise level of 5 % over every curve tested (each point's phi
-    and species), so that a run at its plateau is not taken for a drifting one by chance."""
+    and species), so that a run at its plateau is not taken for a drifting one by chance.
+    ``counters``: species columns reported but not waited for (:func:`counter_species`)."""
+    skip = set(counters or ())
     has_counts = counts[0] is not None
     c = np.stack([k for k in counts if k is not None], 2) if has_counts else None  # (cells, S, T)
     alpha = 0.05 / (g_count * (1 + (c.shape[1] if c is not None else 0)))
@@ -698,8 +771,9 @@ def _settling(
             per_species = [
                 settling_from_cells(times, c[rows, s], rel, alpha) for s in range(c.shape[1])
             ]
-            worst = max(s.time for s in per_species)
-            settled = settled and all(s.settled for s in per_species)
+            waited = [r for j, r in enumerate(per_species) if j not in skip]
+            worst = max((r.time for r in waited), default=0.0)
+            settled = settled and all(r.settled for r in waited)
             if g == 0:
                 out["species"] = per_species
                 out["curves"] = {"times": times.tolist(),
@@ -1030,6 +1104,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     lump = lump_formula_of(internal) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
+    stops = fixed.stopped is not None and fixed.stopped > 1 - low
     summary: dict[str, Any] = {
         "model": model.describe(), "command": settings.command(), "lump": lump,
         "settings": dict(o),
@@ -1051,6 +1126,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
         "relaxation": {k: v for k, v in fixed.relaxation.items() if k not in ("acf", "acf_se")},
         "burn_in": burn,
         "memory": {"memory": fixed.memory, "hazards": fixed.hazards},
+        "stopped": {"share": fixed.stopped, "state": fixed.stopped_state, "stops": stops},
         "cost": {"events_per_window_model": model_events,
                  "events_per_window_stationary": fixed.events,
                  "cell_step_s_model": step_model, "cell_step_s_measured": step_measured,
@@ -1064,7 +1140,8 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
         save_figure(out / SETTLING_FIGURE, plot_settling(fixed, burn_in), crop=False)
     save_figure(out / MEMORY_FIGURE, plot_memory(fixed, dt, internal.lump_names), crop=False)
     # refused once measured at stationarity; a run cut short only warns
-    refusal = _refusal(summary, grid, fixed) if (never or always) else None
+    refusal = _stopped(summary, fixed) if stops else (
+        _refusal(summary, grid, fixed) if (never or always) else None)  # fmt: skip
     settled = bool(fixed.settled.all())
     summary["refused"] = refusal if settled else None
     summary["warning"] = None if settled or refusal is None else (
@@ -1084,6 +1161,23 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
              float(fixed.occupancy.min()), float(fixed.occupancy.max()), fixed.method,
              settling_text(summary), relaxation_text(summary["relaxation"]),
              advice["abstraction"], summary["wall_time_s"])  # fmt: skip
+
+
+def _stopped(summary: dict[str, Any], fixed: FixedInputs) -> str:
+    """The refusal of a network that runs down to a state where no reaction can fire: phi
+    stops changing there whatever the lump, so no lump can be learned."""
+    state = ", ".join(f"{k} = {v}" for k, v in (fixed.stopped_state or {}).items())
+    exact = fixed.method == "exact"
+    who = "of the stationary probability lies" if exact else "of the cells sit"
+    return (
+        f"the network stops: at stationarity at the median inputs, {fixed.stopped:.1%} "
+        f"{who} in a state where no reaction can fire (e.g. {state}), so phi "
+        f"(`{summary['lump']}`) never changes there, whatever the lump; collect could not see "
+        "switches. The network runs down (a closed system that uses up its substrate, a decay "
+        "with no source): a chain of phi needs a network that keeps switching at fixed "
+        "inputs, e.g. one with a source reaction (an inflow, synthesis) that refills what the "
+        "others consume"
+    )
 
 
 def _refusal(summary: dict[str, Any], grid: Grid, fixed: FixedInputs) -> str:

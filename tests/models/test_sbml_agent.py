@@ -231,6 +231,7 @@ def _spec(**changes) -> dict:
             "model.max_states must be a non-negative integer (the most states enumerated for the exact law), got 2.5",
         ),
         ({"substance_units": "moles"}, "model.substance_units must be items"),
+        ({"species_in_laws": "amounts"}, "model.species_in_laws must be counts"),
         ({"inputs": {"R1.k": "L"}}, "input 'R1.k' is not a global parameter of the model nor a"),
         ({"inputs": {"inducer": {"k": "L"}}}, "a reaction's local parameter is one key"),
     ],

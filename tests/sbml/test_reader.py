@@ -568,6 +568,81 @@ def test_an_unknown_substance_units_option_is_refused():
         read_sbml_string(simple(), substance_units="moles")
 
 
+def stochss_export(volume: float) -> str:
+    """What StochSS / GillesPy2 write (its Brusselator, volume 1000): amounts in "mole",
+    species without hasOnlySubstanceUnits in the compartment `vol` of the model's volume,
+    and propensities over counts as kinetic laws (2 X + Y -> 3 X at k3 Y X (X - 1) / 2)."""
+
+    def in_moles(model):
+        model.setSubstanceUnits("mole")
+
+    return build(
+        "export",
+        [Species("X", amount=20, only_substance=False, compartment="vol"),
+         Species("Y", amount=10, only_substance=False, compartment="vol")],
+        {"k1": 5.0, "k3": 0.5},
+        [Reaction("make", "k1", {}, {"X": 1}),
+         Reaction("cubic", "k3 * Y * X * (X - 1) / 2", {"X": 2, "Y": 1}, {"X": 3})],
+        compartments={"vol": volume}, edit=in_moles,
+    )  # fmt: skip
+
+
+def test_fractional_amounts_are_refused_all_at_once_with_the_reason():
+    """StochSS's Lotka-Volterra export (an ODE model: R = 0.0095, W = 0.008 "mole") was refused
+    at its first species, without the file or what to do: now every such species, the file
+    and the fix are named."""
+    species = [Species("R", amount=0.0095), Species("W", amount=0.008), Species("Z", amount=3)]
+    reactions = [Reaction("R1", "k * R", {"R": 1}), Reaction("R2", "k * W", {"W": 1})]
+    message = refused(simple(species=species, reactions=reactions),
+                      "<string>: the initialAmount of species 'R' (0.0095), 'W' (0.008) are not "
+                      "a whole number of molecules", "Rescale it to molecule counts")  # fmt: skip
+    assert "'Z'" not in message
+
+
+def test_a_stochss_export_with_a_volume_says_how_its_species_read_in_laws():
+    """Such an export with volume 1000 used to be read silently as concentrations (X / 1000 in
+    every law: the cubic propensity 1e9 times too small, the Brusselator never oscillated):
+    with the amounts declared counts, the reader now asks which reading the file means,
+    naming the species and the compartment, and reads either as told; at volume 1 (the
+    toggle switch) both agree and nothing is asked."""
+    text = stochss_export(1000.0)
+    with pytest.raises(SbmlError) as info:
+        read_sbml_string(text, substance_units="items")
+    message = str(info.value)
+    for needle in ("'X', 'Y' in compartment 'vol' of size 1000", "species_in_laws: counts",
+                   "species_in_laws: concentrations", "StochSS"):  # fmt: skip
+        assert needle in message, f"{needle!r} not in {message!r}"
+    state = torch.tensor([[20, 10]])
+    counts = read_sbml_string(text, substance_units="items", species_in_laws="counts")
+    assert counts.propensities(state, torch.zeros(0)).tolist() == [[5.0, 0.5 * 10 * 20 * 19 / 2]]
+    conc = read_sbml_string(text, substance_units="items", species_in_laws="concentrations")
+    x, y = 20 / 1000, 10 / 1000
+    assert conc.propensities(state, torch.zeros(0))[0, 1].item() == pytest.approx(
+        0.5 * y * x * (x - 1) / 2
+    )
+    unit = read_sbml_string(stochss_export(1.0), substance_units="items")
+    assert unit.propensities(state, torch.zeros(0)).tolist() == [[5.0, 0.5 * 10 * 20 * 19 / 2]]
+    with pytest.raises(SbmlError, match="species_in_laws must be 'counts'.*got 'amounts'"):
+        read_sbml_string(text, substance_units="items", species_in_laws="amounts")
+
+
+def test_species_in_laws_counts_reads_rules_and_events_as_counts():
+    """With species_in_laws="counts" a species assignment rule's value is its count, not a
+    concentration x size: Z = 2 X is 40 at X = 20 in a compartment of size 1000."""
+
+    def rule(model):
+        model.createAssignmentRule().setVariable("Z")
+        model.getRule(0).setMath(parse("2 * X"))
+
+    text = build("r", [Species("X", amount=20, only_substance=False, compartment="vol"),
+                       Species("Z", amount=0, only_substance=False, compartment="vol")],
+                 {"k": 1.0}, [Reaction("R1", "k * X", {"X": 1})],
+                 compartments={"vol": 1000.0}, edit=rule)  # fmt: skip
+    model = read_sbml_string(text, species_in_laws="counts")
+    assert model.initial_state.tolist() == [20, 40]
+    assert model.propensities(model.initial_state[None], torch.zeros(0)).tolist() == [[20.0]]
+
+
 # ----------------------------------------------------------------------------------------------
 # libsbml's errors, all of them (issue 37)
 

@@ -78,8 +78,10 @@ class DecisionSettings:
                                   len(internal.signal_names))  # fmt: skip
                 if signal_bounds_of(internal) is None:
                     raise ConfigError(
-                        f"decision.mode=lookup needs the model's signal bounds; model "
-                        f"{setup.model.name!r} declares none: use decision.mode=direct"
+                        f"decision=exact with decision.mode=lookup tabulates the exact psi over "
+                        f"the model's signal bounds; model {setup.model.name!r} declares none: "
+                        f"give them (a yaml model's `signal_bounds: {{<input>: [lo, hi]}}`, the "
+                        f"range scripts/inspect_model.py measures) or use decision.mode=direct"
                     )
             lumps = d.get("lumps", "phi")
             if lumps not in LUMPINGS:

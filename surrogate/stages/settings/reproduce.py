@@ -14,7 +14,7 @@ from typing import Any
 from surrogate.config import field_config, group_config, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
-from surrogate.models.capabilities import has_exact_psi
+from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
 from surrogate.stages.settings.common import REPRODUCE_CMD, Job, command_line
 from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.simulate import SimulateSettings
@@ -64,6 +64,10 @@ class ReproduceSettings:
         exact = {}
         if c.get("exact_psi") and has_exact_psi(train.setup.model.internal):
             decision = {**group_config("decision", "exact")}
+            if signal_bounds_of(train.setup.model.internal) is None:
+                # a table needs the signal's bounds (a yaml's `signal_bounds`); without them
+                # the exact chain computes exp(Q dt) at each cell's inputs
+                decision["mode"] = "direct"
             # the report shows the abstraction's figures only; the exact chain's are optional
             figures = {"figures": bool(c.get("exact_psi_figures", False))}
             exact = {
