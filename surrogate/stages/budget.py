@@ -1,13 +1,18 @@
-"""What a stage will cost, estimated before it starts: steps x cells x the model's cost per
-cell-step, for every simulation the stage would run (artefacts that exist are reused, so they
-cost nothing).
+"""What a stage will cost, estimated before it starts: steps x (the loop's fixed cost per step
++ cells x the model's cost per cell-step), for every simulation the stage would run (artefacts
+that exist are reused, so they cost nothing).
 
 Each stage's ``validate`` calls :func:`check`: the estimate is logged, a warning names the
 settings that make it when it exceeds :data:`WARN_SECONDS`, and it is refused (a ConfigError
 naming those settings) above the ``max_hours`` setting. The cost of one cell-step comes from
 the model (:meth:`~surrogate.models.base.Model.cell_step_seconds`: for a network, its events
 per window at the initial state times the measured cost of an SSA event), so ``dt=1e-9`` or
-``collect.n_per_state=1e9`` is refused in milliseconds, not found out hours later.
+``collect.n_per_state=1e9`` is refused in milliseconds, not found out hours later. The fixed
+cost per step (Python and the step's many small tensor operations, the SSA's call: the same at
+1 cell as at 1,000) is measured, not guessed: :func:`step_seconds` times a few steps of the
+stage's own simulator (model, body, field, decision layer, device) at two small populations,
+once per process; it dominates a population of a few hundred cells (the gene switch in a
+walker: 0.5-1 ms per step against ~0.3 us per cell-step).
 
 The estimate is a guard against runs of hours or years, not a forecast: it has no accuracy
 guarantee (measured runs took 0.37x to 1.64x of it on the three shipped models, none bounds it
@@ -42,9 +47,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: seconds per step whatever the population (the loop's dispatch: ~20 us for the numba kernel,
-#: 0.1-0.6 ms for the eager torch step)
+#: seconds per step whatever the population where it is not measured (:func:`step_seconds`
+#: falls back to it where the simulator cannot be built; a :class:`Work` built without one):
+#: the loop's dispatch, ~20 us for the numba kernel, 0.1-1 ms for the eager torch step
 STEP_SECONDS = 1e-4
+#: the two populations :func:`step_seconds` times (cells), the steps timed per repeat, repeats
+PROBE_CELLS = (1, 16)
+PROBE_STEPS = 4
+PROBE_REPEATS = 3
 #: estimates above this are logged as warnings, naming the settings that make them
 WARN_SECONDS = 600.0
 
@@ -63,6 +73,8 @@ class Work:
         decision: the decision layer it runs (``full``: the internal network, whose cost per
             cell-step is the model's; the chains cost :data:`~surrogate.models.base.
             CELL_STEP_SECONDS`).
+        step_seconds: the loop's fixed cost per step, whatever the cells
+            (:func:`step_seconds`, measured; :data:`STEP_SECONDS` where not given).
     """
 
     what: str
@@ -72,18 +84,114 @@ class Work:
     settings: str
     model: str
     decision: str = "full"
+    step_seconds: float = STEP_SECONDS
 
     @property
     def seconds(self) -> float:
-        """Estimated wall time (s)."""
-        return self.steps * (STEP_SECONDS + self.cells * self.cell_step_seconds)
+        """Estimated wall time (s): steps x (fixed per step + cells x per cell-step)."""
+        return cost_seconds(self.steps, self.cells, self.step_seconds, self.cell_step_seconds)
 
     def describe(self) -> str:
-        """One line: what, its size, the settings behind it, the cost per cell-step."""
+        """One line: what, its size, the settings behind it, the costs per step and cell-step."""
         return (
             f"{self.what}: {self.steps:.3g} steps x {self.cells} cells ({self.settings}) at "
-            f"~{self.cell_step_seconds:.2g} s per cell-step of model {self.model!r}"
+            f"~{self.step_seconds:.2g} s per step + ~{self.cell_step_seconds:.2g} s per "
+            f"cell-step of model {self.model!r}"
         )
+
+
+def cost_seconds(steps: float, cells: int, step_seconds: float, cell_step_seconds: float) -> float:
+    """``steps x (step_seconds + cells x cell_step_seconds)``: the cost model of every estimate
+    (the fixed part is the loop's, whatever the cells; the rest grows with them)."""
+    return steps * (step_seconds + cells * cell_step_seconds)
+
+
+_STEP_CACHE: dict[tuple[Any, ...], float] = {}
+
+
+def step_seconds(
+    model: Any, field: Any, dt: float, decision: str = "full", device: Any = "cpu"
+) -> float:
+    """The simulation loop's fixed cost per step (s), whatever the cells: measured once per
+    process (cached by model, body, field, dt, decision, device and torch threads).
+
+    Times :data:`PROBE_STEPS` steps (best of :data:`PROBE_REPEATS`, after two untimed ones)
+    of the stages' own :class:`~surrogate.simulate.loop.Simulator` (``backend=auto``, as the
+    stages run it) at each of :data:`PROBE_CELLS` cells; the fixed part is where the line
+    through the two meets 0 cells, kept within [1/2, 1] of the smaller population's step
+    (timing noise). ``decision="full"`` runs the internal model; any other a two-state chain
+    at a constant psi, standing in for the abstraction (which may not exist yet). The random
+    state of torch is left as it was. Where the simulator cannot be built or run here,
+    :data:`STEP_SECONDS` (the run itself says why). Takes ~0.1 s for a network in a walker
+    (plus its SSA's compile, once per process, which the run pays anyway)."""
+    import torch
+
+    body = getattr(model, "body", None)
+    key = (type(model).__qualname__, getattr(model, "name", ""), _sources(model),
+           type(body).__qualname__, type(field).__qualname__, float(dt),
+           "full" if decision == "full" else "chain", str(device), torch.get_num_threads())  # fmt: skip
+    if key not in _STEP_CACHE:
+        try:
+            with torch.random.fork_rng(devices=_cuda_devices(device)):
+                _STEP_CACHE[key] = _measure_step(model, field, dt, decision, device)
+        except Exception as error:  # the run reports it; the estimate only falls back
+            log.debug("the cost per step was not measured (%s): %g s assumed", error,
+                      STEP_SECONDS)  # fmt: skip
+            _STEP_CACHE[key] = STEP_SECONDS
+    return _STEP_CACHE[key]
+
+
+def _sources(model: Any) -> tuple[tuple[str, str], ...]:
+    try:
+        return tuple(sorted(model.sources().items()))
+    except Exception:  # a model without sources: its name and class identify it
+        return ()
+
+
+def _cuda_devices(device: Any) -> list[int]:
+    import torch
+
+    d = torch.device(device)
+    return [d.index or 0] if d.type == "cuda" else []
+
+
+def _measure_step(model: Any, field: Any, dt: float, decision: str, device: Any) -> float:
+    """Seconds per step at the cells of :data:`PROBE_CELLS`, reduced to the fixed part."""
+    import time
+
+    import torch
+
+    from surrogate.models.capabilities import start_size_of
+    from surrogate.simulate import AbstractDecision, FullDecision
+    from surrogate.simulate.loop import Simulator
+
+    def constant(phi: Any, z: Any) -> Any:
+        return torch.full((z.shape[0],), 0.5, device=z.device)
+
+    dev = torch.device(device)
+
+    def sync() -> None:
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    per_step = []
+    for cells in PROBE_CELLS:
+        layer = FullDecision(model.internal) if decision == "full" else \
+            AbstractDecision(constant, model.internal)  # fmt: skip
+        simulator = Simulator(model, layer, field, dt, dev, backend="auto")
+        state = simulator.initial_state(cells, torch.zeros(start_size_of(model.body) or 2))
+        simulator.advance(state, 2)  # untimed: first calls load kernels
+        best = math.inf
+        for _ in range(PROBE_REPEATS):
+            sync()
+            t0 = time.perf_counter()
+            simulator.advance(state, PROBE_STEPS)
+            sync()
+            best = min(best, (time.perf_counter() - t0) / PROBE_STEPS)
+        per_step.append(best)
+    (a, b), (ta, tb) = PROBE_CELLS, per_step
+    intercept = (b * ta - a * tb) / (b - a)
+    return min(ta, max(intercept, 0.5 * ta))
 
 
 def duration(seconds: float) -> str:
@@ -115,8 +223,10 @@ def collect_work(settings: CollectSettings, reuse: bool = True) -> list[Work]:
     where = (f"collect.n_per_state={n} per origin, every collect.record_every={every}th window "
              f"of collect.n_cells={cells}, collect.equilibration_time="
              f"{float(c['equilibration_time']):g} s, dt={setup.dt:g} s")  # fmt: skip
+    fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
     return [Work("collect (at least)", cells, steps, setup.model.cell_step_seconds(setup.dt),
-                 where, setup.model.name), *burn_in_work(setup.model, cells, setup.dt)]  # fmt: skip
+                 where, setup.model.name, step_seconds=fixed),
+            *burn_in_work(setup.model, cells, setup.dt)]  # fmt: skip
 
 
 def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
@@ -133,9 +243,10 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
         where = (f"gp.diagnostic.n_cells={d['n_cells']}, gp.diagnostic.t_end={d['t_end']:g} s "
                  f"+ gp.diagnostic.equilibration_time={d['equilibration_time']:g} s at "
                  f"dt={setup.dt:g} s")  # fmt: skip
+        fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
         works.append(Work("the train diagnostic's full-model population", int(d["n_cells"]),
                           span / setup.dt, setup.model.cell_step_seconds(setup.dt), where,
-                          setup.model.name))  # fmt: skip
+                          setup.model.name, step_seconds=fixed))  # fmt: skip
         works += burn_in_work(setup.model, int(d["n_cells"]), setup.dt)
     return works
 
@@ -150,20 +261,23 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
              f"at dt={setup.dt:g} s, n_cells={settings.n_cells}")  # fmt: skip
     label = {"full": "the full-model run", "abstract": "the abstraction's run",
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
+    fixed = step_seconds(setup.model, setup.field, setup.dt, name, settings.job.device)
     return [Work(label, settings.n_cells, span / setup.dt,
                  setup.model.cell_step_seconds(setup.dt, name), where, setup.model.name,
-                 name), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
+                 name, fixed), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
 
 
 def burn_in_work(model: Any, cells: int, dt: float) -> list[Work]:
     """The full model's burn-in of ``cells`` initial states, where the model simulates one
     (:func:`~surrogate.models.capabilities.burn_in_of`; every decision layer starts its cells
-    from the internal model's initial state)."""
+    from the internal model's initial state). One SSA call of ``seconds``, not a loop of
+    steps: no fixed cost per step."""
     seconds = burn_in_of(model.internal)
     if seconds <= 0:
         return []
     return [Work("the initial states' burn-in", cells, seconds / dt,
-                 model.cell_step_seconds(dt), f"model.burn_in={seconds:g} s", model.name)]  # fmt: skip
+                 model.cell_step_seconds(dt), f"model.burn_in={seconds:g} s", model.name,
+                 step_seconds=0.0)]  # fmt: skip
 
 
 def evaluate_work(settings: EvaluateSettings) -> list[Work]:
@@ -236,10 +350,12 @@ __all__ = [
     "Work",
     "check",
     "collect_work",
+    "cost_seconds",
     "duration",
     "evaluate_work",
     "max_hours",
     "reproduce_work",
     "run_work",
+    "step_seconds",
     "train_work",
 ]

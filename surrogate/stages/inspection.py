@@ -183,7 +183,8 @@ def _network(model: Model) -> NetworkInternalModel | None:
 
 def population_inputs(settings: InspectSettings, seconds: float) -> Population:
     """Item 2: a full-model population in each field of ``settings.fields``, within ``seconds``
-    of estimated simulation (the model's cost per cell-step, as every stage's budget)."""
+    of estimated simulation (the loop's measured cost per step and the model's per cell-step,
+    as every stage's budget)."""
     setup, o, run_ = settings.setup, settings.options, settings.run
     model, dt = setup.model, setup.dt
     network = _network(model)
@@ -195,19 +196,23 @@ def population_inputs(settings: InspectSettings, seconds: float) -> Population:
     xs, kins, states, per_field, notes, spent = [], [], [], {}, [], 0.0
     equilibration = float(run_["equilibration_time"])
 
+    fixed = budget.STEP_SECONDS  # the loop's cost per step in the field at hand (measured)
+
     def estimate(cells: int, span: float) -> float:
         steps = (span + equilibration + burn_in) / dt
-        return steps * (budget.STEP_SECONDS + cells * step_cost)
+        return budget.cost_seconds(steps, cells, fixed, step_cost)
 
     for name in settings.fields:
+        fixed = budget.step_seconds(model, settings.field_setup(name).field, dt, "full",
+                                    settings.job.device)  # fmt: skip
         cells, span = int(o["population_cells"]), o["population_share"] * float(run_["t_end"])
         if estimate(cells, span) > share:
             full = (cells, span)
             steps = (span + equilibration + burn_in) / dt
-            cells = max(MIN_CELLS, int((share / steps - budget.STEP_SECONDS) / step_cost))
+            cells = max(MIN_CELLS, int((share / steps - fixed) / step_cost))
             cells = min(cells, full[0])
             if estimate(cells, span) > share:  # even the fewest cells: a shorter run
-                per_step = budget.STEP_SECONDS + cells * step_cost
+                per_step = fixed + cells * step_cost
                 span = max(10 * dt, share / per_step * dt - equilibration - burn_in)
             notes.append(f"{name}: {cells} cells for {span:.3g} s (not {full[0]} for "
                          f"{full[1]:.3g} s), within the budget")  # fmt: skip

@@ -272,12 +272,16 @@ def validate(cfg: Mapping[str, Any]) -> ReferenceSettings:
         )
         if missing:
             cells = missing * run.shard_cells
+            # each worker runs its shards one after the other: a loop (and its fixed cost per
+            # step) per shard
+            fixed = budget.step_seconds(run.setup.model, run.setup.field, run.setup.dt, "full",
+                                        settings.job.device) * -(-missing // settings.workers)  # fmt: skip
             works.append(budget.Work(
                 f"the {run.describe()} ({missing} of {run.shard_count} shards left, "
                 f"{settings.workers} at once)",
                 max(1, cells // settings.workers), steps_between(run.t_end, run.setup.dt, "t_end"),
                 run.setup.model.cell_step_seconds(run.setup.dt), "fidelity.n_cells, fidelity.t_end",
-                run.setup.model.name))  # fmt: skip
+                run.setup.model.name, step_seconds=fixed))  # fmt: skip
     budget.check(cfg, works, "reference")
     return settings
 

@@ -67,6 +67,7 @@ from surrogate.simulate.recorders import (
 )
 from surrogate.simulate.speed import cell_steps_per_s
 from surrogate.simulate.support import merge_reports
+from surrogate.stages import budget
 from surrogate.stages.settings import SIMULATE_CMD, SimulateSettings
 from surrogate.stages.simulate import simulate
 
@@ -135,6 +136,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """The simulate job: the whole population, or shard ``shard.index`` of ``shard.count``."""
     count, index = shard_settings(cfg)
     settings = shard_run(SimulateSettings.from_config(cfg), count, index)
+    # the estimate of this job's own cells (scripts/simulate.py comes here, not to validate)
+    budget.check(cfg, budget.run_work(settings), "simulate")
     if count > 1:
         log.info("shard %d of %d: %d cells, seed %d", index, count, settings.n_cells,
                  settings.setup.seed)  # fmt: skip

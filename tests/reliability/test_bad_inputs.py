@@ -185,14 +185,15 @@ def test_a_default_budget_is_the_same_artefact_as_the_same_budget_given(tmp_path
 def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> None:
     """The estimate's formula, pinned with numbers computed here (its accuracy is measured,
     not guaranteed: docs/performance.md): a collection's steps are the equilibration's plus
-    2 n_per_state record_every / n_cells, each costing STEP_SECONDS plus n_cells cell-steps;
+    2 n_per_state record_every / n_cells, each costing the loop's measured fixed cost per step
+    (budget.step_seconds, > 0) plus n_cells cell-steps;
     the gene switch's cell-step is the SSA overhead plus its expected events per window at the
     file's counts and inputs (8 inactive proteins, inducer 0.05: only activation fires, at
     k_act inducer I = 50 x 0.05 x 8 = 20 per s) times the compiled SSA's cost of an event;
     E. coli gives no estimate of its own (the base CELL_STEP_SECONDS)."""
     from surrogate.models.base import CELL_STEP_SECONDS
     from surrogate.models.network import COMPILED_EVENT_SECONDS, STEP_OVERHEAD_SECONDS
-    from surrogate.stages.budget import STEP_SECONDS, collect_work
+    from surrogate.stages.budget import collect_work
 
     sizes = ["collect.n_per_state=1000", "collect.n_cells=50", "collect.record_every=2",
              "collect.equilibration_time=1.0", "dt=0.05"]  # fmt: skip
@@ -205,4 +206,6 @@ def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> 
             compose_in(tmp_path / "data", "collect", [*model, *sizes])))  # fmt: skip
         assert work.cell_step_seconds == pytest.approx(cell_step, rel=1e-12), model
         assert work.steps == pytest.approx(steps, rel=1e-12)
-        assert work.seconds == pytest.approx(steps * (STEP_SECONDS + 50 * cell_step), rel=1e-12)
+        assert work.step_seconds > 0
+        assert work.seconds == pytest.approx(steps * (work.step_seconds + 50 * cell_step),
+                                             rel=1e-12)  # fmt: skip

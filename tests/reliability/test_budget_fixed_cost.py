@@ -1,0 +1,86 @@
+"""The cost estimate's fixed part per step (surrogate/stages/budget.py): measured once per
+process, part of every stage's estimate, so a small population's long run is not estimated at
+nearly nothing. Structure and monotonicity only: no wall-clock value is asserted."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from surrogate.fields import GaussianField
+from surrogate.models.sbml_agent import SbmlAgentModel
+from surrogate.stages import budget
+from surrogate.stages.settings import SimulateSettings
+from tests.reliability.conftest import compose_in
+
+ROOT = Path(__file__).resolve().parents[2]
+GENE = ["model=sbml", f"model.spec={ROOT / 'examples/gene_switch/model.yaml'}"]
+
+
+def test_cost_formula() -> None:
+    """steps x (fixed per step + cells x per cell-step), and a Work's seconds are it."""
+    assert budget.cost_seconds(100, 0, 1e-3, 1e-6) == pytest.approx(0.1)
+    assert budget.cost_seconds(100, 1000, 1e-3, 1e-6) == pytest.approx(0.2)
+    assert budget.cost_seconds(200, 1000, 1e-3, 1e-6) == pytest.approx(0.4)
+    work = budget.Work("w", 10, 50.0, 2e-6, "n_cells=10", "m", step_seconds=3e-3)
+    assert work.seconds == pytest.approx(50 * (3e-3 + 10 * 2e-6))
+    assert "~0.003 s per step + ~2e-06 s per cell-step of model 'm'" in work.describe()
+    # without a measured figure: the documented constant
+    assert budget.Work("w", 1, 1.0, 0.0, "", "m").step_seconds == budget.STEP_SECONDS
+
+
+def test_step_seconds_measured_cached_and_leaves_the_random_state() -> None:
+    model = SbmlAgentModel(spec=str(ROOT / "examples/gene_switch/model.yaml"))
+    field = GaussianField()
+    torch.manual_seed(7)
+    before = torch.get_rng_state()
+    full = budget.step_seconds(model, field, 0.05, "full")
+    chain = budget.step_seconds(model, field, 0.05, "abstract")
+    assert torch.equal(torch.get_rng_state(), before)
+    assert full > 0 and chain > 0
+    assert budget.step_seconds(model, field, 0.05, "full") == full  # once per process
+
+
+def test_step_seconds_falls_back_where_the_simulator_cannot_run() -> None:
+    class Broken:
+        name = "broken"
+        internal = None
+        body = None
+
+    assert budget.step_seconds(Broken(), GaussianField(), 0.05) == budget.STEP_SECONDS
+
+
+def test_estimate_grows_with_steps_even_at_one_cell(tmp_path: Path) -> None:
+    """At 1 cell the per-cell part is ~nothing: the estimate still grows with the steps, by
+    the fixed part per step."""
+    seconds = []
+    for t_end in (10, 100, 1000):
+        cfg = compose_in(tmp_path / "data", "simulate", [*GENE, "n_cells=1", f"t_end={t_end}"])
+        (work,) = budget.run_work(SimulateSettings.from_config(cfg))
+        assert work.cells == 1 and work.step_seconds > 0
+        assert work.seconds >= work.steps * work.step_seconds
+        assert work.seconds > work.steps * work.cell_step_seconds  # the fixed part counts
+        seconds.append(work.seconds)
+    assert seconds[0] < seconds[1] < seconds[2]
+    assert seconds[2] / seconds[0] == pytest.approx((1000 + 1) / (10 + 1), rel=1e-6)
+
+
+def test_a_job_threads_survive_numba_pool() -> None:
+    """Starting numba's pool resets the process's OpenMP count (torch's): a ``threads=1`` job
+    then ran the SSA on every core, ~10 ms per window on a loaded box."""
+    import numba
+
+    from surrogate.ctmc.compiled import match_torch_threads, start_numba_pool
+
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        start_numba_pool()
+        numba.get_num_threads()
+        assert torch.get_num_threads() == 1
+        assert match_torch_threads() == 1 and numba.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
+        match_torch_threads()
