@@ -465,6 +465,9 @@ class Oscillation:
             over it the cells forget their phase (NaN without a crest).
         z: the standard errors a lag's autocorrelation must clear.
         depth_threshold: the depth that counts (:data:`OSCILLATION_DEPTH`).
+        bound: the trough is at the last lag measured (the autocorrelation still falling
+            there): the depth and the period are lower bounds, the record too short for the
+            cycle.
     """
 
     detected: bool
@@ -476,6 +479,7 @@ class Oscillation:
     coherence_s: float
     z: float
     depth_threshold: float
+    bound: bool = False
 
 
 def oscillation_from_acf(
@@ -521,7 +525,7 @@ def oscillation_from_acf(
         if not math.isfinite(period):
             period = 2 * trough * dt
     return Oscillation(bool(detected), -low, low_se, trough * dt, period, crest, coherence, z,
-                       depth)  # fmt: skip
+                       depth, trough == lags)  # fmt: skip
 
 
 def segment_durations(series: ArrayLike) -> list[np.ndarray]:

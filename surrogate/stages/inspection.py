@@ -1100,6 +1100,9 @@ def oscillation_advice(
                   is not None and math.isfinite(coherence) else "")  # fmt: skip
         trough += (f" and peaks again at {osc['crest']:.2f} at {period:.3g} s (the period"
                    f"{forget})")  # fmt: skip
+    elif osc.get("bound"):
+        trough += (f", the last lag measured (still falling: a period of at least "
+                   f"{period:.3g} s; a longer record, `inspect.record_windows`, measures it)")  # fmt: skip
     else:
         trough += f" (no crest within the record: a period of about twice that, {period:.3g} s)"
     regular = ""

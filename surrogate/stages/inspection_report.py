@@ -244,6 +244,9 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
     if osc and osc["detected"]:
         crest = (f", peaks again at {osc['crest']:.2f} at {osc['period_s']:.3g} s (the period)"
                  if osc.get("crest") is not None else
+                 f", the last lag measured (still falling: a period of at least "
+                 f"{osc['period_s']:.3g} s; raise `inspect.record_windows` to measure it)"
+                 if osc.get("bound") else
                  f" (no crest within the record: a period of ~{osc['period_s']:.3g} s)")  # fmt: skip
         coherence = osc.get("coherence_s")
         envelope = (f"; its envelope decays over {coherence:.3g} s (the time over which the "

@@ -347,6 +347,10 @@ def test_an_oscillating_lump_is_recommended_the_clock_and_a_telegraph_is_not(tmp
     # the flips cut a fifth of the segments in three (CV 0.57 for the wave's own 0.25): the
     # segments' spread is noisier evidence than the autocorrelation, which the flips barely move
     assert all(s["cv"] < 1 for s in osc["segments"])
+    rho, se, _ = autocorrelation(wave, 16)  # lags to 0.8 s, short of the trough: bounds
+    short = oscillation_from_acf(rho, se, DT)
+    assert short.detected and short.bound and short.trough_s == pytest.approx(16 * DT)
+    assert not oscillation_from_acf(*autocorrelation(wave, 500)[:2], DT).bound
     model = protein(tmp_path, reservoir=True)  # a threshold lump, P >= 40
     base = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
     o = options()
