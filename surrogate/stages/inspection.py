@@ -35,7 +35,11 @@ minute for a small network. Every figure is a measurement (the definitions are h
    first half (or ``inspect.max_time``, or the budget). The lump's relaxation time at the
    median inputs: ``1 / spectral gap`` of the generator where enumerable, else the decay time
    of phi's autocorrelation over ``inspect.record_windows`` windows of dt at stationarity
-   (:func:`~surrogate.evaluate.dynamics.relaxation_from_series`). ``model.burn_in`` is compared
+   (:func:`~surrogate.evaluate.dynamics.relaxation_from_series`). Where phi oscillates (its
+   autocorrelation dips below ``-inspect.oscillation_depth`` beyond its noise,
+   :func:`~surrogate.evaluate.dynamics.oscillation_from_acf`; exact where enumerable) the
+   period and the decay of the oscillation's envelope are reported beside it: an exponential
+   decay describes only the autocorrelation's first fall there. ``model.burn_in`` is compared
    with ``inspect.burn_in_factor`` x the settling time.
 5. **Cost**: SSA events per window (the model's estimate from the file's initial state, which
    the stages' budgets use, and the mean at stationarity), the estimated cost of each stage of
@@ -50,7 +54,10 @@ minute for a small network. Every figure is a measurement (the definitions are h
    than ``inspect.memory_effect`` (and significantly): classes over bins of the species when
    the lump is a threshold on one species count (``gp=classes`` with ``classes: {species: P,
    edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold),
-   else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens).
+   else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens). A lump
+   that oscillates (item 4) gets the switch clock whatever the lump: its memory is the cycle's
+   phase, which the time since phi last changed measures (:func:`oscillation_advice`:
+   ``gp.max_age`` one period, or the 90th percentile of the segments' durations if longer).
 
 Models whose internal model is not a network (``model=ecoli``) get items 2, 3, 4 (relaxation),
 5 and 6 by simulation from their own initial state (their stationary law).
@@ -79,7 +86,10 @@ from surrogate.ctmc.lumped import (
 )
 from surrogate.errors import ConfigError
 from surrogate.evaluate.dynamics import (
+    Oscillation,
+    oscillation_from_acf,
     relaxation_from_series,
+    segment_durations,
     settling_from_cells,
     settling_time,
     switch_hazards,
@@ -423,6 +433,9 @@ class FixedInputs:
             network runs down to an absorbing state (a closed system that consumes its
             substrate, a decay with no source) and phi stops changing.
         stopped_state: the most frequent such state (``{species: count}``), for the message.
+        oscillation: whether phi oscillates at the median point (:func:`oscillation_dict`:
+            its autocorrelation's negative lobe, period and, simulated, the durations of its
+            segments); None where not measured.
         cells: cells per grid point (simulated).
         notes: what the budget cut.
         cost: estimated seconds of simulation.
@@ -445,6 +458,7 @@ class FixedInputs:
     species_law: dict[str, tuple[np.ndarray, np.ndarray]]
     stopped: float | None = None
     stopped_state: dict[str, int] | None = None
+    oscillation: dict[str, Any] | None = None
     cells: int = 0
     notes: list[str] = field(default_factory=list)
     cost: float = 0.0
@@ -457,6 +471,25 @@ def _hazard_dict(h: Any, dt: float) -> dict[str, Any] | None:
             "hazard": h.hazard.tolist(), "se": h.se.tolist(), "pooled": h.pooled,
             "chi2": h.chi2, "df": h.df, "p_value": h.p_value, "effect": h.effect,
             "flat_from_s": h.flat_from * dt}  # fmt: skip
+
+
+def oscillation_dict(
+    found: Oscillation, dt: float, segments: Sequence[np.ndarray] | None = None
+) -> dict[str, Any]:
+    """An :class:`~surrogate.evaluate.dynamics.Oscillation` for inspect.json, with each lump's
+    complete segments (:func:`~surrogate.evaluate.dynamics.segment_durations`, windows):
+    their number, mean (s), coefficient of variation (1 for a memoryless lump's exponential
+    durations; below 1 where the hazard rises with the age) and 90th percentile (s)."""
+    out: dict[str, Any] = {k: (None if isinstance(v, float) and math.isnan(v) else v)
+                           for k, v in vars(found).items()}  # fmt: skip
+    out["segments"] = None
+    if segments is not None:
+        out["segments"] = [
+            {"count": int(d.size), "mean_s": float(d.mean() * dt),
+             "cv": float(d.std() / d.mean()), "q90_s": float(np.quantile(d, 0.9) * dt)}
+            if d.size >= 2 else None for d in segments
+        ]  # fmt: skip
+    return out
 
 
 def exact_fixed_inputs(
@@ -525,6 +558,19 @@ def exact_fixed_inputs(
                         "chi2": None, "df": None, "p_value": None, "effect": effect,
                         "flat_from_s": float(flat) * dt})  # fmt: skip
     memory = None if len(effects) < 2 else max(effects) > options["memory_effect"]
+    # phi's exact autocorrelation at lags 0..ages windows: cov(l) = sum pi f P^l f
+    one = torch.linalg.matrix_exp(q0[0] * dt)
+    f = lump - float(occupancy[0])
+    ahead, cov = f.clone(), []
+    for _ in range(ages + 1):
+        cov.append(float((pi[0] * f * ahead).sum()))
+        ahead = one @ ahead
+    oscillation = None
+    if cov[0] > 0:
+        rho = np.asarray(cov) / cov[0]
+        oscillation = oscillation_dict(
+            oscillation_from_acf(rho, None, dt, options["oscillation_depth"]), dt
+        )
     switch = np.array([psi[0], 1.0 - psi[1]])
     median_inputs = network.kinetic_inputs(torch.as_tensor(grid.x[:1], dtype=torch.float32))
     a0 = network.kinetics.torch_propensity(space.states, median_inputs.expand(k, -1)).sum(1)
@@ -547,7 +593,7 @@ def exact_fixed_inputs(
                        settle_species.max(1),
                        {s: float(settle_species[0, j]) for j, s in enumerate(network.species)},
                        curves, horizon, relaxation, hazards, memory, switch, events,
-                       species_law, stopped, stopped_state)  # fmt: skip
+                       species_law, stopped, stopped_state, oscillation)  # fmt: skip
 
 
 def counter_species(network: NetworkInternalModel) -> list[int]:
@@ -699,6 +745,10 @@ def simulate_fixed_inputs(
     relax = relaxation_from_series(series, dt, max_lag=max(1, windows // 4))
     hz = switch_hazards(series, alpha)
     hazards = [_hazard_dict(h, dt) for h in hz]
+    oscillation = None
+    if np.isfinite(relax.rho[0]):
+        found = oscillation_from_acf(relax.rho, relax.rho_se, dt, options["oscillation_depth"])
+        oscillation = oscillation_dict(found, dt, segment_durations(series))
     memory = None
     if hz[0] is not None and hz[1] is not None:
         memory = any(h.p_value < alpha and h.effect > options["memory_effect"]
@@ -737,8 +787,8 @@ def simulate_fixed_inputs(
     result = FixedInputs(
         "simulated", settle["occupancy"], settle["occupancy_se"], settle["settled"],
         settle["phi"], settle["network"], species_settle, curves, t, relaxation,
-        hazards, memory, switch, events, species_law, stopped, stopped_state, int(n), notes,
-        spent,
+        hazards, memory, switch, events, species_law, stopped, stopped_state, oscillation,
+        int(n), notes, spent,
     )  # fmt: skip
     result.curves["wall_s"] = settle_wall
     return result
@@ -978,6 +1028,9 @@ def recommend(
                           f"phi last changed ({facts}): phi's switching is Markov in the "
                           f"current input, as the two-state chain assumes"}  # fmt: skip
     threshold = threshold_lump(internal)
+    if fixed.oscillation is not None and fixed.oscillation["detected"]:
+        species = threshold[0] if threshold is not None else None
+        return oscillation_advice(fixed.oscillation, internal.lump_names, facts, dt, species)
     if threshold is not None and threshold[0] in fixed.species_law:
         species, edge, upper = threshold
         values, weights = fixed.species_law[species]
@@ -1026,6 +1079,56 @@ def recommend(
             "reason": f"phi's switching has memory ({facts}); the lump is not a threshold on one "
                       f"species, so the switch clock carries it: the hazard is flat from "
                       f"{flat:.3g} s since the last change"}  # fmt: skip
+
+
+def oscillation_advice(
+    osc: Mapping[str, Any], lump_names: Sequence[str], facts: str, dt: float,
+    species: str | None = None,
+) -> dict[str, Any]:  # fmt: skip
+    """The switch clock for a lump that oscillates (:func:`oscillation_dict`), whatever the
+    lump: the memory is the cycle's phase, which the time since phi last changed measures, not
+    a count near a threshold that bins of it would hold. ``gp.max_age``: the larger of one
+    period and the 90th percentile of either lump's segment durations (a cycle is one segment
+    of each lump, so the clock covers the ages at which the segments end), rounded up to two
+    significant digits. ``species``: the threshold lump's species (the reason says why not
+    classes over it)."""
+    period = float(osc["period_s"])
+    segments = [s for s in (osc.get("segments") or []) if s is not None]
+    longest = max([period, dt] + [s["q90_s"] for s in segments])
+    max_age = _round_up(longest)
+    trough = (f"its autocorrelation dips to {-osc['depth']:.2f}"
+              + (f" +- {osc['depth_se']:.2g}" if osc["depth_se"] else "")
+              + f" at a lag of {osc['trough_s']:.3g} s")  # fmt: skip
+    if osc.get("crest") is not None:
+        coherence = osc.get("coherence_s")
+        forget = (f"; the cells forget their phase over ~{coherence:.3g} s" if coherence
+                  is not None and math.isfinite(coherence) else "")  # fmt: skip
+        trough += (f" and peaks again at {osc['crest']:.2f} at {period:.3g} s (the period"
+                   f"{forget})")  # fmt: skip
+    elif osc.get("bound"):
+        trough += (f", the last lag measured (still falling: a period of at least "
+                   f"{period:.3g} s; a longer record, `inspect.record_windows`, measures it)")  # fmt: skip
+    else:
+        trough += f" (no crest within the record: a period of about twice that, {period:.3g} s)"
+    regular = ""
+    if osc.get("segments"):
+        parts = [f"{name} segments {s['mean_s']:.3g} s on average, coefficient of variation "
+                 f"{s['cv']:.2f}, 90 % within {s['q90_s']:.3g} s"
+                 for name, s in zip(lump_names, osc["segments"], strict=True) if s is not None]  # fmt: skip
+        regular = (f"; {'; '.join(parts)} (a memoryless lump's durations are exponential, "
+                   f"coefficient of variation 1)") if parts else ""  # fmt: skip
+    why_not = (f". Classes over bins of {species} (the lump is a threshold on it) would hold "
+               f"a count, not the phase" if species else "")  # fmt: skip
+    return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
+            "max_age": max_age, "oscillation": True, "period_s": period,
+            "reason": f"phi oscillates: {trough}, and no reversible network nor memoryless lump "
+                      f"gives a negative autocorrelation (the check: below "
+                      f"-{osc['depth_threshold']:g} and beyond {osc['z']:.1f} standard errors)"
+                      f"{regular}. Its switching's memory ({facts}) is the cycle's phase, which "
+                      f"the time since phi last changed measures: the switch clock carries it, "
+                      f"its age capped at `gp.max_age={max_age:g}` s, the larger of one period "
+                      f"and the 90th percentile of the segments' durations, so that it covers "
+                      f"the ages at which both lumps' segments end{why_not}"}  # fmt: skip
 
 
 def _round_up(value: float) -> float:
@@ -1131,6 +1234,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
         "relaxation": {k: v for k, v in fixed.relaxation.items() if k not in ("acf", "acf_se")},
         "burn_in": burn,
         "memory": {"memory": fixed.memory, "hazards": fixed.hazards},
+        "oscillation": fixed.oscillation,
         "stopped": {"share": fixed.stopped, "state": fixed.stopped_state, "stops": stops},
         "cost": {"events_per_window_model": model_events,
                  "events_per_window_stationary": fixed.events,
@@ -1210,6 +1314,8 @@ __all__ = [
     "describe_network",
     "exact_fixed_inputs",
     "inspect",
+    "oscillation_advice",
+    "oscillation_dict",
     "population_inputs",
     "propensity_change",
     "recommend",

@@ -95,6 +95,10 @@ def plot_memory(fixed: FixedInputs, dt: float, lumps: Sequence[str]) -> Any:
         lags = np.arange(rho.size) * dt
         left.fill_between(lags, rho - 2 * se, rho + 2 * se, alpha=0.3)
         left.plot(lags, rho, lw=1.2, label="autocorrelation of phi")
+        osc = fixed.oscillation
+        if osc and osc["detected"]:
+            left.axvline(osc["period_s"], lw=0.8, ls=":", c="k",
+                         label=f"period {osc['period_s']:.3g} s")  # fmt: skip
         if math.isfinite(tau):
             a = r.get("amplitude", 1.0)
             left.plot(lags[1:], a * np.exp(-lags[1:] / tau), "k--", lw=1,
@@ -236,6 +240,22 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
     r = summary["relaxation"]
     lines.append(f"- The lump's relaxation time at stationarity: {relaxation_text(r)} "
                  f"({r['method']}).")  # fmt: skip
+    osc = summary.get("oscillation")
+    if osc and osc["detected"]:
+        crest = (f", peaks again at {osc['crest']:.2f} at {osc['period_s']:.3g} s (the period)"
+                 if osc.get("crest") is not None else
+                 f", the last lag measured (still falling: a period of at least "
+                 f"{osc['period_s']:.3g} s; raise `inspect.record_windows` to measure it)"
+                 if osc.get("bound") else
+                 f" (no crest within the record: a period of ~{osc['period_s']:.3g} s)")  # fmt: skip
+        coherence = osc.get("coherence_s")
+        envelope = (f"; its envelope decays over {coherence:.3g} s (the time over which the "
+                    f"cells forget their phase)" if coherence is not None
+                    and math.isfinite(coherence) else "")  # fmt: skip
+        lines.append(f"- **phi oscillates**: its autocorrelation dips to {-osc['depth']:.2f} "
+                     f"at {osc['trough_s']:.3g} s{crest}{envelope}. The relaxation time above "
+                     f"fits an exponential to the first fall only; the period and the "
+                     f"envelope are the oscillation's time scales.")  # fmt: skip
     if b["applies"]:
         verdict = ("enough" if b["enough"] else
                    f"**too short: set `burn_in: {b['needed_s']:g}`** in the model's yaml "

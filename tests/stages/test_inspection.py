@@ -7,7 +7,10 @@
 * inputs that feed nothing or have no effect flagged; a lump always true refused with its
   occupancy; collect stopping early, with the occupancy, when one lump is (almost) never seen;
 * a telegraph gene (memoryless: two-state) and a slowly degraded protein with a threshold lump
-  (a hidden count: classes over bins of the protein at its stationary quantiles).
+  (a hidden count: classes over bins of the protein at its stationary quantiles);
+* oscillations: a noisy square wave (a negative autocorrelation lobe: the switch clock with
+  ``gp.max_age`` the period, even for a threshold lump) against a memoryless telegraph (none),
+  and a molecule running round a ring of stages (exactly: the period of one lap).
 
 Tolerances come from the statistics: standard errors across independent cells, or the time
 grid of an exact curve.
@@ -26,7 +29,14 @@ import yaml
 from scipy import stats
 
 from surrogate.errors import ConfigError
-from surrogate.evaluate.dynamics import settling_time
+from surrogate.evaluate.dynamics import (
+    OSCILLATION_DEPTH,
+    autocorrelation,
+    oscillation_from_acf,
+    segment_durations,
+    settling_time,
+    switch_hazards,
+)
 from surrogate.fields import ConstantField
 from surrogate.io import read_json
 from surrogate.models.sbml_agent import SbmlAgentModel
@@ -203,8 +213,10 @@ def test_a_telegraph_gene_is_recommended_two_states(tmp_path) -> None:
     assert abs(fixed.occupancy[0] - 0.5) < 4 * fixed.occupancy_se[0]
     advice = inspection.recommend(model, fixed, o, DT)
     assert advice["abstraction"] == "two-state" and advice["command"].startswith("gp=svgp")
+    assert fixed.oscillation is not None and not fixed.oscillation["detected"]
     exact = inspection.exact_fixed_inputs(model.internal, grid, options(), DT)
     assert exact.memory is False and exact.relaxation["tau_s"] == pytest.approx(0.5)
+    assert exact.oscillation is not None and not exact.oscillation["detected"]
     assert inspection.recommend(model, exact, options(), DT)["abstraction"] == "two-state"
 
 
@@ -254,6 +266,9 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     grid = grid_of([1.0])
     exact = inspection.exact_fixed_inputs(exact_model.internal, grid, options(), DT)
     assert exact.memory is True
+    # a birth-death count is reversible: its autocorrelation never goes negative
+    assert exact.oscillation is not None and not exact.oscillation["detected"]
+    assert exact.oscillation["depth"] <= 1e-9
     advice = inspection.recommend(exact_model, exact, options(), DT)
     assert advice["abstraction"] == "classes" and advice["command"] == "gp=classes"
     # P relaxes in 20 s and settles from the file's 0 in ~92 s (1,840 windows); a network
@@ -288,6 +303,95 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
                for h in fixed.hazards)  # fmt: skip
     simulated = inspection.recommend(model, fixed, o, DT)
     assert simulated["abstraction"] == "classes" and 40 in simulated["edges"]
+
+
+def square_wave(cells: int, windows: int, half: float, shape: float, flip: float,
+                seed: int) -> np.ndarray:  # fmt: skip
+    """phi of ``cells`` cells over ``windows`` windows of DT: alternating segments of gamma
+    durations (mean ``half`` s each, ``shape``: coefficient of variation 1 / sqrt(shape)), a
+    random phase, and each window flipped with probability ``flip`` (noise)."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((cells, windows), dtype=np.int8)
+    grid = np.arange(windows) * DT
+    for i in range(cells):
+        count = int(3 * windows * DT / half) + 10
+        ends = np.cumsum(rng.gamma(shape, half / shape, count)) - rng.uniform(0, 2 * half)
+        value = (np.searchsorted(ends, grid, side="right") + rng.integers(2)) % 2
+        out[i] = value ^ (rng.random(windows) < flip)
+    return out
+
+
+def telegraph_series(cells: int, windows: int, p: float, seed: int) -> np.ndarray:
+    """phi of a memoryless two-state chain switching with probability ``p`` per window."""
+    rng = np.random.default_rng(seed)
+    return (np.cumsum(rng.random((cells, windows)) < p, 1) % 2).astype(np.int8)
+
+
+def oscillation_of(series: np.ndarray) -> dict:
+    rho, se, _ = autocorrelation(series, series.shape[1] // 4)
+    found = oscillation_from_acf(rho, se, DT)
+    return inspection.oscillation_dict(found, DT, segment_durations(series))
+
+
+def test_an_oscillating_lump_is_recommended_the_clock_and_a_telegraph_is_not(tmp_path) -> None:
+    """A noisy square wave (segments of 1 s, gamma shape 16: CV 0.25; 1 % of windows flipped):
+    the autocorrelation's trough near half the period (1 s), deeper than the threshold by far
+    more than its noise, the crest at the period (2 s, within two windows: the envelope pulls it
+    early); the recommendation the switch clock with ``gp.max_age`` one period, even though the
+    lump is a threshold on a count (classes otherwise). A memoryless telegraph (switching 5 % of
+    windows): no negative lobe (its autocorrelation is (1 - 2 p)^lag), the two-state chain."""
+    wave = square_wave(200, 2000, 1.0, 16.0, 0.01, seed=3)
+    osc = oscillation_of(wave)
+    assert osc["detected"] and osc["depth"] - OSCILLATION_DEPTH > 20 * osc["depth_se"]
+    assert abs(osc["trough_s"] - 1.0) < 0.15 and abs(osc["period_s"] - 2.0) <= 2 * DT
+    # the flips cut a fifth of the segments in three (CV 0.57 for the wave's own 0.25): the
+    # segments' spread is noisier evidence than the autocorrelation, which the flips barely move
+    assert all(s["cv"] < 1 for s in osc["segments"])
+    rho, se, _ = autocorrelation(wave, 16)  # lags to 0.8 s, short of the trough: bounds
+    short = oscillation_from_acf(rho, se, DT)
+    assert short.detected and short.bound and short.trough_s == pytest.approx(16 * DT)
+    assert not oscillation_from_acf(*autocorrelation(wave, 500)[:2], DT).bound
+    model = protein(tmp_path, reservoir=True)  # a threshold lump, P >= 40
+    base = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    o = options()
+
+    def fixed_for(series: np.ndarray, oscillation: dict) -> inspection.FixedInputs:
+        hz = switch_hazards(series, o["markov_alpha"])
+        memory = any(h.p_value < o["markov_alpha"] and h.effect > o["memory_effect"] for h in hz)
+        return dataclasses.replace(base, method="simulated", memory=memory,
+                                   hazards=[inspection._hazard_dict(h, DT) for h in hz],
+                                   oscillation=oscillation)  # fmt: skip
+
+    advice = inspection.recommend(model, fixed_for(wave, osc), o, DT)
+    assert advice["abstraction"] == "clock" and advice["oscillation"]
+    assert advice["command"] == f"gp=clock gp.max_age={advice['max_age']:g}"
+    assert advice["max_age"] == inspection._round_up(osc["period_s"])
+    assert "phi oscillates" in advice["reason"] and "bins of P" in advice["reason"]
+    flat = telegraph_series(200, 2000, 0.05, seed=4)
+    still = oscillation_of(flat)
+    assert not still["detected"] and -still["depth"] > -4 * still["depth_se"]  # rho >= 0
+    assert all(abs(s["cv"] - math.sqrt(0.95)) < 0.05 for s in still["segments"])  # geometric
+    assert inspection.recommend(model, fixed_for(flat, still), o, DT)["abstraction"] == \
+        "two-state"  # fmt: skip
+
+
+def test_a_ring_of_stages_oscillates_exactly(tmp_path) -> None:
+    """One molecule running round 10 stages at 5 /s each (a lap: 2 s, each half a gamma of
+    shape 5), phi = in the first five: the exact autocorrelation dips near 1 s and peaks again
+    near 2 s; the clock with gp.max_age one period."""
+    stages = [f"S{i}" for i in range(10)]
+    species = [Species(s, amount=1 if i == 0 else 0) for i, s in enumerate(stages)]
+    reactions = [Reaction(f"r{i}", f"k * s * {s}", {s: 1}, {stages[(i + 1) % 10]: 1})
+                 for i, s in enumerate(stages)]  # fmt: skip
+    model, _ = network_model(tmp_path, "ring", species, {"k": 5.0, "s": 1.0}, reactions,
+                             {"s": "L"}, " + ".join(stages[:5]) + " >= 1")  # fmt: skip
+    exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    osc = exact.oscillation
+    assert exact.memory is True and osc is not None and osc["detected"]
+    assert abs(osc["trough_s"] - 1.0) <= 0.1 and abs(osc["period_s"] - 2.0) <= 0.2
+    advice = inspection.recommend(model, exact, options(), DT)
+    assert advice["abstraction"] == "clock"
+    assert advice["max_age"] == inspection._round_up(osc["period_s"])
 
 
 def test_classes_auto_is_recommended_over_the_inputs_range_the_fields_give(tmp_path) -> None:

@@ -48,7 +48,7 @@ POSITIVE = ("min_time", "max_time", "max_seconds", "burn_in_factor", "memory_eff
 INTEGERS = ("population_cells", "grid_points", "n_cells", "record_windows", "exact_max_states",
             "min_switches", "classes_per_side")  # fmt: skip
 SHARES = ("population_share", "min_occupancy", "settle_tolerance", "effect_threshold",
-          "markov_alpha")  # fmt: skip
+          "markov_alpha", "oscillation_depth")  # fmt: skip
 
 
 def inspect_defaults() -> dict[str, Any]:
