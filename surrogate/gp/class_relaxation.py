@@ -52,14 +52,6 @@ DEFAULT_LAGS = (50.0, 100.0, 150.0, 200.0)
 BIN_COLUMN = "bin_{}"
 
 
-def chain_start(class_moves: str) -> str:
-    """Where a K-lumps chain's cells start by default (``decision.initial=auto``): a chain whose
-    bins relax starts from its own stationary law at the inputs, since its ``pi(bin | z)`` is
-    the bins' law of burned-in cells (the full model's start) and its lump flips settle within
-    seconds; a chain of learned moves from the internal model's initial law."""
-    return "stationary" if class_moves == "relaxation" else "internal"
-
-
 def check_shared_bins(class_bins: Sequence[int] | None, class_lumps: Sequence[int]) -> int:
     """The number of bins ``B`` of classes that are (lump, bin) pairs with the same ``B`` bins
     in both lumps, else a ConfigError saying why relaxation cannot run."""
@@ -258,7 +250,6 @@ __all__ = [
     "DEFAULT_CELLS",
     "DEFAULT_LAGS",
     "RELAXATION_VERSION",
-    "chain_start",
     "check_shared_bins",
     "fit_relaxation_law",
     "relaxation_class_law",

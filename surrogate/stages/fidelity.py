@@ -164,7 +164,7 @@ class FidelitySettings:
             for seed in seeds:
                 tc = {**c, "seed": seed, "gp": {**c["gp"], "inputs": choice}}
                 train = TrainSettings.from_config(tc)
-                start = resolve_start(f.get("initial", "auto"), train, "fidelity.initial")
+                start = resolve_start(f.get("initial", "internal"), train, "fidelity.initial")
                 candidates.append(Candidate(str(choice), seed, train, start))
         setup = candidates[0].train.setup
         positive(f, "n_cells", "fidelity.", integer=True)

@@ -60,7 +60,7 @@ def test_the_law_keeps_the_stationary_bins_and_relaxes_at_tau() -> None:
 
 
 def test_a_relaxing_chain_starts_with_the_bins_stationary_law() -> None:
-    """The chain's own stationary law (where ``decision.initial=auto`` starts its cells) has
+    """The chain's own stationary law (where ``decision.initial=stationary`` starts its cells) has
     the bins' law pi at every node, whatever the learned flips."""
     from surrogate.simulate.classes import ClassTable
 
@@ -176,20 +176,18 @@ def test_bins_of_each_lump_its_own_are_refused(tmp_path) -> None:
     assert class_bins_of(model.internal) is None
 
 
-def test_auto_starts_only_a_relaxing_chain_from_its_stationary_law() -> None:
-    """``decision.initial=auto``: stationary for relaxing bins, the internal model's law for a
-    chain of learned moves and for the two-state chain; ``stationary`` needs a K-lumps chain."""
+def test_only_a_k_lumps_chain_starts_from_its_stationary_law() -> None:
+    """``decision.initial``: internal for any chain, stationary for a K-lumps chain only."""
     from types import SimpleNamespace
 
     from surrogate.stages.settings import resolve_start
 
     relaxing = SimpleNamespace(lumps="classes", class_moves="relaxation")
-    learned = SimpleNamespace(lumps="classes", class_moves="learned")
     two_state = SimpleNamespace(lumps="phi", class_moves="learned")
-    assert resolve_start("auto", relaxing, "decision.initial") == "stationary"  # type: ignore[arg-type]
-    assert resolve_start("auto", learned, "decision.initial") == "internal"  # type: ignore[arg-type]
-    assert resolve_start("auto", two_state, "decision.initial") == "internal"  # type: ignore[arg-type]
     assert resolve_start("internal", relaxing, "decision.initial") == "internal"  # type: ignore[arg-type]
-    assert resolve_start("stationary", learned, "x") == "stationary"  # type: ignore[arg-type]
+    assert resolve_start("stationary", relaxing, "x") == "stationary"  # type: ignore[arg-type]
+    assert resolve_start("internal", two_state, "x") == "internal"  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="x=stationary starts a K-lumps chain"):
         resolve_start("stationary", two_state, "x")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="must be one of"):
+        resolve_start("auto", relaxing, "x")  # type: ignore[arg-type]

@@ -9,7 +9,6 @@ from typing import Any
 
 from surrogate.config import field_config, grid_size, to_dict
 from surrogate.errors import ConfigError
-from surrogate.gp.class_relaxation import chain_start
 from surrogate.models.capabilities import exact_class_step_of, has_exact_psi, signal_bounds_of
 from surrogate.simulate.classes import LUMPINGS, STARTS, can_classify
 from surrogate.simulate.memory import can_age, history_setting
@@ -112,7 +111,7 @@ class DecisionSettings:
                     f"{list(train.inputs)}: use decision.mode=classifier"
                 )
             sizes = grid_size(d.get("lookup_size"), "decision.lookup_size", len(train.inputs))
-        start = resolve_start(d.get("initial", "auto"), train, "decision.initial")
+        start = resolve_start(d.get("initial", "internal"), train, "decision.initial")
         return cls(name, d, mode, sizes, train, train_field, start=start)
 
     def identity(self) -> dict[str, Any]:
@@ -131,22 +130,21 @@ class DecisionSettings:
         return out
 
 
-#: decision.initial: auto (the abstraction's own choice, :func:`chain_start`) or either start
-START_SETTINGS = ("auto", *STARTS)
+#: decision.initial's choices (:data:`~surrogate.simulate.classes.STARTS`)
+START_SETTINGS = STARTS
 
 
 def resolve_start(value: Any, train: TrainSettings, where: str) -> str:
-    """``decision.initial`` (or ``fidelity.initial``) as ``internal`` or
-    ``stationary``: ``auto`` is the chain's own choice (:func:`chain_start`); ``stationary``
-    needs a K-lumps chain (the two-state chain starts from the internal model's law)."""
+    """``decision.initial`` (or ``fidelity.initial``), validated: ``internal`` (the internal
+    model's initial law, as the full model's cells start) or ``stationary`` (a K-lumps chain's
+    own stationary law at the inputs, no internal state simulated: a network's burn-in is not
+    paid, but the start is only as good as the chain's stationary law; docs/fidelity.md)."""
     if value not in START_SETTINGS:
         raise ConfigError(f"{where} must be one of {list(START_SETTINGS)}, got {value!r}")
-    if value == "auto":
-        return chain_start(train.class_moves) if train.lumps == "classes" else "internal"
     if value == "stationary" and train.lumps != "classes":
         raise ConfigError(
             f"{where}=stationary starts a K-lumps chain from its stationary law (gp=classes); "
             f"the two-state chain starts from the internal model's initial law: use "
-            f"{where}=internal or auto"
+            f"{where}=internal"
         )
     return str(value)
