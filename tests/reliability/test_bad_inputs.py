@@ -1,7 +1,7 @@
 """Bad inputs found by trying the package as a new user (issue 27), across every stage: each is
 refused before any work with a message that names the setting.
 
-* work that would take hours or years (``dt=1e-9``, absurd budgets) is estimated up front
+* work that would take hours or years (``dt=1e-11``, absurd budgets) is estimated up front
   (steps x cells x the model's cost per cell-step) and refused above ``max_hours``;
 * ``decision=exact`` on a model without an exact psi says so and what to use;
 * a yaml model (``model=sbml``) with an unknown species, a missing parameter, a body parameter
@@ -41,11 +41,11 @@ RUN_MISSING = ["evaluate.run_missing=true"]
 # (stage, overrides, text the message must contain: the setting's name and what is wrong)
 BAD_INPUTS = [
     # time steps and budgets that would run for hours, days or years
-    ("simulate", ["dt=1e-9"], "at dt=1e-09 s, n_cells=20"),
-    ("collect", ["dt=1e-9"], "collect.equilibration_time=1 s, dt=1e-09 s"),
-    ("train", ["dt=1e-9"], "dt=1e-09 s"),
-    ("evaluate", ["dt=1e-9", *RUN_MISSING], "above max_hours=24"),
-    ("reproduce", ["dt=1e-9"], "above max_hours=24"),
+    ("simulate", ["dt=1e-11"], "at dt=1e-11 s, n_cells=20"),
+    ("collect", ["dt=1e-11"], "collect.equilibration_time=1 s, dt=1e-11 s"),
+    ("train", ["dt=1e-11"], "dt=1e-11 s"),
+    ("evaluate", ["dt=1e-11", *RUN_MISSING], "above max_hours=24"),
+    ("reproduce", ["dt=1e-11"], "above max_hours=24"),
     ("simulate", ["n_cells=1000000", "t_end=100000"], "t_end=100000 s"),
     ("simulate", ["decision=abstract", "t_end=1e8"], "the abstraction's run"),
     (
