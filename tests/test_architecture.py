@@ -34,7 +34,8 @@ PROTOCOLS = (
 #: engine packages above the models: a model never imports them (the engine adapts the model)
 ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
-STAGE_USERS = ("surrogate/benchmarks/loop.py",)
+# the benchmarks time the stages' own layers (loop: the abstraction; field: the exact psi's table)
+STAGE_USERS = ("surrogate/benchmarks/loop.py", "surrogate/benchmarks/field.py")
 
 
 def _module_name(path: Path) -> str:
