@@ -13,6 +13,7 @@ settings to lower.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -36,6 +37,8 @@ PREDICT_CHUNK = 65_536
 #: one by one; 500 bins (1-D), 100 inducing 1.15x; ~1e5 bins (2-D, 500 per axis) 0.54x
 BATCH_MAX_BINS = 4096
 _PAD = 64  # rows; a multiple of every SIMD width, see FittedClassifier._latent_padded
+
+log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -536,6 +539,8 @@ def fit_classifiers(
         raise ValueError(f"{len(weights)} weights for {len(data)} data sets")
     for w in weights:
         _check_weight(w, settings)
+    if not progress:  # no bar to watch: say what runs (a K-lumps fit takes minutes)
+        log.info("%s: fitting %d classifier(s), %d steps each", desc, len(data), settings.epochs)
 
     def one_by_one() -> list[FittedClassifier]:
         return [fit_classifier(d[0], d[1], settings, progress=progress, device=device,
