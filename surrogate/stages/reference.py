@@ -390,7 +390,7 @@ def equivalent_shard(r: ReferenceRun, index: int) -> Path | None:
     law, seed and shard size (only ``n_cells`` differs) has the very same cells there, and
     extending a stored run from 1,000 to 4,000 cells pays for the 3,000 new ones only."""
     size = shard_sizes(r.n_cells, r.shard_count)[index]
-    want = _normalised({k: v for k, v in r.shard_identity(index).items() if k != "n_cells"})
+    want = settings_hash({k: v for k, v in r.shard_identity(index).items() if k != "n_cells"}, 64)
     root = r.data_dir / SHARDS_DIR / r.setup.model.name
     for d in sorted(root.glob(f"*/shard-{index:04d}")):
         if d == r.shard_dir(index) or not (d / MANIFEST).exists():
@@ -401,13 +401,9 @@ def equivalent_shard(r: ReferenceRun, index: int) -> Path | None:
             continue
         theirs = m.get("settings") or {}
         if (m.get("n_cells") == size
-                and _normalised({k: v for k, v in theirs.items() if k != "n_cells"}) == want):  # fmt: skip
+                and settings_hash({k: v for k, v in theirs.items() if k != "n_cells"}, 64) == want):  # fmt: skip
             return d
     return None
-
-
-def _normalised(identity: Mapping[str, Any]) -> str:
-    return json.dumps(identity, sort_keys=True, default=str)
 
 
 def _adopt_or_simulate(

@@ -29,6 +29,19 @@ def stored(compose_cfg, tmp_path):
     return overrides, settings
 
 
+def _record_simulated_shards(monkeypatch) -> list[tuple[str, int]]:
+    """The (run, shard) pairs simulated from now on, appended as each shard is simulated."""
+    made: list[tuple[str, int]] = []
+    simulate_shard = reference._simulate_shard
+
+    def spy(r, shard, out, s):
+        made.append((r.which, shard))
+        simulate_shard(r, shard, out, s)
+
+    monkeypatch.setattr(reference, "_simulate_shard", spy)
+    return made
+
+
 def test_shards_merge_into_the_run_they_define(stored) -> None:
     """The stored run is its shards, each the standalone run of its own seed, concatenated in
     shard order; the means come from exact totals; every record time is kept."""
@@ -65,14 +78,7 @@ def test_a_stopped_run_resumes_from_its_finished_shards(compose_cfg, tmp_path, m
         compose_cfg("fidelity", [*RUN, f"reference.dir={tmp_path / 'references'}"])
     )
     reference._make_shard(settings, 0, 1, force=False)  # one shard made before a "stop"
-    made = []
-    simulate_shard = reference._simulate_shard
-
-    def spy(r, shard, out, s):
-        made.append((r.which, shard))
-        simulate_shard(r, shard, out, s)
-
-    monkeypatch.setattr(reference, "_simulate_shard", spy)
+    made = _record_simulated_shards(monkeypatch)
     reference.make(settings)
     assert sorted(made) == [("full", 0), ("full", 2), ("full_repeat", 0), ("full_repeat", 1),
                             ("full_repeat", 2)]  # fmt: skip
@@ -166,17 +172,10 @@ def test_a_larger_run_copies_the_shards_a_smaller_one_made(
     stored, compose_cfg, monkeypatch
 ) -> None:
     """Shard i of a run is the same cells whatever the run's size (child i of the seed), so a
-    run of 16 cells (4 shards of 4) simulates only its new shard and copies the 12-cell run's three: the merged
-    run's first 12 cells are the stored run's, byte for byte."""
+    run of 16 cells (4 shards of 4) simulates only its new shard and copies the 12-cell run's
+    three: the merged run's first 12 cells are the stored run's, byte for byte."""
     overrides, small = stored
-    made = []
-    simulate_shard = reference._simulate_shard
-
-    def spy(r, shard, out, s):
-        made.append((r.which, shard))
-        simulate_shard(r, shard, out, s)
-
-    monkeypatch.setattr(reference, "_simulate_shard", spy)
+    made = _record_simulated_shards(monkeypatch)
     larger = reference.validate(compose_cfg("fidelity", [*overrides, "fidelity.n_cells=16"]))
     reference.make(larger)
     assert sorted(made) == [("full", 3), ("full_repeat", 3)]

@@ -39,7 +39,6 @@ from surrogate.stages.settings.common import (
 from surrogate.stages.settings.decision import (
     DECISION_MODES,
     DECISIONS,
-    START_SETTINGS,
     DecisionSettings,
     resolve_start,
 )
@@ -81,7 +80,6 @@ __all__ = [
     "LABEL_COLUMNS",
     "REPRODUCE_CMD",
     "SIMULATE_CMD",
-    "START_SETTINGS",
     "TRAIN_CMD",
     "CollectSettings",
     "DecisionSettings",

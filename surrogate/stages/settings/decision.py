@@ -130,17 +130,13 @@ class DecisionSettings:
         return out
 
 
-#: decision.initial's choices (:data:`~surrogate.simulate.classes.STARTS`)
-START_SETTINGS = STARTS
-
-
 def resolve_start(value: Any, train: TrainSettings, where: str) -> str:
     """``decision.initial`` (or ``fidelity.initial``), validated: ``internal`` (the internal
     model's initial law, as the full model's cells start) or ``stationary`` (a K-lumps chain's
     own stationary law at the inputs, no internal state simulated: a network's burn-in is not
     paid, but the start is only as good as the chain's stationary law; docs/fidelity.md)."""
-    if value not in START_SETTINGS:
-        raise ConfigError(f"{where} must be one of {list(START_SETTINGS)}, got {value!r}")
+    if value not in STARTS:
+        raise ConfigError(f"{where} must be one of {list(STARTS)}, got {value!r}")
     if value == "stationary" and train.lumps != "classes":
         raise ConfigError(
             f"{where}=stationary starts a K-lumps chain from its stationary law (gp=classes); "
