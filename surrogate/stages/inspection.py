@@ -53,8 +53,11 @@ minute for a small network. Every figure is a measurement (the definitions are h
    hazard: the two-state chain (``gp=svgp``, the default). One that depends on the age by more
    than ``inspect.memory_effect`` (and significantly): classes over bins of the species when
    the lump is a threshold on one species count (``gp=classes`` with ``classes: {species: P,
-   edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold),
-   else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens). A lump
+   edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold;
+   with ``gp.class_moves=relaxation`` for a network that settles over
+   :data:`SLOW_SETTLING_WINDOWS` windows or more, :func:`settling_estimate`: where the run
+   stopped before settling, at least half the run and ln(1 / tolerance) x phi's relaxation
+   time), else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens). A lump
    that oscillates (item 4) gets the switch clock whatever the lump: its memory is the cycle's
    phase, which the time since phi last changed measures (:func:`oscillation_advice`:
    ``gp.max_age`` one period, or the 90th percentile of the segments' durations if longer).
@@ -1051,15 +1054,20 @@ def recommend(
             else declared  # fmt: skip
         # a count that settles over many windows moves between bins too rarely per window to
         # learn, and its jitter across an edge reads as moves: its bins relax instead
-        settling = slowest_settling(fixed)
+        est = settling_estimate(fixed, float(options["settle_tolerance"]))
+        settling = est["seconds"]
         slow = auto and settling >= SLOW_SETTLING_WINDOWS * dt
         command = "gp=classes gp.class_moves=relaxation" if slow else "gp=classes"
-        relax = (f"; the network settles over {settling:.3g} s ({settling / dt:,.0f} windows), so "
-                 f"the bins move by relaxation to their stationary law "
-                 f"(`gp.class_moves=relaxation`), not by a one-window law learned from rare, "
-                 f"jittery crossings" if slow else "")  # fmt: skip
+        basis = f": {est['basis']}" if est["basis"] else ""
+        relax = (f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
+                 f"{basis}), at least the {SLOW_SETTLING_WINDOWS:,} windows from which the bins "
+                 f"move by relaxation to their stationary law (`gp.class_moves=relaxation`), "
+                 f"not by a one-window law learned from rare, jittery crossings" if slow else
+                 f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
+                 f"{basis}), below the {SLOW_SETTLING_WINDOWS:,} windows from which bins relax "
+                 f"(`gp.class_moves=relaxation`){est['caveat']}" if auto else "")  # fmt: skip
         return {"abstraction": "classes", "command": command, "yaml": yaml,
-                "settling_s": settling,
+                "settling_s": settling, "settling_basis": est["basis"],
                 "declared": declared, "edges": edges, "edges_by_lump": by_lump,
                 "species": species,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
@@ -1156,11 +1164,47 @@ def slowest_settling(fixed: FixedInputs) -> float:
     return float(finite.max()) if finite.size else 0.0
 
 
+def settling_estimate(fixed: FixedInputs, tolerance: float) -> dict[str, Any]:
+    """The network's settling time (s) the inspection implies, for the rule of
+    :data:`SLOW_SETTLING_WINDOWS`: ``{"seconds", "basis", "caveat"}``.
+
+    Where every grid point settled: the longest settling over the grid
+    (:func:`slowest_settling`; ``basis`` empty). Where the run stopped first (its budget,
+    ``inspect.max_seconds``, or ``inspect.max_time``), the settling times measured are lower
+    bounds that can fall far short: the auto-regulatory network at the default budget stopped
+    at 640 s with 230 s measured, where 2,560 s of run measured 1,250 s. Then the larger of
+    half the run (a point settles in the first half of its run) and ``ln(1 / tolerance)`` x
+    phi's relaxation time at stationarity (a mean relaxing as ``exp(-t / tau)`` from a start
+    as far from its plateau as the plateau is from 0 is within ``tolerance`` after that; the
+    same network: 419 s, so ~1,250 s), each named in ``basis``; ``caveat`` says what would
+    settle it."""
+    measured = slowest_settling(fixed)
+    if bool(fixed.settled.all()):
+        return {"seconds": measured, "basis": "", "caveat": ""}
+    half = fixed.horizon / 2
+    parts = [f"not settled by the end of the inspector's {fixed.horizon:.3g}-s run: at least "
+             f"{max(measured, half):.4g} s"]  # fmt: skip
+    seconds = max(measured, half)
+    tau = fixed.relaxation.get("tau_s")
+    if tau is not None and math.isfinite(tau) and tau > 0:
+        from_tau = math.log(1 / tolerance) * float(tau)
+        se = fixed.relaxation.get("se")
+        err = f" +- {se:.3g}" if se is not None and math.isfinite(se) and se > 0 else ""
+        parts.append(f"phi's relaxation time at stationarity, {tau:.3g}{err} s, implies "
+                     f"ln(1 / {tolerance:g}) x {tau:.3g} = {from_tau:.4g} s")  # fmt: skip
+        seconds = max(seconds, from_tau)
+    caveat = ("; the run did not settle, so a larger `inspect.max_seconds` (or "
+              "`inspect.max_time`) would tell")  # fmt: skip
+    return {"seconds": seconds, "basis": "; ".join(parts), "caveat": caveat}
+
+
 def burn_in_advice(
     network: NetworkInternalModel | None, fixed: FixedInputs, factor: float
 ) -> dict[str, Any]:
     """``model.burn_in`` against ``factor`` x the longest settling time over the grid (the
-    network's counts and phi, from the file's counts at each point's inputs)."""
+    network's counts and phi, from the file's counts at each point's inputs). Where the run
+    stopped before settling, that is a lower bound: a burn-in below it is too short, one above
+    it is not known to be enough (``enough`` None), never told to shrink to it."""
     if network is None:
         return {"applies": False, "text": "the internal model draws its own initial state (no "
                                           "burn-in setting)"}  # fmt: skip
@@ -1174,7 +1218,7 @@ def burn_in_advice(
     needed = _round_up(factor * worst)
     have = float(network.burn_in)
     return {"applies": True, "settling_s": worst, "settled": settled, "needed_s": needed,
-            "burn_in_s": have, "enough": have >= needed if settled else False,
+            "burn_in_s": have, "enough": have >= needed if settled or have < needed else None,
             "text": ""}  # fmt: skip
 
 
@@ -1320,6 +1364,7 @@ __all__ = [
     "propensity_change",
     "recommend",
     "run",
+    "settling_estimate",
     "simulate_fixed_inputs",
     "stage_costs",
     "threshold_lump",

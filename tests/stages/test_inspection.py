@@ -305,6 +305,49 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     assert simulated["abstraction"] == "classes" and 40 in simulated["edges"]
 
 
+def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
+    tmp_path,
+) -> None:  # fmt: skip
+    """The auto-regulatory network at the default budget (``inspect.max_seconds=40``): the
+    settling run stopped at 640 s, not settled, the slowest point measured at 230 s, phi's
+    relaxation 419 +- 289 s (still correlated at its last lag). Read as settled in 230 s (4,600
+    windows) that was plain ``gp=classes``; a 2,560-s run measured 1,250 s, and bins that relax
+    is what was measured to work. The settling is now at least half the run and
+    ln(1 / tolerance) x the relaxation time, and the reason says so; a run cut short whose bound
+    stays below the rule says what would tell. A burn-in above such a lower bound is not told
+    to shrink to it."""
+    model = protein(tmp_path, reservoir=True)
+    exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    assert exact.settled.all()
+    cut = dataclasses.replace(
+        exact, settled=np.zeros_like(exact.settled), horizon=640.0,
+        settle_phi=np.full_like(exact.settle_phi, 0.0),
+        settle_network=np.full_like(exact.settle_phi, 230.0),
+        relaxation={"tau_s": 419.0, "se": 289.0, "bound": "above"},
+    )  # fmt: skip
+    advice = inspection.recommend(model, cut, options(), DT)
+    assert advice["command"] == "gp=classes gp.class_moves=relaxation"
+    assert advice["settling_s"] == pytest.approx(math.log(20) * 419.0)
+    assert "not settled by the end of the inspector's 640-s run" in advice["reason"]
+    assert "419 +- 289 s" in advice["reason"] and "(25,104 windows" in advice["reason"]
+    quick = dataclasses.replace(cut, relaxation={"tau_s": 20.0, "se": 1.0, "bound": ""})
+    short = inspection.recommend(model, quick, options(), DT)
+    assert short["command"] == "gp=classes" and short["settling_s"] == 320.0
+    assert "below the 10,000 windows" in short["reason"]
+    assert "inspect.max_seconds" in short["reason"]
+    settled = inspection.recommend(model, exact, options(), DT)
+    assert "inspect.max_seconds" not in settled["reason"]
+
+    class Unenumerable:
+        state_space = None
+        burn_in = 4000.0
+
+    burn = inspection.burn_in_advice(Unenumerable(), cut, 3.0)  # type: ignore[arg-type]
+    assert burn["needed_s"] == 960 and burn["enough"] is None
+    Unenumerable.burn_in = 500.0
+    assert inspection.burn_in_advice(Unenumerable(), cut, 3.0)["enough"] is False  # type: ignore[arg-type]
+
+
 def square_wave(cells: int, windows: int, half: float, shape: float, flip: float,
                 seed: int) -> np.ndarray:  # fmt: skip
     """phi of ``cells`` cells over ``windows`` windows of DT: alternating segments of gamma
