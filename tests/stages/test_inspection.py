@@ -437,6 +437,39 @@ def test_a_ring_of_stages_oscillates_exactly(tmp_path) -> None:
     assert advice["max_age"] == inspection._round_up(osc["period_s"])
 
 
+def test_the_clock_covers_the_longest_period_over_the_inputs_range(tmp_path) -> None:
+    """The ring's lap takes 10 / (5 s) s: 2 s at the median s = 1, 4 s at s = 0.5, the range's
+    low end. gp.max_age from the median's period alone (2 s) would cap the clock at half the
+    cycle the cells at the low end run: the advice takes the longest period over the range,
+    exactly at every grid point and, simulated, at the ends of each input's range."""
+    stages = [f"S{i}" for i in range(10)]
+    species = [Species(s, amount=1 if i == 0 else 0) for i, s in enumerate(stages)]
+    reactions = [Reaction(f"r{i}", f"k * s * {s}", {s: 1}, {stages[(i + 1) % 10]: 1})
+                 for i, s in enumerate(stages)]  # fmt: skip
+    model, _ = network_model(tmp_path, "ring", species, {"k": 5.0, "s": 1.0}, reactions,
+                             {"s": "L"}, " + ".join(stages[:5]) + " >= 1")  # fmt: skip
+    grid = grid_of([1.0, 0.5, 0.75, 1.5])
+    exact = inspection.exact_fixed_inputs(model.internal, grid, options(), DT)
+    osc = exact.oscillation
+    assert osc is not None and abs(osc["period_s"] - 2.0) <= 0.2
+    advice = inspection.recommend(model, exact, options(), DT)
+    assert advice["max_age"] >= 3.6  # the median's period alone: 2
+    periods = {p["at"]: p["period_s"] for p in osc["over_range"]}
+    assert abs(periods["L = 0.5"] - 4.0) <= 0.4 and abs(periods["L = 1.5"] - 4 / 3) <= 0.15
+    assert advice["max_age"] == inspection._round_up(periods["L = 0.5"])
+    assert grid.ends() == [1, 3]
+    assert "at most" in advice["reason"] and "(L = 0.5)" in advice["reason"]
+    o = options(n_cells=40, record_windows=1200, min_time=20.0, max_time=40.0)
+    torch.manual_seed(3)
+    simulated = inspection.simulate_fixed_inputs(model, grid, o, DT, torch.device("cpu"), 60.0)
+    sim = simulated.oscillation
+    assert sim is not None and sim["detected"]
+    assert [p["at"] for p in sim["over_range"]] == ["L = 0.5", "L = 1.5"]
+    low = sim["over_range"][0]
+    assert low["detected"] and abs(low["period_s"] - 4.0) <= 0.6
+    assert inspection.recommend(model, simulated, o, DT)["max_age"] >= 3.4
+
+
 def test_classes_auto_is_recommended_over_the_inputs_range_the_fields_give(tmp_path) -> None:
     """The fields' range of each kinetic input (lowest low and highest high quantile over the
     fields, widened outward to two significant digits) goes into the recommended yaml, which a
