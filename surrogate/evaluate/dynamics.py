@@ -392,7 +392,9 @@ def switch_hazards(
             out.append(None)
             continue
         a, s = age[rows_mask], switched[rows_mask]
-        fine = np.floor(np.log2(a + 1)).astype(int)  # 0, 1, 2-3, 4-7, ... -> 0, 1, 2, 3
+        # ages 0, 1, 2-3, 4-7, ... -> bins 0, 1, 2, 3 (the bit length of the age), so that
+        # bin b starts at age 0 (b = 0) or 2^(b-1), as the edges below say
+        fine = np.frexp(a.astype(np.float64))[1]
         nb = int(fine.max()) + 1
         rows = np.bincount(fine, minlength=nb).astype(float)
         hits = np.bincount(fine, weights=s, minlength=nb)

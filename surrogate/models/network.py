@@ -57,9 +57,15 @@ SSA_BACKENDS = ("auto", "compiled", "batched")
 COMPILED_EVENT_SECONDS = 1 / 1.33e7
 BATCHED_EVENT_SECONDS = 1 / 5.3e5
 #: seconds per cell and step around the window's events (the SSA call's per-cell work, the
-#: torch step, collect's records): the gene switch (1-2 events per window) collected at 7.1 us
-#: per cell-step on a loaded 2-core machine (2,000 cells), so ~3 us on a quiet one
-STEP_OVERHEAD_SECONDS = 3e-6
+#: step's other per-cell tensor work, collect's records), measured as the slope of the wall
+#: time per step between 200 and 4,000 cells (the loop's fixed part cancels; best of 3-5
+#: repeats, one torch thread, a 2-core machine loaded by two other jobs) on the gene switch in
+#: a walker in the Gaussian field, less its events (0.70 per window at the cells' states) at
+#: COMPILED_EVENT_SECONDS: collect's loop (torch step, records every 2 steps, jumps) 0.47 us of
+#: 0.53 us per cell-step, the torch step alone 0.25 of 0.30, the numba kernel 0.09 of 0.15.
+#: The largest, rounded: the stages' estimates are guards, not forecasts. (It was 3 us, read
+#: from a collection's whole wall time at 2,000 cells, the fixed part per step included.)
+STEP_OVERHEAD_SECONDS = 5e-7
 
 
 class SpeciesCondition:

@@ -23,7 +23,9 @@ range) and names, in order, the first causes that apply:
 5. **Memory** (the runs differ from the full model beyond the noise floor while the psi is
    unbiased within its error): the chain over phi forgets what the network remembers: classes
    finer than phi (``gp=classes``, with ``model.classes=auto`` for a network) or a switch clock
-   (``gp=clock``).
+   (``gp=clock``). Where the clock ran already, what was not tried (:func:`clock_step`): a
+   longer clock (twice ``gp.max_age``), more transitions, and classes only where the memory is
+   a slow count rather than a cycle's phase; never the setting in use.
 
 None applying: every comparison is within the noise floor or the critical value at this
 population size; trust it there and check at scale (``scripts/fidelity.py``).
@@ -84,6 +86,7 @@ def verdict(
     n_per_state: int | None,
     class_shares: Mapping[str, Any] | None = None,
     class_moves: str = "learned",
+    max_age: float | None = None,
 ) -> Verdict:
     """Read the measurements (see the module docstring).
 
@@ -99,6 +102,7 @@ def verdict(
         n_per_state: the collection's transitions per origin (for the advice).
         class_shares: a K-lumps chain's class shares against the full model's
             (``train_metrics.json["class_shares"]``); class_moves: how its classes moved.
+        max_age: the switch clock's cap (s) where the chain ran with one (``history=age``).
     """
     causes: list[tuple[str, str, str]] = []
     away = {f: r for f, r in outside.items() if r and r["share_outside"] > outside_warning}
@@ -184,18 +188,16 @@ def verdict(
     failing = {f: list(q) for f, q in failures.items() if q}
     if failing and not biased and not away and not drift:
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
+        classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the count "
+                   "that holds the memory)" if network else
+                   "`gp=classes` where the model declares classes")  # fmt: skip
         if lumps == "classes":
             step = ("more classes or other bins (`model.classes`), or more transitions per "
                     "class (`collect.n_per_state`).")  # fmt: skip
+        elif history == "age":
+            step = clock_step(max_age, n_per_state, classes)
         else:
-            classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the "
-                       "count that holds the memory)" if network else
-                       "`gp=classes` where the model declares classes")  # fmt: skip
-            step = (
-                f"classes finer than phi, {classes}, or the switch clock `gp=clock`"
-                + (" (already on: try classes)" if history == "age" else "")
-                + "."
-            )
+            step = f"classes finer than phi, {classes}, or the switch clock `gp=clock`."
         causes.append((
             "Memory the chain over phi does not hold",
             f"the runs differ from the full model beyond its noise floor ({what}) while the "
@@ -206,4 +208,29 @@ def verdict(
     return Verdict(trust=not causes, causes=causes)
 
 
-__all__ = ["BIAS_Z", "SETTLING_Z", "Verdict", "verdict"]
+def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> str:
+    """The next step for a chain with a switch clock (``gp=clock``) whose runs differ from the
+    full model while its psi is unbiased where the population lives: what was not tried, not
+    the clock again. A longer clock first (ages beyond ``gp.max_age`` are clamped to it, so
+    memory that outlasts the cap is lost), then more transitions (the clock's psi is over one
+    input more, the age, and each age bin sees a share of the rows: on the toggle switch the
+    clock needed more data than the two-state chain, docs/fidelity.md); classes only where the
+    memory is a slow count, not a cycle's phase (on Tyson's oscillator classes over its
+    threshold's count did worse than the two-state chain, docs/sbml.md)."""
+    longer = (f"`gp.max_age={2 * max_age:g}` (twice the `gp.max_age={max_age:g}` that ran)"
+              if max_age is not None else "a larger `gp.max_age`")  # fmt: skip
+    more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
+        "a larger `collect.n_per_state`"  # fmt: skip
+    return (
+        f"the switch clock is on already; first a longer clock, {longer}: an age beyond the "
+        f"cap is clamped to it, so memory that outlasts it is lost (`python3 "
+        f"scripts/inspect_model.py` gives the age where the hazard flattens and, for an "
+        f"oscillating lump, the period); then more transitions ({more}): the clock's psi is "
+        f"over the age as well, and each age sees a share of the rows. Classes ({classes}) "
+        f"only where the memory is a slow count rather than a cycle's phase (the inspector "
+        f"says which): bins of a count do not hold where a cycle is, and on an oscillator "
+        f"they did worse than the two-state chain (docs/sbml.md)."
+    )
+
+
+__all__ = ["BIAS_Z", "SETTLING_Z", "Verdict", "clock_step", "verdict"]

@@ -53,11 +53,16 @@ minute for a small network. Every figure is a measurement (the definitions are h
    hazard: the two-state chain (``gp=svgp``, the default). One that depends on the age by more
    than ``inspect.memory_effect`` (and significantly): classes over bins of the species when
    the lump is a threshold on one species count (``gp=classes`` with ``classes: {species: P,
-   edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold),
-   else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens). A lump
+   edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold;
+   with ``gp.class_moves=relaxation`` for a network that settles over
+   :data:`SLOW_SETTLING_WINDOWS` windows or more, :func:`settling_estimate`: where the run
+   stopped before settling, at least half the run and ln(1 / tolerance) x phi's relaxation
+   time), else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens). A lump
    that oscillates (item 4) gets the switch clock whatever the lump: its memory is the cycle's
    phase, which the time since phi last changed measures (:func:`oscillation_advice`:
-   ``gp.max_age`` one period, or the 90th percentile of the segments' durations if longer).
+   ``gp.max_age`` the longest period, or 90th percentile of the segments' durations, over the
+   range the fields give: exactly at every grid point, simulated at the ends of each input's
+   range as well as the median).
 
 Models whose internal model is not a network (``model=ecoli``) get items 2, 3, 4 (relaxation),
 5 and 6 by simulation from their own initial state (their stationary law).
@@ -134,6 +139,9 @@ MIN_CELLS = 16
 MAX_STATES_SAMPLED = 2000
 #: population records per cell (item 2)
 RECORDS_PER_CELL = 50
+#: share of the stationary record's budget kept for the range's ends (simulated networks),
+#: spent only where phi oscillates at the median inputs: the period there sets gp.max_age
+RANGE_SHARE = 0.25
 
 
 def validate(cfg: Mapping[str, Any]) -> InspectSettings:
@@ -303,6 +311,17 @@ class Grid:
                 rows.append(point)
                 axis.append(i)
         return cls(tuple(names), np.stack(rows), np.array(axis), low, median, high)
+
+    def ends(self) -> list[int]:
+        """The points at the ends of each input's range (its lowest and highest value, the
+        others at their median): where a period measured at the median is likeliest to differ
+        most."""
+        out: list[int] = []
+        for i in range(self.x.shape[1]):
+            on = np.flatnonzero(self.axis == i)
+            if on.size:
+                out += [int(on[np.argmin(self.x[on, i])]), int(on[np.argmax(self.x[on, i])])]
+        return out
 
     def describe(self, g: int) -> str:
         """``L = 0.05`` (the input varied) or ``median``."""
@@ -571,6 +590,12 @@ def exact_fixed_inputs(
         oscillation = oscillation_dict(
             oscillation_from_acf(rho, None, dt, options["oscillation_depth"]), dt
         )
+        if oscillation["detected"] and g_count > 1:
+            oscillation["over_range"] = [
+                _exact_period(q[g], pi[g], lump, float(occupancy[g]), float(tau[g]), dt,
+                              options["oscillation_depth"]) | {"at": grid.describe(g)}
+                for g in range(1, g_count)
+            ]  # fmt: skip
     switch = np.array([psi[0], 1.0 - psi[1]])
     median_inputs = network.kinetic_inputs(torch.as_tensor(grid.x[:1], dtype=torch.float32))
     a0 = network.kinetics.torch_propensity(space.states, median_inputs.expand(k, -1)).sum(1)
@@ -594,6 +619,52 @@ def exact_fixed_inputs(
                        {s: float(settle_species[0, j]) for j, s in enumerate(network.species)},
                        curves, horizon, relaxation, hazards, memory, switch, events,
                        species_law, stopped, stopped_state, oscillation)  # fmt: skip
+
+
+def _exact_period(
+    q: Tensor, pi: Tensor, lump: Tensor, occupancy: float, tau: float, dt: float, depth: float
+) -> dict[str, Any]:  # fmt: skip
+    """Whether phi oscillates at one point of the grid and its period, from the generator
+    ``q`` (``K x K``) and its stationary law ``pi``: the exact autocorrelation over the lags
+    :func:`exact_fixed_inputs` takes at the median (five relaxation times, 16 to 2,000)."""
+    ages = int(min(max(math.ceil(5 * (tau if math.isfinite(tau) else dt) / dt), 16), 2000))
+    one = torch.linalg.matrix_exp(q * dt)
+    f = lump - occupancy
+    ahead, cov = f.clone(), []
+    for _ in range(ages + 1):
+        cov.append(float((pi * f * ahead).sum()))
+        ahead = one @ ahead
+    if not cov[0] > 0:
+        return {"detected": False, "period_s": None, "q90_s": None}
+    found = oscillation_from_acf(np.asarray(cov) / cov[0], None, dt, depth)
+    period = float(found.period_s)
+    return {"detected": bool(found.detected),
+            "period_s": period if math.isfinite(period) else None, "q90_s": None}  # fmt: skip
+
+
+def _range_periods(
+    series: np.ndarray, group: np.ndarray, points: Sequence[int], grid: Grid, dt: float,
+    depth: float,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """Whether phi oscillates at each of ``points`` and its period and segments' 90th
+    percentile, from each point's rows of ``series`` (cells x windows, at stationarity)."""
+    out = []
+    for g in points:
+        rows = series[group == g]
+        item: dict[str, Any] = {"at": grid.describe(g), "detected": False, "period_s": None,
+                                "q90_s": None, "cells": int(rows.shape[0])}  # fmt: skip
+        if rows.shape[0] >= 2:
+            relax = relaxation_from_series(rows, dt, max_lag=max(1, (rows.shape[1] - 1) // 4))
+            if np.isfinite(relax.rho[0]):
+                found = oscillation_from_acf(relax.rho, relax.rho_se, dt, depth)
+                durations = [d for d in segment_durations(rows) if d.size >= 2]
+                period = float(found.period_s)
+                item.update(detected=bool(found.detected),
+                            period_s=period if math.isfinite(period) else None,
+                            q90_s=max((float(np.quantile(d, 0.9) * dt) for d in durations),
+                                      default=None))  # fmt: skip
+        out.append(item)
+    return out
 
 
 def counter_species(network: NetworkInternalModel) -> list[int]:
@@ -715,12 +786,15 @@ def simulate_fixed_inputs(
     median = (group == 0).nonzero().squeeze(1)
     windows = int(options["record_windows"])
     left = max(seconds - spent, 0.0)
+    ends = grid.ends()
     rows: slice | np.ndarray
     if network is not None:
         assert kin is not None  # a network's kinetic inputs
         state_m, x_m, kin_m = _take(state, median), x[median.to(device)], kin[median.to(device)]
         per_window = cost(state_m, kin_m, 1, dt)
-        affordable = left / max(per_window * windows, 1e-300)
+        # a share is kept for the range's ends, recorded where phi oscillates (the period)
+        share = 1.0 - RANGE_SHARE if ends else 1.0
+        affordable = share * left / max(per_window * windows, 1e-300)
         cells_m = int(min(median.numel(), max(affordable, MIN_CELLS)))
         state_m, x_m = _take(state_m, torch.arange(cells_m)), x_m[:cells_m]
         rows = slice(None)
@@ -732,12 +806,20 @@ def simulate_fixed_inputs(
         windows = max(200, int(left / max(cells_m * per_window, 1e-300)))
         notes.append(f"{windows} windows recorded at stationarity (inspect.max_seconds)")
     series = np.empty((median.numel() if network is None else cells_m, windows + 1), np.int8)
-    series[:, 0] = internal.phi(state_m).cpu().numpy()[rows]
+    # another model's whole population runs (its state opaque): every point's phi is kept
+    everyone = np.empty((group.numel(), windows + 1), np.int8) if network is None else None
+    phi_now = internal.phi(state_m).cpu().numpy()
+    series[:, 0] = phi_now[rows]
+    if everyone is not None:
+        everyone[:, 0] = phi_now
     snapshots = []
     every = max(1, windows // 8)
     for k in range(1, windows + 1):
         state_m = internal.advance(state_m, x_m, dt)
-        series[:, k] = internal.phi(state_m).cpu().numpy()[rows]
+        phi_now = internal.phi(state_m).cpu().numpy()
+        series[:, k] = phi_now[rows]
+        if everyone is not None:
+            everyone[:, k] = phi_now
         if network is not None and k % every == 0:
             snapshots.append(state_m[0].cpu())
     spent += cells_m * windows * per_window
@@ -746,9 +828,36 @@ def simulate_fixed_inputs(
     hz = switch_hazards(series, alpha)
     hazards = [_hazard_dict(h, dt) for h in hz]
     oscillation = None
+    depth = options["oscillation_depth"]
     if np.isfinite(relax.rho[0]):
-        found = oscillation_from_acf(relax.rho, relax.rho_se, dt, options["oscillation_depth"])
+        found = oscillation_from_acf(relax.rho, relax.rho_se, dt, depth)
         oscillation = oscillation_dict(found, dt, segment_durations(series))
+    if oscillation is not None and oscillation["detected"] and ends:
+        if everyone is not None:
+            oscillation["over_range"] = _range_periods(everyone, group.numpy(), ends, grid,
+                                                       dt, depth)  # fmt: skip
+        else:
+            assert kin is not None
+            left = max(seconds - spent, 0.0)
+            pick = torch.cat([(group == g).nonzero().squeeze(1) for g in ends])
+            state_e, x_e, kin_e = _take(state, pick), x[pick.to(device)], kin[pick.to(device)]
+            per_cell = cost(state_e, kin_e, 1, dt) * (windows + 1)
+            cells_e = int(min(n, left / max(len(ends) * per_cell, 1e-300)))
+            if cells_e >= MIN_CELLS // 2:
+                keep = torch.cat([torch.arange(j * n, j * n + cells_e) for j in range(len(ends))])
+                state_e, x_e = _take(state_e, keep), x_e[keep.to(device)]
+                group_e = np.repeat(np.asarray(ends), cells_e)
+                record = np.empty((group_e.size, windows + 1), np.int8)
+                record[:, 0] = internal.phi(state_e).cpu().numpy()
+                for k in range(1, windows + 1):
+                    state_e = internal.advance(state_e, x_e, dt)
+                    record[:, k] = internal.phi(state_e).cpu().numpy()
+                spent += len(ends) * cells_e * per_cell
+                oscillation["over_range"] = _range_periods(record, group_e, ends, grid, dt,
+                                                           depth)  # fmt: skip
+            else:
+                notes.append("phi's period at the range's ends not measured "
+                             "(inspect.max_seconds): gp.max_age from the median inputs'")  # fmt: skip
     memory = None
     if hz[0] is not None and hz[1] is not None:
         memory = any(h.p_value < alpha and h.effect > options["memory_effect"]
@@ -1051,15 +1160,20 @@ def recommend(
             else declared  # fmt: skip
         # a count that settles over many windows moves between bins too rarely per window to
         # learn, and its jitter across an edge reads as moves: its bins relax instead
-        settling = slowest_settling(fixed)
+        est = settling_estimate(fixed, float(options["settle_tolerance"]))
+        settling = est["seconds"]
         slow = auto and settling >= SLOW_SETTLING_WINDOWS * dt
         command = "gp=classes gp.class_moves=relaxation" if slow else "gp=classes"
-        relax = (f"; the network settles over {settling:.3g} s ({settling / dt:,.0f} windows), so "
-                 f"the bins move by relaxation to their stationary law "
-                 f"(`gp.class_moves=relaxation`), not by a one-window law learned from rare, "
-                 f"jittery crossings" if slow else "")  # fmt: skip
+        basis = f": {est['basis']}" if est["basis"] else ""
+        relax = (f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
+                 f"{basis}), at least the {SLOW_SETTLING_WINDOWS:,} windows from which the bins "
+                 f"move by relaxation to their stationary law (`gp.class_moves=relaxation`), "
+                 f"not by a one-window law learned from rare, jittery crossings" if slow else
+                 f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
+                 f"{basis}), below the {SLOW_SETTLING_WINDOWS:,} windows from which bins relax "
+                 f"(`gp.class_moves=relaxation`){est['caveat']}" if auto else "")  # fmt: skip
         return {"abstraction": "classes", "command": command, "yaml": yaml,
-                "settling_s": settling,
+                "settling_s": settling, "settling_basis": est["basis"],
                 "declared": declared, "edges": edges, "edges_by_lump": by_lump,
                 "species": species,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
@@ -1087,15 +1201,35 @@ def oscillation_advice(
 ) -> dict[str, Any]:  # fmt: skip
     """The switch clock for a lump that oscillates (:func:`oscillation_dict`), whatever the
     lump: the memory is the cycle's phase, which the time since phi last changed measures, not
-    a count near a threshold that bins of it would hold. ``gp.max_age``: the larger of one
+    a count near a threshold that bins of it would hold. ``gp.max_age``: the largest of the
     period and the 90th percentile of either lump's segment durations (a cycle is one segment
-    of each lump, so the clock covers the ages at which the segments end), rounded up to two
+    of each lump, so the clock covers the ages at which the segments end), at the median inputs
+    and, where measured (``osc["over_range"]``: every grid point exactly, the ends of each
+    input's range simulated), wherever phi oscillates over the range the fields give (a period
+    that grows towards one end would outrun a cap from the median's), rounded up to two
     significant digits. ``species``: the threshold lump's species (the reason says why not
     classes over it)."""
     period = float(osc["period_s"])
     segments = [s for s in (osc.get("segments") or []) if s is not None]
-    longest = max([period, dt] + [s["q90_s"] for s in segments])
+    # the period (and the segments) wherever phi oscillates over the fields' range: the clock
+    # must cover the longest cycle the population meets, not the median inputs' alone
+    others = [p for p in (osc.get("over_range") or []) if p["detected"]]
+    longest = max([period, dt] + [s["q90_s"] for s in segments]
+                  + [p["period_s"] for p in others]
+                  + [p["q90_s"] for p in others if p.get("q90_s") is not None])  # fmt: skip
     max_age = _round_up(longest)
+    over = osc.get("over_range")
+    if over:
+        slowest = max(others, key=lambda p: p["period_s"], default=None)
+        quiet = [p["at"] for p in over if not p["detected"]]
+        across = (f"; over the range the fields give, the period is at most "
+                  f"{slowest['period_s']:.3g} s ({slowest['at']})" if slowest is not None else
+                  "; over the range the fields give it oscillates at the median alone")  # fmt: skip
+        if quiet:
+            across += f" (no oscillation found at {', '.join(quiet)})"
+    else:
+        across = ("; measured at the median inputs only (the range's ends not recorded, or "
+                  "one value of each input)")  # fmt: skip
     trough = (f"its autocorrelation dips to {-osc['depth']:.2f}"
               + (f" +- {osc['depth_se']:.2g}" if osc["depth_se"] else "")
               + f" at a lag of {osc['trough_s']:.3g} s")  # fmt: skip
@@ -1126,9 +1260,10 @@ def oscillation_advice(
                       f"-{osc['depth_threshold']:g} and beyond {osc['z']:.1f} standard errors)"
                       f"{regular}. Its switching's memory ({facts}) is the cycle's phase, which "
                       f"the time since phi last changed measures: the switch clock carries it, "
-                      f"its age capped at `gp.max_age={max_age:g}` s, the larger of one period "
-                      f"and the 90th percentile of the segments' durations, so that it covers "
-                      f"the ages at which both lumps' segments end{why_not}"}  # fmt: skip
+                      f"its age capped at `gp.max_age={max_age:g}` s, the largest of the "
+                      f"periods and the 90th percentiles of the segments' durations where the "
+                      f"population lives{across}, so that it covers the ages at which both "
+                      f"lumps' segments end{why_not}"}  # fmt: skip
 
 
 def _round_up(value: float) -> float:
@@ -1156,11 +1291,47 @@ def slowest_settling(fixed: FixedInputs) -> float:
     return float(finite.max()) if finite.size else 0.0
 
 
+def settling_estimate(fixed: FixedInputs, tolerance: float) -> dict[str, Any]:
+    """The network's settling time (s) the inspection implies, for the rule of
+    :data:`SLOW_SETTLING_WINDOWS`: ``{"seconds", "basis", "caveat"}``.
+
+    Where every grid point settled: the longest settling over the grid
+    (:func:`slowest_settling`; ``basis`` empty). Where the run stopped first (its budget,
+    ``inspect.max_seconds``, or ``inspect.max_time``), the settling times measured are lower
+    bounds that can fall far short: the auto-regulatory network at the default budget stopped
+    at 640 s with 230 s measured, where 2,560 s of run measured 1,250 s. Then the larger of
+    half the run (a point settles in the first half of its run) and ``ln(1 / tolerance)`` x
+    phi's relaxation time at stationarity (a mean relaxing as ``exp(-t / tau)`` from a start
+    as far from its plateau as the plateau is from 0 is within ``tolerance`` after that; the
+    same network: 419 s, so ~1,250 s), each named in ``basis``; ``caveat`` says what would
+    settle it."""
+    measured = slowest_settling(fixed)
+    if bool(fixed.settled.all()):
+        return {"seconds": measured, "basis": "", "caveat": ""}
+    half = fixed.horizon / 2
+    parts = [f"not settled by the end of the inspector's {fixed.horizon:.3g}-s run: at least "
+             f"{max(measured, half):.4g} s"]  # fmt: skip
+    seconds = max(measured, half)
+    tau = fixed.relaxation.get("tau_s")
+    if tau is not None and math.isfinite(tau) and tau > 0:
+        from_tau = math.log(1 / tolerance) * float(tau)
+        se = fixed.relaxation.get("se")
+        err = f" +- {se:.3g}" if se is not None and math.isfinite(se) and se > 0 else ""
+        parts.append(f"phi's relaxation time at stationarity, {tau:.3g}{err} s, implies "
+                     f"ln(1 / {tolerance:g}) x {tau:.3g} = {from_tau:.4g} s")  # fmt: skip
+        seconds = max(seconds, from_tau)
+    caveat = ("; the run did not settle, so a larger `inspect.max_seconds` (or "
+              "`inspect.max_time`) would tell")  # fmt: skip
+    return {"seconds": seconds, "basis": "; ".join(parts), "caveat": caveat}
+
+
 def burn_in_advice(
     network: NetworkInternalModel | None, fixed: FixedInputs, factor: float
 ) -> dict[str, Any]:
     """``model.burn_in`` against ``factor`` x the longest settling time over the grid (the
-    network's counts and phi, from the file's counts at each point's inputs)."""
+    network's counts and phi, from the file's counts at each point's inputs). Where the run
+    stopped before settling, that is a lower bound: a burn-in below it is too short, one above
+    it is not known to be enough (``enough`` None), never told to shrink to it."""
     if network is None:
         return {"applies": False, "text": "the internal model draws its own initial state (no "
                                           "burn-in setting)"}  # fmt: skip
@@ -1174,7 +1345,7 @@ def burn_in_advice(
     needed = _round_up(factor * worst)
     have = float(network.burn_in)
     return {"applies": True, "settling_s": worst, "settled": settled, "needed_s": needed,
-            "burn_in_s": have, "enough": have >= needed if settled else False,
+            "burn_in_s": have, "enough": have >= needed if settled or have < needed else None,
             "text": ""}  # fmt: skip
 
 
@@ -1320,6 +1491,7 @@ __all__ = [
     "propensity_change",
     "recommend",
     "run",
+    "settling_estimate",
     "simulate_fixed_inputs",
     "stage_costs",
     "threshold_lump",

@@ -258,6 +258,9 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
                      f"envelope are the oscillation's time scales.")  # fmt: skip
     if b["applies"]:
         verdict = ("enough" if b["enough"] else
+                   "above this lower bound, but not known to be enough until the run settles "
+                   "(a larger `inspect.max_seconds` or `inspect.max_time`)"
+                   if b["enough"] is None else
                    f"**too short: set `burn_in: {b['needed_s']:g}`** in the model's yaml "
                    f"(`model.burn_in={b['needed_s']:g}`)")  # fmt: skip
         bound = "" if b["settled"] else " at least (not settled within the run)"

@@ -313,7 +313,8 @@ def _verdict(
                 tolerance=DURATION_TOLERANCE, lumps=tr.lumps, history=tr.history,
                 network=isinstance(tr.setup.model.internal, NetworkInternalModel),
                 n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
-                class_moves=tr.class_moves)  # fmt: skip
+                class_moves=tr.class_moves,
+                max_age=tr.max_age if tr.history == "age" else None)  # fmt: skip
     return v.markdown()
 
 

@@ -88,3 +88,19 @@ def test_drifting_class_shares_point_to_relaxation_then_to_more_data() -> None:
     assert "relaxation" not in relaxed.causes[0][2].split("(")[0]
     assert _read(lumps="phi", class_shares=shares).trust
     assert _read(lumps="classes", class_shares={**shares, "drift": False}).trust
+
+
+def test_a_failing_clock_is_told_what_was_not_tried() -> None:
+    """A chain with the switch clock on (an oscillator's advice) whose runs fail with an
+    unbiased psi: the next step is a longer clock (twice the cap that ran) and more
+    transitions, classes only with the reason they may not help; never the clock itself."""
+    clock = _read(failures={"gaussian": ["off"]}, history="age", max_age=3.5)
+    (cause,) = clock.causes
+    step = cause[2]
+    assert "gp.max_age=7" in step and "gp.max_age=3.5" in step
+    assert "collect.n_per_state=40000" in step
+    assert "`gp=clock`" not in step and "try classes" not in step
+    assert step.index("gp.max_age=7") < step.index("gp=classes")  # classes last, with a reason
+    assert "cycle's phase" in step
+    # without a clock, the clock is still offered
+    assert "`gp=clock`" in _read(failures={"gaussian": ["off"]}).causes[0][2]

@@ -305,6 +305,49 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     assert simulated["abstraction"] == "classes" and 40 in simulated["edges"]
 
 
+def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
+    tmp_path,
+) -> None:  # fmt: skip
+    """The auto-regulatory network at the default budget (``inspect.max_seconds=40``): the
+    settling run stopped at 640 s, not settled, the slowest point measured at 230 s, phi's
+    relaxation 419 +- 289 s (still correlated at its last lag). Read as settled in 230 s (4,600
+    windows) that was plain ``gp=classes``; a 2,560-s run measured 1,250 s, and bins that relax
+    is what was measured to work. The settling is now at least half the run and
+    ln(1 / tolerance) x the relaxation time, and the reason says so; a run cut short whose bound
+    stays below the rule says what would tell. A burn-in above such a lower bound is not told
+    to shrink to it."""
+    model = protein(tmp_path, reservoir=True)
+    exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    assert exact.settled.all()
+    cut = dataclasses.replace(
+        exact, settled=np.zeros_like(exact.settled), horizon=640.0,
+        settle_phi=np.full_like(exact.settle_phi, 0.0),
+        settle_network=np.full_like(exact.settle_phi, 230.0),
+        relaxation={"tau_s": 419.0, "se": 289.0, "bound": "above"},
+    )  # fmt: skip
+    advice = inspection.recommend(model, cut, options(), DT)
+    assert advice["command"] == "gp=classes gp.class_moves=relaxation"
+    assert advice["settling_s"] == pytest.approx(math.log(20) * 419.0)
+    assert "not settled by the end of the inspector's 640-s run" in advice["reason"]
+    assert "419 +- 289 s" in advice["reason"] and "(25,104 windows" in advice["reason"]
+    quick = dataclasses.replace(cut, relaxation={"tau_s": 20.0, "se": 1.0, "bound": ""})
+    short = inspection.recommend(model, quick, options(), DT)
+    assert short["command"] == "gp=classes" and short["settling_s"] == 320.0
+    assert "below the 10,000 windows" in short["reason"]
+    assert "inspect.max_seconds" in short["reason"]
+    settled = inspection.recommend(model, exact, options(), DT)
+    assert "inspect.max_seconds" not in settled["reason"]
+
+    class Unenumerable:
+        state_space = None
+        burn_in = 4000.0
+
+    burn = inspection.burn_in_advice(Unenumerable(), cut, 3.0)  # type: ignore[arg-type]
+    assert burn["needed_s"] == 960 and burn["enough"] is None
+    Unenumerable.burn_in = 500.0
+    assert inspection.burn_in_advice(Unenumerable(), cut, 3.0)["enough"] is False  # type: ignore[arg-type]
+
+
 def square_wave(cells: int, windows: int, half: float, shape: float, flip: float,
                 seed: int) -> np.ndarray:  # fmt: skip
     """phi of ``cells`` cells over ``windows`` windows of DT: alternating segments of gamma
@@ -392,6 +435,39 @@ def test_a_ring_of_stages_oscillates_exactly(tmp_path) -> None:
     advice = inspection.recommend(model, exact, options(), DT)
     assert advice["abstraction"] == "clock"
     assert advice["max_age"] == inspection._round_up(osc["period_s"])
+
+
+def test_the_clock_covers_the_longest_period_over_the_inputs_range(tmp_path) -> None:
+    """The ring's lap takes 10 / (5 s) s: 2 s at the median s = 1, 4 s at s = 0.5, the range's
+    low end. gp.max_age from the median's period alone (2 s) would cap the clock at half the
+    cycle the cells at the low end run: the advice takes the longest period over the range,
+    exactly at every grid point and, simulated, at the ends of each input's range."""
+    stages = [f"S{i}" for i in range(10)]
+    species = [Species(s, amount=1 if i == 0 else 0) for i, s in enumerate(stages)]
+    reactions = [Reaction(f"r{i}", f"k * s * {s}", {s: 1}, {stages[(i + 1) % 10]: 1})
+                 for i, s in enumerate(stages)]  # fmt: skip
+    model, _ = network_model(tmp_path, "ring", species, {"k": 5.0, "s": 1.0}, reactions,
+                             {"s": "L"}, " + ".join(stages[:5]) + " >= 1")  # fmt: skip
+    grid = grid_of([1.0, 0.5, 0.75, 1.5])
+    exact = inspection.exact_fixed_inputs(model.internal, grid, options(), DT)
+    osc = exact.oscillation
+    assert osc is not None and abs(osc["period_s"] - 2.0) <= 0.2
+    advice = inspection.recommend(model, exact, options(), DT)
+    assert advice["max_age"] >= 3.6  # the median's period alone: 2
+    periods = {p["at"]: p["period_s"] for p in osc["over_range"]}
+    assert abs(periods["L = 0.5"] - 4.0) <= 0.4 and abs(periods["L = 1.5"] - 4 / 3) <= 0.15
+    assert advice["max_age"] == inspection._round_up(periods["L = 0.5"])
+    assert grid.ends() == [1, 3]
+    assert "at most" in advice["reason"] and "(L = 0.5)" in advice["reason"]
+    o = options(n_cells=40, record_windows=1200, min_time=20.0, max_time=40.0)
+    torch.manual_seed(3)
+    simulated = inspection.simulate_fixed_inputs(model, grid, o, DT, torch.device("cpu"), 60.0)
+    sim = simulated.oscillation
+    assert sim is not None and sim["detected"]
+    assert [p["at"] for p in sim["over_range"]] == ["L = 0.5", "L = 1.5"]
+    low = sim["over_range"][0]
+    assert low["detected"] and abs(low["period_s"] - 4.0) <= 0.6
+    assert inspection.recommend(model, simulated, o, DT)["max_age"] >= 3.4
 
 
 def test_classes_auto_is_recommended_over_the_inputs_range_the_fields_give(tmp_path) -> None:
