@@ -216,7 +216,7 @@ class GridField(CoupledField):
         """The read species' concentration at ``position`` (``(n, 2)``), float32 ``(n,)``
         (clamped at zero: transforms may leave -1e-20 where a species ran out)."""
         c = self._current(position.device).concentration[self._read_index]
-        return self.grid.stencil(position).interpolate(c).clamp_min(0.0).to(torch.float32)
+        return self.grid.stencil(position).read(c)
 
     def sample(self, position: Tensor) -> Tensor:
         """Every species at ``position``: ``(S, n)`` float64 (mM)."""
@@ -268,8 +268,8 @@ class GridField(CoupledField):
         for k, species in enumerate(self.species):
             c, took, gave = state.concentration[k], zero, zero
             if species.uptake is not None:
-                loss, per_agent = species.uptake.take(c, stencil, dt, volume)
-                c, took = c - loss, per_agent.sum()
+                loss, took = species.uptake.take(c, stencil, dt, volume)
+                c = c - loss
             if species.secretion is not None:
                 amounts = species.secretion.give(phi, dt)
                 c, gave = c + stencil.deposit(amounts) / volume, amounts.sum()

@@ -70,15 +70,17 @@ class Uptake:
         ``stencil``, capped by what each grid cell holds (module docstring).
 
         Returns:
-            The grid's concentration loss ``(n_x, n_y)`` (mM) and each agent's uptake
-            ``(n,)`` (nmol), float64.
+            The grid's concentration loss ``(n_x, n_y)`` (mM) and the agents' total uptake
+            (nmol, a float64 scalar). The total is summed over the grid's cells: by the
+            adjointness of the deposit, ``sum_a demand_a interpolate(scale)_a = sum_j
+            wanted_j scale_j``, and the grid's side is the very amount the grid loses (and
+            needs no second pass over the agents).
         """
-        local = stencil.interpolate(c).clamp_min(0.0)
-        demand = (self.vmax / MOLECULES_PER_NMOL * dt) * local / (self.km + local)
-        wanted = stencil.deposit(demand)  # nmol per grid cell
-        held = c.clamp_min(0.0) * volume
+        wanted = stencil.saturating_deposit(c, self.vmax / MOLECULES_PER_NMOL * dt, self.km)
+        held = c.clamp_min(0.0) * volume  # nmol per grid cell
         scale = torch.where(wanted > held, held / wanted.clamp_min(1e-300), torch.ones_like(held))
-        return wanted * scale / volume, demand * stencil.interpolate(scale)
+        taken = wanted * scale
+        return taken / volume, taken.sum()
 
 
 @dataclass(frozen=True)
