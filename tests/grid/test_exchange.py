@@ -187,3 +187,26 @@ def test_secretion_follows_phi() -> None:
     want = (3 * 1e6 + 7 * 1e5) * 0.5 / MOLECULES_PER_NMOL
     assert float(field.state.secreted[0]) == pytest.approx(want, rel=1e-14)
     assert float(field.mass()[0]) == pytest.approx(want, rel=1e-12)
+
+
+def test_the_torch_path_reads_through_the_steps_stencil(monkeypatch) -> None:
+    """On torch's path (CUDA) the agents' read after a step shares the step's stencil where the
+    positions are equal, and makes its own where they are not: the same values either way."""
+    made = []
+    stencil = Grid.stencil
+
+    def torch_stencil(grid, position, compiled=None):
+        made.append(stencil(grid, position, compiled=False))
+        return made[-1]
+
+    monkeypatch.setattr(Grid, "stencil", torch_stencil)
+    field, position, _ = _uniform_population(2, 1e7, 0.05, 0.1)
+    field.reset()
+    field.step(position, torch.zeros(len(position)), dt=0.1)
+    assert len(made) == 1
+    got = field(position.clone(), 0.0)
+    assert len(made) == 1  # shared
+    c = field.state.concentration[0]
+    assert torch.equal(got, stencil(field.grid, position, compiled=True).read(c))
+    moved = position + 0.01
+    assert torch.equal(field(moved, 0.0), stencil(field.grid, moved).read(c)) and len(made) == 2
