@@ -172,8 +172,14 @@ class GridField(CoupledField):
             )
 
     def memory_bytes(self) -> int:
-        """Memory of the state and one step's working copies (bytes)."""
-        return WORKING_COPIES * 8 * len(self.species) * self.grid.n_cells
+        """Memory of the state and one step's working copies (bytes), and the most that a
+        compiled deposit's private copies of the grid take
+        (:func:`~surrogate.grid.kernels.deposit_pieces`)."""
+        from surrogate.grid.kernels import deposit_pieces
+
+        cells = self.grid.n_cells
+        pieces = deposit_pieces(2**62, cells)  # as many as any population gets
+        return WORKING_COPIES * 8 * len(self.species) * cells + 8 * pieces * cells
 
     # --------------------------------------------------------------------------------------
     def reset(self, device: torch.device | str = "cpu") -> GridState:
