@@ -60,6 +60,8 @@ def _axis(p, lo, h, n, periodic):
         g = min(max(g, -0.5), n - 0.5)
     first = np.floor(g)
     frac = g - first
+    if not abs(first) < 2.0**62:  # NaN or beyond int64 (a diverged agent): a valid index, and
+        first = 0.0  # NaN weights where NaN came in (the field's check names it)
     i0 = int(first)
     i1 = i0 + 1
     if periodic:

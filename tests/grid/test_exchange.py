@@ -210,3 +210,17 @@ def test_the_torch_path_reads_through_the_steps_stencil(monkeypatch) -> None:
     assert torch.equal(got, stencil(field.grid, position, compiled=True).read(c))
     moved = position + 0.01
     assert torch.equal(field(moved, 0.0), stencil(field.grid, moved).read(c)) and len(made) == 2
+
+
+@pytest.mark.parametrize("boundary", ["no_flux", "periodic"])
+def test_a_diverged_agent_reads_nan_and_breaks_nothing(boundary) -> None:
+    """NaN or infinite positions (a diverged cell) index the grid safely in the compiled
+    kernels: NaN read and deposited where the position is NaN (the field's check names it),
+    the other agents unchanged."""
+    grid = _grid(boundary)
+    p = torch.tensor([[0.5, 0.5], [float("nan"), 0.5], [float("inf"), -float("inf")]])
+    f = torch.rand(grid.shape, dtype=torch.float64)
+    fast = grid.stencil(p, compiled=True)
+    got = fast.interpolate(f)
+    assert got[0] == grid.stencil(p[:1], compiled=False).interpolate(f)[0] and got[1].isnan()
+    assert fast.deposit(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)).isnan().any()
