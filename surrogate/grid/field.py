@@ -37,7 +37,7 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.grid.coupled import CoupledField
-from surrogate.grid.geometry import Grid
+from surrogate.grid.geometry import Grid, Stencil
 from surrogate.grid.solvers import (
     SOLVERS,
     ExplicitSolver,
@@ -135,6 +135,9 @@ class GridField(CoupledField):
         self._state: GridState | None = None
         self._solver: SpectralSolver | ExplicitSolver | None = None
         self._supply: Tensor | None = None
+        # the torch path's last exchange stencil and a copy of its positions: the agents read
+        # the next step's field at the very positions they deposited at (_stencil_at)
+        self._shared: tuple[Tensor, Stencil] | None = None
 
     # --------------------------------------------------------------------------------------
     @property
@@ -169,8 +172,14 @@ class GridField(CoupledField):
             )
 
     def memory_bytes(self) -> int:
-        """Memory of the state and one step's working copies (bytes)."""
-        return WORKING_COPIES * 8 * len(self.species) * self.grid.n_cells
+        """Memory of the state and one step's working copies (bytes), and the most that a
+        compiled deposit's private copies of the grid take
+        (:func:`~surrogate.grid.kernels.deposit_pieces`)."""
+        from surrogate.grid.kernels import deposit_pieces
+
+        cells = self.grid.n_cells
+        pieces = deposit_pieces(2**62, cells)  # as many as any population gets
+        return WORKING_COPIES * 8 * len(self.species) * cells + 8 * pieces * cells
 
     # --------------------------------------------------------------------------------------
     def reset(self, device: torch.device | str = "cpu") -> GridState:
@@ -183,6 +192,7 @@ class GridField(CoupledField):
         diffusion = c0.new_tensor([s.diffusion for s in self.species])
         decay = c0.new_tensor([s.decay for s in self.species])
         self._solver = make_solver(self.solver_name, g, diffusion, decay, source)
+        self._shared = None
         volume = g.cell_volume
         self._supply = (c0.new_zeros(len(self.species)) if source is None
                         else source.sum((-2, -1)) * volume)  # fmt: skip
@@ -216,7 +226,20 @@ class GridField(CoupledField):
         """The read species' concentration at ``position`` (``(n, 2)``), float32 ``(n,)``
         (clamped at zero: transforms may leave -1e-20 where a species ran out)."""
         c = self._current(position.device).concentration[self._read_index]
-        return self.grid.stencil(position).interpolate(c).clamp_min(0.0).to(torch.float32)
+        return self._stencil_at(position).read(c)
+
+    def _stencil_at(self, position: Tensor) -> Stencil:
+        """The stencil at ``position``: the last step's where it was made (by torch's ops) at
+        equal positions, so the agents' read after a step shares the index and weights of the
+        step's deposit; a fresh one otherwise (the compiled kernels recompute it per agent,
+        cheaper than storing it, :mod:`surrogate.grid.kernels`)."""
+        if self._shared is not None:
+            before, stencil = self._shared
+            same = (before.shape, before.dtype, before.device) == (
+                position.shape, position.dtype, position.device)  # fmt: skip
+            if same and bool(torch.equal(before, position)):
+                return stencil
+        return self.grid.stencil(position)
 
     def sample(self, position: Tensor) -> Tensor:
         """Every species at ``position``: ``(S, n)`` float64 (mM)."""
@@ -263,13 +286,14 @@ class GridField(CoupledField):
             self.validate(dt)
         volume = self.grid.cell_volume
         stencil = self.grid.stencil(position)
+        self._shared = None if stencil.compiled else (position.clone(), stencil)
         zero = state.concentration.new_zeros(())
         rows, taken, given = [], [], []
         for k, species in enumerate(self.species):
             c, took, gave = state.concentration[k], zero, zero
             if species.uptake is not None:
-                loss, per_agent = species.uptake.take(c, stencil, dt, volume)
-                c, took = c - loss, per_agent.sum()
+                loss, took = species.uptake.take(c, stencil, dt, volume)
+                c = c - loss
             if species.secretion is not None:
                 amounts = species.secretion.give(phi, dt)
                 c, gave = c + stencil.deposit(amounts) / volume, amounts.sum()

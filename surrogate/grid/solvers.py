@@ -30,7 +30,8 @@ semi-discrete solution as dt -> 0, tested) and for kernels without an FFT.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -43,6 +44,25 @@ __all__ = ["SOLVERS", "ExplicitSolver", "SpectralSolver", "explicit_max_dt", "ma
 
 #: the grid's x and y dimensions in a ``(species, n_x, n_y)`` tensor
 _DIMS = (-2, -1)
+#: grid values (species x cells) up to which the spectral step runs its transforms on one CPU
+#: thread: on a 512 x 64 grid with 2 threads on 2 loaded cores each FFT waited ~17 ms for its
+#: second thread, the step 51 ms (median) against 4 ms on one thread
+SERIAL_VALUES = 2**18
+
+
+@contextmanager
+def serial_below(values: int, device: torch.device) -> Iterator[None]:
+    """torch on one CPU thread inside, where ``values`` <= :data:`SERIAL_VALUES` on the CPU
+    (small transforms cost less than waking a second thread); the thread count is restored."""
+    threads = torch.get_num_threads()
+    if device.type != "cpu" or values > SERIAL_VALUES or threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _eigenvalues(grid: Grid, axis: int, length: int, dtype: torch.dtype,
@@ -117,10 +137,11 @@ class SpectralSolver:
         if dt != self._dt:
             self._prepare(dt)
         assert self._factor is not None  # set by _prepare
-        coeff = self.forward(c) * self._factor
-        if self._gain is not None:
-            coeff = coeff + self._gain
-        return self.inverse(coeff)
+        with serial_below(c.numel(), c.device):
+            coeff = self.forward(c) * self._factor
+            if self._gain is not None:
+                coeff = coeff + self._gain
+            return self.inverse(coeff)
 
     def decay_loss(self, mass: Tensor, supply: Tensor, dt: float) -> Tensor:
         """The amount each species loses to decay over the step, from its mass at the step's

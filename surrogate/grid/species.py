@@ -20,7 +20,10 @@ the step (forward Euler in the exchange, first order in dt) and capped so that n
 gives more than it holds: each agent's demand is deposited on the grid (the adjoint
 interpolation), every cell whose demand exceeds its content scales its demand down to its
 content, and each agent takes its demand times the interpolated scale, so what the agents take
-is exactly what the grid loses. Secretion is ``rate_on`` (phi = 1) or ``rate_off`` (phi = 0)
+is exactly what the grid loses (the ledger sums it on the grid, ``sum_j wanted_j scale_j``:
+the same total by the deposit's adjointness, without a second pass over the agents; the
+demand's read and deposit are one fused pass on the CPU, :mod:`surrogate.grid.kernels`).
+Secretion is ``rate_on`` (phi = 1) or ``rate_off`` (phi = 0)
 per agent, deposited the same way. Amounts are kept in nmol (1 mM x 1 mm^3 = 1 nmol) and
 float64: a cell's share per step (~1e-11 nmol) beside a grid cell's content (~1e-5 nmol) is
 below float32's resolution.
@@ -70,15 +73,17 @@ class Uptake:
         ``stencil``, capped by what each grid cell holds (module docstring).
 
         Returns:
-            The grid's concentration loss ``(n_x, n_y)`` (mM) and each agent's uptake
-            ``(n,)`` (nmol), float64.
+            The grid's concentration loss ``(n_x, n_y)`` (mM) and the agents' total uptake
+            (nmol, a float64 scalar). The total is summed over the grid's cells: by the
+            adjointness of the deposit, ``sum_a demand_a interpolate(scale)_a = sum_j
+            wanted_j scale_j``, and the grid's side is the very amount the grid loses (and
+            needs no second pass over the agents).
         """
-        local = stencil.interpolate(c).clamp_min(0.0)
-        demand = (self.vmax / MOLECULES_PER_NMOL * dt) * local / (self.km + local)
-        wanted = stencil.deposit(demand)  # nmol per grid cell
-        held = c.clamp_min(0.0) * volume
+        wanted = stencil.saturating_deposit(c, self.vmax / MOLECULES_PER_NMOL * dt, self.km)
+        held = c.clamp_min(0.0) * volume  # nmol per grid cell
         scale = torch.where(wanted > held, held / wanted.clamp_min(1e-300), torch.ones_like(held))
-        return wanted * scale / volume, demand * stencil.interpolate(scale)
+        taken = wanted * scale
+        return taken / volume, taken.sum()
 
 
 @dataclass(frozen=True)

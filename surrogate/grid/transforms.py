@@ -16,6 +16,7 @@ cell centre), which is why the no-flux field step is diagonal in this basis
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import torch
 from torch import Tensor
@@ -25,16 +26,26 @@ __all__ = ["dct", "idct"]
 
 def _twiddle(n: int, like: Tensor, sign: float) -> Tensor:
     """``exp(sign * i pi k / (2n))`` for k = 0..n-1, complex, on ``like``'s device."""
-    k = torch.arange(n, device=like.device, dtype=like.dtype)
-    return torch.polar(torch.ones_like(k), (sign * math.pi / (2 * n)) * k)
+    return _constants(n, like.dtype, like.device, sign)[0]
 
 
 def _scale(n: int, like: Tensor) -> Tensor:
     """The orthonormal scaling of the DCT-II coefficients: sqrt(1/(4n)) for k = 0, else
     sqrt(1/(2n))."""
-    s = torch.full((n,), math.sqrt(1.0 / (2 * n)), device=like.device, dtype=like.dtype)
+    return _constants(n, like.dtype, like.device, 1.0)[1]
+
+
+@lru_cache(maxsize=32)
+def _constants(
+    n: int, dtype: torch.dtype, device: torch.device, sign: float
+) -> tuple[Tensor, Tensor]:
+    """The twiddles and the scaling of length ``n``, made once per (length, dtype, device):
+    every field step transforms the same lengths."""
+    k = torch.arange(n, device=device, dtype=dtype)
+    twiddle = torch.polar(torch.ones_like(k), (sign * math.pi / (2 * n)) * k)
+    s = torch.full((n,), math.sqrt(1.0 / (2 * n)), device=device, dtype=dtype)
     s[0] = math.sqrt(1.0 / (4 * n))
-    return s
+    return twiddle, s
 
 
 def dct(x: Tensor, dim: int = -1) -> Tensor:

@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from surrogate.grid import MOLECULES_PER_NMOL, Grid, GridField
+from surrogate.grid import MOLECULES_PER_NMOL, Grid, GridField, kernels
 
 EPS = float(np.finfo(np.float64).eps)
 
@@ -25,44 +25,99 @@ def _inside(grid: Grid, n: int, seed: int) -> torch.Tensor:
     return (lo + (hi - lo) * torch.rand(n, 2, generator=g, dtype=torch.float64)).float()
 
 
+#: both implementations of the exchange (surrogate.grid.kernels on the CPU, torch's ops)
+PATHS = pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+
+
+@PATHS
 @pytest.mark.parametrize("boundary", ["no_flux", "periodic"])
-def test_bilinear_reading_is_exact_for_linear_fields(boundary: str) -> None:
+def test_bilinear_reading_is_exact_for_linear_fields(boundary: str, compiled: bool) -> None:
     grid = _grid(boundary)
     centres = grid.centres()
     f = 0.3 + 1.7 * centres[..., 0] - 0.4 * centres[..., 1]
     p = _inside(grid, 500, 0)
     p64 = p.double()
     want = 0.3 + 1.7 * p64[:, 0] - 0.4 * p64[:, 1]
-    got = grid.stencil(p).interpolate(f)
+    got = grid.stencil(p, compiled).interpolate(f)
     assert torch.allclose(got, want, rtol=0, atol=16 * EPS * float(want.abs().max()))
 
 
-def test_a_no_flux_wall_reads_the_first_cell_and_a_periodic_edge_wraps() -> None:
+@PATHS
+def test_a_no_flux_wall_reads_the_first_cell_and_a_periodic_edge_wraps(compiled: bool) -> None:
     wall, ring = _grid("no_flux"), _grid("periodic")
     f = torch.arange(96, dtype=torch.float64).reshape(12, 8)
     hx, hy = wall.spacing
     near_wall = torch.tensor([[-1.0 + hx / 4, 0.5 * hy], [-5.0, -3.0]])  # inside and beyond
-    assert wall.stencil(near_wall).interpolate(f).tolist() == [0.0, 0.0]
+    assert wall.stencil(near_wall, compiled).interpolate(f).tolist() == [0.0, 0.0]
     p = _inside(ring, 50, 1)
     shifted = p + torch.tensor([3.0, -2.0])  # whole periods
-    got, want = ring.stencil(shifted).interpolate(f), ring.stencil(p).interpolate(f)
+    got, want = ring.stencil(shifted, compiled).interpolate(f), ring.stencil(p).interpolate(f)
     assert torch.allclose(got, want, rtol=0, atol=1e-5 * float(f.max()))  # float32 positions
 
 
+@PATHS
 @pytest.mark.parametrize("boundary", ["no_flux", "periodic", ["periodic", "no_flux"]])
-def test_the_deposit_is_the_adjoint_of_the_reading(boundary) -> None:
+def test_the_deposit_is_the_adjoint_of_the_reading(boundary, compiled: bool) -> None:
     """<interpolate(f), w> = <f, deposit(w)> for any f and w, agents anywhere (also outside)."""
     grid = _grid(boundary)
     g = torch.Generator().manual_seed(2)
     p = (torch.rand(300, 2, generator=g) * 6 - 2).float()  # many outside the domain
     f = torch.rand(2, *grid.shape, generator=g, dtype=torch.float64)
     w = torch.rand(2, 300, generator=g, dtype=torch.float64)
-    stencil = grid.stencil(p)
+    stencil = grid.stencil(p, compiled)
     lhs = (stencil.interpolate(f) * w).sum()
     rhs = (f * stencil.deposit(w)).sum()
     assert abs(float(lhs - rhs)) <= 8 * EPS * float((f.abs().max() * w.abs()).sum())
     # each agent's weights sum to one: the grid gets exactly what the agents give
     assert torch.allclose(stencil.deposit(w).sum((-2, -1)), w.sum(-1), rtol=4 * EPS, atol=0)
+
+
+@pytest.mark.parametrize("boundary", ["no_flux", "periodic", ["no_flux", "periodic"]])
+def test_the_compiled_exchange_is_torchs(boundary) -> None:
+    """The compiled kernels read the same bytes as torch's ops (the same arithmetic per agent)
+    and deposit the same amounts to float64 rounding (summed in another order), agents inside
+    and outside the domain; the fused uptake deposit is the read, then the deposit. (A cell
+    beyond a corner gathers ~5e4 agents, here of equal demand: summed in another order, the
+    sums differ within the bound of a sequential sum's rounding, n eps relative.)"""
+    grid = _grid(boundary)
+    g = torch.Generator().manual_seed(4)
+    p = (torch.rand(200_000, 2, generator=g) * 6 - 2).float()
+    f = torch.rand(grid.shape, generator=g, dtype=torch.float64) - 0.2
+    fast, slow = grid.stencil(p, compiled=True), grid.stencil(p, compiled=False)
+    assert torch.equal(fast.interpolate(f), slow.interpolate(f))
+    assert torch.equal(fast.read(f), slow.read(f)) and fast.read(f).dtype == torch.float32
+    w = torch.rand(len(p), generator=g, dtype=torch.float64)
+    bound = len(p) * EPS
+    assert torch.allclose(fast.deposit(w), slow.deposit(w), rtol=bound, atol=0)
+    got, want = fast.saturating_deposit(f, 3.0, 0.2), slow.saturating_deposit(f, 3.0, 0.2)
+    assert torch.allclose(got, want, rtol=bound, atol=0)
+
+
+def test_the_compiled_deposit_is_the_same_bytes_on_any_number_of_threads() -> None:
+    """The deposit adds in pieces fixed by the sizes alone (kernels.deposit_pieces), not by the
+    threads: the same bytes on one thread as on two (CPU runs are reproducible to the byte)."""
+    grid = _grid("periodic")
+    g = torch.Generator().manual_seed(5)
+    p = (torch.rand(300_000, 2, generator=g) * 3).float()
+    w = torch.rand(len(p), generator=g, dtype=torch.float64)
+    f = torch.rand(grid.shape, generator=g, dtype=torch.float64)
+    assert kernels.deposit_pieces(len(p), grid.n_cells) > 1
+    before = torch.get_num_threads()
+    try:
+        out = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            stencil = grid.stencil(p)
+            out.append((stencil.deposit(w), stencil.saturating_deposit(f, 1.0, 0.5)))
+    finally:
+        torch.set_num_threads(before)
+    assert all(torch.equal(a, b) for a, b in zip(*out, strict=True))
+
+
+def test_a_stencil_on_the_cpu_is_compiled_unless_asked_not_to() -> None:
+    grid = _grid("no_flux")
+    p = torch.zeros(3, 2)
+    assert grid.stencil(p).compiled and not grid.stencil(p, compiled=False).compiled
 
 
 def _uniform_population(per_cell: int, vmax: float, km: float, c0: float):
@@ -132,3 +187,40 @@ def test_secretion_follows_phi() -> None:
     want = (3 * 1e6 + 7 * 1e5) * 0.5 / MOLECULES_PER_NMOL
     assert float(field.state.secreted[0]) == pytest.approx(want, rel=1e-14)
     assert float(field.mass()[0]) == pytest.approx(want, rel=1e-12)
+
+
+def test_the_torch_path_reads_through_the_steps_stencil(monkeypatch) -> None:
+    """On torch's path (CUDA) the agents' read after a step shares the step's stencil where the
+    positions are equal, and makes its own where they are not: the same values either way."""
+    made = []
+    stencil = Grid.stencil
+
+    def torch_stencil(grid, position, compiled=None):
+        made.append(stencil(grid, position, compiled=False))
+        return made[-1]
+
+    monkeypatch.setattr(Grid, "stencil", torch_stencil)
+    field, position, _ = _uniform_population(2, 1e7, 0.05, 0.1)
+    field.reset()
+    field.step(position, torch.zeros(len(position)), dt=0.1)
+    assert len(made) == 1
+    got = field(position.clone(), 0.0)
+    assert len(made) == 1  # shared
+    c = field.state.concentration[0]
+    assert torch.equal(got, stencil(field.grid, position, compiled=True).read(c))
+    moved = position + 0.01
+    assert torch.equal(field(moved, 0.0), stencil(field.grid, moved).read(c)) and len(made) == 2
+
+
+@pytest.mark.parametrize("boundary", ["no_flux", "periodic"])
+def test_a_diverged_agent_reads_nan_and_breaks_nothing(boundary) -> None:
+    """NaN or infinite positions (a diverged cell) index the grid safely in the compiled
+    kernels: NaN read and deposited where the position is NaN (the field's check names it),
+    the other agents unchanged."""
+    grid = _grid(boundary)
+    p = torch.tensor([[0.5, 0.5], [float("nan"), 0.5], [float("inf"), -float("inf")]])
+    f = torch.rand(grid.shape, dtype=torch.float64)
+    fast = grid.stencil(p, compiled=True)
+    got = fast.interpolate(f)
+    assert got[0] == grid.stencil(p[:1], compiled=False).interpolate(f)[0] and got[1].isnan()
+    assert fast.deposit(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)).isnan().any()

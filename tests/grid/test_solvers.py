@@ -22,6 +22,7 @@ import torch
 from surrogate.errors import ConfigError
 from surrogate.grid import GridField
 from surrogate.grid.geometry import Grid
+from surrogate.grid.solvers import SERIAL_VALUES, SpectralSolver
 
 EPS = float(np.finfo(np.float64).eps)
 D = 1.0e-3  # mm^2/s
@@ -193,3 +194,30 @@ def test_explicit_dt_beyond_its_limit_is_refused_naming_dt_and_the_grid() -> Non
         field.validate(1.01 * limit)
     with pytest.raises(ConfigError, match="field.solver=explicit"):
         _run(field, np.zeros(field.grid.shape), dt=1.01 * limit, steps=1)
+
+
+def test_a_small_grid_transforms_on_one_thread_and_restores_the_count(monkeypatch) -> None:
+    """The spectral step of a grid below SERIAL_VALUES runs on one CPU thread (waking a second
+    one cost more than the transform on loaded cores) and leaves torch's thread count as it
+    was; the step is the same bytes whatever the count."""
+    field = _field("no_flux")
+    assert field.grid.n_cells <= SERIAL_VALUES
+    initial = np.random.default_rng(0).random(field.grid.shape)
+    seen = []
+    forward = SpectralSolver.forward
+
+    def spy(self, c):
+        seen.append(torch.get_num_threads())
+        return forward(self, c)
+
+    monkeypatch.setattr(SpectralSolver, "forward", spy)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (2, 1):
+            torch.set_num_threads(threads)
+            out.append(_run(field, initial, dt=0.1, steps=3))
+            assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)
+    assert set(seen) == {1} and np.array_equal(out[0], out[1])
