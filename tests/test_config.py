@@ -59,7 +59,9 @@ def test_every_decision_composes_and_validates(compose_cfg, decision: str) -> No
 def test_every_gp_config_builds_settings(compose_cfg, gp: str) -> None:
     cfg = compose_cfg("train", [f"gp={gp}"])
     settings = TrainSettings.from_config(cfg)
-    assert settings.gp.n_inducing == cfg.gp.n_inducing
+    # gp=auto takes gp=classes's recipe for E. coli (it declares classes)
+    expected = group_config("gp", "classes") if gp == "auto" else cfg.gp
+    assert settings.gp.n_inducing == expected["n_inducing"]
     # the model's signal by default, and the switch clock with gp.history=age
     assert settings.inputs == (("dG", "phi_age") if cfg.gp.history == "age" else ("dG",))
 
@@ -199,7 +201,7 @@ def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(
         with pytest.raises(ConfigError, match=message):
             TrainSettings.from_config(compose_cfg("train", ["gp=classes", bad]))
     with pytest.raises(ConfigError, match="K-lumps option"):
-        TrainSettings.from_config(compose_cfg("train", ["+gp.class_moves=relaxation"]))
+        TrainSettings.from_config(compose_cfg("train", ["gp=svgp", "+gp.class_moves=relaxation"]))
     # the auto-regulatory network with declared bins shared by both lumps (its yaml's
     # classes: auto would run the chooser, a minute of simulation)
     import yaml
@@ -226,7 +228,7 @@ def test_the_classes_recipe_is_checked_and_leaves_two_state_identities_as_they_w
     classes = TrainSettings.from_config(compose_cfg("train", ["gp=classes"]))
     assert classes.lumps == "classes" and classes.fit_identity()["gp"]["lumps"] == "classes"
     assert "lumps=classes" in classes.fit_directory.name
-    plain = TrainSettings.from_config(compose_cfg("train"))
+    plain = TrainSettings.from_config(compose_cfg("train", ["gp=svgp"]))
     assert plain.lumps == "phi" and "lumps" not in plain.fit_identity()["gp"]
     # the class law's own keys: resolved in its identity, absent from a two-state fit's
     gp = classes.fit_identity()["gp"]

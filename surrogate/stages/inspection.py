@@ -50,7 +50,7 @@ minute for a small network. Every figure is a measurement (the definitions are h
    phi against the time since phi last changed (exact from the lumped chain where enumerable,
    :func:`~surrogate.ctmc.lumped.lumped_age_psi`; else
    :func:`~surrogate.evaluate.dynamics.switch_hazards` with a chi-square test). A constant
-   hazard: the two-state chain (``gp=svgp``, the default). One that depends on the age by more
+   hazard: the two-state chain (``gp=svgp``; the default ``gp=auto`` where no classes are declared). One that depends on the age by more
    than ``inspect.memory_effect`` (and significantly): classes over bins of the species when
    the lump is a threshold on one species count (``gp=classes`` with ``classes: {species: P,
    edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold;
@@ -1132,7 +1132,7 @@ def recommend(
 
     facts = "; ".join(describe(h, v) for v, h in enumerate(hazards) if h is not None)
     if not fixed.memory:
-        return {"abstraction": "two-state", "command": "gp=svgp (the default)", "yaml": "",
+        return {"abstraction": "two-state", "command": "gp=svgp (what the default, gp=auto, runs for a model without classes)", "yaml": "",
                 "reason": f"the hazard of leaving each lump does not depend on the time since "
                           f"phi last changed ({facts}): phi's switching is Markov in the "
                           f"current input, as the two-state chain assumes"}  # fmt: skip

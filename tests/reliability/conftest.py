@@ -70,7 +70,8 @@ def trained_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     data = tmp_path_factory.mktemp("shared") / "data"
     cfg = compose_in(data, "train")
     collect.run(cfg)
-    train.run(cfg)
+    train.run(cfg)  # the default chain (K lumps for E. coli)
+    train.run(compose_in(data, "train", ["gp=svgp"]))  # and the two-state chain
     return data
 
 

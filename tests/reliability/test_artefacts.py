@@ -26,6 +26,7 @@ from surrogate.io import (
 from surrogate.stages import collect, train
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.artefacts import CLASS_CHAIN
 from surrogate.stages.collect import TRANSITIONS
 
 # ---------------------------------------------------------------------------------------------
@@ -57,7 +58,7 @@ def test_simulate_abstract_without_train_names_the_train_command(tiny) -> None:
     assert (
         "Run `python scripts/train.py model=ecoli field=gaussian dt=0.05 seed=0 "
         "collect.n_per_state=200 collect.n_cells=50 collect.equilibration_time=1.0 "
-        "gp.n_inducing=10 gp.epochs=2 gp.batch_size=100 gp.grid_size=[10] "
+        "gp=classes gp.n_inducing=10 gp.epochs=2 gp.batch_size=100 gp.grid_size=[10] "
         f"gp.threads={torch.get_num_threads()} gp.diagnostic.n_cells=50 gp.diagnostic.t_end=5.0` "
         "first (after `python scripts/collect.py model=ecoli field=gaussian dt=0.05 seed=0" in text
     )
@@ -144,7 +145,8 @@ def test_train_refuses_a_truncated_collect_artefact(
 @pytest.mark.parametrize("keep", [0.0, 0.5, 0.99])
 @pytest.mark.parametrize("where", ["fit", "train"])
 def test_a_truncated_psi_file_is_refused(tiny, copy_data, keep: float, where: str) -> None:
-    """The fit's psi.pt (what simulations load) and the train directory's copy."""
+    """The fit's psi.pt (what a two-state simulation loads) and the train directory's copy; the
+    default chain for E. coli (K lumps) loads its class table, below."""
     directory = {"fit": fit_dir, "train": train_dir}[where](tiny("train"))
     _truncate(directory / train.PSI, keep)
     for load in (
@@ -154,9 +156,15 @@ def test_a_truncated_psi_file_is_refused(tiny, copy_data, keep: float, where: st
         with pytest.raises(ArtefactError) as info:
             load()
         assert str(directory / train.PSI) in str(info.value)
-    if where == "fit":
-        with pytest.raises(ArtefactError, match="psi.pt"):
-            simulate_stage.run(tiny("simulate", ["decision=abstract"]))
+
+
+@pytest.mark.parametrize("keep", [0.0, 0.5])
+def test_a_truncated_class_chain_is_refused(tiny, copy_data, keep: float) -> None:
+    """The K-lumps chain's table (the default for E. coli): what its simulations load."""
+    path = fit_dir(tiny("train")) / CLASS_CHAIN
+    _truncate(path, keep)
+    with pytest.raises(ArtefactError, match=CLASS_CHAIN):
+        simulate_stage.run(tiny("simulate", ["decision=abstract"]))
 
 
 def test_a_truncated_train_manifest_is_refused(tiny, copy_data) -> None:

@@ -66,10 +66,14 @@ BAD_INPUTS = [
     ("simulate", ["decision=abstract", "decision.initial=burned"], "decision.initial must be one"),
     (
         "simulate",
-        ["decision=abstract", "decision.initial=stationary"],
+        ["decision=abstract", "decision.initial=stationary", "gp=svgp"],
         "decision.initial=stationary starts a K-lumps chain",
     ),
-    ("fidelity", ["fidelity.initial=stationary"], "fidelity.initial=stationary starts a K-lumps"),
+    (
+        "fidelity",
+        ["fidelity.initial=stationary", "gp=svgp"],
+        "fidelity.initial=stationary starts a K-lumps",
+    ),
     ("simulate", ["decision=abstract", "gp.inputs=[m,L,F,cheyp]"], "at most 3 inputs"),
     ("simulate", ["decision=abstract", "gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'"),
     ("train", ["gp.kernel=foo"], "gp.kernel: unknown kernel 'foo'; allowed values"),

@@ -43,6 +43,7 @@ def second_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cfg = compose_in(data, "train")
     collect.run(cfg)
     train.run(cfg)
+    train.run(compose_in(data, "train", ["gp=svgp"]))
     return data
 
 
@@ -52,6 +53,7 @@ def other_seed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cfg = compose_in(data, "train", ["seed=1"])
     collect.run(cfg)
     train.run(cfg)
+    train.run(compose_in(data, "train", ["seed=1", "gp=svgp"]))
     return data
 
 
@@ -93,7 +95,11 @@ def test_train_same_seed_identical_other_seed_different(
     [
         [],
         ["decision=abstract", "decision.mode=lookup"],
-        ["decision=abstract", "decision.mode=classifier"],
+        [
+            "decision=abstract",
+            "decision.mode=classifier",
+            "gp=svgp",
+        ],  # two-state: K lumps is a table
     ],
     ids=["full", "abstract-lookup", "abstract-classifier"],
 )

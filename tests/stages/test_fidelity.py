@@ -10,9 +10,16 @@ import pytest
 from surrogate.stages import fidelity
 from surrogate.stages.fidelity import RunResult
 
-SMALL = ["collect.n_per_state=200", "collect.n_cells=50", "gp.n_inducing=10",
-         "fidelity.train_seeds=[0]", "fidelity.fields=[gaussian]", "fidelity.n_cells=200",
-         "fidelity.t_end=2.0"]  # fmt: skip
+SMALL = [
+    "collect.n_per_state=200",
+    "collect.n_cells=50",
+    "gp.n_inducing=10",
+    "fidelity.train_seeds=[0]",
+    "fidelity.fields=[gaussian]",
+    "fidelity.n_cells=200",
+    "fidelity.t_end=2.0",
+    "gp=svgp",
+]  # fmt: skip  (two-state: one exact chain, psi's)
 
 
 def _run(rng: np.random.Generator, times: tuple[float, ...], shift: float) -> RunResult:

@@ -35,12 +35,15 @@ TINY = [
 ]
 
 
+def _train_overrides() -> list[str]:
+    """TINY's collect and gp settings: what the train stage reads."""
+    return [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+
+
 @pytest.fixture
 def trained(compose_cfg):
     """A tiny collect + train, shared settings for the tests below."""
-    cfg = compose_cfg(
-        "train", [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
-    )
+    cfg = compose_cfg("train", _train_overrides())
     collect_dir = collect.run(cfg)
     train_dir = train.run(cfg)
     return cfg, collect_dir, train_dir
@@ -222,6 +225,11 @@ def test_train_without_collect_names_the_command(compose_cfg) -> None:
 def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     overrides = [*TINY, "decision=abstract", f"decision.mode={mode}", "decision.lookup_size=[64]",
                  "evaluate.times=null", "evaluate.subsample=200", "evaluate.run_missing=true"]  # fmt: skip
+    if (
+        mode == "classifier"
+    ):  # the two-state chain's GP every step (K lumps, the default, is a table)
+        overrides.append("gp=svgp")
+        train.run(compose_cfg("train", [*_train_overrides(), "gp=svgp"]))
     cfg = compose_cfg("evaluate", overrides)
     out = evaluate_stage.run(cfg)
     table = pd.read_csv(out / "comparison.csv")
@@ -307,9 +315,13 @@ def test_runs_simulated_together_are_the_standalone_runs(
     tables (both 4,096 nodes over dG) are stacked into one decision block."""
     from surrogate.stages.settings import ReproduceSettings
 
+    # stacking needs the two-state chain's table (K lumps, the default, keeps its own block)
+    chain = ["gp=svgp"] if lookup == "null" else []
+    if chain:
+        train.run(compose_cfg("train", [*_train_overrides(), *chain]))
     cfg = compose_cfg("reproduce", [*TINY, f"decision.lookup_size={lookup}",
                                     "fields=[gaussian,linear]", "record_cells=16",
-                                    f"backend={backend}"])  # fmt: skip
+                                    f"backend={backend}", *chain])  # fmt: skip
     settings = ReproduceSettings.from_config(cfg)
     runs = settings.runs()
     assert {s.decision.name for s in runs} == {"full", "abstract", "exact"} and len(runs) == 8

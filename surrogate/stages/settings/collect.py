@@ -152,4 +152,6 @@ def _design_settings(
 
     inner = to_dict(cfg)
     inner["collect"] = {**options, "design": {**dict(d), "target_error": None}}
+    if inner["gp"].get("lumps") == "auto":  # the rounds fit psi, the two-state chain's law
+        inner["gp"] = {**inner["gp"], "lumps": "phi"}
     return TrainSettings.from_config(inner)

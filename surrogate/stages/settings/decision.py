@@ -102,7 +102,8 @@ class DecisionSettings:
         if train.lumps == "classes" and mode != "lookup":
             raise ConfigError(
                 "gp.lumps=classes: the K-lumps chain is a table (decision.mode=lookup), it has "
-                f"no classifier mode; got decision.mode={mode!r}"
+                f"no classifier mode; got decision.mode={mode!r}. The two-state chain has one: "
+                "add gp=svgp (the default, gp=auto, runs K lumps for a model with classes)"
             )
         if mode == "lookup":
             if len(train.inputs) > 3:

@@ -41,7 +41,7 @@ INSPECT_CMD = "python3 scripts/inspect_model.py"
 RUN_KEYS = ("n_cells", "t_end", "start", "equilibration_time", "record_interval", "exact_psi",
             "batch", "compile", "backend")  # fmt: skip
 #: the groups whose settings the reported costs depend on, and reproduce's choice of each
-GROUP_CHOICES = {"collect": "default", "gp": "svgp", "evaluate": "default", "decision": "abstract"}
+GROUP_CHOICES = {"collect": "default", "gp": "auto", "evaluate": "default", "decision": "abstract"}
 COST_GROUPS = tuple(GROUP_CHOICES)
 #: the inspect keys: positive numbers, positive integers, shares in (0, 1) and the quantile pair
 POSITIVE = ("min_time", "max_time", "max_seconds", "burn_in_factor", "memory_effect")

@@ -14,7 +14,14 @@ from typing import Any
 
 import torch
 
-from surrogate.config import grid_size, non_negative, positive, to_dict, validate_start
+from surrogate.config import (
+    grid_size,
+    group_config,
+    non_negative,
+    positive,
+    to_dict,
+    validate_start,
+)
 from surrogate.errors import ConfigError
 from surrogate.gp.class_relaxation import (
     CLASS_MOVES,
@@ -54,6 +61,9 @@ GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
 #: gp.labels: the column each option trains on (auto: expected where the table has them)
 LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
 LABEL_CHOICES = ("auto", *LABEL_COLUMNS)
+#: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
+#: these shipped recipes: the first where the model declares classes finer than phi, else the second
+AUTO_RECIPES = ("classes", "svgp")
 DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "n_cells": 1000,
     "t_end": 100.0,
@@ -61,6 +71,33 @@ DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "start": [2.0, 0.0],
     "equilibration_time": 10.0,
 }
+
+
+def resolve_auto_lumps(gp_config: Mapping[str, Any], model: Any) -> dict[str, Any]:
+    """``gp_config`` with ``lumps: auto`` resolved to the best measured chain for ``model``: the
+    K-lumps chain (``gp=classes``'s recipe) where its internal model declares classes finer than
+    phi and no switch clock is asked for (``gp.history=none``), else the two-state chain
+    (``gp=svgp``). A key the config sets to another value than ``gp=svgp``'s is the user's, and
+    kept; every other key takes the chosen recipe's value, so ``gp=auto`` on E. coli is the same
+    fit (the same directory) as ``gp=classes``. Any other ``lumps`` is returned unchanged.
+
+    Example:
+        >>> resolve_auto_lumps({**group_config("gp", "auto")}, ecoli)["n_inducing"]  # doctest: +SKIP
+        32
+    """
+    config = dict(gp_config)
+    if config.get("lumps") != "auto":
+        return config
+    classed = lump_classes_of(model.internal) is not None
+    name = (
+        AUTO_RECIPES[0] if classed and config.get("history", "none") == "none" else AUTO_RECIPES[1]
+    )
+    base, recipe = group_config("gp", "svgp"), group_config("gp", name)
+    for key, value in recipe.items():
+        if key not in config or (key in base and config[key] == base[key]):
+            config[key] = value
+    config["lumps"] = recipe.get("lumps", "phi")
+    return config
 
 
 def _class_moves(
@@ -169,7 +206,7 @@ class TrainSettings:
         else:
             source = CollectSettings.from_config(cfg)
             setup = source.setup
-        gp_config = to_dict(cfg["gp"])
+        gp_config = resolve_auto_lumps(to_dict(cfg["gp"]), setup.model)
         hyper = {k: v for k, v in gp_config.items() if k not in GP_EXTRA}
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
         # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
@@ -321,7 +358,9 @@ class TrainSettings:
     def gp_overrides(self) -> list[str]:
         """The gp overrides that reproduce these settings (``gp.threads`` as resolved: a
         command run with another thread count would make another fit)."""
-        return group_overrides("gp", {**self.gp_config, "threads": self.fit_threads}, "svgp")[1:]
+        # the recipe named: the default (gp=auto) would choose K lumps for a model with classes
+        choice = AUTO_RECIPES[0] if self.lumps == "classes" else AUTO_RECIPES[1]
+        return group_overrides("gp", {**self.gp_config, "threads": self.fit_threads}, choice)
 
     def command(self) -> str:
         """The command that makes this artefact (and the fit)."""
