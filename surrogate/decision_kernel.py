@@ -29,6 +29,12 @@ against the tables).
 :class:`~surrogate.models.packed.PackedBlock` by :func:`chain_pack` and :func:`class_pack` and
 bundled as a :class:`DecisionPack`; the kind a block does not use gets its empty placeholder
 (:data:`NO_CHAIN`, :data:`NO_CLASSES`), so a kernel has one compiled signature for all kinds.
+Three things numba asks of a kernel that takes them (the E. coli kernel does all three): called
+from Python, it takes them as plain tuples (a namedtuple is typed in Python at every call); a
+``prange`` loop takes no tuple of arrays, so a parallel kernel takes the tuples apart before
+the loop and builds the namedtuples again inside it; and its per-cell loop compiles without
+reference counts (numba's ``_nrt=False``), else every array of a pack is counted each time the
+pack is handed to an inlined step (half the loop's speed, measured).
 
 A kernel that inlines these functions and caches its machine code on disk names this module in
 :func:`surrogate.scalar.renew_with` (numba stamps a cached function with its own file only).

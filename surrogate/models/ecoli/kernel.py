@@ -244,7 +244,7 @@ def advance_cells(steps, step0, start, count, pieces, state, draws, k, field_set
         )  # fmt: skip
 
 
-# numba's cache follows this file only: also the formulas' (inlined above)
+# numba's cache follows this file only: also the formulas' and the decision steps' (inlined)
 scalar.renew_with((_advance_range, advance_cells), (formulas, scalar, kd))
 
 
@@ -267,17 +267,26 @@ _NO_U64 = np.zeros((1, 1, 1), dtype=np.float64)
 _BUILTIN_FIELD_SET = field_set([])
 
 
-def _plain(value: Any) -> Any:
-    """A namedtuple (nested ones too) as plain tuples: numba types a plain tuple of arrays and
-    numbers in C at each call, a namedtuple in Python (microseconds a call)."""
-    return tuple(_plain(v) for v in value) if isinstance(value, tuple) else value
+def _plain(value: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A namedtuple (the namedtuples in it too) as plain tuples; a plain tuple as it is: numba
+    types a plain tuple of arrays and numbers in C at each call, a namedtuple in Python
+    (microseconds a call)."""
+    if type(value) is tuple:
+        return value
+    return tuple(_plain(v) if isinstance(v, tuple) else v for v in value)
+
+
+#: the decision pack of the full model (the kernel's own motors), and no motors, as plain tuples
+_OWN, _PLAIN_NO_MOTORS = _plain(kd.own_pack()), _plain(_NO_MOTORS)
 
 
 def _arguments(
     steps: int, step0: int, start: int, count: int, pieces: int, state: State, draws: Draws,
-    k: Constants, fields: FieldSet, field: Fields, motors: Motors, decision: Any,
+    k: tuple[Any, ...], fields: FieldSet, field: Fields, motors: Motors,
+    decision: tuple[Any, ...],
 ) -> tuple[Any, ...]:  # fmt: skip
-    """The arguments of :func:`advance_cells` (see :func:`_advance_range`)."""
+    """The arguments of :func:`advance_cells` (see :func:`_advance_range`; each namedtuple,
+    :data:`Constants` and the decision pack too, may come as its plain tuple already)."""
     return (steps, step0, start, count, pieces, _plain(state), _plain(draws), _plain(k), fields,
             _plain(field), _plain(motors), _plain(decision))  # fmt: skip
 
@@ -292,8 +301,8 @@ def _zero_cell_arguments() -> tuple[Any, ...]:
     k = Constants(0, 0, 1, False, np.zeros(len(P32_NAMES), dtype=f32),
                   np.zeros(len(P64_NAMES), dtype=np.float64))  # fmt: skip
     field = Fields(np.zeros(1, i32), np.zeros((1, _BUILTIN_FIELD_SET.columns)))
-    return _arguments(1, 0, 0, 0, 1, State(cells, body), draws, k, _BUILTIN_FIELD_SET, field,
-                      _NO_MOTORS, kd.own_pack())  # fmt: skip
+    return _arguments(1, 0, 0, 0, 1, State(cells, body), draws, _plain(k), _BUILTIN_FIELD_SET,
+                      field, _NO_MOTORS, _OWN)  # fmt: skip
 
 
 def precompile() -> None:
@@ -360,22 +369,27 @@ class _Block:
         self.law, self.tables, self.clock = law, tables, block.clock
         self.features = kd.feature_axes(block, _feature_codes(block, internal))
         self.row = block.decision_row
-        self._table_of_cell: np.ndarray | None = None
+        self._packed: tuple[int, Tensor | None, tuple[Any, ...]] | None = None
 
-    def decision(self, n: int, own: np.ndarray | None) -> Any:
+    def decision(self, n: int, own: Tensor | None) -> tuple[Any, ...]:
         """The block's :class:`~surrogate.decision_kernel.DecisionPack` for ``n`` cells and
-        their per-cell state ``own`` (clocks, classes; None: a chain without a clock)."""
+        their per-cell state ``own`` (clocks, classes; None: a chain without a clock), as plain
+        tuples (:func:`_plain`); kept while ``n`` and the state tensor stay the same."""
+        if self._packed is not None and self._packed[0] == n and self._packed[1] is own:
+            return self._packed[2]
+        state = None if own is None else _numpy(own)
         if self.kind == "classes":
-            assert self.law is not None and own is not None  # each cell's class
-            classes = kd.class_pack(self.law, self.features, self.row, own)
-            return kd.DecisionPack(kd.CLASSES, kd.NO_CHAIN, classes)
-        assert self.tables is not None
-        if self._table_of_cell is None or self._table_of_cell.shape[0] != n:
-            self._table_of_cell = self.tables.table_of_cell(n)
-        clock = self.clock if own is not None else None
-        chain = kd.chain_pack(self.tables, self.features, self.row, self._table_of_cell, clock,
-                              own)  # fmt: skip
-        return kd.DecisionPack(kd.CHAIN, chain, kd.NO_CLASSES)
+            assert self.law is not None and state is not None  # each cell's class
+            classes = kd.class_pack(self.law, self.features, self.row, state)
+            pack = kd.DecisionPack(kd.CLASSES, kd.NO_CHAIN, classes)
+        else:
+            assert self.tables is not None
+            clock = self.clock if state is not None else None
+            chain = kd.chain_pack(self.tables, self.features, self.row,
+                                  self.tables.table_of_cell(n), clock, state)  # fmt: skip
+            pack = kd.DecisionPack(kd.CHAIN, chain, kd.NO_CLASSES)
+        self._packed = (n, own, _plain(pack))
+        return self._packed[2]
 
 
 def _same_internal(a: Any, b: Any) -> bool:
@@ -453,8 +467,8 @@ class EcoliKernel:
         rows = decision.randoms
         self._rows = Randoms(rows.uniform + self.gamma_k + 1, rows.uniform64, rows.normal + 1)
         self.body_row, self.ou_row = rows.uniform, rows.normal
-        self._constants = Constants(self.body_row, self.ou_row, self.gamma_k, self.per_tumble,
-                                    self.p32, self.p64)  # fmt: skip
+        self._constants = _plain(Constants(self.body_row, self.ou_row, self.gamma_k,
+                                           self.per_tumble, self.p32, self.p64))  # fmt: skip
         self.blocks = [_Block(b, internal) for b in decision.blocks]
         self._total = decision.total
         fields = field.fields if isinstance(field, FieldBatch) else [field]
@@ -512,12 +526,13 @@ class EcoliKernel:
         body = state.body
         if state.inputs is None or state.inputs.shape != (n, 2):
             state.inputs = torch.empty((n, 2), dtype=torch.float32)
-        cells = kd.Cells(_numpy(state.phi), _numpy(state.segment_steps),
-                         _numpy(state.segment_complete), _numpy(ended))  # fmt: skip
-        arrays = State(cells, Body(_numpy(body["position"]), _numpy(body["heading"]),
-                                   _numpy(body["m"]), _numpy(state.inputs)))  # fmt: skip
-        draws = Draws(_numpy(u), _NO_U64 if u64 is None else _numpy(u64), _numpy(z))
-        field = Fields(field_of_cell, self.fields)
+        # the namedtuples' plain tuples (_plain), built as such: State(Cells, Body), Draws, Fields
+        arrays = ((_numpy(state.phi), _numpy(state.segment_steps),
+                   _numpy(state.segment_complete), _numpy(ended)),
+                  (_numpy(body["position"]), _numpy(body["heading"]), _numpy(body["m"]),
+                   _numpy(state.inputs)))  # fmt: skip
+        draws = (_numpy(u), _NO_U64 if u64 is None else _numpy(u64), _numpy(z))
+        field = (field_of_cell, self.fields)
         # as many kernel threads as torch uses (the threads setting; a sweep job's share), a
         # few pieces each (cells of one block cost alike; pieces balance what differs)
         threads = match_torch_threads()
@@ -530,12 +545,11 @@ class EcoliKernel:
             own = None if b.state is None else (b.state.current() if dry else b.state.writable())
             if b.kind == "motors":
                 assert own is not None and u64 is not None  # motor states, one u64 per motor
-                motors, decision = Motors(_numpy(own), b.motor_row), kd.own_pack()
+                motors, decision = (_numpy(own), b.motor_row), _OWN
             else:
-                mine = None if own is None else _numpy(own)
-                motors, decision = _NO_MOTORS, b.decision(count, mine)
-            advance_cells(*_arguments(steps, state.step, b.start, 0 if dry else count,
-                                      4 * threads, arrays, draws, self._constants,
-                                      self.field_set, field, motors, decision))  # fmt: skip
+                motors, decision = _PLAIN_NO_MOTORS, b.decision(count, own)
+            advance_cells(steps, state.step, b.start, 0 if dry else count, 4 * threads, arrays,
+                          draws, self._constants, self.field_set, field, motors,
+                          decision)  # fmt: skip
         if not dry:
             state.step += steps
