@@ -19,7 +19,8 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
           "models/capabilities.py", "models/packed.py", "models/count_classes.py",
-          "models/randoms.py", "fields.py", "field_formula.py", "field_kernel.py", "grid",
+          "models/randoms.py", "fields.py", "field_formula.py", "field_kernel.py",
+          "decision_kernel.py", "grid",
           "scalar.py", "io.py", "config.py", "errors.py", "validation.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = (

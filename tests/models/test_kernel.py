@@ -708,7 +708,7 @@ def test_activity_feature_code_is_the_phospho_networks_activity_in_float32() -> 
     got = np.empty((n, 2), dtype=np.float32)
     for i, (m, ligand) in enumerate(x.numpy()):
         e, a, yp, dg = kernel._signal(m, kernel._log_receptor_terms(ligand, p32), p32)
-        got[i] = (kernel._feature(2, m, ligand, e, a, yp, dg, 0.0),
-                  kernel._feature(code, m, ligand, e, a, yp, dg, 0.0))  # fmt: skip
+        values = kernel._features(m, ligand, e, a, yp, dg)
+        got[i] = (values[kernel.FEATURE_CODES["F"]], values[code])
     torch.testing.assert_close(torch.from_numpy(got), ref, atol=1e-5, rtol=1e-6)
     assert np.abs(got[:, 1] - ref[:, 1].numpy()).max() < 5e-7

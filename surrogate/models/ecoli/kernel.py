@@ -16,38 +16,44 @@ dG), the motor rates, the OU step, movement and tumble angles, and one motor's e
 :mod:`surrogate.models.ecoli.formulas`, which the torch step evaluates over tensors and this
 kernel compiles per cell (:func:`surrogate.scalar.numba_formulas`), in the same operations and
 precision (float32 state and signalling, float64 motor rates and transition terms). Fields are
-generated from each field's formula (:mod:`surrogate.field_kernel`). What remains here is the
-loop: the lookup of the abstraction (:func:`surrogate.gp.lookup._interpolate`, multilinear,
-torch's lerp; the K-lumps chain's draw,
-``surrogate.simulate.classes.ClassTable.draw``, with the same uniforms in the same order), the
-per-cell control flow of the motors and the tumble (the torch step blends
-with ``where``) and :meth:`Simulator._advance`'s segment bookkeeping. The tests compare the
-kernel with the torch step.
+generated from each field's formula (:mod:`surrogate.field_kernel`). The decision kinds other
+than the model's own window (the two-state chain over lookup tables, with or without a switch
+clock, and the K-lumps chain) and the segment bookkeeping are the engine's per-cell steps
+(:mod:`surrogate.decision_kernel`, the same for every model's kernel); this kernel hands them
+its features as a float32 tuple indexed by :data:`FEATURE_CODES` (:func:`_features`). What
+remains here is the loop, the motors' window (the full model) and the per-cell control flow of
+the motors and the tumble (the torch step blends with ``where``). The tests compare the kernel
+with the torch step.
 
-Numbers are passed as flat arrays (layouts in :func:`pack_parameters` and
+Numbers are passed as namedtuples of flat arrays and numbers (:data:`State`, :data:`Draws`,
+:data:`Constants`, :data:`Fields`, :data:`Motors`; layouts in :func:`pack_parameters` and
 :func:`~surrogate.field_kernel.pack_field`; the decision layer as the engine packed it,
-:class:`~surrogate.models.packed.PackedDecision`: the kernel never reads the engine's decision
+:class:`~surrogate.models.packed.PackedDecision`, in the engine's
+:class:`~surrogate.decision_kernel.DecisionPack`: the kernel never reads the engine's decision
 layers or lookup tables); ``cache=True`` keeps the machine code on disk, so
 only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
-set is the precompiled one) and again when the formulas' source changes
+set is the precompiled one) and again when the formulas' or the decision steps' source changes
 (:func:`surrogate.scalar.renew_with`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections import namedtuple
 from typing import Any
 
 import numba
 import numpy as np
 import torch
 from numba import prange
+from numba.core import options as numba_options
 from torch import Tensor
 
+from surrogate import decision_kernel as kd
 from surrogate import scalar
 from surrogate.ctmc.compiled import match_torch_threads
 from surrogate.errors import KernelUnsupported
-from surrogate.field_kernel import field_set, field_value, pack_field
+from surrogate.field_kernel import FieldSet, field_set, field_value, pack_field
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import Randoms
 from surrogate.models.ecoli import formulas
@@ -58,271 +64,188 @@ from surrogate.models.packed import CHAIN, CLASSES, EXACT, FULL, PackedBlock, Pa
 
 # -- features of the abstraction's lookup table --------------------------------------------------
 # what each name means here (its formula below); an internal model's feature of that name must
-# compute the same (the model that hands the kernel its internal model vouches for that)
+# compute the same (the model that hands the kernel its internal model vouches for that). Each
+# code is the feature's index in the tuple of values the kernel hands the engine's decision
+# steps (:func:`_features`; the switch clock is the engine's ``decision_kernel.CLOCK``)
 FEATURE_CODES = {"m": 0, "L": 1, "F": 2, "cheyp": 3, "dG": 4, "activity": 5}
-#: the switch clock (s since phi last changed, capped): psi's last input under gp.history=age
-CLOCK_CODE = 6
 
 # -- float32 constants (signalling, OU, movement) and float64 constants (motors) ----------------
 P32_NAMES = formulas.CONSTANTS
 P64_NAMES = ("omega", "mu", "dt")
 
 _JIT: dict[str, Any] = {"nogil": True, "cache": True, "fastmath": False, "error_model": "numpy"}
+#: the per-cell loop without reference counts: it allocates nothing, and numba counts every
+#: array of a pack each time it hands the pack to an inlined decision step (32 atomic updates a
+#: step: the loop ran at half its speed, measured); numba's ``_nrt`` option, where it has one
+_NO_REFCOUNTS: dict[str, Any] = (
+    {"_nrt": False} if hasattr(numba_options.DefaultOptions, "_nrt") else {}
+)
 _F32 = np.float32
+
+# -- the kernel's arguments, grouped: namedtuples inside, plain tuples at the call (_plain) -----
+#: the body's per-cell arrays (in place): ``position`` (n, 2), ``heading``, ``meth`` (n,)
+#: float32; ``last_x`` (n, 2) float32 the last step's inputs (m, L)
+Body = namedtuple("Body", ["position", "heading", "meth", "last_x"])
+#: every per-cell array: the engine's (:class:`~surrogate.decision_kernel.Cells`) and the body's
+State = namedtuple("State", ["cells", "body"])
+#: the steps' random numbers in the simulator's layout: ``u`` (steps, rows, n) float32, ``u64``
+#: (steps, rows, n) float64, ``z`` (steps, rows, n) float32 normals
+Draws = namedtuple("Draws", ["u", "u64", "z"])
+#: the body's constants: its first uniform row ``body_row`` (then ``gamma_k`` for the tumble
+#: angle's gamma), its normal row ``ou_row``, ``per_tumble`` (tumble_mode), the float32
+#: constants ``p`` (P32_NAMES) and float64 ``q`` (P64_NAMES)
+Constants = namedtuple("Constants", ["body_row", "ou_row", "gamma_k", "per_tumble", "p", "q"])
+#: the fields: ``of_cell`` (n,) int32 each cell's row of ``rows`` (float64, packed by
+#: :func:`~surrogate.field_kernel.pack_field` for the formulas of the kernel's field set)
+Fields = namedtuple("Fields", ["of_cell", "rows"])
+#: the full model's motors (kind ``full``): ``states`` (M, block) float32 (0 = S, 1 = C,
+#: 2 = N; in place; no rows: not the full model) and the first float64 uniform row ``row``
+Motors = namedtuple("Motors", ["states", "row"])
 
 
 #: the body's formulas compiled (:mod:`surrogate.models.ecoli.formulas`), inlined here
 _F = formulas.compiled()
-_clamp = scalar.numba_primitives()["clamp"]  # torch.clamp: NaN passes through
 _log_receptor_terms, _activity, _signal = _F.log_receptor_terms, _F.activity, _F.signal
 
 
 @numba.njit(inline="always", **_JIT)
-def _feature(code, m, ligand, energy, act, yp, dg, clock):
-    """The column of FEATURE_CODES ``code`` (CLOCK_CODE: the switch clock ``clock``)."""
-    if code == CLOCK_CODE:
-        return clock
-    if code == 0:
-        return m
-    if code == 1:
-        return ligand
-    if code == 2:
-        return energy
-    if code == 3:
-        return yp
-    if code == 5:
-        return act
-    return dg
+def _features(m, ligand, energy, act, yp, dg):
+    """The features a decision layer may read, as a float32 tuple indexed by FEATURE_CODES."""
+    return (m, ligand, energy, yp, dg, act)
 
 
 @numba.njit(inline="always", **_JIT)
-def _lerp(a, b, w):
-    """torch.lerp's formula (float32)."""
-    if abs(w) < _F32(0.5):
-        return a + w * (b - a)
-    return b - (b - a) * (_F32(1.0) - w)
-
-
-@numba.njit(inline="always", **_JIT)
-def _move_and_account(
-    c, s, phi_before, phi_after, x, y, heading, u, body_row, gamma_k, per_tumble, p,
-    seg, complete, ended,
-):  # fmt: skip
-    """ChemotacticBody.move (without the OU step; the angle drawn only when turning) and
-    Simulator._advance's bookkeeping.
-
-    Returns the new (x, y, heading); writes the cell's segment state and ``ended[s, c]``."""
+def _move(s, c, phi_before, phi_after, x, y, heading, draws, k):
+    """ChemotacticBody.move (without the OU step; the angle drawn only when turning): the new
+    (x, y, heading) of cell ``c`` at step ``s`` (``draws``: :data:`Draws`; ``k``:
+    :data:`Constants`)."""
+    p = k.p
     nx, ny = _F.run_step(x, y, heading, phi_after, p)
-    if _F.turning(phi_before, phi_after, per_tumble) > 0:
-        angle = _F.tumble_angle(u[s, :, c], body_row, gamma_k, p[formulas.TUMBLE_SCALE])
-        heading = _F.turn(heading, angle, u[s, body_row + gamma_k, c], p)
-    # a segment ends when phi switches; the first one is left-censored
-    switched = 1 if phi_after != phi_before else 0
-    length = seg[c] + 1
-    sign = 1 if phi_before > 0 else -1
-    ended[s, c] = switched * complete[c] * sign * length
-    seg[c] = length * (1 - switched)
-    complete[c] = max(complete[c], switched)
+    if _F.turning(phi_before, phi_after, k.per_tumble) > 0:
+        u = draws.u
+        angle = _F.tumble_angle(u[s, :, c], k.body_row, k.gamma_k, p[formulas.TUMBLE_SCALE])
+        heading = _F.turn(heading, angle, u[s, k.body_row + k.gamma_k, c], p)
     return nx, ny, heading
 
 
 @numba.njit(inline="always", **_JIT)
-def _motors_step(dg, motors, j, c, s, u64, motor_row, q):
-    """One exact window of cell c's motors (``motors[:, j]``, in place) at dG; its RUN flag
-    (as motors.sample_motor_states and run_flag_from_states, motor by motor)."""
+def _motors_step(dg, motors, j, c, s, u64, q):
+    """One exact window of cell c's motors (``motors.states[:, j]``, in place; :data:`Motors`)
+    at dG; its RUN flag (as motors.sample_motor_states and run_flag_from_states, motor by
+    motor)."""
+    states, row = motors.states, motors.row
     kp, km = _F.rates(dg, q[0])
     t1_s, t1_c, t1_n, t2_cw, t2_n = _F.motor_thresholds(kp, km, q[2], q[1])
     n_ccw = _F32(0.0)
     lowest = _F32(2.0)
-    for i in range(motors.shape[0]):
-        new = _F.next_motor_state(motors[i, j], u64[s, motor_row + i, c], t1_s, t1_c, t1_n,
+    for i in range(states.shape[0]):
+        new = _F.next_motor_state(states[i, j], u64[s, row + i, c], t1_s, t1_c, t1_n,
                                   t2_cw, t2_n)  # fmt: skip
-        motors[i, j] = new
+        states[i, j] = new
         n_ccw += _F.ccw(new)
         lowest = min(lowest, new)
     return _F.run_flag(n_ccw, lowest)
 
 
-@numba.njit(inline="always", **_JIT)
-def _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table, layer, shape, strides,
-            origin, scale, features):  # fmt: skip
-    """p(phi' = 1): gp.lookup._interpolate in table ``tab`` (lower node per axis, then lerp
-    along the last axis first)."""
-    d = shape.shape[0]
-    base = tab * 2 * layer + (layer if phi_now > 0 else 0)
-    fr0 = _F32(0.0)
-    fr1 = _F32(0.0)
-    fr2 = _F32(0.0)
-    for a in range(d):
-        value = _feature(features[a], m, ligand, energy, act, yp, dg, clock)
-        top = _F32(shape[a] - 1)
-        w = _clamp((value - origin[tab, a]) * scale[tab, a], _F32(0.0), top)
-        # NaN stays NaN in w (and so in the probability); its index is clamped
-        i = min(max(int(np.floor(w)) if w == w else 0, 0), shape[a] - 2)
-        base += i * strides[a]
-        if a == 0:
-            fr0 = w - _F32(i)
-        elif a == 1:
-            fr1 = w - _F32(i)
-        else:
-            fr2 = w - _F32(i)
-    if d == 1:
-        return _lerp(table[base], table[base + strides[0]], fr0)
-    if d == 2:
-        s0, s1 = strides[0], strides[1]
-        v0 = _lerp(table[base], table[base + s1], fr1)
-        v1 = _lerp(table[base + s0], table[base + s0 + s1], fr1)
-        return _lerp(v0, v1, fr0)
-    s0, s1, s2 = strides[0], strides[1], strides[2]
-    v00 = _lerp(table[base], table[base + s2], fr2)
-    v01 = _lerp(table[base + s1], table[base + s1 + s2], fr2)
-    v10 = _lerp(table[base + s0], table[base + s0 + s2], fr2)
-    v11 = _lerp(table[base + s0 + s1], table[base + s0 + s1 + s2], fr2)
-    return _lerp(_lerp(v00, v01, fr1), _lerp(v10, v11, fr1), fr0)
-
-
-@numba.njit(inline="always", **_JIT)
-def _class_draw(cls, s, c, u, row, m, ligand, energy, act, yp, dg, cdf, origin_stride, nodes,
-                strides, origin, scale, features, lumps):  # fmt: skip
-    """The next class of a cell in class ``cls``: ClassTable.draw (stochastic rounding to a
-    node per axis with the uniforms of rows ``row``, ``row + 1``, ...; then the categorical
-    draw from one cumulative row with the uniform of row ``row + d``), its positions in
-    float32 in ClassTable._positions' order of operations."""
-    d = nodes.shape[0]
-    n_classes = lumps.shape[0]
-    index = cls * origin_stride
-    for a in range(d):
-        n = nodes[a]
-        if n <= 1:  # a constant axis: node 0
-            continue
-        value = _feature(features[a], m, ligand, energy, act, yp, dg, _F32(0.0))
-        w = _clamp((value - origin[0, a]) * scale[0, a], _F32(0.0), _F32(n - 1))
-        node = min(np.floor(w), _F32(n - 2))
-        # NaN: node 0, never rounded up (as ClassTable._positions)
-        i = int(node) if node == node else 0
-        if u[s, row + a, c] < w - node:
-            i += 1
-        index += i * strides[a]
-    v = u[s, row + d, c]
-    base = index * n_classes
-    nxt = 0
-    for b in range(n_classes):
-        if v >= cdf[base + b]:
-            nxt += 1
-    return min(nxt, n_classes - 1)
-
-
-@numba.njit(**_JIT)
-def _advance_range(
-    steps, step0, start, lo, hi, position, heading, meth, phi, seg, complete, last_x, ended,
-    field_of_cell, fields, field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
-    motors, motor_row,
-    table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
-    ages, max_age, clock_unit, lumps, classes,
-):  # fmt: skip
+@numba.njit(**_NO_REFCOUNTS, **_JIT)
+def _advance_range(steps, step0, start, lo, hi, state, draws, k, field_set, field, motors,
+                   decision):  # fmt: skip
     """``steps`` steps of cells ``start + lo`` to ``start + hi`` of a block that starts at
-    population cell ``start``: the full model when ``motors`` (M x block float32, 0 = S,
-    1 = C, 2 = N) has rows, each motor by its exact exp(Q dt) with
-    the float64 uniforms from row ``motor_row``; else the two-state chain
-    phi' ~ Bernoulli(psi_phi(z)) with the uniform of row ``decision_row``, psi a multilinear
-    lookup over ``features`` (codes of FEATURE_CODES) in the flat float32 ``table``: cell
-    ``start + j`` reads table ``table_of_cell[j]`` (offset ``2 * layer`` each) with its box
-    ``origin``/``scale`` (tables x d float32). With ``max_age > 0`` the chain has a switch
-    clock (:class:`~surrogate.simulate.memory.MemoryDecision`): cell ``start + j``'s clock in
-    steps is ``ages[j]`` (float32, in place), psi reads ``min(age clock_unit, max_age)`` as
-    feature CLOCK_CODE (seconds: unit dt; a table with a node per step: unit 1 on a unit
-    axis, so the node is exact, as the torch layer's clock_nodes), and the clock restarts at
-    0 when phi changes, else counts on (memory.tick).
+    population cell ``start`` (block cell ``j`` is population cell ``start + j``).
 
-    With ``lumps`` (float32, the phi of each of ``C`` classes) non-empty, the block is a
-    K-lumps chain (:class:`~surrogate.simulate.classes.ClassDecision`, packed as
-    :class:`~surrogate.models.packed.PackedClasses`): cell ``start + j``'s class is
-    ``classes[j]`` (int64, in place), drawn by :func:`_class_draw` from the cumulative rows
-    ``table`` (``layer``: rows per origin class; ``shape``: nodes per axis, 1 for a constant
-    axis; ``strides``; ``origin``/``scale`` of shape ``1 x d``; ``features``) with the
-    ``d + 1`` uniforms from row ``decision_row``; phi is the class's lump.
+    The decision: with ``decision.kind`` ``OWN`` the full model, each motor of
+    ``motors.states`` (:data:`Motors`, M x block) by its exact exp(Q dt) with the float64
+    uniforms from row ``motors.row``; else the engine's step of that kind
+    (:func:`surrogate.decision_kernel.decide`: the two-state chain over lookup tables, with or
+    without a switch clock, or the K-lumps chain) at the features of :func:`_features`.
 
-    Cell ``c`` sees the field of row ``fields[field_of_cell[c]]`` (packed by
-    :func:`~surrogate.field_kernel.pack_field` for the formulas of ``field_set``).
+    Args:
+        steps: steps to take; ``step0``: the first one's index (the field's time).
+        start, lo, hi: the block's first population cell; its cells ``[lo, hi)``.
+        state: :data:`State`: the engine's :class:`~surrogate.decision_kernel.Cells` and the
+            :data:`Body` (in place; ``cells.ended`` (steps, n) int32 out).
+        draws: :data:`Draws`, (steps, rows, n) each.
+        k: :data:`Constants`.
+        field_set: the field formulas (:class:`~surrogate.field_kernel.FieldSet`).
+        field: :data:`Fields`.
+        motors: :data:`Motors` (no rows: not the full model).
+        decision: :class:`~surrogate.decision_kernel.DecisionPack`.
 
-    Arrays are the simulator's tensors (in place): position (n, 2), heading, meth (n,) float32,
-    phi, complete (n,) uint8, seg (n,) int32; last_x (n, 2) the last step's inputs; ended
-    (steps, n) int32 out; random blocks u (steps, rows, n) float32, u64 (steps, rows, n) float64,
-    z (steps, rows, n) float32. One function for both layers: one compilation.
+    One function for every kind: one compilation.
     """
-    full = motors.shape[0] > 0
-    classed = lumps.shape[0] > 0
+    cells, body = state.cells, state.body
+    position, heading, meth, last_x = body.position, body.heading, body.meth, body.last_x
+    u, z, p, q = draws.u, draws.z, k.p, k.q
+    own = decision.kind == kd.OWN
     dt = q[2]
-    clocked = max_age > 0
-    unit = _F32(clock_unit)
-    cap = _F32(max_age)
     for j in range(lo, hi):
         c = start + j
         x, y, h, m = position[c, 0], position[c, 1], heading[c], meth[c]
-        phi_now = _F32(phi[c])
-        age = ages[j] if clocked else _F32(0.0)
-        cls = classes[j] if classed else 0
-        f = fields[field_of_cell[c]]
-        tab = 0 if full or classed else table_of_cell[j]
+        phi_now = _F32(cells.phi[c])
+        tab, age, cls = kd.cell_state(j, decision)
+        f = field.rows[field.of_cell[c]]
         for s in range(steps):
             ligand = field_value(field_set, f, x, y, (step0 + s) * dt)
             last_x[c, 0] = m
             last_x[c, 1] = ligand
             lrt = _log_receptor_terms(ligand, p)
             energy, act, yp, dg = _signal(m, lrt, p)
-            if full:
-                phi_after = _motors_step(dg, motors, j, c, s, u64, motor_row, q)
-            elif classed:
-                cls = _class_draw(cls, s, c, u, decision_row, m, ligand, energy, act, yp, dg,
-                                  table, layer, shape, strides, origin, scale, features, lumps)  # fmt: skip
-                phi_after = lumps[cls]
+            if own:
+                phi_after = _motors_step(dg, motors, j, c, s, draws.u64, q)
             else:
-                clock = min(age * unit, cap)  # memory.with_age
-                prob = _lookup(phi_now, tab, m, ligand, energy, act, yp, dg, clock, table,
-                               layer, shape, strides, origin, scale, features)  # fmt: skip
-                phi_after = _F32(1.0) if u[s, decision_row, c] < prob else _F32(0.0)
-                if clocked:  # memory.tick
-                    age = _F32(0.0) if phi_after != phi_now else age + _F32(1.0)
-            x, y, h = _move_and_account(
-                c, s, phi_now, phi_after, x, y, h, u, body_row, gamma_k, per_tumble, p,
-                seg, complete, ended,
-            )  # fmt: skip
-            m = _F.ou_step(m, lrt, z[s, ou_row, c], p)
+                values = _features(m, ligand, energy, act, yp, dg)
+                phi_after, age, cls = kd.decide(phi_now, age, cls, tab, values, u, s, c,
+                                                decision)  # fmt: skip
+            x, y, h = _move(s, c, phi_now, phi_after, x, y, h, draws, k)
+            kd.account(cells, c, s, phi_now, phi_after)
+            m = _F.ou_step(m, lrt, z[s, k.ou_row, c], p)
             phi_now = phi_after
         position[c, 0], position[c, 1], heading[c], meth[c] = x, y, h, m
-        phi[c] = np.uint8(phi_now)
-        if clocked:
-            ages[j] = age
-        if classed:
-            classes[j] = cls
+        cells.phi[c] = np.uint8(phi_now)
+        kd.store_state(j, decision, age, cls)
 
 
 @numba.njit(parallel=True, **_JIT)
-def advance_cells(
-    steps, step0, start, lo, hi, pieces, position, heading, meth, phi, seg, complete, last_x, ended,
-    field_of_cell, fields, field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q,
-    motors, motor_row,
-    table, table_of_cell, layer, shape, strides, origin, scale, features, decision_row,
-    ages, max_age, clock_unit, lumps, classes,
-):  # fmt: skip
-    """Cells ``start + lo`` to ``start + hi`` in ``pieces`` contiguous pieces (a few per
-    thread: balanced) spread over numba's threads, each by :func:`_advance_range` (the other
-    arguments as there). The parallel loop holds only that call:
+def advance_cells(steps, step0, start, count, pieces, state, draws, k, field_set, field, motors,
+                  decision):  # fmt: skip
+    """Cells ``start`` to ``start + count`` in ``pieces`` contiguous pieces (a few per thread:
+    balanced) spread over numba's threads, each by :func:`_advance_range` (the other
+    arguments as there, each namedtuple as a plain tuple of its fields in order: see
+    :func:`_plain`). The parallel loop holds only that call:
     lowering ``prange`` around the whole inlined body more than doubled the one-time
-    compilation (8.9 s vs 4.5 s measured) for the same speed at the paper's size."""
-    pieces = max(1, min(hi - lo, pieces))
-    for k in prange(pieces):
+    compilation (8.9 s vs 4.5 s measured) for the same speed at the paper's size.
+
+    A parallel loop takes arrays and numbers, not tuples of arrays: the tuples are taken apart
+    here and put together again in the loop as namedtuples (once per piece: free)."""
+    (phi, seg, complete, ended), (position, heading, meth, last_x) = state
+    u, u64, z = draws
+    body_row, ou_row, gamma_k, per_tumble, p, q = k
+    field_of_cell, field_rows = field
+    motor_states, motor_row = motors
+    kind, chain, classes = decision
+    (table, table_of_cell, layer, shape, strides, origin, scale, chain_features, chain_row,
+     ages, cap, unit) = chain  # fmt: skip
+    (cdf, origin_stride, nodes, class_strides, class_origin, class_scale, class_features,
+     class_row, lumps, cell_classes) = classes  # fmt: skip
+    pieces = max(1, min(count, pieces))
+    for i in prange(pieces):
+        piece_decision = kd.DecisionPack(
+            kind,
+            kd.ChainPack(table, table_of_cell, layer, shape, strides, origin, scale,
+                         chain_features, chain_row, ages, cap, unit),
+            kd.ClassPack(cdf, origin_stride, nodes, class_strides, class_origin, class_scale,
+                         class_features, class_row, lumps, cell_classes),
+        )  # fmt: skip
         _advance_range(
-            steps, step0, start, lo + (hi - lo) * k // pieces, lo + (hi - lo) * (k + 1) // pieces,
-            position, heading, meth, phi, seg, complete, last_x, ended, field_of_cell, fields,
-            field_set, u, u64, z, body_row, ou_row, gamma_k, per_tumble, p, q, motors, motor_row, table,
-            table_of_cell, layer, shape, strides, origin, scale, features, decision_row, ages,
-            max_age, clock_unit, lumps, classes,
+            steps, step0, start, count * i // pieces, count * (i + 1) // pieces,
+            State(kd.Cells(phi, seg, complete, ended), Body(position, heading, meth, last_x)),
+            Draws(u, u64, z), Constants(body_row, ou_row, gamma_k, per_tumble, p, q), field_set,
+            Fields(field_of_cell, field_rows), Motors(motor_states, motor_row), piece_decision,
         )  # fmt: skip
 
 
-# numba's cache follows this file only: also the formulas' (inlined above)
-scalar.renew_with((_advance_range, advance_cells), (formulas, scalar))
+# numba's cache follows this file only: also the formulas' and the decision steps' (inlined)
+scalar.renew_with((_advance_range, advance_cells), (formulas, scalar, kd))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -338,29 +261,48 @@ def pack_parameters(params: EcoliParameters, dt: float) -> tuple[np.ndarray, np.
 
 
 # placeholders for the arguments of the layer a block does not use (one compiled signature)
-_NO_MOTORS = np.zeros((0, 0), dtype=np.float32)
+_NO_MOTORS = Motors(np.zeros((0, 0), dtype=np.float32), 0)
 _NO_U64 = np.zeros((1, 1, 1), dtype=np.float64)
-_NO_TABLE = (np.zeros(2, dtype=np.float32), np.zeros(1, dtype=np.int32), 1,
-             np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
-             np.zeros((1, 1), dtype=np.float32), np.zeros((1, 1), dtype=np.float32),
-             np.zeros(1, dtype=np.int64), 0)  # fmt: skip
-_NO_CLOCK = (np.zeros(1, dtype=np.float32), 0.0, 0.0)
-_NO_CLASSES = (np.zeros(0, dtype=np.float32), np.zeros(1, dtype=np.int64))
 #: the built-in fields' formulas: the field set of the precompiled kernel
 _BUILTIN_FIELD_SET = field_set([])
+
+
+def _plain(value: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A namedtuple (the namedtuples in it too) as plain tuples; a plain tuple as it is: numba
+    types a plain tuple of arrays and numbers in C at each call, a namedtuple in Python
+    (microseconds a call)."""
+    if type(value) is tuple:
+        return value
+    return tuple(_plain(v) if isinstance(v, tuple) else v for v in value)
+
+
+#: the decision pack of the full model (the kernel's own motors), and no motors, as plain tuples
+_OWN, _PLAIN_NO_MOTORS = _plain(kd.own_pack()), _plain(_NO_MOTORS)
+
+
+def _arguments(
+    steps: int, step0: int, start: int, count: int, pieces: int, state: State, draws: Draws,
+    k: tuple[Any, ...], fields: FieldSet, field: Fields, motors: Motors,
+    decision: tuple[Any, ...],
+) -> tuple[Any, ...]:  # fmt: skip
+    """The arguments of :func:`advance_cells` (see :func:`_advance_range`; each namedtuple,
+    :data:`Constants` and the decision pack too, may come as its plain tuple already)."""
+    return (steps, step0, start, count, pieces, _plain(state), _plain(draws), _plain(k), fields,
+            _plain(field), _plain(motors), _plain(decision))  # fmt: skip
 
 
 def _zero_cell_arguments() -> tuple[Any, ...]:
     """Arguments of :func:`advance_cells` for zero cells, typed exactly as the adaptor's (C
     contiguous, writable arrays of the same dtypes and ranks): its one compiled signature."""
     f32, i32, u8 = np.float32, np.int32, np.uint8
-    p32 = np.zeros(len(P32_NAMES), dtype=f32)
-    p64 = np.zeros(len(P64_NAMES), dtype=np.float64)
-    return (1, 0, 0, 0, 0, 1, np.zeros((1, 2), f32), np.zeros(1, f32), np.zeros(1, f32),
-            np.zeros(1, u8), np.zeros(1, i32), np.zeros(1, u8), np.zeros((1, 2), f32),
-            np.zeros((1, 1), i32), np.zeros(1, i32), np.zeros((1, _BUILTIN_FIELD_SET.columns)),
-            _BUILTIN_FIELD_SET, np.zeros((1, 1, 1), f32), _NO_U64, np.zeros((1, 1, 1), f32), 0, 0, 1, False,
-            p32, p64, _NO_MOTORS, 0, *_NO_TABLE, *_NO_CLOCK, *_NO_CLASSES)  # fmt: skip
+    cells = kd.Cells(np.zeros(1, u8), np.zeros(1, i32), np.zeros(1, u8), np.zeros((1, 1), i32))
+    body = Body(np.zeros((1, 2), f32), np.zeros(1, f32), np.zeros(1, f32), np.zeros((1, 2), f32))
+    draws = Draws(np.zeros((1, 1, 1), f32), _NO_U64, np.zeros((1, 1, 1), f32))
+    k = Constants(0, 0, 1, False, np.zeros(len(P32_NAMES), dtype=f32),
+                  np.zeros(len(P64_NAMES), dtype=np.float64))  # fmt: skip
+    field = Fields(np.zeros(1, i32), np.zeros((1, _BUILTIN_FIELD_SET.columns)))
+    return _arguments(1, 0, 0, 0, 1, State(cells, body), draws, _plain(k), _BUILTIN_FIELD_SET,
+                      field, _NO_MOTORS, _OWN)  # fmt: skip
 
 
 def precompile() -> None:
@@ -404,7 +346,6 @@ class _Block:
 
     def __init__(self, block: PackedBlock, internal: Any) -> None:
         self.start, self.count, self.state = block.start, block.count, block.state
-        self.clock = _NO_CLOCK_SETTINGS
         if block.kind not in (FULL, CHAIN, EXACT, CLASSES):
             raise KernelUnsupported(block.why or f"decision layer {block.layer}")
         if block.kind not in (CHAIN, CLASSES) and type(internal) is not MotorInternalModel:
@@ -420,50 +361,35 @@ class _Block:
         if block.kind == FULL:
             self.motor_row = block.motor_row
             return
-        if block.kind == CLASSES:
-            self._classes(block, internal)
-            return
-        tables = block.tables
-        if tables is None or block.why is not None:
-            raise KernelUnsupported(block.why or f"a {block.layer} without lookup tables")
-        codes = _feature_codes(block, internal)
-        if block.clock is not None:  # the clock is psi's last input
-            codes.append(CLOCK_CODE)
-            self.clock = (float(block.clock.cap), float(block.clock.unit))
-        if len(codes) != tables.shape.shape[0]:
-            raise KernelUnsupported(
-                f"{len(codes)} features for a lookup table over {tables.shape.shape[0]} axes"
-            )
-        self.tables = tables
-        self.table_args = (tables.table, tables.layer, tables.shape, tables.strides,
-                           tables.origin, tables.scale, np.array(codes, dtype=np.int64),
-                           block.decision_row)  # fmt: skip
-        self._table_of_cell: np.ndarray | None = None
-
-    def _classes(self, block: PackedBlock, internal: Any) -> None:
-        """A K-lumps chain: its law's arrays in :func:`advance_cells`' table arguments."""
-        law = block.classes
-        if law is None or block.why is not None:
+        law, tables = block.classes, block.tables
+        if block.kind == CLASSES and (law is None or block.why is not None):
             raise KernelUnsupported(block.why or f"a {block.layer} without its class table")
-        codes = _feature_codes(block, internal)
-        if len(codes) != law.nodes.shape[0]:
-            raise KernelUnsupported(
-                f"{len(codes)} features for a class table over {law.nodes.shape[0]} axes"
-            )
-        self.lumps = law.lumps
-        self.table_args = (law.cdf, law.origin_stride, law.nodes, law.strides,
-                           law.origin.reshape(1, -1), law.scale.reshape(1, -1),
-                           np.array(codes, dtype=np.int64), block.decision_row)  # fmt: skip
+        if block.kind != CLASSES and (tables is None or block.why is not None):
+            raise KernelUnsupported(block.why or f"a {block.layer} without lookup tables")
+        self.law, self.tables, self.clock = law, tables, block.clock
+        self.features = kd.feature_axes(block, _feature_codes(block, internal))
+        self.row = block.decision_row
+        self._packed: tuple[int, Tensor | None, tuple[Any, ...]] | None = None
 
-    def tables_for(self, n: int) -> np.ndarray:
-        """Each cell's table for a block of ``n`` cells."""
-        if self._table_of_cell is None or self._table_of_cell.shape[0] != n:
-            self._table_of_cell = self.tables.table_of_cell(n)
-        return self._table_of_cell
-
-
-#: no switch clock: (cap, unit)
-_NO_CLOCK_SETTINGS = (0.0, 0.0)
+    def decision(self, n: int, own: Tensor | None) -> tuple[Any, ...]:
+        """The block's :class:`~surrogate.decision_kernel.DecisionPack` for ``n`` cells and
+        their per-cell state ``own`` (clocks, classes; None: a chain without a clock), as plain
+        tuples (:func:`_plain`); kept while ``n`` and the state tensor stay the same."""
+        if self._packed is not None and self._packed[0] == n and self._packed[1] is own:
+            return self._packed[2]
+        state = None if own is None else _numpy(own)
+        if self.kind == "classes":
+            assert self.law is not None and state is not None  # each cell's class
+            classes = kd.class_pack(self.law, self.features, self.row, state)
+            pack = kd.DecisionPack(kd.CLASSES, kd.NO_CHAIN, classes)
+        else:
+            assert self.tables is not None
+            clock = self.clock if state is not None else None
+            chain = kd.chain_pack(self.tables, self.features, self.row,
+                                  self.tables.table_of_cell(n), clock, state)  # fmt: skip
+            pack = kd.DecisionPack(kd.CHAIN, chain, kd.NO_CLASSES)
+        self._packed = (n, own, _plain(pack))
+        return self._packed[2]
 
 
 def _same_internal(a: Any, b: Any) -> bool:
@@ -541,8 +467,8 @@ class EcoliKernel:
         rows = decision.randoms
         self._rows = Randoms(rows.uniform + self.gamma_k + 1, rows.uniform64, rows.normal + 1)
         self.body_row, self.ou_row = rows.uniform, rows.normal
-        self._body_args = (self.body_row, self.ou_row, self.gamma_k, self.per_tumble, self.p32,
-                           self.p64)  # fmt: skip
+        self._constants = _plain(Constants(self.body_row, self.ou_row, self.gamma_k,
+                                           self.per_tumble, self.p32, self.p64))  # fmt: skip
         self.blocks = [_Block(b, internal) for b in decision.blocks]
         self._total = decision.total
         fields = field.fields if isinstance(field, FieldBatch) else [field]
@@ -600,11 +526,13 @@ class EcoliKernel:
         body = state.body
         if state.inputs is None or state.inputs.shape != (n, 2):
             state.inputs = torch.empty((n, 2), dtype=torch.float32)
-        common = (_numpy(body["position"]), _numpy(body["heading"]), _numpy(body["m"]),
-                  _numpy(state.phi), _numpy(state.segment_steps),
-                  _numpy(state.segment_complete), _numpy(state.inputs), _numpy(ended),
-                  field_of_cell, self.fields, self.field_set)  # fmt: skip
-        un, zn = _numpy(u), _numpy(z)
+        # the namedtuples' plain tuples (_plain), built as such: State(Cells, Body), Draws, Fields
+        arrays = ((_numpy(state.phi), _numpy(state.segment_steps),
+                   _numpy(state.segment_complete), _numpy(ended)),
+                  (_numpy(body["position"]), _numpy(body["heading"]), _numpy(body["m"]),
+                   _numpy(state.inputs)))  # fmt: skip
+        draws = (_numpy(u), _NO_U64 if u64 is None else _numpy(u64), _numpy(z))
+        field = (field_of_cell, self.fields)
         # as many kernel threads as torch uses (the threads setting; a sweep job's share), a
         # few pieces each (cells of one block cost alike; pieces balance what differs)
         threads = match_torch_threads()
@@ -612,28 +540,16 @@ class EcoliKernel:
             count = n if b.count is None else b.count
             if count == 0:
                 continue
-            head = (steps, state.step, b.start, 0, 0 if dry else count, 4 * threads)
-            # the per-cell state (motor states, clocks), advanced in place: the layer's own
-            # copy (a dry run only reads it)
+            # the per-cell state (motor states, clocks, classes), advanced in place: the
+            # layer's own copy (a dry run only reads it)
             own = None if b.state is None else (b.state.current() if dry else b.state.writable())
             if b.kind == "motors":
                 assert own is not None and u64 is not None  # motor states, one u64 per motor
-                advance_cells(*head, *common, un, _numpy(u64), zn, *self._body_args,
-                              _numpy(own), b.motor_row, *_NO_TABLE, *_NO_CLOCK,
-                              *_NO_CLASSES)  # fmt: skip
-            elif b.kind == "classes":
-                cdf, layer, nodes, strides, origin, scale, features, row = b.table_args
-                assert own is not None  # each cell's class
-                advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
-                              *self._body_args, _NO_MOTORS, 0, cdf, _NO_TABLE[1], layer, nodes,
-                              strides, origin, scale, features, row, *_NO_CLOCK, b.lumps,
-                              _numpy(own))  # fmt: skip
+                motors, decision = (_numpy(own), b.motor_row), _OWN
             else:
-                table, layer, shape, strides, origin, scale, features, row = b.table_args
-                clock = _NO_CLOCK if own is None else (_numpy(own), *b.clock)
-                advance_cells(*head, *common, un, _NO_U64 if u64 is None else _numpy(u64), zn,
-                              *self._body_args, _NO_MOTORS, 0, table, b.tables_for(count),
-                              layer, shape, strides, origin, scale, features, row,
-                              *clock, *_NO_CLASSES)  # fmt: skip
+                motors, decision = _PLAIN_NO_MOTORS, b.decision(count, own)
+            advance_cells(steps, state.step, b.start, 0 if dry else count, 4 * threads, arrays,
+                          draws, self._constants, self.field_set, field, motors,
+                          decision)  # fmt: skip
         if not dry:
             state.step += steps
