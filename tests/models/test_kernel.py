@@ -712,3 +712,12 @@ def test_activity_feature_code_is_the_phospho_networks_activity_in_float32() -> 
         got[i] = (values[kernel.FEATURE_CODES["F"]], values[code])
     torch.testing.assert_close(torch.from_numpy(got), ref, atol=1e-5, rtol=1e-6)
     assert np.abs(got[:, 1] - ref[:, 1].numpy()).max() < 5e-7
+
+
+def test_the_per_cell_loop_compiles_without_reference_counts() -> None:
+    """The loop hands its packs to inlined decision steps; with reference counts numba counts
+    every array of a pack each time (half the speed, measured). ``_nrt`` is a private numba
+    option: a numba that drops it must fail here, not silently run at half speed."""
+    from surrogate.models.ecoli import kernel
+
+    assert kernel._NO_REFCOUNTS == {"_nrt": False}
