@@ -630,6 +630,28 @@ class SimulationRun:
         dist = self.duration_distribution(kind)
         return dist.mean() if dist.n else None
 
+    def mean_duration_se(self, kind: str) -> float | None:
+        """The standard error (s) of :meth:`mean_duration`, each cell one cluster: a cell's
+        segments share its parameters (E. coli: cv 0.1 per cell) and its history, so they
+        are not independent draws (at 100 cells the cluster-robust error is ~1.5 % of the
+        mean, two full runs' means ~6 % apart). From the recorded cells' segments ``i``
+        (``S_i`` their total duration, ``N_i`` their count, ``m`` their mean):
+        ``sqrt(sum_i (S_i - m N_i)^2) / sum_i N_i``, times ``sqrt(recorded / n_cells)`` when
+        only some of the run's cells are recorded. None with fewer than two recorded cells."""
+        d = self.durations
+        if d.empty or "cell" not in d:
+            return None
+        recorded = int(d["cell"].nunique())
+        cells = d.loc[d["kind"].astype(str) == kind].groupby("cell")["duration"]
+        sums = cells.sum().to_numpy(np.float64)
+        counts = cells.count().to_numpy(np.float64)
+        if recorded < 2 or counts.sum() == 0:
+            return None
+        mean = sums.sum() / counts.sum()
+        se = math.sqrt(float(((sums - mean * counts) ** 2).sum())) / counts.sum()
+        n_cells = int(self.manifest.get("n_cells") or recorded)
+        return se * math.sqrt(min(1.0, recorded / n_cells))
+
 
 def load_run(directory: str | os.PathLike, source: str = "auto") -> SimulationRun:
     """Read a run directory: ``observables.parquet``, ``manifest.json``, and the summaries when

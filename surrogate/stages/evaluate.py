@@ -183,6 +183,12 @@ def mean_durations(run: SimulationRun) -> dict[str, float | None]:
     return {kind: run.mean_duration(kind) for kind in run.lump_names}
 
 
+def mean_duration_errors(run: SimulationRun) -> dict[str, float | None]:
+    """The standard error (s) of each mean segment duration, cells as clusters
+    (:meth:`~surrogate.evaluate.statistics.SimulationRun.mean_duration_se`)."""
+    return {kind: run.mean_duration_se(kind) for kind in run.lump_names}
+
+
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
     """Headline figures: speed-ups per cell-step (:func:`~surrogate.simulate.speed.speedup`
     of the loop times, and of the wall times; only for runs timed comparably: same device,
@@ -198,8 +204,11 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
         why.insert(0, "simulated in a batch (no loop time of its own)")
         speedup_loop = speedup_wall = None
     durations = {"full": mean_durations(runs.full), "candidate": mean_durations(runs.candidate)}
+    errors = {"full": mean_duration_errors(runs.full),
+              "candidate": mean_duration_errors(runs.candidate)}  # fmt: skip
     if runs.full_repeat is not None:
         durations["full_repeat"] = mean_durations(runs.full_repeat)
+        errors["full_repeat"] = mean_duration_errors(runs.full_repeat)
     return {
         "candidate": cand.get("decision"),
         "speedup_loop": speedup_loop,
@@ -215,6 +224,7 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
         else None,
         "all_within_noise": bool(table["within_noise"].all()) if "within_noise" in table else None,
         "mean_durations": durations,
+        "mean_duration_errors": errors,
         "lookup_max_deviation": cand.get("lookup_max_deviation"),
     }
 
@@ -375,6 +385,7 @@ __all__ = [
     "check_runs",
     "ensure_run",
     "evaluate",
+    "mean_duration_errors",
     "mean_durations",
     "read_summary",
     "run",

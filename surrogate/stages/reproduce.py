@@ -11,6 +11,7 @@ cells adapted to their current input.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections.abc import Mapping
@@ -248,13 +249,14 @@ def _durations_table(
     diagnostic = (metrics or {}).get("diagnostic") or {}
     rows = []
     for name, s in summaries.items():
-        md = s["mean_durations"]
+        md, errors = s["mean_durations"], s.get("mean_duration_errors") or {}
         row: dict[str, Any] = {"field": name}
         for p, kind in reversed(list(enumerate(lumps))):
             full = md["full"][kind]
             row[f"{kind} full (s)"] = full
             row[f"{kind} abstract (s)"] = md["candidate"][kind]
-            row[f"{kind} abstract vs full"] = _rel(md["candidate"][kind], full)
+            se = _difference_error(errors, kind, full)
+            row[f"{kind} abstract vs full"] = _rel(md["candidate"][kind], full) + se
             bias = (diagnostic.get(f"phi{p}") or {}).get("rel_bias")
             predicted = None if bias is None or bias <= -1 else 1 / (1 + bias) - 1
             if predicted is not None and name == next(iter(summaries)):
@@ -267,7 +269,11 @@ def _durations_table(
             "duration that the learned psi's bias where the population lives implies (1 / (1 + "
             "bias) - 1), in the training field, where the diagnostic measured it.")  # fmt: skip
     return (
-        "Mean segment duration of each model (all completed segments)."
+        "Mean segment duration of each model (all completed segments). *Abstract vs full*: the "
+        "relative difference +- one standard error of it (the two runs' errors combined, each "
+        "with cells as clusters: a cell's segments share its parameters and history; at 100 "
+        "cells about 2 %, so a difference within ~2 of them is no evidence of bias; "
+        "`python3 scripts/fidelity.py` checks at scale)."
         + note
         + "\n\n"
         + format_markdown_table(pd.DataFrame(rows).fillna(""), ".4f")
@@ -316,6 +322,16 @@ def _verdict(
                 class_moves=tr.class_moves,
                 max_age=tr.max_age if tr.history == "age" else None)  # fmt: skip
     return v.markdown()
+
+
+def _difference_error(errors: Mapping[str, Any], kind: str, reference: float | None) -> str:
+    """`` +- x %``: the standard error of candidate - full relative to ``reference``, from
+    the summary's ``mean_duration_errors`` (independent runs); empty where either is unknown."""
+    a = (errors.get("candidate") or {}).get(kind)
+    b = (errors.get("full") or {}).get(kind)
+    if a is None or b is None or not reference:
+        return ""
+    return f" +- {100 * math.hypot(a, b) / reference:.1f} %"
 
 
 def _rel(value: float | None, reference: float | None) -> str:
