@@ -127,6 +127,12 @@ def train(
     diagnostic, grid and figures. The model's kernel (for the diagnostic's occupancy run) is
     compiled in a background process during the fit when it is not cached."""
     out = settings.directory
+    if settings.auto_recipe is not None:
+        log.info("gp=auto: %s (model %r %s); gp=svgp or gp=classes to choose", {
+            "classes": "the K-lumps chain, gp=classes' recipe",
+            "svgp": "the two-state chain, gp=svgp's recipe"}[settings.auto_recipe],
+            settings.setup.model.name, "declares classes finer than phi"
+            if settings.auto_recipe == "classes" else "declares no classes, or a clock is asked")  # fmt: skip
 
     def make(data: tuple[pd.DataFrame, str]) -> None:  # data: load_transitions' (table, source)
         _train(settings, out, *data, config, force)

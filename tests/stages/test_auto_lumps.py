@@ -22,6 +22,7 @@ def test_the_default_is_gp_classes_for_a_model_with_classes(compose_cfg) -> None
     assert default.fit_directory == classes.fit_directory
     assert default.gp == classes.gp
     assert "gp=classes" in default.command()
+    assert (default.auto_recipe, classes.auto_recipe) == ("classes", None)  # the log says which
 
 
 def test_the_default_is_gp_svgp_for_a_model_without_classes(compose_cfg) -> None:

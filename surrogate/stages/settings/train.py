@@ -194,6 +194,8 @@ class TrainSettings:
     #: gp.relaxation: the stationary sample's cells and lags (s), for class_moves=relaxation
     relaxation_cells: int = DEFAULT_CELLS
     relaxation_lags: tuple[float, ...] = DEFAULT_LAGS
+    #: the recipe gp.lumps=auto chose (``classes`` or ``svgp``), None where a chain was named
+    auto_recipe: str | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
@@ -206,7 +208,8 @@ class TrainSettings:
         else:
             source = CollectSettings.from_config(cfg)
             setup = source.setup
-        gp_config = resolve_auto_lumps(to_dict(cfg["gp"]), setup.model)
+        raw_gp = to_dict(cfg["gp"])
+        gp_config = resolve_auto_lumps(raw_gp, setup.model)
         hyper = {k: v for k, v in gp_config.items() if k not in GP_EXTRA}
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
         # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
@@ -277,11 +280,14 @@ class TrainSettings:
                     f"gp.labels=expected trains on expected labels, but {why}; use "
                     "gp.labels=outcome"
                 )
+        auto_recipe = None  # gp.lumps=auto: the recipe it chose, for the log
+        if raw_gp.get("lumps") == "auto":
+            auto_recipe = AUTO_RECIPES[0] if lumps == "classes" else AUTO_RECIPES[1]
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
                    int(threads) if threads is not None else torch.get_num_threads(), history,
                    max_age, lumps, None if min_events is None else float(min_events),
                    float(max_label_weight), class_moves, relaxation_cells,
-                   relaxation_lags)  # fmt: skip
+                   relaxation_lags, auto_recipe)  # fmt: skip
 
     def check_label_column(self, column: str, where: str) -> None:
         """Refuse training ``where``'s expected labels (``column``, e.g. an external table's,
