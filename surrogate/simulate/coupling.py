@@ -46,12 +46,13 @@ def coupled_blocks(field: Field) -> list[tuple[CoupledField, slice]]:
     return blocks  # type: ignore[return-value]
 
 
-def check_coupled_run(
-    field: Any, *, dt: float, backend: str = "torch", compile: bool = False, shards: int = 1
-) -> None:
+def check_coupled_run(field: Any, *, dt: float, backend: str = "torch", shards: int = 1) -> None:
     """Refuse, by name, the settings a coupled field cannot run with yet: the per-cell kernel
-    (``backend=numba``), ``compile=true`` and population shards; and a dt beyond the field's
-    own limit (:meth:`~surrogate.grid.CoupledField.validate`). Nothing for a given field."""
+    (``backend=numba``) and population shards; and a dt beyond the field's own limit
+    (:meth:`~surrogate.grid.CoupledField.validate`). Nothing for a given field.
+
+    ``compile=true`` runs: the compiled kernel is the agents' step, the field is read before
+    it and stepped after it, eagerly (:meth:`~surrogate.simulate.Simulator.step`)."""
     if not is_coupled(field):
         return
     name = type(field).__name__
@@ -64,9 +65,6 @@ def check_coupled_run(
     if backend == "numba":
         raise ConfigError(f"backend=numba: the per-cell kernel does not run a coupled field "
                           f"({name}); use backend=torch (or auto)")  # fmt: skip
-    if compile:
-        raise ConfigError(f"compile=true: the compiled torch step does not run a coupled field "
-                          f"({name}) yet; use compile=false")  # fmt: skip
     field.validate(dt)
 
 

@@ -241,7 +241,9 @@ class Simulator:
     :class:`~surrogate.grid.GridField`) is part of the population's state: reset by
     :meth:`initial_state`, advanced by :meth:`step` after the agents (their uptake and
     secretion at their new positions, then diffusion), on the torch step only (the per-cell
-    kernel and ``compile`` are refused by name: :mod:`surrogate.simulate.coupling`).
+    kernel is refused by name: :mod:`surrogate.simulate.coupling`). With ``compile`` the
+    compiled kernel is the agents' step: the field is read before it and stepped after it,
+    eagerly (:meth:`_read_outside`).
 
     Example:
         >>> from surrogate.fields import GaussianField
@@ -282,7 +284,7 @@ class Simulator:
         self.backend = "torch" if self.kernel is None else "numba"
         self._coupled = coupled_blocks(field)
         for coupled, _ in self._coupled:
-            check_coupled_run(coupled, dt=self.dt, compile=bool(compile))
+            check_coupled_run(coupled, dt=self.dt)
         if self.kernel is not None:  # a compilation in flight fills numba's cache for its calls
             wait_for_precompile()
         self.compile = bool(compile)
@@ -359,7 +361,7 @@ class Simulator:
             out = self._run(
                 "_fused_step",
                 state.body, phi8, state.segment_steps, complete8, decision.fused_state(),
-                u, u64, z, extra, t,
+                u, u64, z, extra, t, self._read_outside(state.body, t),
             )  # fmt: skip
             body, phi8, seg_steps, complete8, ended, x, dstate, _ = out
             decision.set_fused_state(dstate)
@@ -379,6 +381,19 @@ class Simulator:
         if self._coupled:
             self._step_fields(state)
         return StepRecord(x, phi_before, phi, ended)
+
+    def _read_outside(self, body: BodyState, t: float) -> Tensor | None:
+        """The inputs read eagerly, before the step kernel, where the field is coupled; None
+        (the kernel reads them) for a given field.
+
+        A coupled field's read is state that changes between steps and, on the CPU, numba's
+        exchange (:mod:`surrogate.grid.kernels`), which ``torch.compile`` cannot trace: read
+        outside the kernel, it is the eager read to the byte, compiled or not, and the
+        compiled kernel is the agents' step alone (the field's own step follows it, eagerly,
+        in :meth:`_step_fields`)."""
+        if not self._coupled:
+            return None
+        return self.body.inputs(body, self.field, t)
 
     def _step_fields(self, state: PopulationState) -> None:
         """Each coupled field's step with its cells' new positions and phi (after the agents'
@@ -489,6 +504,7 @@ class Simulator:
                 self._run(
                     "_fused_step", state.body, phi8, state.segment_steps, complete8,
                     self.decision.fused_state(), u, u64, z, extra, t,
+                    self._read_outside(state.body, t),
                 )  # fmt: skip
             else:
                 x = self.body.inputs(state.body, self.field, t)
@@ -573,9 +589,12 @@ class Simulator:
         z: Tensor,
         extra: Tensor | None,
         t: float,
+        x: Tensor | None = None,
     ) -> tuple[Any, ...]:
-        """Algorithm 1/2 for one step with a fused decision layer."""
-        x = self.body.inputs(body, self.field, t)
+        """Algorithm 1/2 for one step with a fused decision layer (reading the inputs at
+        ``t`` unless given, as :meth:`_read_outside` gives them for a coupled field)."""
+        if x is None:
+            x = self.body.inputs(body, self.field, t)
         r = self.decision.randoms
         phi_before = phi8.to(torch.float32)
         phi_after, dstate, aux = self.decision.fused_step(

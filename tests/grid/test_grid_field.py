@@ -102,7 +102,6 @@ RUN_BAD = [
         r"be split",
     ),
     (["backend=numba"], r"backend=numba: the per-cell kernel does not run a coupled field"),
-    (["compile=true"], r"compile=true: the compiled torch step does not run a coupled field"),
     (
         ["field.solver=explicit", "dt=0.5", "record_interval=0.5"],
         r"dt=0.5 s is beyond field.solver=explicit's limit 0.37.. s .*h_x=0.03906 mm",
@@ -122,6 +121,13 @@ def test_a_coupled_run_the_loop_cannot_take_is_refused_before_it_starts(
 ) -> None:
     with pytest.raises(ConfigError, match=message):
         SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, *overrides]))
+
+
+def test_a_compiled_coupled_run_is_accepted(compose_cfg) -> None:
+    """compile=true runs a coupled field (the compiled step is the agents'; the field is read
+    and stepped eagerly): only backend=numba and shards are refused (above)."""
+    settings = SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, "compile=true"]))
+    assert settings.compile is True
 
 
 def test_the_channel_runs_through_the_simulate_stage(compose_cfg) -> None:

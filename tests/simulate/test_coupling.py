@@ -11,7 +11,7 @@ from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import ConstantField, FieldBatch
 from surrogate.grid import MOLECULES_PER_NMOL, GridField
 from surrogate.models.ecoli import EcoliModel
-from surrogate.simulate import AbstractDecision, FullDecision, Simulator
+from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.coupling import coupled_blocks
 
@@ -103,13 +103,49 @@ def test_batched_replicates_each_advance_their_own_field_bit_for_bit() -> None:
         assert torch.equal(rep.field.state.concentration, alone_field.state.concentration)
 
 
-def test_the_kernel_and_compile_are_refused_by_name_and_auto_runs_torch() -> None:
+def test_the_kernel_is_refused_by_name_and_auto_runs_torch() -> None:
     with pytest.raises(KernelUnsupported, match="backend=numba cannot run a coupled field"):
         Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, backend="numba")
-    with pytest.raises(ConfigError, match="compile=true.*coupled"):
-        Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, compile=True)
     auto = Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, backend="auto")
     assert auto.backend == "torch" and "coupled field" in auto.backend_note
+
+
+def _coupled_run(decision: str, compile: bool, n: int = 200, steps: int = 30):
+    torch.manual_seed(5)
+    field = channel()
+    layer = FullDecision(MODEL.internal) if decision == "full" else ExactDecision(
+        MODEL.internal, DT)  # fmt: skip
+    sim = Simulator(MODEL, layer, field, DT, compile=compile, compile_fallback=False)
+    state = sim.initial_state(n, (1.0, 0.0))
+    sim.warm_up(state)
+    ends = sim.advance(state, steps)
+    sim.check_state(state)
+    assert sim.compiled is compile
+    return state.body["position"], ends, field
+
+
+@pytest.mark.parametrize("decision", ["full", "exact"])
+def test_the_compiled_step_runs_a_coupled_field_as_the_eager_one(decision: str) -> None:
+    """compile=true: the field is read before the compiled kernel and stepped after it, both
+    eagerly, so only the agents' step is compiled and it rounds a few last bits differently,
+    as for a given field (tests/simulate/test_batch.py): the same segments, positions and
+    concentrations to float32 rounding (one flipped draw would move one cell: 1% allowed), and
+    the mass balance to float64 rounding; two compiled runs with one seed, the same bytes."""
+    position, ends, field = _coupled_run(decision, compile=False)
+    position_c, ends_c, field_c = _coupled_run(decision, compile=True)
+    moved = ((position - position_c).abs() > 1e-5).any(-1)
+    assert float(moved.float().mean()) <= 0.01
+    assert float((ends != ends_c).any(0).float().mean()) <= 0.01
+    c, c_c = field.state.concentration, field_c.state.concentration
+    assert torch.allclose(c, c_c, rtol=0.0, atol=1e-6 * float(c.max()))
+    steps = field_c.state.steps
+    scale = field_c.state.initial + field_c.state.secreted + field_c.state.supplied
+    assert bool((field_c.balance().abs() <= steps * 64 * EPS * scale).all()), field_c.balance()
+    assert float(field_c.state.taken[0]) > 0
+    if decision == "full":  # the compiled loop is reproducible: one seed, the same bytes
+        position_again, ends_again, field_again = _coupled_run(decision, compile=True)
+        assert torch.equal(position_again, position_c) and torch.equal(ends_again, ends_c)
+        assert torch.equal(field_again.state.concentration, c_c)
 
 
 def test_one_coupled_field_in_two_blocks_apart_is_refused() -> None:
