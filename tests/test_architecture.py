@@ -542,3 +542,64 @@ if __name__ == "__main__":  # the listing: python tests/test_architecture.py
     print(f"{len(imports)} function-level imports of the package; hiding a cycle:")
     for key, where in _hidden_cycles().items():
         print(f"  {key} ({', '.join(where)})")
+
+
+# ---------------------------------------------------------------------------------------------
+# The kind of an abstraction is still a string in many places (issue 40's target: none outside
+# the kind's own module, once kinds are objects). Until then the count may only fall: a new
+# comparison of a kind's name goes in that kind's module, or lowers a budget below.
+
+#: the names of kinds (lumps, history, class moves, decision layers and modes) that code tests
+KIND_NAMES = frozenset({"classes", "phi", "age", "none", "learned", "relaxation", "exact",
+                        "abstract", "full", "lookup", "classifier"})  # fmt: skip
+#: comparisons with a kind's name per module, measured 2026-11-27 (69 in all)
+KIND_COMPARISON_BUDGET = {
+    "stages/settings/decision.py": 13,
+    "stages/settings/train.py": 13,
+    "stages/train.py": 7,
+    "stages/simulate.py": 6,
+    "benchmarks/loop.py": 5,
+    "stages/inspection.py": 4,
+    "stages/advice.py": 4,
+    "stages/fidelity.py": 3,
+    "stages/reproduce.py": 2,
+    "stages/budget.py": 2,
+    "simulate/batch.py": 2,
+    "stages/inspection_report.py": 1,
+    "stages/speed.py": 1,
+    "stages/shards.py": 1,
+    "stages/settings/evaluate.py": 1,
+    "simulate/population.py": 1,
+    "simulate/recorders.py": 1,
+    "models/base.py": 1,
+    "models/ecoli/kernel.py": 1,
+}
+
+
+def _kind_comparisons(path: Path) -> int:
+    """``==``, ``!=``, ``in`` or ``not in`` with a kind's name as a string literal (or in a
+    literal tuple, list or set)."""
+    count = 0
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(node, ast.Compare):
+            continue
+        if not any(isinstance(op, ast.Eq | ast.NotEq | ast.In | ast.NotIn) for op in node.ops):
+            continue
+        names: list[object] = []
+        for side in (node.left, *node.comparators):
+            if isinstance(side, ast.Constant):
+                names.append(side.value)
+            elif isinstance(side, ast.Tuple | ast.List | ast.Set):
+                names += [e.value for e in side.elts if isinstance(e, ast.Constant)]
+        count += any(isinstance(n, str) and n in KIND_NAMES for n in names)
+    return count
+
+
+def test_kind_string_comparisons_do_not_spread() -> None:
+    found = {str(p.relative_to(PACKAGE)): _kind_comparisons(p) for p in PACKAGE.rglob("*.py")}
+    over = {f: (n, KIND_COMPARISON_BUDGET.get(f, 0)) for f, n in found.items()
+            if n > KIND_COMPARISON_BUDGET.get(f, 0)}  # fmt: skip
+    assert not over, (
+        f"kind names compared as strings beyond each module's budget (found, budget): {over}; "
+        "test the kind where it is defined, or make it an object (issue 40)"
+    )
