@@ -103,6 +103,15 @@ def interpolate_kernel(position, geometry, values, out, clamp, pieces):
 
 
 @numba.njit(inline="always", **_JIT)
+def _spread(buf, q, k0, k1, k2, k3, w0, w1, w2, w3):
+    """Add ``q`` to one agent's four cells of ``buf`` by its weights: the read's adjoint."""
+    buf[k0] += q * w0
+    buf[k1] += q * w1
+    buf[k2] += q * w2
+    buf[k3] += q * w3
+
+
+@numba.njit(inline="always", **_JIT)
 def _reduce(buffers, out):
     """``out`` = the sum of the pieces' grids, in piece order (parallel over cells)."""
     pieces, cells = buffers.shape
@@ -125,10 +134,7 @@ def deposit_kernel(position, geometry, amounts, buffers, out):
         for a in range(n * k // pieces, n * (k + 1) // pieces):
             k0, k1, k2, k3, w0, w1, w2, w3 = _stencil(position, a, geometry)
             q = amounts[a]
-            buf[k0] += q * w0
-            buf[k1] += q * w1
-            buf[k2] += q * w2
-            buf[k3] += q * w3
+            _spread(buf, q, k0, k1, k2, k3, w0, w1, w2, w3)
     _reduce(buffers, out)
 
 
@@ -145,10 +151,7 @@ def uptake_kernel(position, geometry, values, coef, km, buffers, out):
             k0, k1, k2, k3, w0, w1, w2, w3 = _stencil(position, a, geometry)
             local = max(_read(values, k0, k1, k2, k3, w0, w1, w2, w3), 0.0)
             q = coef * local / (km + local)
-            buf[k0] += q * w0
-            buf[k1] += q * w1
-            buf[k2] += q * w2
-            buf[k3] += q * w3
+            _spread(buf, q, k0, k1, k2, k3, w0, w1, w2, w3)
     _reduce(buffers, out)
 
 

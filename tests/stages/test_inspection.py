@@ -418,16 +418,23 @@ def test_an_oscillating_lump_is_recommended_the_clock_and_a_telegraph_is_not(tmp
         "two-state"  # fmt: skip
 
 
-def test_a_ring_of_stages_oscillates_exactly(tmp_path) -> None:
-    """One molecule running round 10 stages at 5 /s each (a lap: 2 s, each half a gamma of
-    shape 5), phi = in the first five: the exact autocorrelation dips near 1 s and peaks again
-    near 2 s; the clock with gp.max_age one period."""
+def _ring(tmp_path):
+    """One molecule running round 10 stages at 5 s /s each, phi = in the first five (input
+    ``s`` read from L)."""
     stages = [f"S{i}" for i in range(10)]
     species = [Species(s, amount=1 if i == 0 else 0) for i, s in enumerate(stages)]
     reactions = [Reaction(f"r{i}", f"k * s * {s}", {s: 1}, {stages[(i + 1) % 10]: 1})
                  for i, s in enumerate(stages)]  # fmt: skip
     model, _ = network_model(tmp_path, "ring", species, {"k": 5.0, "s": 1.0}, reactions,
                              {"s": "L"}, " + ".join(stages[:5]) + " >= 1")  # fmt: skip
+    return model
+
+
+def test_a_ring_of_stages_oscillates_exactly(tmp_path) -> None:
+    """One molecule running round 10 stages at 5 /s each (a lap: 2 s, each half a gamma of
+    shape 5), phi = in the first five: the exact autocorrelation dips near 1 s and peaks again
+    near 2 s; the clock with gp.max_age one period."""
+    model = _ring(tmp_path)
     exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
     osc = exact.oscillation
     assert exact.memory is True and osc is not None and osc["detected"]
@@ -442,12 +449,7 @@ def test_the_clock_covers_the_longest_period_over_the_inputs_range(tmp_path) -> 
     low end. gp.max_age from the median's period alone (2 s) would cap the clock at half the
     cycle the cells at the low end run: the advice takes the longest period over the range,
     exactly at every grid point and, simulated, at the ends of each input's range."""
-    stages = [f"S{i}" for i in range(10)]
-    species = [Species(s, amount=1 if i == 0 else 0) for i, s in enumerate(stages)]
-    reactions = [Reaction(f"r{i}", f"k * s * {s}", {s: 1}, {stages[(i + 1) % 10]: 1})
-                 for i, s in enumerate(stages)]  # fmt: skip
-    model, _ = network_model(tmp_path, "ring", species, {"k": 5.0, "s": 1.0}, reactions,
-                             {"s": "L"}, " + ".join(stages[:5]) + " >= 1")  # fmt: skip
+    model = _ring(tmp_path)
     grid = grid_of([1.0, 0.5, 0.75, 1.5])
     exact = inspection.exact_fixed_inputs(model.internal, grid, options(), DT)
     osc = exact.oscillation
