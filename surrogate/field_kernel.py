@@ -9,6 +9,10 @@ the kernel is compiled, and cached on disk, once per distinct set of formulas: t
 fields' set (:data:`BUILTIN_FORMULAS`, the precompiled one) or that set followed by the
 formulas of the simulation's :class:`~surrogate.fields.ExpressionField` s. The dispatcher is
 inlined, as one ``if`` per formula.
+
+A coupled field (:class:`~surrogate.grid.CoupledField`: the agents change it every step) has no
+formula: its row says :data:`READ_OUTSIDE`, and the simulator reads it before each one-step call
+of the kernel and hands the values over in the cells' inputs (:func:`pack_fields`).
 """
 
 from __future__ import annotations
@@ -23,13 +27,25 @@ from numba.extending import NativeValue, models, overload, register_model, typeo
 from surrogate.errors import KernelUnsupported
 from surrogate.field_formula import FieldFormula, dispatcher_source
 from surrogate.fields import BUILTIN_FIELDS, Field, FormulaField
+from surrogate.grid.coupled import is_coupled
 
-__all__ = ["BUILTIN_FORMULAS", "FieldSet", "field_set", "field_value", "pack_field"]
+__all__ = [
+    "BUILTIN_FORMULAS",
+    "READ_OUTSIDE",
+    "FieldSet",
+    "field_set",
+    "field_value",
+    "pack_field",
+    "pack_fields",
+]
 
 #: numba options of the generated scalar functions (inlined into the kernel that calls them)
 _JIT_OPTIONS = '{"nogil": True, "fastmath": False, "error_model": "numpy"}'
 #: the least row width (columns), so rows of the built-in fields fit without padding
 MIN_COLUMNS = 8
+#: a row's formula index for a field read outside the kernel (a coupled field: its state
+#: changes every step, so the kernel takes one step per call and reads the inputs it is given)
+READ_OUTSIDE = -1
 
 
 class FieldSet:
@@ -100,6 +116,24 @@ def pack_field(field: Field, fields: FieldSet) -> np.ndarray:
     row[0] = fields.index(formula)
     row[1 : 1 + len(values)] = values
     return row
+
+
+def pack_fields(fields: Sequence[Field]) -> tuple[FieldSet, np.ndarray]:
+    """The field set of ``fields``' formulas and their packed rows (``len(fields) x
+    columns`` float64): a coupled field's row is :data:`READ_OUTSIDE` (its values come from
+    the simulator's read before each step), every other field's :func:`pack_field`.
+
+    Raises:
+        KernelUnsupported: a given field that is not a formula (a Python ``__call__``).
+    """
+    fields_set = field_set([f for f in fields if not is_coupled(f)])
+    rows = np.zeros((len(fields), fields_set.columns), dtype=np.float64)
+    for row, field in zip(rows, fields, strict=True):
+        if is_coupled(field):
+            row[0] = READ_OUTSIDE
+        else:
+            row[:] = pack_field(field, fields_set)
+    return fields_set, rows
 
 
 # -- numba: a FieldSet is typed by its generated module (no data at run time) -----------------

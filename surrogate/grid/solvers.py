@@ -16,7 +16,12 @@ of the peak around a one-cell deposit in ``tests/grid/test_solvers.py``).
   mode is multiplied by ``exp(-(D lambda + k) dt)`` and gains its share of the source,
   ``s_m (1 - exp(-(D lambda + k) dt)) / (D lambda + k)``. Unconditionally stable, no error in
   time at all, cost two transforms per step (``O(N log N)`` for N cells: a 512 x 64 grid is
-  ~3e5 complex flops per transform, negligible beside a population's step).
+  ~3e5 complex flops per transform, negligible beside a population's step). The same linear
+  map is separable, ``c -> e^{-k dt} A_x c A_y^T + G`` with ``A`` the exact 1-D flow of each
+  axis (the transforms applied to the identity, once per dt) and ``G`` the sources' constant
+  share; where the grid is small (:data:`DENSE_MAX_MACS`) or on a GPU (two matrix products
+  against ~30 small kernels; on an H200 either is < 0.1 ms on 512 x 64) the step is those two
+  products.
 * :class:`ExplicitSolver` (``solver: explicit``) is forward Euler on the same equation: cheaper
   per step (a few element-wise passes, no transform), first order in time, and positive and
   stable only while ``dt <= 1 / (2 D (1/h_x^2 + 1/h_y^2) + k)`` (:func:`explicit_max_dt`);
@@ -44,6 +49,13 @@ __all__ = ["SOLVERS", "ExplicitSolver", "SpectralSolver", "explicit_max_dt", "ma
 
 #: the grid's x and y dimensions in a ``(species, n_x, n_y)`` tensor
 _DIMS = (-2, -1)
+#: multiply-adds per species (``n_x^2 n_y + n_x n_y^2``) up to which the CPU step is two dense
+#: matrix products rather than transforms. Measured one thread, a 2-core EPYC, ms per step
+#: transforms / dense: 64 x 32 0.89 / 0.18, 350 x 4 (channel_band) 1.06 / 0.91, 128 x 64
+#: 1.57 / 0.70, 256 x 32 1.72 / 1.08, 512 x 32 2.64 / 5.84, 512 x 64 4.22 / 6.97
+DENSE_MAX_MACS = 2**22
+#: the longest axis for the dense step on a GPU (its matrices: ``n^2`` float64 per species)
+DENSE_MAX_SIDE = 4096
 #: grid values (species x cells) up to which the spectral step runs its transforms on one CPU
 #: thread: on a 512 x 64 grid with 2 threads on 2 loaded cores each FFT waited ~17 ms for its
 #: second thread, the step 51 ms (median) against 4 ms on one thread
@@ -88,9 +100,24 @@ class SpectralSolver:
 
     name = "spectral"
 
-    def __init__(self, grid: Grid, diffusion: Tensor, decay: Tensor, source: Tensor | None) -> None:
+    def __init__(
+        self,
+        grid: Grid,
+        diffusion: Tensor,
+        decay: Tensor,
+        source: Tensor | None,
+        dense: bool | None = None,
+    ) -> None:
         self.grid = grid
+        self.diffusion = diffusion
         self.decay = decay
+        nx, ny = grid.shape
+        if dense is None:  # by measurement (module docstring)
+            on_gpu = decay.device.type != "cpu"
+            dense = (max(nx, ny) <= DENSE_MAX_SIDE if on_gpu
+                     else nx * nx * ny + nx * ny * ny <= DENSE_MAX_MACS)  # fmt: skip
+        #: whether :meth:`step` applies the flow as dense per-axis matrices
+        self.dense = bool(dense)
         self._periodic = [d for d, b in zip(_DIMS, grid.boundary, strict=True) if b == "periodic"]
         self._no_flux = [d for d, b in zip(_DIMS, grid.boundary, strict=True) if b == "no_flux"]
         # the transformed layout: rfft halves the last periodic dimension
@@ -104,6 +131,9 @@ class SpectralSolver:
         self._dt: float | None = None
         self._factor: Tensor | None = None
         self._gain: Tensor | None = None
+        self._axes: tuple[Tensor, Tensor] | None = None  # dense: (S, n_x, n_x), (S, n_y, n_y)
+        self._kept: Tensor | None = None  # dense: e^{-k dt}, (S, 1, 1)
+        self._added: Tensor | None = None  # dense: the sources' share of a step, (S, n_x, n_y)
 
     def forward(self, c: Tensor) -> Tensor:
         """``(S, n_x, n_y)`` values -> their coefficients in the modes of the step."""
@@ -130,13 +160,38 @@ class SpectralSolver:
             safe = torch.where(rate > 0, rate, torch.ones_like(rate))
             gain = torch.where(rate > 0, -torch.expm1(-rate * dt) / safe, torch.full_like(rate, dt))
             self._gain = self._source * gain
+        if self.dense:
+            self._axes = (self._axis_flow(0, dt), self._axis_flow(1, dt))
+            self._kept = torch.exp(-self.decay * dt)[:, None, None]
+            self._added = None if self._gain is None else self.inverse(self._gain)
         self._dt = dt
+
+    def _axis_flow(self, axis: int, dt: float) -> Tensor:
+        """The exact flow of diffusion along ``axis`` over ``dt``, ``(S, n, n)``: the
+        transforms of :meth:`forward` applied to the identity (column j: the flow of a unit
+        in cell j), each mode scaled by ``exp(-D lambda dt)``, transformed back."""
+        n = self.grid.shape[axis]
+        eye = torch.eye(n, dtype=self.decay.dtype, device=self.decay.device)
+        lam = _eigenvalues(self.grid, axis, n, eye.dtype, eye.device)
+        factor = torch.exp(-self.diffusion[:, None] * lam * dt)[:, :, None]  # (S, modes, 1)
+        if self.grid.boundary[axis] == "no_flux":
+            return idct(factor * dct(eye, -2), -2)
+        modes = torch.fft.fft(eye, dim=-2)  # every Fourier mode: m and n - m share lambda
+        return torch.fft.ifft(factor * modes, dim=-2).real
 
     def step(self, c: Tensor, dt: float) -> Tensor:
         """``c`` (``(S, n_x, n_y)``, mM) advanced by ``dt`` seconds."""
         if dt != self._dt:
-            self._prepare(dt)
+            with serial_below(0, c.device):  # the same factors, to the byte, for any count
+                self._prepare(dt)
         assert self._factor is not None  # set by _prepare
+        if self.dense:  # one thread on the CPU (the grid is small): BLAS's blocking, and so
+            # its rounding, may change with the thread count; the bytes must not
+            assert self._axes is not None and self._kept is not None
+            ax, ay = self._axes
+            with serial_below(0, c.device):
+                out = torch.matmul(torch.matmul(ax, c), ay.transpose(-2, -1)) * self._kept
+            return out if self._added is None else out + self._added
         with serial_below(c.numel(), c.device):
             coeff = self.forward(c) * self._factor
             if self._gain is not None:

@@ -46,13 +46,16 @@ def coupled_blocks(field: Field) -> list[tuple[CoupledField, slice]]:
     return blocks  # type: ignore[return-value]
 
 
-def check_coupled_run(field: Any, *, dt: float, backend: str = "torch", shards: int = 1) -> None:
-    """Refuse, by name, the settings a coupled field cannot run with yet: the per-cell kernel
-    (``backend=numba``) and population shards; and a dt beyond the field's own limit
-    (:meth:`~surrogate.grid.CoupledField.validate`). Nothing for a given field.
+def check_coupled_run(field: Any, *, dt: float, shards: int = 1) -> None:
+    """Refuse, by name, the settings a coupled field cannot run with: population shards, and a
+    dt beyond the field's own limit (:meth:`~surrogate.grid.CoupledField.validate`). Nothing
+    for a given field.
 
-    ``compile=true`` runs: the compiled kernel is the agents' step, the field is read before
-    it and stepped after it, eagerly (:meth:`~surrogate.simulate.Simulator.step`)."""
+    Every loop runs: the torch step, eager or ``compile=true`` (the compiled kernel is the
+    agents' step: the field is read before it and stepped after it, eagerly,
+    :meth:`~surrogate.simulate.Simulator.step`), and the per-cell kernel (one step per call,
+    the field read before and stepped after each, :meth:`~surrogate.simulate.Simulator.advance`).
+    """
     if not is_coupled(field):
         return
     name = type(field).__name__
@@ -62,9 +65,6 @@ def check_coupled_run(field: Any, *, dt: float, backend: str = "torch", shards: 
             f"it every step) cannot be split into independent shards (every cell changes the "
             f"field the others read); run it whole (shard.count=1)"
         )
-    if backend == "numba":
-        raise ConfigError(f"backend=numba: the per-cell kernel does not run a coupled field "
-                          f"({name}); use backend=torch (or auto)")  # fmt: skip
     field.validate(dt)
 
 

@@ -240,10 +240,10 @@ class Simulator:
     A coupled field (:class:`~surrogate.grid.CoupledField`, e.g. a
     :class:`~surrogate.grid.GridField`) is part of the population's state: reset by
     :meth:`initial_state`, advanced by :meth:`step` after the agents (their uptake and
-    secretion at their new positions, then diffusion), on the torch step only (the per-cell
-    kernel is refused by name: :mod:`surrogate.simulate.coupling`). With ``compile`` the
-    compiled kernel is the agents' step: the field is read before it and stepped after it,
-    eagerly (:meth:`_read_outside`).
+    secretion at their new positions, then diffusion). With ``compile`` the compiled kernel is
+    the agents' step: the field is read before it and stepped after it, eagerly
+    (:meth:`_read_outside`); the per-cell kernel takes one step per call, the field read
+    before and stepped after each (:meth:`_advance_coupled`).
 
     Example:
         >>> from surrogate.fields import GaussianField
@@ -417,6 +417,8 @@ class Simulator:
             for s in range(steps):
                 out[s] = self.step(state).ended_length
             return out
+        if self._coupled:
+            return self._advance_coupled(state, steps, out)
         state.make_private()
         done = 0
         while done < steps:
@@ -424,6 +426,21 @@ class Simulator:
             k = int(u.shape[0])
             self.kernel.advance(state, out[done : done + k], u, u64, z)
             done += k
+        return out
+
+    def _advance_coupled(self, state: PopulationState, steps: int, out: Tensor) -> Tensor:
+        """:meth:`advance` on the per-cell kernel in a coupled field: one step per call, the
+        inputs read before it (as :meth:`_read_outside` reads them for the torch step) and
+        the fields stepped after it (:meth:`_step_fields`), the step's own random numbers."""
+        t = state.step * self.dt
+        if state.inputs is None:  # the inputs' own tensor hands each step's read to the kernel
+            state.inputs = self.body.inputs(state.body, self.field, t)
+        state.make_private()
+        for s in range(steps):
+            u, u64, z = self.draw_block(state.n_cells, 1)
+            state.inputs.copy_(self.body.inputs(state.body, self.field, state.step * self.dt))
+            self.kernel.advance(state, out[s : s + 1], u, u64, z)
+            self._step_fields(state)
         return out
 
     def draw_randoms(self, n: int) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
@@ -666,9 +683,6 @@ def _cell_kernel(
     try:
         if device.type != "cpu":
             raise KernelUnsupported(f"device {device} (the per-cell kernel runs on the CPU)")
-        if coupled_blocks(field):
-            raise KernelUnsupported(f"a coupled field ({type(field).__name__}: the agents change "
-                                    "it every step; the torch step runs it)")  # fmt: skip
         kernel = model.cell_kernel(pack_decision(decision, dt), field, dt)
     except KernelUnsupported as exc:
         if backend == "numba":

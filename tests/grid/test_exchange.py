@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from surrogate.grid import MOLECULES_PER_NMOL, Grid, GridField, kernels
+from surrogate.grid import MOLECULES_PER_NMOL, Grid, GridField, geometry, kernels
 
 EPS = float(np.finfo(np.float64).eps)
 
@@ -91,6 +91,34 @@ def test_the_compiled_exchange_is_torchs(boundary) -> None:
     assert torch.allclose(fast.deposit(w), slow.deposit(w), rtol=bound, atol=0)
     got, want = fast.saturating_deposit(f, 3.0, 0.2), slow.saturating_deposit(f, 3.0, 0.2)
     assert torch.allclose(got, want, rtol=bound, atol=0)
+
+
+@pytest.mark.parametrize("lanes", [2, 128])
+def test_a_deposit_into_private_copies_is_the_one_copy_deposit(lanes, monkeypatch) -> None:
+    """The GPU's deposit (agent a adds into copy a % lanes, the copies then summed, against
+    atomics that serialise on crowded cells) gives the one-copy deposit to float64 rounding,
+    species by species; forced on the CPU's torch path here (tests/simulate/test_coupling.py
+    runs it on CUDA)."""
+    grid = _grid("no_flux")
+    g = torch.Generator().manual_seed(6)
+    p = (torch.rand(5_000, 2, generator=g) * 0.3).float()  # crowded: ~40 agents per cell
+    w = torch.rand(2, len(p), generator=g, dtype=torch.float64)
+    want = grid.stencil(p, compiled=False).deposit(w)
+    assert geometry.deposit_lanes(len(p), grid.n_cells, torch.device("cpu")) == 1
+    monkeypatch.setattr(geometry, "deposit_lanes", lambda agents, cells, device: lanes)
+    stencil = grid.stencil(p, compiled=False)
+    assert stencil._lanes[0] == lanes
+    got = stencil.deposit(w)
+    assert torch.allclose(got, want, rtol=len(p) * EPS, atol=0)
+    assert not torch.equal(got, torch.zeros_like(got))
+
+
+def test_gpu_deposit_lanes_stay_within_their_memory() -> None:
+    cuda = torch.device("cuda")
+    assert geometry.deposit_lanes(10**6, 512 * 64, cuda) == 128
+    assert geometry.deposit_lanes(10**6, 2048 * 2048, cuda) == 1  # 4M values: one copy
+    assert geometry.deposit_lanes(10**6, 2**18, cuda) == 16  # 16 x 2^18 = LANE_VALUES
+    assert geometry.deposit_lanes(3, 100, cuda) == 2  # no more copies than agents
 
 
 def test_the_compiled_deposit_is_the_same_bytes_on_any_number_of_threads() -> None:

@@ -101,7 +101,6 @@ RUN_BAD = [
         r"shard.count=2: a population in a coupled field \(GridField.* cannot "
         r"be split",
     ),
-    (["backend=numba"], r"backend=numba: the per-cell kernel does not run a coupled field"),
     (
         ["field.solver=explicit", "dt=0.5", "record_interval=0.5"],
         r"dt=0.5 s is beyond field.solver=explicit's limit 0.37.. s .*h_x=0.03906 mm",
@@ -123,16 +122,17 @@ def test_a_coupled_run_the_loop_cannot_take_is_refused_before_it_starts(
         SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, *overrides]))
 
 
-def test_a_compiled_coupled_run_is_accepted(compose_cfg) -> None:
-    """compile=true runs a coupled field (the compiled step is the agents'; the field is read
-    and stepped eagerly): only backend=numba and shards are refused (above)."""
-    settings = SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, "compile=true"]))
-    assert settings.compile is True
+@pytest.mark.parametrize("loop", ["compile=true", "backend=numba"])
+def test_every_loop_runs_a_coupled_field(compose_cfg, loop) -> None:
+    """compile=true (the compiled step is the agents'; the field is read and stepped eagerly)
+    and the per-cell kernel (one step per call) run a coupled field: only shards are refused
+    (above)."""
+    SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, loop]))
 
 
 def test_the_channel_runs_through_the_simulate_stage(compose_cfg) -> None:
     cfg = compose_cfg("simulate", [*CHANNEL, "threads=1"])
     out = simulate.run(cfg)
     manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["loop_backend"] == "torch"
+    assert manifest["loop_backend"] == "numba"  # backend=auto: the per-cell kernel
     assert (out / "observables.parquet").exists()

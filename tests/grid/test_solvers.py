@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from surrogate.errors import ConfigError
-from surrogate.grid import GridField
+from surrogate.grid import GridField, solvers
 from surrogate.grid.geometry import Grid
 from surrogate.grid.solvers import SERIAL_VALUES, SpectralSolver
 
@@ -98,8 +98,16 @@ def _bound(grid: Grid, initial: np.ndarray, t: float, factor) -> float:
 BOUNDARIES = ["no_flux", "periodic", ["periodic", "no_flux"]]
 
 
+@pytest.fixture(params=["transforms", "dense"])
+def spectral_path(request, monkeypatch) -> str:
+    """Each spectral test for both forms of the step: the transforms, and the same flow as two
+    dense per-axis matrices (chosen by grid size: forced here)."""
+    monkeypatch.setattr(solvers, "DENSE_MAX_MACS", -1 if request.param == "transforms" else 2**62)
+    return request.param
+
+
 @pytest.mark.parametrize("boundary", BOUNDARIES)
-def test_spectral_step_diffuses_a_gaussian_as_the_closed_form(boundary) -> None:
+def test_spectral_step_diffuses_a_gaussian_as_the_closed_form(boundary, spectral_path) -> None:
     field = _field(boundary)
     grid = field.grid
     centre, var0, t = (0.3, 0.2), 0.15**2, 20.0  # near two walls: the images matter
@@ -114,7 +122,7 @@ def test_spectral_step_diffuses_a_gaussian_as_the_closed_form(boundary) -> None:
 
 
 @pytest.mark.parametrize("boundary", BOUNDARIES)
-def test_spectral_step_is_exact_in_time(boundary) -> None:
+def test_spectral_step_is_exact_in_time(boundary, spectral_path) -> None:
     """One step of 20 s equals 40 of 0.5 s (the flow of a linear ODE, to rounding)."""
     field = _field(boundary)
     initial = _gaussian(field.grid, (0.7, 0.4), 0.1**2, 0.0)
@@ -148,7 +156,7 @@ def test_explicit_step_converges_to_the_exact_one_at_first_order(boundary) -> No
 
 
 @pytest.mark.parametrize("solver", ["spectral", "explicit"])
-def test_decay_and_a_constant_source_follow_the_mass_ode(solver: str) -> None:
+def test_decay_and_a_constant_source_follow_the_mass_ode(solver: str, spectral_path) -> None:
     """No agents: dM/dt = -k M + S, M(t) = M0 e^{-kt} + S (1 - e^{-kt}) / k (exact for the
     spectral step's mean mode; forward Euler's (1 - k dt)^n for the explicit one)."""
     k, s, c0 = 0.05, 2e-4, 0.1  # 1/s, mM/s, mM
@@ -174,7 +182,7 @@ def test_decay_and_a_constant_source_follow_the_mass_ode(solver: str) -> None:
     assert abs(float(field.balance()[0])) <= steps * 64 * EPS * m0
 
 
-def test_spectral_step_keeps_a_point_deposit_non_negative() -> None:
+def test_spectral_step_keeps_a_point_deposit_non_negative(spectral_path) -> None:
     """The finite-volume flow has a non-negative kernel: a one-cell spike spreads without
     undershoot (the exact flow of the spectral Laplacian, k^2, rings to -2 % of the peak here)."""
     field = _field("no_flux")
@@ -200,6 +208,7 @@ def test_a_small_grid_transforms_on_one_thread_and_restores_the_count(monkeypatc
     """The spectral step of a grid below SERIAL_VALUES runs on one CPU thread (waking a second
     one cost more than the transform on loaded cores) and leaves torch's thread count as it
     was; the step is the same bytes whatever the count."""
+    monkeypatch.setattr(solvers, "DENSE_MAX_MACS", -1)  # the transforms' path
     field = _field("no_flux")
     assert field.grid.n_cells <= SERIAL_VALUES
     initial = np.random.default_rng(0).random(field.grid.shape)
@@ -221,3 +230,24 @@ def test_a_small_grid_transforms_on_one_thread_and_restores_the_count(monkeypatc
     finally:
         torch.set_num_threads(before)
     assert set(seen) == {1} and np.array_equal(out[0], out[1])
+
+
+@pytest.mark.parametrize("boundary", BOUNDARIES)
+def test_the_dense_step_is_the_transforms_step_to_rounding(boundary, monkeypatch) -> None:
+    """Two forms of one linear map (diffusion, decay and a source): the same values to float64
+    rounding of the sums (a few ulps of the largest value per step), and the grid size picks
+    the form (DENSE_MAX_MACS)."""
+    species = {"a": {"diffusion": D, "decay": 0.02, "source": "1e-3 * x", "initial": 0.1},
+               "b": {"diffusion": 0.1 * D, "initial": "0.1 * y"}}  # fmt: skip
+    out = {}
+    for limit in (-1, 2**62):
+        monkeypatch.setattr(solvers, "DENSE_MAX_MACS", limit)
+        field = GridField([[0.0, 2.0], [0.0, 1.0]], [48, 20], species, depth=0.1,
+                          boundary=boundary)  # fmt: skip
+        state = field.reset()
+        assert field._solver.dense is (limit > 0)
+        for _ in range(20):
+            state = field.step(torch.zeros(0, 2), torch.zeros(0), 0.5)
+        out[limit] = state.concentration
+    scale = float(out[-1].abs().max())
+    assert float((out[-1] - out[2**62]).abs().max()) <= 20 * 64 * EPS * scale

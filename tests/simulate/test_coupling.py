@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from surrogate.errors import ConfigError, KernelUnsupported
+from surrogate.errors import ConfigError
 from surrogate.fields import ConstantField, FieldBatch
 from surrogate.grid import MOLECULES_PER_NMOL, GridField
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, Replicate
+from surrogate.simulate.classes import ClassDecision, exact_class_table
 from surrogate.simulate.coupling import coupled_blocks
 
 MODEL = EcoliModel()
@@ -103,11 +104,53 @@ def test_batched_replicates_each_advance_their_own_field_bit_for_bit() -> None:
         assert torch.equal(rep.field.state.concentration, alone_field.state.concentration)
 
 
-def test_the_kernel_is_refused_by_name_and_auto_runs_torch() -> None:
-    with pytest.raises(KernelUnsupported, match="backend=numba cannot run a coupled field"):
-        Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, backend="numba")
+def _kernel_run(decision: str, backend: str, threads: int = 1, n: int = 200, steps: int = 60):
+    torch.manual_seed(5)
+    field = channel()
+    layer = FullDecision(MODEL.internal) if decision == "full" else ClassDecision(
+        exact_class_table(MODEL.internal, DT, size=64), MODEL.internal,
+        MODEL.featurizer(["dG"]))  # fmt: skip
+    sim = Simulator(MODEL, layer, field, DT, backend=backend)
+    assert sim.backend == backend
+    state = sim.initial_state(n, (1.0, 0.0))
+    sim.warm_up(state)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)  # the kernel runs on as many threads as torch
+    try:
+        ends = torch.cat([sim.advance(state, k) for k in (7, steps - 7)])
+    finally:
+        torch.set_num_threads(previous)
+    sim.check_state(state)
+    return state, ends, field
+
+
+@pytest.mark.parametrize("decision", ["full", "classes"])
+def test_the_kernel_runs_a_coupled_field_as_the_torch_step(decision: str) -> None:
+    """backend=numba: one kernel step per call, the field read before it and stepped after
+    it, as the torch step does. The kernel rounds an elementary function's last bit now and
+    then (tests/models/test_kernel.py), so: every cell's segments and phi the same, positions
+    within float32 rounding at their scale (1e-6 mm; 3e-9 measured), concentrations to 1e-8
+    of the largest (3e-10 measured), the mass balance to float64 rounding; the kernel's own
+    bytes independent of its thread count."""
+    state, ends, field = _kernel_run(decision, "torch")
+    state_k, ends_k, field_k = _kernel_run(decision, "numba")
+    same = (ends == ends_k).all(0) & (state.phi == state_k.phi)
+    assert bool(same.all()) and int((ends != 0).sum()) > 200  # segments ended
+    torch.testing.assert_close(state_k.body["position"], state.body["position"], atol=1e-6,
+                               rtol=0)  # fmt: skip
+    c, c_k = field.state.concentration, field_k.state.concentration
+    assert torch.allclose(c_k, c, rtol=0.0, atol=1e-8 * float(c.max()))
+    scale = field_k.state.initial + field_k.state.secreted + field_k.state.supplied
+    assert bool((field_k.balance().abs() <= 60 * 64 * EPS * scale).all())
+    state_2, ends_2, field_2 = _kernel_run(decision, "numba", threads=2)
+    assert torch.equal(ends_2, ends_k) and torch.equal(state_2.body["position"],
+                                                       state_k.body["position"])  # fmt: skip
+    assert torch.equal(field_2.state.concentration, field_k.state.concentration)
+
+
+def test_auto_runs_a_coupled_field_on_the_kernel() -> None:
     auto = Simulator(MODEL, FullDecision(MODEL.internal), channel(), DT, backend="auto")
-    assert auto.backend == "torch" and "coupled field" in auto.backend_note
+    assert auto.backend == "numba" and auto.backend_note is None
 
 
 def _coupled_run(decision: str, compile: bool, n: int = 200, steps: int = 30):
@@ -183,3 +226,30 @@ def test_a_body_without_positions_is_refused_by_name() -> None:
     state = sim.initial_state(5, (1.0, 0.0))
     with pytest.raises(ConfigError, match="needs a body whose state has a 'position'"):
         sim.step(state)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_coupled_run_on_cuda_conserves_mass_and_steps_the_field_as_the_cpu() -> None:
+    """device=cuda: the cells and the grid on the GPU (the dense step, index_add_'s deposit):
+    mass balance to float64 rounding over a run; one field step from the same state and
+    positions equals the CPU's (transforms or dense, compiled exchange) to float64 rounding of
+    the sums (atomics add in another order)."""
+    torch.manual_seed(0)
+    field = channel()
+    sim = Simulator(MODEL, flipping(MODEL), field, DT, device="cuda")
+    state = sim.initial_state(500, (1.0, 0.0))
+    steps = 100
+    sim.advance(state, steps)
+    sim.check_state(state)
+    ledger = field.state
+    assert ledger.concentration.is_cuda and float(ledger.taken[0]) > 0
+    scale = ledger.initial + ledger.secreted + ledger.supplied
+    assert bool((field.balance().abs() <= steps * 64 * EPS * scale).all()), field.balance()
+    on_cpu = channel()
+    on_cpu.start_from(ledger.concentration.cpu())
+    field.start_from(ledger.concentration)
+    position, phi = state.body["position"], state.phi
+    after = field.step(position, phi, DT).concentration.cpu()
+    want = on_cpu.step(position.cpu(), phi.cpu(), DT).concentration
+    assert field._solver.dense
+    assert torch.allclose(after, want, rtol=0.0, atol=64 * 64 * EPS * float(want.abs().max()))

@@ -23,7 +23,7 @@ def test_the_band_experiment_composes_into_a_consumed_channel(compose_cfg) -> No
     assert isinstance(field, GridField) and field.read == "serine"
     grid = field.grid
     assert grid.boundary == ("no_flux", "periodic")  # closed ends; y without walls (bodies)
-    assert settings.n_cells == 5000 and settings.backend == "torch"
+    assert settings.n_cells == 5000 and settings.backend == "auto"
     assert settings.t_end * settings.setup.dt > 0 and settings.start == (0.0, 0.0)
     # the serine fills x > 0 only; the cells start where it begins, well inside the grid
     serine = field.species[0]

@@ -16,11 +16,14 @@ dG), the motor rates, the OU step, movement and tumble angles, and one motor's e
 :mod:`surrogate.models.ecoli.formulas`, which the torch step evaluates over tensors and this
 kernel compiles per cell (:func:`surrogate.scalar.numba_formulas`), in the same operations and
 precision (float32 state and signalling, float64 motor rates and transition terms). Fields are
-generated from each field's formula (:mod:`surrogate.field_kernel`). The decision kinds other
-than the model's own window (the two-state chain over lookup tables, with or without a switch
-clock, and the K-lumps chain) and the segment bookkeeping are the engine's per-cell steps
-(:mod:`surrogate.decision_kernel`, the same for every model's kernel); this kernel hands them
-its features as a float32 tuple indexed by :data:`FEATURE_CODES` (:func:`_features`). What
+generated from each field's formula (:mod:`surrogate.field_kernel`); a coupled field (the
+agents change it every step) is read by the simulator before each call of one step and handed
+over in the cells' inputs (``last_x``), and the simulator steps it between the calls. The
+decision kinds other than the model's own window (the two-state chain over lookup tables, with
+or without a switch clock, and the K-lumps chain) and the segment bookkeeping are the engine's
+per-cell steps (:mod:`surrogate.decision_kernel`, the same for every model's kernel); this
+kernel hands them its features as a float32 tuple indexed by :data:`FEATURE_CODES`
+(:func:`_features`). What
 remains here is the loop, the motors' window (the full model) and the per-cell control flow of
 the motors and the tumble (the torch step blends with ``where``). The tests compare the kernel
 with the torch step.
@@ -53,7 +56,7 @@ from surrogate import decision_kernel as kd
 from surrogate import scalar
 from surrogate.ctmc.compiled import match_torch_threads
 from surrogate.errors import KernelUnsupported
-from surrogate.field_kernel import FieldSet, field_set, field_value, pack_field
+from surrogate.field_kernel import READ_OUTSIDE, FieldSet, field_set, field_value, pack_fields
 from surrogate.fields import Field, FieldBatch
 from surrogate.models.base import Randoms
 from surrogate.models.ecoli import formulas
@@ -184,8 +187,12 @@ def _advance_range(steps, step0, start, lo, hi, state, draws, k, field_set, fiel
         phi_now = _F32(cells.phi[c])
         tab, age, cls = kd.cell_state(j, decision)
         f = field.rows[field.of_cell[c]]
+        outside = f[0] == READ_OUTSIDE  # given in last_x (one step per call: EcoliKernel)
         for s in range(steps):
-            ligand = field_value(field_set, f, x, y, (step0 + s) * dt)
+            if outside:
+                ligand = last_x[c, 1]
+            else:
+                ligand = field_value(field_set, f, x, y, (step0 + s) * dt)
             last_x[c, 0] = m
             last_x[c, 1] = ligand
             lrt = _log_receptor_terms(ligand, p)
@@ -472,8 +479,9 @@ class EcoliKernel:
         self.blocks = [_Block(b, internal) for b in decision.blocks]
         self._total = decision.total
         fields = field.fields if isinstance(field, FieldBatch) else [field]
-        self.field_set = field_set(fields)
-        self.fields = np.stack([pack_field(f, self.field_set) for f in fields])
+        self.field_set, self.fields = pack_fields(fields)
+        #: a coupled field's values are read by the simulator before each one-step call
+        self.reads_outside = bool((self.fields[:, 0] == READ_OUTSIDE).any())
         self._field_sizes: list[int] | None = field.sizes if isinstance(field, FieldBatch) else None
         self._field_total = None if self._field_sizes is None else sum(self._field_sizes)
         self._field_of_cell: np.ndarray | None = None
@@ -521,6 +529,9 @@ class EcoliKernel:
         dry: bool,
     ) -> None:
         steps = int(ended.shape[0])
+        if self.reads_outside and steps != 1:
+            raise ValueError(f"a kernel in a coupled field takes one step per call (the inputs "
+                             f"the simulator read before it), not {steps}")  # fmt: skip
         n = state.n_cells
         field_of_cell = self._cells(n)
         body = state.body

@@ -85,7 +85,7 @@ class SimulateSettings:
         if record_cells is not None:
             record_cells = int(positive(cfg, "record_cells", integer=True))
         backend, compile = validate_backend(cfg), bool(cfg.get("compile", False))
-        check_coupled_run(setup.field, dt=setup.dt, backend=backend, shards=shards)
+        check_coupled_run(setup.field, dt=setup.dt, shards=shards)
         check_field_memory(setup.field, job.device)
         return cls(setup, decision, n_cells, t_end, interval, start, eq,
                    bool(cfg.get("record_durations", True)), compile, job,
