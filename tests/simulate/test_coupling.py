@@ -85,19 +85,26 @@ def test_a_step_reads_the_field_then_the_field_takes_the_cells_exchange() -> Non
     assert torch.allclose(got, added * np.exp(-0.01 * DT), rtol=1e-12, atol=1e-20)
 
 
-def test_batched_replicates_each_advance_their_own_field_bit_for_bit() -> None:
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_batched_replicates_each_advance_their_own_field_bit_for_bit(backend: str) -> None:
     """Two replicates given one field object: each gets its own state, and each replicate
-    (cells and field) is its standalone run exactly (eager CPU)."""
+    (cells and field) is its standalone run exactly (eager CPU; the per-cell kernel too, its
+    fields' rows read outside block by block)."""
+
+    def layer():  # the kernel runs no Python psi: the full model there
+        return flipping(MODEL) if backend == "torch" else FullDecision(MODEL.internal)
+
     shared = channel()
-    reps = [Replicate(flipping(MODEL), shared, 60, seed=s, start=(1.0, 0.0)) for s in (3, 4)]
-    batch = BatchSimulator(MODEL, reps, DT)
+    reps = [Replicate(layer(), shared, 60, seed=s, start=(1.0, 0.0)) for s in (3, 4)]
+    batch = BatchSimulator(MODEL, reps, DT, backend=backend)
+    assert batch.backend == backend
     assert batch.replicates[0].field is shared and batch.replicates[1].field is not shared
     state = batch.initial_state()
     batch.advance(state, 40)
     for rep, cells in zip(batch.replicates, batch.slices, strict=True):
         torch.manual_seed(rep.seed)
         alone_field = channel()
-        alone = Simulator(MODEL, flipping(MODEL), alone_field, DT)
+        alone = Simulator(MODEL, layer(), alone_field, DT, backend=backend)
         solo = alone.initial_state(rep.n_cells, rep.start)
         alone.advance(solo, 40)
         assert torch.equal(state.body["position"][cells], solo.body["position"])
