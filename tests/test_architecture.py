@@ -20,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
           "models/capabilities.py", "models/packed.py", "models/count_classes.py",
           "models/randoms.py", "fields.py", "field_formula.py", "field_kernel.py",
-          "decision_kernel.py", "grid",
+          "decision_kernel.py", "grid", "kinds.py",
           "scalar.py", "io.py", "config.py", "errors.py", "validation.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = (
@@ -554,8 +554,10 @@ KIND_NAMES = frozenset({"classes", "phi", "age", "none", "learned", "relaxation"
                         "abstract", "full", "lookup", "classifier"})  # fmt: skip
 #: comparisons with a kind's name per module, measured 2026-11-27 (69 in all)
 KIND_COMPARISON_BUDGET = {
+    # the kinds' own module: the one place a config's kind names are read (its budget may grow
+    # with a new kind; every other module asks the kind object)
+    "kinds.py": 16,
     "stages/settings/decision.py": 13,
-    "stages/settings/train.py": 13,
     "stages/train.py": 7,
     "stages/simulate.py": 6,
     "benchmarks/loop.py": 5,
