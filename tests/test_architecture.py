@@ -557,7 +557,6 @@ KIND_COMPARISON_BUDGET = {
     # the kinds' own module: the one place a config's kind names are read (its budget may grow
     # with a new kind; every other module asks the kind object)
     "kinds.py": 16,
-    "stages/settings/decision.py": 13,
     "stages/train.py": 7,
     "stages/simulate.py": 6,
     "benchmarks/loop.py": 5,
@@ -568,9 +567,7 @@ KIND_COMPARISON_BUDGET = {
     "stages/budget.py": 2,
     "simulate/batch.py": 2,
     "stages/inspection_report.py": 1,
-    "stages/speed.py": 1,
     "stages/shards.py": 1,
-    "stages/settings/evaluate.py": 1,
     "simulate/population.py": 1,
     "simulate/recorders.py": 1,
     "models/base.py": 1,
