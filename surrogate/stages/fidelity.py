@@ -191,10 +191,10 @@ class FidelitySettings:
             f = {**f, "exact_psi": exact}
         clocks: tuple[float, ...] = ()
         if exact and can_age(setup.model.internal):
-            ages = sorted({c.train.max_age for c in candidates if c.train.history == "age"})
+            ages = sorted({c.train.max_age for c in candidates if c.train.kind.clock})
             clocks = tuple(ages[:1])  # one reference row: the candidates share gp.max_age
         internal = setup.model.internal
-        exact_classes = (exact and any(c.train.lumps == "classes" for c in candidates)
+        exact_classes = (exact and any(c.train.kind.classes for c in candidates)
                          and can_classify(internal) and exact_class_step_of(internal) is not None
                          and len(internal.signal_names) == 1)  # fmt: skip
         references = _stored_references(c, f, times)
