@@ -552,8 +552,8 @@ if __name__ == "__main__":  # the listing: python tests/test_architecture.py
 #: the names of kinds (lumps, history, class moves, decision layers and modes) that code tests
 KIND_NAMES = frozenset({"classes", "phi", "age", "none", "learned", "relaxation", "exact",
                         "abstract", "full", "lookup", "classifier"})  # fmt: skip
-#: comparisons with a kind's name per module, measured 2026-11-27 (69 in all; 24 outside
-#: kinds.py once the settings, train and simulate asked the kind objects)
+#: comparisons with a kind's name per module, measured 2026-11-27 (69 in all; 23 outside
+#: kinds.py once the settings, train, simulate and fidelity asked the kind objects)
 KIND_COMPARISON_BUDGET = {
     # the kinds' own module: the one place a config's kind names are read (its budget may grow
     # with a new kind; every other module asks the kind object)
@@ -563,7 +563,6 @@ KIND_COMPARISON_BUDGET = {
     "stages/advice.py": 4,
     "stages/budget.py": 2,
     "simulate/batch.py": 2,
-    "stages/fidelity.py": 1,
     "stages/inspection_report.py": 1,
     "stages/shards.py": 1,
     "simulate/population.py": 1,

@@ -57,6 +57,7 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
+from surrogate.kinds import mode_kind
 from surrogate.models.capabilities import (
     exact_class_step_of,
     has_exact_psi,
@@ -176,7 +177,7 @@ class FidelitySettings:
         times = _times(f.get("times"), t_end, setup.dt)
         _check_run_and_checks(f, start_size_of(setup.model.body))
         for cand in candidates:
-            if f.get("mode", "lookup") != "lookup":
+            if not mode_kind(str(f.get("mode", "lookup"))).table:  # validated just above
                 continue
             if len(cand.train.inputs) > 3:
                 raise ConfigError(
