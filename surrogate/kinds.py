@@ -14,7 +14,7 @@ commands name.
   ``gp.history=none``), :class:`SwitchClock` (``gp.history=age``) and :class:`KLumps`
   (``gp.lumps=classes``, with ``gp.class_moves`` learned or relaxation).
 * :func:`chain_kind` (the strings -> the kind), :func:`fit_chain` (the gp group's chain,
-  validated), :func:`exact_chain` (``decision=exact``'s chain, validated),
+  validated), :func:`exact_clock` and :func:`exact_chain` (``decision=exact``'s, validated),
   :func:`resolve_auto_lumps` (``gp.lumps=auto``: the best measured chain for a model).
 * :class:`DecisionKind` and :class:`DecisionMode`: ``decision.name`` (full, abstract, exact)
   and ``decision.mode`` (lookup, classifier, direct), :func:`decision_kind`.
@@ -289,12 +289,12 @@ def _class_moves(gp_config: Mapping[str, Any]) -> tuple[str, int, tuple[float, .
     return str(moves), int(cells), tuple(float(v) for v in lags)
 
 
-def exact_chain(
+def exact_clock(
     config: Mapping[str, Any], mode: DecisionMode, internal: Any, model_name: str
-) -> tuple[ChainKind, float]:
-    """The chain ``decision=exact`` drives with the model's exact law (``decision.history``,
-    ``decision.max_age``, ``decision.lumps`` of the decision group ``config``, run in
-    ``mode``), checked against the model's ``internal`` model: the kind and the clock's cap."""
+) -> tuple[str, float]:
+    """``decision=exact``'s ``decision.history`` and ``decision.max_age`` (of the decision group
+    ``config``, run in ``mode``), checked against the model's ``internal`` model: an exact psi
+    with a clock needs a table and the model's ``exact_age_psi``."""
     history, max_age = history_setting(config.get("history"), config.get("max_age", 5.0),
                                        "decision")  # fmt: skip
     if history == "age" and (not mode.table or not can_age(internal)):
@@ -303,6 +303,15 @@ def exact_chain(
             f"psi over one signal with a clock (exact_age_psi); model "
             f"{model_name!r}, mode {mode.name!r}"
         )
+    return history, max_age
+
+
+def exact_chain(
+    config: Mapping[str, Any], history: str, mode: DecisionMode, internal: Any, model_name: str
+) -> ChainKind:
+    """The chain ``decision=exact`` drives with the model's exact law: ``decision.lumps`` of the
+    decision group ``config`` with the clock :func:`exact_clock` validated (``history``), run
+    in ``mode``, checked against the model's ``internal`` model."""
     lumps = config.get("lumps", "phi")
     if lumps not in LUMPINGS:
         raise ConfigError(f"decision.lumps must be one of {list(LUMPINGS)}, got {lumps!r}")
@@ -315,7 +324,7 @@ def exact_chain(
             f"with classes and their exact law over one signal (exact_class_step); "
             f"model {model_name!r}, mode {mode.name!r}, history {history!r}"
         )
-    return chain_kind(str(lumps), history), max_age
+    return chain_kind(str(lumps), history)
 
 
 def decision_identity(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -443,6 +452,7 @@ __all__ = [
     "decision_identity",
     "decision_kind",
     "exact_chain",
+    "exact_clock",
     "fit_chain",
     "is_auto",
     "mode_kind",

@@ -17,6 +17,7 @@ from surrogate.kinds import (
     decision_identity,
     decision_kind,
     exact_chain,
+    exact_clock,
 )
 from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
 from surrogate.simulate.classes import STARTS
@@ -77,7 +78,7 @@ class DecisionSettings:
                     f"network's state space is too large to enumerate); use decision=full (the "
                     f"model itself) or decision=abstract (the learned psi)"
                 )
-            chain, max_age = exact_chain(d, mode, internal, setup.model.name)
+            history, max_age = exact_clock(d, mode, internal, setup.model.name)
             sizes = None
             if mode.table:
                 sizes = grid_size(d.get("lookup_size"), "decision.lookup_size",
@@ -89,6 +90,7 @@ class DecisionSettings:
                         f"give them (a yaml model's `signal_bounds: {{<input>: [lo, hi]}}`, the "
                         f"range scripts/inspect_model.py measures) or use decision.mode=direct"
                     )
+            chain = exact_chain(d, history, mode, internal, setup.model.name)
             return cls(name, d, mode.name, sizes, chain=chain, max_age=max_age)
         train_field = str(d.get("train_field"))
         train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
