@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar, NamedTuple
 
 from surrogate.config import group_config, non_negative, positive
@@ -41,9 +41,10 @@ from surrogate.gp.class_relaxation import (
     check_shared_bins,
 )
 from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
+from surrogate.gp.training import GPSettings
 from surrogate.models.capabilities import class_bins_of, exact_class_step_of, lump_classes_of
 from surrogate.simulate.classes import LUMPINGS, STARTS, can_classify
-from surrogate.simulate.memory import can_age, history_setting
+from surrogate.simulate.memory import AGE, can_age, history_setting
 from surrogate.validation import known_keys
 
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
@@ -224,10 +225,14 @@ def chain_kind(
 
 
 class FitChain(NamedTuple):
-    """The gp group's chain, validated (:func:`fit_chain`): its kind and the K-lumps law's
-    options (validated for every fit, read by K lumps only)."""
+    """The gp group's chain, validated (:func:`fit_chain`): its kind, the GP settings and the
+    inputs it fits (a clock adds its axis), the clock's cap and the K-lumps law's options
+    (validated for every fit, read by K lumps only)."""
 
     kind: ChainKind
+    gp: GPSettings
+    inputs: tuple[str, ...]
+    max_age: float
     min_events: float | None
     max_label_weight: float
     relaxation_cells: int
@@ -235,11 +240,24 @@ class FitChain(NamedTuple):
 
 
 def fit_chain(
-    gp_config: Mapping[str, Any], history: str, internal: object, model_name: str
+    gp_config: Mapping[str, Any],
+    gp: GPSettings,
+    inputs: tuple[str, ...],
+    internal: object,
+    model_name: str,
 ) -> FitChain:
-    """The chain a fit's gp group asks for (``gp.lumps``, ``gp.class_moves`` and the K-lumps
-    law's options; ``history``: ``gp.history`` validated), checked against the model's
-    ``internal`` model (``model_name`` for the messages)."""
+    """The chain a fit's gp group asks for (``gp.history``, ``gp.max_age``, ``gp.lumps``,
+    ``gp.class_moves`` and the K-lumps law's options), checked against the model's
+    ``internal`` model (``model_name`` for the messages), with the GP settings ``gp`` over the
+    model's abstraction ``inputs`` as the chain fits them: a switch clock is psi's last input,
+    with its own bin count (``gp.clock_bins``)."""
+    history, max_age = history_setting(gp_config.get("history"), gp_config.get("max_age", 5.0),
+                                       "gp")  # fmt: skip
+    if history == "age":
+        if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
+            clock_bins = gp_config.get("clock_bins", gp.bins)
+            gp = replace(gp, bins=(*[gp.bins] * len(inputs), clock_bins))  # validated again
+        inputs = (*inputs, AGE)
     lumps = gp_config.get("lumps", "phi")
     if lumps not in LUMPINGS:
         raise ConfigError(f"gp.lumps must be one of {list(LUMPINGS)}, got {lumps!r}")
@@ -266,7 +284,7 @@ def fit_chain(
         assert declared is not None  # lumps=classes checked it
         check_shared_bins(class_bins_of(internal), declared.lumps)
     kind = chain_kind(str(lumps), history, moves)
-    return FitChain(kind, None if min_events is None else float(min_events),
+    return FitChain(kind, gp, inputs, max_age, None if min_events is None else float(min_events),
                     float(max_label_weight), cells, lags)  # fmt: skip
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import functools
 import hashlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,6 @@ from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
 from surrogate.kinds import TWO_STATE, ChainKind, fit_chain, is_auto, resolve_auto_lumps
 from surrogate.models.capabilities import start_size_of
-from surrogate.simulate.memory import AGE, history_setting
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     TRAIN_CMD,
@@ -140,14 +139,8 @@ class TrainSettings:
                 f"held-out metrics), got {gp.validation_fraction!r}"
             )
         inputs = setup.model.abstraction_inputs(gp_config.get("inputs"))
-        history, max_age = history_setting(gp_config.get("history"),
-                                           gp_config.get("max_age", 5.0), "gp")  # fmt: skip
-        chain = fit_chain(gp_config, history, setup.model.internal, setup.model.name)
-        if chain.kind.clock:
-            if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
-                clock_bins = gp_config.get("clock_bins", gp.bins)
-                gp = replace(gp, bins=(*[gp.bins] * len(inputs), clock_bins))  # validated again
-            inputs = (*inputs, AGE)
+        chain = fit_chain(gp_config, gp, inputs, setup.model.internal, setup.model.name)
+        gp, inputs = chain.gp, chain.inputs  # a switch clock: psi's last input, its own bins
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
@@ -187,7 +180,7 @@ class TrainSettings:
         auto_recipe = chain.kind.recipe if is_auto(raw_gp) else None
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
                    int(threads) if threads is not None else torch.get_num_threads(), chain.kind,
-                   max_age, chain.min_events, chain.max_label_weight, chain.relaxation_cells,
+                   chain.max_age, chain.min_events, chain.max_label_weight, chain.relaxation_cells,
                    chain.relaxation_lags, auto_recipe)  # fmt: skip
 
     @property
