@@ -57,6 +57,7 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
+from surrogate.kinds import mode_kind
 from surrogate.models.capabilities import (
     exact_class_step_of,
     has_exact_psi,
@@ -176,7 +177,7 @@ class FidelitySettings:
         times = _times(f.get("times"), t_end, setup.dt)
         _check_run_and_checks(f, start_size_of(setup.model.body))
         for cand in candidates:
-            if f.get("mode", "lookup") != "lookup":
+            if not mode_kind(str(f.get("mode", "lookup"))).table:  # validated just above
                 continue
             if len(cand.train.inputs) > 3:
                 raise ConfigError(
@@ -191,10 +192,10 @@ class FidelitySettings:
             f = {**f, "exact_psi": exact}
         clocks: tuple[float, ...] = ()
         if exact and can_age(setup.model.internal):
-            ages = sorted({c.train.max_age for c in candidates if c.train.history == "age"})
+            ages = sorted({c.train.max_age for c in candidates if c.train.kind.clock})
             clocks = tuple(ages[:1])  # one reference row: the candidates share gp.max_age
         internal = setup.model.internal
-        exact_classes = (exact and any(c.train.lumps == "classes" for c in candidates)
+        exact_classes = (exact and any(c.train.kind.classes for c in candidates)
                          and can_classify(internal) and exact_class_step_of(internal) is not None
                          and len(internal.signal_names) == 1)  # fmt: skip
         references = _stored_references(c, f, times)

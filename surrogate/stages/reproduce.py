@@ -312,7 +312,7 @@ def _verdict(
     n_per_state = (int(source.options["n_per_state"])
                    if isinstance(source, CollectSettings) else None)  # fmt: skip
     diagnostic = metrics.get("diagnostic")
-    if tr.lumps == "classes" and metrics.get("class_diagnostic"):
+    if tr.kind.classes and metrics.get("class_diagnostic"):
         diagnostic = class_diagnostic_by_lump(metrics["class_diagnostic"], tr.setup.model.internal)
     v = verdict(diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names,
                 failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
@@ -320,7 +320,7 @@ def _verdict(
                 network=isinstance(tr.setup.model.internal, NetworkInternalModel),
                 n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
                 class_moves=tr.class_moves,
-                max_age=tr.max_age if tr.history == "age" else None)  # fmt: skip
+                max_age=tr.max_age if tr.kind.clock else None)  # fmt: skip
     return v.markdown()
 
 

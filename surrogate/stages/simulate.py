@@ -35,6 +35,7 @@ from surrogate.io import (
     save_figure,
     write_manifest,
 )
+from surrogate.kinds import mode_kind
 from surrogate.models.base import FeatureMap, Model
 from surrogate.models.capabilities import signal_bounds_of
 from surrogate.simulate.classes import ClassDecision, exact_class_table
@@ -96,12 +97,13 @@ def build_decision(
     model = model if model is not None else settings.setup.model
     device = settings.job.device
     d = settings.decision
-    if d.name == "full":
+    if d.kind.full:
         return FullDecision(model.internal), {}
-    if d.name == "exact":
-        if d.lumps == "classes":
+    if d.kind.exact:
+        assert d.chain is not None  # the settings made it
+        if d.chain.classes:
             return exact_class_decision(model, settings.setup.dt, device), {"lumps": "classes"}
-        if d.history == "age":
+        if d.chain.clock:
             return exact_clock_decision(model, settings.setup.dt, d.max_age, device), {}
         return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
     assert d.train is not None
@@ -134,7 +136,7 @@ def learned_decision(
     construction, excepted), which the simulator's support monitor checks the cells against."""
     from surrogate.stages.train import load_abstraction
 
-    if train.lumps == "classes":
+    if train.kind.classes:
         layer, info = learned_class_decision(model, directory, device, start=start)
     else:
         psi = load_abstraction(directory, device=device)
@@ -187,7 +189,7 @@ def exact_decision(
     """The chain driven by the model's exact lumped psi: ``direct`` (exp(Q dt) per cell and
     step) or ``lookup`` (a table over the signal's bounds, checked against direct)."""
     internal = model.internal
-    if mode == "direct":
+    if not mode_kind(mode).table:  # direct
         return ExactDecision(internal, dt), {}
     bounds = signal_bounds_of(internal) or {}
     ranges = [bounds[n] for n in internal.signal_names]
@@ -232,7 +234,7 @@ def abstract_decision(
             return MemoryDecision(run_probability, model.internal, featurize, max_age, dt=dt)
         return AbstractDecision(run_probability, model.internal, featurize)
 
-    if mode == "lookup":
+    if mode_kind(mode).table:
         ranges = [psi.domain[n] for n in psi.input_names]
         if memory:  # a clock node at every step: each cell reads its clock's node
             lead = tuple(size[:-1]) if size else None

@@ -53,7 +53,7 @@ def run(cfg: Mapping[str, Any]) -> Path:
     """Measure and write ``speed.json``; return its directory."""
     c = to_dict(cfg)
     candidate = SimulateSettings.from_config(c)
-    if candidate.decision.name == "full":
+    if candidate.decision.kind.full:
         raise ConfigError("speed compares an abstraction with the full model: use "
                           "decision=abstract (or decision=exact)")  # fmt: skip
     full = SimulateSettings.from_config({**c, "decision": {"name": "full"}})

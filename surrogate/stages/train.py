@@ -132,7 +132,7 @@ def train(
             "classes": "the K-lumps chain, gp=classes' recipe",
             "svgp": "the two-state chain, gp=svgp's recipe"}[settings.auto_recipe],
             settings.setup.model.name, "declares classes finer than phi"
-            if settings.auto_recipe == "classes" else "declares no classes, or a clock is asked")  # fmt: skip
+            if settings.kind.classes else "declares no classes, or a clock is asked")  # fmt: skip
 
     def make(data: tuple[pd.DataFrame, str]) -> None:  # data: load_transitions' (table, source)
         _train(settings, out, *data, config, force)
@@ -178,7 +178,7 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
-    if settings.history == "age":
+    if settings.kind.clock:
         try:
             table = clock_rows(table, settings.max_age)
         except KeyError as exc:
@@ -231,9 +231,7 @@ def _fit(
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
                       device=job.device, lump_names=lumps,
                       label=settings.label_column(table.columns))  # fmt: skip
-        chain = (
-            _fit_class_chain(settings, table, psi.domain) if settings.lumps == "classes" else None
-        )
+        chain = _fit_class_chain(settings, table, psi.domain) if settings.kind.classes else None
     except NumericalError as exc:
         # nothing was written: a previous complete fit in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")
@@ -322,7 +320,7 @@ def _fit_class_chain(
                                  max_weight=settings.max_label_weight)  # fmt: skip
     log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
              metrics["classifiers"], metrics["constant_steps"])  # fmt: skip
-    if settings.class_moves == "relaxation":
+    if settings.kind.relaxation:
         law, metrics["relaxation"] = _relaxation_law(settings, law, domain)
     chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
                        classes.lumps, settings.setup.dt)  # fmt: skip
@@ -400,13 +398,13 @@ def _train(
     exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
     diagnostic, frame = diagnose(psi, settings, model, exact_fn)
     metrics["diagnostic"] = diagnostic
-    if settings.lumps == "classes":
+    if settings.kind.classes:
         chain = load_class_chain(fit_dir)
         metrics["class_diagnostic"] = diagnose_classes(chain, settings, model)
         metrics["class_shares"] = class_share_drift(chain, settings, model)
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
-    own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.lumps == "classes" else ()))
+    own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.kind.classes else ()))
     for name in own:  # the fit's own files, for whoever reads this directory
         write_atomic(out / name, partial(shutil.copyfile, fit_dir / name))
     write_json(out / METRICS, metrics)
@@ -606,7 +604,7 @@ def diagnose(
     t0 = time.perf_counter()
     rows = occupancy(settings.occupancy())
     reference = None
-    if settings.history == "age":
+    if settings.kind.clock:
         rows = clock_rows(rows, settings.max_age)
         # the exact psi with a clock where the model has one, else the empirical reference
         exact_fn = None

@@ -25,6 +25,7 @@ Every public name is re-exported here: ``from surrogate.stages.settings import X
 
 from __future__ import annotations
 
+from surrogate.kinds import GP_CLOCK  # the clock's gp keys, where they were before kinds
 from surrogate.stages.settings.collect import DESIGN_KEYS, CollectSettings
 from surrogate.stages.settings.common import (
     COLLECT_CMD,
@@ -54,7 +55,6 @@ from surrogate.stages.settings.simulate import (
 )
 from surrogate.stages.settings.train import (
     DIAGNOSTIC_DEFAULTS,
-    GP_CLOCK,
     GP_EXTRA,
     GP_NOT_FIT,
     LABEL_CHOICES,

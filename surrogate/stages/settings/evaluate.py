@@ -34,7 +34,7 @@ class EvaluateSettings:
     def from_config(cls, cfg: Mapping[str, Any]) -> EvaluateSettings:
         """Validate the evaluate group and the three runs it compares."""
         candidate = SimulateSettings.from_config(cfg)
-        if candidate.decision.name == "full":
+        if candidate.decision.kind.full:
             raise ConfigError(
                 "evaluate compares an abstraction with the full model: use decision=abstract "
                 "(or decision=exact)"

@@ -5,37 +5,21 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import itertools
-import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from surrogate.config import (
-    grid_size,
-    group_config,
-    non_negative,
-    positive,
-    to_dict,
-    validate_start,
-)
+from surrogate.config import grid_size, non_negative, positive, to_dict, validate_start
 from surrogate.errors import ConfigError
-from surrogate.gp.class_relaxation import (
-    CLASS_MOVES,
-    DEFAULT_CELLS,
-    DEFAULT_LAGS,
-    RELAXATION_VERSION,
-    check_shared_bins,
-)
-from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
+from surrogate.gp.class_relaxation import DEFAULT_CELLS, DEFAULT_LAGS
+from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
-from surrogate.models.capabilities import class_bins_of, lump_classes_of, start_size_of
-from surrogate.simulate.classes import LUMPINGS
-from surrogate.simulate.memory import AGE, history_setting
+from surrogate.kinds import TWO_STATE, ChainKind, fit_chain, is_auto, resolve_auto_lumps
+from surrogate.models.capabilities import start_size_of
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     TRAIN_CMD,
@@ -51,19 +35,12 @@ from surrogate.validation import known_keys
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
             "clock_bins", "lumps", "min_events", "max_label_weight", "class_moves",
             "relaxation")  # fmt: skip
-#: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
-GP_CLOCK = ("history", "max_age", "clock_bins")
-#: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
-GP_CLASSES = ("lumps", "min_events", "max_label_weight", "class_moves", "relaxation")
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
 #: gp.labels: the column each option trains on (auto: expected where the table has them)
 LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
 LABEL_CHOICES = ("auto", *LABEL_COLUMNS)
-#: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
-#: these shipped recipes: the first where the model declares classes finer than phi, else the second
-AUTO_RECIPES = ("classes", "svgp")
 DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "n_cells": 1000,
     "t_end": 100.0,
@@ -71,60 +48,6 @@ DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "start": [2.0, 0.0],
     "equilibration_time": 10.0,
 }
-
-
-def resolve_auto_lumps(gp_config: Mapping[str, Any], model: Any) -> dict[str, Any]:
-    """``gp_config`` with ``lumps: auto`` resolved to the best measured chain for ``model``: the
-    K-lumps chain (``gp=classes``'s recipe) where its internal model declares classes finer than
-    phi and no switch clock is asked for (``gp.history=none``), else the two-state chain
-    (``gp=svgp``). A key the config sets to another value than ``gp=svgp``'s is the user's, and
-    kept; every other key takes the chosen recipe's value, so ``gp=auto`` on E. coli is the same
-    fit (the same directory) as ``gp=classes``. Any other ``lumps`` is returned unchanged.
-
-    Example:
-        >>> resolve_auto_lumps({**group_config("gp", "auto")}, ecoli)["n_inducing"]  # doctest: +SKIP
-        32
-    """
-    config = dict(gp_config)
-    if config.get("lumps") != "auto":
-        return config
-    classed = lump_classes_of(model.internal) is not None
-    name = (
-        AUTO_RECIPES[0] if classed and config.get("history", "none") == "none" else AUTO_RECIPES[1]
-    )
-    base, recipe = group_config("gp", "svgp"), group_config("gp", name)
-    for key, value in recipe.items():
-        if key not in config or (key in base and config[key] == base[key]):
-            config[key] = value
-    config["lumps"] = recipe.get("lumps", "phi")
-    return config
-
-
-def _class_moves(
-    gp_config: Mapping[str, Any], lumps: str, setup: ModelSetup
-) -> tuple[str, int, tuple[float, ...]]:
-    """``gp.class_moves`` and ``gp.relaxation`` ({n_cells, lags}) validated."""
-    moves = gp_config.get("class_moves") or "learned"
-    if moves not in CLASS_MOVES:
-        raise ConfigError(f"gp.class_moves must be one of {list(CLASS_MOVES)}, got {moves!r}")
-    options = known_keys(gp_config.get("relaxation") or {}, ("n_cells", "lags"), "gp.relaxation")
-    cells = options.get("n_cells", DEFAULT_CELLS)
-    if isinstance(cells, bool) or not isinstance(cells, int) or cells < 10:
-        raise ConfigError(f"gp.relaxation.n_cells must be an integer >= 10, got {cells!r}")
-    lags = options.get("lags", DEFAULT_LAGS)
-    if (not isinstance(lags, Sequence) or isinstance(lags, str) or len(lags) < 2
-            or any(isinstance(v, bool) or not isinstance(v, int | float) or not v > 0
-                   or not math.isfinite(v) for v in lags)
-            or any(b <= a for a, b in itertools.pairwise(lags))):  # fmt: skip
-        raise ConfigError(f"gp.relaxation.lags must be at least two positive, increasing "
-                          f"seconds, got {lags!r}")  # fmt: skip
-    if moves == "relaxation":
-        if lumps != "classes":
-            raise ConfigError("gp.class_moves=relaxation is a K-lumps option: use gp=classes")
-        declared = lump_classes_of(setup.model.internal)
-        assert declared is not None  # lumps=classes checked it
-        check_shared_bins(class_bins_of(setup.model.internal), declared.lumps)
-    return moves, int(cells), tuple(float(v) for v in lags)
 
 
 def bins_labels_conflict(labels: str) -> str:
@@ -176,21 +99,18 @@ class TrainSettings:
     diagnostic: dict[str, Any]
     job: Job
     fit_threads: int
-    #: gp.history: none | age (psi also over the switch clock, its last input) and its cap (s)
-    history: str = "none"
+    #: the chain (gp.lumps, gp.history, gp.class_moves as a kind, :mod:`surrogate.kinds`):
+    #: the two-state chain, the switch clock (psi also over the clock, its last input) or K
+    #: lumps (also the chain over the model's classes, :mod:`surrogate.gp.classes`)
+    kind: ChainKind = TWO_STATE
+    #: gp.max_age: the switch clock's cap (s)
     max_age: float = 5.0
-    #: gp.lumps: phi (the two-state chain) | classes (also the K-lumps chain over the model's
-    #: classes, :mod:`surrogate.gp.classes`)
-    lumps: str = "phi"
     #: gp.min_events: events a destination of the K-lumps chain needs for a GP surface (None:
     #: by the labels, :data:`surrogate.gp.classes.MIN_EVENTS`)
     min_events: float | None = None
     #: gp.max_label_weight: the most draws one expected label counts as in the K-lumps chain's
     #: GPs (:func:`surrogate.gp.training.label_weight`; 1: as a 0/1 outcome)
     max_label_weight: float = DEFAULT_MAX_LABEL_WEIGHT
-    #: gp.class_moves: learned (every class move from the windows) | relaxation (bins of a
-    #: slow count relax to their stationary law, :mod:`surrogate.gp.class_relaxation`)
-    class_moves: str = "learned"
     #: gp.relaxation: the stationary sample's cells and lags (s), for class_moves=relaxation
     relaxation_cells: int = DEFAULT_CELLS
     relaxation_lags: tuple[float, ...] = DEFAULT_LAGS
@@ -219,32 +139,8 @@ class TrainSettings:
                 f"held-out metrics), got {gp.validation_fraction!r}"
             )
         inputs = setup.model.abstraction_inputs(gp_config.get("inputs"))
-        history, max_age = history_setting(gp_config.get("history"),
-                                           gp_config.get("max_age", 5.0), "gp")  # fmt: skip
-        if history == "age":
-            if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
-                clock_bins = gp_config.get("clock_bins", gp.bins)
-                gp = replace(gp, bins=(*[gp.bins] * len(inputs), clock_bins))  # validated again
-            inputs = (*inputs, AGE)
-        lumps = gp_config.get("lumps", "phi")
-        if lumps not in LUMPINGS:
-            raise ConfigError(f"gp.lumps must be one of {list(LUMPINGS)}, got {lumps!r}")
-        if lumps == "classes":
-            if lump_classes_of(setup.model.internal) is None:
-                raise ConfigError(
-                    f"gp.lumps=classes: model {setup.model.name!r} declares no classes finer "
-                    f"than phi (class_names, class_lumps, classes on its internal model)"
-                )
-            if history != "none":
-                raise ConfigError("gp.lumps=classes takes no switch clock: use gp.history=none")
-        min_events = gp_config.get("min_events")  # null: by the labels
-        if min_events is not None:
-            min_events = non_negative(gp_config, "min_events", "gp.")
-        max_label_weight = positive({"max_label_weight": DEFAULT_MAX_LABEL_WEIGHT, **gp_config},
-                                    "max_label_weight", "gp.")  # fmt: skip
-        if max_label_weight < 1:
-            raise ConfigError(f"gp.max_label_weight must be >= 1, got {max_label_weight!r}")
-        class_moves, relaxation_cells, relaxation_lags = _class_moves(gp_config, lumps, setup)
+        chain = fit_chain(gp_config, gp, inputs, setup.model.internal, setup.model.name)
+        gp, inputs = chain.gp, chain.inputs  # a switch clock: psi's last input, its own bins
         if isinstance(source, CollectSettings):
             n_per_state = source.options["n_per_state"]
             n_train = n_per_state - round(gp.validation_fraction * n_per_state)
@@ -280,14 +176,28 @@ class TrainSettings:
                     f"gp.labels=expected trains on expected labels, but {why}; use "
                     "gp.labels=outcome"
                 )
-        auto_recipe = None  # gp.lumps=auto: the recipe it chose, for the log
-        if raw_gp.get("lumps") == "auto":
-            auto_recipe = AUTO_RECIPES[0] if lumps == "classes" else AUTO_RECIPES[1]
+        # gp.lumps=auto: the recipe it chose, for the log
+        auto_recipe = chain.kind.recipe if is_auto(raw_gp) else None
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
-                   int(threads) if threads is not None else torch.get_num_threads(), history,
-                   max_age, lumps, None if min_events is None else float(min_events),
-                   float(max_label_weight), class_moves, relaxation_cells,
-                   relaxation_lags, auto_recipe)  # fmt: skip
+                   int(threads) if threads is not None else torch.get_num_threads(), chain.kind,
+                   chain.max_age, chain.min_events, chain.max_label_weight, chain.relaxation_cells,
+                   chain.relaxation_lags, auto_recipe)  # fmt: skip
+
+    @property
+    def lumps(self) -> str:
+        """gp.lumps: phi (the two-state chain and the clock) | classes (K lumps)."""
+        return self.kind.lumps
+
+    @property
+    def history(self) -> str:
+        """gp.history: none | age (psi also over the switch clock)."""
+        return self.kind.history
+
+    @property
+    def class_moves(self) -> str:
+        """gp.class_moves: learned (every class move from the windows) | relaxation (bins of a
+        slow count relax to their stationary law, :mod:`surrogate.gp.class_relaxation`)."""
+        return self.kind.class_moves
 
     def check_label_column(self, column: str, where: str) -> None:
         """Refuse training ``where``'s expected labels (``column``, e.g. an external table's,
@@ -319,21 +229,10 @@ class TrainSettings:
         else:
             data = {"table": str(self.source.path), "sha256": self.source.sha256,
                     "model": self.setup.model_config, "seed": self.setup.seed}  # fmt: skip
-        gp = {k: v for k, v in self.gp_config.items() if k not in GP_NOT_FIT}
-        if self.history == "none":  # fits without a clock keep the identity they had before it
-            gp = {k: v for k, v in gp.items() if k not in GP_CLOCK}
-        if self.lumps == "phi":  # and two-state fits the one they had before K lumps
-            gp = {k: v for k, v in gp.items() if k not in GP_CLASSES}
-        else:  # resolved, and the law's fit version: a change in either refits
-            gp["min_events"] = dict(MIN_EVENTS) if self.min_events is None else self.min_events
-            gp["max_label_weight"] = self.max_label_weight
-            gp["class_law_version"] = CLASS_LAW_VERSION
-            gp.pop("class_moves", None)
-            gp.pop("relaxation", None)
-            if self.class_moves == "relaxation":  # learned fits keep the identity they had
-                gp["class_moves"] = {"kind": self.class_moves, "cells": self.relaxation_cells,
-                                     "lags": list(self.relaxation_lags),
-                                     "version": RELAXATION_VERSION}  # fmt: skip
+        # each kind keeps its keys only: older kinds' fits keep the identities they had
+        gp = self.kind.fit_identity({k: v for k, v in self.gp_config.items() if k not in GP_NOT_FIT},
+                                    self.min_events, self.max_label_weight,
+                                    self.relaxation_cells, self.relaxation_lags)  # fmt: skip
         return {**data, "gp": gp, "inputs": list(self.inputs), "fit_threads": self.fit_threads,
                 "device": self.job.device_type}  # fmt: skip
 
@@ -346,9 +245,8 @@ class TrainSettings:
     def _label(self) -> dict[str, Any]:
         label = (self.setup.label() if isinstance(self.source, CollectSettings)
                  else {"table": self.source.path.stem})  # fmt: skip
-        lumps = {"lumps": self.lumps} if self.lumps != "phi" else {}
         return {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
-                "inducing": self.gp.n_inducing, **lumps, "seed": self.seed}  # fmt: skip
+                "inducing": self.gp.n_inducing, **self.kind.label(), "seed": self.seed}  # fmt: skip
 
     @functools.cached_property
     def fit_directory(self) -> Path:
@@ -365,8 +263,8 @@ class TrainSettings:
         """The gp overrides that reproduce these settings (``gp.threads`` as resolved: a
         command run with another thread count would make another fit)."""
         # the recipe named: the default (gp=auto) would choose K lumps for a model with classes
-        choice = AUTO_RECIPES[0] if self.lumps == "classes" else AUTO_RECIPES[1]
-        return group_overrides("gp", {**self.gp_config, "threads": self.fit_threads}, choice)
+        return group_overrides("gp", {**self.gp_config, "threads": self.fit_threads},
+                               self.kind.recipe)  # fmt: skip
 
     def command(self) -> str:
         """The command that makes this artefact (and the fit)."""
@@ -386,7 +284,7 @@ class TrainSettings:
         """The diagnostic's occupancy run: an unperturbed full-model population in the training
         field (``gp.diagnostic``: its size, start and length), seeded with this seed."""
         options = dict(self.diagnostic)
-        if self.history == "age":  # the rows need the switch clocks
+        if self.kind.clock:  # the rows need the switch clocks
             options["clock"] = True
         return OccupancySettings(self.setup, options, self.job, self.command())
 
