@@ -107,7 +107,8 @@ class CollectSettings:
 
     def command(self) -> str:
         """The command that makes this artefact."""
-        return command_line(COLLECT_CMD, self.setup.overrides(), self._overrides())
+        return command_line(COLLECT_CMD, self.setup.overrides(), self._overrides(),
+                            self.job.device_overrides())  # fmt: skip
 
     def _overrides(self) -> list[str]:
         given = self.options if self.given is None else self.given

@@ -124,6 +124,11 @@ class Job:
         gives the same)."""
         return self.device.type
 
+    def device_overrides(self) -> list[str]:
+        """``device=...`` where it is not the CPU (a command that remakes an artefact of this
+        job names its device: the device type is part of the artefact's identity)."""
+        return [] if self.device_type == "cpu" else [f"device={self.device_type}"]
+
 
 @dataclass(frozen=True, eq=False)
 class ModelSetup:

@@ -7,7 +7,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from surrogate.config import field_config, grid_size, to_dict
+import torch
+
+from surrogate.config import field_config, grid_size, resolve_device, to_dict
 from surrogate.errors import ConfigError
 from surrogate.kinds import (
     DECISION_KINDS,
@@ -94,6 +96,9 @@ class DecisionSettings:
             return cls(name, d, mode.name, sizes, chain=chain, max_age=max_age)
         train_field = str(d.get("train_field"))
         train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
+        train_device = d.get("train_device")
+        if train_device is not None:  # a fit made on another device (e.g. a CPU fit on CUDA)
+            train_cfg["device"] = str(train_device_of(train_device))
         train = TrainSettings.from_config(train_cfg)
         sizes = None
         train.kind.check_mode(mode)
@@ -111,14 +116,28 @@ class DecisionSettings:
         """What of the decision defines a run (the abstraction by its fit's identity: the
         diagnostic and the output grid do not change the psi a run uses)."""
         config = decision_identity(self.config)  # as before K lumps, for two-state runs
-        # runs starting as before keep the identity they had before decision.initial
-        config = {k: v for k, v in config.items() if k != "initial"}
+        # runs starting as before keep the identity they had before decision.initial; the
+        # fit's device is in the abstraction's identity (train_device only locates it)
+        config = {k: v for k, v in config.items() if k not in ("initial", "train_device")}
         out: dict[str, Any] = {"decision": config}
         if self.train is not None:
             out["abstraction"] = self.train.fit_identity()
         if self.start != "internal":
             out["initial"] = self.start
         return out
+
+
+def train_device_of(value: Any) -> torch.device:
+    """``decision.train_device`` validated: the device the abstraction was trained on, where it
+    is not the run's (a fit is identified by the device that made it: CPU and CUDA draw other
+    random numbers from one seed)."""
+    if not isinstance(value, str):
+        raise ConfigError(f"decision.train_device must be null (the run's device), cpu or cuda, "
+                          f"got {value!r}")  # fmt: skip
+    try:
+        return resolve_device(value)
+    except ConfigError as exc:
+        raise ConfigError(f"decision.train_device: {exc}") from None
 
 
 def resolve_start(value: Any, train: TrainSettings, where: str) -> str:

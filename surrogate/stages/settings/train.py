@@ -272,7 +272,7 @@ class TrainSettings:
             data = [*self.setup.overrides(), *self.source._overrides()]
         else:
             data = [f"transitions={self.source.path}", *self.setup.overrides()]
-        return command_line(TRAIN_CMD, data, self.gp_overrides())
+        return command_line(TRAIN_CMD, data, self.gp_overrides(), self.job.device_overrides())
 
     def input_command(self) -> str:
         """The command that makes this stage's input (the collected transitions)."""
