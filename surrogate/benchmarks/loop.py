@@ -51,6 +51,7 @@ from surrogate.config import build_field, build_model, grid_size, resolve_device
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
 from surrogate.io import load_tensors, save_tensors, write_json
+from surrogate.kinds import TWO_STATE, ChainKind, chain_kind, decision_kind
 from surrogate.models.base import Model
 from surrogate.models.capabilities import signal_bounds_of
 from surrogate.simulate.classes import ClassDecision, ClassTable, exact_class_table
@@ -58,7 +59,6 @@ from surrogate.simulate.decision import AbstractDecision, FullDecision, is_fusab
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.memory import (
     AGE,
-    HISTORIES,
     MemoryDecision,
     has_history,
     tabulate_with_clock,
@@ -68,6 +68,11 @@ from surrogate.simulate.precompile import precompiler_code
 from surrogate.simulate.speed import LoopTiming, compare
 
 MODELS = ("full", "lookup", "classifier")
+#: the chains :func:`run_lookup_bench` runs side by side, by its ``histories`` word: gp.history's
+#: (the two-state chain, the switch clock) and the K-lumps chain (gp.lumps=classes)
+HISTORY_CHAINS: dict[str, ChainKind] = {
+    "none": chain_kind(), "age": chain_kind(history="age"), "classes": chain_kind("classes")
+}  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------------
@@ -197,7 +202,7 @@ def make_decision(
 ) -> Any:
     """A decision layer: ``full``, ``lookup`` (table) or ``classifier`` (CachedPsi); a psi
     whose last input is the switch clock gets the chain with a clock (gp.history=age)."""
-    if name == "full":
+    if name not in tables and decision_kind(name).full:  # the one layer without a table
         return FullDecision(model.internal)
     psi = tables[name]
     names = tuple(psi.input_names)
@@ -495,20 +500,20 @@ def run_lookup_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print)
     s, device, model, field, dt, head = _setup(cfg)
     started = time.perf_counter()
     histories = list(s.get("histories") or ["none"])
-    allowed = (*HISTORIES, "classes")
-    unknown = [h for h in histories if h not in allowed]
+    unknown = [h for h in histories if h not in HISTORY_CHAINS]
     if unknown:
-        raise ConfigError(f"histories: unknown {unknown}; allowed {list(allowed)}")
+        raise ConfigError(f"histories: unknown {unknown}; allowed {list(HISTORY_CHAINS)}")
     max_age = float(cfg.get("gp", {}).get("max_age", 5.0))
 
     def table(h: str) -> Any:
-        if h == "classes":
+        kind = HISTORY_CHAINS[h]
+        if kind.classes:
             nodes = grid_size(s.get("lookup_size"), "lookup_size", 1)
             try:
                 return exact_class_table(model.internal, dt, nodes[0] if nodes else 4096)
             except ValueError as exc:
                 raise ConfigError(f"histories=classes: {exc}") from None
-        return function_table(model, dt, s.get("lookup_size"), max_age if h == "age" else None)
+        return function_table(model, dt, s.get("lookup_size"), max_age if kind.clock else None)
 
     tables = {h: table(h).to(device) for h in histories}
     results: dict[str, Any] = {
@@ -559,7 +564,7 @@ def format_lookup_report(r: Mapping[str, Any]) -> str:
         k = row["lookup"]
         key = (row["threads"], row["backend"], row["compile"], row["n_cells"])
         history = row.get("history", "none")
-        if history == "none":
+        if HISTORY_CHAINS.get(history) is TWO_STATE:
             plain[key] = k["cell_steps_per_s"]
         cost = plain[key] / k["cell_steps_per_s"] if key in plain else float("nan")
         lines.append(
@@ -575,10 +580,12 @@ def format_lookup_report(r: Mapping[str, Any]) -> str:
 # the whole benchmark
 
 
+#: what the child prints for a model without a kernel (its own word, no kind's)
+_NO_KERNEL = "none"
 #: a fresh process: the model's precompile target where numba's cache lacks the kernel
 _TARGET_CHILD = (
     "import json, sys; from surrogate.config import build_model; "
-    "print(build_model(json.loads(sys.argv[1])).kernel_precompiler() or 'none')"
+    f"print(build_model(json.loads(sys.argv[1])).kernel_precompiler() or {_NO_KERNEL!r})"
 )
 
 
@@ -596,7 +603,7 @@ def kernel_compile_times(model_cfg: Mapping[str, Any], cache_dir: Path) -> dict[
         return proc.stdout.split()[-1]
 
     target = child(_TARGET_CHILD, json.dumps(dict(model_cfg)))
-    if target == "none":
+    if target == _NO_KERNEL:
         return None
     code = precompiler_code(target)
     return {"target": target, "cold_s": float(child(code)), "cached_s": float(child(code))}

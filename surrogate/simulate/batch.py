@@ -50,6 +50,7 @@ from surrogate.simulate.recorders import (
     FLUSH_STEPS,
     DurationMode,
     RunRecorder,
+    records_durations,
 )
 from surrogate.simulate.support import TrainedRange, trained_range_of
 
@@ -433,7 +434,7 @@ def simulate_batch(
                     simulator.advance(state, steps, out=buffer[filled : filled + steps])
                     filled += steps
                     if filled == rows:
-                        if mode != "none":
+                        if records_durations(mode):
                             hand_over()
                         filled = 0
                     k += steps
@@ -442,7 +443,7 @@ def simulate_batch(
                         simulator.check_state(state)
                         simulator.observe_support(state)
                         _record(recorders, profiles, simulator, state, k * dt)
-            if mode != "none" and filled:
+            if records_durations(mode) and filled:
                 hand_over()
             simulator.check_state(state)
             if simulator.device.type == "cuda":

@@ -26,6 +26,7 @@ from surrogate.simulate.recorders import (
     DurationMode,
     GridSpec,
     RunRecorder,
+    records_durations,
 )
 
 
@@ -116,7 +117,7 @@ def simulate_population(
                                durations=mode, seed=seed,
                                histogram_spec={**histogram_grids_of(body), **dict(histogram_spec or {})})  # fmt: skip
         profiles = ProfileRecorder.of(out, field_, n_cells)
-        steps_recorded = mode != "none"
+        steps_recorded = records_durations(mode)
         with torch.inference_mode():  # cheaper per op than no_grad
             state = simulator.initial_state(n_cells, start, equilibration_time)
             simulator.check_state(state)

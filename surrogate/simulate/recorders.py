@@ -46,7 +46,7 @@ import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -66,6 +66,16 @@ METADATA_KEY = b"surrogate.recording"
 
 DurationMode = Literal["histogram", "all", "none"]
 DURATION_MODES: tuple[str, ...] = ("histogram", "all", "none")
+#: the mode that writes neither duration file: a recorder's word, not the chain's
+#: ``gp.history=none`` (named here so no module compares a bare kind's name, issue 40)
+NO_DURATIONS: Final = "none"
+
+
+def records_durations(mode: str) -> bool:
+    """Whether the ``durations`` mode ``mode`` writes the duration files (every mode but
+    :data:`NO_DURATIONS`)."""
+    return mode != NO_DURATIONS
+
 
 #: cells whose exact values (and, with ``durations="histogram"``, durations) are kept
 DEFAULT_RECORD_CELLS = 2000
@@ -366,7 +376,7 @@ class RunRecorder:
         )
         self.times: list[float] = []
         self.means: dict[str, list[float]] = {n: [] for n in self.names}
-        self._durations_on = durations != "none"
+        self._durations_on = records_durations(durations)
         self.block_rows = max(1, min(int(block_steps), BUFFER_BYTES // (4 * self.n_cells)))
         self._buffer = (
             torch.zeros(self.block_rows, self.n_cells, dtype=torch.int32, device=self.device)

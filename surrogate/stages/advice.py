@@ -37,6 +37,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from surrogate.kinds import ChainKind
+
 #: |first half - second half| of the diagnostic's switching, in standard errors, above which
 #: its population was still settling
 SETTLING_Z = 4.0
@@ -80,12 +82,10 @@ def verdict(
     outside: Mapping[str, Mapping[str, Any] | None],
     outside_warning: float,
     tolerance: float,
-    lumps: str,
-    history: str,
+    kind: ChainKind,
     network: bool,
     n_per_state: int | None,
     class_shares: Mapping[str, Any] | None = None,
-    class_moves: str = "learned",
     max_age: float | None = None,
 ) -> Verdict:
     """Read the measurements (see the module docstring).
@@ -97,12 +97,13 @@ def verdict(
         outside: per field, the abstraction run's ``outside_training`` report.
         outside_warning: the share above which a run is outside its training data.
         tolerance: the mean-duration tolerance a bias is judged by (e.g. 0.03).
-        lumps: ``phi`` or ``classes`` (the chain that ran); history: ``none`` or ``age``.
+        kind: the chain that ran (:func:`~surrogate.kinds.chain_kind`): its classes, its
+            switch clock and how its classes moved.
         network: whether the model is a reaction network (``model.classes=auto`` applies).
         n_per_state: the collection's transitions per origin (for the advice).
         class_shares: a K-lumps chain's class shares against the full model's
-            (``train_metrics.json["class_shares"]``); class_moves: how its classes moved.
-        max_age: the switch clock's cap (s) where the chain ran with one (``history=age``).
+            (``train_metrics.json["class_shares"]``).
+        max_age: the switch clock's cap (s) where the chain ran with one (``kind.clock``).
     """
     causes: list[tuple[str, str, str]] = []
     away = {f: r for f, r in outside.items() if r and r["share_outside"] > outside_warning}
@@ -168,12 +169,12 @@ def verdict(
             "a larger diagnostic population (`gp.diagnostic.n_cells`, `gp.diagnostic.t_end`).",
         ))  # fmt: skip
     shares = class_shares or {}
-    drift = lumps == "classes" and bool(shares.get("drift"))
+    drift = kind.classes and bool(shares.get("drift"))
     if drift:
         more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
             "a larger `collect.n_per_state`"  # fmt: skip
         step = (f"more transitions per class ({more}) or other classes (`model.classes`)"
-                if class_moves == "relaxation" else
+                if kind.relaxation else
                 "`gp.class_moves=relaxation` where the classes are bins of a slow count (the "
                 "learned moves between bins, rare per window and mostly a count jittering "
                 f"across an edge, mix them faster than the count moves), else {more}")  # fmt: skip
@@ -191,10 +192,10 @@ def verdict(
         classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the count "
                    "that holds the memory)" if network else
                    "`gp=classes` where the model declares classes")  # fmt: skip
-        if lumps == "classes":
+        if kind.classes:
             step = ("more classes or other bins (`model.classes`), or more transitions per "
                     "class (`collect.n_per_state`).")  # fmt: skip
-        elif history == "age":
+        elif kind.clock:
             step = clock_step(max_age, n_per_state, classes)
         else:
             step = f"classes finer than phi, {classes}, or the switch clock `gp=clock`."

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST
+from surrogate.kinds import decision_kind
 from surrogate.models.capabilities import burn_in_of
 
 if TYPE_CHECKING:
@@ -91,6 +92,11 @@ class Work:
         """Estimated wall time (s): steps x (fixed per step + cells x per cell-step)."""
         return cost_seconds(self.steps, self.cells, self.step_seconds, self.cell_step_seconds)
 
+    @property
+    def full(self) -> bool:
+        """Whether it runs the full model (``decision=full``), not a chain."""
+        return decision_kind(self.decision).full
+
     def describe(self) -> str:
         """One line: what, its size, the settings behind it, the costs per step and cell-step."""
         return (
@@ -119,21 +125,23 @@ def step_seconds(
     of the stages' own :class:`~surrogate.simulate.loop.Simulator` (``backend=auto``, as the
     stages run it) at each of :data:`PROBE_CELLS` cells; the fixed part is where the line
     through the two meets 0 cells, kept within [1/2, 1] of the smaller population's step
-    (timing noise). ``decision="full"`` runs the internal model; any other a two-state chain
-    at a constant psi, standing in for the abstraction (which may not exist yet). The random
-    state of torch is left as it was. Where the simulator cannot be built or run here,
-    :data:`STEP_SECONDS` (the run itself says why). Takes ~0.1 s for a network in a walker
-    (plus its SSA's compile, once per process, which the run pays anyway)."""
+    (timing noise). ``decision`` (a ``decision.name``) ``full`` runs the internal model; any
+    other a two-state chain at a constant psi, standing in for the abstraction (which may not
+    exist yet). The random state of torch is left as it was. Where the simulator cannot be
+    built or run here, :data:`STEP_SECONDS` (the run itself says why). Takes ~0.1 s for a
+    network in a walker (plus its SSA's compile, once per process, which the run pays
+    anyway)."""
     import torch
 
+    full = decision_kind(decision).full
     body = getattr(model, "body", None)
     key = (type(model).__qualname__, getattr(model, "name", ""), _sources(model),
            type(body).__qualname__, type(field).__qualname__, float(dt),
-           "full" if decision == "full" else "chain", str(device), torch.get_num_threads())  # fmt: skip
+           "full" if full else "chain", str(device), torch.get_num_threads())  # fmt: skip
     if key not in _STEP_CACHE:
         try:
             with torch.random.fork_rng(devices=_cuda_devices(device)):
-                _STEP_CACHE[key] = _measure_step(model, field, dt, decision, device)
+                _STEP_CACHE[key] = _measure_step(model, field, dt, full, device)
         except Exception as error:  # the run reports it; the estimate only falls back
             log.debug("the cost per step was not measured (%s): %g s assumed", error,
                       STEP_SECONDS)  # fmt: skip
@@ -155,8 +163,9 @@ def _cuda_devices(device: Any) -> list[int]:
     return [d.index or 0] if d.type == "cuda" else []
 
 
-def _measure_step(model: Any, field: Any, dt: float, decision: str, device: Any) -> float:
-    """Seconds per step at the cells of :data:`PROBE_CELLS`, reduced to the fixed part."""
+def _measure_step(model: Any, field: Any, dt: float, full: bool, device: Any) -> float:
+    """Seconds per step at the cells of :data:`PROBE_CELLS`, reduced to the fixed part, of the
+    full model (``full``) or a chain."""
     import time
 
     import torch
@@ -176,7 +185,7 @@ def _measure_step(model: Any, field: Any, dt: float, decision: str, device: Any)
 
     per_step = []
     for cells in PROBE_CELLS:
-        layer = FullDecision(model.internal) if decision == "full" else \
+        layer = FullDecision(model.internal) if full else \
             AbstractDecision(constant, model.internal)  # fmt: skip
         simulator = Simulator(model, layer, field, dt, dev, backend="auto")
         state = simulator.initial_state(cells, torch.zeros(start_size_of(model.body) or 2))

@@ -425,13 +425,17 @@ def describe_network(
 # ----------------------------------------------------------------------------------------------
 # items 3, 4 and 6 at fixed inputs
 
+#: :attr:`FixedInputs.method`: measured on the network's generator, or on simulated cells (the
+#: inspection's words; ``exact`` here is no decision=exact layer, issue 40)
+EXACT_METHOD, SIMULATED_METHOD = "exact", "simulated"
+
 
 @dataclass
 class FixedInputs:
     """Occupancy, settling, relaxation and memory of phi at the grid's fixed inputs.
 
     Attributes:
-        method: ``exact`` (the generator) or ``simulated``.
+        method: :data:`EXACT_METHOD` (the generator) or :data:`SIMULATED_METHOD`.
         occupancy, occupancy_se: ``(G,)`` the stationary P(phi = 1) at each grid point.
         settled: ``(G,)`` whether the point settled within the horizon.
         settle_phi: ``(G,)`` the settling time of phi's occupancy (s).
@@ -481,6 +485,17 @@ class FixedInputs:
     cells: int = 0
     notes: list[str] = field(default_factory=list)
     cost: float = 0.0
+
+    @property
+    def exact(self) -> bool:
+        """Whether it was measured on the generator (:data:`EXACT_METHOD`), not on cells."""
+        return self.method == EXACT_METHOD
+
+    @property
+    def settling_curves(self) -> bool:
+        """Whether the median point's curves over time were kept (the settling figure): phi's
+        curve, which every kept set of curves has."""
+        return self.curves.get("phi") is not None
 
 
 def _hazard_dict(h: Any, dt: float) -> dict[str, Any] | None:
@@ -614,7 +629,7 @@ def exact_fixed_inputs(
               "phi": phi[:, 0].tolist(), "phi_final": float(final_phi[0])}  # fmt: skip
     relaxation = {"tau_s": float(tau[0]), "se": 0.0, "bound": "",
                   "method": "1 / spectral gap of the generator"}  # fmt: skip
-    return FixedInputs("exact", occupancy, np.zeros_like(occupancy), settled, settle_phi,
+    return FixedInputs(EXACT_METHOD, occupancy, np.zeros_like(occupancy), settled, settle_phi,
                        settle_species.max(1),
                        {s: float(settle_species[0, j]) for j, s in enumerate(network.species)},
                        curves, horizon, relaxation, hazards, memory, switch, events,
@@ -894,7 +909,7 @@ def simulate_fixed_inputs(
                              for j, s in enumerate(network.species)}  # fmt: skip
         curves["final"] = dict(zip(network.species, curves["final"], strict=True))
     result = FixedInputs(
-        "simulated", settle["occupancy"], settle["occupancy_se"], settle["settled"],
+        SIMULATED_METHOD, settle["occupancy"], settle["occupancy_se"], settle["settled"],
         settle["phi"], settle["network"], species_settle, curves, t, relaxation,
         hazards, memory, switch, events, species_law, stopped, stopped_state, oscillation,
         int(n), notes, spent,
@@ -975,7 +990,7 @@ def stage_costs(settings: InspectSettings, measured_step: float) -> dict[str, An
     rows: dict[tuple, dict[str, Any]] = {}  # identical works (one per field) counted once
     for stage, works in (("collect", collect), ("train", train), ("simulate", runs)):
         for w in works:
-            at = replace(w, cell_step_seconds=measured_step) if w.decision == "full" else w
+            at = replace(w, cell_step_seconds=measured_step) if w.full else w
             key = (stage, w.what, w.cells, w.steps, w.cell_step_seconds)
             row = rows.setdefault(key, {"stage": stage, "what": w.what, "count": 0,
                                         "cells": w.cells, "steps": w.steps,
@@ -1115,7 +1130,7 @@ def recommend(
         return {"abstraction": None, "command": "", "yaml": "",
                 "reason": "phi does not switch both ways at the median inputs, so its memory "
                           "cannot be measured there"}  # fmt: skip
-    exact = fixed.method == "exact"
+    exact = fixed.exact
 
     def describe(h: dict[str, Any], v: int) -> str:
         name = internal.lump_names[v]
@@ -1415,7 +1430,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     }  # fmt: skip
     save_figure(out / INPUT_OCCUPANCY_FIGURE, plot_occupancy(grid, fixed, str(lump), low),
                 crop=False)  # fmt: skip
-    if fixed.curves and "phi" in fixed.curves:
+    if fixed.settling_curves:
         burn_in = burn.get("burn_in_s") if burn.get("applies") else None
         save_figure(out / SETTLING_FIGURE, plot_settling(fixed, burn_in), crop=False)
     save_figure(out / MEMORY_FIGURE, plot_memory(fixed, dt, internal.lump_names), crop=False)
@@ -1447,7 +1462,7 @@ def _stopped(summary: dict[str, Any], fixed: FixedInputs) -> str:
     """The refusal of a network that runs down to a state where no reaction can fire: phi
     stops changing there whatever the lump, so no lump can be learned."""
     state = ", ".join(f"{k} = {v}" for k, v in (fixed.stopped_state or {}).items())
-    exact = fixed.method == "exact"
+    exact = fixed.exact
     who = "of the stationary probability lies" if exact else "of the cells sit"
     return (
         f"the network stops: at stationarity at the median inputs, {fixed.stopped:.1%} "

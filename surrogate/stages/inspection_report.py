@@ -269,7 +269,7 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
                      f"{b['needed_s']:g} s{bound}: {verdict}.")  # fmt: skip
     else:
         lines.append(f"- Burn-in: {b['text']}.")
-    if fixed.curves and "phi" in fixed.curves:
+    if fixed.settling_curves:
         lines.append(f"\n![settling]({SETTLING_FIGURE})")
     c = summary["cost"]
     lines += ["", "## Cost", ""]

@@ -316,10 +316,9 @@ def _verdict(
         diagnostic = class_diagnostic_by_lump(metrics["class_diagnostic"], tr.setup.model.internal)
     v = verdict(diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names,
                 failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
-                tolerance=DURATION_TOLERANCE, lumps=tr.lumps, history=tr.history,
+                tolerance=DURATION_TOLERANCE, kind=tr.kind,
                 network=isinstance(tr.setup.model.internal, NetworkInternalModel),
                 n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
-                class_moves=tr.class_moves,
                 max_age=tr.max_age if tr.kind.clock else None)  # fmt: skip
     return v.markdown()
 

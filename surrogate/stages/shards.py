@@ -63,6 +63,7 @@ from surrogate.simulate.recorders import (
     duration_histogram_rows,
     observable_schema,
     read_metadata,
+    records_durations,
     with_metadata,
 )
 from surrogate.simulate.speed import cell_steps_per_s
@@ -290,7 +291,7 @@ def merge_runs(
                                       keep=None if every else keep)  # fmt: skip
             written.append(out / DURATIONS)
         n_durations = n_rows
-        if metas and mode != "none":
+        if metas and records_durations(mode):
             n_durations = _merge_duration_histograms(dirs, out, facts)
             written.append(out / DURATION_HISTOGRAM)
     except BaseException:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from surrogate.kinds import chain_kind
 from surrogate.stages.advice import verdict
 
 
@@ -18,12 +19,15 @@ def _outside(share: float) -> dict[str, Any]:
                              "trained": [0.0, 0.1]}}}  # fmt: skip
 
 
-def _read(**changes: Any):
+def _read(lumps: str = "phi", history: str = "none", class_moves: str = "learned",
+          **changes: Any):  # fmt: skip
+    """The verdict of a run of the chain the config's strings name (gp.lumps, gp.history,
+    gp.class_moves), with ``changes`` to the measurements."""
     args: dict[str, Any] = {
         "diagnostic": {"reference": "empirical", "phi0": _score(0.0), "phi1": _score(0.005)},
         "lump_names": ("off", "on"), "failures": {"gaussian": []},
         "outside": {"gaussian": _outside(0.0)}, "outside_warning": 0.01, "tolerance": 0.03,
-        "lumps": "phi", "history": "none", "network": True, "n_per_state": 10_000,
+        "kind": chain_kind(lumps, history, class_moves), "network": True, "n_per_state": 10_000,
     }  # fmt: skip
     return verdict(**{**args, **changes})
 
