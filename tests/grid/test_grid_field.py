@@ -12,7 +12,7 @@ from surrogate.config import build_field, group_config
 from surrogate.errors import ConfigError
 from surrogate.grid import GridField
 from surrogate.stages import simulate
-from surrogate.stages.settings import SimulateSettings
+from surrogate.stages.settings import CollectSettings, SimulateSettings, TrainSettings
 
 GOOD = {"diffusion": 8e-4, "initial": 0.1, "uptake": {"vmax": 1.6e5, "km": 0.01}}
 
@@ -136,3 +136,14 @@ def test_the_channel_runs_through_the_simulate_stage(compose_cfg) -> None:
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["loop_backend"] == "numba"  # backend=auto: the per-cell kernel
     assert (out / "observables.parquet").exists()
+
+
+@pytest.mark.parametrize("stage", ["collect", "train"])
+def test_collect_and_train_in_a_coupled_field_are_refused_naming_the_way(compose_cfg, stage):
+    """The abstraction is collected and trained in a given field and run in the coupled one;
+    a coupled training field is refused before any simulation (it ran, then blamed phi's
+    occupancy)."""
+    settings = {"collect": CollectSettings, "train": TrainSettings}[stage]
+    with pytest.raises(ConfigError, match=r"collect runs in a given field; "
+                       r"field=channel_consumed \(GridField\) is coupled.*field=gaussian"):  # fmt: skip
+        settings.from_config(compose_cfg(stage, ["field=channel_consumed"]))

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from surrogate.config import non_negative, positive, to_dict
 from surrogate.errors import ConfigError
+from surrogate.grid.coupled import is_coupled
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import feature_names_of
 from surrogate.stages.settings.common import (
@@ -46,6 +47,13 @@ class CollectSettings:
         null (``n_per_state``, ``n_cells``, ``record_every``) is the model's default, which
         fits its cost (``Model.collect_defaults``)."""
         setup = ModelSetup.from_config(cfg)
+        if is_coupled(setup.field):  # the perturbed cells would shape the field they read
+            raise ConfigError(
+                f"collect runs in a given field; field={setup.field_name} "
+                f"({type(setup.field).__name__}) is coupled (the cells change it): collect and "
+                f"train in a given field (e.g. field=gaussian, experiment=band's "
+                f"decision.train_field) and run the abstraction in the coupled one"
+            )
         given = to_dict(cfg["collect"])
         c = dict(given)
         defaults = setup.model.collect_defaults(setup.dt)
