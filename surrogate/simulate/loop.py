@@ -432,13 +432,16 @@ class Simulator:
         """:meth:`advance` on the per-cell kernel in a coupled field: one step per call, the
         inputs read before it (as :meth:`_read_outside` reads them for the torch step) and
         the fields stepped after it (:meth:`_step_fields`), the step's own random numbers."""
-        t = state.step * self.dt
-        if state.inputs is None:  # the inputs' own tensor hands each step's read to the kernel
-            state.inputs = self.body.inputs(state.body, self.field, t)
         state.make_private()
         for s in range(steps):
             u, u64, z = self.draw_block(state.n_cells, 1)
-            state.inputs.copy_(self.body.inputs(state.body, self.field, state.step * self.dt))
+            # the state's own inputs tensor hands each step's read to the kernel
+            x = self._read_outside(state.body, state.step * self.dt)
+            assert x is not None  # a coupled field is read outside
+            if state.inputs is None:
+                state.inputs = x.contiguous()
+            else:
+                state.inputs.copy_(x)
             self.kernel.advance(state, out[s : s + 1], u, u64, z)
             self._step_fields(state)
         return out

@@ -180,10 +180,11 @@ def test_only_a_k_lumps_chain_starts_from_its_stationary_law() -> None:
     """``decision.initial``: internal for any chain, stationary for a K-lumps chain only."""
     from types import SimpleNamespace
 
+    from surrogate.kinds import chain_kind
     from surrogate.stages.settings import resolve_start
 
-    relaxing = SimpleNamespace(lumps="classes", class_moves="relaxation")
-    two_state = SimpleNamespace(lumps="phi", class_moves="learned")
+    relaxing = SimpleNamespace(kind=chain_kind("classes", class_moves="relaxation"))
+    two_state = SimpleNamespace(kind=chain_kind("phi"))
     assert resolve_start("internal", relaxing, "decision.initial") == "internal"  # type: ignore[arg-type]
     assert resolve_start("stationary", relaxing, "x") == "stationary"  # type: ignore[arg-type]
     assert resolve_start("internal", two_state, "x") == "internal"  # type: ignore[arg-type]

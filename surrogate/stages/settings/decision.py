@@ -15,7 +15,6 @@ from surrogate.kinds import (
     DECISION_KINDS,
     ChainKind,
     DecisionKind,
-    chain_kind,
     decision_identity,
     decision_kind,
     exact_chain,
@@ -147,6 +146,5 @@ def resolve_start(value: Any, train: TrainSettings, where: str) -> str:
     paid, but the start is only as good as the chain's stationary law; docs/fidelity.md)."""
     if value not in STARTS:
         raise ConfigError(f"{where} must be one of {list(STARTS)}, got {value!r}")
-    # the kind from the strings, not train.kind: callers may pass any object that has them
-    chain_kind(train.lumps, class_moves=train.class_moves).check_start(str(value), where)
+    train.kind.check_start(str(value), where)
     return str(value)
