@@ -50,6 +50,8 @@ from surrogate.validation import known_keys
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
 GP_CLOCK = ("history", "max_age", "clock_bins")
 #: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
+#: gp.mean's default: a fit with it keeps the identity it had before the key existed
+DEFAULT_MEAN = "constant"
 GP_CLASSES = ("lumps", "min_events", "max_label_weight", "class_moves", "relaxation")
 #: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
 #: these shipped recipes: the first where the model declares classes finer than phi, else the second
@@ -106,6 +108,8 @@ class ChainKind:
         kinds read are dropped, so each fit keeps the identity (and the directory) it had
         before those kinds existed. The K-lumps options are read by :class:`KLumps` only."""
         drop = (() if self.clock else GP_CLOCK) + (() if self.classes else GP_CLASSES)
+        if gp.get("mean", DEFAULT_MEAN) == DEFAULT_MEAN:  # fits before gp.mean keep theirs
+            drop += ("mean",)
         return {k: v for k, v in gp.items() if k not in drop}
 
     def label(self) -> dict[str, Any]:
@@ -454,6 +458,7 @@ def mode_kind(name: str) -> DecisionMode:
 __all__ = [
     "AUTO_RECIPES",
     "DECISION_KINDS",
+    "DEFAULT_MEAN",
     "GP_CLASSES",
     "GP_CLOCK",
     "LOOKUP",

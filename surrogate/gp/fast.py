@@ -8,7 +8,7 @@ compiled simulation step and runs on any device).
 
 Whitened variational strategy (gpytorch ``VariationalStrategy``), for one classifier with inducing
 points Z (M), K_zz + jitter I = L L^T, variational q(u) = N(m_u, S) in whitened coordinates and a
-constant prior mean c:
+constant prior mean c (a linear one, c + s^T x on the raw inputs, adds its slope term):
 
     a(x)   = L^{-1} k_Z(x)                                   (M,)
     mean   = c + a^T m_u
@@ -92,10 +92,23 @@ def _factors(fitted: FittedClassifier) -> dict[str, Any]:
         "lengthscale": lengthscale,
         "g": g,
         "d": d,
-        "mean": float(fitted.model.mean_module.constant.detach()),
+        **_prior_mean(fitted),
         "prior_var": outputscale + jitter,
         "outputscale": outputscale,
     }
+
+
+def _prior_mean(fitted: FittedClassifier) -> dict[str, Any]:
+    """The prior mean c + w^T x_normalised as raw-input terms: ``mean`` (c less the shift's
+    share) and ``slope`` (``d``; None for a constant mean)."""
+    module = fitted.model.mean_module
+    if isinstance(module, gpytorch.means.ConstantMean):
+        return {"mean": float(module.constant.detach()), "slope": None}
+    weights = module.weights.detach().reshape(-1).to(torch.float64)  # normalised-input slopes
+    norm = fitted.normaliser
+    slope = weights / norm.std.detach().to(torch.float64)
+    bias = float(module.bias.detach()) - float((slope * norm.mean.detach()).sum())
+    return {"mean": bias, "slope": slope}
 
 
 class CachedPsi:
@@ -159,6 +172,14 @@ class CachedPsi:
         self.g = torch.stack(g).to(dtype)  # (2, M, M + 1), outputscale folded in
         self.d = torch.stack(d).to(dtype)  # (2, M) eigenvalues of S - I
         self.mean = torch.tensor([phi0["mean"], phi1["mean"]], dtype=dtype)
+        # a linear prior mean: (2, d) slopes on the raw inputs (None: constant, no extra op)
+        slopes = [f.get("slope") for f in (phi0, phi1)]
+        self.mean_slope: Tensor | None = None
+        if any(v is not None for v in slopes):
+            d_in = phi0["z"].shape[-1]
+            self.mean_slope = torch.stack([
+                torch.zeros(d_in, dtype=torch.float64) if v is None else v.cpu() for v in slopes
+            ]).to(dtype)  # fmt: skip
         self.prior_var = torch.tensor([phi0["prior_var"], phi1["prior_var"]], dtype=dtype)
         self.to(phi0["z"].device)
 
@@ -179,6 +200,8 @@ class CachedPsi:
         """Move the cached factors to ``device`` in place; return self."""
         for name in ("x_gain", "x_bias", "w_aug", "g", "d", "mean", "prior_var"):
             setattr(self, name, getattr(self, name).to(device))
+        if self.mean_slope is not None:
+            self.mean_slope = self.mean_slope.to(device)
         return self
 
     def _kernel(self, e: Tensor) -> Tensor:
@@ -207,6 +230,9 @@ class CachedPsi:
         n_ind = self.n_inducing
         y = out[..., :n_ind]  # V^T a
         mean = out[..., n_ind] + (self.mean[sel, None] if c is None else self.mean[c])
+        if self.mean_slope is not None:  # a linear prior mean: each classifier's slope on x
+            trend = torch.matmul(x, self.mean_slope.mT).mT if c is None else x @ self.mean_slope[c]
+            mean = mean + trend
         var = torch.matmul(y * y, self.d[sel].unsqueeze(-1)).squeeze(-1)  # a^T (S - I) a
         return mean, var + (self.prior_var[sel, None] if c is None else self.prior_var[c])
 

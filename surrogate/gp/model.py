@@ -13,6 +13,9 @@ from torch import Tensor
 from surrogate.errors import ConfigError
 
 KERNELS = ("rbf", "matern12", "matern32", "matern52")
+#: the GP's prior mean of the latent f: a constant, or linear in the (normalised) inputs, which
+#: carries the trend into sparsely trained inputs instead of reverting to one constant there
+MEANS = ("constant", "linear")
 
 _MATERN_NU = {"matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
 _NO_BATCH = torch.Size()
@@ -47,6 +50,7 @@ class PsiGP(gpytorch.models.ApproximateGP):
         learn_inducing: optimise the inducing locations together with the hyperparameters.
         natural: use a ``NaturalVariationalDistribution`` (to be trained with
             ``gpytorch.optim.NGD``) instead of a ``CholeskyVariationalDistribution``.
+        mean: one of :data:`MEANS`, the prior mean of f.
     """
 
     def __init__(
@@ -56,12 +60,15 @@ class PsiGP(gpytorch.models.ApproximateGP):
         ard: bool = True,
         learn_inducing: bool = True,
         natural: bool = False,
+        mean: str = "constant",
     ) -> None:
         if inducing_points.dim() not in (2, 3) or inducing_points.shape[-2] < 1:
             raise ConfigError(
                 f"gp.n_inducing: inducing points must be a non-empty (M, d) tensor, "
                 f"got shape {tuple(inducing_points.shape)}"
             )
+        if mean not in MEANS:
+            raise ConfigError(f"gp.mean: unknown mean {mean!r}; allowed values are {MEANS}")
         batch = inducing_points.shape[:-2]
         # Validate before building anything so the error names the setting, not a gpytorch class.
         covar_module = make_kernel(kernel, ard, n_dims=inducing_points.shape[-1], batch_shape=batch)
@@ -84,7 +91,12 @@ class PsiGP(gpytorch.models.ApproximateGP):
         self.kernel_name = kernel
         self.ard = ard
         self.natural = natural
-        self.mean_module = gpytorch.means.ConstantMean(batch_shape=batch)
+        self.mean_name = mean
+        self.mean_module: gpytorch.means.Mean = (
+            gpytorch.means.ConstantMean(batch_shape=batch)
+            if mean == "constant"
+            else gpytorch.means.LinearMean(inducing_points.shape[-1], batch_shape=batch)
+        )
         self.covar_module = covar_module
 
     def forward(self, x: Tensor) -> gpytorch.distributions.MultivariateNormal:

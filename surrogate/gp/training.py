@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp.metrics import classification_metrics
-from surrogate.gp.model import KERNELS, PsiGP
+from surrogate.gp.model import KERNELS, MEANS, PsiGP
 from surrogate.validation import known_keys
 
 PREDICT_CHUNK = 65_536
@@ -66,12 +66,16 @@ class GPSettings:
     #: (e.g. ``[500, 25]``: a coarse axis for the switch clock); 0: no binning (minibatches)
     bins: int | tuple[int, ...] = 0
     seed: int = 0
+    #: the latent f's prior mean (:data:`~surrogate.gp.model.MEANS`)
+    mean: str = "constant"
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel, str) or self.kernel not in KERNELS:
             raise ConfigError(
                 f"gp.kernel: unknown kernel {self.kernel!r}; allowed values are {KERNELS}"
             )
+        if not isinstance(self.mean, str) or self.mean not in MEANS:
+            raise ConfigError(f"gp.mean: unknown mean {self.mean!r}; allowed values are {MEANS}")
         for name in ("ard", "learn_inducing", "natural_gradient"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"gp.{name} must be true or false, got {getattr(self, name)!r}")
@@ -281,6 +285,7 @@ class FittedClassifier:
             ard=settings.ard,
             learn_inducing=settings.learn_inducing,
             natural=settings.natural_gradient,
+            mean=settings.mean,
         )
         model.load_state_dict(model_state, strict=True)
         likelihood = gpytorch.likelihoods.BernoulliLikelihood()
@@ -431,6 +436,7 @@ def fit_classifier(
         ard=settings.ard,
         learn_inducing=settings.learn_inducing,
         natural=settings.natural_gradient,
+        mean=settings.mean,
     ).to(device)
     likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(device)
     mll = gpytorch.mlls.VariationalELBO(likelihood, model, num_data=n_train)
@@ -556,7 +562,8 @@ def fit_classifiers(
     if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS:
         return one_by_one()
     model = PsiGP(torch.stack([p.inducing for p in preps]).clone(), kernel=settings.kernel,
-                  ard=settings.ard, learn_inducing=settings.learn_inducing).to(device)  # fmt: skip
+                  ard=settings.ard, learn_inducing=settings.learn_inducing,
+                  mean=settings.mean).to(device)  # fmt: skip
     # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
     # (gpytorch's CholeskyVariationalDistribution initialisation from the whitened prior)
     strategy = model.variational_strategy
@@ -656,7 +663,8 @@ def _split(
     for i, prep in enumerate(preps):
         single = PsiGP(state["variational_strategy.inducing_points"][i].clone(),
                        kernel=settings.kernel, ard=settings.ard,
-                       learn_inducing=settings.learn_inducing).to(prep.z_train.device)  # fmt: skip
+                       learn_inducing=settings.learn_inducing,
+                       mean=settings.mean).to(prep.z_train.device)  # fmt: skip
         target = single.state_dict()
         part = {}
         for k, ref in target.items():

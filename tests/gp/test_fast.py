@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import torch
 
-from surrogate.errors import NumericalError
+from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp import GPSettings, PsiClassifier, fit_psi
 from surrogate.gp.fast import CachedPsi
 from surrogate.models.ecoli import EcoliModel
@@ -198,3 +198,34 @@ def test_empty_batch(psi: PsiClassifier) -> None:
     phi, z = _queries(10)
     fast = CachedPsi.from_classifier(psi)
     assert fast(phi[:0], z[:0]).shape == (0,)
+
+
+@pytest.mark.parametrize("d", [1, 3])
+def test_linear_prior_mean(d: int) -> None:
+    """gp.mean=linear: the cached form carries the slope, on both query paths and in latent."""
+    data, names = _data_d(d)
+    torch.manual_seed(0)
+    settings = GPSettings(n_inducing=15, epochs=3, batch_size=300, mean="linear")
+    psi = fit_psi(data, names, settings, progress=False)
+    assert all(c.model.mean_name == "linear" for c in psi.classifiers)
+    fast = CachedPsi.from_classifier(psi)
+    assert fast.mean_slope is not None and fast.mean_slope.shape == (2, d)
+    gen = torch.Generator().manual_seed(5)
+    scales = 10.0 ** torch.arange(d, dtype=torch.float32)
+    z = (4.0 * torch.rand(3000, d, generator=gen) - 2.0) * scales  # well beyond the data
+    phi = torch.randint(0, 2, (3000,), generator=gen)
+    expected = psi(phi, z)
+    for split_rows in (1, 10**9):
+        fast.split_rows = split_rows
+        assert (fast(phi, z) - expected).abs().max().item() < TOL
+    mean, _ = fast.latent(z)
+    for c, fitted in enumerate(psi.classifiers):
+        assert (mean[c] - fitted.latent(z)[0]).abs().max().item() < 1e-4
+    # a constant mean has no slope term at all (the hot path gains no op)
+    const = fit_psi(data, names, GPSettings(n_inducing=15, epochs=1, batch_size=300), progress=False)
+    assert CachedPsi.from_classifier(const).mean_slope is None
+
+
+def test_unknown_mean_is_refused() -> None:
+    with pytest.raises(ConfigError, match=r"gp.mean: unknown mean 'quadratic'"):
+        GPSettings(mean="quadratic")

@@ -190,7 +190,7 @@ def test_state_format_is_checked(psi: PsiClassifier) -> None:
 
 
 def test_round_trip_with_other_settings(tmp_path: Path) -> None:
-    # Matern kernel, no ARD, fixed inducing points, natural gradients: all must be rebuilt.
+    # Matern kernel, no ARD, fixed inducing points, natural gradients, a linear mean: all rebuilt.
     settings = GPSettings(
         kernel="matern32",
         ard=False,
@@ -199,6 +199,7 @@ def test_round_trip_with_other_settings(tmp_path: Path) -> None:
         natural_gradient=True,
         epochs=2,
         batch_size=200,
+        mean="linear",
     )
     d = transitions(600, seed=2)
     psi = fit_psi(d, INPUTS, settings, progress=False)

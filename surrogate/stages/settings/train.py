@@ -18,7 +18,14 @@ from surrogate.gp.class_relaxation import DEFAULT_CELLS, DEFAULT_LAGS
 from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
 from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
-from surrogate.kinds import TWO_STATE, ChainKind, fit_chain, is_auto, resolve_auto_lumps
+from surrogate.kinds import (
+    DEFAULT_MEAN,
+    TWO_STATE,
+    ChainKind,
+    fit_chain,
+    is_auto,
+    resolve_auto_lumps,
+)
 from surrogate.models.capabilities import start_size_of
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
@@ -246,7 +253,9 @@ class TrainSettings:
         label = (self.setup.label() if isinstance(self.source, CollectSettings)
                  else {"table": self.source.path.stem})  # fmt: skip
         return {**label, "inputs": "+".join(self.inputs), "kernel": self.gp.kernel,
-                "inducing": self.gp.n_inducing, **self.kind.label(), "seed": self.seed}  # fmt: skip
+                "inducing": self.gp.n_inducing, **self.kind.label(),
+                **({} if self.gp.mean == DEFAULT_MEAN else {"mean": self.gp.mean}),
+                "seed": self.seed}  # fmt: skip
 
     @functools.cached_property
     def fit_directory(self) -> Path:
