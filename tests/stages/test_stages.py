@@ -508,6 +508,7 @@ def test_reproduce_writes_the_report_of_every_field(compose_cfg) -> None:
     report = (out / "report.md").read_text()  # the exact chain: adapted cells, not a bound
     assert "The exact lumped psi (cells adapted to their current input)" in report
     assert "best two-state" not in report and "best any" not in report
+    assert "| sparse | sparse where |" in report  # the density check's column beside the range
     manifest = json.loads((out / "manifest.json").read_text())
     assert set(manifest["evaluations"]) == set(manifest["exact"]) == {"gaussian", "linear",
                                                                         "dynamic"}  # fmt: skip
