@@ -11,6 +11,16 @@ it every record interval or chunk of steps), on the device, with no host sync un
 :meth:`SupportMonitor.report`; the share is the fraction of the sampled cell-steps, an unbiased
 estimate of the share of all cell-steps.
 
+Inside the range, training rows may still be few: a learned psi there is the GP's guess between
+distant rows (an input range the training field crossed quickly, say). So a fit also stores
+:class:`TrainingHistogram`: its rows per state over equal-width bins of the trained range (the
+joint histogram for one or two inputs, each input's own for more). A bin is *sparse* where a
+state has fewer rows than :func:`min_rows_of` asks (by default enough rows for 25 expected
+switches at that state's switching share, a relative standard error of 20 % on a rate estimated
+from that bin alone), and the monitor also counts the sampled cell-steps inside the range whose
+inputs fall in a sparse bin (``share_sparse``) and where the most visited sparse region lies
+(``sparse_where``). A fit made before the histogram was stored is checked by range only.
+
 Example:
     >>> import torch
     >>> support = TrainedRange(("dG",), (-1.0,), (1.0,))
@@ -22,19 +32,179 @@ Example:
 
 from __future__ import annotations
 
+import itertools
+import json
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
 log = logging.getLogger(__name__)
 
-#: the default share of cell-steps outside the trained range above which a run warns
+#: the default share of cell-steps outside the trained range (or in a sparsely trained bin)
+#: above which a run warns
 OUTSIDE_WARNING = 0.01
+
+#: equal-width bins per input of a fit's :class:`TrainingHistogram`: one input (64), two
+#: inputs (16 x 16, the joint), more (64 each, alone). At 10^5 rows per state that is ~1,560
+#: rows per state and bin on average for one input, ~390 for two, against a default minimum
+#: of 475 at a switching share of 0.05: with two inputs much of a range may read as sparse
+#: (a rate from one bin's rows alone is that uncertain; the GP's smoothing across bins,
+#: which this check does not credit, does better).
+HISTOGRAM_BINS = {1: 64, 2: 16}
+MARGINAL_BINS = 64
+
+#: expected switches a bin's rows of a state must hold (by default) to count as trained: a
+#: Bernoulli rate p estimated from n rows has relative standard error sqrt((1 - p) / (n p)),
+#: <= 1 / sqrt(25) = 20 % at n >= 25 (1 - p) / p
+MIN_SWITCHES = 25
+
+#: the rows a bin needs of a state that never (or always) switched in training, where the
+#: rule above has no rate to go by
+MIN_ROWS_NO_RATE = 100
+
+
+def bin_edges(lo: float, hi: float, bins: int, device: torch.device | str = "cpu") -> Tensor:
+    """The ``bins + 1`` equal-width edges of ``[lo, hi]`` (float64), for reports."""
+    steps = torch.arange(bins + 1, dtype=torch.float64, device=device)
+    edges = lo + (hi - lo) * (steps / bins)
+    edges[-1] = hi
+    return edges
+
+
+def bin_of(z: Tensor, lo: float, hi: float, bins: int) -> Tensor:
+    """Each value's bin among ``bins`` equal-width bins of ``[lo, hi]``: ``floor((z - lo)
+    bins / (hi - lo))`` (float64, correctly rounded alike on every device; the training rows
+    and the monitor both bin by it), the last bin closed; values below ``lo`` (or NaN) give 0
+    and above ``hi`` the last bin (the range check tells them apart). Arithmetic rather than
+    ``bucketize``: 7x cheaper on a CPU at 10^6 cells."""
+    scale = bins / (hi - lo) if hi > lo else 0.0
+    pos = torch.nan_to_num((z.to(torch.float64) - lo) * scale, nan=0.0)
+    return pos.floor_().clamp_(0, bins - 1).to(torch.int64)
+
+
+@dataclass(frozen=True)
+class TrainingHistogram:
+    """A fit's training rows per state over equal-width bins of each input's trained range.
+
+    Attributes:
+        names: the inputs (in the fit's column order; a switch clock excluded).
+        lo: each input's smallest training value (the range's, :class:`TrainedRange`).
+        hi: each input's largest training value.
+        bins: bins per input.
+        joint: True: one histogram over all inputs (row-major flat index over ``bins``);
+            False: each input's own, concatenated.
+        counts: per state phi = 0, 1: the rows per bin (flat, as ``joint`` says).
+        switching: per state: the share of its rows whose phi changed (the rate the default
+            minimum of rows is derived from).
+    """
+
+    names: tuple[str, ...]
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
+    bins: tuple[int, ...]
+    joint: bool
+    counts: tuple[tuple[int, ...], ...]
+    switching: tuple[float, ...]
+
+    @classmethod
+    def of_rows(
+        cls, values: Any, phi: Any, switched: Any, names: Sequence[str]
+    ) -> TrainingHistogram:
+        """The histogram of training rows ``values`` (``n x d``, columns ``names``), their
+        states ``phi`` (0/1) and whether each switched."""
+        z = torch.tensor(np.asarray(values, dtype=np.float64)).reshape(-1, len(names))
+        state = torch.tensor(np.asarray(phi, dtype=np.int64)).reshape(-1)
+        moved = torch.tensor(np.asarray(switched, dtype=bool)).reshape(-1)
+        d = len(names)
+        joint = d <= 2
+        bins = (HISTOGRAM_BINS[d],) * d if joint else (MARGINAL_BINS,) * d
+        lo = z.min(0).values.tolist() if z.shape[0] else [0.0] * d
+        hi = z.max(0).values.tolist() if z.shape[0] else [0.0] * d
+        hist = cls(tuple(names), tuple(lo), tuple(hi), bins, joint, ((),), ())
+        flat = hist.flat_bins(z)
+        size = hist.n_bins
+        counts, switching = [], []
+        for s in (0, 1):
+            mine = state == s
+            if joint:
+                c = torch.bincount(flat[mine], minlength=size)
+            else:
+                c = torch.bincount(flat[mine].reshape(-1), minlength=size)
+            counts.append(tuple(int(v) for v in c.tolist()))
+            n = int(mine.sum())
+            switching.append(float(moved[mine].sum()) / n if n else 0.0)
+        return cls(tuple(names), tuple(lo), tuple(hi), bins, joint, tuple(counts),
+                   tuple(switching))  # fmt: skip
+
+    @property
+    def n_bins(self) -> int:
+        """The flat length of one state's counts."""
+        return math.prod(self.bins) if self.joint else sum(self.bins)
+
+    def edges(self, device: torch.device | str = "cpu") -> list[Tensor]:
+        """Each input's bin edges."""
+        return [bin_edges(lo, hi, b, device)
+                for lo, hi, b in zip(self.lo, self.hi, self.bins, strict=True)]  # fmt: skip
+
+    def flat_bins(self, z: Tensor) -> Tensor:
+        """Each row's flat bin: ``n`` (joint) or ``n x d`` (each input's, offset into the
+        concatenation); ``z`` float64 ``n x d``."""
+        idx = [bin_of(z[:, i], lo, hi, b)
+               for i, (lo, hi, b) in enumerate(zip(self.lo, self.hi, self.bins, strict=True))]  # fmt: skip
+        if self.joint:
+            flat = idx[0]
+            for i, b in zip(idx[1:], self.bins[1:], strict=True):
+                flat = flat * b + i
+            return flat
+        offsets = [0, *itertools.accumulate(self.bins)][:-1]
+        return torch.stack([i + o for i, o in zip(idx, offsets, strict=True)], 1)
+
+    def min_rows(self, min_rows: int | None = None) -> tuple[int, ...]:
+        """Per state, the rows a bin needs (:func:`min_rows_of`)."""
+        return tuple(min_rows_of(p, min_rows) for p in self.switching)
+
+    def sparse(self, min_rows: int | None = None) -> tuple[bool, ...]:
+        """Per flat bin: whether any state has fewer rows there than :meth:`min_rows`."""
+        need = self.min_rows(min_rows)
+        return tuple(any(c[b] < n for c, n in zip(self.counts, need, strict=True))
+                     for b in range(self.n_bins))  # fmt: skip
+
+    def to_json(self) -> dict[str, Any]:
+        """A plain dict for a manifest (:meth:`from_json` reads it back)."""
+        return {"inputs": list(self.names), "lo": list(self.lo), "hi": list(self.hi),
+                "bins": list(self.bins), "joint": self.joint,
+                "counts": [list(c) for c in self.counts],
+                "switching": list(self.switching)}  # fmt: skip
+
+    @classmethod
+    def from_json(cls, obj: Mapping[str, Any]) -> TrainingHistogram:
+        """The histogram :meth:`to_json` wrote; ArtefactError-free: a KeyError/ValueError for
+        anything else (the caller falls back to the range)."""
+        hist = cls(tuple(str(n) for n in obj["inputs"]), tuple(float(v) for v in obj["lo"]),
+                   tuple(float(v) for v in obj["hi"]), tuple(int(b) for b in obj["bins"]),
+                   bool(obj["joint"]), tuple(tuple(int(v) for v in c) for c in obj["counts"]),
+                   tuple(float(p) for p in obj["switching"]))  # fmt: skip
+        if len(hist.counts) != 2 or any(len(c) != hist.n_bins for c in hist.counts):
+            raise ValueError("the histogram's counts do not match its bins")
+        return hist
+
+
+def min_rows_of(switching: float, min_rows: int | None = None) -> int:
+    """The rows a bin needs of a state whose training rows switched at share ``switching``:
+    ``min_rows`` where given, else ``ceil(MIN_SWITCHES (1 - p) / p)`` (a rate near p from
+    that many rows has a relative standard error <= 20 %), ``MIN_ROWS_NO_RATE`` where p is 0
+    or 1."""
+    if min_rows is not None:
+        return int(min_rows)
+    if not 0.0 < switching < 1.0:
+        return MIN_ROWS_NO_RATE
+    return math.ceil(round(MIN_SWITCHES * (1.0 - switching) / switching, 6))  # 475.0000001: 475
 
 
 @dataclass(frozen=True)
@@ -50,17 +220,37 @@ class TrainedRange:
     names: tuple[str, ...]
     lo: tuple[float, ...]
     hi: tuple[float, ...]
+    #: the training rows' histogram over the same inputs (None: a fit made before it was
+    #: stored, checked by range only)
+    histogram: TrainingHistogram | None = None
+    #: the rows a bin needs per state (None: :func:`min_rows_of`'s default)
+    min_rows: int | None = None
 
     @classmethod
     def from_domain(
-        cls, domain: Mapping[str, Sequence[float]], names: Sequence[str]
+        cls,
+        domain: Mapping[str, Sequence[float]],
+        names: Sequence[str],
+        histogram: Mapping[str, Any] | None = None,
+        min_rows: int | None = None,
     ) -> TrainedRange:
-        """From a fit's ``domain`` (``{name: (min, max)}``) over the inputs ``names``."""
+        """From a fit's ``domain`` (``{name: (min, max)}``) over the inputs ``names`` and its
+        ``support_histogram`` (:meth:`TrainingHistogram.to_json`; ignored where absent, not
+        readable or over other inputs: the range alone is checked then)."""
         missing = [n for n in names if n not in domain]
         if missing:
             raise KeyError(f"the fit's domain has no range for {missing}")
+        hist = None
+        if histogram is not None:
+            try:
+                hist = TrainingHistogram.from_json(histogram)
+            except (KeyError, TypeError, ValueError) as exc:
+                log.warning("the fit's support histogram is unreadable (%s): checking the "
+                            "trained range only", exc)  # fmt: skip
+            if hist is not None and hist.names != tuple(names):
+                hist = None  # over other inputs than the decision's: range only
         return cls(tuple(names), tuple(float(domain[n][0]) for n in names),
-                   tuple(float(domain[n][1]) for n in names))  # fmt: skip
+                   tuple(float(domain[n][1]) for n in names), hist, min_rows)  # fmt: skip
 
 
 def trained_range_of(decision: object) -> TrainedRange | None:
@@ -70,12 +260,13 @@ def trained_range_of(decision: object) -> TrainedRange | None:
 
 
 class SupportMonitor:
-    """Counts of sampled cell-steps outside each block's trained range (see the module doc).
+    """Counts of sampled cell-steps outside each block's trained range, and inside it in a
+    sparsely trained bin where the fit stored its histogram (see the module doc).
 
     Args:
         blocks: per run, ``(cells, featurize, trained range)``: its slice of the population,
             its decision layer's ``featurize`` (``x (n x d_x) -> z (n x d)``; None: identity)
-            and the range its ``z`` was trained on.
+            and the range its ``z`` was trained on (with its histogram, where stored).
     """
 
     def __init__(
@@ -84,13 +275,18 @@ class SupportMonitor:
     ) -> None:
         self.blocks = list(blocks)
         self._counts: list[dict[str, Tensor]] | None = None
+        #: per block: its histogram's sparse bins on the device (None: range only)
+        self._density: list[Tensor | None] = []
 
     def observe(self, x: Tensor) -> None:
         """Count the cells of every block whose features of ``x`` (``n x d_x``, the body's
-        inputs of the last step) lie outside the block's trained range."""
+        inputs of the last step) lie outside the block's trained range, or inside it in a
+        sparse bin; batched tensor ops on ``x``'s device, no host sync."""
         if self._counts is None:
             self._counts = [self._zeros(r, x.device) for _, _, r in self.blocks]
-        for (cells, featurize, trained), acc in zip(self.blocks, self._counts, strict=True):
+            self._density = [self._sparse_bins(r, x.device) for _, _, r in self.blocks]
+        blocks = zip(self.blocks, self._counts, self._density, strict=True)
+        for (cells, featurize, trained), acc, density in blocks:
             xb = x[cells]
             if xb.shape[0] == 0:
                 continue
@@ -98,17 +294,37 @@ class SupportMonitor:
             lo = torch.tensor(trained.lo, dtype=torch.float64, device=z.device)
             hi = torch.tensor(trained.hi, dtype=torch.float64, device=z.device)
             below, above = z < lo, z > hi
+            out = (below | above).any(1)
             acc["below"] += below.sum(0)
             acc["above"] += above.sum(0)
-            acc["outside"] += (below | above).any(1).sum()
+            acc["outside"] += out.sum()
             acc["rows"] += z.shape[0]
             acc["min"] = torch.minimum(acc["min"], z.min(0).values)
             acc["max"] = torch.maximum(acc["max"], z.max(0).values)
+            if density is None:
+                continue
+            assert trained.histogram is not None  # a density is made from it
+            flat = trained.histogram.flat_bins(z)  # n (joint) or n x d (each alone)
+            inside = ~out
+            hit = density[flat]
+            hit = (hit if hit.dim() == 1 else hit.any(1)) & inside
+            acc["sparse"] += hit.sum()
+            weight = inside.to(torch.int64)
+            if flat.dim() == 2:
+                weight = weight[:, None].expand_as(flat).reshape(-1)
+            acc["visits"].index_add_(0, flat.reshape(-1), weight)
+
+    @staticmethod
+    def _sparse_bins(trained: TrainedRange, device: torch.device) -> Tensor | None:
+        hist = trained.histogram
+        if hist is None:
+            return None
+        return torch.tensor(hist.sparse(trained.min_rows), dtype=torch.bool, device=device)
 
     @staticmethod
     def _zeros(trained: TrainedRange, device: torch.device) -> dict[str, Tensor]:
         d = len(trained.names)
-        return {
+        acc = {
             "below": torch.zeros(d, dtype=torch.int64, device=device),
             "above": torch.zeros(d, dtype=torch.int64, device=device),
             "outside": torch.zeros((), dtype=torch.int64, device=device),
@@ -116,11 +332,21 @@ class SupportMonitor:
             "min": torch.full((d,), math.inf, dtype=torch.float64, device=device),
             "max": torch.full((d,), -math.inf, dtype=torch.float64, device=device),
         }
+        if trained.histogram is not None:
+            acc["sparse"] = torch.zeros((), dtype=torch.int64, device=device)
+            acc["visits"] = torch.zeros(trained.histogram.n_bins, dtype=torch.int64,
+                                        device=device)  # fmt: skip
+        return acc
 
     def report(self) -> list[dict[str, Any] | None]:
         """Per block: ``sampled_cell_steps``, ``share_outside`` (any input outside) and per
         input ``share_below``, ``share_above``, ``seen`` ``[min, max]`` and ``trained``
-        ``[lo, hi]``; None for a block never observed."""
+        ``[lo, hi]``; where the fit stored its histogram also ``share_sparse`` (inside the
+        range, in a sparse bin), ``sparse_regions`` (every visited connected region of sparse
+        bins, ``{"where": {input: [lo, hi]}, "share": cell-steps there}``, most visited
+        first), ``sparse_where`` and ``sparse_where_share`` (the first's; None and 0 where
+        none was visited) and ``min_rows`` (per state, the rows a bin needed). None for a
+        block never observed."""
         if self._counts is None:
             return [None] * len(self.blocks)
         out: list[dict[str, Any] | None] = []
@@ -131,7 +357,7 @@ class SupportMonitor:
                 continue
             below, above = acc["below"].tolist(), acc["above"].tolist()
             lo, hi = acc["min"].tolist(), acc["max"].tolist()
-            out.append({
+            report: dict[str, Any] = {
                 "sampled_cell_steps": rows,
                 "share_outside": int(acc["outside"]) / rows,
                 "inputs": {
@@ -139,13 +365,52 @@ class SupportMonitor:
                            "seen": [lo[i], hi[i]], "trained": [trained.lo[i], trained.hi[i]]}
                     for i, name in enumerate(trained.names)
                 },
-            })  # fmt: skip
+            }  # fmt: skip
+            hist = trained.histogram
+            if hist is not None:
+                regions = [{"where": w, "share": n / rows} for w, n in sparse_regions(
+                    hist, hist.sparse(trained.min_rows), acc["visits"].tolist())]  # fmt: skip
+                report.update(sparse_keys(int(acc["sparse"]) / rows, regions,
+                                          list(hist.min_rows(trained.min_rows))))  # fmt: skip
+            out.append(report)
         return out
+
+
+def sparse_regions(
+    hist: TrainingHistogram, sparse: Sequence[bool], visits: Sequence[int]
+) -> list[tuple[dict[str, list[float]], int]]:
+    """The visited connected regions of sparse bins (sides touching; each input alone where the
+    histogram is not joint), most visited first: ``({input: [lo, hi]}, visits)``, the span of
+    all the region's bins (the same for every run of the fit, so runs' regions add up)."""
+    from scipy import ndimage
+
+    mask, seen = np.asarray(sparse, dtype=bool), np.asarray(visits, dtype=np.int64)
+    edges = [e.tolist() for e in hist.edges()]
+    if hist.joint:
+        parts = [(tuple(range(len(hist.names))), mask.reshape(hist.bins),
+                  seen.reshape(hist.bins))]  # fmt: skip
+    else:
+        stops = list(itertools.accumulate(hist.bins))
+        parts = [((i,), mask[stop - b:stop], seen[stop - b:stop])
+                 for i, (b, stop) in enumerate(zip(hist.bins, stops, strict=True))]  # fmt: skip
+    regions = []
+    for axes, m, v in parts:
+        labels, n = ndimage.label(m)
+        for k in range(1, n + 1):
+            region = labels == k
+            total = int(v[region].sum())
+            if total > 0:
+                span = np.nonzero(region)
+                regions.append(({hist.names[a]: [edges[a][int(w.min())], edges[a][int(w.max()) + 1]]
+                                 for a, w in zip(axes, span, strict=True)}, total))  # fmt: skip
+    return sorted(regions, key=lambda r: -r[1])
 
 
 def merge_reports(reports: Sequence[Mapping[str, Any] | None]) -> dict[str, Any] | None:
     """One report for runs of the same abstraction (e.g. a run's shards): shares weighted by
-    each run's sampled cell-steps, the ranges seen joined. None where no run was observed."""
+    each run's sampled cell-steps, the ranges seen joined. Where every run counted sparse bins
+    too, ``share_sparse`` and each sparse region's share are weighted the same way (a region
+    spans all its bins, the same in every run of one fit). None where no run was observed."""
     seen = [r for r in reports if r is not None]
     if not seen:
         return None
@@ -170,8 +435,29 @@ def merge_reports(reports: Sequence[Mapping[str, Any] | None]) -> dict[str, Any]
             "seen": [min(m["seen"][0] for m in mine), max(m["seen"][1] for m in mine)],
             "trained": list(first["trained"]),
         }
-    return {"sampled_cell_steps": total,
-            "share_outside": share("share_outside"), "inputs": inputs}  # fmt: skip
+    merged: dict[str, Any] = {"sampled_cell_steps": total,
+                              "share_outside": share("share_outside"), "inputs": inputs}  # fmt: skip
+    if all("sparse_regions" in r for r in seen):
+        regions: dict[str, list[Any]] = {}  # the same region of every run, by its span
+        for n, r in zip(rows, seen, strict=True):
+            for region in r["sparse_regions"]:
+                key = json.dumps(region["where"], sort_keys=True)
+                regions.setdefault(key, [region["where"], 0.0])[1] += n * float(region["share"])
+        joined = sorted(({"where": w, "share": c / total} for w, c in regions.values()),
+                        key=lambda g: -g["share"])  # fmt: skip
+        merged.update(sparse_keys(share("share_sparse"), joined, list(seen[0]["min_rows"])))
+    return merged
+
+
+def sparse_keys(
+    share: float, regions: Sequence[Mapping[str, Any]], min_rows: Sequence[int]
+) -> dict[str, Any]:
+    """A report's density keys: the share in sparse bins, the regions (most visited first),
+    the first's ``sparse_where`` and ``sparse_where_share``, and the rows a bin needed."""
+    first = regions[0] if regions else {"where": None, "share": 0.0}
+    return {"share_sparse": share, "sparse_where": first["where"],
+            "sparse_where_share": first["share"], "sparse_regions": list(regions),
+            "min_rows": list(min_rows)}  # fmt: skip
 
 
 def describe_outside(report: Mapping[str, Any]) -> str:
@@ -187,16 +473,59 @@ def describe_outside(report: Mapping[str, Any]) -> str:
             f"cell-steps outside the trained range" + (": " + "; ".join(parts) if parts else ""))  # fmt: skip
 
 
+def describe_where(where: Mapping[str, Sequence[float]] | None) -> str:
+    """``dG in [4, 7]`` (and ``, x in [..]``) for a ``sparse_where``; ``nowhere`` for None."""
+    if not where:
+        return "nowhere"
+    return ", ".join(f"{n} in [{v[0]:.4g}, {v[1]:.4g}]" for n, v in where.items())
+
+
+def describe_sparse(report: Mapping[str, Any]) -> str:
+    """One line: the share inside the range in sparse bins, the most visited sparse region and
+    its share, and the rows a bin needed."""
+    need = "/".join(str(n) for n in report.get("min_rows", []))
+    return (f"{100 * report['share_sparse']:.3g} % of {report['sampled_cell_steps']} sampled "
+            f"cell-steps inside the trained range where its training rows are sparse (fewer than "
+            f"{need} rows per state phi = 0/1 in the input's bin), most at "
+            f"{describe_where(report.get('sparse_where'))} "
+            f"({100 * report.get('sparse_where_share', 0.0):.3g} %)")  # fmt: skip
+
+
+def sparse_share(report: Mapping[str, Any] | None) -> float | None:
+    """A report's ``share_sparse`` (None: a run of a fit without its histogram, or none)."""
+    if report is None or report.get("share_sparse") is None:
+        return None
+    return float(report["share_sparse"])
+
+
 def warn_outside(report: Mapping[str, Any] | None, threshold: float, what: str) -> bool:
     """Log ONE warning when more than ``threshold`` of the sampled cell-steps of ``what`` had an
-    input outside the trained range; return whether it warned."""
-    if report is None or not report["share_outside"] > threshold:
+    input outside the trained range, or inside it in a sparsely trained bin; return whether it
+    warned."""
+    if report is None:
         return False
-    log.warning("%s: the abstraction ran outside its training data in %s. The lookup clamps "
-                "there, so those steps use the psi at the range's edge, not a learned value: "
-                "collect transitions where these cells go (e.g. collect in this field, or a "
-                "wider collection), or check this run against the full model.", what,
-                describe_outside(report))  # fmt: skip
+    outside = report["share_outside"] > threshold
+    sparse = (sparse_share(report) or 0.0) > threshold
+    if not (outside or sparse):
+        return False
+    parts = []
+    if outside:
+        parts.append(
+            f"the abstraction ran outside its training data in {describe_outside(report)}. The "
+            f"lookup clamps there, so those steps use the psi at the range's edge, not a learned "
+            f"value: collect transitions where these cells go (e.g. collect in this field, or a "
+            f"wider collection), or check this run against the full model."
+        )
+    if sparse:
+        parts.append(
+            f"the abstraction ran where its training rows are sparse in "
+            f"{describe_sparse(report)}. Its psi there is the fit's guess between few rows: "
+            f"train with rows there (a training field, or a perturbation design, "
+            f"`model.body.perturbation`, that reaches "
+            f"{describe_where(report.get('sparse_where'))}; more rows, `collect.n_per_state`, "
+            f"fill it only in proportion), or check this run against the full model."
+        )
+    log.warning("%s: %s", what, " Also, ".join(parts))
     return True
 
 
@@ -204,7 +533,15 @@ __all__ = [
     "OUTSIDE_WARNING",
     "SupportMonitor",
     "TrainedRange",
+    "TrainingHistogram",
     "describe_outside",
+    "describe_sparse",
+    "describe_where",
+    "merge_reports",
+    "min_rows_of",
+    "sparse_keys",
+    "sparse_regions",
+    "sparse_share",
     "trained_range_of",
     "warn_outside",
 ]

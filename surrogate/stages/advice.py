@@ -8,7 +8,9 @@ range) and names, in order, the first causes that apply:
 
 1. **Outside the training data** (any run's share of cell-steps with an input outside the trained
    range above ``outside_warning``): the psi there is the range's edge, not learned: collect
-   where the cells go.
+   where the cells go. **Sparse training data** (inside the range, a share of cell-steps above
+   the same threshold in bins of the fit's histogram where its training rows are sparse):
+   the psi there is the fit's guess between few rows: training rows there.
 2. **Not settled** (the diagnostic population's switching frequency differs between the first
    and second half of its run by more than 4 standard errors): the full model's cells were
    still drifting from their start: the burn-in is too short.
@@ -38,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from surrogate.kinds import ChainKind
+from surrogate.simulate.support import describe_where, sparse_share
 
 #: |first half - second half| of the diagnostic's switching, in standard errors, above which
 #: its population was still settling
@@ -95,7 +98,8 @@ def verdict(
         lump_names: phi = 0 and 1's names.
         failures: per field, the quantities above the noise floor and critical value.
         outside: per field, the abstraction run's ``outside_training`` report.
-        outside_warning: the share above which a run is outside its training data.
+        outside_warning: the share above which a run is outside its training data (or, by
+            its ``share_sparse``, where it was sparse).
         tolerance: the mean-duration tolerance a bias is judged by (e.g. 0.03).
         kind: the chain that ran (:func:`~surrogate.kinds.chain_kind`): its classes, its
             switch clock and how its classes moved.
@@ -122,6 +126,22 @@ def verdict(
             + ", where its lookup clamps to the range's edge.",
             "collect transitions where these cells go: `collect.* field=<that field>`, or a "
             "wider collection (`model.body.perturbation.radius`, a field with that range).",
+        ))  # fmt: skip
+    thin = {f: r for f, r in outside.items()
+            if r and (sparse_share(r) or 0.0) > outside_warning}  # fmt: skip
+    if thin:
+        parts = [f"{f}: {100 * float(r['share_sparse']):.1f} % of cell-steps, most at "
+                 f"{describe_where(r.get('sparse_where'))} "
+                 f"({100 * float(r.get('sparse_where_share', 0.0)):.1f} %)"
+                 for f, r in thin.items()]  # fmt: skip
+        causes.append((
+            "Sparse training data",
+            "inside its trained range the abstraction ran where its training rows are sparse "
+            "(fewer per state than a switching rate within 20 % needs) in " + "; ".join(parts)
+            + ": its psi there is the fit's guess between few rows.",
+            "training rows there: a training field or a perturbation design "
+            "(`model.body.perturbation`) that reaches those inputs; more rows "
+            "(`collect.n_per_state`) fill them only in proportion.",
         ))  # fmt: skip
     d = diagnostic or {}
     scores = {p: d.get(f"phi{p}") for p in (0, 1)}
@@ -187,7 +207,7 @@ def verdict(
             step + ".",
         ))  # fmt: skip
     failing = {f: list(q) for f, q in failures.items() if q}
-    if failing and not biased and not away and not drift:
+    if failing and not biased and not away and not thin and not drift:
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
         classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the count "
                    "that holds the memory)" if network else

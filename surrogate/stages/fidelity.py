@@ -71,7 +71,7 @@ from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.memory import can_age
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
-from surrogate.simulate.support import warn_outside
+from surrogate.simulate.support import describe_where, sparse_share, warn_outside
 from surrogate.stages import reference
 from surrogate.stages.collect import collect
 from surrogate.stages.reference import ReferenceSettings
@@ -390,7 +390,8 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     for i, c in enumerate(settings.candidates):
         decision, _ = learned_decision(model, c.train, resolve_abstraction(c.train),
                                        str(o.get("mode", "lookup")), o.get("lookup_size"),
-                                       job.device, start=c.start)  # fmt: skip
+                                       job.device, start=c.start,
+                                       min_rows=job.support_min_rows)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")
@@ -574,9 +575,14 @@ def report_sections(
     support = (
         "The share of each run's cell-steps (sampled every few steps) whose abstraction inputs "
         "lay outside the range its training data covered (each input's min and max over the "
-        "training rows; the lookup clamps there, so those steps use the psi at the edge).\n\n"
+        "training rows; the lookup clamps there, so those steps use the psi at the edge), and "
+        "inside it in a bin where the training rows are sparse (the fit's histogram; `not "
+        "stored` for an older fit).\n\n"
         + format_markdown_table(pd.DataFrame([
             {"run": label, "outside": f"{100 * r['share_outside']:.2f} %",
+             "sparse": ("not stored" if sparse_share(r) is None else
+                        f"{100 * float(r['share_sparse']):.2f} % (most at "
+                        f"{describe_where(r.get('sparse_where'))})"),
              "inputs": "; ".join(
                  f"{n} seen [{v['seen'][0]:.3g}, {v['seen'][1]:.3g}], trained "
                  f"[{v['trained'][0]:.3g}, {v['trained'][1]:.3g}]"

@@ -31,6 +31,7 @@ from surrogate.io import (
     write_manifest,
 )
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
+from surrogate.simulate.support import sparse_share
 from surrogate.stages import budget
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.artefacts import DIAGNOSTIC_FIGURE, REPORT, SURFACES_FIGURE
@@ -412,20 +413,30 @@ def _outside_text(settings: ReproduceSettings) -> str:
         report = read_manifest(e.candidate.directory).get("outside_training")
         if not report:
             continue
+        sparse = sparse_share(report)
+        where = report.get("sparse_where") or {}
         for input_name, r in report["inputs"].items():
-            rows.append({"field": name, "input": input_name,
-                         "outside": f"{100 * report['share_outside']:.2f} %",
-                         "below": f"{100 * r['share_below']:.2f} %",
-                         "above": f"{100 * r['share_above']:.2f} %",
-                         "seen": f"[{r['seen'][0]:.4g}, {r['seen'][1]:.4g}]",
-                         "trained": f"[{r['trained'][0]:.4g}, {r['trained'][1]:.4g}]"})  # fmt: skip
+            row = {"field": name, "input": input_name,
+                   "outside": f"{100 * report['share_outside']:.2f} %",
+                   "below": f"{100 * r['share_below']:.2f} %",
+                   "above": f"{100 * r['share_above']:.2f} %",
+                   "seen": f"[{r['seen'][0]:.4g}, {r['seen'][1]:.4g}]",
+                   "trained": f"[{r['trained'][0]:.4g}, {r['trained'][1]:.4g}]",
+                   "sparse": "not stored" if sparse is None else f"{100 * sparse:.2f} %",
+                   "sparse where": (f"[{where[input_name][0]:.4g}, {where[input_name][1]:.4g}]"
+                                    if input_name in where else "")}  # fmt: skip
+            rows.append(row)
     if not rows:
         return "The abstraction's runs recorded no inputs (runs made before this was recorded)."
     return (
         "The share of the abstraction's cell-steps (sampled every record interval) whose inputs "
         "lay outside the range its training transitions covered (each input's min and max over "
         "the training rows). The lookup table clamps there, so those steps use the psi at the "
-        "range's edge, not a learned value; a run warns above `outside_warning` (default 1 %)."
+        "range's edge, not a learned value; a run warns above `outside_warning` (default 1 %). "
+        "Sparse: the share inside the range in bins of the training rows' histogram (stored "
+        "with the fit; `not stored` for an older fit) where a state has fewer rows than "
+        "`support_min_rows` (default: 25 expected switches, a rate within 20 %), warned above "
+        "the same threshold; sparse where: the most visited such region."
         "\n\n" + format_markdown_table(pd.DataFrame(rows))
     )
 

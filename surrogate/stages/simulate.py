@@ -113,7 +113,8 @@ def build_decision(
 
     directory = resolve_abstraction(d.train)
     layer, info = learned_decision(model, d.train, directory, d.mode or "lookup", d.lookup_size,
-                                   device, start=d.start)  # fmt: skip
+                                   device, start=d.start,
+                                   min_rows=settings.job.support_min_rows)  # fmt: skip
     return layer, {"abstraction_dir": str(directory), **info}
 
 
@@ -125,6 +126,7 @@ def learned_decision(
     size: Sequence[int] | None,
     device: torch.device,
     start: str = "internal",
+    min_rows: int | None = None,
 ) -> tuple[DecisionLayer, dict[str, Any]]:
     """The learned abstraction of the fit ``directory`` (made by ``train``) as a decision layer
     over ``model`` on ``device``: the K-lumps chain (``gp.lumps=classes``, a table; its cells
@@ -133,7 +135,10 @@ def learned_decision(
 
     The layer carries the range its training data covered (``trained_range``: each input's
     min and max over the training rows, the fit's ``domain``; the switch clock, capped by
-    construction, excepted), which the simulator's support monitor checks the cells against."""
+    construction, excepted) and, where the fit stored it, its rows' histogram over that range
+    (``support_histogram``; a bin with fewer than ``min_rows`` rows of a state is sparse; None:
+    the default rule, :func:`~surrogate.simulate.support.min_rows_of`), which the simulator's
+    support monitor checks the cells against."""
     from surrogate.stages.train import load_abstraction
 
     if train.kind.classes:
@@ -142,10 +147,13 @@ def learned_decision(
         psi = load_abstraction(directory, device=device)
         layer, info = abstract_decision(model, psi, train.setup.dt, train.max_age, mode, size,
                                         device)  # fmt: skip
-    domain = read_manifest(directory).get("domain") or {}
+    manifest = read_manifest(directory)
+    domain = manifest.get("domain") or {}
     names = [n for n in info["inputs"] if n != AGE]
     if names and all(n in domain for n in names):
-        layer.trained_range = TrainedRange.from_domain(domain, names)  # type: ignore[attr-defined]
+        layer.trained_range = TrainedRange.from_domain(  # type: ignore[attr-defined]
+            domain, names, manifest.get("support_histogram"), min_rows
+        )
     return layer, info
 
 

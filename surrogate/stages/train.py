@@ -83,6 +83,7 @@ from surrogate.simulate.decision import ExactPsi, FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
+from surrogate.simulate.support import TrainingHistogram
 from surrogate.simulate.transitions import record_stationary_bins
 from surrogate.stages import budget
 from surrogate.stages.artefacts import (
@@ -284,6 +285,8 @@ def _fit(
         label_column=settings.label_column(table.columns),
         inputs=list(settings.inputs),
         domain={k: list(v) for k, v in psi.domain.items()},
+        # diagnostic, not part of the fit's identity: where the training rows are sparse
+        support_histogram=support_histogram(table, settings.inputs),
     )
     for name in ("psi_0", "psi_1"):
         v = metrics[name]["validation"]
@@ -293,6 +296,20 @@ def _fit(
         )  # fmt: skip
     log.info("trained both classifiers in %.1f s on %d thread(s); fit in %s", wall,
              settings.fit_threads, out)  # fmt: skip
+
+
+def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, Any] | None:
+    """The training rows' histogram over the abstraction's inputs (the switch clock, capped
+    by construction, excepted), per state (:class:`~surrogate.simulate.support.
+    TrainingHistogram`), for the fit's manifest: the simulator's support monitor counts the
+    cell-steps in its sparse bins. None where no input is left."""
+    names = [n for n in inputs if n != AGE]
+    if not names:
+        return None
+    phi = table["phi"].to_numpy(dtype=np.int64)
+    switched = phi != table["phi_next"].to_numpy(dtype=np.int64)
+    values = table[names].to_numpy(dtype=np.float64)
+    return TrainingHistogram.of_rows(values, phi, switched, names).to_json()
 
 
 def _fit_class_chain(
@@ -428,6 +445,7 @@ def _train(
         label_column=fit_manifest["label_column"],
         inputs=list(settings.inputs),
         domain=fit_manifest["domain"],
+        support_histogram=fit_manifest.get("support_histogram"),  # None: an older fit
         brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},
         brier_baseline={n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_0", "psi_1")},
         diagnostic=diagnostic,

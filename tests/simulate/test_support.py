@@ -3,6 +3,7 @@ batch, and warned about above its threshold (never at or below it)."""
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 
@@ -18,8 +19,11 @@ from surrogate.simulate.batch import BatchSimulator, Replicate
 from surrogate.simulate.support import (
     SupportMonitor,
     TrainedRange,
+    TrainingHistogram,
     describe_outside,
     merge_reports,
+    min_rows_of,
+    sparse_share,
     warn_outside,
 )
 
@@ -125,3 +129,177 @@ def test_each_replicate_of_a_batch_is_counted_on_its_own() -> None:
     assert learned_report["share_outside"] == pytest.approx(np.mean((z < 0.0) | (z > 0.1)))
     assert learned_report["inputs"]["dG"]["seen"] == [pytest.approx(z.min()),
                                                       pytest.approx(z.max())]  # fmt: skip
+
+
+# --- the density check: sparse bins of the training rows' histogram --------------------------
+
+
+def _histogram(counts0, counts1, lo=(0.0,), hi=(4.0,), bins=(4,), joint=True, names=("dG",)):
+    return TrainingHistogram(names, lo, hi, bins, joint, (tuple(counts0), tuple(counts1)),
+                             (0.2, 0.5))  # fmt: skip
+
+
+def test_the_histogram_counts_each_states_rows_and_reads_back() -> None:
+    """Rows at 0, 0.5, ..., 4 over [0, 4] in 64 bins: each row in its bin (the last closed),
+    per state; the switching shares per state; the JSON reads back equal."""
+    z = np.arange(9, dtype=np.float64)[:, None] / 2
+    phi = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1])
+    switched = np.array([1, 0, 0, 0, 1, 1, 0, 0, 0], dtype=bool)
+    hist = TrainingHistogram.of_rows(z, phi, switched, ["dG"])
+    assert hist.bins == (64,) and hist.joint and (hist.lo, hist.hi) == ((0.0,), (4.0,))
+    want = [np.zeros(64, dtype=int) for _ in range(2)]
+    for v, s in zip(z[:, 0], phi, strict=True):
+        want[s][min(int(v / 4 * 64), 63)] += 1
+    assert [list(c) for c in hist.counts] == [w.tolist() for w in want]
+    assert hist.switching == (0.25, 0.4)
+    assert TrainingHistogram.from_json(json.loads(json.dumps(hist.to_json()))) == hist
+    two = TrainingHistogram.of_rows(np.c_[z, -z], phi, switched, ["a", "b"])
+    assert two.joint and two.bins == (16, 16) and sum(map(sum, two.counts)) == 9
+    assert two.counts[0][0 * 16 + 15] == 1  # (0, -0) -> a's first bin, b's last (b = -0 = hi)
+    three = TrainingHistogram.of_rows(np.c_[z, z, z], phi, switched, ["a", "b", "c"])
+    assert not three.joint and three.n_bins == 3 * 64 and sum(map(sum, three.counts)) == 27
+
+
+def test_the_default_minimum_is_25_expected_switches() -> None:
+    assert min_rows_of(0.5) == 25 and min_rows_of(0.05) == 475 and min_rows_of(0.2) == 100
+    assert min_rows_of(0.0) == min_rows_of(1.0) == 100  # no rate to go by
+    assert min_rows_of(0.05, min_rows=7) == 7
+    assert _histogram([0] * 4, [0] * 4).min_rows() == (100, 25)
+
+
+def test_the_sparse_share_is_the_hand_counted_one() -> None:
+    """Bins [0,1) [1,2) [2,3) [3,4] with 200/5/200/200 rows of state 0 and 200/200/200/50 of
+    state 1, 100 needed: bins 1 and 3 are sparse. Of 9 cell-steps, 2 are outside, 2 in bin 1
+    and 3 in bin 3: 5/9 sparse, most in [3, 4] (3/9)."""
+    hist = _histogram([200, 5, 200, 200], [200, 200, 200, 50])
+    trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
+    monitor = SupportMonitor([(slice(0, None), None, trained)])
+    z = torch.tensor([[0.5], [1.5], [1.2], [2.5], [3.5], [3.9], [3.1], [5.0], [-1.0]])
+    monitor.observe(z[:4])
+    monitor.observe(z[4:])
+    (report,) = monitor.report()
+    assert report["share_outside"] == pytest.approx(2 / 9)
+    assert report["share_sparse"] == pytest.approx(5 / 9)
+    assert report["sparse_where"] == {"dG": [3.0, 4.0]}
+    assert report["sparse_where_share"] == pytest.approx(3 / 9)
+    assert report["min_rows"] == [100, 100]
+    # the default rule: 100 rows of state 0 (p = 0.2), 25 of state 1 (p = 0.5): bin 3 is not
+    default = SupportMonitor([(slice(0, None), None, TrainedRange(("dG",), (0.0,), (4.0,), hist))])
+    default.observe(z)
+    (report,) = default.report()
+    assert report["share_sparse"] == pytest.approx(2 / 9)
+    assert report["sparse_where"] == {"dG": [1.0, 2.0]} and report["min_rows"] == [100, 25]
+
+
+def test_a_joint_sparse_region_is_the_visited_part_of_its_component() -> None:
+    """Two inputs over [0, 2]^2 in 2 x 2 bins, only bin (1, 1) trained: bins (0, 0), (0, 1)
+    and (1, 0) form one sparse region; the visited ones are (0, 1) and (1, 0)."""
+    hist = _histogram([0, 0, 0, 500], [0, 0, 0, 500], lo=(0.0, 0.0), hi=(2.0, 2.0),
+                      bins=(2, 2), names=("a", "b"))  # fmt: skip
+    trained = TrainedRange(("a", "b"), (0.0, 0.0), (2.0, 2.0), hist, min_rows=100)
+    monitor = SupportMonitor([(slice(0, None), None, trained)])
+    monitor.observe(torch.tensor([[0.5, 1.5], [1.5, 0.5], [1.5, 1.5], [1.9, 1.1], [3.0, 0.1]]))
+    (report,) = monitor.report()
+    assert report["share_sparse"] == pytest.approx(2 / 5)
+    assert report["sparse_where"] == {"a": [0.0, 2.0], "b": [0.0, 2.0]}
+    assert report["sparse_where_share"] == pytest.approx(2 / 5)
+
+
+def test_each_input_alone_beyond_two_inputs() -> None:
+    """Three inputs: a cell-step is sparse when any input's own bin is; the region is the most
+    visited one of any input."""
+    names = ("a", "b", "c")
+    counts = [500, 500, 500, 500, 0, 500, 500, 0, 500, 500]
+    counts = [*counts[:4], 500, *counts[4:]]  # a, b, c: 4, 3, 4 bins (flat bins 5 and 8 empty)
+    hist = TrainingHistogram(names, (0.0,) * 3, (4.0, 3.0, 4.0), (4, 3, 4), False,
+                             (tuple(counts), tuple(counts)), (0.5, 0.5))  # fmt: skip
+    trained = TrainedRange(names, (0.0,) * 3, (4.0, 3.0, 4.0), hist, min_rows=100)
+    monitor = SupportMonitor([(slice(0, None), None, trained)])
+    x = torch.tensor([[0.5, 0.5, 1.5], [0.5, 0.5, 0.5], [0.5, 0.5, 1.2], [0.5, 1.5, 1.5]])
+    monitor.observe(x)
+    (report,) = monitor.report()
+    assert hist.sparse(100) == tuple(c < 100 for c in counts)
+    assert report["share_sparse"] == pytest.approx(3 / 4)  # b's bin 1 once, c's bin 1 thrice
+    assert report["sparse_where"] == {"c": [1.0, 2.0]}
+    assert report["sparse_where_share"] == pytest.approx(3 / 4)
+
+
+def test_the_warning_names_the_sparse_interval_and_what_to_do(caplog) -> None:
+    hist = _histogram([200, 5, 200, 200], [200, 200, 200, 200])
+    trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
+    monitor = SupportMonitor([(slice(0, None), None, trained)])
+    monitor.observe(torch.tensor([[0.5]] * 97 + [[1.5]] * 3))  # 3 % sparse, none outside
+    (report,) = monitor.report()
+    with caplog.at_level(logging.WARNING, logger="surrogate.simulate.support"):
+        assert not warn_outside(report, 0.03, "run")  # at the threshold: quiet
+        assert warn_outside(report, 0.02, "run")
+    (record,) = caplog.records
+    message = record.getMessage()
+    assert "3 % of 100 sampled cell-steps inside the trained range" in message
+    assert "dG in [1, 2] (3 %)" in message and "fewer than 100/100 rows" in message
+    assert "collect.n_per_state" in message and "model.body.perturbation" in message
+    assert "outside its training data" not in message
+    assert "Sparse training data" in verdict_of(report)
+    assert "dG in [1, 2]" in verdict_of(report)
+
+
+def verdict_of(report) -> str:
+    from surrogate.kinds import chain_kind
+    from surrogate.stages.advice import verdict
+
+    v = verdict(diagnostic=None, lump_names=("off", "on"), failures={}, outside={"f": report},
+                outside_warning=0.01, tolerance=0.03, kind=chain_kind("phi", "none", "learned"),
+                network=False, n_per_state=None)  # fmt: skip
+    return v.markdown()
+
+
+def test_an_older_fit_without_a_histogram_is_checked_by_range_only() -> None:
+    """A fit's domain without ``support_histogram`` (or one over other inputs, or unreadable):
+    the range alone, and a report without the sparse keys, which the readers skip."""
+    domain = {"dG": [0.0, 4.0]}
+    hist = _histogram([200] * 4, [200] * 4).to_json()
+    assert TrainedRange.from_domain(domain, ["dG"]).histogram is None
+    assert TrainedRange.from_domain(domain, ["dG"], {"inputs": ["dG"]}).histogram is None
+    assert TrainedRange.from_domain(domain, ["dG"], {**hist, "inputs": ["L"]}).histogram is None
+    assert TrainedRange.from_domain(domain, ["dG"], hist, 7).histogram is not None
+    monitor = SupportMonitor([(slice(0, None), None, TrainedRange.from_domain(domain, ["dG"]))])
+    monitor.observe(torch.tensor([[1.0], [5.0]]))
+    (report,) = monitor.report()
+    assert report["share_outside"] == 0.5 and "share_sparse" not in report
+    assert sparse_share(report) is None and "Sparse" not in verdict_of(report)
+    assert "share_sparse" not in merge_reports([report, report])  # type: ignore[operator]
+
+
+def test_shards_sparse_shares_merge_into_the_report_of_all_their_rows() -> None:
+    hist = _histogram([200, 5, 200, 200], [200, 200, 200, 50])
+    trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
+    gen = torch.Generator().manual_seed(5)
+    parts = [torch.rand(n, 1, generator=gen, dtype=torch.float64) * 5 for n in (40, 7, 300)]
+    whole = SupportMonitor([(slice(0, None), None, trained)])
+    reports = []
+    for x in parts:
+        whole.observe(x)
+        one = SupportMonitor([(slice(0, None), None, trained)])
+        one.observe(x)
+        reports.extend(one.report())
+    (want,) = whole.report()
+    got = merge_reports([None, *reports])
+    assert got is not None
+    assert got["share_sparse"] == pytest.approx(want["share_sparse"])
+    assert got["sparse_regions"] == pytest.approx(want["sparse_regions"])
+    assert got["sparse_where"] == want["sparse_where"]
+    assert got["sparse_where_share"] == pytest.approx(want["sparse_where_share"])
+    assert got["min_rows"] == want["min_rows"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_density_counts_are_the_same_on_the_gpu() -> None:
+    hist = _histogram([200, 5, 200, 200], [200, 200, 200, 50])
+    trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
+    x = torch.rand(10_000, 1, generator=torch.Generator().manual_seed(1)) * 5
+    reports = []
+    for device in ("cpu", "cuda"):
+        monitor = SupportMonitor([(slice(0, None), None, trained)])
+        monitor.observe(x.to(device))
+        reports.extend(monitor.report())
+    assert reports[0] == reports[1]

@@ -15,6 +15,7 @@ import torch
 from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.evaluate.statistics import load_run
 from surrogate.io import load_tensors
+from surrogate.simulate.support import TrainingHistogram
 from surrogate.stages import collect, train
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages import simulate as simulate_stage
@@ -66,7 +67,7 @@ def test_collect_writes_columns_counts_and_manifest(trained) -> None:
 
 
 def test_train_writes_artefacts_and_round_trips(trained) -> None:
-    cfg, _, train_dir = trained
+    cfg, collect_dir, train_dir = trained
     for name in (
         "psi.pt",
         "train_metrics.json",
@@ -99,6 +100,18 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
         )
     d = metrics["diagnostic"]
     assert d["reference"] == "exact" and d["n_occupancy"] == 100 * 200 // 10
+    # the training rows' histogram (diagnostic, outside the fit's identity) in both manifests
+    manifest = json.loads((train_dir / "manifest.json").read_text())
+    fit_manifest = json.loads((Path(manifest["fit"]) / "manifest.json").read_text())
+    hist = TrainingHistogram.from_json(fit_manifest["support_histogram"])
+    assert manifest["support_histogram"] == fit_manifest["support_histogram"]
+    table = pd.read_parquet(collect_dir / "transitions.parquet")
+    assert hist == TrainingHistogram.of_rows(
+        table[["dG"]].to_numpy(), table["phi"], table["phi"] != table["phi_next"], ["dG"]
+    )
+    assert [sum(c) for c in hist.counts] == [400, 400] and hist.bins == (64,)
+    assert [hist.lo[0], hist.hi[0]] == fit_manifest["domain"]["dG"]
+    assert "support_histogram" not in train.validate(cfg).fit_identity()
     for phi in ("phi0", "phi1"):
         assert 0 < d[phi]["mean_switching_reference"] < 1
         learned, reference = d[phi]["mean_switching_learned"], d[phi]["mean_switching_reference"]
@@ -410,6 +423,9 @@ def test_a_run_outside_the_trained_inputs_warns_with_the_share(compose_cfg, capl
     home = json.loads((inside / "manifest.json").read_text())["outside_training"]
     away = json.loads((outside / "manifest.json").read_text())["outside_training"]
     assert home["share_outside"] <= 0.01 and away["share_outside"] > 0.9
+    # and the density check beside it: the shares of cell-steps inside the range in sparse bins
+    assert 0 <= home["share_sparse"] <= 1 - home["share_outside"] and "sparse_where" in home
+    assert away["share_sparse"] <= 1 - away["share_outside"]
     assert away["sampled_cell_steps"] == 40 * 20  # 40 cells, every 1 s of 20 s
     L = away["inputs"]["L"]
     assert L["share_above"] > 0.9 and L["seen"][1] > 0.5 > 0.1 >= L["trained"][1]
@@ -492,6 +508,7 @@ def test_reproduce_writes_the_report_of_every_field(compose_cfg) -> None:
     report = (out / "report.md").read_text()  # the exact chain: adapted cells, not a bound
     assert "The exact lumped psi (cells adapted to their current input)" in report
     assert "best two-state" not in report and "best any" not in report
+    assert "| sparse | sparse where |" in report  # the density check's column beside the range
     manifest = json.loads((out / "manifest.json").read_text())
     assert set(manifest["evaluations"]) == set(manifest["exact"]) == {"gaussian", "linear",
                                                                         "dynamic"}  # fmt: skip

@@ -100,8 +100,13 @@ class Job:
     data_dir: Path
     device: torch.device
     progress: bool
-    #: share of sampled cell-steps outside the trained range above which a run warns
+    #: share of sampled cell-steps outside the trained range (or inside it in a sparsely
+    #: trained bin) above which a run warns
     outside_warning: float = 0.01
+    #: training rows per state a bin of the fit's histogram needs not to be sparse (None: per
+    #: state, 25 expected switches at its switching share, :func:`~surrogate.simulate.support.
+    #: min_rows_of`)
+    support_min_rows: int | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> Job:
@@ -110,11 +115,16 @@ class Job:
         if isinstance(warn, bool) or not isinstance(warn, int | float) or not 0 <= warn <= 1:
             raise ConfigError(f"outside_warning must be a share in [0, 1] of the cell-steps, "
                               f"got {warn!r}")  # fmt: skip
+        rows = cfg.get("support_min_rows")
+        if rows is not None and (isinstance(rows, bool) or not isinstance(rows, int) or rows < 1):
+            raise ConfigError(f"support_min_rows must be null (the default rule) or a whole "
+                              f"number of training rows >= 1, got {rows!r}")  # fmt: skip
         return cls(
             Path(str(cfg.get("data_dir", "data"))),
             resolve_device(cfg.get("device", "cpu")),
             bool(cfg.get("progress", True)),
             float(warn),
+            None if rows is None else int(rows),
         )
 
     @property
