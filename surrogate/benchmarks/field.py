@@ -92,6 +92,7 @@ def run_field_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) 
         "field_share": timed["field_s"] / total,
         "field_over_agents": timed["field_s"] / agents if agents > 0 else float("nan"),
         "peak_rss_mb": _peak_rss_mb(),
+        "field_fuse": field.fuse, "field_step_path": field.step_path,
     }  # fmt: skip
     path = (
         Path(c["output"])
@@ -110,7 +111,8 @@ def format_field_report(r: Mapping[str, Any]) -> str:
     return (
         f"{r['n_cells']:,} abstracted cells on a {nx} x {ny} grid ({', '.join(r['species'])}), "
         f"{r['steps']} steps of dt {r['dt']:g} s, {r['threads']} thread(s), "
-        f"{r['machine'].get('device', '')}\n"
+        f"{r['machine'].get('device', '')}; field step {r.get('field_step_path', 'eager')} "
+        f"(fuse={r.get('field_fuse', 'eager')})\n"
         f"  agents' step {r['agents_ms_per_step']:.1f} ms, field step "
         f"{r['field_ms_per_step']:.1f} ms per step: the field is "
         f"{100 * r['field_over_agents']:.0f} % of the agents' cost "

@@ -37,11 +37,14 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.grid.coupled import CoupledField
-from surrogate.grid.geometry import Grid, Stencil
+from surrogate.grid.fused import FUSE_MODES, FusedStep
+from surrogate.grid.geometry import Grid, Stencil, deposit_lanes
 from surrogate.grid.solvers import (
     SOLVERS,
     ExplicitSolver,
     SpectralSolver,
+    euler_decay_loss,
+    exact_decay_loss,
     explicit_max_dt,
     make_solver,
 )
@@ -90,6 +93,11 @@ class GridField(CoupledField):
             limited; :mod:`surrogate.grid.solvers`).
         peak: where distances are measured from (default: the middle of the domain's left
             edge, a channel's inlet).
+        fuse: how the step runs (:data:`~surrogate.grid.fused.FUSE_MODES`): ``auto`` (one
+            ``torch.compile``'d function on CUDA, where the eager step is ~90 kernel launches;
+            the eager step elsewhere), ``eager`` (the eager step on every device: the
+            reference) or ``compile`` (compiled on any device, failures raised);
+            :mod:`surrogate.grid.fused`. Results agree to float64 rounding.
 
     Raises:
         ConfigError: a bad geometry, species, rate or solver, named (``field.<key>``).
@@ -113,6 +121,7 @@ class GridField(CoupledField):
         read: str | None = None,
         solver: str = "spectral",
         peak: Sequence[float] | None = None,
+        fuse: str = "auto",
     ) -> None:
         self.grid = Grid.from_config(domain, shape, boundary, depth)
         if not isinstance(species, Mapping) or not species:
@@ -128,6 +137,10 @@ class GridField(CoupledField):
         if solver not in SOLVERS:
             raise ConfigError(f"field.solver must be one of {list(SOLVERS)}, got {solver!r}")
         self.solver_name = solver
+        if fuse not in FUSE_MODES:
+            raise ConfigError(f"field.fuse must be one of {list(FUSE_MODES)}, got {fuse!r}")
+        self.fuse = fuse
+        self._fused: FusedStep | None = None
         g = self.grid
         inlet = (g.lower[0], (g.lower[1] + g.upper[1]) / 2)
         super().__init__(inlet if peak is None else peak)
@@ -196,8 +209,10 @@ class GridField(CoupledField):
         volume = g.cell_volume
         self._supply = (c0.new_zeros(len(self.species)) if source is None
                         else source.sum((-2, -1)) * volume)  # fmt: skip
-        zero = c0.new_zeros(len(self.species))
-        self._state = GridState(c0, c0.sum((-2, -1)) * volume, zero, zero, zero, zero, 0)
+        # four zero ledgers, not one shared: a compiled step recompiles where inputs alias
+        taken, secreted, supplied, decayed = (c0.new_zeros(len(self.species)) for _ in range(4))
+        self._state = GridState(c0, c0.sum((-2, -1)) * volume, taken, secreted, supplied,
+                                decayed, 0)  # fmt: skip
         return self._state
 
     def start_from(self, concentration: Tensor) -> GridState:
@@ -208,9 +223,9 @@ class GridField(CoupledField):
             raise ValueError(f"concentration must be {want}, got {tuple(concentration.shape)}")
         c = concentration.to(torch.float64).clone()
         self.reset(c.device)
-        zero = c.new_zeros(len(self.species))
+        taken, secreted, supplied, decayed = (c.new_zeros(len(self.species)) for _ in range(4))
         mass = c.sum((-2, -1)) * self.grid.cell_volume
-        self._state = GridState(c, mass, zero, zero, zero, zero, 0)
+        self._state = GridState(c, mass, taken, secreted, supplied, decayed, 0)
         return self._state
 
     def _current(self, device: torch.device) -> GridState:
@@ -284,6 +299,9 @@ class GridField(CoupledField):
         state = self._current(position.device)
         if dt > self.max_dt():
             self.validate(dt)
+        fused = self._fused_step(position.device)
+        if fused is not None:
+            return self._step_fused(fused, state, position, phi, dt)
         volume = self.grid.cell_volume
         stencil = self.grid.stencil(position)
         self._shared = None if stencil.compiled else (position.clone(), stencil)
@@ -314,3 +332,62 @@ class GridField(CoupledField):
             steps=state.steps + 1,
         )
         return self._state
+
+    @property
+    def step_path(self) -> str:
+        """How the steps on the state's device run: ``compiled``, ``eager``, or ``eager
+        (torch.compile failed: ...)`` (the ``fuse`` setting, :mod:`surrogate.grid.fused`)."""
+        state = self._state
+        if state is None or self._fused is None or not self._compiles(state.concentration.device):
+            return "eager"
+        if self._fused.error is None:
+            return "compiled"
+        return f"eager (torch.compile failed: {self._fused.error})"
+
+    def _compiles(self, device: torch.device) -> bool:
+        """Whether the ``fuse`` setting compiles the step on ``device``."""
+        return self.fuse == "compile" or (self.fuse == "auto" and _compiles_on(device))
+
+    def _fused_step(self, device: torch.device) -> FusedStep | None:
+        """The compiled step where ``fuse`` asks for it on ``device`` (made at first use and
+        kept, so resets reuse its compiled code), else None: the eager step."""
+        if not self._compiles(device):
+            return None
+        if self._fused is None:
+            self._fused = FusedStep(fallback=self.fuse == "auto")
+        return self._fused
+
+    def _step_fused(self, fused: FusedStep, state: GridState, position: Tensor, phi: Tensor,
+                    dt: float) -> GridState:  # fmt: skip
+        """:meth:`step` through :func:`~surrogate.grid.fused.fused_step`; the stencil it
+        computed is kept for the agents' next read, as the eager torch path keeps its own."""
+        assert self._solver is not None and self._supply is not None
+        spectral = isinstance(self._solver, SpectralSolver)
+        flow = self._solver.flow(dt) if isinstance(self._solver, SpectralSolver) else None
+        loss = exact_decay_loss if spectral else euler_decay_loss
+        lanes = deposit_lanes(position.shape[0], self.grid.n_cells, position.device)
+        ledger = (state.taken, state.secreted, state.supplied, state.decayed)
+        # the solver's tensors enter as arguments, not the solver: each reset makes a new
+        # solver, and torch.compile would recompile for a new object
+        c, taken, secreted, supplied, decayed, index, weight = fused(
+            self.grid, tuple(self.species), loss, self._solver.decay, lanes, dt, position, phi,
+            state.concentration, self._supply, ledger, flow)  # fmt: skip
+        if flow is None:
+            c = self._solver.step(c, dt)
+        stencil = Stencil(self.grid, position, False)
+        stencil.__dict__["_torch"] = (index, weight)  # its cached_property, computed
+        self._shared = (position.clone(), stencil)
+        self._state = replace(state, concentration=c, taken=taken, secreted=secreted,
+                              supplied=supplied, decayed=decayed, steps=state.steps + 1)  # fmt: skip
+        return self._state
+
+
+def _compiles_on(device: torch.device) -> bool:
+    """Whether ``fuse=auto`` compiles the step on ``device``: CUDA with Triton."""
+    if device.type != "cuda":
+        return False
+    try:
+        from torch.utils._triton import has_triton
+    except ImportError:  # pragma: no cover - every torch this project supports has it
+        return False
+    return bool(has_triton())

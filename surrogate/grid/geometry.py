@@ -107,8 +107,9 @@ class Grid:
     @property
     def spacing(self) -> tuple[float, float]:
         """Cell widths ``(h_x, h_y)`` (mm)."""
-        return tuple((b - a) / n for a, b, n in zip(self.lower, self.upper, self.shape,
-                                                     strict=True))  # type: ignore[return-value]  # fmt: skip
+        # spelt out, no zip(strict=True): torch.compile traces it (surrogate/grid/fused.py)
+        return ((self.upper[0] - self.lower[0]) / self.shape[0],
+                (self.upper[1] - self.lower[1]) / self.shape[1])  # fmt: skip
 
     @property
     def cell_volume(self) -> float:

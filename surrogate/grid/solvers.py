@@ -45,7 +45,15 @@ from surrogate.errors import ConfigError
 from surrogate.grid.geometry import Grid
 from surrogate.grid.transforms import dct, idct
 
-__all__ = ["SOLVERS", "ExplicitSolver", "SpectralSolver", "explicit_max_dt", "make_solver"]
+__all__ = [
+    "SOLVERS",
+    "ExplicitSolver",
+    "SpectralSolver",
+    "euler_decay_loss",
+    "exact_decay_loss",
+    "explicit_max_dt",
+    "make_solver",
+]
 
 #: the grid's x and y dimensions in a ``(species, n_x, n_y)`` tensor
 _DIMS = (-2, -1)
@@ -179,6 +187,18 @@ class SpectralSolver:
         modes = torch.fft.fft(eye, dim=-2)  # every Fourier mode: m and n - m share lambda
         return torch.fft.ifft(factor * modes, dim=-2).real
 
+    def flow(self, dt: float) -> tuple[Tensor, Tensor, Tensor, Tensor | None] | None:
+        """The dense step's ``(A_x, A_y, e^{-k dt}, G or None)`` for ``dt`` (what :meth:`step`
+        applies: ``c -> A_x c A_y^T e^{-k dt} + G``), or None where the step is not dense;
+        for :func:`~surrogate.grid.fused.fused_step`."""
+        if not self.dense:
+            return None
+        if dt != self._dt:
+            with serial_below(0, self.decay.device):
+                self._prepare(dt)
+        assert self._axes is not None and self._kept is not None
+        return self._axes[0], self._axes[1], self._kept, self._added
+
     def step(self, c: Tensor, dt: float) -> Tensor:
         """``c`` (``(S, n_x, n_y)``, mM) advanced by ``dt`` seconds."""
         if dt != self._dt:
@@ -202,10 +222,7 @@ class SpectralSolver:
         """The amount each species loses to decay over the step, from its mass at the step's
         start and its supply rate (diffusion conserves mass; the mean mode is exact):
         ``M + S dt - (M e^{-k dt} + S (1 - e^{-k dt}) / k)``."""
-        k = self.decay
-        e = torch.exp(-k * dt)
-        gain = torch.where(k > 0, -torch.expm1(-k * dt) / torch.where(k > 0, k, 1.0), dt)
-        return mass + supply * dt - (mass * e + supply * gain)
+        return exact_decay_loss(self.decay, mass, supply, dt)
 
 
 def explicit_max_dt(grid: Grid, diffusion: Sequence[float], decay: Sequence[float]) -> float:
@@ -255,7 +272,20 @@ class ExplicitSolver:
 
     def decay_loss(self, mass: Tensor, supply: Tensor, dt: float) -> Tensor:
         """The amount each species loses to decay over the step: ``k M dt``."""
-        return self.decay * mass * dt
+        return euler_decay_loss(self.decay, mass, supply, dt)
+
+
+def exact_decay_loss(decay: Tensor, mass: Tensor, supply: Tensor, dt: float) -> Tensor:
+    """:meth:`SpectralSolver.decay_loss` with the decay rates ``decay`` (``(S,)``, 1/s)."""
+    k = decay
+    e = torch.exp(-k * dt)
+    gain = torch.where(k > 0, -torch.expm1(-k * dt) / torch.where(k > 0, k, 1.0), dt)
+    return mass + supply * dt - (mass * e + supply * gain)
+
+
+def euler_decay_loss(decay: Tensor, mass: Tensor, supply: Tensor, dt: float) -> Tensor:
+    """:meth:`ExplicitSolver.decay_loss` with the decay rates ``decay`` (``(S,)``, 1/s)."""
+    return decay * mass * dt
 
 
 SOLVERS: dict[str, type[SpectralSolver] | type[ExplicitSolver]] = {

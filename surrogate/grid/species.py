@@ -44,7 +44,7 @@ from surrogate.fields import ExpressionField
 from surrogate.grid.geometry import Grid, Stencil
 from surrogate.validation import known_keys
 
-__all__ = ["MOLECULES_PER_NMOL", "Secretion", "Species", "Uptake"]
+__all__ = ["MOLECULES_PER_NMOL", "Secretion", "Species", "Uptake", "cap_uptake"]
 
 #: Avogadro's number per nmol: molecules/s per cell -> nmol/s
 MOLECULES_PER_NMOL = 6.02214076e14
@@ -80,10 +80,17 @@ class Uptake:
             needs no second pass over the agents).
         """
         wanted = stencil.saturating_deposit(c, self.vmax / MOLECULES_PER_NMOL * dt, self.km)
-        held = c.clamp_min(0.0) * volume  # nmol per grid cell
-        scale = torch.where(wanted > held, held / wanted.clamp_min(1e-300), torch.ones_like(held))
-        taken = wanted * scale
-        return taken / volume, taken.sum()
+        return cap_uptake(wanted, c, volume)
+
+
+def cap_uptake(wanted: Tensor, c: Tensor, volume: float) -> tuple[Tensor, Tensor]:
+    """The agents' deposited demand ``wanted`` (``(n_x, n_y)`` nmol) capped by what each grid
+    cell of ``c`` (mM) holds: the concentration loss (mM) and the total taken (nmol), as
+    :meth:`Uptake.take` returns them (shared with :mod:`surrogate.grid.fused`)."""
+    held = c.clamp_min(0.0) * volume  # nmol per grid cell
+    scale = torch.where(wanted > held, held / wanted.clamp_min(1e-300), torch.ones_like(held))
+    taken = wanted * scale
+    return taken / volume, taken.sum()
 
 
 @dataclass(frozen=True)

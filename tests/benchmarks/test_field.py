@@ -25,6 +25,16 @@ def test_the_field_bench_splits_the_step(compose_cfg, tmp_path) -> None:
         r["field_ms_per_step"] / r["agents_ms_per_step"], rel=1e-9
     )
     assert "of the agents' cost" in lines[0]
+    assert r["field_fuse"] == "auto" and r["field_step_path"] == "eager"  # the CPU's numba
+
+
+def test_the_field_bench_takes_the_fields_fuse_setting(compose_cfg, tmp_path) -> None:
+    """``++field.fuse=eager`` (the GPU's eager step, the reference of .devcheck timings)."""
+    cfg = compose_cfg("bench_field", [f"output={tmp_path / 'f.json'}", "n_cells=100", "steps=1",
+                                      "warm_up=0", "field.shape=[16,4]", "threads=1",
+                                      "++field.fuse=eager"])  # fmt: skip
+    r = run_field_bench(cfg, log=lambda line: None)
+    assert r["field_fuse"] == "eager" and r["field_step_path"] == "eager"
 
 
 def test_the_field_bench_needs_a_grid_field(compose_cfg, tmp_path) -> None:
