@@ -9,8 +9,9 @@ combinations it refuses (with the messages users know), the keys it adds to or d
 fit's identity (identities are hashed into directory names, so every stored fit is still
 found), what train must record for it (switch clocks, class labels) and the shipped recipe its
 commands name. It also owns what train and simulate do with it, which they ask of it instead of
-branching on its flags: :meth:`ChainKind.fit` (what it fits beyond the classifiers psi, which
-every kind fits), :meth:`~ChainKind.save` and :meth:`~ChainKind.load` (its own artefact, its
+branching on its flags: :meth:`ChainKind.training_rows` (the transitions its fit reads),
+:meth:`~ChainKind.fit` (what it fits beyond the classifiers psi, which every kind fits),
+:meth:`~ChainKind.save` and :meth:`~ChainKind.load` (its own artefact, its
 :attr:`~ChainKind.files`), :meth:`~ChainKind.decision_layer` (its learned layer) and
 :meth:`~ChainKind.exact_layer` (decision=exact's). They delegate to the functions at the end
 of this module (moved from the train and simulate stages, which re-export them), which call
@@ -101,6 +102,7 @@ from surrogate.simulate.memory import (
     AGE,
     MemoryDecision,
     can_age,
+    clock_rows,
     exact_age_table,
     has_history,
     history_setting,
@@ -201,6 +203,14 @@ class ChainKind:
 
     # what train and simulate ask of the kind: its fit, its artefact, its decision layers
 
+    def training_rows(
+        self, table: pd.DataFrame, max_age: float, where: str, source: Any
+    ) -> pd.DataFrame:
+        """The rows of the transitions ``table`` (read from ``where``, made by ``source``: the
+        collect settings or an external table) that the fit reads, as it reads them (a chain
+        without a clock: all, as they are)."""
+        return table
+
     def fit(
         self, settings: Any, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
     ) -> tuple[dict[str, Any], dict[str, Any]] | None:
@@ -273,6 +283,19 @@ class SwitchClock(ChainKind):
 
     history = "age"
     clock = True
+
+    def training_rows(
+        self, table: pd.DataFrame, max_age: float, where: str, source: Any
+    ) -> pd.DataFrame:
+        """The rows whose clock is known, clipped at ``max_age`` (:func:`clock_rows`)."""
+        try:
+            return clock_rows(table, max_age)
+        except KeyError as exc:
+            raise ArtefactError(
+                f"{where} has no switch clocks ({exc.args[0]}) for gp.history=age: it was "
+                f"collected before collect recorded them; delete it and re-run "
+                f"`{getattr(source, 'command', lambda: 'python3 scripts/collect.py')()}`"
+            ) from exc
 
     def exact_layer(
         self,

@@ -169,15 +169,7 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
-    if settings.kind.clock:
-        try:
-            table = clock_rows(table, settings.max_age)
-        except KeyError as exc:
-            raise ArtefactError(
-                f"{where} has no switch clocks ({exc.args[0]}) for gp.history=age: it was "
-                f"collected before collect recorded them; delete it and re-run "
-                f"`{getattr(source, 'command', lambda: 'python3 scripts/collect.py')()}`"
-            ) from exc
+    table = settings.kind.training_rows(table, settings.max_age, where, source)
     label = settings.label_column(table.columns)
     settings.check_label_column(label, where)
     needed = list(dict.fromkeys([*settings.inputs, *LABELS, label]))
