@@ -27,13 +27,13 @@ from scipy import stats
 
 from surrogate.fields import GaussianField, LinearField
 from surrogate.gp import PsiLookupTable
+from surrogate.kinds import load_class_chain
 from surrogate.models.base import FeatureMap
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import ExactDecision, FullDecision, MemoryDecision, Simulator
 from surrogate.simulate.classes import ClassDecision, exact_class_table
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.memory import exact_age_table
-from surrogate.stages.train import load_class_chain
 
 DT = 0.05
 KS_C = 1.358  # two-sample KS critical value factor at alpha = 0.05

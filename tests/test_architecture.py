@@ -35,8 +35,9 @@ PROTOCOLS = (
 #: engine packages above the models: a model never imports them (the engine adapts the model)
 ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
-# the benchmarks time the stages' own layers (loop: the abstraction; field: the exact psi's table)
-STAGE_USERS = ("surrogate/benchmarks/loop.py", "surrogate/benchmarks/field.py")
+# the loop benchmark times the stages' own layers (the abstraction's; the field benchmark's exact
+# psi's table is the kinds')
+STAGE_USERS = ("surrogate/benchmarks/loop.py",)
 
 
 def _module_name(path: Path) -> str:
@@ -558,15 +559,12 @@ if __name__ == "__main__":  # the listing: python tests/test_architecture.py
 KIND_NAMES = frozenset({"classes", "phi", "age", "none", "learned", "relaxation", "exact",
                         "abstract", "full", "lookup", "classifier"})  # fmt: skip
 #: comparisons with a kind's name per module, measured 2026-11-27 (69 in all at first; 19 once
-#: every stage, the benchmarks and the recorders asked the kind objects or named their own words)
+#: every stage, the benchmarks and the recorders asked the kind objects or named their own words;
+#: 17 once the cost model took a flag and the E. coli kernel its packed block's kind)
 KIND_COMPARISON_BUDGET = {
     # the kinds' own module: the one place a config's kind names are read (its budget may grow
-    # with a new kind; every other module asks the kind object)
+    # with a new kind; every other module asks the kind object, a model its flag or block)
     "kinds.py": 17,
-    # models may not import kinds.py (it imports gp and simulate, above the models): the cost
-    # model's decision=full and the E. coli kernel's K-lumps block compare the name they are given
-    "models/base.py": 1,
-    "models/ecoli/kernel.py": 1,
 }
 
 

@@ -28,8 +28,8 @@ from surrogate.config import to_dict
 from surrogate.errors import ConfigError
 from surrogate.grid import GridField
 from surrogate.io import write_json
+from surrogate.kinds import exact_decision
 from surrogate.simulate.loop import Simulator
-from surrogate.stages.simulate import exact_decision
 
 __all__ = ["format_field_report", "run_field_bench"]
 

@@ -248,15 +248,15 @@ class Model:
     #: the abstraction's default inputs (``gp.inputs=signal``): the internal model's signal
     default_abstraction_inputs: str = "signal"
 
-    def cell_step_seconds(self, dt: float, decision: str = "full") -> float:
-        """Estimated wall time of one cell and step (s) under ``decision`` (``full``: the
-        internal model's own estimate, ``cell_step_seconds(dt)``, where it gives one; the
-        two-state chains and models without an estimate: :data:`CELL_STEP_SECONDS`). The stages
-        multiply it by steps and cells to say, before they start, what a run will cost: an order
-        of magnitude to refuse absurd runs by, with no accuracy guarantee
-        (:mod:`surrogate.stages.budget`)."""
+    def cell_step_seconds(self, dt: float, full: bool = True) -> float:
+        """Estimated wall time of one cell and step (s) under the full model (``full``,
+        ``decision=full``: the internal model's own estimate, ``cell_step_seconds(dt)``, where
+        it gives one) or a chain (``full=False``; the chains and models without an estimate:
+        :data:`CELL_STEP_SECONDS`). The stages multiply it by steps and cells to say, before
+        they start, what a run will cost: an order of magnitude to refuse absurd runs by, with
+        no accuracy guarantee (:mod:`surrogate.stages.budget`)."""
         estimate = cell_step_seconds_of(self.internal)
-        if decision == "full" and estimate is not None:
+        if full and estimate is not None:
             return float(estimate(dt))
         return CELL_STEP_SECONDS
 
@@ -265,7 +265,7 @@ class Model:
         used where the collect settings leave them null: :data:`CHEAP_COLLECTION` for a model
         whose full step costs at most :data:`CHEAP_CELL_STEP_SECONDS` per cell, else
         :data:`COSTLY_COLLECTION`. A model may override it with figures of its own."""
-        cheap = self.cell_step_seconds(dt, "full") <= CHEAP_CELL_STEP_SECONDS
+        cheap = self.cell_step_seconds(dt) <= CHEAP_CELL_STEP_SECONDS
         return dict(CHEAP_COLLECTION if cheap else COSTLY_COLLECTION)
 
     def sources(self) -> dict[str, str]:

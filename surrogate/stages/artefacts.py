@@ -8,6 +8,8 @@ reader then imports nothing of the writer. The simulation recorders' files are n
 
 from __future__ import annotations
 
+from surrogate.kinds import CLASS_CHAIN, PSI
+
 #: collect: the transitions table and the coverage figure
 TRANSITIONS = "transitions.parquet"
 COVERAGE_FIGURE = "coverage.png"
@@ -15,16 +17,14 @@ COVERAGE_FIGURE = "coverage.png"
 #: occupancy: the train diagnostic's unperturbed population
 OCCUPANCY = "occupancy.parquet"
 
-#: fit and train: the classifiers, their scores, the grid and the figures
-PSI = "psi.pt"
+#: fit and train: the classifiers, their scores, the grid and the figures (the classifiers' file
+#: and the K-lumps chain's, CLASS_CHAIN, are named by the kinds that read and write them)
 METRICS = "train_metrics.json"
 FIT_METRICS = "fit_metrics.json"
 GRID = "psi_grid.csv"
 SURFACES_FIGURE = "psi_surfaces.png"
 DIAGNOSTIC_FIGURE = "psi_diagnostic.png"
 HISTORY_FIGURE = "training_history.png"
-#: the K-lumps chain's learned law (gp.lumps=classes), a ClassTable's state
-CLASS_CHAIN = "class_chain.pt"
 
 #: simulate and evaluate, a run in a grid field: density and concentration over x and t
 KYMOGRAPH_FIGURE = "kymograph.png"

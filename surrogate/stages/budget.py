@@ -264,7 +264,7 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
     """One population run (if its artefact is missing)."""
     if _exists(settings.directory, reuse):
         return []
-    setup, name = settings.setup, settings.decision.name
+    setup, name, full = settings.setup, settings.decision.name, settings.decision.kind.full
     span = settings.t_end + settings.equilibration_time
     where = (f"t_end={settings.t_end:g} s + equilibration_time={settings.equilibration_time:g} s "
              f"at dt={setup.dt:g} s, n_cells={settings.n_cells}")  # fmt: skip
@@ -272,7 +272,7 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, name, settings.job.device)
     return [Work(label, settings.n_cells, span / setup.dt,
-                 setup.model.cell_step_seconds(setup.dt, name), where, setup.model.name,
+                 setup.model.cell_step_seconds(setup.dt, full), where, setup.model.name,
                  name, fixed), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
 
 

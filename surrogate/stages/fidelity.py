@@ -57,7 +57,12 @@ from surrogate.io import (
     write_json,
     write_manifest,
 )
-from surrogate.kinds import mode_kind
+from surrogate.kinds import (
+    exact_class_decision,
+    exact_clock_decision,
+    exact_decision,
+    mode_kind,
+)
 from surrogate.models.capabilities import (
     exact_class_step_of,
     has_exact_psi,
@@ -84,13 +89,7 @@ from surrogate.stages.settings import (
     resolve_start,
     validate_backend,
 )
-from surrogate.stages.simulate import (
-    COMPILE_CACHE,
-    exact_class_decision,
-    exact_clock_decision,
-    exact_decision,
-    learned_decision,
-)
+from surrogate.stages.simulate import COMPILE_CACHE, learned_decision
 from surrogate.stages.train import (
     class_diagnostic_by_lump,
     read_metrics,

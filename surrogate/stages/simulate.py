@@ -24,7 +24,6 @@ import torch
 
 from surrogate.config import seed_everything, to_dict
 from surrogate.fields import Field
-from surrogate.gp import PsiClassifier, PsiLookupTable
 from surrogate.grid import GridField
 from surrogate.io import (
     MANIFEST,
@@ -35,25 +34,18 @@ from surrogate.io import (
     save_figure,
     write_manifest,
 )
-from surrogate.kinds import mode_kind
-from surrogate.models.base import FeatureMap, Model
-from surrogate.models.capabilities import signal_bounds_of
-from surrogate.simulate.classes import ClassDecision, exact_class_table
-from surrogate.simulate.decision import (
-    AbstractDecision,
-    DecisionLayer,
-    ExactDecision,
-    ExactPsi,
-    FullDecision,
-)
+
+# the layers' builders, which the kinds own (ChainKind.decision_layer and exact_layer), kept
+# importable from here
+from surrogate.kinds import abstract_decision as abstract_decision
+from surrogate.kinds import exact_class_decision as exact_class_decision
+from surrogate.kinds import exact_clock_decision as exact_clock_decision
+from surrogate.kinds import exact_decision as exact_decision
+from surrogate.kinds import learned_class_decision as learned_class_decision
+from surrogate.models.base import Model
+from surrogate.simulate.decision import DecisionLayer, FullDecision
 from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
-from surrogate.simulate.memory import (
-    AGE,
-    MemoryDecision,
-    exact_age_table,
-    has_history,
-    tabulate_with_clock,
-)
+from surrogate.simulate.memory import AGE
 from surrogate.simulate.population import PopulationSummary, simulate_population
 from surrogate.simulate.support import TrainedRange, warn_outside
 from surrogate.stages import budget
@@ -101,11 +93,8 @@ def build_decision(
         return FullDecision(model.internal), {}
     if d.kind.exact:
         assert d.chain is not None  # the settings made it
-        if d.chain.classes:
-            return exact_class_decision(model, settings.setup.dt, device), {"lumps": "classes"}
-        if d.chain.clock:
-            return exact_clock_decision(model, settings.setup.dt, d.max_age, device), {}
-        return exact_decision(model, settings.setup.dt, d.mode or "lookup", d.lookup_size, device)
+        return d.chain.exact_layer(model, settings.setup.dt, d.mode or "lookup", d.lookup_size,
+                                   d.max_age, device)  # fmt: skip
     assert d.train is not None
     # the fit is found and loaded here, at the stage's edge (the train stage's module is
     # imported only by runs that need it)
@@ -129,9 +118,10 @@ def learned_decision(
     min_rows: int | None = None,
 ) -> tuple[DecisionLayer, dict[str, Any]]:
     """The learned abstraction of the fit ``directory`` (made by ``train``) as a decision layer
-    over ``model`` on ``device``: the K-lumps chain (``gp.lumps=classes``, a table; its cells
-    start as ``start`` says, see :class:`ClassDecision`) or the chain over phi
-    (:func:`abstract_decision`: a lookup table of psi or the classifier itself).
+    over ``model`` on ``device``, as its kind makes it (``ChainKind.decision_layer``): the
+    K-lumps chain (``gp.lumps=classes``, a table; its cells start as ``start`` says, see
+    :class:`ClassDecision`) or the chain over phi (:func:`abstract_decision`: a lookup table
+    of psi or the classifier itself).
 
     The layer carries the range its training data covered (``trained_range``: each input's
     min and max over the training rows, the fit's ``domain``; the switch clock, capped by
@@ -139,14 +129,8 @@ def learned_decision(
     (``support_histogram``; a bin with fewer than ``min_rows`` rows of a state is sparse; None:
     the default rule, :func:`~surrogate.simulate.support.min_rows_of`), which the simulator's
     support monitor checks the cells against."""
-    from surrogate.stages.train import load_abstraction
-
-    if train.kind.classes:
-        layer, info = learned_class_decision(model, directory, device, start=start)
-    else:
-        psi = load_abstraction(directory, device=device)
-        layer, info = abstract_decision(model, psi, train.setup.dt, train.max_age, mode, size,
-                                        device)  # fmt: skip
+    layer, info = train.kind.decision_layer(model, train, directory, mode, size, device,
+                                            start=start)  # fmt: skip
     manifest = read_manifest(directory)
     domain = manifest.get("domain") or {}
     names = [n for n in info["inputs"] if n != AGE]
@@ -155,113 +139,6 @@ def learned_decision(
             domain, names, manifest.get("support_histogram"), min_rows
         )
     return layer, info
-
-
-def learned_class_decision(
-    model: Model,
-    directory: Path,
-    device: torch.device,
-    name: str = "abstract",
-    start: str = "internal",
-) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned K-lumps chain (``gp.lumps=classes``) of a fit directory on ``device``, its
-    cells starting as ``start`` says (:class:`ClassDecision`)."""
-    from surrogate.stages.train import load_class_chain
-
-    table = load_class_chain(directory, device)
-    featurize = model.featurizer(table.input_names)
-    log.info("K-lumps chain over %d classes, table %s over %s", table.n_classes, table.shape,
-             table.input_names)  # fmt: skip
-    return ClassDecision(table, model.internal, featurize, name, start=start), {
-        "inputs": list(table.input_names),
-        "lumps": "classes",
-        "classes": list(table.class_names),
-        "start": start,
-    }
-
-
-def exact_class_decision(
-    model: Model, dt: float, device: torch.device, name: str = "exact"
-) -> ClassDecision:
-    """The K-lumps chain driven by the exact class-to-class law of adapted cells
-    (``decision.lumps=classes``): the limit of a learned one."""
-    table = exact_class_table(model.internal, dt).to(device)
-    featurize = FeatureMap(model.internal, model.internal.signal_names)
-    log.info("exact K-lumps chain over %d classes: table %s", table.n_classes, table.shape)
-    return ClassDecision(table, model.internal, featurize, name)
-
-
-def exact_decision(
-    model: Model, dt: float, mode: str, size: Sequence[int] | None, device: torch.device
-) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The chain driven by the model's exact lumped psi: ``direct`` (exp(Q dt) per cell and
-    step) or ``lookup`` (a table over the signal's bounds, checked against direct)."""
-    internal = model.internal
-    if not mode_kind(mode).table:  # direct
-        return ExactDecision(internal, dt), {}
-    bounds = signal_bounds_of(internal) or {}
-    ranges = [bounds[n] for n in internal.signal_names]
-    exact = ExactPsi(internal, dt)
-    table = PsiLookupTable.from_function(exact, ranges, internal.signal_names, size).to(device)
-    deviation = table.max_deviation(exact, n_check=2048)
-    log.info("exact psi table %s: max |table - exact| = %.2e", table.shape, deviation)
-    return ExactDecision(internal, dt, table), {"lookup_max_deviation": deviation}
-
-
-def exact_clock_decision(
-    model: Model, dt: float, max_age: float, device: torch.device, name: str = "exact"
-) -> MemoryDecision:
-    """The chain driven by the exact psi with a switch clock (``decision.history=age``): a
-    table over the signal and the clock, capped at ``max_age`` s; ``name`` labels the layer."""
-    table = exact_age_table(model.internal, dt, max_age).to(device)
-    featurize = FeatureMap(model.internal, model.internal.signal_names)
-    log.info("exact psi with a switch clock: table %s over %s", table.shape, table.input_names)
-    return MemoryDecision(table, model.internal, featurize, max_age, name, dt)
-
-
-def abstract_decision(
-    model: Model,
-    psi: PsiClassifier,
-    dt: float,
-    max_age: float,
-    mode: str,
-    size: Sequence[int] | None,
-    device: torch.device,
-) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned abstraction ``psi`` (loaded on ``device``) as a decision layer over
-    ``model``: a lookup table of it, or the classifier every step in closed form with cached
-    factors (checked against the classifier). With a switch clock (psi's last input, from
-    ``gp.history=age``) the chain keeps one per cell, capped at ``max_age`` s, ticking every
-    ``dt``; ``size`` is the table's nodes per input (null: the default)."""
-    info: dict[str, Any] = {"inputs": list(psi.input_names)}
-    memory = has_history(psi.input_names)
-    featurize = model.featurizer(psi.input_names[:-1] if memory else psi.input_names)
-
-    def layer(run_probability: Any) -> DecisionLayer:
-        if memory:  # the switch clock is psi's last input (gp.history=age)
-            return MemoryDecision(run_probability, model.internal, featurize, max_age, dt=dt)
-        return AbstractDecision(run_probability, model.internal, featurize)
-
-    if mode_kind(mode).table:
-        ranges = [psi.domain[n] for n in psi.input_names]
-        if memory:  # a clock node at every step: each cell reads its clock's node
-            lead = tuple(size[:-1]) if size else None
-            table = tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, max_age,
-                                        lead).to(device)  # fmt: skip
-        else:
-            table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
-        info["lookup_max_deviation"] = float(table.max_deviation(psi))
-        log.info("lookup table %s: max |table - classifier| = %.2e", table.shape,
-                 info["lookup_max_deviation"])  # fmt: skip
-        return layer(table), info
-    # classifier every step: the same predictive in closed form with cached factors (no gpytorch,
-    # no host sync per step); its agreement with the classifier is checked and recorded
-    from surrogate.gp.fast import CachedPsi
-
-    cached = CachedPsi.from_classifier(psi)
-    info["cached_max_deviation"] = cached.max_deviation(psi)
-    log.info("cached classifier: max |cached - classifier| = %.2e", info["cached_max_deviation"])
-    return layer(cached), info
 
 
 def _simulate(settings: SimulateSettings, out: Path, config: Mapping[str, Any] | None) -> None:

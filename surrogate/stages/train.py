@@ -30,7 +30,6 @@ import numpy as np
 import pandas as pd
 import torch
 from scipy import stats
-from torch import Tensor
 
 from surrogate.config import seed_everything, to_dict
 from surrogate.errors import ArtefactError, NumericalError
@@ -44,12 +43,9 @@ from surrogate.gp import (
     psi_grid_frame,
     save_psi,
 )
-from surrogate.gp.class_relaxation import fit_relaxation_law
-from surrogate.gp.classes import fit_class_law
 from surrogate.gp.diagnostics import class_law_errors, plot_psi_errors, psi_errors
 from surrogate.io import (
     MANIFEST,
-    load_tensors,
     make_once,
     read_csv,
     read_json,
@@ -57,17 +53,15 @@ from surrogate.io import (
     read_parquet,
     require_artefact,
     save_figure,
-    save_tensors,
     write_atomic,
     write_csv,
     write_json,
     write_manifest,
 )
+from surrogate.kinds import load_class_chain as load_class_chain  # the Python API's
 from surrogate.models.base import Model
 from surrogate.models.capabilities import (
-    class_bins_of,
     exact_class_step_of,
-    expected_class_next_of,
     has_exact_psi,
     lump_classes_of,
     signal_bounds_of,
@@ -77,17 +71,14 @@ from surrogate.simulate.classes import (
     ClassDecision,
     ClassTable,
     exact_class_table,
-    expected_class_column,
 )
-from surrogate.simulate.decision import ExactPsi, FullDecision
+from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.memory import AGE, can_age, clock_rows, exact_age_table
 from surrogate.simulate.precompile import precompile_in_background
 from surrogate.simulate.support import TrainingHistogram
-from surrogate.simulate.transitions import record_stationary_bins
 from surrogate.stages import budget
 from surrogate.stages.artefacts import (
-    CLASS_CHAIN,
     DIAGNOSTIC_FIGURE,
     FIT_METRICS,
     GRID,
@@ -179,15 +170,7 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
-    if settings.kind.clock:
-        try:
-            table = clock_rows(table, settings.max_age)
-        except KeyError as exc:
-            raise ArtefactError(
-                f"{where} has no switch clocks ({exc.args[0]}) for gp.history=age: it was "
-                f"collected before collect recorded them; delete it and re-run "
-                f"`{getattr(source, 'command', lambda: 'python3 scripts/collect.py')()}`"
-            ) from exc
+    table = settings.kind.training_rows(table, settings.max_age, where, source)
     label = settings.label_column(table.columns)
     settings.check_label_column(label, where)
     needed = list(dict.fromkeys([*settings.inputs, *LABELS, label]))
@@ -232,7 +215,7 @@ def _fit(
         psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
                       device=job.device, lump_names=lumps,
                       label=settings.label_column(table.columns))  # fmt: skip
-        chain = _fit_class_chain(settings, table, psi.domain) if settings.kind.classes else None
+        chain = settings.kind.fit(settings, table, psi.domain)  # the kind's own, if any
     except NumericalError as exc:
         # nothing was written: a previous complete fit in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")
@@ -265,10 +248,7 @@ def _fit(
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     save_psi(out / PSI, psi, {"settings": settings.fit_identity(), "source": source})
-    if chain is not None:
-        table_state, metrics["class_chain"] = chain
-        save_tensors(out / CLASS_CHAIN, {"class_chain": table_state,
-                                         "metadata": {"settings": settings.fit_identity()}})  # fmt: skip
+    metrics.update(settings.kind.save(out, chain, settings.fit_identity()))
     write_json(out / FIT_METRICS, metrics)
     save_figure(out / HISTORY_FIGURE, plot_training_history(
         {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
@@ -312,85 +292,6 @@ def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, A
     return TrainingHistogram.of_rows(values, phi, switched, names).to_json()
 
 
-def _fit_class_chain(
-    settings: TrainSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The K-lumps chain (gp.lumps=classes) over the two-state fit's domain: its table's state
-    and its metrics."""
-    model = settings.setup.model
-    classes = lump_classes_of(model.internal)
-    assert classes is not None  # the settings checked it
-    expected = settings.gp_config.get("labels", "outcome") != "outcome"
-    columns = [expected_class_column(b) for b in range(len(classes.names))]
-    if (expected and expected_class_next_of(model.internal) is not None
-            and isinstance(settings.source, CollectSettings)
-            and not all(c in table.columns for c in columns)):  # fmt: skip
-        raise ArtefactError(
-            f"the transitions of {settings.input_command()} lack the expected class labels "
-            f"{columns[0]}..: they were collected before the model gave them; delete "
-            f"{settings.source.directory} and collect again, or train with gp.labels=outcome"
-        )
-    law, metrics = fit_class_law(table, settings.inputs, len(classes.names), dict(domain),
-                                 settings.gp, progress=settings.job.progress,
-                                 device=settings.job.device, expected=expected,
-                                 min_events=settings.min_events,
-                                 max_weight=settings.max_label_weight)  # fmt: skip
-    log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
-             metrics["classifiers"], metrics["constant_steps"])  # fmt: skip
-    if settings.kind.relaxation:
-        law, metrics["relaxation"] = _relaxation_law(settings, law, domain)
-    chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
-                       classes.lumps, settings.setup.dt)  # fmt: skip
-    return chain.to_state(), metrics
-
-
-#: the stationary sample's seed is the fit's plus this (its cells are not collect's first cells)
-RELAXATION_SEED_OFFSET = 1_000_003
-
-
-def _relaxation_law(
-    settings: TrainSettings, learned: Tensor, domain: Mapping[str, tuple[float, float]]
-) -> tuple[Tensor, dict[str, Any]]:
-    """The learned law with bins that relax (gp.class_moves=relaxation): a stationary sample
-    of burned-in full-model cells where collect starts them, held at their inputs."""
-    setup, job = settings.setup, settings.job
-    model = setup.model
-    declared = lump_classes_of(model.internal)
-    bins = class_bins_of(model.internal)
-    assert declared is not None and bins is not None  # the settings checked them
-    seed_everything(settings.seed + RELAXATION_SEED_OFFSET)
-    t0 = time.perf_counter()
-    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
-    perturbation = model.body.perturbation(setup.field, model.perturbation_options)
-    log.info("class moves by relaxation: %d burned-in full-model cells held at their inputs "
-             "for %g s", settings.relaxation_cells, settings.relaxation_lags[-1])  # fmt: skip
-    sample = record_stationary_bins(simulator, perturbation, settings.relaxation_cells,
-                                    settings.relaxation_lags, settings.inputs, bins)  # fmt: skip
-    sizes = list(learned.shape[1:-1])
-    law, metrics = fit_relaxation_law(learned, sample, settings.inputs, domain, sizes, bins,
-                                      declared.lumps, settings.relaxation_lags, setup.dt,
-                                      settings.gp, progress=job.progress,
-                                      device=job.device)  # fmt: skip
-    metrics["seconds"] = time.perf_counter() - t0
-    log.info("the count's relaxation time %.0f s (correlation %s at lags %s s); its bins kept "
-             "per window with probability %.6f", metrics["relaxation_time"],
-             ", ".join(f"{r:.3f}" for r in metrics["correlation"]),
-             ", ".join(f"{v:g}" for v in settings.relaxation_lags),
-             metrics["keep_bin_per_window"])  # fmt: skip
-    return law, metrics
-
-
-def load_class_chain(
-    directory: str | os.PathLike, device: str | torch.device = "cpu"
-) -> ClassTable:
-    """The K-lumps chain's law of a fit or train directory (``gp.lumps=classes``)."""
-    path = Path(directory) / CLASS_CHAIN
-    obj = load_tensors(path, made_by="python scripts/train.py gp.lumps=classes")
-    if not isinstance(obj, dict) or "class_chain" not in obj:
-        raise ArtefactError(f"{path} is not a saved class chain (no 'class_chain' entry)")
-    return ClassTable.from_state(obj["class_chain"]).to(device)
-
-
 def _train(
     settings: TrainSettings,
     out: Path,
@@ -415,13 +316,13 @@ def _train(
     exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
     diagnostic, frame = diagnose(psi, settings, model, exact_fn)
     metrics["diagnostic"] = diagnostic
-    if settings.kind.classes:
-        chain = load_class_chain(fit_dir)
+    chain = settings.kind.load(fit_dir)
+    if isinstance(chain, ClassTable):  # a chain over classes: scored class by class
         metrics["class_diagnostic"] = diagnose_classes(chain, settings, model)
         metrics["class_shares"] = class_share_drift(chain, settings, model)
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
-    own = (PSI, HISTORY_FIGURE, *((CLASS_CHAIN,) if settings.kind.classes else ()))
+    own = (PSI, HISTORY_FIGURE, *settings.kind.files)
     for name in own:  # the fit's own files, for whoever reads this directory
         write_atomic(out / name, partial(shutil.copyfile, fit_dir / name))
     write_json(out / METRICS, metrics)

@@ -222,7 +222,9 @@ def test_linear_prior_mean(d: int) -> None:
     for c, fitted in enumerate(psi.classifiers):
         assert (mean[c] - fitted.latent(z)[0]).abs().max().item() < 1e-4
     # a constant mean has no slope term at all (the hot path gains no op)
-    const = fit_psi(data, names, GPSettings(n_inducing=15, epochs=1, batch_size=300), progress=False)
+    const = fit_psi(
+        data, names, GPSettings(n_inducing=15, epochs=1, batch_size=300), progress=False
+    )
     assert CachedPsi.from_classifier(const).mean_slope is None
 
 

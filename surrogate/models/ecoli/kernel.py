@@ -364,8 +364,9 @@ class _Block:
             raise KernelUnsupported(f"a {block.layer} without a pure window (motor SSA)")
         if not _same_internal(block.internal, internal):
             raise KernelUnsupported("a decision layer over another internal model")
-        self.kind = {FULL: "motors", CLASSES: "classes"}.get(block.kind, "lookup")
-        if block.kind == FULL:
+        # the motors (the full model), a class table (K lumps), else a chain's lookup tables
+        self.motors, self.classes = block.kind == FULL, block.kind == CLASSES
+        if self.motors:
             self.motor_row = block.motor_row
             return
         law, tables = block.classes, block.tables
@@ -385,7 +386,7 @@ class _Block:
         if self._packed is not None and self._packed[0] == n and self._packed[1] is own:
             return self._packed[2]
         state = None if own is None else _numpy(own)
-        if self.kind == "classes":
+        if self.classes:
             assert self.law is not None and state is not None  # each cell's class
             classes = kd.class_pack(self.law, self.features, self.row, state)
             pack = kd.DecisionPack(kd.CLASSES, kd.NO_CHAIN, classes)
@@ -554,7 +555,7 @@ class EcoliKernel:
             # the per-cell state (motor states, clocks, classes), advanced in place: the
             # layer's own copy (a dry run only reads it)
             own = None if b.state is None else (b.state.current() if dry else b.state.writable())
-            if b.kind == "motors":
+            if b.motors:
                 assert own is not None and u64 is not None  # motor states, one u64 per motor
                 motors, decision = (_numpy(own), b.motor_row), _OWN
             else:

@@ -283,6 +283,11 @@ class TrainSettings:
             data = [f"transitions={self.source.path}", *self.setup.overrides()]
         return command_line(TRAIN_CMD, data, self.gp_overrides(), self.job.device_overrides())
 
+    @property
+    def collected(self) -> bool:
+        """Whether the transitions are collect's (not an external table)."""
+        return isinstance(self.source, CollectSettings)
+
     def input_command(self) -> str:
         """The command that makes this stage's input (the collected transitions)."""
         if isinstance(self.source, CollectSettings):
