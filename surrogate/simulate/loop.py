@@ -557,7 +557,7 @@ class Simulator:
             if not blocks:
                 return
             self._support = SupportMonitor(blocks)
-        self._support.observe(state.inputs)
+        self._support.observe(state.inputs, state.phi)
 
     def support_report(self) -> list[dict[str, Any] | None]:
         """Per run (:meth:`support_blocks` order): the monitor's report, None where the run has

@@ -14,12 +14,13 @@ estimate of the share of all cell-steps.
 Inside the range, training rows may still be few: a learned psi there is the GP's guess between
 distant rows (an input range the training field crossed quickly, say). So a fit also stores
 :class:`TrainingHistogram`: its rows per state over equal-width bins of the trained range (the
-joint histogram for one or two inputs, each input's own for more). A bin is *sparse* where a
-state has fewer rows than :func:`min_rows_of` asks (by default enough rows for 25 expected
-switches at that state's switching share, a relative standard error of 20 % on a rate estimated
-from that bin alone), and the monitor also counts the sampled cell-steps inside the range whose
-inputs fall in a sparse bin (``share_sparse``) and where the most visited sparse region lies
-(``sparse_where``). A fit made before the histogram was stored is checked by range only.
+joint histogram for one or two inputs, each input's own for more). A bin is *sparse* for a
+state that has fewer rows there than :func:`min_rows_of` asks (by default enough rows for 25
+expected switches at that state's switching share, a relative standard error of 20 % on a rate
+estimated from that bin alone), and the monitor also counts the sampled cell-steps inside the
+range whose inputs fall in a bin sparse for their own state phi, the psi that decides their
+next step (``share_sparse``: a running cell where tumbles were never trained is not), and where
+the most visited sparse region lies (``sparse_where``). A fit made before the histogram was stored is checked by range only.
 
 Example:
     >>> import torch
@@ -169,11 +170,15 @@ class TrainingHistogram:
         """Per state, the rows a bin needs (:func:`min_rows_of`)."""
         return tuple(min_rows_of(p, min_rows) for p in self.switching)
 
+    def sparse_by_state(self, min_rows: int | None = None) -> tuple[tuple[bool, ...], ...]:
+        """Per state, per flat bin: whether that state has fewer rows there than it needs
+        (:meth:`min_rows`)."""
+        need = self.min_rows(min_rows)
+        return tuple(tuple(v < n for v in c) for c, n in zip(self.counts, need, strict=True))
+
     def sparse(self, min_rows: int | None = None) -> tuple[bool, ...]:
         """Per flat bin: whether any state has fewer rows there than :meth:`min_rows`."""
-        need = self.min_rows(min_rows)
-        return tuple(any(c[b] < n for c, n in zip(self.counts, need, strict=True))
-                     for b in range(self.n_bins))  # fmt: skip
+        return tuple(any(col) for col in zip(*self.sparse_by_state(min_rows), strict=True))
 
     def to_json(self) -> dict[str, Any]:
         """A plain dict for a manifest (:meth:`from_json` reads it back)."""
@@ -278,10 +283,11 @@ class SupportMonitor:
         #: per block: its histogram's sparse bins on the device (None: range only)
         self._density: list[Tensor | None] = []
 
-    def observe(self, x: Tensor) -> None:
+    def observe(self, x: Tensor, phi: Tensor | None = None) -> None:
         """Count the cells of every block whose features of ``x`` (``n x d_x``, the body's
-        inputs of the last step) lie outside the block's trained range, or inside it in a
-        sparse bin; batched tensor ops on ``x``'s device, no host sync."""
+        inputs of the last step) lie outside the block's trained range, or inside it in a bin
+        sparse for their state ``phi`` (``(n,)``, 0/1: the psi that decides their next step;
+        None: sparse for either state); batched tensor ops on ``x``'s device, no host sync."""
         if self._counts is None:
             self._counts = [self._zeros(r, x.device) for _, _, r in self.blocks]
             self._density = [self._sparse_bins(r, x.device) for _, _, r in self.blocks]
@@ -306,20 +312,23 @@ class SupportMonitor:
             assert trained.histogram is not None  # a density is made from it
             flat = trained.histogram.flat_bins(z)  # n (joint) or n x d (each alone)
             inside = ~out
-            hit = density[flat]
-            hit = (hit if hit.dim() == 1 else hit.any(1)) & inside
-            acc["sparse"] += hit.sum()
-            weight = inside.to(torch.int64)
-            if flat.dim() == 2:
-                weight = weight[:, None].expand_as(flat).reshape(-1)
-            acc["visits"].index_add_(0, flat.reshape(-1), weight)
+            if phi is None:
+                bad = density.any(0)[flat]
+            else:  # each cell against its own state's rows
+                state = phi[cells].to(torch.int64)
+                bad = density[state if flat.dim() == 1 else state[:, None], flat]
+            bad = bad & (inside if flat.dim() == 1 else inside[:, None])
+            acc["sparse"] += (bad if bad.dim() == 1 else bad.any(1)).sum()
+            # the sparse cell-steps per bin (each input's own where not joint): the regions'
+            acc["visits"].index_add_(0, flat.reshape(-1), bad.reshape(-1).to(torch.int64))
 
     @staticmethod
     def _sparse_bins(trained: TrainedRange, device: torch.device) -> Tensor | None:
         hist = trained.histogram
         if hist is None:
             return None
-        return torch.tensor(hist.sparse(trained.min_rows), dtype=torch.bool, device=device)
+        return torch.tensor(hist.sparse_by_state(trained.min_rows), dtype=torch.bool,
+                            device=device)  # fmt: skip
 
     @staticmethod
     def _zeros(trained: TrainedRange, device: torch.device) -> dict[str, Tensor]:

@@ -10,7 +10,10 @@ range) and names, in order, the first causes that apply:
    range above ``outside_warning``): the psi there is the range's edge, not learned: collect
    where the cells go. **Sparse training data** (inside the range, a share of cell-steps above
    the same threshold in bins of the fit's histogram where its training rows are sparse):
-   the psi there is the fit's guess between few rows: training rows there.
+   the psi there is the fit's guess between few rows: training rows there. A cause only where
+   a comparison fails; where every one passes it is a caveat beside the trust (a GP pools
+   neighbouring bins, which the per-bin count does not credit: the band passed at 100,000 cells
+   with a quarter of its cell-steps in such bins, docs/fields.md).
 2. **Not settled** (the diagnostic population's switching frequency differs between the first
    and second half of its run by more than 4 standard errors): the full model's cells were
    still drifting from their start: the burn-in is too short.
@@ -56,10 +59,12 @@ class Verdict:
     Attributes:
         trust: no cause applies: within the noise floor at this size.
         causes: each cause that applies: ``(name, what was measured, the next step)``.
+        caveats: what to watch where it is trusted, as causes are written.
     """
 
     trust: bool
     causes: list[tuple[str, str, str]] = field(default_factory=list)
+    caveats: list[tuple[str, str, str]] = field(default_factory=list)
 
     def markdown(self) -> str:
         """The verdict as report text."""
@@ -69,7 +74,9 @@ class Verdict:
                     "population lives within its error, and no run left the training data. "
                     "Small differences hide at small populations: confirm at scale with "
                     "`python3 scripts/fidelity.py` (thousands of cells, several training "
-                    "seeds).")  # fmt: skip
+                    "seeds)." + "".join(f"\n\nCaveat, **{name}**: {measured} Where a check at "
+                                        f"scale fails: {step}"
+                                        for name, measured, step in self.caveats))  # fmt: skip
         lines = ["**Do not trust it yet.** In order (the first is the likeliest cause of the "
                  "others):", ""]  # fmt: skip
         for i, (name, measured, step) in enumerate(self.causes, 1):
@@ -127,14 +134,16 @@ def verdict(
             "collect transitions where these cells go: `collect.* field=<that field>`, or a "
             "wider collection (`model.body.perturbation.radius`, a field with that range).",
         ))  # fmt: skip
+    failing = {f: list(q) for f, q in failures.items() if q}
     thin = {f: r for f, r in outside.items()
             if r and (sparse_share(r) or 0.0) > outside_warning}  # fmt: skip
+    caveats: list[tuple[str, str, str]] = []
     if thin:
         parts = [f"{f}: {100 * float(r['share_sparse']):.1f} % of cell-steps, most at "
                  f"{describe_where(r.get('sparse_where'))} "
                  f"({100 * float(r.get('sparse_where_share', 0.0)):.1f} %)"
                  for f, r in thin.items()]  # fmt: skip
-        causes.append((
+        (causes if failing else caveats).append((
             "Sparse training data",
             "inside its trained range the abstraction ran where its training rows are sparse "
             "(fewer per state than a switching rate within 20 % needs) in " + "; ".join(parts)
@@ -206,7 +215,6 @@ def verdict(
             "classes are off, whatever each class's switching.",
             step + ".",
         ))  # fmt: skip
-    failing = {f: list(q) for f, q in failures.items() if q}
     if failing and not biased and not away and not thin and not drift:
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
         classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the count "
@@ -226,7 +234,9 @@ def verdict(
             "lives: what phi alone forgets (the network's hidden state) shapes the runs.",
             step,
         ))  # fmt: skip
-    return Verdict(trust=not causes, causes=causes)
+    if causes:  # not trusted anyway: thin rows are one more thing to mend
+        causes, caveats = causes + caveats, []
+    return Verdict(trust=not causes, causes=causes, caveats=caveats)
 
 
 def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> str:

@@ -191,6 +191,24 @@ def test_the_sparse_share_is_the_hand_counted_one() -> None:
     assert report["sparse_where"] == {"dG": [1.0, 2.0]} and report["min_rows"] == [100, 25]
 
 
+def test_each_cell_is_checked_against_its_own_states_rows() -> None:
+    """The hand-counted case above with the cells' phi: bin 1 is sparse for state 0 only (5 rows),
+    bin 3 for state 1 only (50). Cells in bin 1 count where they tumble (phi 0), those in bin 3
+    where they run (phi 1): a running cell where tumbles were barely trained is not sparse."""
+    hist = _histogram([200, 5, 200, 200], [200, 200, 200, 50])
+    trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
+    monitor = SupportMonitor([(slice(0, None), None, trained)])
+    z = torch.tensor([[0.5], [1.5], [1.2], [2.5], [3.5], [3.9], [3.1], [5.0], [-1.0]])
+    phi = torch.tensor([0, 0, 1, 0, 1, 0, 1, 0, 1], dtype=torch.bool)
+    monitor.observe(z, phi)
+    (report,) = monitor.report()
+    assert report["share_outside"] == pytest.approx(2 / 9)
+    assert report["share_sparse"] == pytest.approx(3 / 9)  # z 1.5 (phi 0); 3.5, 3.1 (phi 1)
+    assert report["sparse_where"] == {"dG": [3.0, 4.0]}
+    assert report["sparse_where_share"] == pytest.approx(2 / 9)
+    assert hist.sparse_by_state(100) == ((False, True, False, False), (False, False, False, True))
+
+
 def test_a_joint_sparse_region_is_the_visited_part_of_its_component() -> None:
     """Two inputs over [0, 2]^2 in 2 x 2 bins, only bin (1, 1) trained: bins (0, 0), (0, 1)
     and (1, 0) form one sparse region; the visited ones are (0, 1) and (1, 0)."""
@@ -239,17 +257,24 @@ def test_the_warning_names_the_sparse_interval_and_what_to_do(caplog) -> None:
     assert "dG in [1, 2] (3 %)" in message and "fewer than 100/100 rows" in message
     assert "collect.n_per_state" in message and "model.body.perturbation" in message
     assert "outside its training data" not in message
-    assert "Sparse training data" in verdict_of(report)
-    assert "dG in [1, 2]" in verdict_of(report)
+    # every comparison passed: trusted, with the sparse rows as a caveat
+    passed = verdict_of(report)
+    assert passed.startswith("**Trust it at this size**")
+    assert "Caveat, **Sparse training data**" in passed and "dG in [1, 2]" in passed
+    # a comparison failed: the sparse rows are the first cause named
+    failed = verdict_of(report, failures={"f": ["distance_t100"]})
+    assert failed.startswith("**Do not trust it yet.**")
+    assert "1. **Sparse training data**" in failed and "dG in [1, 2]" in failed
 
 
-def verdict_of(report) -> str:
+def verdict_of(report, failures=None) -> str:
     from surrogate.kinds import chain_kind
     from surrogate.stages.advice import verdict
 
-    v = verdict(diagnostic=None, lump_names=("off", "on"), failures={}, outside={"f": report},
-                outside_warning=0.01, tolerance=0.03, kind=chain_kind("phi", "none", "learned"),
-                network=False, n_per_state=None)  # fmt: skip
+    v = verdict(diagnostic=None, lump_names=("off", "on"), failures=failures or {},
+                outside={"f": report}, outside_warning=0.01, tolerance=0.03,
+                kind=chain_kind("phi", "none", "learned"), network=False,
+                n_per_state=None)  # fmt: skip
     return v.markdown()
 
 

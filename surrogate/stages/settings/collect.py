@@ -4,7 +4,7 @@ sequential design's fits, where ``collect.design.target_error`` is set)."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -125,6 +125,10 @@ class CollectSettings:
 
 #: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
 DESIGN_KEYS = ("target_error", "max_rounds", "candidates", "explore")
+#: the design's fits from a config (``TrainSettings.from_config``): train settings read
+#: collect's, so train registers this when it is imported (the package's ``__init__`` does)
+#: rather than collect importing train back
+DESIGN_FITS: Callable[[Mapping[str, Any]], TrainSettings] | None = None
 
 
 def _design_settings(
@@ -157,10 +161,11 @@ def _design_settings(
             "collect.design.target_error needs the gp group (its rounds fit psi): run "
             f"{TRAIN_CMD} collect.design.target_error={target:g} or add gp=svgp"
         )
-    from surrogate.stages.settings.train import TrainSettings  # train settings read collect's
-
+    if DESIGN_FITS is None:  # pragma: no cover - the package's __init__ imports train
+        raise RuntimeError("import surrogate.stages.settings (train settings register the "
+                           "design's fits) before CollectSettings")  # fmt: skip
     inner = to_dict(cfg)
     inner["collect"] = {**options, "design": {**dict(d), "target_error": None}}
     if inner["gp"].get("lumps") == "auto":  # the rounds fit psi, the two-state chain's law
         inner["gp"] = {**inner["gp"], "lumps": "phi"}
-    return TrainSettings.from_config(inner)
+    return DESIGN_FITS(inner)

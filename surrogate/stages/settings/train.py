@@ -27,6 +27,7 @@ from surrogate.kinds import (
     resolve_auto_lumps,
 )
 from surrogate.models.capabilities import start_size_of
+from surrogate.stages.settings import collect as collect_settings
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     TRAIN_CMD,
@@ -312,3 +313,7 @@ def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str,
     non_negative(d, "equilibration_time", "gp.diagnostic.")
     d["start"] = list(validate_start(d, "start", "gp.diagnostic.", start_size))
     return d
+
+
+# collect's sequential design fits with these settings (no import of train from collect)
+collect_settings.DESIGN_FITS = TrainSettings.from_config
