@@ -116,9 +116,9 @@ log = logging.getLogger(__name__)
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
 GP_CLOCK = ("history", "max_age", "clock_bins")
 #: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
+GP_CLASSES = ("lumps", "min_events", "max_label_weight", "class_moves", "relaxation")
 #: gp.mean's default: a fit with it keeps the identity it had before the key existed
 DEFAULT_MEAN = "constant"
-GP_CLASSES = ("lumps", "min_events", "max_label_weight", "class_moves", "relaxation")
 #: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
 #: these shipped recipes: the first where the model declares classes finer than phi, else the second
 AUTO_RECIPES = ("classes", "svgp")
