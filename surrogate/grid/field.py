@@ -362,9 +362,10 @@ class GridField(CoupledField):
         """:meth:`step` through :func:`~surrogate.grid.fused.fused_step`; the stencil it
         computed is kept for the agents' next read, as the eager torch path keeps its own."""
         assert self._solver is not None and self._supply is not None
-        spectral = isinstance(self._solver, SpectralSolver)
-        flow = self._solver.flow(dt) if isinstance(self._solver, SpectralSolver) else None
-        loss = exact_decay_loss if spectral else euler_decay_loss
+        if isinstance(self._solver, SpectralSolver):  # flow: None where its step is not dense
+            flow, loss = self._solver.flow(dt), exact_decay_loss
+        else:
+            flow, loss = None, euler_decay_loss
         lanes = deposit_lanes(position.shape[0], self.grid.n_cells, position.device)
         ledger = (state.taken, state.secreted, state.supplied, state.decayed)
         # the solver's tensors enter as arguments, not the solver: each reset makes a new

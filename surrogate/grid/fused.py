@@ -12,7 +12,9 @@ element-wise chains into a few kernels and launches those from one wrapper.
 
 Results: the eager step's to float64 rounding (a fused kernel may contract ``a * b + c`` into an
 FMA or sum in another order; the deposit's atomics already add in any order on a GPU), tested
-at 1e-12 relative against the eager step (``tests/grid/test_fused.py``).
+against the eager step (``tests/grid/test_fused.py``): the field's float64 values to 1e-12
+relative, the agents' float32 reads to one float32 rounding (a 1e-16 difference in float64 may
+cross a float32 rounding edge).
 
 Which step runs is the field's ``fuse`` setting (:data:`FUSE_MODES`): ``auto`` (the default)
 compiles on CUDA, where the eager step is launch bound, and keeps the eager step elsewhere (the
