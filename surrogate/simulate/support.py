@@ -20,7 +20,8 @@ expected switches at that state's switching share, a relative standard error of 
 estimated from that bin alone), and the monitor also counts the sampled cell-steps inside the
 range whose inputs fall in a bin sparse for their own state phi, the psi that decides their
 next step (``share_sparse``: a running cell where tumbles were never trained is not), and where
-the most visited sparse region lies (``sparse_where``). A fit made before the histogram was stored is checked by range only.
+the most visited sparse region lies (``sparse_where``). A fit made before the histogram was
+stored is checked by range only.
 
 Example:
     >>> import torch
@@ -133,10 +134,8 @@ class TrainingHistogram:
         counts, switching = [], []
         for s in (0, 1):
             mine = state == s
-            if joint:
-                c = torch.bincount(flat[mine], minlength=size)
-            else:
-                c = torch.bincount(flat[mine].reshape(-1), minlength=size)
+            # joint: one flat bin a row; else d, one in each input's own histogram
+            c = torch.bincount(flat[mine].reshape(-1), minlength=size)
             counts.append(tuple(int(v) for v in c.tolist()))
             n = int(mine.sum())
             switching.append(float(moved[mine].sum()) / n if n else 0.0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -46,12 +47,9 @@ def test_counts_are_exact_per_input_and_side() -> None:
     assert "a seen [-0.1, 2] vs trained [0, 1]" in describe_outside(report)
 
 
-def test_shards_reports_merge_into_the_report_of_all_their_rows() -> None:
-    """Merging the reports of a run's parts (its shards) gives what one monitor over all their
-    rows reports: shares weighted by sampled cell-steps, ranges joined; unobserved parts skip."""
-    trained = TrainedRange(("a", "b"), (0.0, -1.0), (1.0, 1.0))
-    gen = torch.Generator().manual_seed(3)
-    parts = [torch.randn(n, 2, generator=gen, dtype=torch.float64) * 1.5 for n in (7, 30, 2)]
+def _whole_and_merged(trained: TrainedRange, parts: list[torch.Tensor]) -> tuple[Any, Any]:
+    """The report of one monitor over all ``parts`` (a run's shards), and the merge of one
+    report per part (with an unobserved part's None first)."""
     whole = SupportMonitor([(slice(0, None), None, trained)])
     reports = []
     for x in parts:
@@ -60,7 +58,16 @@ def test_shards_reports_merge_into_the_report_of_all_their_rows() -> None:
         one.observe(x)
         reports.extend(one.report())
     (want,) = whole.report()
-    got = merge_reports([None, *reports])
+    return want, merge_reports([None, *reports])
+
+
+def test_shards_reports_merge_into_the_report_of_all_their_rows() -> None:
+    """Merging the reports of a run's parts (its shards) gives what one monitor over all their
+    rows reports: shares weighted by sampled cell-steps, ranges joined; unobserved parts skip."""
+    trained = TrainedRange(("a", "b"), (0.0, -1.0), (1.0, 1.0))
+    gen = torch.Generator().manual_seed(3)
+    parts = [torch.randn(n, 2, generator=gen, dtype=torch.float64) * 1.5 for n in (7, 30, 2)]
+    want, got = _whole_and_merged(trained, parts)
     assert got is not None and got["sampled_cell_steps"] == want["sampled_cell_steps"] == 39
     assert got["share_outside"] == pytest.approx(want["share_outside"])
     for name in ("a", "b"):
@@ -296,19 +303,13 @@ def test_an_older_fit_without_a_histogram_is_checked_by_range_only() -> None:
 
 
 def test_shards_sparse_shares_merge_into_the_report_of_all_their_rows() -> None:
+    """As the range's shares, the sparse share and each sparse region's merge into what one
+    monitor over all the shards' rows reports."""
     hist = _histogram([200, 5, 200, 200], [200, 200, 200, 50])
     trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
     gen = torch.Generator().manual_seed(5)
     parts = [torch.rand(n, 1, generator=gen, dtype=torch.float64) * 5 for n in (40, 7, 300)]
-    whole = SupportMonitor([(slice(0, None), None, trained)])
-    reports = []
-    for x in parts:
-        whole.observe(x)
-        one = SupportMonitor([(slice(0, None), None, trained)])
-        one.observe(x)
-        reports.extend(one.report())
-    (want,) = whole.report()
-    got = merge_reports([None, *reports])
+    want, got = _whole_and_merged(trained, parts)
     assert got is not None
     assert got["share_sparse"] == pytest.approx(want["share_sparse"])
     assert got["sparse_regions"] == pytest.approx(want["sparse_regions"])
