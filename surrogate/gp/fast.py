@@ -8,10 +8,11 @@ compiled simulation step and runs on any device).
 
 Whitened variational strategy (gpytorch ``VariationalStrategy``), for one classifier with inducing
 points Z (M), K_zz + jitter I = L L^T, variational q(u) = N(m_u, S) in whitened coordinates and a
-constant prior mean c (a linear one, c + s^T x on the raw inputs, adds its slope term):
+prior mean c (gp.mean=constant) or c + s^T x (gp.mean=linear; s the slopes on the raw inputs,
+:func:`_prior_mean`):
 
     a(x)   = L^{-1} k_Z(x)                                   (M,)
-    mean   = c + a^T m_u
+    mean   = c [+ s^T x] + a^T m_u
     var    = k(x, x) + jitter + a^T (S - I) a
     p(RUN) = Phi(mean / sqrt(1 + var))                        (Bernoulli-probit predictive)
 
