@@ -131,6 +131,15 @@ def _check_float(name: str, value: Any) -> float:
     return float(value)
 
 
+def _psi_gp(inducing: Tensor, settings: GPSettings) -> PsiGP:
+    """The untrained :class:`PsiGP` over ``inducing`` points (``(M, d)``, or ``(B, M, d)``
+    batched) that ``settings`` describes: the one place the gp group's model keys (kernel, ard,
+    learn_inducing, natural_gradient, mean) reach the model, so a fit and its reload agree."""
+    return PsiGP(inducing, kernel=settings.kernel, ard=settings.ard,
+                 learn_inducing=settings.learn_inducing, natural=settings.natural_gradient,
+                 mean=settings.mean)  # fmt: skip
+
+
 # ----------------------------------------------------------------------------------------------
 # normalisation
 
@@ -279,14 +288,7 @@ class FittedClassifier:
         settings = GPSettings.from_config(state["settings"])
         model_state = state["model"]
         inducing = model_state["variational_strategy.inducing_points"]
-        model = PsiGP(
-            inducing.clone(),
-            kernel=settings.kernel,
-            ard=settings.ard,
-            learn_inducing=settings.learn_inducing,
-            natural=settings.natural_gradient,
-            mean=settings.mean,
-        )
+        model = _psi_gp(inducing.clone(), settings)
         model.load_state_dict(model_state, strict=True)
         likelihood = gpytorch.likelihoods.BernoulliLikelihood()
         likelihood.load_state_dict(state["likelihood"], strict=True)
@@ -430,14 +432,7 @@ def fit_classifier(
         prep.inducing,
     )
     normaliser = prep.normaliser
-    model = PsiGP(
-        inducing.clone(),
-        kernel=settings.kernel,
-        ard=settings.ard,
-        learn_inducing=settings.learn_inducing,
-        natural=settings.natural_gradient,
-        mean=settings.mean,
-    ).to(device)
+    model = _psi_gp(inducing.clone(), settings).to(device)
     likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(device)
     mll = gpytorch.mlls.VariationalELBO(likelihood, model, num_data=n_train)
 
@@ -561,9 +556,7 @@ def fit_classifiers(
               for p, w in zip(preps, weights, strict=True)]  # fmt: skip
     if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS:
         return one_by_one()
-    model = PsiGP(torch.stack([p.inducing for p in preps]).clone(), kernel=settings.kernel,
-                  ard=settings.ard, learn_inducing=settings.learn_inducing,
-                  mean=settings.mean).to(device)  # fmt: skip
+    model = _psi_gp(torch.stack([p.inducing for p in preps]).clone(), settings).to(device)
     # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
     # (gpytorch's CholeskyVariationalDistribution initialisation from the whitened prior)
     strategy = model.variational_strategy
@@ -661,10 +654,8 @@ def _split(
     state = model.state_dict()
     out = []
     for i, prep in enumerate(preps):
-        single = PsiGP(state["variational_strategy.inducing_points"][i].clone(),
-                       kernel=settings.kernel, ard=settings.ard,
-                       learn_inducing=settings.learn_inducing,
-                       mean=settings.mean).to(prep.z_train.device)  # fmt: skip
+        single = _psi_gp(state["variational_strategy.inducing_points"][i].clone(),
+                        settings).to(prep.z_train.device)  # fmt: skip
         target = single.state_dict()
         part = {}
         for k, ref in target.items():
