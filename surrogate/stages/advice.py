@@ -135,23 +135,10 @@ def verdict(
             "wider collection (`model.body.perturbation.radius`, a field with that range).",
         ))  # fmt: skip
     failing = {f: list(q) for f, q in failures.items() if q}
-    thin = {f: r for f, r in outside.items()
-            if r and (sparse_share(r) or 0.0) > outside_warning}  # fmt: skip
+    thin = _sparse_rows(outside, outside_warning)
     caveats: list[tuple[str, str, str]] = []
-    if thin:
-        parts = [f"{f}: {100 * float(r['share_sparse']):.1f} % of cell-steps, most at "
-                 f"{describe_where(r.get('sparse_where'))} "
-                 f"({100 * float(r.get('sparse_where_share', 0.0)):.1f} %)"
-                 for f, r in thin.items()]  # fmt: skip
-        (causes if failing else caveats).append((
-            "Sparse training data",
-            "inside its trained range the abstraction ran where its training rows are sparse "
-            "(fewer per state than a switching rate within 20 % needs) in " + "; ".join(parts)
-            + ": its psi there is the fit's guess between few rows.",
-            "training rows there: a training field or a perturbation design "
-            "(`model.body.perturbation`) that reaches those inputs; more rows "
-            "(`collect.n_per_state`) fill them only in proportion.",
-        ))  # fmt: skip
+    if thin is not None:  # a cause where a comparison fails, else a caveat beside the trust
+        (causes if failing else caveats).append(thin)
     d = diagnostic or {}
     scores = {p: d.get(f"phi{p}") for p in (0, 1)}
     settling = [(p, s["settling_z"]) for p, s in scores.items()
@@ -215,7 +202,7 @@ def verdict(
             "classes are off, whatever each class's switching.",
             step + ".",
         ))  # fmt: skip
-    if failing and not biased and not away and not thin and not drift:
+    if failing and not biased and not away and thin is None and not drift:
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
         classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the count "
                    "that holds the memory)" if network else
@@ -237,6 +224,31 @@ def verdict(
     if causes:  # not trusted anyway: thin rows are one more thing to mend
         causes, caveats = causes + caveats, []
     return Verdict(trust=not causes, causes=causes, caveats=caveats)
+
+
+def _sparse_rows(
+    outside: Mapping[str, Mapping[str, Any] | None], outside_warning: float
+) -> tuple[str, str, str] | None:
+    """The cause "Sparse training data" (``(name, what was measured, the next step)``) where
+    any field's run spent more than ``outside_warning`` of its cell-steps inside the trained
+    range in sparsely trained bins (its report's ``share_sparse``); None where none did."""
+    thin = {f: r for f, r in outside.items()
+            if r and (sparse_share(r) or 0.0) > outside_warning}  # fmt: skip
+    if not thin:
+        return None
+    parts = [f"{f}: {100 * float(r['share_sparse']):.1f} % of cell-steps, most at "
+             f"{describe_where(r.get('sparse_where'))} "
+             f"({100 * float(r.get('sparse_where_share', 0.0)):.1f} %)"
+             for f, r in thin.items()]  # fmt: skip
+    return (
+        "Sparse training data",
+        "inside its trained range the abstraction ran where its training rows are sparse "
+        "(fewer per state than a switching rate within 20 % needs) in " + "; ".join(parts)
+        + ": its psi there is the fit's guess between few rows.",
+        "training rows there: a training field or a perturbation design "
+        "(`model.body.perturbation`) that reaches those inputs; more rows "
+        "(`collect.n_per_state`) fill them only in proportion.",
+    )  # fmt: skip
 
 
 def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> str:
