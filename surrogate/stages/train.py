@@ -280,9 +280,10 @@ def _fit(
 
 def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, Any] | None:
     """The training rows' histogram over the abstraction's inputs (the switch clock, capped
-    by construction, excepted), per state (:class:`~surrogate.simulate.support.
-    TrainingHistogram`), for the fit's manifest: the simulator's support monitor counts the
-    cell-steps in its sparse bins. None where no input is left."""
+    by construction, excepted), per state
+    (:class:`~surrogate.simulate.support.TrainingHistogram`), for the fit's manifest: the
+    simulator's support monitor counts the cell-steps in its sparse bins. None where no input
+    is left."""
     names = [n for n in inputs if n != AGE]
     if not names:
         return None

@@ -104,8 +104,8 @@ class Job:
     #: trained bin) above which a run warns
     outside_warning: float = 0.01
     #: training rows per state a bin of the fit's histogram needs not to be sparse (None: per
-    #: state, 25 expected switches at its switching share, :func:`~surrogate.simulate.support.
-    #: min_rows_of`)
+    #: state, 25 expected switches at its switching share,
+    #: :func:`~surrogate.simulate.support.min_rows_of`)
     support_min_rows: int | None = None
 
     @classmethod
