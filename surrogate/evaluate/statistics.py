@@ -24,7 +24,7 @@ import functools
 import math
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -881,6 +881,35 @@ def combine_with_noise_floor(table: pd.DataFrame, floor_table: pd.DataFrame) -> 
                                 out["ks_critical_05"].to_numpy(float))  # fmt: skip
     out["within_noise"] = out["ks"].to_numpy(float) <= threshold
     return out
+
+
+def family_failures(
+    tables: Mapping[str, pd.DataFrame], alpha: float = 0.05
+) -> tuple[dict[str, list[str]], int]:
+    """Per table (e.g. per field), the quantities outside sampling noise at a family-wise level
+    ``alpha`` over every comparison of ``tables`` (Bonferroni): a KS distance above both its
+    noise floor and the KS critical value at ``alpha / m``, ``m`` the comparisons counted. A
+    report of 18 tests each at 5 % marks ~1 by chance; this counts a difference only where the
+    whole report's chance of one false mark is ``alpha``. Tables without ``within_noise``
+    (no noise floor) count no failure. Returns the failures and ``m``.
+
+    Args:
+        tables: ``combine_with_noise_floor`` tables (columns ``quantity``, ``ks``,
+            ``n_reference``, ``n_candidate``, ``ks_noise_floor``).
+        alpha: the family-wise level.
+    """
+    judged = {k: t for k, t in tables.items() if "within_noise" in t}
+    m = sum(len(t) for t in judged.values())
+    out: dict[str, list[str]] = {k: [] for k in tables}
+    if m == 0:
+        return out, 0
+    c_alpha = ks_c_alpha(alpha / m)
+    for name, t in judged.items():
+        critical = [ks_critical_value(int(a), int(b), c_alpha)
+                    for a, b in zip(t["n_reference"], t["n_candidate"], strict=True)]  # fmt: skip
+        threshold = noise_threshold(t["ks_noise_floor"].to_numpy(float), np.asarray(critical))
+        out[name] = t.loc[t["ks"].to_numpy(float) > threshold, "quantity"].tolist()
+    return out, m
 
 
 def mean_std_over_time(run: SimulationRun, name: str | None = None) -> pd.DataFrame:

@@ -23,6 +23,7 @@ import torch
 
 from surrogate.config import to_dict
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
+from surrogate.evaluate.statistics import family_failures
 from surrogate.io import (
     MANIFEST,
     artefact_lock,
@@ -305,8 +306,9 @@ def _verdict(
     from surrogate.stages.advice import verdict
 
     tr = settings.train
-    failures = {name: table.loc[~table["within_noise"].astype(bool), "quantity"].tolist()
-                if "within_noise" in table else [] for name, table in tables.items()}  # fmt: skip
+    # the verdict counts a difference at a family-wise 5 % over the report's comparisons (the
+    # tables' marks are per test: of 18 at 5 %, ~1 by chance)
+    failures, m = family_failures(tables)
     outside = {name: read_manifest(e.candidate.directory).get("outside_training")
                for name, e in settings.evaluations.items()}  # fmt: skip
     source = tr.source
@@ -321,7 +323,13 @@ def _verdict(
                 network=isinstance(tr.setup.model.internal, NetworkInternalModel),
                 n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
                 max_age=tr.max_age if tr.kind.clock else None)  # fmt: skip
-    return v.markdown()
+    marked = sum(int((~t["within_noise"].astype(bool)).sum()) for t in tables.values()
+                 if "within_noise" in t)  # fmt: skip
+    counted = sum(len(q) for q in failures.values())
+    note = (f"\n\n(The verdict counts a difference outside sampling noise at a family-wise 5 % "
+            f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
+            f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
+    return v.markdown() + note
 
 
 def _difference_error(errors: Mapping[str, Any], kind: str, reference: float | None) -> str:

@@ -440,3 +440,28 @@ def test_the_error_of_alike_cells_is_the_iid_one_and_a_subsample_scales_it() -> 
     assert abs(_se(d, 400) / naive - 1) < 0.1  # segments of alike cells: ~iid
     assert _se(d, 1600) == pytest.approx(_se(d, 400) / 2)  # 400 of 1,600 cells recorded
     assert _se(d.iloc[:0], 400) is None
+
+
+def test_family_failures_count_a_difference_at_the_reports_level() -> None:
+    """Bonferroni over every comparison of the tables: with 18 tests at n = 20,000 each, a KS
+    of 0.016 (above the per-test critical 0.0136) is not counted, 0.019 (above 1.81 x 0.01)
+    is; a floor above the critical value still sets the bar; a table without floors counts
+    nothing and adds no comparison."""
+    from surrogate.evaluate.statistics import family_failures, ks_c_alpha, ks_critical_value
+
+    def table(ks, floors):
+        n = len(ks)
+        return pd.DataFrame({"quantity": [f"q{i}" for i in range(n)], "ks": ks,
+                             "n_reference": [20_000] * n, "n_candidate": [20_000] * n,
+                             "ks_noise_floor": floors, "within_noise": [True] * n})  # fmt: skip
+
+    per_test = ks_critical_value(20_000, 20_000)
+    family = ks_critical_value(20_000, 20_000, ks_c_alpha(0.05 / 18))
+    assert per_test < 0.016 < family < 0.019
+    tables = {"a": table([0.016] + [0.005] * 5, [0.009] * 6),
+              "b": table([0.019] + [0.005] * 5, [0.009] * 6),
+              "c": table([0.020] + [0.005] * 5, [0.025] + [0.009] * 5),
+              "no floor": pd.DataFrame({"quantity": ["x"], "ks": [0.5]})}
+    failures, m = family_failures(tables)
+    assert m == 18
+    assert failures == {"a": [], "b": ["q0"], "c": [], "no floor": []}
