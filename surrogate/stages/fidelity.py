@@ -23,6 +23,7 @@ KS distances over time against the noise floor.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import time
@@ -74,6 +75,7 @@ from surrogate.simulate.classes import can_classify
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import use_compile_cache
 from surrogate.simulate.memory import can_age
+from surrogate.simulate.paired import paired_starts
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.simulate.support import describe_where, sparse_share, warn_outside
@@ -215,7 +217,9 @@ class FidelitySettings:
             "exact_psi": self.exact_psi,
             **({"exact_clocks": list(self.exact_clocks)} if self.exact_clocks else {}),
             **({"exact_classes": True} if self.exact_classes else {}),
-            "fidelity": {**{k: v for k, v in self.options.items() if k != "initial"},
+            # checks from independent starts keep the identity they had before the key
+            "fidelity": {**{k: v for k, v in self.options.items() if k != "initial"
+                            and not (k == "starts" and v == "independent")},
                          "times": list(self.times)},
             "compile": self.compile,
             "backend": self.backend,
@@ -248,6 +252,9 @@ REFERENCES = ("exact", EXACT_CLOCK, EXACT_CLASSES)
 MODES = ("lookup", "classifier")
 #: fidelity.reference: simulate the full model beside the candidates, or read stored runs
 REFERENCE_CHOICES = ("run", "stored")
+#: fidelity.starts: each run's cells from their own internal draw (burn-in), or every run of
+#: a field from the same one (:mod:`surrogate.simulate.paired`)
+STARTS = ("independent", "paired")
 
 
 def _times(value: Any, t_end: float, dt: float) -> tuple[float, ...]:
@@ -308,6 +315,14 @@ def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
             f"fidelity.noise_seed_offset must be a non-zero integer with sim_seed + k x offset "
             f">= 0 for k = 1, 2, 3 (the noise floor, the exact chain and the abstractions use "
             f"those seeds), got {offset!r}"
+        )
+    starts = f.get("starts", "independent")
+    if starts not in STARTS:
+        raise ConfigError(f"fidelity.starts must be one of {list(STARTS)}, got {starts!r}")
+    if starts == "paired" and f.get("reference", "run") != "run":
+        raise ConfigError(
+            "fidelity.starts=paired needs the full model run beside the candidates from the "
+            "same starts: stored references drew their own; use fidelity.reference=run"
         )
     if f.get("mode", "lookup") not in MODES:
         raise ConfigError(f"fidelity.mode must be one of {list(MODES)}, got {f['mode']!r}")
@@ -396,12 +411,17 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
             labels.append(f"{c.label}|{name}")
     seed_everything(seed)
     info: dict[str, Any] = {}
-    results = simulate_runs(model, reps, labels, dt=setup.dt, times=settings.times,
-                            t_end=float(o["t_end"]),
-                            equilibration_time=float(o["equilibration_time"]),
-                            device=job.device, compile=settings.compile,
-                            backend=settings.backend, progress=job.progress,
-                            desc="fidelity", info=info)  # fmt: skip
+    paired = o.get("starts", "independent") == "paired"
+    with paired_starts(model.internal) if paired else contextlib.nullcontext() as starts:
+        results = simulate_runs(model, reps, labels, dt=setup.dt, times=settings.times,
+                                t_end=float(o["t_end"]),
+                                equilibration_time=float(o["equilibration_time"]),
+                                device=job.device, compile=settings.compile,
+                                backend=settings.backend, progress=job.progress,
+                                desc="fidelity", info=info)  # fmt: skip
+    if starts is not None:
+        log.info("fidelity: paired starts, %d internal draws shared by %d runs", starts.drawn,
+                 starts.drawn + starts.reused)  # fmt: skip
     results.update(stored)
     outside = {k: v for k, v in info.get("outside_training", {}).items() if v is not None}
     for label, report in outside.items():

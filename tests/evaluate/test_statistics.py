@@ -458,10 +458,12 @@ def test_family_failures_count_a_difference_at_the_reports_level() -> None:
     per_test = ks_critical_value(20_000, 20_000)
     family = ks_critical_value(20_000, 20_000, ks_c_alpha(0.05 / 18))
     assert per_test < 0.016 < family < 0.019
-    tables = {"a": table([0.016] + [0.005] * 5, [0.009] * 6),
-              "b": table([0.019] + [0.005] * 5, [0.009] * 6),
-              "c": table([0.020] + [0.005] * 5, [0.025] + [0.009] * 5),
-              "no floor": pd.DataFrame({"quantity": ["x"], "ks": [0.5]})}
+    tables = {
+        "a": table([0.016] + [0.005] * 5, [0.009] * 6),
+        "b": table([0.019] + [0.005] * 5, [0.009] * 6),
+        "c": table([0.020] + [0.005] * 5, [0.025] + [0.009] * 5),
+        "no floor": pd.DataFrame({"quantity": ["x"], "ks": [0.5]}),
+    }
     failures, m = family_failures(tables)
     assert m == 18
     assert failures == {"a": [], "b": ["q0"], "c": [], "no floor": []}

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from surrogate.errors import ConfigError
 from surrogate.stages import fidelity
 from surrogate.stages.fidelity import RunResult
 
@@ -100,3 +101,18 @@ def test_a_clocked_recipe_is_checked_beside_the_exact_clock_which_is_a_reference
     fig = fidelity.plot_drift(means, settings)
     (ax,) = fig.axes
     assert len(ax.lines) == len(labels)  # the full model (the zero line), its repeat, 3 candidates
+
+
+def test_paired_starts_are_a_setting_with_its_own_identity(compose_cfg) -> None:
+    """fidelity.starts: independent keeps the identity of checks made before the key; paired
+    is another check; a bad value and paired with stored references are refused by name."""
+    plain = fidelity.validate(compose_cfg("fidelity", SMALL))
+    named = fidelity.validate(compose_cfg("fidelity", [*SMALL, "fidelity.starts=independent"]))
+    paired = fidelity.validate(compose_cfg("fidelity", [*SMALL, "fidelity.starts=paired"]))
+    assert "starts" not in plain.identity()["fidelity"]
+    assert named.directory == plain.directory != paired.directory
+    with pytest.raises(ConfigError, match=r"fidelity.starts must be one of \['independent'"):
+        fidelity.validate(compose_cfg("fidelity", [*SMALL, "fidelity.starts=shared"]))
+    with pytest.raises(ConfigError, match=r"fidelity.starts=paired needs .*fidelity.reference=run"):
+        fidelity.validate(compose_cfg("fidelity", [*SMALL, "fidelity.starts=paired",
+                                                   "fidelity.reference=stored"]))  # fmt: skip
