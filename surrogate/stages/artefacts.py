@@ -8,7 +8,7 @@ reader then imports nothing of the writer. The simulation recorders' files are n
 
 from __future__ import annotations
 
-from surrogate.kinds import CLASS_CHAIN, PSI
+from surrogate.kinds.files import CLASS_CHAIN, PSI
 
 #: collect: the transitions table and the coverage figure
 TRANSITIONS = "transitions.parquet"

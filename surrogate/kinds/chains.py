@@ -1,50 +1,15 @@
-"""The kinds of an abstraction and of a run's decision layer, as objects (issue 40).
-
-The configs still name a chain by strings (``gp.lumps``, ``gp.history``, ``gp.class_moves``;
-``decision.name``, ``decision.mode``), and this module is the one place that reads them: each
-string is looked up here once, where the settings are made, and everything after that asks the
-kind object (``kind.clock``, ``kind.classes``, ``kind.fit_identity(...)``) instead of comparing
-names. A chain kind owns what the settings used to decide about it by string: which
-combinations it refuses (with the messages users know), the keys it adds to or drops from a
-fit's identity (identities are hashed into directory names, so every stored fit is still
-found), what train must record for it (switch clocks, class labels) and the shipped recipe its
-commands name. It also owns what train and simulate do with it, which they ask of it instead of
-branching on its flags: :meth:`ChainKind.training_rows` (the transitions its fit reads),
-:meth:`~ChainKind.fit` (what it fits beyond the classifiers psi, which every kind fits),
-:meth:`~ChainKind.save` and :meth:`~ChainKind.load` (its own artefact, its
-:attr:`~ChainKind.files`), :meth:`~ChainKind.decision_layer` (its learned layer) and
-:meth:`~ChainKind.exact_layer` (decision=exact's). They delegate to the functions at the end
-of this module (moved from the train and simulate stages, which re-export them), which call
-the fits of :mod:`surrogate.gp` and the layers of :mod:`surrogate.simulate`.
-
-The config's ``gp.lumps``/``gp.history``/``gp.class_moves`` stay strings read by
-:func:`chain_kind`, not a ``_target_`` in ``conf/gp/``: those strings are keys of every stored
-fit's identity (hashed into its directory name, pinned in tests/test_kinds.py) and the words of
-the commands (``gp.history=age``, ``gp.lumps=auto``, ``decision.lumps=classes``), so a kind built
-by ``_target_`` would either enter the identities (new directories for every stored fit) or
-have to be mapped back to the same strings, which is what :func:`chain_kind` does.
-
-* :class:`ChainKind` and its three kinds: :class:`TwoStateChain` (``gp.lumps=phi``,
-  ``gp.history=none``), :class:`SwitchClock` (``gp.history=age``) and :class:`KLumps`
-  (``gp.lumps=classes``, with ``gp.class_moves`` learned or relaxation).
-* :func:`chain_kind` (the strings -> the kind), :func:`fit_chain` (the gp group's chain,
-  validated), :func:`exact_clock` and :func:`exact_chain` (``decision=exact``'s, validated),
-  :func:`resolve_auto_lumps` (``gp.lumps=auto``: the best measured chain for a model).
-* :class:`DecisionKind` and :class:`DecisionMode`: ``decision.name`` (full, abstract, exact)
-  and ``decision.mode`` (lookup, classifier, direct), :func:`decision_kind`.
-
-A new chain kind is a :class:`ChainKind` subclass here (its flags, its keys, its checks; its
-fit, artefact and layers where it has its own) and its case in :func:`chain_kind`;
-docs/architecture.md lists the rest a kind needs.
-"""
+"""The chain kinds (``gp.lumps``, ``gp.history``, ``gp.class_moves``) as objects:
+:class:`ChainKind` and its kinds :class:`TwoStateChain`, :class:`SwitchClock` and
+:class:`KLumps`; :func:`chain_kind` (the strings -> the kind), :func:`fit_chain` (the gp
+group's chain, validated), :func:`exact_clock` and :func:`exact_chain` (``decision=exact``'s,
+validated) and :func:`resolve_auto_lumps` (``gp.lumps=auto``). A kind's fit, artefact and layers
+delegate to :mod:`surrogate.kinds.fits` and :mod:`surrogate.kinds.layers`."""
 
 from __future__ import annotations
 
 import itertools
-import logging
 import math
 import os
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -52,66 +17,36 @@ from typing import Any, ClassVar, NamedTuple
 
 import pandas as pd
 import torch
-from torch import Tensor
 
-from surrogate.config import group_config, non_negative, positive, seed_everything
+from surrogate.config import group_config, non_negative, positive
 from surrogate.errors import ArtefactError, ConfigError
-from surrogate.gp import PsiClassifier, PsiLookupTable, load_psi
+from surrogate.gp import load_psi
 from surrogate.gp.class_relaxation import (
     CLASS_MOVES,
     DEFAULT_CELLS,
     DEFAULT_LAGS,
     RELAXATION_VERSION,
     check_shared_bins,
-    fit_relaxation_law,
 )
-from surrogate.gp.classes import (
-    CLASS_LAW_VERSION,
-    DEFAULT_MAX_LABEL_WEIGHT,
-    MIN_EVENTS,
-    fit_class_law,
-)
+from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
 from surrogate.gp.training import GPSettings
-from surrogate.io import load_tensors, save_tensors
-from surrogate.models.base import FeatureMap, Model
-from surrogate.models.capabilities import (
-    class_bins_of,
-    exact_class_step_of,
-    expected_class_next_of,
-    lump_classes_of,
-    signal_bounds_of,
+from surrogate.io import save_tensors
+from surrogate.kinds.decision import DecisionMode
+from surrogate.kinds.files import CLASS_CHAIN, PSI
+from surrogate.kinds.fits import _fit_class_chain, load_class_chain
+from surrogate.kinds.layers import (
+    abstract_decision,
+    exact_class_decision,
+    exact_clock_decision,
+    exact_decision,
+    learned_class_decision,
 )
-from surrogate.simulate.classes import (
-    LUMPINGS,
-    STARTS,
-    ClassDecision,
-    ClassTable,
-    can_classify,
-    exact_class_table,
-    expected_class_column,
-)
-from surrogate.simulate.decision import (
-    AbstractDecision,
-    DecisionLayer,
-    ExactDecision,
-    ExactPsi,
-    FullDecision,
-)
-from surrogate.simulate.loop import Simulator
-from surrogate.simulate.memory import (
-    AGE,
-    MemoryDecision,
-    can_age,
-    clock_rows,
-    exact_age_table,
-    has_history,
-    history_setting,
-    tabulate_with_clock,
-)
-from surrogate.simulate.transitions import record_stationary_bins
+from surrogate.models.base import Model
+from surrogate.models.capabilities import class_bins_of, exact_class_step_of, lump_classes_of
+from surrogate.simulate.classes import LUMPINGS, STARTS, ClassTable, can_classify
+from surrogate.simulate.decision import DecisionLayer
+from surrogate.simulate.memory import AGE, can_age, clock_rows, history_setting
 from surrogate.validation import known_keys
-
-log = logging.getLogger(__name__)
 
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
 GP_CLOCK = ("history", "max_age", "clock_bins")
@@ -122,12 +57,6 @@ DEFAULT_MEAN = "constant"
 #: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
 #: these shipped recipes: the first where the model declares classes finer than phi, else the second
 AUTO_RECIPES = ("classes", "svgp")
-
-#: the fit's files that the kinds read and write (stages/artefacts.py re-exports them): the
-#: classifiers psi, which every kind fits, and the K-lumps chain's learned law (gp.lumps=classes),
-#: a ClassTable's state
-PSI = "psi.pt"
-CLASS_CHAIN = "class_chain.pt"
 
 
 class ChainKind:
@@ -567,15 +496,6 @@ def exact_chain(
     return chain_kind(str(lumps), history)
 
 
-def decision_identity(config: Mapping[str, Any]) -> dict[str, Any]:
-    """A decision group's keys as they enter a run's identity: ``lumps`` only where it names
-    another chain than the two-state one, so runs keep the identity they had before K lumps
-    (the key is read by decision=exact only, and compared as given)."""
-    if config.get("lumps", "phi") == "phi":
-        return {k: v for k, v in config.items() if k != "lumps"}
-    return dict(config)
-
-
 def resolve_auto_lumps(gp_config: Mapping[str, Any], model: Any) -> dict[str, Any]:
     """``gp_config`` with ``lumps: auto`` resolved to the best measured chain for ``model``: the
     K-lumps chain (``gp=classes``'s recipe) where its internal model declares classes finer than
@@ -606,287 +526,3 @@ def resolve_auto_lumps(gp_config: Mapping[str, Any], model: Any) -> dict[str, An
 def is_auto(gp_config: Mapping[str, Any]) -> bool:
     """Whether the gp group leaves the chain to :func:`resolve_auto_lumps` (``gp.lumps=auto``)."""
     return gp_config.get("lumps") == "auto"
-
-
-@dataclass(frozen=True)
-class DecisionMode:
-    """How a decision layer evaluates its law (``decision.mode``)."""
-
-    name: str
-    #: a table over the inputs (lookup), not the classifier or the exact law every step
-    table: bool
-
-
-@dataclass(frozen=True)
-class DecisionKind:
-    """A run's decision layer (``decision.name``): the full model, the learned abstraction
-    (located by its train settings) or the model's exact lumped law."""
-
-    name: str
-    #: its ``decision.mode`` choices, the first the default where none is given
-    modes: tuple[DecisionMode, ...] = ()
-    #: the learned abstraction: the run needs its fit (decision=abstract)
-    learned: bool = False
-    #: the model's exact lumped law (decision=exact)
-    exact: bool = False
-
-    @property
-    def full(self) -> bool:
-        """The full model runs itself (decision=full): no mode, no chain."""
-        return not (self.learned or self.exact)
-
-    def mode(self, value: object) -> DecisionMode:
-        """``decision.mode`` validated for this layer."""
-        for mode in self.modes:
-            if mode.name == value:
-                return mode
-        raise ConfigError(
-            f"decision.mode must be one of {[m.name for m in self.modes]} for "
-            f"decision={self.name}, got {value!r}"
-        )
-
-
-LOOKUP = DecisionMode("lookup", table=True)
-DECISION_KINDS = {
-    "full": DecisionKind("full"),
-    "abstract": DecisionKind("abstract", (LOOKUP, DecisionMode("classifier", False)), learned=True),
-    "exact": DecisionKind("exact", (LOOKUP, DecisionMode("direct", False)), exact=True),
-}
-
-
-def decision_kind(name: object) -> DecisionKind:
-    """``decision.name`` validated: its kind."""
-    if not isinstance(name, str) or name not in DECISION_KINDS:
-        raise ConfigError(
-            f"decision.name must be one of {list(DECISION_KINDS)} (select with "
-            f"decision=full|abstract|exact), got {name!r}"
-        )
-    return DECISION_KINDS[name]
-
-
-def mode_kind(name: str) -> DecisionMode:
-    """A decision mode by name (one of the layers' modes, e.g. a caller's ``"lookup"``)."""
-    for kind in DECISION_KINDS.values():
-        for mode in kind.modes:
-            if mode.name == name:
-                return mode
-    raise ValueError(f"unknown decision mode {name!r}")
-
-
-# ---------------------------------------------------------------------------------------------
-# The chains' fits, artefacts and decision layers, which the kinds' methods delegate to (moved
-# from stages/train.py and stages/simulate.py unchanged, which re-export them): kinds.py sits
-# below the stages, so a train settings object comes in duck-typed (``settings: Any``).
-
-
-def _fit_class_chain(
-    settings: Any, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The K-lumps chain (gp.lumps=classes) of the train settings ``settings`` (duck-typed:
-    kinds.py sits below the stages) over the two-state fit's domain: its table's state and its
-    metrics."""
-    model = settings.setup.model
-    classes = lump_classes_of(model.internal)
-    assert classes is not None  # the settings checked it
-    expected = settings.gp_config.get("labels", "outcome") != "outcome"
-    columns = [expected_class_column(b) for b in range(len(classes.names))]
-    if (expected and expected_class_next_of(model.internal) is not None
-            and settings.collected
-            and not all(c in table.columns for c in columns)):  # fmt: skip
-        raise ArtefactError(
-            f"the transitions of {settings.input_command()} lack the expected class labels "
-            f"{columns[0]}..: they were collected before the model gave them; delete "
-            f"{settings.source.directory} and collect again, or train with gp.labels=outcome"
-        )
-    law, metrics = fit_class_law(table, settings.inputs, len(classes.names), dict(domain),
-                                 settings.gp, progress=settings.job.progress,
-                                 device=settings.job.device, expected=expected,
-                                 min_events=settings.min_events,
-                                 max_weight=settings.max_label_weight)  # fmt: skip
-    log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
-             metrics["classifiers"], metrics["constant_steps"])  # fmt: skip
-    if settings.kind.relaxation:
-        law, metrics["relaxation"] = _relaxation_law(settings, law, domain)
-    chain = ClassTable(law, [domain[n] for n in settings.inputs], settings.inputs, classes.names,
-                       classes.lumps, settings.setup.dt)  # fmt: skip
-    return chain.to_state(), metrics
-
-
-#: the stationary sample's seed is the fit's plus this (its cells are not collect's first cells)
-RELAXATION_SEED_OFFSET = 1_000_003
-
-
-def _relaxation_law(
-    settings: Any, learned: Tensor, domain: Mapping[str, tuple[float, float]]
-) -> tuple[Tensor, dict[str, Any]]:
-    """The learned law with bins that relax (gp.class_moves=relaxation): a stationary sample
-    of burned-in full-model cells where collect starts them, held at their inputs."""
-    setup, job = settings.setup, settings.job
-    model = setup.model
-    declared = lump_classes_of(model.internal)
-    bins = class_bins_of(model.internal)
-    assert declared is not None and bins is not None  # the settings checked them
-    seed_everything(settings.seed + RELAXATION_SEED_OFFSET)
-    t0 = time.perf_counter()
-    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
-    perturbation = model.body.perturbation(setup.field, model.perturbation_options)
-    log.info("class moves by relaxation: %d burned-in full-model cells held at their inputs "
-             "for %g s", settings.relaxation_cells, settings.relaxation_lags[-1])  # fmt: skip
-    sample = record_stationary_bins(simulator, perturbation, settings.relaxation_cells,
-                                    settings.relaxation_lags, settings.inputs, bins)  # fmt: skip
-    sizes = list(learned.shape[1:-1])
-    law, metrics = fit_relaxation_law(learned, sample, settings.inputs, domain, sizes, bins,
-                                      declared.lumps, settings.relaxation_lags, setup.dt,
-                                      settings.gp, progress=job.progress,
-                                      device=job.device)  # fmt: skip
-    metrics["seconds"] = time.perf_counter() - t0
-    log.info("the count's relaxation time %.0f s (correlation %s at lags %s s); its bins kept "
-             "per window with probability %.6f", metrics["relaxation_time"],
-             ", ".join(f"{r:.3f}" for r in metrics["correlation"]),
-             ", ".join(f"{v:g}" for v in settings.relaxation_lags),
-             metrics["keep_bin_per_window"])  # fmt: skip
-    return law, metrics
-
-
-def load_class_chain(
-    directory: str | os.PathLike, device: str | torch.device = "cpu"
-) -> ClassTable:
-    """The K-lumps chain's law of a fit or train directory (``gp.lumps=classes``)."""
-    path = Path(directory) / CLASS_CHAIN
-    obj = load_tensors(path, made_by="python scripts/train.py gp.lumps=classes")
-    if not isinstance(obj, dict) or "class_chain" not in obj:
-        raise ArtefactError(f"{path} is not a saved class chain (no 'class_chain' entry)")
-    return ClassTable.from_state(obj["class_chain"]).to(device)
-
-
-def learned_class_decision(
-    model: Model,
-    directory: Path,
-    device: torch.device,
-    name: str = "abstract",
-    start: str = "internal",
-) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned K-lumps chain (``gp.lumps=classes``) of a fit directory on ``device``, its
-    cells starting as ``start`` says (:class:`ClassDecision`)."""
-    table = load_class_chain(directory, device)
-    featurize = model.featurizer(table.input_names)
-    log.info("K-lumps chain over %d classes, table %s over %s", table.n_classes, table.shape,
-             table.input_names)  # fmt: skip
-    return ClassDecision(table, model.internal, featurize, name, start=start), {
-        "inputs": list(table.input_names),
-        "lumps": "classes",
-        "classes": list(table.class_names),
-        "start": start,
-    }
-
-
-def abstract_decision(
-    model: Model,
-    psi: PsiClassifier,
-    dt: float,
-    max_age: float,
-    mode: str,
-    size: Sequence[int] | None,
-    device: torch.device,
-) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned abstraction ``psi`` (loaded on ``device``) as a decision layer over
-    ``model``: a lookup table of it, or the classifier every step in closed form with cached
-    factors (checked against the classifier). With a switch clock (psi's last input, from
-    ``gp.history=age``) the chain keeps one per cell, capped at ``max_age`` s, ticking every
-    ``dt``; ``size`` is the table's nodes per input (null: the default)."""
-    info: dict[str, Any] = {"inputs": list(psi.input_names)}
-    memory = has_history(psi.input_names)
-    featurize = model.featurizer(psi.input_names[:-1] if memory else psi.input_names)
-
-    def layer(run_probability: Any) -> DecisionLayer:
-        if memory:  # the switch clock is psi's last input (gp.history=age)
-            return MemoryDecision(run_probability, model.internal, featurize, max_age, dt=dt)
-        return AbstractDecision(run_probability, model.internal, featurize)
-
-    if mode_kind(mode).table:
-        ranges = [psi.domain[n] for n in psi.input_names]
-        if memory:  # a clock node at every step: each cell reads its clock's node
-            lead = tuple(size[:-1]) if size else None
-            table = tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, max_age,
-                                        lead).to(device)  # fmt: skip
-        else:
-            table = PsiLookupTable.from_function(psi, ranges, psi.input_names, size).to(device)
-        info["lookup_max_deviation"] = float(table.max_deviation(psi))
-        log.info("lookup table %s: max |table - classifier| = %.2e", table.shape,
-                 info["lookup_max_deviation"])  # fmt: skip
-        return layer(table), info
-    # classifier every step: the same predictive in closed form with cached factors (no gpytorch,
-    # no host sync per step); its agreement with the classifier is checked and recorded
-    from surrogate.gp.fast import CachedPsi
-
-    cached = CachedPsi.from_classifier(psi)
-    info["cached_max_deviation"] = cached.max_deviation(psi)
-    log.info("cached classifier: max |cached - classifier| = %.2e", info["cached_max_deviation"])
-    return layer(cached), info
-
-
-def exact_decision(
-    model: Model, dt: float, mode: str, size: Sequence[int] | None, device: torch.device
-) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The chain driven by the model's exact lumped psi: ``direct`` (exp(Q dt) per cell and
-    step) or ``lookup`` (a table over the signal's bounds, checked against direct)."""
-    internal = model.internal
-    if not mode_kind(mode).table:  # direct
-        return ExactDecision(internal, dt), {}
-    bounds = signal_bounds_of(internal) or {}
-    ranges = [bounds[n] for n in internal.signal_names]
-    exact = ExactPsi(internal, dt)
-    table = PsiLookupTable.from_function(exact, ranges, internal.signal_names, size).to(device)
-    deviation = table.max_deviation(exact, n_check=2048)
-    log.info("exact psi table %s: max |table - exact| = %.2e", table.shape, deviation)
-    return ExactDecision(internal, dt, table), {"lookup_max_deviation": deviation}
-
-
-def exact_clock_decision(
-    model: Model, dt: float, max_age: float, device: torch.device, name: str = "exact"
-) -> MemoryDecision:
-    """The chain driven by the exact psi with a switch clock (``decision.history=age``): a
-    table over the signal and the clock, capped at ``max_age`` s; ``name`` labels the layer."""
-    table = exact_age_table(model.internal, dt, max_age).to(device)
-    featurize = FeatureMap(model.internal, model.internal.signal_names)
-    log.info("exact psi with a switch clock: table %s over %s", table.shape, table.input_names)
-    return MemoryDecision(table, model.internal, featurize, max_age, name, dt)
-
-
-def exact_class_decision(
-    model: Model, dt: float, device: torch.device, name: str = "exact"
-) -> ClassDecision:
-    """The K-lumps chain driven by the exact class-to-class law of adapted cells
-    (``decision.lumps=classes``): the limit of a learned one."""
-    table = exact_class_table(model.internal, dt).to(device)
-    featurize = FeatureMap(model.internal, model.internal.signal_names)
-    log.info("exact K-lumps chain over %d classes: table %s", table.n_classes, table.shape)
-    return ClassDecision(table, model.internal, featurize, name)
-
-
-__all__ = [
-    "AUTO_RECIPES",
-    "DECISION_KINDS",
-    "DEFAULT_MEAN",
-    "GP_CLASSES",
-    "GP_CLOCK",
-    "LOOKUP",
-    "SWITCH_CLOCK",
-    "TWO_STATE",
-    "ChainKind",
-    "DecisionKind",
-    "DecisionMode",
-    "FitChain",
-    "KLumps",
-    "SwitchClock",
-    "TwoStateChain",
-    "chain_kind",
-    "decision_identity",
-    "decision_kind",
-    "exact_chain",
-    "exact_clock",
-    "fit_chain",
-    "is_auto",
-    "mode_kind",
-    "resolve_auto_lumps",
-]
