@@ -11,7 +11,7 @@ found), what train must record for it (switch clocks, class labels) and the ship
 commands name. It also owns what train and simulate do with it, which they ask of it instead of
 branching on its flags: :meth:`ChainKind.training_rows` (the transitions its fit reads),
 :meth:`~ChainKind.fit` (what it fits beyond the classifiers psi, which every kind fits),
-:meth:`~ChainKind.save` and :meth:`~ChainKind.load` (its own artefact, its
+:meth:`~ChainKind.write` and :meth:`~ChainKind.load` (its own artefact, its
 :attr:`~ChainKind.files`), :meth:`~ChainKind.decision_layer` (its learned layer) and
 :meth:`~ChainKind.exact_layer` (decision=exact's). They delegate to the functions of
 :mod:`surrogate.kinds.fits` and :mod:`surrogate.kinds.layers` (moved from the train and simulate

@@ -153,7 +153,7 @@ class ChainKind:
         whole chain)."""
         return None
 
-    def save(
+    def write(
         self,
         directory: Path,
         fitted: tuple[dict[str, Any], dict[str, Any]] | None,
@@ -307,7 +307,7 @@ class KLumps(ChainKind):
         gp.class_moves=relaxation)."""
         return _fit_class_chain(settings, table, domain)
 
-    def save(
+    def write(
         self,
         directory: Path,
         fitted: tuple[dict[str, Any], dict[str, Any]] | None,

@@ -179,16 +179,16 @@ class TrainingHistogram:
         """Per flat bin: whether any state has fewer rows there than :meth:`min_rows`."""
         return tuple(any(col) for col in zip(*self.sparse_by_state(min_rows), strict=True))
 
-    def to_json(self) -> dict[str, Any]:
-        """A plain dict for a manifest (:meth:`from_json` reads it back)."""
+    def as_dict(self) -> dict[str, Any]:
+        """A plain dict for a manifest (:meth:`from_dict` reads it back)."""
         return {"inputs": list(self.names), "lo": list(self.lo), "hi": list(self.hi),
                 "bins": list(self.bins), "joint": self.joint,
                 "counts": [list(c) for c in self.counts],
                 "switching": list(self.switching)}  # fmt: skip
 
     @classmethod
-    def from_json(cls, obj: Mapping[str, Any]) -> TrainingHistogram:
-        """The histogram :meth:`to_json` wrote; ArtefactError-free: a KeyError/ValueError for
+    def from_dict(cls, obj: Mapping[str, Any]) -> TrainingHistogram:
+        """The histogram :meth:`as_dict` wrote; ArtefactError-free: a KeyError/ValueError for
         anything else (the caller falls back to the range)."""
         hist = cls(tuple(str(n) for n in obj["inputs"]), tuple(float(v) for v in obj["lo"]),
                    tuple(float(v) for v in obj["hi"]), tuple(int(b) for b in obj["bins"]),
@@ -239,7 +239,7 @@ class TrainedRange:
         min_rows: int | None = None,
     ) -> TrainedRange:
         """From a fit's ``domain`` (``{name: (min, max)}``) over the inputs ``names`` and its
-        ``support_histogram`` (:meth:`TrainingHistogram.to_json`; ignored where absent, not
+        ``support_histogram`` (:meth:`TrainingHistogram.as_dict`; ignored where absent, not
         readable or over other inputs: the range alone is checked then)."""
         missing = [n for n in names if n not in domain]
         if missing:
@@ -247,7 +247,7 @@ class TrainedRange:
         hist = None
         if histogram is not None:
             try:
-                hist = TrainingHistogram.from_json(histogram)
+                hist = TrainingHistogram.from_dict(histogram)
             except (KeyError, TypeError, ValueError) as exc:
                 log.warning("the fit's support histogram is unreadable (%s): checking the "
                             "trained range only", exc)  # fmt: skip

@@ -248,7 +248,7 @@ def _fit(
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     save_psi(out / PSI, psi, {"settings": settings.fit_identity(), "source": source})
-    metrics.update(settings.kind.save(out, chain, settings.fit_identity()))
+    metrics.update(settings.kind.write(out, chain, settings.fit_identity()))
     write_json(out / FIT_METRICS, metrics)
     save_figure(out / HISTORY_FIGURE, plot_training_history(
         {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
@@ -290,7 +290,7 @@ def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, A
     phi = table["phi"].to_numpy(dtype=np.int64)
     switched = phi != table["phi_next"].to_numpy(dtype=np.int64)
     values = table[names].to_numpy(dtype=np.float64)
-    return TrainingHistogram.of_rows(values, phi, switched, names).to_json()
+    return TrainingHistogram.of_rows(values, phi, switched, names).as_dict()
 
 
 def _train(

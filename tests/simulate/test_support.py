@@ -159,7 +159,7 @@ def test_the_histogram_counts_each_states_rows_and_reads_back() -> None:
         want[s][min(int(v / 4 * 64), 63)] += 1
     assert [list(c) for c in hist.counts] == [w.tolist() for w in want]
     assert hist.switching == (0.25, 0.4)
-    assert TrainingHistogram.from_json(json.loads(json.dumps(hist.to_json()))) == hist
+    assert TrainingHistogram.from_dict(json.loads(json.dumps(hist.as_dict()))) == hist
     two = TrainingHistogram.of_rows(np.c_[z, -z], phi, switched, ["a", "b"])
     assert two.joint and two.bins == (16, 16) and sum(map(sum, two.counts)) == 9
     assert two.counts[0][0 * 16 + 15] == 1  # (0, -0) -> a's first bin, b's last (b = -0 = hi)
@@ -289,7 +289,7 @@ def test_an_older_fit_without_a_histogram_is_checked_by_range_only() -> None:
     """A fit's domain without ``support_histogram`` (or one over other inputs, or unreadable):
     the range alone, and a report without the sparse keys, which the readers skip."""
     domain = {"dG": [0.0, 4.0]}
-    hist = _histogram([200] * 4, [200] * 4).to_json()
+    hist = _histogram([200] * 4, [200] * 4).as_dict()
     assert TrainedRange.from_domain(domain, ["dG"]).histogram is None
     assert TrainedRange.from_domain(domain, ["dG"], {"inputs": ["dG"]}).histogram is None
     assert TrainedRange.from_domain(domain, ["dG"], {**hist, "inputs": ["L"]}).histogram is None

@@ -103,7 +103,7 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
     # the training rows' histogram (diagnostic, outside the fit's identity) in both manifests
     manifest = json.loads((train_dir / "manifest.json").read_text())
     fit_manifest = json.loads((Path(manifest["fit"]) / "manifest.json").read_text())
-    hist = TrainingHistogram.from_json(fit_manifest["support_histogram"])
+    hist = TrainingHistogram.from_dict(fit_manifest["support_histogram"])
     assert manifest["support_histogram"] == fit_manifest["support_histogram"]
     table = pd.read_parquet(collect_dir / "transitions.parquet")
     assert hist == TrainingHistogram.of_rows(
