@@ -173,14 +173,12 @@ class CachedPsi:
         self.g = torch.stack(g).to(dtype)  # (2, M, M + 1), outputscale folded in
         self.d = torch.stack(d).to(dtype)  # (2, M) eigenvalues of S - I
         self.mean = torch.tensor([phi0["mean"], phi1["mean"]], dtype=dtype)
-        # a linear prior mean: (2, d) slopes on the raw inputs (None: constant, no extra op)
-        slopes = [f.get("slope") for f in (phi0, phi1)]
-        self.mean_slope: Tensor | None = None
-        if any(v is not None for v in slopes):
-            d_in = phi0["z"].shape[-1]
-            self.mean_slope = torch.stack([
-                torch.zeros(d_in, dtype=torch.float64) if v is None else v.cpu() for v in slopes
-            ]).to(dtype)  # fmt: skip
+        # a linear prior mean: (2, d) slopes on the raw inputs (None: constant, no extra op);
+        # both classifiers share one GP setting, so both or neither have one
+        self.mean_slope: Tensor | None = (
+            None if phi0.get("slope") is None
+            else torch.stack([phi0["slope"].cpu(), phi1["slope"].cpu()]).to(dtype)
+        )  # fmt: skip
         self.prior_var = torch.tensor([phi0["prior_var"], phi1["prior_var"]], dtype=dtype)
         self.to(phi0["z"].device)
 

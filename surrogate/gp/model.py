@@ -16,6 +16,8 @@ KERNELS = ("rbf", "matern12", "matern32", "matern52")
 #: the GP's prior mean of the latent f: a constant, or linear in the (normalised) inputs, which
 #: carries the trend into sparsely trained inputs instead of reverting to one constant there
 MEANS = ("constant", "linear")
+#: gp.mean's default: a fit with it keeps the identity it had before the key existed
+DEFAULT_MEAN = MEANS[0]
 
 _MATERN_NU = {"matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
 _NO_BATCH = torch.Size()
@@ -60,7 +62,7 @@ class PsiGP(gpytorch.models.ApproximateGP):
         ard: bool = True,
         learn_inducing: bool = True,
         natural: bool = False,
-        mean: str = "constant",
+        mean: str = DEFAULT_MEAN,
     ) -> None:
         if inducing_points.dim() not in (2, 3) or inducing_points.shape[-2] < 1:
             raise ConfigError(
@@ -94,7 +96,7 @@ class PsiGP(gpytorch.models.ApproximateGP):
         self.mean_name = mean
         self.mean_module: gpytorch.means.Mean = (
             gpytorch.means.ConstantMean(batch_shape=batch)
-            if mean == "constant"
+            if mean == DEFAULT_MEAN
             else gpytorch.means.LinearMean(inducing_points.shape[-1], batch_shape=batch)
         )
         self.covar_module = covar_module

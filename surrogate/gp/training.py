@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp.metrics import classification_metrics
-from surrogate.gp.model import KERNELS, MEANS, PsiGP
+from surrogate.gp.model import DEFAULT_MEAN, KERNELS, MEANS, PsiGP
 from surrogate.validation import known_keys
 
 PREDICT_CHUNK = 65_536
@@ -67,7 +67,7 @@ class GPSettings:
     bins: int | tuple[int, ...] = 0
     seed: int = 0
     #: the latent f's prior mean (:data:`~surrogate.gp.model.MEANS`)
-    mean: str = "constant"
+    mean: str = DEFAULT_MEAN
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel, str) or self.kernel not in KERNELS:

@@ -29,6 +29,7 @@ from surrogate.gp.class_relaxation import (
     check_shared_bins,
 )
 from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
+from surrogate.gp.model import DEFAULT_MEAN
 from surrogate.gp.training import GPSettings
 from surrogate.io import save_tensors
 from surrogate.kinds.decision import DecisionMode
@@ -52,8 +53,6 @@ from surrogate.validation import known_keys
 GP_CLOCK = ("history", "max_age", "clock_bins")
 #: keys of the gp group that only a fit of the K-lumps chain reads (gp.lumps=classes)
 GP_CLASSES = ("lumps", "min_events", "max_label_weight", "class_moves", "relaxation")
-#: gp.mean's default: a fit with it keeps the identity it had before the key existed
-DEFAULT_MEAN = "constant"
 #: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
 #: these shipped recipes: the first where the model declares classes finer than phi, else the second
 AUTO_RECIPES = ("classes", "svgp")
