@@ -79,6 +79,22 @@ def test_a_new_kinds_values_join_the_messages(toy, compose_cfg) -> None:
         TrainSettings.from_config(compose_cfg("train", [*toy, "gp.lumps=motors"]))
     with pytest.raises(ConfigError, match="gp.toy_floor must be in"):
         TrainSettings.from_config(compose_cfg("train", [*toy, "gp.toy_floor=0.7"]))
+    # a combination of registered strings that no kind has names the kinds
+    with pytest.raises(ConfigError, match=r"no chain kind has gp.lumps=toy, gp.history=age .*"
+                                          r"ToyChain \(gp.lumps=toy, gp.history=none"):  # fmt: skip
+        TrainSettings.from_config(compose_cfg("train", [*toy, "gp.history=age"]))
+
+
+def test_the_shipped_kinds_are_their_modules() -> None:
+    """Each module of KIND_MODULES registers one kind, and nothing else is registered."""
+    from surrogate.kinds import KIND_MODULES
+    from surrogate.kinds.base import ChainKind
+
+    registered = [
+        v for m in KIND_MODULES for v in vars(m).values()
+        if isinstance(v, type) and issubclass(v, ChainKind) and v.__module__ == m.__name__
+    ]  # fmt: skip
+    assert set(registered) == set(CHAIN_KINDS) and len(registered) == len(KIND_MODULES)
 
 
 def test_unknown_kind_strings_list_the_registered_values(compose_cfg) -> None:
