@@ -1,4 +1,4 @@
-"""The K-lumps chain's fit and artefact, which :class:`~surrogate.kinds.chains.KLumps`
+"""The K-lumps chain's fit and artefact, which :class:`~surrogate.kinds.klumps.KLumps`
 delegates to (moved from stages/train.py unchanged, which re-exports :func:`load_class_chain`):
 the kinds sit below the stages, so a train settings object comes in duck-typed
 (``settings: Any``)."""

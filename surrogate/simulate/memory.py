@@ -18,7 +18,7 @@ exact psi at ages 5 s and 20 s differs by <= 3e-5 over dG in [-1.5, 2.5] (docs/f
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -112,12 +112,15 @@ def with_age(z: Tensor, age_steps: Tensor, dt: float, max_age: float) -> Tensor:
     return torch.cat([z, a.unsqueeze(1)], 1)
 
 
-def history_setting(history: object, max_age: object, group: str) -> tuple[str, float]:
-    """Validate ``<group>.history`` (none | age) and ``<group>.max_age`` (s, > 0)."""
+def history_setting(
+    history: object, max_age: object, group: str, histories: Sequence[str] = HISTORIES
+) -> tuple[str, float]:
+    """Validate ``<group>.history`` (one of ``histories``: none | age, or the registered chain
+    kinds', :func:`surrogate.kinds.chains.fit_chain`) and ``<group>.max_age`` (s, > 0)."""
     if history is None:
         history = "none"
-    if history not in HISTORIES:
-        raise ConfigError(f"{group}.history must be one of {list(HISTORIES)}, got {history!r}")
+    if history not in histories:
+        raise ConfigError(f"{group}.history must be one of {list(histories)}, got {history!r}")
     if isinstance(max_age, bool) or not isinstance(max_age, int | float) or not max_age > 0:
         raise ConfigError(f"{group}.max_age must be a number of seconds > 0, got {max_age!r}")
     return str(history), float(max_age)

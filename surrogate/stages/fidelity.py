@@ -59,6 +59,7 @@ from surrogate.io import (
     write_manifest,
 )
 from surrogate.kinds import (
+    LayerRequest,
     exact_class_decision,
     exact_clock_decision,
     exact_decision,
@@ -402,10 +403,10 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
             reps.append(Replicate(classed, fields[name], n, seed + 2 * offset, start))
             labels.append(f"{EXACT_CLASSES}|{name}")
     for i, c in enumerate(settings.candidates):
-        decision, _ = learned_decision(model, c.train, resolve_abstraction(c.train),
-                                       str(o.get("mode", "lookup")), o.get("lookup_size"),
-                                       job.device, start=c.start,
-                                       min_rows=job.support_min_rows)  # fmt: skip
+        request = LayerRequest.of_fit(model, c.train, str(o.get("mode", "lookup")),
+                                      o.get("lookup_size"), job.device, c.start)  # fmt: skip
+        decision, _ = learned_decision(request, c.train, resolve_abstraction(c.train),
+                                       job.support_min_rows)  # fmt: skip
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")

@@ -34,6 +34,7 @@ from surrogate.io import (
     save_figure,
     write_manifest,
 )
+from surrogate.kinds import LayerRequest
 
 # the layers' builders, which the kinds own (ChainKind.decision_layer and exact_layer), kept
 # importable from here
@@ -93,35 +94,31 @@ def build_decision(
         return FullDecision(model.internal), {}
     if d.kind.exact:
         assert d.chain is not None  # the settings made it
-        return d.chain.exact_layer(model, settings.setup.dt, d.mode or "lookup", d.lookup_size,
-                                   d.max_age, device)  # fmt: skip
+        return d.chain.exact_layer(LayerRequest(model, settings.setup.dt, d.mode or "lookup",
+                                                d.lookup_size, device, d.max_age))  # fmt: skip
     assert d.train is not None
     # the fit is found and loaded here, at the stage's edge (the train stage's module is
     # imported only by runs that need it)
     from surrogate.stages.train import resolve_abstraction
 
     directory = resolve_abstraction(d.train)
-    layer, info = learned_decision(model, d.train, directory, d.mode or "lookup", d.lookup_size,
-                                   device, start=d.start,
-                                   min_rows=settings.job.support_min_rows)  # fmt: skip
+    request = LayerRequest.of_fit(model, d.train, d.mode or "lookup", d.lookup_size, device,
+                                  d.start)  # fmt: skip
+    layer, info = learned_decision(request, d.train, directory, settings.job.support_min_rows)
     return layer, {"abstraction_dir": str(directory), **info}
 
 
 def learned_decision(
-    model: Model,
+    request: LayerRequest,
     train: TrainSettings,
     directory: Path,
-    mode: str,
-    size: Sequence[int] | None,
-    device: torch.device,
-    start: str = "internal",
     min_rows: int | None = None,
 ) -> tuple[DecisionLayer, dict[str, Any]]:
-    """The learned abstraction of the fit ``directory`` (made by ``train``) as a decision layer
-    over ``model`` on ``device``, as its kind makes it (``ChainKind.decision_layer``): the
-    K-lumps chain (``gp.lumps=classes``, a table; its cells start as ``start`` says, see
-    :class:`ClassDecision`) or the chain over phi (:func:`abstract_decision`: a lookup table
-    of psi or the classifier itself).
+    """The learned abstraction of the fit ``directory`` (made by ``train``) as the decision
+    layer ``request`` asks for (:meth:`LayerRequest.of_fit`), as its kind makes it
+    (``ChainKind.decision_layer``): the K-lumps chain (``gp.lumps=classes``, a table; its cells
+    start as ``request.start`` says, see :class:`ClassDecision`), the switch clock's or the
+    chain over phi's (:func:`abstract_decision`: a lookup table of psi or the classifier itself).
 
     The layer carries the range its training data covered (``trained_range``: each input's
     min and max over the training rows, the fit's ``domain``; the switch clock, capped by
@@ -129,8 +126,7 @@ def learned_decision(
     (``support_histogram``; a bin with fewer than ``min_rows`` rows of a state is sparse; None:
     the default rule, :func:`~surrogate.simulate.support.min_rows_of`), which the simulator's
     support monitor checks the cells against."""
-    layer, info = train.kind.decision_layer(model, train, directory, mode, size, device,
-                                            start=start)  # fmt: skip
+    layer, info = train.kind.decision_layer(request, directory)
     manifest = read_manifest(directory)
     domain = manifest.get("domain") or {}
     names = [n for n in info["inputs"] if n != AGE]

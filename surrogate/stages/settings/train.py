@@ -24,6 +24,7 @@ from surrogate.kinds import (
     ChainKind,
     fit_chain,
     is_auto,
+    kind_gp_keys,
     resolve_auto_lumps,
 )
 from surrogate.models.capabilities import start_size_of
@@ -39,7 +40,8 @@ from surrogate.stages.settings.common import (
 from surrogate.stages.settings.occupancy import OccupancySettings
 from surrogate.validation import known_keys
 
-#: keys of the gp group that are not GP hyperparameters
+#: keys of the gp group that are not GP hyperparameters (nor are the chain kinds' own,
+#: :func:`~surrogate.kinds.kind_gp_keys`)
 GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
             "clock_bins", "lumps", "min_events", "max_label_weight", "class_moves",
             "relaxation")  # fmt: skip
@@ -138,7 +140,8 @@ class TrainSettings:
             setup = source.setup
         raw_gp = to_dict(cfg["gp"])
         gp_config = resolve_auto_lumps(raw_gp, setup.model)
-        hyper = {k: v for k, v in gp_config.items() if k not in GP_EXTRA}
+        extra = {*GP_EXTRA, *kind_gp_keys()}  # a chain kind's own keys are no hyperparameters
+        hyper = {k: v for k, v in gp_config.items() if k not in extra}
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
         # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
         if not 0.0 < gp.validation_fraction < 1.0:

@@ -1,0 +1,314 @@
+"""The base of the chain kinds and their registry (issue 40): :class:`ChainKind` (the chain over
+phi's behaviour, which every kind inherits and overrides where it differs),
+:func:`register_chain_kind` (the class decorator a kind's module puts on its class),
+:data:`CHAIN_KINDS` (the registered kinds) and :class:`LayerRequest` (what the kinds' layer
+methods are asked for). A kind's module imports this one; :mod:`surrogate.kinds.chains`
+imports the kinds' modules (``KIND_MODULES``) and looks the config's strings up here
+(:func:`find_kind`, :func:`kind_values`)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import pandas as pd
+import torch
+
+from surrogate.errors import ConfigError
+from surrogate.gp import load_psi
+from surrogate.gp.class_relaxation import DEFAULT_CELLS, DEFAULT_LAGS
+from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
+from surrogate.gp.model import DEFAULT_MEAN
+from surrogate.gp.training import GPSettings
+from surrogate.kinds.decision import DecisionMode
+from surrogate.kinds.files import PSI
+from surrogate.kinds.layers import abstract_decision, exact_decision
+from surrogate.models.base import Model
+from surrogate.simulate.classes import STARTS
+from surrogate.simulate.decision import DecisionLayer
+
+#: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
+#: these shipped recipes: the first where the model declares classes finer than phi, else the second
+AUTO_RECIPES = ("classes", "svgp")
+#: a layer's device where its request names none
+CPU = torch.device("cpu")
+
+
+@dataclass(frozen=True)
+class LayerRequest:
+    """What a kind's :meth:`~ChainKind.decision_layer` and :meth:`~ChainKind.exact_layer` are
+    asked for: a layer over ``model`` on ``device`` in ``mode`` (``size``: the table's nodes per
+    input, None: the default), stepping every ``dt`` s, a switch clock capped at ``max_age`` s,
+    its cells starting as ``start`` says (``decision.initial``). A learned layer's ``dt`` and
+    ``max_age`` are its fit's (:meth:`of_fit`)."""
+
+    model: Model
+    dt: float
+    mode: str = "lookup"
+    size: Sequence[int] | None = None
+    device: torch.device = CPU
+    max_age: float = 5.0
+    start: str = "internal"
+
+    @classmethod
+    def of_fit(
+        cls,
+        model: Model,
+        train: Any,
+        mode: str,
+        size: Sequence[int] | None,
+        device: torch.device,
+        start: str = "internal",
+    ) -> LayerRequest:
+        """The request for the learned layer of the fit the train settings ``train`` (duck-typed:
+        the kinds sit below the stages) made: its ``dt`` and clock cap."""
+        return cls(model, train.setup.dt, mode, size, device, train.max_age, start)
+
+
+class ChainKind:
+    """A kind of learned (or exact) chain: what the settings, train and simulate ask of it.
+
+    The base gives the chain over phi's behaviour (psi is the whole chain: no fit or file of its
+    own, psi's lookup table or classifier, the exact psi); a kind overrides what differs. The
+    kinds are instances of the registered subclasses (:func:`register_chain_kind`), made by
+    :func:`~surrogate.kinds.chains.chain_kind` only; compare them by their flags, never by their
+    names.
+
+    Example:
+        >>> from surrogate.kinds import chain_kind
+        >>> kind = chain_kind("phi", "age")
+        >>> kind.clock, kind.classes, kind.history
+        (True, False, 'age')
+        >>> kind.fit_identity({"lumps": "phi", "history": "age", "max_age": 5.0, "bins": 200})
+        {'history': 'age', 'max_age': 5.0, 'bins': 200}
+    """
+
+    #: the config's strings that select this kind: gp.lumps (decision.lumps), gp.history
+    #: (decision.history) and the gp.class_moves it takes (an instance per value, :meth:`make`)
+    lumps: ClassVar[str] = "phi"
+    history: ClassVar[str] = "none"
+    class_moves_choices: ClassVar[tuple[str, ...]] = ("learned",)
+    #: the keys of the gp group that only this kind reads: the other kinds drop them from their
+    #: fits' identities (so a fit keeps the identity it had before this kind existed)
+    gp_keys: ClassVar[tuple[str, ...]] = ()
+    #: the kind's name in messages (``gp.class_moves=relaxation is a K-lumps option``)
+    title: ClassVar[str] = "two-state"
+    #: psi also takes the switch clock (its last input): train records the clocks
+    clock: ClassVar[bool] = False
+    #: the chain runs over the model's classes (collect's class labels, a class table)
+    classes: ClassVar[bool] = False
+    #: the shipped conf/gp recipe a command names for it (a two-state fit's says gp=svgp,
+    #: which the default, gp=auto, would not pick for a model with classes)
+    recipe: ClassVar[str] = AUTO_RECIPES[1]
+    #: where its cells may start (decision.initial)
+    starts: ClassVar[tuple[str, ...]] = (STARTS[0],)
+    #: its own artefact: the fit's files beyond the classifiers' (:data:`PSI`, which every
+    #: kind fits), copied into the train directory with them
+    files: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def make(cls, class_moves: str) -> ChainKind:
+        """The kind's instance for ``gp.class_moves`` (one of :attr:`class_moves_choices`)."""
+        return cls()
+
+    @property
+    def class_moves(self) -> str:
+        """gp.class_moves: how the chain's class moves are fitted (a chain over phi: learned)."""
+        return self.class_moves_choices[0]
+
+    @property
+    def relaxation(self) -> bool:
+        """Whether the K-lumps chain's bins relax to their stationary law
+        (gp.class_moves=relaxation)."""
+        return False
+
+    # the settings: the kind's refusals and the gp settings it fits
+
+    @classmethod
+    def check_fit(cls, history: str, internal: Any, model_name: str) -> None:
+        """Refuse a fit asked for by this kind's ``gp.lumps`` with ``gp.history`` ``history`` over
+        the model's ``internal`` model (``model_name`` for the message), before the kind is
+        looked up (called on each kind whose :attr:`lumps` the config names)."""
+
+    def configure(
+        self,
+        gp_config: Mapping[str, Any],
+        gp: GPSettings,
+        inputs: tuple[str, ...],
+        internal: Any,
+        model_name: str,
+    ) -> tuple[GPSettings, tuple[str, ...]]:
+        """The GP settings ``gp`` and the abstraction ``inputs`` as this kind fits them, from the
+        gp group ``gp_config``, checked against the model's ``internal`` model (a chain over
+        phi: as they are)."""
+        return gp, inputs
+
+    @classmethod
+    def check_exact_history(cls, mode: DecisionMode, internal: Any, model_name: str) -> None:
+        """Refuse ``decision=exact`` with this kind's ``decision.history`` in ``mode`` over the
+        model's ``internal`` model (called on each kind whose :attr:`history` the config names)."""
+
+    @classmethod
+    def check_exact(cls, history: str, mode: DecisionMode, internal: Any, model_name: str) -> None:
+        """Refuse ``decision=exact`` with this kind's ``decision.lumps`` and ``history`` in
+        ``mode`` over the model's ``internal`` model (called on each kind whose :attr:`lumps`
+        the config names)."""
+
+    def fit_identity(
+        self,
+        gp: Mapping[str, Any],
+        min_events: float | None = None,
+        max_label_weight: float = DEFAULT_MAX_LABEL_WEIGHT,
+        relaxation_cells: int = DEFAULT_CELLS,
+        relaxation_lags: Sequence[float] = DEFAULT_LAGS,
+    ) -> dict[str, Any]:
+        """The gp part of a fit's identity from the fit's gp keys ``gp``: the keys only other
+        kinds read (their :attr:`gp_keys`) are dropped, so each fit keeps the identity (and the
+        directory) it had before those kinds existed; the kind's own and the strings that select
+        it (where they are not the chain over phi's) are kept. The K-lumps options are read by
+        :class:`~surrogate.kinds.klumps.KLumps` only."""
+        # the strings that select a kind other than the chain over phi stay: two kinds' fits
+        # never share an identity
+        own = {*self.gp_keys, *(a for a in ("lumps", "history")
+                                if getattr(self, a) != getattr(ChainKind, a))}  # fmt: skip
+        drop = kind_gp_keys() - own
+        if gp.get("mean", DEFAULT_MEAN) == DEFAULT_MEAN:  # fits before gp.mean keep theirs
+            drop.add("mean")
+        return {k: v for k, v in gp.items() if k not in drop}
+
+    def label(self) -> dict[str, Any]:
+        """What the kind adds to an artefact directory's readable name (the two-state chain and
+        the clock: nothing, as before K lumps)."""
+        return {}
+
+    def check_mode(self, mode: DecisionMode) -> None:
+        """Refuse a learned run of this chain in ``mode`` (decision=abstract)."""
+
+    def check_start(self, value: str, where: str) -> None:
+        """Refuse a start (``decision.initial``, already one of :data:`STARTS`) this chain has
+        no law for."""
+        if value not in self.starts:
+            raise ConfigError(
+                f"{where}={value} starts a K-lumps chain from its stationary law (gp=classes); "
+                f"the two-state chain starts from the internal model's initial law: use "
+                f"{where}={self.starts[0]}"
+            )
+
+    # what train and simulate ask of the kind: its fit, its artefact, its decision layers
+
+    def training_rows(
+        self, table: pd.DataFrame, max_age: float, where: str, source: Any
+    ) -> pd.DataFrame:
+        """The rows of the transitions ``table`` (read from ``where``, made by ``source``: the
+        collect settings or an external table) that the fit reads, as it reads them (a chain
+        without a clock: all, as they are)."""
+        return table
+
+    def fit(
+        self, settings: Any, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
+    ) -> tuple[dict[str, Any], dict[str, Any]] | None:
+        """What the kind fits beyond the classifiers psi, which train fits first for every kind
+        (over their ``domain``), from the train settings ``settings`` and the transitions
+        ``table``: its artefact's state and its metrics, or None (a chain over phi: psi is the
+        whole chain)."""
+        return None
+
+    def write(
+        self,
+        directory: Path,
+        fitted: tuple[dict[str, Any], dict[str, Any]] | None,
+        identity: Mapping[str, Any],
+    ) -> dict[str, Any]:
+        """Write what :meth:`fit` gave (``fitted``) as the kind's :attr:`files` in a fit
+        ``directory``, recording the fit's ``identity``; the fit metrics' entries it adds."""
+        return {}
+
+    def load(self, directory: str | os.PathLike, device: str | torch.device = "cpu") -> Any:
+        """The kind's own artefact of a fit or train ``directory`` on ``device`` (None: the
+        kind has none beyond psi)."""
+        return None
+
+    def decision_layer(
+        self, request: LayerRequest, directory: Path
+    ) -> tuple[DecisionLayer, dict[str, Any]]:
+        """The learned chain of the fit ``directory`` as the decision layer ``request`` asks for
+        (:meth:`LayerRequest.of_fit`), and facts about it for the manifest: psi's lookup table
+        or the classifier itself (:func:`abstract_decision`; a chain over phi starts its cells
+        from the internal model, ``request.start`` is checked to say so)."""
+        psi, _ = load_psi(Path(directory) / PSI, device=request.device)
+        return abstract_decision(request.model, psi, request.mode, request.size, request.device)
+
+    def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
+        """The chain driven by the model's exact law (decision=exact, checked by
+        :meth:`check_exact_history` and :meth:`check_exact`) as the layer ``request`` asks for;
+        and facts about it for the manifest (:func:`exact_decision`)."""
+        return exact_decision(request.model, request.dt, request.mode, request.size,
+                              request.device)  # fmt: skip
+
+
+#: the registered chain kinds, in the order their modules were imported
+CHAIN_KINDS: list[type[ChainKind]] = []
+
+K = TypeVar("K", bound=type[ChainKind])
+
+
+def register_chain_kind(cls: K) -> K:
+    """Register the chain kind ``cls`` (a class decorator): :func:`~surrogate.kinds.chains.
+    chain_kind` selects it by its config strings (:attr:`ChainKind.lumps`,
+    :attr:`~ChainKind.history`, :attr:`~ChainKind.class_moves_choices`), and the settings'
+    messages list them.
+
+    Raises:
+        ValueError: another registered kind is selected by the same strings.
+    """
+    for other in CHAIN_KINDS:
+        shared = set(other.class_moves_choices) & set(cls.class_moves_choices)
+        if (other.lumps, other.history) == (cls.lumps, cls.history) and shared and other is not cls:
+            raise ValueError(
+                f"chain kinds {other.__name__} and {cls.__name__} are both selected by "
+                f"lumps={cls.lumps!r}, history={cls.history!r}, class_moves={sorted(shared)}"
+            )
+    if cls not in CHAIN_KINDS:
+        CHAIN_KINDS.append(cls)
+    return cls
+
+
+def kind_values(attribute: str) -> list[str]:
+    """The config values that select a registered kind for ``attribute`` (``lumps``,
+    ``history`` or ``class_moves_choices``): the base's (the chain over phi's) first, then as
+    registered."""
+    default = getattr(ChainKind, attribute)
+    out: list[str] = list(default) if isinstance(default, tuple) else [default]
+    for kind in CHAIN_KINDS:
+        value = getattr(kind, attribute)
+        out += [v for v in (value if isinstance(value, tuple) else (value,)) if v not in out]
+    return out
+
+
+def kinds_with(**strings: str) -> list[type[ChainKind]]:
+    """The registered kinds whose config strings are ``strings`` (``lumps=...``,
+    ``history=...``)."""
+    return [k for k in CHAIN_KINDS if all(getattr(k, a) == v for a, v in strings.items())]
+
+
+def kind_gp_keys() -> set[str]:
+    """The keys of the gp group that the registered kinds read (their :attr:`~ChainKind.gp_keys`):
+    no GP hyperparameters."""
+    return {k for kind in CHAIN_KINDS for k in kind.gp_keys}
+
+
+_MADE: dict[tuple[type[ChainKind], str], ChainKind] = {}
+
+
+def find_kind(lumps: str, history: str, class_moves: str) -> ChainKind | None:
+    """The registered kind the config's strings select (one instance per kind and
+    ``class_moves``), or None."""
+    for cls in kinds_with(lumps=lumps, history=history):
+        if class_moves in cls.class_moves_choices:
+            if (cls, class_moves) not in _MADE:
+                _MADE[cls, class_moves] = cls.make(class_moves)
+            return _MADE[cls, class_moves]
+    return None

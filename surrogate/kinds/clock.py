@@ -1,0 +1,126 @@
+"""The switch clock (``gp.history=age``, ``decision.history=age``) as one kind module: the chain
+over phi whose psi also reads the time since phi last changed, capped at ``gp.max_age``. It
+holds all the clock kind decides: its gp keys (:data:`GP_CLOCK`), its refusals and its clock
+axis (:meth:`SwitchClock.configure`, :meth:`~SwitchClock.check_exact_history`), its training
+rows, its learned layer (:meth:`~SwitchClock.decision_layer`) and its exact one
+(:func:`exact_clock_decision`). The engine's blocks it builds them from stay in
+:mod:`surrogate.simulate.memory` (:class:`MemoryDecision`, :func:`tabulate_with_clock`,
+:func:`exact_age_table`, :func:`clock_rows`)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import torch
+
+from surrogate.errors import ArtefactError, ConfigError
+from surrogate.gp import load_psi
+from surrogate.gp.training import GPSettings
+from surrogate.kinds.base import ChainKind, LayerRequest, register_chain_kind
+from surrogate.kinds.decision import DecisionMode
+from surrogate.kinds.files import PSI
+from surrogate.kinds.layers import psi_decision
+from surrogate.models.base import FeatureMap, Model
+from surrogate.simulate.decision import DecisionLayer
+from surrogate.simulate.memory import (
+    AGE,
+    MemoryDecision,
+    can_age,
+    clock_rows,
+    exact_age_table,
+    tabulate_with_clock,
+)
+
+log = logging.getLogger(__name__)
+
+#: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
+GP_CLOCK = ("history", "max_age", "clock_bins")
+
+
+@register_chain_kind
+@dataclass(frozen=True)
+class SwitchClock(ChainKind):
+    """The chain over phi whose psi also reads the time since phi last changed
+    (``gp.history=age``, capped at ``gp.max_age``): train records the clocks, simulate keeps
+    one per cell (:mod:`surrogate.simulate.memory`)."""
+
+    history = "age"
+    gp_keys = GP_CLOCK
+    title = "switch clock"
+    clock = True
+
+    def configure(
+        self,
+        gp_config: Mapping[str, Any],
+        gp: GPSettings,
+        inputs: tuple[str, ...],
+        internal: Any,
+        model_name: str,
+    ) -> tuple[GPSettings, tuple[str, ...]]:
+        """The switch clock is psi's last input, with its own bin count (``gp.clock_bins``)."""
+        if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
+            clock_bins = gp_config.get("clock_bins", gp.bins)
+            gp = replace(gp, bins=(*[gp.bins] * len(inputs), clock_bins))  # validated again
+        return gp, (*inputs, AGE)
+
+    @classmethod
+    def check_exact_history(cls, mode: DecisionMode, internal: Any, model_name: str) -> None:
+        """An exact psi with a clock needs a table and the model's ``exact_age_psi``."""
+        if not mode.table or not can_age(internal):
+            raise ConfigError(
+                f"decision.history=age needs decision.mode=lookup and a model with an exact "
+                f"psi over one signal with a clock (exact_age_psi); model "
+                f"{model_name!r}, mode {mode.name!r}"
+            )
+
+    def training_rows(
+        self, table: pd.DataFrame, max_age: float, where: str, source: Any
+    ) -> pd.DataFrame:
+        """The rows whose clock is known, clipped at ``max_age`` (:func:`clock_rows`)."""
+        try:
+            return clock_rows(table, max_age)
+        except KeyError as exc:
+            raise ArtefactError(
+                f"{where} has no switch clocks ({exc.args[0]}) for gp.history=age: it was "
+                f"collected before collect recorded them; delete it and re-run "
+                f"`{getattr(source, 'command', lambda: 'python3 scripts/collect.py')()}`"
+            ) from exc
+
+    def decision_layer(
+        self, request: LayerRequest, directory: Path
+    ) -> tuple[DecisionLayer, dict[str, Any]]:
+        """psi with its switch clock (its last input) as a layer that keeps one clock per cell,
+        capped at ``request.max_age`` s and ticking every ``request.dt``: a table with a clock
+        node at every step (each cell reads its clock's node; ``request.size`` sizes the lead
+        inputs) or the classifier (:class:`MemoryDecision`)."""
+        model, dt, max_age, size = request.model, request.dt, request.max_age, request.size
+        psi, _ = load_psi(Path(directory) / PSI, device=request.device)
+        featurize = model.featurizer(psi.input_names[:-1])
+        lead = tuple(size[:-1]) if size else None
+        return psi_decision(
+            psi, request.mode, request.device,
+            lambda run: MemoryDecision(run, model.internal, featurize, max_age, dt=dt),
+            lambda ranges: tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, max_age,
+                                               lead),
+        )  # fmt: skip
+
+    def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
+        """The exact psi with a switch clock (:func:`exact_clock_decision`, a table)."""
+        return exact_clock_decision(request.model, request.dt, request.max_age,
+                                    request.device), {}  # fmt: skip
+
+
+def exact_clock_decision(
+    model: Model, dt: float, max_age: float, device: torch.device, name: str = "exact"
+) -> MemoryDecision:
+    """The chain driven by the exact psi with a switch clock (``decision.history=age``): a
+    table over the signal and the clock, capped at ``max_age`` s; ``name`` labels the layer."""
+    table = exact_age_table(model.internal, dt, max_age).to(device)
+    featurize = FeatureMap(model.internal, model.internal.signal_names)
+    log.info("exact psi with a switch clock: table %s over %s", table.shape, table.input_names)
+    return MemoryDecision(table, model.internal, featurize, max_age, name, dt)
