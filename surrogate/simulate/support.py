@@ -23,6 +23,13 @@ next step (``share_sparse``: a running cell where tumbles were never trained is 
 the most visited sparse region lies (``sparse_where``). A fit made before the histogram was
 stored is checked by range only.
 
+A K-lumps chain (:class:`~surrogate.simulate.classes.ClassDecision`) decides a cell's next
+step by its own class's law, learned from that class's rows; its fit also stores the rows per
+class (:attr:`TrainedRange.class_histogram`), and each cell is checked against its own class's
+rows (the layer's classes, :func:`classes_of`): a class rare in training inside a bin its lump
+fills is sparse, and the report names the class (``sparse_class``, each region's ``class``).
+A K-lumps fit made before that was stored is checked per state.
+
 Example:
     >>> import torch
     >>> support = TrainedRange(("dG",), (-1.0,), (1.0,))
