@@ -43,7 +43,12 @@ from surrogate.simulate.coupling import check_coupled_run, coupled_blocks, posit
 from surrogate.simulate.decision import DecisionLayer, is_fusable
 from surrogate.simulate.kernel_pack import pack_decision
 from surrogate.simulate.precompile import kernel_wanted, wait_for_precompile
-from surrogate.simulate.support import SupportMonitor, TrainedRange, trained_range_of
+from surrogate.simulate.support import (
+    SupportMonitor,
+    TrainedRange,
+    classes_of,
+    trained_range_of,
+)
 
 
 @dataclass
@@ -557,7 +562,9 @@ class Simulator:
             if not blocks:
                 return
             self._support = SupportMonitor(blocks)
-        self._support.observe(state.inputs, state.phi)
+        # a K-lumps block checks each cell against its own class's rows
+        classes = classes_of(self.decision) if self._support.needs_classes else None
+        self._support.observe(state.inputs, state.phi, classes)
 
     def support_report(self) -> list[dict[str, Any] | None]:
         """Per run (:meth:`support_blocks` order): the monitor's report, None where the run has

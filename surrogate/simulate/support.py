@@ -23,6 +23,13 @@ next step (``share_sparse``: a running cell where tumbles were never trained is 
 the most visited sparse region lies (``sparse_where``). A fit made before the histogram was
 stored is checked by range only.
 
+A K-lumps chain (:class:`~surrogate.simulate.classes.ClassDecision`) decides a cell's next
+step by its own class's law, learned from that class's rows; its fit also stores the rows per
+class (:attr:`TrainedRange.class_histogram`), and each cell is checked against its own class's
+rows (the layer's classes, :func:`classes_of`): a class rare in training inside a bin its lump
+fills is sparse, and the report names the class (``sparse_class``, each region's ``class``).
+A K-lumps fit made before that was stored is checked per state.
+
 Example:
     >>> import torch
     >>> support = TrainedRange(("dG",), (-1.0,), (1.0,))
@@ -101,9 +108,13 @@ class TrainingHistogram:
         bins: bins per input.
         joint: True: one histogram over all inputs (row-major flat index over ``bins``);
             False: each input's own, concatenated.
-        counts: per state phi = 0, 1: the rows per bin (flat, as ``joint`` says).
+        counts: per state phi = 0, 1 (or per class, see ``classes``): the rows per bin
+            (flat, as ``joint`` says).
         switching: per state: the share of its rows whose phi changed (the rate the default
-            minimum of rows is derived from).
+            minimum of rows is derived from); per class: the share of its rows whose class
+            changed (see :meth:`of_rows`).
+        classes: the K-lumps classes the counts are per, in the chain's order (empty: per
+            state phi = 0, 1).
     """
 
     names: tuple[str, ...]
@@ -113,13 +124,33 @@ class TrainingHistogram:
     joint: bool
     counts: tuple[tuple[int, ...], ...]
     switching: tuple[float, ...]
+    classes: tuple[str, ...] = ()
 
     @classmethod
     def of_rows(
-        cls, values: Any, phi: Any, switched: Any, names: Sequence[str]
+        cls,
+        values: Any,
+        phi: Any,
+        switched: Any,
+        names: Sequence[str],
+        classes: Sequence[str] | None = None,
     ) -> TrainingHistogram:
         """The histogram of training rows ``values`` (``n x d``, columns ``names``), their
-        states ``phi`` (0/1) and whether each switched."""
+        states ``phi`` (0/1) and whether each switched.
+
+        With ``classes`` (a K-lumps fit's class names), ``phi`` is each row's class at the
+        window's start (an index into ``classes``, collect's ``phi_class``) and ``switched``
+        whether its class changed over the window (``phi_class_next`` differs): the counts
+        and switching shares are per class. The rows a class needs in a bin
+        (:meth:`min_rows`) then follow :func:`min_rows_of` at the class's share of rows that
+        *leave it*: the chain's decision for a cell is its class's whole one-window law
+        ``P(class' | class, z)``, learned from the rows of that class, and the events that
+        law is learned from are its moves out of the class (any destination, a change of
+        lump or not). So the rule asks, as the per-state one does of phi's switches, for
+        25 expected moves per bin (a leaving rate within 20 %), and it is the per-state
+        rule itself for a chain whose classes are phi's two lumps. Rarer destinations
+        among those moves are not credited separately: their share of a bin is the GP's
+        smoothing across bins, which this check does not claim to measure either."""
         z = torch.tensor(np.asarray(values, dtype=np.float64)).reshape(-1, len(names))
         state = torch.tensor(np.asarray(phi, dtype=np.int64)).reshape(-1)
         moved = torch.tensor(np.asarray(switched, dtype=bool)).reshape(-1)
@@ -132,7 +163,7 @@ class TrainingHistogram:
         flat = hist.flat_bins(z)
         size = hist.n_bins
         counts, switching = [], []
-        for s in (0, 1):
+        for s in range(len(classes) if classes is not None else 2):
             mine = state == s
             # joint: one flat bin a row; else d, one in each input's own histogram
             c = torch.bincount(flat[mine].reshape(-1), minlength=size)
@@ -140,7 +171,7 @@ class TrainingHistogram:
             n = int(mine.sum())
             switching.append(float(moved[mine].sum()) / n if n else 0.0)
         return cls(tuple(names), tuple(lo), tuple(hi), bins, joint, tuple(counts),
-                   tuple(switching))  # fmt: skip
+                   tuple(switching), tuple(classes or ()))  # fmt: skip
 
     @property
     def n_bins(self) -> int:
@@ -165,12 +196,17 @@ class TrainingHistogram:
         offsets = [0, *itertools.accumulate(self.bins)][:-1]
         return torch.stack([i + o for i, o in zip(idx, offsets, strict=True)], 1)
 
+    @property
+    def groups(self) -> tuple[str, ...]:
+        """What the counts are per: the class names, else the states ``0``, ``1``."""
+        return self.classes or ("0", "1")
+
     def min_rows(self, min_rows: int | None = None) -> tuple[int, ...]:
-        """Per state, the rows a bin needs (:func:`min_rows_of`)."""
+        """Per state (or class), the rows a bin needs (:func:`min_rows_of`)."""
         return tuple(min_rows_of(p, min_rows) for p in self.switching)
 
     def sparse_by_state(self, min_rows: int | None = None) -> tuple[tuple[bool, ...], ...]:
-        """Per state, per flat bin: whether that state has fewer rows there than it needs
+        """Per state (or class), per flat bin: whether it has fewer rows there than it needs
         (:meth:`min_rows`)."""
         need = self.min_rows(min_rows)
         return tuple(tuple(v < n for v in c) for c, n in zip(self.counts, need, strict=True))
@@ -180,11 +216,15 @@ class TrainingHistogram:
         return tuple(any(col) for col in zip(*self.sparse_by_state(min_rows), strict=True))
 
     def as_dict(self) -> dict[str, Any]:
-        """A plain dict for a manifest (:meth:`from_dict` reads it back)."""
-        return {"inputs": list(self.names), "lo": list(self.lo), "hi": list(self.hi),
-                "bins": list(self.bins), "joint": self.joint,
-                "counts": [list(c) for c in self.counts],
-                "switching": list(self.switching)}  # fmt: skip
+        """A plain dict for a manifest (:meth:`from_dict` reads it back); ``classes`` only
+        where the counts are per class."""
+        out = {"inputs": list(self.names), "lo": list(self.lo), "hi": list(self.hi),
+               "bins": list(self.bins), "joint": self.joint,
+               "counts": [list(c) for c in self.counts],
+               "switching": list(self.switching)}  # fmt: skip
+        if self.classes:
+            out["classes"] = list(self.classes)
+        return out
 
     @classmethod
     def from_dict(cls, obj: Mapping[str, Any]) -> TrainingHistogram:
@@ -193,9 +233,13 @@ class TrainingHistogram:
         hist = cls(tuple(str(n) for n in obj["inputs"]), tuple(float(v) for v in obj["lo"]),
                    tuple(float(v) for v in obj["hi"]), tuple(int(b) for b in obj["bins"]),
                    bool(obj["joint"]), tuple(tuple(int(v) for v in c) for c in obj["counts"]),
-                   tuple(float(p) for p in obj["switching"]))  # fmt: skip
-        if len(hist.counts) != 2 or any(len(c) != hist.n_bins for c in hist.counts):
+                   tuple(float(p) for p in obj["switching"]),
+                   tuple(str(c) for c in obj.get("classes", ())))  # fmt: skip
+        groups = len(hist.groups)
+        if len(hist.counts) != groups or any(len(c) != hist.n_bins for c in hist.counts):
             raise ValueError("the histogram's counts do not match its bins")
+        if len(hist.switching) != groups:
+            raise ValueError("the histogram's switching shares do not match its counts")
         return hist
 
 
@@ -229,6 +273,10 @@ class TrainedRange:
     histogram: TrainingHistogram | None = None
     #: the rows a bin needs per state (None: :func:`min_rows_of`'s default)
     min_rows: int | None = None
+    #: a K-lumps fit's training rows per class over the same inputs (None: checked per state;
+    #: a two-state fit, or one made before it was stored): each cell is checked against its
+    #: own class's rows
+    class_histogram: TrainingHistogram | None = None
 
     @classmethod
     def from_domain(
@@ -237,30 +285,66 @@ class TrainedRange:
         names: Sequence[str],
         histogram: Mapping[str, Any] | None = None,
         min_rows: int | None = None,
+        class_histogram: Mapping[str, Any] | None = None,
+        classes: Sequence[str] | None = None,
     ) -> TrainedRange:
         """From a fit's ``domain`` (``{name: (min, max)}``) over the inputs ``names`` and its
         ``support_histogram`` (:meth:`TrainingHistogram.as_dict`; ignored where absent, not
-        readable or over other inputs: the range alone is checked then)."""
+        readable or over other inputs: the range alone is checked then) and, for a K-lumps
+        fit, its ``support_class_histogram`` (per class; ignored likewise, or where its classes
+        are not ``classes``, the chain's: the per-state check then)."""
         missing = [n for n in names if n not in domain]
         if missing:
             raise KeyError(f"the fit's domain has no range for {missing}")
-        hist = None
-        if histogram is not None:
-            try:
-                hist = TrainingHistogram.from_dict(histogram)
-            except (KeyError, TypeError, ValueError) as exc:
-                log.warning("the fit's support histogram is unreadable (%s): checking the "
-                            "trained range only", exc)  # fmt: skip
-            if hist is not None and hist.names != tuple(names):
-                hist = None  # over other inputs than the decision's: range only
+        hist = _histogram_of(histogram, names, "support histogram", "the trained range only")
+        per_class = _histogram_of(class_histogram, names, "per-class support histogram",
+                                  "per state instead")  # fmt: skip
+        if per_class is not None and (
+            not per_class.classes or (classes is not None and per_class.classes != tuple(classes))
+        ):
+            per_class = None  # not the chain's classes: per state
         return cls(tuple(names), tuple(float(domain[n][0]) for n in names),
-                   tuple(float(domain[n][1]) for n in names), hist, min_rows)  # fmt: skip
+                   tuple(float(domain[n][1]) for n in names), hist, min_rows,
+                   per_class)  # fmt: skip
+
+
+def _histogram_of(
+    obj: Mapping[str, Any] | None, names: Sequence[str], what: str, instead: str
+) -> TrainingHistogram | None:
+    """The histogram a manifest stored (None: absent, unreadable, warned, or over other inputs
+    than ``names``)."""
+    if obj is None:
+        return None
+    try:
+        hist = TrainingHistogram.from_dict(obj)
+    except (KeyError, TypeError, ValueError) as exc:
+        log.warning("the fit's %s is unreadable (%s): checking %s", what, exc, instead)
+        return None
+    return hist if hist.names == tuple(names) else None  # over other inputs than the decision's
 
 
 def trained_range_of(decision: object) -> TrainedRange | None:
     """The trained range a stage attached to a learned decision layer (None: not learned)."""
     value = getattr(decision, "trained_range", None)
     return value if isinstance(value, TrainedRange) else None
+
+
+def classes_of(decision: object) -> Tensor | None:
+    """Each cell's K-lumps class now (``(n,)`` int64) for the decision layer of a whole
+    population: a K-lumps chain's ``cls`` (:class:`~surrogate.simulate.classes.ClassDecision`),
+    a batch's members' side by side (0 in a member without classes, which no per-class block
+    reads); None where no layer has classes. A view of the layer's own tensor where there is
+    one layer: no copy."""
+    members = getattr(decision, "members", None)
+    if members is not None:  # a DecisionBatch: block i of sizes[i] cells is members[i]'s
+        parts = [classes_of(m) for m in members]
+        if all(p is None for p in parts):
+            return None
+        like = next(p for p in parts if p is not None)
+        return torch.cat([p if p is not None else like.new_zeros(n)
+                          for p, n in zip(parts, decision.sizes, strict=True)])  # type: ignore[attr-defined]  # fmt: skip
+    value = getattr(decision, "cls", None)
+    return value if isinstance(value, Tensor) else None
 
 
 class SupportMonitor:
@@ -270,7 +354,9 @@ class SupportMonitor:
     Args:
         blocks: per run, ``(cells, featurize, trained range)``: its slice of the population,
             its decision layer's ``featurize`` (``x (n x d_x) -> z (n x d)``; None: identity)
-            and the range its ``z`` was trained on (with its histogram, where stored).
+            and the range its ``z`` was trained on (with its histogram, where stored; with
+            its per-class histogram, a K-lumps fit's, each cell is checked against its class's
+            rows).
     """
 
     def __init__(
@@ -279,14 +365,23 @@ class SupportMonitor:
     ) -> None:
         self.blocks = list(blocks)
         self._counts: list[dict[str, Tensor]] | None = None
-        #: per block: its histogram's sparse bins on the device (None: range only)
+        #: per block: its histogram's sparse bins on the device, per state or class (None:
+        #: range only)
         self._density: list[Tensor | None] = []
 
-    def observe(self, x: Tensor, phi: Tensor | None = None) -> None:
+    @property
+    def needs_classes(self) -> bool:
+        """Whether a block checks its cells per class (:meth:`observe` wants ``classes``)."""
+        return any(density_of(r)[1] for _, _, r in self.blocks)
+
+    def observe(self, x: Tensor, phi: Tensor | None = None, classes: Tensor | None = None) -> None:
         """Count the cells of every block whose features of ``x`` (``n x d_x``, the body's
         inputs of the last step) lie outside the block's trained range, or inside it in a bin
         sparse for their state ``phi`` (``(n,)``, 0/1: the psi that decides their next step;
-        None: sparse for either state); batched tensor ops on ``x``'s device, no host sync."""
+        None: sparse for either state) or, in a block with a per-class histogram, for their
+        class ``classes`` (``(n,)`` int64, the K-lumps chain's classes: the law that decides
+        their next step; None: sparse for any class); batched tensor ops on ``x``'s device, no
+        host sync."""
         if self._counts is None:
             self._counts = [self._zeros(r, x.device) for _, _, r in self.blocks]
             self._density = [self._sparse_bins(r, x.device) for _, _, r in self.blocks]
@@ -308,22 +403,31 @@ class SupportMonitor:
             acc["max"] = torch.maximum(acc["max"], z.max(0).values)
             if density is None:
                 continue
-            assert trained.histogram is not None  # a density is made from it
-            flat = trained.histogram.flat_bins(z)  # n (joint) or n x d (each alone)
+            hist, by_class = density_of(trained)
+            assert hist is not None  # a density is made from it
+            flat = hist.flat_bins(z)  # n (joint) or n x d (each alone)
             inside = ~out
-            if phi is None:
+            label = classes if by_class else phi
+            if label is None:
+                group = None
                 bad = density.any(0)[flat]
-            else:  # each cell against its own state's rows
-                state = phi[cells].to(torch.int64)
-                bad = density[state if flat.dim() == 1 else state[:, None], flat]
+            else:  # each cell against its own state's (or class's) rows
+                group = label[cells].to(torch.int64)
+                group = group if flat.dim() == 1 else group[:, None]
+                bad = density[group, flat]
             bad = bad & (inside if flat.dim() == 1 else inside[:, None])
             acc["sparse"] += (bad if bad.dim() == 1 else bad.any(1)).sum()
-            # the sparse cell-steps per bin (each input's own where not joint): the regions'
+            # the sparse cell-steps per bin (each input's own where not joint): the regions';
+            # per class and bin with classes (a cell of unknown class: its bin's any sparse one)
+            if by_class:
+                if group is None:  # a cell of unknown class: the first class sparse there
+                    group = density.to(torch.int64).argmax(0)[flat]
+                flat = group * hist.n_bins + flat
             acc["visits"].index_add_(0, flat.reshape(-1), bad.reshape(-1).to(torch.int64))
 
     @staticmethod
     def _sparse_bins(trained: TrainedRange, device: torch.device) -> Tensor | None:
-        hist = trained.histogram
+        hist, _ = density_of(trained)
         if hist is None:
             return None
         return torch.tensor(hist.sparse_by_state(trained.min_rows), dtype=torch.bool,
@@ -340,10 +444,11 @@ class SupportMonitor:
             "min": torch.full((d,), math.inf, dtype=torch.float64, device=device),
             "max": torch.full((d,), -math.inf, dtype=torch.float64, device=device),
         }
-        if trained.histogram is not None:
+        hist, by_class = density_of(trained)
+        if hist is not None:
+            size = hist.n_bins * (len(hist.classes) if by_class else 1)
             acc["sparse"] = torch.zeros((), dtype=torch.int64, device=device)
-            acc["visits"] = torch.zeros(trained.histogram.n_bins, dtype=torch.int64,
-                                        device=device)  # fmt: skip
+            acc["visits"] = torch.zeros(size, dtype=torch.int64, device=device)
         return acc
 
     def report(self) -> list[dict[str, Any] | None]:
@@ -353,8 +458,10 @@ class SupportMonitor:
         range, in a sparse bin), ``sparse_regions`` (every visited connected region of sparse
         bins, ``{"where": {input: [lo, hi]}, "share": cell-steps there}``, most visited
         first), ``sparse_where`` and ``sparse_where_share`` (the first's; None and 0 where
-        none was visited) and ``min_rows`` (per state, the rows a bin needed). None for a
-        block never observed."""
+        none was visited) and ``min_rows`` (per state, the rows a bin needed). Checked per
+        class (a K-lumps fit's per-class histogram), each region names its ``class`` too,
+        ``sparse_class`` is the first's, ``min_rows`` is per class and ``classes`` names them.
+        None for a block never observed."""
         if self._counts is None:
             return [None] * len(self.blocks)
         out: list[dict[str, Any] | None] = []
@@ -374,14 +481,42 @@ class SupportMonitor:
                     for i, name in enumerate(trained.names)
                 },
             }  # fmt: skip
-            hist = trained.histogram
-            if hist is not None:
+            hist, by_class = density_of(trained)
+            if hist is not None and by_class:
+                regions = class_regions(hist, hist.sparse_by_state(trained.min_rows),
+                                        acc["visits"].tolist(), rows)  # fmt: skip
+                report.update(sparse_keys(int(acc["sparse"]) / rows, regions,
+                                          list(hist.min_rows(trained.min_rows)),
+                                          hist.classes))  # fmt: skip
+            elif hist is not None:
                 regions = [{"where": w, "share": n / rows} for w, n in sparse_regions(
                     hist, hist.sparse(trained.min_rows), acc["visits"].tolist())]  # fmt: skip
                 report.update(sparse_keys(int(acc["sparse"]) / rows, regions,
                                           list(hist.min_rows(trained.min_rows))))  # fmt: skip
             out.append(report)
         return out
+
+
+def density_of(trained: TrainedRange) -> tuple[TrainingHistogram | None, bool]:
+    """The histogram a block's cells are checked against and whether it is per class: a
+    K-lumps fit's per-class one where stored, else the per-state one (None: range only)."""
+    if trained.class_histogram is not None:
+        return trained.class_histogram, True
+    return trained.histogram, False
+
+
+def class_regions(
+    hist: TrainingHistogram, sparse: Sequence[Sequence[bool]], visits: Sequence[int], rows: int
+) -> list[dict[str, Any]]:
+    """Per class, its visited connected regions of bins sparse for it (:func:`sparse_regions`
+    over its row of ``sparse`` and its ``hist.n_bins`` of ``visits``), as report entries
+    ``{"where": .., "class": name, "share": visits / rows}``, most visited first."""
+    size, found = hist.n_bins, []
+    for c, name in enumerate(hist.classes):
+        mine = visits[c * size : (c + 1) * size]
+        for where, n in sparse_regions(hist, sparse[c], mine):
+            found.append(({"where": where, "class": name, "share": n / rows}, n))
+    return [r for r, _ in sorted(found, key=lambda r: -r[1])]
 
 
 def sparse_regions(
@@ -446,26 +581,38 @@ def merge_reports(reports: Sequence[Mapping[str, Any] | None]) -> dict[str, Any]
     merged: dict[str, Any] = {"sampled_cell_steps": total,
                               "share_outside": share("share_outside"), "inputs": inputs}  # fmt: skip
     if all("sparse_regions" in r for r in seen):
-        regions: dict[str, list[Any]] = {}  # the same region of every run, by its span
+        # the same region of every run, by its span (and its class, checked per class)
+        regions: dict[str, list[Any]] = {}
         for n, r in zip(rows, seen, strict=True):
             for region in r["sparse_regions"]:
-                key = json.dumps(region["where"], sort_keys=True)
-                regions.setdefault(key, [region["where"], 0.0])[1] += n * float(region["share"])
-        joined = sorted(({"where": w, "share": c / total} for w, c in regions.values()),
+                ident = {k: v for k, v in region.items() if k != "share"}
+                key = json.dumps(ident, sort_keys=True)
+                regions.setdefault(key, [ident, 0.0])[1] += n * float(region["share"])
+        joined = sorted(({**ident, "share": c / total} for ident, c in regions.values()),
                         key=lambda g: -g["share"])  # fmt: skip
-        merged.update(sparse_keys(share("share_sparse"), joined, list(seen[0]["min_rows"])))
+        merged.update(sparse_keys(share("share_sparse"), joined, list(seen[0]["min_rows"]),
+                                  seen[0].get("classes")))  # fmt: skip
     return merged
 
 
 def sparse_keys(
-    share: float, regions: Sequence[Mapping[str, Any]], min_rows: Sequence[int]
+    share: float,
+    regions: Sequence[Mapping[str, Any]],
+    min_rows: Sequence[int],
+    classes: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """A report's density keys: the share in sparse bins, the regions (most visited first),
-    the first's ``sparse_where`` and ``sparse_where_share``, and the rows a bin needed."""
+    the first's ``sparse_where`` and ``sparse_where_share``, and the rows a bin needed; checked
+    per class (``classes``), also the first's ``sparse_class`` and the ``classes``
+    ``min_rows`` is per."""
     first = regions[0] if regions else {"where": None, "share": 0.0}
-    return {"share_sparse": share, "sparse_where": first["where"],
+    keys = {"share_sparse": share, "sparse_where": first["where"],
             "sparse_where_share": first["share"], "sparse_regions": list(regions),
             "min_rows": list(min_rows)}  # fmt: skip
+    if classes:
+        keys["sparse_class"] = first.get("class")
+        keys["classes"] = list(classes)
+    return keys
 
 
 def describe_outside(report: Mapping[str, Any]) -> str:
@@ -488,14 +635,24 @@ def describe_where(where: Mapping[str, Sequence[float]] | None) -> str:
     return ", ".join(f"{n} in [{v[0]:.4g}, {v[1]:.4g}]" for n, v in where.items())
 
 
+def describe_sparse_where(report: Mapping[str, Any]) -> str:
+    """The most visited sparse region of a report: :func:`describe_where` of its
+    ``sparse_where``, after its class where checked per class (``class on|P2<12 at dG in
+    [4, 7]``)."""
+    where = describe_where(report.get("sparse_where"))
+    cls = report.get("sparse_class")
+    return f"class {cls} at {where}" if cls is not None else where
+
+
 def describe_sparse(report: Mapping[str, Any]) -> str:
-    """One line: the share inside the range in sparse bins, the most visited sparse region and
-    its share, and the rows a bin needed."""
+    """One line: the share inside the range in sparse bins, the most visited sparse region (and
+    its class, checked per class) and its share, and the rows a bin needed."""
     need = "/".join(str(n) for n in report.get("min_rows", []))
+    per = (f"rows of the cell's own class ({', '.join(report['classes'])})"
+           if report.get("classes") else "rows per state phi = 0/1")  # fmt: skip
     return (f"{100 * report['share_sparse']:.3g} % of {report['sampled_cell_steps']} sampled "
             f"cell-steps inside the trained range where its training rows are sparse (fewer than "
-            f"{need} rows per state phi = 0/1 in the input's bin), most at "
-            f"{describe_where(report.get('sparse_where'))} "
+            f"{need} {per} in the input's bin), most at {describe_sparse_where(report)} "
             f"({100 * report.get('sparse_where_share', 0.0):.3g} %)")  # fmt: skip
 
 
@@ -524,7 +681,18 @@ def warn_outside(report: Mapping[str, Any] | None, threshold: float, what: str) 
             f"value: collect transitions where these cells go (e.g. collect in this field, or a "
             f"wider collection), or check this run against the full model."
         )
-    if sparse:
+    if sparse and report.get("sparse_class") is not None:
+        parts.append(
+            f"the abstraction ran where its training rows of a class are sparse in "
+            f"{describe_sparse(report)}. The chain's law from that class there is the fit's "
+            f"guess between few of its rows: collect more rows (`collect.n_per_state`; a rare "
+            f"class's rows grow in proportion) or use coarser classes (`model.classes`: fewer, "
+            f"wider bins, each with more rows), or train with rows there (a training field or "
+            f"`model.body.perturbation` that reaches "
+            f"{describe_where(report.get('sparse_where'))}), or check this run against the "
+            f"full model."
+        )
+    elif sparse:
         parts.append(
             f"the abstraction ran where its training rows are sparse in "
             f"{describe_sparse(report)}. Its psi there is the fit's guess between few rows: "
@@ -542,8 +710,12 @@ __all__ = [
     "SupportMonitor",
     "TrainedRange",
     "TrainingHistogram",
+    "class_regions",
+    "classes_of",
+    "density_of",
     "describe_outside",
     "describe_sparse",
+    "describe_sparse_where",
     "describe_where",
     "merge_reports",
     "min_rows_of",

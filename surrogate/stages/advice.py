@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from surrogate.kinds import ChainKind
-from surrogate.simulate.support import describe_where, sparse_share
+from surrogate.simulate.support import describe_sparse_where, sparse_share
 
 #: |first half - second half| of the diagnostic's switching, in standard errors, above which
 #: its population was still settling
@@ -237,9 +237,21 @@ def _sparse_rows(
     if not thin:
         return None
     parts = [f"{f}: {100 * float(r['share_sparse']):.1f} % of cell-steps, most at "
-             f"{describe_where(r.get('sparse_where'))} "
+             f"{describe_sparse_where(r)} "
              f"({100 * float(r.get('sparse_where_share', 0.0)):.1f} %)"
              for f, r in thin.items()]  # fmt: skip
+    if any(r.get("classes") for r in thin.values()):  # a K-lumps chain: checked per class
+        return (
+            "Sparse training data",
+            "inside its trained range the K-lumps chain ran where its training rows of the "
+            "cells' own class are sparse (fewer per class than a leaving rate within 20 % "
+            "needs) in " + "; ".join(parts)
+            + ": its law from that class there is the fit's guess between few of its rows.",
+            "more rows (`collect.n_per_state`: a rare class's rows grow in proportion) or "
+            "coarser classes (`model.classes`: fewer, wider bins), or training rows there: a "
+            "training field or a perturbation design (`model.body.perturbation`) that reaches "
+            "those inputs.",
+        )  # fmt: skip
     return (
         "Sparse training data",
         "inside its trained range the abstraction ran where its training rows are sparse "

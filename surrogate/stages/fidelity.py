@@ -79,7 +79,7 @@ from surrogate.simulate.memory import can_age
 from surrogate.simulate.paired import paired_starts
 from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
-from surrogate.simulate.support import describe_where, sparse_share, warn_outside
+from surrogate.simulate.support import describe_sparse_where, sparse_share, warn_outside
 from surrogate.stages import reference
 from surrogate.stages.collect import collect
 from surrogate.stages.reference import ReferenceSettings
@@ -602,7 +602,7 @@ def report_sections(
             {"run": label, "outside": f"{100 * r['share_outside']:.2f} %",
              "sparse": ("not stored" if sparse_share(r) is None else
                         f"{100 * float(r['share_sparse']):.2f} % (most at "
-                        f"{describe_where(r.get('sparse_where'))})"),
+                        f"{describe_sparse_where(r)})"),
              "inputs": "; ".join(
                  f"{n} seen [{v['seen'][0]:.3g}, {v['seen'][1]:.3g}], trained "
                  f"[{v['trained'][0]:.3g}, {v['trained'][1]:.3g}]"

@@ -423,6 +423,8 @@ def _outside_text(settings: ReproduceSettings) -> str:
             continue
         sparse = sparse_share(report)
         where = report.get("sparse_where") or {}
+        # checked per class (a K-lumps chain): the region's class before its interval
+        cls = f"{report['sparse_class']}: " if report.get("sparse_class") is not None else ""
         for input_name, r in report["inputs"].items():
             row = {"field": name, "input": input_name,
                    "outside": f"{100 * report['share_outside']:.2f} %",
@@ -431,7 +433,8 @@ def _outside_text(settings: ReproduceSettings) -> str:
                    "seen": f"[{r['seen'][0]:.4g}, {r['seen'][1]:.4g}]",
                    "trained": f"[{r['trained'][0]:.4g}, {r['trained'][1]:.4g}]",
                    "sparse": "not stored" if sparse is None else f"{100 * sparse:.2f} %",
-                   "sparse where": (f"[{where[input_name][0]:.4g}, {where[input_name][1]:.4g}]"
+                   "sparse where": (f"{cls}[{where[input_name][0]:.4g}, "
+                                    f"{where[input_name][1]:.4g}]"
                                     if input_name in where else "")}  # fmt: skip
             rows.append(row)
     if not rows:
@@ -442,9 +445,10 @@ def _outside_text(settings: ReproduceSettings) -> str:
         "the training rows). The lookup table clamps there, so those steps use the psi at the "
         "range's edge, not a learned value; a run warns above `outside_warning` (default 1 %). "
         "Sparse: the share inside the range in bins of the training rows' histogram (stored "
-        "with the fit; `not stored` for an older fit) where a state has fewer rows than "
-        "`support_min_rows` (default: 25 expected switches, a rate within 20 %), warned above "
-        "the same threshold; sparse where: the most visited such region."
+        "with the fit; `not stored` for an older fit) where a state (for a K-lumps chain, the "
+        "cell's own class) has fewer rows than `support_min_rows` (default: 25 expected "
+        "switches, or moves out of the class, a rate within 20 %), warned above the same "
+        "threshold; sparse where: the most visited such region (after its class, per class)."
         "\n\n" + format_markdown_table(pd.DataFrame(rows))
     )
 

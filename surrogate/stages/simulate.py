@@ -125,15 +125,19 @@ def learned_decision(
     construction, excepted) and, where the fit stored it, its rows' histogram over that range
     (``support_histogram``; a bin with fewer than ``min_rows`` rows of a state is sparse; None:
     the default rule, :func:`~surrogate.simulate.support.min_rows_of`), which the simulator's
-    support monitor checks the cells against."""
+    support monitor checks the cells against; a K-lumps fit's per class
+    (``support_class_histogram``: each cell against its own class's rows; an older fit
+    without it, per state)."""
     layer, info = train.kind.decision_layer(request, directory)
     manifest = read_manifest(directory)
     domain = manifest.get("domain") or {}
     names = [n for n in info["inputs"] if n != AGE]
     if names and all(n in domain for n in names):
+        classes = info.get("classes") if train.kind.classes else None
         layer.trained_range = TrainedRange.from_domain(  # type: ignore[attr-defined]
-            domain, names, manifest.get("support_histogram"), min_rows
-        )
+            domain, names, manifest.get("support_histogram"), min_rows,
+            manifest.get("support_class_histogram") if classes else None, classes,
+        )  # fmt: skip
     return layer, info
 
 

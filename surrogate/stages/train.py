@@ -68,6 +68,7 @@ from surrogate.models.capabilities import (
 )
 from surrogate.simulate.classes import (
     CLASS,
+    CLASS_NEXT,
     ClassDecision,
     ClassTable,
     exact_class_table,
@@ -267,6 +268,7 @@ def _fit(
         domain={k: list(v) for k, v in psi.domain.items()},
         # diagnostic, not part of the fit's identity: where the training rows are sparse
         support_histogram=support_histogram(table, settings.inputs),
+        **class_support(table, settings),
     )
     for name in ("psi_0", "psi_1"):
         v = metrics[name]["validation"]
@@ -291,6 +293,36 @@ def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, A
     switched = phi != table["phi_next"].to_numpy(dtype=np.int64)
     values = table[names].to_numpy(dtype=np.float64)
     return TrainingHistogram.of_rows(values, phi, switched, names).as_dict()
+
+
+def class_support(table: pd.DataFrame, settings: TrainSettings) -> dict[str, Any]:
+    """A K-lumps fit's ``support_class_histogram`` (:func:`support_class_histogram` over the
+    model's classes), for its manifest beside the per-state one; nothing for any other chain
+    (its manifest keeps the keys it had)."""
+    classes = lump_classes_of(settings.setup.model.internal) if settings.kind.classes else None
+    hist = None if classes is None else support_class_histogram(table, settings.inputs,
+                                                                  classes.names)  # fmt: skip
+    return {} if hist is None else {"support_class_histogram": hist}
+
+
+def support_class_histogram(
+    table: pd.DataFrame, inputs: Sequence[str], classes: Sequence[str]
+) -> dict[str, Any] | None:
+    """The training rows' histogram over the abstraction's inputs per K-lumps class, the
+    class each row's window starts in (collect's ``phi_class``, the origin whose law the
+    K-lumps fit learns from it), with each class's share of rows that leave it
+    (``phi_class_next`` differs: the rows a bin needs follow from it,
+    :meth:`~surrogate.simulate.support.TrainingHistogram.of_rows`). The same bins as
+    :func:`support_histogram`'s (the same rows); the simulator checks each cell of a K-lumps
+    chain against its own class's rows. None where no input is left or the table has no
+    class columns."""
+    names = [n for n in inputs if n != AGE]
+    if not names or CLASS not in table.columns or CLASS_NEXT not in table.columns:
+        return None
+    origin = table[CLASS].to_numpy(dtype=np.int64)
+    moved = origin != table[CLASS_NEXT].to_numpy(dtype=np.int64)
+    values = table[names].to_numpy(dtype=np.float64)
+    return TrainingHistogram.of_rows(values, origin, moved, names, classes).as_dict()
 
 
 def _train(
@@ -348,6 +380,7 @@ def _train(
         inputs=list(settings.inputs),
         domain=fit_manifest["domain"],
         support_histogram=fit_manifest.get("support_histogram"),  # None: an older fit
+        **{k: fit_manifest[k] for k in ("support_class_histogram",) if k in fit_manifest},
         brier={n: metrics[n]["validation"]["brier"] for n in ("psi_0", "psi_1")},
         brier_baseline={n: metrics[n]["validation"]["brier_baseline"] for n in ("psi_0", "psi_1")},
         diagnostic=diagnostic,

@@ -9,6 +9,7 @@ import math
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -22,6 +23,7 @@ from surrogate.simulate.support import (
     TrainedRange,
     TrainingHistogram,
     describe_outside,
+    describe_sparse,
     merge_reports,
     min_rows_of,
     sparse_share,
@@ -329,3 +331,230 @@ def test_the_density_counts_are_the_same_on_the_gpu() -> None:
         monitor.observe(x.to(device))
         reports.extend(monitor.report())
     assert reports[0] == reports[1]
+
+
+# --- the K-lumps chain: each cell against its own class's rows ------------------------------
+
+#: four classes, two per lump, as a network's count classes are named
+CLASSES = ("off|total<766", "off|total>=766", "on|total<766", "on|total>=766")
+
+
+def _class_rows(rare: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A K-lumps fit's training rows over dG in [0, 4] (64 bins, 200 rows of every class at
+    each bin's centre, one more of class 0 at each edge), except class 1 ("off|total>=766"),
+    which has ``rare`` rows in bins 20-23 (dG in [1.25, 1.5)), where its lump off still has
+    200 + ``rare`` rows; a fifth of each class's rows leave it, so either rule asks for 100
+    rows (per state too: a move out of a class here changes its lump). Returns the values, each row's class, whether it left its class, and its phi."""
+    centres = (np.arange(64) + 0.5) / 16
+    z, cls = [0.0, 4.0], [0, 0]
+    for c in range(4):
+        for j, v in enumerate(centres):
+            n = rare if c == 1 and 20 <= j < 24 else 200
+            z += [v] * n
+            cls += [c] * n
+    label = np.array(cls)
+    moved = np.zeros(label.size, dtype=bool)
+    for c in range(4):  # every fifth row of each class leaves it (into the other lump)
+        moved[np.flatnonzero(label == c)[::5]] = True
+    return np.array(z)[:, None], label, moved, (label >= 2).astype(np.int64)
+
+
+def _class_range(per_class: bool = True, min_rows: int | None = None) -> TrainedRange:
+    """The trained range of :func:`_class_rows`'s fit as the simulate stage reads it from the
+    fit's manifest (``per_class``: with the per-class histogram, as a K-lumps fit stores it)."""
+    from surrogate.stages.train import support_class_histogram, support_histogram
+
+    z, label, moved, phi = _class_rows()
+    table = pd.DataFrame({"dG": z[:, 0], "phi": phi, "phi_next": phi ^ moved,
+                          "phi_class": label, "phi_class_next": np.where(moved, label ^ 2, label)})  # fmt: skip
+    manifest = json.loads(json.dumps({
+        "domain": {"dG": [0.0, 4.0]},
+        "support_histogram": support_histogram(table, ["dG"]),
+        "support_class_histogram": support_class_histogram(table, ["dG"], CLASSES),
+    }))  # fmt: skip
+    return TrainedRange.from_domain(manifest["domain"], ["dG"], manifest["support_histogram"],
+                                    min_rows, manifest["support_class_histogram"] if per_class
+                                    else None, CLASSES)  # fmt: skip
+
+
+def test_the_class_histogram_counts_each_classs_rows_and_reads_back() -> None:
+    z, label, moved, _ = _class_rows()
+    hist = TrainingHistogram.of_rows(z, label, moved, ["dG"], CLASSES)
+    assert hist.classes == CLASSES and hist.groups == CLASSES and hist.bins == (64,)
+    assert [sum(c) for c in hist.counts] == [200 * 64 + 2, 200 * 60 + 20, 200 * 64, 200 * 64]
+    assert hist.counts[1][19:25] == (200, 5, 5, 5, 5, 200)
+    assert hist.switching == tuple(float(moved[label == c].mean()) for c in range(4))
+    assert hist.min_rows() == (100,) * 4  # 25 expected moves out of the class at ~0.2
+    sparse = hist.sparse_by_state()
+    assert [(c, j) for c in range(4) for j in range(64) if sparse[c][j]] == [
+        (1, 20), (1, 21), (1, 22), (1, 23)]  # fmt: skip
+    back = json.loads(json.dumps(hist.as_dict()))
+    assert back["classes"] == list(CLASSES) and TrainingHistogram.from_dict(back) == hist
+    # the per-state histogram keeps its keys (no classes) and reads back without them
+    states = TrainingHistogram.of_rows(z, label >= 2, moved, ["dG"])
+    assert "classes" not in states.as_dict() and states.groups == ("0", "1")
+    assert TrainingHistogram.from_dict(states.as_dict()) == states
+    with pytest.raises(ValueError, match="counts"):
+        TrainingHistogram.from_dict({**hist.as_dict(), "classes": list(CLASSES[:3])})
+
+
+def test_a_rare_class_in_a_well_filled_bin_is_flagged_per_class_not_per_state() -> None:
+    """The rare class's cells in bins 20-23, where its lump has 205 rows, are sparse per class
+    (5 of its own rows) and not per state; the other classes' cells there, and its cells where
+    it has 200 rows, are not. The region names the class."""
+    z = torch.tensor([[1.3]] * 10 + [[1.3]] * 10 + [[1.4]] * 10 + [[3.0]] * 10 + [[9.0]] * 4)
+    cls = torch.tensor([1] * 10 + [0] * 10 + [2] * 10 + [1] * 10 + [1] * 4)
+    phi = torch.tensor(CLASS_LUMPS)[cls].to(torch.bool)
+    per_state = SupportMonitor([(slice(0, None), None, _class_range(per_class=False))])
+    per_state.observe(z, phi)
+    (state_report,) = per_state.report()
+    assert state_report["share_sparse"] == 0.0 and "sparse_class" not in state_report
+    monitor = SupportMonitor([(slice(0, None), None, _class_range())])
+    assert monitor.needs_classes and not per_state.needs_classes
+    monitor.observe(z[:25], phi[:25], cls[:25])
+    monitor.observe(z[25:], phi[25:], cls[25:])
+    (report,) = monitor.report()
+    assert report["share_outside"] == pytest.approx(4 / 44)
+    assert report["share_sparse"] == pytest.approx(10 / 44)
+    assert report["sparse_class"] == CLASSES[1] and report["classes"] == list(CLASSES)
+    assert report["sparse_where"] == {"dG": [1.25, 1.5]}
+    assert report["sparse_regions"] == [
+        {"where": {"dG": [1.25, 1.5]}, "class": CLASSES[1], "share": pytest.approx(10 / 44)}
+    ]
+    assert report["min_rows"] == [100] * 4
+    assert f"class {CLASSES[1]} at dG in [1.25, 1.5]" in describe_sparse(report)
+    # an explicit minimum applies per class alike: 4 rows are enough, nothing is sparse
+    lenient = SupportMonitor([(slice(0, None), None, _class_range(min_rows=4))])
+    lenient.observe(z, phi, cls)
+    assert lenient.report()[0]["share_sparse"] == 0.0  # type: ignore[index]
+    # cells of unknown class: sparse where any class is (its first such class named)
+    blind = SupportMonitor([(slice(0, None), None, _class_range())])
+    blind.observe(z, phi)
+    (report,) = blind.report()
+    assert report["share_sparse"] == pytest.approx(30 / 44)
+    assert report["sparse_class"] == CLASSES[1]
+
+
+CLASS_LUMPS = (0, 0, 1, 1)
+
+
+def test_an_older_k_lumps_fit_without_the_class_histogram_is_checked_per_state() -> None:
+    """No ``support_class_histogram`` (a fit made before it was stored), an unreadable one or
+    one over other classes: the per-state check, with the per-state report's keys."""
+    whole = _class_range()
+    assert whole.class_histogram is not None
+    stored = whole.class_histogram.as_dict()
+    domain, hist = {"dG": [0.0, 4.0]}, whole.histogram.as_dict()  # type: ignore[union-attr]
+    assert TrainedRange.from_domain(domain, ["dG"], hist).class_histogram is None
+    assert TrainedRange.from_domain(domain, ["dG"], hist, None, {"inputs": ["dG"]},
+                                    CLASSES).class_histogram is None  # fmt: skip
+    assert TrainedRange.from_domain(domain, ["dG"], hist, None, stored,
+                                    CLASSES[::-1]).class_histogram is None  # fmt: skip
+    older = TrainedRange.from_domain(domain, ["dG"], hist, None, None, CLASSES)
+    monitor = SupportMonitor([(slice(0, None), None, older)])
+    assert not monitor.needs_classes
+    monitor.observe(torch.tensor([[1.3], [3.0]]), torch.tensor([False, True]))
+    (report,) = monitor.report()
+    assert report["share_sparse"] == 0.0 and report["min_rows"] == [100, 100]
+    assert "sparse_class" not in report and "classes" not in report
+
+
+def test_class_shards_merge_into_the_report_of_all_their_rows(caplog) -> None:
+    """Shards of a K-lumps run: the sparse share and each (class, interval) region merge into
+    what one monitor over all their cell-steps reports; the warning names the class, the
+    interval and the remedies (more rows, coarser classes)."""
+    trained = _class_range()
+    gen = torch.Generator().manual_seed(3)
+    parts = [(1.0 + torch.rand(n, 1, generator=gen, dtype=torch.float64),
+              torch.randint(0, 4, (n,), generator=gen)) for n in (50, 9, 400)]  # fmt: skip
+    whole = SupportMonitor([(slice(0, None), None, trained)])
+    reports = []
+    for x, cls in parts:
+        whole.observe(x, None, cls)
+        one = SupportMonitor([(slice(0, None), None, trained)])
+        one.observe(x, None, cls)
+        reports.extend(one.report())
+    (want,) = whole.report()
+    got = merge_reports([None, *reports])
+    assert got is not None and want is not None and want["share_sparse"] > 0.02
+    assert got["share_sparse"] == pytest.approx(want["share_sparse"])
+    assert got["sparse_regions"] == pytest.approx(want["sparse_regions"])
+    assert {r["class"] for r in got["sparse_regions"]} == {CLASSES[1]}
+    assert got["sparse_class"] == want["sparse_class"] == CLASSES[1]
+    assert got["classes"] == list(CLASSES) and got["min_rows"] == want["min_rows"]
+    with caplog.at_level(logging.WARNING, logger="surrogate.simulate.support"):
+        assert warn_outside(got, 0.01, "run")
+    message = caplog.records[-1].getMessage()
+    assert f"class {CLASSES[1]} at dG in [1.25, 1.5]" in message
+    assert "collect.n_per_state" in message and "coarser classes" in message
+    assert "model.classes" in message
+    text = verdict_of(got, failures={"f": ["distance_t100"]})
+    assert "1. **Sparse training data**" in text and f"class {CLASSES[1]}" in text
+    assert "coarser classes" in text
+
+
+def test_a_k_lumps_run_checks_each_cell_against_its_own_class() -> None:
+    """A batch of the full model and the exact K-lumps chain whose (made-up) training rows
+    lack one class everywhere: the chain's sparse share is exactly its sampled cell-steps in
+    that class (the layer's own classes, read from the batch's decision), and observing
+    changes neither the cells' classes nor the random stream."""
+    from surrogate.simulate.classes import ClassDecision, exact_class_table
+
+    model, dt = EcoliModel(), 0.05
+    table = exact_class_table(model.internal, dt, size=16)
+    lo, hi = table.bounds[0]
+    counts = tuple((0 if c == 3 else 1000,) * 4 for c in range(table.n_classes))
+    hist = TrainingHistogram(("dG",), (lo,), (hi,), (4,), True, counts,
+                             (0.5,) * table.n_classes, table.class_names)  # fmt: skip
+    states = TrainingHistogram(("dG",), (lo,), (hi,), (4,), True, ((1000,) * 4,) * 2, (0.5, 0.5))
+
+    def batch(observe: bool) -> tuple[list[float], Any, torch.Tensor]:
+        layer = ClassDecision(table, model.internal, model.featurizer(("dG",)))
+        layer.trained_range = TrainedRange(("dG",), (lo,), (hi,), states,  # type: ignore[attr-defined]
+                                           class_histogram=hist)  # fmt: skip
+        sim = BatchSimulator(model, [Replicate(FullDecision(model.internal), GaussianField(), 30, 0),
+                                     Replicate(layer, GaussianField(), 40, 1)], dt)  # fmt: skip
+        rare = []
+        with torch.inference_mode():
+            state = sim.initial_state()
+            for _ in range(4):
+                sim.advance(state, 3)
+                if observe:
+                    sim.observe_support(state)
+                z = model.featurizer(("dG",))(state.inputs[30:])[:, 0].double()
+                inside = (z >= lo) & (z <= hi)
+                rare.append(float(((layer.cls == 3) & inside).sum()))
+        return rare, sim.support_report(), state.phi.clone()
+
+    rare, (full, report), phi = batch(observe=True)
+    again, _, phi_unobserved = batch(observe=False)
+    assert full is None and report["sampled_cell_steps"] == 160
+    assert rare == again and torch.equal(phi, phi_unobserved)
+    assert report["share_sparse"] == pytest.approx(sum(rare) / 160)
+    assert sum(rare) > 0 and report["classes"] == list(table.class_names)
+    assert {r["class"] for r in report["sparse_regions"]} == {table.class_names[3]}
+
+
+def test_a_two_state_runs_report_keeps_its_keys() -> None:
+    """Per state (a two-state or clock chain, no per-class histogram): the report's keys and
+    its regions' keys are the ones it had before classes were checked, merged alike, and no
+    classes are asked of the simulator."""
+    hist = _histogram([200, 5, 200, 200], [200, 200, 200, 50])
+    trained = TrainedRange(("dG",), (0.0,), (4.0,), hist, min_rows=100)
+    monitor = SupportMonitor([(slice(0, None), None, trained)])
+    assert not monitor.needs_classes
+    z = torch.tensor([[0.5], [1.5], [1.2], [2.5], [3.5], [3.9], [3.1], [5.0], [-1.0]])
+    monitor.observe(z, torch.tensor([0, 0, 1, 0, 1, 0, 1, 0, 1], dtype=torch.bool))
+    (report,) = monitor.report()
+    keys = {"sampled_cell_steps", "share_outside", "inputs", "share_sparse", "sparse_where",
+            "sparse_where_share", "sparse_regions", "min_rows"}  # fmt: skip
+    assert set(report) == keys and report["sparse_regions"] == [
+        {"where": {"dG": [3.0, 4.0]}, "share": pytest.approx(2 / 9)},
+        {"where": {"dG": [1.0, 2.0]}, "share": pytest.approx(1 / 9)}]  # fmt: skip
+    merged = merge_reports([report, report])
+    assert merged is not None and set(merged) == keys
+    assert [set(r) for r in merged["sparse_regions"]] == [{"where", "share"}] * 2
+    assert "class" not in describe_sparse(report) and "per state phi = 0/1" in describe_sparse(
+        report
+    )
+    assert hist.as_dict().keys() == {"inputs", "lo", "hi", "bins", "joint", "counts", "switching"}

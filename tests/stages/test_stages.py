@@ -549,3 +549,13 @@ def test_the_k_lumps_chain_trains_is_diagnosed_and_simulates(compose_cfg, caplog
     run_dir = simulate_stage.run(sim)
     run = load_run(run_dir)
     assert run.observables["cell"].nunique() == 40 and run.manifest["decision"] == "abstract"
+    # the training rows per class beside the per-state ones (outside the fit's identity), and
+    # the run's cells checked against their own class's rows
+    manifest = json.loads((train_dir / "manifest.json").read_text())
+    per_class = TrainingHistogram.from_dict(manifest["support_class_histogram"])
+    per_state = TrainingHistogram.from_dict(manifest["support_histogram"])
+    assert per_class.classes == chain.class_names and per_class.bins == per_state.bins
+    assert sum(map(sum, per_class.counts)) == sum(map(sum, per_state.counts))
+    assert "support_class_histogram" not in train.validate(cfg).fit_identity()
+    report = run.manifest["outside_training"]
+    assert report["classes"] == list(chain.class_names) and "sparse_class" in report
