@@ -12,7 +12,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Protocol, TypeVar
 
 import pandas as pd
 import torch
@@ -37,6 +37,79 @@ AUTO_RECIPES = ("classes", "svgp")
 CPU = torch.device("cpu")
 
 
+class FitSetup(Protocol):
+    """What a kind reads of a fit's model setup (the train settings' ``setup``)."""
+
+    @property
+    def model(self) -> Model: ...
+
+    @property
+    def field(self) -> Any: ...
+
+    @property
+    def dt(self) -> float: ...
+
+
+class FitJob(Protocol):
+    """What a kind reads of a fit's job (the train settings' ``job``)."""
+
+    @property
+    def device(self) -> torch.device: ...
+
+    @property
+    def progress(self) -> bool: ...
+
+
+class FitSettings(Protocol):
+    """What a kind's fit and layers read of the train settings
+    (:class:`~surrogate.stages.settings.train.TrainSettings` is one; the kinds sit below the
+    stages, so they name the members they use rather than import the class)."""
+
+    @property
+    def setup(self) -> FitSetup: ...
+
+    @property
+    def job(self) -> FitJob: ...
+
+    @property
+    def source(self) -> Any: ...
+
+    @property
+    def gp(self) -> GPSettings: ...
+
+    @property
+    def gp_config(self) -> Mapping[str, Any]: ...
+
+    @property
+    def inputs(self) -> tuple[str, ...]: ...
+
+    @property
+    def kind(self) -> ChainKind: ...
+
+    @property
+    def seed(self) -> int: ...
+
+    @property
+    def max_age(self) -> float: ...
+
+    @property
+    def min_events(self) -> float | None: ...
+
+    @property
+    def max_label_weight(self) -> float: ...
+
+    @property
+    def relaxation_cells(self) -> int: ...
+
+    @property
+    def relaxation_lags(self) -> tuple[float, ...]: ...
+
+    @property
+    def collected(self) -> bool: ...
+
+    def input_command(self) -> str: ...
+
+
 @dataclass(frozen=True)
 class LayerRequest:
     """What a kind's :meth:`~ChainKind.decision_layer` and :meth:`~ChainKind.exact_layer` are
@@ -57,13 +130,13 @@ class LayerRequest:
     def of_fit(
         cls,
         model: Model,
-        train: Any,
+        train: FitSettings,
         mode: str,
         size: Sequence[int] | None,
         device: torch.device,
         start: str = "internal",
     ) -> LayerRequest:
-        """The request for the learned layer of the fit the train settings ``train`` (duck-typed:
+        """The request for the learned layer of the fit the train settings ``train`` (:class:`FitSettings`:
         the kinds sit below the stages) made: its ``dt`` and clock cap."""
         return cls(model, train.setup.dt, mode, size, device, train.max_age, start)
 
@@ -208,7 +281,7 @@ class ChainKind:
         return table
 
     def fit(
-        self, settings: Any, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
+        self, settings: FitSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
     ) -> tuple[dict[str, Any], dict[str, Any]] | None:
         """What the kind fits beyond the classifiers psi, which train fits first for every kind
         (over their ``domain``), from the train settings ``settings`` and the transitions

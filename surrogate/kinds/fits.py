@@ -1,7 +1,7 @@
 """The K-lumps chain's fit and artefact, which :class:`~surrogate.kinds.klumps.KLumps`
 delegates to (moved from stages/train.py unchanged, which re-exports :func:`load_class_chain`):
-the kinds sit below the stages, so a train settings object comes in duck-typed
-(``settings: Any``)."""
+the kinds sit below the stages, so a train settings object comes in as the members it reads
+(:class:`~surrogate.kinds.base.FitSettings`, a Protocol the type checker holds it to)."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from surrogate.errors import ArtefactError
 from surrogate.gp.class_relaxation import fit_relaxation_law
 from surrogate.gp.classes import fit_class_law
 from surrogate.io import load_tensors
+from surrogate.kinds.base import FitSettings
 from surrogate.kinds.files import CLASS_CHAIN
 from surrogate.models.capabilities import class_bins_of, expected_class_next_of, lump_classes_of
 from surrogate.simulate.classes import ClassTable, expected_class_column
@@ -32,9 +33,9 @@ log = logging.getLogger(__name__)
 
 
 def _fit_class_chain(
-    settings: Any, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
+    settings: FitSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The K-lumps chain (gp.lumps=classes) of the train settings ``settings`` (duck-typed:
+    """The K-lumps chain (gp.lumps=classes) of the train settings ``settings`` (:class:`~surrogate.kinds.base.FitSettings`:
     the kinds sit below the stages) over the two-state fit's domain: its table's state and its
     metrics."""
     model = settings.setup.model
@@ -69,7 +70,7 @@ RELAXATION_SEED_OFFSET = 1_000_003
 
 
 def _relaxation_law(
-    settings: Any, learned: Tensor, domain: Mapping[str, tuple[float, float]]
+    settings: FitSettings, learned: Tensor, domain: Mapping[str, tuple[float, float]]
 ) -> tuple[Tensor, dict[str, Any]]:
     """The learned law with bins that relax (gp.class_moves=relaxation): a stationary sample
     of burned-in full-model cells where collect starts them, held at their inputs."""

@@ -29,7 +29,13 @@ from surrogate.gp.class_relaxation import (
 from surrogate.gp.classes import CLASS_LAW_VERSION, DEFAULT_MAX_LABEL_WEIGHT, MIN_EVENTS
 from surrogate.gp.training import GPSettings
 from surrogate.io import save_tensors
-from surrogate.kinds.base import AUTO_RECIPES, ChainKind, LayerRequest, register_chain_kind
+from surrogate.kinds.base import (
+    AUTO_RECIPES,
+    ChainKind,
+    FitSettings,
+    LayerRequest,
+    register_chain_kind,
+)
 from surrogate.kinds.decision import DecisionMode
 from surrogate.kinds.files import CLASS_CHAIN
 from surrogate.kinds.fits import _fit_class_chain, load_class_chain
@@ -156,7 +162,7 @@ class KLumps(ChainKind):
             )
 
     def fit(
-        self, settings: Any, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
+        self, settings: FitSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
     ) -> tuple[dict[str, Any], dict[str, Any]] | None:
         """The chain over the model's classes (:func:`_fit_class_chain`; its bins relaxing with
         gp.class_moves=relaxation)."""
