@@ -157,6 +157,11 @@ PROBE_BUDGET = 0.1
 PROBE_CALLS = 1000
 PROBE_MIN_WINDOWS = 100
 PROBE_SPECIES = 2
+#: a probe out of budget is refused where its rate was still growing: the events per window it
+#: reached (or the cap a window exceeded) at least this many times those at half its model time
+#: (a steady, merely costly network goes on, with a warning: a wall-clock limit alone would
+#: refuse it on a loaded machine)
+PROBE_GROWTH = 10.0
 
 
 def validate(cfg: Mapping[str, Any]) -> InspectSettings:
@@ -198,7 +203,8 @@ def cost_probe(settings: InspectSettings) -> dict[str, Any] | None:
     budget buys at the SSA's cost per event (``max_events``), and the wall clock is checked
     between calls. A network whose windows outgrow it is refused (ConfigError) with what was
     measured: the events per window it reached, and when, the species that grew most, the
-    burn-in's and collect's cost at that rate, and what to do.
+    burn-in's and collect's cost at that rate, and what to do; where its rate was still growing
+    (:data:`PROBE_GROWTH`), else a warning.
 
     Only networks whose state space is not enumerated (their cells start from the file's
     counts and a burn-in; an enumerated one is bounded) with input values of their own (SBML).
@@ -255,16 +261,26 @@ def cost_probe(settings: InspectSettings) -> dict[str, Any] | None:
             rates.append(events(state[0]))
         wall_s = time.perf_counter() - wall
     counts = state[0].double().mean(0).cpu()
+    # still growing: the rate reached (or the window the cap stopped) against half-way's
+    reached = max(rates[-1], tripped[0] * dt / tripped[1] if tripped is not None else 0.0)
+    earlier = rates[max(i for i, u in enumerate(times) if u <= t / 2)]
+    growth = reached / earlier if earlier > 0 else (math.inf if reached > 0 else 1.0)
     probe = {"cells": cells, "horizon_s": horizon, "reached_s": t, "wall_s": wall_s,
              "budget_s": budget_s, "events_per_window_file": file_events,
              "events_per_window_end": rates[-1], "events_per_window_max": max(rates),
+             "growth": growth,
              "counts_end": dict(zip(network.species, counts.tolist(), strict=True)),
              "completed": t >= horizon * (1 - 1e-12)}  # fmt: skip
     log.info("inspect: cost probe, %d cells from the file's counts for %.3g of %.3g s in %.2g "
              "s: %.3g events per window at the end (%.3g from the file's counts)", cells, t,
              horizon, wall_s, rates[-1], file_events)  # fmt: skip
     if not probe["completed"]:
-        raise ConfigError(_probe_refusal(settings, network, probe, tripped))
+        if growth >= PROBE_GROWTH:
+            raise ConfigError(_probe_refusal(settings, network, probe, tripped))
+        log.warning("inspect: the cost probe ran out of its %.2g s at %.3g s of %.3g s with the "
+                    "rate steady (%.3g events per window, %.2gx half-way's): the burn-ins cost "
+                    "more than the estimates from the file's counts say", budget_s, t, horizon,
+                    rates[-1], growth)  # fmt: skip
     return probe
 
 

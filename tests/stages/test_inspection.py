@@ -589,6 +589,11 @@ def test_a_network_that_stays_put_passes_the_cost_probe(tmp_path, compose_cfg) -
     assert probe is not None and probe["completed"] and probe["reached_s"] == pytest.approx(1.0)
     assert probe["events_per_window_file"] == pytest.approx(K * DT)
     assert 0 < probe["events_per_window_end"] < 2.0
+    # out of budget at once (a loaded machine): steady, so not refused
+    tight = InspectSettings.from_config(compose_cfg("inspect", ["model=sbml", f"model.spec={spec}",
+                                                                "inspect.max_seconds=1e-3"]))  # fmt: skip
+    probe = inspection.cost_probe(tight)
+    assert probe is not None and not probe["completed"] and probe["growth"] < 10
 
 
 def test_collect_stops_early_when_one_lump_is_almost_never_seen(tmp_path) -> None:
