@@ -20,6 +20,7 @@ own time); the SSAs and the DSMTS runner simulate them exactly.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Literal
@@ -149,6 +150,9 @@ class NetworkInternalModel:
 
     fusable = False
     randoms = Randoms()
+    #: a cap on any cell's events in one window (None: the SSA's own), set on a
+    #: :meth:`bounded` copy; a class default, so models pickled before it existed load
+    max_events: int | None = None
 
     def __init__(
         self,
@@ -381,10 +385,20 @@ class NetworkInternalModel:
         return self.advance_at(state, self.kinetic_inputs(x), dt, x)
 
     def advance_at(
-        self, state: InternalState, inputs: Tensor, dt: float, x: Tensor | None = None
+        self,
+        state: InternalState,
+        inputs: Tensor,
+        dt: float,
+        x: Tensor | None = None,
+        max_events: int | None = None,
     ) -> InternalState:
         """One exact window at the kinetic inputs ``inputs`` (``n x P`` float64; ``x``: the
-        inputs they came from, named in an error)."""
+        inputs they came from, named in an error). ``max_events`` (default
+        :attr:`max_events`, else none): a ``RuntimeError`` where a cell would make more events
+        than this in the window (the compiled SSA's ``max_events``, naming the cell; the
+        batched SSA's ``max_rounds``, one event per cell and round, at most
+        :attr:`max_rounds`)."""
+        cap = self.max_events if max_events is None else int(max_events)
         counts = state[0]
         # each window moves the clock of a copy: the state handed in stays as it was
         clock = EventState(state[2].clone(), state[3].clone()) if self.kinetics.events else None
@@ -394,11 +408,15 @@ class NetworkInternalModel:
                 from surrogate.ctmc import CellStreams  # numba: imported on demand
 
                 streams = CellStreams(state[1].numpy().view(np.uint64))  # shares memory
-                counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams, clock=clock)
+                capped = {} if cap is None else {"max_events": cap}
+                counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams,
+                                                         clock=clock, **capped)  # fmt: skip
                 return (counts, state[1], *after)
             propensity = None if self.mass_action else self.kinetics.torch_propensity
             events = EventProgram.of(self.kinetics) if self.kinetics.has_rules_or_events else None
-            counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=self.max_rounds,
+            rounds = self.max_rounds if cap is None else \
+                min(cap, self.max_rounds) if self.max_rounds is not None else cap  # fmt: skip
+            counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=rounds,
                                propensity=propensity, events=events, clock=clock)  # fmt: skip
         except ValueError as error:
             # The SSA refused the window: name the input or rate at fault where the window
@@ -529,15 +547,23 @@ class NetworkInternalModel:
                 f"(negative or not finite) in state {state} where {at} ({given}): a rate must "
                 "be finite and >= 0 wherever the cells go (the SSA refuses it too)")  # fmt: skip
 
+    def file_inputs(self) -> Tensor | None:
+        """``(P,)`` float64 the kinetic inputs at the SBML file's values (1 where unset), where
+        :meth:`events_per_window` estimates the cost; None for a mass-action network (its
+        rates are a function of the signal, with no value of its own)."""
+        if self.mass_action:
+            return None
+        defaults = [self.network.input_defaults.get(n, 1.0)  # type: ignore[union-attr]
+                    for n in self.kinetics.input_names]  # fmt: skip
+        return torch.tensor([1.0 if v != v else v for v in defaults], dtype=torch.float64)
+
     def events_per_window(self, dt: float, inputs: Tensor | None = None) -> float:
         """Expected SSA events in a window ``dt`` from the initial counts at ``inputs`` (``(P,)``
         kinetic inputs; default: the SBML file's values, 1 where unset): a cost estimate."""
         if inputs is None:
-            if self.mass_action:
+            inputs = self.file_inputs()
+            if inputs is None:
                 return float("nan")
-            defaults = [self.network.input_defaults.get(n, 1.0)  # type: ignore[union-attr]
-                        for n in self.kinetics.input_names]  # fmt: skip
-            inputs = torch.tensor([1.0 if v != v else v for v in defaults], dtype=torch.float64)
         state = self.initial_counts.unsqueeze(0)
         rates = self.kinetics.propensities(state, inputs.reshape(1, -1).to(torch.float64))
         return float(rates.clamp_min(0).sum()) * dt
@@ -551,6 +577,30 @@ class NetworkInternalModel:
             events = self.events_per_window(dt)
         if events != events:  # no estimate of the inputs: one event per window
             events = 1.0
-        per_event = COMPILED_EVENT_SECONDS if self.backend(torch.device("cpu")) == "compiled" \
-            else BATCHED_EVENT_SECONDS  # fmt: skip
-        return STEP_OVERHEAD_SECONDS + events * per_event
+        return STEP_OVERHEAD_SECONDS + events * self.event_seconds()
+
+    def event_seconds(self, device: torch.device | str = "cpu") -> float:
+        """The measured cost of one SSA event on ``device``'s SSA (:data:`COMPILED_EVENT_SECONDS`
+        or :data:`BATCHED_EVENT_SECONDS`): what :meth:`cell_step_seconds` prices events at."""
+        compiled = self.backend(torch.device(device)) == "compiled"
+        return COMPILED_EVENT_SECONDS if compiled else BATCHED_EVENT_SECONDS
+
+    def prepare(self, device: torch.device | str = "cpu") -> None:
+        """Compile (or load) the SSA that runs on ``device`` now, where it is compiled, so that
+        a timed run does not pay it."""
+        if self.backend(torch.device(device)) == "compiled":
+            self._compiled_ssa().compile()
+
+    def bounded(self, max_events: int | None, burn_in: float | None = None) -> NetworkInternalModel:
+        """A shallow copy whose windows refuse more than ``max_events`` events per cell
+        (:attr:`max_events`; a ``RuntimeError``), with ``burn_in`` seconds of burn-in (default
+        this one's), sharing this one's compiled SSA: for timing a few windows without paying
+        an unbounded burn-in or a runaway window (:func:`surrogate.stages.budget.step_seconds`)."""
+        if self.backend(torch.device("cpu")) == "compiled":
+            self._compiled_ssa()  # built once, shared
+        other = copy.copy(self)
+        other._compiled = self._compiled
+        other.max_events = max_events
+        if burn_in is not None:
+            other.burn_in = burn_in_seconds(burn_in, "burn_in")
+        return other

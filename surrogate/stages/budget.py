@@ -56,6 +56,11 @@ STEP_SECONDS = 1e-4
 PROBE_CELLS = (1, 16)
 PROBE_STEPS = 4
 PROBE_REPEATS = 3
+#: a network's probe cells start from the file's counts (no burn-in: the steps' fixed cost is
+#: what is timed) and refuse more SSA events than this per cell and window; a runaway network
+#: then falls back to :data:`STEP_SECONDS` in milliseconds instead of timing windows of
+#: millions of events (each population's 14 windows at 1e5 events: ~2 s on the compiled SSA)
+PROBE_MAX_EVENTS = 10**5
 #: estimates above this are logged as warnings, naming the settings that make them
 WARN_SECONDS = 600.0
 
@@ -165,12 +170,15 @@ def _cuda_devices(device: Any) -> list[int]:
 
 def _measure_step(model: Any, field: Any, dt: float, full: bool, device: Any) -> float:
     """Seconds per step at the cells of :data:`PROBE_CELLS`, reduced to the fixed part, of the
-    full model (``full``) or a chain."""
+    full model (``full``) or a chain. A network's cells start from the file's counts, without
+    its burn-in, and refuse a window of more than :data:`PROBE_MAX_EVENTS` events per cell
+    (a ``RuntimeError``: :func:`step_seconds` falls back)."""
     import time
 
     import torch
 
     from surrogate.models.capabilities import start_size_of
+    from surrogate.models.network import NetworkInternalModel
     from surrogate.simulate import AbstractDecision, FullDecision
     from surrogate.simulate.loop import Simulator
 
@@ -183,10 +191,12 @@ def _measure_step(model: Any, field: Any, dt: float, full: bool, device: Any) ->
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
 
+    internal = model.internal
+    if isinstance(internal, NetworkInternalModel):  # bounded: no burn-in, no runaway window
+        internal = internal.bounded(PROBE_MAX_EVENTS, burn_in=0.0)
     per_step = []
     for cells in PROBE_CELLS:
-        layer = FullDecision(model.internal) if full else \
-            AbstractDecision(constant, model.internal)  # fmt: skip
+        layer = FullDecision(internal) if full else AbstractDecision(constant, internal)
         simulator = Simulator(model, layer, field, dt, dev, backend="auto")
         state = simulator.initial_state(cells, torch.zeros(start_size_of(model.body) or 2))
         simulator.advance(state, 2)  # untimed: first calls load kernels

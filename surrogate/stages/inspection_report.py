@@ -282,6 +282,13 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
                      f"s.")  # fmt: skip
     else:
         lines.append(f"- Per cell-step of the full model: {c['cell_step_s_model']:.2g} s.")
+    probe = c.get("probe")
+    if probe:
+        lines.append(f"- Cost probe (before the runs): {probe['cells']} cells from the file's "
+                     f"counts at its input values for {probe['horizon_s']:.3g} s in "
+                     f"{probe['wall_s']:.2g} s, {probe['events_per_window_end']:.3g} SSA events "
+                     f"per window at the end (at most {probe['events_per_window_max']:.3g}); "
+                     f"the estimates below still use the file's counts.")  # fmt: skip
     stages = c["stages"]
     if stages["rows"]:
         table = pd.DataFrame(stages["rows"])[["stage", "what", "count", "cells", "steps",

@@ -4,16 +4,19 @@ nearly nothing. Structure and monotonicity only: no wall-clock value is asserted
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
-from surrogate.fields import GaussianField
+from surrogate.fields import ConstantField, GaussianField
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.stages import budget
 from surrogate.stages.settings import SimulateSettings
 from tests.reliability.conftest import compose_in
+from tests.sbml.builder import Reaction, Species, build
 
 ROOT = Path(__file__).resolve().parents[2]
 GENE = ["model=sbml", f"model.spec={ROOT / 'examples/gene_switch/model.yaml'}"]
@@ -84,3 +87,41 @@ def test_a_job_threads_survive_numba_pool() -> None:
     finally:
         torch.set_num_threads(threads)
         match_torch_threads()
+
+
+def runaway(tmp_path: Path) -> SbmlAgentModel:
+    """Autocatalysis A -> 2A at 50 A from A = 10, burned in for 1 s (A ~ 1e22: never done)."""
+    (tmp_path / "runaway.xml").write_text(build("runaway", [Species("A", amount=10)],
+                                                {"k": 50.0, "s": 1.0},
+                                                [Reaction("grow", "k * s * A", {"A": 1},
+                                                          {"A": 2})]))  # fmt: skip
+    spec = tmp_path / "runaway.yaml"
+    spec.write_text(yaml.safe_dump({"name": "runaway", "network": "runaway.xml",
+                                    "inputs": {"s": "L"}, "lump": "A >= 20",
+                                    "body": {"kind": "static"}, "burn_in": 1.0}))  # fmt: skip
+    return SbmlAgentModel(str(spec))
+
+
+def test_a_window_over_max_events_raises_naming_the_cell(tmp_path: Path) -> None:
+    """``advance_at(..., max_events=...)`` caps each cell's events in the window; without it
+    the window runs as before."""
+    network = runaway(tmp_path).internal
+    inputs = network.file_inputs().expand(2, -1).clone()
+    torch.manual_seed(0)
+    state = network.start_state(2, torch.device("cpu"), inputs)
+    with pytest.raises(RuntimeError, match=r"cell \d .*exceeded max_events"):
+        network.advance_at(state, inputs, 0.2, max_events=100)
+    after = network.advance_at(state, inputs, 0.01)  # ~e^0.5 growth: a few events
+    assert bool((after[0] >= 10).all())
+    assert network.bounded(100, burn_in=0.0).max_events == 100 and network.max_events is None
+
+
+def test_step_seconds_does_not_pay_a_runaway_burn_in(tmp_path: Path) -> None:
+    """The per-step probe starts from the file's counts with windows capped at
+    ``PROBE_MAX_EVENTS`` per cell: a runaway network falls back to ``STEP_SECONDS`` in a second
+    or two, not an endless burn-in (L = 1: e^(50 t))."""
+    model = runaway(tmp_path)
+    model.internal.prepare()  # the compile is not the probe's
+    start = time.perf_counter()
+    assert budget.step_seconds(model, ConstantField(1.0), 0.05) == budget.STEP_SECONDS
+    assert time.perf_counter() - start < 3.0

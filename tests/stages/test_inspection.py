@@ -546,6 +546,56 @@ def test_the_stage_writes_its_report_and_refuses_an_always_true_lump(tmp_path, c
         inspection.run(compose_cfg("inspect", [*small, f"model.spec={always}"]))
 
 
+def runaway(tmp_path: Path) -> tuple[SbmlAgentModel, Path]:
+    """Autocatalysis A -> 2A at 50 s A from A = 10 (s = L, 1 in the file): e^(50 t), ~25
+    events per window of 0.05 s from the file's counts, ~1e10 a second later."""
+    return network_model(tmp_path, "runaway", [Species("A", amount=10)], {"k": 50.0, "s": 1.0},
+                         [Reaction("grow", "k * s * A", {"A": 1}, {"A": 2})], {"s": "L"},
+                         "A >= 20")  # fmt: skip
+
+
+def test_a_runaway_network_is_refused_by_the_cost_probe_in_seconds(tmp_path, compose_cfg) -> None:
+    """The probe (0.5 s: a tenth of inspect.max_seconds=5) stops the runaway's burn-in, and the
+    refusal gives the rate it reached, the growth from the file's counts and the remedies."""
+    from surrogate.stages.settings import InspectSettings
+
+    _, spec = runaway(tmp_path)
+    small = ["model=sbml", f"model.spec={spec}", "fields=[gaussian]", "inspect.max_seconds=5"]
+    settings = InspectSettings.from_config(compose_cfg("inspect", small))
+    settings.setup.model.internal.prepare()  # the compile is not the probe's
+    start = __import__("time").perf_counter()
+    with pytest.raises(ConfigError) as error:
+        inspection.cost_probe(settings)
+    assert __import__("time").perf_counter() - start < 3.0
+    message = str(error.value)
+    assert "ran out of the cost probe's 0.5 s" in message, message
+    rate = float(message.split("fire ~")[1].split(" events")[0].replace(",", ""))
+    assert rate > 1000, message  # the file's counts say 25
+    assert "x the 25 estimated from the file's counts" in message
+    assert "Fastest-growing: A = " in message and "from 10." in message
+    for remedy in ("units", "model.burn_in", "inspect.max_seconds", "device=cuda"):
+        assert remedy in message
+
+
+def test_a_network_that_stays_put_passes_the_cost_probe(tmp_path, compose_cfg) -> None:
+    """The open birth-death process (not enumerable: burned in from X = 0) passes with its
+    rate measured: k s + g X <= ~0.1 + 0.05 X events per window of 0.05 s."""
+    from surrogate.stages.settings import InspectSettings
+
+    _, spec = birth_death(tmp_path, "X >= 2", reservoir=False)
+    settings = InspectSettings.from_config(compose_cfg("inspect", ["model=sbml",
+                                                                   f"model.spec={spec}"]))  # fmt: skip
+    probe = inspection.cost_probe(settings)
+    assert probe is not None and probe["completed"] and probe["reached_s"] == pytest.approx(1.0)
+    assert probe["events_per_window_file"] == pytest.approx(K * DT)
+    assert 0 < probe["events_per_window_end"] < 2.0
+    # out of budget at once (a loaded machine): steady, so not refused
+    tight = InspectSettings.from_config(compose_cfg("inspect", ["model=sbml", f"model.spec={spec}",
+                                                                "inspect.max_seconds=1e-3"]))  # fmt: skip
+    probe = inspection.cost_probe(tight)
+    assert probe is not None and not probe["completed"] and probe["growth"] < 10
+
+
 def test_collect_stops_early_when_one_lump_is_almost_never_seen(tmp_path) -> None:
     """A gene ON 1e-4 of the time: collect stops at 5 % of collect.max_time with the occupancy
     measured and the advice to change the lump or inspect it, not to raise max_time."""
