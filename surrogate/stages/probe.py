@@ -60,7 +60,8 @@ class Naming:
     """What a stage's probe names: ``stage`` prefixes its log lines and refusal, ``outgrew``
     what the cost outgrew, ``budget`` where its seconds come from (in brackets after them),
     ``remedy`` the setting that gives it more, ``more`` a closing sentence (with its
-    separator), ``collect`` collect's cost at the measured rate (None: not named)."""
+    separator), ``collect`` collect's cost at the measured rate (None: not named) and
+    ``collect_name`` what that collection is called."""
 
     stage: str
     outgrew: str
@@ -68,6 +69,7 @@ class Naming:
     remedy: str
     more: str = ""
     collect: CollectCost | None = None
+    collect_name: str = "collect's default budget"
 
 
 def probed_network(model: Model) -> NetworkInternalModel | None:
@@ -214,7 +216,7 @@ def refusal(
                      f"~{budget.duration(burn)} of CPU")  # fmt: skip
     collect = naming.collect(cell_step) if naming.collect is not None else None
     if collect is not None:
-        costs.append(f"collect's default budget ({collect[1]}) ~{budget.duration(collect[0])}")
+        costs.append(f"{naming.collect_name} ({collect[1]}) ~{budget.duration(collect[0])}")
     if costs:
         text += f". At that rate (still growing: a bound) {', '.join(costs)}"
     return text + (
