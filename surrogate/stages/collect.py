@@ -3,6 +3,10 @@
 ``python scripts/collect.py [model=...] [field=...] [collect.n_per_state=...]`` writes
 ``transitions.parquet`` (the model's inputs and features, ``phi``, ``phi_next``, ``cell``, ``t``,
 ``since_jump`` and, where the model gives it, the expected label ``phi_next_expected``), ``coverage.png`` and ``manifest.json`` into the settings' directory.
+
+Before its first simulation a network burned in from the SBML file's counts is probed for
+``collect.probe_seconds`` (:func:`cost_probe`): a runaway network is refused in seconds with
+the rate it reached, instead of burning in its cells for hours with no output.
 """
 
 from __future__ import annotations
@@ -22,10 +26,11 @@ from surrogate.models.capabilities import feature_names_of
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import collect_transitions
-from surrogate.stages import budget
+from surrogate.stages import budget, probe
 from surrogate.stages.artefacts import COVERAGE_FIGURE, TRANSITIONS
 from surrogate.stages.design import collect_in_rounds
 from surrogate.stages.settings import CollectSettings
+from surrogate.stages.settings.inspection import INSPECT_CMD
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +60,7 @@ def collect(
 def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | None) -> None:
     """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
     setup, c, job = settings.setup, settings.options, settings.job
+    cost_probe(settings)  # a runaway network refused in seconds, before any burn-in
     seed_everything(setup.seed)
     model = setup.model
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
@@ -105,6 +111,32 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         **({"design": design} if design is not None else {}),
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
+
+
+def cost_probe(settings: CollectSettings) -> dict[str, Any] | None:
+    """The network's cost where its cells start, measured within ``collect.probe_seconds``
+    (:func:`surrogate.stages.probe.cost_probe`; 0: not measured) before the burn-ins: a rate
+    still growing when they run out is refused (ConfigError) with the rate, its growth, this
+    collection's cost at that rate and the remedies. Its draws are on a fork of torch's
+    generators: the collection is the same with and without it. Returns what it measured
+    (``None`` where it does not apply or is off)."""
+    seconds = float(settings.options.get("probe_seconds", 0.0))
+    if seconds <= 0:
+        return None
+    naming = probe.Naming(
+        stage="collect",
+        outgrew="collect's cost probe",
+        budget=f"collect.probe_seconds={seconds:g}",
+        remedy="a larger collect.probe_seconds (0 turns the probe off: the burn-ins then run at "
+        "that rate)",
+        more=f". `{INSPECT_CMD}` with the same model settings measures more (the probe over a "
+        "tenth of inspect.max_seconds, then the network's settling, occupancy and costs)",
+        collect=lambda cell_step: probe.collect_cost(settings, cell_step),
+        collect_name="this collection",
+    )
+    setup = settings.setup
+    return probe.cost_probe(setup.model, setup.dt, setup.seed, settings.job.device, seconds,
+                            naming)  # fmt: skip
 
 
 def plot_coverage(table: pd.DataFrame, model: Any) -> Any:

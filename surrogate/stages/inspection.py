@@ -115,6 +115,7 @@ from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import record_occupancy
 from surrogate.stages import budget
+from surrogate.stages import probe as network_probe
 from surrogate.stages.artefacts import (
     INPUT_OCCUPANCY_FIGURE,
     INSPECTION,
@@ -130,6 +131,7 @@ from surrogate.stages.inspection_report import (
     report_markdown,
     settling_text,
 )
+from surrogate.stages.probe import counter_species
 from surrogate.stages.settings import CollectSettings, InspectSettings
 
 log = logging.getLogger(__name__)
@@ -149,19 +151,9 @@ RECORDS_PER_CELL = 50
 #: share of the stationary record's budget kept for the range's ends (simulated networks),
 #: spent only where phi oscillates at the median inputs: the period there sets gp.max_age
 RANGE_SHARE = 0.25
-#: the cost probe (:func:`cost_probe`): its cells, its share of ``inspect.max_seconds``, the
-#: most SSA calls it makes over its horizon (longer windows than dt beyond), the horizon where
-#: the network has no burn-in (windows of dt), the species its refusal names
-PROBE_CELLS = 4
+#: the cost probe's share of ``inspect.max_seconds`` (:func:`cost_probe`; its cells, calls and
+#: growth rule: :mod:`surrogate.stages.probe`)
 PROBE_BUDGET = 0.1
-PROBE_CALLS = 1000
-PROBE_MIN_WINDOWS = 100
-PROBE_SPECIES = 2
-#: a probe out of budget is refused where its rate was still growing: the events per window it
-#: reached (or the cap a window exceeded) at least this many times those at half its model time
-#: (a steady, merely costly network goes on, with a warning: a wall-clock limit alone would
-#: refuse it on a loaded machine)
-PROBE_GROWTH = 10.0
 
 
 def validate(cfg: Mapping[str, Any]) -> InspectSettings:
@@ -195,148 +187,21 @@ def inspect(
 
 def cost_probe(settings: InspectSettings) -> dict[str, Any] | None:
     """The network's cost measured before anything is run on the estimate from the file's
-    counts: :data:`PROBE_CELLS` cells from the file's counts at the file's input values (where
-    :meth:`~surrogate.models.network.NetworkInternalModel.events_per_window` estimates it)
-    advanced window by window over the burn-in (:data:`PROBE_MIN_WINDOWS` windows of dt where
-    there is none; at most :data:`PROBE_CALLS` calls), within :data:`PROBE_BUDGET` of
-    ``inspect.max_seconds``: each call refuses more events per cell than what is left of that
-    budget buys at the SSA's cost per event (``max_events``), and the wall clock is checked
-    between calls. A network whose windows outgrow it is refused (ConfigError) with what was
-    measured: the events per window it reached, and when, the species that grew most, the
-    burn-in's and collect's cost at that rate, and what to do; where its rate was still growing
-    (:data:`PROBE_GROWTH`), else a warning.
-
-    Only networks whose state space is not enumerated (their cells start from the file's
-    counts and a burn-in; an enumerated one is bounded) with input values of their own (SBML).
-    Returns what it measured (``None`` where it does not apply, or where the file's input
-    values give rates the SSA refuses: the runs at the fields' inputs report those)."""
-    model, dt, o = settings.setup.model, settings.setup.dt, settings.options
-    network = _network(model)
-    if network is None or network.state_space is not None:
-        return None
-    file_inputs = network.file_inputs()
-    if file_inputs is None:
-        return None
-    device = torch.device(settings.job.device)
-    cells, budget_s = PROBE_CELLS, PROBE_BUDGET * float(o["max_seconds"])
-    horizon = network.burn_in if network.burn_in > 0 else PROBE_MIN_WINDOWS * dt
-    span = max(dt, horizon / PROBE_CALLS)
-    inputs = file_inputs.to(device).expand(cells, -1).clone()
-    file_events = network.events_per_window(dt)
-    per_event = network.event_seconds(device)
-    network.prepare(device)  # the SSA's compile is not the network's cost
-
-    def events(counts: Tensor) -> float:
-        """Expected events per window of dt per cell at ``counts`` (the cells' mean)."""
-        a0 = network.kinetics.torch_propensity(counts, inputs).clamp_min(0).sum(1)
-        return float(a0.mean()) * dt
-
-    with torch.random.fork_rng(devices=budget._cuda_devices(device)):
-        torch.manual_seed(settings.setup.seed)
-        try:
-            state = network.start_state(cells, device, inputs)
-        except (ValueError, ConfigError) as error:
-            log.debug("inspect: no cost probe at the file's inputs (%s)", error)
-            return None
-        t, times, rates, tripped = 0.0, [0.0], [events(state[0])], None
-        wall = time.perf_counter()
-        while t < horizon * (1 - 1e-12):
-            left = budget_s - (time.perf_counter() - wall)
-            if left <= 0:
-                break
-            cap = max(1, int(left / per_event / cells))
-            step = min(span, horizon - t)
-            try:
-                state = network.advance_at(state, inputs, step, max_events=cap)
-            except RuntimeError as error:
-                if "max_events" not in str(error) and "max_rounds" not in str(error):
-                    raise
-                tripped = (cap, step)
-                break
-            except (ValueError, ConfigError) as error:
-                log.debug("inspect: the cost probe stopped at the file's inputs (%s)", error)
-                return None
-            t += step
-            times.append(t)
-            rates.append(events(state[0]))
-        wall_s = time.perf_counter() - wall
-    counts = state[0].double().mean(0).cpu()
-    # still growing: the rate reached (or the window the cap stopped) against half-way's
-    reached = max(rates[-1], tripped[0] * dt / tripped[1] if tripped is not None else 0.0)
-    earlier = rates[max(i for i, u in enumerate(times) if u <= t / 2)]
-    growth = reached / earlier if earlier > 0 else (math.inf if reached > 0 else 1.0)
-    probe = {"cells": cells, "horizon_s": horizon, "reached_s": t, "wall_s": wall_s,
-             "budget_s": budget_s, "events_per_window_file": file_events,
-             "events_per_window_end": rates[-1], "events_per_window_max": max(rates),
-             "growth": growth,
-             "counts_end": dict(zip(network.species, counts.tolist(), strict=True)),
-             "completed": t >= horizon * (1 - 1e-12)}  # fmt: skip
-    log.info("inspect: cost probe, %d cells from the file's counts for %.3g of %.3g s in %.2g "
-             "s: %.3g events per window at the end (%.3g from the file's counts)", cells, t,
-             horizon, wall_s, rates[-1], file_events)  # fmt: skip
-    if not probe["completed"]:
-        if growth >= PROBE_GROWTH:
-            raise ConfigError(_probe_refusal(settings, network, probe, tripped))
-        log.warning("inspect: the cost probe ran out of its %.2g s at %.3g s of %.3g s with the "
-                    "rate steady (%.3g events per window, %.2gx half-way's): the burn-ins cost "
-                    "more than the estimates from the file's counts say", budget_s, t, horizon,
-                    rates[-1], growth)  # fmt: skip
-    return probe
-
-
-def _probe_refusal(
-    settings: InspectSettings,
-    network: NetworkInternalModel,
-    probe: dict[str, Any],
-    tripped: tuple[int, float] | None,
-) -> str:
-    """What the cost probe measured, what it costs at that rate, and what to do."""
-    dt, o = settings.setup.dt, settings.options
-    rate, file_rate = probe["events_per_window_end"], probe["events_per_window_file"]
-    times = rate / file_rate if file_rate > 0 else math.inf
-    start = network.initial_counts.double().tolist()
-    end = probe["counts_end"]
-    counters = {network.species[j] for j in counter_species(network)}  # they grow anyway
-    growth = sorted((s for s in network.species if s not in counters),
-                    key=lambda s: -(end[s] + 1) / (start[network.species.index(s)] + 1))  # fmt: skip
-    grown = ", ".join(f"{s} = {end[s]:,.0f} from {start[network.species.index(s)]:,.0f}"
-                      for s in growth[:PROBE_SPECIES]
-                      if end[s] > start[network.species.index(s)])  # fmt: skip
-    cell_step = network.cell_step_seconds(dt, rate)
-    burn = network.burn_in / dt * cell_step if network.burn_in > 0 else 0.0
-    values = network.file_inputs()
-    inputs = ", ".join(f"{n} = {v:g}" for n, v in zip(
-        network.kinetics.input_names, values.tolist() if values is not None else [],
-        strict=False))  # fmt: skip
-    horizon = "model.burn_in" if network.burn_in > 0 else f"{PROBE_MIN_WINDOWS} windows"
-    text = (f"inspect: the network's cost outgrew the inspection: {probe['cells']} cells from "
-            f"the file's counts at the file's input values ({inputs}) ran out of the cost "
-            f"probe's {probe['budget_s']:.2g} s ({PROBE_BUDGET:.0%} of inspect.max_seconds="
-            f"{float(o['max_seconds']):g}) at model time {probe['reached_s']:.3g} s of "
-            f"{probe['horizon_s']:.3g} s ({horizon}), after {probe['wall_s']:.2g} s: "
-            f"there they fire ~{rate:,.0f} events per window of dt={dt:g} s per cell, "
-            f"{times:,.0f} x the {file_rate:,.0f} estimated from the file's counts that every "
-            "budget uses")  # fmt: skip
-    if tripped is not None:
-        text += (f"; the next {tripped[1]:.3g} s needed more than {tripped[0]:,} events "
-                 "per cell")  # fmt: skip
-    if grown:
-        text += f". Fastest-growing: {grown}"
-    costs = []
-    if burn > 0:
-        costs.append(f"one cell's burn-in of {network.burn_in:g} s would take "
-                     f"~{budget.duration(burn)} of CPU")  # fmt: skip
-    collect = _collect_at(settings, cell_step)
-    if collect is not None:
-        costs.append(f"collect's default budget ({collect[1]}) ~{budget.duration(collect[0])}")
-    if costs:
-        text += f". At that rate (still growing: a bound) {', '.join(costs)}"
-    return text + (
-        ". A count that grows without bound is often a unit or volume slip: check the rates "
-        "and units of the SBML file (substance units, compartment sizes, the rate constants, "
-        "model.substance_units); else a shorter model.burn_in, a larger inspect.max_seconds "
-        "(the probe gets a tenth of it), or device=cuda (the batched SSA)"
+    counts (:func:`surrogate.stages.probe.cost_probe`), within :data:`PROBE_BUDGET` of
+    ``inspect.max_seconds``: a network whose rate is still growing when that runs out is
+    refused (ConfigError) with what was measured, the burn-in's and collect's cost at that
+    rate and what to do. Returns what it measured (``None`` where it does not apply)."""
+    max_seconds = float(settings.options["max_seconds"])
+    naming = network_probe.Naming(
+        stage="inspect",
+        outgrew="the inspection",
+        budget=f"{PROBE_BUDGET:.0%} of inspect.max_seconds={max_seconds:g}",
+        remedy="a larger inspect.max_seconds (the probe gets a tenth of it)",
+        collect=lambda cell_step: _collect_at(settings, cell_step),
     )
+    setup = settings.setup
+    return network_probe.cost_probe(setup.model, setup.dt, setup.seed, settings.job.device,
+                                    PROBE_BUDGET * max_seconds, naming)  # fmt: skip
 
 
 def _collect_at(settings: InspectSettings, cell_step: float) -> tuple[float, str] | None:
@@ -344,14 +209,11 @@ def _collect_at(settings: InspectSettings, cell_step: float) -> tuple[float, str
     the settings behind it; None where the collection's settings are not given."""
     try:
         source = settings.reproduce.train.source
-        if not isinstance(source, CollectSettings):
-            return None
-        works = budget.collect_work(source, reuse=False)
     except ConfigError:
         return None
-    total = sum(replace(w, cell_step_seconds=cell_step).seconds if w.full else w.seconds
-                for w in works)  # fmt: skip
-    return total, works[0].settings if works else ""
+    if not isinstance(source, CollectSettings):
+        return None
+    return network_probe.collect_cost(source, cell_step)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -865,30 +727,6 @@ def _range_periods(
                                       default=None))  # fmt: skip
         out.append(item)
     return out
-
-
-def counter_species(network: NetworkInternalModel) -> list[int]:
-    """The columns of species that only count events: made by some reaction, consumed by
-    none, read by no propensity, rule, event or the lump (a waste product such as StochSS's
-    Brusselator's C and D). Their means grow for ever and change nothing else, so a settling
-    run does not wait for them."""
-    kinetics = network.kinetics
-    reactions = kinetics.network
-    read: set[int] = set()
-    for expr in kinetics.propensity_exprs:
-        read |= expr.species_used()
-    for rule in kinetics.rules:
-        read |= rule.expr.species_used() | {rule.column}
-    for event in kinetics.events:
-        read |= event.trigger.species_used()
-        for column, expr in event.assignments:
-            read |= expr.species_used() | {column}
-    if network.lump_expr is not None:
-        read |= network.lump_expr.species_used()
-    consumed = (reactions.reactants > 0).any(0).tolist()
-    made = (reactions.products > 0).any(0).tolist()
-    return [j for j in range(len(network.species))
-            if made[j] and not consumed[j] and j not in read]  # fmt: skip
 
 
 def _take(state: tuple[Tensor, ...], index: Tensor) -> tuple[Tensor, ...]:

@@ -137,6 +137,7 @@ BAD_INPUTS = [
     ("collect", ["collect.perturb_rate=30.0"], "collect.perturb_rate=30/s cannot be met"),
     ("collect", ["collect.n_per_state=0"], "collect.n_per_state must be a positive"),
     ("collect", ["collect.record_every=0"], "collect.record_every must be a positive"),
+    ("collect", ["collect.probe_seconds=-1"], "collect.probe_seconds must be a non-negative"),
     # evaluate / reproduce
     ("evaluate", ["evaluate.noise_seed_offset=0"], "evaluate.noise_seed_offset"),
     ("evaluate", ["evaluate.times=[5.0]"], "evaluate.times [5.0] lie outside"),

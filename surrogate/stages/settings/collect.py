@@ -28,6 +28,12 @@ from surrogate.validation import known_keys
 if TYPE_CHECKING:
     from surrogate.stages.settings.train import TrainSettings
 
+#: seconds of ``collect.probe_seconds`` where a config does not give it (conf/collect/default.yaml)
+PROBE_SECONDS = 3.0
+#: collect keys that change how a collection is checked, not the table: kept out of its identity
+#: (and so of its directory's name and of every identity built on it)
+NOT_IDENTITY = ("probe_seconds",)
+
 
 @dataclass(frozen=True, eq=False)
 class CollectSettings:
@@ -65,6 +71,8 @@ class CollectSettings:
         positive(c, "max_time", "collect.")
         non_negative(c, "equilibration_time", "collect.")
         non_negative(c, "blackout_time", "collect.")
+        c.setdefault("probe_seconds", PROBE_SECONDS)
+        non_negative(c, "probe_seconds", "collect.")  # 0: no cost probe
         rate = non_negative(c, "perturb_rate", "collect.")
         if rate * setup.dt > 1.0:
             raise ConfigError(
@@ -99,8 +107,9 @@ class CollectSettings:
     def identity(self) -> dict[str, Any]:
         """Everything that defines a transitions table: the device too (its random stream), and
         the design's fits where it has one (a switched-off design leaves the fixed design's
-        identity as it was)."""
-        options = {k: v for k, v in self.options.items() if k != "design" or self.design}
+        identity as it was); not the checks of :data:`NOT_IDENTITY`."""
+        options = {k: v for k, v in identity_options(self.options).items()
+                   if k != "design" or self.design}  # fmt: skip
         out = {**self.setup.identity(), "collect": options, "device": self.job.device_type}
         if self.design is not None:
             # its rounds fit psi and score it on the diagnostic's occupancy run
@@ -121,6 +130,11 @@ class CollectSettings:
     def _overrides(self) -> list[str]:
         given = self.options if self.given is None else self.given
         return group_overrides("collect", given, "default")[1:]
+
+
+def identity_options(options: Mapping[str, Any]) -> dict[str, Any]:
+    """The collect ``options`` that define a table: all but :data:`NOT_IDENTITY`."""
+    return {k: v for k, v in options.items() if k not in NOT_IDENTITY}
 
 
 #: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)

@@ -26,6 +26,7 @@ from surrogate.config import (
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import start_size_of
+from surrogate.stages.settings.collect import identity_options
 from surrogate.stages.settings.common import (
     Job,
     ModelSetup,
@@ -127,8 +128,16 @@ class InspectSettings:
         return {**self.setup.identity(),
                 "fields": {name: field_config(name) for name in self.fields},
                 "inspect": self.options, "run": self.run,
-                "costs": {g: self.config.get(g) for g in COST_GROUPS},
+                "costs": {g: self._cost_group(g) for g in COST_GROUPS},
                 "device": self.job.device_type}  # fmt: skip
+
+    def _cost_group(self, group: str) -> Any:
+        """The config's ``group`` as it enters the identity: collect's without the keys that
+        are no part of a table's (``collect.probe_seconds``)."""
+        value = self.config.get(group)
+        if group == "collect" and isinstance(value, Mapping):
+            return identity_options(value)
+        return value
 
     @functools.cached_property
     def directory(self) -> Path:
