@@ -7,7 +7,10 @@ settings that make it when it exceeds :data:`WARN_SECONDS`, and it is refused (a
 naming those settings) above the ``max_hours`` setting. The cost of one cell-step comes from
 the model (:meth:`~surrogate.models.base.Model.cell_step_seconds`: for a network, its events
 per window at the initial state times the measured cost of an SSA event), so ``dt=1e-9`` or
-``collect.n_per_state=1e9`` is refused in milliseconds, not found out hours later. The fixed
+``collect.n_per_state=1e9`` is refused in milliseconds, not found out hours later. Collect,
+once its cost probe has run, logs its estimate again at the events per window measured after
+the burn-in (:func:`collect_work`'s ``cell_step_seconds``, :func:`log_estimate`): a network's
+rate where its cells start may be orders of magnitude from where the collection records. The fixed
 cost per step (Python and the step's many small tensor operations, the SSA's call: the same at
 1 cell as at 1,000) is measured, not guessed: :func:`step_seconds` times a few steps of the
 stage's own simulator (model, body, field, decision layer, device) at two small populations,
@@ -228,11 +231,15 @@ def _exists(directory: Any, reuse: bool = True) -> bool:
     return reuse and (directory / MANIFEST).exists()
 
 
-def collect_work(settings: CollectSettings, reuse: bool = True) -> list[Work]:
+def collect_work(
+    settings: CollectSettings, reuse: bool = True, cell_step_seconds: float | None = None
+) -> list[Work]:
     """The collection's windows, at least: the equilibration of every cell, then twice
     ``n_per_state`` recorded windows (both origins equally common, none in a blackout), each
     every ``record_every``-th window of a cell. ``reuse=False``: the cost even where the
-    artefact exists (for every function here)."""
+    artefact exists (for every function here). ``cell_step_seconds``: the full model's cost
+    per cell-step (its windows' and the burn-in's) instead of the model's estimate (collect's
+    at the events its cost probe measured, :func:`surrogate.stages.collect.measured_cost`)."""
     if _exists(settings.directory, reuse):
         return []
     setup, c = settings.setup, settings.options
@@ -243,9 +250,11 @@ def collect_work(settings: CollectSettings, reuse: bool = True) -> list[Work]:
              f"of collect.n_cells={cells}, collect.equilibration_time="
              f"{float(c['equilibration_time']):g} s, dt={setup.dt:g} s")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
-    return [Work("collect (at least)", cells, steps, setup.model.cell_step_seconds(setup.dt),
-                 where, setup.model.name, step_seconds=fixed),
-            *burn_in_work(setup.model, cells, setup.dt)]  # fmt: skip
+    cell_step = setup.model.cell_step_seconds(setup.dt) if cell_step_seconds is None \
+        else cell_step_seconds  # fmt: skip
+    return [Work("collect (at least)", cells, steps, cell_step, where, setup.model.name,
+                 step_seconds=fixed),
+            *burn_in_work(setup.model, cells, setup.dt, cell_step_seconds)]  # fmt: skip
 
 
 def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
@@ -286,17 +295,19 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
                  name, fixed), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
 
 
-def burn_in_work(model: Any, cells: int, dt: float) -> list[Work]:
+def burn_in_work(
+    model: Any, cells: int, dt: float, cell_step_seconds: float | None = None
+) -> list[Work]:
     """The full model's burn-in of ``cells`` initial states, where the model simulates one
     (:func:`~surrogate.models.capabilities.burn_in_of`; every decision layer starts its cells
     from the internal model's initial state). One SSA call of ``seconds``, not a loop of
-    steps: no fixed cost per step."""
+    steps: no fixed cost per step. ``cell_step_seconds``: instead of the model's estimate."""
     seconds = burn_in_of(model.internal)
     if seconds <= 0:
         return []
-    return [Work("the initial states' burn-in", cells, seconds / dt,
-                 model.cell_step_seconds(dt), f"model.burn_in={seconds:g} s", model.name,
-                 step_seconds=0.0)]  # fmt: skip
+    cell_step = model.cell_step_seconds(dt) if cell_step_seconds is None else cell_step_seconds
+    return [Work("the initial states' burn-in", cells, seconds / dt, cell_step,
+                 f"model.burn_in={seconds:g} s", model.name, step_seconds=0.0)]  # fmt: skip
 
 
 def evaluate_work(settings: EvaluateSettings) -> list[Work]:
@@ -345,12 +356,22 @@ def check(cfg: Mapping[str, Any], works: Sequence[Work], stage: str) -> float:
             f"costliest, {worst.describe()}: ~{duration(worst.seconds)}), above max_hours="
             f"{limit:g}. Lower those settings, or raise max_hours to run it anyway"
         )
-    parts = _summary(works)
+    return log_estimate(works, stage)
+
+
+def log_estimate(works: Sequence[Work], stage: str, basis: str = "") -> float:
+    """Log the estimated cost of ``works`` (a warning past :data:`WARN_SECONDS`), without the
+    ``max_hours`` check; ``basis`` (e.g. ``"at the events measured after the burn-in (...)"``)
+    says what it is priced at, after the figure. Returns the estimate (s)."""
+    if not works:
+        return 0.0
+    total = sum(w.seconds for w in works)
+    parts = f" {basis}: {_summary(works)}" if basis else f" ({_summary(works)})"
     if total > WARN_SECONDS:
-        log.warning("%s: estimated ~%s of simulation before it is done (%s); lower those "
+        log.warning("%s: estimated ~%s of simulation before it is done%s; lower those "
                     "settings for a quicker run", stage, duration(total), parts)  # fmt: skip
     else:
-        log.info("%s: estimated ~%s of simulation (%s)", stage, duration(total), parts)
+        log.info("%s: estimated ~%s of simulation%s", stage, duration(total), parts)
     return total
 
 
@@ -372,6 +393,7 @@ __all__ = [
     "cost_seconds",
     "duration",
     "evaluate_work",
+    "log_estimate",
     "max_hours",
     "reproduce_work",
     "run_work",

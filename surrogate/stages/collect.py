@@ -6,7 +6,10 @@
 
 Before its first simulation a network burned in from the SBML file's counts is probed for
 ``collect.probe_seconds`` (:func:`cost_probe`): a runaway network is refused in seconds with
-the rate it reached, instead of burning in its cells for hours with no output.
+the rate it reached, instead of burning in its cells for hours with no output. Where it
+passes, the collection's estimate is logged again at the events per window it measured after
+the burn-in (:func:`measured_cost`), beside the one at the file's counts that ``validate``
+checked: only the log changes, not the collection.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.models.capabilities import feature_names_of
 from surrogate.simulate.decision import FullDecision
@@ -60,7 +65,8 @@ def collect(
 def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | None) -> None:
     """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
     setup, c, job = settings.setup, settings.options, settings.job
-    cost_probe(settings)  # a runaway network refused in seconds, before any burn-in
+    # a runaway network refused in seconds, before any burn-in; else the estimate at its rate
+    measured_cost(settings, cost_probe(settings))
     seed_everything(setup.seed)
     model = setup.model
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
@@ -137,6 +143,79 @@ def cost_probe(settings: CollectSettings) -> dict[str, Any] | None:
     setup = settings.setup
     return probe.cost_probe(setup.model, setup.dt, setup.seed, settings.job.device, seconds,
                             naming)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class MeasuredCost:
+    """Collect's estimate at the events per window its cost probe measured.
+
+    Attributes:
+        seconds: the estimated seconds of simulation at ``events`` (logged).
+        file_seconds: the estimate at the file's counts (what ``validate`` logged and checked
+            against ``max_hours``).
+        events: SSA events per window of dt per cell, measured: the probe's mean over its last
+            windows (:data:`~surrogate.stages.probe.PROBE_TAIL` of the model time it reached).
+        file_events: the events per window at the file's counts and input values.
+        cell_step_seconds: the full model's cost per cell-step at ``events``.
+        completed: whether the probe reached the end of its horizon (the burn-in); else
+            ``events`` is the rate it reached, at ``reached_s``, when its budget ran out.
+        reached_s: the model time the probe reached (s).
+        horizon_s: the probe's horizon (s): the burn-in, or its windows where there is none.
+    """
+
+    seconds: float
+    file_seconds: float
+    events: float
+    file_events: float
+    cell_step_seconds: float
+    completed: bool
+    reached_s: float
+    horizon_s: float
+
+
+def measured_cost(
+    settings: CollectSettings, measured: Mapping[str, Any] | None
+) -> MeasuredCost | None:
+    """Log collect's estimate (:func:`~surrogate.stages.budget.collect_work`: the windows and
+    the burn-in) at the events per window its cost probe ``measured`` after the burn-in,
+    instead of at the file's counts, naming both figures (a warning past
+    :data:`~surrogate.stages.budget.WARN_SECONDS`); where the probe ran out of budget before
+    the end of the burn-in (a steady rate: a growing one is refused), at the rate it reached,
+    and saying so. Nothing is refused here (``validate`` checked ``max_hours``). Returns it;
+    ``None`` where nothing was measured (the probe off, or no network of its kind), the
+    estimate at the file's counts then standing alone."""
+    setup = settings.setup
+    network = probe.probed_network(setup.model)
+    if measured is None or network is None or not measured["reached_s"] > 0:
+        return None
+    events, file_events = float(measured["events_per_window_last"]), float(
+        measured["events_per_window_file"])  # fmt: skip
+    cell_step = network.cell_step_seconds(setup.dt, events)
+    try:
+        file_works = budget.collect_work(settings, reuse=False)
+        works = budget.collect_work(settings, reuse=False, cell_step_seconds=cell_step)
+    except ConfigError:  # the run reports it
+        return None
+    file_seconds = sum(w.seconds for w in file_works)
+    reached, horizon = float(measured["reached_s"]), float(measured["horizon_s"])
+    burn_in = float(measured.get("burn_in_s", 0.0)) > 0
+    if measured["completed"]:
+        span = "the burn-in" if burn_in else f"{horizon:.3g} s from the file's counts"
+        at = f"at the events measured after {span}"
+    else:
+        span = f"the {horizon:.3g}-s burn-in" if burn_in else f"its {horizon:.3g} s"
+        at = (f"at the steady rate the cost probe reached at {reached:.3g} s of {span}, when "
+              f"collect.probe_seconds={float(measured['budget_s']):g} ran out")  # fmt: skip
+    basis = (f"{at} ({_events(events)} per window per cell; the file's counts: "
+             f"{_events(file_events)}, ~{budget.duration(file_seconds)})")  # fmt: skip
+    seconds = budget.log_estimate(works, "collect", basis)
+    return MeasuredCost(seconds, file_seconds, events, file_events, cell_step,
+                        bool(measured["completed"]), reached, horizon)  # fmt: skip
+
+
+def _events(value: float) -> str:
+    """``0.05``, ``6.6``, ``1,013``, ``7,100,000``: events per window as read."""
+    return f"{value:,.0f}" if value >= 100 else f"{value:.3g}"
 
 
 def plot_coverage(table: pd.DataFrame, model: Any) -> Any:

@@ -22,7 +22,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -45,6 +45,9 @@ PROBE_CELLS = 4
 PROBE_CALLS = 1000
 PROBE_MIN_WINDOWS = 100
 PROBE_SPECIES = 2
+#: the share of the model time reached whose windows give the rate the collection records at
+#: (``events_per_window_last``: their mean, after the burn-in where the probe completes)
+PROBE_TAIL = 0.1
 #: a probe out of budget is refused where its rate was still growing: the events per window it
 #: reached (or the cap a window exceeded) at least this many times those at half its model time
 #: (a steady, merely costly network goes on, with a warning: a wall-clock limit alone would
@@ -99,8 +102,10 @@ def cost_probe(
 
     Only networks of :func:`probed_network`. Returns what it measured (``None`` where it does
     not apply, or where the file's input values give rates the SSA refuses: the runs at the
-    fields' inputs report those). Torch's generators are forked: the caller's stream is left as
-    it was."""
+    fields' inputs report those), among it ``events_per_window_last``: the mean events per
+    window per cell over the last :data:`PROBE_TAIL` of the model time reached (after the
+    burn-in where it ``completed``: what collect prices its windows at). Torch's generators
+    are forked: the caller's stream is left as it was."""
     network = probed_network(model)
     if network is None:
         return None
@@ -154,10 +159,13 @@ def cost_probe(
     reached = max(rates[-1], tripped[0] * dt / tripped[1] if tripped is not None else 0.0)
     earlier = rates[max(i for i, u in enumerate(times) if u <= t / 2)]
     growth = reached / earlier if earlier > 0 else (math.inf if reached > 0 else 1.0)
+    # the rate where the collection records: the mean over the last windows (one at least)
+    last = [r for u, r in zip(times, rates, strict=True) if u > 0 and u >= (1 - PROBE_TAIL) * t]
     probe = {"cells": cells, "horizon_s": horizon, "reached_s": t, "wall_s": wall_s,
              "budget_s": budget_s, "events_per_window_file": file_events,
              "events_per_window_end": rates[-1], "events_per_window_max": max(rates),
-             "growth": growth,
+             "events_per_window_last": sum(last) / len(last) if last else rates[-1],
+             "growth": growth, "burn_in_s": network.burn_in,
              "counts_end": dict(zip(network.species, counts.tolist(), strict=True)),
              "completed": t >= horizon * (1 - 1e-12)}  # fmt: skip
     log.info("%s: cost probe, %d cells from the file's counts for %.3g of %.3g s in %.2g "
@@ -231,12 +239,10 @@ def collect_cost(source: CollectSettings, cell_step: float) -> tuple[float, str]
     """Collect's estimated seconds for ``source`` at the full model's ``cell_step`` (s per
     cell-step) and the settings behind it; None where they cannot be estimated."""
     try:
-        works = budget.collect_work(source, reuse=False)
+        works = budget.collect_work(source, reuse=False, cell_step_seconds=cell_step)
     except ConfigError:
         return None
-    total = sum(replace(w, cell_step_seconds=cell_step).seconds if w.full else w.seconds
-                for w in works)  # fmt: skip
-    return total, works[0].settings if works else ""
+    return sum(w.seconds for w in works), works[0].settings if works else ""
 
 
 def counter_species(network: NetworkInternalModel) -> list[int]:
@@ -266,6 +272,7 @@ def counter_species(network: NetworkInternalModel) -> list[int]:
 __all__ = [
     "PROBE_CELLS",
     "PROBE_GROWTH",
+    "PROBE_TAIL",
     "Naming",
     "collect_cost",
     "cost_probe",

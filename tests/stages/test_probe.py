@@ -2,21 +2,30 @@
 its first simulation): a runaway network (autocatalysis A -> 2A) refused in seconds with the
 rate measured, instead of burning in for hours; a network that stays put (the open birth-death
 process) collected exactly as without the probe, in the same directory; a negative budget
-refused as a bad setting. The networks are the inspection tests'."""
+refused as a bad setting; a birth-death process ~2e4x costlier at stationarity than at the
+file's counts priced by collect at the rate measured after the burn-in (the rate reached where
+the probe ran out; the file's counts where it is off). The other networks are the inspection
+tests'."""
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import pandas as pd
 import pytest
 import torch
+import yaml
 
 from surrogate.errors import ConfigError
-from surrogate.stages import collect
+from surrogate.stages import budget, collect
 from surrogate.stages.settings import CollectSettings, InspectSettings
+from tests.sbml.builder import Reaction, Species, build
 from tests.stages.test_inspection import birth_death, runaway
+
+MEASURED = "at the events measured after the burn-in"
 
 
 def test_collect_refuses_a_runaway_network_in_seconds(tmp_path, compose_cfg) -> None:
@@ -66,13 +75,17 @@ def test_the_probe_changes_neither_a_collection_nor_its_directory(
     assert torch.equal(torch.get_rng_state(), before)
     assert collect.cost_probe(off) is None
     caplog.clear()  # the calls above logged too where an earlier test left the root at INFO
-    with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"):
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"), \
+            caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):  # fmt: skip
         table = pd.read_parquet(collect.collect(on) / "transitions.parquet")
     assert sum("collect: cost probe, 4 cells" in r.getMessage() for r in caplog.records) == 1
+    assert sum(MEASURED in r.getMessage() for r in caplog.records) == 1  # its estimate
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"):
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"), \
+            caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):  # fmt: skip
         again = pd.read_parquet(collect.collect(off, force=True) / "transitions.parquet")
-    assert not any("cost probe" in r.getMessage() for r in caplog.records)
+    assert not any("cost probe" in r.getMessage() or MEASURED in r.getMessage()
+                   for r in caplog.records)  # fmt: skip
     assert len(table) >= 200
     pd.testing.assert_frame_equal(table, again, check_exact=True)
 
@@ -80,3 +93,90 @@ def test_the_probe_changes_neither_a_collection_nor_its_directory(
 def test_a_negative_probe_budget_is_refused_by_name(compose_cfg) -> None:
     with pytest.raises(ConfigError, match=r"collect\.probe_seconds must be a non-negative"):
         CollectSettings.from_config(compose_cfg("collect", ["collect.probe_seconds=-1"]))
+
+
+def logistic(tmp_path: Path) -> Path:
+    """A birth-death process from X = 0: births at k s (1 + X) (k = 1), deaths at g X^2 (g =
+    1e-4), a 20-s burn-in. The file's counts fire 1 event per second (births alone); X grows
+    logistically to ~1e4 (+- 100; 99 % there by ~14 s, then relaxing in ~1 s), where births and
+    deaths are ~1e4 per second each: ~2e4x more events."""
+    species = [Species("X", amount=0)]
+    reactions = [Reaction("birth", "k * s * (1 + X)", {}, {"X": 1}, modifiers=("X",)),
+                 Reaction("death", "g * X * X", {"X": 1}, {})]  # fmt: skip
+    (tmp_path / "logistic.xml").write_text(build("logistic", species,
+                                                 {"k": 1.0, "g": 1e-4, "s": 1.0}, reactions))  # fmt: skip
+    spec = tmp_path / "logistic.yaml"
+    spec.write_text(yaml.safe_dump({"name": "logistic", "network": "logistic.xml",
+                                    "inputs": {"s": "L"}, "lump": "X >= 10000",
+                                    "lump_names": ["off", "on"], "body": {"kind": "static"},
+                                    "burn_in": 20.0}))  # fmt: skip
+    return spec
+
+
+def logistic_settings(tmp_path: Path, compose_cfg, probe_seconds: float) -> CollectSettings:
+    spec = logistic(tmp_path)
+    return collect.validate(compose_cfg("collect", [
+        "model=sbml", f"model.spec={spec}", "collect.n_per_state=100", "collect.n_cells=50",
+        "collect.record_every=1", "collect.equilibration_time=1",
+        f"collect.probe_seconds={probe_seconds:g}"]))  # fmt: skip
+
+
+def test_collect_prices_its_windows_at_the_rate_measured_after_the_burn_in(
+    tmp_path, compose_cfg, caplog
+) -> None:
+    """The file's counts (X = 0) say 0.05 events per window of 0.05 s; the probe measures ~2e4x
+    that after the 20-s burn-in, and collect's logged estimate (its windows' and the burn-in's)
+    is priced at it, naming both rates; validate's, at the file's counts, is unchanged."""
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):
+        settings = logistic_settings(tmp_path, compose_cfg, 3.0)
+    [before] = [r.getMessage() for r in caplog.records if "collect: estimated" in r.getMessage()]
+    assert "measured" not in before, before
+    network, dt = settings.setup.model.internal, settings.setup.dt
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):
+        estimate = collect.measured_cost(settings, collect.cost_probe(settings))
+    assert estimate is not None and estimate.completed
+    assert estimate.reached_s == pytest.approx(20.0) == estimate.horizon_s
+    assert estimate.file_events == pytest.approx(1.0 * dt)
+    assert 1e4 < estimate.events / estimate.file_events < 3e4, estimate  # 2e4 at stationarity
+    assert estimate.cell_step_seconds == network.cell_step_seconds(dt, estimate.events)
+    works = budget.collect_work(settings, reuse=False)
+    assert estimate.file_seconds == pytest.approx(sum(w.seconds for w in works))
+    at = [replace(w, cell_step_seconds=estimate.cell_step_seconds) for w in works]
+    assert estimate.seconds == pytest.approx(sum(w.seconds for w in at))
+    assert estimate.seconds > 5 * estimate.file_seconds, estimate
+    [record] = [r for r in caplog.records if "collect: estimated" in r.getMessage()]
+    message = record.getMessage()
+    assert f"~{budget.duration(estimate.seconds)} of simulation {MEASURED} (" in message
+    logged = message.split(f"{MEASURED} (")[1].split(" per window per cell; the file's")[0]
+    assert float(logged.replace(",", "")) == pytest.approx(estimate.events, abs=0.5), message
+    assert " per window per cell; the file's counts: 0.05, " in message
+    assert f"~{budget.duration(estimate.file_seconds)})" in message
+    assert "the initial states' burn-in" in message and "collect (at least)" in message
+
+
+def test_collect_prices_at_the_rate_reached_where_the_probe_ran_out(
+    tmp_path, compose_cfg, caplog
+) -> None:
+    """A probe out of budget at 5 s of the 20-s burn-in (a steady rate: a growing one is
+    refused) prices the collection at the rate it reached and says so; one that reached
+    nothing, or is off (collect.probe_seconds=0), leaves the estimate at the file's counts."""
+    settings = logistic_settings(tmp_path, compose_cfg, 3.0)
+    measured = {"reached_s": 5.0, "horizon_s": 20.0, "completed": False, "budget_s": 3.0,
+                "events_per_window_last": 8.0, "events_per_window_file": 0.05,
+                "burn_in_s": 20.0}  # fmt: skip
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):
+        estimate = collect.measured_cost(settings, measured)
+    assert estimate is not None and not estimate.completed and estimate.events == 8.0
+    assert estimate.cell_step_seconds == settings.setup.model.internal.cell_step_seconds(
+        settings.setup.dt, 8.0)  # fmt: skip
+    [message] = [r.getMessage() for r in caplog.records]
+    reached = ("collect: estimated ~{} of simulation at the steady rate the cost probe "
+               "reached at 5 s of the 20-s burn-in, when collect.probe_seconds=3 ran out (8 per "
+               "window per cell; the file's counts: 0.05, ~{}): ")  # fmt: skip
+    assert message.startswith(reached.format(budget.duration(estimate.seconds),
+                                             budget.duration(estimate.file_seconds))), message  # fmt: skip
+    assert collect.measured_cost(settings, {**measured, "reached_s": 0.0}) is None
+    off = logistic_settings(tmp_path, compose_cfg, 0)
+    assert collect.cost_probe(off) is None and collect.measured_cost(off, None) is None
