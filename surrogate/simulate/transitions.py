@@ -62,6 +62,11 @@ EARLY_CHECK_SHARE = 0.05
 #: wanted by more than this factor (a lump almost never or always true where cells live: more
 #: time would not help, a different lump would)
 FAR_SHORT = 10.0
+#: ... or, a lump common enough, when they fall short by more than this factor: more time or
+#: cells would help, and waiting out ``max_time`` only to be told so would not (a collection
+#: the inspector budgeted at the median inputs' occupancy, which collect's perturbed cells
+#: need not share: StochSS's Tyson oscillator, 20 % of its rows at the end of 2,000 s)
+SHORT = 4.0
 #: a lump seen in fewer windows than this share is called rare in collect's messages
 RARE = 0.05
 
@@ -270,9 +275,11 @@ class TransitionCollector:
                 break
             if now - first >= EARLY_CHECK_SHARE * self.max_time:
                 projected = counts * (self.max_time - first) / (now - first)
-                if (projected * FAR_SHORT < n_per_state).any():
+                if (projected * SHORT < n_per_state).any():
                     bar.close()
-                    raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=True))
+                    rare = bool((projected * FAR_SHORT < n_per_state).any())
+                    raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=True,
+                                                      rare=rare))  # fmt: skip
         bar.close()
         if not (counts >= n_per_state).all():
             raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=False))
@@ -288,12 +295,18 @@ class TransitionCollector:
         return table.iloc[np.sort(keep)].reset_index(drop=True)
 
     def _shortfall(
-        self, counts: np.ndarray, wanted: int, first: float | None, now: float | None, early: bool
+        self,
+        counts: np.ndarray,
+        wanted: int,
+        first: float | None,
+        now: float | None,
+        early: bool,
+        rare: bool = True,
     ) -> str:
         """Why collect stops short of ``wanted`` rows per origin (``counts`` so far, recorded
         from ``first`` to ``now`` s), with the occupancy measured and the fix that fits: a lump
-        almost never (or always) true is changed or inspected; a slow but steady rate is given
-        time or cells."""
+        almost never (or always) true (``rare``, of an ``early`` stop) is changed or inspected;
+        a slow but steady rate is given time or cells."""
         lumps, total = self.lump_names, int(counts.sum())
         start = first if first is not None else 0.0
         span = max((now if now is not None else start) - start, self.dt)
@@ -313,6 +326,10 @@ class TransitionCollector:
                     f"{self.n_cells * wanted / projected:.3g}")  # fmt: skip
         inspect = ("`python3 scripts/inspect_model.py` with the same model settings measures "
                    "phi's occupancy across the inputs the fields give")  # fmt: skip
+        if early and not rare:
+            return (f"collect stopped early: {measured}. By collect.max_time={self.max_time:g} s "
+                    f"{name} would give ~{projected:.3g} rows, less than 1/{SHORT:g} of those "
+                    f"wanted: {need} (or lower collect.n_per_state). {inspect}")  # fmt: skip
         if early:
             return (f"collect stopped early: {measured}. By collect.max_time={self.max_time:g} s "
                     f"{name} would give ~{projected:.3g} rows, less than 1/{FAR_SHORT:g} of those "

@@ -632,6 +632,27 @@ def test_collect_at_max_time_says_what_time_or_cells_would_do(tmp_path) -> None:
     assert 30 < needed < 60, message
 
 
+def test_collect_stops_early_when_its_rate_falls_far_short_of_max_time(tmp_path) -> None:
+    """The same lump with 2.4x the rows wanted (~130 s of recording where max_time gives 20 s:
+    its rarer origin projected to ~1/7 of them, between 1/4 and the almost-never 1/10):
+    collect stops at 5 % of max_time, not at its end, and says what time or cells would do,
+    not to change the lump (a common lump, only a slow rate)."""
+    model = telegraph(tmp_path, 0.43, 1.0)
+    field = ConstantField(1.0)
+    torch.manual_seed(0)
+    sim = Simulator(model, FullDecision(model.internal), field, DT)
+    perturbation = model.body.perturbation(field, model.perturbation_options)
+    with pytest.raises(ConfigError) as error:
+        collect_transitions(sim, perturbation, n_cells=20, n_per_state=12000, perturb_rate=0.1,
+                            record_every=1, equilibration_time=1.0, max_time=20.0,
+                            progress=False)  # fmt: skip
+    message = str(error.value)
+    assert message.startswith("collect stopped early") and "recorded in 1 s" in message
+    needed = float(message.split("collect.max_time ~ ")[1].split(" s")[0])
+    assert 60 < needed < 250, message
+    assert "collect.n_cells ~ " in message and "change the lump" not in message.lower()
+
+
 def test_bad_inspect_settings_are_refused_by_name_and_the_command_reproduces(compose_cfg) -> None:
     """An unknown inspect key, quantiles out of order, a share outside (0, 1) are refused naming
     the setting; the command the report prints composes to the same identity."""
