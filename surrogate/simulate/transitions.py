@@ -277,9 +277,9 @@ class TransitionCollector:
                 projected = counts * (self.max_time - first) / (now - first)
                 if (projected * SHORT < n_per_state).any():
                     bar.close()
-                    rare = bool((projected * FAR_SHORT < n_per_state).any())
+                    never = bool((projected * FAR_SHORT < n_per_state).any())
                     raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=True,
-                                                      rare=rare))  # fmt: skip
+                                                      never=never))  # fmt: skip
         bar.close()
         if not (counts >= n_per_state).all():
             raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=False))
@@ -301,11 +301,11 @@ class TransitionCollector:
         first: float | None,
         now: float | None,
         early: bool,
-        rare: bool = True,
+        never: bool = True,
     ) -> str:
         """Why collect stops short of ``wanted`` rows per origin (``counts`` so far, recorded
         from ``first`` to ``now`` s), with the occupancy measured and the fix that fits: a lump
-        almost never (or always) true (``rare``, of an ``early`` stop) is changed or inspected;
+        almost never (or always) true (``never``, of an ``early`` stop) is changed or inspected;
         a slow but steady rate is given time or cells."""
         lumps, total = self.lump_names, int(counts.sum())
         start = first if first is not None else 0.0
@@ -326,7 +326,7 @@ class TransitionCollector:
                     f"{self.n_cells * wanted / projected:.3g}")  # fmt: skip
         inspect = ("`python3 scripts/inspect_model.py` with the same model settings measures "
                    "phi's occupancy across the inputs the fields give")  # fmt: skip
-        if early and not rare:
+        if early and not never:
             return (f"collect stopped early: {measured}. By collect.max_time={self.max_time:g} s "
                     f"{name} would give ~{projected:.3g} rows, less than 1/{SHORT:g} of those "
                     f"wanted: {need} (or lower collect.n_per_state). {inspect}")  # fmt: skip
