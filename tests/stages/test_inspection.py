@@ -614,19 +614,25 @@ def test_collect_stops_early_when_one_lump_is_almost_never_seen(tmp_path) -> Non
     assert "change the lump" in message.lower() and "raise collect.max_time" not in message
 
 
-def test_collect_at_max_time_says_what_time_or_cells_would_do(tmp_path) -> None:
-    """A lump ON 30 % of the time with too little time: the message gives the measured
-    occupancy and the max_time at which the rows would be reached (~5000 / 120 per s + 1 s)."""
+def _short_collection(tmp_path: Path, n_per_state: int) -> str:
+    """The message of a collection of a lump ON 30 % of the time (20 cells, max_time 20 s)
+    that cannot reach ``n_per_state`` rows per origin."""
     model = telegraph(tmp_path, 0.43, 1.0)
     field = ConstantField(1.0)
     torch.manual_seed(0)
     sim = Simulator(model, FullDecision(model.internal), field, DT)
     perturbation = model.body.perturbation(field, model.perturbation_options)
     with pytest.raises(ConfigError) as error:
-        collect_transitions(sim, perturbation, n_cells=20, n_per_state=5000, perturb_rate=0.1,
-                            record_every=1, equilibration_time=1.0, max_time=20.0,
-                            progress=False)  # fmt: skip
-    message = str(error.value)
+        collect_transitions(sim, perturbation, n_cells=20, n_per_state=n_per_state,
+                            perturb_rate=0.1, record_every=1, equilibration_time=1.0,
+                            max_time=20.0, progress=False)  # fmt: skip
+    return str(error.value)
+
+
+def test_collect_at_max_time_says_what_time_or_cells_would_do(tmp_path) -> None:
+    """A lump ON 30 % of the time with too little time: the message gives the measured
+    occupancy and the max_time at which the rows would be reached (~5000 / 120 per s + 1 s)."""
+    message = _short_collection(tmp_path, 5000)
     assert message.startswith("collect reached collect.max_time=20 s")
     needed = float(message.split("collect.max_time ~ ")[1].split(" s")[0])
     assert 30 < needed < 60, message
@@ -637,16 +643,7 @@ def test_collect_stops_early_when_its_rate_falls_far_short_of_max_time(tmp_path)
     its rarer origin projected to ~1/7 of them, between 1/4 and the almost-never 1/10):
     collect stops at 5 % of max_time, not at its end, and says what time or cells would do,
     not to change the lump (a common lump, only a slow rate)."""
-    model = telegraph(tmp_path, 0.43, 1.0)
-    field = ConstantField(1.0)
-    torch.manual_seed(0)
-    sim = Simulator(model, FullDecision(model.internal), field, DT)
-    perturbation = model.body.perturbation(field, model.perturbation_options)
-    with pytest.raises(ConfigError) as error:
-        collect_transitions(sim, perturbation, n_cells=20, n_per_state=12000, perturb_rate=0.1,
-                            record_every=1, equilibration_time=1.0, max_time=20.0,
-                            progress=False)  # fmt: skip
-    message = str(error.value)
+    message = _short_collection(tmp_path, 12000)
     assert message.startswith("collect stopped early") and "recorded in 1 s" in message
     needed = float(message.split("collect.max_time ~ ")[1].split(" s")[0])
     assert 60 < needed < 250, message
