@@ -204,16 +204,21 @@ def cost_probe(settings: InspectSettings) -> dict[str, Any] | None:
                                     PROBE_BUDGET * max_seconds, naming)  # fmt: skip
 
 
-def _collect_at(settings: InspectSettings, cell_step: float) -> tuple[float, str] | None:
-    """Collect's estimated seconds at the full model's ``cell_step`` (s per cell-step) and
-    the settings behind it; None where the collection's settings are not given."""
+def _collect_source(settings: InspectSettings) -> CollectSettings | None:
+    """The collection the inspected run would make (reproduce's training source), or None
+    where its settings are not given or it trains on an external table."""
     try:
         source = settings.reproduce.train.source
     except ConfigError:
         return None
-    if not isinstance(source, CollectSettings):
-        return None
-    return network_probe.collect_cost(source, cell_step)
+    return source if isinstance(source, CollectSettings) else None
+
+
+def _collect_at(settings: InspectSettings, cell_step: float) -> tuple[float, str] | None:
+    """Collect's estimated seconds at the full model's ``cell_step`` (s per cell-step) and
+    the settings behind it; None where the collection's settings are not given."""
+    source = _collect_source(settings)
+    return None if source is None else network_probe.collect_cost(source, cell_step)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1033,11 +1038,8 @@ def collection_budget(
     switching probability per window measured at the median inputs, what collecting them
     costs, and the simulated time it takes at the population's occupancy of each lump."""
     o = settings.options
-    try:
-        source = settings.reproduce.train.source
-    except ConfigError:
-        return {}
-    if not isinstance(source, CollectSettings):
+    source = _collect_source(settings)
+    if source is None:
         return {}
     c, dt = source.options, settings.setup.dt
     needed = [math.ceil(o["min_switches"] / p) if p > 0 else math.inf for p in fixed.switch]
