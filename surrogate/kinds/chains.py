@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 
 from surrogate.config import group_config, non_negative, positive
 from surrogate.errors import ConfigError
-from surrogate.gp.class_relaxation import DEFAULT_CELLS, DEFAULT_LAGS
+from surrogate.gp.class_relaxation import DEFAULT_CELLS, DEFAULT_LAGS, relaxation_cells
 from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
 from surrogate.gp.model import DEFAULT_MEAN as DEFAULT_MEAN
 from surrogate.gp.training import GPSettings
@@ -41,7 +41,7 @@ from surrogate.kinds.decision import DecisionMode
 from surrogate.kinds.klumps import GP_CLASSES as GP_CLASSES
 from surrogate.kinds.klumps import KLumps as KLumps
 from surrogate.kinds.two_state import TwoStateChain as TwoStateChain
-from surrogate.models.capabilities import lump_classes_of
+from surrogate.models.capabilities import class_bins_of, lump_classes_of
 from surrogate.simulate.memory import history_setting
 from surrogate.validation import known_keys
 
@@ -116,6 +116,10 @@ def fit_chain(
     if kind is None:
         raise _no_kind(str(lumps), history, moves)
     gp, inputs = kind.configure(gp_config, gp, inputs, internal, model_name)
+    # the stationary sample grows with the bins it estimates a law over (null n_cells); only
+    # a relaxing kind asks for the bins (classes: auto may simulate to choose them)
+    bins = class_bins_of(internal) if kind.relaxation else None
+    cells = relaxation_cells(len(set(bins or ())), cells)
     return FitChain(kind, gp, inputs, max_age, None if min_events is None else float(min_events),
                     float(max_label_weight), cells, lags)  # fmt: skip
 
@@ -139,16 +143,17 @@ def _no_kind(lumps: str, history: str, moves: str) -> ConfigError:
                        f"gp.class_moves={moves}; the kinds: {', '.join(kinds)}")  # fmt: skip
 
 
-def _class_moves(gp_config: Mapping[str, Any]) -> tuple[str, int, tuple[float, ...]]:
+def _class_moves(gp_config: Mapping[str, Any]) -> tuple[str, int | None, tuple[float, ...]]:
     """``gp.class_moves`` and ``gp.relaxation`` ({n_cells, lags}) validated."""
     moves = gp_config.get("class_moves") or "learned"
     choices = kind_values("class_moves_choices")
     if moves not in choices:
         raise ConfigError(f"gp.class_moves must be one of {choices}, got {moves!r}")
     options = known_keys(gp_config.get("relaxation") or {}, ("n_cells", "lags"), "gp.relaxation")
-    cells = options.get("n_cells", DEFAULT_CELLS)
-    if isinstance(cells, bool) or not isinstance(cells, int) or cells < 10:
-        raise ConfigError(f"gp.relaxation.n_cells must be an integer >= 10, got {cells!r}")
+    cells = options.get("n_cells")  # null: by the bins (relaxation_cells)
+    if cells is not None and (isinstance(cells, bool) or not isinstance(cells, int) or cells < 10):
+        raise ConfigError(f"gp.relaxation.n_cells must be an integer >= 10 or null (150 per "
+                          f"bin, at least {DEFAULT_CELLS}), got {cells!r}")  # fmt: skip
     lags = options.get("lags", DEFAULT_LAGS)
     if (not isinstance(lags, Sequence) or isinstance(lags, str) or len(lags) < 2
             or any(isinstance(v, bool) or not isinstance(v, int | float) or not v > 0
@@ -156,7 +161,7 @@ def _class_moves(gp_config: Mapping[str, Any]) -> tuple[str, int, tuple[float, .
             or any(b <= a for a, b in itertools.pairwise(lags))):  # fmt: skip
         raise ConfigError(f"gp.relaxation.lags must be at least two positive, increasing "
                           f"seconds, got {lags!r}")  # fmt: skip
-    return str(moves), int(cells), tuple(float(v) for v in lags)
+    return str(moves), cells, tuple(float(v) for v in lags)
 
 
 def exact_clock(

@@ -192,3 +192,24 @@ def test_only_a_k_lumps_chain_starts_from_its_stationary_law() -> None:
         resolve_start("stationary", two_state, "x")  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="must be one of"):
         resolve_start("auto", relaxing, "x")  # type: ignore[arg-type]
+
+
+def test_the_stationary_sample_grows_with_the_bins(tmp_path) -> None:
+    """``gp.relaxation.n_cells: null`` (the default): 150 cells per shared bin, at least 600;
+    an integer is kept; only a relaxing chain asks the model for its bins."""
+    from surrogate.gp.class_relaxation import relaxation_cells
+    from surrogate.kinds.chains import fit_chain
+
+    assert relaxation_cells(16) == 2400 and relaxation_cells(4) == 600
+    assert relaxation_cells(16, 800) == 800
+    model = _hidden_gene(tmp_path, [1, 2, 3])  # 4 bins shared by both lumps
+    gp = GPSettings.from_config({"seed": 0})
+    relaxing = {"lumps": "classes", "class_moves": "relaxation"}
+    chain = fit_chain(relaxing, gp, ("k",), model.internal, "m")
+    assert chain.relaxation_cells == 600
+    many = _hidden_gene(tmp_path, list(range(1, 8)))  # 8 bins by its edges
+    assert fit_chain(relaxing, gp, ("k",), many.internal, "m").relaxation_cells == 1200
+    given = {**relaxing, "relaxation": {"n_cells": 800}}
+    assert fit_chain(given, gp, ("k",), many.internal, "m").relaxation_cells == 800
+    with pytest.raises(ConfigError, match="integer >= 10 or null"):
+        fit_chain({**relaxing, "relaxation": {"n_cells": 5}}, gp, ("k",), many.internal, "m")

@@ -278,6 +278,9 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     relaxed = inspection.recommend(exact_model, slow, options(), DT)
     assert relaxed["command"] == "gp=classes gp.class_moves=relaxation"
     assert "15,000 windows" in relaxed["reason"] and "relax" in relaxed["reason"]
+    # relaxing bins come finer, and their stationary sample grows with them (150 per bin)
+    assert relaxed["yaml"] == f"classes: {{auto: {{bins: {inspection.RELAXATION_BINS}}}}}"
+    assert "2400 cells, 150 per bin" in relaxed["reason"]
     law = stats.poisson(40.0)
     low = int(law.ppf(0.5 * law.cdf(39)))  # the median of P given P < 40
     high = int(law.ppf(law.cdf(39) + 0.5 * law.sf(39)))  # ... given P >= 40
