@@ -55,7 +55,10 @@ A compartment may lack a size (Level 3, every species an amount) unless somethin
 
 A document with SBML errors (libsbml's reading) is refused listing each error (the first ten and
 a count of the rest) with its line, severity, libsbml's message, the detail that names the
-element, and the section of the SBML specification to check.
+element, and the section of the SBML specification to check. Attributes Level 3 requires that
+had a Level 2 default (species ``constant``, reaction ``fast``, ...), omitted by exporters that
+write Level 3 with Level 2's habits, are read with that default and listed in one
+:class:`~surrogate.sbml.errors.SbmlWarning` (:mod:`surrogate.sbml.defaults`).
 
 Refused, with an :class:`~surrogate.sbml.errors.SbmlError` naming the construct and the element
 id (every model-level construct of a file in one message): rate and algebraic rules,
@@ -81,6 +84,7 @@ from torch import Tensor
 from surrogate.ctmc.events import Event, SpeciesRule, whole_counts
 from surrogate.ctmc.kinetics import Expr, Kinetics, call, const, input_ref, species_ref, time_ref
 from surrogate.ctmc.network import ReactionNetwork
+from surrogate.sbml.defaults import fill_level2_defaults
 from surrogate.sbml.errors import SbmlError, SbmlWarning
 from surrogate.sbml.math import convert
 
@@ -300,8 +304,12 @@ def _read_document(
         for i in range(document.getNumErrors())
         if document.getError(i).getSeverity() >= libsbml.LIBSBML_SEV_ERROR
     ]
+    # Level 3's required flags a Level-2-minded exporter omits: Level 2's defaults, said once
+    errors, filled = fill_level2_defaults(document, errors)
     if errors:
         raise SbmlError(_error_listing(label, errors))
+    if filled:
+        warnings.warn(f"{label}: {filled}", SbmlWarning, stacklevel=3)  # read_sbml's caller
     model = document.getModel()
     if model is None:
         raise SbmlError(f"{label}: the document has no model")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -648,7 +649,8 @@ def test_species_in_laws_counts_reads_rules_and_events_as_counts():
 
 
 def test_every_sbml_error_is_listed_with_its_line_up_to_ten():
-    species = "".join(f'<species id="S{i}" compartment="c"/>\n' for i in range(6))
+    species = "".join(f'<species id="S{i}" compartment="c" size="2" units="item"/>\n'
+                      for i in range(6))  # fmt: skip
     text = (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
         '<sbml xmlns="http://www.sbml.org/sbml/level3/version2/core" level="3" version="2">\n'
@@ -656,16 +658,96 @@ def test_every_sbml_error_is_listed_with_its_line_up_to_ten():
         "</listOfCompartments>\n"
         f"<listOfSpecies>\n{species}</listOfSpecies>\n</model>\n</sbml>\n"
     )
-    # the compartment lacks `constant` (line 4); each species (lines 6-11) lacks
-    # hasOnlySubstanceUnits, boundaryCondition and constant: 19 errors
-    message = refused(text, "<string>: 19 SBML errors")
+    # each species (lines 6-11) carries two attributes a species has not: 12 errors. The
+    # attributes Level 3 requires and the file omits (the compartment's and each species'
+    # `constant`, ...) had Level 2 defaults: filled, not listed (the next test)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SbmlWarning)
+        message = refused(text, "<string>: 12 SBML errors")
     lines = message.splitlines()
-    assert len(lines) == 1 + 10 + 1 and lines[-1] == "  ... and 9 more"
-    assert lines[1].startswith("  line 4, error [SBML component consistency]: ")
-    assert "'constant' is missing from the <compartment> with the id 'c'" in lines[1]
-    assert "(see L3V2 Section 4.5)" in lines[1]
+    assert len(lines) == 1 + 10 + 1 and lines[-1] == "  ... and 2 more"
+    assert lines[1].startswith("  line 6, error [SBML component consistency]: ")
+    assert "Attribute 'size' is not part of the definition of an SBML Level 3" in lines[1]
+    assert "(see L3V2 Section 4.6)" in lines[1]
     assert all(line.startswith("  line ") and ", error [" in line for line in lines[1:11])
-    assert "<species> with the id 'S0'" in lines[2] and lines[2].startswith("  line 6, ")
+    assert "'units'" in lines[2] and lines[3].startswith("  line 7, ")
+    assert "missing" not in message
+
+
+#: the Level 3 attributes that had a Level 2 default, as a file may omit them
+OMITTABLE = re.compile(
+    r" (constant|boundaryCondition|hasOnlySubstanceUnits|fast|reversible|"
+    r'useValuesFromTriggerTime|initialValue|persistent)="(true|false)"'
+)
+
+
+def test_level3_attributes_a_file_omits_are_read_with_level2_defaults():
+    """A Level 3 file written with Level 2's habits (Wilkinson's models at their repository's
+    head): every omitted attribute that had a Level 2 default is filled with it, listed in one
+    warning, and the file reads as the complete one; a parameter a rule assigns is not
+    constant; a reaction without ``reversible`` is reversible, so its one-way law warns too."""
+
+    def edit(model):
+        rule = model.createAssignmentRule()
+        rule.setVariable("p")
+        rule.setMath(parse("2 * k"))
+        event = model.createEvent()
+        event.setId("refill")
+        event.setUseValuesFromTriggerTime(True)
+        trigger = event.createTrigger()
+        trigger.setMath(parse("X < 3"))
+        trigger.setInitialValue(True)
+        trigger.setPersistent(True)
+        assign = event.createEventAssignment()
+        assign.setVariable("X")
+        assign.setMath(parse("10"))
+
+    complete = simple(law="p * X", edit=edit, parameters={"p": None})
+    omitted = OMITTABLE.sub("", complete)
+    assert omitted != complete and 'constant="' not in omitted
+    assert libsbml.readSBMLFromString(omitted).getNumErrors() >= 8
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        model = read_sbml_string(omitted)
+    texts = [str(w.message) for w in record if issubclass(w.category, SbmlWarning)]
+    filled = [t for t in texts if "Level 2's defaults" in t]
+    assert len(filled) == 1, texts
+    for needle in ("compartment constant=true (cell)",
+                   "species boundaryCondition=false, constant=false, "
+                   "hasOnlySubstanceUnits=false (X)",
+                   "parameter constant=true (k)", "parameter constant=false (p)",
+                   "reaction fast=false, reversible=true (R1)",
+                   "speciesReference constant=true (R1:X)",
+                   "event useValuesFromTriggerTime=true (refill)",
+                   "trigger initialValue=true, persistent=true (refill)"):  # fmt: skip
+        assert needle in filled[0], (needle, filled[0])
+    assert any("flagged reversible with a one-way kinetic law" in t for t in texts)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SbmlWarning)
+        reference = read_sbml_string(complete)
+    assert model.initial_state.tolist() == reference.initial_state.tolist()
+    states = torch.arange(12).reshape(-1, 1)
+    empty = torch.zeros(0)
+    assert torch.equal(model.propensities(states, empty), reference.propensities(states, empty))
+    assert [r.id for r in model.reactions] == [r.id for r in reference.reactions]
+
+
+def test_the_textbooks_level3_file_reads_as_its_level2_file():
+    """Wilkinson's auto-regulatory network at its repository's head (Level 3 Version 1, 37
+    libsbml errors, all omitted attributes with Level 2 defaults) and the Level 2 file the
+    example reads: one network (species, initial counts, reactions, propensities)."""
+    head = AUTOREGULATION.parent / "head" / "ch07-ar-stoch.xml"
+    assert libsbml.readSBMLFromFile(str(head)).getNumErrors() == 37
+    with pytest.warns(SbmlWarning, match="read with SBML Level 2's defaults") as record:
+        level3 = read_sbml(head, inputs=["Transcription.k2"])
+    assert len(record) == 1 and "(8 in all)" in str(record[0].message)
+    level2 = read_sbml(AUTOREGULATION, inputs=["Transcription.k2"])
+    assert level3.network.species == level2.network.species
+    assert level3.initial_state.tolist() == level2.initial_state.tolist() == [10, 0, 0, 0, 0]
+    assert [r.id for r in level3.reactions] == [r.id for r in level2.reactions]
+    states = torch.randint(0, 60, (200, 5), generator=torch.Generator().manual_seed(0))
+    k2 = torch.tensor([0.03])
+    assert torch.equal(level3.propensities(states, k2), level2.propensities(states, k2))
 
 
 def test_malformed_xml_is_listed_at_its_line():
