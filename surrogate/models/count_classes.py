@@ -20,7 +20,9 @@ shared by both lumps or per lump name), or lets :func:`choose_count_classes` cho
   integer basis of their stoichiometry's null space, e.g. the auto-regulatory network's total
   protein, which dimerisation conserves while P2 alone jitters across its bins). Its bins (``bins``) are placed where the chance
   of leaving each lump varies least (``placement: homogeneous``, the default) and are **shared
-  by both lumps**, so a flip of phi keeps the count's bin; with each lump's own edges
+  by both lumps**, so a flip of phi keeps the count's bin (where no two bins would hold both
+  lumps, because the count decides phi, as a threshold on it does, each lump gets its own bins
+  the same way: a flip then moves the count's bin anyway); with each lump's own edges
   (``placement: quantiles`` keeps them), a cell whose phi flickers every few windows (the auto-regulatory
   network's P crossing its threshold) is reclassified by the other lump's bins at every flip,
   and the chain's hidden count diffuses far faster than the slow count it stands for
@@ -61,8 +63,9 @@ from surrogate.validation import known_keys
 log = logging.getLogger(__name__)
 
 #: the chooser's version: part of its cache key and of the model's identity (4: slow
-#: combinations of species among the candidates)
-CHOOSER_VERSION = 4
+#: combinations of species among the candidates; 5: each lump its own bins where no shared
+#: bins hold both lumps)
+CHOOSER_VERSION = 5
 #: a reaction firing at least this many times per window on average (in the chooser's sample)
 #: is fast: combinations of species its firings leave unchanged are candidate counts
 FAST_FIRINGS_PER_WINDOW = 1.0
@@ -511,6 +514,14 @@ def _choose(
         else:  # shared: a flip of phi keeps the count's bin (see the module docstring)
             shared = _homogeneous_edges(values[:, train], before[:, train], after[:, train], bins)
             edges = (shared, shared)
+            if not shared:
+                # no two bins hold both lumps: the count (nearly) decides phi, as a threshold
+                # on it does, so a flip moves its bin anyway; each lump gets its own bins
+                edges = tuple(
+                    _homogeneous_edges(values[:, train][m], before[:, train][m],
+                                       after[:, train][m], bins, (p,))
+                    for p, m in ((p, before[:, train] == p) for p in (0, 1))
+                )  # fmt: skip
         cls = _classify(values, before, edges)
         gain = _loglik(before, after, cls, train) - base
         mean, se = _per_cell(gain, ~train)

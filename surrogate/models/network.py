@@ -67,6 +67,10 @@ BATCHED_EVENT_SECONDS = 1 / 5.3e5
 #: The largest, rounded: the stages' estimates are guards, not forecasts. (It was 3 us, read
 #: from a collection's whole wall time at 2,000 cells, the fixed part per step included.)
 STEP_OVERHEAD_SECONDS = 5e-7
+#: the exact functions' (lumped psi, age psi, class step) memory per call: rows go in chunks
+#: whose generators and exponentials (~EXACT_COPIES float64 K x K matrices each) fit it
+EXACT_CHUNK_BYTES = 2**28
+EXACT_COPIES = 6
 
 
 class SpeciesCondition:
@@ -462,11 +466,27 @@ class NetworkInternalModel:
         from the enumerated generator; None when the state space is too large to enumerate."""
         return self._exact_psi if self.state_space is not None else None
 
+    def _by_chunks(self, signal: Tensor, exact: Callable[[Tensor], Tensor]) -> Tensor:
+        """``exact`` over the rows of ``signal`` in chunks whose ``K x K`` generators and their
+        exponentials fit :data:`EXACT_CHUNK_BYTES` (200,000 rows of a 151-state network would
+        ask for 36 GB at once)."""
+        space = self.state_space
+        assert space is not None
+        k = len(space.states)
+        rows = max(1, EXACT_CHUNK_BYTES // (EXACT_COPIES * 8 * k * k))
+        if signal.shape[0] <= rows:
+            return exact(signal)
+        return torch.cat([exact(part) for part in signal.split(rows)])
+
     def _exact_psi(self, signal: Tensor, dt: float) -> Tensor:
         space = self.state_space
         assert space is not None
-        q = self._generator(signal, is_signal=True)
-        return lumped_psi(q, self._lump(space.states.to(q.device)), dt)
+
+        def exact(part: Tensor) -> Tensor:
+            q = self._generator(part, is_signal=True)
+            return lumped_psi(q, self._lump(space.states.to(q.device)), dt)
+
+        return self._by_chunks(signal, exact)
 
     @property
     def exact_age_psi(self) -> Callable[[Tensor, float, int], Tensor] | None:
@@ -479,8 +499,12 @@ class NetworkInternalModel:
     def _exact_age_psi(self, signal: Tensor, dt: float, max_steps: int) -> Tensor:
         space = self.state_space
         assert space is not None
-        q = self._generator(signal, is_signal=True)
-        return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
+
+        def exact(part: Tensor) -> Tensor:
+            q = self._generator(part, is_signal=True)
+            return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
+
+        return self._by_chunks(signal, exact)
 
     @property
     def exact_class_step(self) -> Callable[[Tensor, float], Tensor] | None:
@@ -494,10 +518,15 @@ class NetworkInternalModel:
     def _exact_class_step(self, signal: Tensor, dt: float) -> Tensor:
         space = self.state_space
         assert space is not None and self._classify is not None
-        q = self._generator(signal, is_signal=True)
-        states = space.states.to(q.device)
-        classes = self._classify(states, self._lump(states).long())
-        return lumped_class_step(q, classes, len(self.class_names or ()), dt)
+        classify = self._classify
+
+        def exact(part: Tensor) -> Tensor:
+            q = self._generator(part, is_signal=True)
+            states = space.states.to(q.device)
+            classes = classify(states, self._lump(states).long())
+            return lumped_class_step(q, classes, len(self.class_names or ()), dt)
+
+        return self._by_chunks(signal, exact)
 
     def generator(self, x: Tensor) -> Tensor:
         """Generators ``n x K x K`` (float64) of the enumerated state space at inputs ``x``

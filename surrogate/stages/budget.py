@@ -279,6 +279,19 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
     return works
 
 
+#: seconds per cell-step of the exact chain computed directly, per K^3 of a K-state generator
+#: (exp(Q dt) at each cell's inputs, decision.mode=direct): 5.7 ms per cell-step at K = 151
+#: (the textbook's dimerisation, the 2-core box under load), ~1.65e-9 x 151^3
+DIRECT_EXACT_SECONDS_PER_K3 = 1.65e-9
+
+
+def direct_exact_step_seconds(internal: Any) -> float:
+    """Seconds per cell-step of ``internal``'s exact chain computed directly (0 for a model
+    without an enumerated state space)."""
+    space = getattr(internal, "state_space", None)
+    return 0.0 if space is None else DIRECT_EXACT_SECONDS_PER_K3 * float(space.n_states) ** 3
+
+
 def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
     """One population run (if its artefact is missing)."""
     if _exists(settings.directory, reuse):
@@ -290,8 +303,10 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
     label = {"full": "the full-model run", "abstract": "the abstraction's run",
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, name, settings.job.device)
-    return [Work(label, settings.n_cells, span / setup.dt,
-                 setup.model.cell_step_seconds(setup.dt, full), where, setup.model.name,
+    per_cell = setup.model.cell_step_seconds(setup.dt, full)
+    if name == "exact" and settings.decision.mode == "direct":  # exp(Q dt) per cell and step
+        per_cell += direct_exact_step_seconds(setup.model.internal)
+    return [Work(label, settings.n_cells, span / setup.dt, per_cell, where, setup.model.name,
                  name, fixed), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
 
 

@@ -1069,6 +1069,39 @@ def collection_budget(
 # item 6: the abstraction
 
 
+#: outside this band of phi's occupancy at the median inputs the report offers a threshold
+#: that balances the lumps there (one lump then gives few windows to learn its switching from)
+BALANCE_BAND = (0.1, 0.9)
+
+
+def balanced_threshold(internal: Any, fixed: FixedInputs) -> dict[str, Any] | None:
+    """For a threshold lump whose occupancy at the median inputs lies outside
+    :data:`BALANCE_BAND`: the threshold on the same species, at its stationary law there, that
+    puts phi = 1 nearest 1/2 (``{"lump": "P2 >= 87", "occupancy": 0.49, "now": 0.0033}``);
+    else None."""
+    threshold = threshold_lump(internal)
+    now = float(fixed.occupancy[0])
+    if threshold is None or BALANCE_BAND[0] <= now <= BALANCE_BAND[1]:
+        return None
+    species, _, upper = threshold
+    if species not in fixed.species_law:
+        return None
+    values, weights = (np.asarray(a, float) for a in fixed.species_law[species])
+    if weights.sum() <= 0:
+        return None
+    levels = np.unique(values)
+    # P(count >= v) at each level v
+    at_least = np.array([weights[values >= v].sum() for v in levels]) / weights.sum()
+    share = at_least if upper else 1.0 - at_least
+    best = int(np.argmin(np.abs(share - 0.5)))
+    edge = int(levels[best])
+    return {
+        "lump": f"{species} {'>=' if upper else '<'} {edge}",
+        "occupancy": float(share[best]),
+        "now": now,
+    }
+
+
 def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
     """``(species, edge, upper)`` where the lump is a threshold on one species count: phi = 1
     iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
@@ -1449,7 +1482,8 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
                  "high": grid.high.tolist()},
         "occupancy": {"method": fixed.method, "value": fixed.occupancy.tolist(),
                       "se": fixed.occupancy_se.tolist(), "settled": fixed.settled.tolist(),
-                      "never": never, "always": always, "threshold": low},
+                      "never": never, "always": always, "threshold": low,
+                      "balanced": balanced_threshold(internal, fixed)},
         "settling": {"horizon_s": fixed.horizon, "phi_s": fixed.settle_phi.tolist(),
                      "network_s": None if fixed.settle_network is None
                      else fixed.settle_network.tolist(),

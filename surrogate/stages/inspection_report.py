@@ -218,6 +218,12 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
               format_markdown_table(pd.DataFrame(rows), {"P(phi = 1)": ".4f", "se": ".2g",
                                                          **{n: ".4g" for n in grid["inputs"]}}),
               f"![occupancy]({INPUT_OCCUPANCY_FIGURE})", ""]  # fmt: skip
+    if occ.get("balanced"):
+        bal = occ["balanced"]
+        lines += [f"- phi = 1 in {bal['now']:.3g} of the time at the median inputs: one lump "
+                  f"gives few windows to learn its switching from. The same species' threshold "
+                  f"at its stationary law there, `lump: \"{bal['lump']}\"`, would give "
+                  f"{bal['occupancy']:.2f}.", ""]  # fmt: skip
     s, b = summary["settling"], summary["burn_in"]
     lines += ["## Settling and relaxation", ""]
     settled = all(summary["occupancy"]["settled"])
@@ -304,7 +310,15 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
     col = c["collection"]
     if col.get("recommended_n_per_state"):
         sw = col["switch_per_window"]
-        short = ", too short" if max(col["seconds_needed"]) > col["max_time"] else ""
+        needed_s = max(col["seconds_needed"])
+        short = ", too short" if needed_s > col["max_time"] else ""
+        # a lump the free population never visited in the collection's field cannot be timed
+        timing = (f"it takes ~{needed_s:.3g} s of simulated time (collect.max_time = "
+                  f"{col['max_time']:g} s{short})" if math.isfinite(needed_s) else
+                  f"its time cannot be estimated: the population in collect's field was never "
+                  f"in one lump (the table above), so collect (collect.max_time = "
+                  f"{col['max_time']:g} s) may stop early for want of its rows; choose a lump "
+                  f"the cells visit there")  # fmt: skip
         lines.append(f"- Collection: phi changes in {sw[0]:.3g} (from "
                      f"{summary['lump_names'][0]}) and {sw[1]:.3g} (from "
                      f"{summary['lump_names'][1]}) of windows at the median inputs, so "
@@ -312,9 +326,7 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
                      f"{max(col['rows_needed']):.3g} rows per origin: "
                      f"`collect.n_per_state={col['recommended_n_per_state']}` (now "
                      f"{col['n_per_state']}), ~{col['cost_s']:.3g} s at the measured events; "
-                     f"it takes ~{max(col['seconds_needed']):.3g} s of simulated time "
-                     f"(collect.max_time = {col['max_time']:g} s"
-                     f"{short}).")  # fmt: skip
+                     f"{timing}.")  # fmt: skip
     a = summary["recommendation"]
     lines += ["", "## Recommended abstraction", ""]
     if a["abstraction"] is None:

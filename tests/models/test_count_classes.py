@@ -319,3 +319,22 @@ def test_a_steady_count_is_preferred_to_a_jittery_one_of_equal_gain() -> None:
     assert [c["fast_changed"] for c in report["candidates"]] == [True, False]
     kept, _ = _choose(counts, phi, ["X"], ("off", "on"), 3, "homogeneous", combos, set())
     assert kept.variable == "X"
+
+
+def test_a_count_that_decides_phi_gets_each_lumps_own_bins() -> None:
+    """phi = X >= 25 on a random walk of X over 0..49 (a threshold on the count itself, as the
+    inspector's `P2 >= 87` on the textbook's dimerisation): no bin of X holds both lumps, so
+    shared bins are none (the chooser then returned phi alone, gain 0); each lump now gets its
+    own bins, and the walk's distance to the threshold is what they hold: from X = 24 it
+    leaves `off` half the time, from below never, and from 25 it leaves `on` half the time."""
+    rng = np.random.default_rng(1)
+    n, w = 200, 1000
+    x = np.empty((w + 1, n), dtype=np.int64)
+    x[0] = rng.integers(0, 50, n)
+    for t in range(w):
+        x[t + 1] = np.clip(x[t] + rng.choice([-1, 1], n), 0, 49)
+    phi = (x >= 25).astype(np.int8)
+    classes, report = _choose(x[:, :, None], phi, ["X"], ("off", "on"), 4)
+    assert 24.0 in classes.edges[0] and 26.0 in classes.edges[1]
+    assert max(classes.edges[0]) <= 25 and min(classes.edges[1]) >= 25
+    assert report["significant"] and report["candidates"][0]["gain_nats_per_window"] > 0

@@ -28,6 +28,7 @@ from surrogate.models.ecoli_phospho import EcoliPhosphoModel
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.sbml import SbmlError, SbmlWarning
 from surrogate.simulate import AbstractDecision, FullDecision, Simulator
+from surrogate.simulate.decision import ExactPsi
 from surrogate.stages import collect, evaluate, simulate, train
 
 REPO = CONF_DIR.parent
@@ -121,6 +122,39 @@ def test_the_gene_switch_yaml_is_the_toy_network() -> None:
     torch.testing.assert_close(config.internal.exact_psi(signal, 0.05),
                                toy.internal.exact_psi(signal, 0.05), rtol=1e-9, atol=1e-12)  # fmt: skip
     assert config.describe().startswith("gene_switch: SBML network gene_switch.xml")
+
+
+def test_the_exact_functions_go_in_chunks_that_fit_memory(monkeypatch) -> None:
+    """Rows of the exact psi, age psi and class step go in chunks of a memory budget (200,000
+    diagnostic rows of a 151-state network asked for 36 GB at once): the same values as one
+    call (to rounding: batched exponentials), the budget here a few rows' worth."""
+    from surrogate.models import network
+    from surrogate.stages.train import rows_table
+
+    config = SbmlAgentModel(str(GENE_SWITCH))
+    internal = config.internal
+    signal = torch.linspace(0.001, 0.1, 23).reshape(-1, 1).double()
+    whole = internal.exact_psi(signal, 0.05)
+    ages = internal.exact_age_psi(signal, 0.05, 4)
+    k = internal.state_space.n_states
+    monkeypatch.setattr(network, "EXACT_CHUNK_BYTES", 5 * network.EXACT_COPIES * 8 * k * k)
+    calls = []
+    generator = internal._generator
+    monkeypatch.setattr(internal, "_generator",
+                        lambda x, **kw: calls.append(len(x)) or generator(x, **kw))  # fmt: skip
+    torch.testing.assert_close(internal.exact_psi(signal, 0.05), whole, rtol=1e-12, atol=1e-12)
+    assert calls == [5, 5, 5, 5, 3]
+    torch.testing.assert_close(
+        internal.exact_age_psi(signal, 0.05, 4), ages, rtol=1e-12, atol=1e-12
+    )
+    # the diagnostic tabulates an exact psi that is no table over its rows' range
+    exact = ExactPsi(internal, 0.05)
+    rows = torch.linspace(0.02, 0.08, 1000).reshape(-1, 1)
+    table = rows_table(exact, rows, ["inducer"])
+    assert table is not exact and rows_table(table, rows, ["inducer"]) is table
+    for phi in (0, 1):
+        at = torch.full((1000,), phi)
+        torch.testing.assert_close(table(at, rows), exact(at, rows), rtol=0, atol=1e-4)
 
 
 SMALL = [

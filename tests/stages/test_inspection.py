@@ -675,3 +675,18 @@ def test_bad_inspect_settings_are_refused_by_name_and_the_command_reproduces(com
         again = InspectSettings.from_config(compose(config_name="inspect",
                                                     overrides=[data, *words]))  # fmt: skip
     assert again.identity() == settings.identity(), settings.command()
+
+
+def test_a_lump_rare_at_the_median_is_offered_a_balanced_threshold(tmp_path) -> None:
+    """P ~ Poisson(40) at s = 1 (exact): `P >= 40` is on about half the time, nothing to offer;
+    `P >= 55` on ~1 % of it: the threshold at P's stationary law that puts phi = 1 nearest 1/2
+    is offered, `P >= 40` (P(P >= 40) = 0.54, nearer 1/2 than P(P >= 41) = 0.48)."""
+    model = protein(tmp_path, reservoir=True)
+    exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    assert inspection.balanced_threshold(model.internal, exact) is None
+    law = stats.poisson(40.0)
+    rare = dataclasses.replace(exact, occupancy=np.full_like(exact.occupancy, law.sf(54)))
+    offer = inspection.balanced_threshold(model.internal, rare)
+    assert offer is not None and offer["lump"] == "P >= 40"
+    assert offer["occupancy"] == pytest.approx(law.sf(39), abs=1e-9)
+    assert offer["now"] == pytest.approx(law.sf(54))

@@ -94,6 +94,37 @@ def test_reproduce_runs_the_exact_chain_directly_without_signal_bounds(
         assert {e.candidate.decision.mode for e in table.exact.values()} == {"lookup"}
 
 
+def test_an_exact_chain_too_dear_to_compute_directly_is_skipped_with_the_fix(
+    compose_cfg, tmp_path, monkeypatch, caplog
+) -> None:
+    """The textbook's dimerisation (151 states, ~5.7 ms per cell-step directly) made reproduce
+    spend ~2 h on its exact chain, estimated at 1 s. The budget now prices the direct exact
+    chain by its K^3, and reproduce skips it past DIRECT_EXACT_MAX_SECONDS, saying how to have
+    it as a table; here the 7-state network is made dear by a small limit."""
+    from surrogate.stages import budget
+    from surrogate.stages.settings import ReproduceSettings
+    from surrogate.stages.settings import reproduce as reproduce_settings
+
+    spec = write_model(tmp_path, DIMERISATION, inputs={"k_c": "L"}, lump="D >= 2")
+    overrides = ["model=sbml", f"model.spec={spec}"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SbmlWarning)
+        settings = ReproduceSettings.from_config(compose_cfg("reproduce", overrides))
+        internal = settings.train.setup.model.internal
+        per_step = budget.direct_exact_step_seconds(internal)
+        assert per_step == pytest.approx(budget.DIRECT_EXACT_SECONDS_PER_K3 * 7**3)
+        run = next(iter(settings.exact.values())).candidate
+        abstract = next(iter(settings.evaluations.values())).candidate
+        dear = budget.run_work(run, reuse=False)[0].cell_step_seconds
+        cheap = budget.run_work(abstract, reuse=False)[0].cell_step_seconds
+        assert dear == pytest.approx(cheap + per_step)
+        monkeypatch.setattr(reproduce_settings, "DIRECT_EXACT_MAX_SECONDS", 1e-3)
+        caplog.clear()
+        skipped = ReproduceSettings.from_config(compose_cfg("reproduce", overrides))
+    assert not skipped.exact and skipped.evaluations
+    assert "the exact-psi chain skipped" in caplog.text and "signal_bounds" in caplog.text
+
+
 def decay_model(tmp_path: Path, **spec: object) -> Path:
     """StochSS's Degradation written small: X -> 0 at k X from 12 molecules (k = L), nothing
     makes X: every cell ends at X = 0, where no reaction can fire."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,16 +16,46 @@ from surrogate.config import field_config, group_config, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
+from surrogate.stages.budget import direct_exact_step_seconds
 from surrogate.stages.settings.common import REPRODUCE_CMD, Job, command_line
 from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.simulate import SimulateSettings
 from surrogate.stages.settings.train import TrainSettings
+
+log = logging.getLogger(__name__)
 
 #: why ``background`` is refused: its second process was removed (issue 28, docs/performance.md)
 REMOVED_BACKGROUND = (
     "background was removed: reproduce's second process gained nothing measurable end to end "
     "and slowed the fit under load (docs/performance.md); drop the setting"
 )
+
+
+#: the most seconds reproduce spends on a directly computed exact chain before skipping it
+DIRECT_EXACT_MAX_SECONDS = 120.0
+
+
+def _direct_affordable(c: Mapping[str, Any], internal: Any) -> bool:
+    """False (with a warning saying how to have it) where the exact chain would be computed
+    directly, the model declaring no signal bounds to tabulate it over, and its estimated cost
+    exceeds :data:`DIRECT_EXACT_MAX_SECONDS`."""
+    space = getattr(internal, "state_space", None)
+    if signal_bounds_of(internal) is not None or space is None:
+        return True
+    fields = len(c.get("fields") or [])
+    steps = (float(c.get("t_end", 0.0)) + float(c.get("equilibration_time", 0.0))) / float(c["dt"])
+    per_step = direct_exact_step_seconds(internal)
+    seconds = fields * int(c.get("n_cells", 0)) * steps * per_step
+    if seconds <= DIRECT_EXACT_MAX_SECONDS:
+        return True
+    log.warning(
+        "reproduce: the exact-psi chain skipped: without signal bounds it computes exp(Q dt) of "
+        "the %d-state generator at each cell's inputs, ~%.3g s per cell-step, ~%.3g s for "
+        "these runs; give the model its signal bounds (a yaml's `signal_bounds: {<input>: "
+        "[lo, hi]}`, the input range scripts/inspect_model.py reports) to tabulate it, or set "
+        "exact_psi=false", space.n_states, per_step, seconds,
+    )  # fmt: skip
+    return False
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,9 +93,10 @@ class ReproduceSettings:
         if train is None:
             raise ConfigError("reproduce needs decision=abstract (the learned abstraction)")
         exact = {}
-        if c.get("exact_psi") and has_exact_psi(train.setup.model.internal):
+        internal = train.setup.model.internal
+        if c.get("exact_psi") and has_exact_psi(internal) and _direct_affordable(c, internal):
             decision = {**group_config("decision", "exact")}
-            if signal_bounds_of(train.setup.model.internal) is None:
+            if signal_bounds_of(internal) is None:
                 # a table needs the signal's bounds (a yaml's `signal_bounds`); without them
                 # the exact chain computes exp(Q dt) at each cell's inputs
                 decision["mode"] = "direct"
