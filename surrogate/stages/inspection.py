@@ -109,7 +109,7 @@ from surrogate.evaluate.dynamics import (
 from surrogate.gp.class_relaxation import CELLS_PER_BIN, relaxation_cells
 from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
 from surrogate.models.base import Model
-from surrogate.models.capabilities import lump_expr_of, lump_formula_of
+from surrogate.models.capabilities import lump_expr_of, lump_formula_of, signal_bounds_of
 from surrogate.models.network import NetworkInternalModel
 from surrogate.sbml import SbmlModel
 from surrogate.simulate.decision import FullDecision
@@ -1069,6 +1069,18 @@ def collection_budget(
 # item 6: the abstraction
 
 
+def signal_bounds_advice(
+    internal: Any, fixed: FixedInputs, ranges: Mapping[str, tuple[float, float]]
+) -> str | None:
+    """The yaml's ``signal_bounds`` over the inputs' range the fields give, for an enumerable
+    network that declares none (its exact chain, the method's limit, is then a table rather
+    than exp(Q dt) per cell and step); else None."""
+    if not fixed.exact or not ranges or signal_bounds_of(internal) is not None:
+        return None
+    listed = ", ".join(f"{n}: [{lo!r}, {hi!r}]" for n, (lo, hi) in ranges.items())
+    return f"signal_bounds: {{{listed}}}"
+
+
 #: outside this band of phi's occupancy at the median inputs the report offers a threshold
 #: that balances the lumps there (one lump then gives few windows to learn its switching from)
 BALANCE_BAND = (0.1, 0.9)
@@ -1465,7 +1477,11 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     costs = stage_costs(settings, step_measured)
     collection = collection_budget(settings, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o["burn_in_factor"])
-    advice = recommend(model, fixed, o, dt, input_ranges(network, population))
+    ranges = input_ranges(network, population)
+    advice = recommend(model, fixed, o, dt, ranges)
+    bounds = signal_bounds_advice(internal, fixed, ranges)
+    if bounds:
+        advice["signal_bounds"] = bounds
     lump = lump_formula_of(internal) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())

@@ -335,6 +335,10 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
         lines.append(f"**{a['abstraction']}**: `{a['command']}`"
                      + (f" with, in the model's yaml, `{a['yaml']}`" if a["yaml"] else "")
                      + f"; why: {a['reason']}.")  # fmt: skip
+    if a.get("signal_bounds"):
+        lines += ["", f"The network is enumerable: with `{a['signal_bounds']}` in the yaml (the "
+                  f"inputs' range above), reproduce tabulates its exact chain, the method's "
+                  f"limit, instead of computing exp(Q dt) at each cell's inputs every step."]  # fmt: skip
     lines += ["", f"![memory]({MEMORY_FIGURE})", ""]
     return "\n".join(lines)
 

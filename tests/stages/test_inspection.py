@@ -690,3 +690,17 @@ def test_a_lump_rare_at_the_median_is_offered_a_balanced_threshold(tmp_path) -> 
     assert offer is not None and offer["lump"] == "P >= 40"
     assert offer["occupancy"] == pytest.approx(law.sf(39), abs=1e-9)
     assert offer["now"] == pytest.approx(law.sf(54))
+
+
+def test_an_enumerable_network_is_offered_its_signal_bounds(tmp_path) -> None:
+    """The exact chain of a network without `signal_bounds` is exp(Q dt) per cell and step
+    (~5.7 ms a cell-step at 151 states): the report offers the bounds that make it a table,
+    the inputs' range the fields give, read back by the yaml as the model's bounds."""
+    model = protein(tmp_path, reservoir=True)
+    exact = inspection.exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
+    text = inspection.signal_bounds_advice(model.internal, exact, {"s": (0.81, 1.6)})
+    assert text == "signal_bounds: {s: [0.81, 1.6]}"
+    assert yaml.safe_load(text) == {"signal_bounds": {"s": [0.81, 1.6]}}
+    assert inspection.signal_bounds_advice(model.internal, exact, {}) is None
+    simulated = dataclasses.replace(exact, method="simulated")
+    assert inspection.signal_bounds_advice(model.internal, simulated, {"s": (0.8, 1.6)}) is None
