@@ -31,3 +31,8 @@ class NumericalError(SurrogateError, FloatingPointError):
 class CompileError(SurrogateError, RuntimeError):
     """``torch.compile`` failed where the settings ask for a compiled run (its results would not
     be the compiled run's)."""
+
+
+class RunawayError(ConfigError, RuntimeError):
+    """A network's cell made more SSA events in one window than its cap (a count growing
+    without bound); a ``RuntimeError`` too, as the SSAs' own cap is."""

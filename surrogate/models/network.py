@@ -40,7 +40,7 @@ from surrogate.ctmc.lumped import (
     lumped_psi,
     stationary_distribution,
 )
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, RunawayError
 from surrogate.models.base import InternalState, Randoms, burn_in_seconds
 from surrogate.models.count_classes import CountClasses, CountClassifier
 from surrogate.sbml import SbmlModel
@@ -67,6 +67,10 @@ BATCHED_EVENT_SECONDS = 1 / 5.3e5
 #: The largest, rounded: the stages' estimates are guards, not forecasts. (It was 3 us, read
 #: from a collection's whole wall time at 2,000 cells, the fixed part per step included.)
 STEP_OVERHEAD_SECONDS = 5e-7
+#: the most SSA events any cell makes in one window unless a model says otherwise (its
+#: ``max_events``): ~1 s of the compiled SSA for that cell, 1,000x the phospho network's
+#: 10,241 per window; past it the network runs away (a RunawayError names the counts)
+RUNAWAY_EVENTS = 10**7
 #: the exact functions' (lumped psi, age psi, class step) memory per call: rows go in chunks
 #: whose generators and exponentials (~EXACT_COPIES float64 K x K matrices each) fit it
 EXACT_CHUNK_BYTES = 2**28
@@ -402,7 +406,7 @@ class NetworkInternalModel:
         than this in the window (the compiled SSA's ``max_events``, naming the cell; the
         batched SSA's ``max_rounds``, one event per cell and round, at most
         :attr:`max_rounds`)."""
-        cap = self.max_events if max_events is None else int(max_events)
+        cap = (self.max_events or RUNAWAY_EVENTS) if max_events is None else int(max_events)
         counts = state[0]
         # each window moves the clock of a copy: the state handed in stays as it was
         clock = EventState(state[2].clone(), state[3].clone()) if self.kinetics.events else None
@@ -422,6 +426,10 @@ class NetworkInternalModel:
                 min(cap, self.max_rounds) if self.max_rounds is not None else cap  # fmt: skip
             counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=rounds,
                                propensity=propensity, events=events, clock=clock)  # fmt: skip
+        except RuntimeError as error:
+            if "max_events" not in str(error) and "max_rounds" not in str(error):
+                raise
+            raise RunawayError(self._runaway(error, counts, cap, dt)) from error
         except ValueError as error:
             # The SSA refused the window: name the input or rate at fault where the window
             # started (its own check costs nothing when all is well; this runs only on failure).
@@ -433,6 +441,17 @@ class NetworkInternalModel:
                 raise ConfigError(message) from error
             raise
         return (counts, *state[1 : len(state) - len(after)], *after)
+
+    def _runaway(self, error: Exception, counts: Tensor, cap: int, dt: float) -> str:
+        """Why a window stopped at ``cap`` events in a cell, with the largest counts where the
+        window started."""
+        top = counts.max(0).values.tolist()
+        largest = ", ".join(f"{s} = {v:,}" for s, v in zip(self.species, top, strict=True))
+        return (f"{error}: a cell made more than {cap:,} SSA events in one window of {dt:g} s "
+                f"(max_events): the network runs away there, a count growing without bound "
+                f"(e.g. a prey whose predators died out); the largest counts at the window's "
+                f"start: {largest}. Bound the network (a source that saturates, a "
+                f"degradation), or choose inputs or a run where it stays bounded")  # fmt: skip
 
     def fused_advance(
         self, state: InternalState, x: Tensor, dt: float, u: Tensor, u64: Tensor | None

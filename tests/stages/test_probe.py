@@ -180,3 +180,30 @@ def test_collect_prices_at_the_rate_reached_where_the_probe_ran_out(
     assert collect.measured_cost(settings, {**measured, "reached_s": 0.0}) is None
     off = logistic_settings(tmp_path, compose_cfg, 0)
     assert collect.cost_probe(off) is None and collect.measured_cost(off, None) is None
+
+
+def test_a_window_past_the_runaway_cap_is_a_clear_error(tmp_path, monkeypatch) -> None:
+    """A cell whose count grows without bound (the textbook's Lotka-Volterra,
+    whose prey explode once the predators die out, hung the inspector's population run for
+    more than 5 minutes) stops at the network's cap on events per cell and window with an
+    error that is a ConfigError (the stages print it) and a RuntimeError (the cost probe's
+    cap), naming the cap and the largest counts where the window started."""
+    from surrogate.errors import RunawayError
+    from surrogate.models import network
+
+    model, _ = runaway(tmp_path)
+    internal = model.internal
+    inputs = torch.ones(3, 1, dtype=torch.float64)
+    state = internal.start_state(3, torch.device("cpu"), inputs)
+    monkeypatch.setattr(network, "RUNAWAY_EVENTS", 200)
+    with pytest.raises(RunawayError) as error:
+        for _ in range(40):  # e^(50 t) from A = 10: past 200 events a window within 0.2 s
+            state = internal.advance_at(state, inputs, 0.05)
+    assert isinstance(error.value, ConfigError) and isinstance(error.value, RuntimeError)
+    message = str(error.value)
+    assert "more than 200 SSA events in one window of 0.05 s" in message
+    assert "the largest counts at the window's start: A = " in message
+    # a cap the caller gives (the cost probe's) trips the same way
+    with pytest.raises(RuntimeError, match="max_events"):
+        internal.advance_at(internal.start_state(3, torch.device("cpu"), inputs), inputs, 1.0,
+                            max_events=50)  # fmt: skip
