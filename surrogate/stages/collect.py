@@ -66,7 +66,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
     setup, c, job = settings.setup, settings.options, settings.job
     # a runaway network refused in seconds, before any burn-in; else the estimate at its rate
-    measured_cost(settings, cost_probe(settings))
+    measured_cost(settings, cost_probe(settings), budget.max_hours(config or {}))
     seed_everything(setup.seed)
     model = setup.model
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
@@ -174,16 +174,19 @@ class MeasuredCost:
 
 
 def measured_cost(
-    settings: CollectSettings, measured: Mapping[str, Any] | None
+    settings: CollectSettings,
+    measured: Mapping[str, Any] | None,
+    max_hours: float | None = None,
 ) -> MeasuredCost | None:
     """Log collect's estimate (:func:`~surrogate.stages.budget.collect_work`: the windows and
     the burn-in) at the events per window its cost probe ``measured`` after the burn-in,
     instead of at the file's counts, naming both figures (a warning past
     :data:`~surrogate.stages.budget.WARN_SECONDS`); where the probe ran out of budget before
     the end of the burn-in (a steady rate: a growing one is refused), at the rate it reached,
-    and saying so. Nothing is refused here (``validate`` checked ``max_hours``). Returns it;
-    ``None`` where nothing was measured (the probe off, or no network of its kind), the
-    estimate at the file's counts then standing alone."""
+    and saying so. Past ``max_hours`` (``validate`` checked the file's counts' estimate against
+    it) it is refused, with both figures. Returns it; ``None`` where nothing was measured (the
+    probe off, or no network of its kind), the estimate at the file's counts then standing
+    alone."""
     setup = settings.setup
     network = probe.probed_network(setup.model)
     if measured is None or network is None or not measured["reached_s"] > 0:
@@ -208,7 +211,14 @@ def measured_cost(
               f"collect.probe_seconds={float(measured['budget_s']):g} ran out")  # fmt: skip
     basis = (f"{at} ({_events(events)} per window per cell; the file's counts: "
              f"{_events(file_events)}, ~{budget.duration(file_seconds)})")  # fmt: skip
-    seconds = budget.log_estimate(works, "collect", basis)
+    seconds = sum(w.seconds for w in works)
+    if max_hours is not None and seconds > max_hours * 3600:
+        raise ConfigError(
+            f"collect: this collection would take ~{budget.duration(seconds)} {basis}, above "
+            f"max_hours={max_hours:g}. Lower collect.n_per_state or collect.n_cells (or the "
+            f"burn-in), or raise max_hours to run it anyway"
+        )
+    budget.log_estimate(works, "collect", basis)
     return MeasuredCost(seconds, file_seconds, events, file_events, cell_step,
                         bool(measured["completed"]), reached, horizon)  # fmt: skip
 

@@ -153,6 +153,13 @@ def test_collect_prices_its_windows_at_the_rate_measured_after_the_burn_in(
     assert " per window per cell; the file's counts: 0.05, " in message
     assert f"~{budget.duration(estimate.file_seconds)})" in message
     assert "the initial states' burn-in" in message and "collect (at least)" in message
+    # max_hours holds at the measured rate too: past it, refused with both figures (the
+    # file's counts' estimate passed validate's check)
+    limit = 0.5 * estimate.seconds / 3600
+    assert estimate.file_seconds < limit * 3600
+    with pytest.raises(ConfigError, match=r"above max_hours=.*raise max_hours") as error:
+        collect.measured_cost(settings, collect.cost_probe(settings), limit)
+    assert f"~{budget.duration(estimate.seconds)} {MEASURED} (" in str(error.value)
 
 
 def test_collect_prices_at_the_rate_reached_where_the_probe_ran_out(
