@@ -20,7 +20,8 @@ Everything is batched over cells: ``(n, R)`` rate constants give ``(n, K, K)`` g
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -187,8 +188,32 @@ def stationary_distribution(q: Tensor) -> Tensor:
     a[:, -1, :] = 1.0  # replace one balance equation by the normalisation
     b = torch.zeros(q.shape[:-1], dtype=torch.float64, device=q.device)
     b[:, -1] = 1.0
-    pi = torch.linalg.solve(a, b).clamp_min(0.0)
+    with _lu_threads(a):
+        pi = torch.linalg.solve(a, b).clamp_min(0.0)
     return pi / pi.sum(-1, keepdim=True)
+
+
+#: the largest matrix side whose batched LU (torch.linalg.solve) keeps the process's threads:
+#: with torch's threads set explicitly to 2 or more (a job's ``threads=2``), torch 2.13's CPU
+#: build (oneMKL 2024.2) reports "Parameter 6 was incorrect on entry to DLASWP" and hangs on a
+#: batch of two or more 151 x 151 systems (measured: 150 solves, 151 and larger hang; a batch
+#: of one, the default thread count or one thread solve). Larger ones run on one thread.
+LU_MAX_THREADED_SIDE = 128
+
+
+@contextlib.contextmanager
+def _lu_threads(a: Tensor) -> Iterator[None]:
+    """One torch thread for a batched CPU LU of matrices larger than
+    :data:`LU_MAX_THREADED_SIDE` (restored after)."""
+    threads = torch.get_num_threads()
+    if a.device.type != "cpu" or a.shape[-1] <= LU_MAX_THREADED_SIDE or threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def relaxation_time(q: Tensor) -> Tensor:

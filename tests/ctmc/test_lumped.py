@@ -235,3 +235,35 @@ def test_the_class_step_with_one_state_per_class_is_the_matrix_exponential() -> 
     back = step[:, order][:, :, order]  # [s, t] = step[order[s], order[t]]
     torch.testing.assert_close(back, expected, rtol=0, atol=1e-12)
     torch.testing.assert_close(step.sum(-1), torch.ones(2, k, dtype=f64), rtol=0, atol=1e-12)
+
+
+def test_the_stationary_law_of_large_generators_with_threads_set_does_not_hang() -> None:
+    """With torch's threads set explicitly to 2 (a job's ``threads=2``), torch 2.13's oneMKL
+    hung in a batched LU of 151 x 151 systems (the textbook's dimerisation's collect, forever,
+    "Parameter 6 was incorrect on entry to DLASWP"); those solves now run on one thread. In a
+    subprocess with a deadline, so a regression fails instead of hanging the suite. The law
+    is checked against a birth-death chain's closed form (Poisson(20) truncated at 150)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import math, torch\n"
+        "from surrogate.ctmc.lumped import stationary_distribution\n"
+        "torch.set_num_threads(2)\n"
+        "k = 151\n"
+        "q = torch.zeros(2, k, k, dtype=torch.float64)\n"
+        "i = torch.arange(k - 1)\n"
+        "q[:, i, i + 1] = 2.0\n"
+        "q[:, i + 1, i] = 0.1 * (i + 1).double()\n"
+        "q -= torch.diag_embed(q.sum(-1))\n"
+        "pi = stationary_distribution(q)\n"
+        "n = torch.arange(k).double()\n"
+        "want = torch.exp(n * math.log(20.0) - torch.lgamma(n + 1))\n"
+        "want /= want.sum()\n"
+        "assert torch.allclose(pi, want.expand(2, -1), atol=1e-12), float((pi - want).abs().max())\n"
+        "assert torch.get_num_threads() == 2\n"
+        "print('ok')\n"
+    )  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=120)  # fmt: skip
+    assert result.returncode == 0 and "ok" in result.stdout, result.stderr[-2000:]
