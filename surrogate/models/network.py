@@ -23,7 +23,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -71,6 +71,10 @@ STEP_OVERHEAD_SECONDS = 5e-7
 #: ``max_events``): ~1 s of the compiled SSA for that cell, 1,000x the phospho network's
 #: 10,241 per window; past it the network runs away (a RunawayError names the counts)
 RUNAWAY_EVENTS = 10**7
+#: seconds per cell-step of the exact chain computed directly, per K^3 of a K-state generator
+#: (exp(Q dt) at each cell's inputs, decision.mode=direct): 5.7 ms per cell-step at K = 151
+#: (the textbook's dimerisation, the 2-core box under load), ~1.65e-9 x 151^3
+DIRECT_EXACT_SECONDS_PER_K3 = 1.65e-9
 #: the exact functions' (lumped psi, age psi, class step) memory per call: rows go in chunks
 #: whose generators and exponentials (~EXACT_COPIES float64 K x K matrices each) fit it
 EXACT_CHUNK_BYTES = 2**28
@@ -653,3 +657,10 @@ class NetworkInternalModel:
         if burn_in is not None:
             other.burn_in = burn_in_seconds(burn_in, "burn_in")
         return other
+
+
+def direct_exact_step_seconds(internal: Any) -> float:
+    """Seconds per cell-step of ``internal``'s exact chain computed directly (0 for a model
+    without an enumerated state space)."""
+    space = getattr(internal, "state_space", None)
+    return 0.0 if space is None else DIRECT_EXACT_SECONDS_PER_K3 * float(space.n_states) ** 3

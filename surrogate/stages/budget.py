@@ -37,8 +37,9 @@ from typing import TYPE_CHECKING, Any
 
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST
-from surrogate.kinds import decision_kind
+from surrogate.kinds import decision_kind, mode_kind
 from surrogate.models.capabilities import burn_in_of
+from surrogate.models.network import direct_exact_step_seconds
 
 if TYPE_CHECKING:
     from surrogate.stages.settings import (
@@ -279,19 +280,6 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
     return works
 
 
-#: seconds per cell-step of the exact chain computed directly, per K^3 of a K-state generator
-#: (exp(Q dt) at each cell's inputs, decision.mode=direct): 5.7 ms per cell-step at K = 151
-#: (the textbook's dimerisation, the 2-core box under load), ~1.65e-9 x 151^3
-DIRECT_EXACT_SECONDS_PER_K3 = 1.65e-9
-
-
-def direct_exact_step_seconds(internal: Any) -> float:
-    """Seconds per cell-step of ``internal``'s exact chain computed directly (0 for a model
-    without an enumerated state space)."""
-    space = getattr(internal, "state_space", None)
-    return 0.0 if space is None else DIRECT_EXACT_SECONDS_PER_K3 * float(space.n_states) ** 3
-
-
 def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
     """One population run (if its artefact is missing)."""
     if _exists(settings.directory, reuse):
@@ -304,7 +292,9 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, name, settings.job.device)
     per_cell = setup.model.cell_step_seconds(setup.dt, full)
-    if name == "exact" and settings.decision.mode == "direct":  # exp(Q dt) per cell and step
+    mode = settings.decision.mode
+    if settings.decision.kind.exact and mode is not None and not mode_kind(mode).table:
+        # the exact law computed directly: exp(Q dt) per cell and step
         per_cell += direct_exact_step_seconds(setup.model.internal)
     return [Work(label, settings.n_cells, span / setup.dt, per_cell, where, setup.model.name,
                  name, fixed), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip

@@ -16,7 +16,7 @@ from surrogate.config import field_config, group_config, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
-from surrogate.stages.budget import direct_exact_step_seconds
+from surrogate.models.network import direct_exact_step_seconds
 from surrogate.stages.settings.common import REPRODUCE_CMD, Job, command_line
 from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.simulate import SimulateSettings
