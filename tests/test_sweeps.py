@@ -251,12 +251,12 @@ def _artefact_manifests(data: Path) -> dict[Path, int]:
 
 @pytest.mark.slow
 def test_joblib_sweep_of_reproduce(workdir: Path) -> None:
-    """2 kernels through the joblib launcher (loky processes, 2 at a time), with the default
-    relative data_dir and threads chosen by the wrapper; then a rerun reuses it all. (A sweep
-    over dt, each its own collection: the submitit test below.)"""
+    """2 dt through the joblib launcher (loky processes, 2 at a time), with the default
+    relative data_dir and threads chosen by the wrapper; then a rerun reuses it all. (Kernels
+    swept beside dt: the submitit test below.)"""
     sweep = workdir / "sweep_joblib"
     args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}",
-            "gp.kernel=rbf,matern52", *TINY]  # fmt: skip
+            "dt=0.05,0.1", *TINY]  # fmt: skip
     result = run_script("reproduce.py", *args, cwd=workdir)
     assert result.returncode == 0, result.stderr[-3000:]
 
@@ -264,18 +264,18 @@ def test_joblib_sweep_of_reproduce(workdir: Path) -> None:
     assert sorted(jobs) == [0, 1]
     assert all(j["status"] == "ok" for j in jobs.values()), jobs
     assert {j["threads"] for j in jobs.values()} == {max(1, cli.available_cores() // 2)}
-    # every job its own reproduce directory, evaluation and abstraction; one shared collect
+    # every job its own reproduce directory, evaluation, abstraction and collection
     reports = [read_json(Path(j["artefact_dir"]) / "manifest.json") for j in jobs.values()]
     assert len({j["artefact_dir"] for j in jobs.values()}) == 2
     assert len({r["evaluations"]["gaussian"] for r in reports}) == 2
     assert len({r["train"] for r in reports}) == 2
-    assert len({r["collect"] for r in reports}) == 1
+    assert len({r["collect"] for r in reports}) == 2
     data = workdir / "data"  # relative data_dir resolved in the launching directory
     assert all(Path(j["artefact_dir"]).is_relative_to(data) for j in jobs.values())
 
     df = pd.read_csv(sweep / "summary.csv")
     assert len(df) == 2 and (df["status"] == "ok").all()
-    assert set(df["gp.kernel"]) == {"rbf", "matern52"}
+    assert set(df["dt"]) == {0.05, 0.1}
     assert df["max_ks_gaussian"].between(0, 1).all() and (df["speedup_gaussian"] > 0).all()
     for phi in (0, 1):
         assert df[f"brier_psi_{phi}"].between(0, 1).all()
