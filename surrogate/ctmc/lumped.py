@@ -21,13 +21,14 @@ Everything is batched over cells: ``(n, R)`` rate constants give ``(n, K, K)`` g
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from surrogate.ctmc.network import ReactionNetwork, make_propensity_fn
+from surrogate.threads import one_thread
 
 __all__ = [
     "StateSpace",
@@ -201,19 +202,10 @@ def stationary_distribution(q: Tensor) -> Tensor:
 LU_MAX_THREADED_SIDE = 128
 
 
-@contextlib.contextmanager
-def _lu_threads(a: Tensor) -> Iterator[None]:
+def _lu_threads(a: Tensor) -> contextlib.AbstractContextManager[None]:
     """One torch thread for a batched CPU LU of matrices larger than
-    :data:`LU_MAX_THREADED_SIDE` (restored after)."""
-    threads = torch.get_num_threads()
-    if a.device.type != "cpu" or a.shape[-1] <= LU_MAX_THREADED_SIDE or threads == 1:
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
+    :data:`LU_MAX_THREADED_SIDE`."""
+    return one_thread(a.device.type == "cpu" and a.shape[-1] > LU_MAX_THREADED_SIDE)
 
 
 def relaxation_time(q: Tensor) -> Tensor:

@@ -35,8 +35,8 @@ semi-discrete solution as dt -> 0, tested) and for kernels without an FFT.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
 
 import torch
 from torch import Tensor
@@ -44,6 +44,7 @@ from torch import Tensor
 from surrogate.errors import ConfigError
 from surrogate.grid.geometry import Grid
 from surrogate.grid.transforms import dct, idct
+from surrogate.threads import one_thread
 
 __all__ = [
     "SOLVERS",
@@ -70,19 +71,10 @@ DENSE_MAX_SIDE = 4096
 SERIAL_VALUES = 2**18
 
 
-@contextmanager
-def serial_below(values: int, device: torch.device) -> Iterator[None]:
+def serial_below(values: int, device: torch.device) -> AbstractContextManager[None]:
     """torch on one CPU thread inside, where ``values`` <= :data:`SERIAL_VALUES` on the CPU
     (small transforms cost less than waking a second thread); the thread count is restored."""
-    threads = torch.get_num_threads()
-    if device.type != "cpu" or values > SERIAL_VALUES or threads == 1:
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
+    return one_thread(device.type == "cpu" and values <= SERIAL_VALUES)
 
 
 def _eigenvalues(grid: Grid, axis: int, length: int, dtype: torch.dtype,
