@@ -517,10 +517,10 @@ def _choose(
             if not shared:
                 # no two bins hold both lumps: the count (nearly) decides phi, as a threshold
                 # on it does, so a flip moves its bin anyway; each lump gets its own bins
+                held, was, now = values[:, train], before[:, train], after[:, train]
                 edges = tuple(
-                    _homogeneous_edges(values[:, train][m], before[:, train][m],
-                                       after[:, train][m], bins, (p,))
-                    for p, m in ((p, before[:, train] == p) for p in (0, 1))
+                    _homogeneous_edges(held[was == p], was[was == p], now[was == p], bins, (p,))
+                    for p in (0, 1)
                 )  # fmt: skip
         cls = _classify(values, before, edges)
         gain = _loglik(before, after, cls, train) - base

@@ -489,27 +489,26 @@ class NetworkInternalModel:
         from the enumerated generator; None when the state space is too large to enumerate."""
         return self._exact_psi if self.state_space is not None else None
 
-    def _by_chunks(self, signal: Tensor, exact: Callable[[Tensor], Tensor]) -> Tensor:
-        """``exact`` over the rows of ``signal`` in chunks whose ``K x K`` generators and their
-        exponentials fit :data:`EXACT_CHUNK_BYTES` (200,000 rows of a 151-state network would
-        ask for 36 GB at once)."""
+    def _by_chunks(self, signal: Tensor, law: Callable[[Tensor], Tensor]) -> Tensor:
+        """``law`` of the generators at the rows of ``signal``, in chunks whose ``K x K``
+        generators and their exponentials fit :data:`EXACT_CHUNK_BYTES` (200,000 rows of a
+        151-state network would ask for 36 GB at once)."""
         space = self.state_space
         assert space is not None
-        k = len(space.states)
-        rows = max(1, EXACT_CHUNK_BYTES // (EXACT_COPIES * 8 * k * k))
-        if signal.shape[0] <= rows:
-            return exact(signal)
-        return torch.cat([exact(part) for part in signal.split(rows)])
+        rows = max(1, EXACT_CHUNK_BYTES // (EXACT_COPIES * 8 * space.n_states**2))
+        parts = [law(self._generator(part, is_signal=True)) for part in signal.split(rows)]
+        return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+    def _state_lumps(self, device: torch.device) -> tuple[Tensor, Tensor]:
+        """The enumerated states on ``device`` and each one's lump (bool)."""
+        space = self.state_space
+        assert space is not None
+        states = space.states.to(device)
+        return states, self._lump(states)
 
     def _exact_psi(self, signal: Tensor, dt: float) -> Tensor:
-        space = self.state_space
-        assert space is not None
-
-        def exact(part: Tensor) -> Tensor:
-            q = self._generator(part, is_signal=True)
-            return lumped_psi(q, self._lump(space.states.to(q.device)), dt)
-
-        return self._by_chunks(signal, exact)
+        _, lump = self._state_lumps(signal.device)
+        return self._by_chunks(signal, lambda q: lumped_psi(q, lump, dt))
 
     @property
     def exact_age_psi(self) -> Callable[[Tensor, float, int], Tensor] | None:
@@ -520,14 +519,8 @@ class NetworkInternalModel:
         return self._exact_age_psi if self.state_space is not None else None
 
     def _exact_age_psi(self, signal: Tensor, dt: float, max_steps: int) -> Tensor:
-        space = self.state_space
-        assert space is not None
-
-        def exact(part: Tensor) -> Tensor:
-            q = self._generator(part, is_signal=True)
-            return lumped_age_psi(q, self._lump(space.states.to(q.device)), dt, max_steps)
-
-        return self._by_chunks(signal, exact)
+        _, lump = self._state_lumps(signal.device)
+        return self._by_chunks(signal, lambda q: lumped_age_psi(q, lump, dt, max_steps))
 
     @property
     def exact_class_step(self) -> Callable[[Tensor, float], Tensor] | None:
@@ -539,17 +532,11 @@ class NetworkInternalModel:
         return self._exact_class_step
 
     def _exact_class_step(self, signal: Tensor, dt: float) -> Tensor:
-        space = self.state_space
-        assert space is not None and self._classify is not None
-        classify = self._classify
-
-        def exact(part: Tensor) -> Tensor:
-            q = self._generator(part, is_signal=True)
-            states = space.states.to(q.device)
-            classes = classify(states, self._lump(states).long())
-            return lumped_class_step(q, classes, len(self.class_names or ()), dt)
-
-        return self._by_chunks(signal, exact)
+        assert self._classify is not None
+        states, lump = self._state_lumps(signal.device)
+        classes = self._classify(states, lump.long())
+        n_classes = len(self.class_names or ())
+        return self._by_chunks(signal, lambda q: lumped_class_step(q, classes, n_classes, dt))
 
     def generator(self, x: Tensor) -> Tensor:
         """Generators ``n x K x K`` (float64) of the enumerated state space at inputs ``x``

@@ -347,21 +347,23 @@ def max_hours(cfg: Mapping[str, Any]) -> float:
     return float(value)
 
 
-def check(cfg: Mapping[str, Any], works: Sequence[Work], stage: str) -> float:
+def check(cfg: Mapping[str, Any], works: Sequence[Work], stage: str, basis: str = "") -> float:
     """Log the estimated cost of ``works``; warn past :data:`WARN_SECONDS`; refuse past
-    ``max_hours``, naming the settings of the costliest work. Returns the estimate (s)."""
+    ``max_hours``, naming the settings of the costliest work (``basis``: what it is priced at,
+    as in :func:`log_estimate`). Returns the estimate (s)."""
     limit = max_hours(cfg)
     total = sum(w.seconds for w in works)
     if not works:
         return 0.0
     worst = max(works, key=lambda w: w.seconds)
     if not math.isfinite(total) or total > limit * 3600:
+        at = f" {basis}" if basis else ""
         raise ConfigError(
-            f"{stage}: the simulations this asks for would take ~{duration(total)} (the "
+            f"{stage}: the simulations this asks for would take ~{duration(total)}{at} (the "
             f"costliest, {worst.describe()}: ~{duration(worst.seconds)}), above max_hours="
             f"{limit:g}. Lower those settings, or raise max_hours to run it anyway"
         )
-    return log_estimate(works, stage)
+    return log_estimate(works, stage, basis)
 
 
 def log_estimate(works: Sequence[Work], stage: str, basis: str = "") -> float:

@@ -9,7 +9,7 @@ Before its first simulation a network burned in from the SBML file's counts is p
 the rate it reached, instead of burning in its cells for hours with no output. Where it
 passes, the collection's estimate is logged again at the events per window it measured after
 the burn-in (:func:`measured_cost`), beside the one at the file's counts that ``validate``
-checked: only the log changes, not the collection.
+checked, and refused past ``max_hours`` as that one is; the collection itself is unchanged.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
     setup, c, job = settings.setup, settings.options, settings.job
     # a runaway network refused in seconds, before any burn-in; else the estimate at its rate
-    measured_cost(settings, cost_probe(settings), budget.max_hours(config or {}))
+    measured_cost(settings, cost_probe(settings), config or {})
     seed_everything(setup.seed)
     model = setup.model
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
@@ -176,15 +176,15 @@ class MeasuredCost:
 def measured_cost(
     settings: CollectSettings,
     measured: Mapping[str, Any] | None,
-    max_hours: float | None = None,
+    cfg: Mapping[str, Any] | None = None,
 ) -> MeasuredCost | None:
     """Log collect's estimate (:func:`~surrogate.stages.budget.collect_work`: the windows and
     the burn-in) at the events per window its cost probe ``measured`` after the burn-in,
     instead of at the file's counts, naming both figures (a warning past
     :data:`~surrogate.stages.budget.WARN_SECONDS`); where the probe ran out of budget before
     the end of the burn-in (a steady rate: a growing one is refused), at the rate it reached,
-    and saying so. Past ``max_hours`` (``validate`` checked the file's counts' estimate against
-    it) it is refused, with both figures. Returns it; ``None`` where nothing was measured (the
+    and saying so. With the stage's ``cfg``, past its ``max_hours`` (``validate`` checked the
+    file's counts' estimate against it) it is refused, with both figures. Returns it; ``None`` where nothing was measured (the
     probe off, or no network of its kind), the estimate at the file's counts then standing
     alone."""
     setup = settings.setup
@@ -211,14 +211,8 @@ def measured_cost(
               f"collect.probe_seconds={float(measured['budget_s']):g} ran out")  # fmt: skip
     basis = (f"{at} ({_events(events)} per window per cell; the file's counts: "
              f"{_events(file_events)}, ~{budget.duration(file_seconds)})")  # fmt: skip
-    seconds = sum(w.seconds for w in works)
-    if max_hours is not None and seconds > max_hours * 3600:
-        raise ConfigError(
-            f"collect: this collection would take ~{budget.duration(seconds)} {basis}, above "
-            f"max_hours={max_hours:g}. Lower collect.n_per_state or collect.n_cells (or the "
-            f"burn-in), or raise max_hours to run it anyway"
-        )
-    budget.log_estimate(works, "collect", basis)
+    seconds = (budget.log_estimate(works, "collect", basis) if cfg is None
+               else budget.check(cfg, works, "collect", basis))  # fmt: skip
     return MeasuredCost(seconds, file_seconds, events, file_events, cell_step,
                         bool(measured["completed"]), reached, horizon)  # fmt: skip
 

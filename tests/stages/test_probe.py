@@ -158,7 +158,7 @@ def test_collect_prices_its_windows_at_the_rate_measured_after_the_burn_in(
     limit = 0.5 * estimate.seconds / 3600
     assert estimate.file_seconds < limit * 3600
     with pytest.raises(ConfigError, match=r"above max_hours=.*raise max_hours") as error:
-        collect.measured_cost(settings, collect.cost_probe(settings), limit)
+        collect.measured_cost(settings, collect.cost_probe(settings), {"max_hours": limit})
     assert f"~{budget.duration(estimate.seconds)} {MEASURED} (" in str(error.value)
 
 
