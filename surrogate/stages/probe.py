@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from surrogate.errors import ConfigError
+from surrogate.errors import ConfigError, RunawayError
 from surrogate.models.base import Model
 from surrogate.models.network import NetworkInternalModel
 from surrogate.stages import budget
@@ -142,9 +142,7 @@ def cost_probe(
             step = min(span, horizon - t)
             try:
                 state = network.advance_at(state, inputs, step, max_events=cap)
-            except RuntimeError as error:
-                if "max_events" not in str(error) and "max_rounds" not in str(error):
-                    raise
+            except RunawayError:  # the cap: a window past the budget's events
                 tripped = (cap, step)
                 break
             except (ValueError, ConfigError) as error:
