@@ -31,17 +31,21 @@ model test suite):
   and local parameters. Function definitions are inlined. Assignment rules whose variable is a
   parameter are inlined where the parameter is used (they are functions of the state).
 * A reaction flagged reversible is one propensity only if its law is one-way. The rule, on the
-  law after inlining (functions, rules, local parameters): the *negated parts* of a law are the
-  subtrahend ``b`` of every ``a - b``, the operand of every ``-b``, and every product or
-  quotient with a negated factor or a negative constant factor (``-kr * B``, ``(-2) * B``). The
-  law is a *net rate* (forward minus backward) when some negated part depends on a product
-  species of the reaction (boundary species included), e.g. ``kf * A - kr * B`` with product
-  ``B``, or ``k * A * (1 - B / K)``; it is refused, naming the reaction, its law and the
-  product (write the reaction as two irreversible ones). Otherwise the law is one-way (e.g.
-  ``alpha / (1 + V^beta)``, ``mu * U``, or ``k1 * A - k2 * C`` with ``C`` not a product) and the
-  reaction is read as irreversible, with one :class:`~surrogate.sbml.errors.SbmlWarning`
-  listing every such reaction. A propensity that turns out negative at run time is refused by
-  both simulators (the compiled SSA names the reaction).
+  law after inlining (functions, rules, local parameters): read the law as a signed sum of
+  products (its expansion, never built) through sums, differences, negations, products,
+  quotients, a power's base, min / max, a piecewise's values (its conditions a positive
+  factor) and the functions that keep their argument's sign (sinh, tanh, arcsin, arctan,
+  floor, ceiling); any other function (exp, sqrt, abs, ln, ...), a power's exponent and an
+  even integer power are one positive factor, whatever minus they hold. The law is a *net
+  rate* (forward minus backward) when some negative term depends on a product species of the
+  reaction (boundary species included), e.g. ``kf * A - kr * B`` or ``kf * A + (-kr) * B``
+  with product ``B``, or ``k * A * (1 - B / K)``; it is refused, naming the reaction, its law
+  and the product (write the reaction as two irreversible ones). Otherwise the law is one-way
+  (e.g. ``alpha / (1 + V^beta)``, ``mu * U``, ``kf * A * exp(-B / K)``, ``kf * A * K^(-B)``,
+  or ``k1 * A - k2 * C`` with ``C`` not a product) and the reaction is read as irreversible,
+  with one :class:`~surrogate.sbml.errors.SbmlWarning` listing every such reaction. A
+  propensity that turns out negative at run time is refused by both simulators (the compiled
+  SSA names the reaction).
 * An assignment rule on a species makes its count that function of the others (an amount, or
   a concentration x size), recomputed after every reaction and event and at every window's
   start; wherever the species is used, the rule's formula is inlined. Its initial value is
@@ -1009,32 +1013,109 @@ def _listing(names: Sequence[str], limit: int = 20) -> str:
     return f"{list(names[:limit])} and {len(names) - limit} more"
 
 
-def _negated_parts(expr: Expr) -> Iterable[Expr]:
-    """The subterms of ``expr`` that enter it with a minus sign: the subtrahend of ``a - b``,
-    the operand of ``-b``, and a whole product or quotient one of whose factors is negated
-    (``-k * B``) or a negative constant (``(-2) * B``)."""
-    if expr.op == "minus":
-        yield expr.args[1]
-    elif expr.op == "negate":
-        yield expr.args[0]
-    elif expr.op in ("times", "divide") and any(
-        a.op == "negate" or (a.is_const and a.kind == "real" and a.value < 0) for a in expr.args
-    ):
-        yield expr
-    for arg in expr.args:
-        yield from _negated_parts(arg)
+@dataclass(frozen=True)
+class _Terms:
+    """A law read as a signed sum of products (its expansion, not built): whether some term is
+    positive / negative, and the species (by column) found in positive / negative terms."""
+
+    positive: bool
+    negative: bool
+    in_positive: frozenset[int] = frozenset()
+    in_negative: frozenset[int] = frozenset()
+
+    def flipped(self) -> _Terms:
+        return _Terms(self.negative, self.positive, self.in_negative, self.in_positive)
+
+    def __add__(self, other: _Terms) -> _Terms:
+        return _Terms(
+            self.positive or other.positive,
+            self.negative or other.negative,
+            self.in_positive | other.in_positive,
+            self.in_negative | other.in_negative,
+        )
+
+    def __mul__(self, other: _Terms) -> _Terms:
+        # a term of the product is one term of each factor: negative where their signs differ
+        a, b = self, other
+        in_positive: frozenset[int] = frozenset()
+        in_negative: frozenset[int] = frozenset()
+        for mine, theirs in ((a, b), (b, a)):
+            if theirs.positive:
+                in_positive |= mine.in_positive
+                in_negative |= mine.in_negative
+            if theirs.negative:
+                in_positive |= mine.in_negative
+                in_negative |= mine.in_positive
+        return _Terms(
+            (a.positive and b.positive) or (a.negative and b.negative),
+            (a.positive and b.negative) or (a.negative and b.positive),
+            in_positive,
+            in_negative,
+        )
+
+
+#: functions whose sign is their argument's (the argument's terms are the value's terms)
+_SIGN_OF_ARGUMENT = frozenset({"sinh", "tanh", "arcsin", "arctan", "floor", "ceiling"})
+
+
+def _positive_factor(expr: Expr) -> _Terms:
+    """A factor read as one positive term holding every species it reads (a function's value,
+    a power's exponent): a minus inside it subtracts no term from the law."""
+    return _Terms(True, False, frozenset(n.index for n in _leaves(expr) if n.op == "species"))
+
+
+def _terms(expr: Expr) -> _Terms:
+    """The signed terms of ``expr`` (see :class:`_Terms` and the module docstring): through
+    sums, differences, negations, products, quotients, a power's base, min / max, the values
+    of a piecewise (its conditions a positive factor) and sign-keeping functions; every other
+    function (``exp``, ``sqrt``, ``abs``, ``ln``, ...) and a power's exponent is a positive
+    factor, and so is an even integer power."""
+    op, args = expr.op, expr.args
+    if op == "const":
+        return _Terms(not expr.value < 0, expr.value < 0)
+    if op == "species":
+        return _Terms(True, False, frozenset({expr.index}))
+    if op in ("input", "time"):
+        return _Terms(True, False)
+    if op in ("plus", "min", "max"):
+        out = _terms(args[0])
+        for arg in args[1:]:
+            out = out + _terms(arg)
+        return out
+    if op == "minus":
+        return _terms(args[0]) + _terms(args[1]).flipped()
+    if op == "negate":
+        return _terms(args[0]).flipped()
+    if op in ("times", "divide"):  # 1 / b has the sign of b
+        out = _terms(args[0])
+        for arg in args[1:]:
+            out = out * _terms(arg)
+        return out
+    if op == "power":
+        base, exponent = args
+        if exponent.is_const and float(exponent.value) % 2 == 0:
+            return _positive_factor(expr)
+        return _terms(base) * _positive_factor(exponent)
+    if op in _SIGN_OF_ARGUMENT:
+        return _terms(args[0])
+    if op == "piecewise":
+        values = [*args[0:-1:2], *([args[-1]] if len(args) % 2 else [])]
+        conditions = args[1::2]
+        out = _terms(values[0])
+        for value in values[1:]:
+            out = out + _terms(value)
+        for condition in conditions:
+            out = out * _positive_factor(condition)
+        return out
+    return _positive_factor(expr)
 
 
 def _net_rate_products(expr: Expr, products: set[int]) -> list[str]:
-    """The products (by name) that some negated part of a reversible reaction's law depends on:
-    a non-empty list marks the law a net rate (forward minus backward). See the module
+    """The products (by name) that some negative term of a reversible reaction's law depends
+    on: a non-empty list marks the law a net rate (forward minus backward). See the module
     docstring."""
-    names: dict[int, str] = {}
-    for part in _negated_parts(expr):
-        for node in _leaves(part):
-            if node.op == "species" and node.index in products:
-                names[node.index] = repr(node.name)
-    return [names[i] for i in sorted(names)]
+    names = {n.index: repr(n.name) for n in _leaves(expr) if n.op == "species"}
+    return [names[i] for i in sorted(_terms(expr).in_negative & products)]
 
 
 def _names(node: libsbml.ASTNode) -> set[str]:

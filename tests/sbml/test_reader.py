@@ -457,7 +457,7 @@ def test_an_input_that_names_no_parameter_lists_what_exists():
 # reactions flagged reversible (issue 37)
 
 
-def flagged(*laws: str) -> str:
+def flagged(*laws: str, level: int = 3, version: int = 1) -> str:
     """One reaction A -> B flagged reversible per law (R1, R2, ...), plus a species C that is
     neither reactant nor product."""
     return simple(
@@ -467,6 +467,8 @@ def flagged(*laws: str) -> str:
         ],
         species=[Species("A", amount=5), Species("B", amount=3), Species("C", amount=1)],
         parameters={"kf": 2.0, "kr": 0.5, "K": 10.0},
+        level=level,
+        version=version,
     )
 
 
@@ -507,6 +509,37 @@ def test_a_net_rate_reversible_law_is_refused(law):
     message = refused(flagged(law), "reversible reaction 'R1'", "subtracts a term",
                       "on its product 'B'", "two irreversible reactions")  # fmt: skip
     assert "law '" in message  # the law as written
+
+
+@pytest.mark.parametrize(("level", "version"), [(2, 4), (3, 1)])
+def test_a_minus_that_subtracts_no_term_is_not_a_net_rate(level, version):
+    """Issue 54 (6): a minus inside exp(), in a power's exponent, or in a factor squared makes
+    no negative term (Level 2 flags reactions reversible by default, so such files were
+    refused): read as one-way, with the laws' values; a real net rate is still refused."""
+    laws = ["kf * A * exp(-B / K)", "kf * A * K^(-B)", "kf * A * (1 - B / K)^2",
+            "kf * A * sqrt(K - B)", "(-kf) * (-A) * (B + 1)"]  # fmt: skip
+    with pytest.warns(SbmlWarning, match="5 reactions flagged reversible"):
+        model = read_sbml_string(flagged(*laws, level=level, version=version))
+    a, b, kf, k = 5.0, 3.0, 2.0, 10.0
+    expected = [kf * a * math.exp(-b / k), kf * a * k**-b, kf * a * (1 - b / k) ** 2,
+                kf * a * math.sqrt(k - b), kf * a * (b + 1)]  # fmt: skip
+    got = model.propensities(torch.tensor([[5, 3, 1]]), torch.zeros(0))[0].tolist()
+    assert got == pytest.approx(expected, rel=1e-14)
+    refused(flagged("kf * A - kr * B", level=level, version=version),
+            "reversible reaction 'R1'", "on its product 'B'")  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "law",
+    [
+        "kf * A + piecewise(-kr * B, A > 1, 0)",  # a piecewise's value is a term
+        "kf * A * sinh(1 - B / K)",  # sinh keeps its argument's sign
+        "kf * A * (1 - B / K)^3",  # an odd power keeps its base's sign
+        "kf * A / (K - B)",  # a quotient has its denominator's sign
+    ],
+)
+def test_a_negative_term_through_a_sign_keeping_construct_is_a_net_rate(law):
+    refused(flagged(law), "reversible reaction 'R1'", "on its product 'B'")
 
 
 def test_every_net_rate_law_is_named_at_once():
