@@ -3,9 +3,11 @@
 Reading (the discrete stochastic interpretation of SBML, as in the SBML discrete stochastic
 model test suite):
 
-* Species are molecule counts. A species' initial value is its ``initialAmount``, or
-  ``initialConcentration x compartment size`` (rounded to the nearest integer), or the value of
-  an initial assignment. Substance units must be items (or unset / dimensionless): a model in
+* Species are molecule counts. A species' initial count is the value of its initial
+  assignment (a count, or a concentration x compartment size, as its symbol reads in laws),
+  else its ``initialAmount``, else ``initialConcentration x compartment size``; one that is
+  not a whole number of molecules (within ``WHOLE_TOLERANCE``) is refused, whichever gave it,
+  every such species in one message naming it and its value. Substance units must be items (or unset / dimensionless): a model in
   other units (moles, grams) is refused rather than silently rescaled, every such species in
   one message, unless the caller declares the amounts counts (``substance_units="items"``, the
   yaml's ``substance_units: items``): exporters of stochastic models such as StochSS write
@@ -646,25 +648,35 @@ class _Reader:
 
     def _initial_species_value(self, sp: libsbml.Species) -> float:
         amount = self._initial_amount(sp)
-        if sp.getHasOnlySubstanceUnits():
+        if self._symbol_is_amount(sp):
             return amount
         return amount / self._compartment_size(sp, f"species {sp.getId()!r}")
 
-    def initial_count(self, sp: libsbml.Species) -> int:
-        """Initial molecule count; concentrations x size are rounded to the nearest integer."""
+    def initial_count(self, sp: libsbml.Species) -> tuple[int, str | None]:
+        """``(count, why not)``: the initial molecule count of ``sp`` from what the file gives
+        (an initial assignment, ``initialAmount`` or ``initialConcentration x size``), and
+        ``None``, or ``(0, its source and value)`` where that is not a whole number of
+        molecules (within :data:`~surrogate.ctmc.events.WHOLE_TOLERANCE`, as rules' values)."""
         sid = sp.getId()
         amount = self._initial_amount(sp)
         if not (math.isfinite(amount) and amount >= 0):
             raise SbmlError(
                 f"species {sid!r}: initial amount must be finite and >= 0, got {amount}"
             )
-        if sp.isSetInitialAmount() and sid not in self.initial_assignments:
-            if not float(amount).is_integer():
-                raise SbmlError(
-                    f"species {sid!r}: initialAmount {amount} is not a whole number of molecules"
-                )
-            return int(amount)
-        return round(amount)
+        count, ok = whole_counts(torch.tensor([amount], dtype=torch.float64))
+        if bool(ok):
+            return int(count), None
+        if sid in self.initial_assignments:
+            source = "initial assignment, a count of"
+        elif sp.isSetInitialAmount():
+            source = "initialAmount"
+        else:
+            cid = sp.getCompartment()
+            source = (
+                f"initialConcentration {sp.getInitialConcentration():.10g} x size "
+                f"{self.constant_value(cid, f'species {sid!r}'):.10g} of {cid!r} ="
+            )
+        return 0, f"{sid!r} ({source} {amount:.10g})"
 
     # -- kinetic laws ---------------------------------------------------------------------
 
@@ -834,27 +846,23 @@ class _Reader:
         """``(S,)`` initial counts; a species assigned by a rule takes the rule's value there
         (with ``inputs``, the file's values of the inputs; left 0 where one has none: the SSAs
         set it from each cell's inputs at every window's start)."""
-        fractional = [
-            f"{sp.getId()!r} ({sp.getInitialAmount():g})"
-            for sp in self.species
-            if sp.getId() not in self.species_rules
-            and sp.isSetInitialAmount()
-            and sp.getId() not in self.initial_assignments
-            and math.isfinite(sp.getInitialAmount())
-            and not float(sp.getInitialAmount()).is_integer()
-        ]
+        counts: list[int] = []
+        fractional: list[str] = []  # one rule for amounts, concentrations and assignments
+        for sp in self.species:
+            initial, why = (0, None) if sp.getId() in self.species_rules else self.initial_count(sp)
+            counts.append(initial)
+            if why is not None:
+                fractional.append(why)
         if fractional:
             raise SbmlError(
-                f"{self.label}: the initialAmount of species {', '.join(fractional)} "
+                f"{self.label}: the initial value of species {', '.join(fractional)} "
                 f"{'is' if len(fractional) == 1 else 'are'} not a whole number of molecules: "
-                "the stochastic reading needs counts, and these amounts are not (a model "
-                "written for ODEs, in concentrations or moles?). Rescale it to molecule counts "
-                "in the file (amounts, and the rate constants of reactions of order 2 and "
-                "more by the volume), or use a deterministic simulator"
+                "the stochastic reading needs counts, and these are not (a model written for "
+                "ODEs, in concentrations or moles?). Rescale it to molecule counts in the file "
+                "(initial amounts or concentrations x compartment sizes, and the rate "
+                "constants of reactions of order 2 and more by the volume), or use a "
+                "deterministic simulator"
             )
-        counts = [
-            0 if sp.getId() in self.species_rules else self.initial_count(sp) for sp in self.species
-        ]
         for rule in kinetics.rules:
             value = float(rule.expr.evaluate(counts, inputs))
             if math.isnan(value) and rule.expr.inputs_used():

@@ -117,9 +117,11 @@ def test_level2_file_is_read():
     assert model.species == ("X",) and model.reaction_names == ("R1",)
 
 
-def test_initial_concentration_rounds_to_nearest_count():
-    text = simple(species=[Species("X", concentration=1.26, only_substance=False)])
-    assert read_sbml_string(text).initial_state.tolist() == [1]
+def test_an_initial_concentration_giving_a_whole_count_within_rounding_is_read():
+    """0.1 x 30 is 3.0000000000000004 in floats: a whole number of molecules."""
+    text = simple(species=[Species("X", concentration=0.1, only_substance=False)],
+                  compartments={"cell": 30.0})  # fmt: skip
+    assert read_sbml_string(text).initial_state.tolist() == [3]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -628,9 +630,41 @@ def test_fractional_amounts_are_refused_all_at_once_with_the_reason():
     species = [Species("R", amount=0.0095), Species("W", amount=0.008), Species("Z", amount=3)]
     reactions = [Reaction("R1", "k * R", {"R": 1}), Reaction("R2", "k * W", {"W": 1})]
     message = refused(simple(species=species, reactions=reactions),
-                      "<string>: the initialAmount of species 'R' (0.0095), 'W' (0.008) are not "
-                      "a whole number of molecules", "Rescale it to molecule counts")  # fmt: skip
+                      "<string>: the initial value of species 'R' (initialAmount 0.0095), 'W' "
+                      "(initialAmount 0.008) are not a whole number of molecules",
+                      "Rescale it to molecule counts")  # fmt: skip
     assert "'Z'" not in message
+
+
+@pytest.mark.parametrize(("level", "version"), [(2, 4), (3, 1)])
+def test_fractional_initial_concentrations_are_refused_as_fractional_amounts_are(level, version):
+    """Issue 54 (5): 0.4 and 2.6 in a compartment of size 1 were read as [0, 3] without a word,
+    while a fractional initialAmount was refused: both are now refused in one message, each
+    with where its count came from; a whole count (3 x 2) reads."""
+    species = [
+        Species("A", concentration=0.4, only_substance=False),
+        Species("B", concentration=2.6, only_substance=False),
+        Species("C", amount=0.5),
+        Species("D", concentration=3, only_substance=False),
+    ]
+    text = build("m", species, {"k": 1.0}, [Reaction("R1", "k * A", {"A": 1})],
+                 compartments={"cell": 1.0}, level=level, version=version)  # fmt: skip
+    message = refused(text, "the initial value of species 'A' (initialConcentration 0.4 x size "
+                      "1 of 'cell' = 0.4), 'B' (initialConcentration 2.6 x size 1 of 'cell' = "
+                      "2.6), 'C' (initialAmount 0.5) are not a whole number of molecules",
+                      "Rescale it to molecule counts")  # fmt: skip
+    assert "'D'" not in message
+    whole = build("m", species[3:], {"k": 1.0}, [Reaction("R1", "k * D", {"D": 1})],
+                  compartments={"cell": 2.0}, level=level, version=version)  # fmt: skip
+    assert read_sbml_string(whole).initial_state.tolist() == [6]
+
+
+def test_a_fractional_count_from_an_initial_assignment_is_refused():
+    def half(model):
+        model.createInitialAssignment().setSymbol("X")
+        model.getInitialAssignment(0).setMath(parse("k / 4"))
+
+    refused(simple(edit=half), "species 'X' (initial assignment, a count of 0.5) is not a whole")
 
 
 def test_a_stochss_export_with_a_volume_says_how_its_species_read_in_laws():
