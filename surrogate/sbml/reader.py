@@ -18,8 +18,9 @@ model test suite):
   over counts (``rate3 * Y * X * (X - 1) / 2``), as kinetic laws of species without
   ``hasOnlySubstanceUnits`` in a compartment of the model's volume: ``species_in_laws="counts"``
   (the yaml's ``species_in_laws: counts``) reads every species symbol in laws, rules and events
-  as its count; ``"concentrations"`` states SBML's reading. Where the two differ (such a
-  species in a formula, its compartment's size not 1) and the amounts were declared counts
+  as its count, initial assignments included; ``"concentrations"`` states SBML's reading.
+  Where the two differ (such a species read or assigned by a formula, its compartment's size
+  not 1) and the amounts were declared counts
   (``substance_units="items"``, the mark of such an export) without saying which, the file is
   refused naming the species, the compartment and both settings.
 * Boundary-condition and constant species are never changed by reactions.
@@ -506,9 +507,10 @@ class _Reader:
 
     def _check_species_in_laws(self) -> None:
         """With amounts declared counts (``substance_units="items"``, a StochSS export's mark)
-        and ``species_in_laws`` unset, refuse a file whose formulas read a species without
-        ``hasOnlySubstanceUnits`` in a compartment whose size is not 1: there SBML's reading
-        (a concentration) and the exporter's (a count) give different propensities."""
+        and ``species_in_laws`` unset, refuse a file whose formulas (kinetic laws, rules, events,
+        initial assignments) read or assign a species without ``hasOnlySubstanceUnits`` in a
+        compartment whose size is not 1: there SBML's reading (a concentration) and the
+        exporter's (a count) give different propensities or initial counts."""
         if self.substance_units != "items" or self.species_in_laws is not None:
             return
         maths = [
@@ -517,12 +519,15 @@ class _Reader:
             if r.getKineticLaw() is not None and r.getKineticLaw().isSetMath()
         ]
         maths += [r.getMath() for r in self.model.getListOfRules() if r.isSetMath()]
+        maths += [a.getMath() for a in self.initial_assignments.values() if a.isSetMath()]
+        # a species a formula gives the value of reads the same way as one a formula reads
+        used = {*self.initial_assignments, *(r.getVariable() for r in self.model.getListOfRules())}
         for event in self.model.getListOfEvents():
             trigger = event.getTrigger()
             if trigger is not None and trigger.isSetMath():
                 maths.append(trigger.getMath())
             maths += [a.getMath() for a in event.getListOfEventAssignments() if a.isSetMath()]
-        used: set[str] = set()
+            used |= {a.getVariable() for a in event.getListOfEventAssignments()}
         for node in maths:
             used |= _names(node)
         for definition in self.functions.values():  # a species named inside a function
@@ -545,11 +550,12 @@ class _Reader:
             for cid, ids in ambiguous.items()
         )
         raise SbmlError(
-            f"{self.label}: species {where} appear in kinetic laws (or rules, events) without "
+            f"{self.label}: species {where} appear in kinetic laws (or rules, events, initial "
+            "assignments) without "
             "hasOnlySubstanceUnits, so SBML reads each there as its concentration (count / "
             "size), while StochSS and GillesPy2 write their propensities over counts (e.g. "
             "`k * X * (X - 1) / 2`) and export them so: the two readings give different "
-            "propensities. Say which the file means in the model yaml: `species_in_laws: "
+            "propensities (and initial counts). Say which the file means in the model yaml: `species_in_laws: "
             "counts` (a StochSS or GillesPy2 export, as they simulate it) or `species_in_laws: "
             "concentrations` (SBML's reading); or read_sbml(..., species_in_laws=...)"
         )
@@ -611,7 +617,7 @@ class _Reader:
             if name in self.species_index and name not in self.initial_assignments:
                 sp = self.species[self.species_index[name]]
                 amount = self._initial_amount(sp)
-                if sp.getHasOnlySubstanceUnits():
+                if self._symbol_is_amount(sp):
                     return const(amount)
                 return const(amount / self._compartment_size(sp, where))
             return const(self.constant_value(name, where))
@@ -637,7 +643,7 @@ class _Reader:
             value = self._evaluate_constant(
                 self.initial_assignments[sid].getMath(), f"initial assignment of {sid!r}"
             )
-            if sp.getHasOnlySubstanceUnits():
+            if self._symbol_is_amount(sp):  # the symbol's value, as in laws and rules
                 return value
             return value * self._compartment_size(sp, where)
         if sp.isSetInitialAmount():

@@ -711,6 +711,60 @@ def test_species_in_laws_counts_reads_rules_and_events_as_counts():
     assert model.propensities(model.initial_state[None], torch.zeros(0)).tolist() == [[20.0]]
 
 
+@pytest.mark.parametrize(("level", "version"), [(2, 4), (3, 1)])
+def test_species_in_laws_counts_reads_initial_assignments_as_counts(level, version):
+    """Issue 54 (4): under species_in_laws="counts" an initial assignment was read as a
+    concentration (X = n0 = 5 in a compartment of size 10 gave 50 molecules): it is now the
+    count, as in laws and rules, and so is a species an initial assignment reads (Y = 2 X)."""
+
+    def assign(model):
+        model.createInitialAssignment().setSymbol("X")
+        model.getInitialAssignment("X").setMath(parse("n0"))
+        model.createInitialAssignment().setSymbol("Y")
+        model.getInitialAssignment("Y").setMath(parse("2 * X"))
+
+    text = build("ia", [Species("X", amount=0, only_substance=False, compartment="vol"),
+                        Species("Y", amount=0, only_substance=False, compartment="vol")],
+                 {"k": 1.0, "n0": 5.0}, [Reaction("R1", "k * X", {"X": 1})],
+                 compartments={"vol": 10.0}, edit=assign, level=level, version=version)  # fmt: skip
+    assert read_sbml_string(text, species_in_laws="counts").initial_state.tolist() == [5, 10]
+    # SBML's reading: X is the concentration 5 (50 molecules), Y = 2 x 5 = 10 (100 molecules)
+    concentrations = read_sbml_string(text, species_in_laws="concentrations")
+    assert concentrations.initial_state.tolist() == [50, 100]
+
+
+def _assigned_only(model, how: str) -> None:
+    """X is in no formula; a formula assigns it (initial assignment, event) or reads it (an
+    initial assignment of the parameter n)."""
+    if how == "assigned initially":
+        model.createInitialAssignment().setSymbol("X")
+        model.getInitialAssignment("X").setMath(parse("n0"))
+    elif how == "read initially":
+        p = model.createParameter()
+        p.setId("n")
+        p.setConstant(True)
+        model.createInitialAssignment().setSymbol("n")
+        model.getInitialAssignment("n").setMath(parse("2 * X"))
+    else:
+        add_event(model, "Y > 3", (("X", "n0"),))
+
+
+@pytest.mark.parametrize("how", ["assigned initially", "read initially", "assigned by an event"])
+def test_a_species_only_initial_assignments_or_events_use_is_asked_about(how):
+    """Issue 54 (4): with the amounts declared counts and species_in_laws unset, a species in
+    a compartment of size 10 that only an initial assignment or an event uses (the laws read
+    only Y, of size 1) was read silently as SBML does; now the reader asks which is meant."""
+    text = build("ia", [Species("X", amount=5, only_substance=False, compartment="vol"),
+                        Species("Y", amount=5, only_substance=False)],
+                 {"k": 1.0, "n0": 5.0},
+                 [Reaction("R1", "k", {"X": 1}), Reaction("R2", "k * Y", {"Y": 1})],
+                 compartments={"vol": 10.0, "cell": 1.0},
+                 edit=lambda model: _assigned_only(model, how))  # fmt: skip
+    with pytest.raises(SbmlError, match="species 'X' in compartment 'vol' of size 10 appear"):
+        read_sbml_string(text, substance_units="items")
+    read_sbml_string(text, substance_units="items", species_in_laws="counts")
+
+
 # ----------------------------------------------------------------------------------------------
 # libsbml's errors, all of them (issue 37)
 
