@@ -3,9 +3,11 @@
 Reading (the discrete stochastic interpretation of SBML, as in the SBML discrete stochastic
 model test suite):
 
-* Species are molecule counts. A species' initial value is its ``initialAmount``, or
-  ``initialConcentration x compartment size`` (rounded to the nearest integer), or the value of
-  an initial assignment. Substance units must be items (or unset / dimensionless): a model in
+* Species are molecule counts. A species' initial count is the value of its initial
+  assignment (a count, or a concentration x compartment size, as its symbol reads in laws),
+  else its ``initialAmount``, else ``initialConcentration x compartment size``; one that is
+  not a whole number of molecules (within ``WHOLE_TOLERANCE``) is refused, whichever gave it,
+  every such species in one message naming it and its value. Substance units must be items (or unset / dimensionless): a model in
   other units (moles, grams) is refused rather than silently rescaled, every such species in
   one message, unless the caller declares the amounts counts (``substance_units="items"``, the
   yaml's ``substance_units: items``): exporters of stochastic models such as StochSS write
@@ -16,8 +18,9 @@ model test suite):
   over counts (``rate3 * Y * X * (X - 1) / 2``), as kinetic laws of species without
   ``hasOnlySubstanceUnits`` in a compartment of the model's volume: ``species_in_laws="counts"``
   (the yaml's ``species_in_laws: counts``) reads every species symbol in laws, rules and events
-  as its count; ``"concentrations"`` states SBML's reading. Where the two differ (such a
-  species in a formula, its compartment's size not 1) and the amounts were declared counts
+  as its count, initial assignments included; ``"concentrations"`` states SBML's reading.
+  Where the two differ (such a species read or assigned by a formula, its compartment's size
+  not 1) and the amounts were declared counts
   (``substance_units="items"``, the mark of such an export) without saying which, the file is
   refused naming the species, the compartment and both settings.
 * Boundary-condition and constant species are never changed by reactions.
@@ -31,17 +34,21 @@ model test suite):
   and local parameters. Function definitions are inlined. Assignment rules whose variable is a
   parameter are inlined where the parameter is used (they are functions of the state).
 * A reaction flagged reversible is one propensity only if its law is one-way. The rule, on the
-  law after inlining (functions, rules, local parameters): the *negated parts* of a law are the
-  subtrahend ``b`` of every ``a - b``, the operand of every ``-b``, and every product or
-  quotient with a negated factor or a negative constant factor (``-kr * B``, ``(-2) * B``). The
-  law is a *net rate* (forward minus backward) when some negated part depends on a product
-  species of the reaction (boundary species included), e.g. ``kf * A - kr * B`` with product
-  ``B``, or ``k * A * (1 - B / K)``; it is refused, naming the reaction, its law and the
-  product (write the reaction as two irreversible ones). Otherwise the law is one-way (e.g.
-  ``alpha / (1 + V^beta)``, ``mu * U``, or ``k1 * A - k2 * C`` with ``C`` not a product) and the
-  reaction is read as irreversible, with one :class:`~surrogate.sbml.errors.SbmlWarning`
-  listing every such reaction. A propensity that turns out negative at run time is refused by
-  both simulators (the compiled SSA names the reaction).
+  law after inlining (functions, rules, local parameters): read the law as a signed sum of
+  products (its expansion, never built) through sums, differences, negations, products,
+  quotients, a power's base, min / max, a piecewise's values (its conditions a positive
+  factor) and the functions that keep their argument's sign (sinh, tanh, arcsin, arctan,
+  floor, ceiling); any other function (exp, sqrt, abs, ln, ...), a power's exponent and an
+  even integer power are one positive factor, whatever minus they hold. The law is a *net
+  rate* (forward minus backward) when some negative term depends on a product species of the
+  reaction (boundary species included), e.g. ``kf * A - kr * B`` or ``kf * A + (-kr) * B``
+  with product ``B``, or ``k * A * (1 - B / K)``; it is refused, naming the reaction, its law
+  and the product (write the reaction as two irreversible ones). Otherwise the law is one-way
+  (e.g. ``alpha / (1 + V^beta)``, ``mu * U``, ``kf * A * exp(-B / K)``, ``kf * A * K^(-B)``,
+  or ``k1 * A - k2 * C`` with ``C`` not a product) and the reaction is read as irreversible,
+  with one :class:`~surrogate.sbml.errors.SbmlWarning` listing every such reaction. A
+  propensity that turns out negative at run time is refused by both simulators (the compiled
+  SSA names the reaction).
 * An assignment rule on a species makes its count that function of the others (an amount, or
   a concentration x size), recomputed after every reaction and event and at every window's
   start; wherever the species is used, the rule's formula is inlined. Its initial value is
@@ -500,9 +507,10 @@ class _Reader:
 
     def _check_species_in_laws(self) -> None:
         """With amounts declared counts (``substance_units="items"``, a StochSS export's mark)
-        and ``species_in_laws`` unset, refuse a file whose formulas read a species without
-        ``hasOnlySubstanceUnits`` in a compartment whose size is not 1: there SBML's reading
-        (a concentration) and the exporter's (a count) give different propensities."""
+        and ``species_in_laws`` unset, refuse a file whose formulas (kinetic laws, rules, events,
+        initial assignments) read or assign a species without ``hasOnlySubstanceUnits`` in a
+        compartment whose size is not 1: there SBML's reading (a concentration) and the
+        exporter's (a count) give different propensities or initial counts."""
         if self.substance_units != "items" or self.species_in_laws is not None:
             return
         maths = [
@@ -511,12 +519,15 @@ class _Reader:
             if r.getKineticLaw() is not None and r.getKineticLaw().isSetMath()
         ]
         maths += [r.getMath() for r in self.model.getListOfRules() if r.isSetMath()]
+        maths += [a.getMath() for a in self.initial_assignments.values() if a.isSetMath()]
+        # a species a formula gives the value of reads the same way as one a formula reads
+        used = {*self.initial_assignments, *(r.getVariable() for r in self.model.getListOfRules())}
         for event in self.model.getListOfEvents():
             trigger = event.getTrigger()
             if trigger is not None and trigger.isSetMath():
                 maths.append(trigger.getMath())
             maths += [a.getMath() for a in event.getListOfEventAssignments() if a.isSetMath()]
-        used: set[str] = set()
+            used |= {a.getVariable() for a in event.getListOfEventAssignments()}
         for node in maths:
             used |= _names(node)
         for definition in self.functions.values():  # a species named inside a function
@@ -539,11 +550,12 @@ class _Reader:
             for cid, ids in ambiguous.items()
         )
         raise SbmlError(
-            f"{self.label}: species {where} appear in kinetic laws (or rules, events) without "
+            f"{self.label}: species {where} appear in kinetic laws (or rules, events, initial "
+            "assignments) without "
             "hasOnlySubstanceUnits, so SBML reads each there as its concentration (count / "
             "size), while StochSS and GillesPy2 write their propensities over counts (e.g. "
             "`k * X * (X - 1) / 2`) and export them so: the two readings give different "
-            "propensities. Say which the file means in the model yaml: `species_in_laws: "
+            "propensities (and initial counts). Say which the file means in the model yaml: `species_in_laws: "
             "counts` (a StochSS or GillesPy2 export, as they simulate it) or `species_in_laws: "
             "concentrations` (SBML's reading); or read_sbml(..., species_in_laws=...)"
         )
@@ -605,7 +617,7 @@ class _Reader:
             if name in self.species_index and name not in self.initial_assignments:
                 sp = self.species[self.species_index[name]]
                 amount = self._initial_amount(sp)
-                if sp.getHasOnlySubstanceUnits():
+                if self._symbol_is_amount(sp):
                     return const(amount)
                 return const(amount / self._compartment_size(sp, where))
             return const(self.constant_value(name, where))
@@ -631,7 +643,7 @@ class _Reader:
             value = self._evaluate_constant(
                 self.initial_assignments[sid].getMath(), f"initial assignment of {sid!r}"
             )
-            if sp.getHasOnlySubstanceUnits():
+            if self._symbol_is_amount(sp):  # the symbol's value, as in laws and rules
                 return value
             return value * self._compartment_size(sp, where)
         if sp.isSetInitialAmount():
@@ -642,25 +654,35 @@ class _Reader:
 
     def _initial_species_value(self, sp: libsbml.Species) -> float:
         amount = self._initial_amount(sp)
-        if sp.getHasOnlySubstanceUnits():
+        if self._symbol_is_amount(sp):
             return amount
         return amount / self._compartment_size(sp, f"species {sp.getId()!r}")
 
-    def initial_count(self, sp: libsbml.Species) -> int:
-        """Initial molecule count; concentrations x size are rounded to the nearest integer."""
+    def initial_count(self, sp: libsbml.Species) -> tuple[int, str | None]:
+        """``(count, why not)``: the initial molecule count of ``sp`` from what the file gives
+        (an initial assignment, ``initialAmount`` or ``initialConcentration x size``), and
+        ``None``, or ``(0, its source and value)`` where that is not a whole number of
+        molecules (within :data:`~surrogate.ctmc.events.WHOLE_TOLERANCE`, as rules' values)."""
         sid = sp.getId()
         amount = self._initial_amount(sp)
         if not (math.isfinite(amount) and amount >= 0):
             raise SbmlError(
                 f"species {sid!r}: initial amount must be finite and >= 0, got {amount}"
             )
-        if sp.isSetInitialAmount() and sid not in self.initial_assignments:
-            if not float(amount).is_integer():
-                raise SbmlError(
-                    f"species {sid!r}: initialAmount {amount} is not a whole number of molecules"
-                )
-            return int(amount)
-        return round(amount)
+        count, ok = whole_counts(torch.tensor([amount], dtype=torch.float64))
+        if bool(ok):
+            return int(count), None
+        if sid in self.initial_assignments:
+            source = "initial assignment, a count of"
+        elif sp.isSetInitialAmount():
+            source = "initialAmount"
+        else:
+            cid = sp.getCompartment()
+            source = (
+                f"initialConcentration {sp.getInitialConcentration():.10g} x size "
+                f"{self.constant_value(cid, f'species {sid!r}'):.10g} of {cid!r} ="
+            )
+        return 0, f"{sid!r} ({source} {amount:.10g})"
 
     # -- kinetic laws ---------------------------------------------------------------------
 
@@ -830,27 +852,23 @@ class _Reader:
         """``(S,)`` initial counts; a species assigned by a rule takes the rule's value there
         (with ``inputs``, the file's values of the inputs; left 0 where one has none: the SSAs
         set it from each cell's inputs at every window's start)."""
-        fractional = [
-            f"{sp.getId()!r} ({sp.getInitialAmount():g})"
-            for sp in self.species
-            if sp.getId() not in self.species_rules
-            and sp.isSetInitialAmount()
-            and sp.getId() not in self.initial_assignments
-            and math.isfinite(sp.getInitialAmount())
-            and not float(sp.getInitialAmount()).is_integer()
-        ]
+        counts: list[int] = []
+        fractional: list[str] = []  # one rule for amounts, concentrations and assignments
+        for sp in self.species:
+            initial, why = (0, None) if sp.getId() in self.species_rules else self.initial_count(sp)
+            counts.append(initial)
+            if why is not None:
+                fractional.append(why)
         if fractional:
             raise SbmlError(
-                f"{self.label}: the initialAmount of species {', '.join(fractional)} "
+                f"{self.label}: the initial value of species {', '.join(fractional)} "
                 f"{'is' if len(fractional) == 1 else 'are'} not a whole number of molecules: "
-                "the stochastic reading needs counts, and these amounts are not (a model "
-                "written for ODEs, in concentrations or moles?). Rescale it to molecule counts "
-                "in the file (amounts, and the rate constants of reactions of order 2 and "
-                "more by the volume), or use a deterministic simulator"
+                "the stochastic reading needs counts, and these are not (a model written for "
+                "ODEs, in concentrations or moles?). Rescale it to molecule counts in the file "
+                "(initial amounts or concentrations x compartment sizes, and the rate "
+                "constants of reactions of order 2 and more by the volume), or use a "
+                "deterministic simulator"
             )
-        counts = [
-            0 if sp.getId() in self.species_rules else self.initial_count(sp) for sp in self.species
-        ]
         for rule in kinetics.rules:
             value = float(rule.expr.evaluate(counts, inputs))
             if math.isnan(value) and rule.expr.inputs_used():
@@ -1009,32 +1027,109 @@ def _listing(names: Sequence[str], limit: int = 20) -> str:
     return f"{list(names[:limit])} and {len(names) - limit} more"
 
 
-def _negated_parts(expr: Expr) -> Iterable[Expr]:
-    """The subterms of ``expr`` that enter it with a minus sign: the subtrahend of ``a - b``,
-    the operand of ``-b``, and a whole product or quotient one of whose factors is negated
-    (``-k * B``) or a negative constant (``(-2) * B``)."""
-    if expr.op == "minus":
-        yield expr.args[1]
-    elif expr.op == "negate":
-        yield expr.args[0]
-    elif expr.op in ("times", "divide") and any(
-        a.op == "negate" or (a.is_const and a.kind == "real" and a.value < 0) for a in expr.args
-    ):
-        yield expr
-    for arg in expr.args:
-        yield from _negated_parts(arg)
+@dataclass(frozen=True)
+class _Terms:
+    """A law read as a signed sum of products (its expansion, not built): whether some term is
+    positive / negative, and the species (by column) found in positive / negative terms."""
+
+    positive: bool
+    negative: bool
+    in_positive: frozenset[int] = frozenset()
+    in_negative: frozenset[int] = frozenset()
+
+    def flipped(self) -> _Terms:
+        return _Terms(self.negative, self.positive, self.in_negative, self.in_positive)
+
+    def __add__(self, other: _Terms) -> _Terms:
+        return _Terms(
+            self.positive or other.positive,
+            self.negative or other.negative,
+            self.in_positive | other.in_positive,
+            self.in_negative | other.in_negative,
+        )
+
+    def __mul__(self, other: _Terms) -> _Terms:
+        # a term of the product is one term of each factor: negative where their signs differ
+        a, b = self, other
+        in_positive: frozenset[int] = frozenset()
+        in_negative: frozenset[int] = frozenset()
+        for mine, theirs in ((a, b), (b, a)):
+            if theirs.positive:
+                in_positive |= mine.in_positive
+                in_negative |= mine.in_negative
+            if theirs.negative:
+                in_positive |= mine.in_negative
+                in_negative |= mine.in_positive
+        return _Terms(
+            (a.positive and b.positive) or (a.negative and b.negative),
+            (a.positive and b.negative) or (a.negative and b.positive),
+            in_positive,
+            in_negative,
+        )
+
+
+#: functions whose sign is their argument's (the argument's terms are the value's terms)
+_SIGN_OF_ARGUMENT = frozenset({"sinh", "tanh", "arcsin", "arctan", "floor", "ceiling"})
+
+
+def _positive_factor(expr: Expr) -> _Terms:
+    """A factor read as one positive term holding every species it reads (a function's value,
+    a power's exponent): a minus inside it subtracts no term from the law."""
+    return _Terms(True, False, frozenset(n.index for n in _leaves(expr) if n.op == "species"))
+
+
+def _terms(expr: Expr) -> _Terms:
+    """The signed terms of ``expr`` (see :class:`_Terms` and the module docstring): through
+    sums, differences, negations, products, quotients, a power's base, min / max, the values
+    of a piecewise (its conditions a positive factor) and sign-keeping functions; every other
+    function (``exp``, ``sqrt``, ``abs``, ``ln``, ...) and a power's exponent is a positive
+    factor, and so is an even integer power."""
+    op, args = expr.op, expr.args
+    if op == "const":
+        return _Terms(not expr.value < 0, expr.value < 0)
+    if op == "species":
+        return _Terms(True, False, frozenset({expr.index}))
+    if op in ("input", "time"):
+        return _Terms(True, False)
+    if op in ("plus", "min", "max"):
+        out = _terms(args[0])
+        for arg in args[1:]:
+            out = out + _terms(arg)
+        return out
+    if op == "minus":
+        return _terms(args[0]) + _terms(args[1]).flipped()
+    if op == "negate":
+        return _terms(args[0]).flipped()
+    if op in ("times", "divide"):  # 1 / b has the sign of b
+        out = _terms(args[0])
+        for arg in args[1:]:
+            out = out * _terms(arg)
+        return out
+    if op == "power":
+        base, exponent = args
+        if exponent.is_const and float(exponent.value) % 2 == 0:
+            return _positive_factor(expr)
+        return _terms(base) * _positive_factor(exponent)
+    if op in _SIGN_OF_ARGUMENT:
+        return _terms(args[0])
+    if op == "piecewise":
+        values = [*args[0:-1:2], *([args[-1]] if len(args) % 2 else [])]
+        conditions = args[1::2]
+        out = _terms(values[0])
+        for value in values[1:]:
+            out = out + _terms(value)
+        for condition in conditions:
+            out = out * _positive_factor(condition)
+        return out
+    return _positive_factor(expr)
 
 
 def _net_rate_products(expr: Expr, products: set[int]) -> list[str]:
-    """The products (by name) that some negated part of a reversible reaction's law depends on:
-    a non-empty list marks the law a net rate (forward minus backward). See the module
+    """The products (by name) that some negative term of a reversible reaction's law depends
+    on: a non-empty list marks the law a net rate (forward minus backward). See the module
     docstring."""
-    names: dict[int, str] = {}
-    for part in _negated_parts(expr):
-        for node in _leaves(part):
-            if node.op == "species" and node.index in products:
-                names[node.index] = repr(node.name)
-    return [names[i] for i in sorted(names)]
+    names = {n.index: repr(n.name) for n in _leaves(expr) if n.op == "species"}
+    return [names[i] for i in sorted(_terms(expr).in_negative & products)]
 
 
 def _names(node: libsbml.ASTNode) -> set[str]:

@@ -117,9 +117,11 @@ def test_level2_file_is_read():
     assert model.species == ("X",) and model.reaction_names == ("R1",)
 
 
-def test_initial_concentration_rounds_to_nearest_count():
-    text = simple(species=[Species("X", concentration=1.26, only_substance=False)])
-    assert read_sbml_string(text).initial_state.tolist() == [1]
+def test_an_initial_concentration_giving_a_whole_count_within_rounding_is_read():
+    """0.1 x 30 is 3.0000000000000004 in floats: a whole number of molecules."""
+    text = simple(species=[Species("X", concentration=0.1, only_substance=False)],
+                  compartments={"cell": 30.0})  # fmt: skip
+    assert read_sbml_string(text).initial_state.tolist() == [3]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -457,7 +459,7 @@ def test_an_input_that_names_no_parameter_lists_what_exists():
 # reactions flagged reversible (issue 37)
 
 
-def flagged(*laws: str) -> str:
+def flagged(*laws: str, level: int = 3, version: int = 1) -> str:
     """One reaction A -> B flagged reversible per law (R1, R2, ...), plus a species C that is
     neither reactant nor product."""
     return simple(
@@ -467,6 +469,8 @@ def flagged(*laws: str) -> str:
         ],
         species=[Species("A", amount=5), Species("B", amount=3), Species("C", amount=1)],
         parameters={"kf": 2.0, "kr": 0.5, "K": 10.0},
+        level=level,
+        version=version,
     )
 
 
@@ -507,6 +511,37 @@ def test_a_net_rate_reversible_law_is_refused(law):
     message = refused(flagged(law), "reversible reaction 'R1'", "subtracts a term",
                       "on its product 'B'", "two irreversible reactions")  # fmt: skip
     assert "law '" in message  # the law as written
+
+
+@pytest.mark.parametrize(("level", "version"), [(2, 4), (3, 1)])
+def test_a_minus_that_subtracts_no_term_is_not_a_net_rate(level, version):
+    """Issue 54 (6): a minus inside exp(), in a power's exponent, or in a factor squared makes
+    no negative term (Level 2 flags reactions reversible by default, so such files were
+    refused): read as one-way, with the laws' values; a real net rate is still refused."""
+    laws = ["kf * A * exp(-B / K)", "kf * A * K^(-B)", "kf * A * (1 - B / K)^2",
+            "kf * A * sqrt(K - B)", "(-kf) * (-A) * (B + 1)"]  # fmt: skip
+    with pytest.warns(SbmlWarning, match="5 reactions flagged reversible"):
+        model = read_sbml_string(flagged(*laws, level=level, version=version))
+    a, b, kf, k = 5.0, 3.0, 2.0, 10.0
+    expected = [kf * a * math.exp(-b / k), kf * a * k**-b, kf * a * (1 - b / k) ** 2,
+                kf * a * math.sqrt(k - b), kf * a * (b + 1)]  # fmt: skip
+    got = model.propensities(torch.tensor([[5, 3, 1]]), torch.zeros(0))[0].tolist()
+    assert got == pytest.approx(expected, rel=1e-14)
+    refused(flagged("kf * A - kr * B", level=level, version=version),
+            "reversible reaction 'R1'", "on its product 'B'")  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "law",
+    [
+        "kf * A + piecewise(-kr * B, A > 1, 0)",  # a piecewise's value is a term
+        "kf * A * sinh(1 - B / K)",  # sinh keeps its argument's sign
+        "kf * A * (1 - B / K)^3",  # an odd power keeps its base's sign
+        "kf * A / (K - B)",  # a quotient has its denominator's sign
+    ],
+)
+def test_a_negative_term_through_a_sign_keeping_construct_is_a_net_rate(law):
+    refused(flagged(law), "reversible reaction 'R1'", "on its product 'B'")
 
 
 def test_every_net_rate_law_is_named_at_once():
@@ -595,9 +630,41 @@ def test_fractional_amounts_are_refused_all_at_once_with_the_reason():
     species = [Species("R", amount=0.0095), Species("W", amount=0.008), Species("Z", amount=3)]
     reactions = [Reaction("R1", "k * R", {"R": 1}), Reaction("R2", "k * W", {"W": 1})]
     message = refused(simple(species=species, reactions=reactions),
-                      "<string>: the initialAmount of species 'R' (0.0095), 'W' (0.008) are not "
-                      "a whole number of molecules", "Rescale it to molecule counts")  # fmt: skip
+                      "<string>: the initial value of species 'R' (initialAmount 0.0095), 'W' "
+                      "(initialAmount 0.008) are not a whole number of molecules",
+                      "Rescale it to molecule counts")  # fmt: skip
     assert "'Z'" not in message
+
+
+@pytest.mark.parametrize(("level", "version"), [(2, 4), (3, 1)])
+def test_fractional_initial_concentrations_are_refused_as_fractional_amounts_are(level, version):
+    """Issue 54 (5): 0.4 and 2.6 in a compartment of size 1 were read as [0, 3] without a word,
+    while a fractional initialAmount was refused: both are now refused in one message, each
+    with where its count came from; a whole count (3 x 2) reads."""
+    species = [
+        Species("A", concentration=0.4, only_substance=False),
+        Species("B", concentration=2.6, only_substance=False),
+        Species("C", amount=0.5),
+        Species("D", concentration=3, only_substance=False),
+    ]
+    text = build("m", species, {"k": 1.0}, [Reaction("R1", "k * A", {"A": 1})],
+                 compartments={"cell": 1.0}, level=level, version=version)  # fmt: skip
+    message = refused(text, "the initial value of species 'A' (initialConcentration 0.4 x size "
+                      "1 of 'cell' = 0.4), 'B' (initialConcentration 2.6 x size 1 of 'cell' = "
+                      "2.6), 'C' (initialAmount 0.5) are not a whole number of molecules",
+                      "Rescale it to molecule counts")  # fmt: skip
+    assert "'D'" not in message
+    whole = build("m", species[3:], {"k": 1.0}, [Reaction("R1", "k * D", {"D": 1})],
+                  compartments={"cell": 2.0}, level=level, version=version)  # fmt: skip
+    assert read_sbml_string(whole).initial_state.tolist() == [6]
+
+
+def test_a_fractional_count_from_an_initial_assignment_is_refused():
+    def half(model):
+        model.createInitialAssignment().setSymbol("X")
+        model.getInitialAssignment(0).setMath(parse("k / 4"))
+
+    refused(simple(edit=half), "species 'X' (initial assignment, a count of 0.5) is not a whole")
 
 
 def test_a_stochss_export_with_a_volume_says_how_its_species_read_in_laws():
@@ -642,6 +709,60 @@ def test_species_in_laws_counts_reads_rules_and_events_as_counts():
     model = read_sbml_string(text, species_in_laws="counts")
     assert model.initial_state.tolist() == [20, 40]
     assert model.propensities(model.initial_state[None], torch.zeros(0)).tolist() == [[20.0]]
+
+
+@pytest.mark.parametrize(("level", "version"), [(2, 4), (3, 1)])
+def test_species_in_laws_counts_reads_initial_assignments_as_counts(level, version):
+    """Issue 54 (4): under species_in_laws="counts" an initial assignment was read as a
+    concentration (X = n0 = 5 in a compartment of size 10 gave 50 molecules): it is now the
+    count, as in laws and rules, and so is a species an initial assignment reads (Y = 2 X)."""
+
+    def assign(model):
+        model.createInitialAssignment().setSymbol("X")
+        model.getInitialAssignment("X").setMath(parse("n0"))
+        model.createInitialAssignment().setSymbol("Y")
+        model.getInitialAssignment("Y").setMath(parse("2 * X"))
+
+    text = build("ia", [Species("X", amount=0, only_substance=False, compartment="vol"),
+                        Species("Y", amount=0, only_substance=False, compartment="vol")],
+                 {"k": 1.0, "n0": 5.0}, [Reaction("R1", "k * X", {"X": 1})],
+                 compartments={"vol": 10.0}, edit=assign, level=level, version=version)  # fmt: skip
+    assert read_sbml_string(text, species_in_laws="counts").initial_state.tolist() == [5, 10]
+    # SBML's reading: X is the concentration 5 (50 molecules), Y = 2 x 5 = 10 (100 molecules)
+    concentrations = read_sbml_string(text, species_in_laws="concentrations")
+    assert concentrations.initial_state.tolist() == [50, 100]
+
+
+def _assigned_only(model, how: str) -> None:
+    """X is in no formula; a formula assigns it (initial assignment, event) or reads it (an
+    initial assignment of the parameter n)."""
+    if how == "assigned initially":
+        model.createInitialAssignment().setSymbol("X")
+        model.getInitialAssignment("X").setMath(parse("n0"))
+    elif how == "read initially":
+        p = model.createParameter()
+        p.setId("n")
+        p.setConstant(True)
+        model.createInitialAssignment().setSymbol("n")
+        model.getInitialAssignment("n").setMath(parse("2 * X"))
+    else:
+        add_event(model, "Y > 3", (("X", "n0"),))
+
+
+@pytest.mark.parametrize("how", ["assigned initially", "read initially", "assigned by an event"])
+def test_a_species_only_initial_assignments_or_events_use_is_asked_about(how):
+    """Issue 54 (4): with the amounts declared counts and species_in_laws unset, a species in
+    a compartment of size 10 that only an initial assignment or an event uses (the laws read
+    only Y, of size 1) was read silently as SBML does; now the reader asks which is meant."""
+    text = build("ia", [Species("X", amount=5, only_substance=False, compartment="vol"),
+                        Species("Y", amount=5, only_substance=False)],
+                 {"k": 1.0, "n0": 5.0},
+                 [Reaction("R1", "k", {"X": 1}), Reaction("R2", "k * Y", {"Y": 1})],
+                 compartments={"vol": 10.0, "cell": 1.0},
+                 edit=lambda model: _assigned_only(model, how))  # fmt: skip
+    with pytest.raises(SbmlError, match="species 'X' in compartment 'vol' of size 10 appear"):
+        read_sbml_string(text, substance_units="items")
+    read_sbml_string(text, substance_units="items", species_in_laws="counts")
 
 
 # ----------------------------------------------------------------------------------------------
