@@ -109,6 +109,7 @@ from surrogate.evaluate.dynamics import (
 from surrogate.gp.class_relaxation import CELLS_PER_BIN, relaxation_cells
 from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
 from surrogate.models.base import Model
+from surrogate.models.count_classes import threshold_of
 from surrogate.models.capabilities import lump_expr_of, lump_formula_of, signal_bounds_of
 from surrogate.models.network import NetworkInternalModel
 from surrogate.sbml import SbmlModel
@@ -1117,21 +1118,7 @@ def balanced_threshold(internal: Any, fixed: FixedInputs) -> dict[str, Any] | No
 def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
     """``(species, edge, upper)`` where the lump is a threshold on one species count: phi = 1
     iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
-    expr = lump_expr_of(internal)
-    if expr is None or expr.op not in ("geq", "gt", "leq", "lt"):
-        return None
-    a, b = expr.args
-    op = expr.op
-    if a.op == "species" and b.is_const:
-        species, c = a, float(b.value)
-    elif b.op == "species" and a.is_const:
-        species, c = b, float(a.value)
-        op = {"geq": "leq", "gt": "lt", "leq": "geq", "lt": "gt"}[op]
-    else:
-        return None
-    edge = {"geq": math.ceil(c), "gt": math.floor(c) + 1, "leq": math.floor(c) + 1,
-            "lt": math.ceil(c)}[op]  # fmt: skip
-    return species.name, int(edge), op in ("geq", "gt")
+    return threshold_of(lump_expr_of(internal))
 
 
 def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
