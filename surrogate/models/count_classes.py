@@ -236,9 +236,7 @@ def threshold_of(expr: Expr | None) -> tuple[str, int, bool] | None:
     return str(species.name), int(edge), op in ("geq", "gt")
 
 
-def impossible_classes(
-    classes: CountClasses, threshold: tuple[str, int, bool] | None
-) -> list[str]:
+def impossible_classes(classes: CountClasses, threshold: tuple[str, int, bool] | None) -> list[str]:
     """The classes no cell can be in: where the lump is a threshold on the classes' own count
     (``threshold``, :func:`threshold_of`), a bin of one lump that holds no count (a
     non-negative integer) on that lump's side of the threshold, e.g. ``low|21<=P<22`` where
@@ -717,11 +715,11 @@ __all__ = [
     "CountClasses",
     "CountClassifier",
     "choose_count_classes",
+    "impossible_classes",
     "is_auto",
     "parse_auto_classes",
-    "impossible_classes",
     "parse_classes",
-    "threshold_of",
     "slow_combinations",
     "spread_inputs",
+    "threshold_of",
 ]

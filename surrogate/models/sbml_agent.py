@@ -72,6 +72,7 @@ from surrogate.models.base import (
     burn_in_seconds,
 )
 from surrogate.models.bodies import LibraryBody, build_body
+from surrogate.models.capabilities import lump_expr_of
 from surrogate.models.count_classes import (
     CountClasses,
     choose_count_classes,
@@ -82,7 +83,6 @@ from surrogate.models.count_classes import (
     spread_inputs,
     threshold_of,
 )
-from surrogate.models.capabilities import lump_expr_of
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
 from surrogate.sbml import SbmlError, read_sbml

@@ -450,9 +450,7 @@ def outcome(failures: Mapping[str, Sequence[str]]) -> int:
     return sum(len(q) for q in failures.values())
 
 
-def applied(
-    before: Mapping[str, Any], now: Mapping[str, Any], overrides: Sequence[str]
-) -> bool:
+def applied(before: Mapping[str, Any], now: Mapping[str, Any], overrides: Sequence[str]) -> bool:
     """Whether the run of config ``now`` applied the remedy ``overrides`` advised to the run
     of config ``before``: every key the remedy changes moved to its value, or (a number)
     at least as far in the same direction (20 times the rows applies a remedy of 4 times)."""
