@@ -1063,13 +1063,13 @@ def collection_budget(
                      if rate > 0 else math.inf)  # fmt: skip
     out["seconds_needed"] = times
     out["max_time"] = float(c["max_time"])
-    needed, eq = max(times), float(c["equilibration_time"])
-    if math.isfinite(needed) and needed > out["max_time"]:
+    longest, eq = max(times), float(c["equilibration_time"])
+    if math.isfinite(longest) and longest > out["max_time"]:
         # either setting alone gives the rows in time: a longer run, or more cells (rows per
         # second grow with the cells)
-        out["max_time_needed"] = _round_up(needed)
+        out["max_time_needed"] = _round_up(longest)
         if out["max_time"] > eq:
-            out["n_cells_needed"] = math.ceil(int(c["n_cells"]) * (needed - eq)
+            out["n_cells_needed"] = math.ceil(int(c["n_cells"]) * (longest - eq)
                                               / (out["max_time"] - eq))  # fmt: skip
     return out
 
