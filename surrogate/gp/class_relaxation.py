@@ -77,8 +77,9 @@ def check_shared_bins(class_bins: Sequence[int] | None, class_lumps: Sequence[in
     if class_bins is None:
         raise ConfigError(
             "gp.class_moves=relaxation needs classes that are bins of one count shared by both "
-            "lumps (the model's class_bins); declare one list of edges for both lumps "
-            "(classes: {expression: ..., edges: [...]})"
+            "lumps (the model's class_bins): one list of edges for both lumps of a count that "
+            "is not the lump's own threshold count (whose bins across the threshold hold one "
+            "lump each), or classes: {auto: {shared: true}}; else gp.class_moves=learned"
         )
     pairs = sorted(zip(class_lumps, class_bins, strict=True))
     n_bins = max(class_bins) + 1

@@ -217,6 +217,46 @@ def parse_classes(
     return classes
 
 
+def threshold_of(expr: Expr | None) -> tuple[str, int, bool] | None:
+    """``(species, edge, upper)`` where a lump expression is a threshold on one species count:
+    phi = 1 iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
+    if expr is None or expr.op not in ("geq", "gt", "leq", "lt"):
+        return None
+    a, b = expr.args
+    op = expr.op
+    if a.op == "species" and b.is_const:
+        species, c = a, float(b.value)
+    elif b.op == "species" and a.is_const:
+        species, c = b, float(a.value)
+        op = {"geq": "leq", "gt": "lt", "leq": "geq", "lt": "gt"}[op]
+    else:
+        return None
+    edge = {"geq": math.ceil(c), "gt": math.floor(c) + 1, "leq": math.floor(c) + 1,
+            "lt": math.ceil(c)}[op]  # fmt: skip
+    return str(species.name), int(edge), op in ("geq", "gt")
+
+
+def impossible_classes(classes: CountClasses, threshold: tuple[str, int, bool] | None) -> list[str]:
+    """The classes no cell can be in: where the lump is a threshold on the classes' own count
+    (``threshold``, :func:`threshold_of`), a bin of one lump that holds no count (a
+    non-negative integer) on that lump's side of the threshold, e.g. ``low|21<=P<22`` where
+    ``low`` is ``P < 21``. No collection can give such a class rows, so its fit fails after
+    the whole collection; refused before it instead."""
+    if threshold is None or classes.variable != threshold[0]:
+        return []
+    _, edge, upper = threshold
+    out = []
+    names = iter(classes.names)
+    for phi in (0, 1):
+        # the lump's counts: [edge, inf) for phi = 1 of an upper threshold, else [0, edge)
+        lo_lump, hi_lump = (edge, math.inf) if (phi == 1) == upper else (0, edge)
+        for lo, hi in itertools.pairwise([-math.inf, *classes.edges[phi], math.inf]):
+            name = next(names)
+            if math.ceil(max(lo, lo_lump, 0)) >= min(hi, hi_lump):
+                out.append(name)
+    return out
+
+
 def is_auto(value: Any) -> bool:
     """Whether a ``classes`` setting asks for a chosen set (``auto`` or ``{auto: ...}``)."""
     return value == "auto" or (isinstance(value, Mapping) and "auto" in value)
@@ -224,12 +264,15 @@ def is_auto(value: Any) -> bool:
 
 def parse_auto_classes(
     value: Any, input_names: Sequence[str]
-) -> tuple[dict[int, tuple[float, float]], int, str]:
-    """``classes: auto`` or ``{auto: {over: {<input>: [lo, hi]}, bins: K}}`` (``auto: {}`` or
-    ``auto: true`` as plain auto) -> (ranges by input index, bins per lump), validated."""
+) -> tuple[dict[int, tuple[float, float]], int, str, bool]:
+    """``classes: auto`` or ``{auto: {over: {<input>: [lo, hi]}, bins: K, shared: true}}``
+    (``auto: {}`` or ``auto: true`` as plain auto) -> (ranges by input index, bins per lump,
+    placement, whether the bins must be shared by both lumps), validated. ``shared: true`` is
+    what ``gp.class_moves=relaxation`` needs: only counts whose bins hold both lumps are
+    candidates (never a threshold lump's own count, whose bins hold one lump each)."""
     where = "model.classes"
     if value == "auto":
-        return {}, AUTO_BINS, AUTO_PLACEMENT
+        return {}, AUTO_BINS, AUTO_PLACEMENT, False
     if set(value) != {"auto"}:
         raise ConfigError(f"{where}: auto takes its options inside it, "
                           f"{{auto: {{over: {{<input>: [lo, hi]}}, bins: K}}}}; got the "
@@ -237,8 +280,14 @@ def parse_auto_classes(
     options = value["auto"]
     if options is True or options is None:
         options = {}
-    options = known_keys(options, ("over", "bins", "placement"), f"{where}.auto",
+    options = known_keys(options, ("over", "bins", "placement", "shared"), f"{where}.auto",
                          shape="a mapping {over: {<input>: [lo, hi]}, bins: K}")  # fmt: skip
+    shared = options.get("shared", False)
+    if not isinstance(shared, bool):
+        raise ConfigError(f"{where}.auto.shared must be true or false, got {shared!r}")
+    if shared and options.get("placement", AUTO_PLACEMENT) != "homogeneous":
+        raise ConfigError(f"{where}.auto.shared needs placement: homogeneous (quantile bins "
+                          f"are each lump's own)")  # fmt: skip
     placement = options.get("placement", AUTO_PLACEMENT)
     if placement not in PLACEMENTS:
         raise ConfigError(f"{where}.auto.placement must be one of {list(PLACEMENTS)}, got "
@@ -264,7 +313,7 @@ def parse_auto_classes(
                               f"(the kinetic input's range the fields give), got "
                               f"{span!r}")  # fmt: skip
         ranges[list(input_names).index(name)] = (float(span[0]), float(span[1]))
-    return ranges, bins, placement
+    return ranges, bins, placement, shared
 
 
 # ----------------------------------------------------------------------------------------------
@@ -282,6 +331,7 @@ def choose_count_classes(
     placement: str = AUTO_PLACEMENT,
     seed: int = 0,
     cache_dir: Path | None = None,
+    shared: bool = False,
 ) -> tuple[CountClasses, dict[str, Any]]:
     """Choose the count and its bins that best carry the memory phi alone forgets (see the
     module docstring); cached on disk.
@@ -297,6 +347,8 @@ def choose_count_classes(
             ``homogeneous`` (bins shared by both lumps over which the chance of leaving each
             lump varies least, :func:`_homogeneous_edges`).
         seed: the simulation's seed.
+        shared: only counts whose bins are shared by both lumps (``gp.class_moves=relaxation``
+            needs them); a ConfigError where none has such bins.
         cache_dir: where the choice is cached (default ``$SURROGATE_CACHE_DIR`` or
             ``~/.cache/surrogate``, under ``classes/``).
 
@@ -313,6 +365,8 @@ def choose_count_classes(
            "inputs": kinetic_inputs.tolist(), "dt": float(dt),
            "cells": cells, "windows": windows, "bins": bins, "seed": seed}  # fmt: skip
     key["placement"] = placement
+    if shared:  # absent otherwise: earlier choices keep their cache key
+        key["shared"] = True
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
     root = cache_dir or _cache_dir()
     path = root / f"{digest}.json"
@@ -329,7 +383,7 @@ def choose_count_classes(
     rows = [names.index(n) for n in fast]
     jittery = {sp for j, sp in enumerate(internal.species) if (stoich[rows, j] != 0).any()}
     classes, report = _choose(counts, phi, internal.species, internal.lump_names, bins, placement,
-                              combinations, jittery)  # fmt: skip
+                              combinations, jittery, shared)  # fmt: skip
     report["fast_reactions"] = fast
     spread = kinetic_inputs.reshape(-1, kinetic_inputs.shape[-1])
     report["sample"] = {"cells": cells, "windows": windows, "dt": dt, "seed": seed,
@@ -487,6 +541,7 @@ def _choose(
     placement: str = AUTO_PLACEMENT,
     combinations: Sequence[tuple[str, np.ndarray]] = (),
     jittery: frozenset[str] | set[str] = frozenset(),
+    shared: bool = False,
 ) -> tuple[CountClasses, dict[str, Any]]:
     n_cells = counts.shape[1]
     # every other cell: with inputs spread over a range (cell i at the i-th value) both halves
@@ -512,9 +567,11 @@ def _choose(
         if placement == "quantiles":
             edges = tuple(_edges(values[:, train][before[:, train] == p], bins) for p in (0, 1))
         else:  # shared: a flip of phi keeps the count's bin (see the module docstring)
-            shared = _homogeneous_edges(values[:, train], before[:, train], after[:, train], bins)
-            edges = (shared, shared)
-            if not shared:
+            both = _homogeneous_edges(values[:, train], before[:, train], after[:, train], bins)
+            edges = (both, both)
+            if not both and shared:  # per-lump bins are what the caller cannot use
+                continue
+            if not both:
                 # no two bins hold both lumps: the count (nearly) decides phi, as a threshold
                 # on it does, so a flip moves its bin anyway; each lump gets its own bins
                 held, was, now = values[:, train], before[:, train], after[:, train]
@@ -528,6 +585,12 @@ def _choose(
         candidates.append({"species": name, "edges": [list(e) for e in edges],
                            "gain_nats_per_window": mean, "se": se,
                            "fast_changed": name in jittery})  # fmt: skip
+    if not candidates and shared:
+        raise ConfigError(
+            "choosing classes (model.classes.auto.shared, what gp.class_moves=relaxation "
+            "needs): no count has bins that hold both lumps (each count decides phi, as a "
+            "threshold on it does); use gp.class_moves=learned with model.classes=auto"
+        )
     if not candidates:
         raise ConfigError("choosing classes: no count changes in the sampled windows")
     best = max(candidates, key=lambda c: c["gain_nats_per_window"])
@@ -652,9 +715,11 @@ __all__ = [
     "CountClasses",
     "CountClassifier",
     "choose_count_classes",
+    "impossible_classes",
     "is_auto",
     "parse_auto_classes",
     "parse_classes",
     "slow_combinations",
     "spread_inputs",
+    "threshold_of",
 ]

@@ -72,13 +72,16 @@ from surrogate.models.base import (
     burn_in_seconds,
 )
 from surrogate.models.bodies import LibraryBody, build_body
+from surrogate.models.capabilities import lump_expr_of
 from surrogate.models.count_classes import (
     CountClasses,
     choose_count_classes,
+    impossible_classes,
     is_auto,
     parse_auto_classes,
     parse_classes,
     spread_inputs,
+    threshold_of,
 )
 from surrogate.models.network import SSA_BACKENDS, NetworkInternalModel
 from surrogate.models.packed import PackedDecision
@@ -185,6 +188,25 @@ class FormulaFeature:
         return {**self.__dict__, "_function": None}
 
 
+def _possible(classes: CountClasses, internal: Any) -> CountClasses:
+    """``classes``, refused (naming them) where some cannot occur
+    (:func:`~surrogate.models.count_classes.impossible_classes`): bins of the lump's own
+    threshold count on the other lump's side of the threshold."""
+    threshold = threshold_of(lump_expr_of(internal))
+    empty = impossible_classes(classes, threshold)
+    if empty:
+        assert threshold is not None  # only a threshold lump has impossible classes
+        species, edge, upper = threshold
+        low, high = internal.lump_names if upper else internal.lump_names[::-1]
+        raise ConfigError(
+            f"model.classes: the class(es) {empty} cannot occur: {low} is {species} < {edge} "
+            f"and {high} is {species} >= {edge}, so no cell is ever in them and no "
+            f"collection can give them rows; give each lump edges on its own side of {edge} "
+            f"(edges: {{{low!r}: [...], {high!r}: [...]}}), or bins of another count"
+        )
+    return classes
+
+
 class SbmlAgentModel(Model):
     """An agent model from a yaml spec and an SBML file (see the module docstring).
 
@@ -282,8 +304,9 @@ class SbmlAgentModel(Model):
         spread over their ranges (its report is kept in :attr:`class_report` and logged)."""
         internal = self.internal
         if not is_auto(value):
-            return parse_classes(value, internal.species, internal.lump_names)
-        ranges, bins, placement = parse_auto_classes(value, internal.kinetics.input_names)
+            return _possible(parse_classes(value, internal.species, internal.lump_names),
+                             internal)  # fmt: skip
+        ranges, bins, placement, shared = parse_auto_classes(value, internal.kinetics.input_names)
         names = internal.kinetics.input_names
         values = [sbml.input_defaults.get(n, math.nan) for n in names]
         unset = [n for j, (n, v) in enumerate(zip(names, values, strict=True))
@@ -298,7 +321,8 @@ class SbmlAgentModel(Model):
         kinetic = (spread_inputs([0.0 if v != v else v for v in values], ranges, cells)
                    if ranges else torch.tensor(values, dtype=torch.float64))  # fmt: skip
         classes, report = choose_count_classes(internal, kinetic, AUTO_CLASSES_DT, cells=cells,
-                                               bins=bins, placement=placement)  # fmt: skip
+                                               bins=bins, placement=placement,
+                                               shared=shared)  # fmt: skip
         self.class_report = report
         if classes.digest() in _LOGGED_CHOICES:  # once per process: models are rebuilt often
             return classes

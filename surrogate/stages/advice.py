@@ -38,7 +38,8 @@ population size; trust it there and check at scale (``scripts/fidelity.py``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -52,6 +53,28 @@ SETTLING_Z = 4.0
 BIAS_Z = 2.0
 
 
+@dataclass(frozen=True)
+class Remedy:
+    """One next step a cause advises.
+
+    Attributes:
+        kind: what it changes, e.g. ``more_rows``, ``longer_clock`` (a remedy that did not
+            help a run of the model is not advised again by kind, whatever its values).
+        text: the step as printed.
+        overrides: the settings it prints, as command-line overrides (checked before it is
+            printed, :mod:`surrogate.stages.advice_check`); empty where it names no value.
+    """
+
+    kind: str
+    text: str
+    overrides: tuple[str, ...] = ()
+
+
+#: checks a remedy's overrides: the refusal's message, or None (:func:`~surrogate.stages.
+#: advice_check.checked` bound to the run's config)
+Check = Callable[[Sequence[str], str], str | None]
+
+
 @dataclass
 class Verdict:
     """The reading of a run's measurements.
@@ -60,11 +83,16 @@ class Verdict:
         trust: no cause applies: within the noise floor at this size.
         causes: each cause that applies: ``(name, what was measured, the next step)``.
         caveats: what to watch where it is trusted, as causes are written.
+        remedies: ``(cause, remedy)`` for every remedy printed.
+        dropped: ``(cause, remedy, why)`` for every remedy not printed: refused by the
+            settings' checks, or tried by a previous run of the model without a gain.
     """
 
     trust: bool
     causes: list[tuple[str, str, str]] = field(default_factory=list)
     caveats: list[tuple[str, str, str]] = field(default_factory=list)
+    remedies: list[tuple[str, Remedy]] = field(default_factory=list)
+    dropped: list[tuple[str, Remedy, str]] = field(default_factory=list)
 
     def markdown(self) -> str:
         """The verdict as report text."""
@@ -84,6 +112,76 @@ class Verdict:
         return "\n".join(lines)
 
 
+class _Advisor:
+    """Keeps the remedies that run and were not tried without a gain; says why of the rest."""
+
+    def __init__(self, check: Check | None, tried: Mapping[str, str] | None) -> None:
+        self.check, self.tried = check, dict(tried or {})
+        self.remedies: list[tuple[str, Remedy]] = []
+        self.dropped: list[tuple[str, Remedy, str]] = []
+
+    def step(self, cause: str, remedies: Sequence[Remedy], sep: str = "; or ",
+             then: str = "") -> str:  # fmt: skip
+        """The printed step of ``cause``: its remedies that pass, joined by ``sep``, then
+        ``then``; a note names each one left out and why."""
+        kept, notes = [], []
+        for r in remedies:
+            why = self.tried.get(r.kind)
+            if why is None and r.overrides and self.check is not None:
+                why = self.check(r.overrides, r.text)
+            if why is None:
+                kept.append(r)
+                self.remedies.append((cause, r))
+            else:
+                self.dropped.append((cause, r, why))
+                notes.append(f"not advised: {' '.join(r.overrides) or r.kind} ({why})")
+        text = sep.join(r.text for r in kept) + then if kept else \
+            "nothing this reading can advise runs or is untried"  # fmt: skip
+        return text + "".join(f" [{n}]" for n in notes)
+
+
+def _more_rows(n_per_state: int | None, text: str = "more transitions ({more})") -> Remedy:
+    """More collected rows: four times ``collect.n_per_state`` where it is known."""
+    if n_per_state:
+        more = f"`collect.n_per_state={4 * n_per_state}`"
+        return Remedy("more_rows", text.format(more=more),
+                      (f"collect.n_per_state={4 * n_per_state}",))  # fmt: skip
+    return Remedy("more_rows", text.format(more="a larger `collect.n_per_state`"))
+
+
+def _missing(value: Any) -> bool:
+    """Whether a measurement is missing or NaN: not measured, never evidence."""
+    return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def unmeasured(
+    diagnostic: Mapping[str, Any] | None,
+    lump_names: Sequence[str],
+    outside: Mapping[str, Mapping[str, Any] | None],
+) -> list[str]:
+    """What the verdict needs and the run did not measure (missing or NaN): the learned psi's
+    diagnostic leaving each lump (its bias; a NaN bias where the reference never left that
+    lump) and each field's outside-training report."""
+    out = []
+    if not diagnostic:
+        out.append("the learned psi's diagnostic (none in train_metrics.json)")
+    else:
+        for p in (0, 1):
+            s = diagnostic.get(f"phi{p}")
+            if not s:
+                out.append(f"the diagnostic leaving {lump_names[p]} (absent)")
+            elif _missing(s.get("rel_bias")):
+                out.append(f"the psi's bias leaving {lump_names[p]} ({s.get('rel_bias')}: e.g. "
+                           f"a reference that never left {lump_names[p]})")  # fmt: skip
+            elif _missing(s.get("settling_z", 0.0)):
+                out.append(f"the settling of the diagnostic leaving {lump_names[p]} (NaN)")
+    for f, r in outside.items():
+        if not r or _missing(r.get("share_outside")):
+            out.append(f"field {f}'s inputs against the training data (no outside-training "
+                       f"report)")  # fmt: skip
+    return out
+
+
 def verdict(
     *,
     diagnostic: Mapping[str, Any] | None,
@@ -97,6 +195,8 @@ def verdict(
     n_per_state: int | None,
     class_shares: Mapping[str, Any] | None = None,
     max_age: float | None = None,
+    check: Check | None = None,
+    tried: Mapping[str, str] | None = None,
 ) -> Verdict:
     """Read the measurements (see the module docstring).
 
@@ -115,9 +215,28 @@ def verdict(
         class_shares: a K-lumps chain's class shares against the full model's
             (``train_metrics.json["class_shares"]``).
         max_age: the switch clock's cap (s) where the chain ran with one (``kind.clock``).
+        check: checks a remedy's overrides before it is printed (``(overrides, text) ->
+            refusal or None``); None: not checked.
+        tried: remedy kinds not to advise again, each with what its last run measured
+            (:func:`tried_remedies`).
+
+    A measurement the verdict needs that is missing or NaN (:func:`unmeasured`) is not
+    evidence: the verdict is then not to trust, naming what was not measured.
     """
+    advisor = _Advisor(check, tried)
     causes: list[tuple[str, str, str]] = []
-    away = {f: r for f, r in outside.items() if r and r["share_outside"] > outside_warning}
+    missing = unmeasured(diagnostic, lump_names, outside)
+    if missing:
+        causes.append((
+            "Not measured",
+            "the verdict needs what this run did not measure: " + "; ".join(missing)
+            + ". A missing or NaN measurement is no evidence that the psi is unbiased or that "
+            "the inputs stayed inside the training data.",
+            "rerun the stages that measure them (`gp.diagnostic` in train, the abstraction's "
+            "runs in simulate) or read the tables alone.",
+        ))  # fmt: skip
+    away = {f: r for f, r in outside.items() if r and (r.get("share_outside") or 0.0)
+            > outside_warning}  # fmt: skip
     if away:
         parts = []
         for f, r in away.items():
@@ -135,14 +254,15 @@ def verdict(
             "wider collection (`model.body.perturbation.radius`, a field with that range).",
         ))  # fmt: skip
     failing = {f: list(q) for f, q in failures.items() if q}
-    thin = _sparse_rows(outside, outside_warning)
+    thin = _sparse_rows(outside, outside_warning, n_per_state, advisor)
     caveats: list[tuple[str, str, str]] = []
     if thin is not None:  # a cause where a comparison fails, else a caveat beside the trust
         (causes if failing else caveats).append(thin)
     d = diagnostic or {}
     scores = {p: d.get(f"phi{p}") for p in (0, 1)}
     settling = [(p, s["settling_z"]) for p, s in scores.items()
-                if s and abs(s.get("settling_z") or 0.0) > SETTLING_Z]  # fmt: skip
+                if s and not _missing(s.get("settling_z"))
+                and abs(s["settling_z"]) > SETTLING_Z]  # fmt: skip
     if settling:
         what = ", ".join(f"leaving {lump_names[p]}: {z:+.1f} standard errors"
                          for p, z in settling)  # fmt: skip
@@ -157,9 +277,10 @@ def verdict(
         ))  # fmt: skip
     biased, noisy = [], []
     for p, s in scores.items():
-        if not s or s.get("rel_bias") is None:
+        if not s or _missing(s.get("rel_bias")):
             continue
         se = s.get("rel_bias_se")
+        se = None if _missing(se) else se
         bias = s["rel_bias"]
         if se is not None and se > tolerance:
             noisy.append(f"leaving {lump_names[p]}: {100 * bias:+.1f} % +- {100 * se:.1f} %")
@@ -169,13 +290,14 @@ def verdict(
             biased.append(f"leaving {lump_names[p]}: {100 * bias:+.1f} % {err}, which predicts "
                           f"{100 * pred:+.1f} % in the mean {lump_names[p]} duration")  # fmt: skip
     if biased:
-        more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
-            "a larger `collect.n_per_state`"  # fmt: skip
+        name = "Biased switching probabilities"
         causes.append((
-            "Biased switching probabilities",
+            name,
             "where the population lives the learned psi is off: " + "; ".join(biased) + ".",
-            f"more transitions ({more}: the bias of a GP fit falls with its data), and "
-            "check `gp.epochs`/`gp.n_inducing` converged (the training history figure).",
+            advisor.step(name, [_more_rows(n_per_state, "more transitions ({more}: the bias "
+                                           "of a GP fit falls with its data)")],
+                         then=", and check `gp.epochs`/`gp.n_inducing` converged (the training "
+                              "history figure)."),
         ))  # fmt: skip
     if noisy:
         causes.append((
@@ -187,35 +309,45 @@ def verdict(
     shares = class_shares or {}
     drift = kind.classes and bool(shares.get("drift"))
     if drift:
-        more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
-            "a larger `collect.n_per_state`"  # fmt: skip
-        step = (f"more transitions per class ({more}) or other classes (`model.classes`)"
-                if kind.relaxation else
-                "`gp.class_moves=relaxation` where the classes are bins of a slow count (the "
-                "learned moves between bins, rare per window and mostly a count jittering "
-                f"across an edge, mix them faster than the count moves), else {more}")  # fmt: skip
+        name = "Class shares drift"
+        more = _more_rows(n_per_state, "more transitions per class ({more})")
+        if kind.relaxation:
+            remedies = [more, Remedy("other_classes", "other classes (`model.classes`)")]
+        else:
+            remedies = [Remedy("relaxation", "`gp.class_moves=relaxation` where the classes "
+                               "are bins of a slow count (the learned moves between bins, rare "
+                               "per window and mostly a count jittering across an edge, mix "
+                               "them faster than the count moves)",
+                               ("gp.class_moves=relaxation",)),
+                        more]  # fmt: skip
         causes.append((
-            "Class shares drift",
+            name,
             f"run as the diagnostic's full-model population was, the chain's classes after "
             f"{shares['t']:g} s are {100 * shares['total_variation']:.1f} % (total variation) "
             f"from the full model's, chi-square p = {shares['p_value']:.2g}: its moves between "
             "classes are off, whatever each class's switching.",
-            step + ".",
+            advisor.step(name, remedies, then="."),
         ))  # fmt: skip
     if failing and not biased and not away and thin is None and not drift:
+        name = "Memory the chain over phi does not hold"
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
-        classes = ("`gp=classes` with `model.classes=auto` (or declared bins of the count "
-                   "that holds the memory)" if network else
-                   "`gp=classes` where the model declares classes")  # fmt: skip
+        classes = (Remedy("classes", "classes finer than phi, `gp=classes` with "
+                          "`++model.classes=auto` (or declared bins of the count that holds "
+                          "the memory)", ("gp=classes", "++model.classes=auto"))
+                   if network else
+                   Remedy("classes", "classes finer than phi, `gp=classes` where the model "
+                          "declares classes", ("gp=classes",)))  # fmt: skip
         if kind.classes:
-            step = ("more classes or other bins (`model.classes`), or more transitions per "
-                    "class (`collect.n_per_state`).")  # fmt: skip
+            step = advisor.step(name, [
+                Remedy("other_classes", "more classes or other bins (`model.classes`)"),
+                _more_rows(n_per_state, "more transitions per class ({more})")], then=".")  # fmt: skip
         elif kind.clock:
-            step = clock_step(max_age, n_per_state, classes)
+            step = advisor.step(name, clock_remedies(max_age, n_per_state, classes), sep=" ")
         else:
-            step = f"classes finer than phi, {classes}, or the switch clock `gp=clock`."
+            step = advisor.step(name, [classes, Remedy("clock", "the switch clock `gp=clock`",
+                                                       ("gp=clock",))], then=".")  # fmt: skip
         causes.append((
-            "Memory the chain over phi does not hold",
+            name,
             f"the runs differ from the full model beyond its noise floor ({what}) while the "
             "learned switching probabilities match the full model's where the population "
             "lives: what phi alone forgets (the network's hidden state) shapes the runs.",
@@ -223,15 +355,21 @@ def verdict(
         ))  # fmt: skip
     if causes:  # not trusted anyway: thin rows are one more thing to mend
         causes, caveats = causes + caveats, []
-    return Verdict(trust=not causes, causes=causes, caveats=caveats)
+    return Verdict(trust=not causes, causes=causes, caveats=caveats,
+                   remedies=advisor.remedies, dropped=advisor.dropped)  # fmt: skip
 
 
 def _sparse_rows(
-    outside: Mapping[str, Mapping[str, Any] | None], outside_warning: float
+    outside: Mapping[str, Mapping[str, Any] | None],
+    outside_warning: float,
+    n_per_state: int | None = None,
+    advisor: _Advisor | None = None,
 ) -> tuple[str, str, str] | None:
     """The cause "Sparse training data" (``(name, what was measured, the next step)``) where
     any field's run spent more than ``outside_warning`` of its cell-steps inside the trained
     range in sparsely trained bins (its report's ``share_sparse``); None where none did."""
+    advisor = advisor or _Advisor(None, None)
+    name = "Sparse training data"
     thin = {f: r for f, r in outside.items()
             if r and (sparse_share(r) or 0.0) > outside_warning}  # fmt: skip
     if not thin:
@@ -240,31 +378,35 @@ def _sparse_rows(
              f"{describe_sparse_where(r)} "
              f"({100 * float(r.get('sparse_where_share', 0.0)):.1f} %)"
              for f, r in thin.items()]  # fmt: skip
+    design = Remedy("training_rows", "training rows there: a training field or a perturbation "
+                    "design (`model.body.perturbation`) that reaches those inputs")  # fmt: skip
     if any(r.get("classes") for r in thin.values()):  # a K-lumps chain: checked per class
         return (
-            "Sparse training data",
+            name,
             "inside its trained range the K-lumps chain ran where its training rows of the "
             "cells' own class are sparse (fewer per class than a leaving rate within 20 % "
             "needs) in " + "; ".join(parts)
             + ": its law from that class there is the fit's guess between few of its rows.",
-            "more rows (`collect.n_per_state`: a rare class's rows grow in proportion) or "
-            "coarser classes (`model.classes`: fewer, wider bins), or training rows there: a "
-            "training field or a perturbation design (`model.body.perturbation`) that reaches "
-            "those inputs.",
+            advisor.step(name, [
+                _more_rows(n_per_state, "more rows ({more}: a rare class's rows grow in "
+                           "proportion)"),
+                Remedy("coarser_classes", "coarser classes (`model.classes`: fewer, wider "
+                       "bins)"),
+                design], then="."),
         )  # fmt: skip
     return (
-        "Sparse training data",
+        name,
         "inside its trained range the abstraction ran where its training rows are sparse "
         "(fewer per state than a switching rate within 20 % needs) in " + "; ".join(parts)
         + ": its psi there is the fit's guess between few rows.",
-        "training rows there: a training field or a perturbation design "
-        "(`model.body.perturbation`) that reaches those inputs; more rows "
-        "(`collect.n_per_state`) fill them only in proportion.",
+        advisor.step(name, [
+            design, _more_rows(n_per_state, "more rows ({more}), which fill them only in "
+                               "proportion")], then="."),
     )  # fmt: skip
 
 
-def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> str:
-    """The next step for a chain with a switch clock (``gp=clock``) whose runs differ from the
+def clock_remedies(max_age: float | None, n_per_state: int | None, classes: Remedy) -> list[Remedy]:
+    """The next steps for a chain with a switch clock (``gp=clock``) whose runs differ from the
     full model while its psi is unbiased where the population lives: what was not tried, not
     the clock again. A longer clock first (ages beyond ``gp.max_age`` are clamped to it, so
     memory that outlasts the cap is lost), then more transitions (the clock's psi is over one
@@ -272,20 +414,118 @@ def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> 
     clock needed more data than the two-state chain, docs/fidelity.md); classes only where the
     memory is a slow count, not a cycle's phase (on Tyson's oscillator classes over its
     threshold's count did worse than the two-state chain, docs/sbml.md)."""
-    longer = (f"`gp.max_age={2 * max_age:g}` (twice the `gp.max_age={max_age:g}` that ran)"
-              if max_age is not None else "a larger `gp.max_age`")  # fmt: skip
-    more = f"`collect.n_per_state={4 * n_per_state}`" if n_per_state else \
-        "a larger `collect.n_per_state`"  # fmt: skip
-    return (
-        f"the switch clock is on already; first a longer clock, {longer}: an age beyond the "
-        f"cap is clamped to it, so memory that outlasts it is lost (`python3 "
-        f"scripts/inspect_model.py` gives the age where the hazard flattens and, for an "
-        f"oscillating lump, the period); then more transitions ({more}): the clock's psi is "
-        f"over the age as well, and each age sees a share of the rows. Classes ({classes}) "
-        f"only where the memory is a slow count rather than a cycle's phase (the inspector "
-        f"says which): bins of a count do not hold where a cycle is, and on an oscillator "
-        f"they did worse than the two-state chain (docs/sbml.md)."
-    )
+    if max_age is not None:
+        longer = Remedy("longer_clock", f"the switch clock is on already; first a longer "
+                        f"clock, `gp.max_age={2 * max_age:g}` (twice the `gp.max_age="
+                        f"{max_age:g}` that ran): an age beyond the cap is clamped to it, so "
+                        f"memory that outlasts it is lost (`python3 scripts/inspect_model.py` "
+                        f"gives the age where the hazard flattens and, for an oscillating "
+                        f"lump, the period).", (f"gp.max_age={2 * max_age:g}",))  # fmt: skip
+    else:
+        longer = Remedy("longer_clock", "the switch clock is on already; first a longer "
+                        "clock, a larger `gp.max_age`: an age beyond the cap is clamped to it.")  # fmt: skip
+    more = _more_rows(n_per_state, "Then more transitions ({more}): the clock's psi is over "
+                      "the age as well, and each age sees a share of the rows.")  # fmt: skip
+    only = Remedy(classes.kind, f"{classes.text[0].upper()}{classes.text[1:]} only where the "
+                  f"memory is a slow count rather than a cycle's phase (the inspector says "
+                  f"which): bins of a count do not hold where a cycle is, and on an oscillator "
+                  f"they did worse than the two-state chain (docs/sbml.md).",
+                  classes.overrides)  # fmt: skip
+    return [longer, more, only]
 
 
-__all__ = ["BIAS_Z", "SETTLING_Z", "Verdict", "clock_step", "verdict"]
+def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> str:
+    """:func:`clock_remedies` as one text (``classes``: how the model gets classes)."""
+    remedies = clock_remedies(max_age, n_per_state, Remedy("classes", f"classes ({classes})"))
+    return " ".join(r.text for r in remedies)
+
+
+# ----------------------------------------------------------------------------------------------
+# remedies that do not loop: what the previous run of the same model advised, and whether it
+# helped
+
+
+def outcome(failures: Mapping[str, Sequence[str]]) -> int:
+    """A run's outcome figure: its comparisons beyond the noise floor (fewer is better)."""
+    return sum(len(q) for q in failures.values())
+
+
+def applied(before: Mapping[str, Any], now: Mapping[str, Any], overrides: Sequence[str]) -> bool:
+    """Whether the run of config ``now`` applied the remedy ``overrides`` advised to the run
+    of config ``before``: every key the remedy changes moved to its value, or (a number)
+    at least as far in the same direction (20 times the rows applies a remedy of 4 times)."""
+    from surrogate.stages.advice_check import apply_overrides
+
+    try:
+        want = _flat(apply_overrides(before, overrides))
+    except Exception:  # a config the overrides no longer fit: not applied
+        return False
+    had, got = _flat(before), _flat(now)
+    changed = {k: v for k, v in want.items() if had.get(k, _ABSENT) != v}
+    if not changed:
+        return False
+    for k, v in changed.items():
+        g, h = got.get(k, _ABSENT), had.get(k, _ABSENT)
+        if g == v:
+            continue
+        numbers = all(isinstance(x, int | float) and not isinstance(x, bool) for x in (g, h, v))
+        if not (numbers and (v - h) * (g - v) >= 0 and (g - h) * (v - h) > 0):
+            return False
+    return True
+
+
+_ABSENT = object()
+
+
+def _flat(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in cfg.items():
+        if isinstance(v, Mapping) and v:
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def tried_remedies(
+    previous: Mapping[str, Any] | None, config: Mapping[str, Any], now: int
+) -> dict[str, str]:
+    """The remedy kinds not to advise again: those the previous run of the model (its
+    :func:`verdict_record`) advised that this run (config ``config``, outcome ``now``) applied
+    without a gain, with what was measured, and those it had already set aside."""
+    if not previous:
+        return {}
+    out = dict(previous.get("tried") or {})
+    before = previous["outcome"]
+    for r in previous.get("remedies") or []:
+        if r["overrides"] and applied(previous["config"], config, r["overrides"]) \
+                and now >= before:  # fmt: skip
+            out[r["kind"]] = (f"tried: `{' '.join(r['overrides'])}` ran and the comparisons "
+                              f"beyond the noise floor went from {before} to {now}")  # fmt: skip
+    return out
+
+
+def verdict_record(
+    v: Verdict, config: Mapping[str, Any], now: int, tried: Mapping[str, str]
+) -> dict[str, Any]:
+    """What the next run of the model compares with (the report's ``verdict.json``): this
+    run's config, its outcome figure, the remedies advised and those set aside."""
+    return {"config": dict(config), "outcome": now, "trust": v.trust, "tried": dict(tried),
+            "remedies": [{"cause": c, "kind": r.kind, "overrides": list(r.overrides)}
+                         for c, r in v.remedies]}  # fmt: skip
+
+
+__all__ = [
+    "BIAS_Z",
+    "SETTLING_Z",
+    "Remedy",
+    "Verdict",
+    "applied",
+    "clock_remedies",
+    "clock_step",
+    "outcome",
+    "tried_remedies",
+    "unmeasured",
+    "verdict",
+    "verdict_record",
+]

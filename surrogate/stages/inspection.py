@@ -110,6 +110,7 @@ from surrogate.gp.class_relaxation import CELLS_PER_BIN, relaxation_cells
 from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
 from surrogate.models.base import Model
 from surrogate.models.capabilities import lump_expr_of, lump_formula_of, signal_bounds_of
+from surrogate.models.count_classes import threshold_of
 from surrogate.models.network import NetworkInternalModel
 from surrogate.sbml import SbmlModel
 from surrogate.simulate.decision import FullDecision
@@ -1062,7 +1063,74 @@ def collection_budget(
                      if rate > 0 else math.inf)  # fmt: skip
     out["seconds_needed"] = times
     out["max_time"] = float(c["max_time"])
+    longest, eq = max(times), float(c["equilibration_time"])
+    if math.isfinite(longest) and longest > out["max_time"]:
+        # either setting alone gives the rows in time: a longer run, or more cells (rows per
+        # second grow with the cells)
+        out["max_time_needed"] = _round_up(longest)
+        if out["max_time"] > eq:
+            out["n_cells_needed"] = math.ceil(int(c["n_cells"]) * (longest - eq)
+                                              / (out["max_time"] - eq))  # fmt: skip
     return out
+
+
+def collection_overrides(collection: Mapping[str, Any]) -> list[list[str]]:
+    """The collection advice (:func:`collection_budget`) as override sets: the rows per origin,
+    with the longer run or (else) the more cells it needs where ``collect.max_time`` is too
+    short; empty where nothing is advised."""
+    if not collection.get("recommended_n_per_state"):
+        return []
+    rows = f"collect.n_per_state={collection['recommended_n_per_state']}"
+    if "max_time_needed" not in collection:
+        return [[rows]]
+    out = [[rows, f"collect.max_time={collection['max_time_needed']:g}"]]
+    if "n_cells_needed" in collection:
+        out.append([rows, f"collect.n_cells={collection['n_cells_needed']}"])
+    return out
+
+
+def check_printed(
+    config: Mapping[str, Any] | None,
+    advice: dict[str, Any],
+    burn: dict[str, Any],
+    collection: dict[str, Any],
+    yaml_model: bool,
+) -> list[str]:
+    """Every setting the report will print, checked by the stages' own settings checks
+    (:func:`~surrogate.stages.advice_check.check_advice`) against the inspected ``config``;
+    one refused is marked (``refused``: why) and printed as not advised. Returns the refusals.
+    ``yaml_model``: the model is a yaml (its keys can be given as ``++model.<key>``)."""
+    from surrogate.stages.advice_check import checked
+
+    refusals = []
+
+    def mark(target: dict[str, Any], overrides: list[str], what: str, yaml: str = "") -> None:
+        reason = checked(config, overrides, what, yaml if yaml_model else "")
+        if reason is not None:
+            target["refused"] = reason
+            refusals.append(f"{what}: {reason}")
+
+    if advice.get("abstraction"):
+        mark(advice, list(advice.get("overrides") or []), "the abstraction",
+             advice.get("yaml", ""))  # fmt: skip
+    if advice.get("signal_bounds") and yaml_model:
+        bounds: dict[str, Any] = {}
+        mark(bounds, [], "signal_bounds", advice["signal_bounds"])
+        if "refused" in bounds:
+            del advice["signal_bounds"]
+    if burn.get("applies") and burn.get("enough") is False and yaml_model:
+        mark(burn, [], "the burn-in", f"burn_in: {burn['needed_s']:g}")
+    sets = collection_overrides(collection)
+    kept = []
+    for overrides in sets:
+        reason = checked(config, overrides, "the collection")
+        if reason is None:
+            kept.append(overrides)
+        else:
+            refusals.append(f"the collection ({' '.join(overrides)}): {reason}")
+    if sets:
+        collection["advised"] = kept
+    return refusals
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1117,21 +1185,7 @@ def balanced_threshold(internal: Any, fixed: FixedInputs) -> dict[str, Any] | No
 def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
     """``(species, edge, upper)`` where the lump is a threshold on one species count: phi = 1
     iff ``count >= edge`` (``upper``) or ``count < edge``; None for any other lump."""
-    expr = lump_expr_of(internal)
-    if expr is None or expr.op not in ("geq", "gt", "leq", "lt"):
-        return None
-    a, b = expr.args
-    op = expr.op
-    if a.op == "species" and b.is_const:
-        species, c = a, float(b.value)
-    elif b.op == "species" and a.is_const:
-        species, c = b, float(a.value)
-        op = {"geq": "leq", "gt": "lt", "leq": "geq", "lt": "gt"}[op]
-    else:
-        return None
-    edge = {"geq": math.ceil(c), "gt": math.floor(c) + 1, "leq": math.floor(c) + 1,
-            "lt": math.ceil(c)}[op]  # fmt: skip
-    return species.name, int(edge), op in ("geq", "gt")
+    return threshold_of(lump_expr_of(internal))
 
 
 def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
@@ -1219,6 +1273,7 @@ def recommend(
     facts = "; ".join(describe(h, v) for v, h in enumerate(hazards) if h is not None)
     if not fixed.memory:
         return {"abstraction": "two-state", "command": "gp=svgp (what the default, gp=auto, runs for a model without classes)", "yaml": "",
+                "overrides": ["gp=svgp"],
                 "reason": f"the hazard of leaving each lump does not depend on the time since "
                           f"phi last changed ({facts}): phi's switching is Markov in the "
                           f"current input, as the two-state chain assumes"}  # fmt: skip
@@ -1249,7 +1304,8 @@ def recommend(
         slow = auto and settling >= SLOW_SETTLING_WINDOWS * dt
         auto_options = [f"over: {{{over}}}"] if over else []
         if slow:
-            auto_options.append(f"bins: {RELAXATION_BINS}")
+            # relaxation needs bins shared by both lumps: never the lump's own count's
+            auto_options += [f"bins: {RELAXATION_BINS}", "shared: true"]
         yaml = (f"classes: {{auto: {{{', '.join(auto_options)}}}}}" if auto_options
                 else "classes: auto") if auto else declared  # fmt: skip
         command = "gp=classes gp.class_moves=relaxation" if slow else "gp=classes"
@@ -1265,6 +1321,7 @@ def recommend(
                  f"{basis}), below the {SLOW_SETTLING_WINDOWS:,} windows from which bins relax "
                  f"(`gp.class_moves=relaxation`){est['caveat']}" if auto else "")  # fmt: skip
         return {"abstraction": "classes", "command": command, "yaml": yaml,
+                "overrides": command.split(),
                 "settling_s": settling, "settling_basis": est["basis"],
                 "declared": declared, "edges": edges, "edges_by_lump": by_lump,
                 "species": species,
@@ -1281,7 +1338,7 @@ def recommend(
     flat = max(h["flat_from_s"] for h in hazards if h is not None)
     max_age = float(f"{max(flat, dt):.2g}")
     return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
-            "max_age": max_age,
+            "overrides": ["gp=clock", f"gp.max_age={max_age:g}"], "max_age": max_age,
             "reason": f"phi's switching has memory ({facts}); the lump is not a threshold on one "
                       f"species, so the switch clock carries it: the hazard is flat from "
                       f"{flat:.3g} s since the last change"}  # fmt: skip
@@ -1346,6 +1403,7 @@ def oscillation_advice(
     why_not = (f". Classes over bins of {species} (the lump is a threshold on it) would hold "
                f"a count, not the phase" if species else "")  # fmt: skip
     return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
+            "overrides": ["gp=clock", f"gp.max_age={max_age:g}"],
             "max_age": max_age, "oscillation": True, "period_s": period,
             "reason": f"phi oscillates: {trough}, and no reversible network nor memoryless lump "
                       f"gives a negative autocorrelation (the check: below "
@@ -1423,12 +1481,17 @@ def settling_estimate(fixed: FixedInputs, tolerance: float) -> dict[str, Any]:
 
 
 def burn_in_advice(
-    network: NetworkInternalModel | None, fixed: FixedInputs, factor: float
+    network: NetworkInternalModel | None,
+    fixed: FixedInputs,
+    factor: float,
+    tolerance: float | None = None,
 ) -> dict[str, Any]:
-    """``model.burn_in`` against ``factor`` x the longest settling time over the grid (the
-    network's counts and phi, from the file's counts at each point's inputs). Where the run
-    stopped before settling, that is a lower bound: a burn-in below it is too short, one above
-    it is not known to be enough (``enough`` None), never told to shrink to it."""
+    """``model.burn_in`` against ``factor`` x the network's settling time: the same estimate
+    the recommendation states (:func:`settling_estimate` at ``tolerance``; without one, the
+    longest settling over the grid, or half the run where it stopped first), with its
+    ``basis`` and the grid points that did not settle. Where the run stopped before settling,
+    that is a lower bound: a burn-in below it is too short, one above it is not known to be
+    enough (``enough`` None), never told to shrink to it."""
     if network is None:
         return {"applies": False, "text": "the internal model draws its own initial state (no "
                                           "burn-in setting)"}  # fmt: skip
@@ -1436,14 +1499,18 @@ def burn_in_advice(
         return {"applies": False, "text": "not used: initial states are drawn from the exact "
                                           "stationary law (an enumerable network)"}  # fmt: skip
     settled = bool(fixed.settled.all())
-    worst = slowest_settling(fixed)
-    if not settled:
-        worst = max(worst, fixed.horizon / 2)
+    if tolerance is not None:
+        est = settling_estimate(fixed, tolerance)
+        worst, basis = float(est["seconds"]), str(est["basis"])
+    else:
+        worst = slowest_settling(fixed)
+        worst, basis = (worst, "") if settled else (max(worst, fixed.horizon / 2), "")
+    unsettled = [int(g) for g in np.flatnonzero(~np.asarray(fixed.settled, bool))]
     needed = _round_up(factor * worst)
     have = float(network.burn_in)
     return {"applies": True, "settling_s": worst, "settled": settled, "needed_s": needed,
             "burn_in_s": have, "enough": have >= needed if settled or have < needed else None,
-            "text": ""}  # fmt: skip
+            "basis": basis, "unsettled_points": unsettled, "text": ""}  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1476,12 +1543,14 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
         and fixed.events is not None else step_model  # fmt: skip
     costs = stage_costs(settings, step_measured)
     collection = collection_budget(settings, fixed, population, step_measured)
-    burn = burn_in_advice(network, fixed, o["burn_in_factor"])
+    burn = burn_in_advice(network, fixed, o["burn_in_factor"], o["settle_tolerance"])
     ranges = input_ranges(network, population)
     advice = recommend(model, fixed, o, dt, ranges)
     bounds = signal_bounds_advice(internal, fixed, ranges)
     if bounds:
         advice["signal_bounds"] = bounds
+    refused = check_printed(config if config is not None else settings.config, advice, burn,
+                            collection, "spec" in (settings.config.get("model") or {}))  # fmt: skip
     lump = lump_formula_of(internal) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
@@ -1516,6 +1585,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
                  "probe": probe,
                  "stages": costs, "collection": collection},
         "recommendation": advice,
+        "advice_refused": refused,
     }  # fmt: skip
     save_figure(out / INPUT_OCCUPANCY_FIGURE, plot_occupancy(grid, fixed, str(lump), low),
                 crop=False)  # fmt: skip

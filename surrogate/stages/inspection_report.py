@@ -268,11 +268,18 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
                    "(a larger `inspect.max_seconds` or `inspect.max_time`)"
                    if b["enough"] is None else
                    f"**too short: set `burn_in: {b['needed_s']:g}`** in the model's yaml "
-                   f"(`model.burn_in={b['needed_s']:g}`)")  # fmt: skip
+                   f"(`++model.burn_in={b['needed_s']:g}`)")  # fmt: skip
+        if b.get("refused"):
+            verdict = (f"too short, but `burn_in: {b['needed_s']:g}` is not advised: the "
+                       f"settings refuse it ({b['refused']})")  # fmt: skip
         bound = "" if b["settled"] else " at least (not settled within the run)"
+        points = b.get("unsettled_points") or []
+        basis = (f" (the settling, {b['settling_s']:.4g} s: {b['basis']}"
+                 + (f"; grid points not settled: {', '.join(map(str, points))} of the "
+                    f"occupancy table" if points else "") + ")" if b.get("basis") else "")  # fmt: skip
         lines.append(f"- Burn-in: model.burn_in = {b['burn_in_s']:g} s against "
                      f"{summary['settings']['burn_in_factor']:g} x the slowest settling = "
-                     f"{b['needed_s']:g} s{bound}: {verdict}.")  # fmt: skip
+                     f"{b['needed_s']:g} s{bound}{basis}: {verdict}.")  # fmt: skip
     else:
         lines.append(f"- Burn-in: {b['text']}.")
     if fixed.settling_curves:
@@ -311,7 +318,11 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
     if col.get("recommended_n_per_state"):
         sw = col["switch_per_window"]
         needed_s = max(col["seconds_needed"])
-        short = ", too short" if needed_s > col["max_time"] else ""
+        advised = col.get("advised")
+        fix = (" or ".join(f"`{' '.join(o[1:])}`" for o in advised if len(o) > 1)
+               if advised else "")  # fmt: skip
+        short = (f", too short: {fix}" if fix else ", too short") \
+            if needed_s > col["max_time"] else ""  # fmt: skip
         # a lump the free population never visited in the collection's field cannot be timed
         timing = (f"it takes ~{needed_s:.3g} s of simulated time (collect.max_time = "
                   f"{col['max_time']:g} s{short})" if math.isfinite(needed_s) else
@@ -331,6 +342,11 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
     lines += ["", "## Recommended abstraction", ""]
     if a["abstraction"] is None:
         lines.append(f"None: {a['reason']}.")
+    elif a.get("refused"):
+        lines.append(f"**{a['abstraction']}** would be `{a['command']}`"
+                     + (f" with `{a['yaml']}`" if a["yaml"] else "")
+                     + f", but the settings refuse it, so it is not advised: {a['refused']}. "
+                     f"Why it would be: {a['reason']}.")  # fmt: skip
     else:
         lines.append(f"**{a['abstraction']}**: `{a['command']}`"
                      + (f" with, in the model's yaml, `{a['yaml']}`" if a["yaml"] else "")

@@ -10,6 +10,7 @@ cells adapted to their current input.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -29,6 +30,7 @@ from surrogate.io import (
     artefact_lock,
     read_csv,
     read_manifest,
+    write_json,
     write_manifest,
 )
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
@@ -90,7 +92,7 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     out = settings.directory
     with artefact_lock(out):  # also removes the temporaries of killed runs
         sections, figures = report_sections(
-            settings, collect_dir, train_dir, evaluations, exact, out, speed
+            settings, collect_dir, train_dir, evaluations, exact, out, speed, config
         )
         (out / MANIFEST).unlink(missing_ok=True)  # incomplete until the manifest is rewritten
         write_report(out / REPORT, sections, figures,
@@ -155,8 +157,11 @@ def report_sections(
     exact: Mapping[str, Path],
     out: Path,
     speed: Mapping[str, Any] | None = None,
+    config: Mapping[str, Any] | None = None,
 ) -> tuple[list[tuple[str, str]], list[tuple[str, Path]]]:
-    """Markdown sections and figures of the report."""
+    """Markdown sections and figures of the report (``config``: the run's resolved config,
+    against which the verdict's remedies are checked and compared with the previous run of
+    the model; None: neither)."""
     tr = settings.train
     model = tr.setup.model
     lumps = model.internal.lump_names
@@ -187,7 +192,8 @@ def report_sections(
         + table1_markdown(tables, speedups, model.reference_table())
     )
     sections = [("Setting", setting), ("Table 1: abstracted vs full model", table1),
-                ("Trust it, or what to try next", _verdict(settings, tables, metrics))]  # fmt: skip
+                ("Trust it, or what to try next",
+                 _verdict(settings, tables, metrics, config, out))]  # fmt: skip
     noise_lines = [noise_line(name, table) for name, table in tables.items()
                    if "ks_noise_floor" in table]  # fmt: skip
     sections.append(("Against sampling noise", "\n".join(noise_lines) or "No noise floor."))
@@ -300,10 +306,17 @@ def _verdict(
     settings: ReproduceSettings,
     tables: Mapping[str, pd.DataFrame],
     metrics: Mapping[str, Any],
+    config: Mapping[str, Any] | None = None,
+    out: Path | None = None,
 ) -> str:
-    """Whether to trust the abstraction, and what to try next (:mod:`surrogate.stages.advice`)."""
+    """Whether to trust the abstraction, and what to try next (:mod:`surrogate.stages.advice`).
+    With the run's ``config``: each remedy is checked by the stages' settings before it is
+    printed, and one the previous run of the model advised that this run applied without a
+    gain is not advised again (``out / verdict.json`` keeps what the next run compares with)."""
     from surrogate.models.network import NetworkInternalModel
+    from surrogate.stages import advice
     from surrogate.stages.advice import verdict
+    from surrogate.stages.advice_check import checked
 
     tr = settings.train
     # the verdict counts a difference at a family-wise 5 % over the report's comparisons (the
@@ -314,6 +327,9 @@ def _verdict(
     source = tr.source
     n_per_state = (int(source.options["n_per_state"])
                    if isinstance(source, CollectSettings) else None)  # fmt: skip
+    now = advice.outcome(failures)
+    previous = _previous_verdict(settings, out) if config is not None else None
+    tried = advice.tried_remedies(previous, config, now) if config is not None else {}
     diagnostic = metrics.get("diagnostic")
     if tr.kind.classes and metrics.get("class_diagnostic"):
         diagnostic = class_diagnostic_by_lump(metrics["class_diagnostic"], tr.setup.model.internal)
@@ -322,7 +338,12 @@ def _verdict(
                 tolerance=DURATION_TOLERANCE, kind=tr.kind,
                 network=isinstance(tr.setup.model.internal, NetworkInternalModel),
                 n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
-                max_age=tr.max_age if tr.kind.clock else None)  # fmt: skip
+                max_age=tr.max_age if tr.kind.clock else None,
+                check=None if config is None else
+                (lambda overrides, what: checked(config, overrides, what)),
+                tried=tried)  # fmt: skip
+    if config is not None and out is not None:
+        write_json(out / VERDICT, advice.verdict_record(v, config, now, tried))
     marked = sum(int((~t["within_noise"].astype(bool)).sum()) for t in tables.values()
                  if "within_noise" in t)  # fmt: skip
     counted = sum(len(q) for q in failures.values())
@@ -330,6 +351,23 @@ def _verdict(
             f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
             f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
     return v.markdown() + note
+
+
+#: the verdict's record in a report's directory (:func:`~surrogate.stages.advice.verdict_record`)
+VERDICT = "verdict.json"
+
+
+def _previous_verdict(settings: ReproduceSettings, out: Path | None) -> dict[str, Any] | None:
+    """The newest verdict record of another report of the same model (its directories under
+    ``data_dir/reproduce`` start with ``model=<name>_``), or None."""
+    name = next(iter(settings.evaluations.values())).candidate.setup.model.name
+    root = settings.job.data_dir / "reproduce"
+    found = [p for p in root.glob(f"model={name}_*/{VERDICT}")
+             if out is None or p.parent.resolve() != out.resolve()]  # fmt: skip
+    if not found:
+        return None
+    newest = max(found, key=lambda p: p.stat().st_mtime_ns)
+    return dict(json.loads(newest.read_text()))
 
 
 def _difference_error(errors: Mapping[str, Any], kind: str, reference: float | None) -> str:

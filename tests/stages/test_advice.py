@@ -29,6 +29,8 @@ def _read(lumps: str = "phi", history: str = "none", class_moves: str = "learned
         "outside": {"gaussian": _outside(0.0)}, "outside_warning": 0.01, "tolerance": 0.03,
         "kind": chain_kind(lumps, history, class_moves), "network": True, "n_per_state": 10_000,
     }  # fmt: skip
+    if isinstance(changes.get("diagnostic"), dict):  # the scores given replace the default's
+        changes["diagnostic"] = {**args["diagnostic"], **changes["diagnostic"]}
     return verdict(**{**args, **changes})
 
 

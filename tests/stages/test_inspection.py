@@ -279,7 +279,9 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     assert relaxed["command"] == "gp=classes gp.class_moves=relaxation"
     assert "15,000 windows" in relaxed["reason"] and "relax" in relaxed["reason"]
     # relaxing bins come finer, and their stationary sample grows with them (150 per bin)
-    assert relaxed["yaml"] == f"classes: {{auto: {{bins: {inspection.RELAXATION_BINS}}}}}"
+    # relaxation needs bins shared by both lumps: the chooser is told so (shared: true)
+    assert relaxed["yaml"] == (f"classes: {{auto: {{bins: {inspection.RELAXATION_BINS}, "
+                               f"shared: true}}}}")  # fmt: skip
     assert "2400 cells, 150 per bin" in relaxed["reason"]
     law = stats.poisson(40.0)
     low = int(law.ppf(0.5 * law.cdf(39)))  # the median of P given P < 40
@@ -347,6 +349,12 @@ def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
 
     burn = inspection.burn_in_advice(Unenumerable(), cut, 3.0)  # type: ignore[arg-type]
     assert burn["needed_s"] == 960 and burn["enough"] is None
+    # with the tolerance, the burn-in rests on the settling the recommendation states
+    # (ln(20) x 419 s, not half the run): 3 x 1,255 s rounded up
+    consistent = inspection.burn_in_advice(Unenumerable(), cut, 3.0, 0.05)  # type: ignore[arg-type]
+    assert consistent["settling_s"] == pytest.approx(advice["settling_s"])
+    assert consistent["needed_s"] == 3800 and "419" in consistent["basis"]
+    assert consistent["unsettled_points"] == list(range(cut.settled.size))
     Unenumerable.burn_in = 500.0
     assert inspection.burn_in_advice(Unenumerable(), cut, 3.0)["enough"] is False  # type: ignore[arg-type]
 
