@@ -78,6 +78,9 @@ BAD = [
     ({"shape": [64, 1]}, r"field.shape must be two integers >= 2"),
     ({"domain": [[5, 0], [0, 1]]}, r"field.domain must be .* lo < hi"),
     ({"depth": 0.0}, r"field.depth must be a positive number"),
+    ({"depth": "abc"}, r"field.depth must be a positive number \(mm\), got 'abc'"),
+    ({"depth": None}, r"field.depth must be a positive number \(mm\), got None"),
+    ({"depth": True}, r"field.depth must be a positive number \(mm\), got True"),
     ({"solver": "crank_nicolson"}, r"field.solver must be one of \['spectral', 'explicit'\]"),
 ]
 
