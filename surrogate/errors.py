@@ -33,6 +33,12 @@ class CompileError(SurrogateError, RuntimeError):
     be the compiled run's)."""
 
 
+class EventCapError(SurrogateError, RuntimeError):
+    """An SSA stopped a window at its cap on events (the compiled SSA's ``max_events``, the
+    batched SSA's ``max_rounds``): raised where the cap is hit, so callers catch the type, not
+    a message's wording."""
+
+
 class RunawayError(ConfigError, RuntimeError):
     """A network's cell made more SSA events in one window than its cap (a count growing
     without bound); a ``RuntimeError`` too, as the SSAs' own cap is."""

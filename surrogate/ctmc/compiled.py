@@ -40,6 +40,7 @@ from surrogate.ctmc.codegen import default_cache_dir, load_generated
 from surrogate.ctmc.events import MAX_CASCADE, WHOLE_TOLERANCE, EventState
 from surrogate.ctmc.events import numba_source as events_numba_source
 from surrogate.ctmc.kinetics import Kinetics
+from surrogate.errors import EventCapError
 
 __all__ = [
     "CellStreams",
@@ -262,7 +263,8 @@ class CompiledSSA:
             inputs: ``n x P`` float per-cell inputs (``(P,)`` is shared by all cells).
             dt: Window length (> 0): a float or ``(n,)`` per-cell lengths.
             streams: The cells' random streams (``streams.n == n``), advanced in place.
-            max_events: Raise ``RuntimeError`` if a cell would make more events than this.
+            max_events: Raise :class:`~surrogate.errors.EventCapError` (a ``RuntimeError``) if
+                a cell would make more events than this.
             clock: The cells' :class:`~surrogate.ctmc.events.EventState` (CPU), required when
                 the kinetics have events (from :func:`~surrogate.ctmc.events.start_events`);
                 advanced in place by ``dt``.
@@ -276,8 +278,8 @@ class CompiledSSA:
                 is negative or not finite, an event that drives a count negative (naming the
                 reaction and the cell), or a rule or event that assigns a count that is not a
                 whole number >= 0 (naming it).
-            RuntimeError: ``max_events`` exceeded (naming the cell), or events that keep
-                firing each other at one instant.
+            EventCapError: ``max_events`` exceeded (naming the cell).
+            RuntimeError: events that keep firing each other at one instant.
         """
         as_torch = isinstance(state, Tensor)
         x, p, window = self._check(state, inputs, dt, streams)
@@ -389,7 +391,7 @@ class CompiledSSA:
         names = self.kinetics.network.reaction_names
         where = f"cell {i} ({failed.size} cells failed)"
         if status == _direct_method.MAX_EVENTS:
-            raise RuntimeError(f"compiled SSA: {where} exceeded max_events={out[i, 0]}")
+            raise EventCapError(f"compiled SSA: {where} exceeded max_events={out[i, 0]}")
         if status == _direct_method.BAD_ASSIGNMENT:
             event = self._events[detail]
             raise ValueError(

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from surrogate.ctmc.events import EventProgram, EventState
 from surrogate.ctmc.network import PropensityFn, ReactionNetwork, make_propensity_fn
+from surrogate.errors import EventCapError
 
 __all__ = ["gillespie"]
 
@@ -72,8 +73,9 @@ def gillespie(
             all cells).
         dt: Window length (> 0), a float or a ``(n,)`` tensor of per-cell lengths.
         generator: Random generator on the device of ``state`` (for reproducibility).
-        max_rounds: If given, raise ``RuntimeError`` when cells are still active after this many
-            rounds (guards against unexpectedly stiff rates).
+        max_rounds: If given, raise :class:`~surrogate.errors.EventCapError` (a
+            ``RuntimeError``) when cells are still active after this many rounds (guards
+            against unexpectedly stiff rates).
         propensity: Optional general kinetics ``f(state (m, S) int64, params (m, P)) -> (m, R)
             float64`` (e.g. ``Kinetics.torch_propensity``), called on the active cells' rows.
             ``rate_constants`` is then the ``(n, P)`` (or ``(P,)``) float tensor of per-cell
@@ -140,7 +142,7 @@ def gillespie(
         if n_active == 0:
             break
         if max_rounds is not None and rounds >= max_rounds:
-            raise RuntimeError(
+            raise EventCapError(
                 f"gillespie: {n_active} of {n} cells still active after max_rounds={max_rounds} "
                 "event rounds; the rate constants are too large for this window (or raise "
                 "max_rounds)"
@@ -235,7 +237,7 @@ def _gillespie_events(
         if n_active == 0:
             break
         if max_rounds is not None and rounds >= max_rounds:
-            raise RuntimeError(
+            raise EventCapError(
                 f"gillespie: {n_active} of {n} cells still active after max_rounds={max_rounds} "
                 "event rounds; the rate constants are too large for this window (or raise "
                 "max_rounds)"

@@ -97,12 +97,15 @@ class Grid:
         if len(names) != 2 or any(b not in BOUNDARIES for b in names):
             raise ConfigError(f"{where}.boundary must be one of {list(BOUNDARIES)} or one per "
                               f"axis [x, y], got {boundary!r}")  # fmt: skip
-        depth = float(depth)
-        if not (math.isfinite(depth) and depth > 0):
+        try:  # what float() refuses (and a bool) is refused by name, as the other keys are
+            value = math.nan if isinstance(depth, bool) else float(depth)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
             raise ConfigError(f"{where}.depth must be a positive number (mm), got {depth!r}")
         lower = (bounds[0][0], bounds[1][0])
         upper = (bounds[0][1], bounds[1][1])
-        return cls(lower, upper, (int(shape[0]), int(shape[1])), names, depth)
+        return cls(lower, upper, (int(shape[0]), int(shape[1])), names, value)
 
     @property
     def spacing(self) -> tuple[float, float]:

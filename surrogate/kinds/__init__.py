@@ -73,6 +73,7 @@ from surrogate.kinds.files import PSI as PSI
 
 if TYPE_CHECKING:
     from surrogate.kinds.base import CHAIN_KINDS as CHAIN_KINDS
+    from surrogate.kinds.base import FIT_GP_KEYS as FIT_GP_KEYS
     from surrogate.kinds.base import LayerRequest as LayerRequest
     from surrogate.kinds.base import kind_gp_keys as kind_gp_keys
     from surrogate.kinds.base import register_chain_kind as register_chain_kind
@@ -119,6 +120,7 @@ __all__ = [
     "CHAIN_KINDS",
     "DECISION_KINDS",
     "DEFAULT_MEAN",
+    "FIT_GP_KEYS",
     "GP_CLASSES",
     "GP_CLOCK",
     "KIND_MODULES",

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, ClassVar, Protocol, TypeVar
 
@@ -35,6 +35,9 @@ from surrogate.simulate.decision import DecisionLayer
 AUTO_RECIPES = ("classes", "svgp")
 #: a layer's device where its request names none
 CPU = torch.device("cpu")
+#: the keys of the gp group that every fit reads besides the GP hyperparameters (the fields of
+#: :class:`GPSettings`): no kind may claim them as its own (:func:`register_chain_kind`)
+FIT_GP_KEYS = ("inputs", "grid_size", "diagnostic", "threads", "labels")
 
 
 class FitSetup(Protocol):
@@ -335,8 +338,22 @@ def register_chain_kind(cls: K) -> K:
     messages list them.
 
     Raises:
-        ValueError: another registered kind is selected by the same strings.
+        ValueError: another registered kind is selected by the same strings, or one of its
+            :attr:`~ChainKind.gp_keys` is a key every fit reads (a GP hyperparameter,
+            :data:`FIT_GP_KEYS`) or another kind's.
     """
+    # a kind's keys are dropped from every other kind's fit (its hyperparameters and identity):
+    # a shared key would change what the other kinds fit, and keep their directories
+    shared_keys = {f.name for f in fields(GPSettings)} | set(FIT_GP_KEYS)
+    for key in cls.gp_keys:
+        owner = [o.__name__ for o in CHAIN_KINDS if o is not cls and key in o.gp_keys]
+        if key in shared_keys or owner:
+            whose = f"{owner[0]}'s" if owner else "read by every fit"
+            raise ValueError(
+                f"chain kind {cls.__name__}: gp_keys names gp.{key}, which is {whose}; a kind's "
+                f"gp_keys are dropped from the other kinds' fits, so they must be its own: "
+                f"read gp.{key} without claiming it, or give the kind a key of its own"
+            )
     for other in CHAIN_KINDS:
         shared = set(other.class_moves_choices) & set(cls.class_moves_choices)
         if (other.lumps, other.history) == (cls.lumps, cls.history) and shared and other is not cls:

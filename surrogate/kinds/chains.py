@@ -193,33 +193,52 @@ def exact_chain(
     return chain_kind(str(lumps), history)
 
 
+#: a gp key's value that leaves it to the recipe (conf/gp/auto.yaml: ``lumps`` and the keys the
+#: recipes set apart from gp=svgp's)
+AUTO = "auto"
+
+
 def resolve_auto_lumps(gp_config: Mapping[str, Any], model: Any) -> dict[str, Any]:
     """``gp_config`` with ``lumps: auto`` resolved to the best measured chain for ``model``: the
     K-lumps chain (``gp=classes``'s recipe) where its internal model declares classes finer than
     phi and no switch clock is asked for (``gp.history=none``), else the two-state chain
-    (``gp=svgp``). A key the config sets to another value than ``gp=svgp``'s is the user's, and
-    kept; every other key takes the chosen recipe's value, so ``gp=auto`` on E. coli is the same
-    fit (the same directory) as ``gp=classes``. Any other ``lumps`` is returned unchanged.
+    (``gp=svgp``). A key given a value is the user's, and kept; a key absent, or one that
+    conf/gp/auto.yaml leaves ``auto`` (those the recipes set apart from ``gp=svgp``'s, so that a
+    value given is told from the default even where it equals ``gp=svgp``'s), takes the chosen
+    recipe's value: ``gp=auto`` on E. coli is the same fit (the same directory) as
+    ``gp=classes``. With a chain named (any other ``lumps``), the keys left ``auto`` take
+    ``gp=svgp``'s values (what ``gp=auto`` is based on) and the rest is returned unchanged.
 
     Example:
         >>> resolve_auto_lumps({**group_config("gp", "auto")}, ecoli)["n_inducing"]  # doctest: +SKIP
         32
     """
     config = dict(gp_config)
-    if not is_auto(gp_config):
-        return config
-    classed = lump_classes_of(model.internal) is not None
-    name = (
-        AUTO_RECIPES[0] if classed and config.get("history", "none") == "none" else AUTO_RECIPES[1]
-    )
-    base, recipe = group_config("gp", "svgp"), group_config("gp", name)
+    auto = is_auto(gp_config)
+    name = AUTO_RECIPES[1]
+    if auto and lump_classes_of(model.internal) is not None:
+        name = AUTO_RECIPES[0] if config.get("history", "none") == "none" else name
+    recipe, left = group_config("gp", name), _left_to_recipe()
     for key, value in recipe.items():
-        if key not in config or (key in base and config[key] == base[key]):
+        if (key in left and _is_auto_value(config.get(key))) or (auto and key not in config):
             config[key] = value
-    config["lumps"] = recipe.get("lumps", "phi")
+    if auto:
+        config["lumps"] = recipe.get("lumps", "phi")
     return config
+
+
+def _left_to_recipe() -> set[str]:
+    """The keys conf/gp/auto.yaml leaves to the recipe: ``auto`` there, not in ``gp=svgp``
+    (whose ``labels: auto`` is a choice of its own)."""
+    auto, base = group_config("gp", "auto"), group_config("gp", AUTO_RECIPES[1])
+    return {k for k, v in auto.items() if _is_auto_value(v) and base.get(k) != v}
+
+
+def _is_auto_value(value: Any) -> bool:
+    """Whether a gp key's ``value`` is :data:`AUTO`."""
+    return isinstance(value, str) and value == AUTO
 
 
 def is_auto(gp_config: Mapping[str, Any]) -> bool:
     """Whether the gp group leaves the chain to :func:`resolve_auto_lumps` (``gp.lumps=auto``)."""
-    return gp_config.get("lumps") == "auto"
+    return _is_auto_value(gp_config.get("lumps"))

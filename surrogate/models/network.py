@@ -40,7 +40,7 @@ from surrogate.ctmc.lumped import (
     lumped_psi,
     stationary_distribution,
 )
-from surrogate.errors import ConfigError, RunawayError
+from surrogate.errors import ConfigError, EventCapError, RunawayError
 from surrogate.models.base import InternalState, Randoms, burn_in_seconds
 from surrogate.models.count_classes import CountClasses, CountClassifier
 from surrogate.sbml import SbmlModel
@@ -406,10 +406,10 @@ class NetworkInternalModel:
     ) -> InternalState:
         """One exact window at the kinetic inputs ``inputs`` (``n x P`` float64; ``x``: the
         inputs they came from, named in an error). ``max_events`` (default
-        :attr:`max_events`, else none): a ``RuntimeError`` where a cell would make more events
-        than this in the window (the compiled SSA's ``max_events``, naming the cell; the
-        batched SSA's ``max_rounds``, one event per cell and round, at most
-        :attr:`max_rounds`)."""
+        :attr:`max_events`, else :data:`RUNAWAY_EVENTS`): a :class:`RunawayError` (a
+        ``RuntimeError``) where a cell would make more events than this in the window (the
+        compiled SSA's ``max_events``, naming the cell; the batched SSA's ``max_rounds``, one
+        event per cell and round, at most :attr:`max_rounds`)."""
         cap = (self.max_events or RUNAWAY_EVENTS) if max_events is None else int(max_events)
         counts = state[0]
         # each window moves the clock of a copy: the state handed in stays as it was
@@ -430,9 +430,7 @@ class NetworkInternalModel:
                 min(cap, self.max_rounds) if self.max_rounds is not None else cap  # fmt: skip
             counts = gillespie(self.reactions, counts, inputs, dt, max_rounds=rounds,
                                propensity=propensity, events=events, clock=clock)  # fmt: skip
-        except RuntimeError as error:
-            if "max_events" not in str(error) and "max_rounds" not in str(error):
-                raise
+        except EventCapError as error:  # raised where the SSA's cap was hit
             raise RunawayError(self._runaway(error, counts, cap, dt)) from error
         except ValueError as error:
             # The SSA refused the window: name the input or rate at fault where the window

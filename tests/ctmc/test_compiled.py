@@ -12,6 +12,7 @@ import torch
 
 from surrogate.ctmc import CellStreams, CompiledSSA, ReactionNetwork, mass_action_kinetics
 from surrogate.ctmc._xoshiro import next_double, next_u64, seed_streams
+from surrogate.errors import EventCapError
 from tests.ctmc.test_ssa import EXACTNESS_CASES, assert_matches_distribution, exact_distribution
 
 N_CHAINS = 20_000
@@ -122,7 +123,7 @@ def test_errors_name_the_reaction_and_the_argument():
     streams = CellStreams.from_seed(0, 1)
     with pytest.raises(ValueError, match="propensity of reaction 'decay'"):
         ssa.advance(state, torch.tensor([-1.0]), 1.0, streams)
-    with pytest.raises(RuntimeError, match="max_events"):
+    with pytest.raises(EventCapError, match="max_events"):  # a RuntimeError
         ssa.advance(torch.tensor([[10**6]]), torch.tensor([1.0]), 1.0, streams, max_events=10)
     with pytest.raises(ValueError, match="inputs must have shape"):
         ssa.advance(state, torch.tensor([1.0, 2.0]), 1.0, streams)

@@ -21,6 +21,7 @@ import scipy.stats
 import torch
 
 from surrogate.ctmc import ReactionNetwork, gillespie
+from surrogate.errors import EventCapError
 
 P_MIN = 1e-3  # chi-square false-alarm rate
 TV_DELTA = 1e-6  # false-alarm probability of the total-variation bound
@@ -293,7 +294,7 @@ def test_max_rounds_guard() -> None:
     network, start, rates, dt = EXACTNESS_CASES["flagella-many-events"]
     x0 = torch.tensor(start).expand(100, -1)
     c = torch.tensor(rates, dtype=torch.float64)
-    with pytest.raises(RuntimeError, match="max_rounds=5"):
+    with pytest.raises(EventCapError, match="max_rounds=5"):  # a RuntimeError
         gillespie(network, x0, c, dt, max_rounds=5)
 
 

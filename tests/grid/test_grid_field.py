@@ -11,6 +11,7 @@ import torch
 from surrogate.config import build_field, group_config
 from surrogate.errors import ConfigError
 from surrogate.grid import GridField
+from surrogate.simulate import Simulator
 from surrogate.stages import simulate
 from surrogate.stages.settings import CollectSettings, SimulateSettings, TrainSettings
 
@@ -78,6 +79,9 @@ BAD = [
     ({"shape": [64, 1]}, r"field.shape must be two integers >= 2"),
     ({"domain": [[5, 0], [0, 1]]}, r"field.domain must be .* lo < hi"),
     ({"depth": 0.0}, r"field.depth must be a positive number"),
+    ({"depth": "abc"}, r"field.depth must be a positive number \(mm\), got 'abc'"),
+    ({"depth": None}, r"field.depth must be a positive number \(mm\), got None"),
+    ({"depth": True}, r"field.depth must be a positive number \(mm\), got True"),
     ({"solver": "crank_nicolson"}, r"field.solver must be one of \['spectral', 'explicit'\]"),
 ]
 
@@ -122,12 +126,21 @@ def test_a_coupled_run_the_loop_cannot_take_is_refused_before_it_starts(
         SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, *overrides]))
 
 
-@pytest.mark.parametrize("loop", ["compile=true", "backend=numba"])
-def test_every_loop_runs_a_coupled_field(compose_cfg, loop) -> None:
+@pytest.mark.parametrize(("loop", "backend", "compiled"),
+                         [("compile=true", "torch", True), ("backend=numba", "numba", False)])  # fmt: skip
+def test_every_loop_runs_a_coupled_field(compose_cfg, loop, backend, compiled) -> None:
     """compile=true (the compiled step is the agents'; the field is read and stepped eagerly)
     and the per-cell kernel (one step per call) run a coupled field: only shards are refused
-    (above)."""
-    SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, loop]))
+    (above). The simulator the stage builds runs the loop asked for, over the coupled field
+    (the stage test below runs the kernel; a run here would compile each loop, minutes)."""
+    settings = SimulateSettings.from_config(compose_cfg("simulate", [*CHANNEL, loop]))
+    decision, _ = simulate.build_decision(settings)
+    setup = settings.setup
+    simulator = Simulator(setup.model, decision, setup.field, setup.dt, settings.job.device,
+                          compile=settings.compile, backend=settings.backend,
+                          compile_fallback=False)  # fmt: skip
+    assert isinstance(simulator.field, GridField) and simulator.field is setup.field
+    assert (simulator.backend, simulator.compiled) == (backend, compiled)
 
 
 def test_the_channel_runs_through_the_simulate_stage(compose_cfg) -> None:

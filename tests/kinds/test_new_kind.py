@@ -129,6 +129,27 @@ def test_a_kind_selected_by_anothers_strings_is_refused() -> None:
     assert Clash not in CHAIN_KINDS
 
 
+@pytest.mark.parametrize(("key", "whose"), [("n_inducing", "read by every fit"),
+                                            ("labels", "read by every fit"),
+                                            ("min_events", "KLumps's"),
+                                            ("clock_bins", "SwitchClock's")])  # fmt: skip
+def test_a_kind_claiming_a_key_it_does_not_own_is_refused(key: str, whose: str) -> None:
+    """A kind's gp keys are dropped from the other kinds' fits: one claiming gp.n_inducing made
+    every two-state fit train with the default 100, in one directory whatever the value."""
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class Claims(ToyChain):
+        gp_keys = ("toy_floor", key)
+
+    try:
+        with pytest.raises(ValueError, match=rf"Claims: gp_keys names gp.{key}, which is {whose}"):
+            register_chain_kind(Claims)
+    finally:
+        if Claims in CHAIN_KINDS:
+            CHAIN_KINDS.remove(Claims)
+
+
 def test_fit_chain_asks_the_kinds_not_their_names() -> None:
     """The clock adds its axis and K lumps its refusals through their hooks."""
     from surrogate.gp.training import GPSettings

@@ -214,3 +214,31 @@ def test_a_window_past_the_runaway_cap_is_a_clear_error(tmp_path, monkeypatch) -
     with pytest.raises(RuntimeError, match="max_events"):
         internal.advance_at(internal.start_state(3, torch.device("cpu"), inputs), inputs, 1.0,
                             max_events=50)  # fmt: skip
+
+
+def test_a_runaway_is_the_ssas_cap_not_a_messages_wording(tmp_path, monkeypatch) -> None:
+    """The network turns the SSA's cap (:class:`EventCapError`, raised where it is hit) into a
+    :class:`RunawayError`, whatever its message says; another failure whose message mentions
+    ``max_rounds`` stays what it was (it read as a runaway when the wording decided)."""
+    from surrogate.errors import EventCapError, RunawayError
+    from surrogate.models import network
+
+    internal = runaway(tmp_path)[0].internal
+    monkeypatch.setattr(internal, "ssa", "batched")
+    inputs = torch.ones(3, 1, dtype=torch.float64)
+    state = internal.start_state(3, torch.device("cpu"), inputs)
+
+    def fails(error: Exception):
+        def gillespie(*args, **kwargs):
+            raise error
+
+        return gillespie
+
+    monkeypatch.setattr(network, "gillespie", fails(EventCapError("the cap, in other words")))
+    with pytest.raises(RunawayError, match="more than 50 SSA events in one window"):
+        internal.advance_at(state, inputs, 0.05, max_events=50)
+    other = RuntimeError("a device fault near max_rounds")
+    monkeypatch.setattr(network, "gillespie", fails(other))
+    with pytest.raises(RuntimeError) as error:
+        internal.advance_at(state, inputs, 0.05, max_events=50)
+    assert error.value is other

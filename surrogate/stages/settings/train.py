@@ -20,6 +20,7 @@ from surrogate.gp.training import GPSettings
 from surrogate.io import artefact_dir
 from surrogate.kinds import (
     DEFAULT_MEAN,
+    FIT_GP_KEYS,
     TWO_STATE,
     ChainKind,
     fit_chain,
@@ -42,9 +43,8 @@ from surrogate.validation import known_keys
 
 #: keys of the gp group that are not GP hyperparameters (nor are the chain kinds' own,
 #: :func:`~surrogate.kinds.kind_gp_keys`)
-GP_EXTRA = ("inputs", "grid_size", "diagnostic", "threads", "labels", "history", "max_age",
-            "clock_bins", "lumps", "min_events", "max_label_weight", "class_moves",
-            "relaxation")  # fmt: skip
+GP_EXTRA = (*FIT_GP_KEYS, "history", "max_age", "clock_bins", "lumps", "min_events",
+            "max_label_weight", "class_moves", "relaxation")  # fmt: skip
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
