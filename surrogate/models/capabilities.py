@@ -24,6 +24,7 @@ capability                    what it is                                        
 ``expected_phi_next``         a window's expected label                         none
 ``cell_step_seconds``         its cost per cell-step                            the base estimate
 ``burn_in``/``state_space``   simulated burn-in of the initial state            none
+``reseed_streams``            a copied state with its own random streams        the copy as is
 ``lump_formula``/``lump_expr``  the lump as a formula (inspect's report)        none
 ============================  ================================================  ==============
 
@@ -67,7 +68,7 @@ OPTIONAL_MEMBERS: tuple[str, ...] = (
     "feature_names", "features", "concat_states", "fusable", "fused_advance", "randoms",
     "exact_psi", "exact_age_psi", "signal_bounds", "class_names", "class_lumps", "classes",
     "class_bins", "exact_class_step", "expected_class_next", "expected_phi_next", "cell_step_seconds",
-    "burn_in", "state_space", "lump_formula", "lump_expr",
+    "burn_in", "state_space", "lump_formula", "lump_expr", "reseed_streams",
 )  # fmt: skip
 #: the most edits (insert, delete, substitute, swap two neighbours) between an attribute and an
 #: optional name for the attribute to be taken for a misspelling of it
@@ -229,6 +230,14 @@ def burn_in_of(internal: Any) -> float:
     return seconds
 
 
+def reseed_streams_of(internal: Any) -> Callable[[InternalState], InternalState] | None:
+    """``reseed_streams(state) -> state``: the same state with fresh random streams drawn from
+    torch's generator, for a model whose state carries its own random streams (a network on
+    the compiled SSA), or None where the state holds none (its randomness comes from torch's
+    generator at each window, so a copy of the state is already a run of its own)."""
+    return _callable(internal, "reseed_streams")
+
+
 def lump_formula_of(internal: Any) -> str | None:
     """The lump as the formula it was written as (``lump_formula``, e.g. ``"D >= 2"``), or
     None where the model's phi is its own code."""
@@ -340,6 +349,7 @@ __all__ = [
     "lump_formula_of",
     "misspelt_members",
     "randoms_of",
+    "reseed_streams_of",
     "signal_bounds_of",
     "start_size_of",
 ]

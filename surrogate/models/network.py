@@ -148,8 +148,9 @@ class NetworkInternalModel:
 
     State: ``(counts,)`` (``n x S`` int64) on the batched SSA with a mass-action network,
     else ``(counts, streams)`` with the compiled SSA's per-cell xoshiro256** states (``n x 4``
-    int64), seeded from torch's generator, so from the run's seed; with events also each
-    cell's network time (``(n,)`` float64) and trigger values (``n x E`` bool).
+    int64), seeded from torch's generator, so from the run's seed (:meth:`reseed_streams`
+    draws them afresh for a copied state); with events also each cell's network time
+    (``(n,)`` float64) and trigger values (``n x E`` bool).
 
     Example:
         >>> net = ReactionNetwork.from_reactions(
@@ -383,6 +384,16 @@ class NetworkInternalModel:
             counts, start = start_events(self.kinetics, counts, inputs)
             clock = (start.time, start.triggers) if self.kinetics.events else ()
         return (counts, *self._new_streams(n, device), *clock)
+
+    def reseed_streams(self, state: InternalState) -> InternalState:
+        """``state`` with fresh random streams from torch's generator (so from the run's seed),
+        its counts (and event clock) kept: a run that starts from a copy of another run's
+        state (:mod:`surrogate.simulate.paired`) would otherwise replay that run's random
+        numbers."""
+        counts = state[0]
+        if not self._streams(counts.device):
+            return state
+        return (counts, *self._new_streams(counts.shape[0], counts.device), *state[2:])
 
     def _new_streams(self, n: int, device: torch.device) -> tuple[Tensor, ...]:
         if not self._streams(device):
