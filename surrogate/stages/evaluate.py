@@ -107,6 +107,32 @@ def ensure_run(settings: SimulateSettings, run_missing: bool) -> Path:
     return directory
 
 
+def ensure_abstraction(settings: EvaluateSettings) -> Path | None:
+    """The fit the candidate run needs, made before the first simulation: with
+    ``evaluate.run_missing``, a missing candidate run's learned abstraction is collected and
+    trained here (as reproduce does, and as the cost estimate counts it), so a missing fit never
+    stops the evaluation after its full runs. Returns the train directory it made, else None
+    (the candidate exists, needs no fit, or its fit exists)."""
+    train_settings = settings.candidate.decision.train
+    if (
+        train_settings is None
+        or not settings.run_missing
+        or (settings.candidate.directory / MANIFEST).exists()
+        or (train_settings.fit_directory / MANIFEST).exists()
+    ):
+        return None
+    # imported only by evaluations that train (as the simulate stage loads a fit)
+    from surrogate.stages.collect import collect
+    from surrogate.stages.settings import CollectSettings
+    from surrogate.stages.train import train
+
+    log.info("evaluate: the candidate's abstraction is missing: collecting and training it "
+             "before any simulation (`%s`)", train_settings.command())  # fmt: skip
+    if isinstance(train_settings.source, CollectSettings):
+        collect(train_settings.source)
+    return train(train_settings)
+
+
 def runs_of(settings: EvaluateSettings) -> dict[str, SimulateSettings]:
     """The runs an evaluation compares, by role: ``full``, ``candidate``, ``full_repeat``."""
     runs = {"full": settings.full, "candidate": settings.candidate}
@@ -135,6 +161,7 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
     """Make sure the runs exist, compare them, then write tables, figures and (last) the
     manifest."""
     check_runs(settings)
+    ensure_abstraction(settings)
     dirs = {k: ensure_run(s, settings.run_missing) for k, s in runs_of(settings).items()}
     t0 = time.perf_counter()
     runs = RunSet(load_run(dirs["full"]), load_run(dirs["candidate"]),
@@ -376,6 +403,7 @@ __all__ = [
     "band_comparison",
     "band_runs",
     "check_runs",
+    "ensure_abstraction",
     "ensure_run",
     "evaluate",
     "mean_duration_errors",
