@@ -1,4 +1,4 @@
-"""Compare an abstracted population run with the full model (KS, Wasserstein, noise floor, speed-up).
+"""Compare an abstracted population run with the full model (KS, Wasserstein, noise floor).
 
 python scripts/evaluate.py                               # gaussian field, needs both runs
 python scripts/evaluate.py field=linear evaluate.run_missing=true

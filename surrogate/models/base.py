@@ -282,6 +282,14 @@ class Model:
         sources = self.sources()
         return {"model": config, **({"model_sources": sources} if sources else {})}
 
+    def rows_identity(self, config: Mapping[str, Any]) -> dict[str, Any]:
+        """What defines a collection's rows where they store the count the model's classes
+        bin (:func:`~surrogate.models.capabilities.class_count_of`), from the model's
+        ``config``: the bins are applied when the rows are read, so a model whose config or
+        files carry them leaves them out (the count stays). The config and :meth:`sources`."""
+        sources = self.sources()
+        return {"model": config, **({"model_sources": sources} if sources else {})}
+
     def validate(self, dt: float) -> None:
         """Refuse a time step this model cannot be simulated with (ConfigError naming why)."""
 

@@ -19,6 +19,7 @@ capability                    what it is                                        
 ``signal_bounds``             ``{signal: (lo, hi)}`` where the signal lives     none
 ``class_names``/``class_lumps``/``classes``  K lumps: classes finer than phi    none
 ``class_bins``                each class's bin of a count both lumps share       none
+``class_count``               the count the classes bin, and the binning         none
 ``exact_class_step``          exact one-window class-to-class law               none
 ``expected_class_next``       a window's expected class law                     none
 ``expected_phi_next``         a window's expected label                         none
@@ -67,8 +68,8 @@ REQUIRED_MEMBERS: tuple[str, ...] = ("input_names", "signal_names", "lump_names"
 OPTIONAL_MEMBERS: tuple[str, ...] = (
     "feature_names", "features", "concat_states", "fusable", "fused_advance", "randoms",
     "exact_psi", "exact_age_psi", "signal_bounds", "class_names", "class_lumps", "classes",
-    "class_bins", "exact_class_step", "expected_class_next", "expected_phi_next", "cell_step_seconds",
-    "burn_in", "state_space", "lump_formula", "lump_expr", "reseed_streams",
+    "class_bins", "class_count", "exact_class_step", "expected_class_next", "expected_phi_next",
+    "cell_step_seconds", "burn_in", "state_space", "lump_formula", "lump_expr", "reseed_streams",
 )  # fmt: skip
 #: the most edits (insert, delete, substitute, swap two neighbours) between an attribute and an
 #: optional name for the attribute to be taken for a misspelling of it
@@ -178,6 +179,33 @@ def lump_classes_of(internal: Any) -> LumpClasses | None:
             f"{len(names)} class_names, both lumps present; got {lumps}"
         )
     return LumpClasses(tuple(str(n) for n in names), lumps, classify)
+
+
+@dataclass(frozen=True)
+class ClassCount:
+    """The count an internal model's K-lumps classes are bins of, apart from the bins: a
+    collection stores the count (:attr:`values`) so that the bins are applied when it is read
+    (:attr:`classify`), and a change of bins alone reuses the collection.
+
+    Attributes:
+        variable: the count, e.g. a species id or ``"P + 2 * P2"`` (it defines the values).
+        digest: a digest of the classes, bins included.
+        values: ``values(state) -> (n,)`` float64, each cell's count.
+        classify: ``classify(values (n,), phi (n,)) -> (n,)`` int64, the class of each count
+            in lump phi (as ``classes(state)`` gives it).
+    """
+
+    variable: str
+    digest: str
+    values: Callable[[InternalState], Tensor]
+    classify: Callable[[Tensor, Tensor], Tensor]
+
+
+def class_count_of(internal: Any) -> ClassCount | None:
+    """The count ``internal``'s classes bin (:class:`ClassCount`), or None where it declares
+    none (no classes, or classes that are no bins of one count)."""
+    count = _optional(internal, "class_count")
+    return count if isinstance(count, ClassCount) else None
 
 
 def class_bins_of(internal: Any) -> tuple[int, ...] | None:
@@ -325,11 +353,13 @@ __all__ = [
     "MAX_EDITS",
     "OPTIONAL_MEMBERS",
     "REQUIRED_MEMBERS",
+    "ClassCount",
     "LumpClasses",
     "burn_in_of",
     "cell_step_seconds_of",
     "check_members",
     "class_bins_of",
+    "class_count_of",
     "concat_states",
     "concat_states_of",
     "edit_distance",

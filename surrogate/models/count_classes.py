@@ -156,11 +156,16 @@ class CountClassifier:
         return self._function(counts, counts.new_zeros((counts.shape[0], 0)))[:, 0].double()
 
     def __call__(self, counts: Tensor, phi: Tensor) -> Tensor:
-        value = self.values(counts)
-        out = torch.empty(counts.shape[0], dtype=torch.int64, device=counts.device)
+        return self.bin(self.values(counts), phi)
+
+    def bin(self, value: Tensor, phi: Tensor) -> Tensor:
+        """The class ``(n,)`` int64 of each count ``value`` ``(n,)`` in its lump ``phi``
+        ``(n,)``: the bins of the count applied apart from computing it."""
+        value = value.double()
+        out = torch.empty(value.shape[0], dtype=torch.int64, device=value.device)
         offset = 0
         for p in (0, 1):
-            edges = torch.tensor(self.classes.edges[p], dtype=torch.float64, device=counts.device)
+            edges = torch.tensor(self.classes.edges[p], dtype=torch.float64, device=value.device)
             bins = torch.bucketize(value, edges, right=True)  # edges[j-1] <= v < edges[j] -> j
             out = torch.where(phi == p, offset + bins, out)
             offset += len(self.classes.edges[p]) + 1

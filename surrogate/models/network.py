@@ -42,6 +42,7 @@ from surrogate.ctmc.lumped import (
 )
 from surrogate.errors import ConfigError, EventCapError, RunawayError
 from surrogate.models.base import InternalState, Randoms, burn_in_seconds
+from surrogate.models.capabilities import ClassCount
 from surrogate.models.count_classes import CountClasses, CountClassifier
 from surrogate.sbml import SbmlModel
 from surrogate.sbml.formula import parse_formula
@@ -268,6 +269,16 @@ class NetworkInternalModel:
         """Each class's bin of the count where both lumps share its edges (None: no classes,
         or each lump its own edges)."""
         return None if self.count_classes is None else self.count_classes.bins
+
+    @property
+    def class_count(self) -> ClassCount | None:
+        """The count the classes bin, apart from the bins (None: no classes): a collection
+        stores it, so its classes are applied when it is read."""
+        classify = self._classify
+        if self.count_classes is None or classify is None:
+            return None
+        return ClassCount(self.count_classes.variable, self.count_classes.digest(),
+                          lambda state: classify.values(state[0]), classify.bin)  # fmt: skip
 
     def _lump_function(self, lump: Lump) -> Callable[[Tensor], Tensor]:
         #: the lump's parsed condition over the species (None for a Python function)

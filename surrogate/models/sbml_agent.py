@@ -130,6 +130,8 @@ AUTO_CLASSES_DT = 0.05
 AUTO_CLASSES_CELLS = 200
 #: spec keys that shape only the abstraction, not the full model's law
 ABSTRACTION_KEYS = ("classes", "collect")
+#: spec keys a collection's rows leave to their reader (the bins; the rows store the count)
+BINS_KEYS = ("classes",)
 #: collection settings a model may carry as its default budget
 COLLECT_KEYS = ("n_per_state", "n_cells", "record_every")
 
@@ -488,6 +490,22 @@ class SbmlAgentModel(Model):
         sources = {"network": _sha256(self.network_path),
                    "settings": hashlib.sha256(blob.encode()).hexdigest()}  # fmt: skip
         kept = {k: v for k, v in config.items() if k not in ABSTRACTION_KEYS}
+        return {"model": kept, "model_sources": sources}
+
+    def rows_identity(self, config: Mapping[str, Any]) -> dict[str, Any]:
+        """A collection's rows, which store the count its classes bin: the sources with the
+        spec's settings read without ``classes`` and the count (the variable the rows hold) in
+        place of the classes' digest; ``config`` without ``classes``. Changing only the bins
+        (or ``classes: auto``'s settings, where it picks the same count) reuses the rows."""
+        settings = {k: v for k, v in self._settings_as_read().items() if k not in BINS_KEYS}
+        sources = {"network": _sha256(self.network_path)}
+        if self.spec is not None:
+            blob = json.dumps(settings, sort_keys=True, default=str)
+            sources["spec"] = hashlib.sha256(blob.encode()).hexdigest()
+        classes = self.internal.count_classes
+        if classes is not None:
+            sources["class_count"] = classes.variable
+        kept = {k: v for k, v in config.items() if k not in BINS_KEYS}
         return {"model": kept, "model_sources": sources}
 
     def observable_label(self, name: str) -> str:

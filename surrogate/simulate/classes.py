@@ -30,7 +30,12 @@ import torch
 from torch import Tensor
 
 from surrogate.models.base import InternalModel, Randoms
-from surrogate.models.capabilities import exact_class_step_of, lump_classes_of, signal_bounds_of
+from surrogate.models.capabilities import (
+    ClassCount,
+    exact_class_step_of,
+    lump_classes_of,
+    signal_bounds_of,
+)
 from surrogate.simulate.stateful import StatefulDecision, carried_alias
 
 #: where a chain's cells start: the internal model's initial law, or the chain's stationary law
@@ -40,11 +45,32 @@ STATIONARY_SQUARINGS = 40
 
 #: collect's class columns (the class at the window's start and end)
 CLASS, CLASS_NEXT = "phi_class", "phi_class_next"
+#: collect's columns of the count the classes bin, where the model gives it
+#: (:func:`~surrogate.models.capabilities.class_count_of`): the window's start and end, so the
+#: bins are applied when the table is read (:func:`reclassify`)
+CLASS_COUNT, CLASS_COUNT_NEXT = "phi_class_count", "phi_class_count_next"
 
 
 def expected_class_column(b: int) -> str:
     """Collect's column of P(class after the window = ``b`` | the state at its start)."""
     return f"{CLASS_NEXT}_expected_{b}"
+
+
+def reclassify(table: Any, count: ClassCount) -> Any:
+    """``table`` (a transitions DataFrame) with its class columns (:data:`CLASS`,
+    :data:`CLASS_NEXT`) made from its count columns by ``count``'s bins, where it has them:
+    the classes of the model reading it, whatever bins it was collected with. A table without
+    count columns is returned as it is."""
+    if CLASS_COUNT not in table.columns or CLASS_COUNT_NEXT not in table.columns:
+        return table
+    out = table.copy()
+    for value, phi, column in ((CLASS_COUNT, "phi", CLASS), (CLASS_COUNT_NEXT, "phi_next",
+                                                              CLASS_NEXT)):  # fmt: skip
+        # copies: a DataFrame's arrays may be read-only
+        classes = count.classify(torch.tensor(table[value].to_numpy(), dtype=torch.float64),
+                                 torch.tensor(table[phi].to_numpy(), dtype=torch.int64))  # fmt: skip
+        out[column] = classes.to(torch.int16).numpy()
+    return out
 
 
 #: gp.lumps choices

@@ -43,13 +43,20 @@ from tqdm.auto import tqdm
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.models.base import Perturbation
 from surrogate.models.capabilities import (
+    class_count_of,
     expected_class_next_of,
     expected_phi_next_of,
     feature_names_of,
     features_of,
     lump_classes_of,
 )
-from surrogate.simulate.classes import CLASS, CLASS_NEXT, expected_class_column
+from surrogate.simulate.classes import (
+    CLASS,
+    CLASS_COUNT,
+    CLASS_COUNT_NEXT,
+    CLASS_NEXT,
+    expected_class_column,
+)
 from surrogate.simulate.design import GuidedJump
 from surrogate.simulate.loop import PopulationState, Simulator
 from surrogate.simulate.memory import AGE, CENSORED, tick
@@ -98,6 +105,8 @@ def _rows(
         )
     names = (*internal.input_names, *feature_names_of(internal))
     classes = lump_classes_of(internal)  # K lumps: each window's class before and after
+    # and, where the classes are bins of a count, the count: the bins are applied when read
+    count = class_count_of(internal) if classes is not None else None
     device, dt = simulator.device, simulator.dt
     state = simulator.initial_state(n_cells, start, equilibration_time)
     jump_probability = perturb_rate * dt
@@ -167,6 +176,9 @@ def _rows(
             after = simulator.decision.fused_state()
             chunk[CLASS] = classes.classify(before)[rows].to(torch.int16).cpu().numpy()
             chunk[CLASS_NEXT] = classes.classify(after)[rows].to(torch.int16).cpu().numpy()
+            if count is not None:
+                chunk[CLASS_COUNT] = count.values(before)[rows].double().cpu().numpy()
+                chunk[CLASS_COUNT_NEXT] = count.values(after)[rows].double().cpu().numpy()
             expected_class = expected_class_next_of(internal) if expected else None
             if expected_class is not None:
                 law = expected_class(before, x, dt)[rows].float().cpu().numpy()

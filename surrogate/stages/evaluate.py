@@ -40,7 +40,7 @@ from surrogate.io import (
     write_manifest,
 )
 from surrogate.simulate.profiles import Profiles
-from surrogate.simulate.speed import LoopTiming, compare
+from surrogate.simulate.speed import LoopTiming
 from surrogate.stages import budget
 from surrogate.stages.artefacts import (
     BAND_FIDELITY,
@@ -54,6 +54,11 @@ from surrogate.stages.simulate import simulate
 
 log = logging.getLogger(__name__)
 
+#: why evaluate reports no speed-up: its runs were timed apart
+SIDE_BY_SIDE = (
+    "the runs were timed apart, each with its own compile and machine load; `python "
+    "scripts/speed.py` with the same settings times both loops side by side"
+)
 #: the second full run's label in the band comparison (the summary's keys say ``full_repeat``)
 FLOOR = "full_repeat"
 
@@ -102,6 +107,32 @@ def ensure_run(settings: SimulateSettings, run_missing: bool) -> Path:
     return directory
 
 
+def ensure_abstraction(settings: EvaluateSettings) -> Path | None:
+    """The fit the candidate run needs, made before the first simulation: with
+    ``evaluate.run_missing``, a missing candidate run's learned abstraction is collected and
+    trained here (as reproduce does, and as the cost estimate counts it), so a missing fit never
+    stops the evaluation after its full runs. Returns the train directory it made, else None
+    (the candidate exists, needs no fit, or its fit exists)."""
+    train_settings = settings.candidate.decision.train
+    if (
+        train_settings is None
+        or not settings.run_missing
+        or (settings.candidate.directory / MANIFEST).exists()
+        or (train_settings.fit_directory / MANIFEST).exists()
+    ):
+        return None
+    # imported only by evaluations that train (as the simulate stage loads a fit)
+    from surrogate.stages.collect import collect
+    from surrogate.stages.settings import CollectSettings
+    from surrogate.stages.train import train
+
+    log.info("evaluate: the candidate's abstraction is missing: collecting and training it "
+             "before any simulation (`%s`)", train_settings.command())  # fmt: skip
+    if isinstance(train_settings.source, CollectSettings):
+        collect(train_settings.source)
+    return train(train_settings)
+
+
 def runs_of(settings: EvaluateSettings) -> dict[str, SimulateSettings]:
     """The runs an evaluation compares, by role: ``full``, ``candidate``, ``full_repeat``."""
     runs = {"full": settings.full, "candidate": settings.candidate}
@@ -130,6 +161,7 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
     """Make sure the runs exist, compare them, then write tables, figures and (last) the
     manifest."""
     check_runs(settings)
+    ensure_abstraction(settings)
     dirs = {k: ensure_run(s, settings.run_missing) for k, s in runs_of(settings).items()}
     t0 = time.perf_counter()
     runs = RunSet(load_run(dirs["full"]), load_run(dirs["candidate"]),
@@ -162,16 +194,10 @@ def _evaluate(settings: EvaluateSettings, out: Path, config: Mapping[str, Any] |
         if summary["max_ks_noise_floor"] is not None
         else "n/a"
     )
-    speed = summary["speedup_loop"]
-    speed_text = (
-        f"{speed:.1f}x per cell-step"
-        if speed
-        else f"n/a ({'; '.join(summary['speed_not_comparable'])})"
-    )
     log.info(
-        "evaluate %s (%s): max KS vs full %.3f, noise floor %s; loop speed-up %s; artefacts "
-        "in %s", settings.candidate.setup.field_name, settings.candidate.decision.name,
-        summary["max_ks"], floor_text, speed_text, out,
+        "evaluate %s (%s): max KS vs full %.3f, noise floor %s; artefacts in %s (no speed-up: "
+        "%s)", settings.candidate.setup.field_name, settings.candidate.decision.name,
+        summary["max_ks"], floor_text, out, SIDE_BY_SIDE,
     )  # fmt: skip
     if band is not None:
         log.info("band fidelity (%s): %s", BAND_FIDELITY, "passed" if summary["band_fidelity"][
@@ -190,19 +216,13 @@ def mean_duration_errors(run: SimulationRun) -> dict[str, float | None]:
 
 
 def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
-    """Headline figures: speed-ups per cell-step (:func:`~surrogate.simulate.speed.speedup`
-    of the loop times, and of the wall times; only for runs timed comparably: same device,
-    threads, number of cells, loop (torch step or kernel) and compile state, each with a loop of
-    its own, not simulated in one batch; ``speed_not_comparable`` says why not), the largest KS
-    distances, mean durations."""
+    """Headline figures: each run's loop time and cell-steps per second, the largest KS
+    distances, mean durations. No speed-up: the runs were timed apart (each its own loop, cold
+    compile and machine load; docs/performance.md), so ``speedup_loop`` and ``speedup_wall``
+    are None and ``speed_not_comparable`` is :data:`SIDE_BY_SIDE`, naming the command that
+    measures the ratio side by side."""
     full, cand = runs.full.manifest, runs.candidate.manifest
     loops = {"full": LoopTiming.from_manifest(full), "candidate": LoopTiming.from_manifest(cand)}
-    speedup_loop, why = compare(loops["full"], loops["candidate"])
-    speedup_wall, _ = compare(loops["full"].with_seconds(full["wall_time_s"]),
-                              loops["candidate"].with_seconds(cand["wall_time_s"]))  # fmt: skip
-    if full.get("batched") or cand.get("batched"):  # one loop time for several runs
-        why.insert(0, "simulated in a batch (no loop time of its own)")
-        speedup_loop = speedup_wall = None
     durations = {"full": mean_durations(runs.full), "candidate": mean_durations(runs.candidate)}
     errors = {"full": mean_duration_errors(runs.full),
               "candidate": mean_duration_errors(runs.candidate)}  # fmt: skip
@@ -211,10 +231,10 @@ def summarise(runs: RunSet, table: pd.DataFrame) -> dict[str, Any]:
         errors["full_repeat"] = mean_duration_errors(runs.full_repeat)
     return {
         "candidate": cand.get("decision"),
-        "speedup_loop": speedup_loop,
-        "speedup_wall": speedup_wall,
-        "speed_comparable": not why,
-        "speed_not_comparable": why,
+        "speedup_loop": None,
+        "speedup_wall": None,
+        "speed_comparable": False,
+        "speed_not_comparable": [SIDE_BY_SIDE],
         "loop_time_s": {k: t.seconds for k, t in loops.items()},
         "cell_steps": {k: t.n_cells * t.steps for k, t in loops.items()},
         "cell_steps_per_s": {k: t.cell_steps_per_s for k, t in loops.items()},
@@ -383,6 +403,7 @@ __all__ = [
     "band_comparison",
     "band_runs",
     "check_runs",
+    "ensure_abstraction",
     "ensure_run",
     "evaluate",
     "mean_duration_errors",

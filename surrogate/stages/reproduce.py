@@ -48,8 +48,6 @@ from surrogate.stages.train import class_diagnostic_by_lump, percent, read_metri
 
 log = logging.getLogger(__name__)
 
-SPEED_FORMATS = {"full cell-steps/s": ".3g", "abstract cell-steps/s": ".3g", "speed-up": ".1f"}
-
 
 def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
     """Checks before any work: every field exists, every stage's settings are valid, the
@@ -75,12 +73,13 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
         precompile_in_background(model, tr.job.device)  # overlaps collect and train
     collect_dir = collect(tr.source) if isinstance(tr.source, CollectSettings) else None
     train_dir = train(tr)
-    speed = None
-    if batch:  # every missing run in one batch; the loop speed measured once per report
+    if batch:  # every missing run in one batch
         simulate_together(runs)
-        previous = settings.directory / MANIFEST
-        speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
-        speed = speed or measure_stage_speed(settings)
+    # the loop speed measured side by side once per report: runs timed apart (or in one
+    # batch) make no ratio
+    previous = settings.directory / MANIFEST
+    speed = read_manifest(settings.directory).get("speed") if previous.exists() else None
+    speed = speed or measure_stage_speed(settings)
     evaluations: dict[str, Path] = {}
     for name, e in settings.evaluations.items():
         log.info("field %s: full and abstracted simulations, evaluation", name)
@@ -168,9 +167,7 @@ def report_sections(
     first = next(iter(settings.evaluations.values())).candidate
     tables = _tables(evaluations)
     summaries = {name: evaluate_stage.read_summary(d) for name, d in evaluations.items()}
-    speedups = {name: s["speedup_loop"] for name, s in summaries.items() if s["speedup_loop"]}
-    if speed is not None:
-        speedups = {speed["field"]: speed["speedup"]} if speed["speedup"] else {}
+    speedups = {speed["field"]: speed["speedup"]} if speed and speed["speedup"] else {}
     metrics = read_metrics(train_dir)
     data = "an external table"
     if collect_dir is not None:
@@ -213,7 +210,7 @@ def report_sections(
     )
     sections.append(("Inputs outside the training data", _outside_text(settings)))
     sections.append(
-        ("Speed", _speed_text(summaries) if speed is None else _measured_speed_text(speed))
+        ("Speed", "Not measured." if speed is None else _measured_speed_text(speed, settings.batch))
     )
     gp_rows = pd.DataFrame([
         {"classifier": f"{name} (from {metrics[name]['origin']})",
@@ -491,7 +488,7 @@ def _outside_text(settings: ReproduceSettings) -> str:
     )
 
 
-def _measured_speed_text(speed: Mapping[str, Any]) -> str:
+def _measured_speed_text(speed: Mapping[str, Any], batched: bool = True) -> str:
     from surrogate.simulate.speed import LoopTiming, loop_name
 
     rows = [{"model": k, "loop": loop_name(LoopTiming.from_mapping(speed[k])),
@@ -510,9 +507,16 @@ def _measured_speed_text(speed: Mapping[str, Any]) -> str:
                  + " (excluding collection and training, as in the paper). ")  # fmt: skip
     else:
         ratio = f"none: {'; '.join(speed.get('speed_not_comparable', []))}. "
+    runs = (
+        "The runs above were simulated in one batch (one loop for several runs), so they "
+        "have no loop time of their own. "
+        if batched
+        else "The runs above were timed apart "
+        "(each with its own compile and machine load), so their times make no ratio. "
+    )
     return (
-        f"The runs above were simulated in one batch (one loop for several runs), so they have "
-        f"no loop time of their own. Loop speed measured side by side in this process: "
+        runs
+        + f"Loop speed measured side by side in this process: "
         f"{speed['n_cells']} cells x {speed['steps']} steps in field {speed['field']}, "
         f"compile={str(speed['compile']).lower()}, {speed['threads']} thread(s), best of two, "
         f"after a warm-up (compile time separate). Abstraction speed-up: " + ratio
@@ -521,30 +525,3 @@ def _measured_speed_text(speed: Mapping[str, Any]) -> str:
         + format_markdown_table(pd.DataFrame(rows), {"loop (s)": ".3f", "us/step": ".1f",
                                                      "cell-steps/s": ".3g", "compile (s)": ".1f"})
     )  # fmt: skip
-
-
-def _speed_text(summaries: Mapping[str, Mapping[str, Any]]) -> str:
-    rows = []
-    for name, s in summaries.items():
-        rows.append({
-            "field": name,
-            "full loop (s)": s["loop_time_s"]["full"],
-            "abstract loop (s)": s["loop_time_s"]["candidate"],
-            "full cell-steps/s": s["cell_steps_per_s"]["full"],
-            "abstract cell-steps/s": s["cell_steps_per_s"]["candidate"],
-            "speed-up": s["speedup_loop"] if s["speedup_loop"] else float("nan"),
-        })  # fmt: skip
-    note = "" if all(s["speed_comparable"] for s in summaries.values()) else (
-        "\n\nA speed-up is shown only for loops timed comparably (same device, thread count, "
-        "number of cells, loop and compile state, each run with a loop of its own); nan marks "
-        "the others.")  # fmt: skip
-    return (
-        "Wall-clock time of the simulation loops, measured on this machine (excluding "
-        "collection and training, as in the paper); the speed-up is per cell-step (the "
-        "abstraction's cell-steps per second over the full model's, between runs of the same "
-        "size: throughput per cell-step changes with the population's size). Both models are "
-        "batched over cells, so the ratio is far smaller than against a per-cell implementation; see the README's "
-        "benchmark for throughput at larger populations.\n\n"
-        + format_markdown_table(pd.DataFrame(rows), SPEED_FORMATS)
-        + note
-    )

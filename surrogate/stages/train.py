@@ -62,6 +62,7 @@ from surrogate.io import (
 from surrogate.kinds import load_class_chain as load_class_chain  # the Python API's
 from surrogate.models.base import Model
 from surrogate.models.capabilities import (
+    class_count_of,
     exact_class_step_of,
     has_exact_psi,
     lump_classes_of,
@@ -73,6 +74,7 @@ from surrogate.simulate.classes import (
     ClassDecision,
     ClassTable,
     exact_class_table,
+    reclassify,
 )
 from surrogate.simulate.decision import ExactPsi
 from surrogate.simulate.loop import Simulator
@@ -172,6 +174,9 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
+    count = class_count_of(settings.setup.model.internal)
+    if count is not None:  # the classes of these settings' bins, from the rows' count
+        table = reclassify(table, count)
     table = settings.kind.training_rows(table, settings.max_age, where, source)
     label = settings.label_column(table.columns)
     settings.check_label_column(label, where)

@@ -64,3 +64,48 @@ def test_evaluate_compares_the_band_with_the_floor(compose_cfg) -> None:
     report = (out / f"{BAND_FIDELITY}.md").read_text()
     assert "## The rule" in report and f"]({BAND_FIDELITY}.png)" in report
     assert (out / f"{BAND_FIDELITY}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_reproduce_refuses_the_band_naming_the_evaluation_that_makes_it(compose_cfg) -> None:
+    """reproduce's `fields` (L1-L3) once won silently over experiment=band's field: 700 s of
+    given fields and a report with no band. A coupled field, given or listed, is refused before
+    any work, naming the evaluate command of these settings that makes the band's report."""
+    from surrogate.errors import ConfigError
+    from surrogate.stages import reproduce
+
+    with pytest.raises(ConfigError, match="field=channel_band is coupled") as given:
+        reproduce.validate(compose_cfg("reproduce", ["experiment=band"]))
+    command = str(given.value)
+    assert "python scripts/evaluate.py decision=abstract" in command
+    assert "field=channel_band" in command and "n_cells=5000" in command
+    assert "evaluate.run_missing=true" in command and "experiment=band" in command
+    with pytest.raises(ConfigError, match="fields: channel_band is coupled"):
+        reproduce.validate(compose_cfg("reproduce", ["fields=[gaussian,channel_band]"]))
+
+
+class _FirstSimulation(Exception):
+    """Raised in place of the evaluation's first simulation."""
+
+
+def test_run_missing_trains_the_abstraction_before_the_first_simulation(
+    compose_cfg, monkeypatch
+) -> None:
+    """`evaluate.py experiment=band decision=abstract evaluate.run_missing=true` in a fresh
+    data directory once simulated the full band for minutes, then stopped for want of a
+    trained abstraction: run_missing collects and trains it first, as its estimate counts."""
+    tiny_fit = ["gp=svgp", "collect.n_per_state=400", "collect.n_cells=100",
+                "gp.n_inducing=16", "gp.epochs=8", "gp.batch_size=200", "gp.grid_size=[12]",
+                "gp.diagnostic.n_cells=100", "gp.diagnostic.t_end=10.0"]  # fmt: skip
+    band = [o.replace("decision=exact", "decision=abstract") for o in TINY]
+    cfg = compose_cfg("evaluate", [*band, *tiny_fit, "evaluate.run_missing=true"])
+    settings = evaluate_stage.validate(cfg)
+    fit = settings.candidate.decision.train
+    assert fit is not None and not (fit.fit_directory / "manifest.json").exists()
+
+    def first_simulation(run) -> None:
+        assert (fit.fit_directory / "manifest.json").exists(), "simulated before training"
+        raise _FirstSimulation(run.directory)
+
+    monkeypatch.setattr(evaluate_stage, "simulate", first_simulation)
+    with pytest.raises(_FirstSimulation):
+        evaluate_stage.evaluate(settings)

@@ -13,7 +13,11 @@ from surrogate.config import non_negative, positive, to_dict
 from surrogate.errors import ConfigError
 from surrogate.grid.coupled import is_coupled
 from surrogate.io import artefact_dir
-from surrogate.models.capabilities import feature_names_of
+from surrogate.models.capabilities import (
+    class_count_of,
+    expected_class_next_of,
+    feature_names_of,
+)
 from surrogate.stages.settings.common import (
     COLLECT_CMD,
     TRAIN_CMD,
@@ -104,13 +108,36 @@ class CollectSettings:
         """The sequential design's target (``collect.design.target_error``), or None."""
         return None if self.design is None else float(self.options["design"]["target_error"])
 
+    @property
+    def bins_at_train(self) -> bool:
+        """Whether the rows leave the classes' bins to their reader: the model's classes are
+        bins of a count, which the rows store (train applies the bins,
+        :func:`~surrogate.simulate.classes.reclassify`), with no expected class law (its
+        columns would be the bins' law) and no sequential design (its rounds' fits would use
+        the bins)."""
+        internal = self.setup.model.internal
+        return (self.design is None and class_count_of(internal) is not None
+                and expected_class_next_of(internal) is None)  # fmt: skip
+
+    def bins_identity(self) -> dict[str, Any]:
+        """The classes' bins (a digest) where the rows leave them to their reader
+        (:attr:`bins_at_train`): part of the identity of what is fitted on the rows, not of the
+        rows; else nothing."""
+        count = class_count_of(self.setup.model.internal)
+        return {"classes": count.digest} if self.bins_at_train and count is not None else {}
+
     def identity(self) -> dict[str, Any]:
         """Everything that defines a transitions table: the device too (its random stream), and
         the design's fits where it has one (a switched-off design leaves the fixed design's
-        identity as it was); not the checks of :data:`NOT_IDENTITY`."""
+        identity as it was); not the checks of :data:`NOT_IDENTITY`, nor the classes' bins
+        where the rows store the count they bin (:attr:`bins_at_train`: the model's
+        :meth:`~surrogate.models.base.Model.rows_identity`)."""
         options = {k: v for k, v in identity_options(self.options).items()
                    if k != "design" or self.design}  # fmt: skip
-        out = {**self.setup.identity(), "collect": options, "device": self.job.device_type}
+        model = self.setup.identity()
+        if self.bins_at_train:
+            model = {**model, **self.setup.model.rows_identity(self.setup.model_config)}
+        out = {**model, "collect": options, "device": self.job.device_type}
         if self.design is not None:
             # its rounds fit psi and score it on the diagnostic's occupancy run
             out["design_fit"] = {**self.design.fit_identity(), "occupancy": self.design.diagnostic}

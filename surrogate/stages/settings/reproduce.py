@@ -12,12 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from surrogate.config import field_config, group_config, to_dict
-from surrogate.errors import ConfigError
+from surrogate.config import build_field, field_config, field_name, group_config, to_dict
+from surrogate.errors import ConfigError, SurrogateError
+from surrogate.grid import is_coupled
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
 from surrogate.models.network import direct_exact_step_seconds
-from surrogate.stages.settings.common import REPRODUCE_CMD, Job, command_line
+from surrogate.stages.settings.common import EVALUATE_CMD, REPRODUCE_CMD, Job, command_line
 from surrogate.stages.settings.evaluate import EvaluateSettings
 from surrogate.stages.settings.simulate import SimulateSettings
 from surrogate.stages.settings.train import TrainSettings
@@ -80,6 +81,7 @@ class ReproduceSettings:
         for name in fields:
             field_config(name)
         c = to_dict(cfg)
+        refuse_coupled(c, fields)
         for key in ("batch", "exact_psi", "exact_psi_figures"):
             if not isinstance(c.get(key, True), bool):
                 raise ConfigError(f"{key} must be true or false, got {c[key]!r}")
@@ -134,6 +136,38 @@ class ReproduceSettings:
                  "T": first.t_end, "inputs": "+".join(self.train.inputs),
                  "seed": first.setup.seed}  # fmt: skip
         return artefact_dir(self.job.data_dir, "reproduce", label, self.identity())
+
+
+def refuse_coupled(cfg: dict[str, Any], fields: list[str]) -> None:
+    """Refuse, before any work, a coupled field (the cells change it: experiment=band's
+    travelling band) given as ``field`` or listed in ``fields``: reproduce's report compares
+    given fields and shows no band (profiles, front, speed against mass balance, band checks),
+    and its ``fields`` would silently win over an experiment's ``field``. The error names the
+    evaluate command that makes the band's evaluation for these settings.
+
+    Raises:
+        ConfigError: a coupled field, naming that command.
+    """
+    candidates = {f"field={field_name(cfg['field'])}": cfg}
+    candidates.update({f"fields: {n}": {**cfg, "field": field_config(n)} for n in fields})
+    coupled = [(where, c) for where, c in candidates.items() if is_coupled(build_field(c["field"]))]
+    if not coupled:
+        return
+    where, c = coupled[0]
+    name = field_name(c["field"])
+    run_missing = {**c, "evaluate": {**c["evaluate"], "run_missing": True}}
+    try:  # the command for these very settings (n_cells, t_end, the abstraction's gp, ...)
+        command = EvaluateSettings.from_config(run_missing).command()
+    except SurrogateError:  # any other error of the settings is evaluate's to report
+        command = f"{EVALUATE_CMD} field={name} decision=abstract"
+    raise ConfigError(
+        f"reproduce compares given fields ({', '.join(fields)}) in one report without a band; "
+        f"{where} is coupled (the cells change it: a travelling band), and its evaluation "
+        f"(profiles, the front, its speed against mass balance, kymographs, the band's checks "
+        f"against the noise floor) is evaluate's: run `{command} evaluate.run_missing=true` "
+        f"(experiment=band: `{EVALUATE_CMD} experiment=band decision=abstract "
+        f"evaluate.run_missing=true`; docs/fields.md)"
+    )
 
 
 #: runs of at most this many cells are simulated in one batch (reproduce); larger ones alone:

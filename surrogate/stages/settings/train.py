@@ -236,7 +236,8 @@ class TrainSettings:
         """Everything that defines the fitted classifiers: the data, the GP settings, the fit's
         thread count (float reductions) and device type; not the diagnostic or the grid."""
         if isinstance(self.source, CollectSettings):
-            data = self.source.identity()
+            # the bins where the rows leave them to train (the rows' identity has none)
+            data = {**self.source.identity(), **self.source.bins_identity()}
         else:
             data = {"table": str(self.source.path), "sha256": self.source.sha256,
                     "model": self.setup.model_config, "seed": self.setup.seed}  # fmt: skip
