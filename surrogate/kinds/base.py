@@ -16,6 +16,7 @@ from typing import Any, ClassVar, Protocol, TypeVar
 
 import pandas as pd
 import torch
+from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.gp import load_psi
@@ -184,6 +185,13 @@ class ChainKind:
     #: its own artefact: the fit's files beyond the classifiers' (:data:`PSI`, which every
     #: kind fits), copied into the train directory with them
     files: ClassVar[tuple[str, ...]] = ()
+    #: how much the kind carries beyond phi, for the measured choice's ties (gp.choose: a
+    #: candidate within the standard error of the best goes to the smallest): the two-state
+    #: chain 0, the switch clock 1, K lumps 2; a new kind sets its own
+    complexity: ClassVar[int] = 0
+    #: the measured choice (gp.choose) fits and scores this kind with its :attr:`recipe`
+    #: (``gp=<recipe>``) beside the shipped candidates: a registered kind joins by saying so
+    candidate: ClassVar[bool] = False
 
     @classmethod
     def make(cls, class_moves: str) -> ChainKind:
@@ -317,12 +325,55 @@ class ChainKind:
         psi, _ = load_psi(Path(directory) / PSI, device=request.device)
         return abstract_decision(request.model, psi, request.mode, request.size, request.device)
 
+    # what the measured choice asks of the kind (surrogate.kinds.scoring)
+
+    def sequence_log_likelihood(
+        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+    ) -> Tensor:
+        """The log-likelihood of observed phi sequences given their inputs under this kind's
+        ``layer`` (its :meth:`decision_layer`), conditioned on each sequence's first phi.
+
+        Args:
+            layer: the kind's decision layer.
+            inputs: ``n x T x d`` the model's inputs (``internal.input_names``) in each window.
+            phi: ``n x (T + 1)`` phi (0/1) before the first window and after each.
+            dt: the window (s).
+
+        Returns:
+            ``(n,)`` float64: each sequence's log p(phi_1..T | phi_0, inputs).
+
+        Raises:
+            NotImplementedError: the kind has no likelihood of phi sequences (each kind gives
+                its own; the measured choice cannot score it).
+        """
+        raise NotImplementedError(
+            f"the {self.title} chain ({type(self).__name__}) gives no log-likelihood of phi "
+            f"sequences (sequence_log_likelihood): the measured choice cannot score it"
+        )
+
+    def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
+        """Put ``layer`` where sequences that start in ``phi0`` (``(n,)``) at the inputs ``x0``
+        (``n x d``) begin, before it is stepped from ``phi0`` (the measured choice's simulated
+        durations): its own start (a clock starts settled, as it does in a run)."""
+        layer.initialize(x0)
+
     def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
         """The chain driven by the model's exact law (decision=exact, checked by
         :meth:`check_exact_history` and :meth:`check_exact`) as the layer ``request`` asks for;
         and facts about it for the manifest (:func:`exact_decision`)."""
         return exact_decision(request.model, request.dt, request.mode, request.size,
                               request.device)  # fmt: skip
+
+
+def bernoulli_log_likelihood(p: Tensor, phi_next: Tensor) -> Tensor:
+    """log P(phi' = ``phi_next``) for p(phi' = 1) = ``p`` (any shape, float64), the
+    probabilities clamped away from 0 and 1 (a table's rounding must not give -inf)."""
+    q = p.to(torch.float64).clamp(PROBABILITY_FLOOR, 1.0 - PROBABILITY_FLOOR)
+    return torch.where(phi_next.bool(), q.log(), (-q).log1p())
+
+
+#: the smallest probability a likelihood reads (a float32 table's rounding of 0 or 1)
+PROBABILITY_FLOOR = 1e-12
 
 
 #: the registered chain kinds, in the order their modules were imported

@@ -17,11 +17,17 @@ from typing import Any
 
 import pandas as pd
 import torch
+from torch import Tensor
 
 from surrogate.errors import ArtefactError, ConfigError
 from surrogate.gp import load_psi
 from surrogate.gp.training import GPSettings
-from surrogate.kinds.base import ChainKind, LayerRequest, register_chain_kind
+from surrogate.kinds.base import (
+    ChainKind,
+    LayerRequest,
+    bernoulli_log_likelihood,
+    register_chain_kind,
+)
 from surrogate.kinds.decision import DecisionMode
 from surrogate.kinds.files import PSI
 from surrogate.kinds.layers import psi_decision
@@ -29,6 +35,7 @@ from surrogate.models.base import FeatureMap, Model
 from surrogate.simulate.decision import DecisionLayer
 from surrogate.simulate.memory import (
     AGE,
+    SETTLED,
     MemoryDecision,
     can_age,
     clock_rows,
@@ -53,6 +60,8 @@ class SwitchClock(ChainKind):
     gp_keys = GP_CLOCK
     title = "switch clock"
     clock = True
+    complexity = 1
+    candidate = True
 
     def configure(
         self,
@@ -108,6 +117,26 @@ class SwitchClock(ChainKind):
             lambda ranges: tabulate_with_clock(psi, ranges[:-1], psi.input_names, dt, max_age,
                                                lead),
         )  # fmt: skip
+
+    def sequence_log_likelihood(
+        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+    ) -> Tensor:
+        """sum_t log Bernoulli(phi_{t+1}; psi_{phi_t}(x_t, a_t)), the clock ``a_t`` computed
+        from the observed phi history: it starts settled (at the cap) as the layer's does,
+        since the time since the last switch before a sequence is unknown."""
+        if not isinstance(layer, MemoryDecision):
+            raise TypeError(f"the switch clock scores a MemoryDecision, got {layer!r}")
+        n, steps, d = inputs.shape
+        phi = phi.to(torch.float32)
+        # the clock in steps before each window: settled, then 0 after a change, else +1
+        changed = (phi[:, 1:] != phi[:, :-1]).to(torch.float32)
+        age = torch.empty(n, steps, dtype=torch.float32, device=phi.device)
+        age[:, 0] = SETTLED
+        for t in range(1, steps):  # over windows (cells in the batch): a recurrence
+            age[:, t] = torch.where(changed[:, t - 1] > 0, 0.0, age[:, t - 1] + 1.0)
+        p = layer.probability_at(phi[:, :-1].reshape(-1), inputs.reshape(n * steps, d),
+                                 age.clamp(max=SETTLED).reshape(-1), dt)  # fmt: skip
+        return bernoulli_log_likelihood(p, phi[:, 1:].reshape(-1)).reshape(n, steps).sum(1)
 
     def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
         """The exact psi with a switch clock (:func:`exact_clock_decision`, a table)."""

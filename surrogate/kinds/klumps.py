@@ -18,6 +18,7 @@ from typing import Any
 
 import pandas as pd
 import torch
+from torch import Tensor
 
 from surrogate.errors import ConfigError
 from surrogate.gp.class_relaxation import (
@@ -31,6 +32,7 @@ from surrogate.gp.training import GPSettings
 from surrogate.io import save_tensors
 from surrogate.kinds.base import (
     AUTO_RECIPES,
+    PROBABILITY_FLOOR,
     ChainKind,
     FitSettings,
     LayerRequest,
@@ -72,6 +74,8 @@ class KLumps(ChainKind):
     recipe = AUTO_RECIPES[0]
     starts = STARTS
     files = (CLASS_CHAIN,)
+    complexity = 2
+    candidate = True
 
     moves: str = "learned"
 
@@ -193,9 +197,50 @@ class KLumps(ChainKind):
         return learned_class_decision(request.model, directory, request.device,
                                       start=request.start)  # fmt: skip
 
+    def sequence_log_likelihood(
+        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+    ) -> Tensor:
+        """The forward algorithm over the classes, observing phi = the class's lump: the
+        classes at the start from the chain's stationary law at the first inputs given the
+        first phi, then each window's law given the inputs."""
+        if not isinstance(layer, ClassDecision):
+            raise TypeError(f"K lumps scores a ClassDecision, got {layer!r}")
+        table, n, steps = layer.table, inputs.shape[0], inputs.shape[1]
+        lumps = table.lumps.to(phi.device)  # (C,) float 0/1
+        # (n, T+1, C): whether each class is in the lump observed at each time
+        agrees = (lumps[None, None, :] == phi.to(torch.float32)[:, :, None]).to(torch.float64)
+        alpha = _featurized_law_start(layer, inputs[:, 0]) * agrees[:, 0]
+        alpha = alpha / alpha.sum(1, keepdim=True).clamp_min(PROBABILITY_FLOOR)
+        total = torch.zeros(n, dtype=torch.float64, device=phi.device)
+        for t in range(steps):  # over windows and origin classes (cells in the batch)
+            z = inputs[:, t] if layer.featurize is None else layer.featurize(inputs[:, t])
+            moved = torch.zeros_like(alpha)
+            for c in range(table.n_classes):
+                origin = torch.full((n,), c, dtype=torch.int64, device=phi.device)
+                moved = moved + alpha[:, c, None] * table.law(origin, z).to(torch.float64)
+            moved = moved * agrees[:, t + 1]
+            mass = moved.sum(1)
+            total = total + mass.clamp_min(PROBABILITY_FLOOR).log()
+            alpha = moved / mass.clamp_min(PROBABILITY_FLOOR)[:, None]
+        return total
+
+    def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
+        """Each cell's class drawn from the chain's stationary law at ``x0`` given ``phi0``."""
+        if not isinstance(layer, ClassDecision):
+            raise TypeError(f"K lumps starts a ClassDecision, got {layer!r}")
+        law = _featurized_law_start(layer, x0)
+        law = law * (layer.table.lumps.to(phi0.device)[None, :] == phi0.float()[:, None])
+        layer.cls = torch.multinomial(law.clamp_min(0.0) + 1e-300, 1).squeeze(1)
+
     def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
         """The exact class-to-class law's table (:func:`exact_class_decision`)."""
         return exact_class_decision(request.model, request.dt, request.device), self.label()
+
+
+def _featurized_law_start(layer: ClassDecision, x: Tensor) -> Tensor:
+    """The chain's stationary law at the inputs ``x`` (``n x d``) ``n x C`` (float64)."""
+    z = x if layer.featurize is None else layer.featurize(x)
+    return layer.table.stationary_at(z).to(torch.float64)
 
 
 def learned_class_decision(

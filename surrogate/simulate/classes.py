@@ -248,6 +248,23 @@ class ClassTable:
                 break
         return p.mean(1).reshape(*self.shape, c)
 
+    def stationary_at(self, z: Tensor) -> Tensor:
+        """The stationary law at the inputs ``z`` (``n x d``) ``n x C`` (float32): the
+        multilinear interpolation of the nodes' laws (:meth:`stationary`), what
+        :meth:`draw_start` samples."""
+        nodes = self.stationary().reshape(-1, self.n_classes).to(torch.float32).to(z.device)
+        out = torch.zeros(z.shape[0], self.n_classes, device=z.device)
+        positions = self._positions(z)
+        for corner in range(2 ** len(self.shape)):
+            index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
+            weight = torch.ones(z.shape[0], device=z.device)
+            for j, (node, frac) in enumerate(positions):
+                up = (corner >> j) & 1  # an axis of one node: weight 0 on its missing upper
+                index = index + (node + up).clamp(max=self.shape[j] - 1) * self._strides[j]
+                weight = weight * (frac if up else 1.0 - frac)
+            out = out + weight.unsqueeze(1) * nodes[index]
+        return out
+
     def draw_start(self, z: Tensor, u: Tensor) -> Tensor:
         """Each cell's class drawn from the chain's stationary law at its inputs (the node
         picked by stochastic rounding, as :meth:`draw` does).

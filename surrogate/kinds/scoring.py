@@ -1,0 +1,267 @@
+"""The measured choice of a chain kind (issue 52): each fitted kind scored on held-out
+full-model phi sequences, and the best one picked.
+
+* :func:`phi_sequences`: an occupancy table (every step of every cell,
+  :func:`~surrogate.simulate.transitions.record_occupancy` with ``record_every=1``) as input
+  traces ``n x T x d`` and phi sequences ``n x (T + 1)``.
+* :func:`score_kind`: a kind's held-out score: the log-likelihood per window of the observed phi
+  sequences given their inputs (:meth:`ChainKind.sequence_log_likelihood
+  <surrogate.kinds.base.ChainKind.sequence_log_likelihood>`), and its layer driven by the same
+  input traces: the two-sample KS and the mean's relative difference of the simulated segment
+  durations per lump against the observed ones (:func:`duration_scores`).
+* :func:`choose`: the best kind by log-likelihood per window; a candidate within the standard
+  error of the best (of the paired difference over held-out cells) is a tie, which goes to the
+  simplest (:attr:`ChainKind.complexity <surrogate.kinds.base.ChainKind.complexity>`). The KS is
+  reported beside it, not chosen on.
+
+These take plain values (layers, tensors, scores); the train stage fits the candidates and
+records the held-out run (:mod:`surrogate.stages.choice`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+from surrogate.evaluate.statistics import compare_samples
+from surrogate.kinds.base import ChainKind
+from surrogate.simulate.decision import DecisionLayer
+
+
+def phi_sequences(table: pd.DataFrame, input_names: Sequence[str]) -> tuple[Tensor, Tensor]:
+    """Every cell's input trace and phi sequence from an occupancy table recorded at every step.
+
+    Args:
+        table: rows with ``cell``, ``t``, the ``input_names`` columns, ``phi`` and ``phi_next``
+            (each cell's window at each time), every cell at the same times.
+        input_names: the inputs a layer reads (the internal model's ``input_names``).
+
+    Returns:
+        ``inputs`` ``n x T x d`` (float32) and ``phi`` ``n x (T + 1)`` (float32 0/1): phi
+        before each window, then after the last.
+
+    Raises:
+        ValueError: a column is missing, or the cells were not recorded at the same times.
+    """
+    missing = [c for c in ("cell", "t", "phi", "phi_next", *input_names) if c not in table.columns]
+    if missing:
+        raise ValueError(f"the occupancy table lacks column(s) {missing}")
+    ordered = table.sort_values(["cell", "t"], kind="stable")
+    n = ordered["cell"].nunique()
+    if n == 0 or len(ordered) % n:
+        raise ValueError(f"{len(ordered)} rows over {n} cells: not every cell at the same times")
+    steps = len(ordered) // n
+    inputs = ordered[list(input_names)].to_numpy(np.float32).reshape(n, steps, len(input_names))
+    phi = ordered["phi"].to_numpy(np.float32).reshape(n, steps)
+    last = ordered["phi_next"].to_numpy(np.float32).reshape(n, steps)[:, -1:]
+    return torch.tensor(inputs), torch.tensor(np.concatenate([phi, last], 1))
+
+
+def segment_durations(phi: np.ndarray, dt: float) -> dict[int, np.ndarray]:
+    """The complete phi segments' durations (s) per lump: those that start and end inside the
+    sequences (the first and last of each cell are censored and dropped).
+
+    Args:
+        phi: ``n x (T + 1)`` phi (0/1).
+        dt: the window (s).
+    """
+    phi = np.asarray(phi) > 0.5
+    cell, t = np.nonzero(phi[:, 1:] != phi[:, :-1])  # a change in window t; by cell, then t
+    same = cell[1:] == cell[:-1]
+    lengths = (t[1:] - t[:-1])[same] * dt
+    lump = phi[cell[:-1][same], t[:-1][same] + 1]
+    return {p: lengths[lump == bool(p)] for p in (0, 1)}
+
+
+@dataclass(frozen=True)
+class DurationScore:
+    """One lump's simulated segment durations against the observed: the two-sample KS, its 5 %
+    critical value, and the means' relative difference with its standard error (NaN where a
+    side has fewer than two segments)."""
+
+    ks: float
+    ks_critical_05: float
+    mean_rel_diff: float
+    mean_rel_se: float
+    n_observed: int
+    n_simulated: int
+
+
+def duration_scores(
+    observed: np.ndarray, simulated: np.ndarray, dt: float, lump_names: Sequence[str]
+) -> dict[str, DurationScore]:
+    """Per lump, the simulated segment durations against the observed ones
+    (:func:`segment_durations` of each; KS by
+    :func:`~surrogate.evaluate.statistics.compare_samples`).
+
+    Args:
+        observed, simulated: ``n x (T + 1)`` phi sequences.
+        dt: the window (s).
+        lump_names: the two lumps' names (keys of the result).
+    """
+    obs, sim = segment_durations(observed, dt), segment_durations(simulated, dt)
+    out = {}
+    for p, name in enumerate(lump_names):
+        a, b = obs[p], sim[p]
+        if a.size < 2 or b.size < 2:
+            out[name] = DurationScore(math.nan, math.nan, math.nan, math.nan, a.size, b.size)
+            continue
+        ks = compare_samples(b, a, name=f"{name} durations")
+        mean = float(a.mean())
+        se = math.sqrt(b.var(ddof=1) / b.size + a.var(ddof=1) / a.size) / mean
+        out[name] = DurationScore(ks["ks"], ks["ks_critical_05"], float(b.mean()) / mean - 1.0,
+                                  se, int(a.size), int(b.size))  # fmt: skip
+    return out
+
+
+def simulate_sequences(
+    kind: ChainKind, layer: DecisionLayer, inputs: Tensor, phi0: Tensor, dt: float, seed: int
+) -> Tensor:
+    """The kind's ``layer`` driven by the recorded input traces ``inputs`` (``n x T x d``) from
+    the observed first phi ``phi0`` (``(n,)``): simulated phi ``n x (T + 1)`` (float32).
+    ``seed`` seeds torch's generator (the layers draw from it)."""
+    torch.manual_seed(seed)
+    kind.start_sequences(layer, inputs[:, 0], phi0)
+    out = torch.empty(inputs.shape[0], inputs.shape[1] + 1)
+    phi = phi0.bool()
+    out[:, 0] = phi0
+    for t in range(inputs.shape[1]):  # over windows: cells in the batch
+        phi = layer.step(phi, inputs[:, t], dt).bool()
+        out[:, t + 1] = phi.float()
+    return out
+
+
+@dataclass(frozen=True)
+class KindScore:
+    """A candidate's held-out score: its ``name`` (the recipe, e.g. ``clock max_age=2``), its
+    :attr:`~surrogate.kinds.base.ChainKind.complexity`, the log-likelihood per window (mean
+    over held-out cells of each cell's mean) and per-cell values (for paired differences), the
+    durations' scores per lump, and the fit's and the score's seconds."""
+
+    name: str
+    complexity: int
+    log_likelihood: float
+    per_cell: tuple[float, ...] = field(repr=False)
+    durations: dict[str, DurationScore]
+    fit_seconds: float = math.nan
+    score_seconds: float = math.nan
+
+    def row(self) -> dict[str, Any]:
+        """The score as a flat row for the table (no per-cell values)."""
+        out: dict[str, Any] = {"kind": self.name, "complexity": self.complexity,
+                               "log_likelihood_per_window": self.log_likelihood}  # fmt: skip
+        for lump, d in self.durations.items():
+            for key, value in asdict(d).items():
+                out[f"{lump}_{key}"] = value
+        out["fit_seconds"], out["score_seconds"] = self.fit_seconds, self.score_seconds
+        return out
+
+
+def score_kind(
+    name: str,
+    kind: ChainKind,
+    layer: DecisionLayer,
+    inputs: Tensor,
+    phi: Tensor,
+    dt: float,
+    lump_names: Sequence[str],
+    seed: int = 0,
+) -> KindScore:
+    """A fitted kind's held-out score (:class:`KindScore`).
+
+    Args:
+        name: the candidate's name in the table.
+        kind: the kind (its likelihood and start, :meth:`ChainKind.sequence_log_likelihood`).
+        layer: its decision layer of the fit (:meth:`ChainKind.decision_layer`).
+        inputs: ``n x T x d`` the held-out cells' recorded inputs.
+        phi: ``n x (T + 1)`` their phi.
+        dt: the window (s).
+        lump_names: the two lumps' names.
+        seed: the simulated durations' seed.
+    """
+    if inputs.ndim != 3 or phi.shape != (inputs.shape[0], inputs.shape[1] + 1):
+        raise ValueError(f"inputs must be n x T x d and phi n x (T + 1), got "
+                         f"{tuple(inputs.shape)} and {tuple(phi.shape)}")  # fmt: skip
+    with torch.no_grad():
+        ll = kind.sequence_log_likelihood(layer, inputs, phi, dt) / inputs.shape[1]
+        simulated = simulate_sequences(kind, layer, inputs, phi[:, 0], dt, seed)
+    per_cell = ll.cpu().numpy()
+    durations = duration_scores(phi.cpu().numpy(), simulated.cpu().numpy(), dt, lump_names)
+    return KindScore(name, kind.complexity, float(per_cell.mean()),
+                     tuple(float(v) for v in per_cell), durations)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The measured choice: the chosen candidate's name, why, and every candidate's row with
+    its difference from the best and that difference's standard error."""
+
+    chosen: str
+    reason: str
+    table: list[dict[str, Any]]
+
+
+def choose(scores: Sequence[KindScore], tie_se: float = 1.0) -> Choice:
+    """The best candidate by held-out log-likelihood per window; one within ``tie_se``
+    standard errors of the best (the SE of the paired per-cell difference) ties it, and a tie
+    goes to the simplest (smallest complexity, then the higher likelihood).
+
+    Args:
+        scores: the candidates' scores, on the same held-out cells.
+        tie_se: how many standard errors make a tie (> 0).
+
+    Raises:
+        ConfigError: no candidate, a non-positive ``tie_se`` or two candidates of one name.
+        ValueError: the scores are not over the same held-out cells.
+    """
+    if not scores:
+        raise ConfigError("gp.choose: no candidate kind to choose from")
+    if isinstance(tie_se, bool) or not isinstance(tie_se, int | float) or not tie_se > 0:
+        raise ConfigError(f"gp.choose.tie_se must be a number of standard errors > 0, "
+                          f"got {tie_se!r}")  # fmt: skip
+    names = [s.name for s in scores]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"gp.choose: candidates named twice in {names}")
+    if len({len(s.per_cell) for s in scores}) != 1:
+        raise ValueError("the candidates were scored on different held-out cells")
+    best = max(scores, key=lambda s: s.log_likelihood)
+    ref = np.asarray(best.per_cell)
+    rows, tied = [], []
+    for s in scores:
+        diff = np.asarray(s.per_cell) - ref
+        se = float(diff.std(ddof=1) / math.sqrt(diff.size)) if diff.size > 1 else math.nan
+        gap = float(diff.mean())
+        tie = s is best or (math.isfinite(se) and -gap <= tie_se * se)
+        if tie:
+            tied.append(s)
+        rows.append({**s.row(), "diff_from_best": gap, "diff_se": se, "tied_with_best": tie})
+    chosen = min(tied, key=lambda s: (s.complexity, -s.log_likelihood))
+    if chosen is best:
+        others = [r for r in rows if r["kind"] != best.name]
+        reason = f"{best.name} has the highest held-out log-likelihood per window " + (
+            f"({best.log_likelihood:.5f})"
+        )
+        if others:
+            runner = max(others, key=lambda r: r["diff_from_best"])
+            reason += f"; the next, {runner['kind']}, is {_gap(runner)} lower"
+    else:
+        row = next(r for r in rows if r["kind"] == chosen.name)
+        reason = (f"{chosen.name} is within {tie_se:g} SE of the best, {best.name} "
+                  f"({_gap(row)} lower), and simpler (complexity {chosen.complexity} < "
+                  f"{best.complexity})")  # fmt: skip
+    return Choice(chosen.name, reason, rows)
+
+
+def _gap(row: dict[str, Any]) -> str:
+    """A row's shortfall from the best in words: ``1.2e-03 (SE 1.0e-04, 12.0 SE)``."""
+    gap, se = -row["diff_from_best"], row["diff_se"]
+    ratio = f", {gap / se:.1f} SE" if se > 0 else ""
+    return f"{gap:.2e} (SE {se:.1e}{ratio})"

@@ -1,0 +1,245 @@
+"""The measured choice of a chain kind (surrogate/kinds/scoring.py): held-out likelihoods of phi
+sequences, simulated durations, and the choice with its simpler-kind rule, on synthetic
+telegraphs whose best kind is known."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from torch import Tensor
+
+from surrogate.errors import ConfigError
+from surrogate.kinds import chain_kind
+from surrogate.kinds.base import ChainKind
+from surrogate.kinds.scoring import (
+    DurationScore,
+    KindScore,
+    choose,
+    phi_sequences,
+    score_kind,
+    segment_durations,
+)
+from surrogate.simulate.classes import ClassDecision, ClassTable
+from surrogate.simulate.decision import AbstractDecision
+from surrogate.simulate.memory import MemoryDecision
+
+DT = 0.1
+TWO_STATE, CLOCK = chain_kind(), chain_kind(history="age")
+#: the clock's cap (steps) of the estimated clock psi: longer than the Erlang on time's bulk
+CAP = 30
+
+
+class Internal:
+    """The least internal model a layer starts from: one input ``x``; classes where asked."""
+
+    input_names = ("x",)
+    signal_names = ("x",)
+
+    def initial_state(self, x: Tensor) -> Tensor:
+        return torch.zeros(x.shape[0])
+
+    def phi(self, state: Tensor) -> Tensor:
+        return state
+
+
+class ClassInternal(Internal):
+    """Three classes: OFF, and ON in two phases (an Erlang-2 on time)."""
+
+    class_names = ("off", "on_a", "on_b")
+    class_lumps = (0, 1, 1)
+
+    def classes(self, state: Tensor) -> Tensor:
+        return state.long()
+
+
+def telegraph(n: int, steps: int, erlang: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cells with a constant input x in [0, 1] each: OFF -> ON with probability 0.04 + 0.08 x
+    per window; ON lasts ``erlang`` geometric phases of leaving probability 0.25 each (1: a
+    memoryless telegraph). Returns x ``n x steps x 1`` and phi ``n x (steps + 1)``."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.0, 1.0, n)
+    phase = np.zeros(n, dtype=np.int64)  # 0: OFF, 1..erlang: the ON phases
+    phi = np.zeros((n, steps + 1))
+    for t in range(steps):  # cells in the batch
+        u = rng.uniform(size=n)
+        on = phase > 0
+        start = ~on & (u < 0.04 + 0.08 * x)
+        advance = on & (u < 0.25)
+        phase = np.where(start, 1, np.where(advance, (phase + 1) % (erlang + 1), phase))
+        phi[:, t + 1] = phase > 0
+    return np.repeat(x[:, None, None], steps, 1), phi
+
+
+def binned(x: np.ndarray, phi: np.ndarray, clock: bool, bins: int = 4):
+    """psi estimated from training sequences by frequencies per (phi, x bin[, clock steps]),
+    as a callable ``psi(phi, z)``: the two-state chain's (z = x) or the clock's (z = [x, a])."""
+    xb = np.minimum((x[:, :, 0] * bins).astype(int), bins - 1)
+    origin, nxt = phi[:, :-1].astype(int), phi[:, 1:]
+    age = np.full(origin.shape, CAP)
+    for t in range(1, origin.shape[1]):  # starts settled, as the layer does
+        age[:, t] = np.where(phi[:, t] != phi[:, t - 1], 0, np.minimum(age[:, t - 1] + 1, CAP))
+    a = age if clock else np.zeros_like(age)
+    ones = np.ones((2, bins, CAP + 1))  # Laplace's rule: no zero frequency
+    total = 2 * np.ones((2, bins, CAP + 1))
+    np.add.at(ones, (origin, xb, a), nxt)
+    np.add.at(total, (origin, xb, a), 1.0)
+    table = torch.tensor(ones / total, dtype=torch.float32)
+
+    def psi(p: Tensor, z: Tensor) -> Tensor:
+        i = (z[:, 0] * bins).long().clamp(0, bins - 1)
+        j = (z[:, 1] / DT).round().long().clamp(0, CAP) if clock else torch.zeros_like(i)
+        return table[p.long(), i, j]
+
+    return psi
+
+
+def candidates(x: np.ndarray, phi: np.ndarray) -> list[tuple[str, ChainKind, object]]:
+    """The two-state chain and the clock, each estimated on (``x``, ``phi``)."""
+    internal = Internal()
+    two = AbstractDecision(binned(x, phi, clock=False), internal)
+    clock = MemoryDecision(binned(x, phi, clock=True), internal, max_age=CAP * DT)
+    return [("two-state", TWO_STATE, two), ("clock", CLOCK, clock)]
+
+
+def scores(erlang: int) -> list[KindScore]:
+    x, phi = telegraph(300, 600, erlang, seed=1)  # the collection the kinds are fitted on
+    hx, hphi = telegraph(200, 600, erlang, seed=2)  # held-out cells
+    inputs, observed = torch.tensor(hx, dtype=torch.float32), torch.tensor(hphi)
+    return [score_kind(name, kind, layer, inputs, observed.float(), DT, ("off", "on"), seed=3)
+            for name, kind, layer in candidates(x, phi)]  # fmt: skip
+
+
+def test_memoryless_telegraph_chooses_the_two_state_chain() -> None:
+    """Without memory the clock adds only parameters: it cannot beat the two-state chain by
+    more than the SE of the paired difference, and a tie goes to the simpler chain."""
+    two, clock = scores(erlang=1)
+    choice = choose([clock, two])
+    assert choice.chosen == "two-state", choice.reason
+    row = next(r for r in choice.table if r["kind"] == "clock")
+    assert row["diff_from_best"] <= row["diff_se"] or row["tied_with_best"]
+
+
+def test_erlang_on_time_chooses_the_clock_by_far() -> None:
+    """An Erlang-4 on time (hazard rising with the time ON): the clock's held-out likelihood
+    beats the two-state chain's by many SE, and its simulated ON durations are closer."""
+    two, clock = scores(erlang=4)
+    choice = choose([two, clock])
+    assert choice.chosen == "clock", choice.reason
+    row = next(r for r in choice.table if r["kind"] == "two-state")
+    assert -row["diff_from_best"] > 10 * row["diff_se"]
+    # the KS is reported: the memoryless ON durations fail it, the clock's pass
+    assert two.durations["on"].ks > two.durations["on"].ks_critical_05
+    assert clock.durations["on"].ks < clock.durations["on"].ks_critical_05
+    assert abs(clock.durations["on"].mean_rel_diff) < 3 * clock.durations["on"].mean_rel_se
+
+
+def test_two_state_likelihood_equals_numpy() -> None:
+    """sum_t log Bernoulli(phi_{t+1}; psi_{phi_t}(x_t)) for two small sequences by hand."""
+    x = torch.tensor([[[0.2], [0.7], [0.4]], [[0.9], [0.1], [0.5]]])
+    phi = torch.tensor([[0.0, 1.0, 1.0, 0.0], [1.0, 1.0, 0.0, 0.0]])
+
+    def psi(p: Tensor, z: Tensor) -> Tensor:  # p(phi' = 1): from 0 rises with z, from 1 falls
+        return torch.where(p > 0, 0.9 - 0.5 * z[:, 0], 0.1 + 0.6 * z[:, 0])
+
+    got = TWO_STATE.sequence_log_likelihood(AbstractDecision(psi, Internal()), x, phi, DT)
+    xs, ph = x[..., 0].numpy().astype(np.float64), phi.numpy()
+    p1 = np.where(ph[:, :-1] > 0, 0.9 - 0.5 * xs, 0.1 + 0.6 * xs)
+    want = np.where(ph[:, 1:] > 0, np.log(p1), np.log(1 - p1)).sum(1)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-6)
+
+
+def test_clock_likelihood_reads_the_observed_clock() -> None:
+    """The clock's ages come from the observed history, settled at the start: a psi that
+    switches surely once 2 windows in a state gives the sequence 0,0,0,1,1,1,0 likelihood 1
+    only if the clock restarts at each change (settled at the start: the first window switches
+    surely, so a sequence that stays there has likelihood 0)."""
+
+    def psi(p: Tensor, z: Tensor) -> Tensor:  # p(change) 0 before 2 windows, 1 from then
+        change = (z[:, 1] >= 2 * DT - 1e-6).float() * 0.98 + 0.01
+        return torch.where(p > 0, 1.0 - change, change)
+
+    layer = MemoryDecision(psi, Internal(), max_age=1.0)
+    x = torch.zeros(1, 6, 1)
+    keeps = torch.tensor([[0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]])
+    ll = CLOCK.sequence_log_likelihood(layer, x, keeps, DT)
+    # settled: the first window switches (0.99); then ages 0, 1 keep (0.99 each), 2 switches
+    assert ll.item() == pytest.approx(6 * math.log(0.99), rel=1e-5)
+
+
+def test_klumps_forward_algorithm_equals_enumeration() -> None:
+    """The K-lumps likelihood (forward algorithm over classes, phi = the class's lump) equals
+    the sum over every hidden class path of a tiny three-class chain."""
+    law = torch.tensor([[0.8, 0.2, 0.0], [0.05, 0.55, 0.4], [0.3, 0.0, 0.7]])
+    table = ClassTable(law.reshape(3, 1, 3).expand(3, 2, 3), [(0.0, 1.0)], ("x",), ClassInternal.class_names,
+                       ClassInternal.class_lumps, DT)  # fmt: skip
+    layer = ClassDecision(table, ClassInternal())
+    phi = torch.tensor([[0.0, 1.0, 1.0, 1.0, 0.0], [1.0, 1.0, 0.0, 0.0, 1.0]])
+    x = torch.full((2, 4, 1), 0.5)
+    got = chain_kind("classes").sequence_log_likelihood(layer, x, phi, DT)
+    p = law.double().numpy()
+    # the start: the stationary law given the first lump
+    w, v = np.linalg.eig(p.T)
+    pi = np.real(v[:, np.argmin(abs(w - 1))])
+    pi = pi / pi.sum()
+    lumps = np.array(ClassInternal.class_lumps)
+    for cell in range(2):
+        obs = phi[cell].numpy().astype(int)
+        start = pi * (lumps == obs[0])
+        start = start / start.sum()
+        total = 0.0
+        for path in itertools.product(range(3), repeat=5):
+            if any(lumps[c] != o for c, o in zip(path, obs, strict=True)):
+                continue
+            total += start[path[0]] * np.prod([p[a, b] for a, b in itertools.pairwise(path)])
+        assert got[cell].item() == pytest.approx(math.log(total), rel=1e-5)
+
+
+def test_choose_ties_go_to_the_simpler_kind() -> None:
+    """A more complex candidate higher by less than the SE ties, and the simpler is chosen;
+    higher by more than the SE, it is chosen."""
+    rng = np.random.default_rng(0)
+    base = rng.normal(-0.2, 0.01, 400)
+    noise = rng.normal(0.0, 1e-3, 400)  # SE of the paired difference ~5e-5
+    none = {"off": DurationScore(0.0, 0.1, 0.0, 0.0, 10, 10)}
+
+    def score(name: str, complexity: int, shift: float) -> KindScore:
+        values = base + noise * (complexity > 0) + shift
+        return KindScore(name, complexity, float(values.mean()), tuple(values), none)
+
+    close = choose([score("two-state", 0, 0.0), score("clock", 1, 2e-5)])
+    assert close.chosen == "two-state" and "simpler" in close.reason
+    far = choose([score("two-state", 0, 0.0), score("clock", 1, 1e-3)])
+    assert far.chosen == "clock" and "highest" in far.reason
+
+
+def test_bad_settings_are_refused_by_name() -> None:
+    one = KindScore("a", 0, -0.1, (-0.1, -0.1), {})
+    with pytest.raises(ConfigError, match="gp.choose.tie_se"):
+        choose([one], tie_se=0)
+    with pytest.raises(ConfigError, match="no candidate"):
+        choose([])
+    with pytest.raises(ConfigError, match="named twice"):
+        choose([one, one])
+    with pytest.raises(NotImplementedError, match="Unscored"):
+        type("Unscored", (ChainKind,), {})().sequence_log_likelihood(
+            AbstractDecision(lambda p, z: p, Internal()), torch.zeros(1, 1, 1),
+            torch.zeros(1, 2), DT)  # fmt: skip
+    with pytest.raises(ValueError, match="phi_next"):
+        phi_sequences(pd.DataFrame({"cell": [0], "t": [0.0], "x": [0.0], "phi": [0]}), ["x"])
+
+
+def test_phi_sequences_and_segments() -> None:
+    """An occupancy table back to sequences; complete segments only."""
+    rows = pd.DataFrame({"cell": [1, 0, 1, 0, 0, 1], "t": [0.0, 0.1, 0.1, 0.0, 0.2, 0.2],
+                         "x": [5.0, 1.0, 6.0, 0.0, 2.0, 7.0], "phi": [1, 1, 0, 0, 1, 0],
+                         "phi_next": [0, 1, 0, 1, 0, 1]})  # fmt: skip
+    x, phi = phi_sequences(rows, ["x"])
+    assert x[:, :, 0].tolist() == [[0.0, 1.0, 2.0], [5.0, 6.0, 7.0]]
+    assert phi.tolist() == [[0, 1, 1, 0], [1, 0, 0, 1]]
+    seg = segment_durations(phi.numpy(), DT)
+    assert seg[1] == pytest.approx([0.2]) and seg[0] == pytest.approx([0.2])
