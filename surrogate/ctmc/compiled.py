@@ -383,40 +383,47 @@ class CompiledSSA:
         return x, p, np.ascontiguousarray(window)
 
     def _raise_on_status(self, out: np.ndarray, x: np.ndarray) -> None:
-        failed = np.flatnonzero(out[:, 1])
-        if failed.size == 0:
-            return
-        i = int(failed[0])
-        status, detail = int(out[i, 1]), int(out[i, 2])
-        names = self.kinetics.network.reaction_names
-        where = f"cell {i} ({failed.size} cells failed)"
-        if status == _direct_method.MAX_EVENTS:
-            raise EventCapError(f"compiled SSA: {where} exceeded max_events={out[i, 0]}")
-        if status == _direct_method.BAD_ASSIGNMENT:
-            event = self._events[detail]
-            raise ValueError(
-                f"compiled SSA: {where}: event {event.name!r} assigns "
-                f"{[self.kinetics.network.species[c] for c, _ in event.assignments]} a value "
-                f"that is not a whole number of molecules >= 0 (state {x[i].tolist()})"
-            )
-        if status == _direct_method.BAD_RULE:
-            species = self.kinetics.network.species[self.kinetics.rules[detail].column]
-            raise ValueError(
-                f"compiled SSA: {where}: the rule for species {species!r} gives a value that "
-                f"is not a whole number of molecules >= 0 (state {x[i].tolist()})"
-            )
-        if status == _direct_method.EVENT_CASCADE:
-            raise RuntimeError(
-                f"compiled SSA: {where}: events {[e.name for e in self._events]} still fired "
-                f"each other after {MAX_CASCADE} rounds at one instant"
-            )
-        if status == _direct_method.BAD_PROPENSITY:
-            raise ValueError(
-                f"compiled SSA: {where}: propensity of reaction {names[detail]!r} is negative or "
-                f"not finite in state {x[i].tolist()}"
-            )
+        raise_on_status(self.kinetics, out, x)
+
+
+def raise_on_status(kinetics: Kinetics, out: np.ndarray, x: np.ndarray) -> None:
+    """Raise the error of the first cell whose window failed: ``out`` ``(n, 3)`` int64 (events,
+    status, detail) per cell as the SSA kernels (CPU and CUDA) write it, ``x`` ``(n, S)`` the
+    counts where they stopped. Returns where every status is 0."""
+    failed = np.flatnonzero(out[:, 1])
+    if failed.size == 0:
+        return
+    i = int(failed[0])
+    status, detail = int(out[i, 1]), int(out[i, 2])
+    names = kinetics.network.reaction_names
+    where = f"cell {i} ({failed.size} cells failed)"
+    if status == _direct_method.MAX_EVENTS:
+        raise EventCapError(f"compiled SSA: {where} exceeded max_events={out[i, 0]}")
+    if status == _direct_method.BAD_ASSIGNMENT:
+        event = kinetics.events[detail]
         raise ValueError(
-            f"compiled SSA: {where}: reaction {names[detail]!r} drove a count negative "
-            f"(state {x[i].tolist()}); its propensity must be 0 when it lacks the molecules "
-            "it consumes"
+            f"compiled SSA: {where}: event {event.name!r} assigns "
+            f"{[kinetics.network.species[c] for c, _ in event.assignments]} a value "
+            f"that is not a whole number of molecules >= 0 (state {x[i].tolist()})"
         )
+    if status == _direct_method.BAD_RULE:
+        species = kinetics.network.species[kinetics.rules[detail].column]
+        raise ValueError(
+            f"compiled SSA: {where}: the rule for species {species!r} gives a value that "
+            f"is not a whole number of molecules >= 0 (state {x[i].tolist()})"
+        )
+    if status == _direct_method.EVENT_CASCADE:
+        raise RuntimeError(
+            f"compiled SSA: {where}: events {[e.name for e in kinetics.events]} still fired "
+            f"each other after {MAX_CASCADE} rounds at one instant"
+        )
+    if status == _direct_method.BAD_PROPENSITY:
+        raise ValueError(
+            f"compiled SSA: {where}: propensity of reaction {names[detail]!r} is negative or "
+            f"not finite in state {x[i].tolist()}"
+        )
+    raise ValueError(
+        f"compiled SSA: {where}: reaction {names[detail]!r} drove a count negative "
+        f"(state {x[i].tolist()}); its propensity must be 0 when it lacks the molecules "
+        "it consumes"
+    )

@@ -209,10 +209,16 @@ class FittedClassifier:
         return self.model.variational_strategy.inducing_points.dtype
 
     def to(self, device: torch.device | str) -> FittedClassifier:
-        """Move model, likelihood and normaliser to ``device`` in place; return self."""
+        """Move model, likelihood and normaliser to ``device`` in place; return self.
+
+        GPyTorch's memoised predictive terms (the inducing points' Cholesky factor ...) are
+        plain attributes that ``Module.to`` does not move: they are dropped, else a model
+        fitted on CUDA and moved to the CPU solves against a CUDA factor (measured on an H200:
+        train's psi grid failed, "Expected all tensors to be on the same device")."""
         self.model.to(device)
         self.likelihood.to(device)
         self.normaliser.to(device)
+        self.model.variational_strategy._clear_cache()
         return self
 
     @torch.no_grad()

@@ -49,11 +49,29 @@ from surrogate.sbml.formula import parse_formula
 
 if TYPE_CHECKING:  # numba: imported on first use
     from surrogate.ctmc import CompiledSSA
+    from surrogate.ctmc.cuda_ssa import CudaSSA
+
+
+def _cuda_ssa_available() -> bool:
+    """Whether the CUDA SSA can run (numba-cuda imported only when a GPU run asks)."""
+    try:
+        from surrogate.ctmc.cuda_ssa import cuda_ssa_available
+    except ImportError:  # numba-cuda not installed
+        return False
+    return cuda_ssa_available()
+
+
+def _cuda_simulated() -> bool:
+    """Whether numba's CUDA simulator runs CUDA kernels on the CPU (tests without a GPU)."""
+    from numba import config
+
+    return bool(getattr(config, "ENABLE_CUDASIM", False))
+
 
 Feature = Callable[[Tensor], Tensor]
 Lump = Callable[[Tensor], Tensor] | str
 
-SSA_BACKENDS = ("auto", "compiled", "batched")
+SSA_BACKENDS = ("auto", "compiled", "batched", "cuda")
 #: seconds per SSA event, measured on the phospho network (docs/sbml.md, one thread): the
 #: compiled SSA 1.33e7 events/s, the batched torch SSA 5.3e5 events/s
 COMPILED_EVENT_SECONDS = 1 / 1.33e7
@@ -123,9 +141,11 @@ class NetworkInternalModel:
         features: derived inputs by name, each ``x (n x d) -> (n,)`` in the dtype of ``x``.
         signal_names: the inputs or features the rates depend on (default: the SBML model's
             input parameters, or ``input_names``).
-        ssa: ``compiled`` (numba, one random stream per cell, CPU), ``batched`` (torch, any
-            device) or ``auto``: compiled on the CPU for SBML kinetics, batched on CUDA and for
-            a mass-action network with a rate function (whose windows have few events).
+        ssa: ``compiled`` (numba, one random stream per cell, CPU), ``cuda`` (the same kernel,
+            one CUDA thread per cell, numba-cuda; :mod:`surrogate.ctmc.cuda_ssa`), ``batched``
+            (torch, any device) or ``auto``: compiled on the CPU and cuda on a GPU for SBML
+            kinetics (batched on a GPU where numba-cuda is missing), batched for a mass-action
+            network with a rate function (whose windows have few events).
         burn_in: seconds of SSA from ``initial_counts`` at the cell's inputs that stand in for
             the stationary law when the state space is too large to enumerate.
         max_states: bound on the enumerated state space (exact stationary law and lumped psi).
@@ -245,6 +265,7 @@ class NetworkInternalModel:
         self.input_labels = {n: labels.get(n, f"{what} {n!r}") for n in self.kinetics.input_names}
         self._space: StateSpace | Literal[False] | None = None  # False: too large to enumerate
         self._compiled: CompiledSSA | None = None
+        self._cuda: CudaSSA | None = None
         self.set_classes(classes)
 
     def set_classes(self, classes: CountClasses | None) -> None:
@@ -293,7 +314,7 @@ class NetworkInternalModel:
     def __getstate__(self) -> dict:
         """Picklable (a model may be sent to another process): without the compiled SSA, which
         is rebuilt (from numba's cache) on first use."""
-        return {**self.__dict__, "_compiled": None}
+        return {**self.__dict__, "_compiled": None, "_cuda": None}
 
     # -- inputs and features -----------------------------------------------------------------
     def features(self, x: Tensor, names: Sequence[str]) -> Tensor:
@@ -345,9 +366,24 @@ class NetworkInternalModel:
     def backend(self, device: torch.device) -> str:
         """The SSA that runs windows on ``device``: ``compiled`` or ``batched``."""
         if self.ssa == "auto":
-            return "compiled" if device.type == "cpu" and not self.mass_action else "batched"
+            if self.mass_action:
+                return "batched"
+            if device.type == "cpu":
+                return "compiled"
+            return "cuda" if _cuda_ssa_available() else "batched"
         if self.ssa == "compiled" and device.type != "cpu":
-            raise ConfigError("model.ssa=compiled runs on the CPU; use model.ssa=batched on CUDA")
+            raise ConfigError(
+                "model.ssa=compiled runs on the CPU; use model.ssa=cuda (or batched) on CUDA"
+            )
+        if self.ssa == "cuda" and device.type != "cuda" and not _cuda_simulated():
+            raise ConfigError(
+                "model.ssa=cuda runs on a CUDA GPU; use model.ssa=compiled on the CPU"
+            )
+        if self.ssa == "cuda" and not _cuda_ssa_available():
+            raise ConfigError(
+                "model.ssa=cuda needs numba-cuda (pip install numba-cuda) and a CUDA driver; "
+                "model.ssa=batched runs the torch SSA on CUDA"
+            )
         return self.ssa
 
     def _streams(self, device: torch.device) -> bool:
@@ -359,6 +395,13 @@ class NetworkInternalModel:
 
             self._compiled = CompiledSSA(self.kinetics)
         return self._compiled
+
+    def _cuda_ssa(self) -> CudaSSA:  # lazily built: compiled for the GPU on its first window
+        if self._cuda is None:
+            from surrogate.ctmc.cuda_ssa import CudaSSA  # numba-cuda: imported on demand
+
+            self._cuda = CudaSSA(self.kinetics)
+        return self._cuda
 
     def initial_state(self, x: Tensor) -> InternalState:
         """Counts from the exact stationary law at each cell's inputs (small state spaces),
@@ -445,6 +488,10 @@ class NetworkInternalModel:
                 capped = {} if cap is None else {"max_events": cap}
                 counts, _ = self._compiled_ssa().advance(counts, inputs, dt, streams,
                                                          clock=clock, **capped)  # fmt: skip
+                return (counts, state[1], *after)
+            if self.backend(inputs.device) == "cuda":  # the same kernel, a thread per cell
+                counts, _ = self._cuda_ssa().advance(counts, inputs, dt, state[1], clock=clock,
+                                                     max_events=cap)  # fmt: skip
                 return (counts, state[1], *after)
             propensity = None if self.mass_action else self.kinetics.torch_propensity
             events = EventProgram.of(self.kinetics) if self.kinetics.has_rules_or_events else None
@@ -641,7 +688,9 @@ class NetworkInternalModel:
     def event_seconds(self, device: torch.device | str = "cpu") -> float:
         """The measured cost of one SSA event on ``device``'s SSA (:data:`COMPILED_EVENT_SECONDS`
         or :data:`BATCHED_EVENT_SECONDS`): what :meth:`cell_step_seconds` prices events at."""
-        compiled = self.backend(torch.device(device)) == "compiled"
+        # the CUDA SSA is priced as the compiled one's per-cell event (not measured on a GPU
+        # here: an upper bound for a GPU's many threads)
+        compiled = self.backend(torch.device(device)) in ("compiled", "cuda")
         return COMPILED_EVENT_SECONDS if compiled else BATCHED_EVENT_SECONDS
 
     def prepare(self, device: torch.device | str = "cpu") -> None:

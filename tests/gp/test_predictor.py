@@ -445,3 +445,17 @@ def test_three_input_classifier(tmp_path: Path) -> None:
     assert list(frame.columns) == ["phi", "m", "noise", "L", "p"] and len(frame) == 2 * 60
     fig = plot_psi(psi, domain, names, data)  # first two inputs, the third at its midpoint
     assert len(fig.axes) == 3
+
+
+def test_moving_a_classifier_drops_gpytorch_s_memoised_terms(psi: PsiClassifier) -> None:
+    """``Module.to`` does not move GPyTorch's memoised predictive terms (plain attributes): a
+    fit on CUDA moved to the CPU then solved against a CUDA Cholesky factor (train's psi grid
+    failed on an H200). Moving drops them; predictions are unchanged."""
+    z = torch.tensor([[0.5, 1.0], [1.5, 0.2]])
+    phi = torch.tensor([0, 1])
+    before = psi(phi, z)
+    strategy = psi.psi_0.model.variational_strategy
+    assert getattr(strategy, "_memoize_cache", {})  # predicting filled it
+    psi.to("cpu")
+    assert not getattr(strategy, "_memoize_cache", {})
+    torch.testing.assert_close(psi(phi, z), before)
