@@ -1,3 +1,4 @@
+# mypy: disable-error-code="call-arg,var-annotated"
 """Source template of the CUDA per-cell Gillespie direct method (numba-cuda): one thread per cell
 for a whole window.
 

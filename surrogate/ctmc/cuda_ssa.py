@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import inspect
 import math
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -110,7 +111,7 @@ def cuda_source(kinetics: Kinetics) -> str:
         n_values=values + 1,
     )
     source = header + _DEVICE + "\n" + kinetics.numba_source
-    kernel = _direct_method_cuda.advance_cells
+    kernel: Callable[..., Any] = _direct_method_cuda.advance_cells
     if not plain:
         source += events_numba_source(kinetics).replace(CPU_JIT, _DEVICE) + "\n"
         source += "N_BREAKS = max(1, N_THRESHOLDS)\n\n\n"
@@ -234,7 +235,7 @@ class CudaSSA:
         if simulated():  # the simulator runs numpy arrays (sharing the tensors' memory)
             arrays = [x.numpy(), p.numpy(), window.numpy(), streams.numpy().view(np.uint64)]
             tables = self._tables
-            launch = (blocks, THREADS_PER_BLOCK)
+            launch: tuple[Any, ...] = (blocks, THREADS_PER_BLOCK)
             out_array = out.numpy()
             clocks = () if clock is None else (clock.time.numpy(), clock.triggers.numpy())
         else:
