@@ -22,6 +22,9 @@ import math
 import time
 from pathlib import Path
 
+import surrogate  # noqa: F401  first: sets OpenMP's wait policy before torch loads it
+
+# isort: split
 import numpy as np
 import torch
 from omegaconf import OmegaConf

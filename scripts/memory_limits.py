@@ -22,6 +22,9 @@ import math
 import time
 from pathlib import Path
 
+import surrogate  # noqa: F401  first: sets OpenMP's wait policy before torch loads it
+
+# isort: split
 import torch
 from scipy import stats
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -376,10 +377,29 @@ def log_estimate(works: Sequence[Work], stage: str, basis: str = "") -> float:
     parts = f" {basis}: {_summary(works)}" if basis else f" ({_summary(works)})"
     if total > WARN_SECONDS:
         log.warning("%s: estimated ~%s of simulation before it is done%s; lower those "
-                    "settings for a quicker run", stage, duration(total), parts)  # fmt: skip
+                    "settings for a quicker run%s", stage, duration(total), parts,
+                    quiet_note())  # fmt: skip
     else:
-        log.info("%s: estimated ~%s of simulation%s", stage, duration(total), parts)
+        log.info("%s: estimated ~%s of simulation%s%s", stage, duration(total), parts,
+                 quiet_note())  # fmt: skip
     return total
+
+
+def quiet_note(load: float | None = None, cores: int | None = None) -> str:
+    """What an estimate assumes: a quiet machine (its costs per cell-step were measured on
+    one; beside other work the runs take longer: collect 3-4x at a load of 4.5 on 2 cores,
+    docs/performance.md), and the load now where it exceeds the cores.
+
+    Args:
+        load: the 1-minute load average (default: this machine's now).
+        cores: the cores this process may run on (default: its affinity mask).
+    """
+    if load is None:
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+    busy = f"; this one is busy now (load {load:.1f} on {cores} cores)" if load > cores else ""
+    return f"; priced for a quiet machine: other work beside it makes it longer{busy}"
 
 
 def _summary(works: Sequence[Work]) -> str:
@@ -402,6 +422,7 @@ __all__ = [
     "evaluate_work",
     "log_estimate",
     "max_hours",
+    "quiet_note",
     "reproduce_work",
     "run_work",
     "step_seconds",

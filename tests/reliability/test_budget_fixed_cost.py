@@ -125,3 +125,17 @@ def test_step_seconds_does_not_pay_a_runaway_burn_in(tmp_path: Path) -> None:
     start = time.perf_counter()
     assert budget.step_seconds(model, ConstantField(1.0), 0.05) == budget.STEP_SECONDS
     assert time.perf_counter() - start < 3.0
+
+
+def test_the_estimate_says_it_is_priced_for_a_quiet_machine(caplog) -> None:
+    """Every logged estimate says it assumes a quiet machine (collect ran 3-4x past it at a
+    load of 4.5 on 2 cores, issue 54), and names the load where it exceeds the cores."""
+    assert budget.quiet_note(1.0, 2) == (
+        "; priced for a quiet machine: other work beside it makes it longer"
+    )
+    assert budget.quiet_note(4.5, 2).endswith("; this one is busy now (load 4.5 on 2 cores)")
+    work = budget.Work("the run", 10, 50.0, 2e-6, "n_cells=10", "m", step_seconds=3e-3)
+    with caplog.at_level("INFO", logger="surrogate.stages.budget"):
+        budget.log_estimate([work], "collect")
+    [message] = [r.getMessage() for r in caplog.records]
+    assert message.startswith("collect: estimated ~") and "priced for a quiet machine" in message
