@@ -48,10 +48,12 @@ from surrogate.simulate.speed import cell_steps_per_s
 
 __all__ = [
     "bench_compiled",
+    "bench_cuda",
     "bench_gillespy2",
     "bench_torch",
     "cell_seconds_per_s",
     "compile_times",
+    "cuda_law_check",
     "equal_workload_ratio",
     "run_bench",
 ]
@@ -276,3 +278,76 @@ def format_table(r: dict[str, Any]) -> str:
             f"{g['mean_cheyp_end']:.0f} (start {r['mean_cheyp_initial']})"
         )
     return "\n".join(lines)
+
+
+def bench_cuda(cells: int, t_end: float, dt: float, repeats: int) -> dict[str, Any]:
+    """The CUDA SSA (:class:`~surrogate.ctmc.cuda_ssa.CudaSSA`, one thread per cell) on
+    ``cells`` trajectories of ``t_end`` s in windows of ``dt`` on the GPU (after a warm-up
+    window that pays the kernel's compile), ``repeats`` times; its events are counted, and
+    each timed window ends with a device synchronisation."""
+    from surrogate.ctmc.cuda_ssa import CudaSSA
+
+    model = load_network(NETWORK_AMOUNTS_PATH)
+    ssa = CudaSSA(model.kinetics)
+    device = torch.device("cuda")
+    inputs = torch.tensor([calibrated().adapted_activity], dtype=torch.float64, device=device)
+    windows = steps_between(t_end, dt, "t_end")
+    walls, events = [], []
+    start = time.perf_counter()
+    for repeat in range(repeats):
+        streams = torch.from_numpy(CellStreams.from_seed(repeat, cells).state.view(np.int64))
+        streams = streams.to(device)
+        state = model.initial_states(cells).to(device)
+        state, _ = ssa.advance(state, inputs, dt, streams)  # warm-up (and compile, first time)
+        if repeat == 0:
+            torch.cuda.synchronize()
+            compile_s = time.perf_counter() - start
+        count = torch.zeros((), dtype=torch.int64, device=device)
+        torch.cuda.synchronize()
+        begin = time.perf_counter()
+        for _ in range(windows):
+            state, ev = ssa.advance(state, inputs, dt, streams)
+            count += ev.sum()
+        torch.cuda.synchronize()
+        walls.append(time.perf_counter() - begin)
+        events.append(int(count))
+    out = _best(walls, cells, t_end, 1)
+    best = walls.index(out["wall_s"])
+    out.update(events=events[best], events_per_s=events[best] / out["wall_s"],
+               events_per_cell_per_s=events[best] / (cells * t_end),
+               cell_steps_per_s=cells * windows / out["wall_s"],
+               first_window_s=compile_s, device=torch.cuda.get_device_name())  # fmt: skip
+    return out
+
+
+def cuda_law_check(cells: int = 4000, dt: float = 0.05, windows: int = 4) -> dict[str, Any]:
+    """The CUDA SSA against the compiled CPU SSA at fixed inputs, independent streams: per
+    species, the two-sample KS distance of the counts after ``windows`` windows from the
+    network's initial counts, against its critical value at a family-wise 5 % (Bonferroni
+    over the species). Returns each species' distance and whether every one is within."""
+    from scipy import stats
+
+    from surrogate.ctmc.cuda_ssa import CudaSSA
+
+    model = load_network(NETWORK_AMOUNTS_PATH)
+    cpu, gpu = CompiledSSA(model.kinetics), CudaSSA(model.kinetics)
+    inputs = torch.tensor([calibrated().adapted_activity], dtype=torch.float64)
+    a = model.initial_states(cells)
+    streams = CellStreams.from_seed(1, cells)
+    for _ in range(windows):
+        a, _ = cpu.advance(a, inputs, dt, streams)
+    b = model.initial_states(cells).cuda()
+    words = torch.from_numpy(CellStreams.from_seed(2, cells).state.view(np.int64)).cuda()
+    for _ in range(windows):
+        b, _ = gpu.advance(b, inputs.cuda(), dt, words)
+    b = b.cpu()
+    species = model.network.species
+    alpha = 0.05 / max(1, len(species))
+    critical = float(stats.kstwo.ppf(1 - alpha, cells // 2))  # n_eff = n m / (n + m)
+    distances = {
+        s: float(stats.ks_2samp(a[:, j].numpy(), b[:, j].numpy()).statistic)
+        for j, s in enumerate(species)
+        if bool((a[:, j] != a[0, j]).any() or (b[:, j] != b[0, j]).any())
+    }
+    return {"cells": cells, "windows": windows, "critical": critical, "ks": distances,
+            "within": all(d <= critical for d in distances.values())}  # fmt: skip
