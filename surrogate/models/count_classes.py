@@ -321,6 +321,29 @@ def parse_auto_classes(
     return ranges, bins, placement, shared
 
 
+def shared_auto(value: Any) -> Any:
+    """A ``classes: auto`` setting (:func:`is_auto`) asking for bins both lumps share
+    (``{auto: {..., shared: true}}``, its other options kept): what ``gp.class_moves=relaxation``
+    needs, for the chooser would otherwise give a threshold lump's own count bins that hold one
+    lump each. Refused where the setting says otherwise (``shared: false``, or
+    ``placement: quantiles``, each lump's own bins); a malformed one is returned as it is, for
+    :func:`parse_auto_classes` to refuse by name."""
+    options = {} if value == "auto" else value.get("auto")
+    if options is True or options is None:
+        options = {}
+    if not isinstance(options, Mapping):
+        return value
+    needs = "gp.class_moves=relaxation needs bins of one count that both lumps share"
+    if options.get("shared", True) is False:
+        raise ConfigError(f"model.classes.auto.shared is false, but {needs}: set shared: true "
+                          f"(or use gp.class_moves=learned)")  # fmt: skip
+    if options.get("placement", AUTO_PLACEMENT) == "quantiles":
+        raise ConfigError(f"model.classes.auto.placement is quantiles (each lump's own bins), "
+                          f"but {needs}: use placement: homogeneous with shared: true (or "
+                          f"gp.class_moves=learned)")  # fmt: skip
+    return {"auto": {**options, "shared": True}}
+
+
 # ----------------------------------------------------------------------------------------------
 # choosing them
 
@@ -724,6 +747,7 @@ __all__ = [
     "is_auto",
     "parse_auto_classes",
     "parse_classes",
+    "shared_auto",
     "slow_combinations",
     "spread_inputs",
     "threshold_of",

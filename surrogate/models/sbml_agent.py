@@ -80,6 +80,7 @@ from surrogate.models.count_classes import (
     is_auto,
     parse_auto_classes,
     parse_classes,
+    shared_auto,
     spread_inputs,
     threshold_of,
 )
@@ -232,6 +233,31 @@ class SbmlAgentModel(Model):
         except ConfigError as error:
             where = f" (model.spec={spec})" if spec is not None else ""
             raise type(error)(f"{error}{where}") from None
+
+    @staticmethod
+    def relaxation_config(config: Mapping[str, Any]) -> dict[str, Any]:
+        """The model's config for ``gp.class_moves=relaxation``: ``classes: auto``, in the
+        yaml or the config, then asks its chooser for bins both lumps share
+        (:func:`~surrogate.models.count_classes.shared_auto`), rather than bins the relaxation
+        check refuses after the choice; other classes as they are. Every stage builds the model
+        from the same config, so they all see the same classes.
+
+        Args:
+            config: the ``model`` config (``_target_``, ``spec`` and keys over the yaml's).
+
+        Returns:
+            The config, with ``classes: {auto: {..., shared: true}}`` where it was auto.
+        """
+        settings = {k: v for k, v in config.items() if k not in ("_target_", "spec")}
+        spec = config.get("spec")
+        value = load_spec(None if spec is None else str(spec), settings)[0]["classes"]
+        if not is_auto(value):
+            return dict(config)
+        shared = shared_auto(value)
+        if shared != value:
+            log.info("gp.class_moves=relaxation: model.classes=%s chooses bins both lumps "
+                     "share (%s)", value, shared)  # fmt: skip
+        return {**config, "classes": shared}
 
     def _build(self, s: dict[str, Any], base: Path) -> None:
         self._check_types(s)

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from surrogate.kinds import ChainKind
+from surrogate.models.count_classes import CountClasses
 from surrogate.simulate.support import describe_sparse_where, sparse_share
 
 #: |first half - second half| of the diagnostic's switching, in standard errors, above which
@@ -197,6 +198,7 @@ def verdict(
     max_age: float | None = None,
     check: Check | None = None,
     tried: Mapping[str, str] | None = None,
+    count_classes: CountClasses | None = None,
 ) -> Verdict:
     """Read the measurements (see the module docstring).
 
@@ -219,6 +221,8 @@ def verdict(
             refusal or None``); None: not checked.
         tried: remedy kinds not to advise again, each with what its last run measured
             (:func:`tried_remedies`).
+        count_classes: the model's classes where they are bins of a count: coarser classes
+            are then advised as edges (:func:`coarser_classes`).
 
     A measurement the verdict needs that is missing or NaN (:func:`unmeasured`) is not
     evidence: the verdict is then not to trust, naming what was not measured.
@@ -254,7 +258,8 @@ def verdict(
             "wider collection (`model.body.perturbation.radius`, a field with that range).",
         ))  # fmt: skip
     failing = {f: list(q) for f, q in failures.items() if q}
-    thin = _sparse_rows(outside, outside_warning, n_per_state, advisor)
+    thin = _sparse_rows(outside, outside_warning, n_per_state, advisor, count_classes,
+                        kind.relaxation)  # fmt: skip
     caveats: list[tuple[str, str, str]] = []
     if thin is not None:  # a cause where a comparison fails, else a caveat beside the trust
         (causes if failing else caveats).append(thin)
@@ -364,10 +369,14 @@ def _sparse_rows(
     outside_warning: float,
     n_per_state: int | None = None,
     advisor: _Advisor | None = None,
+    classes: CountClasses | None = None,
+    shared: bool = False,
 ) -> tuple[str, str, str] | None:
     """The cause "Sparse training data" (``(name, what was measured, the next step)``) where
     any field's run spent more than ``outside_warning`` of its cell-steps inside the trained
-    range in sparsely trained bins (its report's ``share_sparse``); None where none did."""
+    range in sparsely trained bins (its report's ``share_sparse``); None where none did.
+    ``classes`` (bins of a count) and ``shared`` (the chain needs bins both lumps share): the
+    coarser classes are advised as edges (:func:`coarser_classes`)."""
     advisor = advisor or _Advisor(None, None)
     name = "Sparse training data"
     thin = {f: r for f, r in outside.items()
@@ -390,8 +399,7 @@ def _sparse_rows(
             advisor.step(name, [
                 _more_rows(n_per_state, "more rows ({more}: a rare class's rows grow in "
                            "proportion)"),
-                Remedy("coarser_classes", "coarser classes (`model.classes`: fewer, wider "
-                       "bins)"),
+                coarser_remedy(classes, _first_sparse_class(thin), shared),
                 design], then="."),
         )  # fmt: skip
     return (
@@ -403,6 +411,80 @@ def _sparse_rows(
             design, _more_rows(n_per_state, "more rows ({more}), which fill them only in "
                                "proportion")], then="."),
     )  # fmt: skip
+
+
+def _first_sparse_class(thin: Mapping[str, Mapping[str, Any]]) -> str | None:
+    """The class of the most visited sparse region over the fields (their ``sparse_class``)."""
+    named = [r for r in thin.values() if r.get("sparse_class") is not None]
+    best = max(named, key=lambda r: float(r.get("sparse_where_share") or 0.0), default=None)
+    return None if best is None else str(best["sparse_class"])
+
+
+def coarser_classes(
+    classes: CountClasses, sparse: str, shared: bool = False
+) -> tuple[CountClasses, str] | None:
+    """``classes`` with the bin of the class ``sparse`` merged into its neighbour in its lump
+    (the edge between them removed), and the neighbour's name; None where ``sparse`` is not
+    one of them or its lump has one bin. An end bin (a count's tail) merges inwards; a middle
+    one with the neighbour nearer the lump's middle. Bins both lumps share (a flip keeps the
+    bin, and ``shared``: relaxation needs them) lose the edge in both lumps; where no edge
+    would be left, None (the classes would be the lumps: the two-state chain)."""
+    if sparse not in classes.names:
+        return None
+    index = classes.names.index(sparse)
+    phi = classes.lumps[index]
+    j = index - (0 if phi == 0 else len(classes.edges[0]) + 1)
+    edges = classes.edges[phi]
+    if not edges:
+        return None
+    bins = len(edges) + 1
+    # the removed edge: below the bin (merge with the lower neighbour) or above it
+    upper = j == 0 or (j < bins - 1 and j < (bins - 1) / 2)
+    cut = edges[j] if upper else edges[j - 1]
+    together = classes.edges[0] == classes.edges[1]
+    if shared and not together:
+        return None
+    new = tuple(tuple(e for e in classes.edges[p] if e != cut)
+                if p == phi or together else classes.edges[p] for p in (0, 1))  # fmt: skip
+    if not new[0] and not new[1]:
+        return None
+    merged = CountClasses(classes.variable, (new[0], new[1]), classes.lump_names)
+    neighbour = classes.names[index + (1 if upper else -1)]
+    return merged, neighbour
+
+
+def classes_override(classes: CountClasses) -> str:
+    """``classes`` as a command-line override Hydra parses (``++model.classes={species: D,
+    edges: {off: [1], on: [3]}}``; one list where both lumps share the edges)."""
+
+    def listed(edges: Sequence[float]) -> str:
+        return "[" + ", ".join(f"{e:g}" for e in edges) + "]"
+
+    variable = classes.variable
+    count = (f"species: {variable}" if variable.isidentifier()
+             else f"expression: '{variable}'")  # fmt: skip
+    if classes.edges[0] == classes.edges[1]:
+        edges = listed(classes.edges[0])
+    else:
+        # Hydra's grammar takes bare keys (a quoted one is no key; a name it reads otherwise,
+        # e.g. true, the check refuses)
+        edges = "{" + ", ".join(f"{n}: {listed(e)}" for n, e in
+                                zip(classes.lump_names, classes.edges, strict=True)) + "}"  # fmt: skip
+    return f"++model.classes={{{count}, edges: {edges}}}"
+
+
+def coarser_remedy(classes: CountClasses | None, sparse: str | None, shared: bool) -> Remedy:
+    """The remedy "coarser classes": where the model's classes are bins of a count and the
+    sparse class is known, the edges with it merged into its neighbour
+    (:func:`coarser_classes`), as the override that sets them; else the setting to change."""
+    coarser = None if classes is None or sparse is None else \
+        coarser_classes(classes, sparse, shared)  # fmt: skip
+    if coarser is None:
+        return Remedy("coarser_classes", "coarser classes (`model.classes`: fewer, wider bins)")
+    merged, neighbour = coarser
+    override = classes_override(merged)
+    return Remedy("coarser_classes", f"coarser classes: `{sparse}` merged with its neighbour "
+                  f"`{neighbour}`, `{override}`", (override,))  # fmt: skip
 
 
 def clock_remedies(max_age: float | None, n_per_state: int | None, classes: Remedy) -> list[Remedy]:
@@ -521,8 +603,11 @@ __all__ = [
     "Remedy",
     "Verdict",
     "applied",
+    "classes_override",
     "clock_remedies",
     "clock_step",
+    "coarser_classes",
+    "coarser_remedy",
     "outcome",
     "tried_remedies",
     "unmeasured",

@@ -1095,11 +1095,13 @@ def check_printed(
     burn: dict[str, Any],
     collection: dict[str, Any],
     yaml_model: bool,
+    balanced: dict[str, Any] | None = None,
 ) -> list[str]:
     """Every setting the report will print, checked by the stages' own settings checks
     (:func:`~surrogate.stages.advice_check.check_advice`) against the inspected ``config``;
     one refused is marked (``refused``: why) and printed as not advised. Returns the refusals.
-    ``yaml_model``: the model is a yaml (its keys can be given as ``++model.<key>``)."""
+    ``yaml_model``: the model is a yaml (its keys can be given as ``++model.<key>``);
+    ``balanced``: the offered threshold (:func:`balanced_threshold`), a key of the yaml."""
     from surrogate.stages.advice_check import checked
 
     refusals = []
@@ -1113,6 +1115,12 @@ def check_printed(
     if advice.get("abstraction"):
         mark(advice, list(advice.get("overrides") or []), "the abstraction",
              advice.get("yaml", ""))  # fmt: skip
+    if advice.get("alternative"):
+        alternative = advice["alternative"]
+        mark(alternative, list(alternative["overrides"]), "the declared classes",
+             alternative["yaml"])  # fmt: skip
+    if balanced and yaml_model:
+        mark(balanced, [], "the balanced threshold", f'lump: "{balanced["lump"]}"')
     if advice.get("signal_bounds") and yaml_model:
         bounds: dict[str, Any] = {}
         mark(bounds, [], "signal_bounds", advice["signal_bounds"])
@@ -1128,6 +1136,7 @@ def check_printed(
             kept.append(overrides)
         else:
             refusals.append(f"the collection ({' '.join(overrides)}): {reason}")
+            collection.setdefault("refused", reason)  # the report says why where none runs
     if sets:
         collection["advised"] = kept
     return refusals
@@ -1320,19 +1329,23 @@ def recommend(
                  f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
                  f"{basis}), below the {SLOW_SETTLING_WINDOWS:,} windows from which bins relax "
                  f"(`gp.class_moves=relaxation`){est['caveat']}" if auto else "")  # fmt: skip
+        # the lump's own species' bins, each lump's own: learned moves only (bins that relax
+        # must hold both lumps), so offered beside auto with gp=classes alone
+        alternative = {"overrides": ["gp=classes"], "yaml": declared,
+                       "text": f"bins of the lump's own species at its stationary quantiles on "
+                               f"each side of {edge}" + (", each lump's own (so learned moves, "
+                               "not relaxation)" if slow else "")} if auto else None  # fmt: skip
         return {"abstraction": "classes", "command": command, "yaml": yaml,
                 "overrides": command.split(),
                 "settling_s": settling, "settling_basis": est["basis"],
                 "declared": declared, "edges": edges, "edges_by_lump": by_lump,
-                "species": species,
+                "species": species, "alternative": alternative,
                 "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
                           f"{species}: classes over bins of a count carry the hidden state"
                           + (" (`classes: auto` chooses the count whose bins best predict "
                              "the next phi, by a short seeded run"
                              + (" over the inputs' range the fields give" if over else "")
-                             + f"; bins of the lump's own "
-                             f"species at its stationary quantiles on each side of {edge} "
-                             f"would be `{declared}`)" if auto else
+                             + ")" if auto else
                              f": bins of {species} at its stationary quantiles on each side of "
                              f"{edge}") + relax}  # fmt: skip
     flat = max(h["flat_from_s"] for h in hazards if h is not None)
@@ -1549,8 +1562,10 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     bounds = signal_bounds_advice(internal, fixed, ranges)
     if bounds:
         advice["signal_bounds"] = bounds
+    balanced = balanced_threshold(internal, fixed)
     refused = check_printed(config if config is not None else settings.config, advice, burn,
-                            collection, "spec" in (settings.config.get("model") or {}))  # fmt: skip
+                            collection, "spec" in (settings.config.get("model") or {}),
+                            balanced)  # fmt: skip
     lump = lump_formula_of(internal) or "the model's own property"
     low = o["min_occupancy"]
     never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
@@ -1568,7 +1583,7 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
         "occupancy": {"method": fixed.method, "value": fixed.occupancy.tolist(),
                       "se": fixed.occupancy_se.tolist(), "settled": fixed.settled.tolist(),
                       "never": never, "always": always, "threshold": low,
-                      "balanced": balanced_threshold(internal, fixed)},
+                      "balanced": balanced},
         "settling": {"horizon_s": fixed.horizon, "phi_s": fixed.settle_phi.tolist(),
                      "network_s": None if fixed.settle_network is None
                      else fixed.settle_network.tolist(),

@@ -220,10 +220,12 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
               f"![occupancy]({INPUT_OCCUPANCY_FIGURE})", ""]  # fmt: skip
     if occ.get("balanced"):
         bal = occ["balanced"]
+        offer = (f"`lump: \"{bal['lump']}\"` would give {bal['occupancy']:.2f}, but the "
+                 f"settings refuse it ({bal['refused']})" if bal.get("refused") else
+                 f"`lump: \"{bal['lump']}\"`, would give {bal['occupancy']:.2f}")  # fmt: skip
         lines += [f"- phi = 1 in {bal['now']:.3g} of the time at the median inputs: one lump "
                   f"gives few windows to learn its switching from. The same species' threshold "
-                  f"at its stationary law there, `lump: \"{bal['lump']}\"`, would give "
-                  f"{bal['occupancy']:.2f}.", ""]  # fmt: skip
+                  f"at its stationary law there, {offer}.", ""]  # fmt: skip
     s, b = summary["settling"], summary["burn_in"]
     lines += ["## Settling and relaxation", ""]
     settled = all(summary["occupancy"]["settled"])
@@ -330,12 +332,14 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
                   f"in one lump (the table above), so collect (collect.max_time = "
                   f"{col['max_time']:g} s) may stop early for want of its rows; choose a lump "
                   f"the cells visit there")  # fmt: skip
+        more = f"`collect.n_per_state={col['recommended_n_per_state']}`"
+        if advised == [] and col.get("refused"):  # none of the settings it needs runs
+            more = f"{more}, but the settings refuse it, so it is not advised ({col['refused']})"
         lines.append(f"- Collection: phi changes in {sw[0]:.3g} (from "
                      f"{summary['lump_names'][0]}) and {sw[1]:.3g} (from "
                      f"{summary['lump_names'][1]}) of windows at the median inputs, so "
                      f"{summary['settings']['min_switches']:,} switches per origin need "
-                     f"{max(col['rows_needed']):.3g} rows per origin: "
-                     f"`collect.n_per_state={col['recommended_n_per_state']}` (now "
+                     f"{max(col['rows_needed']):.3g} rows per origin: {more} (now "
                      f"{col['n_per_state']}), ~{col['cost_s']:.3g} s at the measured events; "
                      f"{timing}.")  # fmt: skip
     a = summary["recommendation"]
@@ -351,6 +355,10 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
         lines.append(f"**{a['abstraction']}**: `{a['command']}`"
                      + (f" with, in the model's yaml, `{a['yaml']}`" if a["yaml"] else "")
                      + f"; why: {a['reason']}.")  # fmt: skip
+    alternative = a.get("alternative")
+    if alternative and not a.get("refused") and not alternative.get("refused"):
+        lines += ["", f"Or declared: {alternative['text']}, "
+                  f"`{' '.join(alternative['overrides'])}` with `{alternative['yaml']}`."]  # fmt: skip
     if a.get("signal_bounds"):
         lines += ["", f"The network is enumerable: with `{a['signal_bounds']}` in the yaml (the "
                   f"inputs' range above), reproduce tabulates its exact chain, the method's "

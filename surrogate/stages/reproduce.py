@@ -310,6 +310,7 @@ def _verdict(
     With the run's ``config``: each remedy is checked by the stages' settings before it is
     printed, and one the previous run of the model advised that this run applied without a
     gain is not advised again (``out / verdict.json`` keeps what the next run compares with)."""
+    from surrogate.models.count_classes import CountClasses
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages import advice
     from surrogate.stages.advice import verdict
@@ -330,6 +331,9 @@ def _verdict(
     diagnostic = metrics.get("diagnostic")
     if tr.kind.classes and metrics.get("class_diagnostic"):
         diagnostic = class_diagnostic_by_lump(metrics["class_diagnostic"], tr.setup.model.internal)
+    # bins of a count: coarser classes are advised as concrete edges
+    count_classes = getattr(tr.setup.model.internal, "count_classes", None)
+    count_classes = count_classes if isinstance(count_classes, CountClasses) else None
     v = verdict(diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names,
                 failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
                 tolerance=DURATION_TOLERANCE, kind=tr.kind,
@@ -338,7 +342,7 @@ def _verdict(
                 max_age=tr.max_age if tr.kind.clock else None,
                 check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)),
-                tried=tried)  # fmt: skip
+                tried=tried, count_classes=count_classes)  # fmt: skip
     if config is not None and out is not None:
         write_json(out / VERDICT, advice.verdict_record(v, config, now, tried))
     marked = sum(int((~t["within_noise"].astype(bool)).sum()) for t in tables.values()

@@ -3,21 +3,37 @@ own checks (issue 52), and a class that cannot exist is refused before collectio
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
 import pytest
+import yaml
 
 from surrogate.config import to_dict
 from surrogate.errors import ConfigError
 from surrogate.kinds import chain_kind
-from surrogate.stages import inspection
-from surrogate.stages.advice import applied, tried_remedies, verdict
+from surrogate.models import sbml_agent
+from surrogate.models.count_classes import CountClasses
+from surrogate.models.sbml_agent import SbmlAgentModel
+from surrogate.stages import advice_check, inspection
+from surrogate.stages.advice import (
+    applied,
+    classes_override,
+    coarser_classes,
+    tried_remedies,
+    verdict,
+)
 from surrogate.stages.advice_check import apply_overrides, check_advice
+from surrogate.stages.settings.inspection import InspectSettings, inspect_defaults
 
 SPEC = "examples/gene_switch/model.yaml"  # D >= 2 is on; 25 states
 UNBIASED = {"rel_bias": 0.0, "rel_bias_se": 0.01, "settling_z": 0.0}
 SHARED = {"species": "P", "edges": [2, 4]}  # P runs 0-8 in both lumps
+CLASSES = CountClasses("P", ((2.0, 4.0), (2.0, 4.0)), ("off", "on"))  # SHARED, built
 
 
 @pytest.fixture
@@ -57,7 +73,7 @@ def _measurements(branch: str) -> dict[str, Any]:
     elif branch == "sparse":
         out["outside"] = {"gaussian": sparse}
     elif branch == "sparse_classes":
-        out["outside"] = {"gaussian": {**sparse, "classes": True}}
+        out["outside"] = {"gaussian": {**sparse, "classes": True, "sparse_class": "on|P>=4"}}
     elif branch == "drift":
         out["class_shares"] = {"t": 100.0, "total_variation": 0.1, "p_value": 1e-6,
                                "drift": True}  # fmt: skip
@@ -90,7 +106,7 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
 
         v = verdict(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
                     kind=chain_kind(*kind), network=True, n_per_state=1000, max_age=2.0,
-                    check=check, **_measurements(branch))  # fmt: skip
+                    check=check, count_classes=CLASSES, **_measurements(branch))  # fmt: skip
         assert not v.trust
         for _, remedy in v.remedies:
             printed += bool(remedy.overrides)
@@ -99,6 +115,9 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
                 f"`{o}`" in remedy.text or o.lstrip("+") in remedy.text for o in remedy.overrides
             ), remedy  # the strings checked are printed
         dropped += len(v.dropped)
+        coarser = [r for _, r in v.remedies if r.kind == "coarser_classes"]
+        if branch == "sparse_classes":  # the edges with on|P>=4 merged into on|2<=P<4
+            assert [r.overrides for r in coarser] == [("++model.classes={species: P, edges: [2]}",)]
     assert printed >= 10
 
 
@@ -170,3 +189,203 @@ def test_collection_advice_names_the_run_it_needs_and_it_runs(config) -> None:
            "yaml": "classes: {species: D, edges: [1, 3]}"}  # fmt: skip
     (refusal,) = inspection.check_printed(config, bad, {}, {}, True)
     assert "cannot occur" in bad["refused"] and refusal.startswith("the abstraction")
+
+
+# ----------------------------------------------------------------------------------------------
+# the inspector's recommendations: every branch of recommend() and what the report prints
+
+
+@pytest.fixture
+def chooser(monkeypatch) -> list[bool]:
+    """``classes: auto`` without its seeded run (10-20 s each): per-lump bins of D, the lump's
+    own count, as the real chooser gives the gene switch, or bins of P both lumps share where
+    asked (``shared``). Returns the ``shared`` of each call."""
+    calls: list[bool] = []
+
+    def choose(internal, kinetic, dt, *, shared=False, **_):
+        calls.append(shared)
+        classes = CountClasses("P", ((2.0, 4.0), (2.0, 4.0)), internal.lump_names) if shared \
+            else CountClasses("D", ((1.0,), (3.0,)), internal.lump_names)  # fmt: skip
+        return classes, {"candidates": [], "significant": True}
+
+    monkeypatch.setattr(sbml_agent, "choose_count_classes", choose)
+    return calls
+
+
+@pytest.fixture
+def checks(monkeypatch) -> dict[tuple, str | None]:
+    """check_advice memoised (1-3 s each): the same overrides on the same config once."""
+    seen: dict[tuple, str | None] = {}
+    real = advice_check.check_advice
+
+    def check(config, overrides, model_yaml=""):
+        key = (repr(sorted(config["model"].items())), tuple(overrides), model_yaml)
+        if key not in seen:
+            seen[key] = real(config, overrides, model_yaml)
+        return seen[key]
+
+    monkeypatch.setattr(advice_check, "check_advice", check)
+    return seen
+
+
+def _switch_yaml(tmp_path, **keys: Any) -> str:
+    """The gene switch's yaml (D >= 2 is on) without its signal_bounds, with ``keys``."""
+    spec = yaml.safe_load(Path(SPEC).read_text())
+    spec.pop("signal_bounds")
+    spec["network"] = str(Path(SPEC).resolve().parent / spec["network"])
+    path = tmp_path / f"switch_{len(list(tmp_path.glob('switch_*')))}.yaml"
+    path.write_text(yaml.safe_dump({**spec, **keys}))
+    return str(path)
+
+
+def _hazard(flat_from_s: float = 1.5) -> dict[str, Any]:
+    return {"hazard": [0.02, 0.05], "pooled": 0.04, "effect": 0.3, "p_value": 1e-6, "df": 4,
+            "flat_from_s": flat_from_s}  # fmt: skip
+
+
+def _fixed(**changes: Any) -> inspection.FixedInputs:
+    """Synthetic measurements at one grid point (exact, settled, with memory); D's law over
+    0-4 (the lump D >= 2 on about half the time)."""
+    base = inspection.FixedInputs(
+        method=inspection.EXACT_METHOD, occupancy=np.array([0.5]), occupancy_se=np.zeros(1),
+        settled=np.array([True]), settle_phi=np.array([2.0]), settle_network=np.array([3.0]),
+        species_settle={}, curves={}, horizon=60.0,
+        relaxation={"tau_s": 1.0, "se": 0.1, "method": "exact"},
+        hazards=[_hazard(), _hazard()], memory=True, switch=np.array([0.05, 0.08]), events=2.0,
+        species_law={"D": (np.arange(5.0), np.array([0.2, 0.3, 0.25, 0.15, 0.1]))},
+    )  # fmt: skip
+    return dataclasses.replace(base, **changes)
+
+
+OSCILLATION = {"detected": True, "period_s": 3.3, "trough_s": 1.6, "depth": 0.3,
+               "depth_se": 0.02, "crest": 0.2, "coherence_s": 20.0, "bound": False,
+               "depth_threshold": 0.05, "z": 8.0, "over_range": None,
+               "segments": [{"count": 40, "mean_s": 1.6, "cv": 0.3, "q90_s": 2.4}, None]}  # fmt: skip
+
+
+def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
+    tmp_path, compose_cfg, chooser, checks
+) -> None:  # fmt: skip
+    """Issue 52: recommend() down each branch (none, two-state, the clock from the hazard and
+    from an oscillation, classes learned and relaxing, with and without the inputs' range),
+    the signal bounds, the burn-in, the collection (rows alone, a longer run or more cells,
+    rows no memory holds) and the balanced threshold, each through check_printed: what it
+    keeps passes the stages' checks, and what it refuses is marked, never printed as advice.
+    Before: the balanced threshold and the declared classes beside `classes: auto` were printed
+    unchecked, and `classes: auto` with relaxation picked the bins relaxation refuses."""
+    spec = _switch_yaml(tmp_path)
+    config = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={spec}"]))
+    model = sbml_agent.SbmlAgentModel(spec)
+    o, dt = inspect_defaults(), 0.05
+    ranges = {"inducer": (0.0, 0.1)}
+    slow = np.array([2 * inspection.SLOW_SETTLING_WINDOWS * dt])
+    cases = {
+        "none": (_fixed(memory=None), None),
+        "two-state": (_fixed(memory=False), None),
+        "clock": (_fixed(species_law={}), None),
+        "oscillation": (_fixed(oscillation=OSCILLATION), None),
+        "classes": (_fixed(), None),
+        "classes over": (_fixed(), ranges),
+        "relaxing": (_fixed(settle_phi=slow), None),
+        "relaxing over": (_fixed(settle_phi=slow), ranges),
+    }
+    printed: dict[str, list[str]] = {}
+    for name, (fixed, over) in cases.items():
+        advice = inspection.recommend(model, fixed, o, dt, over)
+        bounds = inspection.signal_bounds_advice(model.internal, fixed, ranges)
+        if bounds:
+            advice["signal_bounds"] = bounds
+        assert inspection.check_printed(config, advice, {}, {}, True) == [], name
+        printed[name] = [advice["abstraction"], advice.get("command", "")]
+        if advice["abstraction"] is None:
+            continue
+        assert advice.get("signal_bounds") == "signal_bounds: {inducer: [0.0, 0.1]}", name
+        assert "refused" not in advice and advice["overrides"], name
+        alternative = advice.get("alternative")
+        # the lump's own count's bins, one lump each, were printed in the reason beside
+        # relaxation, which refuses them: now apart, with the learned moves they need
+        assert "declared" not in advice or advice["declared"] not in advice["reason"], name
+        assert (alternative is not None) == (advice["abstraction"] == "classes"), name
+        if alternative is not None:
+            assert "refused" not in alternative, name
+            assert advice_check.check_advice(config, alternative["overrides"],
+                                             alternative["yaml"]) is None  # fmt: skip
+    assert {n: a for n, (a, _) in printed.items()} == {
+        "none": None, "two-state": "two-state", "clock": "clock", "oscillation": "clock",
+        "classes": "classes", "classes over": "classes", "relaxing": "classes",
+        "relaxing over": "classes"}  # fmt: skip
+    assert printed["relaxing"][1] == "gp=classes gp.class_moves=relaxation"
+    assert True in chooser  # relaxation asked the chooser for shared bins
+    # the burn-in of a network too large to enumerate (max_states: 0)
+    big = _switch_yaml(tmp_path, max_states=0)
+    big_config = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={big}"]))
+    network = sbml_agent.SbmlAgentModel(big).internal
+    burn = inspection.burn_in_advice(network, _fixed(settle_network=np.array([40.0])),
+                                     o["burn_in_factor"], o["settle_tolerance"])  # fmt: skip
+    assert burn["applies"] and burn["enough"] is False and burn["needed_s"] == 120.0
+    assert inspection.check_printed(big_config, {}, burn, {}, True) == []
+    assert "refused" not in burn
+    # the balanced threshold where the lump is rare
+    rare = _fixed(occupancy=np.array([0.02]))
+    balanced = inspection.balanced_threshold(model.internal, rare)
+    assert balanced is not None and balanced["lump"] == "D >= 2"
+    assert inspection.check_printed(config, {}, {}, {}, True, balanced) == []
+    # the collection: the rows alone; a run too short; rows no memory holds (refused)
+    icfg = compose_cfg("inspect", ["model=sbml", f"model.spec={spec}"])
+    settings = InspectSettings.from_config(icfg)
+    population = SimpleNamespace(fields={"gaussian": {"phi_share": 0.5}})
+    for switch, fits in ((0.05, "rows"), (1e-3, "time"), (1e-9, "refused")):
+        collection = inspection.collection_budget(settings, _fixed(switch=np.full(2, switch)),
+                                                  population, 1e-5)  # fmt: skip
+        refusals = inspection.check_printed(to_dict(icfg), {}, {}, collection, True)
+        sets = inspection.collection_overrides(collection)
+        if fits == "refused":
+            assert collection["advised"] == [] and "GiB" in collection["refused"], refusals
+        else:
+            assert refusals == [] and collection["advised"] == sets, (fits, refusals)
+            assert (len(sets) == 2) == (fits == "time"), collection
+    assert len(checks) >= 10  # the distinct settings checked
+
+
+def test_relaxation_with_plain_classes_auto_chooses_shared_bins(config, chooser) -> None:
+    """`classes: auto` picks the lump's own count's bins, one lump each, which relaxation
+    refuses after the choice (and after a whole collection, run stage by stage); with
+    gp.class_moves=relaxation it now asks for bins both lumps share. Declared otherwise
+    (`shared: false`), it is refused up front, naming the key."""
+    relax = ["gp=classes", "gp.class_moves=relaxation"]
+    assert check_advice(config, relax, "classes: auto") is None
+    assert chooser and set(chooser) == {True}  # every stage's model alike
+    done = len(chooser)
+    assert check_advice(config, ["gp=classes"], "classes: auto") is None
+    assert set(chooser[done:]) == {False}  # learned moves: the chooser's own choice
+    done = len(chooser)
+    refused = check_advice(config, relax, "classes: {auto: {shared: false}}")
+    assert refused is not None and "model.classes.auto.shared is false" in refused
+    assert len(chooser) == done  # refused before the choice
+    kept = SbmlAgentModel.relaxation_config(
+        {"spec": SPEC, "classes": {"auto": {"bins": 6, "over": {"inducer": [0, 0.1]}}}}
+    )
+    assert kept["classes"] == {"auto": {"bins": 6, "over": {"inducer": [0, 0.1]}, "shared": True}}
+
+
+def test_coarser_classes_name_their_edges_and_run(config) -> None:
+    """The verdict's "coarser classes" named no setting; now the sparse class merged with its
+    neighbour, as the edges that do it, checked like every remedy: an end bin merges inwards,
+    bins both lumps share lose the edge in both, and no edge left is no advice."""
+    own = CountClasses("D", ((1.0,), (3.0,)), ("off", "on"))
+    merged, neighbour = coarser_classes(own, "on|D>=3")
+    assert merged.edges == ((1.0,), ()) and neighbour == "on|D<3"
+    override = classes_override(merged)
+    assert override == "++model.classes={species: D, edges: {off: [1], on: []}}"
+    assert check_advice(config, ["gp=classes", override]) is None
+    shared = CountClasses("P", ((2.0, 4.0, 6.0), (2.0, 4.0, 6.0)), ("off", "on"))
+    merged, neighbour = coarser_classes(shared, "off|2<=P<4", shared=True)
+    assert merged.edges == ((2.0, 6.0), (2.0, 6.0)) and neighbour == "off|4<=P<6"
+    assert classes_override(merged) == "++model.classes={species: P, edges: [2, 6]}"
+    assert coarser_classes(CountClasses("P", ((2.0,), (2.0,)), ("off", "on")), "on|P<2") is None
+    assert coarser_classes(own, "on|D>=9") is None
+    expression = CountClasses("P + 2 * D", ((3.0, 5.0), (3.0, 5.0)), ("off", "on"))
+    found = coarser_classes(expression, "on|P + 2 * D>=5")
+    assert found is not None and classes_override(found[0]) == (
+        "++model.classes={expression: 'P + 2 * D', edges: [3]}")  # fmt: skip
+    assert check_advice(config, ["gp=classes", classes_override(found[0])]) is None

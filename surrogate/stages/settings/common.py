@@ -157,6 +157,7 @@ class ModelSetup:
         dt = float(positive(cfg, "dt"))
         seed = seed_setting(cfg)
         model_config, field_cfg = to_dict(cfg["model"]), to_dict(cfg["field"])
+        model_config = _for_class_moves(model_config, cfg.get("gp"))
         model = build_model(model_config)
         model.validate(dt)
         return cls(model_config, field_cfg, model, build_field(field_cfg), dt, seed)
@@ -200,6 +201,27 @@ class ModelSetup:
         """The same setup with another seed."""
         return ModelSetup(self.model_config, self.field_config, self.model, self.field, self.dt,
                           int(seed))  # fmt: skip
+
+
+def _for_class_moves(model_config: dict[str, Any], gp: Any) -> dict[str, Any]:
+    """``model_config`` as ``gp.class_moves`` needs it: with ``relaxation``, a model whose
+    class offers ``relaxation_config`` (the SBML model: ``classes: auto`` then chooses bins
+    both lumps share) gets that config, before it is built: every stage builds the same."""
+    from hydra.utils import get_class
+
+    from surrogate.kinds import KLumps
+
+    moves = gp.get("class_moves") if isinstance(gp, Mapping) else None
+    # the kind says what its value means (a bad one: the train settings refuse it by name)
+    if moves not in KLumps.class_moves_choices or not KLumps.make(str(moves)).relaxation:
+        return model_config
+
+    try:
+        target = get_class(str(model_config.get("_target_")))
+    except Exception:  # an unknown target: build_model refuses it by name
+        return model_config
+    adapt = getattr(target, "relaxation_config", None)
+    return to_dict(adapt(model_config)) if callable(adapt) else model_config
 
 
 # ----------------------------------------------------------------------------------------------
