@@ -227,12 +227,12 @@ def expected_moves(
 
     Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``.
     """
-    lumps_np = lumps.cpu().numpy().astype(np.int64)
-    first_lump = (phi[:, :1] == lumps).to(DTYPE)
-    start = _start_law(moves.to(DTYPE), node, first_lump)
-    ll, counts, first = _forward_backward(
-        moves.to(DTYPE).cpu().numpy(), lumps_np, node.cpu().numpy().astype(np.int64),
-        phi.cpu().numpy().astype(np.int64), start.cpu().numpy())  # fmt: skip
+    start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
+    # C-contiguous arrays of fixed dtypes: one compiled signature, cached on disk
+    args = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=d) for t, d in (
+        (moves, np.float64), (lumps, np.int64), (node, np.int64), (phi, np.int64),
+        (start, np.float64))]  # fmt: skip
+    ll, counts, first = _forward_backward(*args)
     return torch.from_numpy(ll), torch.from_numpy(counts), torch.from_numpy(first)
 
 
@@ -350,6 +350,23 @@ def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: 
     return weights + 0.1 * torch.randn(weights.shape, generator=generator, dtype=DTYPE)
 
 
+def log_likelihood_with_gradient(law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor) -> Tensor:
+    """The sequences' log-likelihood (a float64 scalar) under ``law`` read at the grid
+    ``points`` (``G x d``; ``node`` ``n x T``: each window's, ``phi`` ``n x (T + 1)``), its
+    gradient added to ``law.weights.grad`` (the weights must require it). By Fisher's identity
+    the gradient is that of ``sum(counts * log P) + sum(first * log start law)`` with the
+    expectations of :func:`expected_moves` held fixed: no autograd graph through the windows.
+    """
+    log_moves = law.log_moves(points)
+    lumps = law.layout.lumps()
+    ll, counts, first = expected_moves(log_moves.detach().exp(), lumps, node, phi)
+    start = _start_law(log_moves.exp(), node, (phi[:, :1] == lumps).to(DTYPE))
+    surrogate = ((counts * log_moves.clamp_min(-1e300)).sum()
+                 + (first * start.clamp_min(1e-300).log()).sum())  # fmt: skip
+    surrogate.backward()  # type: ignore[no-untyped-call]
+    return ll.sum()
+
+
 def fit_phase_law(
     inputs: Tensor,
     phi: Tensor,
@@ -388,22 +405,19 @@ def fit_phase_law(
     optimiser = torch.optim.LBFGS([weights], lr=1.0, max_iter=settings.max_iterations,
                                   history_size=20, line_search_fn="strong_wolfe",
                                   tolerance_grad=1e-9, tolerance_change=1e-12)  # fmt: skip
-    emit0 = (phi[:, :1] == lumps).to(DTYPE)  # the states of each cell's phi_0 lump
     evaluations = 0
 
     def closure() -> Tensor:
         nonlocal evaluations
         evaluations += 1
         optimiser.zero_grad()
-        log_moves = law.log_moves(points)
-        ll, counts, first = expected_moves(log_moves.detach().exp(), lumps, node, phi)
-        # Fisher's identity: this surrogate's gradient is the log-likelihood's
-        start = _start_law(log_moves.exp(), node, emit0).clamp_min(1e-300).log()
-        surrogate = (counts * log_moves.clamp_min(-1e300)).sum() + (first * start).sum()
-        penalty = 0.5 * settings.penalty * (weights[1:] ** 2).sum()
-        loss = (-surrogate + penalty) / windows
-        loss.backward()  # type: ignore[no-untyped-call]
-        value = (-ll.sum() + penalty.detach()) / windows
+        ll = log_likelihood_with_gradient(law, points, node, phi)  # weights.grad: d ll / dw
+        assert weights.grad is not None
+        with torch.no_grad():
+            ridge = torch.cat([torch.zeros_like(weights[:1]), weights[1:]])  # no intercepts
+            penalty = 0.5 * settings.penalty * (ridge**2).sum()
+            weights.grad.copy_((settings.penalty * ridge - weights.grad) / windows)
+        value = (-ll + penalty) / windows
         if not torch.isfinite(value):
             raise NumericalError(f"hidden-phase fit {layout.per_lump}: the likelihood is not "
                                  f"finite")  # fmt: skip
