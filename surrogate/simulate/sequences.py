@@ -66,7 +66,8 @@ def phi_sequences(table: pd.DataFrame, input_names: Sequence[str]) -> tuple[Tens
     if (phi[:, 1:] != nxt[:, :-1]).any():
         raise ConfigError("a cell's windows do not chain (phi_next of a window is not phi of "
                           "the next): the rows were thinned or perturbed")  # fmt: skip
-    z = ordered[list(input_names)].to_numpy(np.float64).reshape(n, steps, len(input_names))
+    z = ordered[list(input_names)].to_numpy(np.float64, copy=True)
+    z = z.reshape(n, steps, len(input_names))
     edges = np.concatenate([phi, nxt[:, -1:]], axis=1)
     return torch.from_numpy(z), torch.from_numpy(edges)
 
