@@ -194,9 +194,7 @@ def _start_law(moves: Tensor, node: Tensor, first: Tensor) -> Tensor:
     return alpha / alpha.sum(-1, keepdim=True).clamp_min(1e-300)
 
 
-def sequence_log_likelihood(
-    log_moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor
-) -> Tensor:
+def sequence_log_likelihood(log_moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor) -> Tensor:
     """Each cell's log P(phi_1..phi_T | phi_0, its inputs) under a hidden-phase chain (the forward
     algorithm, scaled per window), its first hidden state drawn from the chain's stationary law
     at its first window's inputs given phi_0.
@@ -223,7 +221,8 @@ def expected_moves(
     identity the likelihood's gradient is that of ``sum(counts * log P) + sum(first * log
     start law)`` with the expectations held fixed (what :func:`fit_phase_law` differentiates:
     no autograd graph through the windows; the windows run in compiled code, one cell after
-    another, as a Python loop over windows of batched torch ops cost ~50x more at 300 cells).
+    another: a Python loop over windows of batched torch ops with autograd cost 9-17x more per
+    evaluation at 300 cells x 300 windows, docs/kinds.md).
 
     Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``.
     """
@@ -234,13 +233,6 @@ def expected_moves(
         (start, np.float64))]  # fmt: skip
     ll, counts, first = _forward_backward(*args)
     return torch.from_numpy(ll), torch.from_numpy(counts), torch.from_numpy(first)
-
-
-def _start_law(moves: Tensor, node: Tensor, first: Tensor) -> Tensor:
-    """Each cell's first hidden state's law ``n x S``: the chain's stationary law at its first
-    window's node given phi_0 (``first``: ``n x S`` 0/1, the states of phi_0's lump)."""
-    alpha = stationary(moves)[node[:, 0]] * first
-    return alpha / alpha.sum(-1, keepdim=True).clamp_min(1e-300)
 
 
 @numba.njit(cache=True)
@@ -350,7 +342,9 @@ def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: 
     return weights + 0.1 * torch.randn(weights.shape, generator=generator, dtype=DTYPE)
 
 
-def log_likelihood_with_gradient(law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor) -> Tensor:
+def log_likelihood_with_gradient(
+    law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor
+) -> Tensor:
     """The sequences' log-likelihood (a float64 scalar) under ``law`` read at the grid
     ``points`` (``G x d``; ``node`` ``n x T``: each window's, ``phi`` ``n x (T + 1)``), its
     gradient added to ``law.weights.grad`` (the weights must require it). By Fisher's identity
@@ -363,7 +357,7 @@ def log_likelihood_with_gradient(law: PhaseLaw, points: Tensor, node: Tensor, ph
     start = _start_law(log_moves.exp(), node, (phi[:, :1] == lumps).to(DTYPE))
     surrogate = ((counts * log_moves.clamp_min(-1e300)).sum()
                  + (first * start.clamp_min(1e-300).log()).sum())  # fmt: skip
-    surrogate.backward()  # type: ignore[no-untyped-call]
+    surrogate.backward()
     return ll.sum()
 
 
@@ -423,7 +417,7 @@ def fit_phase_law(
                                  f"finite")  # fmt: skip
         return value
 
-    optimiser.step(closure)  # type: ignore[no-untyped-call]
+    optimiser.step(closure)
     weights.requires_grad_(False)
     with torch.no_grad():
         ll = float(sequence_log_likelihood(law.log_moves(points), lumps, node, phi).sum())

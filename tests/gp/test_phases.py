@@ -5,6 +5,7 @@ and on an enumerable network the fitted chain's mean sojourns match the exact lu
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -18,12 +19,12 @@ from surrogate.gp.phases import (
     PhaseFitSettings,
     PhaseLaw,
     PhaseLayout,
+    fit_phase_law,
     grid_points,
     input_grid,
     log_likelihood_with_gradient,
-    nearest_node,
-    fit_phase_law,
     mean_sojourn,
+    nearest_node,
     score,
     select_phases,
     sequence_log_likelihood,
@@ -59,7 +60,7 @@ def sojourns(phi: np.ndarray, lump: int) -> np.ndarray:
     out = []
     for row in phi:
         edges = np.flatnonzero(np.diff(row)) + 1  # where phi changes
-        for a, b in zip(edges[:-1], edges[1:], strict=True):
+        for a, b in itertools.pairwise(edges):
             if row[a] == lump:
                 out.append(b - a)
     return np.asarray(out)
@@ -94,10 +95,10 @@ def test_the_gradient_by_fishers_identity_is_the_likelihoods() -> None:
     """The fit differentiates expected counts (no graph through the windows): its gradient must
     be the log-likelihood's, checked against central differences."""
     p, lumps = erlang_telegraph(2, 0.3, 0.2)
-    z, phi = simulate_chain(p, lumps, 20, 40, seed=1)
+    _z, phi = simulate_chain(p, lumps, 20, 40, seed=1)
     layout, basis = PhaseLayout((1, 2)), InputBasis(((0.0, 1.0),), 2)
     g = torch.Generator().manual_seed(0)
-    weights = (0.3 * torch.randn(basis.n_features, 3, 3, generator=g, dtype=torch.float64))
+    weights = 0.3 * torch.randn(basis.n_features, 3, 3, generator=g, dtype=torch.float64)
     weights[0] -= 1.0
     node = torch.zeros(20, 40, dtype=torch.int64)
     point = torch.tensor([[0.3]], dtype=torch.float64)
@@ -136,7 +137,7 @@ def _standard_errors(law: PhaseLaw, z: torch.Tensor, phi: torch.Tensor, at: torc
     its gradient) by the delta method."""
     axes = input_grid(law.basis.bounds, FLAT.nodes)
     points, node = grid_points(axes), nearest_node(z, axes)
-    free = (law.layout.moves() & ~torch.eye(law.layout.n_states, dtype=torch.bool))
+    free = law.layout.moves() & ~torch.eye(law.layout.n_states, dtype=torch.bool)
     index = [(f, a, b) for f in range(law.basis.n_features) for a, b in free.nonzero().tolist()]
 
     def gradient(w: torch.Tensor) -> torch.Tensor:
@@ -214,7 +215,7 @@ def test_an_erlang_on_time_needs_three_phases() -> None:
     three, _ = fit_phase_law(z[train], phi[train], PhaseLayout((1, 3)), [(0.0, 1.0)], FLAT)
     gain, error = _held_out_gain(three, one, z[test], phi[test])
     assert gain > 10 * error > 0
-    chosen, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    _chosen, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
     assert report["per_lump"] == [1, 3]
     truth = sojourn_law(p, lumps, 1, 400)
     critical = {}

@@ -75,7 +75,9 @@ def test_a_new_kind_is_one_module_and_one_yaml(toy, compose_cfg, tmp_path) -> No
 
 
 def test_a_new_kinds_values_join_the_messages(toy, compose_cfg) -> None:
-    with pytest.raises(ConfigError, match=r"gp.lumps must be one of \['phi', 'classes', 'phases', 'toy'\]"):
+    with pytest.raises(
+        ConfigError, match=r"gp.lumps must be one of \['phi', 'classes', 'phases', 'toy'\]"
+    ):
         TrainSettings.from_config(compose_cfg("train", [*toy, "gp.lumps=motors"]))
     with pytest.raises(ConfigError, match="gp.toy_floor must be in"):
         TrainSettings.from_config(compose_cfg("train", [*toy, "gp.toy_floor=0.7"]))
