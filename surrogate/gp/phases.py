@@ -38,8 +38,9 @@ from surrogate.errors import NumericalError
 
 log = logging.getLogger(__name__)
 
-#: the moves a layout allows (:class:`PhaseLayout`)
-STRUCTURES = ("series", "full")
+#: the moves a layout allows (:class:`PhaseLayout`): phases in a row per lump, or any move
+SERIES, FULL = "series", "full"
+STRUCTURES = (SERIES, FULL)
 #: the fit's log-likelihood counts in float64 (sequences of thousands of windows)
 DTYPE = torch.float64
 
@@ -56,7 +57,7 @@ class PhaseLayout:
     """
 
     per_lump: tuple[int, int]
-    structure: str = "series"
+    structure: str = SERIES
 
     def __post_init__(self) -> None:
         if len(self.per_lump) != 2 or any(k < 1 for k in self.per_lump):
@@ -81,7 +82,7 @@ class PhaseLayout:
     def moves(self) -> Tensor:
         """The allowed moves ``S x S`` bool (the diagonal, staying, always)."""
         s = self.n_states
-        if self.structure == "full":
+        if self.structure == FULL:
             return torch.ones(s, s, dtype=torch.bool)
         lumps = self.lumps().tolist()
         allowed = torch.eye(s, dtype=torch.bool)
@@ -440,7 +441,7 @@ def select_phases(
     phi: Tensor,
     bounds: Sequence[tuple[float, float]],
     max_per_lump: int,
-    structure: str = "series",
+    structure: str = SERIES,
     settings: PhaseFitSettings = PhaseFitSettings(),
     held_out: float = 0.25,
     seed: int = 0,
