@@ -419,14 +419,16 @@ def register_chain_kind(cls: K) -> K:
 
 def kind_values(attribute: str) -> list[str]:
     """The config values that select a registered kind for ``attribute`` (``lumps``,
-    ``history`` or ``class_moves_choices``): the base's (the chain over phi's) first, then as
-    registered."""
+    ``history`` or ``class_moves_choices``): the base's (the chain over phi's) first, then the
+    others in alphabetical order (not as registered: a test that imports one kind's module
+    first would register it first, and the messages would change with the tests run)."""
     default = getattr(ChainKind, attribute)
     out: list[str] = list(default) if isinstance(default, tuple) else [default]
+    others: set[str] = set()
     for kind in CHAIN_KINDS:
         value = getattr(kind, attribute)
-        out += [v for v in (value if isinstance(value, tuple) else (value,)) if v not in out]
-    return out
+        others.update(v for v in (value if isinstance(value, tuple) else (value,)) if v not in out)
+    return out + sorted(others)
 
 
 def kinds_with(**strings: str) -> list[type[ChainKind]]:

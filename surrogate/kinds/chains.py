@@ -24,7 +24,7 @@ from surrogate.gp.training import GPSettings
 # the chain kinds, each one module that registers its kind (register_chain_kind) when imported
 # here: a new kind adds its module to this import and to KIND_MODULES (and its recipe,
 # conf/gp/<name>.yaml; docs/architecture.md)
-from surrogate.kinds import clock, klumps, two_state
+from surrogate.kinds import clock, klumps, phases, two_state
 from surrogate.kinds.base import AUTO_RECIPES as AUTO_RECIPES
 from surrogate.kinds.base import (
     CHAIN_KINDS,
@@ -46,7 +46,7 @@ from surrogate.simulate.memory import history_setting
 from surrogate.validation import known_keys
 
 #: the modules of the chain kinds (imported above, which registers their kinds)
-KIND_MODULES = (two_state, clock, klumps)
+KIND_MODULES = (two_state, clock, klumps, phases)
 
 
 def chain_kind(

@@ -7,3 +7,5 @@ kinds import torch, gpytorch and the simulator)."""
 #: a ClassTable's state
 PSI = "psi.pt"
 CLASS_CHAIN = "class_chain.pt"
+#: the hidden-phase chain (gp.lumps=phases): its table's and its law's states
+PHASE_CHAIN = "phase_chain.pt"

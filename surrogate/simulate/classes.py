@@ -280,10 +280,17 @@ class ClassTable:
             cdf = self.stationary().reshape(-1, self.n_classes).cumsum(-1)
             cdf[:, -1] = 1.0  # a uniform in [0, 1) never passes the last class
             self._start_cdf = cdf.to(torch.float32).to(self.cdf.device)
+        index = self.node_index(z, u)
+        return (u[-1][:, None] >= self._start_cdf[index][:, :-1]).sum(-1)
+
+    def node_index(self, z: Tensor, u: Tensor) -> Tensor:
+        """Each cell's grid node (flat, ``(n,)`` int64) picked by stochastic rounding, as
+        :meth:`draw` picks it: ``z`` ``n x d`` the inputs, ``u`` ``(d + 1) x n`` uniforms (the
+        first ``d`` rows read)."""
         index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
         for j, (node, frac) in enumerate(self._positions(z)):
             index = index + (node + (u[j] < frac).long()) * self._strides[j]
-        return (u[-1][:, None] >= self._start_cdf[index][:, :-1]).sum(-1)
+        return index
 
     def to_state(self) -> dict[str, Any]:
         """Plain tensors and lists (``torch.save``-able, loads with ``weights_only=True``)."""

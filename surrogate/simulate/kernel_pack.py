@@ -49,6 +49,7 @@ from surrogate.simulate.classes import ClassDecision, ClassTable
 from surrogate.simulate.decision import AbstractDecision, ExactDecision, FullDecision, is_fusable
 from surrogate.simulate.decision_batch import DecisionBatch
 from surrogate.simulate.memory import MemoryDecision
+from surrogate.simulate.phases import PhaseDecision
 
 
 @dataclass(frozen=True)
@@ -213,7 +214,7 @@ def _pack_memory(layer: MemoryDecision, slot: Slot) -> PackedBlock:
                        clock=clock)  # fmt: skip
 
 
-def _pack_classes(layer: ClassDecision, slot: Slot) -> PackedBlock:
+def _pack_classes(layer: ClassDecision | PhaseDecision, slot: Slot) -> PackedBlock:
     """The K-lumps chain: its law, its ``d + 1`` uniform rows (right-aligned) and its
     classes."""
     classes, why = pack_class_table(layer.table)
@@ -229,6 +230,8 @@ PACKERS: dict[type, Callable[[Any, Slot], PackedBlock]] = {
     ExactDecision: _pack_exact,
     MemoryDecision: _pack_memory,
     ClassDecision: _pack_classes,
+    # the hidden-phase chain draws its states as K lumps draw classes: the same block
+    PhaseDecision: _pack_classes,
 }
 
 __all__ = ["PACKERS", "Slot", "pack_class_table", "pack_decision", "pack_layer", "pack_tables"]

@@ -75,7 +75,9 @@ def test_a_new_kind_is_one_module_and_one_yaml(toy, compose_cfg, tmp_path) -> No
 
 
 def test_a_new_kinds_values_join_the_messages(toy, compose_cfg) -> None:
-    with pytest.raises(ConfigError, match=r"gp.lumps must be one of \['phi', 'classes', 'toy'\]"):
+    with pytest.raises(
+        ConfigError, match=r"gp.lumps must be one of \['phi', 'classes', 'phases', 'toy'\]"
+    ):
         TrainSettings.from_config(compose_cfg("train", [*toy, "gp.lumps=motors"]))
     with pytest.raises(ConfigError, match="gp.toy_floor must be in"):
         TrainSettings.from_config(compose_cfg("train", [*toy, "gp.toy_floor=0.7"]))
@@ -100,12 +102,12 @@ def test_the_shipped_kinds_are_their_modules() -> None:
 def test_unknown_kind_strings_list_the_registered_values(compose_cfg) -> None:
     assert ToyChain not in CHAIN_KINDS
     cases = [
-        ("train", ["gp.lumps=motors"], r"gp.lumps must be one of \['phi', 'classes'\], got 'motors'"),
+        ("train", ["gp.lumps=motors"], r"gp.lumps must be one of \['phi', 'classes', 'phases'\], got 'motors'"),
         ("train", ["gp.history=clock"], r"gp.history must be one of \['none', 'age'\], got 'clock'"),
         ("train", ["gp=classes", "gp.class_moves=drift"],
          r"gp.class_moves must be one of \['learned', 'relaxation'\], got 'drift'"),
         ("simulate", ["decision=exact", "decision.lumps=x"],
-         r"decision.lumps must be one of \['phi', 'classes'\], got 'x'"),
+         r"decision.lumps must be one of \['phi', 'classes', 'phases'\], got 'x'"),
         ("simulate", ["decision=exact", "decision.history=x"],
          r"decision.history must be one of \['none', 'age'\], got 'x'"),
     ]  # fmt: skip

@@ -1,0 +1,560 @@
+"""A chain over hidden phases of each lump, learned from phi sequences (``gp.lumps=phases``).
+
+The two-state chain keeps only phi, so each lump's sojourn is geometric. Here each lump ``l``
+has ``K_l`` hidden phases; the chain's state is (phi, phase), phi a function of the state, and
+one window's law is a row-stochastic ``S x S`` matrix ``P(z)`` (``S = K_0 + K_1``) whose
+logits are smooth functions of the abstraction's inputs ``z``: a linear map of an additive basis
+(:class:`InputBasis`: a constant, each input scaled to [-1, 1] and Gaussian bumps along it).
+A lump's sojourn is then phase-type: peaked (phases in series) or heavy-tailed (an early exit
+or a slow phase), nothing the user names.
+
+The fit maximises the exact likelihood of observed phi sequences (the forward algorithm over the
+hidden states, batched over cells, float64, scaled per step) by L-BFGS, with a ridge penalty on
+the basis weights; ``K_l`` is chosen by the held-out likelihood of held-out cells
+(:func:`select_phases`). With ``K = (1, 1)`` the chain is the two-state chain with psi's logit
+in the basis.
+
+Moves (:class:`PhaseLayout`): ``series`` (a Coxian chain per lump: a phase stays, moves to the
+next phase of its lump, or leaves to the other lump's first phase; every acyclic phase-type law
+has such a form, and its parameters are identifiable up to the order of equal phases) or
+``full`` (any state to any other: also memory carried across a switch, more parameters).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from surrogate.errors import NumericalError
+
+log = logging.getLogger(__name__)
+
+#: the moves a layout allows (:class:`PhaseLayout`): phases in a row per lump, or any move
+SERIES, FULL = "series", "full"
+STRUCTURES = (SERIES, FULL)
+#: the fit's log-likelihood counts in float64 (sequences of thousands of windows)
+DTYPE = torch.float64
+
+
+@dataclass(frozen=True)
+class PhaseLayout:
+    """The hidden states: ``per_lump[l]`` phases of lump ``l`` (states ``0..K_0-1`` are lump 0's
+    phases in order, then lump 1's), and the moves between them (``structure``, one of
+    :data:`STRUCTURES`).
+
+    Example:
+        >>> PhaseLayout((1, 2)).moves().int().tolist()
+        [[1, 1, 0], [1, 1, 1], [1, 0, 1]]
+    """
+
+    per_lump: tuple[int, int]
+    structure: str = SERIES
+
+    def __post_init__(self) -> None:
+        if len(self.per_lump) != 2 or any(k < 1 for k in self.per_lump):
+            raise ValueError(f"per_lump must be two phase counts >= 1, got {self.per_lump}")
+        if self.structure not in STRUCTURES:
+            raise ValueError(f"structure must be one of {STRUCTURES}, got {self.structure!r}")
+
+    @property
+    def n_states(self) -> int:
+        """``S = K_0 + K_1``."""
+        return sum(self.per_lump)
+
+    def lumps(self) -> Tensor:
+        """Each state's phi ``(S,)`` int64."""
+        k0, k1 = self.per_lump
+        return torch.tensor([0] * k0 + [1] * k1, dtype=torch.int64)
+
+    def first(self, lump: int) -> int:
+        """The state of lump ``lump``'s first phase."""
+        return 0 if lump == 0 else self.per_lump[0]
+
+    def moves(self) -> Tensor:
+        """The allowed moves ``S x S`` bool (the diagonal, staying, always)."""
+        s = self.n_states
+        if self.structure == FULL:
+            return torch.ones(s, s, dtype=torch.bool)
+        lumps = self.lumps().tolist()
+        allowed = torch.eye(s, dtype=torch.bool)
+        for a in range(s):
+            if a + 1 < s and lumps[a + 1] == lumps[a]:
+                allowed[a, a + 1] = True  # to the next phase of the lump
+            allowed[a, self.first(1 - lumps[a])] = True  # leave to the other lump
+        return allowed
+
+    def names(self, lump_names: Sequence[str]) -> tuple[str, ...]:
+        """The states' names: ``<lump name>.<phase>``."""
+        return tuple(f"{lump_names[l]}.{k}" for l in (0, 1) for k in range(self.per_lump[l]))
+
+
+@dataclass(frozen=True)
+class InputBasis:
+    """Additive features of the inputs: a constant, then per input its value scaled to [-1, 1]
+    over ``bounds`` (clamped) and ``bumps`` Gaussians evenly spaced along it (width their
+    spacing). ``n_features = 1 + d (1 + bumps)``."""
+
+    bounds: tuple[tuple[float, float], ...]
+    bumps: int = 4
+
+    @property
+    def n_features(self) -> int:
+        """Features per input point."""
+        return 1 + len(self.bounds) * (1 + self.bumps)
+
+    def features(self, z: Tensor) -> Tensor:
+        """``(..., d)`` inputs -> ``(..., n_features)`` float64 features."""
+        z = z.to(DTYPE)
+        out = [torch.ones_like(z[..., :1])]
+        for j, (lo, hi) in enumerate(self.bounds):
+            u = ((2.0 * (z[..., j] - lo) / (hi - lo) - 1.0) if hi > lo
+                 else torch.zeros_like(z[..., j])).clamp(-1.0, 1.0)  # fmt: skip
+            out.append(u.unsqueeze(-1))
+            if self.bumps:
+                centres = torch.linspace(-1.0, 1.0, self.bumps, dtype=DTYPE, device=z.device)
+                width = 2.0 / max(self.bumps - 1, 1)
+                out.append(torch.exp(-0.5 * ((u.unsqueeze(-1) - centres) / width) ** 2))
+        return torch.cat(out, dim=-1)
+
+
+class PhaseLaw:
+    """One window's law over the hidden states as a function of the inputs.
+
+    Args:
+        layout: the hidden states and their moves.
+        basis: the inputs' features.
+        weights: ``n_features x S x S`` float64: move ``a -> b``'s logit is ``features(z) @
+            weights[:, a, b]``; staying's logit is 0 and moves the layout forbids have none
+            (their weights are ignored).
+    """
+
+    def __init__(self, layout: PhaseLayout, basis: InputBasis, weights: Tensor) -> None:
+        s = layout.n_states
+        if tuple(weights.shape) != (basis.n_features, s, s):
+            raise ValueError(f"weights must be {basis.n_features} x {s} x {s}, got "
+                             f"{tuple(weights.shape)}")  # fmt: skip
+        self.layout = layout
+        self.basis = basis
+        self.weights = weights
+        moves = layout.moves()
+        self._free = moves & ~torch.eye(s, dtype=torch.bool)
+        self._blocked = ~moves
+
+    def log_moves(self, z: Tensor) -> Tensor:
+        """``(..., d)`` inputs -> log P ``(..., S, S)`` float64 (rows sum to 1)."""
+        feats = self.basis.features(z)
+        w = self.weights * self._free.to(self.weights.device)
+        logits = torch.einsum("...f,fab->...ab", feats, w)
+        logits = logits.masked_fill(self._blocked.to(logits.device), -math.inf)
+        return torch.log_softmax(logits, dim=-1)
+
+    def moves(self, z: Tensor) -> Tensor:
+        """P ``(..., S, S)`` at inputs ``z`` ``(..., d)``."""
+        return self.log_moves(z).exp()
+
+    def to_state(self) -> dict[str, Any]:
+        """Plain tensors and lists (loads with ``weights_only=True``)."""
+        return {"per_lump": list(self.layout.per_lump), "structure": self.layout.structure,
+                "bounds": [list(b) for b in self.basis.bounds], "bumps": self.basis.bumps,
+                "weights": self.weights.detach().cpu()}  # fmt: skip
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> PhaseLaw:
+        """The law :meth:`to_state` wrote."""
+        layout = PhaseLayout((int(state["per_lump"][0]), int(state["per_lump"][1])),
+                             state["structure"])  # fmt: skip
+        basis = InputBasis(tuple((float(a), float(b)) for a, b in state["bounds"]),
+                           int(state["bumps"]))  # fmt: skip
+        return cls(layout, basis, state["weights"].to(DTYPE))
+
+
+def stationary(moves: Tensor) -> Tensor:
+    """The stationary law ``(..., S)`` of row-stochastic ``moves`` ``(..., S, S)`` (irreducible;
+    differentiable: one linear solve)."""
+    s = moves.shape[-1]
+    a = moves.transpose(-1, -2) - torch.eye(s, dtype=moves.dtype, device=moves.device)
+    a = torch.cat([a[..., :-1, :], torch.ones_like(a[..., -1:, :])], dim=-2)
+    b = torch.zeros(*moves.shape[:-1], dtype=moves.dtype, device=moves.device)
+    b[..., -1] = 1.0
+    return torch.linalg.solve(a, b).clamp_min(0.0)
+
+
+def _start_law(moves: Tensor, node: Tensor, first: Tensor) -> Tensor:
+    """Each cell's first hidden state's law ``n x S``: the chain's stationary law at its first
+    window's node given phi_0 (``first``: ``n x S`` 0/1, the states of phi_0's lump)."""
+    alpha = stationary(moves)[node[:, 0]] * first
+    return alpha / alpha.sum(-1, keepdim=True).clamp_min(1e-300)
+
+
+def sequence_log_likelihood(log_moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor) -> Tensor:
+    """Each cell's log P(phi_1..phi_T | phi_0, its inputs) under a hidden-phase chain (the forward
+    algorithm, scaled per window), its first hidden state drawn from the chain's stationary law
+    at its first window's inputs given phi_0.
+
+    Args:
+        log_moves: ``G x S x S`` log P at ``G`` input nodes.
+        lumps: ``(S,)`` each state's phi.
+        node: ``n x T`` int64: the node of each cell's inputs during each window.
+        phi: ``n x (T + 1)`` int64 phi at the windows' edges.
+
+    Returns:
+        ``(n,)`` float64 log-likelihoods.
+    """
+    return expected_moves(log_moves.detach().exp(), lumps, node, phi)[0]
+
+
+@torch.no_grad()
+def expected_moves(
+    moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The forward-backward pass: each cell's log-likelihood (as
+    :func:`sequence_log_likelihood`), the expected number of each move at each node given the
+    sequences ``G x S x S``, and the first hidden state's posterior law ``n x S``. By Fisher's
+    identity the likelihood's gradient is that of ``sum(counts * log P) + sum(first * log
+    start law)`` with the expectations held fixed (what :func:`fit_phase_law` differentiates:
+    no autograd graph through the windows; the windows run in compiled code, one cell after
+    another: a Python loop over windows of batched torch ops with autograd cost 9-17x more per
+    evaluation at 300 cells x 300 windows, docs/kinds.md).
+
+    Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``.
+    """
+    start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
+    # C-contiguous arrays of fixed dtypes: one compiled signature, cached on disk
+    args = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=d) for t, d in (
+        (moves, np.float64), (lumps, np.int64), (node, np.int64), (phi, np.int64),
+        (start, np.float64))]  # fmt: skip
+    ll, counts, first = _forward_backward(*args)
+    return torch.from_numpy(ll), torch.from_numpy(counts), torch.from_numpy(first)
+
+
+@numba.njit(cache=True)
+def _forward_backward(
+    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Per cell, the scaled forward pass (alpha, its scales) then the backward one (beta),
+    adding each window's expected moves to its node's counts."""
+    n, steps = node.shape
+    s = moves.shape[1]
+    ll = np.zeros(n)
+    counts = np.zeros(moves.shape)
+    first = np.zeros((n, s))
+    alphas = np.empty((steps + 1, s))
+    scales = np.empty(steps)
+    beta, ahead, back = np.empty(s), np.empty(s), np.empty(s)
+    for i in range(n):
+        alphas[0, :] = start[i, :]
+        total = 0.0
+        for t in range(steps):
+            g, seen = node[i, t], phi[i, t + 1]
+            c = 0.0
+            for b in range(s):
+                v = 0.0
+                if lumps[b] == seen:
+                    for a in range(s):
+                        v += alphas[t, a] * moves[g, a, b]
+                alphas[t + 1, b] = v
+                c += v
+            c = max(c, 1e-300)
+            alphas[t + 1, :] /= c
+            scales[t] = c
+            total += math.log(c)
+        ll[i] = total
+        beta[:] = 1.0
+        for t in range(steps - 1, -1, -1):
+            g, seen = node[i, t], phi[i, t + 1]
+            for b in range(s):
+                ahead[b] = beta[b] / scales[t] if lumps[b] == seen else 0.0
+            for a in range(s):
+                v = 0.0
+                for b in range(s):
+                    w = moves[g, a, b] * ahead[b]
+                    counts[g, a, b] += alphas[t, a] * w
+                    v += w
+                back[a] = v
+            beta[:] = back
+        first[i, :] = alphas[0, :] * beta
+    return ll, counts, first
+
+
+def input_grid(bounds: Sequence[tuple[float, float]], nodes: int) -> list[Tensor]:
+    """Each input's ``nodes`` evenly spaced values over its bounds (one where the bounds are one
+    point)."""
+    return [torch.linspace(lo, hi, nodes if hi > lo else 1, dtype=DTYPE) for lo, hi in bounds]
+
+
+def grid_points(axes: Sequence[Tensor]) -> Tensor:
+    """The grid's nodes ``G x d`` in C order (the last input fastest, as a
+    :class:`~surrogate.simulate.classes.ClassTable`'s strides)."""
+    return torch.cartesian_prod(*axes).reshape(-1, len(axes))
+
+
+def nearest_node(z: Tensor, axes: Sequence[Tensor]) -> Tensor:
+    """Each point's nearest grid node: ``(..., d)`` inputs -> ``(...)`` int64 flat index."""
+    index = torch.zeros(z.shape[:-1], dtype=torch.int64)
+    for j, axis in enumerate(axes):
+        n = len(axis)
+        if n == 1:
+            continue
+        lo, hi = float(axis[0]), float(axis[-1])
+        pos = ((z[..., j] - lo) * ((n - 1) / (hi - lo))).round().clamp(0, n - 1).long()
+        index = index * n + pos
+    return index
+
+
+@dataclass(frozen=True)
+class PhaseFitSettings:
+    """How a hidden-phase law is fitted: ``bumps`` per input (:class:`InputBasis`), the ridge
+    ``penalty`` on the basis weights (a Gaussian prior's precision), ``nodes`` per input of the
+    grid the inputs are read on, L-BFGS's ``max_iterations``."""
+
+    bumps: int = 4
+    penalty: float = 1.0
+    nodes: int = 64
+    max_iterations: int = 200
+
+
+def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: int) -> Tensor:
+    """Logits near the two-state chain: each lump's sojourn spread over its phases in series,
+    plus a little seeded noise (phases that start equal stay equal)."""
+    s = layout.n_states
+    lumps = layout.lumps().tolist()
+    before, after = phi[:, :-1], phi[:, 1:]
+    weights = torch.zeros(basis.n_features, s, s, dtype=DTYPE)
+    for a in range(s):
+        lump, k = lumps[a], layout.per_lump[lumps[a]]
+        mine = before == lump
+        switch = float((after[mine] != lump).double().mean()) if bool(mine.any()) else 0.1
+        rate = min(max(k * switch, 1e-4), 0.5)  # leaving a phase, per window
+        for b in range(s):
+            if a != b:
+                last = a + 1 == s or lumps[a + 1] != lump
+                leaves = lumps[b] != lump
+                weights[0, a, b] = math.log(rate if (not leaves or last) else 0.3 * rate)
+    generator = torch.Generator().manual_seed(seed)
+    return weights + 0.1 * torch.randn(weights.shape, generator=generator, dtype=DTYPE)
+
+
+def log_likelihood_with_gradient(
+    law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor
+) -> Tensor:
+    """The sequences' log-likelihood (a float64 scalar) under ``law`` read at the grid
+    ``points`` (``G x d``; ``node`` ``n x T``: each window's, ``phi`` ``n x (T + 1)``), its
+    gradient added to ``law.weights.grad`` (the weights must require it). By Fisher's identity
+    the gradient is that of ``sum(counts * log P) + sum(first * log start law)`` with the
+    expectations of :func:`expected_moves` held fixed: no autograd graph through the windows.
+    """
+    log_moves = law.log_moves(points)
+    lumps = law.layout.lumps()
+    ll, counts, first = expected_moves(log_moves.detach().exp(), lumps, node, phi)
+    start = _start_law(log_moves.exp(), node, (phi[:, :1] == lumps).to(DTYPE))
+    surrogate = ((counts * log_moves.clamp_min(-1e300)).sum()
+                 + (first * start.clamp_min(1e-300).log()).sum())  # fmt: skip
+    surrogate.backward()
+    return ll.sum()
+
+
+def fit_phase_law(
+    inputs: Tensor,
+    phi: Tensor,
+    layout: PhaseLayout,
+    bounds: Sequence[tuple[float, float]],
+    settings: PhaseFitSettings = PhaseFitSettings(),
+    seed: int = 0,
+) -> tuple[PhaseLaw, dict[str, Any]]:
+    """The hidden-phase law of ``layout`` that maximises the likelihood of the sequences.
+
+    Args:
+        inputs: ``n x T x d`` each cell's inputs during each window.
+        phi: ``n x (T + 1)`` int64 phi at the windows' edges.
+        layout: the hidden states and their moves.
+        bounds: ``d`` pairs (lo, hi): the basis's span (inputs outside are clamped).
+        settings: the basis, penalty, grid and optimiser's budget.
+        seed: the initial logits' noise.
+
+    Returns:
+        The law and its fit's facts (``log_likelihood`` per window, ``iterations``,
+        ``seconds``).
+
+    Raises:
+        NumericalError: the likelihood is not finite.
+    """
+    t0 = time.perf_counter()
+    basis = InputBasis(tuple((float(a), float(b)) for a, b in bounds), settings.bumps)
+    axes = input_grid(basis.bounds, settings.nodes)
+    points = grid_points(axes)
+    node = nearest_node(inputs.to(DTYPE), axes)
+    phi = phi.long()
+    weights = _initial_weights(layout, basis, phi, seed).requires_grad_(True)
+    law = PhaseLaw(layout, basis, weights)
+    lumps = layout.lumps()
+    windows = phi.shape[0] * (phi.shape[1] - 1)
+    optimiser = torch.optim.LBFGS([weights], lr=1.0, max_iter=settings.max_iterations,
+                                  history_size=20, line_search_fn="strong_wolfe",
+                                  tolerance_grad=1e-9, tolerance_change=1e-12)  # fmt: skip
+    evaluations = 0
+
+    def closure() -> Tensor:
+        nonlocal evaluations
+        evaluations += 1
+        optimiser.zero_grad()
+        ll = log_likelihood_with_gradient(law, points, node, phi)  # weights.grad: d ll / dw
+        assert weights.grad is not None
+        with torch.no_grad():
+            ridge = torch.cat([torch.zeros_like(weights[:1]), weights[1:]])  # no intercepts
+            penalty = 0.5 * settings.penalty * (ridge**2).sum()
+            weights.grad.copy_((settings.penalty * ridge - weights.grad) / windows)
+        value = (-ll + penalty) / windows
+        if not torch.isfinite(value):
+            raise NumericalError(f"hidden-phase fit {layout.per_lump}: the likelihood is not "
+                                 f"finite")  # fmt: skip
+        return value
+
+    optimiser.step(closure)
+    weights.requires_grad_(False)
+    with torch.no_grad():
+        ll = float(sequence_log_likelihood(law.log_moves(points), lumps, node, phi).sum())
+    return law, {"per_lump": list(layout.per_lump), "log_likelihood": ll / windows,
+                 "evaluations": evaluations, "seconds": time.perf_counter() - t0}  # fmt: skip
+
+
+def score(law: PhaseLaw, inputs: Tensor, phi: Tensor, nodes: int) -> Tensor:
+    """Each cell's log-likelihood ``(n,)`` under ``law`` (its inputs read on the grid of
+    ``nodes`` per input the fit used)."""
+    axes = input_grid(law.basis.bounds, nodes)
+    with torch.no_grad():
+        log_moves = law.log_moves(grid_points(axes))
+        return sequence_log_likelihood(log_moves, law.layout.lumps(), nearest_node(
+            inputs.to(DTYPE), axes), phi.long())  # fmt: skip
+
+
+def select_phases(
+    inputs: Tensor,
+    phi: Tensor,
+    bounds: Sequence[tuple[float, float]],
+    max_per_lump: int,
+    structure: str = SERIES,
+    settings: PhaseFitSettings = PhaseFitSettings(),
+    held_out: float = 0.25,
+    seed: int = 0,
+    per_lump: tuple[int, int] | None = None,
+) -> tuple[PhaseLaw, dict[str, Any]]:
+    """The phase counts chosen by held-out likelihood, and their law.
+
+    From ``(1, 1)`` (the two-state chain), each round fits one more phase in either lump and
+    keeps the better one while its held-out gain (summed over held-out cells) exceeds twice its
+    standard error (from the cells' paired differences): a phase is added only where held-out
+    cells tell it apart from noise. Fits are on the other cells.
+
+    Args:
+        inputs: ``n x T x d`` each cell's inputs during each window.
+        phi: ``n x (T + 1)`` phi at the windows' edges.
+        bounds: the inputs' span.
+        max_per_lump: the most phases a lump may get.
+        structure: the moves (:class:`PhaseLayout`).
+        settings: the fit's settings.
+        held_out: the share of cells held out (at least one cell each way).
+        seed: the split's and the fits' seed.
+        per_lump: fixed phase counts (no selection; the held-out score is still reported).
+
+    Returns:
+        The chosen law (fitted on the training cells) and a report: ``per_lump``, ``candidates``
+        (each fit's phase counts, train and held-out log-likelihood per window, seconds),
+        ``held_out_cells``.
+    """
+    n = phi.shape[0]
+    m = min(max(1, round(held_out * n)), n - 1)
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
+    test, train = order[:m], order[m:]
+    windows = m * (phi.shape[1] - 1)
+    candidates: list[dict[str, Any]] = []
+
+    def fitted(counts: tuple[int, int]) -> tuple[PhaseLaw, Tensor]:
+        law, info = fit_phase_law(inputs[train], phi[train], PhaseLayout(counts, structure),
+                                  bounds, settings, seed)  # fmt: skip
+        cells = score(law, inputs[test], phi[test], settings.nodes)
+        info["held_out_log_likelihood"] = float(cells.sum()) / windows
+        candidates.append(info)
+        log.info("hidden phases %s: held-out log-likelihood %.6f per window (%.1f s)", counts,
+                 info["held_out_log_likelihood"], info["seconds"])  # fmt: skip
+        return law, cells
+
+    counts = per_lump or (1, 1)
+    best, best_cells = fitted(counts)
+    while per_lump is None:
+        trials = [(counts[0] + 1, counts[1]), (counts[0], counts[1] + 1)]
+        scored = [(c, *fitted(c)) for c in trials if max(c) <= max_per_lump]
+        if not scored:
+            break
+        c, law, cells = max(scored, key=lambda item: float(item[2].sum()))
+        diff = cells - best_cells
+        gain, error = float(diff.sum()), float(diff.std()) * math.sqrt(m) if m > 1 else 0.0
+        if not gain > 2.0 * error:
+            break
+        counts, best, best_cells = c, law, cells
+    return best, {"per_lump": list(counts), "structure": structure, "candidates": candidates,
+                  "held_out_cells": m}  # fmt: skip
+
+
+def sojourn_law(moves: Tensor, lumps: Tensor, lump: int, windows: int) -> Tensor:
+    """P(a sojourn in ``lump`` lasts k windows), k = 1..``windows``, at stationarity: entered
+    by the stationary flow from the other lump, then the chain's moves within it.
+
+    Args:
+        moves: ``S x S`` one window's law (a hidden-phase chain's, or an exact ``exp(Q dt)``).
+        lumps: ``(S,)`` each state's phi.
+        lump: 0 or 1.
+        windows: the longest sojourn counted.
+
+    Returns:
+        ``(windows,)`` float64 probabilities (their sum falls short of 1 by the tail's mass).
+    """
+    moves = moves.to(DTYPE)
+    inside, outside = lumps == lump, lumps != lump
+    flow = stationary(moves)[outside] @ moves[outside][:, inside]
+    entry = flow / flow.sum()
+    stay = moves[inside][:, inside]
+    leave = 1.0 - stay.sum(-1)
+    out = torch.empty(windows, dtype=DTYPE)
+    for k in range(windows):
+        out[k] = entry @ leave
+        entry = entry @ stay
+    return out
+
+
+def mean_sojourn(moves: Tensor, lumps: Tensor, lump: int) -> float:
+    """The mean sojourn in ``lump`` (windows) of the chain ``moves`` (``S x S``) at
+    stationarity: ``entry (I - P_ll)^-1 1``."""
+    moves = moves.to(DTYPE)
+    inside, outside = lumps == lump, lumps != lump
+    flow = stationary(moves)[outside] @ moves[outside][:, inside]
+    stay = moves[inside][:, inside]
+    eye = torch.eye(stay.shape[0], dtype=DTYPE)
+    ones = torch.ones(stay.shape[0], 1, dtype=DTYPE)
+    return float((flow / flow.sum()) @ torch.linalg.solve(eye - stay, ones))
+
+
+__all__ = [
+    "STRUCTURES",
+    "InputBasis",
+    "PhaseFitSettings",
+    "PhaseLaw",
+    "PhaseLayout",
+    "fit_phase_law",
+    "input_grid",
+    "mean_sojourn",
+    "nearest_node",
+    "score",
+    "select_phases",
+    "sequence_log_likelihood",
+    "sojourn_law",
+    "stationary",
+]

@@ -1,0 +1,276 @@
+"""Hidden phases (``gp.lumps=phases``) as one kind module: a chain whose states are each lump's
+hidden phases, learned from phi sequences with no species named by the user
+(:mod:`surrogate.gp.phases`). Its fit simulates its own sample (an unperturbed full-model
+population where collect starts its cells, every window recorded:
+:func:`~surrogate.simulate.transitions.record_occupancy`), chooses each lump's phase count by
+held-out likelihood, and tabulates the law over the abstraction's inputs; its layer
+(:class:`~surrogate.simulate.phases.PhaseDecision`) keeps one hidden state per cell."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import torch
+
+from surrogate.config import seed_everything
+from surrogate.errors import ArtefactError, ConfigError
+from surrogate.gp.phases import (
+    STRUCTURES,
+    PhaseFitSettings,
+    PhaseLaw,
+    grid_points,
+    input_grid,
+    select_phases,
+)
+from surrogate.gp.training import GPSettings
+from surrogate.io import load_tensors, save_tensors
+from surrogate.kinds.base import ChainKind, FitSettings, LayerRequest, register_chain_kind
+from surrogate.kinds.decision import DecisionMode
+from surrogate.kinds.files import PHASE_CHAIN
+from surrogate.simulate.classes import STARTS, ClassTable
+from surrogate.simulate.decision import DecisionLayer, FullDecision
+from surrogate.simulate.loop import Simulator
+from surrogate.simulate.phases import PhaseDecision
+from surrogate.simulate.sequences import phi_sequences
+from surrogate.simulate.transitions import record_occupancy
+from surrogate.validation import known_keys
+
+log = logging.getLogger(__name__)
+
+#: keys of the gp group that only a fit of the hidden-phase chain reads (gp.lumps=phases)
+GP_PHASES = ("phases",)
+#: gp.phases' keys (conf/gp/phases.yaml holds their defaults)
+PHASE_KEYS = ("max_per_lump", "per_lump", "structure", "bumps", "penalty", "nodes",
+              "max_iterations", "n_cells", "t_end", "held_out")  # fmt: skip
+#: the sequences' seed is the fit's plus this (its cells are not collect's first cells)
+SEQUENCE_SEED_OFFSET = 2_000_003
+#: a change in the fit's method refits (the fit identity carries it)
+PHASE_LAW_VERSION = 1
+
+
+def _count(options: Mapping[str, Any], key: str, minimum: int) -> int:
+    value = options[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(f"gp.phases.{key} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def _number(options: Mapping[str, Any], key: str, low: float, high: float = math.inf) -> float:
+    value = options[key]
+    if (isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value)
+            or not low <= value < high):  # fmt: skip
+        raise ConfigError(f"gp.phases.{key} must be a number in [{low:g}, {high:g}), got "
+                          f"{value!r}")  # fmt: skip
+    return float(value)
+
+
+@dataclass(frozen=True)
+class PhaseSettings:
+    """``gp.phases`` validated: the phase counts (``per_lump`` fixed, or chosen up to
+    ``max_per_lump`` by held-out likelihood on the ``held_out`` share of cells), the moves
+    (``structure``), the fit's settings and the sample (``n_cells`` cells for ``t_end`` s)."""
+
+    max_per_lump: int
+    per_lump: tuple[int, int] | None
+    structure: str
+    fit: PhaseFitSettings
+    n_cells: int
+    t_end: float
+    held_out: float
+
+    @classmethod
+    def from_config(cls, value: Any) -> PhaseSettings:
+        """Validate ``gp.phases`` (every key required: conf/gp/phases.yaml gives them).
+
+        Raises:
+            ConfigError: a key missing, unknown or out of range, named.
+        """
+        if value is None:
+            raise ConfigError("gp.phases is required with gp.lumps=phases: use gp=phases")
+        options = known_keys(value, PHASE_KEYS, "gp.phases", required=PHASE_KEYS)
+        per_lump = options["per_lump"]
+        if per_lump is not None:
+            if (isinstance(per_lump, str) or not isinstance(per_lump, Sequence)
+                    or len(per_lump) != 2
+                    or any(isinstance(k, bool) or not isinstance(k, int) or k < 1
+                           for k in per_lump)):  # fmt: skip
+                raise ConfigError(f"gp.phases.per_lump must be null or two integers >= 1 (the "
+                                  f"phases of each lump), got {per_lump!r}")  # fmt: skip
+            per_lump = (int(per_lump[0]), int(per_lump[1]))
+        if options["structure"] not in STRUCTURES:
+            raise ConfigError(f"gp.phases.structure must be one of {list(STRUCTURES)}, got "
+                              f"{options['structure']!r}")  # fmt: skip
+        fit = PhaseFitSettings(bumps=_count(options, "bumps", 0),
+                               penalty=_number(options, "penalty", 0.0),
+                               nodes=_count(options, "nodes", 2),
+                               max_iterations=_count(options, "max_iterations", 1))  # fmt: skip
+        t_end = _number(options, "t_end", 0.0)
+        if t_end <= 0:
+            raise ConfigError(f"gp.phases.t_end must be positive, got {t_end!r}")
+        held_out = _number(options, "held_out", 0.0, 1.0)
+        if held_out <= 0:
+            raise ConfigError("gp.phases.held_out must be in (0, 1): the phase counts are "
+                              "chosen on held-out cells")  # fmt: skip
+        return cls(_count(options, "max_per_lump", 1), per_lump, str(options["structure"]), fit,
+                   _count(options, "n_cells", 4), t_end, held_out)  # fmt: skip
+
+
+@register_chain_kind
+@dataclass(frozen=True)
+class HiddenPhases(ChainKind):
+    """The chain over each lump's hidden phases (``gp.lumps=phases``), learned from phi
+    sequences (:mod:`surrogate.gp.phases`): a table (lookup mode only) that may start from its
+    stationary law."""
+
+    lumps = "phases"
+    gp_keys = GP_PHASES
+    title = "hidden-phase"
+    recipe = "phases"
+    starts = STARTS
+    files = (PHASE_CHAIN,)
+
+    @classmethod
+    def check_fit(cls, history: str, internal: Any, model_name: str) -> None:
+        """The hidden phases are the chain's memory: no switch clock besides."""
+        if history != cls.history:
+            raise ConfigError("gp.lumps=phases takes no switch clock: use gp.history=none")
+
+    def configure(
+        self,
+        gp_config: Mapping[str, Any],
+        gp: GPSettings,
+        inputs: tuple[str, ...],
+        internal: Any,
+        model_name: str,
+    ) -> tuple[GPSettings, tuple[str, ...]]:
+        """``gp.phases`` validated (:class:`PhaseSettings`)."""
+        PhaseSettings.from_config(gp_config.get("phases"))
+        return gp, inputs
+
+    @classmethod
+    def check_exact(cls, history: str, mode: DecisionMode, internal: Any, model_name: str) -> None:
+        """The hidden phases are learned: there is no exact law of them."""
+        raise ConfigError("decision.lumps=phases: the hidden-phase chain is learned only "
+                          "(decision=abstract gp=phases); decision=exact drives "
+                          "decision.lumps=phi or classes")  # fmt: skip
+
+    def fit_identity(self, gp: Mapping[str, Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
+        """The gp keys with the fit's version (a change in the method refits)."""
+        return {**super().fit_identity(gp), "phase_law_version": PHASE_LAW_VERSION}
+
+    def label(self) -> dict[str, Any]:
+        return {"lumps": self.lumps}
+
+    def check_mode(self, mode: DecisionMode) -> None:
+        if not mode.table:
+            raise ConfigError(
+                "gp.lumps=phases: the hidden-phase chain is a table (decision.mode=lookup), it "
+                f"has no classifier mode; got decision.mode={mode.name!r}"
+            )
+
+    def fit(
+        self, settings: FitSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
+    ) -> tuple[dict[str, Any], dict[str, Any]] | None:
+        """The hidden-phase law (:func:`fit_phase_chain`) over the two-state fit's domain."""
+        return fit_phase_chain(settings, domain)
+
+    def write(
+        self,
+        directory: Path,
+        fitted: tuple[dict[str, Any], dict[str, Any]] | None,
+        identity: Mapping[str, Any],
+    ) -> dict[str, Any]:
+        """The table's and the law's states as :data:`PHASE_CHAIN`; metrics as
+        ``phase_chain``."""
+        assert fitted is not None  # fit gives one
+        state, metrics = fitted
+        save_tensors(directory / PHASE_CHAIN, {**state, "metadata": {"settings": dict(identity)}})
+        return {"phase_chain": metrics}
+
+    def load(self, directory: str | os.PathLike, device: str | torch.device = "cpu") -> PhaseLaw:
+        """The chain's law over the inputs (:class:`PhaseLaw`, on the CPU: the layer reads the
+        table, :func:`load_phase_chain`)."""
+        return PhaseLaw.from_state(_read(directory)["phase_law"])
+
+    def decision_layer(
+        self, request: LayerRequest, directory: Path
+    ) -> tuple[DecisionLayer, dict[str, Any]]:
+        """The table as a :class:`PhaseDecision`, its cells starting as ``request.start``
+        says."""
+        table = load_phase_chain(directory, request.device)
+        featurize = request.model.featurizer(table.input_names)
+        layer = PhaseDecision(table, request.model.internal, featurize, start=request.start)
+        log.info("hidden-phase chain over %s, table %s over %s", table.class_names, table.shape,
+                 table.input_names)  # fmt: skip
+        return layer, {"inputs": list(table.input_names), "lumps": self.lumps,
+                       "states": list(table.class_names), "start": request.start}  # fmt: skip
+
+
+def phase_table(
+    law: PhaseLaw, input_names: Sequence[str], lump_names: Sequence[str], dt: float, nodes: int
+) -> ClassTable:
+    """``law`` tabulated on the grid of ``nodes`` per input its fit read the inputs on."""
+    axes = input_grid(law.basis.bounds, nodes)
+    with torch.no_grad():
+        moves = law.moves(grid_points(axes))  # G x S x S
+    s = law.layout.n_states
+    probabilities = moves.reshape(*[len(a) for a in axes], s, s).movedim(-2, 0)
+    return ClassTable(probabilities, law.basis.bounds, input_names,
+                      law.layout.names(lump_names), law.layout.lumps().tolist(), dt)  # fmt: skip
+
+
+def fit_phase_chain(
+    settings: FitSettings, domain: Mapping[str, tuple[float, float]]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The hidden-phase chain of the train settings ``settings``: ``gp.phases.n_cells``
+    unperturbed full-model cells where collect starts them, every window for
+    ``gp.phases.t_end`` s, their phi sequences fitted (:func:`select_phases`) over ``domain``;
+    its state (``table``, ``law``) and metrics."""
+    phases = PhaseSettings.from_config(settings.gp_config.get("phases"))
+    setup, job = settings.setup, settings.job
+    model = setup.model
+    seed_everything(settings.seed + SEQUENCE_SEED_OFFSET)
+    t0 = time.perf_counter()
+    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
+    perturbation = model.body.perturbation(setup.field, model.perturbation_options)
+    start = perturbation.start(phases.n_cells, job.device)
+    log.info("hidden phases: %d full-model cells for %g s, every window", phases.n_cells,
+             phases.t_end)  # fmt: skip
+    rows = record_occupancy(simulator, phases.n_cells, phases.t_end, start, record_every=1)
+    inputs, phi = phi_sequences(rows, settings.inputs)
+    sampled = time.perf_counter() - t0
+    bounds = [domain[n] for n in settings.inputs]
+    law, report = select_phases(inputs, phi, bounds, phases.max_per_lump, phases.structure,
+                                phases.fit, phases.held_out, settings.seed,
+                                phases.per_lump)  # fmt: skip
+    table = phase_table(law, settings.inputs, model.internal.lump_names, setup.dt,
+                        phases.fit.nodes)  # fmt: skip
+    log.info("hidden phases per lump %s (held-out cells %d)", report["per_lump"],
+             report["held_out_cells"])  # fmt: skip
+    metrics = {**report, "cells": int(phi.shape[0]), "windows": int(phi.shape[1] - 1),
+               "sample_seconds": sampled, "seconds": time.perf_counter() - t0}  # fmt: skip
+    return {"phase_chain": table.to_state(), "phase_law": law.to_state()}, metrics
+
+
+def _read(directory: str | os.PathLike) -> dict[str, Any]:
+    path = Path(directory) / PHASE_CHAIN
+    obj = load_tensors(path, made_by="python scripts/train.py gp=phases")
+    if not isinstance(obj, dict) or not {"phase_chain", "phase_law"} <= obj.keys():
+        raise ArtefactError(f"{path} is not a saved hidden-phase chain (no 'phase_chain' and "
+                            f"'phase_law' entries)")  # fmt: skip
+    return obj
+
+
+def load_phase_chain(
+    directory: str | os.PathLike, device: str | torch.device = "cpu"
+) -> ClassTable:
+    """The hidden-phase chain's table of a fit or train directory (``gp.lumps=phases``)."""
+    return ClassTable.from_state(_read(directory)["phase_chain"]).to(device)

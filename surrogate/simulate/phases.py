@@ -1,0 +1,112 @@
+"""The hidden-phase chain as a decision layer (``gp.lumps=phases``).
+
+Each cell carries its hidden state (its lump and the lump's phase, :mod:`surrogate.gp.phases`)
+as one int64 in the batch dimension; each window it draws the next state from the learned law
+tabulated over the abstraction's inputs (a :class:`~surrogate.simulate.classes.ClassTable` over
+the ``S`` hidden states: one row lookup per cell), and phi is the state's lump. The model
+declares no classes: the states are the chain's own.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from surrogate.models.base import InternalModel, Randoms
+from surrogate.simulate.classes import STARTS, ClassTable
+from surrogate.simulate.stateful import StatefulDecision, carried_alias
+
+
+class PhaseDecision(StatefulDecision):
+    """The hidden-phase chain: state' drawn from the table's law at each cell's inputs; phi is
+    the state's lump.
+
+    Args:
+        table: the chain's law over its hidden states (``class_names``: ``<lump>.<phase>``,
+            ``class_lumps``: each state's phi).
+        internal: the internal model (for ``start="internal"``: phi of a state from its initial
+            law at the cells' inputs).
+        featurize: ``x (n x d) -> z (n x k)``, the table's inputs; identity by default.
+        name: the layer's name in logs and manifests.
+        start: ``internal``: phi as the full model's cells start, the phase from the chain's
+            stationary law at the cells' inputs given that phi; ``stationary``: the state
+            from the chain's stationary law.
+    """
+
+    state = carried_alias("(n,) int64: each cell's hidden state; None before initialize.")
+
+    def __init__(
+        self,
+        table: ClassTable,
+        internal: InternalModel,
+        featurize: Callable[[Tensor], Tensor] | None = None,
+        name: str = "abstract",
+        start: str = "internal",
+    ) -> None:
+        if start not in STARTS:
+            raise ValueError(f"start must be one of {list(STARTS)}, got {start!r}")
+        self.table = table
+        self.internal = internal
+        self.featurize = featurize
+        self.name = name
+        self.start = start
+        self.randoms = Randoms(uniform=len(table.input_names) + 1)
+        self._within: Tensor | None = None  # per lump, node: the stationary law's cdf in it
+
+    def _inputs(self, x: Tensor) -> Tensor:
+        if self.table.device != x.device:
+            self.table.to(x.device)
+        return x if self.featurize is None else self.featurize(x)
+
+    def _start_within(self) -> Tensor:
+        """``2 x nodes x S`` the cumulative stationary law of each lump's states at each node."""
+        if self._within is None or self._within.device != self.table.device:
+            pi = self.table.stationary().reshape(-1, self.table.n_classes)
+            lumps = torch.tensor(self.table.class_lumps)
+            laws = torch.stack([pi * (lumps == lump) for lump in (0, 1)])
+            laws = laws / laws.sum(-1, keepdim=True).clamp_min(1e-300)
+            cdf = laws.cumsum(-1)
+            cdf[..., -1] = 1.0
+            self._within = cdf.to(torch.float32).to(self.table.device)
+        return self._within
+
+    def initialize(self, x: Tensor) -> Tensor:
+        """Each cell's first hidden state (see ``start``) at its inputs ``x`` (``n x d``)."""
+        z = self._inputs(x)
+        u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
+        if self.start == "stationary":
+            self.state = self.table.draw_start(z, u)
+        else:
+            phi = (self.internal.phi(self.internal.initial_state(x)) > 0).long().to(z.device)
+            cdf = self._start_within()[phi, self.table.node_index(z, u)]
+            # a state past the lump's last has cdf 1: the draw stays within the lump
+            self.state = (u[-1][:, None] >= cdf[:, :-1]).sum(-1)
+        return self.table.lumps[self.state] > 0
+
+    def _check_dt(self, dt: float) -> None:
+        if not math.isclose(dt, self.table.dt, rel_tol=1e-9):
+            raise ValueError(f"a hidden-phase chain built for dt={self.table.dt} stepped with "
+                             f"dt={dt}")  # fmt: skip
+
+    def _eager_step(
+        self, phi: Tensor, x: Tensor, dt: float, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """One categorical draw per cell (bool phi')."""
+        self._check_dt(dt)
+        z = self._inputs(x)
+        u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
+        nxt = self.table.draw(carried, z, u)
+        return self.table.lumps[nxt] > 0, nxt
+
+    def _pure_step(
+        self, phi: Tensor, x: Tensor, dt: float, u: Tensor, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """State' from the uniforms ``u`` (``(d + 1) x n``); phi' as float 0/1."""
+        nxt = self.table.draw(carried, self._inputs(x), u)
+        return self.table.lumps[nxt], nxt
+
+
+__all__ = ["PhaseDecision"]

@@ -1,0 +1,259 @@
+"""The hidden-phase law (:mod:`surrogate.gp.phases`): the fit recovers a known phase chain, the
+held-out choice of phase counts finds an Erlang on time and refuses phases a memoryless
+telegraph does not have, the simulated sojourns follow the truth only with the right phases,
+and on an enumerable network the fitted chain's mean sojourns match the exact lumped ones."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from surrogate.ctmc.lumped import StateSpace
+from surrogate.ctmc.network import ReactionNetwork
+from surrogate.gp.phases import (
+    InputBasis,
+    PhaseFitSettings,
+    PhaseLaw,
+    PhaseLayout,
+    fit_phase_law,
+    grid_points,
+    input_grid,
+    log_likelihood_with_gradient,
+    mean_sojourn,
+    nearest_node,
+    score,
+    select_phases,
+    sequence_log_likelihood,
+    sojourn_law,
+    stationary,
+)
+from surrogate.kinds.phases import phase_table
+from surrogate.simulate.phases import PhaseDecision
+
+#: a constant law over one input: the linear term only (no bumps)
+FLAT = PhaseFitSettings(bumps=0, nodes=8, max_iterations=100)
+
+
+def simulate_chain(moves: torch.Tensor, lumps: torch.Tensor, n: int, steps: int, seed: int):
+    """``n`` cells of the hidden chain ``moves`` (``S x S``) from its stationary law for
+    ``steps`` windows: phi ``n x (steps + 1)`` and one input per cell (uniform, unused)."""
+    g = torch.Generator().manual_seed(seed)
+    moves = moves.double()
+    state = torch.multinomial(stationary(moves).expand(n, -1), 1, generator=g).squeeze(1)
+    cdf = moves.cumsum(-1)
+    out = [lumps[state]]
+    for _ in range(steps):
+        u = torch.rand(n, 1, generator=g, dtype=torch.float64)
+        state = (u > cdf[state]).sum(-1).clamp(max=moves.shape[0] - 1)
+        out.append(lumps[state])
+    z = torch.rand(n, 1, 1, generator=g, dtype=torch.float64).expand(n, steps, 1)
+    return z, torch.stack(out, 1)
+
+
+def sojourns(phi: np.ndarray, lump: int) -> np.ndarray:
+    """The complete sojourns (windows) in ``lump`` of each row of ``phi`` (``n x T``): those
+    that start and end inside the record."""
+    out = []
+    for row in phi:
+        edges = np.flatnonzero(np.diff(row)) + 1  # where phi changes
+        for a, b in itertools.pairwise(edges):
+            if row[a] == lump:
+                out.append(b - a)
+    return np.asarray(out)
+
+
+def erlang_telegraph(on_phases: int, leave_on: float, leave_off: float):
+    """Off: one phase left with ``leave_off`` per window; on: ``on_phases`` phases in series,
+    each left with ``leave_on`` (an Erlang on time)."""
+    s = 1 + on_phases
+    p = torch.zeros(s, s, dtype=torch.float64)
+    p[0, 0], p[0, 1] = 1 - leave_off, leave_off
+    for a in range(1, s):
+        p[a, a] = 1 - leave_on
+        p[a, a + 1 if a + 1 < s else 0] = leave_on
+    return p, torch.tensor([0] + [1] * on_phases)
+
+
+def test_layout_and_basis_refuse_what_they_cannot_hold() -> None:
+    with pytest.raises(ValueError, match="per_lump must be two phase counts >= 1"):
+        PhaseLayout((0, 2))
+    with pytest.raises(ValueError, match="structure must be one of"):
+        PhaseLayout((1, 1), "cyclic")
+    # series: stay, next phase, or the other lump's first phase; full: any move
+    assert PhaseLayout((2, 2)).moves().sum() == 4 + 2 + 4
+    assert PhaseLayout((2, 2), "full").moves().all()
+    assert InputBasis(((0.0, 1.0), (0.0, 2.0)), 3).n_features == 1 + 2 * 4
+    with pytest.raises(ValueError, match="weights must be 4 x 2 x 2"):
+        PhaseLaw(PhaseLayout((1, 1)), InputBasis(((0.0, 1.0),), 2), torch.zeros(3, 2, 2))
+
+
+def test_the_gradient_by_fishers_identity_is_the_likelihoods() -> None:
+    """The fit differentiates expected counts (no graph through the windows): its gradient must
+    be the log-likelihood's, checked against central differences."""
+    p, lumps = erlang_telegraph(2, 0.3, 0.2)
+    _z, phi = simulate_chain(p, lumps, 20, 40, seed=1)
+    layout, basis = PhaseLayout((1, 2)), InputBasis(((0.0, 1.0),), 2)
+    g = torch.Generator().manual_seed(0)
+    weights = 0.3 * torch.randn(basis.n_features, 3, 3, generator=g, dtype=torch.float64)
+    weights[0] -= 1.0
+    node = torch.zeros(20, 40, dtype=torch.int64)
+    point = torch.tensor([[0.3]], dtype=torch.float64)
+
+    def loglik(w: torch.Tensor) -> float:
+        return float(sequence_log_likelihood(PhaseLaw(layout, basis, w).log_moves(point), lumps,
+                                             node, phi).sum())  # fmt: skip
+
+    w = weights.clone().requires_grad_(True)
+    log_likelihood_with_gradient(PhaseLaw(layout, basis, w), point, node, phi)
+    free = layout.moves() & ~torch.eye(3, dtype=torch.bool)
+    for f in range(basis.n_features):
+        for a, b in free.nonzero().tolist():
+            step = torch.zeros_like(weights)
+            step[f, a, b] = 1e-5
+            numeric = (loglik(weights + step) - loglik(weights - step)) / 2e-5
+            assert w.grad[f, a, b].item() == pytest.approx(numeric, rel=1e-4, abs=1e-6)
+
+
+def test_one_phase_per_lump_is_the_two_state_chain() -> None:
+    """K = (1, 1) is the two-state chain: on a constant law its fit is the switch shares (the
+    two-state chain's maximum likelihood), up to the prior's pull (penalty / windows)."""
+    p = torch.tensor([[0.9, 0.1], [0.25, 0.75]], dtype=torch.float64)
+    z, phi = simulate_chain(p, torch.tensor([0, 1]), 200, 200, seed=2)
+    law, _ = fit_phase_law(z, phi, PhaseLayout((1, 1)), [(0.0, 1.0)], FLAT)
+    before, after = phi[:, :-1], phi[:, 1:]
+    share = [float((after[before == k] != k).double().mean()) for k in (0, 1)]
+    fitted = law.moves(torch.tensor([[0.5]], dtype=torch.float64))[0]
+    assert fitted[0, 1].item() == pytest.approx(share[0], abs=2e-3)
+    assert fitted[1, 0].item() == pytest.approx(share[1], abs=2e-3)
+
+
+def _standard_errors(law: PhaseLaw, z: torch.Tensor, phi: torch.Tensor, at: torch.Tensor):
+    """The standard error of each move probability at inputs ``at`` from the observed
+    information (the log-likelihood's Hessian in the free weights, by central differences of
+    its gradient) by the delta method."""
+    axes = input_grid(law.basis.bounds, FLAT.nodes)
+    points, node = grid_points(axes), nearest_node(z, axes)
+    free = law.layout.moves() & ~torch.eye(law.layout.n_states, dtype=torch.bool)
+    index = [(f, a, b) for f in range(law.basis.n_features) for a, b in free.nonzero().tolist()]
+
+    def gradient(w: torch.Tensor) -> torch.Tensor:
+        w = w.clone().requires_grad_(True)
+        log_likelihood_with_gradient(PhaseLaw(law.layout, law.basis, w), points, node, phi)
+        return torch.stack([w.grad[i] for i in index])
+
+    hessian = torch.zeros(len(index), len(index), dtype=torch.float64)
+    for k, i in enumerate(index):
+        step = torch.zeros_like(law.weights)
+        step[i] = 1e-4
+        hessian[k] = (gradient(law.weights + step) - gradient(law.weights - step)) / 2e-4
+    covariance = torch.linalg.inv(-(hessian + hessian.T) / 2)
+    w = law.weights.clone().requires_grad_(True)
+    moves = PhaseLaw(law.layout, law.basis, w).moves(at)[0]
+    errors = torch.zeros_like(moves)
+    for a, b in free.nonzero().tolist():
+        (grad,) = torch.autograd.grad(moves[a, b], w, retain_graph=True)
+        jac = torch.stack([grad[i] for i in index])
+        errors[a, b] = (jac @ covariance @ jac).sqrt()
+    return moves.detach(), errors
+
+
+def test_the_fit_recovers_a_known_two_phase_chain() -> None:
+    """Off: one phase; on: two in series (a Coxian: the first may leave early). Each fitted
+    move probability within 4 standard errors of the truth, the errors from the observed
+    information (a share over the windows spent in its origin would be ~10x too small: the
+    phases are hidden)."""
+    p = torch.tensor([[0.9, 0.1, 0.0], [0.05, 0.7, 0.25], [0.12, 0.0, 0.88]], dtype=torch.float64)
+    lumps = torch.tensor([0, 1, 1])
+    z, phi = simulate_chain(p, lumps, 300, 300, seed=3)
+    law, _ = fit_phase_law(z, phi, PhaseLayout((1, 2)), [(0.0, 1.0)], FLAT)
+    fitted, errors = _standard_errors(law, z, phi, torch.tensor([[0.5]], dtype=torch.float64))
+    free = PhaseLayout((1, 2)).moves() & ~torch.eye(3, dtype=torch.bool)
+    assert (errors[free] > 0).all() and (errors[free] < 0.05).all()
+    assert ((fitted - p).abs()[free] < 4 * errors[free]).all(), (fitted, errors)
+
+
+def _held_out_gain(more: PhaseLaw, fewer: PhaseLaw, z, phi) -> tuple[float, float]:
+    """The held-out log-likelihood gain of ``more`` over ``fewer`` and its standard error (the
+    cells' paired differences)."""
+    diff = score(more, z, phi, FLAT.nodes) - score(fewer, z, phi, FLAT.nodes)
+    return float(diff.sum()), float(diff.std()) * math.sqrt(len(diff))
+
+
+def _simulated_on_times(law: PhaseLaw, cells: int, steps: int) -> np.ndarray:
+    """On sojourns of the law's table stepped by its decision layer (the population step)."""
+    table = phase_table(law, ("z",), ("off", "on"), 0.1, FLAT.nodes)
+    layer = PhaseDecision(table, None, start="stationary")  # type: ignore[arg-type]
+    torch.manual_seed(4)
+    x = torch.full((cells, 1), 0.5)
+    phi = [layer.initialize(x)]
+    for _ in range(steps):
+        phi.append(layer.step(phi[-1], x, 0.1))
+    return sojourns(torch.stack(phi, 1).numpy().astype(np.int64), 1)
+
+
+def _ks(sample: np.ndarray, law: torch.Tensor) -> float:
+    """One-sample KS distance of integer ``sample`` against the pmf ``law`` over 1..len(law):
+    the largest gap between the two step functions, read at the atoms."""
+    cdf = law.cumsum(0).numpy()
+    atoms = np.arange(1, len(cdf) + 1)
+    ecdf = np.searchsorted(np.sort(sample), atoms, side="right") / len(sample)
+    return float(np.abs(ecdf - cdf).max())
+
+
+def test_an_erlang_on_time_needs_three_phases() -> None:
+    """On time Erlang(3), off time geometric: three on phases beat one on held-out cells by far
+    more than the gain's standard error, the held-out choice finds them, and only with them do
+    the simulated on times pass the KS test against the truth (5 % critical value)."""
+    p, lumps = erlang_telegraph(3, 0.3, 0.1)
+    z, phi = simulate_chain(p, lumps, 400, 300, seed=5)
+    train, test = slice(0, 300), slice(300, 400)
+    one, _ = fit_phase_law(z[train], phi[train], PhaseLayout((1, 1)), [(0.0, 1.0)], FLAT)
+    three, _ = fit_phase_law(z[train], phi[train], PhaseLayout((1, 3)), [(0.0, 1.0)], FLAT)
+    gain, error = _held_out_gain(three, one, z[test], phi[test])
+    assert gain > 10 * error > 0
+    _chosen, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    assert report["per_lump"] == [1, 3]
+    truth = sojourn_law(p, lumps, 1, 400)
+    critical = {}
+    for name, law in (("one", one), ("three", three)):
+        times = _simulated_on_times(law, 400, 300)
+        critical[name] = (_ks(times, truth), 1.36 / math.sqrt(len(times)))
+    assert critical["three"][0] < critical["three"][1], critical
+    assert critical["one"][0] > critical["one"][1], critical
+
+
+def test_a_memoryless_telegraph_keeps_one_phase_per_lump() -> None:
+    """Both sojourns geometric: no added phase gains beyond twice its standard error."""
+    p, lumps = erlang_telegraph(1, 0.15, 0.1)
+    z, phi = simulate_chain(p, lumps, 300, 300, seed=6)
+    _, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    assert report["per_lump"] == [1, 1]
+    assert len(report["candidates"]) == 3  # (1, 1), then (2, 1) and (1, 2) tried and refused
+
+
+def test_the_fitted_sojourns_match_an_enumerable_networks_exact_ones() -> None:
+    """A gene cycling A -> B -> C -> D -> A, on in C and D: its phi every window is a hidden
+    chain over the 4 states (exp(Q dt)). The fitted chain's mean sojourns in each lump match
+    the exact lumped ones within 4 standard errors of the sample's mean sojourn."""
+    net = ReactionNetwork.from_reactions(["A", "B", "C", "D"], [
+        ("ab", {"A": 1}, {"B": 1}), ("bc", {"B": 1}, {"C": 1}),
+        ("cd", {"C": 1}, {"D": 1}), ("da", {"D": 1}, {"A": 1})])  # fmt: skip
+    space = StateSpace.enumerate(net, torch.tensor([1, 0, 0, 0]))
+    rates = torch.tensor([[1.0, 4.0, 2.0, 3.0]], dtype=torch.float64)
+    exact = torch.linalg.matrix_exp(space.generator(rates)[0] * 0.1)
+    lumps = (space.states[:, 2] + space.states[:, 3]).long()
+    z, phi = simulate_chain(exact, lumps, 300, 400, seed=7)
+    law, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    assert min(report["per_lump"]) >= 2  # each lump's sojourn is two exponential steps
+    fitted = law.moves(torch.tensor([[0.5]], dtype=torch.float64))[0]
+    observed = phi.numpy()
+    for lump in (0, 1):
+        times = sojourns(observed, lump)
+        error = times.std() / math.sqrt(len(times))
+        truth = mean_sojourn(exact, lumps, lump)
+        assert abs(mean_sojourn(fitted, law.layout.lumps(), lump) - truth) < 4 * error
+        assert abs(times.mean() - truth) < 4 * error  # the sample itself is the network's

@@ -1,0 +1,129 @@
+"""The hidden-phase kind (``gp=phases``): its settings are refused by name, it starts its
+cells within their lump, it packs for the per-cell kernel as K lumps do, and train then
+simulate run it end to end on a tiny E. coli run, on both loops."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from surrogate.errors import ConfigError
+from surrogate.evaluate.statistics import load_run
+from surrogate.gp.phases import InputBasis, PhaseLaw, PhaseLayout
+from surrogate.kinds.phases import HiddenPhases, PhaseSettings, phase_table
+from surrogate.models.base import Randoms
+from surrogate.simulate.kernel_pack import Slot, pack_layer
+from surrogate.simulate.phases import PhaseDecision
+from surrogate.stages import collect, train
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages.settings import SimulateSettings, TrainSettings
+from tests.stages.test_stages import TINY
+
+PHASES = ["gp=phases", "gp.phases.n_cells=40", "gp.phases.t_end=10.0",
+          "gp.phases.max_per_lump=2", "gp.phases.max_iterations=30"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("gp.phases.max_per_lump=0", r"gp.phases.max_per_lump must be an integer >= 1, got 0"),
+        ("gp.phases.max_per_lump=1.5", r"gp.phases.max_per_lump must be an integer >= 1"),
+        ("gp.phases.per_lump=[0,2]", r"gp.phases.per_lump must be null or two integers >= 1"),
+        ("gp.phases.per_lump=[1,2,3]", r"gp.phases.per_lump must be null or two integers"),
+        ("gp.phases.structure=ring", r"gp.phases.structure must be one of \['series', 'full'\]"),
+        ("gp.phases.held_out=0.0", r"gp.phases.held_out must be in \(0, 1\)"),
+        ("gp.phases.held_out=1.0", r"gp.phases.held_out must be a number in \[0, 1\)"),
+        ("gp.phases.penalty=-1.0", r"gp.phases.penalty must be a number in \[0, inf\)"),
+        ("gp.phases.nodes=1", r"gp.phases.nodes must be an integer >= 2"),
+        ("gp.phases.t_end=0.0", r"gp.phases.t_end must be positive"),
+        ("+gp.phases.phases=3", r"gp.phases.*phases"),
+        ("gp.history=age", r"gp.lumps=phases takes no switch clock"),
+    ],
+)  # fmt: skip
+def test_bad_phase_settings_are_refused_by_name(compose_cfg, override, message) -> None:
+    with pytest.raises(ConfigError, match=message):
+        TrainSettings.from_config(compose_cfg("train", ["gp=phases", override]))
+
+
+def test_the_kinds_identity_and_refusals(compose_cfg) -> None:
+    settings = TrainSettings.from_config(compose_cfg("train", ["gp=phases"]))
+    assert isinstance(settings.kind, HiddenPhases)
+    gp = settings.fit_identity()["gp"]
+    assert gp["lumps"] == "phases" and gp["phases"]["max_per_lump"] == 3
+    assert gp["phase_law_version"] == 1 and "lumps=phases" in settings.fit_directory.name
+    assert PhaseSettings.from_config(gp["phases"]).per_lump is None
+    with pytest.raises(ConfigError, match="gp.phases is required with gp.lumps=phases"):
+        TrainSettings.from_config(compose_cfg("train", ["gp.lumps=phases"]))
+    with pytest.raises(ConfigError, match="the hidden-phase chain is a table"):
+        SimulateSettings.from_config(compose_cfg("simulate", [
+            "gp=phases", "decision=abstract", "decision.mode=classifier"]))  # fmt: skip
+    with pytest.raises(ConfigError, match="the hidden-phase chain is learned only"):
+        SimulateSettings.from_config(compose_cfg("simulate", ["decision=exact",
+                                                              "decision.lumps=phases"]))  # fmt: skip
+
+
+class _Phi:
+    """An internal model whose initial phi is given (the layer's start reads only this)."""
+
+    def __init__(self, phi: torch.Tensor) -> None:
+        self._phi = phi
+
+    def initial_state(self, x: torch.Tensor) -> torch.Tensor:
+        return self._phi
+
+    def phi(self, state: torch.Tensor) -> torch.Tensor:
+        return state
+
+
+def _layer(start: str, phi: torch.Tensor) -> PhaseDecision:
+    weights = torch.zeros(2, 4, 4, dtype=torch.float64)
+    weights[0] = -2.0  # every move left with ~0.1 per window
+    law = PhaseLaw(PhaseLayout((2, 2)), InputBasis(((0.0, 1.0),), 0), weights)
+    table = phase_table(law, ("z",), ("off", "on"), 0.1, 8)
+    return PhaseDecision(table, _Phi(phi), start=start)  # type: ignore[arg-type]
+
+
+def test_cells_start_within_their_lump_and_pack_as_k_lumps() -> None:
+    """``start=internal``: each cell's hidden state is in the lump of its internal phi, spread
+    over the lump's phases (the stationary law within it); the kernel gets a K-lumps block."""
+    torch.manual_seed(0)
+    phi = torch.arange(4000) % 2
+    layer = _layer("internal", phi)
+    start = layer.initialize(torch.rand(4000, 1))
+    assert torch.equal(start.long(), phi)
+    assert set(layer.state.tolist()) == {0, 1, 2, 3}  # type: ignore[union-attr]
+    nxt = layer.step(start, torch.rand(4000, 1), 0.1)
+    assert nxt.dtype == torch.bool and layer.state.shape == (4000,)  # type: ignore[union-attr]
+    with pytest.raises(ValueError, match="built for dt=0.1 stepped with dt=0.2"):
+        layer.step(nxt, torch.rand(4000, 1), 0.2)
+    block = pack_layer(layer, Slot(0, None, Randoms(uniform=2), 0.1))
+    assert block.kind == "classes" and block.classes is not None
+    assert block.classes.lumps.tolist() == [0, 0, 1, 1]
+
+
+def test_train_then_simulate_on_both_loops(compose_cfg) -> None:
+    """A tiny E. coli collect, train gp=phases and simulate decision=abstract on the per-cell
+    kernel and on the torch loop: the same chain, so their mean run durations agree within
+    their standard errors (5 of the difference's); the fit's metrics name the candidates."""
+    tiny = [*TINY, *PHASES]
+    cfg = compose_cfg("train", [o for o in tiny if o.split("=")[0].split(".")[0] in ("collect",
+                                                                                     "gp")])  # fmt: skip
+    collect.run(cfg)
+    trained = train.run(cfg)
+    metrics = json.loads((trained / "train_metrics.json").read_text())["phase_chain"]
+    assert metrics["cells"] == 40 and metrics["windows"] == 200
+    assert [c["per_lump"] for c in metrics["candidates"]][:3] == [[1, 1], [2, 1], [1, 2]]
+    runs = {}
+    for backend in ("numba", "torch"):
+        out = simulate_stage.run(compose_cfg("simulate", [*tiny, "decision=abstract",
+                                                          f"backend={backend}",
+                                                          "n_cells=200"]))  # fmt: skip
+        manifest = json.loads((out / "manifest.json").read_text())
+        assert manifest["loop_backend"] == backend
+        runs[backend] = load_run(out)
+    means = {b: (r.mean_duration("run"), r.mean_duration_se("run")) for b, r in runs.items()}
+    (a, sa), (b, sb) = means["numba"], means["torch"]
+    assert a and b and sa and sb
+    assert abs(a - b) < 5 * (sa**2 + sb**2) ** 0.5, means
