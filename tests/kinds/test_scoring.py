@@ -20,13 +20,13 @@ from surrogate.kinds.scoring import (
     DurationScore,
     KindScore,
     choose,
-    phi_sequences,
     score_kind,
     segment_durations,
 )
 from surrogate.simulate.classes import ClassDecision, ClassTable
 from surrogate.simulate.decision import AbstractDecision
 from surrogate.simulate.memory import MemoryDecision
+from surrogate.simulate.sequences import phi_sequences
 
 DT = 0.1
 TWO_STATE, CLOCK = chain_kind(), chain_kind(history="age")
@@ -229,12 +229,13 @@ def test_bad_settings_are_refused_by_name() -> None:
         type("Unscored", (ChainKind,), {})().sequence_log_likelihood(
             AbstractDecision(lambda p, z: p, Internal()), torch.zeros(1, 1, 1),
             torch.zeros(1, 2), DT)  # fmt: skip
-    with pytest.raises(ValueError, match="phi_next"):
+    with pytest.raises(ConfigError, match="phi_next"):
         phi_sequences(pd.DataFrame({"cell": [0], "t": [0.0], "x": [0.0], "phi": [0]}), ["x"])
 
 
 def test_phi_sequences_and_segments() -> None:
-    """An occupancy table back to sequences; complete segments only."""
+    """An occupancy table back to sequences (the one reader, the hidden-phase fit's too);
+    complete segments only."""
     rows = pd.DataFrame({"cell": [1, 0, 1, 0, 0, 1], "t": [0.0, 0.1, 0.1, 0.0, 0.2, 0.2],
                          "x": [5.0, 1.0, 6.0, 0.0, 2.0, 7.0], "phi": [1, 1, 0, 0, 1, 0],
                          "phi_next": [0, 1, 0, 1, 0, 1]})  # fmt: skip
