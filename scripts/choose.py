@@ -1,6 +1,6 @@
 """Choose the chain kind by held-out measurement (opt-in; docs/choice.md).
 
-python scripts/choose.py                         # E. coli: two-state, clocks, K lumps scored
+python scripts/choose.py                         # E. coli: two-state, clocks, K lumps, phases
 python scripts/choose.py choose.max_ages=[1,3] choose.n_cells=200
 """
 

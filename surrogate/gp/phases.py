@@ -195,7 +195,9 @@ def _start_law(moves: Tensor, node: Tensor, first: Tensor) -> Tensor:
     return alpha / alpha.sum(-1, keepdim=True).clamp_min(1e-300)
 
 
-def sequence_log_likelihood(log_moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor) -> Tensor:
+def sequence_log_likelihood(
+    log_moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor, start: Tensor | None = None
+) -> Tensor:
     """Each cell's log P(phi_1..phi_T | phi_0, its inputs) under a hidden-phase chain (the forward
     algorithm, scaled per window), its first hidden state drawn from the chain's stationary law
     at its first window's inputs given phi_0.
@@ -205,16 +207,18 @@ def sequence_log_likelihood(log_moves: Tensor, lumps: Tensor, node: Tensor, phi:
         lumps: ``(S,)`` each state's phi.
         node: ``n x T`` int64: the node of each cell's inputs during each window.
         phi: ``n x (T + 1)`` int64 phi at the windows' edges.
+        start: ``n x S`` each cell's first hidden state's law given phi_0 (zero outside
+            phi_0's lump); None: the stationary law at the first window's node.
 
     Returns:
         ``(n,)`` float64 log-likelihoods.
     """
-    return expected_moves(log_moves.detach().exp(), lumps, node, phi)[0]
+    return expected_moves(log_moves.detach().exp(), lumps, node, phi, start)[0]
 
 
 @torch.no_grad()
 def expected_moves(
-    moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor
+    moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor, start: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The forward-backward pass: each cell's log-likelihood (as
     :func:`sequence_log_likelihood`), the expected number of each move at each node given the
@@ -227,7 +231,8 @@ def expected_moves(
 
     Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``.
     """
-    start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
+    if start is None:
+        start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
     # C-contiguous arrays of fixed dtypes: one compiled signature, cached on disk
     args = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=d) for t, d in (
         (moves, np.float64), (lumps, np.int64), (node, np.int64), (phi, np.int64),

@@ -19,6 +19,7 @@ from typing import Any
 
 import pandas as pd
 import torch
+from torch import Tensor
 
 from surrogate.config import seed_everything
 from surrogate.errors import ArtefactError, ConfigError
@@ -26,6 +27,7 @@ from surrogate.gp.phases import (
     STRUCTURES,
     PhaseFitSettings,
     PhaseLaw,
+    expected_moves,
     grid_points,
     input_grid,
     select_phases,
@@ -136,6 +138,9 @@ class HiddenPhases(ChainKind):
     recipe = "phases"
     starts = STARTS
     files = (PHASE_CHAIN,)
+    #: above K lumps' 2: hidden states learned with nothing named, counts chosen by the fit
+    complexity = 3
+    candidate = True
 
     @classmethod
     def check_fit(cls, history: str, internal: Any, model_name: str) -> None:
@@ -212,6 +217,36 @@ class HiddenPhases(ChainKind):
                  table.input_names)  # fmt: skip
         return layer, {"inputs": list(table.input_names), "lumps": self.lumps,
                        "states": list(table.class_names), "start": request.start}  # fmt: skip
+
+    def sequence_log_likelihood(
+        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+    ) -> Tensor:
+        """The exact marginal likelihood over the hidden phases by the fit's own forward pass
+        (:func:`~surrogate.gp.phases.expected_moves`): each window's law is the layer's table
+        read at the window's inputs as its draw reads it (between nodes, the multilinear mix
+        the stochastic rounding averages to); the first state from the stationary law within
+        phi_0's lump at the first window (:meth:`PhaseDecision.start_law`, as the layer starts
+        its cells)."""
+        if not isinstance(layer, PhaseDecision):
+            raise TypeError(f"the hidden-phase chain scores a PhaseDecision, got {layer!r}")
+        table, (n, steps, d) = layer.table, inputs.shape
+        x = inputs.reshape(n * steps, d).to(table.device)
+        z = x if layer.featurize is None else layer.featurize(x)
+        s = table.n_classes
+        # one law per window of each cell (nT x S x S): the table between its nodes
+        moves = torch.stack([table.law(torch.full((n * steps,), a, device=z.device), z)
+                             for a in range(s)], dim=1).to(torch.float64)  # fmt: skip
+        node = torch.arange(n * steps, dtype=torch.int64).reshape(n, steps)
+        start = layer.start_law(inputs[:, 0], phi[:, 0])
+        return expected_moves(moves, table.lumps.long(), node, phi.long(), start)[0]
+
+    def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
+        """Each cell's hidden state drawn from :meth:`PhaseDecision.start_law` at ``x0`` given
+        ``phi0``."""
+        if not isinstance(layer, PhaseDecision):
+            raise TypeError(f"the hidden-phase chain starts a PhaseDecision, got {layer!r}")
+        law = layer.start_law(x0, phi0)
+        layer.state = torch.multinomial(law + 1e-300, 1).squeeze(1)
 
 
 def phase_table(

@@ -1,9 +1,6 @@
 """The measured choice of a chain kind (issue 52): each fitted kind scored on held-out
 full-model phi sequences, and the best one picked.
 
-* :func:`phi_sequences`: an occupancy table (every step of every cell,
-  :func:`~surrogate.simulate.transitions.record_occupancy` with ``record_every=1``) as input
-  traces ``n x T x d`` and phi sequences ``n x (T + 1)``.
 * :func:`score_kind`: a kind's held-out score: the log-likelihood per window of the observed phi
   sequences given their inputs (:meth:`ChainKind.sequence_log_likelihood
   <surrogate.kinds.base.ChainKind.sequence_log_likelihood>`), and its layer driven by the same
@@ -15,7 +12,8 @@ full-model phi sequences, and the best one picked.
   reported beside it, not chosen on.
 
 These take plain values (layers, tensors, scores); the train stage fits the candidates and
-records the held-out run (:mod:`surrogate.stages.choice`).
+records the held-out run (:mod:`surrogate.stages.choice`), read as sequences by
+:func:`~surrogate.simulate.sequences.phi_sequences`.
 """
 
 from __future__ import annotations
@@ -26,7 +24,6 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-import pandas as pd
 import torch
 from torch import Tensor
 
@@ -34,35 +31,6 @@ from surrogate.errors import ConfigError
 from surrogate.evaluate.statistics import compare_samples
 from surrogate.kinds.base import ChainKind
 from surrogate.simulate.decision import DecisionLayer
-
-
-def phi_sequences(table: pd.DataFrame, input_names: Sequence[str]) -> tuple[Tensor, Tensor]:
-    """Every cell's input trace and phi sequence from an occupancy table recorded at every step.
-
-    Args:
-        table: rows with ``cell``, ``t``, the ``input_names`` columns, ``phi`` and ``phi_next``
-            (each cell's window at each time), every cell at the same times.
-        input_names: the inputs a layer reads (the internal model's ``input_names``).
-
-    Returns:
-        ``inputs`` ``n x T x d`` (float32) and ``phi`` ``n x (T + 1)`` (float32 0/1): phi
-        before each window, then after the last.
-
-    Raises:
-        ValueError: a column is missing, or the cells were not recorded at the same times.
-    """
-    missing = [c for c in ("cell", "t", "phi", "phi_next", *input_names) if c not in table.columns]
-    if missing:
-        raise ValueError(f"the occupancy table lacks column(s) {missing}")
-    ordered = table.sort_values(["cell", "t"], kind="stable")
-    n = ordered["cell"].nunique()
-    if n == 0 or len(ordered) % n:
-        raise ValueError(f"{len(ordered)} rows over {n} cells: not every cell at the same times")
-    steps = len(ordered) // n
-    inputs = ordered[list(input_names)].to_numpy(np.float32).reshape(n, steps, len(input_names))
-    phi = ordered["phi"].to_numpy(np.float32).reshape(n, steps)
-    last = ordered["phi_next"].to_numpy(np.float32).reshape(n, steps)[:, -1:]
-    return torch.tensor(inputs), torch.tensor(np.concatenate([phi, last], 1))
 
 
 def segment_durations(phi: np.ndarray, dt: float) -> dict[int, np.ndarray]:

@@ -252,12 +252,22 @@ class ClassTable:
         """The stationary law at the inputs ``z`` (``n x d``) ``n x C`` (float32): the
         multilinear interpolation of the nodes' laws (:meth:`stationary`), what
         :meth:`draw_start` samples."""
-        nodes = self.stationary().reshape(-1, self.n_classes).to(torch.float32).to(z.device)
-        out = torch.zeros(z.shape[0], self.n_classes, device=z.device)
+        return self.read(self.stationary().reshape(-1, self.n_classes).to(torch.float32), z)
+
+    def read(self, nodes: Tensor, z: Tensor) -> Tensor:
+        """Values at the grid's nodes read at the inputs ``z`` (``n x d``) as :meth:`draw`
+        picks nodes: their multilinear interpolation ``n x k``.
+
+        Args:
+            nodes: ``prod(shape) x k`` one row per node (C order, as :attr:`strides`).
+            z: ``n x d`` the abstraction's inputs.
+        """
+        nodes = nodes.to(z.device)
+        out = torch.zeros(z.shape[0], nodes.shape[1], dtype=nodes.dtype, device=z.device)
         positions = self._positions(z)
         for corner in range(2 ** len(self.shape)):
             index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
-            weight = torch.ones(z.shape[0], device=z.device)
+            weight = torch.ones(z.shape[0], dtype=nodes.dtype, device=z.device)
             for j, (node, frac) in enumerate(positions):
                 up = (corner >> j) & 1  # an axis of one node: weight 0 on its missing upper
                 index = index + (node + up).clamp(max=self.shape[j] - 1) * self._strides[j]

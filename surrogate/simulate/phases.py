@@ -73,6 +73,20 @@ class PhaseDecision(StatefulDecision):
             self._within = cdf.to(torch.float32).to(self.table.device)
         return self._within
 
+    def start_law(self, x: Tensor, phi: Tensor) -> Tensor:
+        """The law ``n x S`` (float64) a cell's first hidden state is drawn from given its phi
+        ``(n,)`` (0/1) at its inputs ``x`` (``n x d``): the stationary law within phi's lump,
+        at the grid nodes as ``start="internal"`` draws them (multilinear weights: what the
+        stochastic rounding to a node averages to)."""
+        cdf = self._start_within().to(torch.float64)  # 2 x nodes x S
+        pmf = torch.diff(cdf, dim=-1, prepend=torch.zeros_like(cdf[..., :1]))
+        z = self._inputs(x)
+        law = torch.where(phi.bool()[:, None], self.table.read(pmf[1], z),
+                          self.table.read(pmf[0], z))  # fmt: skip
+        # the cdf's last entry is set to 1: no mass outside the lump from its rounding
+        law = law * (self.table.lumps.to(law.device)[None, :] == phi.bool()[:, None])
+        return law / law.sum(-1, keepdim=True).clamp_min(1e-300)
+
     def initialize(self, x: Tensor) -> Tensor:
         """Each cell's first hidden state (see ``start``) at its inputs ``x`` (``n x d``)."""
         z = self._inputs(x)

@@ -30,10 +30,11 @@ from surrogate.config import group_config, seed_everything, to_dict
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir, write_csv, write_json, write_manifest
 from surrogate.kinds.base import CHAIN_KINDS, LayerRequest
-from surrogate.kinds.scoring import Choice, KindScore, choose, phi_sequences, score_kind
+from surrogate.kinds.scoring import Choice, KindScore, choose, score_kind
 from surrogate.models.capabilities import lump_classes_of
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
+from surrogate.simulate.sequences import phi_sequences
 from surrogate.simulate.transitions import record_occupancy
 from surrogate.stages import train as train_stage
 from surrogate.stages.collect import collect
@@ -145,6 +146,7 @@ def choose_kind(
                                torch.tensor(first.diagnostic["start"]), record_every=1,
                                equilibration_time=settings.equilibration_time)  # fmt: skip
     inputs, phi = phi_sequences(heldout, model.internal.input_names)
+    inputs = inputs.to(torch.float32)  # the layers read float32 inputs, as simulate gives them
     heldout_seconds = time.perf_counter() - start
     log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip

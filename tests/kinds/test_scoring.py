@@ -14,24 +14,34 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
+from surrogate.gp.phases import (
+    PhaseFitSettings,
+    PhaseLayout,
+    fit_phase_law,
+    select_phases,
+)
 from surrogate.kinds import chain_kind
 from surrogate.kinds.base import ChainKind
+from surrogate.kinds.phases import HiddenPhases, phase_table
 from surrogate.kinds.scoring import (
     DurationScore,
     KindScore,
     choose,
-    phi_sequences,
     score_kind,
     segment_durations,
 )
 from surrogate.simulate.classes import ClassDecision, ClassTable
 from surrogate.simulate.decision import AbstractDecision
 from surrogate.simulate.memory import MemoryDecision
+from surrogate.simulate.phases import PhaseDecision
+from surrogate.simulate.sequences import phi_sequences
 
 DT = 0.1
-TWO_STATE, CLOCK = chain_kind(), chain_kind(history="age")
+TWO_STATE, CLOCK, PHASES = chain_kind(), chain_kind(history="age"), HiddenPhases()
 #: the clock's cap (steps) of the estimated clock psi: longer than the Erlang on time's bulk
 CAP = 30
+#: the hidden-phase fits: a law linear in x (the telegraphs' rates are), read on 16 nodes
+LINEAR = PhaseFitSettings(bumps=0, nodes=16, max_iterations=100)
 
 
 class Internal:
@@ -138,6 +148,76 @@ def test_erlang_on_time_chooses_the_clock_by_far() -> None:
     assert abs(clock.durations["on"].mean_rel_diff) < 3 * clock.durations["on"].mean_rel_se
 
 
+def phase_scores(erlang: int) -> list[KindScore]:
+    """The two-state chain and three hidden ON phases, both fitted by the hidden-phase fit
+    (``(1, 1)`` phases is the two-state chain, its psi in the same basis: the two differ only
+    by the phases), scored on held-out cells."""
+    x, phi = telegraph(300, 600, erlang, seed=1)
+    hx, hphi = telegraph(200, 600, erlang, seed=2)
+    z, seq = torch.tensor(x), torch.tensor(phi).long()
+    one, _ = fit_phase_law(z, seq, PhaseLayout((1, 1)), [(0.0, 1.0)], LINEAR)
+    three, _ = fit_phase_law(z, seq, PhaseLayout((1, 3)), [(0.0, 1.0)], LINEAR)
+
+    def psi(p: Tensor, zz: Tensor) -> Tensor:  # p(phi' = 1 | phi = p): state p is lump p
+        return one.moves(zz)[torch.arange(zz.shape[0]), p.long(), 1].float()
+
+    two = AbstractDecision(psi, Internal())
+    phases = PhaseDecision(phase_table(three, ("x",), ("off", "on"), DT, LINEAR.nodes),
+                           Internal())  # type: ignore[arg-type]  # fmt: skip
+    inputs, observed = torch.tensor(hx, dtype=torch.float32), torch.tensor(hphi)
+    return [score_kind(name, kind, layer, inputs, observed, DT, ("off", "on"), seed=3)
+            for name, kind, layer in (("two-state", TWO_STATE, two),
+                                      ("phases", PHASES, phases))]  # fmt: skip
+
+
+def test_erlang_on_time_chooses_hidden_phases_by_far() -> None:
+    """An Erlang-3 on time: three hidden ON phases beat the two-state chain's held-out
+    likelihood by many SE of the paired difference, and the phases' simulated ON durations
+    (the layer started by :meth:`HiddenPhases.start_sequences`) pass the KS the two-state
+    chain's fail."""
+    two, phases = phase_scores(erlang=3)
+    choice = choose([two, phases])
+    assert choice.chosen == "phases", choice.reason
+    row = next(r for r in choice.table if r["kind"] == "two-state")
+    assert -row["diff_from_best"] > 10 * row["diff_se"], row
+    assert two.durations["on"].ks > two.durations["on"].ks_critical_05
+    assert phases.durations["on"].ks < phases.durations["on"].ks_critical_05
+    assert abs(phases.durations["on"].mean_rel_diff) < 3 * phases.durations["on"].mean_rel_se
+
+
+def test_memoryless_telegraph_keeps_the_two_state_chain_over_phases() -> None:
+    """Without memory the phases add only parameters: they are not better than the two-state
+    chain by more than the SE (with these seeds 3.8e-5 per window lower, 2.3 SE), and a tie
+    would go to the simpler chain (the phases' complexity is the highest)."""
+    two, phases = phase_scores(erlang=1)
+    choice = choose([phases, two])
+    assert choice.chosen == "two-state", choice.reason
+    row = next(r for r in choice.table if r["kind"] == "phases")
+    assert row["tied_with_best"] or row["diff_from_best"] < 0
+    assert PHASES.complexity > chain_kind("classes").complexity > CLOCK.complexity
+
+
+def test_phases_likelihood_is_the_fits_held_out_likelihood() -> None:
+    """The kind's likelihood (the layer's table, its start law, the fit's forward pass) and
+    the fit's held-out log-likelihood (:func:`select_phases`: the law at nearest nodes) are the
+    same number on the fit's held-out cells whose inputs sit on the grid's nodes."""
+    x, phi = telegraph(80, 300, 3, seed=4)
+    x = np.round(x * (LINEAR.nodes - 1)) / (LINEAR.nodes - 1)  # on the nodes: no rounding
+    z, seq = torch.tensor(x), torch.tensor(phi).long()
+    law, report = select_phases(z, seq, [(0.0, 1.0)], 3, settings=LINEAR, held_out=0.25,
+                                seed=5, per_lump=(1, 3))  # fmt: skip
+    m = round(0.25 * len(x))  # select_phases' split
+    test = torch.randperm(len(x), generator=torch.Generator().manual_seed(5))[:m]
+    layer = PhaseDecision(phase_table(law, ("x",), ("off", "on"), DT, LINEAR.nodes),
+                          Internal())  # type: ignore[arg-type]  # fmt: skip
+    ll = PHASES.sequence_log_likelihood(layer, z[test].float(), seq[test], DT)
+    (fit,) = report["candidates"]
+    assert float(ll.sum()) / (m * 300) == pytest.approx(fit["held_out_log_likelihood"], rel=1e-6)
+    # and the start law is the layer's: each cell in its first phi's lump
+    PHASES.start_sequences(layer, z[test, 0].float(), seq[test, 0])
+    assert torch.equal(layer.table.lumps[layer.state].long(), seq[test, 0])
+
+
 def test_two_state_likelihood_equals_numpy() -> None:
     """sum_t log Bernoulli(phi_{t+1}; psi_{phi_t}(x_t)) for two small sequences by hand."""
     x = torch.tensor([[[0.2], [0.7], [0.4]], [[0.9], [0.1], [0.5]]])
@@ -229,12 +309,13 @@ def test_bad_settings_are_refused_by_name() -> None:
         type("Unscored", (ChainKind,), {})().sequence_log_likelihood(
             AbstractDecision(lambda p, z: p, Internal()), torch.zeros(1, 1, 1),
             torch.zeros(1, 2), DT)  # fmt: skip
-    with pytest.raises(ValueError, match="phi_next"):
+    with pytest.raises(ConfigError, match="phi_next"):
         phi_sequences(pd.DataFrame({"cell": [0], "t": [0.0], "x": [0.0], "phi": [0]}), ["x"])
 
 
 def test_phi_sequences_and_segments() -> None:
-    """An occupancy table back to sequences; complete segments only."""
+    """An occupancy table back to sequences (the one reader, the hidden-phase fit's too);
+    complete segments only."""
     rows = pd.DataFrame({"cell": [1, 0, 1, 0, 0, 1], "t": [0.0, 0.1, 0.1, 0.0, 0.2, 0.2],
                          "x": [5.0, 1.0, 6.0, 0.0, 2.0, 7.0], "phi": [1, 1, 0, 0, 1, 0],
                          "phi_next": [0, 1, 0, 1, 0, 1]})  # fmt: skip

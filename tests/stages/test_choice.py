@@ -26,12 +26,14 @@ def test_bad_choose_settings_are_refused_by_key(options: dict, key: str) -> None
 
 
 def test_candidates_follow_the_model() -> None:
-    """K lumps only where the model declares classes; one clock per cap."""
+    """K lumps only where the model declares classes; one clock per cap; the hidden phases
+    (a registered candidate) last."""
     settings = ChoiceSettings.from_config({"max_ages": [1, 3]})
 
     class Plain:
         pass
 
     names = list(candidates(settings, Plain()))
-    assert names == ["two-state", "clock max_age=1", "clock max_age=3"]
+    assert names == ["two-state", "clock max_age=1", "clock max_age=3", "phases"]
+    assert candidates(settings, Plain())["phases"]["lumps"] == "phases"  # a registered candidate
     assert candidates(settings, Plain())["clock max_age=3"]["max_age"] == 3.0
