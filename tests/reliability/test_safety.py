@@ -121,8 +121,9 @@ def test_generated_code_is_loaded_in_one_place_only() -> None:
     ]
     assert not offences, "\n".join(offences)
     callers = {f for f, _, name, _ in _calls() if name.endswith("load_generated")}
-    assert callers <= {"surrogate/ctmc/compiled.py", "surrogate/ctmc/kinetics.py",
-                       "surrogate/field_formula.py", "surrogate/field_kernel.py"}, callers  # fmt: skip
+    assert callers <= {"surrogate/ctmc/compiled.py", "surrogate/ctmc/cuda_ssa.py",
+                       "surrogate/ctmc/kinetics.py", "surrogate/field_formula.py",
+                       "surrogate/field_kernel.py"}, callers  # fmt: skip
 
 
 def test_torch_load_only_in_load_tensors_with_weights_only() -> None:
