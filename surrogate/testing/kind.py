@@ -163,7 +163,9 @@ class ChainKindContract:
             # the keys every fit reads are kept; the other kinds' keys are not (its own it may
             # resolve or drop: learned class moves keep the identity they had before)
             assert identity.get("bins") == 10, identity
-            selected = {a for a in ("lumps", "history") if getattr(kind, a) != getattr(ChainKind, a)}
+            selected = {
+                a for a in ("lumps", "history") if getattr(kind, a) != getattr(ChainKind, a)
+            }
             assert not (others - selected) & set(identity), identity
             # two kinds' fits never share an identity (it names their directories)
             for other_cls in CHAIN_KINDS:
