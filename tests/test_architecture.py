@@ -607,3 +607,19 @@ def test_kind_string_comparisons_do_not_spread() -> None:
         f"kind names compared as strings beyond each module's budget (found, budget): {over}; "
         "test the kind where it is defined, or make it an object (issue 40)"
     )
+
+
+def _under(module: str, package: str) -> bool:
+    return module == package or module.startswith(f"{package}.")
+
+
+def test_the_contract_tests_sit_above_the_package_and_below_the_stages() -> None:
+    """:mod:`surrogate.testing` (the contract test classes plug-ins inherit) may import any
+    module below the stages, but no stage; and no module of the package imports it."""
+    offences = []
+    for f in sorted(PACKAGE.rglob("*.py")):
+        rel = str(f.relative_to(PACKAGE.parent))
+        inside = rel.startswith("surrogate/testing/")
+        forbidden = "surrogate.stages" if inside else "surrogate.testing"
+        offences += [f"{rel} imports {m}" for m in _imports(f) if _under(m, forbidden)]
+    assert not offences, "\n".join(offences)

@@ -8,7 +8,16 @@ import pytest
 import torch
 
 from surrogate.errors import ConfigError
-from surrogate.fields import ConstantField, DynamicGaussianField, GaussianField, LinearField
+from surrogate.fields import (
+    ConstantField,
+    DynamicGaussianField,
+    ExponentialField,
+    ExpressionField,
+    Field,
+    GaussianField,
+    LinearField,
+)
+from surrogate.testing import FieldContract
 
 
 def pts(*xy: tuple[float, float]) -> torch.Tensor:
@@ -62,8 +71,34 @@ def test_zero_field_and_bad_parameters() -> None:
         LinearField(floor=0.5)
 
 
-def test_fields_are_vectorised_and_keep_dtype() -> None:
-    x = torch.randn(1000, 2)
-    for f in (GaussianField(), LinearField(), DynamicGaussianField(), ConstantField()):
-        v = f(x, 10.0)
-        assert v.shape == (1000,) and v.dtype == torch.float32
+#: every shipped field, held to the field contract (:class:`FieldContract`)
+SHIPPED = [GaussianField(peak=(1.0, -0.5)), LinearField(), DynamicGaussianField(),
+           ConstantField(0.05), ExponentialField(length=2.0),
+           ExpressionField("a * exp(-0.5 * ((x - 1)^2 + y^2) / (w * (1 + t / s))) + 0.01 * sin(y)^2",
+                           {"a": 0.1, "w": 1.5, "s": 100.0})]  # fmt: skip
+
+
+@pytest.mark.parametrize("field", SHIPPED, ids=lambda f: type(f).__name__)
+class TestShippedFieldContract(FieldContract):
+    @pytest.fixture(autouse=True)
+    def _field(self, field: Field) -> None:
+        self.field = field
+
+    def make_field(self) -> Field:
+        return self.field
+
+
+class _Swapped(GaussianField):
+    """A formula field whose Python call reads y for x: its kernels' code is not what it runs."""
+
+    def __call__(self, position: torch.Tensor, t: float) -> torch.Tensor:
+        return super().__call__(position.flip(-1), t)
+
+
+def test_a_field_whose_call_is_not_its_formula_fails_the_contract() -> None:
+    class Contract(FieldContract):
+        def make_field(self) -> Field:
+            return _Swapped(peak=(1.0, 0.0))
+
+    with pytest.raises(AssertionError):
+        Contract().test_its_formula_is_what_it_computes()

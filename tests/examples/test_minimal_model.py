@@ -5,6 +5,8 @@ defaults."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import pandas as pd
 import pytest
 import torch
@@ -32,6 +34,7 @@ from surrogate.models.capabilities import (
 )
 from surrogate.stages import collect, simulate, train
 from surrogate.stages.settings import SimulateSettings
+from surrogate.testing import BodyContract, InternalModelContract
 
 MINIMAL = {"_target_": "examples.python_model.minimal.TelegraphModel"}
 SMALL = [
@@ -123,3 +126,32 @@ def test_the_minimal_model_runs_through_collect_train_and_simulate(tmp_path) -> 
         assert kinds == {"on", "off"}
     with pytest.raises(ConfigError, match="has no exact lumped psi"):
         SimulateSettings.from_config(config(cfg.data_dir, ["decision=exact"]))
+
+
+class TestTelegraphContract(InternalModelContract):
+    """The minimal model held to the internal-model contract, as a user's model is."""
+
+    def make_internal(self) -> Any:
+        return TelegraphModel().internal
+
+    def make_inputs(self, n: int) -> torch.Tensor:
+        return torch.linspace(0.0, 0.1, n)[:, None]
+
+
+class TestGeneSwitchContract(TestTelegraphContract):
+    def make_internal(self) -> Any:
+        return GeneSwitchModel().internal
+
+    def make_inputs(self, n: int) -> torch.Tensor:
+        # no inducer at all: ON has no stationary mass, its exact psi row is 0/0
+        return torch.linspace(0.001, 0.1, n)[:, None]
+
+
+class TestWalkerContract(BodyContract):
+    """The examples' walker held to the body contract."""
+
+    def make_body(self) -> Any:
+        return TelegraphModel().body
+
+    def perturbation_options(self) -> dict[str, Any]:
+        return dict(TelegraphModel().perturbation_options)

@@ -6,8 +6,11 @@ stages' Python API uses. Unknown kind strings are refused with the registered va
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -17,9 +20,13 @@ import torch
 from surrogate.errors import ConfigError
 from surrogate.io import write_manifest
 from surrogate.kinds import CHAIN_KINDS, LayerRequest, chain_kind, register_chain_kind
+from surrogate.kinds.base import ChainKind
 from surrogate.kinds.chains import fit_chain
+from surrogate.simulate.decision import DecisionLayer
 from surrogate.stages.settings import SimulateSettings, TrainSettings
 from surrogate.stages.simulate import learned_decision
+from surrogate.testing import ChainKindContract
+from surrogate.testing.kind import transitions_table
 from tests.kinds.toy_kind import TOY_FILE, TOY_YAML, ToyChain
 from tests.test_kinds import GP_IDENTITIES
 
@@ -166,3 +173,28 @@ def test_fit_chain_asks_the_kinds_not_their_names() -> None:
         fit_chain({"lumps": "classes"}, gp, ("dG",), NoClasses(), "m")
     with pytest.raises(ConfigError, match="K-lumps option: use gp=classes"):
         fit_chain({"class_moves": "relaxation"}, gp, ("dG",), NoClasses(), "m")
+
+
+class TestToyKindContract(ChainKindContract):
+    """The toy kind held to the chain-kind contract, as a user's kind is: its fit on a tiny
+    collection, its artefact and its layer (it scores no phi sequences: not a candidate)."""
+
+    def make_kind(self) -> ChainKind:
+        return ToyChain()
+
+    def fit_inputs(self) -> Any:
+        return SimpleNamespace(gp_config={"toy_floor": 0.01}), transitions_table(), {}
+
+    def make_fitted(self) -> Any:
+        return ToyChain().fit(*self.fit_inputs())
+
+    def loaded_state(self, kind: ChainKind, directory: Path) -> Any:
+        return {k: v for k, v in kind.load(directory).items() if k != "settings"}
+
+    def make_layer(self, internal: Any) -> DecisionLayer:
+        kind = ToyChain()
+        with tempfile.TemporaryDirectory() as name:
+            kind.write(Path(name), self.make_fitted(), {})
+            request = LayerRequest(SimpleNamespace(internal=internal), 0.1)  # type: ignore[arg-type]
+            layer, _ = kind.decision_layer(request, Path(name))
+        return layer
