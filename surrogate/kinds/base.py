@@ -230,6 +230,11 @@ class ChainKind:
         phi: as they are)."""
         return gp, inputs
 
+    def check_train(self, settings: FitSettings) -> None:
+        """Refuse train ``settings`` this kind cannot fit, where the check reads more than the gp
+        group (the model's ``dt``, the collection): called by the train stage's validation,
+        before any work (a chain over phi: nothing to refuse)."""
+
     @classmethod
     def check_exact_history(cls, mode: DecisionMode, internal: Any, model_name: str) -> None:
         """Refuse ``decision=exact`` with this kind's ``decision.history`` in ``mode`` over the

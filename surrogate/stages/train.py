@@ -104,6 +104,7 @@ def validate(cfg: Mapping[str, Any]) -> TrainSettings:
     """All checks of a train config and its estimated cost (the collection and diagnostic it
     needs), before any work starts; the typed settings."""
     settings = TrainSettings.from_config(cfg)
+    settings.kind.check_train(settings)
     budget.check(cfg, budget.train_work(settings), "train")
     return settings
 
