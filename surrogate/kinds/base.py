@@ -192,6 +192,9 @@ class ChainKind:
     #: the measured choice (gp.choose) fits and scores this kind with its :attr:`recipe`
     #: (``gp=<recipe>``) beside the shipped candidates: a registered kind joins by saying so
     candidate: ClassVar[bool] = False
+    #: psi is the two-state chain's of the same collection and GP settings (the kind's own
+    #: keys aside): train reuses that fit, or makes it where ``gp=svgp`` finds it, not a copy
+    shares_psi: ClassVar[bool] = False
 
     @classmethod
     def make(cls, class_moves: str) -> ChainKind:

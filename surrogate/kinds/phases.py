@@ -165,6 +165,8 @@ class HiddenPhases(ChainKind):
     #: above K lumps' 2: hidden states learned with nothing named, counts chosen by the fit
     complexity = 3
     candidate = True
+    #: the fit reads psi's domain only, and its recipe is gp=svgp's plus gp.phases
+    shares_psi = True
 
     @classmethod
     def check_fit(cls, history: str, internal: Any, model_name: str) -> None:

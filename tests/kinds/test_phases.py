@@ -164,3 +164,42 @@ def test_a_sample_shorter_than_two_windows_is_refused(compose_cfg) -> None:
                                           r"windows \(dt=0\.05 s\).*gp\.phases\.t_end=50"):  # fmt: skip
         train.validate(compose_cfg("train", ["gp=phases", "gp.phases.t_end=0.07"]))
     train.validate(compose_cfg("train", ["gp=phases", "gp.phases.t_end=50"]))
+
+
+def test_the_phase_fit_shares_the_two_state_psi(compose_cfg, monkeypatch) -> None:
+    """gp=phases' psi is gp=svgp's of the same settings: its identity is the two-state fit's
+    (the same directory), and a phase fit where that fit exists fits no psi of its own."""
+    data = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    phases = ["gp=phases", "gp.phases.n_cells=8", "gp.phases.t_end=2.0",
+              "gp.phases.max_per_lump=1", "gp.phases.max_iterations=5"]  # fmt: skip
+    two_state = TrainSettings.from_config(compose_cfg("train", [*data, "gp=svgp"]))
+    settings = TrainSettings.from_config(compose_cfg("train", [*data, *phases]))
+    shared = train.shared_psi_settings(settings)
+    assert shared is not None and train.shared_psi_settings(two_state) is None
+    assert shared.fit_identity() == two_state.fit_identity()
+    assert shared.fit_directory == two_state.fit_directory
+    collect.run(compose_cfg("train", data))
+    table, source = train.load_transitions(two_state)
+    psi_dir = train.fit(two_state, table, source)
+
+    def refit(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the phase fit refitted psi")
+
+    monkeypatch.setattr(train, "fit_psi", refit)
+    out = train.fit(settings, table, source)
+    assert out != psi_dir and "lumps=phases" in out.name
+    mine, theirs = (torch.load(d / "psi.pt", weights_only=True)["psi"] for d in (out, psi_dir))
+    assert _tensors(mine) and _tensors(mine) == _tensors(theirs)  # the same classifiers
+    metrics = json.loads((out / "fit_metrics.json").read_text())
+    assert metrics["psi_fit"] == str(psi_dir) and "phase_chain" in metrics
+
+
+def _tensors(state: object) -> list[list[float]]:
+    """Every tensor of a nested state, flattened to lists, in order."""
+    if isinstance(state, torch.Tensor):
+        return [state.flatten().tolist()]
+    if isinstance(state, dict):
+        return [t for k in sorted(state) for t in _tensors(state[k])]
+    if isinstance(state, list | tuple):
+        return [t for v in state for t in _tensors(v)]
+    return []
