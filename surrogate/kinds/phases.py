@@ -167,6 +167,7 @@ class HiddenPhases(ChainKind):
     candidate = True
     #: the fit reads psi's domain only, and its recipe is gp=svgp's plus gp.phases
     shares_psi = True
+    law_version = ("phase_law_version", PHASE_LAW_VERSION)
 
     @classmethod
     def check_fit(cls, history: str, internal: Any, model_name: str) -> None:
@@ -217,10 +218,6 @@ class HiddenPhases(ChainKind):
         raise ConfigError("decision.lumps=phases: the hidden-phase chain is learned only "
                           "(decision=abstract gp=phases); decision=exact drives "
                           "decision.lumps=phi or classes")  # fmt: skip
-
-    def fit_identity(self, gp: Mapping[str, Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
-        """The gp keys with the fit's version (a change in the method refits)."""
-        return {**super().fit_identity(gp), "phase_law_version": PHASE_LAW_VERSION}
 
     def label(self) -> dict[str, Any]:
         return {"lumps": self.lumps}
