@@ -441,6 +441,13 @@ def score(law: PhaseLaw, inputs: Tensor, phi: Tensor, nodes: int) -> Tensor:
             inputs.to(DTYPE), axes), phi.long())  # fmt: skip
 
 
+def held_out_split(n_cells: int, held_out: float) -> tuple[int, int]:
+    """The held-out and the fitted cells of ``n_cells`` for the share ``held_out``
+    (:func:`select_phases`' split: at least one each way)."""
+    m = min(max(1, round(held_out * n_cells)), n_cells - 1)
+    return m, n_cells - m
+
+
 def select_phases(
     inputs: Tensor,
     phi: Tensor,
@@ -476,7 +483,7 @@ def select_phases(
         ``held_out_cells``.
     """
     n = phi.shape[0]
-    m = min(max(1, round(held_out * n)), n - 1)
+    m = held_out_split(n, held_out)[0]
     order = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
     test, train = order[:m], order[m:]
     windows = m * (phi.shape[1] - 1)
@@ -554,6 +561,7 @@ __all__ = [
     "PhaseLaw",
     "PhaseLayout",
     "fit_phase_law",
+    "held_out_split",
     "input_grid",
     "mean_sojourn",
     "nearest_node",

@@ -192,6 +192,12 @@ class ChainKind:
     #: the measured choice (gp.choose) fits and scores this kind with its :attr:`recipe`
     #: (``gp=<recipe>``) beside the shipped candidates: a registered kind joins by saying so
     candidate: ClassVar[bool] = False
+    #: the fit identity's key and version of the kind's own fit method (a change refits), or
+    #: None: the kind fits psi only
+    law_version: ClassVar[tuple[str, int] | None] = None
+    #: psi is the two-state chain's of the same collection and GP settings (the kind's own
+    #: keys aside): train reuses that fit, or makes it where ``gp=svgp`` finds it, not a copy
+    shares_psi: ClassVar[bool] = False
 
     @classmethod
     def make(cls, class_moves: str) -> ChainKind:
@@ -230,6 +236,11 @@ class ChainKind:
         phi: as they are)."""
         return gp, inputs
 
+    def check_train(self, settings: FitSettings) -> None:
+        """Refuse train ``settings`` this kind cannot fit, where the check reads more than the gp
+        group (the model's ``dt``, the collection): called by the train stage's validation,
+        before any work (a chain over phi: nothing to refuse)."""
+
     @classmethod
     def check_exact_history(cls, mode: DecisionMode, internal: Any, model_name: str) -> None:
         """Refuse ``decision=exact`` with this kind's ``decision.history`` in ``mode`` over the
@@ -252,7 +263,8 @@ class ChainKind:
         """The gp part of a fit's identity from the fit's gp keys ``gp``: the keys only other
         kinds read (their :attr:`gp_keys`) are dropped, so each fit keeps the identity (and the
         directory) it had before those kinds existed; the kind's own and the strings that select
-        it (where they are not the chain over phi's) are kept. The K-lumps options are read by
+        it (where they are not the chain over phi's) are kept, with the kind's
+        :attr:`law_version`. The K-lumps options are read by
         :class:`~surrogate.kinds.klumps.KLumps` only."""
         # the strings that select a kind other than the chain over phi stay: two kinds' fits
         # never share an identity
@@ -261,7 +273,10 @@ class ChainKind:
         drop = kind_gp_keys() - own
         if gp.get("mean", DEFAULT_MEAN) == DEFAULT_MEAN:  # fits before gp.mean keep theirs
             drop.add("mean")
-        return {k: v for k, v in gp.items() if k not in drop}
+        out = {k: v for k, v in gp.items() if k not in drop}
+        if self.law_version is not None:
+            out[self.law_version[0]] = self.law_version[1]
+        return out
 
     def label(self) -> dict[str, Any]:
         """What the kind adds to an artefact directory's readable name (the two-state chain and

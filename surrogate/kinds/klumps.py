@@ -76,6 +76,7 @@ class KLumps(ChainKind):
     files = (CLASS_CHAIN,)
     complexity = 2
     candidate = True
+    law_version = ("class_law_version", CLASS_LAW_VERSION)
 
     moves: str = "learned"
 
@@ -145,7 +146,6 @@ class KLumps(ChainKind):
         out = super().fit_identity(gp)
         out["min_events"] = dict(MIN_EVENTS) if min_events is None else min_events
         out["max_label_weight"] = max_label_weight
-        out["class_law_version"] = CLASS_LAW_VERSION
         out.pop("class_moves", None)
         out.pop("relaxation", None)
         if self.relaxation:

@@ -29,6 +29,7 @@ from surrogate.gp.phases import (
     PhaseLaw,
     expected_moves,
     grid_points,
+    held_out_split,
     input_grid,
     select_phases,
 )
@@ -56,6 +57,8 @@ PHASE_KEYS = ("max_per_lump", "per_lump", "structure", "bumps", "penalty", "node
 SEQUENCE_SEED_OFFSET = 2_000_003
 #: a change in the fit's method refits (the fit identity carries it)
 PHASE_LAW_VERSION = 1
+#: the most entries (S x nodes^d x S) of the tabulated law: 2^28, 1 GiB as float32
+MAX_TABLE_ENTRIES = 2**28
 
 
 def _count(options: Mapping[str, Any], key: str, minimum: int) -> int:
@@ -121,8 +124,29 @@ class PhaseSettings:
         if held_out <= 0:
             raise ConfigError("gp.phases.held_out must be in (0, 1): the phase counts are "
                               "chosen on held-out cells")  # fmt: skip
+        n_cells = _count(options, "n_cells", 4)
+        if min(held_out_split(n_cells, held_out)) < 2:
+            # one held-out cell gives the paired gain no standard error: any gain adds a phase
+            raise ConfigError(
+                f"gp.phases.n_cells={n_cells} with gp.phases.held_out={held_out:g} leaves "
+                f"{held_out_split(n_cells, held_out)} (held-out, fitted) cells; the phase counts "
+                f"need >= 2 on either side: use gp.phases.n_cells="
+                f"{smallest_split(held_out)} or more"
+            )
         return cls(_count(options, "max_per_lump", 1), per_lump, str(options["structure"]), fit,
-                   _count(options, "n_cells", 4), t_end, held_out)  # fmt: skip
+                   n_cells, t_end, held_out)  # fmt: skip
+
+    def states(self) -> int:
+        """The most hidden states the chain may get (both lumps' phases)."""
+        return sum(self.per_lump) if self.per_lump is not None else 2 * self.max_per_lump
+
+
+def smallest_split(held_out: float) -> int:
+    """The fewest cells (>= 4) that :func:`held_out_split` leaves two on either side of."""
+    n = 4
+    while min(held_out_split(n, held_out)) < 2:
+        n += 1
+    return n
 
 
 @register_chain_kind
@@ -141,6 +165,9 @@ class HiddenPhases(ChainKind):
     #: above K lumps' 2: hidden states learned with nothing named, counts chosen by the fit
     complexity = 3
     candidate = True
+    #: the fit reads psi's domain only, and its recipe is gp=svgp's plus gp.phases
+    shares_psi = True
+    law_version = ("phase_law_version", PHASE_LAW_VERSION)
 
     @classmethod
     def check_fit(cls, history: str, internal: Any, model_name: str) -> None:
@@ -156,9 +183,34 @@ class HiddenPhases(ChainKind):
         internal: Any,
         model_name: str,
     ) -> tuple[GPSettings, tuple[str, ...]]:
-        """``gp.phases`` validated (:class:`PhaseSettings`)."""
-        PhaseSettings.from_config(gp_config.get("phases"))
+        """``gp.phases`` validated (:class:`PhaseSettings`), its table no larger than
+        :data:`MAX_TABLE_ENTRIES` over the ``inputs``."""
+        phases = PhaseSettings.from_config(gp_config.get("phases"))
+        s, nodes, d = phases.states(), phases.fit.nodes, len(inputs)
+        if s * s * nodes**d > MAX_TABLE_ENTRIES:
+            # the grid is tabulated after the sample and the fits: refused before them
+            fits = int((MAX_TABLE_ENTRIES / (s * s)) ** (1.0 / d) + 1e-9)
+            fix = (f"gp.phases.nodes={fits} or fewer" if fits >= 2
+                   else "fewer phases (gp.phases.max_per_lump)")  # fmt: skip
+            raise ConfigError(
+                f"gp.phases.nodes={nodes} over {d} input(s) {list(inputs)} with up to {s} hidden "
+                f"states makes a table of {s * s * nodes**d:.3g} entries (at most "
+                f"{MAX_TABLE_ENTRIES:,}); use {fix}"
+            )
         return gp, inputs
+
+    def check_train(self, settings: FitSettings) -> None:
+        """The sample must span two windows of ``dt``: one window shows no memory (its length
+        is rounded to whole windows, at least one)."""
+        phases = PhaseSettings.from_config(settings.gp_config.get("phases"))
+        dt = settings.setup.dt
+        if phases.t_end < 2 * dt - 1e-12:
+            raise ConfigError(
+                f"gp.phases.t_end={phases.t_end:g} s is shorter than two windows (dt={dt:g} s): "
+                f"the sample's phi sequences would show no memory for the phases to learn; use "
+                f"gp.phases.t_end={max(50.0, 2 * dt):g} (the recipe's) or any value >= "
+                f"{2 * dt:g}"
+            )
 
     @classmethod
     def check_exact(cls, history: str, mode: DecisionMode, internal: Any, model_name: str) -> None:
@@ -166,10 +218,6 @@ class HiddenPhases(ChainKind):
         raise ConfigError("decision.lumps=phases: the hidden-phase chain is learned only "
                           "(decision=abstract gp=phases); decision=exact drives "
                           "decision.lumps=phi or classes")  # fmt: skip
-
-    def fit_identity(self, gp: Mapping[str, Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
-        """The gp keys with the fit's version (a change in the method refits)."""
-        return {**super().fit_identity(gp), "phase_law_version": PHASE_LAW_VERSION}
 
     def label(self) -> dict[str, Any]:
         return {"lumps": self.lumps}

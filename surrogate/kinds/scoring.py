@@ -154,10 +154,23 @@ def score_kind(
         dt: the window (s).
         lump_names: the two lumps' names.
         seed: the simulated durations' seed.
+
+    Raises:
+        ValueError: the shapes disagree, a phi is not 0 or 1, or an input is not finite.
     """
     if inputs.ndim != 3 or phi.shape != (inputs.shape[0], inputs.shape[1] + 1):
         raise ValueError(f"inputs must be n x T x d and phi n x (T + 1), got "
                          f"{tuple(inputs.shape)} and {tuple(phi.shape)}")  # fmt: skip
+    bad = ~((phi == 0) | (phi == 1))
+    if bool(bad.any()):
+        # a likelihood masks states by phi's lump: another value would score as neither lump
+        raise ValueError(f"phi must be 0 or 1 (each window's lump), got {phi[bad][:3].tolist()} "
+                         f"in {int(bad.sum())} place(s): pass (phi > 0) for a 0/1 phi")  # fmt: skip
+    if not bool(torch.isfinite(inputs).all()):
+        # a table reads NaN as its first node, a classifier returns NaN: either scores garbage
+        cells = torch.nonzero(~torch.isfinite(inputs).all(-1).all(-1)).flatten()
+        raise ValueError(f"inputs must be finite: held-out cell(s) {cells[:5].tolist()} have NaN "
+                         f"or infinite inputs; drop them before scoring")  # fmt: skip
     with torch.no_grad():
         ll = kind.sequence_log_likelihood(layer, inputs, phi, dt) / inputs.shape[1]
         simulated = simulate_sequences(kind, layer, inputs, phi[:, 0], dt, seed)
@@ -188,7 +201,7 @@ def choose(scores: Sequence[KindScore], tie_se: float = 1.0) -> Choice:
 
     Raises:
         ConfigError: no candidate, a non-positive ``tie_se`` or two candidates of one name.
-        ValueError: the scores are not over the same held-out cells.
+        ValueError: the scores are not over the same held-out cells, or one is NaN.
     """
     if not scores:
         raise ConfigError("gp.choose: no candidate kind to choose from")
@@ -200,6 +213,12 @@ def choose(scores: Sequence[KindScore], tie_se: float = 1.0) -> Choice:
         raise ConfigError(f"gp.choose: candidates named twice in {names}")
     if len({len(s.per_cell) for s in scores}) != 1:
         raise ValueError("the candidates were scored on different held-out cells")
+    broken = [s.name for s in scores if math.isnan(s.log_likelihood)]
+    if broken:
+        # max() over NaN keys returns whichever came first: the choice would be arbitrary
+        raise ValueError(f"candidate(s) {broken} have a NaN held-out log-likelihood: their "
+                         f"layers give NaN laws on the held-out inputs; leave them out of the "
+                         f"choice or refit them")  # fmt: skip
     best = max(scores, key=lambda s: s.log_likelihood)
     ref = np.asarray(best.per_cell)
     rows, tied = [], []

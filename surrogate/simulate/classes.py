@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -321,7 +321,67 @@ class ClassTable:
                    state["dt"])  # fmt: skip
 
 
-class ClassDecision(StatefulDecision):
+class TableDecision(StatefulDecision):
+    """A chain over the states of a :class:`ClassTable` (the K-lumps classes, the hidden
+    phases): each window a cell draws its next state from the table's law at its inputs, and
+    phi is the state's lump. The subclasses give the first state (:meth:`initialize`).
+
+    Args:
+        table: the chain's law over its states.
+        internal: the internal model (where cells start from its initial law).
+        featurize: ``x (n x d) -> z (n x k)``, the table's inputs; identity by default.
+        name: the layer's name in logs and manifests.
+        start: one of :data:`STARTS` (what each subclass's start reads).
+    """
+
+    #: the chain's name in messages
+    what: ClassVar[str] = "class chain"
+
+    def __init__(
+        self,
+        table: ClassTable,
+        internal: InternalModel,
+        featurize: Callable[[Tensor], Tensor] | None = None,
+        name: str = "classes",
+        start: str = "internal",
+    ) -> None:
+        if start not in STARTS:
+            raise ValueError(f"start must be one of {list(STARTS)}, got {start!r}")
+        self.table = table
+        self.internal = internal
+        self.featurize = featurize
+        self.name = name
+        self.start = start
+        self.randoms = Randoms(uniform=len(table.input_names) + 1)
+
+    def _inputs(self, x: Tensor) -> Tensor:
+        if self.table.device != x.device:
+            self.table.to(x.device)
+        return x if self.featurize is None else self.featurize(x)
+
+    def _check_dt(self, dt: float) -> None:
+        if not math.isclose(dt, self.table.dt, rel_tol=1e-9):
+            raise ValueError(f"a {self.what} built for dt={self.table.dt} stepped with dt={dt}")
+
+    def _eager_step(
+        self, phi: Tensor, x: Tensor, dt: float, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """One categorical draw per cell (bool phi')."""
+        self._check_dt(dt)
+        z = self._inputs(x)
+        u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
+        nxt = self.table.draw(carried, z, u)
+        return self.table.lumps[nxt] > 0, nxt
+
+    def _pure_step(
+        self, phi: Tensor, x: Tensor, dt: float, u: Tensor, carried: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """State' from the uniforms ``u`` (``(d + 1) x n``); phi' as float 0/1."""
+        nxt = self.table.draw(carried, self._inputs(x), u)
+        return self.table.lumps[nxt], nxt
+
+
+class ClassDecision(TableDecision):
     """The K-lumps chain: class' drawn from the table's law at each cell's inputs; phi is the
     class's lump.
 
@@ -358,22 +418,8 @@ class ClassDecision(StatefulDecision):
                 f"the class table's classes {table.class_names} are not the model's "
                 f"{declared.names}"
             )
-        self.table = table
-        self.internal = internal
-        self.featurize = featurize
-        self.name = name
-        self.start = start
-        self.randoms = Randoms(uniform=len(table.input_names) + 1)
+        super().__init__(table, internal, featurize, name, start)
         self._classify = declared.classify
-
-    def _inputs(self, x: Tensor) -> Tensor:
-        if self.table.device != x.device:
-            self.table.to(x.device)
-        return x if self.featurize is None else self.featurize(x)
-
-    def _check_dt(self, dt: float) -> None:
-        if not math.isclose(dt, self.table.dt, rel_tol=1e-9):
-            raise ValueError(f"a class chain built for dt={self.table.dt} stepped with dt={dt}")
 
     def initialize(self, x: Tensor) -> Tensor:
         """Each cell's first class (see ``start``) at its inputs ``x`` (``n x d``)."""
@@ -384,23 +430,6 @@ class ClassDecision(StatefulDecision):
         else:
             self.cls = self._classify(self.internal.initial_state(x)).to(x.device)
         return self.table.lumps[self.cls] > 0
-
-    def _eager_step(
-        self, phi: Tensor, x: Tensor, dt: float, carried: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """One categorical draw per cell (bool phi')."""
-        self._check_dt(dt)
-        z = self._inputs(x)
-        u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
-        cls = self.table.draw(carried, z, u)
-        return self.table.lumps[cls] > 0, cls
-
-    def _pure_step(
-        self, phi: Tensor, x: Tensor, dt: float, u: Tensor, carried: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Class' from the uniforms ``u`` (``(d + 1) x n``); phi' as float 0/1."""
-        nxt = self.table.draw(carried, self._inputs(x), u)
-        return self.table.lumps[nxt], nxt
 
 
 @torch.no_grad()
@@ -440,6 +469,7 @@ __all__ = [
     "STARTS",
     "ClassDecision",
     "ClassTable",
+    "TableDecision",
     "can_classify",
     "exact_class_table",
     "expected_class_column",

@@ -9,18 +9,17 @@ declares no classes: the states are the chain's own.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-from surrogate.models.base import InternalModel, Randoms
-from surrogate.simulate.classes import STARTS, ClassTable
-from surrogate.simulate.stateful import StatefulDecision, carried_alias
+from surrogate.models.base import InternalModel
+from surrogate.simulate.classes import ClassTable, TableDecision
+from surrogate.simulate.stateful import carried_alias
 
 
-class PhaseDecision(StatefulDecision):
+class PhaseDecision(TableDecision):
     """The hidden-phase chain: state' drawn from the table's law at each cell's inputs; phi is
     the state's lump.
 
@@ -38,6 +37,8 @@ class PhaseDecision(StatefulDecision):
 
     state = carried_alias("(n,) int64: each cell's hidden state; None before initialize.")
 
+    what = "hidden-phase chain"
+
     def __init__(
         self,
         table: ClassTable,
@@ -46,20 +47,8 @@ class PhaseDecision(StatefulDecision):
         name: str = "abstract",
         start: str = "internal",
     ) -> None:
-        if start not in STARTS:
-            raise ValueError(f"start must be one of {list(STARTS)}, got {start!r}")
-        self.table = table
-        self.internal = internal
-        self.featurize = featurize
-        self.name = name
-        self.start = start
-        self.randoms = Randoms(uniform=len(table.input_names) + 1)
+        super().__init__(table, internal, featurize, name, start)
         self._within: Tensor | None = None  # per lump, node: the stationary law's cdf in it
-
-    def _inputs(self, x: Tensor) -> Tensor:
-        if self.table.device != x.device:
-            self.table.to(x.device)
-        return x if self.featurize is None else self.featurize(x)
 
     def _start_within(self) -> Tensor:
         """``2 x nodes x S`` the cumulative stationary law of each lump's states at each node."""
@@ -99,28 +88,6 @@ class PhaseDecision(StatefulDecision):
             # a state past the lump's last has cdf 1: the draw stays within the lump
             self.state = (u[-1][:, None] >= cdf[:, :-1]).sum(-1)
         return self.table.lumps[self.state] > 0
-
-    def _check_dt(self, dt: float) -> None:
-        if not math.isclose(dt, self.table.dt, rel_tol=1e-9):
-            raise ValueError(f"a hidden-phase chain built for dt={self.table.dt} stepped with "
-                             f"dt={dt}")  # fmt: skip
-
-    def _eager_step(
-        self, phi: Tensor, x: Tensor, dt: float, carried: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """One categorical draw per cell (bool phi')."""
-        self._check_dt(dt)
-        z = self._inputs(x)
-        u = torch.rand(len(self.table.input_names) + 1, z.shape[0], device=z.device)
-        nxt = self.table.draw(carried, z, u)
-        return self.table.lumps[nxt] > 0, nxt
-
-    def _pure_step(
-        self, phi: Tensor, x: Tensor, dt: float, u: Tensor, carried: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """State' from the uniforms ``u`` (``(d + 1) x n``); phi' as float 0/1."""
-        nxt = self.table.draw(carried, self._inputs(x), u)
-        return self.table.lumps[nxt], nxt
 
 
 __all__ = ["PhaseDecision"]

@@ -69,8 +69,19 @@ class ChoiceSettings:
                 or any(isinstance(a, bool) or not isinstance(a, int | float) or not a > 0
                        or not math.isfinite(a) for a in ages)):  # fmt: skip
             raise ConfigError(f"choose.max_ages must be a list of seconds > 0, got {ages!r}")
-        return cls(tuple(float(a) for a in ages),
-                   _number(options, "n_cells", 100, integer=True),
+        caps = [float(a) for a in ages]
+        if len(set(caps)) != len(caps):
+            # one candidate per cap: a repeat would be fitted once and listed once, silently
+            unique = list(dict.fromkeys(caps))
+            raise ConfigError(f"choose.max_ages={list(ages)!r} names a cap twice; each is one "
+                              f"candidate: use choose.max_ages={unique!r}")  # fmt: skip
+        n_cells = _number(options, "n_cells", 100, integer=True)
+        if n_cells < 2:
+            # the tie rule reads the SE of the paired per-cell difference: one cell has none
+            raise ConfigError(f"choose.n_cells={n_cells} held-out cell gives the paired "
+                              f"difference no standard error (the tie rule's): use "
+                              f"choose.n_cells=2 or more (default 100)")  # fmt: skip
+        return cls(tuple(caps), n_cells,
                    _number(options, "t_end", 50.0), _number(options, "equilibration_time", 10.0,
                                                             zero=True),
                    _number(options, "tie_se", 1.0))  # fmt: skip
@@ -111,9 +122,32 @@ def validate(cfg: Mapping[str, Any]) -> tuple[ChoiceSettings, dict[str, TrainSet
     settings = ChoiceSettings.from_config(cfg.get("choose") or {})
     base = to_dict(cfg)
     first = train_stage.validate({**base, "gp": group_config("gp", "svgp")})
+    check_windows(settings, first.setup.dt)
     trains = {name: train_stage.validate({**base, "gp": gp})
               for name, gp in candidates(settings, first.setup.model.internal).items()}  # fmt: skip
     return settings, trains
+
+
+def check_windows(settings: ChoiceSettings, dt: float) -> None:
+    """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
+    counted in whole windows, at least one, so either would silently be one window.
+
+    Raises:
+        ConfigError: ``choose.t_end`` or a cap in ``choose.max_ages`` below ``dt``, named with
+            the value that passes.
+    """
+    if settings.t_end < dt:
+        raise ConfigError(f"choose.t_end={settings.t_end:g} s is shorter than one window "
+                          f"(dt={dt:g} s): the held-out run would record one window of {dt:g} "
+                          f"s; use choose.t_end={max(dt, 50.0):g} (the default) or any value >= "
+                          f"{dt:g}")  # fmt: skip
+    short = [a for a in settings.max_ages if a < dt]
+    if short:
+        kept = [a for a in settings.max_ages if a >= dt] or [max(1.0, dt)]
+        raise ConfigError(f"choose.max_ages has cap(s) {short} below one window (dt={dt:g} s): "
+                          f"the clock counts whole windows, so its layer would cap it at one "
+                          f"window, not as asked; use caps >= {dt:g}, e.g. "
+                          f"choose.max_ages={kept!r}")  # fmt: skip
 
 
 def run(cfg: Mapping[str, Any]) -> Path:

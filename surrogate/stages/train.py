@@ -17,6 +17,7 @@ abstraction::
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import shutil
@@ -60,6 +61,7 @@ from surrogate.io import (
     write_manifest,
 )
 from surrogate.kinds import load_class_chain as load_class_chain  # the Python API's
+from surrogate.kinds.chains import TWO_STATE
 from surrogate.models.base import Model
 from surrogate.models.capabilities import (
     class_count_of,
@@ -104,6 +106,7 @@ def validate(cfg: Mapping[str, Any]) -> TrainSettings:
     """All checks of a train config and its estimated cost (the collection and diagnostic it
     needs), before any work starts; the typed settings."""
     settings = TrainSettings.from_config(cfg)
+    settings.kind.check_train(settings)
     budget.check(cfg, budget.train_work(settings), "train")
     return settings
 
@@ -151,6 +154,19 @@ def fit(
     return make_once(out, settings.fit_identity(), settings.command(),
                      lambda _: _fit(settings, out, table, source, config), what="fit",
                      force=force)  # fmt: skip
+
+
+def shared_psi_settings(settings: TrainSettings) -> TrainSettings | None:
+    """The two-state chain's train settings whose fit is ``settings``' psi, where its kind
+    shares the two-state psi (:attr:`~surrogate.kinds.base.ChainKind.shares_psi`): the same
+    collection, GP settings and inputs, without the kind's own keys; None for a kind that fits
+    its own. Their fit directory is the one ``gp=svgp`` with the same settings makes and reuses.
+    """
+    if not settings.kind.shares_psi:
+        return None
+    gp_config = {k: v for k, v in settings.gp_config.items() if k not in settings.kind.gp_keys}
+    gp_config["lumps"], gp_config["history"] = TWO_STATE.lumps, TWO_STATE.history
+    return dataclasses.replace(settings, kind=TWO_STATE, gp_config=gp_config, auto_recipe=None)
 
 
 def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
@@ -214,14 +230,21 @@ def _fit(
     classifiers, their metrics, the history figure and (last) the manifest."""
     job, model = settings.job, settings.setup.model
     lumps = model.internal.lump_names
+    shared = shared_psi_settings(settings)
+    # the two-state fit made (or reused) where gp=svgp finds it: psi fitted once for both
+    psi_dir = fit(shared, table, source) if shared is not None else None
     seed_everything(settings.seed)
     t0 = time.perf_counter()
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(settings.fit_threads)
-        psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
-                      device=job.device, lump_names=lumps,
-                      label=settings.label_column(table.columns))  # fmt: skip
+        if psi_dir is None:
+            psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
+                          device=job.device, lump_names=lumps,
+                          label=settings.label_column(table.columns))  # fmt: skip
+        else:
+            psi, _ = load_psi(psi_dir / PSI, device=job.device)
+            log.info("psi: the two-state fit's, %s", psi_dir)
         chain = settings.kind.fit(settings, table, psi.domain)  # the kind's own, if any
     except NumericalError as exc:
         # nothing was written: a previous complete fit in `out` (if any) is kept
@@ -239,17 +262,21 @@ def _fit(
             f"the trained classifiers predict NaN/inf on their own input domain; nothing was "
             f"written to {out}. Try a smaller gp.lr (now {settings.gp.lr}) or more gp.epochs"
         )
-    metrics: dict[str, Any] = {
-        f"psi_{phi}": {
-            "origin": lumps[phi],
-            "validation": clf.validation,
-            "n_train": clf.n_train,
-            "n_val": clf.n_val,
-            "train_seconds": clf.train_seconds,
-            "final_loss": clf.history[-1] if clf.history else None,
+    if psi_dir is None:
+        metrics: dict[str, Any] = {
+            f"psi_{phi}": {
+                "origin": lumps[phi],
+                "validation": clf.validation,
+                "n_train": clf.n_train,
+                "n_val": clf.n_val,
+                "train_seconds": clf.train_seconds,
+                "final_loss": clf.history[-1] if clf.history else None,
+            }
+            for phi, clf in enumerate(psi.classifiers)
         }
-        for phi, clf in enumerate(psi.classifiers)
-    }
+    else:  # the classifiers' scores as their fit wrote them
+        fitted = read_json(psi_dir / FIT_METRICS, made_by=settings.command())
+        metrics = {"psi_0": fitted["psi_0"], "psi_1": fitted["psi_1"], "psi_fit": str(psi_dir)}
     metrics["train_seconds_total"] = wall
     metrics["inputs"] = list(settings.inputs)
     # from here the directory reads as incomplete until the new manifest is written last
@@ -257,8 +284,11 @@ def _fit(
     save_psi(out / PSI, psi, {"settings": settings.fit_identity(), "source": source})
     metrics.update(settings.kind.write(out, chain, settings.fit_identity()))
     write_json(out / FIT_METRICS, metrics)
-    save_figure(out / HISTORY_FIGURE, plot_training_history(
-        {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
+    if psi_dir is None:
+        save_figure(out / HISTORY_FIGURE, plot_training_history(
+            {f"psi_{p} ({lumps[p]})": c.history for p, c in enumerate(psi.classifiers)}))  # fmt: skip
+    else:
+        write_atomic(out / HISTORY_FIGURE, partial(shutil.copyfile, psi_dir / HISTORY_FIGURE))
     write_manifest(
         out,
         stage="fit",

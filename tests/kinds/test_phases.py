@@ -127,3 +127,79 @@ def test_train_then_simulate_on_both_loops(compose_cfg) -> None:
     (a, sa), (b, sb) = means["numba"], means["torch"]
     assert a and b and sa and sb
     assert abs(a - b) < 5 * (sa**2 + sb**2) ** 0.5, means
+
+
+@pytest.mark.parametrize(
+    ("overrides", "split", "fix"),
+    [(["gp.phases.n_cells=4"], r"\(1, 3\)", 6),
+     (["gp.phases.n_cells=10", "gp.phases.held_out=0.95"], r"\(9, 1\)", 30)],
+)  # fmt: skip
+def test_a_held_out_split_of_one_cell_is_refused(compose_cfg, overrides, split, fix) -> None:
+    """One held-out cell gives the gain no SE (any gain added a phase); one fitted cell fits
+    noise: refused with the cell count that passes."""
+    with pytest.raises(ConfigError, match=rf"leaves {split} \(held-out, fitted\) cells.*"
+                                          rf"gp\.phases\.n_cells={fix} or more"):  # fmt: skip
+        TrainSettings.from_config(compose_cfg("train", ["gp=phases", *overrides]))
+    passing = [o for o in overrides if "n_cells" not in o]
+    TrainSettings.from_config(compose_cfg("train", ["gp=phases", f"gp.phases.n_cells={fix}",
+                                                    *passing]))  # fmt: skip
+    with pytest.raises(ConfigError, match="n_cells"):
+        TrainSettings.from_config(compose_cfg("train", ["gp=phases", f"gp.phases.n_cells={fix - 1}",
+                                                        *passing]))  # fmt: skip
+
+
+def test_a_table_too_large_is_refused_before_the_sample(compose_cfg) -> None:
+    """nodes^d x S^2 entries were tabulated after the sample and the fits: 1e5 nodes over E.
+    coli's two raw inputs is 3.6e11 entries."""
+    base = ["gp=phases", "gp.inputs=inputs"]
+    with pytest.raises(ConfigError, match=r"gp\.phases\.nodes=100000 over 2 input\(s\).*"
+                                          r"use gp\.phases\.nodes=2730 or fewer"):  # fmt: skip
+        TrainSettings.from_config(compose_cfg("train", [*base, "gp.phases.nodes=100000"]))
+    TrainSettings.from_config(compose_cfg("train", [*base, "gp.phases.nodes=2730"]))
+
+
+def test_a_sample_shorter_than_two_windows_is_refused(compose_cfg) -> None:
+    """t_end below one window was rounded up to one, and one window shows no memory."""
+    with pytest.raises(ConfigError, match=r"gp\.phases\.t_end=0\.07 s is shorter than two "
+                                          r"windows \(dt=0\.05 s\).*gp\.phases\.t_end=50"):  # fmt: skip
+        train.validate(compose_cfg("train", ["gp=phases", "gp.phases.t_end=0.07"]))
+    train.validate(compose_cfg("train", ["gp=phases", "gp.phases.t_end=50"]))
+
+
+def test_the_phase_fit_shares_the_two_state_psi(compose_cfg, monkeypatch) -> None:
+    """gp=phases' psi is gp=svgp's of the same settings: its identity is the two-state fit's
+    (the same directory), and a phase fit where that fit exists fits no psi of its own."""
+    data = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    phases = ["gp=phases", "gp.phases.n_cells=8", "gp.phases.t_end=2.0",
+              "gp.phases.max_per_lump=1", "gp.phases.max_iterations=5"]  # fmt: skip
+    two_state = TrainSettings.from_config(compose_cfg("train", [*data, "gp=svgp"]))
+    settings = TrainSettings.from_config(compose_cfg("train", [*data, *phases]))
+    shared = train.shared_psi_settings(settings)
+    assert shared is not None and train.shared_psi_settings(two_state) is None
+    assert shared.fit_identity() == two_state.fit_identity()
+    assert shared.fit_directory == two_state.fit_directory
+    collect.run(compose_cfg("train", data))
+    table, source = train.load_transitions(two_state)
+    psi_dir = train.fit(two_state, table, source)
+
+    def refit(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the phase fit refitted psi")
+
+    monkeypatch.setattr(train, "fit_psi", refit)
+    out = train.fit(settings, table, source)
+    assert out != psi_dir and "lumps=phases" in out.name
+    mine, theirs = (torch.load(d / "psi.pt", weights_only=True)["psi"] for d in (out, psi_dir))
+    assert _tensors(mine) and _tensors(mine) == _tensors(theirs)  # the same classifiers
+    metrics = json.loads((out / "fit_metrics.json").read_text())
+    assert metrics["psi_fit"] == str(psi_dir) and "phase_chain" in metrics
+
+
+def _tensors(state: object) -> list[list[float]]:
+    """Every tensor of a nested state, flattened to lists, in order."""
+    if isinstance(state, torch.Tensor):
+        return [state.flatten().tolist()]
+    if isinstance(state, dict):
+        return [t for k in sorted(state) for t in _tensors(state[k])]
+    if isinstance(state, list | tuple):
+        return [t for v in state for t in _tensors(v)]
+    return []

@@ -324,3 +324,38 @@ def test_phi_sequences_and_segments() -> None:
     assert phi.tolist() == [[0, 1, 1, 0], [1, 0, 0, 1]]
     seg = segment_durations(phi.numpy(), DT)
     assert seg[1] == pytest.approx([0.2]) and seg[0] == pytest.approx([0.2])
+
+
+def _constant_psi(p: Tensor, z: Tensor) -> Tensor:
+    return torch.full_like(z[:, 0], 0.3)
+
+
+def test_a_phi_outside_0_1_is_refused_before_scoring() -> None:
+    """A phi of 2 (a count, not a lump) would score as phi = 1 in the two-state chain and as no
+    lump in K lumps: refused, naming the values and the fix."""
+    x, phi = torch.rand(2, 3, 1), torch.tensor([[0.0, 1.0, 2.0, 1.0], [1.0, 1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"phi must be 0 or 1.*\[2\.0\] in 1 place.*\(phi > 0\)"):
+        score_kind("two-state", TWO_STATE, AbstractDecision(_constant_psi, Internal()), x, phi,
+                   DT, ("off", "on"))  # fmt: skip
+    score_kind("two-state", TWO_STATE, AbstractDecision(_constant_psi, Internal()), x,
+               (phi > 0).float(), DT, ("off", "on"))  # the fix it names passes  # fmt: skip
+
+
+def test_non_finite_held_out_inputs_are_refused_before_scoring() -> None:
+    """A NaN input would give a NaN log-likelihood (or a table's first node): refused, naming
+    the cells."""
+    x, phi = torch.rand(3, 4, 1), torch.zeros(3, 5)
+    x[1, 2, 0] = math.nan
+    with pytest.raises(ValueError, match=r"inputs must be finite: held-out cell\(s\) \[1\]"):
+        score_kind("two-state", TWO_STATE, AbstractDecision(_constant_psi, Internal()), x, phi,
+                   DT, ("off", "on"))  # fmt: skip
+
+
+def test_a_nan_log_likelihood_is_refused_by_the_choice() -> None:
+    """max() over NaN keys keeps whichever came first: a NaN candidate first would be chosen;
+    refused, naming it."""
+    nan = KindScore("broken", 0, math.nan, (math.nan, math.nan), {})
+    good = KindScore("good", 1, -0.1, (-0.1, -0.12), {})
+    with pytest.raises(ValueError, match=r"\['broken'\] have a NaN held-out log-likelihood"):
+        choose([nan, good])
+    assert choose([good]).chosen == "good"  # without it, the choice stands
