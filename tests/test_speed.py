@@ -134,7 +134,7 @@ def test_compare_takes_timings_or_the_speed_stages_and_benchs_entries() -> None:
     """The speed stage, reproduce and the bench give compare() their measurement entries: a
     compiled step that fell back to eager in one model gives no speed-up (the loops ran
     differently); otherwise the ratio is the formula's."""
-    from surrogate.benchmarks.loop import ratio
+    from surrogate.benchmarks.timing import ratio
 
     eager = dataclasses.replace(LOOP, compiled=False)
     compiled = dataclasses.replace(LOOP, compiled=True, seconds=0.5)

@@ -23,7 +23,8 @@ from typing import Any
 
 import torch
 
-from surrogate.benchmarks.loop import _peak_rss_mb, _setup, _sync, machine_info, num_threads
+from surrogate.benchmarks.machine import machine_info, num_threads, setup, sync
+from surrogate.benchmarks.timing import peak_rss_mb
 from surrogate.config import to_dict
 from surrogate.errors import ConfigError
 from surrogate.grid import GridField
@@ -55,7 +56,7 @@ def run_field_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) 
                           f"{c['field'].get('_target_')}")  # fmt: skip
     if c.get("scale_depth"):
         c["field"]["depth"] = float(c["field"]["depth"]) * n_cells / float(c["depth_cells"])
-    _, device, model, field, dt, head = _setup(c)
+    _, device, model, field, dt, head = setup(c)
     assert isinstance(field, GridField)
     decision, _ = exact_decision(model, dt, "lookup", None, device)
     timed = {"field_s": 0.0}
@@ -64,20 +65,20 @@ def run_field_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) 
         inner = sim._step_fields
 
         def step_fields(state: Any) -> None:
-            _sync(device)
+            sync(device)
             t0 = time.perf_counter()
             inner(state)
-            _sync(device)
+            sync(device)
             timed["field_s"] += time.perf_counter() - t0
 
         sim._step_fields = step_fields  # type: ignore[method-assign]
         state = sim.initial_state(n_cells, c["start"], 0.0)
         sim.advance(state, warm)
         timed["field_s"] = 0.0
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         sim.advance(state, steps)
-        _sync(device)
+        sync(device)
         total = time.perf_counter() - t0
     agents = total - timed["field_s"]
     nx, ny = field.grid.shape
@@ -91,7 +92,7 @@ def run_field_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) 
         "field_ms_per_step": 1e3 * timed["field_s"] / steps,
         "field_share": timed["field_s"] / total,
         "field_over_agents": timed["field_s"] / agents if agents > 0 else float("nan"),
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
         "field_fuse": field.fuse, "field_step_path": field.step_path,
     }  # fmt: skip
     path = (

@@ -44,7 +44,8 @@ import json, sys
 import torch
 threads, steps, n_gps = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 torch.set_num_threads(threads)
-from surrogate.gp.training import GPSettings, fit_classifiers
+from surrogate.gp.settings import GPSettings
+from surrogate.gp.training import fit_classifiers
 gen = torch.Generator().manual_seed(0)
 data = []
 for i in range(n_gps):

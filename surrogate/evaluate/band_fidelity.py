@@ -13,7 +13,7 @@ time they share:
   larger).
 * **ks_critical**: the asymptotic two-sample critical value at ``alpha`` for the two sizes,
   ``c(alpha) sqrt((n + m) / (n m))`` with ``c(alpha) = sqrt(-ln(alpha / 2) / 2)`` (1.358 at
-  5 %; :func:`~surrogate.evaluate.statistics.ks_c_alpha`). It is the unbinned test's; binning
+  5 %; :func:`~surrogate.evaluate.ks.ks_c_alpha`). It is the unbinned test's; binning
   only lowers the statistic, so it stays a valid level-alpha bar.
 * **front**: each run's depletion front (:func:`~surrogate.evaluate.band.front_position`) and
   their difference (mm).
@@ -26,7 +26,7 @@ fronts' least-squares speeds (:func:`~surrogate.evaluate.band.band_speed`, fitte
 common times) with their difference and its combined standard error ``sqrt(se_a^2 + se_b^2)``.
 
 **The rule** (:func:`judge`), the one every evaluation uses
-(:func:`~surrogate.evaluate.statistics.noise_threshold`: ``max(factor x floor, critical)``),
+(:func:`~surrogate.evaluate.ks.noise_threshold`: ``max(factor x floor, critical)``),
 applied to the candidate-vs-full figure with the full-vs-full one as the floor:
 
 * the largest KS over the record times, against ``max(factor x the floor's largest KS, the
@@ -53,7 +53,7 @@ from matplotlib.figure import Figure
 from scipy import stats
 
 from surrogate.evaluate.band import band_speed, front_position
-from surrogate.evaluate.statistics import ks_c_alpha, ks_critical_value, noise_threshold
+from surrogate.evaluate.ks import ks_c_alpha, ks_critical_value, noise_threshold
 from surrogate.simulate.profiles import Profiles
 
 __all__ = [

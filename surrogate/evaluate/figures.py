@@ -17,14 +17,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from surrogate.evaluate.statistics import (
-    BinnedSample,
-    Distribution,
-    ExactSample,
-    SimulationRun,
-    compare_distributions,
-    mean_std_over_time,
-)
+from surrogate.evaluate.ks import BinnedSample, Distribution, ExactSample, compare_distributions
+from surrogate.evaluate.runs import SimulationRun, mean_std_over_time
 
 COLOURS: tuple[str, str] = ("tab:blue", "tab:orange")
 

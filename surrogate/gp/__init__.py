@@ -9,11 +9,13 @@ simulation.
 from __future__ import annotations
 
 from surrogate.gp.figures import binned_frequencies, plot_psi, plot_training_history, psi_grid_frame
+from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.lookup import PsiFunction, PsiLookupTable, StackedPsiLookup
 from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import KERNELS, PsiGP, make_kernel
 from surrogate.gp.predictor import PsiClassifier, data_domain, fit_psi, load_psi, save_psi
-from surrogate.gp.training import FittedClassifier, GPSettings, Normalizer, fit_classifier
+from surrogate.gp.settings import GPSettings
+from surrogate.gp.training import fit_classifier
 
 __all__ = [
     "KERNELS",

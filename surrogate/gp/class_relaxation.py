@@ -39,7 +39,8 @@ from torch import Tensor
 
 from surrogate.errors import ArtefactError, ConfigError
 from surrogate.gp.lookup import grid_nodes
-from surrogate.gp.training import GPSettings, fit_classifiers
+from surrogate.gp.settings import GPSettings
+from surrogate.gp.training import fit_classifiers
 
 #: gp.class_moves choices: the one-window law of every move, or bins that relax (this module)
 CLASS_MOVES = ("learned", "relaxation")

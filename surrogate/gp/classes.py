@@ -33,8 +33,10 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError
+from surrogate.gp.binned import label_weight
 from surrogate.gp.lookup import grid_nodes
-from surrogate.gp.training import GPSettings, fit_classifiers, label_weight
+from surrogate.gp.settings import GPSettings
+from surrogate.gp.training import fit_classifiers
 
 Domain = dict[str, tuple[float, float]]
 
@@ -83,7 +85,7 @@ def fit_class_law(
         expected: train on the expected class laws where the table has them (else, or with
             False, the 0/1 outcomes).
         max_weight: with expected labels, each GP's rows count as up to this many draws: the
-            labels' inverse dispersion (:func:`~surrogate.gp.training.label_weight`); 1: as
+            labels' inverse dispersion (:func:`~surrogate.gp.binned.label_weight`); 1: as
             0/1 outcomes.
 
     Returns:

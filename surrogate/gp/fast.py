@@ -36,8 +36,8 @@ from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import Tensor
 
 from surrogate.errors import NumericalError
+from surrogate.gp.fitted import FittedClassifier
 from surrogate.gp.predictor import PsiClassifier
-from surrogate.gp.training import FittedClassifier
 
 # base kernel name -> Matern smoothness (None = RBF)
 _NU = {"rbf": None, "matern12": 0.5, "matern32": 1.5, "matern52": 2.5}

@@ -1,6 +1,6 @@
 """The sparse variational GP classifier that approximates one psi surface.
 
-The model sees NORMALISED inputs -- see :class:`surrogate.gp.training.Normalizer` -- so kernel
+The model sees NORMALISED inputs -- see :class:`surrogate.gp.fitted.Normalizer` -- so kernel
 lengthscales start at a sensible scale for every column (the ligand L spans only 0.1 mM).
 """
 

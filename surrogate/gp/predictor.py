@@ -13,7 +13,9 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError, NumericalError
-from surrogate.gp.training import PREDICT_CHUNK, FittedClassifier, GPSettings, fit_classifiers
+from surrogate.gp.fitted import PREDICT_CHUNK, FittedClassifier
+from surrogate.gp.settings import GPSettings
+from surrogate.gp.training import fit_classifiers
 from surrogate.io import load_tensors, save_tensors
 
 STATE_FORMAT = "surrogate.gp.psi/2"

@@ -1,23 +1,25 @@
-"""Settings, input normalisation and the training loop for one psi classifier.
+"""The training loop for psi classifiers: one at a time (:func:`fit_classifier`) or side by
+side as one batched GP (:func:`fit_classifiers`). The settings live in
+:mod:`surrogate.gp.settings`, the trained classifier in :mod:`surrogate.gp.fitted` and the binned
+likelihood in :mod:`surrogate.gp.binned`; :class:`GPSettings` stays importable from here.
 
 Numerical guard (a deliberate choice): when the training loss becomes NaN/inf, or a Cholesky
-factorisation fails, training stops, the model is restored to the last state known to be good
-(the start of the last epoch whose losses were all finite: the parameters after an epoch's last
-step are never evaluated by a loss), and :class:`~surrogate.errors.NumericalError` is raised. The restored model is
-attached to the exception as ``exc.partial`` (a :class:`FittedClassifier` without validation
-metrics) for inspection, but it is never returned silently: a half-trained surrogate must not
-flow into the downstream simulations unnoticed. The message says which epoch failed and which
+factorisation fails, training stops, the model is restored to the last state known to be good (the
+start of the last epoch whose losses were all finite: the parameters after an epoch's last step are
+never evaluated by a loss), and :class:`~surrogate.errors.NumericalError` is raised. The restored
+model is attached to the exception as ``exc.partial`` (a :class:`FittedClassifier` without
+validation metrics) for inspection, but it is never returned silently: a half-trained surrogate must
+not flow into the downstream simulations unnoticed. The message says which epoch failed and which
 settings to lower.
 """
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import gpytorch
@@ -27,296 +29,18 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
+from surrogate.gp.binned import bin_inputs, binned_loss, padded_bins, weighted_bins
+from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.metrics import classification_metrics
-from surrogate.gp.model import DEFAULT_MEAN, KERNELS, MEANS, PsiGP
-from surrogate.validation import known_keys
+from surrogate.gp.model import PsiGP
+from surrogate.gp.settings import GPSettings, psi_gp
 
-PREDICT_CHUNK = 65_536
 #: classifiers are trained side by side (one batched GP) up to this many occupied bins each:
 #: where a step's fixed cost dominates. Measured: 200 bins, 50 inducing points 2.5x faster than
 #: one by one; 500 bins (1-D), 100 inducing 1.15x; ~1e5 bins (2-D, 500 per axis) 0.54x
 BATCH_MAX_BINS = 4096
-_PAD = 64  # rows; a multiple of every SIMD width, see FittedClassifier._latent_padded
 
 log = logging.getLogger(__name__)
-
-
-# ----------------------------------------------------------------------------------------------
-# settings
-
-
-@dataclass
-class GPSettings:
-    """Hyperparameters of one GP classifier (the ``gp`` config group).
-
-    Validated on construction; every error names the offending ``gp.<key>``.
-    """
-
-    kernel: str = "rbf"
-    ard: bool = True
-    n_inducing: int = 100
-    learn_inducing: bool = True
-    epochs: int = 40
-    batch_size: int = 1000
-    lr: float = 0.05
-    natural_gradient: bool = False
-    natural_lr: float = 0.1
-    validation_fraction: float = 0.2
-    #: equal-width bins per (normalised) input axis, one count for every axis or one per axis
-    #: (e.g. ``[500, 25]``: a coarse axis for the switch clock); 0: no binning (minibatches)
-    bins: int | tuple[int, ...] = 0
-    seed: int = 0
-    #: the latent f's prior mean (:data:`~surrogate.gp.model.MEANS`)
-    mean: str = DEFAULT_MEAN
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.kernel, str) or self.kernel not in KERNELS:
-            raise ConfigError(
-                f"gp.kernel: unknown kernel {self.kernel!r}; allowed values are {KERNELS}"
-            )
-        if not isinstance(self.mean, str) or self.mean not in MEANS:
-            raise ConfigError(f"gp.mean: unknown mean {self.mean!r}; allowed values are {MEANS}")
-        for name in ("ard", "learn_inducing", "natural_gradient"):
-            if not isinstance(getattr(self, name), bool):
-                raise ConfigError(f"gp.{name} must be true or false, got {getattr(self, name)!r}")
-        for name in ("n_inducing", "epochs", "batch_size"):
-            _check_int(name, getattr(self, name), minimum=1)
-        _check_int("seed", self.seed, minimum=0)
-        if isinstance(self.bins, Sequence) and not isinstance(self.bins, str):
-            if not self.bins:
-                raise ConfigError("gp.bins: give one count for every axis or one per axis, got []")
-            self.bins = tuple(_check_int("bins", b, minimum=1) for b in self.bins)
-        else:
-            _check_int("bins", self.bins, minimum=0)
-        for name in ("lr", "natural_lr"):
-            value = _check_float(name, getattr(self, name))
-            if value <= 0:
-                raise ConfigError(f"gp.{name} must be > 0, got {value!r}")
-        value = _check_float("validation_fraction", self.validation_fraction)
-        if not 0.0 <= value < 1.0:
-            raise ConfigError(f"gp.validation_fraction must lie in [0, 1), got {value!r}")
-
-    @classmethod
-    def from_config(cls, mapping: Mapping[str, Any] | None) -> GPSettings:
-        """Build settings from a mapping (e.g. a Hydra ``DictConfig``); unknown keys are errors."""
-        if mapping is None:
-            return cls()
-        allowed = [f.name for f in fields(cls)]
-        values = known_keys({str(k): v for k, v in dict(mapping).items()}, allowed, "gp")
-        # Config files may write 1 for 1.0; store the declared type so the state dict is stable.
-        for name in ("lr", "natural_lr", "validation_fraction"):
-            v = values.get(name)
-            if isinstance(v, int) and not isinstance(v, bool):
-                values[name] = float(v)
-        return cls(**values)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict of the settings (JSON-able and ``weights_only``-loadable)."""
-        return asdict(self)
-
-
-def _check_int(name: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"gp.{name} must be an integer, got {value!r}")
-    if value < minimum:
-        raise ConfigError(f"gp.{name} must be >= {minimum}, got {value!r}")
-    return value
-
-
-def _check_float(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"gp.{name} must be a number, got {value!r}")
-    if not math.isfinite(value):
-        raise ConfigError(f"gp.{name} must be finite, got {value!r}")
-    return float(value)
-
-
-def _psi_gp(inducing: Tensor, settings: GPSettings) -> PsiGP:
-    """The untrained :class:`PsiGP` over ``inducing`` points (``(M, d)``, or ``(B, M, d)``
-    batched) that ``settings`` describes: the one place the gp group's model keys (kernel, ard,
-    learn_inducing, natural_gradient, mean) reach the model, so a fit and its reload agree."""
-    return PsiGP(inducing, kernel=settings.kernel, ard=settings.ard,
-                 learn_inducing=settings.learn_inducing, natural=settings.natural_gradient,
-                 mean=settings.mean)  # fmt: skip
-
-
-# ----------------------------------------------------------------------------------------------
-# normalisation
-
-
-class Normalizer:
-    """Per-column standardisation ``(x - mean) / std`` fitted on the training inputs."""
-
-    def __init__(self, mean: Tensor, std: Tensor) -> None:
-        self.mean = mean
-        self.std = std
-
-    @classmethod
-    def fit(cls, x: Tensor) -> Normalizer:
-        """Fit mean and std per column of ``x`` (n, d)."""
-        mean = x.mean(dim=0)
-        std = x.std(dim=0) if x.shape[0] > 1 else torch.ones_like(mean)
-        # A constant column (e.g. training data at a single ligand level) must not divide by 0.
-        std = torch.where(std > 0, std, torch.ones_like(std))
-        return cls(mean.detach().clone(), std.detach().clone())
-
-    def transform(self, x: Tensor) -> Tensor:
-        """Normalise ``x`` (n, d); ``x`` must be on the normaliser's device."""
-        return (x - self.mean) / self.std
-
-    def to(self, device: torch.device | str) -> Normalizer:
-        """Move to ``device`` in place and return self."""
-        self.mean = self.mean.to(device)
-        self.std = self.std.to(device)
-        return self
-
-    def state_dict(self) -> dict[str, Tensor]:
-        """The fitted statistics as CPU tensors."""
-        return {"mean": self.mean.detach().cpu().clone(), "std": self.std.detach().cpu().clone()}
-
-    @classmethod
-    def from_state_dict(cls, state: Mapping[str, Tensor]) -> Normalizer:
-        """Inverse of :meth:`state_dict`."""
-        return cls(state["mean"].clone(), state["std"].clone())
-
-
-# ----------------------------------------------------------------------------------------------
-# fitted classifier
-
-
-@dataclass
-class FittedClassifier:
-    """A trained GP classifier with everything needed to predict and to rebuild it."""
-
-    model: PsiGP
-    likelihood: gpytorch.likelihoods.BernoulliLikelihood
-    normaliser: Normalizer
-    settings: GPSettings
-    history: list[float] = field(default_factory=list)
-    validation: dict[str, Any] | None = None
-    n_train: int = 0
-    n_val: int = 0
-    train_seconds: float = 0.0
-
-    @property
-    def device(self) -> torch.device:
-        """Device holding the model parameters."""
-        return self.model.variational_strategy.inducing_points.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """Floating-point type of the model parameters."""
-        return self.model.variational_strategy.inducing_points.dtype
-
-    def to(self, device: torch.device | str) -> FittedClassifier:
-        """Move model, likelihood and normaliser to ``device`` in place; return self.
-
-        GPyTorch's memoised predictive terms (the inducing points' Cholesky factor ...) are
-        plain attributes that ``Module.to`` does not move: they are dropped, else a model
-        fitted on CUDA and moved to the CPU solves against a CUDA factor (measured on an H200:
-        train's psi grid failed, "Expected all tensors to be on the same device")."""
-        self.model.to(device)
-        self.likelihood.to(device)
-        self.normaliser.to(device)
-        self.model.variational_strategy._clear_cache()
-        return self
-
-    @torch.no_grad()
-    def latent(self, x: Tensor, chunk_size: int = PREDICT_CHUNK) -> tuple[Tensor, Tensor]:
-        """Mean and variance of the latent f at raw (un-normalised) inputs ``x`` (``n x d``)."""
-        n = x.shape[0]
-        mu, var = self._latent_padded(x, chunk_size)
-        return mu[:n], var[:n]
-
-    @torch.no_grad()
-    def predict_proba(self, x: Tensor, chunk_size: int = PREDICT_CHUNK) -> Tensor:
-        """p(y = 1 | x) for raw inputs ``x`` (``n x d``), on the model's device.
-
-        The Bernoulli-probit predictive integrated over the latent posterior in closed form:
-        E[Phi(f)] = Phi(mu / sqrt(1 + var)) for f ~ N(mu, var). Evaluated in chunks of
-        ``chunk_size`` rows to bound memory; on the CPU a row's result does not depend on the
-        chunk size or on the other rows in the call (see ``_latent_padded``).
-        """
-        n = x.shape[0]
-        mu, var = self._latent_padded(x, chunk_size)
-        return torch.special.ndtr(mu / torch.sqrt(1.0 + var))[:n]
-
-    def _latent_padded(self, x: Tensor, chunk_size: int) -> tuple[Tensor, Tensor]:
-        """Latent mean/variance for ``x`` padded to a multiple of ``_PAD`` rows.
-
-        Vectorised CPU kernels (exp, erfc) and BLAS round a short remainder differently from
-        full SIMD blocks, so without padding the last rows of a call would change in the last
-        bit with the chunk size. Padding every chunk to a multiple of ``_PAD`` rows (repeating
-        the last row) keeps each row on the same code path; the padded rows are cut off later.
-        """
-        if chunk_size < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-        self.model.eval()
-        self.likelihood.eval()
-        x = x.to(device=self.device, dtype=self.dtype)
-        n = x.shape[0]
-        if n == 0:
-            empty = x.new_empty(0)
-            return empty, empty.clone()
-        chunk_size = max(_PAD, chunk_size - chunk_size % _PAD)
-        n_pad = -n % _PAD
-        if n_pad:
-            x = torch.cat([x, x[-1:].expand(n_pad, -1)])
-        means, variances = [], []
-        with gpytorch.settings.fast_pred_var():
-            for start in range(0, x.shape[0], chunk_size):
-                f = self.model(self.normaliser.transform(x[start : start + chunk_size]))
-                means.append(f.mean)
-                variances.append(f.variance)
-        return torch.cat(means), torch.cat(variances)
-
-    def to_state(self) -> dict[str, Any]:
-        """Tensors and plain Python values only, loadable with ``torch.load(weights_only=True)``."""
-        return {
-            "settings": self.settings.to_dict(),
-            "normaliser": self.normaliser.state_dict(),
-            "model": {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
-            "likelihood": {
-                k: v.detach().cpu().clone() for k, v in self.likelihood.state_dict().items()
-            },
-            "history": [float(v) for v in self.history],
-            "validation": copy.deepcopy(self.validation),
-            "n_train": int(self.n_train),
-            "n_val": int(self.n_val),
-            "train_seconds": float(self.train_seconds),
-        }
-
-    @classmethod
-    def from_state(
-        cls, state: Mapping[str, Any], device: torch.device | str = "cpu"
-    ) -> FittedClassifier:
-        """Rebuild the model from :meth:`to_state` output; predictions are reproduced exactly."""
-        settings = GPSettings.from_config(state["settings"])
-        model_state = state["model"]
-        inducing = model_state["variational_strategy.inducing_points"]
-        model = _psi_gp(inducing.clone(), settings)
-        model.load_state_dict(model_state, strict=True)
-        likelihood = gpytorch.likelihoods.BernoulliLikelihood()
-        likelihood.load_state_dict(state["likelihood"], strict=True)
-        fitted = cls(
-            model=model,
-            likelihood=likelihood,
-            normaliser=Normalizer.from_state_dict(state["normaliser"]),
-            settings=settings,
-            history=list(state.get("history", [])),
-            validation=copy.deepcopy(state.get("validation")),
-            n_train=int(state.get("n_train", 0)),
-            n_val=int(state.get("n_val", 0)),
-            train_seconds=float(state.get("train_seconds", 0.0)),
-        )
-        fitted.to(device)
-        fitted.model.eval()
-        fitted.likelihood.eval()
-        return fitted
-
-
-# ----------------------------------------------------------------------------------------------
-# training
 
 
 def _check_data(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
@@ -438,7 +162,7 @@ def fit_classifier(
         prep.inducing,
     )
     normaliser = prep.normaliser
-    model = _psi_gp(inducing.clone(), settings).to(device)
+    model = psi_gp(inducing.clone(), settings).to(device)
     likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(device)
     mll = gpytorch.mlls.VariationalELBO(likelihood, model, num_data=n_train)
 
@@ -465,7 +189,9 @@ def fit_classifier(
     model.train()
     likelihood.train()
     binned = (
-        _weighted(bin_inputs(z_train, y_train, settings.bins), weight) if settings.bins else None
+        weighted_bins(bin_inputs(z_train, y_train, settings.bins), weight)
+        if settings.bins
+        else None
     )
     good_state = _snapshot(fitted)
     t0 = time.perf_counter()
@@ -480,7 +206,7 @@ def fit_classifier(
             if binned is not None:  # one full-batch step on the binned data
                 for opt in optimizers:
                     opt.zero_grad(set_to_none=True)
-                loss = _binned_loss(model, likelihood, *binned)
+                loss = binned_loss(model, likelihood, *binned)
                 loss.backward()
                 for opt in optimizers:
                     opt.step()
@@ -558,11 +284,11 @@ def fit_classifiers(
     if not settings.bins or settings.natural_gradient or len(data) < 2:
         return one_by_one()
     preps = [_prepare(d[0], d[1], settings, device, d[2] if len(d) > 2 else None) for d in data]
-    binned = [_weighted(bin_inputs(p.z_train, p.y_train, settings.bins), w)
+    binned = [weighted_bins(bin_inputs(p.z_train, p.y_train, settings.bins), w)
               for p, w in zip(preps, weights, strict=True)]  # fmt: skip
     if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS:
         return one_by_one()
-    model = _psi_gp(torch.stack([p.inducing for p in preps]).clone(), settings).to(device)
+    model = psi_gp(torch.stack([p.inducing for p in preps]).clone(), settings).to(device)
     # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
     # (gpytorch's CholeskyVariationalDistribution initialisation from the whitened prior)
     strategy = model.variational_strategy
@@ -575,7 +301,7 @@ def fit_classifiers(
         strategy.variational_params_initialized.fill_(1)
     likelihood = gpytorch.likelihoods.BernoulliLikelihood().to(device)
     optimizer = torch.optim.Adam([*model.parameters(), *likelihood.parameters()], lr=settings.lr)
-    z_b, n_b, k_b = _padded_bins(binned)
+    z_b, n_b, k_b = padded_bins(binned)
     histories: list[list[float]] = [[] for _ in preps]
     model.train()
     likelihood.train()
@@ -586,7 +312,7 @@ def fit_classifiers(
         epoch_start = _model_state(model)
         try:
             optimizer.zero_grad(set_to_none=True)
-            losses = _binned_loss(model, likelihood, z_b, n_b, k_b)  # (b,)
+            losses = binned_loss(model, likelihood, z_b, n_b, k_b)  # (b,)
             losses.sum().backward()
             optimizer.step()
         except (NotPSDError, NanError) as exc:
@@ -620,31 +346,6 @@ def _check_weight(weight: float, settings: GPSettings) -> None:
         raise ConfigError("weighted rows (expected labels' dispersion) need gp.bins > 0")
 
 
-def _weighted(
-    binned: tuple[Tensor, Tensor, Tensor], weight: float
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Bins whose rows count ``weight`` draws each (``weight == 1``: the same tensors)."""
-    if weight == 1.0:
-        return binned
-    z_b, n_b, k_b = binned
-    return z_b, n_b * weight, k_b * weight
-
-
-def _padded_bins(binned: Sequence[tuple[Tensor, Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
-    """Stack several classifiers' bins (``b x L x d``, ``b x L``, ``b x L``), padding with
-    empty bins (no points: they add nothing to the ELBO) at the first bin's input."""
-    size = max(z.shape[0] for z, _, _ in binned)
-
-    def pad(t: Tensor, like: Tensor) -> Tensor:
-        extra = size - t.shape[0]
-        return torch.cat([t, like.expand(extra, *t.shape[1:])]) if extra else t
-
-    z = torch.stack([pad(z, z[:1]) for z, _, _ in binned])
-    n = torch.stack([pad(n, n.new_zeros(1)) for _, n, _ in binned])
-    k = torch.stack([pad(k, k.new_zeros(1)) for _, _, k in binned])
-    return z, n, k
-
-
 def _model_state(model: PsiGP) -> dict[str, Tensor]:
     return {k: v.detach().clone() for k, v in model.state_dict().items()}
 
@@ -660,7 +361,7 @@ def _split(
     state = model.state_dict()
     out = []
     for i, prep in enumerate(preps):
-        single = _psi_gp(state["variational_strategy.inducing_points"][i].clone(),
+        single = psi_gp(state["variational_strategy.inducing_points"][i].clone(),
                         settings).to(prep.z_train.device)  # fmt: skip
         target = single.state_dict()
         part = {}
@@ -702,124 +403,6 @@ def _batches(n: int, settings: GPSettings, gen: torch.Generator, device: torch.d
     return torch.randperm(n, generator=gen).to(device).split(settings.batch_size)
 
 
-def _bin_index(z: Tensor, bins: int | Sequence[int]) -> tuple[Tensor, int]:
-    """Each point's equal-width bin (``bins`` per column, or ``bins[j]`` for column ``j``)
-    and the number of bins."""
-    d = z.shape[1]
-    per_axis = [bins] * d if isinstance(bins, int) else list(bins)
-    if len(per_axis) != d:
-        raise ConfigError(f"gp.bins has {len(per_axis)} counts for {d} input(s): give one or {d}")
-    index = torch.zeros(z.shape[0], dtype=torch.int64, device=z.device)
-    for j, n in enumerate(per_axis):
-        col = z[:, j].contiguous()  # bucketize copies (and warns) otherwise
-        edges = torch.linspace(float(col.min()), float(col.max()), n + 1, device=z.device)
-        index = index * n + torch.bucketize(col, edges[1:-1])
-    return index, math.prod(per_axis)
-
-
-def bin_inputs(z: Tensor, y: Tensor, bins: int | Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
-    """Aggregate points into equal-width bins of every (normalised) input column: ``bins`` per
-    column, or ``bins[j]`` for column ``j``.
-
-    Returns the occupied bins' mean inputs ``b x d``, point counts ``n_b`` and counts of y = 1
-    ``k_b``. With one input and hundreds of bins the bins are far narrower than any lengthscale
-    psi varies on, so placing a bin's points at their mean changes the fit negligibly, while a
-    full-batch step on ~``bins`` rows is cheap enough to converge (minibatch training on the
-    points left the fit measurably off; see docs/fidelity.md).
-    """
-    d = z.shape[1]
-    index, size = _bin_index(z, bins)
-    n_b = torch.bincount(index, minlength=size).to(z.dtype)
-    k_b = torch.bincount(index, weights=y.to(z.dtype), minlength=size)
-    sums = torch.stack(
-        [torch.bincount(index, weights=z[:, j], minlength=size) for j in range(d)], 1
-    )
-    keep = n_b > 0
-    return sums[keep] / n_b[keep].unsqueeze(1), n_b[keep], k_b[keep]
-
-
-def label_weight(z: Tensor, y: Tensor, bins: int | Sequence[int], cap: float) -> float:
-    """How many Bernoulli draws one expected label is worth: the inverse of the quasi-binomial
-    dispersion, Pearson's pooled estimate within equal-width bins of ``z`` (``n x d``),
-    ``sum_b (n_b - 1) p_b (1 - p_b) / sum_i (y_i - p_b(i))^2`` over bins with two rows or more
-    (``p_b`` the bin's mean label; ``n_b - 1``: the bin's mean uses up one degree of freedom),
-    clipped to ``[1, cap]``.
-
-    A 0/1 outcome has the binomial variance p (1 - p); an expected label, the window's law given
-    the internal state, varies only as much as that state does among cells at the same input
-    (not at all where the class pins the state). The binned likelihood counts a row as one draw,
-    so without this weight a GP trusts noise-free labels as little as coin flips and bends
-    where they are sparse (E. coli, run with 2 CCW motors leaving at the top of the occupied
-    band: +28 % at 90 rows; docs/fidelity.md, "Memory"). Weighting the likelihood by it is the
-    quasi-likelihood fit of a GLM with estimated dispersion. The bins span ``z``'s own range,
-    as the training's bins span its (normalised) training split's: the same equal-width bins up
-    to the held-out rows.
-
-    One weight for all of a GP's rows, pooled over the bins: a per-bin estimate would be noise
-    where rows are sparse (90 rows in 100 bins), which is where the weight matters. Pooling is
-    right when the rows share one dispersion: labels of one kind from one collection (collect
-    writes expected labels for every row or for none, so each GP of the pipeline gets one
-    kind). Where it varies, rows with dispersions ``1/w_k`` in shares ``f_k`` get the inverse
-    of the mean dispersion, ``1 / sum_k f_k / w_k``: the noisier rows are over-weighted and the
-    quieter under-weighted. E.g. a table mixing noise-free expected labels with 0/1 outcomes
-    copied into the expected column, half each, gets ~2: the outcomes count ~2x what they are
-    worth. So do not mix label sources in one table; within one source the dispersion still
-    varies with ``z`` where the class pins the internal state in places and not in others
-    (E. coli's hidden S/C split), and the weight is then that average.
-    """
-    if not cap >= 1.0:
-        raise ValueError(f"label_weight: cap must be >= 1, got {cap!r}")
-    if not (bool(torch.isfinite(z).all()) and bool(torch.isfinite(y).all())):
-        raise NumericalError("label_weight: inputs and labels must be finite")
-    index, size = _bin_index(z, bins)
-    y = y.to(torch.float64)
-    n_b = torch.bincount(index, minlength=size).to(torch.float64)
-    p_b = torch.bincount(index, weights=y, minlength=size) / n_b.clamp(min=1)
-    pooled = n_b >= 2  # a bin of one row says nothing about the spread around its mean
-    binomial = float(((n_b - 1) * p_b * (1 - p_b))[pooled].sum())
-    residual = float(((y - p_b[index]) ** 2)[pooled[index]].sum())
-    if binomial <= 0.0:  # every pooled bin all 0 or all 1: nothing to weigh
-        return 1.0
-    return float(min(cap, max(1.0, binomial / residual))) if residual > 0 else float(cap)
-
-
-def binned_expected_log_likelihood(
-    likelihood: gpytorch.likelihoods.BernoulliLikelihood,
-    f: gpytorch.distributions.MultivariateNormal,
-    n_b: Tensor,
-    k_b: Tensor,
-) -> Tensor:
-    """Each bin's expected log-likelihood under q(f) (``... x L``): ``k`` successes and
-    ``n - k`` failures of the probit likelihood, E_q[k log Phi(f) + (n - k) log Phi(-f)], in
-    one pass of the likelihood's Gauss-Hermite quadrature.
-
-    What ``BernoulliLikelihood.expected_log_prob`` computes for each label (with its
-    ``log_normal_cdf``), summed, in one quadrature instead of two (a training step at the
-    paper's size ~25 % cheaper). Not ``torch.special.log_ndtr``, though it is closer to the
-    exact integral: the objective would change, and the fitted psi with it (measured: up to
-    2 % more bias where cells live after the default 1,000 steps on the same data).
-    """
-    from gpytorch.functions import log_normal_cdf
-
-    return likelihood.quadrature(
-        lambda s: k_b * log_normal_cdf(s) + (n_b - k_b) * log_normal_cdf(-s), f
-    )
-
-
-def _binned_loss(
-    model: PsiGP,
-    likelihood: gpytorch.likelihoods.BernoulliLikelihood,
-    z_b: Tensor,
-    n_b: Tensor,
-    k_b: Tensor,
-) -> Tensor:
-    """Negative ELBO per point on binned data (``...``: one per GP of a batch): the expected
-    log-likelihood of k_b successes and n_b - k_b failures at each bin's mean input, minus the
-    KL term."""
-    ell = binned_expected_log_likelihood(likelihood, model(z_b), n_b, k_b)
-    return -(ell.sum(-1) - model.variational_strategy.kl_divergence()) / n_b.sum(-1)
-
-
 def _snapshot(fitted: FittedClassifier) -> _State:
     return (
         {k: v.detach().clone() for k, v in fitted.model.state_dict().items()},
@@ -851,10 +434,8 @@ def _numerical_failure(
 
 
 __all__ = [
-    "FittedClassifier",
+    "BATCH_MAX_BINS",
     "GPSettings",
-    "Normalizer",
     "fit_classifier",
     "fit_classifiers",
-    "label_weight",
 ]

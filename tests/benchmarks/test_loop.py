@@ -8,7 +8,8 @@ import json
 import pytest
 import torch
 
-from surrogate.benchmarks.loop import format_lookup_report, format_report, main
+from surrogate.benchmarks.lookup import format_lookup_report
+from surrogate.benchmarks.loop import format_report, main
 from surrogate.fields import GaussianField
 from surrogate.gp import PsiLookupTable
 from surrogate.models.ecoli import EcoliModel
@@ -120,7 +121,7 @@ def test_kernel_compile_is_timed_cold_then_cached(tmp_path) -> None:
 
 @pytest.mark.parametrize("quick", [False, True])
 def test_shipped_bench_lookup_size_fits_the_default_inputs(compose_cfg, quick: bool) -> None:
-    from surrogate.benchmarks.loop import bench_settings
+    from surrogate.benchmarks.machine import bench_settings
     from surrogate.config import to_dict
     from surrogate.stages.settings import TrainSettings
 

@@ -22,7 +22,7 @@ from surrogate.evaluate.band_fidelity import (
     position_bins,
     summarise_pair,
 )
-from surrogate.evaluate.statistics import ks_c_alpha, ks_critical_value, noise_threshold
+from surrogate.evaluate.ks import ks_c_alpha, ks_critical_value, noise_threshold
 from surrogate.simulate.profiles import Profiles
 
 H = 0.02  # mm, the columns' width (experiment=band's)

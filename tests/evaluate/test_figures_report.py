@@ -23,15 +23,8 @@ from surrogate.evaluate.report import (
     write_comparison,
     write_report,
 )
-from surrogate.evaluate.statistics import (
-    PAPER_TIMES,
-    SimulationRun,
-    combine_with_noise_floor,
-    comparison_table,
-    load_run,
-    mean_std_over_time,
-    observable_at,
-)
+from surrogate.evaluate.runs import SimulationRun, load_run, mean_std_over_time, observable_at
+from surrogate.evaluate.statistics import PAPER_TIMES, combine_with_noise_floor, comparison_table
 from surrogate.io import save_figure
 from surrogate.models.ecoli import EcoliModel
 from surrogate.models.ecoli.reference import PAPER_QUANTITIES, PAPER_TABLE1, paper_table1_frame

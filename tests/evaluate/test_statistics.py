@@ -12,19 +12,20 @@ import pytest
 from scipy import stats
 
 from surrogate.errors import ArtefactError, MissingArtefactError, NumericalError
-from surrogate.evaluate.statistics import (
-    COLUMNS,
+from surrogate.evaluate.ks import compare_samples, ks_critical_value
+from surrogate.evaluate.runs import (
     SimulationRun,
-    combine_with_noise_floor,
-    compare_samples,
-    comparison_table,
     default_times,
     distances_at,
-    ks_critical_value,
     load_run,
     mean_std_over_time,
-    noise_floor_table,
     observable_at,
+)
+from surrogate.evaluate.statistics import (
+    COLUMNS,
+    combine_with_noise_floor,
+    comparison_table,
+    noise_floor_table,
     observable_quantity,
 )
 from surrogate.io import write_json, write_parquet
@@ -447,7 +448,8 @@ def test_family_failures_count_a_difference_at_the_reports_level() -> None:
     of 0.016 (above the per-test critical 0.0136) is not counted, 0.019 (above 1.81 x 0.01)
     is; a floor above the critical value still sets the bar; a table without floors counts
     nothing and adds no comparison."""
-    from surrogate.evaluate.statistics import family_failures, ks_c_alpha, ks_critical_value
+    from surrogate.evaluate.ks import ks_c_alpha, ks_critical_value
+    from surrogate.evaluate.statistics import family_failures
 
     def table(ks, floors):
         n = len(ks)

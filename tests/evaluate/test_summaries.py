@@ -13,22 +13,24 @@ import torch
 from matplotlib.figure import Figure
 from scipy import stats
 
-from surrogate.evaluate import statistics as st
+from surrogate.evaluate import runs as run_module
 from surrogate.evaluate.figures import (
     plot_duration_histograms,
     plot_observable_histograms,
     plot_observable_over_time,
 )
-from surrogate.evaluate.statistics import (
-    COLUMNS,
-    ERROR_COLUMNS,
+from surrogate.evaluate.ks import (
     BinnedSample,
     ExactSample,
     compare_distributions,
     compare_samples,
+    ks_pvalue_asymptotic,
+)
+from surrogate.evaluate.runs import load_run, mean_std_over_time
+from surrogate.evaluate.statistics import (
+    COLUMNS,
+    ERROR_COLUMNS,
     comparison_table,
-    load_run,
-    mean_std_over_time,
     noise_floor_table,
 )
 from surrogate.fields import GaussianField
@@ -117,7 +119,7 @@ def test_binned_ks_and_wasserstein_bracket_the_exact_values(case: int) -> None:
         assert exact["ks"] <= got["ks"] + got["ks_error"] + 1e-12
         assert abs(got["wasserstein"] - exact["wasserstein"]) <= got["wasserstein_error"] + 1e-12
         assert (got["n_a"], got["n_b"]) == (n_a, n_b)
-        assert got["ks_pvalue"] == st.ks_pvalue_asymptotic(got["ks"], n_a, n_b)
+        assert got["ks_pvalue"] == ks_pvalue_asymptotic(got["ks"], n_a, n_b)
     # the error bound is what the grid allows: at most the largest bin mass (of either sample,
     # outer bins included) on either side of an interval, so a wide spread makes it small
     ba, bb = binned(a, grid), binned(b, grid)
@@ -193,8 +195,8 @@ def test_summaries_agree_with_the_complete_tables(pair: tuple[Path, Path]) -> No
         assert (s.loc[q, "n_reference"], s.loc[q, "n_candidate"]) == (3000, 3000)
         # p-values: the asymptotic p of the binned KS, between those of its bounds, and within
         # what the KS difference allows of the exact p-value (ks_2samp's exact method at n=3000)
-        p_hi = st.ks_pvalue_asymptotic(s.loc[q, "ks"], 3000, 3000)
-        p_lo = st.ks_pvalue_asymptotic(s.loc[q, "ks"] + s.loc[q, "ks_binning_error"], 3000, 3000)
+        p_hi = ks_pvalue_asymptotic(s.loc[q, "ks"], 3000, 3000)
+        p_lo = ks_pvalue_asymptotic(s.loc[q, "ks"] + s.loc[q, "ks_binning_error"], 3000, 3000)
         assert s.loc[q, "ks_pvalue"] == p_hi and p_lo <= o.loc[q, "ks_pvalue"] + 0.01
         assert o.loc[q, "ks_pvalue"] <= p_hi + 0.01
     for q in ("run", "tumble"):  # durations: the full sample exactly, from the lattice
@@ -290,7 +292,7 @@ def test_load_run_sources_and_expansion_limit(pair: tuple[Path, Path], monkeypat
     n_runs = run.duration_distribution("run").n
     assert run.durations_of("run").size == n_runs
     assert run.mean_duration("run") == pytest.approx(run.durations_of("run").mean(), rel=1e-12)
-    monkeypatch.setattr(st, "EXPAND_LIMIT", n_runs - 1)
+    monkeypatch.setattr(run_module, "EXPAND_LIMIT", n_runs - 1)
     with pytest.raises(ValueError, match="duration_distribution"):
         run.durations_of("run")
     old = load_run(pair[0], source="tables")

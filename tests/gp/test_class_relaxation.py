@@ -18,7 +18,7 @@ from surrogate.gp.class_relaxation import (
     relaxation_time,
     stationary_bin_law,
 )
-from surrogate.gp.training import GPSettings
+from surrogate.gp.settings import GPSettings
 from surrogate.models.capabilities import class_bins_of
 from surrogate.models.count_classes import CountClasses
 from surrogate.models.sbml_agent import SbmlAgentModel

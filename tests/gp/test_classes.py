@@ -1,5 +1,5 @@
 """The K-lumps chain's learned law (surrogate.gp.classes): one-vs-rest binary GPs, and the
-weight of an expected label (surrogate.gp.training.label_weight)."""
+weight of an expected label (surrogate.gp.binned.label_weight)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ import pytest
 import torch
 
 from surrogate.errors import ArtefactError, NumericalError
+from surrogate.gp.binned import label_weight
 from surrogate.gp.classes import fit_class_law
-from surrogate.gp.training import GPSettings, fit_classifiers, label_weight
+from surrogate.gp.settings import GPSettings
+from surrogate.gp.training import fit_classifiers
 
 SETTINGS = GPSettings(seed=0, bins=50, epochs=300, n_inducing=16, kernel="matern52")
 

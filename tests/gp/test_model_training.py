@@ -19,9 +19,7 @@ from surrogate.gp import (
     classification_metrics,
     fit_classifier,
 )
-from surrogate.gp.training import (
-    FittedClassifier,
-)
+from surrogate.gp.fitted import FittedClassifier
 
 M_BOX = (1.0, 3.5)
 L_BOX = (0.0, 0.1)
@@ -448,7 +446,7 @@ def test_binned_likelihood_is_gpytorchs_per_label_expected_log_prob() -> None:
     a piecewise approximation)."""
     import numpy as np
 
-    from surrogate.gp.training import binned_expected_log_likelihood
+    from surrogate.gp.binned import binned_expected_log_likelihood
 
     g = torch.Generator().manual_seed(0)
     likelihood = gpytorch.likelihoods.BernoulliLikelihood()
