@@ -13,5 +13,6 @@ them, write the artefacts and log.
 - :mod:`~surrogate.diagnosis.settling`: the settling time and the burn-in it calls for.
 - :mod:`~surrogate.diagnosis.recommendation`: the abstraction recommended.
 - :mod:`~surrogate.diagnosis.report`: the inspection's report and figures.
-- :mod:`~surrogate.diagnosis.advice`: whether to trust a run's abstraction (:func:`verdict`).
+- :mod:`~surrogate.diagnosis.advice`: whether to trust a run's abstraction (``verdict``), and
+  :mod:`~surrogate.diagnosis.remedies`: the remedies it prints.
 """

@@ -28,7 +28,7 @@ range) and names, in order, the first causes that apply:
 5. **Memory** (the runs differ from the full model beyond the noise floor while the psi is
    unbiased within its error): the chain over phi forgets what the network remembers: classes
    finer than phi (``gp=classes``, with ``model.classes=auto`` for a network) or a switch clock
-   (``gp=clock``). Where the clock ran already, what was not tried (:func:`clock_step`): a
+   (``gp=clock``). Where the clock ran already, what was not tried (:func:`~surrogate.diagnosis.remedies.clock_step`): a
    longer clock (twice ``gp.max_age``), more transitions, and classes only where the memory is
    a slow count rather than a cycle's phase; never the setting in use.
 
@@ -39,10 +39,18 @@ population size; trust it there and check at scale (``scripts/fidelity.py``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from surrogate.diagnosis.remedies import (
+    Advisor,
+    Check,
+    Remedy,
+    clock_remedies,
+    coarser_remedy,
+    more_rows,
+)
 from surrogate.kinds import ChainKind
 from surrogate.models.count_classes import CountClasses
 from surrogate.simulate.support import describe_sparse_where, sparse_share
@@ -52,28 +60,6 @@ from surrogate.simulate.support import describe_sparse_where, sparse_share
 SETTLING_Z = 4.0
 #: a bias is significant above this many standard errors
 BIAS_Z = 2.0
-
-
-@dataclass(frozen=True)
-class Remedy:
-    """One next step a cause advises.
-
-    Attributes:
-        kind: what it changes, e.g. ``more_rows``, ``longer_clock`` (a remedy that did not
-            help a run of the model is not advised again by kind, whatever its values).
-        text: the step as printed.
-        overrides: the settings it prints, as command-line overrides (checked before it is
-            printed, :mod:`surrogate.stages.advice_check`); empty where it names no value.
-    """
-
-    kind: str
-    text: str
-    overrides: tuple[str, ...] = ()
-
-
-#: checks a remedy's overrides: the refusal's message, or None (:func:`~surrogate.stages.
-#: advice_check.checked` bound to the run's config)
-Check = Callable[[Sequence[str], str], str | None]
 
 
 @dataclass
@@ -111,43 +97,6 @@ class Verdict:
         for i, (name, measured, step) in enumerate(self.causes, 1):
             lines.append(f"{i}. **{name}**: {measured} Next: {step}")
         return "\n".join(lines)
-
-
-class _Advisor:
-    """Keeps the remedies that run and were not tried without a gain; says why of the rest."""
-
-    def __init__(self, check: Check | None, tried: Mapping[str, str] | None) -> None:
-        self.check, self.tried = check, dict(tried or {})
-        self.remedies: list[tuple[str, Remedy]] = []
-        self.dropped: list[tuple[str, Remedy, str]] = []
-
-    def step(self, cause: str, remedies: Sequence[Remedy], sep: str = "; or ",
-             then: str = "") -> str:  # fmt: skip
-        """The printed step of ``cause``: its remedies that pass, joined by ``sep``, then
-        ``then``; a note names each one left out and why."""
-        kept, notes = [], []
-        for r in remedies:
-            why = self.tried.get(r.kind)
-            if why is None and r.overrides and self.check is not None:
-                why = self.check(r.overrides, r.text)
-            if why is None:
-                kept.append(r)
-                self.remedies.append((cause, r))
-            else:
-                self.dropped.append((cause, r, why))
-                notes.append(f"not advised: {' '.join(r.overrides) or r.kind} ({why})")
-        text = sep.join(r.text for r in kept) + then if kept else \
-            "nothing this reading can advise runs or is untried"  # fmt: skip
-        return text + "".join(f" [{n}]" for n in notes)
-
-
-def _more_rows(n_per_state: int | None, text: str = "more transitions ({more})") -> Remedy:
-    """More collected rows: four times ``collect.n_per_state`` where it is known."""
-    if n_per_state:
-        more = f"`collect.n_per_state={4 * n_per_state}`"
-        return Remedy("more_rows", text.format(more=more),
-                      (f"collect.n_per_state={4 * n_per_state}",))  # fmt: skip
-    return Remedy("more_rows", text.format(more="a larger `collect.n_per_state`"))
 
 
 def _missing(value: Any) -> bool:
@@ -203,7 +152,7 @@ class VerdictInputs:
             (``train_metrics.json["class_shares"]``).
         max_age: the switch clock's cap (s) where the chain ran with one (``kind.clock``).
         count_classes: the model's classes where they are bins of a count: coarser classes
-            are then advised as edges (:func:`coarser_classes`).
+            are then advised as edges (:func:`~surrogate.diagnosis.remedies.coarser_classes`).
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -241,7 +190,7 @@ def verdict(
                                                  run.network)  # fmt: skip
     n_per_state, class_shares, max_age, count_classes = (run.n_per_state, run.class_shares,
                                                          run.max_age, run.count_classes)  # fmt: skip
-    advisor = _Advisor(check, tried)
+    advisor = Advisor(check, tried)
     causes: list[tuple[str, str, str]] = []
     missing = unmeasured(diagnostic, lump_names, outside)
     if missing:
@@ -313,7 +262,7 @@ def verdict(
         causes.append((
             name,
             "where the population lives the learned psi is off: " + "; ".join(biased) + ".",
-            advisor.step(name, [_more_rows(n_per_state, "more transitions ({more}: the bias "
+            advisor.step(name, [more_rows(n_per_state, "more transitions ({more}: the bias "
                                            "of a GP fit falls with its data)")],
                          then=", and check `gp.epochs`/`gp.n_inducing` converged (the training "
                               "history figure)."),
@@ -329,7 +278,7 @@ def verdict(
     drift = kind.classes and bool(shares.get("drift"))
     if drift:
         name = "Class shares drift"
-        more = _more_rows(n_per_state, "more transitions per class ({more})")
+        more = more_rows(n_per_state, "more transitions per class ({more})")
         if kind.relaxation:
             remedies = [more, Remedy("other_classes", "other classes (`model.classes`)")]
         else:
@@ -359,7 +308,7 @@ def verdict(
         if kind.classes:
             step = advisor.step(name, [
                 Remedy("other_classes", "more classes or other bins (`model.classes`)"),
-                _more_rows(n_per_state, "more transitions per class ({more})")], then=".")  # fmt: skip
+                more_rows(n_per_state, "more transitions per class ({more})")], then=".")  # fmt: skip
         elif kind.clock:
             step = advisor.step(name, clock_remedies(max_age, n_per_state, classes), sep=" ")
         else:
@@ -382,7 +331,7 @@ def _sparse_rows(
     outside: Mapping[str, Mapping[str, Any] | None],
     outside_warning: float,
     n_per_state: int | None = None,
-    advisor: _Advisor | None = None,
+    advisor: Advisor | None = None,
     classes: CountClasses | None = None,
     shared: bool = False,
 ) -> tuple[str, str, str] | None:
@@ -390,8 +339,8 @@ def _sparse_rows(
     any field's run spent more than ``outside_warning`` of its cell-steps inside the trained
     range in sparsely trained bins (its report's ``share_sparse``); None where none did.
     ``classes`` (bins of a count) and ``shared`` (the chain needs bins both lumps share): the
-    coarser classes are advised as edges (:func:`coarser_classes`)."""
-    advisor = advisor or _Advisor(None, None)
+    coarser classes are advised as edges (:func:`~surrogate.diagnosis.remedies.coarser_classes`)."""
+    advisor = advisor or Advisor(None, None)
     name = "Sparse training data"
     thin = {f: r for f, r in outside.items()
             if r and (sparse_share(r) or 0.0) > outside_warning}  # fmt: skip
@@ -411,7 +360,7 @@ def _sparse_rows(
             "needs) in " + "; ".join(parts)
             + ": its law from that class there is the fit's guess between few of its rows.",
             advisor.step(name, [
-                _more_rows(n_per_state, "more rows ({more}: a rare class's rows grow in "
+                more_rows(n_per_state, "more rows ({more}: a rare class's rows grow in "
                            "proportion)"),
                 coarser_remedy(classes, _first_sparse_class(thin), shared),
                 design], then="."),
@@ -422,7 +371,7 @@ def _sparse_rows(
         "(fewer per state than a switching rate within 20 % needs) in " + "; ".join(parts)
         + ": its psi there is the fit's guess between few rows.",
         advisor.step(name, [
-            design, _more_rows(n_per_state, "more rows ({more}), which fill them only in "
+            design, more_rows(n_per_state, "more rows ({more}), which fill them only in "
                                "proportion")], then="."),
     )  # fmt: skip
 
@@ -434,120 +383,11 @@ def _first_sparse_class(thin: Mapping[str, Mapping[str, Any]]) -> str | None:
     return None if best is None else str(best["sparse_class"])
 
 
-def coarser_classes(
-    classes: CountClasses, sparse: str, shared: bool = False
-) -> tuple[CountClasses, str] | None:
-    """``classes`` with the bin of the class ``sparse`` merged into its neighbour in its lump
-    (the edge between them removed), and the neighbour's name; None where ``sparse`` is not
-    one of them or its lump has one bin. An end bin (a count's tail) merges inwards; a middle
-    one with the neighbour nearer the lump's middle. Bins both lumps share (a flip keeps the
-    bin, and ``shared``: relaxation needs them) lose the edge in both lumps; where no edge
-    would be left, None (the classes would be the lumps: the two-state chain)."""
-    if sparse not in classes.names:
-        return None
-    index = classes.names.index(sparse)
-    phi = classes.lumps[index]
-    j = index - (0 if phi == 0 else len(classes.edges[0]) + 1)
-    edges = classes.edges[phi]
-    if not edges:
-        return None
-    bins = len(edges) + 1
-    # the removed edge: below the bin (merge with the lower neighbour) or above it
-    upper = j == 0 or (j < bins - 1 and j < (bins - 1) / 2)
-    cut = edges[j] if upper else edges[j - 1]
-    together = classes.edges[0] == classes.edges[1]
-    if shared and not together:
-        return None
-    new = tuple(tuple(e for e in classes.edges[p] if e != cut)
-                if p == phi or together else classes.edges[p] for p in (0, 1))  # fmt: skip
-    if not new[0] and not new[1]:
-        return None
-    merged = CountClasses(classes.variable, (new[0], new[1]), classes.lump_names)
-    neighbour = classes.names[index + (1 if upper else -1)]
-    return merged, neighbour
-
-
-def classes_override(classes: CountClasses) -> str:
-    """``classes`` as a command-line override Hydra parses (``++model.classes={species: D,
-    edges: {off: [1], on: [3]}}``; one list where both lumps share the edges)."""
-
-    def listed(edges: Sequence[float]) -> str:
-        return "[" + ", ".join(f"{e:g}" for e in edges) + "]"
-
-    variable = classes.variable
-    count = (f"species: {variable}" if variable.isidentifier()
-             else f"expression: '{variable}'")  # fmt: skip
-    if classes.edges[0] == classes.edges[1]:
-        edges = listed(classes.edges[0])
-    else:
-        # Hydra's grammar takes bare keys (a quoted one is no key; a name it reads otherwise,
-        # e.g. true, the check refuses)
-        edges = "{" + ", ".join(f"{n}: {listed(e)}" for n, e in
-                                zip(classes.lump_names, classes.edges, strict=True)) + "}"  # fmt: skip
-    return f"++model.classes={{{count}, edges: {edges}}}"
-
-
-def coarser_remedy(classes: CountClasses | None, sparse: str | None, shared: bool) -> Remedy:
-    """The remedy "coarser classes": where the model's classes are bins of a count and the
-    sparse class is known, the edges with it merged into its neighbour
-    (:func:`coarser_classes`), as the override that sets them; else the setting to change."""
-    coarser = None if classes is None or sparse is None else \
-        coarser_classes(classes, sparse, shared)  # fmt: skip
-    if coarser is None:
-        return Remedy("coarser_classes", "coarser classes (`model.classes`: fewer, wider bins)")
-    merged, neighbour = coarser
-    override = classes_override(merged)
-    return Remedy("coarser_classes", f"coarser classes: `{sparse}` merged with its neighbour "
-                  f"`{neighbour}`, `{override}`", (override,))  # fmt: skip
-
-
-def clock_remedies(max_age: float | None, n_per_state: int | None, classes: Remedy) -> list[Remedy]:
-    """The next steps for a chain with a switch clock (``gp=clock``) whose runs differ from the
-    full model while its psi is unbiased where the population lives: what was not tried, not
-    the clock again. A longer clock first (ages beyond ``gp.max_age`` are clamped to it, so
-    memory that outlasts the cap is lost), then more transitions (the clock's psi is over one
-    input more, the age, and each age bin sees a share of the rows: on the toggle switch the
-    clock needed more data than the two-state chain, docs/fidelity.md); classes only where the
-    memory is a slow count, not a cycle's phase (on Tyson's oscillator classes over its
-    threshold's count did worse than the two-state chain, docs/sbml.md)."""
-    if max_age is not None:
-        longer = Remedy("longer_clock", f"the switch clock is on already; first a longer "
-                        f"clock, `gp.max_age={2 * max_age:g}` (twice the `gp.max_age="
-                        f"{max_age:g}` that ran): an age beyond the cap is clamped to it, so "
-                        f"memory that outlasts it is lost (`python3 scripts/inspect_model.py` "
-                        f"gives the age where the hazard flattens and, for an oscillating "
-                        f"lump, the period).", (f"gp.max_age={2 * max_age:g}",))  # fmt: skip
-    else:
-        longer = Remedy("longer_clock", "the switch clock is on already; first a longer "
-                        "clock, a larger `gp.max_age`: an age beyond the cap is clamped to it.")  # fmt: skip
-    more = _more_rows(n_per_state, "Then more transitions ({more}): the clock's psi is over "
-                      "the age as well, and each age sees a share of the rows.")  # fmt: skip
-    only = Remedy(classes.kind, f"{classes.text[0].upper()}{classes.text[1:]} only where the "
-                  f"memory is a slow count rather than a cycle's phase (the inspector says "
-                  f"which): bins of a count do not hold where a cycle is, and on an oscillator "
-                  f"they did worse than the two-state chain (docs/sbml.md).",
-                  classes.overrides)  # fmt: skip
-    return [longer, more, only]
-
-
-def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> str:
-    """:func:`clock_remedies` as one text (``classes``: how the model gets classes)."""
-    remedies = clock_remedies(max_age, n_per_state, Remedy("classes", f"classes ({classes})"))
-    return " ".join(r.text for r in remedies)
-
-
 __all__ = [
     "BIAS_Z",
     "SETTLING_Z",
-    "Check",
-    "Remedy",
     "Verdict",
     "VerdictInputs",
-    "classes_override",
-    "clock_remedies",
-    "clock_step",
-    "coarser_classes",
-    "coarser_remedy",
     "unmeasured",
     "verdict",
 ]

@@ -15,16 +15,10 @@ import yaml
 
 from surrogate.config import to_dict
 from surrogate.diagnosis import recommendation, settling
-from surrogate.diagnosis.advice import (
-    Check,
-    Verdict,
-    VerdictInputs,
-    classes_override,
-    coarser_classes,
-    verdict,
-)
+from surrogate.diagnosis.advice import Verdict, VerdictInputs, verdict
 from surrogate.diagnosis.fixed import EXACT_METHOD, FixedInputs
 from surrogate.diagnosis.options import InspectOptions
+from surrogate.diagnosis.remedies import Check, classes_override, coarser_classes
 from surrogate.errors import ConfigError
 from surrogate.kinds import chain_kind
 from surrogate.models import sbml_agent
