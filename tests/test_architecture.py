@@ -3,7 +3,8 @@
 Engine packages (ctmc, simulate, gp, evaluate, sbml and the model protocols) never import a
 concrete model; no model imports the engine above it (simulate, gp: the engine packs what a
 model's kernel needs into plain arrays); nothing but the stages themselves, the scripts and the
-loop benchmark imports a stage; and every stage (a module with a ``run`` and a ``validate``
+loop benchmark imports a stage (the diagnosis package below the stages not even under ``if
+TYPE_CHECKING:``); and every stage (a module with a ``run`` and a ``validate``
 entry point) lives in ``surrogate/stages``. The rules are checked over every module, so a new
 file is held to them too.
 """
@@ -34,6 +35,9 @@ PROTOCOLS = (
 )
 #: engine packages above the models: a model never imports them (the engine adapts the model)
 ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")
+#: the layer below the stages and above the engine: measurement, diagnosis and advice from plain
+#: values and typed options (the stages read their settings, call it and write the artefacts)
+DIAGNOSIS = ("diagnosis",)
 #: modules outside surrogate/stages that may import a stage (they run stages' settings)
 # the loop benchmark times the stages' own layers (the abstraction's; the field benchmark's exact
 # psi's table is the kinds')
@@ -163,6 +167,25 @@ def test_only_stages_and_the_bench_import_a_stage() -> None:
     assert not offences, "\n".join(offences)
 
 
+@pytest.mark.parametrize("entry", DIAGNOSIS)
+def test_diagnosis_never_imports_a_stage_or_a_concrete_model(entry: str) -> None:
+    """:mod:`surrogate.diagnosis` sits below the stages: none of its modules imports a stage
+    (not inside a function, not under ``if TYPE_CHECKING:``) nor a concrete model, and none
+    hides an import under ``if TYPE_CHECKING:`` (a type it needs lives below it)."""
+    offences = [
+        f"{f.relative_to(PACKAGE.parent)} imports {m}"
+        for f in _files(entry)
+        for m in _imports(f)
+        if _is_model(m) or m == "surrogate.stages" or m.startswith("surrogate.stages.")
+    ] + [
+        f"{f.relative_to(PACKAGE.parent)}:{node.lineno} imports under TYPE_CHECKING"
+        for f in _files(entry)
+        for node in ast.walk(ast.parse(f.read_text()))
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+    ]
+    assert not offences, "\n".join(offences)
+
+
 def test_every_stage_lives_in_stages() -> None:
     """A stage is a module with both a ``run`` and a ``validate`` function at its top level
     (the entry points the scripts call); none lives elsewhere."""
@@ -178,10 +201,15 @@ def test_every_stage_lives_in_stages() -> None:
 def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch) -> None:
     """On a package that breaks them, the checks find a relative import of a model in the
     engine, a stage imported by a model, the engine imported (relatively, inside a function)
-    by a model and a stage entry point outside stages."""
+    by a model, a stage imported (under ``if TYPE_CHECKING:``) below the stages and a stage entry
+    point outside stages."""
     package = tmp_path / "surrogate"
-    for sub in ("gp", "models", "simulate", "stages"):
+    for sub in ("gp", "models", "simulate", "stages", "diagnosis"):
         (package / sub).mkdir(parents=True)
+    (package / "diagnosis" / "d.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+        "    from surrogate.stages.settings import CollectSettings\n"
+    )
     (package / "gp" / "x.py").write_text("from ..models import ecoli\n")
     (package / "models" / "ecoli.py").write_text("")
     (package / "gp" / "stage.py").write_text("def run(cfg): ...\ndef validate(cfg): ...\n")
@@ -197,6 +225,10 @@ def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch) -> None:
         test_engine_never_imports_a_concrete_model_or_a_stage("gp")
     with pytest.raises(AssertionError, match="models/m.py imports surrogate.stages"):
         test_only_stages_and_the_bench_import_a_stage()
+    with pytest.raises(AssertionError, match="diagnosis/d.py imports surrogate.stages.settings"):
+        test_diagnosis_never_imports_a_stage_or_a_concrete_model("diagnosis")
+    with pytest.raises(AssertionError, match="diagnosis/d.py:2 imports under TYPE_CHECKING"):
+        test_diagnosis_never_imports_a_stage_or_a_concrete_model("diagnosis")
     with pytest.raises(AssertionError, match="models/k.py imports surrogate.simulate"):
         test_models_never_import_simulate_or_gp()
     with pytest.raises(AssertionError, match="gp/stage.py"):

@@ -13,8 +13,8 @@ error is taken across cells (a cell's own samples are autocorrelated; the cells 
   lobe of its autocorrelation, which no reversible network and no memoryless lump can give),
   its period, and how regular the durations of its segments are.
 
-Used by the inspect stage (:mod:`surrogate.stages.inspection`); the definitions are in the
-docstrings, the tests (tests/stages/test_inspection.py) check them against closed forms.
+Used by the inspection (:mod:`surrogate.diagnosis`); the definitions are in the docstrings, the
+tests (tests/diagnosis/) check them against closed forms.
 """
 
 from __future__ import annotations

@@ -254,7 +254,7 @@ class Model:
         it gives one) or a chain (``full=False``; the chains and models without an estimate:
         :data:`CELL_STEP_SECONDS`). The stages multiply it by steps and cells to say, before
         they start, what a run will cost: an order of magnitude to refuse absurd runs by, with
-        no accuracy guarantee (:mod:`surrogate.stages.budget`)."""
+        no accuracy guarantee (:mod:`surrogate.diagnosis.cost`)."""
         estimate = cell_step_seconds_of(self.internal)
         if full and estimate is not None:
             return float(estimate(dt))

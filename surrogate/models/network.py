@@ -704,7 +704,7 @@ class NetworkInternalModel:
         """A shallow copy whose windows refuse more than ``max_events`` events per cell
         (:attr:`max_events`; a ``RuntimeError``), with ``burn_in`` seconds of burn-in (default
         this one's), sharing this one's compiled SSA: for timing a few windows without paying
-        an unbounded burn-in or a runaway window (:func:`surrogate.stages.budget.step_seconds`)."""
+        an unbounded burn-in or a runaway window (:func:`surrogate.diagnosis.cost.step_seconds`)."""
         if self.backend(torch.device("cpu")) == "compiled":
             self._compiled_ssa()  # built once, shared
         other = copy.copy(self)

@@ -40,11 +40,8 @@ BAND_FIDELITY = "band_fidelity"
 #: reproduce and inspect: the report
 REPORT = "report.md"
 
-#: inspect: its figures as numbers, and its figures
+#: inspect: its figures as numbers (its figures: :mod:`surrogate.diagnosis.report`)
 INSPECTION = "inspect.json"
-INPUT_OCCUPANCY_FIGURE = "occupancy.png"
-SETTLING_FIGURE = "settling.png"
-MEMORY_FIGURE = "memory.png"
 
 __all__ = [
     "BAND_FIDELITY",
@@ -55,16 +52,13 @@ __all__ = [
     "FIT_METRICS",
     "GRID",
     "HISTORY_FIGURE",
-    "INPUT_OCCUPANCY_FIGURE",
     "INSPECTION",
     "KYMOGRAPH_FIGURE",
-    "MEMORY_FIGURE",
     "METRICS",
     "NOISE_FLOOR",
     "OCCUPANCY",
     "PSI",
     "REPORT",
-    "SETTLING_FIGURE",
     "SUMMARY",
     "SURFACES_FIGURE",
     "TRANSITIONS",

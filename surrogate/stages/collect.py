@@ -25,13 +25,15 @@ import numpy as np
 import pandas as pd
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.diagnosis import probe
+from surrogate.diagnosis.cost import duration
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.models.capabilities import feature_names_of
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.transitions import collect_transitions
-from surrogate.stages import budget, probe
+from surrogate.stages import budget
 from surrogate.stages.artefacts import COVERAGE_FIGURE, TRANSITIONS
 from surrogate.stages.design import collect_in_rounds
 from surrogate.stages.settings import CollectSettings
@@ -121,7 +123,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
 
 def cost_probe(settings: CollectSettings) -> dict[str, Any] | None:
     """The network's cost where its cells start, measured within ``collect.probe_seconds``
-    (:func:`surrogate.stages.probe.cost_probe`; 0: not measured) before the burn-ins: a rate
+    (:func:`surrogate.diagnosis.probe.cost_probe`; 0: not measured) before the burn-ins: a rate
     still growing when they run out is refused (ConfigError) with the rate, its growth, this
     collection's cost at that rate and the remedies. Its draws are on a fork of torch's
     generators: the collection is the same with and without it. Returns what it measured
@@ -137,7 +139,7 @@ def cost_probe(settings: CollectSettings) -> dict[str, Any] | None:
         "that rate)",
         more=f". `{INSPECT_CMD}` with the same model settings measures more (the probe over a "
         "tenth of inspect.max_seconds, then the network's settling, occupancy and costs)",
-        collect=lambda cell_step: probe.collect_cost(settings, cell_step),
+        collect=lambda cell_step: budget.collect_cost(settings, cell_step),
         collect_name="this collection",
     )
     setup = settings.setup
@@ -154,7 +156,7 @@ class MeasuredCost:
         file_seconds: the estimate at the file's counts (what ``validate`` logged and checked
             against ``max_hours``).
         events: SSA events per window of dt per cell, measured: the probe's mean over its last
-            windows (:data:`~surrogate.stages.probe.PROBE_TAIL` of the model time it reached).
+            windows (:data:`~surrogate.diagnosis.probe.PROBE_TAIL` of the model time it reached).
         file_events: the events per window at the file's counts and input values.
         cell_step_seconds: the full model's cost per cell-step at ``events``.
         completed: whether the probe reached the end of its horizon (the burn-in); else
@@ -210,7 +212,7 @@ def measured_cost(
         at = (f"at the steady rate the cost probe reached at {reached:.3g} s of {span}, when "
               f"collect.probe_seconds={float(measured['budget_s']):g} ran out")  # fmt: skip
     basis = (f"{at} ({_events(events)} per window per cell; the file's counts: "
-             f"{_events(file_events)}, ~{budget.duration(file_seconds)})")  # fmt: skip
+             f"{_events(file_events)}, ~{duration(file_seconds)})")  # fmt: skip
     seconds = (budget.log_estimate(works, "collect", basis) if cfg is None
                else budget.check(cfg, works, "collect", basis))  # fmt: skip
     return MeasuredCost(seconds, file_seconds, events, file_events, cell_step,

@@ -58,6 +58,7 @@ from surrogate.config import (
     validate_start,
 )
 from surrogate.ctmc.compiled import match_torch_threads
+from surrogate.diagnosis.cost import Work, step_seconds
 from surrogate.errors import ArtefactError, ConfigError, MissingArtefactError
 from surrogate.io import (
     MANIFEST,
@@ -274,9 +275,9 @@ def validate(cfg: Mapping[str, Any]) -> ReferenceSettings:
             cells = missing * run.shard_cells
             # each worker runs its shards one after the other: a loop (and its fixed cost per
             # step) per shard
-            fixed = budget.step_seconds(run.setup.model, run.setup.field, run.setup.dt, "full",
-                                        settings.job.device) * -(-missing // settings.workers)  # fmt: skip
-            works.append(budget.Work(
+            fixed = step_seconds(run.setup.model, run.setup.field, run.setup.dt, "full",
+                                 settings.job.device) * -(-missing // settings.workers)  # fmt: skip
+            works.append(Work(
                 f"the {run.describe()} ({missing} of {run.shard_count} shards left, "
                 f"{settings.workers} at once)",
                 max(1, cells // settings.workers), steps_between(run.t_end, run.setup.dt, "t_end"),

@@ -306,14 +306,14 @@ def _verdict(
     config: Mapping[str, Any] | None = None,
     out: Path | None = None,
 ) -> str:
-    """Whether to trust the abstraction, and what to try next (:mod:`surrogate.stages.advice`).
+    """Whether to trust the abstraction, and what to try next (:mod:`surrogate.diagnosis.advice`).
     With the run's ``config``: each remedy is checked by the stages' settings before it is
     printed, and one the previous run of the model advised that this run applied without a
     gain is not advised again (``out / verdict.json`` keeps what the next run compares with)."""
+    from surrogate.diagnosis.advice import VerdictInputs, verdict
     from surrogate.models.count_classes import CountClasses
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages import advice
-    from surrogate.stages.advice import verdict
     from surrogate.stages.advice_check import checked
 
     tr = settings.train
@@ -334,15 +334,16 @@ def _verdict(
     # bins of a count: coarser classes are advised as concrete edges
     count_classes = getattr(tr.setup.model.internal, "count_classes", None)
     count_classes = count_classes if isinstance(count_classes, CountClasses) else None
-    v = verdict(diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names,
-                failures=failures, outside=outside, outside_warning=settings.job.outside_warning,
-                tolerance=DURATION_TOLERANCE, kind=tr.kind,
-                network=isinstance(tr.setup.model.internal, NetworkInternalModel),
-                n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
-                max_age=tr.max_age if tr.kind.clock else None,
-                check=None if config is None else
-                (lambda overrides, what: checked(config, overrides, what)),
-                tried=tried, count_classes=count_classes)  # fmt: skip
+    measured = VerdictInputs(
+        diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names, failures=failures,
+        outside=outside, outside_warning=settings.job.outside_warning,
+        tolerance=DURATION_TOLERANCE, kind=tr.kind,
+        network=isinstance(tr.setup.model.internal, NetworkInternalModel),
+        n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
+        max_age=tr.max_age if tr.kind.clock else None, count_classes=count_classes,
+    )  # fmt: skip
+    v = verdict(measured, check=None if config is None else
+                (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip
     if config is not None and out is not None:
         write_json(out / VERDICT, advice.verdict_record(v, config, now, tried))
     marked = sum(int((~t["within_noise"].astype(bool)).sum()) for t in tables.values()

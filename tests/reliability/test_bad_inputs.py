@@ -186,7 +186,7 @@ def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> 
     """The estimate's formula, pinned with numbers computed here (its accuracy is measured,
     not guaranteed: docs/performance.md): a collection's steps are the equilibration's plus
     2 n_per_state record_every / n_cells, each costing the loop's measured fixed cost per step
-    (budget.step_seconds, > 0) plus n_cells cell-steps;
+    (surrogate.diagnosis.cost.step_seconds, > 0) plus n_cells cell-steps;
     the gene switch's cell-step is the SSA overhead plus its expected events per window at the
     file's counts and inputs (8 inactive proteins, inducer 0.05: only activation fires, at
     k_act inducer I = 50 x 0.05 x 8 = 20 per s) times the compiled SSA's cost of an event;

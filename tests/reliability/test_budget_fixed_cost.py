@@ -1,4 +1,4 @@
-"""The cost estimate's fixed part per step (surrogate/stages/budget.py): measured once per
+"""The cost estimate's fixed part per step (surrogate/diagnosis/cost.py): measured once per
 process, part of every stage's estimate, so a small population's long run is not estimated at
 nearly nothing. Structure and monotonicity only: no wall-clock value is asserted."""
 
@@ -11,6 +11,7 @@ import pytest
 import torch
 import yaml
 
+from surrogate.diagnosis import cost
 from surrogate.fields import ConstantField, GaussianField
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.stages import budget
@@ -24,14 +25,14 @@ GENE = ["model=sbml", f"model.spec={ROOT / 'examples/gene_switch/model.yaml'}"]
 
 def test_cost_formula() -> None:
     """steps x (fixed per step + cells x per cell-step), and a Work's seconds are it."""
-    assert budget.cost_seconds(100, 0, 1e-3, 1e-6) == pytest.approx(0.1)
-    assert budget.cost_seconds(100, 1000, 1e-3, 1e-6) == pytest.approx(0.2)
-    assert budget.cost_seconds(200, 1000, 1e-3, 1e-6) == pytest.approx(0.4)
-    work = budget.Work("w", 10, 50.0, 2e-6, "n_cells=10", "m", step_seconds=3e-3)
+    assert cost.cost_seconds(100, 0, 1e-3, 1e-6) == pytest.approx(0.1)
+    assert cost.cost_seconds(100, 1000, 1e-3, 1e-6) == pytest.approx(0.2)
+    assert cost.cost_seconds(200, 1000, 1e-3, 1e-6) == pytest.approx(0.4)
+    work = cost.Work("w", 10, 50.0, 2e-6, "n_cells=10", "m", step_seconds=3e-3)
     assert work.seconds == pytest.approx(50 * (3e-3 + 10 * 2e-6))
     assert "~0.003 s per step + ~2e-06 s per cell-step of model 'm'" in work.describe()
     # without a measured figure: the documented constant
-    assert budget.Work("w", 1, 1.0, 0.0, "", "m").step_seconds == budget.STEP_SECONDS
+    assert cost.Work("w", 1, 1.0, 0.0, "", "m").step_seconds == cost.STEP_SECONDS
 
 
 def test_step_seconds_measured_cached_and_leaves_the_random_state() -> None:
@@ -39,11 +40,11 @@ def test_step_seconds_measured_cached_and_leaves_the_random_state() -> None:
     field = GaussianField()
     torch.manual_seed(7)
     before = torch.get_rng_state()
-    full = budget.step_seconds(model, field, 0.05, "full")
-    chain = budget.step_seconds(model, field, 0.05, "abstract")
+    full = cost.step_seconds(model, field, 0.05, "full")
+    chain = cost.step_seconds(model, field, 0.05, "abstract")
     assert torch.equal(torch.get_rng_state(), before)
     assert full > 0 and chain > 0
-    assert budget.step_seconds(model, field, 0.05, "full") == full  # once per process
+    assert cost.step_seconds(model, field, 0.05, "full") == full  # once per process
 
 
 def test_step_seconds_falls_back_where_the_simulator_cannot_run() -> None:
@@ -52,7 +53,7 @@ def test_step_seconds_falls_back_where_the_simulator_cannot_run() -> None:
         internal = None
         body = None
 
-    assert budget.step_seconds(Broken(), GaussianField(), 0.05) == budget.STEP_SECONDS
+    assert cost.step_seconds(Broken(), GaussianField(), 0.05) == cost.STEP_SECONDS
 
 
 def test_estimate_grows_with_steps_even_at_one_cell(tmp_path: Path) -> None:
@@ -123,7 +124,7 @@ def test_step_seconds_does_not_pay_a_runaway_burn_in(tmp_path: Path) -> None:
     model = runaway(tmp_path)
     model.internal.prepare()  # the compile is not the probe's
     start = time.perf_counter()
-    assert budget.step_seconds(model, ConstantField(1.0), 0.05) == budget.STEP_SECONDS
+    assert cost.step_seconds(model, ConstantField(1.0), 0.05) == cost.STEP_SECONDS
     assert time.perf_counter() - start < 3.0
 
 
@@ -134,7 +135,7 @@ def test_the_estimate_says_it_is_priced_for_a_quiet_machine(caplog) -> None:
         "; priced for a quiet machine: other work beside it makes it longer"
     )
     assert budget.quiet_note(4.5, 2).endswith("; this one is busy now (load 4.5 on 2 cores)")
-    work = budget.Work("the run", 10, 50.0, 2e-6, "n_cells=10", "m", step_seconds=3e-3)
+    work = cost.Work("the run", 10, 50.0, 2e-6, "n_cells=10", "m", step_seconds=3e-3)
     with caplog.at_level("INFO", logger="surrogate.stages.budget"):
         budget.log_estimate([work], "collect")
     [message] = [r.getMessage() for r in caplog.records]

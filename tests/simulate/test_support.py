@@ -289,15 +289,15 @@ def test_the_warning_names_the_sparse_interval_and_what_to_do(caplog) -> None:
 
 
 def verdict_of(report, failures=None) -> str:
+    from surrogate.diagnosis.advice import VerdictInputs, verdict
     from surrogate.kinds import chain_kind
-    from surrogate.stages.advice import verdict
 
     unbiased = {"rel_bias": 0.0, "rel_bias_se": 0.01, "settling_z": 0.0}
-    v = verdict(diagnostic={"phi0": unbiased, "phi1": unbiased}, lump_names=("off", "on"),
-                failures=failures or {},
-                outside={"f": report}, outside_warning=0.01, tolerance=0.03,
-                kind=chain_kind("phi", "none", "learned"), network=False,
-                n_per_state=None)  # fmt: skip
+    v = verdict(VerdictInputs(diagnostic={"phi0": unbiased, "phi1": unbiased},
+                              lump_names=("off", "on"), failures=failures or {},
+                              outside={"f": report}, outside_warning=0.01, tolerance=0.03,
+                              kind=chain_kind("phi", "none", "learned"), network=False,
+                              n_per_state=None))  # fmt: skip
     return v.markdown()
 
 

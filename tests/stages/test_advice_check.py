@@ -14,21 +14,28 @@ import pytest
 import yaml
 
 from surrogate.config import to_dict
+from surrogate.diagnosis import recommendation, settling
+from surrogate.diagnosis.advice import Verdict, VerdictInputs, verdict
+from surrogate.diagnosis.fixed import EXACT_METHOD, FixedInputs
+from surrogate.diagnosis.options import InspectOptions
+from surrogate.diagnosis.remedies import Check, classes_override, coarser_classes
 from surrogate.errors import ConfigError
 from surrogate.kinds import chain_kind
 from surrogate.models import sbml_agent
 from surrogate.models.count_classes import CountClasses
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.stages import advice_check, inspection
-from surrogate.stages.advice import (
-    applied,
-    classes_override,
-    coarser_classes,
-    tried_remedies,
-    verdict,
-)
+from surrogate.stages.advice import applied, tried_remedies
 from surrogate.stages.advice_check import apply_overrides, check_advice
 from surrogate.stages.settings.inspection import InspectSettings, inspect_defaults
+
+
+def verdict_of(
+    check: Check | None = None, tried: dict[str, str] | None = None, **measured: Any
+) -> Verdict:
+    """The verdict of the measurements given by keyword."""
+    return verdict(VerdictInputs(**measured), check, tried)
+
 
 SPEC = "examples/gene_switch/model.yaml"  # D >= 2 is on; 25 states
 UNBIASED = {"rel_bias": 0.0, "rel_bias_se": 0.01, "settling_z": 0.0}
@@ -104,7 +111,7 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
                 seen[key] = check_advice(base, overrides)
             return seen[key]
 
-        v = verdict(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
+        v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
                     kind=chain_kind(*kind), network=True, n_per_state=1000, max_age=2.0,
                     check=check, count_classes=CLASSES, **_measurements(branch))  # fmt: skip
         assert not v.trust
@@ -129,7 +136,7 @@ def test_nan_or_missing_measurements_are_not_measured_never_trust() -> None:
                             "kind": chain_kind("phi", "none", "learned"), "n_per_state": 100}  # fmt: skip
     inside = {"gaussian": {"share_outside": 0.0, "inputs": {}}}
     full = {"phi0": UNBIASED, "phi1": UNBIASED}
-    assert verdict(diagnostic=full, outside=inside, **args).trust
+    assert verdict_of(diagnostic=full, outside=inside, **args).trust
     cases = {
         "bias leaving on": ({"phi0": UNBIASED, "phi1": {**UNBIASED, "rel_bias": float("nan")}},
                             inside),
@@ -138,7 +145,7 @@ def test_nan_or_missing_measurements_are_not_measured_never_trust() -> None:
         "field gaussian": (full, {"gaussian": None}),
     }  # fmt: skip
     for what, (diagnostic, outside) in cases.items():
-        v = verdict(diagnostic=diagnostic, outside=outside, **args)
+        v = verdict_of(diagnostic=diagnostic, outside=outside, **args)
         assert not v.trust, what
         assert v.causes[0][0] == "Not measured" and what in v.causes[0][1], what
         assert "Do not trust it yet" in v.markdown()
@@ -164,8 +171,8 @@ def test_a_remedy_applied_without_a_gain_is_not_advised_again() -> None:
                             "outside_warning": 0.01, "tolerance": 0.03, "network": True,
                             "kind": chain_kind("phi", "age", "learned"), "n_per_state": 20000,
                             "max_age": 4.0}  # fmt: skip
-    assert "gp.max_age=8" in verdict(**args).causes[0][2]
-    step = verdict(**args, tried=tried).causes[0][2]
+    assert "gp.max_age=8" in verdict_of(**args).causes[0][2]
+    step = verdict_of(**args, tried=tried).causes[0][2]
     assert "`gp.max_age=8`" not in step and "collect.n_per_state=80000`" not in step
     assert "tried: `gp.max_age=4` ran" in step and "gp=classes" in step
 
@@ -176,7 +183,7 @@ def test_collection_advice_names_the_run_it_needs_and_it_runs(config) -> None:
     collection = {"recommended_n_per_state": 5000, "max_time": 200.0,
                   "seconds_needed": [900.0, 450.0], "max_time_needed": 900.0,
                   "n_cells_needed": 460}  # fmt: skip
-    sets = inspection.collection_overrides(collection)
+    sets = recommendation.collection_overrides(collection)
     assert sets == [
         ["collect.n_per_state=5000", "collect.max_time=900"],
         ["collect.n_per_state=5000", "collect.n_cells=460"],
@@ -243,11 +250,11 @@ def _hazard(flat_from_s: float = 1.5) -> dict[str, Any]:
             "flat_from_s": flat_from_s}  # fmt: skip
 
 
-def _fixed(**changes: Any) -> inspection.FixedInputs:
+def _fixed(**changes: Any) -> FixedInputs:
     """Synthetic measurements at one grid point (exact, settled, with memory); D's law over
     0-4 (the lump D >= 2 on about half the time)."""
-    base = inspection.FixedInputs(
-        method=inspection.EXACT_METHOD, occupancy=np.array([0.5]), occupancy_se=np.zeros(1),
+    base = FixedInputs(
+        method=EXACT_METHOD, occupancy=np.array([0.5]), occupancy_se=np.zeros(1),
         settled=np.array([True]), settle_phi=np.array([2.0]), settle_network=np.array([3.0]),
         species_settle={}, curves={}, horizon=60.0,
         relaxation={"tau_s": 1.0, "se": 0.1, "method": "exact"},
@@ -276,9 +283,9 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     spec = _switch_yaml(tmp_path)
     config = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={spec}"]))
     model = sbml_agent.SbmlAgentModel(spec)
-    o, dt = inspect_defaults(), 0.05
+    o, dt = InspectOptions.from_mapping(inspect_defaults()), 0.05
     ranges = {"inducer": (0.0, 0.1)}
-    slow = np.array([2 * inspection.SLOW_SETTLING_WINDOWS * dt])
+    slow = np.array([2 * settling.SLOW_SETTLING_WINDOWS * dt])
     cases = {
         "none": (_fixed(memory=None), None),
         "two-state": (_fixed(memory=False), None),
@@ -291,8 +298,8 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     }
     printed: dict[str, list[str]] = {}
     for name, (fixed, over) in cases.items():
-        advice = inspection.recommend(model, fixed, o, dt, over)
-        bounds = inspection.signal_bounds_advice(model.internal, fixed, ranges)
+        advice = recommendation.recommend(model, fixed, o, dt, over)
+        bounds = recommendation.signal_bounds_advice(model.internal, fixed, ranges)
         if bounds:
             advice["signal_bounds"] = bounds
         assert inspection.check_printed(config, advice, {}, {}, True) == [], name
@@ -320,14 +327,14 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     big = _switch_yaml(tmp_path, max_states=0)
     big_config = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={big}"]))
     network = sbml_agent.SbmlAgentModel(big).internal
-    burn = inspection.burn_in_advice(network, _fixed(settle_network=np.array([40.0])),
-                                     o["burn_in_factor"], o["settle_tolerance"])  # fmt: skip
+    burn = settling.burn_in_advice(network, _fixed(settle_network=np.array([40.0])),
+                                   o.burn_in_factor, o.settle_tolerance)  # fmt: skip
     assert burn["applies"] and burn["enough"] is False and burn["needed_s"] == 120.0
     assert inspection.check_printed(big_config, {}, burn, {}, True) == []
     assert "refused" not in burn
     # the balanced threshold where the lump is rare
     rare = _fixed(occupancy=np.array([0.02]))
-    balanced = inspection.balanced_threshold(model.internal, rare)
+    balanced = recommendation.balanced_threshold(model.internal, rare)
     assert balanced is not None and balanced["lump"] == "D >= 2"
     assert inspection.check_printed(config, {}, {}, {}, True, balanced) == []
     # the collection: the rows alone; a run too short; rows no memory holds (refused); the
@@ -338,12 +345,13 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     monkeypatch.setattr(common, "free_memory_bytes", lambda: 24 * 2**30)
     icfg = compose_cfg("inspect", ["model=sbml", f"model.spec={spec}"])
     settings = InspectSettings.from_config(icfg)
+    options = InspectOptions.from_mapping(settings.options)
     population = SimpleNamespace(fields={"gaussian": {"phi_share": 0.5}})
     for switch, fits in ((0.05, "rows"), (1e-3, "time"), (1e-9, "refused")):
-        collection = inspection.collection_budget(settings, _fixed(switch=np.full(2, switch)),
+        collection = inspection.collection_budget(settings, options, _fixed(switch=np.full(2, switch)),
                                                   population, 1e-5)  # fmt: skip
         refusals = inspection.check_printed(to_dict(icfg), {}, {}, collection, True)
-        sets = inspection.collection_overrides(collection)
+        sets = recommendation.collection_overrides(collection)
         if fits == "refused":
             assert collection["advised"] == [] and "GiB" in collection["refused"], refusals
         else:

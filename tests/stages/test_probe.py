@@ -1,4 +1,4 @@
-"""Collect's cost probe (surrogate/stages/probe.py, run by surrogate/stages/collect.py before
+"""Collect's cost probe (surrogate/diagnosis/probe.py, run by surrogate/stages/collect.py before
 its first simulation): a runaway network (autocatalysis A -> 2A) refused in seconds with the
 rate measured, instead of burning in for hours; a network that stays put (the open birth-death
 process) collected exactly as without the probe, in the same directory; a negative budget
@@ -19,11 +19,13 @@ import pytest
 import torch
 import yaml
 
+from surrogate.diagnosis.cost import duration
 from surrogate.errors import ConfigError
 from surrogate.stages import budget, collect
 from surrogate.stages.settings import CollectSettings, InspectSettings
+from tests.diagnosis.test_inspection import birth_death
 from tests.sbml.builder import Reaction, Species, build
-from tests.stages.test_inspection import birth_death, runaway
+from tests.stages.test_inspection import runaway
 
 MEASURED = "at the events measured after the burn-in"
 
@@ -75,13 +77,13 @@ def test_the_probe_changes_neither_a_collection_nor_its_directory(
     assert torch.equal(torch.get_rng_state(), before)
     assert collect.cost_probe(off) is None
     caplog.clear()  # the calls above logged too where an earlier test left the root at INFO
-    with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"), \
+    with caplog.at_level(logging.INFO, logger="surrogate.diagnosis.probe"), \
             caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):  # fmt: skip
         table = pd.read_parquet(collect.collect(on) / "transitions.parquet")
     assert sum("collect: cost probe, 4 cells" in r.getMessage() for r in caplog.records) == 1
     assert sum(MEASURED in r.getMessage() for r in caplog.records) == 1  # its estimate
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="surrogate.stages.probe"), \
+    with caplog.at_level(logging.INFO, logger="surrogate.diagnosis.probe"), \
             caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):  # fmt: skip
         again = pd.read_parquet(collect.collect(off, force=True) / "transitions.parquet")
     assert not any("cost probe" in r.getMessage() or MEASURED in r.getMessage()
@@ -147,11 +149,11 @@ def test_collect_prices_its_windows_at_the_rate_measured_after_the_burn_in(
     assert estimate.seconds > 5 * estimate.file_seconds, estimate
     [record] = [r for r in caplog.records if "collect: estimated" in r.getMessage()]
     message = record.getMessage()
-    assert f"~{budget.duration(estimate.seconds)} of simulation {MEASURED} (" in message
+    assert f"~{duration(estimate.seconds)} of simulation {MEASURED} (" in message
     logged = message.split(f"{MEASURED} (")[1].split(" per window per cell; the file's")[0]
     assert float(logged.replace(",", "")) == pytest.approx(estimate.events, abs=0.5), message
     assert " per window per cell; the file's counts: 0.05, " in message
-    assert f"~{budget.duration(estimate.file_seconds)})" in message
+    assert f"~{duration(estimate.file_seconds)})" in message
     assert "the initial states' burn-in" in message and "collect (at least)" in message
     # max_hours holds at the measured rate too: past it, refused with both figures (the
     # file's counts' estimate passed validate's check)
@@ -159,7 +161,7 @@ def test_collect_prices_its_windows_at_the_rate_measured_after_the_burn_in(
     assert estimate.file_seconds < limit * 3600
     with pytest.raises(ConfigError, match=r"above max_hours=.*raise max_hours") as error:
         collect.measured_cost(settings, collect.cost_probe(settings), {"max_hours": limit})
-    assert f"~{budget.duration(estimate.seconds)} {MEASURED} (" in str(error.value)
+    assert f"~{duration(estimate.seconds)} {MEASURED} (" in str(error.value)
 
 
 def test_collect_prices_at_the_rate_reached_where_the_probe_ran_out(
@@ -182,8 +184,8 @@ def test_collect_prices_at_the_rate_reached_where_the_probe_ran_out(
     reached = ("collect: estimated ~{} of simulation at the steady rate the cost probe "
                "reached at 5 s of the 20-s burn-in, when collect.probe_seconds=3 ran out (8 per "
                "window per cell; the file's counts: 0.05, ~{}): ")  # fmt: skip
-    assert message.startswith(reached.format(budget.duration(estimate.seconds),
-                                             budget.duration(estimate.file_seconds))), message  # fmt: skip
+    assert message.startswith(reached.format(duration(estimate.seconds),
+                                             duration(estimate.file_seconds))), message  # fmt: skip
     assert collect.measured_cost(settings, {**measured, "reached_s": 0.0}) is None
     off = logistic_settings(tmp_path, compose_cfg, 0)
     assert collect.cost_probe(off) is None and collect.measured_cost(off, None) is None

@@ -204,8 +204,11 @@ def test_a_waste_counter_does_not_hold_the_settling_run_back(tmp_path) -> None:
     reported, and the counter is named in the notes."""
     import numpy as np
 
+    from surrogate.diagnosis.options import InspectOptions
+    from surrogate.diagnosis.population import Grid
+    from surrogate.diagnosis.probe import counter_species
+    from surrogate.diagnosis.simulated import simulate_fixed_inputs
     from surrogate.models.sbml_agent import SbmlAgentModel
-    from surrogate.stages import inspection
     from surrogate.stages.settings.inspection import inspect_defaults
     from tests.sbml.builder import Reaction, Species, build
 
@@ -214,13 +217,15 @@ def test_a_waste_counter_does_not_hold_the_settling_run_back(tmp_path) -> None:
                   Reaction("death", "g * X", {"X": 1}, {"W": 1})])  # fmt: skip
     model = SbmlAgentModel(str(write_model(tmp_path, text, inputs={"k": "40 * L"}, lump="X >= 3",
                                            body={"kind": "static"})))  # fmt: skip
-    assert inspection.counter_species(model.internal) == [1]
+    assert counter_species(model.internal) == [1]
     v = np.array([0.05, 0.04, 0.06])
-    grid = inspection.Grid(("L",), v[:, None], np.array([-1, 0, 0]), v.min(keepdims=True),
+    grid = Grid(("L",), v[:, None], np.array([-1, 0, 0]), v.min(keepdims=True),
                            v[:1], v.max(keepdims=True))  # fmt: skip
     torch.manual_seed(0)
-    options = {**inspect_defaults(), "n_cells": 200, "record_windows": 200, "max_time": 80.0}
-    fixed = inspection.simulate_fixed_inputs(model, grid, options, 0.05, torch.device("cpu"),
+    options = InspectOptions.from_mapping(
+        {**inspect_defaults(), "n_cells": 200, "record_windows": 200, "max_time": 80.0}
+    )
+    fixed = simulate_fixed_inputs(model, grid, options, 0.05, torch.device("cpu"),
                                              30.0)  # fmt: skip
     assert fixed.settled.all(), fixed.notes
     assert any("not waited for: W" in note for note in fixed.notes)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from surrogate.diagnosis.advice import VerdictInputs, verdict
 from surrogate.kinds import chain_kind
-from surrogate.stages.advice import verdict
 
 
 def _score(bias: float, se: float | None = 0.01, settling: float = 0.0) -> dict[str, Any]:
@@ -31,7 +31,7 @@ def _read(lumps: str = "phi", history: str = "none", class_moves: str = "learned
     }  # fmt: skip
     if isinstance(changes.get("diagnostic"), dict):  # the scores given replace the default's
         changes["diagnostic"] = {**args["diagnostic"], **changes["diagnostic"]}
-    return verdict(**{**args, **changes})
+    return verdict(VerdictInputs(**{**args, **changes}))
 
 
 def test_within_noise_and_unbiased_is_trusted() -> None:

@@ -1,4 +1,4 @@
-"""The inspect stage's report and figures (:mod:`surrogate.stages.inspection` measures).
+"""The inspection's report and figures (the modules of :mod:`surrogate.diagnosis` measure).
 
 ``report.md`` is written from ``inspect.json``'s content (the summary) and the measurements at
 fixed inputs; the figures are matplotlib ``Figure`` objects (no pyplot), saved by the stage.
@@ -8,16 +8,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from surrogate.diagnosis.fixed import FixedInputs
+from surrogate.diagnosis.population import Grid
 from surrogate.evaluate.report import format_markdown_table
-from surrogate.stages.artefacts import INPUT_OCCUPANCY_FIGURE, MEMORY_FIGURE, SETTLING_FIGURE
 
-if TYPE_CHECKING:
-    from surrogate.stages.inspection import FixedInputs, Grid
+#: the report's figures, beside it in the inspection's directory
+INPUT_OCCUPANCY_FIGURE = "occupancy.png"
+SETTLING_FIGURE = "settling.png"
+MEMORY_FIGURE = "memory.png"
 
 
 def plot_occupancy(grid: Grid, fixed: FixedInputs, lump: str, low: float) -> Any:
@@ -368,6 +371,9 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
 
 
 __all__ = [
+    "INPUT_OCCUPANCY_FIGURE",
+    "MEMORY_FIGURE",
+    "SETTLING_FIGURE",
     "plot_memory",
     "plot_occupancy",
     "plot_settling",

@@ -23,20 +23,18 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from surrogate.diagnosis.cost import cuda_devices, duration
 from surrogate.errors import ConfigError, RunawayError
 from surrogate.models.base import Model
 from surrogate.models.network import NetworkInternalModel
-from surrogate.stages import budget
-
-if TYPE_CHECKING:
-    from surrogate.stages.settings import CollectSettings
 
 log = logging.getLogger(__name__)
+
 
 #: the probe's cells, the most SSA calls it makes over its horizon (longer windows than dt
 #: beyond), the horizon where the network has no burn-in (windows of dt), the species its
@@ -125,7 +123,7 @@ def cost_probe(
         a0 = network.kinetics.torch_propensity(counts, inputs).clamp_min(0).sum(1)
         return float(a0.mean()) * dt
 
-    with torch.random.fork_rng(devices=budget._cuda_devices(device)):
+    with torch.random.fork_rng(devices=cuda_devices(device)):
         torch.manual_seed(seed)
         try:
             state = network.start_state(cells, device, inputs)
@@ -219,10 +217,10 @@ def refusal(
     costs = []
     if burn > 0:
         costs.append(f"one cell's burn-in of {network.burn_in:g} s would take "
-                     f"~{budget.duration(burn)} of CPU")  # fmt: skip
+                     f"~{duration(burn)} of CPU")  # fmt: skip
     collect = naming.collect(cell_step) if naming.collect is not None else None
     if collect is not None:
-        costs.append(f"{naming.collect_name} ({collect[1]}) ~{budget.duration(collect[0])}")
+        costs.append(f"{naming.collect_name} ({collect[1]}) ~{duration(collect[0])}")
     if costs:
         text += f". At that rate (still growing: a bound) {', '.join(costs)}"
     return text + (
@@ -231,16 +229,6 @@ def refusal(
         f"model.substance_units); else a shorter model.burn_in, {naming.remedy}, or "
         f"device=cuda (the batched SSA){naming.more}"
     )
-
-
-def collect_cost(source: CollectSettings, cell_step: float) -> tuple[float, str] | None:
-    """Collect's estimated seconds for ``source`` at the full model's ``cell_step`` (s per
-    cell-step) and the settings behind it; None where they cannot be estimated."""
-    try:
-        works = budget.collect_work(source, reuse=False, cell_step_seconds=cell_step)
-    except ConfigError:
-        return None
-    return sum(w.seconds for w in works), works[0].settings if works else ""
 
 
 def counter_species(network: NetworkInternalModel) -> list[int]:
@@ -272,7 +260,6 @@ __all__ = [
     "PROBE_GROWTH",
     "PROBE_TAIL",
     "Naming",
-    "collect_cost",
     "cost_probe",
     "counter_species",
     "probed_network",
