@@ -20,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "surrogate"
 ENGINE = ["ctmc", "simulate", "gp", "evaluate", "sbml", "models/base.py", "models/network.py",
           "models/capabilities.py", "models/packed.py", "models/count_classes.py",
           "models/randoms.py", "fields.py", "field_formula.py", "field_kernel.py",
-          "decision_kernel.py", "grid", "kinds",
+          "models/decision_kernel.py", "grid", "kinds",
           "scalar.py", "io.py", "config.py", "errors.py", "validation.py"]  # fmt: skip
 #: the model protocols engine code may import (every other surrogate.models.* is a model)
 PROTOCOLS = (
@@ -31,6 +31,7 @@ PROTOCOLS = (
     "surrogate.models.packed",
     "surrogate.models.count_classes",
     "surrogate.models.randoms",
+    "surrogate.models.decision_kernel",
 )
 #: engine packages above the models: a model never imports them (the engine adapts the model)
 ABOVE_MODELS = ("surrogate.simulate", "surrogate.gp")
