@@ -69,3 +69,11 @@ def test_evaluate_builds_its_setup_once(compose_cfg, setups) -> None:
     assert len(setups) == 1
     assert settings.full.setup.model is settings.candidate.setup.model
     assert settings.full.setup.seed == 3 and settings.full.n_cells == 50
+
+
+def test_a_design_without_its_fits_builder_is_refused_by_name(compose_cfg) -> None:
+    """collect's settings import no train settings (no circle, no import-order hook): a caller
+    that builds a design without passing the fits' builder is told which one to pass."""
+    with pytest.raises(TypeError, match="fits=TrainSettings.design_fits"):
+        CollectSettings.from_config(compose_cfg("train", DESIGN))
+    assert CollectSettings.from_config(compose_cfg("train")).design is None
