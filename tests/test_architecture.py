@@ -133,6 +133,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("surrogate.simulate",),
     ("surrogate.evaluate",),
     ("surrogate.kinds",),
+    # the contract test classes every plug-in's tests inherit (they run kinds, layers, models)
+    ("surrogate.testing",),
     ("surrogate.stages",),
     ("surrogate.benchmarks", "surrogate.sweep", "surrogate.cli"),
 )
