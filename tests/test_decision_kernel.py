@@ -1,4 +1,4 @@
-"""The engine's per-cell decision steps (surrogate.decision_kernel) against the torch layers,
+"""The engine's per-cell decision steps (surrogate.models.decision_kernel) against the torch layers,
 without a model: psi's lookup against PsiLookupTable.evaluate (1-3 axes, inputs outside the
 box and NaN; within an ulp, mostly equal), the K-lumps draw against ClassTable.draw (the same
 uniforms: the same classes), the switch clock against memory.tick, and the segment
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from surrogate import decision_kernel as kd
+import surrogate.models.decision_kernel as kd
 from surrogate.errors import KernelUnsupported
 from surrogate.gp import PsiLookupTable
 from surrogate.models.packed import CHAIN, PackedBlock, PackedClock

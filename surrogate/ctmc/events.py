@@ -38,15 +38,23 @@ import math
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-from surrogate.ctmc.kinetics import Expr, call, scalar_code, scalar_locals, torch_function
-
-if TYPE_CHECKING:
-    from surrogate.ctmc.kinetics import Kinetics
+# the rules' and events' declarations live with the kinetics that carry them
+from surrogate.ctmc.kinetics import (
+    Event,
+    Expr,
+    Kinetics,
+    SpeciesRule,
+    call,
+    scalar_code,
+    scalar_locals,
+    time_comparison,
+    time_thresholds,
+    torch_function,
+)
 
 __all__ = [
     "MAX_CASCADE",
@@ -68,128 +76,22 @@ MAX_CASCADE = 1000
 #: whole number >= 0 (rules and events compute in float64; 2 * X / 2 may round off)
 WHOLE_TOLERANCE = 1e-9
 
-_TIME_COMPARISONS = ("lt", "leq", "gt", "geq")
-_MIRRORED = {"lt": "gt", "leq": "geq", "gt": "lt", "geq": "leq"}
 #: a comparison with the time on the left, just after the instant: t > c holds from c on
 #: (t >= c), t <= c stops holding at c (t < c); the other two are right-continuous already
 _RIGHT_LIMIT = {"gt": "geq", "leq": "lt", "lt": "lt", "geq": "geq"}
-
-
-def _time_comparison(e: Expr) -> tuple[str, Expr] | None:
-    """``(op, c)`` if ``e`` compares the bare time with an expression ``c`` free of time, as
-    ``t op c`` (the time moved to the left); else None."""
-    if e.op not in _TIME_COMPARISONS:
-        return None
-    a, b = e.args
-    if a.op == "time" and not b.uses_time():
-        return e.op, b
-    if b.op == "time" and not a.uses_time():
-        return _MIRRORED[e.op], a
-    return None
-
-
-def time_thresholds(e: Expr, where: str = "trigger") -> tuple[Expr, ...]:
-    """The values ``c`` at which a condition's comparisons ``t op c`` switch (over species and
-    inputs, free of time), in tree order.
-
-    Raises:
-        ValueError: the time occurs anywhere else (``t == 5``, ``2 * t > 5``, ``t > t0 + t``),
-            naming ``where``: a trigger must be piecewise constant in t between reactions.
-    """
-    found = _time_comparison(e)
-    if found is not None:
-        return (found[1],)
-    if e.op == "time":
-        raise ValueError(
-            f"{where}: the time may only be compared with an expression free of time "
-            "(t < c, t <= c, t > c, t >= c); == and != with the time, or the time inside "
-            "arithmetic, would make the event's instant depend on the time continuously"
-        )
-    return tuple(c for arg in e.args for c in time_thresholds(arg, where))
 
 
 def right_limit(e: Expr) -> Expr:
     """The condition just after each instant (see the module docstring): every time comparison
     replaced by its right-continuous form, ``t > c`` by ``t >= c`` and ``t <= c`` by ``t < c``.
     Equal to ``e`` except at its thresholds."""
-    found = _time_comparison(e)
+    found = time_comparison(e)
     if found is not None:
         op, c = found
         return call(_RIGHT_LIMIT[op], e.args[0] if e.args[0].op == "time" else e.args[1], c)
     if not e.uses_time():
         return e
     return call(e.op, *(right_limit(arg) for arg in e.args))
-
-
-@dataclass(frozen=True)
-class SpeciesRule:
-    """A species whose count is a function of the state: ``x[column] = expr(x, inputs)``.
-
-    Attributes:
-        column: The species' state column.
-        expr: Its count (real, rounded to a whole number; free of time), over species that no
-            rule assigns (nest rules by inlining) and inputs.
-    """
-
-    column: int
-    expr: Expr
-
-    def __post_init__(self) -> None:
-        if self.expr.kind != "real":
-            raise ValueError(f"rule for species column {self.column}: value must be real")
-        if self.expr.uses_time():
-            raise ValueError(
-                f"rule for species column {self.column}: a rule may not read the time (its "
-                "value would change between reactions)"
-            )
-
-
-@dataclass(frozen=True)
-class Event:
-    """A discrete event: when ``trigger`` goes from false to true, set species counts.
-
-    Attributes:
-        name: For messages.
-        trigger: A condition over species, inputs and the time (see :func:`time_thresholds`).
-        assignments: ``(species column, count expression)`` pairs; the counts are computed
-            from the state at the instant (they may read the time) and must be whole numbers
-            >= 0.
-        initial_value: The trigger's value before t = 0 (SBML ``initialValue``): False fires
-            an event whose trigger holds at t = 0.
-        persistent: False: among events firing at one instant, dropped when an earlier one
-            makes its trigger false.
-        use_values_from_trigger_time: True: among events firing at one instant, its values
-            are computed before any of them runs; False: when it runs.
-    """
-
-    name: str
-    trigger: Expr
-    assignments: tuple[tuple[int, Expr], ...] = ()
-    initial_value: bool = True
-    persistent: bool = True
-    use_values_from_trigger_time: bool = True
-
-    def __post_init__(self) -> None:
-        pairs = tuple((int(column), expr) for column, expr in self.assignments)
-        object.__setattr__(self, "assignments", pairs)
-        if self.trigger.kind != "bool":
-            raise ValueError(f"event {self.name!r}: the trigger must be a condition (boolean)")
-        time_thresholds(self.trigger, f"event {self.name!r}")
-        columns = [column for column, _ in pairs]
-        if len(set(columns)) != len(columns):
-            raise ValueError(f"event {self.name!r}: a species is assigned twice")
-        if any(expr.kind != "real" for _, expr in pairs):
-            raise ValueError(f"event {self.name!r}: assigned values must be real")
-
-    @property
-    def thresholds(self) -> tuple[Expr, ...]:
-        """The values of t at which the trigger may switch (see :func:`time_thresholds`)."""
-        return time_thresholds(self.trigger)
-
-    @property
-    def uses_time(self) -> bool:
-        """True if the trigger reads the time (a time-triggered event)."""
-        return self.trigger.uses_time()
 
 
 @dataclass

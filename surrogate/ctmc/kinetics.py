@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -31,13 +30,12 @@ from torch import Tensor
 
 from surrogate.ctmc.network import ReactionNetwork
 
-if TYPE_CHECKING:
-    from surrogate.ctmc.events import Event, SpeciesRule
-
 __all__ = [
     "OPERATORS",
+    "Event",
     "Expr",
     "Kinetics",
+    "SpeciesRule",
     "call",
     "combine_scalar",
     "const",
@@ -46,7 +44,9 @@ __all__ = [
     "scalar_code",
     "scalar_locals",
     "species_ref",
+    "time_comparison",
     "time_ref",
+    "time_thresholds",
     "torch_function",
 ]
 
@@ -466,6 +466,114 @@ def _numba_source(exprs: Sequence[Expr], name: str = "propensities") -> str:
     return "\n".join(lines)
 
 
+_TIME_COMPARISONS = ("lt", "leq", "gt", "geq")
+_MIRRORED = {"lt": "gt", "leq": "geq", "gt": "lt", "geq": "leq"}
+
+
+def time_comparison(e: Expr) -> tuple[str, Expr] | None:
+    """``(op, c)`` if ``e`` compares the bare time with an expression ``c`` free of time, as
+    ``t op c`` (the time moved to the left); else None."""
+    if e.op not in _TIME_COMPARISONS:
+        return None
+    a, b = e.args
+    if a.op == "time" and not b.uses_time():
+        return e.op, b
+    if b.op == "time" and not a.uses_time():
+        return _MIRRORED[e.op], a
+    return None
+
+
+def time_thresholds(e: Expr, where: str = "trigger") -> tuple[Expr, ...]:
+    """The values ``c`` at which a condition's comparisons ``t op c`` switch (over species and
+    inputs, free of time), in tree order.
+
+    Raises:
+        ValueError: the time occurs anywhere else (``t == 5``, ``2 * t > 5``, ``t > t0 + t``),
+            naming ``where``: a trigger must be piecewise constant in t between reactions.
+    """
+    found = time_comparison(e)
+    if found is not None:
+        return (found[1],)
+    if e.op == "time":
+        raise ValueError(
+            f"{where}: the time may only be compared with an expression free of time "
+            "(t < c, t <= c, t > c, t >= c); == and != with the time, or the time inside "
+            "arithmetic, would make the event's instant depend on the time continuously"
+        )
+    return tuple(c for arg in e.args for c in time_thresholds(arg, where))
+
+
+@dataclass(frozen=True)
+class SpeciesRule:
+    """A species whose count is a function of the state: ``x[column] = expr(x, inputs)``.
+
+    Attributes:
+        column: The species' state column.
+        expr: Its count (real, rounded to a whole number; free of time), over species that no
+            rule assigns (nest rules by inlining) and inputs.
+    """
+
+    column: int
+    expr: Expr
+
+    def __post_init__(self) -> None:
+        if self.expr.kind != "real":
+            raise ValueError(f"rule for species column {self.column}: value must be real")
+        if self.expr.uses_time():
+            raise ValueError(
+                f"rule for species column {self.column}: a rule may not read the time (its "
+                "value would change between reactions)"
+            )
+
+
+@dataclass(frozen=True)
+class Event:
+    """A discrete event: when ``trigger`` goes from false to true, set species counts.
+
+    Attributes:
+        name: For messages.
+        trigger: A condition over species, inputs and the time (see :func:`time_thresholds`).
+        assignments: ``(species column, count expression)`` pairs; the counts are computed
+            from the state at the instant (they may read the time) and must be whole numbers
+            >= 0.
+        initial_value: The trigger's value before t = 0 (SBML ``initialValue``): False fires
+            an event whose trigger holds at t = 0.
+        persistent: False: among events firing at one instant, dropped when an earlier one
+            makes its trigger false.
+        use_values_from_trigger_time: True: among events firing at one instant, its values
+            are computed before any of them runs; False: when it runs.
+    """
+
+    name: str
+    trigger: Expr
+    assignments: tuple[tuple[int, Expr], ...] = ()
+    initial_value: bool = True
+    persistent: bool = True
+    use_values_from_trigger_time: bool = True
+
+    def __post_init__(self) -> None:
+        pairs = tuple((int(column), expr) for column, expr in self.assignments)
+        object.__setattr__(self, "assignments", pairs)
+        if self.trigger.kind != "bool":
+            raise ValueError(f"event {self.name!r}: the trigger must be a condition (boolean)")
+        time_thresholds(self.trigger, f"event {self.name!r}")
+        columns = [column for column, _ in pairs]
+        if len(set(columns)) != len(columns):
+            raise ValueError(f"event {self.name!r}: a species is assigned twice")
+        if any(expr.kind != "real" for _, expr in pairs):
+            raise ValueError(f"event {self.name!r}: assigned values must be real")
+
+    @property
+    def thresholds(self) -> tuple[Expr, ...]:
+        """The values of t at which the trigger may switch (see :func:`time_thresholds`)."""
+        return time_thresholds(self.trigger)
+
+    @property
+    def uses_time(self) -> bool:
+        """True if the trigger reads the time (a time-triggered event)."""
+        return self.trigger.uses_time()
+
+
 @dataclass(frozen=True, eq=False)
 class Kinetics:
     """A reaction network with general propensities over its state and per-cell inputs.
@@ -477,9 +585,9 @@ class Kinetics:
         propensity_exprs: One expression per reaction (events per unit time), over species
             counts and inputs (not the time).
         rules: Species whose count is a function of the others, recomputed after every
-            reaction and event (:class:`~surrogate.ctmc.events.SpeciesRule`; their columns
+            reaction and event (:class:`SpeciesRule`; their columns
             change by no reaction, and no rule reads another's column).
-        events: Discrete events (:class:`~surrogate.ctmc.events.Event`), simulated exactly by
+        events: Discrete events (:class:`Event`), simulated exactly by
             both SSAs (see :mod:`surrogate.ctmc.events`).
     """
 

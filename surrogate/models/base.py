@@ -25,19 +25,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
-from surrogate.models.capabilities import cell_step_seconds_of, feature_names_of, features_fn_of
+from surrogate.models.capabilities import (
+    InternalState,
+    cell_step_seconds_of,
+    feature_names_of,
+    features_fn_of,
+)
+from surrogate.models.packed import PackedDecision
 from surrogate.models.randoms import Randoms
 from surrogate.validation import known_keys, yaml_hint
-
-if TYPE_CHECKING:
-    from surrogate.models.packed import PackedDecision
 
 #: seconds per cell and step assumed for a full model that gives no estimate of its own, and
 #: for a two-state chain (abstraction or exact psi): the E. coli step's order (the numba kernel
@@ -51,8 +54,6 @@ CHEAP_CELL_STEP_SECONDS = 1e-4
 #: network at ~0.5 ms per cell-step: ~5 minutes of collection on one core)
 COSTLY_COLLECTION: dict[str, int] = {"n_per_state": 10_000, "n_cells": 500, "record_every": 5}
 
-#: per-cell tensors an internal model carries from window to window (opaque to the engine)
-InternalState = tuple[Tensor, ...]
 #: the body's outer state: named per-cell tensors, cells in dimension 0
 BodyState = dict[str, Tensor]
 

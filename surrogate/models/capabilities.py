@@ -49,7 +49,7 @@ from __future__ import annotations
 import difflib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -57,8 +57,9 @@ from torch import Tensor
 from surrogate.errors import ConfigError
 from surrogate.models.randoms import Randoms
 
-if TYPE_CHECKING:
-    from surrogate.models.base import InternalState
+#: per-cell tensors an internal model carries from window to window (opaque to the engine;
+#: :mod:`surrogate.models.base` re-exports it)
+InternalState = tuple[Tensor, ...]
 
 #: what an internal model must give (:class:`~surrogate.models.base.InternalModel`)
 REQUIRED_MEMBERS: tuple[str, ...] = ("input_names", "signal_names", "lump_names", "initial_state",

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from surrogate.models.base import Randoms
+from surrogate.models.randoms import Randoms
 
 FULL, CHAIN, EXACT, CLASSES, UNSUPPORTED = "full", "chain", "exact", "classes", "unsupported"
 #: the kinds a :class:`PackedBlock` may have

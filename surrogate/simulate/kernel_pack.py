@@ -10,7 +10,7 @@ anything else is a block of kind ``unsupported`` naming it, which the kernel ref
 A new decision layer gets a kernel in two places: a packer here (a function
 ``(layer, slot) -> PackedBlock`` with a kind of its own, added to :data:`PACKERS`, building on
 :func:`pack_tables` and :class:`~surrogate.models.packed.LayerState` for its tables and per-cell
-state), and that kind's per-cell step in :mod:`surrogate.decision_kernel` (its pack, its
+state), and that kind's per-cell step in :mod:`surrogate.models.decision_kernel` (its pack, its
 numba step over the kernel's features, its branch in ``decide``), which every model's kernel
 calls; a model's kernel only accepts the kind.
 

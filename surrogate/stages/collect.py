@@ -36,7 +36,7 @@ from surrogate.simulate.transitions import collect_transitions
 from surrogate.stages import budget
 from surrogate.stages.artefacts import COVERAGE_FIGURE, TRANSITIONS
 from surrogate.stages.design import collect_in_rounds
-from surrogate.stages.settings import CollectSettings
+from surrogate.stages.settings import CollectSettings, TrainSettings
 from surrogate.stages.settings.inspection import INSPECT_CMD
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ log = logging.getLogger(__name__)
 def validate(cfg: Mapping[str, Any]) -> CollectSettings:
     """All checks of a collect config and its estimated cost, before any work starts; the
     typed settings."""
-    settings = CollectSettings.from_config(cfg)
+    settings = CollectSettings.from_config(cfg, fits=TrainSettings.design_fits)
     budget.check(cfg, budget.collect_work(settings), "collect")
     return settings
 

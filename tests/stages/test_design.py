@@ -11,7 +11,7 @@ import pytest
 
 from surrogate.errors import ConfigError
 from surrogate.stages import collect, train
-from surrogate.stages.settings import CollectSettings
+from surrogate.stages.settings import CollectSettings, TrainSettings
 
 SMALL = [
     "collect.n_per_state=400",
@@ -62,7 +62,7 @@ def test_design_identity_and_training(compose_cfg, caplog) -> None:
     off = CollectSettings.from_config(compose_cfg("train", SMALL))
     assert "design" not in off.identity()["collect"] and "design_fit" not in off.identity()
     cfg = compose_cfg("train", [*SMALL, "collect.design.target_error=0.9"])
-    on = CollectSettings.from_config(cfg)
+    on = CollectSettings.from_config(cfg, fits=TrainSettings.design_fits)
     assert on.identity()["collect"]["design"]["target_error"] == 0.9
     assert on.identity()["design_fit"]["gp"]["n_inducing"] == 16
     assert on.directory != off.directory and on.target_error == 0.9

@@ -21,7 +21,7 @@ agents change it every step) is read by the simulator before each call of one st
 over in the cells' inputs (``last_x``), and the simulator steps it between the calls. The
 decision kinds other than the model's own window (the two-state chain over lookup tables, with
 or without a switch clock, and the K-lumps chain) and the segment bookkeeping are the engine's
-per-cell steps (:mod:`surrogate.decision_kernel`, the same for every model's kernel); this
+per-cell steps (:mod:`surrogate.models.decision_kernel`, the same for every model's kernel); this
 kernel hands them its features as a float32 tuple indexed by :data:`FEATURE_CODES`
 (:func:`_features`). What
 remains here is the loop, the motors' window (the full model) and the per-cell control flow of
@@ -32,7 +32,7 @@ Numbers are passed as namedtuples of flat arrays and numbers (:data:`State`, :da
 :data:`Constants`, :data:`Fields`, :data:`Motors`; layouts in :func:`pack_parameters` and
 :func:`~surrogate.field_kernel.pack_field`; the decision layer as the engine packed it,
 :class:`~surrogate.models.packed.PackedDecision`, in the engine's
-:class:`~surrogate.decision_kernel.DecisionPack`: the kernel never reads the engine's decision
+:class:`~surrogate.models.decision_kernel.DecisionPack`: the kernel never reads the engine's decision
 layers or lookup tables); ``cache=True`` keeps the machine code on disk, so
 only the first process compiles (~5 s), once per set of field formulas (the built-in fields'
 set is the precompiled one) and again when the formulas' or the decision steps' source changes
@@ -52,7 +52,7 @@ from numba import prange
 from numba.core import options as numba_options
 from torch import Tensor
 
-from surrogate import decision_kernel as kd
+import surrogate.models.decision_kernel as kd
 from surrogate import scalar
 from surrogate.ctmc.compiled import match_torch_threads
 from surrogate.errors import KernelUnsupported
@@ -89,7 +89,7 @@ _F32 = np.float32
 #: the body's per-cell arrays (in place): ``position`` (n, 2), ``heading``, ``meth`` (n,)
 #: float32; ``last_x`` (n, 2) float32 the last step's inputs (m, L)
 Body = namedtuple("Body", ["position", "heading", "meth", "last_x"])
-#: every per-cell array: the engine's (:class:`~surrogate.decision_kernel.Cells`) and the body's
+#: every per-cell array: the engine's (:class:`~surrogate.models.decision_kernel.Cells`) and the body's
 State = namedtuple("State", ["cells", "body"])
 #: the steps' random numbers in the simulator's layout: ``u`` (steps, rows, n) float32, ``u64``
 #: (steps, rows, n) float64, ``z`` (steps, rows, n) float32 normals
@@ -159,20 +159,20 @@ def _advance_range(steps, step0, start, lo, hi, state, draws, k, field_set, fiel
     The decision: with ``decision.kind`` ``OWN`` the full model, each motor of
     ``motors.states`` (:data:`Motors`, M x block) by its exact exp(Q dt) with the float64
     uniforms from row ``motors.row``; else the engine's step of that kind
-    (:func:`surrogate.decision_kernel.decide`: the two-state chain over lookup tables, with or
+    (:func:`surrogate.models.decision_kernel.decide`: the two-state chain over lookup tables, with or
     without a switch clock, or the K-lumps chain) at the features of :func:`_features`.
 
     Args:
         steps: steps to take; ``step0``: the first one's index (the field's time).
         start, lo, hi: the block's first population cell; its cells ``[lo, hi)``.
-        state: :data:`State`: the engine's :class:`~surrogate.decision_kernel.Cells` and the
+        state: :data:`State`: the engine's :class:`~surrogate.models.decision_kernel.Cells` and the
             :data:`Body` (in place; ``cells.ended`` (steps, n) int32 out).
         draws: :data:`Draws`, (steps, rows, n) each.
         k: :data:`Constants`.
         field_set: the field formulas (:class:`~surrogate.field_kernel.FieldSet`).
         field: :data:`Fields`.
         motors: :data:`Motors` (no rows: not the full model).
-        decision: :class:`~surrogate.decision_kernel.DecisionPack`.
+        decision: :class:`~surrogate.models.decision_kernel.DecisionPack`.
 
     One function for every kind: one compilation.
     """
@@ -380,7 +380,7 @@ class _Block:
         self._packed: tuple[int, Tensor | None, tuple[Any, ...]] | None = None
 
     def decision(self, n: int, own: Tensor | None) -> tuple[Any, ...]:
-        """The block's :class:`~surrogate.decision_kernel.DecisionPack` for ``n`` cells and
+        """The block's :class:`~surrogate.models.decision_kernel.DecisionPack` for ``n`` cells and
         their per-cell state ``own`` (clocks, classes; None: a chain without a clock), as plain
         tuples (:func:`_plain`); kept while ``n`` and the state tensor stay the same."""
         if self._packed is not None and self._packed[0] == n and self._packed[1] is own:

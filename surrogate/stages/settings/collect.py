@@ -1,13 +1,17 @@
 """Settings of the collect stage: perturbed full-model runs -> transitions table (and the
-sequential design's fits, where ``collect.design.target_error`` is set)."""
+sequential design's fits, where ``collect.design.target_error`` is set).
+
+The design's fits are train settings, which read collect's: they are built by the train
+settings' module, which the caller names (``fits=TrainSettings.design_fits``); this module
+knows them only by what the design reads of them (:class:`DesignFits`)."""
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from surrogate.config import non_negative, positive, to_dict
 from surrogate.errors import ConfigError
@@ -30,13 +34,42 @@ from surrogate.stages.settings.common import (
 from surrogate.validation import known_keys
 
 if TYPE_CHECKING:
-    from surrogate.stages.settings.train import TrainSettings
+    from surrogate.gp.training import GPSettings
+    from surrogate.stages.settings.occupancy import OccupancySettings
 
 #: seconds of ``collect.probe_seconds`` where a config does not give it (conf/collect/default.yaml)
 PROBE_SECONDS = 3.0
 #: collect keys that change how a collection is checked, not the table: kept out of its identity
 #: (and so of its directory's name and of every identity built on it)
 NOT_IDENTITY = ("probe_seconds",)
+
+
+class DesignFits(Protocol):
+    """What a sequential design reads of its fits' settings (the train settings of the
+    collection without its design: :meth:`~surrogate.stages.settings.TrainSettings.design_fits`
+    builds them)."""
+
+    @property
+    def inputs(self) -> tuple[str, ...]: ...
+
+    @property
+    def gp(self) -> GPSettings: ...
+
+    @property
+    def fit_threads(self) -> int: ...
+
+    @property
+    def diagnostic(self) -> dict[str, Any]: ...
+
+    def fit_identity(self) -> dict[str, Any]: ...
+
+    def label_column(self, columns: Sequence[str]) -> str: ...
+
+    def occupancy(self) -> OccupancySettings: ...
+
+
+#: builds a design's fits from the collection without its design and the gp group (as given)
+DesignBuilder = Callable[["CollectSettings", dict[str, Any]], DesignFits]
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,14 +82,28 @@ class CollectSettings:
     #: the collect settings as given (null: the model's default budget), for the command
     given: dict[str, Any] | None = None
     #: the fits of a sequential design (``collect.design.target_error`` set), else None
-    design: TrainSettings | None = None
+    design: DesignFits | None = None
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> CollectSettings:
+    def from_config(
+        cls,
+        cfg: Mapping[str, Any],
+        setup: ModelSetup | None = None,
+        job: Job | None = None,
+        fits: DesignBuilder | None = None,
+    ) -> CollectSettings:
         """Validate the collect group (and the model's perturbation options); the budget left
         null (``n_per_state``, ``n_cells``, ``record_every``) is the model's default, which
-        fits its cost (``Model.collect_defaults``)."""
-        setup = ModelSetup.from_config(cfg)
+        fits its cost (``Model.collect_defaults``).
+
+        Args:
+            cfg: The job's config (its ``collect`` group; ``gp`` for a sequential design).
+            setup: The model setup, built once at the stage's entry (None: built from ``cfg``).
+            job: The job, likewise.
+            fits: Builds a sequential design's fits (``TrainSettings.design_fits``); needed
+                where ``collect.design.target_error`` is set.
+        """
+        setup = ModelSetup.from_config(cfg) if setup is None else setup
         if is_coupled(setup.field):  # the perturbed cells would shape the field they read
             raise ConfigError(
                 f"collect runs in a given field; field={setup.field_name} "
@@ -91,8 +138,21 @@ class CollectSettings:
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
-        return cls(setup, c, Job.from_config(cfg), given=given,
-                   design=_design_settings(cfg, c, rate))  # fmt: skip
+        out = cls(setup, c, Job.from_config(cfg) if job is None else job, given=given)
+        design = _design_options(cfg, c, rate)
+        if design is None:
+            return out
+        if fits is None:
+            raise TypeError("collect.design.target_error is set: build the collect settings "
+                            "with fits=TrainSettings.design_fits (its rounds fit psi)")  # fmt: skip
+        # the rounds fit on the collection without its design (as the fixed design identifies
+        # it), psi's two-state chain (gp.lumps=auto: the design needs psi)
+        options = {**c, "design": {**design, "target_error": None}}
+        plain = replace(out, options=options, given=options)
+        gp = to_dict(cfg["gp"])
+        if gp.get("lumps") == "auto":
+            gp = {**gp, "lumps": "phi"}
+        return replace(out, design=fits(plain, gp))
 
     @property
     def expected_labels(self) -> bool:
@@ -166,16 +226,12 @@ def identity_options(options: Mapping[str, Any]) -> dict[str, Any]:
 
 #: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
 DESIGN_KEYS = ("target_error", "max_rounds", "candidates", "explore")
-#: the design's fits from a config (``TrainSettings.from_config``): train settings read
-#: collect's, so train registers this when it is imported (the package's ``__init__`` does)
-#: rather than collect importing train back
-DESIGN_FITS: Callable[[Mapping[str, Any]], TrainSettings] | None = None
 
 
-def _design_settings(
+def _design_options(
     cfg: Mapping[str, Any], options: dict[str, Any], perturb_rate: float
-) -> TrainSettings | None:
-    """Validate ``collect.design``; the settings of its fits where ``target_error`` is set."""
+) -> dict[str, Any] | None:
+    """Validate ``collect.design``; its options where ``target_error`` is set, else None."""
     d = options.get("design")
     if d is None:
         return None
@@ -202,11 +258,4 @@ def _design_settings(
             "collect.design.target_error needs the gp group (its rounds fit psi): run "
             f"{TRAIN_CMD} collect.design.target_error={target:g} or add gp=svgp"
         )
-    if DESIGN_FITS is None:  # pragma: no cover - the package's __init__ imports train
-        raise RuntimeError("import surrogate.stages.settings (train settings register the "
-                           "design's fits) before CollectSettings")  # fmt: skip
-    inner = to_dict(cfg)
-    inner["collect"] = {**options, "design": {**dict(d), "target_error": None}}
-    if inner["gp"].get("lumps") == "auto":  # the rounds fit psi, the two-state chain's law
-        inner["gp"] = {**inner["gp"], "lumps": "phi"}
-    return DESIGN_FITS(inner)
+    return dict(d)

@@ -4,7 +4,7 @@ its training settings) or the exact lumped psi."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -22,7 +22,7 @@ from surrogate.kinds import (
 )
 from surrogate.models.capabilities import has_exact_psi, signal_bounds_of
 from surrogate.simulate.classes import STARTS
-from surrogate.stages.settings.common import ModelSetup
+from surrogate.stages.settings.common import Job, ModelSetup
 from surrogate.stages.settings.train import TrainSettings
 
 DECISIONS = tuple(DECISION_KINDS)
@@ -63,8 +63,15 @@ class DecisionSettings:
         return self.chain.lumps if self.chain is not None else "phi"
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup) -> DecisionSettings:
-        """Validate the decision group (and, for an abstraction, the settings that locate it)."""
+    def from_config(cls, cfg: Mapping[str, Any], setup: ModelSetup, job: Job) -> DecisionSettings:
+        """Validate the decision group (and, for an abstraction, the settings that locate it).
+
+        Args:
+            cfg: The run's config (its ``decision`` group; an abstraction's ``gp`` and
+                ``collect``).
+            setup: The run's model setup (an abstraction's fit: the same in its training field).
+            job: The run's job (an abstraction's fit: the same on ``decision.train_device``).
+        """
         d = to_dict(cfg["decision"])
         kind = decision_kind(d.get("name"))
         name = kind.name
@@ -94,11 +101,11 @@ class DecisionSettings:
             chain = exact_chain(d, history, mode, internal, setup.model.name)
             return cls(name, d, mode.name, sizes, chain=chain, max_age=max_age)
         train_field = str(d.get("train_field"))
-        train_cfg = {**to_dict(cfg), "field": field_config(train_field)}  # unknown -> ConfigError
+        train_setup = setup.with_field(field_config(train_field))  # unknown -> ConfigError
         train_device = d.get("train_device")
         if train_device is not None:  # a fit made on another device (e.g. a CPU fit on CUDA)
-            train_cfg["device"] = str(train_device_of(train_device))
-        train = TrainSettings.from_config(train_cfg)
+            job = replace(job, device=train_device_of(train_device))
+        train = TrainSettings.from_config(cfg, train_setup, job)
         sizes = None
         train.kind.check_mode(mode)
         if mode.table:

@@ -40,18 +40,20 @@ class EvaluateSettings:
                 "(or decision=exact)"
             )
         e = to_dict(cfg["evaluate"])
-        full_cfg = {**to_dict(cfg), "decision": {"name": "full"}}
+        # the full run: the candidate's setup (in a scaled field, with another seed: below)
+        full_cfg = {**cfg, "decision": {"name": "full"}}
+        setup = candidate.setup
         if e.get("full_n_cells") is not None:  # the full model on fewer cells (large runs)
             full_n = int(positive(e, "full_n_cells", "evaluate.", integer=True))
             full_cfg["n_cells"] = full_n
-            full_cfg["field"] = scaled_field(candidate, full_n)
+            setup = setup.with_field(scaled_field(candidate, full_n))
         full_seed = e.get("full_seed")
         if full_seed is not None:  # candidates of several training seeds against one full run
             if isinstance(full_seed, bool) or not isinstance(full_seed, int) or full_seed < 0:
                 raise ConfigError(f"evaluate.full_seed must be a non-negative integer or null "
                                   f"(null: seed), got {full_seed!r}")  # fmt: skip
-            full_cfg["seed"] = full_seed
-        full = SimulateSettings.from_config(full_cfg)
+            setup = setup.with_seed(full_seed)
+        full = SimulateSettings.from_config(full_cfg, setup, candidate.job)
         positive(e, "band_factor", "evaluate.")
         subsample = int(positive(e, "subsample", "evaluate.", integer=True))
         if not isinstance(e.get("figures", True), bool):
@@ -92,7 +94,7 @@ class EvaluateSettings:
             repeat = full.replace(seed=seed + offset)
         options = {k: v for k, v in e.items() if k != "run_missing"}
         return cls(candidate, full, repeat, times, subsample, options,
-                   bool(e.get("run_missing", False)), Job.from_config(cfg))  # fmt: skip
+                   bool(e.get("run_missing", False)), candidate.job)  # fmt: skip
 
     def identity(self) -> dict[str, Any]:
         """The candidate run's settings and the evaluation's own (times as resolved)."""

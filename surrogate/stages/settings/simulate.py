@@ -59,11 +59,20 @@ class SimulateSettings:
     backend: str = "auto"
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> SimulateSettings:
-        """Validate the run settings, the decision and a memory estimate."""
+    def from_config(
+        cls, cfg: Mapping[str, Any], setup: ModelSetup | None = None, job: Job | None = None
+    ) -> SimulateSettings:
+        """Validate the run settings, the decision and a memory estimate.
+
+        Args:
+            cfg: The run's config.
+            setup: The model setup, built once at the stage's entry (None: built from ``cfg``;
+                evaluate's full run passes the candidate's, in its field and seed).
+            job: The job, likewise.
+        """
         from surrogate.simulate.population import steps_between
 
-        setup = ModelSetup.from_config(cfg)
+        setup = ModelSetup.from_config(cfg) if setup is None else setup
         n_cells = int(positive(cfg, "n_cells", integer=True))
         t_end = float(positive(cfg, "t_end"))
         interval = float(positive(cfg, "record_interval"))
@@ -76,8 +85,8 @@ class SimulateSettings:
             raise ConfigError(str(exc)) from None
         eq = float(non_negative(cfg, "equilibration_time"))
         start = validate_start(cfg, size=start_size_of(setup.model.body))
-        decision = DecisionSettings.from_config(cfg, setup)
-        job = Job.from_config(cfg)
+        job = Job.from_config(cfg) if job is None else job
+        decision = DecisionSettings.from_config(cfg, setup, job)
         shards = (cfg.get("shard") or {}).get("count", 1)
         per_job = -(-n_cells // shards) if isinstance(shards, int) and shards >= 1 else n_cells
         check_memory(per_job, job.device)

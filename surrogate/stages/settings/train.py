@@ -29,7 +29,6 @@ from surrogate.kinds import (
     resolve_auto_lumps,
 )
 from surrogate.models.capabilities import start_size_of
-from surrogate.stages.settings import collect as collect_settings
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     TRAIN_CMD,
@@ -128,17 +127,43 @@ class TrainSettings:
     auto_recipe: str | None = None
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> TrainSettings:
+    def from_config(
+        cls, cfg: Mapping[str, Any], setup: ModelSetup | None = None, job: Job | None = None
+    ) -> TrainSettings:
         """Validate the gp group; the data is collected with ``cfg`` or read from
-        ``transitions`` (an external table)."""
+        ``transitions`` (an external table).
+
+        Args:
+            cfg: The job's config (its ``gp``, ``collect`` and ``transitions``).
+            setup: The model setup, built once at the stage's entry (None: built from ``cfg``;
+                a run's abstraction passes its own, in the training field).
+            job: The job, likewise (a run's abstraction: on the fit's device).
+        """
         external = cfg.get("transitions")
         if external:
-            setup = ModelSetup.from_config(cfg)
+            setup = ModelSetup.from_config(cfg) if setup is None else setup
+            job = Job.from_config(cfg) if job is None else job
             source: CollectSettings | ExternalTable = ExternalTable.from_path(str(external))
         else:
-            source = CollectSettings.from_config(cfg)
-            setup = source.setup
-        raw_gp = to_dict(cfg["gp"])
+            source = CollectSettings.from_config(cfg, setup, job, fits=cls.design_fits)
+            setup, job = source.setup, source.job
+        return cls._build(setup, source, job, to_dict(cfg["gp"]))
+
+    @classmethod
+    def design_fits(cls, source: CollectSettings, gp: dict[str, Any]) -> TrainSettings:
+        """The fits of a sequential design's rounds: ``gp`` (the group as given) on the
+        collection ``source`` (without its design), with its setup and job."""
+        return cls._build(source.setup, source, source.job, gp)
+
+    @classmethod
+    def _build(
+        cls,
+        setup: ModelSetup,
+        source: CollectSettings | ExternalTable,
+        job: Job,
+        raw_gp: dict[str, Any],
+    ) -> TrainSettings:
+        """The settings of a fit of ``raw_gp`` (the gp group as given) on ``source``."""
         gp_config = resolve_auto_lumps(raw_gp, setup.model)
         extra = {*GP_EXTRA, *kind_gp_keys()}  # a chain kind's own keys are no hyperparameters
         hyper = {k: v for k, v in gp_config.items() if k not in extra}
@@ -189,7 +214,7 @@ class TrainSettings:
                 )
         # gp.lumps=auto: the recipe it chose, for the log
         auto_recipe = chain.kind.recipe if is_auto(raw_gp) else None
-        return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, Job.from_config(cfg),
+        return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, job,
                    int(threads) if threads is not None else torch.get_num_threads(), chain.kind,
                    chain.max_age, chain.min_events, chain.max_label_weight, chain.relaxation_cells,
                    chain.relaxation_lags, auto_recipe)  # fmt: skip
@@ -317,7 +342,3 @@ def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str,
     non_negative(d, "equilibration_time", "gp.diagnostic.")
     d["start"] = list(validate_start(d, "start", "gp.diagnostic.", start_size))
     return d
-
-
-# collect's sequential design fits with these settings (no import of train from collect)
-collect_settings.DESIGN_FITS = TrainSettings.from_config
