@@ -118,8 +118,8 @@ class BatchSimulator(Simulator):
             else:
                 blocks.append((r.field, r.n_cells))
         field = FieldBatch([f for f, _ in blocks], [n for _, n in blocks])
-        super().__init__(model, decision, field, dt, device, check_finite, compile, backend,
-                         compile_fallback)  # fmt: skip
+        super().__init__(model, decision, field, dt, device, compile, backend, compile_fallback)
+        self.check_finite = check_finite
         self.sizes = sizes
         self.slices = [slice(a, a + n) for a, n in zip(_offsets(sizes), sizes, strict=True)]
         self._blocks: list[RandomBlock] = []

@@ -31,7 +31,7 @@ from surrogate.models.count_classes import (
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.simulate import FullDecision
 from surrogate.simulate.batch import Replicate
-from surrogate.stages.runs import simulate_runs
+from surrogate.stages.runs import RunPlan, simulate_runs
 from surrogate.stages.simulate import exact_class_decision, exact_decision
 from tests.sbml.builder import Reaction, Species, build
 
@@ -144,8 +144,8 @@ def test_a_hidden_count_fails_two_states_and_passes_with_classes(tmp_path) -> No
     reps = [Replicate(FullDecision(model.internal), field, n, 1, (2.0, 0.0)),
             Replicate(two_state, field, n, 2, (2.0, 0.0)),
             Replicate(classes, field, n, 3, (2.0, 0.0))]  # fmt: skip
-    runs = simulate_runs(model, reps, ["full", "two", "classes"], dt=dt, times=[100.0],
-                         t_end=100.0, equilibration_time=0.0, progress=False)  # fmt: skip
+    runs = simulate_runs(model, reps, ["full", "two", "classes"],
+                         plan=RunPlan(dt, [100.0], 100.0, 0.0), progress=False)  # fmt: skip
 
     def off(label: str) -> ExactSample:
         counts = runs[label].histograms["off"]
