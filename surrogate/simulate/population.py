@@ -65,7 +65,7 @@ def steps_between(interval: float, dt: float, what: str) -> int:
     return k
 
 
-def simulate_population(  # the public entry point, called with keywords
+def simulate_population(  # noqa: PLR0913  # the public entry point, called with keywords
     simulator: Simulator,
     n_cells: int,
     t_end: float,
