@@ -75,8 +75,8 @@ class BatchSimulator(Simulator):
     Args:
         model: the agent model shared by every replicate.
         replicates: the runs, in block order; each needs its own decision-layer instance.
-        dt, device, check_finite, compile, backend, compile_fallback: as for
-            :class:`Simulator`.
+        dt, device, compile, backend, compile_fallback: as for :class:`Simulator`.
+        check_finite: sets :attr:`Simulator.check_finite`.
 
     Example:
         >>> from surrogate.fields import GaussianField, LinearField
