@@ -45,3 +45,25 @@ def test_mypy_is_clean() -> None:
     """mypy over ``surrogate`` (``files`` in pyproject.toml) reports no error."""
     result = _run("mypy", timeout=600)
     assert result.returncode == 0, f"mypy:\n{result.stdout}{result.stderr}"
+
+
+def test_ruff_holds_the_parameter_and_complexity_limits() -> None:
+    """The project's ruff settings refuse a function of 9 parameters (PLR0913, max-args 8) and
+    one of complexity 16 (C901, max-complexity 15) in the package, and let 8 and 15 pass."""
+    branches = "".join(f"    if x == {i}:\n        return {i}\n" for i in range(15))
+    source = (
+        "def nine(a, b, c, d, e, f, g, h, i):\n    return a\n\n\n"
+        "def eight(a, b, c, d, e, f, g, h):\n    return a\n\n\n"
+        f"def sixteen(x):\n{branches}    return -1\n\n\n"
+        f"def fifteen(x):\n{branches.split('    if x == 14')[0]}    return -1\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "ruff", "check", "--no-cache", "--output-format", "concise",
+         "--select", "C901,PLR0913", "--stdin-filename", "surrogate/limits.py", "-"],
+        cwd=ROOT, input=source, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    flagged = sorted(line.split(": ", 1)[1][:5] for line in result.stdout.splitlines()
+                     if line.startswith("surrogate/limits.py"))  # fmt: skip
+    assert flagged == ["C901 ", "PLR09"], result.stdout + result.stderr
+    assert "`sixteen` is too complex (16 > 15)" in result.stdout
+    assert "(9 > 8)" in result.stdout

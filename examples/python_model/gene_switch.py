@@ -111,7 +111,7 @@ class GeneSwitchModel(Model):
 
     name = "gene_switch"
 
-    def __init__(
+    def __init__(  # noqa: PLR0913  # every constant is a key of the model config
         self,
         k_act: float = 50.0,
         k_deact: float = 2.0,

@@ -74,7 +74,7 @@ def train_abstraction(
     """Collect transitions and fit both classifiers (each timed) with the collect and gp
     settings of ``cfg`` (``training`` overrides sizes); return (psi, facts)."""
     from surrogate.gp import fit_psi
-    from surrogate.simulate.transitions import collect_transitions
+    from surrogate.simulate.transitions import CollectOptions, collect_transitions
     from surrogate.stages.settings import TrainSettings
 
     t = s["training"]
@@ -93,9 +93,11 @@ def train_abstraction(
         n_cells=int(opts["n_cells"]),
         n_per_state=int(opts["n_per_state"]),
         perturb_rate=float(opts["perturb_rate"]),
-        record_every=int(opts["record_every"]),
-        equilibration_time=float(opts["equilibration_time"]),
-        max_time=float(opts["max_time"]),
+        options=CollectOptions(
+            record_every=int(opts["record_every"]),
+            equilibration_time=float(opts["equilibration_time"]),
+            max_time=float(opts["max_time"]),
+        ),
         progress=False,
     )
     collect_s = time.perf_counter() - t0

@@ -102,7 +102,7 @@ def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict
         decision = simulator.decision
         args = (
             state.body, state.phi.view(torch.uint8), state.segment_steps,
-            state.segment_complete.view(torch.uint8), decision.fused_state(), u, u64, z, extra,
+            state.segment_complete.view(torch.uint8), decision.fused_state(), (u, u64, z, extra),
             1.0,
         )  # fmt: skip
         rng = best_us(lambda: simulator.draw_randoms(n_cells), k)

@@ -325,7 +325,7 @@ class CompiledSSA:
             self._early,
         )  # fmt: skip
 
-    def _check(
+    def _check(  # noqa: C901  # one branch per refusal, each with its message
         self,
         state: Tensor | np.ndarray,
         inputs: Tensor | np.ndarray,

@@ -48,7 +48,7 @@ def _check_dt(dt: float | Tensor, n: int, device: torch.device) -> Tensor:
     return torch.full((n,), float(dt), dtype=torch.float64, device=device)
 
 
-def gillespie(
+def gillespie(  # noqa: PLR0913  # the public SSA: its options are keyword-only
     network: ReactionNetwork,
     state: Tensor,
     rate_constants: Tensor,
@@ -109,12 +109,12 @@ def gillespie(
     if n == 0:
         return out
 
+    if events is not None:
+        return _gillespie_events(network, state, rates, remaining, generator, max_rounds,
+                                 propensity, (events, clock))  # fmt: skip
     general = propensity is not None
     if propensity is None:
         propensity = make_propensity_fn(network.reactants, device)
-    if events is not None:
-        return _gillespie_events(network, state, rates, remaining, generator, max_rounds,
-                                 propensity, general, events, clock)  # fmt: skip
     invalid = torch.zeros((), dtype=torch.bool, device=device)  # general kinetics only
     stoich = network.stoichiometry.to(device)
 
@@ -187,13 +187,17 @@ def _gillespie_events(
     window: Tensor,
     generator: torch.Generator | None,
     max_rounds: int | None,
-    propensity: PropensityFn,
-    general: bool,
-    events: EventProgram,
-    clock: EventState | None,
+    propensity: PropensityFn | None,
+    program: tuple[EventProgram, EventState | None],
 ) -> Tensor:
-    """:func:`gillespie`'s rounds with rules and events, each cell on its own clock."""
+    """:func:`gillespie`'s rounds with rules and events, each cell on its own clock
+    (``program``: :func:`gillespie`'s ``events`` and ``clock``; ``propensity`` None: mass
+    action)."""
     device, n = state.device, state.shape[0]
+    events, clock = program
+    general = propensity is not None
+    if propensity is None:
+        propensity = make_propensity_fn(network.reactants, device)
     if clock is None:
         if events.n_events:
             names = [e.name for e in events.events]

@@ -169,7 +169,7 @@ class VerdictInputs:
     count_classes: CountClasses | None = None
 
 
-def verdict(
+def verdict(  # noqa: C901  # one branch per first cause, in the report's order
     run: VerdictInputs, check: Check | None = None, tried: Mapping[str, str] | None = None
 ) -> Verdict:
     """Read the measurements (see the module docstring).

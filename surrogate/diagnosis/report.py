@@ -165,7 +165,7 @@ def _fmt_s(value: float | None) -> str:
     return f"{value:.3g} s"
 
 
-def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:
+def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa: C901  # one branch per optional section
     """``report.md``: the measurements of ``summary`` (inspect.json) with their figures."""
     lines = [f"# Inspection: {summary['model']}", "",
              f"`{summary['command']}` ({summary['wall_time_s']:.0f} s). phi = "

@@ -65,7 +65,7 @@ def _take(state: tuple[Tensor, ...], index: Tensor) -> tuple[Tensor, ...]:
     return tuple(t.index_select(0, index.to(t.device)) for t in state)
 
 
-def simulate_fixed_inputs(
+def simulate_fixed_inputs(  # noqa: C901  # one branch per optional measurement
     model: Model, grid: Grid, options: InspectOptions, dt: float, device: torch.device,
     seconds: float,
 ) -> FixedInputs:  # fmt: skip

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -211,16 +212,31 @@ def relaxation_class_law(
     return law
 
 
+@dataclass(frozen=True)
+class RelaxationSpec:
+    """What :func:`fit_relaxation_law` tabulates over, beside the data.
+
+    Attributes:
+        sizes: grid nodes per input (the learned law's ``n_1..n_d``).
+        class_bins: the bin of each class.
+        class_lumps: the lump of each class.
+        lags: the increasing lags (s) the sample's ``bin_1 .. bin_L`` were read after.
+        dt: the window (s).
+    """
+
+    sizes: Sequence[int]
+    class_bins: Sequence[int]
+    class_lumps: Sequence[int]
+    lags: Sequence[float]
+    dt: float
+
+
 def fit_relaxation_law(
     learned: Tensor,
     sample: pd.DataFrame,
     input_names: Sequence[str],
     domain: Mapping[str, tuple[float, float]],
-    sizes: Sequence[int],
-    class_bins: Sequence[int],
-    class_lumps: Sequence[int],
-    lags: Sequence[float],
-    dt: float,
+    spec: RelaxationSpec,
     settings: GPSettings,
     progress: bool = False,
     device: torch.device | str = "cpu",
@@ -228,9 +244,21 @@ def fit_relaxation_law(
     """:func:`relaxation_class_law` from a stationary sample (columns ``input_names`` and
     ``bin_0 .. bin_L``, see :func:`surrogate.simulate.transitions.record_stationary_bins`).
 
+    Args:
+        learned: ``C x n_1..n_d x C`` the learned class law.
+        sample: the stationary sample.
+        input_names: the ``d`` inputs.
+        domain: ``{input: (lo, hi)}``, the grid's span.
+        spec: the grid, the classes' bins and lumps, the lags and the window.
+        settings: the GP settings of the stationary bin law.
+        progress: show the fit's progress bar.
+        device: where to fit.
+
     Returns:
         ``C x n_1..n_d x C`` law and metrics (tau, correlations, samples per bin).
     """
+    sizes, class_bins, class_lumps = spec.sizes, spec.class_bins, spec.class_lumps
+    lags, dt = spec.lags, spec.dt
     n_bins = check_shared_bins(class_bins, class_lumps)
     names = list(input_names)
     grid = grid_nodes([domain[n] for n in names], list(sizes)).to(torch.float32)
@@ -272,6 +300,7 @@ __all__ = [
     "DEFAULT_CELLS",
     "DEFAULT_LAGS",
     "RELAXATION_VERSION",
+    "RelaxationSpec",
     "check_shared_bins",
     "fit_relaxation_law",
     "relaxation_cells",

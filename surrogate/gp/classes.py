@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -51,31 +52,14 @@ DEFAULT_MAX_LABEL_WEIGHT = 1000.0
 CLASS_LAW_VERSION = 2
 
 
-def fit_class_law(
-    data: pd.DataFrame,
-    input_names: Sequence[str],
-    n_classes: int,
-    domain: Domain,
-    settings: GPSettings | None = None,
-    nodes: Sequence[int] | None = None,
-    origin: str = "phi_class",
-    destination: str = "phi_class_next",
-    progress: bool = True,
-    device: torch.device | str = "cpu",
-    min_events: float | None = None,
-    expected: bool = True,
-    max_weight: float | None = None,
-) -> tuple[Tensor, dict[str, Any]]:
-    """Learn ``P(class' | class, z)`` and tabulate it.
+@dataclass(frozen=True)
+class ClassFitOptions:
+    """How :func:`fit_class_law` reads the table and fits (every field has its default).
 
-    Args:
-        data: transitions with the ``input_names`` columns and the classes before (``origin``)
-            and after (``destination``) each window, ints in ``[0, n_classes)``.
-        input_names: the ``d`` inputs ``z``.
-        n_classes: ``C``.
-        domain: ``{input: (lo, hi)}``, the grid's span (e.g. the two-state fit's domain).
-        settings: the GP settings of every binary classifier.
+    Attributes:
         nodes: grid nodes per input (default :func:`class_law_nodes`).
+        origin: the column of the class before each window.
+        destination: the column of the class after it.
         progress: show the fit's progress bar.
         device: where to fit.
         min_events: a destination with fewer events of either outcome (or an origin with fewer
@@ -87,6 +71,37 @@ def fit_class_law(
         max_weight: with expected labels, each GP's rows count as up to this many draws: the
             labels' inverse dispersion (:func:`~surrogate.gp.binned.label_weight`); 1: as
             0/1 outcomes.
+    """
+
+    nodes: Sequence[int] | None = None
+    origin: str = "phi_class"
+    destination: str = "phi_class_next"
+    progress: bool = True
+    device: torch.device | str = "cpu"
+    min_events: float | None = None
+    expected: bool = True
+    max_weight: float | None = None
+
+
+def fit_class_law(
+    data: pd.DataFrame,
+    input_names: Sequence[str],
+    n_classes: int,
+    domain: Domain,
+    settings: GPSettings | None = None,
+    options: ClassFitOptions = ClassFitOptions(),
+) -> tuple[Tensor, dict[str, Any]]:
+    """Learn ``P(class' | class, z)`` and tabulate it.
+
+    Args:
+        data: transitions with the ``input_names`` columns and the classes before
+            (``options.origin``) and after (``options.destination``) each window, ints in
+            ``[0, n_classes)``.
+        input_names: the ``d`` inputs ``z``.
+        n_classes: ``C``.
+        domain: ``{input: (lo, hi)}``, the grid's span (e.g. the two-state fit's domain).
+        settings: the GP settings of every binary classifier.
+        options: the columns, grid, labels and where to fit (:class:`ClassFitOptions`).
 
     Returns:
         ``C x n_1..n_d x C`` float64 probabilities (rows sum to 1), and metrics: the labels
@@ -97,6 +112,7 @@ def fit_class_law(
         >>> law, metrics = fit_class_law(table, ["dG"], 7, {"dG": (-1.5, 2.5)})  # doctest: +SKIP
     """
     settings = settings or GPSettings()
+    origin, destination, min_events = options.origin, options.destination, options.min_events
     names = list(input_names)
     missing = [c for c in (*names, origin, destination) if c not in data.columns]
     if missing:
@@ -109,12 +125,12 @@ def fit_class_law(
     if ((a_col < 0) | (a_col >= n_classes) | (b_col < 0) | (b_col >= n_classes)).any():
         raise ArtefactError(f"class columns must lie in [0, {n_classes})")
     columns = [f"{destination}_expected_{b}" for b in range(n_classes)]
-    use_expected = expected and all(c in data.columns for c in columns)
+    use_expected = options.expected and all(c in data.columns for c in columns)
     labels = (data[columns].to_numpy(dtype="float32") if use_expected
               else np.eye(n_classes, dtype=np.float32)[b_col])  # fmt: skip
     label_kind = "expected" if use_expected else "outcome"
     min_events = MIN_EVENTS[label_kind] if min_events is None else min_events
-    max_weight = DEFAULT_MAX_LABEL_WEIGHT if max_weight is None else max_weight
+    max_weight = DEFAULT_MAX_LABEL_WEIGHT if options.max_weight is None else options.max_weight
     z_all = torch.tensor(data[names].to_numpy(dtype="float32"))
     # rows a binary classifier needs: its inducing points within the training split
     need = math.ceil(2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction))
@@ -148,10 +164,10 @@ def fit_class_law(
         plan.append((a, steps))
         metrics[str(a)] = {"rows": int(rows.size),
                            "destinations": {str(b): int(counts[b]) for b in reached}}  # fmt: skip
-    fitted = fit_classifiers(problems, settings, progress=progress, device=device,
+    fitted = fit_classifiers(problems, settings, progress=options.progress, device=options.device,
                              desc="class chain", weights=weights) if problems else []  # fmt: skip
     bounds = [domain[n] for n in names]
-    sizes = class_law_nodes(len(names), nodes)
+    sizes = class_law_nodes(len(names), options.nodes)
     grid = grid_nodes(bounds, sizes).to(torch.float32)
     law = torch.zeros(n_classes, grid.shape[0], n_classes, dtype=torch.float64)
     for a, steps in plan:
@@ -192,6 +208,7 @@ __all__ = [
     "CLASS_LAW_VERSION",
     "DEFAULT_MAX_LABEL_WEIGHT",
     "MIN_EVENTS",
+    "ClassFitOptions",
     "class_law_nodes",
     "fit_class_law",
 ]

@@ -448,16 +448,30 @@ def held_out_split(n_cells: int, held_out: float) -> tuple[int, int]:
     return m, n_cells - m
 
 
+@dataclass(frozen=True)
+class PhaseSelection:
+    """Which phase counts :func:`select_phases` tries, and how it scores them.
+
+    Attributes:
+        max_per_lump: the most phases a lump may get.
+        structure: the moves (:class:`PhaseLayout`).
+        held_out: the share of cells held out (at least one cell each way).
+        per_lump: fixed phase counts (no selection; the held-out score is still reported).
+    """
+
+    max_per_lump: int
+    structure: str = SERIES
+    held_out: float = 0.25
+    per_lump: tuple[int, int] | None = None
+
+
 def select_phases(
     inputs: Tensor,
     phi: Tensor,
     bounds: Sequence[tuple[float, float]],
-    max_per_lump: int,
-    structure: str = SERIES,
+    selection: PhaseSelection,
     settings: PhaseFitSettings = PhaseFitSettings(),
-    held_out: float = 0.25,
     seed: int = 0,
-    per_lump: tuple[int, int] | None = None,
 ) -> tuple[PhaseLaw, dict[str, Any]]:
     """The phase counts chosen by held-out likelihood, and their law.
 
@@ -470,20 +484,19 @@ def select_phases(
         inputs: ``n x T x d`` each cell's inputs during each window.
         phi: ``n x (T + 1)`` phi at the windows' edges.
         bounds: the inputs' span.
-        max_per_lump: the most phases a lump may get.
-        structure: the moves (:class:`PhaseLayout`).
+        selection: the counts tried, the moves and the held-out share
+            (:class:`PhaseSelection`).
         settings: the fit's settings.
-        held_out: the share of cells held out (at least one cell each way).
         seed: the split's and the fits' seed.
-        per_lump: fixed phase counts (no selection; the held-out score is still reported).
 
     Returns:
         The chosen law (fitted on the training cells) and a report: ``per_lump``, ``candidates``
         (each fit's phase counts, train and held-out log-likelihood per window, seconds),
         ``held_out_cells``.
     """
+    structure, per_lump = selection.structure, selection.per_lump
     n = phi.shape[0]
-    m = held_out_split(n, held_out)[0]
+    m = held_out_split(n, selection.held_out)[0]
     order = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
     test, train = order[:m], order[m:]
     windows = m * (phi.shape[1] - 1)
@@ -503,7 +516,7 @@ def select_phases(
     best, best_cells = fitted(counts)
     while per_lump is None:
         trials = [(counts[0] + 1, counts[1]), (counts[0], counts[1] + 1)]
-        scored = [(c, *fitted(c)) for c in trials if max(c) <= max_per_lump]
+        scored = [(c, *fitted(c)) for c in trials if max(c) <= selection.max_per_lump]
         if not scored:
             break
         c, law, cells = max(scored, key=lambda item: float(item[2].sum()))
@@ -560,6 +573,7 @@ __all__ = [
     "PhaseFitSettings",
     "PhaseLaw",
     "PhaseLayout",
+    "PhaseSelection",
     "fit_phase_law",
     "held_out_split",
     "input_grid",

@@ -111,7 +111,7 @@ class GridField(CoupledField):
 
     name = "grid"
 
-    def __init__(
+    def __init__(  # noqa: PLR0913  # built from the field config's keys (hydra)
         self,
         domain: Sequence[Sequence[float]],
         shape: Sequence[int],

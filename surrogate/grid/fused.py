@@ -47,7 +47,7 @@ FUSE_MODES = ("auto", "eager", "compile")
 Outputs = tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 
 
-def fused_step(
+def fused_step(  # noqa: PLR0913  # torch.compile(fullgraph): its tensors are graph inputs
     grid: Grid,
     species: Sequence[Species],
     decay_loss: Callable[[Tensor, Tensor, Tensor, float], Tensor],

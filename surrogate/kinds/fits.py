@@ -18,8 +18,8 @@ from torch import Tensor
 
 from surrogate.config import seed_everything
 from surrogate.errors import ArtefactError
-from surrogate.gp.class_relaxation import fit_relaxation_law
-from surrogate.gp.classes import fit_class_law
+from surrogate.gp.class_relaxation import RelaxationSpec, fit_relaxation_law
+from surrogate.gp.classes import ClassFitOptions, fit_class_law
 from surrogate.io import load_tensors
 from surrogate.kinds.base import FitSettings
 from surrogate.kinds.files import CLASS_CHAIN
@@ -51,11 +51,11 @@ def _fit_class_chain(
             f"{columns[0]}..: they were collected before the model gave them; delete "
             f"{settings.source.directory} and collect again, or train with gp.labels=outcome"
         )
+    options = ClassFitOptions(progress=settings.job.progress, device=settings.job.device,
+                              expected=expected, min_events=settings.min_events,
+                              max_weight=settings.max_label_weight)  # fmt: skip
     law, metrics = fit_class_law(table, settings.inputs, len(classes.names), dict(domain),
-                                 settings.gp, progress=settings.job.progress,
-                                 device=settings.job.device, expected=expected,
-                                 min_events=settings.min_events,
-                                 max_weight=settings.max_label_weight)  # fmt: skip
+                                 settings.gp, options)  # fmt: skip
     log.info("K-lumps chain over %d classes: %d classifiers, %d constant steps", len(classes.names),
              metrics["classifiers"], metrics["constant_steps"])  # fmt: skip
     if settings.kind.relaxation:
@@ -88,10 +88,9 @@ def _relaxation_law(
     sample = record_stationary_bins(simulator, perturbation, settings.relaxation_cells,
                                     settings.relaxation_lags, settings.inputs, bins)  # fmt: skip
     sizes = list(learned.shape[1:-1])
-    law, metrics = fit_relaxation_law(learned, sample, settings.inputs, domain, sizes, bins,
-                                      declared.lumps, settings.relaxation_lags, setup.dt,
-                                      settings.gp, progress=job.progress,
-                                      device=job.device)  # fmt: skip
+    spec = RelaxationSpec(sizes, bins, declared.lumps, settings.relaxation_lags, setup.dt)
+    law, metrics = fit_relaxation_law(learned, sample, settings.inputs, domain, spec, settings.gp,
+                                      progress=job.progress, device=job.device)  # fmt: skip
     metrics["seconds"] = time.perf_counter() - t0
     log.info("the count's relaxation time %.0f s (correlation %s at lags %s s); its bins kept "
              "per window with probability %.6f", metrics["relaxation_time"],

@@ -27,6 +27,7 @@ from surrogate.gp.phases import (
     STRUCTURES,
     PhaseFitSettings,
     PhaseLaw,
+    PhaseSelection,
     expected_moves,
     grid_points,
     held_out_split,
@@ -331,9 +332,9 @@ def fit_phase_chain(
     inputs, phi = phi_sequences(rows, settings.inputs)
     sampled = time.perf_counter() - t0
     bounds = [domain[n] for n in settings.inputs]
-    law, report = select_phases(inputs, phi, bounds, phases.max_per_lump, phases.structure,
-                                phases.fit, phases.held_out, settings.seed,
-                                phases.per_lump)  # fmt: skip
+    selection = PhaseSelection(phases.max_per_lump, phases.structure, phases.held_out,
+                               phases.per_lump)  # fmt: skip
+    law, report = select_phases(inputs, phi, bounds, selection, phases.fit, settings.seed)
     table = phase_table(law, settings.inputs, model.internal.lump_names, setup.dt,
                         phases.fit.nodes)  # fmt: skip
     log.info("hidden phases per lump %s (held-out cells %d)", report["per_lump"],

@@ -348,6 +348,24 @@ def shared_auto(value: Any) -> Any:
 # choosing them
 
 
+@dataclass(frozen=True)
+class CountBinning:
+    """How :func:`choose_count_classes` bins each candidate count.
+
+    Attributes:
+        bins: bins per lump.
+        placement: ``quantiles`` (each lump's own bins, equal windows per bin) or
+            ``homogeneous`` (bins shared by both lumps over which the chance of leaving each
+            lump varies least, :func:`_homogeneous_edges`).
+        shared: only counts whose bins are shared by both lumps (``gp.class_moves=relaxation``
+            needs them); a ConfigError where none has such bins.
+    """
+
+    bins: int = AUTO_BINS
+    placement: str = AUTO_PLACEMENT
+    shared: bool = False
+
+
 def choose_count_classes(
     internal: Any,
     kinetic_inputs: Tensor,
@@ -355,11 +373,9 @@ def choose_count_classes(
     *,
     cells: int = 200,
     windows: int = 1000,
-    bins: int = AUTO_BINS,
-    placement: str = AUTO_PLACEMENT,
+    binning: CountBinning = CountBinning(),
     seed: int = 0,
     cache_dir: Path | None = None,
-    shared: bool = False,
 ) -> tuple[CountClasses, dict[str, Any]]:
     """Choose the count and its bins that best carry the memory phi alone forgets (see the
     module docstring); cached on disk.
@@ -370,13 +386,9 @@ def choose_count_classes(
             each cell's own (e.g. :func:`spread_inputs`).
         dt: the window (s).
         cells, windows: the simulated sample: ``cells`` cells, ``windows`` windows each.
-        bins: bins per lump.
-        placement: ``quantiles`` (each lump's own bins, equal windows per bin) or
-            ``homogeneous`` (bins shared by both lumps over which the chance of leaving each
-            lump varies least, :func:`_homogeneous_edges`).
+        binning: the bins per lump, their placement, whether both lumps must share them
+            (:class:`CountBinning`).
         seed: the simulation's seed.
-        shared: only counts whose bins are shared by both lumps (``gp.class_moves=relaxation``
-            needs them); a ConfigError where none has such bins.
         cache_dir: where the choice is cached (default ``$SURROGATE_CACHE_DIR`` or
             ``~/.cache/surrogate``, under ``classes/``).
 
@@ -384,6 +396,7 @@ def choose_count_classes(
         ``(classes, report)``: the report has every candidate's gain (nats per window) and
         standard error, the chosen one, whether its gain is significant, and the sample.
     """
+    bins, placement, shared = binning.bins, binning.placement, binning.shared
     kinetic_inputs = kinetic_inputs.to(torch.float64)
     if kinetic_inputs.dim() == 2 and kinetic_inputs.shape[0] != cells:
         raise ValueError(f"kinetic_inputs: {kinetic_inputs.shape[0]} rows for {cells} cells")
@@ -410,8 +423,8 @@ def choose_count_classes(
     names = list(internal.reactions.reaction_names)
     rows = [names.index(n) for n in fast]
     jittery = {sp for j, sp in enumerate(internal.species) if (stoich[rows, j] != 0).any()}
-    classes, report = _choose(counts, phi, internal.species, internal.lump_names, bins, placement,
-                              combinations, jittery, shared)  # fmt: skip
+    classes, report = _choose(counts, phi, internal.species, internal.lump_names, binning,
+                              combinations, jittery)  # fmt: skip
     report["fast_reactions"] = fast
     spread = kinetic_inputs.reshape(-1, kinetic_inputs.shape[-1])
     report["sample"] = {"cells": cells, "windows": windows, "dt": dt, "seed": seed,
@@ -565,12 +578,11 @@ def _choose(
     phi: np.ndarray,
     species: Sequence[str],
     lump_names: tuple[str, str],
-    bins: int,
-    placement: str = AUTO_PLACEMENT,
+    binning: CountBinning,
     combinations: Sequence[tuple[str, np.ndarray]] = (),
     jittery: frozenset[str] | set[str] = frozenset(),
-    shared: bool = False,
 ) -> tuple[CountClasses, dict[str, Any]]:
+    bins, placement, shared = binning.bins, binning.placement, binning.shared
     n_cells = counts.shape[1]
     # every other cell: with inputs spread over a range (cell i at the i-th value) both halves
     # span it
@@ -740,6 +752,7 @@ __all__ = [
     "AUTO_PLACEMENT",
     "CHOOSER_VERSION",
     "PLACEMENTS",
+    "CountBinning",
     "CountClasses",
     "CountClassifier",
     "choose_count_classes",

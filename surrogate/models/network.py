@@ -188,7 +188,7 @@ class NetworkInternalModel:
     #: :meth:`bounded` copy; a class default, so models pickled before it existed load
     max_events: int | None = None
 
-    def __init__(
+    def __init__(  # noqa: PLR0913  # the public model constructor: options keyword-only
         self,
         network: ReactionNetwork | SbmlModel,
         input_names: Sequence[str],

@@ -74,6 +74,7 @@ from surrogate.models.base import (
 from surrogate.models.bodies import LibraryBody, build_body
 from surrogate.models.capabilities import lump_expr_of
 from surrogate.models.count_classes import (
+    CountBinning,
     CountClasses,
     choose_count_classes,
     impossible_classes,
@@ -348,9 +349,9 @@ class SbmlAgentModel(Model):
         cells = AUTO_CLASSES_CELLS
         kinetic = (spread_inputs([0.0 if v != v else v for v in values], ranges, cells)
                    if ranges else torch.tensor(values, dtype=torch.float64))  # fmt: skip
+        binning = CountBinning(bins, placement, shared)
         classes, report = choose_count_classes(internal, kinetic, AUTO_CLASSES_DT, cells=cells,
-                                               bins=bins, placement=placement,
-                                               shared=shared)  # fmt: skip
+                                               binning=binning)  # fmt: skip
         self.class_report = report
         if classes.digest() in _LOGGED_CHOICES:  # once per process: models are rebuilt often
             return classes

@@ -77,7 +77,7 @@ def _formula(node: libsbml.ASTNode) -> str:
     return text if text else "?"
 
 
-def convert(
+def convert(  # noqa: C901  # one branch per MathML node type
     node: libsbml.ASTNode | None,
     resolve: Resolver,
     functions: Mapping[str, libsbml.FunctionDefinition],

@@ -61,7 +61,7 @@ def _positive_factor(expr: Expr) -> _Terms:
     return _Terms(True, False, frozenset(n.index for n in _leaves(expr) if n.op == "species"))
 
 
-def _terms(expr: Expr) -> _Terms:
+def _terms(expr: Expr) -> _Terms:  # noqa: C901  # one branch per expression node kind
     """The signed terms of ``expr`` (see :class:`_Terms` and the module docstring): through
     sums, differences, negations, products, quotients, a power's base, min / max, the values
     of a piecewise (its conditions a positive factor) and sign-keeping functions; every other

@@ -353,7 +353,7 @@ class _Reader(ReaderRules):
     :class:`~surrogate.sbml.amounts.ReaderAmounts`, :class:`~surrogate.sbml.laws.ReaderLaws`,
     :class:`~surrogate.sbml.laws.ReaderRules`)."""
 
-    def read(self, source: Path | None) -> SbmlModel:
+    def read(self, source: Path | None) -> SbmlModel:  # noqa: C901  # the document's parts in order
         self._refuse_unsupported()
         self._check_inputs()
         self._check_substance_units()

@@ -25,7 +25,7 @@ import dataclasses
 import os
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,9 +46,8 @@ from surrogate.simulate.population import PopulationSummary, steps_between
 from surrogate.simulate.profiles import ProfileRecorder
 from surrogate.simulate.recorders import (
     BUFFER_BYTES,
-    DEFAULT_RECORD_CELLS,
     FLUSH_STEPS,
-    DurationMode,
+    RecorderSpec,
     RunRecorder,
     records_durations,
 )
@@ -76,8 +75,8 @@ class BatchSimulator(Simulator):
     Args:
         model: the agent model shared by every replicate.
         replicates: the runs, in block order; each needs its own decision-layer instance.
-        dt, device, check_finite, compile, backend, compile_fallback: as for
-            :class:`Simulator`.
+        dt, device, compile, backend, compile_fallback: as for :class:`Simulator`.
+        check_finite: sets :attr:`Simulator.check_finite`.
 
     Example:
         >>> from surrogate.fields import GaussianField, LinearField
@@ -119,8 +118,8 @@ class BatchSimulator(Simulator):
             else:
                 blocks.append((r.field, r.n_cells))
         field = FieldBatch([f for f, _ in blocks], [n for _, n in blocks])
-        super().__init__(model, decision, field, dt, device, check_finite, compile, backend,
-                         compile_fallback)  # fmt: skip
+        super().__init__(model, decision, field, dt, device, compile, backend, compile_fallback)
+        self.check_finite = check_finite
         self.sizes = sizes
         self.slices = [slice(a, a + n) for a, n in zip(_offsets(sizes), sizes, strict=True)]
         self._blocks: list[RandomBlock] = []
@@ -372,21 +371,20 @@ def simulate_batch(
     out_dirs: Sequence[str | os.PathLike],
     record_interval: float = 1.0,
     equilibration_time: float = 0.0,
-    record_durations: bool = True,
     progress: bool = True,
     *,
-    record_cells: int | None = DEFAULT_RECORD_CELLS,
-    durations: DurationMode | None = None,
-    histogram_spec: Mapping[str, Any] | None = None,
+    recording: RecorderSpec | None = None,
 ) -> list[PopulationSummary]:
     """:func:`~surrogate.simulate.simulate_population` for every replicate of a batch at once:
     one loop, one recorder per replicate writing the ordinary run files into its own directory
     (``out_dirs``, in replicate order), each committed only once the whole batch completes.
 
     The loop time is the batch's (shared by its replicates); a replicate's cells are seeded as
-    its standalone run's (its seed also chooses its recorded cells). ``record_cells`` None
-    records every cell; ``durations`` as for :func:`~surrogate.simulate.simulate_population`.
-    A replicate in a grid field also records its profiles along x (its own field and cells).
+    its standalone run's (its seed also chooses its recorded cells, in place of
+    ``recording.seed``). ``recording``: what each replicate's
+    :class:`~surrogate.simulate.recorders.RunRecorder` keeps (default: as the class's defaults),
+    the body's declared histogram grids under ``recording.histogram_spec``. A replicate in a
+    grid field also records its profiles along x (its own field and cells).
     """
 
     if len(out_dirs) != len(simulator.replicates):
@@ -395,8 +393,9 @@ def simulate_batch(
     n_steps = steps_between(t_end, dt, "t_end")
     every = steps_between(record_interval, dt, "record_interval")
     body, lumps = simulator.body, simulator.model.internal.lump_names
-    grids = {**histogram_grids_of(body), **dict(histogram_spec or {})}
-    mode = durations if durations is not None else ("histogram" if record_durations else "none")
+    recording = recording or RecorderSpec()
+    grids = {**histogram_grids_of(body), **dict(recording.histogram_spec or {})}
+    mode = recording.durations
     t0 = time.perf_counter()
     recorders: list[RunRecorder] = []
     profiles: list[ProfileRecorder | None] = []
@@ -404,8 +403,8 @@ def simulate_batch(
         for rep, out in zip(simulator.replicates, out_dirs, strict=True):
             recorders.append(RunRecorder(
                 Path(out), rep.n_cells, dt, body.observable_names, lumps, block_steps=max(every, FLUSH_STEPS),
-                device=simulator.device, record_cells=record_cells,
-                durations=mode, histogram_spec=grids, seed=int(rep.seed)))  # fmt: skip
+                device=simulator.device,
+                spec=dataclasses.replace(recording, histogram_spec=grids, seed=int(rep.seed))))  # fmt: skip
             profiles.append(ProfileRecorder.of(Path(out), rep.field, rep.n_cells))
         # the whole batch's segment ends, buffered on the device and handed to the replicates'
         # recorders a block at a time (not one call per replicate and step)

@@ -227,7 +227,6 @@ class Simulator:
         field: the field L(r, t) the body reads its inputs from.
         dt: time step (s).
         device: where all per-cell tensors live.
-        check_finite: let :meth:`check_state` raise on NaN/inf or bad inputs (at record times).
         compile: run the step kernel through ``torch.compile`` (the first steps pay the compile
             time; :meth:`warm_up` does it up front without touching the random stream; falls
             back to eager with a warning if compiling fails, see ``compile_error``). Only for
@@ -267,7 +266,6 @@ class Simulator:
         field: Field,
         dt: float,
         device: str | torch.device = "cpu",
-        check_finite: bool = True,
         compile: bool = False,
         backend: str = "torch",
         compile_fallback: bool = True,
@@ -281,7 +279,9 @@ class Simulator:
             raise ValueError(f"dt must be > 0, got {dt!r}")
         model.validate(self.dt)
         self.device = torch.device(device)
-        self.check_finite = check_finite
+        #: let :meth:`check_state` raise on NaN/inf or bad inputs (at record times); set it
+        #: False on the instance to skip the checks
+        self.check_finite = True
         self._checked_step = 0  # step up to which check_state found the state sound
         self._block: RandomBlock | None = None
         self.kernel, self.backend_note = _cell_kernel(backend, model, decision, field, self.dt,
@@ -366,7 +366,7 @@ class Simulator:
             out = self._run(
                 "_fused_step",
                 state.body, phi8, state.segment_steps, complete8, decision.fused_state(),
-                u, u64, z, extra, t, self._read_outside(state.body, t),
+                (u, u64, z, extra), t, self._read_outside(state.body, t),
             )  # fmt: skip
             body, phi8, seg_steps, complete8, ended, x, dstate, _ = out
             decision.set_fused_state(dstate)
@@ -377,7 +377,7 @@ class Simulator:
             body, seg_steps, complete8, ended = self._run(
                 "_advance",
                 state.body, phi8, phi.to(torch.float32), state.segment_steps, complete8, x,
-                u, z, extra,
+                (u, z, extra),
             )  # fmt: skip
         state.body, state.phi, state.segment_steps = body, phi, seg_steps
         state.segment_complete = complete8.view(torch.bool)
@@ -528,14 +528,14 @@ class Simulator:
             if is_fusable(self.decision):
                 self._run(
                     "_fused_step", state.body, phi8, state.segment_steps, complete8,
-                    self.decision.fused_state(), u, u64, z, extra, t,
+                    self.decision.fused_state(), (u, u64, z, extra), t,
                     self._read_outside(state.body, t),
                 )  # fmt: skip
             else:
                 x = self.body.inputs(state.body, self.field, t)
                 self._run(
                     "_advance", state.body, phi8, state.phi.to(torch.float32),
-                    state.segment_steps, complete8, x, u, z, extra,
+                    state.segment_steps, complete8, x, (u, z, extra),
                 )  # fmt: skip
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
@@ -611,15 +611,14 @@ class Simulator:
         segment_steps: Tensor,
         complete8: Tensor,
         dstate: tuple[Tensor, ...],
-        u: Tensor,
-        u64: Tensor | None,
-        z: Tensor,
-        extra: Tensor | None,
+        draws: tuple[Tensor, Tensor | None, Tensor, Tensor | None],
         t: float,
         x: Tensor | None = None,
     ) -> tuple[Any, ...]:
         """Algorithm 1/2 for one step with a fused decision layer (reading the inputs at
-        ``t`` unless given, as :meth:`_read_outside` gives them for a coupled field)."""
+        ``t`` unless given, as :meth:`_read_outside` gives them for a coupled field);
+        ``draws``: the step's random numbers ``u, u64, z, extra`` (:meth:`draw_randoms`)."""
+        u, u64, z, extra = draws
         if x is None:
             x = self.body.inputs(body, self.field, t)
         r = self.decision.randoms
@@ -629,8 +628,8 @@ class Simulator:
         )
         phi_after = phi_after.to(torch.float32)
         body, segment_steps, complete8, ended = self._advance(
-            body, phi8, phi_after, segment_steps, complete8, x, u[r.uniform :], z[r.normal :],
-            extra,
+            body, phi8, phi_after, segment_steps, complete8, x,
+            (u[r.uniform :], z[r.normal :], extra),
         )  # fmt: skip
         return body, phi_after.to(torch.uint8), segment_steps, complete8, ended, x, dstate, aux
 
@@ -642,14 +641,14 @@ class Simulator:
         segment_steps: Tensor,
         complete8: Tensor,
         x: Tensor,
-        u: Tensor,
-        z: Tensor,
-        extra: Tensor | None,
+        draws: tuple[Tensor, Tensor, Tensor | None],
     ) -> tuple[BodyState, Tensor, Tensor, Tensor]:
         """Everything after the decision: the body's move, then the phi segment bookkeeping.
 
-        ``phi8`` is phi before the window (uint8), ``phi_after`` after it (float 0/1).
+        ``phi8`` is phi before the window (uint8), ``phi_after`` after it (float 0/1);
+        ``draws`` the body's uniforms, normals and extra draws (``u, z, extra``).
         """
+        u, z, extra = draws
         phi_before = phi8.to(torch.float32)
         body = self.body.move(body, phi_before, phi_after, x, self.dt, u, z, extra)
         # A segment ends when phi switches; the first one is left-censored. int32 arithmetic

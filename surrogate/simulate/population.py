@@ -25,6 +25,7 @@ from surrogate.simulate.recorders import (
     OBSERVABLES,
     DurationMode,
     GridSpec,
+    RecorderSpec,
     RunRecorder,
     records_durations,
 )
@@ -64,7 +65,7 @@ def steps_between(interval: float, dt: float, what: str) -> int:
     return k
 
 
-def simulate_population(
+def simulate_population(  # noqa: PLR0913  # the public entry point, called with keywords
     simulator: Simulator,
     n_cells: int,
     t_end: float,
@@ -111,11 +112,11 @@ def simulate_population(
     profiles: ProfileRecorder | None = None
     try:
         # created inside the try, so an interrupt right at the start drops its temporaries too
+        grids = {**histogram_grids_of(body), **dict(histogram_spec or {})}
+        spec = RecorderSpec(record_cells, mode, grids, seed)
         recorder = RunRecorder(out, n_cells, dt, body.observable_names,
                                simulator.model.internal.lump_names, block_steps=max(every, FLUSH_STEPS),
-                               device=simulator.device, record_cells=record_cells,
-                               durations=mode, seed=seed,
-                               histogram_spec={**histogram_grids_of(body), **dict(histogram_spec or {})})  # fmt: skip
+                               device=simulator.device, spec=spec)  # fmt: skip
         profiles = ProfileRecorder.of(out, field_, n_cells)
         steps_recorded = records_durations(mode)
         with torch.inference_mode():  # cheaper per op than no_grad

@@ -300,6 +300,29 @@ def duration_histogram_rows(
     }
 
 
+@dataclass(frozen=True)
+class RecorderSpec:
+    """What a :class:`RunRecorder` keeps beyond the observables' histograms and moments.
+
+    Attributes:
+        record_cells: cells whose exact values are kept; None keeps every cell (and says so in
+            the metadata, so that shards of any sizes merge into a run that keeps every cell).
+        durations: ``"histogram"`` (lattice histogram + the recorded cells' segments),
+            ``"all"`` (lattice histogram + every segment) or ``"none"``.
+        histogram_spec: observable -> grid (``(lo, hi, width)``, a mapping with those keys or a
+            :class:`HistogramGrid`; the simulators pass the body's declared
+            ``histogram_grids`` under the caller's); observables it does not name get a grid
+            around the first record's values (:meth:`HistogramGrid.around`, with a warning
+            unless every cell's value is kept).
+        seed: seeds the choice of recorded cells.
+    """
+
+    record_cells: int | None = DEFAULT_RECORD_CELLS
+    durations: DurationMode = "histogram"
+    histogram_spec: Mapping[str, GridSpec] | None = None
+    seed: int = 0
+
+
 class RunRecorder:
     """Everything a population run keeps: observables at record times, phi segment durations.
 
@@ -325,16 +348,8 @@ class RunRecorder:
         lump_names: names of phi = 0 and phi = 1 (e.g. ``("tumble", "run")``).
         block_steps: steps per buffer block at most (e.g. the steps between record times).
         device: where the simulation's tensors live.
-        record_cells: cells whose exact values are kept; None keeps every cell (and says so in
-            the metadata, so that shards of any sizes merge into a run that keeps every cell).
-        durations: ``"histogram"`` (lattice histogram + the recorded cells' segments),
-            ``"all"`` (lattice histogram + every segment) or ``"none"``.
-        histogram_spec: observable -> grid (``(lo, hi, width)``, a mapping with those keys or a
-            :class:`HistogramGrid`; the simulators pass the body's declared
-            ``histogram_grids`` under the caller's); observables it does not name get a grid
-            around the first record's values (:meth:`HistogramGrid.around`, with a warning
-            unless every cell's value is kept).
-        seed: seeds the choice of recorded cells.
+        spec: the recorded cells, the durations kept, the histogram grids and the seed
+            (:class:`RecorderSpec`).
     """
 
     @torch.inference_mode()
@@ -347,11 +362,9 @@ class RunRecorder:
         lump_names: Sequence[str],
         block_steps: int,
         device: torch.device | str,
-        record_cells: int | None = DEFAULT_RECORD_CELLS,
-        durations: DurationMode = "histogram",
-        histogram_spec: Mapping[str, GridSpec] | None = None,
-        seed: int = 0,
+        spec: RecorderSpec = RecorderSpec(),
     ) -> None:
+        record_cells, durations, seed = spec.record_cells, spec.durations, spec.seed
         if durations not in DURATION_MODES:
             raise ValueError(f"durations must be one of {DURATION_MODES}, got {durations!r}")
         if n_cells < 1 or (record_cells is not None and record_cells < 1):
@@ -365,9 +378,9 @@ class RunRecorder:
         self.mode = durations
         self.record_cells = None if record_cells is None else int(record_cells)
         self.seed = int(seed)
-        spec = dict(histogram_spec or {})
+        grids = dict(spec.histogram_spec or {})
         self.grids: dict[str, HistogramGrid | None] = {
-            n: grid_from_spec(spec[n]) if n in spec else None for n in self.names
+            n: grid_from_spec(grids[n]) if n in grids else None for n in self.names
         }
         self.cells = choose_cells(self.n_cells, self.record_cells, self.seed)
         self._all_cells = self.cells.size == self.n_cells

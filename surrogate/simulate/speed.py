@@ -252,29 +252,46 @@ def compare(
     return (None if why else speedup(a, b)), why
 
 
+@dataclass(frozen=True)
+class SpeedWorkload:
+    """What :func:`measure_speed` times.
+
+    Attributes:
+        n_cells: cells of the population.
+        steps: steps timed.
+        dt: the time step (s).
+        start: where the cells start.
+        repeats: timings taken (the best is kept).
+        chunk_steps: steps per :meth:`Simulator.advance` call, as the simulate stage takes a
+            record interval (20 steps: 1 s at dt 0.05) per call.
+    """
+
+    n_cells: int
+    steps: int
+    dt: float
+    start: Sequence[float] = (2.0, 0.0)
+    repeats: int = 2
+    chunk_steps: int = 20
+
+
 def measure_speed(
     model: Model,
     decisions: Mapping[str, DecisionLayer],
     field: Field,
-    n_cells: int,
-    steps: int,
-    dt: float,
+    workload: SpeedWorkload,
     device: str | torch.device = "cpu",
     compile: bool = False,
-    start: Sequence[float] = (2.0, 0.0),
-    repeats: int = 2,
     backend: str = "torch",
-    chunk_steps: int = 20,
 ) -> dict[str, dict[str, Any]]:
-    """Loop time of ``steps`` steps of ``n_cells`` cells for each decision layer.
-
-    The steps are taken ``chunk_steps`` per :meth:`Simulator.advance` call, as the simulate
-    stage takes a record interval (20 steps: 1 s at dt 0.05) per call.
+    """Loop time of ``workload.steps`` steps of ``workload.n_cells`` cells for each decision
+    layer (on the loop ``device``, ``compile``, ``backend`` choose, as for :class:`Simulator`).
 
     Returns, per name: the :class:`LoopTiming` fields (``seconds``: best of ``repeats``;
     ``backend``: the loop that ran), ``cell_steps_per_s``, ``us_per_step``, ``compile_s`` (the
     warm-up) and ``compile_error``.
     """
+    n_cells, steps, dt, start = workload.n_cells, workload.steps, workload.dt, workload.start
+    repeats, chunk_steps = workload.repeats, workload.chunk_steps
     out = {}
     for name, decision in decisions.items():
         sim = Simulator(model, decision, field, dt, device, compile=compile, backend=backend)
@@ -308,6 +325,7 @@ __all__ = [
     "SETUP",
     "IncomparableSpeeds",
     "LoopTiming",
+    "SpeedWorkload",
     "best_loop_speedup",
     "cell_steps_per_s",
     "compare",

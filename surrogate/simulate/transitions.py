@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -78,24 +79,54 @@ SHORT = 4.0
 RARE = 0.05
 
 
-def _rows(
+@dataclass(frozen=True)
+class CollectOptions:
+    """How :func:`collect_transitions` records (every field has its default).
+
+    Attributes:
+        record_every: steps between recorded transitions per cell (thins autocorrelated rows).
+        equilibration_time: internal dynamics before cells move (s).
+        max_time: simulated seconds before giving up (ConfigError).
+        blackout: steps after a jump during which a cell's windows are not recorded (see the
+            module docstring).
+        expected: also record each window's expected label (``phi_next_expected``).
+    """
+
+    record_every: int = 1
+    equilibration_time: float = 10.0
+    max_time: float = 2000.0
+    blackout: int = 0
+    expected: bool = False
+
+
+@dataclass(frozen=True)
+class _Jumps:
+    """The perturbation of :func:`_rows`: how cells jump, how often (per cell and second),
+    and ``guide()``, the guided jumps of a sequential design at a step, if any (None: the
+    perturbation as drawn)."""
+
+    perturbation: Perturbation
+    rate: float
+    guide: Callable[[], GuidedJump | None] | None = None
+
+
+def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
     simulator: Simulator,
     n_cells: int,
     start: Sequence[float] | torch.Tensor,
-    equilibration_time: float,
-    record_every: int,
+    options: CollectOptions,
     max_steps: int,
-    perturbation: Perturbation | None = None,
-    perturb_rate: float = 0.0,
-    blackout: int = 0,
-    expected: bool = False,
-    guide: Callable[[], GuidedJump | None] | None = None,
+    jumps: _Jumps | None = None,
     clock: bool = True,
 ) -> Iterator[dict[str, np.ndarray]]:
-    """Yield recorded rows step by step (see the module docstring); ``guide()``: the guided
-    jumps of a sequential design at this step, if any (None: the perturbation as drawn).
+    """Yield recorded rows step by step (see the module docstring), at most ``max_steps``
+    steps; ``jumps``: the perturbation (None: none; ``options.max_time`` is the caller's).
     ``clock``: keep the switch clocks (every step one call; without it and without jumps the
     unrecorded steps run in one call and the rows have no ``phi_age``)."""
+    record_every, blackout, expected = options.record_every, options.blackout, options.expected
+    perturbation = None if jumps is None else jumps.perturbation
+    perturb_rate = 0.0 if jumps is None else jumps.rate
+    guide = None if jumps is None else jumps.guide
     internal = simulator.decision.internal  # type: ignore[attr-defined]
     expected_phi = expected_phi_next_of(internal) if expected else None
     if expected and expected_phi is None:
@@ -108,7 +139,7 @@ def _rows(
     # and, where the classes are bins of a count, the count: the bins are applied when read
     count = class_count_of(internal) if classes is not None else None
     device, dt = simulator.device, simulator.dt
-    state = simulator.initial_state(n_cells, start, equilibration_time)
+    state = simulator.initial_state(n_cells, start, options.equilibration_time)
     jump_probability = perturb_rate * dt
     # steps since each cell's last jump (-1: never), on the device: no per-step host sync
     since = torch.full((n_cells,), -1, dtype=torch.int64, device=device)
@@ -246,14 +277,11 @@ class TransitionCollector:
         perturbation: Perturbation,
         n_cells: int,
         perturb_rate: float,
-        record_every: int = 1,
-        equilibration_time: float = 10.0,
-        max_time: float = 2000.0,
+        options: CollectOptions | None = None,
         progress: bool = True,
-        blackout: int = 0,
-        expected: bool = False,
     ) -> None:
-        self.max_time = float(max_time)
+        options = options or CollectOptions()
+        self.max_time = float(options.max_time)
         self.progress = progress
         self.n_cells, self.dt = int(n_cells), float(simulator.dt)
         self.lump_names = tuple(simulator.decision.internal.lump_names)  # type: ignore[attr-defined]
@@ -262,9 +290,8 @@ class TransitionCollector:
         self.kept = np.zeros(2, dtype=np.int64)
         start = perturbation.start(n_cells, simulator.device)
         max_steps = math.ceil(self.max_time / simulator.dt)
-        self._rows = _rows(simulator, n_cells, start, equilibration_time, record_every, max_steps,
-                           perturbation, perturb_rate, blackout, expected,
-                           lambda: self.guide)  # fmt: skip
+        self._rows = _rows(simulator, n_cells, start, options, max_steps,
+                           _Jumps(perturbation, perturb_rate, lambda: self.guide))  # fmt: skip
 
     def take(self, n_per_state: int) -> pd.DataFrame:
         """Simulate on until ``n_per_state`` more transitions from each origin state are
@@ -360,12 +387,8 @@ def collect_transitions(
     n_cells: int,
     n_per_state: int,
     perturb_rate: float,
-    record_every: int = 1,
-    equilibration_time: float = 10.0,
-    max_time: float = 2000.0,
+    options: CollectOptions | None = None,
     progress: bool = True,
-    blackout: int = 0,
-    expected: bool = False,
 ) -> pd.DataFrame:
     """Simulate the full model with perturbations until ``n_per_state`` transitions from each
     origin state are recorded; return a random (seeded) subsample of exactly ``n_per_state``
@@ -377,14 +400,12 @@ def collect_transitions(
         n_cells: cells simulated in parallel.
         n_per_state: transitions kept per origin state.
         perturb_rate: jumps per cell and second.
-        record_every: steps between recorded transitions per cell (thins autocorrelated rows).
-        blackout: steps after a jump during which a cell's windows are not recorded (see the
-            module docstring).
-        expected: also record each window's expected label (``phi_next_expected``).
-        max_time: simulated seconds before giving up (ConfigError).
+        options: the thinning, equilibration, time limit, blackout and expected labels
+            (:class:`CollectOptions`; default its defaults).
+        progress: show a progress bar.
     """
-    collector = TransitionCollector(simulator, perturbation, n_cells, perturb_rate, record_every,
-                                    equilibration_time, max_time, progress, blackout, expected)  # fmt: skip
+    collector = TransitionCollector(simulator, perturbation, n_cells, perturb_rate, options,
+                                    progress)  # fmt: skip
     return collector.take(n_per_state)
 
 
@@ -451,8 +472,8 @@ def record_occupancy(
     from ``start`` for ``t_end`` seconds (the weights of the abstraction's diagnostic);
     ``clock``: with the switch clocks (``phi_age``; every step one call)."""
     steps = max(1, round(t_end / simulator.dt))
-    chunks = list(_rows(simulator, n_cells, start, equilibration_time, record_every, steps,
-                        clock=clock))  # fmt: skip
+    options = CollectOptions(record_every=record_every, equilibration_time=equilibration_time)
+    chunks = list(_rows(simulator, n_cells, start, options, steps, clock=clock))
     if not chunks:
         raise ConfigError(
             f"gp.diagnostic: t_end={t_end:g} s records no step (record_every={record_every})"

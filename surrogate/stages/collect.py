@@ -32,7 +32,7 @@ from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write
 from surrogate.models.capabilities import feature_names_of
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
-from surrogate.simulate.transitions import collect_transitions
+from surrogate.simulate.transitions import CollectOptions, collect_transitions
 from surrogate.stages import budget
 from surrogate.stages.artefacts import COVERAGE_FIGURE, TRANSITIONS
 from surrogate.stages.design import collect_in_rounds
@@ -74,14 +74,17 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
     perturbation = model.body.perturbation(setup.field, model.perturbation_options)
     t0 = time.perf_counter()
+    options = CollectOptions(
+        record_every=int(c["record_every"]),
+        equilibration_time=float(c["equilibration_time"]),
+        max_time=float(c["max_time"]),
+        blackout=round(float(c.get("blackout_time", 0.0)) / setup.dt),
+        expected=settings.expected_labels,
+    )
     arguments: dict[str, Any] = {
         "n_cells": int(c["n_cells"]),
         "perturb_rate": float(c["perturb_rate"]),
-        "record_every": int(c["record_every"]),
-        "equilibration_time": float(c["equilibration_time"]),
-        "max_time": float(c["max_time"]),
-        "blackout": round(float(c.get("blackout_time", 0.0)) / setup.dt),
-        "expected": settings.expected_labels,
+        "options": options,
     }
     design = None
     if settings.design is not None:  # rounds until the posterior meets the target

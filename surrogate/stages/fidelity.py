@@ -83,7 +83,7 @@ from surrogate.simulate.support import describe_sparse_where, sparse_share, warn
 from surrogate.stages import reference
 from surrogate.stages.collect import collect
 from surrogate.stages.reference import ReferenceSettings
-from surrogate.stages.runs import RunResult, mean_observables, simulate_runs
+from surrogate.stages.runs import RunPlan, RunResult, mean_observables, simulate_runs
 from surrogate.stages.settings import (
     Job,
     ModelSetup,
@@ -351,7 +351,7 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
                      force=force)  # fmt: skip
 
 
-def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) -> None:
+def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) -> None:  # noqa: C901  # the stage's steps in order
     t0 = time.perf_counter()
     setup, o, job = settings.setup, settings.options, settings.job
     model = setup.model
@@ -414,11 +414,10 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     info: dict[str, Any] = {}
     paired = o.get("starts", "independent") == "paired"
     with paired_starts(model.internal) if paired else contextlib.nullcontext() as starts:
-        results = simulate_runs(model, reps, labels, dt=setup.dt, times=settings.times,
-                                t_end=float(o["t_end"]),
-                                equilibration_time=float(o["equilibration_time"]),
-                                device=job.device, compile=settings.compile,
-                                backend=settings.backend, progress=job.progress,
+        plan = RunPlan(setup.dt, settings.times, float(o["t_end"]),
+                       float(o["equilibration_time"]), job.device, settings.compile,
+                       settings.backend)  # fmt: skip
+        results = simulate_runs(model, reps, labels, plan=plan, progress=job.progress,
                                 desc="fidelity", info=info)  # fmt: skip
     if starts is not None:
         log.info("fidelity: paired starts, %d internal draws shared by %d runs", starts.drawn,

@@ -77,7 +77,7 @@ from surrogate.simulate.batch import Replicate
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.population import steps_between
 from surrogate.stages import budget
-from surrogate.stages.runs import MAX_SEGMENT_STEPS, RunResult, simulate_runs
+from surrogate.stages.runs import MAX_SEGMENT_STEPS, RunPlan, RunResult, simulate_runs
 from surrogate.stages.settings import Job, ModelSetup, group_overrides
 from surrogate.stages.settings.common import format_value
 from surrogate.stages.shards import shard_seed, shard_sizes
@@ -436,9 +436,9 @@ def _simulate_shard(r: ReferenceRun, shard: int, out: Path, settings: ReferenceS
     seed_everything(seed)
     rep = Replicate(FullDecision(model.internal), r.setup.field, n, seed, r.start)
     info: dict[str, Any] = {}
-    result = simulate_runs(model, [rep], ["shard"], dt=r.setup.dt, times=r.record_times,
-                           t_end=r.t_end, equilibration_time=r.equilibration_time,
-                           device=settings.job.device, backend="auto", progress=False,
+    plan = RunPlan(r.setup.dt, r.record_times, r.t_end, r.equilibration_time,
+                   settings.job.device, backend="auto")  # fmt: skip
+    result = simulate_runs(model, [rep], ["shard"], plan=plan, progress=False,
                            desc=f"shard {shard}", info=info)["shard"]  # fmt: skip
     facts = write_result(out, result, model.body.observable_names[0])
     write_manifest(out, stage="reference_shard", config=settings.config, seed=seed,

@@ -118,7 +118,7 @@ def measure_stage_speed(settings: ReproduceSettings) -> dict[str, Any]:
     """Loop speed of the full model and of the abstraction on the first field, measured side by
     side in this process as the runs are set up (cells, compile, device, each model on the loop
     ``backend`` picks for it): runs simulated in one batch have no loop time of their own."""
-    from surrogate.simulate.speed import LoopTiming, measure_speed, speed_summary
+    from surrogate.simulate.speed import LoopTiming, SpeedWorkload, measure_speed, speed_summary
 
     name, e = next(iter(settings.evaluations.items()))
     run = e.candidate
@@ -127,10 +127,10 @@ def measure_stage_speed(settings: ReproduceSettings) -> dict[str, Any]:
     n = min(run.n_cells, SPEED_MAX_CELLS)
     decisions = {"full": build_decision(e.full)[0], "abstract": build_decision(run)[0]}
     log.info("measuring loop speed side by side: %d cells x %d steps (%s)", n, steps, name)
-    result = measure_speed(setup.model, decisions, setup.field, n, steps, setup.dt,
-                           run.job.device, compile=run.compile, start=run.start,
-                           backend=run.backend,
-                           chunk_steps=round(run.record_interval / setup.dt))  # fmt: skip
+    workload = SpeedWorkload(n, steps, setup.dt, run.start,
+                             chunk_steps=round(run.record_interval / setup.dt))  # fmt: skip
+    result = measure_speed(setup.model, decisions, setup.field, workload, run.job.device,
+                           compile=run.compile, backend=run.backend)  # fmt: skip
     summary = speed_summary([LoopTiming.from_mapping(result["full"])],
                             [LoopTiming.from_mapping(result["abstract"])])  # fmt: skip
     loops = {v["backend"] for v in result.values()}

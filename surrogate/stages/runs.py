@@ -76,34 +76,45 @@ class RunResult:
         )
 
 
-def simulate_runs(
-    model: Model,
-    replicates: Sequence[Replicate],
-    labels: Sequence[str],
-    *,
-    dt: float,
-    times: Sequence[float],
-    t_end: float,
-    equilibration_time: float,
-    device: str | torch.device = "cpu",
-    compile: bool = False,
-    backend: str = "auto",
-    progress: bool = True,
-    desc: str = "runs",
-    info: dict[str, object] | None = None,
-) -> dict[str, RunResult]:
-    """Simulate ``replicates`` as one population to ``t_end``; record each cell's observable
-    at ``times`` and every completed phi segment.
+@dataclass(frozen=True)
+class RunPlan:
+    """The schedule and the loop of :func:`simulate_runs`.
 
-    Args:
-        model: the agent model every replicate runs.
-        replicates: the runs (decision layer, field, size, seed, start), in block order.
-        labels: one name per replicate, the keys of the result.
+    Attributes:
         dt: the time step (s).
         times: the check times (s), multiples of dt in (0, t_end].
         t_end: simulated time after equilibration (s).
         equilibration_time: internal dynamics before cells move (s).
         device, compile, backend: the loop (:class:`~surrogate.simulate.Simulator`).
+    """
+
+    dt: float
+    times: Sequence[float]
+    t_end: float
+    equilibration_time: float
+    device: str | torch.device = "cpu"
+    compile: bool = False
+    backend: str = "auto"
+
+
+def simulate_runs(
+    model: Model,
+    replicates: Sequence[Replicate],
+    labels: Sequence[str],
+    plan: RunPlan,
+    *,
+    progress: bool = True,
+    desc: str = "runs",
+    info: dict[str, object] | None = None,
+) -> dict[str, RunResult]:
+    """Simulate ``replicates`` as one population to ``plan.t_end``; record each cell's
+    observable at ``plan.times`` and every completed phi segment.
+
+    Args:
+        model: the agent model every replicate runs.
+        replicates: the runs (decision layer, field, size, seed, start), in block order.
+        labels: one name per replicate, the keys of the result.
+        plan: the time step, check times, duration, equilibration and loop (:class:`RunPlan`).
         progress: a progress bar over the steps.
         desc: the progress bar's label.
         info: if given, filled with the loop that ran (``loop_backend``) and, per label, the
@@ -112,8 +123,9 @@ def simulate_runs(
     Returns:
         ``{label: RunResult}`` with segment histograms and exact totals.
     """
-    sim = BatchSimulator(model, replicates, dt, device, compile=compile, backend=backend,
-                         compile_fallback=False)  # fmt: skip
+    dt, times = plan.dt, plan.times
+    sim = BatchSimulator(model, replicates, dt, plan.device, compile=plan.compile,
+                         backend=plan.backend, compile_fallback=False)  # fmt: skip
     log.info("simulating %d run(s) in one batch (%d cells, %s loop)", len(replicates),
              sum(sim.sizes), sim.backend)  # fmt: skip
     if info is not None:
@@ -121,9 +133,9 @@ def simulate_runs(
     r = len(replicates)
     width = MAX_SEGMENT_STEPS + 1
     with torch.inference_mode():  # cheaper per op than no_grad
-        state = sim.initial_state(equilibration_time=float(equilibration_time))
+        state = sim.initial_state(equilibration_time=float(plan.equilibration_time))
         sim.warm_up(state)
-        n_steps = steps_between(float(t_end), dt, "t_end")
+        n_steps = steps_between(float(plan.t_end), dt, "t_end")
         record = {steps_between(t, dt, "times"): t for t in times}
         dev = sim.device
         replicate_of = torch.repeat_interleave(
@@ -182,4 +194,11 @@ def mean_observables(results: Mapping[str, RunResult]) -> dict[str, dict[str, li
     }  # fmt: skip
 
 
-__all__ = ["CHUNK_STEPS", "MAX_SEGMENT_STEPS", "RunResult", "mean_observables", "simulate_runs"]
+__all__ = [
+    "CHUNK_STEPS",
+    "MAX_SEGMENT_STEPS",
+    "RunPlan",
+    "RunResult",
+    "mean_observables",
+    "simulate_runs",
+]

@@ -48,6 +48,7 @@ from surrogate.simulate.decision import DecisionLayer, FullDecision
 from surrogate.simulate.loop import Simulator, resolve_backend, use_compile_cache
 from surrogate.simulate.memory import AGE
 from surrogate.simulate.population import PopulationSummary, simulate_population
+from surrogate.simulate.recorders import DurationMode, RecorderSpec
 from surrogate.simulate.support import TrainedRange, warn_outside
 from surrogate.stages import budget
 from surrogate.stages.artefacts import KYMOGRAPH_FIGURE
@@ -372,12 +373,14 @@ def _simulate_batch(
              "%s loop)", len(runs), sum(s.n_cells for s in runs),
              len(simulator.decision.members), len(simulator.field.distinct),
              simulator.backend)  # fmt: skip
+    # every segment where every cell is recorded, else the recorded cells' (or none)
+    durations: DurationMode = ("none" if not first.record_durations
+                               else "histogram" if first.record_cells else "all")  # fmt: skip
     summaries = simulate_batch(
         simulator, first.t_end, [s.directory for s in runs],
         record_interval=first.record_interval, equilibration_time=first.equilibration_time,
-        record_durations=first.record_durations, progress=job.progress,
-        record_cells=first.record_cells,
-        durations=None if first.record_cells or not first.record_durations else "all",
+        progress=job.progress,
+        recording=RecorderSpec(record_cells=first.record_cells, durations=durations),
     )  # fmt: skip
     wall = time.perf_counter() - t0
     labels = [f"{s.decision.name}|{s.setup.label().get('field')}|seed={s.setup.seed}" for s in runs]

@@ -25,7 +25,13 @@ import torch
 from surrogate.config import non_negative, positive, seed_everything, to_dict
 from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.io import artefact_dir, write_json
-from surrogate.simulate.speed import LoopTiming, loop_name, measure_speed, speed_summary
+from surrogate.simulate.speed import (
+    LoopTiming,
+    SpeedWorkload,
+    loop_name,
+    measure_speed,
+    speed_summary,
+)
 from surrogate.stages.settings import SimulateSettings
 from surrogate.stages.simulate import build_decision
 
@@ -75,11 +81,11 @@ def run(cfg: Mapping[str, Any]) -> Path:
         for loop in loops:
             backend, compile_ = LOOPS[loop]
             try:
-                result = measure_speed(setup.model, {name: decision}, setup.field,
-                                       candidate.n_cells, steps, dt, candidate.job.device,
-                                       compile=compile_, start=candidate.start, repeats=repeats,
-                                       backend=backend,
-                                       chunk_steps=round(candidate.record_interval / dt))  # fmt: skip
+                workload = SpeedWorkload(candidate.n_cells, steps, dt, candidate.start, repeats,
+                                         round(candidate.record_interval / dt))  # fmt: skip
+                result = measure_speed(setup.model, {name: decision}, setup.field, workload,
+                                       candidate.job.device, compile=compile_,
+                                       backend=backend)  # fmt: skip
             except KernelUnsupported as exc:
                 entries[name][loop] = {"skipped": str(exc)}
                 log.info("%-8s %s loop: skipped (%s)", name, loop, exc)

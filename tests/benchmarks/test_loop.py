@@ -178,7 +178,8 @@ def test_compiled_step_computes_what_the_eager_step_computes(model: str) -> None
     u, u64, z, extra = eager.draw_randoms(state.n_cells)
     args = (
         state.body, state.phi.view(torch.uint8), state.segment_steps,
-        state.segment_complete.view(torch.uint8), decision.fused_state(), u, u64, z, extra, 0.25,
+        state.segment_complete.view(torch.uint8), decision.fused_state(), (u, u64, z, extra),
+        0.25,
     )  # fmt: skip
     a = eager._run("_fused_step", *args)
     b = compiled._run("_fused_step", *args)

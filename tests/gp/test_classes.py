@@ -12,7 +12,7 @@ import torch
 
 from surrogate.errors import ArtefactError, NumericalError
 from surrogate.gp.binned import label_weight
-from surrogate.gp.classes import fit_class_law
+from surrogate.gp.classes import ClassFitOptions, fit_class_law
 from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
 
@@ -49,8 +49,8 @@ def test_the_learned_law_is_the_law_within_its_sampling_error() -> None:
     standard errors of a 1/10 slice of the data (a conservative band for a smooth fit that
     pools the slice's neighbours), rows summing to 1, an unreached destination at 0."""
     data = sample(60_000)
-    law, metrics = fit_class_law(data, ["z"], 3, {"z": (0.0, 1.0)}, SETTINGS, nodes=[11],
-                                 progress=False)  # fmt: skip
+    law, metrics = fit_class_law(data, ["z"], 3, {"z": (0.0, 1.0)}, SETTINGS,
+                                 ClassFitOptions(nodes=[11], progress=False))  # fmt: skip
     assert law.shape == (3, 11, 3)
     torch.testing.assert_close(law.sum(-1), torch.ones(3, 11, dtype=torch.float64))
     assert float(law[0, :, 2].abs().max()) == 0.0  # never reached from class 0
@@ -71,7 +71,7 @@ def test_a_table_without_class_columns_or_with_an_empty_class_is_refused() -> No
     with pytest.raises(ArtefactError, match="phi_class"):
         fit_class_law(data.drop(columns="phi_class"), ["z"], 3, {"z": (0.0, 1.0)}, SETTINGS)
     with pytest.raises(ArtefactError, match="no rows from class 3"):
-        fit_class_law(data, ["z"], 4, {"z": (0.0, 1.0)}, SETTINGS, progress=False)
+        fit_class_law(data, ["z"], 4, {"z": (0.0, 1.0)}, SETTINGS, ClassFitOptions(progress=False))
 
 
 def test_an_expected_labels_weight_is_its_inverse_dispersion() -> None:
@@ -147,8 +147,9 @@ def test_weighted_expected_labels_pin_a_sparse_tail() -> None:
     nodes = np.linspace(0.0, 1.0, 101)
     errors = {}
     for cap in (1000.0, 1.0):
-        law, metrics = fit_class_law(table, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS, nodes=[101],
-                                     progress=False, max_weight=cap)  # fmt: skip
+        law, metrics = fit_class_law(table, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS,
+                                     ClassFitOptions(nodes=[101], progress=False,
+                                                     max_weight=cap))  # fmt: skip
         assert metrics["0"]["row_weight"]["1"] == pytest.approx(min(cap, 1000.0))
         errors[cap] = law[0, :, 1].numpy() - 0.01 * np.exp(3.0 * nodes)
     outside = []
@@ -176,13 +177,14 @@ def test_a_rare_destination_with_expected_labels_gets_its_surface() -> None:
     back = table.assign(phi_class=1, phi_class_next=1, phi_class_next_expected_0=0.0,
                         phi_class_next_expected_1=1.0)  # fmt: skip
     data = pd.concat([table, back], ignore_index=True)
-    law, metrics = fit_class_law(data, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS, nodes=[11],
-                                 progress=False)  # fmt: skip
+    law, metrics = fit_class_law(data, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS,
+                                 ClassFitOptions(nodes=[11], progress=False))  # fmt: skip
     assert metrics["min_events"] == 1.0 and "1" in metrics["0"]["row_weight"]
     growth = float(law[0, 9, 1] / law[0, 1, 1])
     assert math.exp(2.4) / 2 < growth < 2 * math.exp(2.4), growth
-    _, outcome = fit_class_law(data, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS, nodes=[11],
-                               progress=False, expected=False)  # fmt: skip
+    _, outcome = fit_class_law(data, ["z"], 2, {"z": (0.0, 1.0)}, SETTINGS,
+                               ClassFitOptions(nodes=[11], progress=False,
+                                               expected=False))  # fmt: skip
     assert outcome["min_events"] == 50 and outcome["constant_steps"] >= 1
 
 

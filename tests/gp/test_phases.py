@@ -19,6 +19,7 @@ from surrogate.gp.phases import (
     PhaseFitSettings,
     PhaseLaw,
     PhaseLayout,
+    PhaseSelection,
     fit_phase_law,
     grid_points,
     input_grid,
@@ -215,7 +216,7 @@ def test_an_erlang_on_time_needs_three_phases() -> None:
     three, _ = fit_phase_law(z[train], phi[train], PhaseLayout((1, 3)), [(0.0, 1.0)], FLAT)
     gain, error = _held_out_gain(three, one, z[test], phi[test])
     assert gain > 10 * error > 0
-    _chosen, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    _chosen, report = select_phases(z, phi, [(0.0, 1.0)], PhaseSelection(3), settings=FLAT)
     assert report["per_lump"] == [1, 3]
     truth = sojourn_law(p, lumps, 1, 400)
     critical = {}
@@ -230,7 +231,7 @@ def test_a_memoryless_telegraph_keeps_one_phase_per_lump() -> None:
     """Both sojourns geometric: no added phase gains beyond twice its standard error."""
     p, lumps = erlang_telegraph(1, 0.15, 0.1)
     z, phi = simulate_chain(p, lumps, 300, 300, seed=6)
-    _, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    _, report = select_phases(z, phi, [(0.0, 1.0)], PhaseSelection(3), settings=FLAT)
     assert report["per_lump"] == [1, 1]
     assert len(report["candidates"]) == 3  # (1, 1), then (2, 1) and (1, 2) tried and refused
 
@@ -247,7 +248,7 @@ def test_the_fitted_sojourns_match_an_enumerable_networks_exact_ones() -> None:
     exact = torch.linalg.matrix_exp(space.generator(rates)[0] * 0.1)
     lumps = (space.states[:, 2] + space.states[:, 3]).long()
     z, phi = simulate_chain(exact, lumps, 300, 400, seed=7)
-    law, report = select_phases(z, phi, [(0.0, 1.0)], 3, settings=FLAT)
+    law, report = select_phases(z, phi, [(0.0, 1.0)], PhaseSelection(3), settings=FLAT)
     assert min(report["per_lump"]) >= 2  # each lump's sojourn is two exponential steps
     fitted = law.moves(torch.tensor([[0.5]], dtype=torch.float64))[0]
     observed = phi.numpy()

@@ -17,6 +17,7 @@ from surrogate.errors import ConfigError
 from surrogate.gp.phases import (
     PhaseFitSettings,
     PhaseLayout,
+    PhaseSelection,
     fit_phase_law,
     select_phases,
 )
@@ -204,8 +205,8 @@ def test_phases_likelihood_is_the_fits_held_out_likelihood() -> None:
     x, phi = telegraph(80, 300, 3, seed=4)
     x = np.round(x * (LINEAR.nodes - 1)) / (LINEAR.nodes - 1)  # on the nodes: no rounding
     z, seq = torch.tensor(x), torch.tensor(phi).long()
-    law, report = select_phases(z, seq, [(0.0, 1.0)], 3, settings=LINEAR, held_out=0.25,
-                                seed=5, per_lump=(1, 3))  # fmt: skip
+    selection = PhaseSelection(3, held_out=0.25, per_lump=(1, 3))
+    law, report = select_phases(z, seq, [(0.0, 1.0)], selection, settings=LINEAR, seed=5)
     m = round(0.25 * len(x))  # select_phases' split
     test = torch.randperm(len(x), generator=torch.Generator().manual_seed(5))[:m]
     layer = PhaseDecision(phase_table(law, ("x",), ("off", "on"), DT, LINEAR.nodes),

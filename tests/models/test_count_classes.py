@@ -14,6 +14,7 @@ import yaml
 from surrogate.errors import ConfigError
 from surrogate.evaluate.statistics import ExactSample, compare_distributions
 from surrogate.models.count_classes import (
+    CountBinning,
     CountClasses,
     CountClassifier,
     _choose,
@@ -30,7 +31,7 @@ from surrogate.models.count_classes import (
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.simulate import FullDecision
 from surrogate.simulate.batch import Replicate
-from surrogate.stages.runs import simulate_runs
+from surrogate.stages.runs import RunPlan, simulate_runs
 from surrogate.stages.simulate import exact_class_decision, exact_decision
 from tests.sbml.builder import Reaction, Species, build
 
@@ -143,8 +144,8 @@ def test_a_hidden_count_fails_two_states_and_passes_with_classes(tmp_path) -> No
     reps = [Replicate(FullDecision(model.internal), field, n, 1, (2.0, 0.0)),
             Replicate(two_state, field, n, 2, (2.0, 0.0)),
             Replicate(classes, field, n, 3, (2.0, 0.0))]  # fmt: skip
-    runs = simulate_runs(model, reps, ["full", "two", "classes"], dt=dt, times=[100.0],
-                         t_end=100.0, equilibration_time=0.0, progress=False)  # fmt: skip
+    runs = simulate_runs(model, reps, ["full", "two", "classes"],
+                         plan=RunPlan(dt, [100.0], 100.0, 0.0), progress=False)  # fmt: skip
 
     def off(label: str) -> ExactSample:
         counts = runs[label].histograms["off"]
@@ -314,10 +315,10 @@ def test_a_steady_count_is_preferred_to_a_jittery_one_of_equal_gain() -> None:
         phi[t + 1] = np.where(flip, 1 - phi[t], phi[t])
     counts = np.broadcast_to(hidden[None, :, None], (w + 1, n, 1)).astype(np.int64)
     combos = [("X + 0 * X", np.array([1]))]
-    chosen, report = _choose(counts, phi, ["X"], ("off", "on"), 3, "homogeneous", combos, {"X"})
+    chosen, report = _choose(counts, phi, ["X"], ("off", "on"), CountBinning(3), combos, {"X"})
     assert chosen.variable == "X + 0 * X"
     assert [c["fast_changed"] for c in report["candidates"]] == [True, False]
-    kept, _ = _choose(counts, phi, ["X"], ("off", "on"), 3, "homogeneous", combos, set())
+    kept, _ = _choose(counts, phi, ["X"], ("off", "on"), CountBinning(3), combos, set())
     assert kept.variable == "X"
 
 
@@ -334,7 +335,7 @@ def test_a_count_that_decides_phi_gets_each_lumps_own_bins() -> None:
     for t in range(w):
         x[t + 1] = np.clip(x[t] + rng.choice([-1, 1], n), 0, 49)
     phi = (x >= 25).astype(np.int8)
-    classes, report = _choose(x[:, :, None], phi, ["X"], ("off", "on"), 4)
+    classes, report = _choose(x[:, :, None], phi, ["X"], ("off", "on"), CountBinning(4))
     assert 24.0 in classes.edges[0] and 26.0 in classes.edges[1]
     assert max(classes.edges[0]) <= 25 and min(classes.edges[1]) >= 25
     assert report["significant"] and report["candidates"][0]["gain_nats_per_window"] > 0

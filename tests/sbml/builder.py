@@ -52,7 +52,7 @@ def _math(formula: str) -> libsbml.ASTNode:
     return node
 
 
-def build(
+def build(  # noqa: C901  # one branch per SBML part a test may give
     model_id: str,
     species: Sequence[Species],
     parameters: dict[str, float | None],

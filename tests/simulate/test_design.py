@@ -13,7 +13,11 @@ from surrogate.fields import GaussianField
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import FullDecision, Simulator
 from surrogate.simulate.design import Acquisition, GuidedJump
-from surrogate.simulate.transitions import TransitionCollector, collect_transitions
+from surrogate.simulate.transitions import (
+    CollectOptions,
+    TransitionCollector,
+    collect_transitions,
+)
 
 
 def test_acquisition_is_occupancy_times_posterior_sd() -> None:
@@ -124,8 +128,8 @@ def test_collection_goes_on_between_takes() -> None:
     model = EcoliModel()
     sim = simulator()
     perturbation = model.body.perturbation(sim.field, model.perturbation_options)
-    args = {"n_cells": 200, "perturb_rate": 0.5, "record_every": 3, "progress": False,
-            "equilibration_time": 1.0, "blackout": 4}  # fmt: skip
+    args = {"n_cells": 200, "perturb_rate": 0.5, "progress": False,
+            "options": CollectOptions(record_every=3, equilibration_time=1.0, blackout=4)}  # fmt: skip
     torch.manual_seed(3)
     collector = TransitionCollector(sim, perturbation, **args)
     first, second = collector.take(300), collector.take(300)

@@ -22,6 +22,7 @@ from surrogate.simulate.recorders import (
     MOMENTS,
     OBSERVABLES,
     HistogramGrid,
+    RecorderSpec,
     RunRecorder,
     bin_counts,
     choose_cells,
@@ -91,7 +92,7 @@ def record(
     # the grids a body declares (histogram_grids) come in through histogram_spec
     kw = {"histogram_spec": {"distance": DISTANCE_GRID, "speed": (0.0, 0.04, 1e-4)}, **kw}
     r = RunRecorder(out, n_cells, DT, ("distance", "speed"), LUMPS, block_steps=every,
-                    device=device, **kw)  # fmt: skip
+                    device=device, spec=RecorderSpec(**kw))  # fmt: skip
     seen = [observables_at(n_cells, 0)]
     r.record_observables(0.0, {k: v.to(device) for k, v in seen[0].items()})
     for s in range(ends.shape[0]):
@@ -297,7 +298,7 @@ def test_abort_drops_every_temporary(tmp_path) -> None:
     r.abort()
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match="durations must be one of"):
-        RunRecorder(tmp_path, 10, DT, ["distance"], LUMPS, 4, "cpu", durations="some")
+        RunRecorder(tmp_path, 10, DT, ["distance"], LUMPS, 4, "cpu", RecorderSpec(durations="some"))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -8,7 +8,11 @@ import torch
 from surrogate.fields import GaussianField
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import FullDecision, Simulator
-from surrogate.simulate.transitions import collect_transitions, record_occupancy
+from surrogate.simulate.transitions import (
+    CollectOptions,
+    collect_transitions,
+    record_occupancy,
+)
 
 
 def _simulator(backend: str) -> Simulator:
@@ -46,8 +50,10 @@ def test_collected_transitions_by_the_kernel_are_the_torch_steps() -> None:
         sim = _simulator(backend)
         perturbation = model.body.perturbation(sim.field, model.perturbation_options)
         tables.append(collect_transitions(sim, perturbation, n_cells=300, n_per_state=500,
-                                          perturb_rate=0.5, record_every=3, progress=False,
-                                          equilibration_time=1.0, blackout=4))  # fmt: skip
+                                          perturb_rate=0.5, progress=False,
+                                          options=CollectOptions(record_every=3,
+                                                                 equilibration_time=1.0,
+                                                                 blackout=4)))  # fmt: skip
     _same_rows(*tables)
     np.testing.assert_array_equal(tables[0]["since_jump"], tables[1]["since_jump"])
 
@@ -65,9 +71,11 @@ def test_expected_labels_average_to_the_switching_frequency() -> None:
         sim = _simulator("numba")
         perturbation = model.body.perturbation(sim.field, model.perturbation_options)
         tables.append(collect_transitions(sim, perturbation, n_cells=1000, n_per_state=20000,
-                                          perturb_rate=0.1, record_every=5, progress=False,
-                                          equilibration_time=1.0, blackout=20,
-                                          expected=expected))  # fmt: skip
+                                          perturb_rate=0.1, progress=False,
+                                          options=CollectOptions(record_every=5,
+                                                                 equilibration_time=1.0,
+                                                                 blackout=20,
+                                                                 expected=expected)))  # fmt: skip
     plain, table = tables
     assert EXPECTED not in plain.columns
     for column in plain.columns:

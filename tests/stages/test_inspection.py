@@ -17,7 +17,7 @@ from surrogate.io import read_json
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
-from surrogate.simulate.transitions import collect_transitions
+from surrogate.simulate.transitions import CollectOptions, collect_transitions
 from surrogate.stages import inspection
 from tests.diagnosis.test_inspection import (
     DT,
@@ -115,7 +115,7 @@ def test_collect_stops_early_when_one_lump_is_almost_never_seen(tmp_path) -> Non
     perturbation = model.body.perturbation(field, model.perturbation_options)
     with pytest.raises(ConfigError) as error:
         collect_transitions(sim, perturbation, n_cells=20, n_per_state=5000, perturb_rate=0.1,
-                            record_every=1, equilibration_time=1.0, max_time=400.0,
+                            options=CollectOptions(equilibration_time=1.0, max_time=400.0),
                             progress=False)  # fmt: skip
     message = str(error.value)
     assert message.startswith("collect stopped early") and "inspect_model.py" in message
@@ -133,8 +133,9 @@ def _short_collection(tmp_path: Path, n_per_state: int) -> str:
     perturbation = model.body.perturbation(field, model.perturbation_options)
     with pytest.raises(ConfigError) as error:
         collect_transitions(sim, perturbation, n_cells=20, n_per_state=n_per_state,
-                            perturb_rate=0.1, record_every=1, equilibration_time=1.0,
-                            max_time=20.0, progress=False)  # fmt: skip
+                            perturb_rate=0.1,
+                            options=CollectOptions(equilibration_time=1.0, max_time=20.0),
+                            progress=False)  # fmt: skip
     return str(error.value)
 
 

@@ -54,9 +54,8 @@ def test_shards_merge_into_the_run_they_define(stored) -> None:
     for i, n in enumerate(shard_sizes(r.n_cells, r.shard_count)):
         seed = shard_seed(r.seed, r.shard_count, i)
         rep = Replicate(FullDecision(model.internal), r.setup.field, n, seed, r.start)
-        parts.append(runs.simulate_runs(model, [rep], ["s"], dt=r.setup.dt, times=r.record_times,
-                                        t_end=r.t_end, equilibration_time=r.equilibration_time,
-                                        progress=False)["s"])  # fmt: skip
+        plan = runs.RunPlan(r.setup.dt, r.record_times, r.t_end, r.equilibration_time)
+        parts.append(runs.simulate_runs(model, [rep], ["s"], plan=plan, progress=False)["s"])
     want = runs.RunResult.merge(parts, r.setup.dt)
     assert list(got.observables) == list(r.record_times) == [0.5, 1.0]
     for t in r.record_times:
