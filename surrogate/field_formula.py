@@ -31,7 +31,7 @@ from functools import lru_cache
 
 from torch import Tensor
 
-from surrogate.ctmc.kinetics import (
+from surrogate.ctmc.expr import (
     BOOL,
     OPERATORS,
     Expr,
