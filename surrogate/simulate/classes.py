@@ -408,8 +408,6 @@ class ClassDecision(TableDecision):
         name: str = "classes",
         start: str = "internal",
     ) -> None:
-        if start not in STARTS:
-            raise ValueError(f"start must be one of {list(STARTS)}, got {start!r}")
         declared = lump_classes_of(internal)
         if declared is None:
             raise ValueError(f"{type(internal).__name__} declares no classes (class_names)")
