@@ -3,12 +3,11 @@ kernels rely on of every :class:`~surrogate.fields.Field`."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from torch import Tensor
 
+from surrogate.ctmc.codegen import load_generated
 from surrogate.fields import Field, FormulaField
 
 
@@ -97,11 +96,12 @@ class FieldContract:
         field = self.make_field()
         if not isinstance(field, FormulaField):
             return  # a Python field: the compiled kernels refuse it (KernelUnsupported)
-        # the kernels' helpers, as the dispatcher's module defines them (field_formula)
-        namespace: dict[str, object] = {"np": np, "math": math,
-                                        "_hypot": lambda a, b: np.sqrt(a * a + b * b)}  # fmt: skip
-        exec(field.formula.numba_source("scalar"), namespace)
-        scalar = namespace["scalar"]
+        # the kernels' helpers, as the dispatcher's module defines them (field_formula), and
+        # the formula's scalar code, loaded as generated code is (a file, imported; no exec)
+        source = "\n".join(["import math", "", "import numpy as np", "", "",
+                             "def _hypot(a, b):", "    return np.sqrt(a * a + b * b)", "", "",
+                             field.formula.numba_source("scalar")])  # fmt: skip
+        scalar = load_generated(source, prefix="contract").scalar
         row = np.zeros(1 + len(field.formula.parameters))
         row[1:] = field.packed_parameters()
         p = self.positions(torch.float32)

@@ -209,7 +209,8 @@ def chooser(monkeypatch) -> list[bool]:
     asked (``shared``). Returns the ``shared`` of each call."""
     calls: list[bool] = []
 
-    def choose(internal, kinetic, dt, *, shared=False, **_):
+    def choose(internal, kinetic, dt, *, binning, **_):
+        shared = binning.shared
         calls.append(shared)
         classes = CountClasses("P", ((2.0, 4.0), (2.0, 4.0)), internal.lump_names) if shared \
             else CountClasses("D", ((1.0,), (3.0,)), internal.lump_names)  # fmt: skip
