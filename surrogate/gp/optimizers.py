@@ -1,7 +1,8 @@
 """Optimisers other than Adam for the batched binned GP fit, measured against it by
 ``scripts/bench_fit.py`` (:mod:`surrogate.benchmarks.fit`; docs/performance.md, "Faster fits:
-measured"); no setting selects them yet: none matched Adam's 1,000 steps within the
-posterior sd where data live at a third of its time.
+measured"). ``gp.optimizer=lbfgs`` selects :func:`fit_lbfgs` for the batched binned fit
+(opt-in: none matched Adam's 1,000 steps within the posterior sd where data live, a bar
+Adam's 1,000 steps miss against its own 2,000); ``ngd`` is measured only.
 
 :func:`~surrogate.gp.training.fit_classifiers` trains several classifiers as one batched GP
 whose loss is the sum of their negative ELBOs per point (``loss_fn() -> (b,)``). Each optimiser

@@ -94,3 +94,54 @@ def test_a_diverging_natural_step_is_a_numerical_error() -> None:
     with pytest.raises(NumericalError, match="ngd 3 lr=1000 diverged"):
         fit_problems(problems, heavy, SMALL, Method("ngd", 3, 1000.0))
     assert weights  # the problems themselves are fine (the reference fits them)
+
+
+def test_gp_optimizer_lbfgs_through_the_fit_matches_adam(reference) -> None:
+    # gp.optimizer=lbfgs runs the same batched binned fit as train does (fit_classifiers), and
+    # lands on Adam's 1,000 steps within its posterior sd, in at most 50 iterations
+    from surrogate.gp.training import fit_classifiers
+
+    problems, weights = _problems()
+    settings = GPSettings(kernel="matern52", n_inducing=16, bins=50, epochs=50,
+                          optimizer="lbfgs")  # fmt: skip
+    fitted = fit_classifiers(problems, settings, progress=False, weights=weights)
+    assert all(0 < len(f.history) <= 50 * 25 for f in fitted)  # evaluations, line search incl.
+    result = score(fitted, reference, problems, weights, SMALL)
+    assert result["equal"], result
+    # one classifier alone takes the same route (a batch of one; its line search is its own,
+    # so it lands near, not on, the batch's fit): equal to Adam's within the sd too
+    from surrogate.gp.training import fit_classifier
+
+    x, y, outcomes = problems[1]
+    one = fit_classifier(x, y, settings, progress=False, outcomes=outcomes, weight=weights[1])
+    alone = score([one], reference[1:2], problems[1:2], weights[1:2], SMALL)
+    assert alone["equal"], alone
+
+
+@pytest.mark.parametrize(
+    ("values", "match"),
+    [
+        ({"optimizer": "sgd"}, "gp.optimizer: unknown optimizer 'sgd'"),
+        ({"optimizer": "lbfgs"}, "gp.optimizer=lbfgs fits the batched binned GP only"),
+        ({"optimizer": "lbfgs", "bins": 10, "natural_gradient": True}, "natural_gradient=True"),
+    ],
+)
+def test_a_bad_gp_optimizer_is_refused_with_its_fix(values, match) -> None:
+    from surrogate.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=match):
+        GPSettings.from_config(values)
+    # the fix the message names passes
+    GPSettings.from_config({**values, "optimizer": "adam"})
+
+
+def test_the_default_optimizer_keeps_every_fit_identity() -> None:
+    # fits made before gp.optimizer keep their bytes and directories; lbfgs is a new identity
+    from surrogate.kinds import chain_kind
+
+    assert "optimizer" not in GPSettings().to_dict()
+    assert GPSettings(bins=10, optimizer="lbfgs").to_dict()["optimizer"] == "lbfgs"
+    kind = chain_kind()  # the two-state chain
+    base = {"kernel": "rbf", "bins": 10}
+    assert kind.fit_identity({**base, "optimizer": "adam"}) == kind.fit_identity(base)
+    assert kind.fit_identity({**base, "optimizer": "lbfgs"}) != kind.fit_identity(base)
