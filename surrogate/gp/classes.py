@@ -40,6 +40,8 @@ from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
 
 Domain = dict[str, tuple[float, float]]
+#: per origin class, each destination's problem index (a GP) or constant rate
+Plan = list[tuple[int, dict[int, int | float]]]
 
 #: events a destination needs for a GP surface, by the labels trained on: 0/1 outcomes are
 #: one Bernoulli draw per row; expected labels, counted by mass, carry each window's law
@@ -112,58 +114,8 @@ def fit_class_law(
         >>> law, metrics = fit_class_law(table, ["dG"], 7, {"dG": (-1.5, 2.5)})  # doctest: +SKIP
     """
     settings = settings or GPSettings()
-    origin, destination, min_events = options.origin, options.destination, options.min_events
     names = list(input_names)
-    missing = [c for c in (*names, origin, destination) if c not in data.columns]
-    if missing:
-        raise ArtefactError(
-            f"transition data lacks column(s) {missing} for a class chain; it has "
-            f"{list(data.columns)} (collect records the classes where the model declares them)"
-        )
-    a_col = data[origin].to_numpy().astype(np.int64)
-    b_col = data[destination].to_numpy().astype(np.int64)
-    if ((a_col < 0) | (a_col >= n_classes) | (b_col < 0) | (b_col >= n_classes)).any():
-        raise ArtefactError(f"class columns must lie in [0, {n_classes})")
-    columns = [f"{destination}_expected_{b}" for b in range(n_classes)]
-    use_expected = options.expected and all(c in data.columns for c in columns)
-    labels = (data[columns].to_numpy(dtype="float32") if use_expected
-              else np.eye(n_classes, dtype=np.float32)[b_col])  # fmt: skip
-    label_kind = "expected" if use_expected else "outcome"
-    min_events = MIN_EVENTS[label_kind] if min_events is None else min_events
-    max_weight = DEFAULT_MAX_LABEL_WEIGHT if options.max_weight is None else options.max_weight
-    z_all = torch.tensor(data[names].to_numpy(dtype="float32"))
-    # rows a binary classifier needs: its inducing points within the training split
-    need = math.ceil(2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction))
-    problems: list[tuple[Tensor, Tensor, Tensor]] = []
-    weights: list[float] = []
-    plan: list[tuple[int, dict[int, int | float]]] = []  # origin, {destination: problem or rate}
-    metrics: dict[str, Any] = {"labels": label_kind, "min_events": min_events}
-    for a in range(n_classes):
-        rows = np.flatnonzero(a_col == a)
-        if rows.size == 0:
-            raise ArtefactError(
-                f"transition data has no rows from class {a}: collect more (collect.n_per_state)"
-            )
-        counts = np.bincount(b_col[rows], minlength=n_classes)
-        mass = labels[rows].sum(0)
-        reached = [b for b in range(n_classes) if counts[b] > 0 or mass[b] > 0]
-        steps: dict[int, int | float] = {}
-        for b in reached:
-            hits = float(mass[b]) if use_expected else float(counts[b])
-            events = min(hits, rows.size - hits)
-            if len(reached) > 1 and events >= min_events and rows.size >= need:
-                hit = torch.tensor((b_col[rows] == b).astype(np.float32))
-                y = torch.tensor(labels[rows, b])
-                problems.append((z_all[rows], y, hit))
-                weights.append(label_weight(z_all[rows], y, settings.bins, max_weight)
-                               if use_expected and max_weight > 1 and settings.bins
-                               else 1.0)  # fmt: skip
-                steps[b] = len(problems) - 1
-            else:  # too few events to learn a surface: the constant mean label
-                steps[b] = float(mass[b] / rows.size)
-        plan.append((a, steps))
-        metrics[str(a)] = {"rows": int(rows.size),
-                           "destinations": {str(b): int(counts[b]) for b in reached}}  # fmt: skip
+    problems, weights, plan, metrics = class_problems(data, names, n_classes, settings, options)
     fitted = fit_classifiers(problems, settings, progress=options.progress, device=options.device,
                              desc="class chain", weights=weights) if problems else []  # fmt: skip
     bounds = [domain[n] for n in names]
@@ -196,6 +148,72 @@ def fit_class_law(
     return law.reshape(n_classes, *sizes, n_classes), metrics
 
 
+def class_problems(
+    data: pd.DataFrame,
+    input_names: Sequence[str],
+    n_classes: int,
+    settings: GPSettings,
+    options: ClassFitOptions = ClassFitOptions(),
+) -> tuple[list[tuple[Tensor, Tensor, Tensor]], list[float], Plan, dict[str, Any]]:
+    """The binary problems :func:`fit_class_law` fits (its arguments, which see): each
+    ``(z, y, outcomes)`` (``n x d``, ``n``, ``n``) with its likelihood weight; the plan, per
+    origin class its destinations' problem index (int) or constant rate (float); and the
+    metrics so far."""
+    origin, destination, min_events = options.origin, options.destination, options.min_events
+    names = list(input_names)
+    missing = [c for c in (*names, origin, destination) if c not in data.columns]
+    if missing:
+        raise ArtefactError(
+            f"transition data lacks column(s) {missing} for a class chain; it has "
+            f"{list(data.columns)} (collect records the classes where the model declares them)"
+        )
+    a_col = data[origin].to_numpy().astype(np.int64)
+    b_col = data[destination].to_numpy().astype(np.int64)
+    if ((a_col < 0) | (a_col >= n_classes) | (b_col < 0) | (b_col >= n_classes)).any():
+        raise ArtefactError(f"class columns must lie in [0, {n_classes})")
+    columns = [f"{destination}_expected_{b}" for b in range(n_classes)]
+    use_expected = options.expected and all(c in data.columns for c in columns)
+    labels = (data[columns].to_numpy(dtype="float32") if use_expected
+              else np.eye(n_classes, dtype=np.float32)[b_col])  # fmt: skip
+    label_kind = "expected" if use_expected else "outcome"
+    min_events = MIN_EVENTS[label_kind] if min_events is None else min_events
+    max_weight = DEFAULT_MAX_LABEL_WEIGHT if options.max_weight is None else options.max_weight
+    z_all = torch.tensor(data[names].to_numpy(dtype="float32"))
+    # rows a binary classifier needs: its inducing points within the training split
+    need = math.ceil(2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction))
+    problems: list[tuple[Tensor, Tensor, Tensor]] = []
+    weights: list[float] = []
+    plan: Plan = []
+    metrics: dict[str, Any] = {"labels": label_kind, "min_events": min_events}
+    for a in range(n_classes):
+        rows = np.flatnonzero(a_col == a)
+        if rows.size == 0:
+            raise ArtefactError(
+                f"transition data has no rows from class {a}: collect more (collect.n_per_state)"
+            )
+        counts = np.bincount(b_col[rows], minlength=n_classes)
+        mass = labels[rows].sum(0)
+        reached = [b for b in range(n_classes) if counts[b] > 0 or mass[b] > 0]
+        steps: dict[int, int | float] = {}
+        for b in reached:
+            hits = float(mass[b]) if use_expected else float(counts[b])
+            events = min(hits, rows.size - hits)
+            if len(reached) > 1 and events >= min_events and rows.size >= need:
+                hit = torch.tensor((b_col[rows] == b).astype(np.float32))
+                y = torch.tensor(labels[rows, b])
+                problems.append((z_all[rows], y, hit))
+                weights.append(label_weight(z_all[rows], y, settings.bins, max_weight)
+                               if use_expected and max_weight > 1 and settings.bins
+                               else 1.0)  # fmt: skip
+                steps[b] = len(problems) - 1
+            else:  # too few events to learn a surface: the constant mean label
+                steps[b] = float(mass[b] / rows.size)
+        plan.append((a, steps))
+        metrics[str(a)] = {"rows": int(rows.size),
+                           "destinations": {str(b): int(counts[b]) for b in reached}}  # fmt: skip
+    return problems, weights, plan, metrics
+
+
 def class_law_nodes(n_inputs: int, nodes: Sequence[int] | None) -> list[int]:
     """The grid size per input :func:`fit_class_law` uses: ``nodes``, else 1,024 nodes for
     one input and ~4,096 in all for more."""
@@ -210,5 +228,6 @@ __all__ = [
     "MIN_EVENTS",
     "ClassFitOptions",
     "class_law_nodes",
+    "class_problems",
     "fit_class_law",
 ]

@@ -38,6 +38,11 @@ class GPSettings:
     seed: int = 0
     #: the latent f's prior mean (:data:`~surrogate.gp.model.MEANS`)
     mean: str = DEFAULT_MEAN
+    #: the batched binned fit's optimiser: ``adam`` (``epochs`` steps of ``lr``) or ``lbfgs``
+    #: (at most ``epochs`` L-BFGS iterations with a strong-Wolfe line search, stopping on its own
+    #: tolerance; docs/performance.md, "Faster fits: measured"); opt-in, not in the identity of
+    #: a fit with ``adam``
+    optimizer: str = "adam"
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel, str) or self.kernel not in KERNELS:
@@ -62,6 +67,17 @@ class GPSettings:
             value = _check_float(name, getattr(self, name))
             if value <= 0:
                 raise ConfigError(f"gp.{name} must be > 0, got {value!r}")
+        if not isinstance(self.optimizer, str) or self.optimizer not in OPTIMIZERS:
+            raise ConfigError(
+                f"gp.optimizer: unknown optimizer {self.optimizer!r}; allowed values are "
+                f"{OPTIMIZERS}"
+            )
+        if self.optimizer == "lbfgs" and (not self.bins or self.natural_gradient):
+            raise ConfigError(
+                "gp.optimizer=lbfgs fits the batched binned GP only: it needs gp.bins > 0 and "
+                f"gp.natural_gradient=false (now bins={self.bins!r}, natural_gradient="
+                f"{self.natural_gradient}); or set gp.optimizer=adam"
+            )
         value = _check_float("validation_fraction", self.validation_fraction)
         if not 0.0 <= value < 1.0:
             raise ConfigError(f"gp.validation_fraction must lie in [0, 1), got {value!r}")
@@ -81,8 +97,16 @@ class GPSettings:
         return cls(**values)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain dict of the settings (JSON-able and ``weights_only``-loadable)."""
-        return asdict(self)
+        """Plain dict of the settings (JSON-able and ``weights_only``-loadable); the default
+        optimiser is left out, so fits before ``gp.optimizer`` keep their bytes."""
+        out = asdict(self)
+        if out["optimizer"] == "adam":
+            del out["optimizer"]
+        return out
+
+
+#: the batched binned fit's optimisers (``gp.optimizer``)
+OPTIMIZERS = ("adam", "lbfgs")
 
 
 def _check_int(name: str, value: Any, minimum: int) -> int:

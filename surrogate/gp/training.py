@@ -33,6 +33,7 @@ from surrogate.gp.binned import bin_inputs, binned_loss, padded_bins, weighted_b
 from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import PsiGP
+from surrogate.gp.optimizers import fit_lbfgs
 from surrogate.gp.settings import GPSettings, psi_gp
 
 #: classifiers are trained side by side (one batched GP) up to this many occupied bins each:
@@ -150,6 +151,9 @@ def fit_classifier(
     :func:`label_weight`; binned training only).
     """
     settings = settings or GPSettings()
+    if settings.optimizer == "lbfgs":  # the L-BFGS fit is the batched one's (a batch of one)
+        data = (x, y) if outcomes is None else (x, y, outcomes)
+        return fit_classifiers([data], settings, progress, device, desc, [weight])[0]
     device = torch.device(device)
     _check_weight(weight, settings)
     prep = _prepare(x, y, settings, device, outcomes)
@@ -281,12 +285,13 @@ def fit_classifiers(
                                weight=w)
                 for i, (d, w) in enumerate(zip(data, weights, strict=True))]  # fmt: skip
 
-    if not settings.bins or settings.natural_gradient or len(data) < 2:
+    lbfgs = settings.optimizer == "lbfgs"  # batched whatever the count (settings check bins)
+    if not settings.bins or settings.natural_gradient or (len(data) < 2 and not lbfgs):
         return one_by_one()
     preps = [_prepare(d[0], d[1], settings, device, d[2] if len(d) > 2 else None) for d in data]
     binned = [weighted_bins(bin_inputs(p.z_train, p.y_train, settings.bins), w)
               for p, w in zip(preps, weights, strict=True)]  # fmt: skip
-    if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS:
+    if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS and not lbfgs:
         return one_by_one()
     model = psi_gp(torch.stack([p.inducing for p in preps]).clone(), settings).to(device)
     # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
@@ -307,6 +312,15 @@ def fit_classifiers(
     likelihood.train()
     good_state = _model_state(model)
     t0 = time.perf_counter()
+    if lbfgs:
+        try:
+            fit_lbfgs([*model.parameters(), *likelihood.parameters()],
+                      lambda: binned_loss(model, likelihood, z_b, n_b, k_b), settings.epochs,
+                      histories)  # fmt: skip
+        except (NotPSDError, NanError, FloatingPointError) as exc:
+            raise _batch_failure(model, good_state, preps, settings, histories, 0,
+                                 str(exc)) from exc  # fmt: skip
+        return _finish(model, preps, settings, histories, time.perf_counter() - t0)
     bar = tqdm(range(settings.epochs), desc=desc, disable=not progress, leave=False)
     for epoch in bar:
         epoch_start = _model_state(model)
@@ -330,7 +344,17 @@ def fit_classifiers(
         good_state = epoch_start
         bar.set_postfix(loss=" ".join(f"{v:.4f}" for v in values))
     bar.close()
-    seconds = time.perf_counter() - t0
+    return _finish(model, preps, settings, histories, time.perf_counter() - t0)
+
+
+def _finish(
+    model: PsiGP,
+    preps: Sequence[_Prepared],
+    settings: GPSettings,
+    histories: Sequence[list[float]],
+    seconds: float,
+) -> list[FittedClassifier]:
+    """The batch's classifiers, each validated, with the shared loop's ``seconds``."""
     out = _split(model, preps, settings, histories)
     for fitted, prep in zip(out, preps, strict=True):
         fitted.train_seconds = seconds
@@ -425,8 +449,13 @@ def _numerical_failure(
         f"GP training diverged in epoch {epoch + 1}/{s.epochs} ({what}). The model was "
         f"restored to {restored} (the last state whose losses were all finite) and is attached "
         f"as `exc.partial`. "
-        f"Try a smaller gp.lr (now {s.lr})"
-        + (f" or gp.natural_lr (now {s.natural_lr})" if s.natural_gradient else "")
+        + (
+            "Try gp.optimizer=adam (L-BFGS's line search left the region where the "
+            "covariances are positive definite)"
+            if s.optimizer == "lbfgs"
+            else f"Try a smaller gp.lr (now {s.lr})"
+            + (f" or gp.natural_lr (now {s.natural_lr})" if s.natural_gradient else "")
+        )
         + f", or fewer gp.n_inducing (now {s.n_inducing})."
     )
     err.partial = fitted  # type: ignore[attr-defined]

@@ -273,6 +273,8 @@ class ChainKind:
         drop = kind_gp_keys() - own
         if gp.get("mean", DEFAULT_MEAN) == DEFAULT_MEAN:  # fits before gp.mean keep theirs
             drop.add("mean")
+        if gp.get("optimizer", "adam") == "adam":  # fits before gp.optimizer keep theirs
+            drop.add("optimizer")
         out = {k: v for k, v in gp.items() if k not in drop}
         if self.law_version is not None:
             out[self.law_version[0]] = self.law_version[1]
