@@ -134,27 +134,30 @@ def paper_workload(simulator: Simulator, p: Mapping[str, Any], out_dir: Path) ->
     }
 
 
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process in MiB (psutil, /proc VmHWM or getrusage)."""
+def _proc_status_mb(key: str) -> float | None:
+    """``key`` (e.g. ``VmHWM``) of /proc/self/status in MiB; None where it cannot be read."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{key}:"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         pass
+    return None
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process in MiB (/proc VmHWM, else getrusage)."""
+    peak = _proc_status_mb("VmHWM")
+    if peak is not None:
+        return peak
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _rss_mb() -> float:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return math.nan
+    rss = _proc_status_mb("VmRSS")
+    return math.nan if rss is None else rss
 
 
 def memory_child(spec_json: str) -> None:
