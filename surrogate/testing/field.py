@@ -108,7 +108,7 @@ class FieldContract:
         for t in self.times:
             want = field(p, t).double()
             got = torch.tensor(
-                [float(scalar(np.float32(x), np.float32(y), float(t), row))  # type: ignore[operator]
+                [float(scalar(np.float32(x), np.float32(y), float(t), row))
                  for x, y in p.tolist()],
                 dtype=torch.float64,
             )  # fmt: skip
