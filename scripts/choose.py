@@ -1,14 +1,15 @@
-"""Choose the chain kind by held-out measurement (opt-in; docs/choice.md).
+"""Choose the chain kind by held-out measurement (docs/choice.md): ``train.py`` with ``gp=auto``,
+the default, which measures (``gp.choice.by=measure``).
 
-python scripts/choose.py                         # E. coli: two-state, clocks, K lumps, phases
-python scripts/choose.py choose.max_ages=[1,3] choose.n_cells=200
+python scripts/choose.py                          # E. coli: two-state, clocks, K lumps, phases
+python scripts/choose.py gp.choice.max_ages=[1,3] gp.choice.n_cells=2000
 """
 
 import hydra
 from omegaconf import DictConfig
 
 from surrogate.cli import exit_when_done, run_stage
-from surrogate.stages.choice import run
+from surrogate.stages.train import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="choose")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 import pytest
@@ -14,6 +15,11 @@ from surrogate.config import CONF_DIR
 # One intra-op thread: the suite's tensors are small, and two threads stall badly whenever another
 # process holds a core (measured: 55x slower GP training under load).
 torch.set_num_threads(1)
+
+# gp=auto resolves by the rule in the suite (its stages' tests run tiny configs in seconds); the
+# measured choice, the default elsewhere, is tested where it is named (tests/stages/test_choice.py).
+# Subprocesses the tests start inherit it.
+os.environ["SURROGATE_GP_CHOICE"] = "rule"
 
 
 @pytest.fixture

@@ -6,10 +6,11 @@ full-model phi sequences, and the best one picked.
   <surrogate.kinds.base.ChainKind.sequence_log_likelihood>`), and its layer driven by the same
   input traces: the two-sample KS and the mean's relative difference of the simulated segment
   durations per lump against the observed ones (:func:`duration_scores`).
-* :func:`choose`: the best kind by log-likelihood per window; a candidate within the standard
-  error of the best (of the paired difference over held-out cells) is a tie, which goes to the
-  simplest (:attr:`ChainKind.complexity <surrogate.kinds.base.ChainKind.complexity>`). The KS is
-  reported beside it, not chosen on.
+* :func:`choose`: the best kind by log-likelihood per window among those whose simulated
+  durations hold (:func:`holds_durations`: every lump's KS within its critical value and mean
+  within a tolerance; all candidates where none does); a candidate within the standard error of
+  that best (of the paired difference over held-out cells) is a tie, which goes to the simplest
+  (:attr:`ChainKind.complexity <surrogate.kinds.base.ChainKind.complexity>`).
 
 These take plain values (layers, tensors, scores); the train stage fits the candidates and
 records the held-out run (:mod:`surrogate.stages.choice`), read as sequences by
@@ -190,27 +191,43 @@ class Choice:
     table: list[dict[str, Any]]
 
 
-def choose(scores: Sequence[KindScore], tie_se: float = 1.0) -> Choice:
-    """The best candidate by held-out log-likelihood per window; one within ``tie_se``
-    standard errors of the best (the SE of the paired per-cell difference) ties it, and a tie
-    goes to the simplest (smallest complexity, then the higher likelihood).
+def holds_durations(score: KindScore, tolerance: float) -> bool:
+    """Whether ``score``'s simulated durations hold on every lump: the KS within its 5 %
+    critical value and the means' relative difference within ``tolerance`` (a lump with too
+    few segments to compare, NaN, does not hold)."""
+    return bool(score.durations) and all(
+        d.ks <= d.ks_critical_05 and abs(d.mean_rel_diff) <= tolerance
+        for d in score.durations.values()
+    )  # NaN compares false
+
+
+def choose(
+    scores: Sequence[KindScore], tie_se: float = 1.0, duration_tolerance: float | None = None
+) -> Choice:
+    """The best candidate by held-out log-likelihood per window among those that hold their
+    durations (:func:`holds_durations`, where ``duration_tolerance`` is given and at least one
+    does; else among all); one within ``tie_se`` standard errors of that best (the SE of the
+    paired per-cell difference) ties it, and a tie goes to the simplest (smallest complexity,
+    then the higher likelihood).
 
     Args:
         scores: the candidates' scores, on the same held-out cells.
         tie_se: how many standard errors make a tie (> 0).
+        duration_tolerance: the means' relative difference a candidate must hold on every lump
+            (with its KS) to be chosen; None: the likelihood alone.
 
     Raises:
         ConfigError: no candidate, a non-positive ``tie_se`` or two candidates of one name.
         ValueError: the scores are not over the same held-out cells, or one is NaN.
     """
     if not scores:
-        raise ConfigError("gp.choose: no candidate kind to choose from")
+        raise ConfigError("gp.choice: no candidate kind to choose from")
     if isinstance(tie_se, bool) or not isinstance(tie_se, int | float) or not tie_se > 0:
-        raise ConfigError(f"gp.choose.tie_se must be a number of standard errors > 0, "
+        raise ConfigError(f"gp.choice.tie_se must be a number of standard errors > 0, "
                           f"got {tie_se!r}")  # fmt: skip
     names = [s.name for s in scores]
     if len(set(names)) != len(names):
-        raise ConfigError(f"gp.choose: candidates named twice in {names}")
+        raise ConfigError(f"gp.choice: candidates named twice in {names}")
     if len({len(s.per_cell) for s in scores}) != 1:
         raise ValueError("the candidates were scored on different held-out cells")
     broken = [s.name for s in scores if math.isnan(s.log_likelihood)]
@@ -219,20 +236,26 @@ def choose(scores: Sequence[KindScore], tie_se: float = 1.0) -> Choice:
         raise ValueError(f"candidate(s) {broken} have a NaN held-out log-likelihood: their "
                          f"layers give NaN laws on the held-out inputs; leave them out of the "
                          f"choice or refit them")  # fmt: skip
-    best = max(scores, key=lambda s: s.log_likelihood)
-    ref = np.asarray(best.per_cell)
+    holding = {s.name: duration_tolerance is not None and holds_durations(s, duration_tolerance)
+               for s in scores}  # fmt: skip
+    pool = [s for s in scores if holding[s.name]] or list(scores)
+    best = max(pool, key=lambda s: s.log_likelihood)
+    top = max(scores, key=lambda s: s.log_likelihood)
     rows, tied = [], []
     for s in scores:
-        diff = np.asarray(s.per_cell) - ref
-        se = float(diff.std(ddof=1) / math.sqrt(diff.size)) if diff.size > 1 else math.nan
-        gap = float(diff.mean())
-        tie = s is best or (math.isfinite(se) and -gap <= tie_se * se)
+        gap, se = _paired(s, top)
+        pool_gap, pool_se = _paired(s, best)
+        tie = s in pool and (
+            s is best or (math.isfinite(pool_se) and -pool_gap <= tie_se * pool_se)
+        )
         if tie:
             tied.append(s)
-        rows.append({**s.row(), "diff_from_best": gap, "diff_se": se, "tied_with_best": tie})
+        rows.append({**s.row(), "diff_from_best": gap, "diff_se": se, "tied_with_best": tie,
+                     "holds_durations": holding[s.name]})  # fmt: skip
     chosen = min(tied, key=lambda s: (s.complexity, -s.log_likelihood))
     if chosen is best:
-        others = [r for r in rows if r["kind"] != best.name]
+        others = [r for r in rows if r["kind"] != best.name and r["kind"] in
+                  {p.name for p in pool}]  # fmt: skip
         reason = f"{best.name} has the highest held-out log-likelihood per window " + (
             f"({best.log_likelihood:.5f})"
         )
@@ -240,11 +263,27 @@ def choose(scores: Sequence[KindScore], tie_se: float = 1.0) -> Choice:
             runner = max(others, key=lambda r: r["diff_from_best"])
             reason += f"; the next, {runner['kind']}, is {_gap(runner)} lower"
     else:
-        row = next(r for r in rows if r["kind"] == chosen.name)
+        gap, se = _paired(chosen, best)
         reason = (f"{chosen.name} is within {tie_se:g} SE of the best, {best.name} "
-                  f"({_gap(row)} lower), and simpler (complexity {chosen.complexity} < "
-                  f"{best.complexity})")  # fmt: skip
+                  f"({_gap({'diff_from_best': gap, 'diff_se': se})} lower), and simpler "
+                  f"(complexity {chosen.complexity} < {best.complexity})")  # fmt: skip
+    if duration_tolerance is not None:
+        left = [s.name for s in scores if not holding[s.name]]
+        if len(pool) < len(scores):
+            reason += (f"; among the {len(pool)} that hold their durations (every lump's KS "
+                       f"within its critical value and mean within {duration_tolerance:.0%}): "
+                       f"not {left}")  # fmt: skip
+        else:
+            reason += (" (none holds its durations on every lump: chosen on the likelihood "
+                       "alone)" if left else "; every candidate holds its durations")  # fmt: skip
     return Choice(chosen.name, reason, rows)
+
+
+def _paired(score: KindScore, ref: KindScore) -> tuple[float, float]:
+    """The mean per-cell difference of ``score`` from ``ref`` and its standard error."""
+    diff = np.asarray(score.per_cell) - np.asarray(ref.per_cell)
+    se = float(diff.std(ddof=1) / math.sqrt(diff.size)) if diff.size > 1 else math.nan
+    return float(diff.mean()), se
 
 
 def _gap(row: dict[str, Any]) -> str:

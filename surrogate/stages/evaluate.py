@@ -82,7 +82,11 @@ def validate(cfg: Mapping[str, Any]) -> EvaluateSettings:
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Compare the candidate with the full model (and full vs full for the noise floor)."""
-    return evaluate(validate(cfg), config=to_dict(cfg), force=force)
+    # the train stage's fitter, imported on demand as run_missing's train (gp=auto's choice)
+    from surrogate.stages.choice import settle
+    from surrogate.stages.train import fit_candidate
+
+    return evaluate(settle(validate, cfg, fit_candidate), config=to_dict(cfg), force=force)
 
 
 def evaluate(

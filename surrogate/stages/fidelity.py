@@ -81,6 +81,7 @@ from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.simulate.support import describe_sparse_where, sparse_share, warn_outside
 from surrogate.stages import reference
+from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
 from surrogate.stages.reference import ReferenceSettings
 from surrogate.stages.runs import RunPlan, RunResult, mean_observables, simulate_runs
@@ -95,6 +96,7 @@ from surrogate.stages.settings import (
 from surrogate.stages.simulate import COMPILE_CACHE, learned_decision
 from surrogate.stages.train import (
     class_diagnostic_by_lump,
+    fit_candidate,
     read_metrics,
     resolve_abstraction,
     train,
@@ -344,7 +346,7 @@ def validate(cfg: Mapping[str, Any]) -> FidelitySettings:
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Train, simulate and check (reusing what exists); return the artefact directory."""
-    settings = validate(cfg)
+    settings = settle(validate, cfg, fit_candidate)
     out = settings.directory
     return make_once(out, settings.identity(), settings.command(),
                      lambda _: _fidelity(settings, out, to_dict(cfg)), what="fidelity check",

@@ -38,13 +38,20 @@ from surrogate.simulate.support import sparse_share
 from surrogate.stages import budget
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages.artefacts import DIAGNOSTIC_FIGURE, REPORT, SURFACES_FIGURE
+from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
 from surrogate.stages.settings import (
     CollectSettings,
     ReproduceSettings,
 )
 from surrogate.stages.simulate import build_decision, simulate_together
-from surrogate.stages.train import class_diagnostic_by_lump, percent, read_metrics, train
+from surrogate.stages.train import (
+    class_diagnostic_by_lump,
+    fit_candidate,
+    percent,
+    read_metrics,
+    train,
+)
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +66,7 @@ def validate(cfg: Mapping[str, Any]) -> ReproduceSettings:
 
 def run(cfg: Mapping[str, Any]) -> Path:
     """Run every stage (reusing what exists) and write the report; return its directory."""
-    return reproduce(validate(cfg), config=to_dict(cfg))
+    return reproduce(settle(validate, cfg, fit_candidate), config=to_dict(cfg))
 
 
 def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = None) -> Path:

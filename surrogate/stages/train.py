@@ -94,6 +94,7 @@ from surrogate.stages.artefacts import (
     SURFACES_FIGURE,
     TRANSITIONS,
 )
+from surrogate.stages.choice import settle
 from surrogate.stages.occupancy import occupancy
 from surrogate.stages.settings import CollectSettings, TrainSettings
 
@@ -112,8 +113,17 @@ def validate(cfg: Mapping[str, Any]) -> TrainSettings:
 
 
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
-    """Run (or reuse) the train stage of ``cfg``; return its artefact directory."""
-    return train(validate(cfg), config=to_dict(cfg), force=force)
+    """Run (or reuse) the train stage of ``cfg``; return its artefact directory. With
+    ``gp=auto`` (measuring) the choice of the kind is made first where it is not stored
+    (:func:`~surrogate.stages.choice.settle`)."""
+    return train(settle(validate, cfg, fit_candidate), config=to_dict(cfg), force=force)
+
+
+def fit_candidate(settings: TrainSettings) -> Path:
+    """The fit of a measured choice's candidate (made or reused): its transitions loaded and
+    checked, then :func:`fit`."""
+    table, source = load_transitions(settings)
+    return fit(settings, table, source)
 
 
 def train(
@@ -126,7 +136,10 @@ def train(
     diagnostic, grid and figures. The model's kernel (for the diagnostic's occupancy run) is
     compiled in a background process during the fit when it is not cached."""
     out = settings.directory
-    if settings.auto_recipe is not None:
+    if settings.measured_choice() is not None:
+        log.info("gp=auto: %s, the measured choice (%s)", settings.kind.recipe,
+                 settings.measured_choice())  # fmt: skip
+    elif settings.auto_recipe is not None:
         log.info("gp=auto: %s (model %r %s); gp=svgp or gp=classes to choose", {
             "classes": "the K-lumps chain, gp=classes' recipe",
             "svgp": "the two-state chain, gp=svgp's recipe"}[settings.auto_recipe],

@@ -298,9 +298,34 @@ def test_choose_ties_go_to_the_simpler_kind() -> None:
     assert far.chosen == "clock" and "highest" in far.reason
 
 
+def test_a_candidate_whose_durations_miss_is_not_chosen() -> None:
+    """The likelihood's best whose simulated durations miss (its KS over the critical value,
+    or its mean off by more than the tolerance) gives way to the best that holds them; where
+    none holds, the likelihood alone chooses, and the reason says so."""
+    rng = np.random.default_rng(1)
+    base = rng.normal(-0.2, 0.01, 400)
+    holds = {"off": DurationScore(0.01, 0.02, 0.005, 0.003, 900, 900)}
+    ks_miss = {"off": DurationScore(0.05, 0.02, 0.005, 0.003, 900, 900)}
+    mean_miss = {"off": DurationScore(0.01, 0.02, 0.08, 0.003, 900, 900)}
+
+    def score(name: str, complexity: int, shift: float, durations: dict) -> KindScore:
+        values = base + shift + rng.normal(0.0, 1e-4, 400)
+        return KindScore(name, complexity, float(values.mean()), tuple(values), durations)
+
+    best, second = score("phases", 3, 1e-3, ks_miss), score("clock", 1, 5e-4, holds)
+    picked = choose([score("two-state", 0, 0.0, mean_miss), second, best], 1.0, 0.03)
+    assert picked.chosen == "clock"
+    assert "not ['two-state', 'phases']" in picked.reason
+    rows = {r["kind"]: r for r in picked.table}
+    assert rows["phases"]["diff_from_best"] == 0.0 and not rows["phases"]["holds_durations"]
+    assert choose([best, second], 1.0, None).chosen == "phases"  # the likelihood alone
+    neither = choose([best, score("two-state", 0, 0.0, mean_miss)], 1.0, 0.03)
+    assert neither.chosen == "phases" and "likelihood alone" in neither.reason
+
+
 def test_bad_settings_are_refused_by_name() -> None:
     one = KindScore("a", 0, -0.1, (-0.1, -0.1), {})
-    with pytest.raises(ConfigError, match="gp.choose.tie_se"):
+    with pytest.raises(ConfigError, match="gp.choice.tie_se"):
         choose([one], tie_se=0)
     with pytest.raises(ConfigError, match="no candidate"):
         choose([])

@@ -1,76 +1,146 @@
-"""The measured choice's settings (surrogate/stages/choice.py): bad values refused by key."""
+"""The measured choice behind ``gp=auto`` (surrogate/stages/settings/choice.py,
+surrogate/stages/choice.py): bad values refused by key, the candidates, and the route: pending
+until an entry that trains makes it, then gp=auto is the chosen candidate."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
-from surrogate.errors import ConfigError
-from surrogate.stages.choice import ChoiceSettings, candidates, check_windows, validate
+from surrogate.errors import ConfigError, MissingArtefactError
+from surrogate.stages import simulate as simulate_stage
+from surrogate.stages import train as train_stage
+from surrogate.stages.settings.choice import (
+    LBFGS,
+    ChoiceSettings,
+    candidate_groups,
+    collecting_pending,
+)
+from tests.reliability.conftest import compose_in
+
+MEASURE = ["gp.choice.by=measure", "gp.choice.kinds=[two-state,clock]", "gp.choice.max_ages=[1]",
+           "gp.choice.n_cells=20", "gp.choice.t_end=5", "gp.choice.equilibration_time=1"]  # fmt: skip
+
+
+class Plain:
+    """An internal model that declares no classes."""
 
 
 @pytest.mark.parametrize(
     ("options", "key"),
     [
-        ({"max_ages": [1.0, 0.0]}, "choose.max_ages"),
-        ({"max_ages": "2"}, "choose.max_ages"),
-        ({"n_cells": 1.5}, "choose.n_cells"),
-        ({"t_end": -1}, "choose.t_end"),
-        ({"tie_se": 0}, "choose.tie_se"),
-        ({"equilibration_time": -1.0}, "choose.equilibration_time"),
-        ({"cells": 10}, "choose"),
+        ({"max_ages": [1.0, 0.0]}, "gp.choice.max_ages"),
+        ({"max_ages": "2"}, "gp.choice.max_ages"),
+        ({"max_ages": []}, "gp.choice.max_ages"),
+        ({"n_cells": 1.5}, "gp.choice.n_cells"),
+        ({"t_end": -1}, "gp.choice.t_end"),
+        ({"tie_se": 0}, "gp.choice.tie_se"),
+        ({"duration_tolerance": 0}, "gp.choice.duration_tolerance"),
+        ({"equilibration_time": -1.0}, "gp.choice.equilibration_time"),
+        ({"by": "guess"}, "gp.choice.by"),
+        ({"optimizer": "sgd"}, "gp.choice.optimizer"),
+        ({"kinds": ["two-state", "magic"]}, "gp.choice.kinds"),
+        ({"kinds": ["clock", "clock"]}, "gp.choice.kinds"),
+        ({"cells": 10}, "gp.choice"),
     ],
 )
-def test_bad_choose_settings_are_refused_by_key(options: dict, key: str) -> None:
+def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         ChoiceSettings.from_config(options)
 
 
-def test_candidates_follow_the_model() -> None:
-    """K lumps only where the model declares classes; one clock per cap; the hidden phases
-    (a registered candidate) last."""
+def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
+    """K lumps only where the model declares classes; one clock per cap; the hidden phases (a
+    registered candidate) last; L-BFGS in each unless the user set the optimiser's keys; a key
+    the user set (gp.threads) in every candidate."""
     settings = ChoiceSettings.from_config({"max_ages": [1, 3]})
-
-    class Plain:
-        pass
-
-    names = list(candidates(settings, Plain()))
-    assert names == ["two-state", "clock max_age=1", "clock max_age=3", "phases"]
-    assert candidates(settings, Plain())["phases"]["lumps"] == "phases"  # a registered candidate
-    assert candidates(settings, Plain())["clock max_age=3"]["max_age"] == 3.0
+    raw = {"lumps": "auto", "threads": 1, "epochs": 7}
+    groups = candidate_groups(raw, settings, Plain())
+    assert list(groups) == ["two-state", "clock max_age=1", "clock max_age=3", "phases"]
+    assert groups["phases"]["lumps"] == "phases"
+    assert groups["clock max_age=3"]["max_age"] == 3.0
+    assert groups["clock max_age=3"]["history"] == "age"
+    assert all(g["threads"] == 1 and g["epochs"] == 7 for g in groups.values())
+    assert all(g["optimizer"] == LBFGS["optimizer"] and g["natural_gradient"] is False
+               for g in groups.values())  # fmt: skip
+    only = ChoiceSettings.from_config({"kinds": ["clock"], "max_ages": [2]})
+    assert list(candidate_groups({}, only, Plain())) == ["clock max_age=2"]
+    with pytest.raises(ConfigError, match=r"gp\.choice\.kinds=\['classes'\] leaves no candidate"):
+        candidate_groups({}, ChoiceSettings.from_config({"kinds": ["classes"]}), Plain())
 
 
 def test_a_cap_named_twice_is_refused_with_the_list_that_passes() -> None:
     """[1, 1.0] was one candidate, listed once, silently."""
-    with pytest.raises(ConfigError, match=r"choose\.max_ages=\[1, 1\.0, 2\] names a cap twice.*"
-                                          r"use choose\.max_ages=\[1\.0, 2\.0\]"):  # fmt: skip
+    with pytest.raises(ConfigError, match=r"gp\.choice\.max_ages=\[1, 1\.0, 2\] names a cap twice"
+                                          r".*use gp\.choice\.max_ages=\[1\.0, 2\.0\]"):  # fmt: skip
         ChoiceSettings.from_config({"max_ages": [1, 1.0, 2]})
     assert ChoiceSettings.from_config({"max_ages": [1.0, 2.0]}).max_ages == (1.0, 2.0)
 
 
 def test_one_held_out_cell_is_refused() -> None:
     """One cell gives the paired difference no SE: no candidate could tie the best."""
-    with pytest.raises(ConfigError, match=r"choose\.n_cells=1 .*use choose\.n_cells=2 or more"):
+    with pytest.raises(ConfigError, match=r"gp\.choice\.n_cells=1 .*use gp\.choice\.n_cells=2"):
         ChoiceSettings.from_config({"n_cells": 1})
     assert ChoiceSettings.from_config({"n_cells": 2}).n_cells == 2
 
 
-def test_a_held_out_run_shorter_than_a_window_is_refused() -> None:
-    """t_end < dt was rounded up to one window, silently."""
-    with pytest.raises(ConfigError, match=r"choose\.t_end=0\.01 s is shorter than one window "
-                                          r"\(dt=0\.05 s\).*use choose\.t_end=50"):  # fmt: skip
-        check_windows(ChoiceSettings.from_config({"t_end": 0.01}), 0.05)
-    check_windows(ChoiceSettings.from_config({"t_end": 50.0}), 0.05)
+def test_windows_shorter_than_dt_are_refused() -> None:
+    """t_end < dt was rounded up to one window; a cap of 0.01 s at dt 0.05 s ran as 0.05 s."""
+    with pytest.raises(ConfigError, match=r"gp\.choice\.t_end=0\.01 s is shorter than one window "
+                                          r"\(dt=0\.05 s\).*use gp\.choice\.t_end=50"):  # fmt: skip
+        ChoiceSettings.from_config({"t_end": 0.01}).check_windows(0.05)
+    with pytest.raises(ConfigError, match=r"gp\.choice\.max_ages has cap\(s\) \[0\.01\] below one "
+                                          r"window.*gp\.choice\.max_ages=\[2\.0\]"):  # fmt: skip
+        ChoiceSettings.from_config({"max_ages": [0.01, 2.0]}).check_windows(0.05)
+    ChoiceSettings.from_config({"max_ages": [2.0], "t_end": 50.0}).check_windows(0.05)
 
 
-def test_a_cap_below_a_window_is_refused() -> None:
-    """The clock counts whole windows: a cap of 0.01 s at dt 0.05 s ran as 0.05 s."""
-    with pytest.raises(ConfigError, match=r"choose\.max_ages has cap\(s\) \[0\.01\] below one "
-                                          r"window.*choose\.max_ages=\[2\.0\]"):  # fmt: skip
-        check_windows(ChoiceSettings.from_config({"max_ages": [0.01, 2.0]}), 0.05)
-    check_windows(ChoiceSettings.from_config({"max_ages": [2.0]}), 0.05)
+def test_the_train_settings_check_the_choice_before_any_work(tmp_path: Path) -> None:
+    """A bad gp.choice value is refused where the train settings are made."""
+    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.t_end=0.01"])
+    with pytest.raises(ConfigError, match=r"gp\.choice\.t_end=0\.01 s"):
+        train_stage.validate(cfg)
+    assert not (tmp_path / "collect").exists()
 
 
-def test_validate_checks_the_windows_before_any_work(compose_cfg) -> None:
-    """The choice's validation (before the collection) reads the model's dt."""
-    with pytest.raises(ConfigError, match=r"choose\.t_end=0\.01 s"):
-        validate(compose_cfg("choose", ["choose.t_end=0.01"]))
+def test_the_rule_and_a_named_kind_leave_identities_as_they_were(tmp_path: Path) -> None:
+    """gp.choice.by=rule is the rule's fit (the choice group is no part of its identity); the
+    paper's gp.lumps=phi under gp=auto names a chain, so nothing is measured."""
+    rule = train_stage.validate(compose_in(tmp_path, "train", ["gp.choice.by=rule"]))
+    svgp = train_stage.validate(compose_in(tmp_path, "train", ["gp=svgp"]))
+    assert rule.auto_recipe in ("svgp", "classes")
+    assert "choice" not in rule.gp_config
+    named = train_stage.validate(compose_in(tmp_path, "train", ["gp.choice.by=measure",
+                                                                "gp.lumps=phi"]))  # fmt: skip
+    assert named.fit_identity() == svgp.fit_identity()
+
+
+def test_pending_choice_is_refused_by_simulate_and_made_by_train(tmp_path: Path) -> None:
+    """Before the choice, simulate names the command that makes it; train makes it (collect,
+    candidates, held-out run, record), after which gp=auto is the chosen candidate: its fit,
+    its directory, and simulate runs it."""
+    sim = compose_in(tmp_path, "simulate", [*MEASURE, "decision=abstract",
+                                            "decision.lookup_size=[16]"])  # fmt: skip
+    with pytest.raises(MissingArtefactError, match=r"gp=auto chooses the chain kind .*"
+                                                   r"python scripts/train.py .*gp=auto"):  # fmt: skip
+        simulate_stage.validate(sim)
+    cfg = compose_in(tmp_path, "train", MEASURE)
+    with collecting_pending() as plans:
+        provisional = train_stage.validate(cfg)
+    assert len(plans) == 1 and provisional.measured_choice() is None
+    train_dir = train_stage.run(cfg)
+    plan = plans[0]
+    record = json.loads((plan.directory / "choice.json").read_text())
+    assert record["chosen"] in ("two-state", "clock max_age=1")
+    assert {r["kind"] for r in record["scores"]} == {"two-state", "clock max_age=1"}
+    assert record["heldout"]["cells"] == 20 and record["heldout"]["windows"] == 100
+    settled = train_stage.validate(cfg)
+    assert settled.measured_choice() == plan.directory
+    chosen = plan.candidates[record["chosen"]]
+    assert settled.fit_identity() == chosen.fit_identity()
+    assert settled.directory == Path(train_dir)
+    assert (chosen.fit_directory / "choice.json").is_file()
+    out = simulate_stage.run(sim)
+    assert (Path(out) / "manifest.json").is_file()

@@ -3,6 +3,7 @@ classifiers of the abstraction (the fit), its diagnostic and its output grid."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 from collections.abc import Mapping, Sequence
@@ -29,6 +30,13 @@ from surrogate.kinds import (
     resolve_auto_lumps,
 )
 from surrogate.models.capabilities import start_size_of
+from surrogate.stages.settings.choice import (
+    ChoiceSettings,
+    PendingChoice,
+    candidate_groups,
+    pending,
+    stored_choice,
+)
 from surrogate.stages.settings.collect import CollectSettings
 from surrogate.stages.settings.common import (
     TRAIN_CMD,
@@ -43,10 +51,12 @@ from surrogate.validation import known_keys
 #: keys of the gp group that are not GP hyperparameters (nor are the chain kinds' own,
 #: :func:`~surrogate.kinds.kind_gp_keys`)
 GP_EXTRA = (*FIT_GP_KEYS, "history", "max_age", "clock_bins", "lumps", "min_events",
-            "max_label_weight", "class_moves", "relaxation")  # fmt: skip
+            "max_label_weight", "class_moves", "relaxation", "choice")  # fmt: skip
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
+#: auto_recipe's prefix where gp=auto is a measured choice's candidate
+MEASURED = "measured"
 #: gp.labels: the column each option trains on (auto: expected where the table has them)
 LABEL_COLUMNS = {"outcome": "phi_next", "expected": "phi_next_expected"}
 LABEL_CHOICES = ("auto", *LABEL_COLUMNS)
@@ -123,7 +133,9 @@ class TrainSettings:
     #: gp.relaxation: the stationary sample's cells and lags (s), for class_moves=relaxation
     relaxation_cells: int = DEFAULT_CELLS
     relaxation_lags: tuple[float, ...] = DEFAULT_LAGS
-    #: the recipe gp.lumps=auto chose (``classes`` or ``svgp``), None where a chain was named
+    #: what gp.lumps=auto chose: the rule's recipe (``classes`` or ``svgp``), or
+    #: ``measured: <choice directory>`` (the measured choice's candidate); None where a chain
+    #: was named
     auto_recipe: str | None = None
 
     @classmethod
@@ -163,8 +175,16 @@ class TrainSettings:
         job: Job,
         raw_gp: dict[str, Any],
     ) -> TrainSettings:
-        """The settings of a fit of ``raw_gp`` (the gp group as given) on ``source``."""
-        gp_config = resolve_auto_lumps(raw_gp, setup.model)
+        """The settings of a fit of ``raw_gp`` (the gp group as given) on ``source``: with
+        ``gp=auto`` measuring (``gp.choice.by=measure``, the default) on a collection, the
+        stored choice's candidate (:func:`_measured`), or the rule's chain while the choice is
+        pending."""
+        measured = _measured(cls, setup, source, job, raw_gp)
+        if measured is not None:
+            return measured
+        gp_config = resolve_auto_lumps(
+            {k: v for k, v in raw_gp.items() if k != "choice"}, setup.model
+        )
         extra = {*GP_EXTRA, *kind_gp_keys()}  # a chain kind's own keys are no hyperparameters
         hyper = {k: v for k, v in gp_config.items() if k not in extra}
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
@@ -218,6 +238,13 @@ class TrainSettings:
                    int(threads) if threads is not None else torch.get_num_threads(), chain.kind,
                    chain.max_age, chain.min_events, chain.max_label_weight, chain.relaxation_cells,
                    chain.relaxation_lags, auto_recipe)  # fmt: skip
+
+    def measured_choice(self) -> Path | None:
+        """The directory of the measured choice that made these settings (``gp=auto``), or
+        None."""
+        if self.auto_recipe is None or not self.auto_recipe.startswith(MEASURED):
+            return None
+        return Path(self.auto_recipe.split(": ", 1)[1])
 
     @property
     def lumps(self) -> str:
@@ -331,6 +358,39 @@ class TrainSettings:
         if self.kind.clock:  # the rows need the switch clocks
             options["clock"] = True
         return OccupancySettings(self.setup, options, self.job, self.command())
+
+
+def _measured(
+    cls: type[TrainSettings],
+    setup: ModelSetup,
+    source: CollectSettings | ExternalTable,
+    job: Job,
+    raw_gp: dict[str, Any],
+) -> TrainSettings | None:
+    """``gp=auto``'s settings where it measures: the chosen candidate's train settings where
+    the choice of this collection is stored; None where the rule resolves it (``gp.choice.by=
+    rule``, a named chain, an external table: no full model to hold out) or the choice is
+    pending (:func:`~surrogate.stages.settings.choice.pending`: recorded while an entry checks
+    its settings, refused elsewhere, naming the command that makes it)."""
+    if not is_auto(raw_gp):  # a chain named (gp.lumps=phi under gp=auto: experiment=paper)
+        return None
+    choice = ChoiceSettings.from_config(raw_gp.get("choice"))
+    if choice.by != "measure" or not isinstance(source, CollectSettings):
+        return None
+    choice.check_windows(setup.dt)
+    groups = candidate_groups(raw_gp, choice, setup.model.internal)
+    candidates = {name: cls._build(setup, source, job, gp) for name, gp in groups.items()}
+    identity = {"candidates": {n: t.fit_identity() for n, t in candidates.items()},
+                "choice": choice.identity(), "seed": setup.seed}  # fmt: skip
+    plan = PendingChoice(choice, candidates,
+                         artefact_dir(job.data_dir, "choice", {"model": setup.model.name},
+                                      identity))  # fmt: skip
+    chosen = stored_choice(plan)
+    if chosen is None:
+        pending(plan)
+        return None
+    return dataclasses.replace(candidates[chosen],
+                               auto_recipe=f"{MEASURED}: {plan.directory}")  # fmt: skip
 
 
 def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str, Any]:

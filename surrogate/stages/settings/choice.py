@@ -1,0 +1,270 @@
+"""Settings of the measured choice of the chain kind (``gp=auto``, ``gp.choice``; issue 52).
+
+``gp=auto`` (the default) leaves the chain to a measurement: the candidate kinds are fitted on
+one collection and scored on a held-out full-model run (:mod:`surrogate.stages.choice`). Its
+settings are resolved when the train settings are made
+(:meth:`~surrogate.stages.settings.train.TrainSettings.from_config`): where the choice of this
+collection is stored, ``gp=auto`` *is* the chosen candidate (its fit, its directory); where it
+is not, the entries that train make it first (:func:`surrogate.stages.choice.settle`) and an
+entry that only reads (``simulate.py``) is refused naming the command that makes it.
+
+* :class:`ChoiceSettings`: ``gp.choice`` validated (how, the clock's caps, the held-out run,
+  the tie and duration rules, the candidates' optimiser);
+* :func:`candidate_groups`: the candidates' gp groups;
+* :class:`PendingChoice`, :func:`collecting_pending`: a choice to make, gathered while the
+  settings are checked.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import math
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from surrogate.config import group_config
+from surrogate.errors import ConfigError, MissingArtefactError
+from surrogate.io import read_json
+from surrogate.kinds import CHAIN_KINDS
+from surrogate.models.capabilities import lump_classes_of
+from surrogate.validation import known_keys
+
+#: the record of a made choice, in its directory (``data/choice/...``)
+CHOICE = "choice.json"
+SCORES = "scores.csv"
+#: gp.choice.by: measure (fit and score the candidates) | rule (the rule of issue 40: K lumps
+#: where the model declares classes, else the two-state chain)
+BY = ("measure", "rule")
+#: gp.choice.optimizer: lbfgs (every candidate fitted by L-BFGS, 200 iterations: ~5x faster
+#: than the recipes' Adam, docs/performance.md) | recipe (each recipe's own optimiser)
+OPTIMIZERS = ("lbfgs", "recipe")
+#: what gp.choice.optimizer=lbfgs sets in each candidate (L-BFGS takes no natural gradient)
+LBFGS = {"optimizer": "lbfgs", "epochs": 200, "natural_gradient": False}
+#: gp.choice.kinds: the candidates' families (each clock cap is one ``clock`` candidate; K lumps
+#: only where the model declares classes; the registered candidate kinds by their recipe)
+FAMILIES = ("two-state", "clock", "classes", "phases")
+DEFAULTS: dict[str, Any] = {
+    "by": "measure",
+    "kinds": list(FAMILIES),
+    "max_ages": [1.0, 2.0, 5.0],
+    "n_cells": 1000,
+    "t_end": 50.0,
+    "equilibration_time": 10.0,
+    "tie_se": 1.0,
+    "duration_tolerance": 0.03,
+    "optimizer": "lbfgs",
+}
+
+
+@dataclass(frozen=True)
+class ChoiceSettings:
+    """``gp.choice`` validated: how (``by``), the clock's caps, the held-out run, the tie rule
+    (``tie_se`` standard errors), the durations a candidate must hold to be chosen
+    (``duration_tolerance``: the means' relative difference per lump) and the candidates'
+    optimiser."""
+
+    by: str
+    kinds: tuple[str, ...]
+    max_ages: tuple[float, ...]
+    n_cells: int
+    t_end: float
+    equilibration_time: float
+    tie_se: float
+    duration_tolerance: float
+    optimizer: str
+
+    @classmethod
+    def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
+        """The ``gp.choice`` group checked, each bad value refused with its key and a value
+        that passes."""
+        options = {**DEFAULTS, **known_keys(options or {}, sorted(DEFAULTS), "gp.choice")}
+        if options["by"] not in BY:
+            raise ConfigError(f"gp.choice.by must be one of {list(BY)}, got {options['by']!r}")
+        if options["optimizer"] not in OPTIMIZERS:
+            raise ConfigError(f"gp.choice.optimizer must be one of {list(OPTIMIZERS)}, got "
+                              f"{options['optimizer']!r}")  # fmt: skip
+        kinds = options["kinds"]
+        families = sorted({*FAMILIES, *(k.recipe for k in CHAIN_KINDS if k.candidate)})
+        if (isinstance(kinds, str) or not isinstance(kinds, Sequence) or not kinds
+                or any(k not in families for k in kinds) or len(set(kinds)) != len(kinds)):  # fmt: skip
+            raise ConfigError(f"gp.choice.kinds must list candidates among {families}, each "
+                              f"once, got {kinds!r}; e.g. gp.choice.kinds=[two-state,clock]")  # fmt: skip
+        ages = options["max_ages"]
+        if (isinstance(ages, str) or not isinstance(ages, Sequence) or not ages
+                or any(isinstance(a, bool) or not isinstance(a, int | float) or not a > 0
+                       or not math.isfinite(a) for a in ages)):  # fmt: skip
+            raise ConfigError(f"gp.choice.max_ages must be a non-empty list of seconds > 0, got "
+                              f"{ages!r}; e.g. gp.choice.max_ages=[1,2,5]")  # fmt: skip
+        caps = [float(a) for a in ages]
+        if len(set(caps)) != len(caps):
+            # one candidate per cap: a repeat would be fitted once and listed once, silently
+            unique = list(dict.fromkeys(caps))
+            raise ConfigError(f"gp.choice.max_ages={list(ages)!r} names a cap twice; each is one "
+                              f"candidate: use gp.choice.max_ages={unique!r}")  # fmt: skip
+        n_cells = _number(options, "n_cells", integer=True)
+        if n_cells < 2:
+            # the tie rule reads the SE of the paired per-cell difference: one cell has none
+            raise ConfigError(f"gp.choice.n_cells={n_cells} held-out cell gives the paired "
+                              f"difference no standard error (the tie rule's): use "
+                              f"gp.choice.n_cells=2 or more (default 1000)")  # fmt: skip
+        return cls(str(options["by"]), tuple(str(k) for k in kinds), tuple(caps), n_cells, _number(options, "t_end"),
+                   _number(options, "equilibration_time", zero=True),
+                   _number(options, "tie_se"), _number(options, "duration_tolerance"),
+                   str(options["optimizer"]))  # fmt: skip
+
+    def check_windows(self, dt: float) -> None:
+        """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
+        counted in whole windows, at least one, so either would silently be one window.
+
+        Raises:
+            ConfigError: ``gp.choice.t_end`` or a cap in ``gp.choice.max_ages`` below ``dt``,
+                named with the value that passes.
+        """
+        if self.t_end < dt:
+            raise ConfigError(f"gp.choice.t_end={self.t_end:g} s is shorter than one window "
+                              f"(dt={dt:g} s): the held-out run would record one window of "
+                              f"{dt:g} s; use gp.choice.t_end={max(dt, 50.0):g} (the default) "
+                              f"or any value >= {dt:g}")  # fmt: skip
+        short = [a for a in self.max_ages if a < dt]
+        if short:
+            kept = [a for a in self.max_ages if a >= dt] or [max(1.0, dt)]
+            raise ConfigError(f"gp.choice.max_ages has cap(s) {short} below one window "
+                              f"(dt={dt:g} s): the clock counts whole windows, so its layer "
+                              f"would cap it at one window, not as asked; use caps >= {dt:g}, "
+                              f"e.g. gp.choice.max_ages={kept!r}")  # fmt: skip
+
+    def identity(self) -> dict[str, Any]:
+        """What the held-out run and the choice depend on (not ``by``: the rule makes none)."""
+        return {"kinds": list(self.kinds), "max_ages": list(self.max_ages), "n_cells": self.n_cells, "t_end": self.t_end,
+                "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
+                "duration_tolerance": self.duration_tolerance}  # fmt: skip
+
+
+def _number(options: Mapping[str, Any], key: str, integer: bool = False, zero: bool = False) -> Any:
+    """``gp.choice.<key>``: a positive number (an integer, or >= 0 where ``zero``)."""
+    value = options[key]
+    kind = int if integer else int | float
+    if isinstance(value, bool) or not isinstance(value, kind) or not (
+            value >= 0 if zero else value > 0) or not math.isfinite(value):  # fmt: skip
+        what = "an integer" if integer else "a number"
+        raise ConfigError(f"gp.choice.{key} must be {what} {'>=' if zero else '>'} 0, got "
+                          f"{value!r}; default {DEFAULTS[key]!r}")  # fmt: skip
+    return int(value) if integer else float(value)
+
+
+def user_keys(raw_gp: Mapping[str, Any]) -> dict[str, Any]:
+    """The gp keys of ``raw_gp`` (``gp=auto``'s group as composed) whose value differs from
+    conf/gp/auto.yaml's: the user's, carried into every candidate (``gp.threads=1``,
+    ``gp.inputs=...``); ``choice`` and the keys auto.yaml leaves ``auto`` are the choice's."""
+    default = group_config("gp", "auto")
+    return {k: v for k, v in raw_gp.items()
+            if k != "choice" and default.get(k) != v and v != "auto"}  # fmt: skip
+
+
+def candidate_groups(
+    raw_gp: Mapping[str, Any], settings: ChoiceSettings, internal: Any
+) -> dict[str, dict[str, Any]]:
+    """The candidates' names and gp groups (those of ``gp.choice.kinds``): the two-state chain (``gp=svgp``), the switch
+    clock at each cap (``gp=clock gp.max_age=...``), K lumps (``gp=classes``) where the model's
+    ``internal`` model declares classes, and each registered candidate kind's recipe (the
+    hidden phases, ``gp=phases``); each the shipped recipe with the user's keys
+    (:func:`user_keys`) and, with ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user
+    set those keys."""
+    user = user_keys(raw_gp)
+    fast = (
+        {k: v for k, v in LBFGS.items() if k not in user} if settings.optimizer == "lbfgs" else {}
+    )
+
+    def group(recipe: str, **extra: Any) -> dict[str, Any]:
+        return {**group_config("gp", recipe), **extra, **fast, **user}
+
+    families: list[tuple[str, str, dict[str, Any]]] = [("two-state", "two-state", group("svgp"))]
+    families += [("clock", f"clock max_age={age:g}", group("clock", max_age=age))
+                 for age in settings.max_ages]  # fmt: skip
+    if lump_classes_of(internal) is not None:
+        families.append(("classes", "classes", group("classes")))
+    shipped = {"svgp", "clock", "classes"}
+    for kind in CHAIN_KINDS:
+        if kind.candidate and kind.recipe not in shipped:
+            families.append((kind.recipe, kind.recipe, group(kind.recipe)))
+            shipped.add(kind.recipe)
+    out = {name: gp for family, name, gp in families if family in settings.kinds}
+    if not out:
+        raise ConfigError(f"gp.choice.kinds={list(settings.kinds)} leaves no candidate for this "
+                          f"model (K lumps need classes the model declares): add two-state")  # fmt: skip
+    return out
+
+
+class Candidate(Protocol):
+    """What a choice reads of a candidate's train settings (a
+    :class:`~surrogate.stages.settings.train.TrainSettings`; typed by what it offers, since
+    those settings are made from this module's)."""
+
+    def fit_identity(self) -> dict[str, Any]: ...
+
+    def command(self) -> str: ...
+
+
+@dataclass(frozen=True)
+class PendingChoice:
+    """A choice to make: its settings, the candidates' train settings (by name, on one
+    collection) and the directory its record goes to."""
+
+    settings: ChoiceSettings
+    candidates: dict[str, Any]  # name -> TrainSettings (a Candidate)
+    directory: Path
+
+    def command(self) -> str:
+        """The command that makes it (the first candidate's train command with ``gp=auto``)."""
+        first = next(iter(self.candidates.values()))
+        head = first.command().split(" gp=")[0]
+        return f"{head} gp=auto"
+
+
+_PENDING: contextvars.ContextVar[list[PendingChoice] | None] = contextvars.ContextVar(
+    "pending_choices", default=None
+)
+
+
+@contextlib.contextmanager
+def collecting_pending() -> Iterator[list[PendingChoice]]:
+    """While open, train settings whose measured choice is not stored resolve ``gp=auto`` by
+    the rule and add the choice to the yielded list (the entries that train check every setting
+    this way first, make the choices, then build the settings again)."""
+    pending: list[PendingChoice] = []
+    token = _PENDING.set(pending)
+    try:
+        yield pending
+    finally:
+        _PENDING.reset(token)
+
+
+def stored_choice(plan: PendingChoice) -> str | None:
+    """The chosen candidate's name where ``plan``'s record exists (None: not made yet)."""
+    path = plan.directory / CHOICE
+    if not path.is_file():
+        return None
+    chosen = read_json(path, made_by=plan.command()).get("chosen")
+    if chosen not in plan.candidates:
+        raise ConfigError(f"{path} chose {chosen!r}, not one of the candidates "
+                          f"{sorted(plan.candidates)}: remove the directory and run "
+                          f"`{plan.command()}` again")  # fmt: skip
+    return str(chosen)
+
+
+def pending(plan: PendingChoice) -> None:
+    """Record ``plan`` where the settings are being checked (:func:`collecting_pending`);
+    elsewhere refuse, naming the command that makes it."""
+    gathered = _PENDING.get()
+    if gathered is not None:
+        gathered.append(plan)
+        return
+    raise MissingArtefactError(
+        f"gp=auto chooses the chain kind by a held-out measurement, not made yet for this "
+        f"collection ({plan.directory}): make it with `{plan.command()}` (it fits and scores "
+        f"the candidates {sorted(plan.candidates)} and trains the best), or name a kind "
+        f"(gp=svgp, gp=clock, gp=classes, gp=phases) or gp.choice.by=rule"
+    )
