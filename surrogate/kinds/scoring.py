@@ -269,13 +269,17 @@ def choose(
                   f"(complexity {chosen.complexity} < {best.complexity})")  # fmt: skip
     if duration_tolerance is not None:
         left = [s.name for s in scores if not holding[s.name]]
+        rule = (f"every lump's KS within its critical value and mean within "
+                f"{duration_tolerance:.0%}")  # fmt: skip
         if len(pool) < len(scores):
-            reason += (f"; among the {len(pool)} that hold their durations (every lump's KS "
-                       f"within its critical value and mean within {duration_tolerance:.0%}): "
-                       f"not {left}")  # fmt: skip
+            gap, se = _paired(top, best)
+            reason += (f"; chosen among the {len(pool)} that hold their durations ({rule}), not "
+                       f"{left}" + ("" if top is best else
+                                    f" (the likelihood's best alone, {top.name}, is {gap:.2e} "
+                                    f"higher, SE {se:.1e})"))  # fmt: skip
         else:
-            reason += (" (none holds its durations on every lump: chosen on the likelihood "
-                       "alone)" if left else "; every candidate holds its durations")  # fmt: skip
+            reason += (f" (none holds its durations, {rule}: chosen on the likelihood alone)"
+                       if left else f"; every candidate holds its durations ({rule})")  # fmt: skip
     return Choice(chosen.name, reason, rows)
 
 

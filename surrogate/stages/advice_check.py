@@ -99,6 +99,7 @@ def check_advice(
         The refusal's message (a ConfigError's), or None.
     """
     from surrogate.stages.settings import ReproduceSettings
+    from surrogate.stages.settings.choice import collecting_pending
 
     try:
         cfg = apply_overrides(config, overrides)
@@ -111,8 +112,11 @@ def check_advice(
                 raise ConfigError(f"advice {model_yaml!r} is not yaml keys")
             cfg["model"] = {**cfg["model"], **to_dict(keys)}
         cfg.pop("inspect", None)  # reproduce's keys only: the inspector's are its own
-        settings = ReproduceSettings.from_config(cfg)
-        settings.runs()
+        # a measured choice the advice's collection has not made yet is no refusal: reproduce,
+        # the command advised, makes it (its other settings are checked with the rule's chain)
+        with collecting_pending():
+            settings = ReproduceSettings.from_config(cfg)
+            settings.runs()
     except ConfigError as error:
         return str(error)
     return None

@@ -122,6 +122,7 @@ from surrogate.stages import budget
 from surrogate.stages.advice_check import checked
 from surrogate.stages.artefacts import INSPECTION, REPORT
 from surrogate.stages.settings import CollectSettings, InspectSettings
+from surrogate.stages.settings.choice import collecting_pending
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +136,8 @@ PROBE_BUDGET = 0.1
 
 def validate(cfg: Mapping[str, Any]) -> InspectSettings:
     """The inspection's settings (the model built and checked), before any simulation."""
-    settings = InspectSettings.from_config(cfg)
+    with collecting_pending():  # the stages' costs: gp=auto's choice is made by train, later
+        settings = InspectSettings.from_config(cfg)
     log.info("inspect: at most ~%s of simulation (inspect.max_seconds=%g)",
              duration(settings.options["max_seconds"]),
              settings.options["max_seconds"])  # fmt: skip

@@ -29,6 +29,7 @@ from surrogate.io import (
     MANIFEST,
     artefact_lock,
     read_csv,
+    read_json,
     read_manifest,
     write_json,
     write_manifest,
@@ -44,6 +45,7 @@ from surrogate.stages.settings import (
     CollectSettings,
     ReproduceSettings,
 )
+from surrogate.stages.settings.choice import CHOICE
 from surrogate.stages.simulate import build_decision, simulate_together
 from surrogate.stages.train import (
     class_diagnostic_by_lump,
@@ -201,6 +203,9 @@ def report_sections(
     noise_lines = [noise_line(name, table) for name, table in tables.items()
                    if "ks_noise_floor" in table]  # fmt: skip
     sections.append(("Against sampling noise", "\n".join(noise_lines) or "No noise floor."))
+    if settings.train.measured_choice() is not None:
+        sections.append(("The chain kind, chosen by measurement",
+                         choice_text(settings.train.measured_choice())))  # fmt: skip
     sections.append(("Segment durations", _durations_table(summaries, exact, lumps, metrics)))
     if exact:
         sections.append((
@@ -249,6 +254,35 @@ def report_sections(
             figures.append((f"{name}: mean and s.d. of {label} over time (paper Figure 5)",
                             d / f"{obs}_over_time.png"))  # fmt: skip
     return sections, figures
+
+
+def choice_text(directory: Path) -> str:
+    """The measured choice's record (``choice.json`` of ``directory``) as the report's section:
+    why, and every candidate's held-out score."""
+    record = read_json(directory / CHOICE, made_by="python scripts/train.py gp=auto")
+    rows = []
+    for r in record["scores"]:
+        row = {"kind": r["kind"], "log-lik / window": f"{r['log_likelihood_per_window']:.5f}",
+               "from best (SE)": "best" if r["diff_from_best"] == 0 else
+               f"{r['diff_from_best']:+.1e} ({r['diff_se']:.0e})"}  # fmt: skip
+        for key in r:
+            if key.endswith("_ks") and not key.endswith("_ks_critical_05"):
+                lump = key[: -len("_ks")]
+                row[f"{lump} KS (crit)"] = f"{r[key]:.3f} ({r[key + '_critical_05']:.3f})"
+                row[f"{lump} mean"] = f"{r[lump + '_mean_rel_diff']:+.1%}"
+        row["holds durations"] = "yes" if r.get("holds_durations") else "no"
+        row["fit s"] = f"{r['fit_seconds']:.1f}"
+        rows.append(row)
+    held = record["heldout"]
+    return (
+        f"`gp=auto` chose **{record['chosen']}** (`{record['overrides']}`), because "
+        f"{record['reason']}. Each candidate was fitted on this collection and scored on a "
+        f"held-out full-model run ({held['cells']} cells x {held['windows']} windows, "
+        f"another seed): the log-likelihood per window of the observed phi given the inputs, "
+        f"and its durations simulated under the held-out inputs against the observed "
+        f"(docs/choice.md). Record: {directory}.\n\n"
+        + format_markdown_table(pd.DataFrame(rows), ".4f")
+    )
 
 
 def _durations_table(

@@ -137,7 +137,7 @@ def train(
     compiled in a background process during the fit when it is not cached."""
     out = settings.directory
     if settings.measured_choice() is not None:
-        log.info("gp=auto: %s, the measured choice (%s)", settings.kind.recipe,
+        log.info("gp=auto: %s, the measured choice (%s)", settings.auto_recipe,
                  settings.measured_choice())  # fmt: skip
     elif settings.auto_recipe is not None:
         log.info("gp=auto: %s (model %r %s); gp=svgp or gp=classes to choose", {
@@ -179,7 +179,8 @@ def shared_psi_settings(settings: TrainSettings) -> TrainSettings | None:
         return None
     gp_config = {k: v for k, v in settings.gp_config.items() if k not in settings.kind.gp_keys}
     gp_config["lumps"], gp_config["history"] = TWO_STATE.lumps, TWO_STATE.history
-    return dataclasses.replace(settings, kind=TWO_STATE, gp_config=gp_config, auto_recipe=None)
+    return dataclasses.replace(settings, kind=TWO_STATE, gp_config=gp_config, auto_recipe=None,
+                               choice_directory=None)  # fmt: skip
 
 
 def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:

@@ -316,6 +316,7 @@ def test_a_candidate_whose_durations_miss_is_not_chosen() -> None:
     picked = choose([score("two-state", 0, 0.0, mean_miss), second, best], 1.0, 0.03)
     assert picked.chosen == "clock"
     assert "not ['two-state', 'phases']" in picked.reason
+    assert "the likelihood's best alone, phases" in picked.reason
     rows = {r["kind"]: r for r in picked.table}
     assert rows["phases"]["diff_from_best"] == 0.0 and not rows["phases"]["holds_durations"]
     assert choose([best, second], 1.0, None).chosen == "phases"  # the likelihood alone

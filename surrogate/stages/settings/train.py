@@ -34,6 +34,7 @@ from surrogate.stages.settings.choice import (
     ChoiceSettings,
     PendingChoice,
     candidate_groups,
+    collecting_pending,
     pending,
     stored_choice,
 )
@@ -137,6 +138,9 @@ class TrainSettings:
     #: ``measured: <choice directory>`` (the measured choice's candidate); None where a chain
     #: was named
     auto_recipe: str | None = None
+    #: the measured choice's directory where gp=auto is its chosen candidate (auto_recipe:
+    #: ``measured: <candidate>``)
+    choice_directory: Path | None = None
 
     @classmethod
     def from_config(
@@ -164,8 +168,10 @@ class TrainSettings:
     @classmethod
     def design_fits(cls, source: CollectSettings, gp: dict[str, Any]) -> TrainSettings:
         """The fits of a sequential design's rounds: ``gp`` (the group as given) on the
-        collection ``source`` (without its design), with its setup and job."""
-        return cls._build(source.setup, source, source.job, gp)
+        collection ``source`` (without its design), with its setup and job; ``gp=auto``
+        measuring resolves by the rule here (the choice needs the collection the design makes)."""
+        with collecting_pending():
+            return cls._build(source.setup, source, source.job, gp)
 
     @classmethod
     def _build(
@@ -242,9 +248,7 @@ class TrainSettings:
     def measured_choice(self) -> Path | None:
         """The directory of the measured choice that made these settings (``gp=auto``), or
         None."""
-        if self.auto_recipe is None or not self.auto_recipe.startswith(MEASURED):
-            return None
-        return Path(self.auto_recipe.split(": ", 1)[1])
+        return self.choice_directory
 
     @property
     def lumps(self) -> str:
@@ -389,8 +393,8 @@ def _measured(
     if chosen is None:
         pending(plan)
         return None
-    return dataclasses.replace(candidates[chosen],
-                               auto_recipe=f"{MEASURED}: {plan.directory}")  # fmt: skip
+    return dataclasses.replace(candidates[chosen], auto_recipe=f"{MEASURED}: {chosen}",
+                               choice_directory=plan.directory)  # fmt: skip
 
 
 def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str, Any]:
