@@ -555,6 +555,71 @@ def sojourn_law(moves: Tensor, lumps: Tensor, lump: int, windows: int) -> Tensor
     return out
 
 
+def stationary_leaving(moves: Tensor, lumps: Tensor) -> Tensor:
+    """Each lump's one-window leave probability at stationarity: P(phi' != l | phi = l) with
+    the hidden state from the stationary law within lump ``l`` (its mean sojourn's inverse, in
+    windows; the two-state chain's psi_0 and 1 - psi_1).
+
+    Args:
+        moves: ``(..., S, S)`` one window's law.
+        lumps: ``(S,)`` each state's phi.
+
+    Returns:
+        ``(..., 2)`` float64: lump 0's, then lump 1's.
+    """
+    moves = moves.to(DTYPE)
+    pi = stationary(moves)
+    out = []
+    for lump in (0, 1):
+        inside = lumps == lump
+        leave = moves[..., inside, :][..., :, ~inside].sum(-1)  # (..., K_l)
+        weight = pi[..., inside]
+        out.append((weight * leave).sum(-1) / weight.sum(-1).clamp_min(1e-300))
+    return torch.stack(out, dim=-1)
+
+
+def match_leaving(
+    moves: Tensor, lumps: Tensor, target: Tensor, tolerance: float = 1e-10, rounds: int = 200
+) -> tuple[Tensor, Tensor]:
+    """``moves`` with each lump's moves out of it scaled (their odds against the row's other
+    moves, one factor per lump and point) so that its one-window leave probability at
+    stationarity (:func:`stationary_leaving`) is ``target``: the means of the sojourns set,
+    their shape (the phases' relative exits and moves within the lump) kept.
+
+    Args:
+        moves: ``(..., S, S)`` one window's law (rows sum to 1).
+        lumps: ``(S,)`` each state's phi.
+        target: ``(..., 2)`` each lump's leave probability wanted, in (0, 1).
+        tolerance: the largest relative error of the matched leave probabilities.
+        rounds: the most rounds of the fixed point (a ratio step in log odds per lump).
+
+    Returns:
+        The matched moves ``(..., S, S)`` float64 and the factors ``(..., 2)`` on the leaving
+        odds (1: the sequences' means were psi's already).
+
+    Raises:
+        NumericalError: the leave probabilities are not matched within ``tolerance``.
+    """
+    moves, target = moves.to(DTYPE), target.to(DTYPE).clamp(1e-12, 1 - 1e-12)
+    lumps = lumps.to(moves.device)
+    outside = (lumps.unsqueeze(-1) != lumps).to(DTYPE)  # (S, S): the move leaves a's lump
+    log_factor = torch.zeros(target.shape, dtype=DTYPE, device=moves.device)
+    matched, error = moves, math.inf
+    for _ in range(rounds):
+        # each row's factor is its own lump's: c on the leaving moves, then renormalised
+        row = log_factor[..., lumps].exp().unsqueeze(-1)  # (..., S, 1)
+        scaled = moves * (1.0 + (row - 1.0) * outside)
+        matched = scaled / scaled.sum(-1, keepdim=True)
+        leave = stationary_leaving(matched, lumps)
+        error = float((leave / target - 1.0).abs().max())
+        if error <= tolerance:
+            return matched, log_factor.exp()
+        # leave ~ proportional to c while leaving is rare: the ratio step is Newton's there
+        log_factor = log_factor + (target.log() - leave.clamp_min(1e-300).log())
+    raise NumericalError(f"the hidden-phase chain's leave probabilities match psi's only to "
+                         f"{error:.2g} (relative) after {rounds} rounds")  # fmt: skip
+
+
 def mean_sojourn(moves: Tensor, lumps: Tensor, lump: int) -> float:
     """The mean sojourn in ``lump`` (windows) of the chain ``moves`` (``S x S``) at
     stationarity: ``entry (I - P_ll)^-1 1``."""
@@ -577,6 +642,7 @@ __all__ = [
     "fit_phase_law",
     "held_out_split",
     "input_grid",
+    "match_leaving",
     "mean_sojourn",
     "nearest_node",
     "score",
@@ -584,4 +650,5 @@ __all__ = [
     "sequence_log_likelihood",
     "sojourn_law",
     "stationary",
+    "stationary_leaving",
 ]

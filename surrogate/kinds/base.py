@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ConfigError
-from surrogate.gp import load_psi
+from surrogate.gp import PsiClassifier, load_psi
 from surrogate.gp.class_relaxation import DEFAULT_CELLS, DEFAULT_LAGS
 from surrogate.gp.classes import DEFAULT_MAX_LABEL_WEIGHT
 from surrogate.gp.model import DEFAULT_MEAN
@@ -316,6 +316,13 @@ class ChainKind:
         ``table``: its artefact's state and its metrics, or None (a chain over phi: psi is the
         whole chain)."""
         return None
+
+    def fit_given_psi(
+        self, settings: FitSettings, table: pd.DataFrame, psi: PsiClassifier
+    ) -> tuple[dict[str, Any], dict[str, Any]] | None:
+        """What train asks for once ``psi`` is fitted: :meth:`fit` over psi's domain; a kind
+        that reads psi itself (the hidden phases match their means to it) overrides this."""
+        return self.fit(settings, table, psi.domain)
 
     def write(
         self,

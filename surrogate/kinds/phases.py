@@ -3,7 +3,8 @@ hidden phases, learned from phi sequences with no species named by the user
 (:mod:`surrogate.gp.phases`). Its fit simulates its own sample (an unperturbed full-model
 population where collect starts its cells, every window recorded:
 :func:`~surrogate.simulate.transitions.record_occupancy`), chooses each lump's phase count by
-held-out likelihood, and tabulates the law over the abstraction's inputs; its layer
+held-out likelihood, and tabulates the law over the abstraction's inputs, each lump's mean
+sojourn matched to psi's at every node (``gp.phases.means``); its layer
 (:class:`~surrogate.simulate.phases.PhaseDecision`) keeps one hidden state per cell."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,8 +33,11 @@ from surrogate.gp.phases import (
     grid_points,
     held_out_split,
     input_grid,
+    match_leaving,
     select_phases,
+    stationary_leaving,
 )
+from surrogate.gp.predictor import PsiClassifier
 from surrogate.gp.training import GPSettings
 from surrogate.io import load_tensors, save_tensors
 from surrogate.kinds.base import ChainKind, FitSettings, LayerRequest, register_chain_kind
@@ -53,11 +57,15 @@ log = logging.getLogger(__name__)
 GP_PHASES = ("phases",)
 #: gp.phases' keys (conf/gp/phases.yaml holds their defaults)
 PHASE_KEYS = ("max_per_lump", "per_lump", "structure", "bumps", "penalty", "nodes",
-              "max_iterations", "n_cells", "t_end", "held_out")  # fmt: skip
+              "max_iterations", "n_cells", "t_end", "held_out", "means")  # fmt: skip
+#: gp.phases.means: each lump's mean sojourn at each input from psi (the sequences' law
+#: matched to it, :func:`~surrogate.gp.phases.match_leaving`) or from the sequences alone
+MEANS = ("psi", "sequences")
 #: the sequences' seed is the fit's plus this (its cells are not collect's first cells)
 SEQUENCE_SEED_OFFSET = 2_000_003
-#: a change in the fit's method refits (the fit identity carries it)
-PHASE_LAW_VERSION = 1
+#: a change in the fit's method refits (the fit identity carries it); 2: the table's means
+#: matched to psi (gp.phases.means)
+PHASE_LAW_VERSION = 2
 #: the most entries (S x nodes^d x S) of the tabulated law: 2^28, 1 GiB as float32
 MAX_TABLE_ENTRIES = 2**28
 
@@ -82,7 +90,8 @@ def _number(options: Mapping[str, Any], key: str, low: float, high: float = math
 class PhaseSettings:
     """``gp.phases`` validated: the phase counts (``per_lump`` fixed, or chosen up to
     ``max_per_lump`` by held-out likelihood on the ``held_out`` share of cells), the moves
-    (``structure``), the fit's settings and the sample (``n_cells`` cells for ``t_end`` s)."""
+    (``structure``), the fit's settings, the sample (``n_cells`` cells for ``t_end`` s) and
+    where each lump's mean sojourn comes from (``means``, one of :data:`MEANS`)."""
 
     max_per_lump: int
     per_lump: tuple[int, int] | None
@@ -91,6 +100,7 @@ class PhaseSettings:
     n_cells: int
     t_end: float
     held_out: float
+    means: str = "psi"
 
     @classmethod
     def from_config(cls, value: Any) -> PhaseSettings:
@@ -111,6 +121,9 @@ class PhaseSettings:
                 raise ConfigError(f"gp.phases.per_lump must be null or two integers >= 1 (the "
                                   f"phases of each lump), got {per_lump!r}")  # fmt: skip
             per_lump = (int(per_lump[0]), int(per_lump[1]))
+        if options["means"] not in MEANS:
+            raise ConfigError(f"gp.phases.means must be one of {list(MEANS)}, got "
+                              f"{options['means']!r}")  # fmt: skip
         if options["structure"] not in STRUCTURES:
             raise ConfigError(f"gp.phases.structure must be one of {list(STRUCTURES)}, got "
                               f"{options['structure']!r}")  # fmt: skip
@@ -135,7 +148,7 @@ class PhaseSettings:
                 f"{smallest_split(held_out)} or more"
             )
         return cls(_count(options, "max_per_lump", 1), per_lump, str(options["structure"]), fit,
-                   n_cells, t_end, held_out)  # fmt: skip
+                   n_cells, t_end, held_out, str(options["means"]))  # fmt: skip
 
     def states(self) -> int:
         """The most hidden states the chain may get (both lumps' phases)."""
@@ -233,8 +246,16 @@ class HiddenPhases(ChainKind):
     def fit(
         self, settings: FitSettings, table: pd.DataFrame, domain: Mapping[str, tuple[float, float]]
     ) -> tuple[dict[str, Any], dict[str, Any]] | None:
-        """The hidden-phase law (:func:`fit_phase_chain`) over the two-state fit's domain."""
+        """The hidden-phase law (:func:`fit_phase_chain`) over the two-state fit's domain, with
+        no psi to match its means to (``gp.phases.means=sequences`` only)."""
         return fit_phase_chain(settings, domain)
+
+    def fit_given_psi(
+        self, settings: FitSettings, table: pd.DataFrame, psi: PsiClassifier
+    ) -> tuple[dict[str, Any], dict[str, Any]] | None:
+        """The hidden-phase law (:func:`fit_phase_chain`) over ``psi``'s domain, its means
+        matched to ``psi``'s (``gp.phases.means=psi``)."""
+        return fit_phase_chain(settings, psi.domain, psi)
 
     def write(
         self,
@@ -299,26 +320,63 @@ class HiddenPhases(ChainKind):
 
 
 def phase_table(
-    law: PhaseLaw, input_names: Sequence[str], lump_names: Sequence[str], dt: float, nodes: int
+    law: PhaseLaw,
+    input_names: Sequence[str],
+    lump_names: Sequence[str],
+    dt: float,
+    nodes: int,
+    leaving: Callable[[Tensor], Tensor] | None = None,
 ) -> ClassTable:
-    """``law`` tabulated on the grid of ``nodes`` per input its fit read the inputs on."""
+    """``law`` tabulated on the grid of ``nodes`` per input its fit read the inputs on; with
+    ``leaving`` (the grid's points ``G x d`` -> each lump's one-window leave probability
+    ``G x 2``, e.g. psi's: :func:`psi_leaving`), each lump's moves out of it matched to it at
+    every node (:func:`~surrogate.gp.phases.match_leaving`)."""
     axes = input_grid(law.basis.bounds, nodes)
+    points = grid_points(axes)
     with torch.no_grad():
-        moves = law.moves(grid_points(axes))  # G x S x S
+        moves = law.moves(points)  # G x S x S
+        if leaving is not None:
+            moves = match_leaving(moves, law.layout.lumps(), leaving(points))[0]
     s = law.layout.n_states
     probabilities = moves.reshape(*[len(a) for a in axes], s, s).movedim(-2, 0)
     return ClassTable(probabilities, law.basis.bounds, input_names,
                       law.layout.names(lump_names), law.layout.lumps().tolist(), dt)  # fmt: skip
 
 
+def psi_leaving(psi: PsiClassifier) -> Callable[[Tensor], Tensor]:
+    """``psi``'s one-window leave probability of each lump, ``G x d`` inputs -> ``G x 2``
+    float64: ``psi_0`` and ``1 - psi_1``."""
+
+    def leaving(points: Tensor) -> Tensor:
+        z = points.float()
+        rows = points.shape[0]
+        p0 = psi.evaluate(torch.zeros(rows, dtype=torch.int64), z).double().cpu()
+        p1 = psi.evaluate(torch.ones(rows, dtype=torch.int64), z).double().cpu()
+        return torch.stack([p0, 1.0 - p1], dim=-1)
+
+    return leaving
+
+
 def fit_phase_chain(
-    settings: FitSettings, domain: Mapping[str, tuple[float, float]]
+    settings: FitSettings,
+    domain: Mapping[str, tuple[float, float]],
+    psi: PsiClassifier | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The hidden-phase chain of the train settings ``settings``: ``gp.phases.n_cells``
     unperturbed full-model cells where collect starts them, every window for
     ``gp.phases.t_end`` s, their phi sequences fitted (:func:`select_phases`) over ``domain``;
-    its state (``table``, ``law``) and metrics."""
+    with ``gp.phases.means=psi``, its table's means matched to ``psi``'s at every node (the
+    sample's cells live where an unperturbed population from collect's start lives, few of them
+    at some inputs; psi is fitted from collect's perturbed cells over its whole domain). Its
+    state (``table``, ``law``: the sequences' own) and metrics.
+
+    Raises:
+        ConfigError: ``gp.phases.means=psi`` without ``psi``.
+    """
     phases = PhaseSettings.from_config(settings.gp_config.get("phases"))
+    if phases.means == "psi" and psi is None:
+        raise ConfigError("gp.phases.means=psi matches the chain's means to psi's: train fits "
+                          "psi first and passes it; gp.phases.means=sequences needs none")  # fmt: skip
     setup, job = settings.setup, settings.job
     model = setup.model
     seed_everything(settings.seed + SEQUENCE_SEED_OFFSET)
@@ -335,8 +393,21 @@ def fit_phase_chain(
     selection = PhaseSelection(phases.max_per_lump, phases.structure, phases.held_out,
                                phases.per_lump)  # fmt: skip
     law, report = select_phases(inputs, phi, bounds, selection, phases.fit, settings.seed)
+    leaving = psi_leaving(psi) if phases.means == "psi" and psi is not None else None
     table = phase_table(law, settings.inputs, model.internal.lump_names, setup.dt,
-                        phases.fit.nodes)  # fmt: skip
+                        phases.fit.nodes, leaving)  # fmt: skip
+    if leaving is not None:
+        # how far the sequences' own mean sojourns were from psi's (1: equal), per lump: the
+        # range over the table's nodes
+        points = grid_points(input_grid(law.basis.bounds, phases.fit.nodes))
+        with torch.no_grad():
+            ratio = leaving(points) / stationary_leaving(law.moves(points), law.layout.lumps())
+        report["sequence_means_over_psi"] = {
+            name: [float(ratio[:, j].min()), float(ratio[:, j].max())]
+            for j, name in enumerate(model.internal.lump_names)
+        }
+        log.info("hidden phases: the sequences' mean sojourns over psi's %s (min, max), matched "
+                 "to psi's", report["sequence_means_over_psi"])  # fmt: skip
     log.info("hidden phases per lump %s (held-out cells %d)", report["per_lump"],
              report["held_out_cells"])  # fmt: skip
     metrics = {**report, "cells": int(phi.shape[0]), "windows": int(phi.shape[1] - 1),

@@ -259,7 +259,7 @@ def _fit(
         else:
             psi, _ = load_psi(psi_dir / PSI, device=job.device)
             log.info("psi: the two-state fit's, %s", psi_dir)
-        chain = settings.kind.fit(settings, table, psi.domain)  # the kind's own, if any
+        chain = settings.kind.fit_given_psi(settings, table, psi)  # the kind's own, if any
     except NumericalError as exc:
         # nothing was written: a previous complete fit in `out` (if any) is kept
         err = NumericalError(f"{exc} Nothing was written to {out}.")

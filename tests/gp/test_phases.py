@@ -14,6 +14,7 @@ import torch
 
 from surrogate.ctmc.lumped import StateSpace
 from surrogate.ctmc.network import ReactionNetwork
+from surrogate.errors import NumericalError
 from surrogate.gp.phases import (
     InputBasis,
     PhaseFitSettings,
@@ -24,6 +25,7 @@ from surrogate.gp.phases import (
     grid_points,
     input_grid,
     log_likelihood_with_gradient,
+    match_leaving,
     mean_sojourn,
     nearest_node,
     score,
@@ -31,6 +33,7 @@ from surrogate.gp.phases import (
     sequence_log_likelihood,
     sojourn_law,
     stationary,
+    stationary_leaving,
 )
 from surrogate.kinds.phases import phase_table
 from surrogate.simulate.phases import PhaseDecision
@@ -258,3 +261,54 @@ def test_the_fitted_sojourns_match_an_enumerable_networks_exact_ones() -> None:
         truth = mean_sojourn(exact, lumps, lump)
         assert abs(mean_sojourn(fitted, law.layout.lumps(), lump) - truth) < 4 * error
         assert abs(times.mean() - truth) < 4 * error  # the sample itself is the network's
+
+
+def _telegraph_over_z(z: torch.Tensor) -> torch.Tensor:
+    """Off left with 0.02 + 0.2 z^2 per window, on two phases in series each left with 0.3
+    (an Erlang(2) on time): ``(..., 1)`` inputs -> ``(..., 3, 3)``."""
+    leave_off = 0.02 + 0.2 * z[..., 0].double() ** 2
+    p = torch.zeros(*z.shape[:-1], 3, 3, dtype=torch.float64)
+    p[..., 0, 0], p[..., 0, 1] = 1 - leave_off, leave_off
+    p[..., 1, 1], p[..., 1, 2] = 0.7, 0.3
+    p[..., 2, 2], p[..., 2, 0] = 0.7, 0.3
+    return p
+
+
+def test_the_table_takes_psis_means_where_the_sample_never_went() -> None:
+    """Cells that each stay at one input in [0, 0.3] of the domain [0, 1] (an unperturbed
+    sample): the fitted law's off sojourn at the unseen end is the basis's extrapolation, far
+    from the truth; matched to the true leave probabilities (what psi, fitted over the whole
+    domain, gives) the table's stationary leave probabilities are the truth's at every node, and
+    the moves within a lump keep the fit's odds (the sojourn's shape)."""
+    lumps = torch.tensor([0, 1, 1])
+    n, steps = 300, 300
+    g = torch.Generator().manual_seed(8)
+    z = 0.3 * torch.rand(n, 1, generator=g, dtype=torch.float64)
+    moves = _telegraph_over_z(z)  # n x 3 x 3: each cell's own law
+    state = torch.multinomial(stationary(moves), 1, generator=g).squeeze(1)
+    cdf, rows = moves.cumsum(-1), torch.arange(n)
+    phi = [lumps[state]]
+    for _ in range(steps):
+        u = torch.rand(n, 1, generator=g, dtype=torch.float64)
+        state = (u > cdf[rows, state]).sum(-1).clamp(max=2)
+        phi.append(lumps[state])
+    settings = PhaseFitSettings(bumps=2, nodes=8, max_iterations=100)
+    law, _ = fit_phase_law(z.unsqueeze(1).expand(n, steps, 1), torch.stack(phi, 1),
+                           PhaseLayout((1, 2)), [(0.0, 1.0)], settings)  # fmt: skip
+    points = grid_points(input_grid(law.basis.bounds, settings.nodes))
+    truth = stationary_leaving(_telegraph_over_z(points), lumps)  # G x 2
+    fitted = law.moves(points).detach()
+    # the case is real: at the unseen end the sequences' own off sojourn misses by far
+    assert abs(float(stationary_leaving(fitted, lumps)[-1, 0] / truth[-1, 0]) - 1) > 0.3
+    matched = match_leaving(fitted, lumps, truth)[0]
+    torch.testing.assert_close(stationary_leaving(matched, lumps), truth, rtol=1e-8, atol=0.0)
+    # the on lump's move to its next phase against staying: the fit's odds, unscaled
+    torch.testing.assert_close(matched[:, 1, 2] / matched[:, 1, 1],
+                               fitted[:, 1, 2] / fitted[:, 1, 1], rtol=1e-8, atol=0.0)  # fmt: skip
+    # the table the layer reads holds the matched moves (its cumulative rows, float32)
+    leaving = lambda x: stationary_leaving(_telegraph_over_z(x), lumps)  # noqa: E731
+    table = phase_table(law, ("z",), ("off", "on"), 0.1, settings.nodes, leaving)
+    rows = table.cdf.double().reshape(3, -1, 3).movedim(0, 1)  # G x a x b
+    torch.testing.assert_close(rows, matched.cumsum(-1), rtol=0.0, atol=1e-6)
+    with pytest.raises(NumericalError, match="match psi's only to"):
+        match_leaving(fitted, lumps, truth, rounds=1)

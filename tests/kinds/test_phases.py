@@ -6,13 +6,28 @@ from __future__ import annotations
 
 import json
 
+import pandas as pd
 import pytest
 import torch
 
 from surrogate.errors import ConfigError
 from surrogate.evaluate.statistics import load_run
-from surrogate.gp.phases import InputBasis, PhaseLaw, PhaseLayout
-from surrogate.kinds.phases import HiddenPhases, PhaseSettings, phase_table
+from surrogate.gp import load_psi
+from surrogate.gp.phases import (
+    InputBasis,
+    PhaseLaw,
+    PhaseLayout,
+    grid_points,
+    input_grid,
+    stationary_leaving,
+)
+from surrogate.kinds.phases import (
+    HiddenPhases,
+    PhaseSettings,
+    load_phase_chain,
+    phase_table,
+    psi_leaving,
+)
 from surrogate.models.base import Randoms
 from surrogate.simulate.kernel_pack import Slot, pack_layer
 from surrogate.simulate.phases import PhaseDecision
@@ -39,6 +54,7 @@ PHASES = ["gp=phases", "gp.phases.n_cells=40", "gp.phases.t_end=10.0",
         ("gp.phases.nodes=1", r"gp.phases.nodes must be an integer >= 2"),
         ("gp.phases.t_end=0.0", r"gp.phases.t_end must be positive"),
         ("+gp.phases.phases=3", r"gp.phases.*phases"),
+        ("gp.phases.means=mine", r"gp.phases.means must be one of \['psi', 'sequences'\]"),
         ("gp.history=age", r"gp.lumps=phases takes no switch clock"),
     ],
 )  # fmt: skip
@@ -52,7 +68,7 @@ def test_the_kinds_identity_and_refusals(compose_cfg) -> None:
     assert isinstance(settings.kind, HiddenPhases)
     gp = settings.fit_identity()["gp"]
     assert gp["lumps"] == "phases" and gp["phases"]["max_per_lump"] == 3
-    assert gp["phase_law_version"] == 1 and "lumps=phases" in settings.fit_directory.name
+    assert gp["phase_law_version"] == 2 and "lumps=phases" in settings.fit_directory.name
     assert PhaseSettings.from_config(gp["phases"]).per_lump is None
     with pytest.raises(ConfigError, match="gp.phases is required with gp.lumps=phases"):
         TrainSettings.from_config(compose_cfg("train", ["gp.lumps=phases"]))
@@ -62,6 +78,13 @@ def test_the_kinds_identity_and_refusals(compose_cfg) -> None:
     with pytest.raises(ConfigError, match="the hidden-phase chain is learned only"):
         SimulateSettings.from_config(compose_cfg("simulate", ["decision=exact",
                                                               "decision.lumps=phases"]))  # fmt: skip
+
+
+def test_means_from_psi_need_psi(compose_cfg) -> None:
+    """gp.phases.means=psi (the default) refuses a fit without psi before its sample."""
+    settings = TrainSettings.from_config(compose_cfg("train", ["gp=phases"]))
+    with pytest.raises(ConfigError, match="gp.phases.means=psi matches the chain's means"):
+        settings.kind.fit(settings, pd.DataFrame(), {name: (0.0, 1.0) for name in settings.inputs})
 
 
 class _Phi:
@@ -115,6 +138,17 @@ def test_train_then_simulate_on_both_loops(compose_cfg) -> None:
     metrics = json.loads((trained / "train_metrics.json").read_text())["phase_chain"]
     assert metrics["cells"] == 40 and metrics["windows"] == 200
     assert [c["per_lump"] for c in metrics["candidates"]][:3] == [[1, 1], [2, 1], [1, 2]]
+    # the table's mean sojourns are psi's at every node (gp.phases.means=psi, the default)
+    assert set(metrics["sequence_means_over_psi"]) == {"tumble", "run"}
+    table = load_phase_chain(trained)
+    points = grid_points(input_grid(table.bounds, table.shape[0]))
+    s = len(table.class_names)
+    moves = table.cdf.double().reshape(s, -1, s).movedim(0, 1).diff(dim=-1, prepend=torch.zeros(
+        len(points), s, 1, dtype=torch.float64))  # fmt: skip
+    lumps = torch.tensor(table.class_lumps)
+    psi, _ = load_psi(trained / "psi.pt")
+    torch.testing.assert_close(stationary_leaving(moves, lumps), psi_leaving(psi)(points),
+                               rtol=1e-4, atol=0.0)  # fmt: skip
     runs = {}
     for backend in ("numba", "torch"):
         out = simulate_stage.run(compose_cfg("simulate", [*tiny, "decision=abstract",
