@@ -203,9 +203,9 @@ def report_sections(
     noise_lines = [noise_line(name, table) for name, table in tables.items()
                    if "ks_noise_floor" in table]  # fmt: skip
     sections.append(("Against sampling noise", "\n".join(noise_lines) or "No noise floor."))
-    if settings.train.measured_choice() is not None:
-        sections.append(("The chain kind, chosen by measurement",
-                         choice_text(settings.train.measured_choice())))  # fmt: skip
+    choice_dir = settings.train.measured_choice()
+    if choice_dir is not None:
+        sections.append(("The chain kind, chosen by measurement", choice_text(choice_dir)))
     sections.append(("Segment durations", _durations_table(summaries, exact, lumps, metrics)))
     if exact:
         sections.append((
