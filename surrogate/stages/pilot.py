@@ -70,7 +70,7 @@ def pilot_config(
     gp = dict(raw) if is_auto(raw) else group_config("gp", "auto")
     ages = list(ChoiceSettings.from_config(gp.get("choice")).max_ages)
     added = cap is not None and float(cap) not in ages
-    if added:
+    if cap is not None and added:
         ages.append(float(cap))
     gp["choice"] = {**(gp.get("choice") or {}), "by": "measure", "n_cells": int(n_cells),
                     "t_end": float(t_end), "max_ages": ages, "optimizer": "lbfgs"}  # fmt: skip
