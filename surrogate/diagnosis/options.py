@@ -37,7 +37,9 @@ class InspectOptions:
         markov_alpha: significance of the hazard's dependence on the time since phi changed.
         memory_effect: the relative change of the hazard that counts as memory.
         oscillation_depth: the autocorrelation's dip below which phi oscillates.
-        classes_per_side: classes on each side of a threshold lump.
+        pilot: ``inspect.pilot``: the pilot's measured choice of the chain kind
+            (``enabled``, ``n_per_state``, ``n_cells``, ``t_end``;
+            :mod:`surrogate.stages.pilot`).
     """
 
     population_cells: int
@@ -58,7 +60,7 @@ class InspectOptions:
     markov_alpha: float
     memory_effect: float
     oscillation_depth: float
-    classes_per_side: int
+    pilot: dict[str, Any]
 
     @classmethod
     def from_mapping(cls, options: Mapping[str, Any]) -> InspectOptions:

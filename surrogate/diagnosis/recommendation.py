@@ -1,5 +1,6 @@
-"""The abstraction the inspection recommends (item 6), and the settings it offers beside it:
-``signal_bounds``, a balanced threshold, the collection's overrides.
+"""The memory the inspection measured (item 6: facts, and the switch clock's cap they suggest;
+the kind is the pilot's measured choice, :mod:`surrogate.stages.pilot`), and the settings it
+offers beside it: ``signal_bounds``, a balanced threshold, the collection's overrides.
 """
 
 from __future__ import annotations
@@ -11,15 +12,8 @@ from typing import Any
 import numpy as np
 
 from surrogate.diagnosis.fixed import FixedInputs
-from surrogate.diagnosis.options import InspectOptions
 from surrogate.diagnosis.population import Population
-from surrogate.diagnosis.settling import (
-    RELAXATION_BINS,
-    SLOW_SETTLING_WINDOWS,
-    round_up,
-    settling_estimate,
-)
-from surrogate.gp.class_relaxation import CELLS_PER_BIN, relaxation_cells
+from surrogate.diagnosis.settling import round_up
 from surrogate.models.base import Model
 from surrogate.models.capabilities import lump_expr_of, signal_bounds_of
 from surrogate.models.count_classes import threshold_of
@@ -92,29 +86,6 @@ def threshold_lump(internal: Any) -> tuple[str, int, bool] | None:
     return threshold_of(lump_expr_of(internal))
 
 
-def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
-    order = np.argsort(values, kind="stable")
-    cum = np.cumsum(weights[order])
-    return float(values[order][min(np.searchsorted(cum, q * cum[-1]), values.size - 1)])
-
-
-def class_edges(values: np.ndarray, weights: np.ndarray, edge: int, per_side: int) -> list[int]:
-    """Bins of a species count for K lumps: the threshold ``edge`` and, on each side, edges at
-    the ``j / per_side`` quantiles of the species' stationary law there (integers strictly
-    inside the side; a side without mass gets none)."""
-    edges = {int(edge)}
-    below = values < edge
-    for low in (True, False):
-        w = weights * (below if low else ~below)
-        if not w.sum() > 0:
-            continue
-        for j in range(1, per_side):
-            cut = math.ceil(_weighted_quantile(values, w, j / per_side))
-            if (low and 0 < cut < edge) or (not low and cut > edge):
-                edges.add(cut)
-    return sorted(e for e in edges if e > 0)
-
-
 def input_ranges(
     network: NetworkInternalModel | None, population: Population
 ) -> dict[str, tuple[float, float]]:
@@ -142,21 +113,22 @@ def round_sig(value: float, to: Callable[[float], int], digits: int = 2) -> floa
     return to(value * scale) / scale
 
 
-def recommend(
-    model: Model,
-    fixed: FixedInputs,
-    options: InspectOptions,
-    dt: float,
-    input_ranges: Mapping[str, tuple[float, float]] | None = None,
-) -> dict[str, Any]:
-    """Item 6: the abstraction the memory measured at the median inputs calls for.
+def memory_facts(model: Model, fixed: FixedInputs, dt: float) -> dict[str, Any]:
+    """Item 6: what the memory measured at the median inputs says; no kind (the inspector's
+    pilot measures which chain holds phi, :mod:`surrogate.stages.pilot`).
 
-    ``input_ranges``: the network's kinetic inputs' range the fields give (:func:`input_ranges`):
-    ``classes: auto`` then chooses its bins over that range, not at the file's values alone."""
+    Returns:
+        ``memory``: None (phi does not switch both ways there), False (the hazard of leaving
+        each lump does not depend on the time since phi changed: Markov) or True; ``reason``:
+        the hazards in words (and the oscillation where phi oscillates); ``max_age``: where
+        there is memory, the switch clock's cap it suggests (s; where the hazard flattens, or
+        the longest cycle where phi oscillates, :func:`oscillation_cap`), which the pilot adds
+        to its candidates, else None; ``oscillation``: whether phi oscillates.
+    """
     internal = model.internal
     hazards = fixed.hazards
     if fixed.memory is None:
-        return {"abstraction": None, "command": "", "yaml": "",
+        return {"memory": None, "max_age": None, "oscillation": False,
                 "reason": "phi does not switch both ways at the median inputs, so its memory "
                           "cannot be measured there"}  # fmt: skip
     exact = fixed.exact
@@ -176,96 +148,32 @@ def recommend(
 
     facts = "; ".join(describe(h, v) for v, h in enumerate(hazards) if h is not None)
     if not fixed.memory:
-        return {"abstraction": "two-state", "command": "gp=svgp (what the default, gp=auto, runs for a model without classes)", "yaml": "",
-                "overrides": ["gp=svgp"],
+        return {"memory": False, "max_age": None, "oscillation": False,
                 "reason": f"the hazard of leaving each lump does not depend on the time since "
                           f"phi last changed ({facts}): phi's switching is Markov in the "
                           f"current input, as the two-state chain assumes"}  # fmt: skip
-    threshold = threshold_lump(internal)
     if fixed.oscillation is not None and fixed.oscillation["detected"]:
-        species = threshold[0] if threshold is not None else None
-        return oscillation_advice(fixed.oscillation, internal.lump_names, facts, dt, species)
-    if threshold is not None and threshold[0] in fixed.species_law:
-        species, edge, upper = threshold
-        values, weights = fixed.species_law[species]
-        edges = class_edges(np.asarray(values, float), np.asarray(weights, float), edge,
-                            int(options.classes_per_side))  # fmt: skip
-        # each lump's bins on its own side of the threshold (model.classes' edges by lump)
-        below, above = [e for e in edges if e < edge], [e for e in edges if e > edge]
-        by_lump = dict(zip(internal.lump_names, (below, above) if upper else (above, below),
-                           strict=True))  # fmt: skip
-        # quoted: YAML reads bare off/on/yes/no as booleans
-        listed = ", ".join(f'"{n}": [{", ".join(str(e) for e in v)}]' for n, v in by_lump.items())
-        declared = f"classes: {{species: {species}, edges: {{{listed}}}}}"
-        # a network can let the toolkit choose the count by measurement (the slow count that
-        # holds the memory need not be the lump's species): model.classes=auto
-        auto = isinstance(internal, NetworkInternalModel)
-        over = ", ".join(f"{n}: [{lo!r}, {hi!r}]" for n, (lo, hi) in (input_ranges or {}).items())
-        # a count that settles over many windows moves between bins too rarely per window to
-        # learn, and its jitter across an edge reads as moves: its bins relax instead, finer
-        est = settling_estimate(fixed, float(options.settle_tolerance))
-        settling = est["seconds"]
-        slow = auto and settling >= SLOW_SETTLING_WINDOWS * dt
-        auto_options = [f"over: {{{over}}}"] if over else []
-        if slow:
-            # relaxation needs bins shared by both lumps: never the lump's own count's
-            auto_options += [f"bins: {RELAXATION_BINS}", "shared: true"]
-        yaml = (f"classes: {{auto: {{{', '.join(auto_options)}}}}}" if auto_options
-                else "classes: auto") if auto else declared  # fmt: skip
-        command = "gp=classes gp.class_moves=relaxation" if slow else "gp=classes"
-        basis = f": {est['basis']}" if est["basis"] else ""
-        relax = (f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
-                 f"{basis}), at least the {SLOW_SETTLING_WINDOWS:,} windows from which the bins "
-                 f"move by relaxation to their stationary law (`gp.class_moves=relaxation`), "
-                 f"not by a one-window law learned from rare, jittery crossings; "
-                 f"{RELAXATION_BINS} bins per lump, the flips given each bin being learned from "
-                 f"the windows, not from crossings, and the stationary sample "
-                 f"{relaxation_cells(RELAXATION_BINS)} cells, {CELLS_PER_BIN} per bin" if slow else
-                 f"; the network settles over {settling:.4g} s ({settling / dt:,.0f} windows"
-                 f"{basis}), below the {SLOW_SETTLING_WINDOWS:,} windows from which bins relax "
-                 f"(`gp.class_moves=relaxation`){est['caveat']}" if auto else "")  # fmt: skip
-        # the lump's own species' bins, each lump's own: learned moves only (bins that relax
-        # must hold both lumps), so offered beside auto with gp=classes alone
-        alternative = {"overrides": ["gp=classes"], "yaml": declared,
-                       "text": f"bins of the lump's own species at its stationary quantiles on "
-                               f"each side of {edge}" + (", each lump's own (so learned moves, "
-                               "not relaxation)" if slow else "")} if auto else None  # fmt: skip
-        return {"abstraction": "classes", "command": command, "yaml": yaml,
-                "overrides": command.split(),
-                "settling_s": settling, "settling_basis": est["basis"],
-                "declared": declared, "edges": edges, "edges_by_lump": by_lump,
-                "species": species, "alternative": alternative,
-                "reason": f"phi's switching has memory ({facts}) and the lump is a threshold on "
-                          f"{species}: classes over bins of a count carry the hidden state"
-                          + (" (`classes: auto` chooses the count whose bins best predict "
-                             "the next phi, by a short seeded run"
-                             + (" over the inputs' range the fields give" if over else "")
-                             + ")" if auto else
-                             f": bins of {species} at its stationary quantiles on each side of "
-                             f"{edge}") + relax}  # fmt: skip
+        return oscillation_cap(fixed.oscillation, internal.lump_names, facts, dt)
     flat = max(h["flat_from_s"] for h in hazards if h is not None)
     max_age = float(f"{max(flat, dt):.2g}")
-    return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
-            "overrides": ["gp=clock", f"gp.max_age={max_age:g}"], "max_age": max_age,
-            "reason": f"phi's switching has memory ({facts}); the lump is not a threshold on one "
-                      f"species, so the switch clock carries it: the hazard is flat from "
-                      f"{flat:.3g} s since the last change"}  # fmt: skip
+    return {"memory": True, "max_age": max_age, "oscillation": False,
+            "reason": f"phi's switching has memory ({facts}): the hazard is flat from "
+                      f"{flat:.3g} s since the last change, so a switch clock would cap its "
+                      f"age at {max_age:g} s"}  # fmt: skip
 
 
-def oscillation_advice(
-    osc: Mapping[str, Any], lump_names: Sequence[str], facts: str, dt: float,
-    species: str | None = None,
-) -> dict[str, Any]:  # fmt: skip
-    """The switch clock for a lump that oscillates (:func:`oscillation_dict`), whatever the
-    lump: the memory is the cycle's phase, which the time since phi last changed measures, not
-    a count near a threshold that bins of it would hold. ``gp.max_age``: the largest of the
+def oscillation_cap(
+    osc: Mapping[str, Any], lump_names: Sequence[str], facts: str, dt: float
+) -> dict[str, Any]:
+    """The switch clock's cap for a lump that oscillates (:func:`oscillation_dict`), as
+    :func:`memory_facts` returns it: the memory is the cycle's phase, which the time since phi
+    last changed measures. ``max_age``: the largest of the
     period and the 90th percentile of either lump's segment durations (a cycle is one segment
     of each lump, so the clock covers the ages at which the segments end), at the median inputs
     and, where measured (``osc["over_range"]``: every grid point exactly, the ends of each
     input's range simulated), wherever phi oscillates over the range the fields give (a period
     that grows towards one end would outrun a cap from the median's), rounded up to two
-    significant digits. ``species``: the threshold lump's species (the reason says why not
-    classes over it)."""
+    significant digits."""
     period = float(osc["period_s"])
     segments = [s for s in (osc.get("segments") or []) if s is not None]
     # the period (and the segments) wherever phi oscillates over the fields' range: the clock
@@ -308,30 +216,24 @@ def oscillation_advice(
                  for name, s in zip(lump_names, osc["segments"], strict=True) if s is not None]  # fmt: skip
         regular = (f"; {'; '.join(parts)} (a memoryless lump's durations are exponential, "
                    f"coefficient of variation 1)") if parts else ""  # fmt: skip
-    why_not = (f". Classes over bins of {species} (the lump is a threshold on it) would hold "
-               f"a count, not the phase" if species else "")  # fmt: skip
-    return {"abstraction": "clock", "command": f"gp=clock gp.max_age={max_age:g}", "yaml": "",
-            "overrides": ["gp=clock", f"gp.max_age={max_age:g}"],
-            "max_age": max_age, "oscillation": True, "period_s": period,
+    return {"memory": True, "max_age": max_age, "oscillation": True, "period_s": period,
             "reason": f"phi oscillates: {trough}, and no reversible network nor memoryless lump "
                       f"gives a negative autocorrelation (the check: below "
                       f"-{osc['depth_threshold']:g} and beyond {osc['z']:.1f} standard errors)"
                       f"{regular}. Its switching's memory ({facts}) is the cycle's phase, which "
-                      f"the time since phi last changed measures: the switch clock carries it, "
-                      f"its age capped at `gp.max_age={max_age:g}` s, the largest of the "
-                      f"periods and the 90th percentiles of the segments' durations where the "
-                      f"population lives{across}, so that it covers the ages at which both "
-                      f"lumps' segments end{why_not}"}  # fmt: skip
+                      f"the time since phi last changed measures: a switch clock would cap its "
+                      f"age at {max_age:g} s, the largest of the periods and the 90th "
+                      f"percentiles of the segments' durations where the population "
+                      f"lives{across}"}  # fmt: skip
 
 
 __all__ = [
     "BALANCE_BAND",
     "balanced_threshold",
-    "class_edges",
     "collection_overrides",
     "input_ranges",
-    "oscillation_advice",
-    "recommend",
+    "memory_facts",
+    "oscillation_cap",
     "round_sig",
     "signal_bounds_advice",
     "threshold_lump",

@@ -345,23 +345,32 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
                      f"{max(col['rows_needed']):.3g} rows per origin: {more} (now "
                      f"{col['n_per_state']}), ~{col['cost_s']:.3g} s at the measured events; "
                      f"{timing}.")  # fmt: skip
-    a = summary["recommendation"]
-    lines += ["", "## Recommended abstraction", ""]
-    if a["abstraction"] is None:
-        lines.append(f"None: {a['reason']}.")
-    elif a.get("refused"):
-        lines.append(f"**{a['abstraction']}** would be `{a['command']}`"
-                     + (f" with `{a['yaml']}`" if a["yaml"] else "")
-                     + f", but the settings refuse it, so it is not advised: {a['refused']}. "
-                     f"Why it would be: {a['reason']}.")  # fmt: skip
+    a, pilot = summary["recommendation"], summary.get("pilot") or {}
+    lines += ["", "## The chain kind, measured", ""]
+    lines.append(f"- Memory (the hazard of leaving phi against the time since it changed, at "
+                 f"the median inputs): {summary['memory']['facts']['reason']}.")  # fmt: skip
+    if a.get("kind") is None:
+        lines.append(f"- The pilot's measured choice: {pilot.get('note') or a['reason']}. "
+                     f"`gp=auto` (the default) makes it at full size when it trains.")  # fmt: skip
     else:
-        lines.append(f"**{a['abstraction']}**: `{a['command']}`"
-                     + (f" with, in the model's yaml, `{a['yaml']}`" if a["yaml"] else "")
-                     + f"; why: {a['reason']}.")  # fmt: skip
-    alternative = a.get("alternative")
-    if alternative and not a.get("refused") and not alternative.get("refused"):
-        lines += ["", f"Or declared: {alternative['text']}, "
-                  f"`{' '.join(alternative['overrides'])}` with `{alternative['yaml']}`."]  # fmt: skip
+        keep = (f"`{' '.join(a['overrides'])}`" if a["overrides"]
+                else "`gp=auto` (the default, as set)")  # fmt: skip
+        if a.get("refused"):
+            keep = (f"`gp=auto`; `{' '.join(a['overrides'])}` would be advised, but the settings "
+                    f"refuse it: {a['refused']}")  # fmt: skip
+        cap = (f" with the switch clock at the hazard's cap, {pilot['cap']:g} s, among them"
+               if pilot.get("cap_added") else "")  # fmt: skip
+        lines.append(f"- The pilot ({pilot['n_per_state']:,} rows per origin, "
+                     f"{pilot['n_cells']} held-out cells x {pilot['t_end']:g} s; "
+                     f"{pilot['wall_s']:.0f} s; the candidates of `gp.choice`{cap}) chose "
+                     f"**{a['kind']}**. Recommended: {keep}: it measures the same candidates "
+                     f"at full size and trains the best (docs/choice.md); a pilot of this size "
+                     f"can rank close candidates otherwise."
+                     + (f" The pilot {pilot['note']}." if pilot.get("note") else ""))  # fmt: skip
+        if a.get("named") and not a.get("named_refused"):
+            lines.append(f"- The pilot's choice named outright (skips the full-size "
+                         f"measurement): `{' '.join(a['named'])}`.")  # fmt: skip
+        lines += ["", pilot["text"]]
     if a.get("signal_bounds"):
         lines += ["", f"The network is enumerable: with `{a['signal_bounds']}` in the yaml (the "
                   f"inputs' range above), reproduce tabulates its exact chain, the method's "

@@ -1,4 +1,4 @@
-"""The inspect stage: a model measured before any collection, and an abstraction recommended.
+"""The inspect stage: a model measured before any collection, and its chain kind measured.
 
 ``python3 scripts/inspect_model.py model=sbml model.spec=examples/toggle_switch/model.yaml``
 writes ``report.md``, ``inspect.json`` and figures under ``data/inspect/<settings>/`` in about a
@@ -46,26 +46,26 @@ minute for a small network. Every figure is a measurement (the definitions are h
    ``scripts/reproduce.py`` with the same settings (:mod:`surrogate.stages.budget`, at both
    rates), and the collection the switching implies: ``inspect.min_switches`` switches from
    each origin at the measured switching probability per window.
-6. **A recommended abstraction**: at the median inputs at stationarity, the hazard of leaving
-   phi against the time since phi last changed (exact from the lumped chain where enumerable,
+6. **The memory**: at the median inputs at stationarity, the hazard of leaving phi against the
+   time since phi last changed (exact from the lumped chain where enumerable,
    :func:`~surrogate.ctmc.lumped.lumped_age_psi`; else
-   :func:`~surrogate.evaluate.dynamics.switch_hazards` with a chi-square test). A constant
-   hazard: the two-state chain (``gp=svgp``; the default ``gp=auto`` where no classes are declared). One that depends on the age by more
-   than ``inspect.memory_effect`` (and significantly): classes over bins of the species when
-   the lump is a threshold on one species count (``gp=classes`` with ``classes: {species: P,
-   edges: [...]}``, edges at the species' stationary quantiles on each side of the threshold;
-   with ``gp.class_moves=relaxation`` for a network that settles over
-   :data:`SLOW_SETTLING_WINDOWS` windows or more, :func:`settling_estimate`: where the run
-   stopped before settling, at least half the run and ln(1 / tolerance) x phi's relaxation
-   time), else the switch clock (``gp=clock`` with ``gp.max_age`` where the hazard flattens). A lump
-   that oscillates (item 4) gets the switch clock whatever the lump: its memory is the cycle's
-   phase, which the time since phi last changed measures (:func:`oscillation_advice`:
-   ``gp.max_age`` the longest period, or 90th percentile of the segments' durations, over the
-   range the fields give: exactly at every grid point, simulated at the ends of each input's
-   range as well as the median).
+   :func:`~surrogate.evaluate.dynamics.switch_hazards` with a chi-square test): Markov where it
+   is constant; with memory where it depends on the age by more than ``inspect.memory_effect``
+   (and significantly), and then the switch clock's cap it suggests (where the hazard
+   flattens; where phi oscillates, item 4, the longest cycle over the range the fields give,
+   :func:`~surrogate.diagnosis.recommendation.oscillation_cap`). Facts, not a kind.
+7. **The chain kind, measured** (:mod:`surrogate.stages.pilot`): ``gp=auto``'s measured choice
+   made once at a small size (``inspect.pilot``): the candidates of ``gp.choice`` plus the
+   clock at the cap of item 6, fitted by L-BFGS on a small collection and scored on a small
+   held-out full-model run; priced first against ``inspect.max_seconds`` and shrunk to fit
+   (else skipped, as where the transitions are an external table or
+   ``inspect.pilot.enabled=false``). The report recommends keeping ``gp=auto`` (it measures
+   the same at full size), shows the pilot's table, and where the pilot chose the added cap,
+   ``gp.choice.max_ages=[..., X]`` so the full-size choice includes it; every override is
+   checked (:func:`~surrogate.stages.advice_check.checked`) before it is printed.
 
 Models whose internal model is not a network (``model=ecoli``) get items 2, 3, 4 (relaxation),
-5 and 6 by simulation from their own initial state (their stationary law).
+5, 6 and 7 by simulation from their own initial state (their stationary law).
 
 Before item 2, a network burned in from the file's counts (its state space not enumerated) is
 probed (:func:`cost_probe`): a few cells from the file's counts at the file's input values, run
@@ -98,7 +98,7 @@ from surrogate.diagnosis.recommendation import (
     balanced_threshold,
     collection_overrides,
     input_ranges,
-    recommend,
+    memory_facts,
     signal_bounds_advice,
 )
 from surrogate.diagnosis.report import (
@@ -121,6 +121,7 @@ from surrogate.models.capabilities import lump_formula_of
 from surrogate.stages import budget
 from surrogate.stages.advice_check import checked
 from surrogate.stages.artefacts import INSPECTION, REPORT
+from surrogate.stages.pilot import pilot_advice, run_pilot
 from surrogate.stages.settings import CollectSettings, InspectSettings
 from surrogate.stages.settings.choice import collecting_pending
 
@@ -305,13 +306,12 @@ def check_printed(
             target["refused"] = reason
             refusals.append(f"{what}: {reason}")
 
-    if advice.get("abstraction"):
-        mark(advice, list(advice.get("overrides") or []), "the abstraction",
-             advice.get("yaml", ""))  # fmt: skip
-    if advice.get("alternative"):
-        alternative = advice["alternative"]
-        mark(alternative, list(alternative["overrides"]), "the declared classes",
-             alternative["yaml"])  # fmt: skip
+    if advice.get("kind"):
+        mark(advice, list(advice.get("overrides") or []), "the pilot's choice (gp=auto)")
+        named: dict[str, Any] = {}
+        mark(named, list(advice.get("named") or []), "the pilot's choice named outright")
+        if "refused" in named:
+            advice["named_refused"] = named["refused"]
     if balanced and yaml_model:
         mark(balanced, [], "the balanced threshold", f'lump: "{balanced["lump"]}"')
     if advice.get("signal_bounds") and yaml_model:
@@ -367,7 +367,15 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     collection = collection_budget(settings, o, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o.burn_in_factor, o.settle_tolerance)
     ranges = input_ranges(network, population)
-    advice = recommend(model, fixed, o, dt, ranges)
+    low = o.min_occupancy
+    never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
+    stops = fixed.stopped is not None and fixed.stopped > 1 - low
+    facts = memory_facts(model, fixed, dt)
+    if never or always or stops:  # refused below, once the report is written
+        pilot = {"ran": False, "note": "skipped: the lump is refused (below)"}
+    else:
+        pilot = _pilot(settings, o, facts["max_age"], step_measured)
+    advice = pilot_advice(settings.config, pilot)
     bounds = signal_bounds_advice(internal, fixed, ranges)
     if bounds:
         advice["signal_bounds"] = bounds
@@ -376,9 +384,6 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
                             collection, "spec" in (settings.config.get("model") or {}),
                             balanced)  # fmt: skip
     lump = lump_formula_of(internal) or "the model's own property"
-    low = o.min_occupancy
-    never, always = bool((fixed.occupancy < low).all()), bool((fixed.occupancy > 1 - low).all())
-    stops = fixed.stopped is not None and fixed.stopped > 1 - low
     summary: dict[str, Any] = {
         "model": model.describe(), "command": settings.command(), "lump": lump,
         "settings": dict(settings.options),
@@ -400,7 +405,8 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
                      "notes": fixed.notes, "estimated_s": fixed.cost},
         "relaxation": {k: v for k, v in fixed.relaxation.items() if k not in ("acf", "acf_se")},
         "burn_in": burn,
-        "memory": {"memory": fixed.memory, "hazards": fixed.hazards},
+        "memory": {"memory": fixed.memory, "hazards": fixed.hazards, "facts": facts},
+        "pilot": pilot,
         "oscillation": fixed.oscillation,
         "stopped": {"share": fixed.stopped, "state": fixed.stopped_state, "stops": stops},
         "cost": {"events_per_window_model": model_events,
@@ -433,12 +439,25 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     write_manifest(out, stage="inspect", config=dict(config) if config is not None
                    else settings.identity(), seed=setup.seed, settings=settings.identity(),
                    device=str(settings.job.device), wall_time_s=summary["wall_time_s"],
-                   occupancy=fixed.occupancy.tolist(), recommendation=advice["abstraction"])  # fmt: skip
+                   occupancy=fixed.occupancy.tolist(), recommendation=advice["kind"])  # fmt: skip
     log.info("inspect: %s iff %s; occupancy %.3g-%.3g over the grid (%s); settling %s; "
-             "relaxation %s; recommended: %s; %.1f s", internal.lump_names[1], lump,
+             "relaxation %s; the pilot's measured choice: %s; %.1f s", internal.lump_names[1], lump,
              float(fixed.occupancy.min()), float(fixed.occupancy.max()), fixed.method,
              settling_text(summary), relaxation_text(summary["relaxation"]),
-             advice["abstraction"], summary["wall_time_s"])  # fmt: skip
+             advice["kind"] or pilot["note"], summary["wall_time_s"])  # fmt: skip
+
+
+def _pilot(
+    settings: InspectSettings, o: InspectOptions, cap: float | None, cell_step: float
+) -> dict[str, Any]:
+    """The pilot's measured choice (:func:`~surrogate.stages.pilot.run_pilot`); a pilot whose
+    settings or collection are refused (a lump collect cannot see, ...) is reported as not
+    run, with why: the inspection's own measurements stand without it."""
+    try:
+        return run_pilot(settings.config, o.pilot, o.max_seconds, cap, cell_step)
+    except ConfigError as error:
+        log.warning("inspect: the pilot's measured choice could not run: %s", error)
+        return {"ran": False, "note": f"could not run: {error}"}
 
 
 def _stopped(summary: dict[str, Any], fixed: FixedInputs) -> str:

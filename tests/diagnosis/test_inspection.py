@@ -35,17 +35,16 @@ from surrogate.diagnosis.population import Grid, Population
 from surrogate.diagnosis.recommendation import (
     balanced_threshold,
     input_ranges,
-    recommend,
+    memory_facts,
     round_sig,
     signal_bounds_advice,
     threshold_lump,
 )
 from surrogate.diagnosis.sensitivity import describe_network
 from surrogate.diagnosis.settling import (
-    RELAXATION_BINS,
-    SLOW_SETTLING_WINDOWS,
     burn_in_advice,
     round_up,
+    settling_estimate,
 )
 from surrogate.diagnosis.simulated import SAMPLES, simulate_fixed_inputs
 from surrogate.evaluate.dynamics import (
@@ -210,7 +209,7 @@ def telegraph(tmp_path: Path, on_rate: float, off_rate: float) -> SbmlAgentModel
     return model
 
 
-def test_a_telegraph_gene_is_recommended_two_states(tmp_path) -> None:
+def test_a_telegraph_gene_is_markov(tmp_path) -> None:
     """Simulated: the hazard is flat (chi-square above the level for both lumps), the relaxation
     time 1 / (a + b) within 4 jackknife standard errors, the occupancy a / (a + b) within 4;
     exactly: the same, from the generator."""
@@ -224,13 +223,13 @@ def test_a_telegraph_gene_is_recommended_two_states(tmp_path) -> None:
     r = fixed.relaxation
     assert abs(r["tau_s"] - 0.5) < 4 * r["se"], r
     assert abs(fixed.occupancy[0] - 0.5) < 4 * fixed.occupancy_se[0]
-    advice = recommend(model, fixed, o, DT)
-    assert advice["abstraction"] == "two-state" and advice["command"].startswith("gp=svgp")
+    advice = memory_facts(model, fixed, DT)
+    assert advice["memory"] is False and advice["max_age"] is None and "Markov" in advice["reason"]
     assert fixed.oscillation is not None and not fixed.oscillation["detected"]
     exact = exact_fixed_inputs(model.internal, grid, options(), DT)
     assert exact.memory is False and exact.relaxation["tau_s"] == pytest.approx(0.5)
     assert exact.oscillation is not None and not exact.oscillation["detected"]
-    assert recommend(model, exact, options(), DT)["abstraction"] == "two-state"
+    assert memory_facts(model, exact, DT)["memory"] is False
 
 
 def test_a_model_that_is_not_a_network_is_inspected_by_its_protocol() -> None:
@@ -251,7 +250,7 @@ def test_a_model_that_is_not_a_network_is_inspected_by_its_protocol() -> None:
     r = fixed.relaxation
     assert abs(r["tau_s"] - 1 / rate[0]) < 4 * r["se"], r
     assert fixed.memory is False
-    assert recommend(model, fixed, o, DT)["abstraction"] == "two-state"
+    assert memory_facts(model, fixed, DT)["memory"] is False
 
 
 def protein(tmp_path: Path, reservoir: bool) -> SbmlAgentModel:
@@ -271,9 +270,9 @@ def protein(tmp_path: Path, reservoir: bool) -> SbmlAgentModel:
     return model
 
 
-def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
-    """Exactly: memory, and classes over P with the threshold and the conditional medians of
-    the stationary law (Poisson(40)) on each side as edges. Simulated: the memory is
+def test_a_slow_hidden_count_has_memory_and_a_clock_cap(tmp_path) -> None:
+    """Exactly: memory, no oscillation, and the switch clock's cap where the hazard flattens
+    (a fact for the pilot's candidates: no kind by rule, issue 52). Simulated: the memory is
     significant (chi-square below the level, departures above the setting)."""
     exact_model = protein(tmp_path, reservoir=True)
     grid = grid_of([1.0])
@@ -282,36 +281,11 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     # a birth-death count is reversible: its autocorrelation never goes negative
     assert exact.oscillation is not None and not exact.oscillation["detected"]
     assert exact.oscillation["depth"] <= 1e-9
-    advice = recommend(exact_model, exact, options(), DT)
-    assert advice["abstraction"] == "classes" and advice["command"] == "gp=classes"
-    # P relaxes in 20 s and settles from the file's 0 in ~92 s (1,840 windows); a network
-    # settling over >= 10,000 windows gets bins that relax, and the reason says why
-    assert advice["settling_s"] < SLOW_SETTLING_WINDOWS * DT
-    slow = dataclasses.replace(exact, settle_phi=np.full_like(exact.settle_phi, 15000 * DT))
-    relaxed = recommend(exact_model, slow, options(), DT)
-    assert relaxed["command"] == "gp=classes gp.class_moves=relaxation"
-    assert "15,000 windows" in relaxed["reason"] and "relax" in relaxed["reason"]
-    # relaxing bins come finer, and their stationary sample grows with them (150 per bin)
-    # relaxation needs bins shared by both lumps: the chooser is told so (shared: true)
-    assert relaxed["yaml"] == (f"classes: {{auto: {{bins: {RELAXATION_BINS}, "
-                               f"shared: true}}}}")  # fmt: skip
-    assert "2400 cells, 150 per bin" in relaxed["reason"]
-    law = stats.poisson(40.0)
-    low = int(law.ppf(0.5 * law.cdf(39)))  # the median of P given P < 40
-    high = int(law.ppf(law.cdf(39) + 0.5 * law.sf(39)))  # ... given P >= 40
-    assert advice["edges"] == [low, 40, high]
-    # each lump's bins on its own side (no class that cannot occur), read by model.classes
-    # a network: the count chosen by measurement; the lump species' bins beside it
-    assert advice["yaml"] == "classes: auto"
-    assert advice["declared"] == (
-        f'classes: {{species: P, edges: {{"off": [{low}], "on": [{high}]}}}}'
-    )
-    import yaml
-
-    from surrogate.models.count_classes import parse_classes
-
-    declared = parse_classes(yaml.safe_load(advice["declared"])["classes"], ["P"], ("off", "on"))
-    assert declared.names == (f"off|P<{low}", f"off|P>={low}", f"on|P<{high}", f"on|P>={high}")
+    advice = memory_facts(exact_model, exact, DT)
+    flat = max(h["flat_from_s"] for h in exact.hazards if h is not None)
+    assert advice["memory"] is True and not advice["oscillation"]
+    assert advice["max_age"] == float(f"{max(flat, DT):.2g}")
+    assert "gp=" not in advice["reason"] and "has memory" in advice["reason"]
     model = protein(tmp_path, reservoir=False)
     o = options(n_cells=100, record_windows=2000, min_time=40.0)
     torch.manual_seed(2)
@@ -319,8 +293,8 @@ def test_a_slow_hidden_count_is_recommended_classes(tmp_path) -> None:
     assert fixed.memory is True
     assert any(h["p_value"] < o.markov_alpha and h["effect"] > o.memory_effect
                for h in fixed.hazards)  # fmt: skip
-    simulated = recommend(model, fixed, o, DT)
-    assert simulated["abstraction"] == "classes" and 40 in simulated["edges"]
+    simulated = memory_facts(model, fixed, DT)
+    assert simulated["memory"] is True and simulated["max_age"] >= DT
 
 
 def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
@@ -335,6 +309,7 @@ def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
     stays below the rule says what would tell. A burn-in above such a lower bound is not told
     to shrink to it."""
     model = protein(tmp_path, reservoir=True)
+    tolerance = options().settle_tolerance
     exact = exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
     assert exact.settled.all()
     cut = dataclasses.replace(
@@ -343,18 +318,15 @@ def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
         settle_network=np.full_like(exact.settle_phi, 230.0),
         relaxation={"tau_s": 419.0, "se": 289.0, "bound": "above"},
     )  # fmt: skip
-    advice = recommend(model, cut, options(), DT)
-    assert advice["command"] == "gp=classes gp.class_moves=relaxation"
-    assert advice["settling_s"] == pytest.approx(math.log(20) * 419.0)
-    assert "not settled by the end of the inspector's 640-s run" in advice["reason"]
-    assert "419 +- 289 s" in advice["reason"] and "(25,104 windows" in advice["reason"]
+    advice = settling_estimate(cut, tolerance)
+    assert advice["seconds"] == pytest.approx(math.log(20) * 419.0)
+    assert "not settled by the end of the inspector's 640-s run" in advice["basis"]
+    assert "419 +- 289 s" in advice["basis"]
     quick = dataclasses.replace(cut, relaxation={"tau_s": 20.0, "se": 1.0, "bound": ""})
-    short = recommend(model, quick, options(), DT)
-    assert short["command"] == "gp=classes" and short["settling_s"] == 320.0
-    assert "below the 10,000 windows" in short["reason"]
-    assert "inspect.max_seconds" in short["reason"]
-    settled = recommend(model, exact, options(), DT)
-    assert "inspect.max_seconds" not in settled["reason"]
+    short = settling_estimate(quick, tolerance)
+    assert short["seconds"] == 320.0 and "inspect.max_seconds" in short["caveat"]
+    settled = settling_estimate(exact, tolerance)
+    assert settled["caveat"] == "" and settled["basis"] == ""
 
     class Unenumerable:
         state_space = None
@@ -365,7 +337,7 @@ def test_a_run_cut_short_reads_its_settling_as_a_bound_and_from_the_relaxation(
     # with the tolerance, the burn-in rests on the settling the recommendation states
     # (ln(20) x 419 s, not half the run): 3 x 1,255 s rounded up
     consistent = burn_in_advice(Unenumerable(), cut, 3.0, 0.05)  # type: ignore[arg-type]
-    assert consistent["settling_s"] == pytest.approx(advice["settling_s"])
+    assert consistent["settling_s"] == pytest.approx(advice["seconds"])
     assert consistent["needed_s"] == 3800 and "419" in consistent["basis"]
     assert consistent["unsettled_points"] == list(range(cut.settled.size))
     Unenumerable.burn_in = 500.0
@@ -400,13 +372,13 @@ def oscillation_of(series: np.ndarray) -> dict:
     return oscillation_dict(found, DT, segment_durations(series))
 
 
-def test_an_oscillating_lump_is_recommended_the_clock_and_a_telegraph_is_not(tmp_path) -> None:
+def test_an_oscillating_lump_gets_the_cycle_as_its_clock_cap_and_a_telegraph_none(tmp_path) -> None:
     """A noisy square wave (segments of 1 s, gamma shape 16: CV 0.25; 1 % of windows flipped):
     the autocorrelation's trough near half the period (1 s), deeper than the threshold by far
     more than its noise, the crest at the period (2 s, within two windows: the envelope pulls it
-    early); the recommendation the switch clock with ``gp.max_age`` one period, even though the
-    lump is a threshold on a count (classes otherwise). A memoryless telegraph (switching 5 % of
-    windows): no negative lobe (its autocorrelation is (1 - 2 p)^lag), the two-state chain."""
+    early); the clock's cap one period, even though the lump is a threshold on a count. A
+    memoryless telegraph (switching 5 % of windows): no negative lobe (its autocorrelation is
+    (1 - 2 p)^lag), Markov, no cap."""
     wave = square_wave(200, 2000, 1.0, 16.0, 0.01, seed=3)
     osc = oscillation_of(wave)
     assert osc["detected"] and osc["depth"] - OSCILLATION_DEPTH > 20 * osc["depth_se"]
@@ -429,17 +401,15 @@ def test_an_oscillating_lump_is_recommended_the_clock_and_a_telegraph_is_not(tmp
                                    hazards=[hazard_dict(h, DT) for h in hz],
                                    oscillation=oscillation)  # fmt: skip
 
-    advice = recommend(model, fixed_for(wave, osc), o, DT)
-    assert advice["abstraction"] == "clock" and advice["oscillation"]
-    assert advice["command"] == f"gp=clock gp.max_age={advice['max_age']:g}"
+    advice = memory_facts(model, fixed_for(wave, osc), DT)
+    assert advice["memory"] is True and advice["oscillation"]
     assert advice["max_age"] == round_up(osc["period_s"])
-    assert "phi oscillates" in advice["reason"] and "bins of P" in advice["reason"]
+    assert "phi oscillates" in advice["reason"] and "gp=" not in advice["reason"]
     flat = telegraph_series(200, 2000, 0.05, seed=4)
     still = oscillation_of(flat)
     assert not still["detected"] and -still["depth"] > -4 * still["depth_se"]  # rho >= 0
     assert all(abs(s["cv"] - math.sqrt(0.95)) < 0.05 for s in still["segments"])  # geometric
-    assert recommend(model, fixed_for(flat, still), o, DT)["abstraction"] == \
-        "two-state"  # fmt: skip
+    assert memory_facts(model, fixed_for(flat, still), DT)["max_age"] is None
 
 
 def _ring(tmp_path):
@@ -463,9 +433,8 @@ def test_a_ring_of_stages_oscillates_exactly(tmp_path) -> None:
     osc = exact.oscillation
     assert exact.memory is True and osc is not None and osc["detected"]
     assert abs(osc["trough_s"] - 1.0) <= 0.1 and abs(osc["period_s"] - 2.0) <= 0.2
-    advice = recommend(model, exact, options(), DT)
-    assert advice["abstraction"] == "clock"
-    assert advice["max_age"] == round_up(osc["period_s"])
+    advice = memory_facts(model, exact, DT)
+    assert advice["oscillation"] and advice["max_age"] == round_up(osc["period_s"])
 
 
 def test_the_clock_covers_the_longest_period_over_the_inputs_range(tmp_path) -> None:
@@ -478,7 +447,7 @@ def test_the_clock_covers_the_longest_period_over_the_inputs_range(tmp_path) -> 
     exact = exact_fixed_inputs(model.internal, grid, options(), DT)
     osc = exact.oscillation
     assert osc is not None and abs(osc["period_s"] - 2.0) <= 0.2
-    advice = recommend(model, exact, options(), DT)
+    advice = memory_facts(model, exact, DT)
     assert advice["max_age"] >= 3.6  # the median's period alone: 2
     periods = {p["at"]: p["period_s"] for p in osc["over_range"]}
     assert abs(periods["L = 0.5"] - 4.0) <= 0.4 and abs(periods["L = 1.5"] - 4 / 3) <= 0.15
@@ -493,13 +462,13 @@ def test_the_clock_covers_the_longest_period_over_the_inputs_range(tmp_path) -> 
     assert [p["at"] for p in sim["over_range"]] == ["L = 0.5", "L = 1.5"]
     low = sim["over_range"][0]
     assert low["detected"] and abs(low["period_s"] - 4.0) <= 0.6
-    assert recommend(model, simulated, o, DT)["max_age"] >= 3.4
+    assert memory_facts(model, simulated, DT)["max_age"] >= 3.4
 
 
-def test_classes_auto_is_recommended_over_the_inputs_range_the_fields_give(tmp_path) -> None:
+def test_the_inputs_range_the_fields_give_is_widened_to_two_digits(tmp_path) -> None:
     """The fields' range of each kinetic input (lowest low and highest high quantile over the
-    fields, widened outward to two significant digits) goes into the recommended yaml, which a
-    model reads back as ``classes: {auto: {over: ...}}``."""
+    fields, widened outward to two significant digits: what ``signal_bounds`` is offered
+    over)."""
     model = protein(tmp_path, reservoir=True)
     fields = {"a": {"inputs": {"s": {"low": 0.8123, "high": 1.234}, "L": {"low": 0, "high": 9}}},
               "b": {"inputs": {"s": {"low": 0.9, "high": 1.5612}}}}  # fmt: skip
@@ -510,18 +479,13 @@ def test_classes_auto_is_recommended_over_the_inputs_range_the_fields_give(tmp_p
     flat = {"a": {"inputs": {"s": {"low": 1.0, "high": 1.0}}}}
     assert input_ranges(model.internal, Population(
         np.zeros((1, 1)), None, None, flat, [], 0.0)) == {}  # fmt: skip
-    exact = exact_fixed_inputs(model.internal, grid_of([1.0]), options(), DT)
-    advice = recommend(model, exact, options(), DT, ranges)
-    assert advice["yaml"] == "classes: {auto: {over: {s: [0.81, 1.6]}}}"
-    assert yaml.safe_load(advice["yaml"]) == {"classes": {"auto": {"over": {"s": [0.81, 1.6]}}}}
-    assert "over the inputs' range the fields give" in advice["reason"]
     assert round_sig(1234.0, math.floor) == 1200.0
     assert round_sig(0.0334, math.ceil) == 0.034
 
 
 def test_a_threshold_lump_is_read_from_its_formula(tmp_path) -> None:
     """``count >= edge`` or ``count < edge`` from any comparison of one species and a number;
-    other lumps give None (the clock is recommended for them)."""
+    other lumps give None."""
 
     class Lump:
         def __init__(self, formula: str) -> None:

@@ -188,14 +188,16 @@ def test_collection_advice_names_the_run_it_needs_and_it_runs(config) -> None:
         ["collect.n_per_state=5000", "collect.max_time=900"],
         ["collect.n_per_state=5000", "collect.n_cells=460"],
     ]
-    advice = {"abstraction": "clock", "overrides": ["gp=clock", "gp.max_age=4"], "yaml": ""}
+    advice = {"kind": "clock max_age=4", "overrides": ["gp.choice.max_ages=[1,2,5,4]"],
+              "named": ["gp=clock", "gp.max_age=4"]}  # fmt: skip
     burn = {"applies": True, "enough": False, "needed_s": 30.0}
     assert inspection.check_printed(config, advice, burn, collection, True) == []
     assert collection["advised"] == sets and "refused" not in advice
-    bad = {"abstraction": "classes", "overrides": ["gp=classes"],
-           "yaml": "classes: {species: D, edges: [1, 3]}"}  # fmt: skip
+    # a cap below one window (dt = 0.05 s) is refused by gp.choice's own check
+    bad = {"kind": "clock max_age=0.01", "named": [],
+           "overrides": ["gp.choice.by=measure", "gp.choice.max_ages=[1,0.01]"]}  # fmt: skip
     (refusal,) = inspection.check_printed(config, bad, {}, {}, True)
-    assert "cannot occur" in bad["refused"] and refusal.startswith("the abstraction")
+    assert "below one window" in bad["refused"] and refusal.startswith("the pilot's choice")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -265,65 +267,68 @@ def _fixed(**changes: Any) -> FixedInputs:
     return dataclasses.replace(base, **changes)
 
 
-OSCILLATION = {"detected": True, "period_s": 3.3, "trough_s": 1.6, "depth": 0.3,
-               "depth_se": 0.02, "crest": 0.2, "coherence_s": 20.0, "bound": False,
-               "depth_threshold": 0.05, "z": 8.0, "over_range": None,
-               "segments": [{"count": 40, "mean_s": 1.6, "cv": 0.3, "q90_s": 2.4}, None]}  # fmt: skip
+def _pilot(chosen: str, cap: float | None, ages: list[float], named: list[str]) -> dict[str, Any]:
+    """A pilot's outcome as :func:`~surrogate.stages.pilot.run_pilot` returns it."""
+    return {"ran": True, "chosen": chosen, "reason": "measured", "named": named, "cap": cap,
+            "cap_added": cap is not None and cap not in ages[:-1], "max_ages": ages}  # fmt: skip
 
 
 def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     tmp_path, compose_cfg, chooser, checks, monkeypatch
 ) -> None:  # fmt: skip
-    """Issue 52: recommend() down each branch (none, two-state, the clock from the hazard and
-    from an oscillation, classes learned and relaxing, with and without the inputs' range),
-    the signal bounds, the burn-in, the collection (rows alone, a longer run or more cells,
-    rows no memory holds) and the balanced threshold, each through check_printed: what it
-    keeps passes the stages' checks, and what it refuses is marked, never printed as advice.
-    Before: the balanced threshold and the declared classes beside `classes: auto` were printed
-    unchecked, and `classes: auto` with relaxation picked the bins relaxation refuses."""
+    """Issue 52: the pilot's recommendation (keep gp=auto, with gp=auto where another group is
+    named, gp.choice.by=measure where the rule is set, the hazard's cap added to
+    gp.choice.max_ages where the pilot chose it; the chosen kind named outright), the signal
+    bounds, the burn-in, the collection (rows alone, a longer run or more cells, rows no memory
+    holds) and the balanced threshold, each through check_printed: what it keeps passes the
+    stages' checks, and what it refuses is marked, never printed as advice."""
+    from surrogate.stages.pilot import pilot_advice
+
     spec = _switch_yaml(tmp_path)
     config = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={spec}"]))
+    named = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={spec}", "gp=svgp"]))
     model = sbml_agent.SbmlAgentModel(spec)
-    o, dt = InspectOptions.from_mapping(inspect_defaults()), 0.05
+    o = InspectOptions.from_mapping(inspect_defaults())
     ranges = {"inducer": (0.0, 0.1)}
-    slow = np.array([2 * settling.SLOW_SETTLING_WINDOWS * dt])
     cases = {
-        "none": (_fixed(memory=None), None),
-        "two-state": (_fixed(memory=False), None),
-        "clock": (_fixed(species_law={}), None),
-        "oscillation": (_fixed(oscillation=OSCILLATION), None),
-        "classes": (_fixed(), None),
-        "classes over": (_fixed(), ranges),
-        "relaxing": (_fixed(settle_phi=slow), None),
-        "relaxing over": (_fixed(settle_phi=slow), ranges),
+        "not run": (config, {"ran": False, "note": "skipped (inspect.pilot.enabled=false)"}),
+        "two-state": (
+            config,
+            _pilot("two-state", 1.6, [1.0, 2.0, 5.0, 1.6], ["gp=svgp", "gp.optimizer=lbfgs"]),
+        ),
+        "a shipped cap": (
+            config,
+            _pilot("clock max_age=2", 2.0, [1.0, 2.0, 5.0], ["gp=clock", "gp.max_age=2"]),
+        ),
+        "the hazard's cap": (
+            config,
+            _pilot("clock max_age=1.6", 1.6, [1.0, 2.0, 5.0, 1.6], ["gp=clock", "gp.max_age=1.6"]),
+        ),
+        "from gp=svgp": (
+            named,
+            _pilot("clock max_age=0.8", 0.8, [1.0, 2.0, 5.0, 0.8], ["gp=clock", "gp.max_age=0.8"]),
+        ),
+        "phases": (config, _pilot("phases", None, [1.0, 2.0, 5.0], ["gp=phases"])),
     }
     printed: dict[str, list[str]] = {}
-    for name, (fixed, over) in cases.items():
-        advice = recommendation.recommend(model, fixed, o, dt, over)
-        bounds = recommendation.signal_bounds_advice(model.internal, fixed, ranges)
+    for name, (cfg, pilot) in cases.items():
+        advice = pilot_advice(cfg, pilot)
+        bounds = recommendation.signal_bounds_advice(model.internal, _fixed(), ranges)
         if bounds:
             advice["signal_bounds"] = bounds
-        assert inspection.check_printed(config, advice, {}, {}, True) == [], name
-        printed[name] = [advice["abstraction"], advice.get("command", "")]
-        if advice["abstraction"] is None:
-            continue
-        assert advice.get("signal_bounds") == "signal_bounds: {inducer: [0.0, 0.1]}", name
-        assert "refused" not in advice and advice["overrides"], name
-        alternative = advice.get("alternative")
-        # the lump's own count's bins, one lump each, were printed in the reason beside
-        # relaxation, which refuses them: now apart, with the learned moves they need
-        assert "declared" not in advice or advice["declared"] not in advice["reason"], name
-        assert (alternative is not None) == (advice["abstraction"] == "classes"), name
-        if alternative is not None:
-            assert "refused" not in alternative, name
-            assert advice_check.check_advice(config, alternative["overrides"],
-                                             alternative["yaml"]) is None  # fmt: skip
-    assert {n: a for n, (a, _) in printed.items()} == {
-        "none": None, "two-state": "two-state", "clock": "clock", "oscillation": "clock",
-        "classes": "classes", "classes over": "classes", "relaxing": "classes",
-        "relaxing over": "classes"}  # fmt: skip
-    assert printed["relaxing"][1] == "gp=classes gp.class_moves=relaxation"
-    assert True in chooser  # relaxation asked the chooser for shared bins
+        assert inspection.check_printed(cfg, advice, {}, {}, True) == [], name
+        assert "refused" not in advice and "named_refused" not in advice, name
+        printed[name] = advice["overrides"]
+        if advice["kind"] is not None:
+            assert advice.get("signal_bounds") == "signal_bounds: {inducer: [0.0, 0.1]}", name
+            for overrides in (advice["overrides"], advice["named"]):
+                assert advice_check.check_advice(cfg, overrides) is None, (name, overrides)
+    rule = ["gp.choice.by=measure"]  # the test suite sets the rule (tests/conftest.py)
+    assert printed == {
+        "not run": [], "two-state": rule, "a shipped cap": rule,
+        "the hazard's cap": [*rule, "gp.choice.max_ages=[1,2,5,1.6]"],
+        "from gp=svgp": ["gp=auto", *rule, "gp.choice.max_ages=[1,2,5,0.8]"],
+        "phases": rule}  # fmt: skip
     # the burn-in of a network too large to enumerate (max_states: 0)
     big = _switch_yaml(tmp_path, max_states=0)
     big_config = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={big}"]))

@@ -40,14 +40,20 @@ def test_the_stage_writes_its_report_and_refuses_an_always_true_lump(tmp_path, c
     time; a lump true in every state is refused with its occupancy measured."""
     _, spec = birth_death(tmp_path, "X >= 1", reservoir=True)
     small = ["model=sbml", f"model.spec={spec}", "fields=[gaussian]", "t_end=20",
-             "equilibration_time=1", "inspect.population_cells=20", "inspect.max_seconds=5"]  # fmt: skip
+             "equilibration_time=1", "inspect.population_cells=20", "inspect.max_seconds=5",
+             "inspect.pilot.enabled=false"]  # fmt: skip
     out = inspection.run(compose_cfg("inspect", small))
     summary = read_json(out / "inspect.json")
     assert (out / "report.md").exists() and (out / "manifest.json").exists()
     assert summary["occupancy"]["method"] == "exact" and summary["refused"] is None
     level = summary["grid"]["median"][0]
     assert summary["occupancy"]["value"] == pytest.approx([poisson_tail(1, K * level / G)])
-    assert "## Recommended abstraction" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "## The chain kind, measured" in report
+    assert (
+        "skipped (inspect.pilot.enabled=false)" in report
+        and summary["recommendation"]["kind"] is None
+    )
     assert inspection.run(compose_cfg("inspect", small)) == out  # reused
     (tmp_path / "always").mkdir()
     _, always = birth_death(tmp_path / "always", "X >= 0", reservoir=True)
@@ -170,11 +176,18 @@ def test_bad_inspect_settings_are_refused_by_name_and_the_command_reproduces(com
 
     for override, message in (("+inspect.cells=3", r"unknown inspect setting\(s\) \['cells'\]"),
                               ("inspect.quantiles=[0.9,0.1]", "inspect.quantiles must be"),
-                              ("inspect.min_occupancy=1.5", "inspect.min_occupancy must be a share")):  # fmt: skip
+                              ("inspect.min_occupancy=1.5", "inspect.min_occupancy must be a share"),
+                              ("inspect.pilot.enabled=2", "inspect.pilot.enabled must be true or false"),
+                              ("inspect.pilot.n_per_state=0", "inspect.pilot.n_per_state must be a positive"),
+                              ("inspect.pilot.n_per_state=1.5", "inspect.pilot.n_per_state must be a positive integer"),
+                              ("inspect.pilot.n_cells=1", "inspect.pilot.n_cells=1 held-out cell"),
+                              ("inspect.pilot.t_end=-1", "inspect.pilot.t_end must be a positive"),
+                              ("+inspect.pilot.cells=3", r"unknown inspect.pilot setting\(s\) \['cells'\]"),
+                              ("inspect.pilot=3", "inspect.pilot must be a group")):  # fmt: skip
         with pytest.raises(ConfigError, match=message):
             InspectSettings.from_config(compose_cfg("inspect", [override]))
     given = ["fields=[gaussian]", "t_end=40", "inspect.n_cells=30", "collect.n_per_state=500",
-             "gp=clock", "seed=2"]  # fmt: skip
+             "gp=clock", "seed=2", "inspect.pilot.n_cells=30", "inspect.pilot.enabled=false"]  # fmt: skip
     settings = InspectSettings.from_config(compose_cfg("inspect", given))
     words = settings.command().split()[2:]
     data = f"data_dir={settings.job.data_dir}"

@@ -26,6 +26,7 @@ from surrogate.config import (
 from surrogate.errors import ConfigError
 from surrogate.io import artefact_dir
 from surrogate.models.capabilities import start_size_of
+from surrogate.stages.settings.choice import collecting_pending
 from surrogate.stages.settings.collect import identity_options
 from surrogate.stages.settings.common import (
     Job,
@@ -47,7 +48,7 @@ COST_GROUPS = tuple(GROUP_CHOICES)
 #: the inspect keys: positive numbers, positive integers, shares in (0, 1) and the quantile pair
 POSITIVE = ("min_time", "max_time", "max_seconds", "burn_in_factor", "memory_effect")
 INTEGERS = ("population_cells", "grid_points", "n_cells", "record_windows", "exact_max_states",
-            "min_switches", "classes_per_side")  # fmt: skip
+            "min_switches")  # fmt: skip
 SHARES = ("population_share", "min_occupancy", "settle_tolerance", "effect_threshold",
           "markov_alpha", "oscillation_depth")  # fmt: skip
 
@@ -107,6 +108,7 @@ class InspectSettings:
             raise ConfigError(f"inspect.quantiles must be [low, high] with 0 <= low < 0.5 < high "
                               f"<= 1, got {q!r}")  # fmt: skip
         o["quantiles"] = [float(q[0]), float(q[1])]
+        o["pilot"] = _pilot(o["pilot"], defaults["pilot"])
         run = {k: c.get(k) for k in RUN_KEYS}
         positive(run, "t_end")
         non_negative(run, "equilibration_time")
@@ -119,8 +121,10 @@ class InspectSettings:
 
     @functools.cached_property
     def reproduce(self) -> ReproduceSettings:
-        """The reproduce settings of the same config: what the reported costs are of."""
-        return ReproduceSettings.from_config(self.config)
+        """The reproduce settings of the same config: what the reported costs are of
+        (``gp=auto``'s measured choice, made by train later, resolved by the rule meanwhile)."""
+        with collecting_pending():
+            return ReproduceSettings.from_config(self.config)
 
     def identity(self) -> dict[str, Any]:
         """What defines the report: the model setup, the fields, the inspect options, the run
@@ -150,8 +154,11 @@ class InspectSettings:
         the groups the costs are of (each relative to reproduce's choice) and the inspect keys
         that differ from the shipped ones."""
         defaults = inspect_defaults()
-        changed = [f"inspect.{k}={format_value(v)}" for k, v in self.options.items()
-                   if _differs(v, defaults.get(k))]  # fmt: skip
+        flat = {k: v for k, v in self.options.items() if k != "pilot"}
+        flat.update({f"pilot.{k}": v for k, v in self.options["pilot"].items()})
+        shipped = {**defaults, **{f"pilot.{k}": v for k, v in defaults["pilot"].items()}}
+        changed = [f"inspect.{k}={format_value(v)}" for k, v in flat.items()
+                   if _differs(v, shipped.get(k))]  # fmt: skip
         run = [f"fields={format_value(list(self.fields))}"]
         run += [f"{k}={format_value(v)}" for k, v in self.run.items() if v is not None]
         groups = []
@@ -159,6 +166,26 @@ class InspectSettings:
             if self.config.get(group) is not None:
                 groups += group_overrides(group, self.config[group], choice)[1:]
         return command_line(INSPECT_CMD, self.setup.overrides(), run, groups, changed)
+
+
+def _pilot(value: Any, defaults: Mapping[str, Any]) -> dict[str, Any]:
+    """``inspect.pilot`` checked (:mod:`surrogate.stages.pilot`), each bad value refused by
+    its key before any work."""
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"inspect.pilot must be a group of {sorted(defaults)}, got {value!r}")
+    p = {**defaults, **known_keys(value, sorted(defaults), "inspect.pilot")}
+    if not isinstance(p["enabled"], bool):
+        raise ConfigError(f"inspect.pilot.enabled must be true or false, got {p['enabled']!r}")
+    positive(p, "n_per_state", "inspect.pilot.", integer=True)
+    positive(p, "n_cells", "inspect.pilot.", integer=True)
+    positive(p, "t_end", "inspect.pilot.")
+    if p["n_cells"] < 2:
+        # the choice's tie rule reads the SE of a paired per-cell difference
+        raise ConfigError(f"inspect.pilot.n_cells={p['n_cells']} held-out cell gives the "
+                          f"choice's paired difference no standard error: use 2 or more "
+                          f"(default {defaults['n_cells']})")  # fmt: skip
+    return {"enabled": p["enabled"], "n_per_state": int(p["n_per_state"]),
+            "n_cells": int(p["n_cells"]), "t_end": float(p["t_end"])}  # fmt: skip
 
 
 def _differs(a: Any, b: Any) -> bool:
