@@ -36,6 +36,8 @@ PHOSPHO = REPO / "examples" / "ecoli_phospho" / "model.yaml"
 GENE_SWITCH = REPO / "examples" / "gene_switch" / "model.yaml"
 TOGGLE = REPO / "examples" / "toggle_switch" / "model.yaml"
 AUTOREGULATION = REPO / "examples" / "autoregulation" / "model.yaml"
+TYSON = REPO / "examples" / "tyson_oscillator" / "model.yaml"
+DIMERISATION = REPO / "examples" / "dimerisation" / "model.yaml"
 DROP = object()  # a key to remove from the spec
 
 
@@ -428,6 +430,43 @@ def test_the_published_examples_load_through_their_yamls() -> None:
     lows = counts.clone()
     lows[:, 3] = torch.tensor([35, 34])
     assert ar.internal.phi((lows,)).tolist() == [1.0, 0.0]  # P = 35 >= 35, P = 34 < 35
+
+
+def test_the_docs_other_public_networks_load_through_their_yamls() -> None:
+    """StochSS's Tyson oscillator (counts in laws over a volume of 300, kt = 400 L, lump
+    Y >= 300) and the textbook's dimerisation (a local input c1 = 0.0332 L, lump P2 >= 87,
+    151 states) load through their yamls as the docs ran them, and a few full-model steps of
+    each keep their laws (the dimerisation conserves P + 2 P2 = 301)."""
+    with pytest.warns(SbmlWarning, match="'rxn1', 'rxn2', 'rxn3', 'rxn4', 'rxn5'"):
+        tyson = SbmlAgentModel(str(TYSON))
+    assert tyson.internal.signal_names == ("kt",) and tyson.internal.species == ("X", "Y")
+    x = torch.tensor([[0.04], [0.07]])  # L: kt = 400 L = 16, 28
+    counts = torch.tensor([[150, 300], [150, 299]])
+    rates = tyson.internal.kinetics.propensities(counts, tyson.internal.kinetic_inputs(x))
+    names = tyson.internal.kinetics.network.reaction_names
+    torch.testing.assert_close(rates[:, names.index("rxn3")], 400 * x[:, 0].double() * 150)
+    # counts, not concentrations: X's production is vol / (1 + (Y / vol)^2) = 300 / 2 at Y = 300
+    assert rates[0, names.index("rxn1")].item() == pytest.approx(150.0)
+    assert tyson.internal.phi((counts,)).tolist() == [1.0, 0.0]  # Y = 300 >= 300, Y = 299
+    assert tyson.internal.burn_in == 130.0
+
+    with pytest.warns(SbmlWarning, match="read with SBML Level 2's defaults"):
+        dimer = SbmlAgentModel(str(DIMERISATION), classes=None)  # no classes: auto (a run)
+    assert dimer.internal.signal_names == ("Dimerisation.c1",)
+    assert dimer.internal.species == ("P", "P2")
+    counts = torch.tensor([[127, 87], [129, 86]])
+    rates = dimer.internal.kinetics.propensities(counts, dimer.internal.kinetic_inputs(x))
+    torch.testing.assert_close(rates[:, 0], 0.0332 * x[:, 0].double() * counts[:, 0] *
+                               (counts[:, 0] - 1) / 2)  # fmt: skip
+    assert dimer.internal.phi((counts,)).tolist() == [1.0, 0.0]  # P2 = 87 >= 87, P2 = 86
+    space = dimer.internal.state_space
+    assert space is not None and space.n_states == 151  # enumerable: exact chain and law
+
+    for model, n in ((tyson, 4), (dimer, 16)):
+        _, phis, state = run_full(model, n_cells=n, steps=10)
+        assert phis.shape == (10, n) and set(phis.unique().tolist()) <= {0.0, 1.0}
+        assert (state >= 0).all()
+    assert (state[:, 0] + 2 * state[:, 1] == 301).all()
 
 
 def test_a_stochss_export_without_substance_units_is_refused_with_the_fix(tmp_path) -> None:

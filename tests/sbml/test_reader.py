@@ -21,6 +21,8 @@ from tests.sbml.builder import Reaction, Species, build
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 TOGGLE = EXAMPLES / "toggle_switch" / "Genetic_Toggle_Switch.sbml"
 AUTOREGULATION = EXAMPLES / "autoregulation" / "ch07-ar-stoch.xml"
+TYSON = EXAMPLES / "tyson_oscillator" / "Tyson_2_State_Oscillator.sbml"
+DIMERISATION = EXAMPLES / "dimerisation" / "ch07-dimer-stoch.xml"
 
 
 def parse(formula: str) -> libsbml.ASTNode:
@@ -895,3 +897,60 @@ def test_a_rule_on_an_input_without_a_value_is_set_from_each_cells_inputs():
     assert read_sbml_string(unset, inputs=["a"]).initial_state.tolist() == [3, 0]
     given = simple(edit=edit, species=species, parameters={"a": 2.0})
     assert read_sbml_string(given, inputs=["a"]).initial_state.tolist() == [3, 5]
+
+
+@pytest.mark.parametrize(
+    "path",
+    [TOGGLE, AUTOREGULATION, AUTOREGULATION.parent / "head" / "ch07-ar-stoch.xml", TYSON,
+     DIMERISATION],
+    ids=lambda path: f"{path.parent.name}/{path.name}",
+)  # fmt: skip
+def test_the_vendored_files_are_the_published_bytes(path: Path) -> None:
+    """Each vendored public file is byte for byte what its README records (the sha256 of the
+    file at the repository and commit named there): no editor, formatter or line-ending rule
+    has touched it."""
+    import hashlib
+    import re
+
+    readme = (path.parent if path.parent.name != "head" else path.parent.parent) / "README.md"
+    text = " ".join(readme.read_text().split())  # the README wraps its lines
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    at = text.index(f"`{path.name}`") if path.parent.name != "head" else text.index("`head/")
+    recorded = re.search(r"sha256 `([0-9a-f]{64})`", text[at:])
+    assert recorded is not None and recorded.group(1) == digest
+
+
+def test_the_tyson_oscillator_reads_its_laws_over_counts():
+    """StochSS's Tyson oscillator (volume 300, amounts in "mole", laws written over counts that
+    divide by `vol` themselves, all five reactions flagged reversible with one-way laws) is
+    read as StochSS simulates it once the yaml says counts: X made at
+    vol / (1 + (Y / vol)^2), Y made at kt X, degraded at kd Y + Y / (a0 + a1 y + a2 y^2) with
+    y = Y / vol."""
+    with pytest.raises(SbmlError, match="substance_units: items"):
+        read_sbml(TYSON)
+    with pytest.raises(SbmlError, match="'X', 'Y' in compartment 'vol' of size 300"):
+        read_sbml(TYSON, substance_units="items")
+    with pytest.warns(SbmlWarning, match="'rxn1', 'rxn2', 'rxn3', 'rxn4', 'rxn5'"):
+        model = read_sbml(TYSON, inputs=["kt"], substance_units="items", species_in_laws="counts")
+    assert model.species == ("X", "Y") and model.initial_state.tolist() == [196, 255]
+    assert model.input_defaults == {"kt": 20.0}
+    x, y = 150, 600  # y / vol = 2
+    rates = model.propensities(torch.tensor([[x, y]]), torch.tensor([30.0]))
+    expected = [300 / (1 + 2.0**2), x, 30.0 * x, y, y / (0.005 + 0.05 * 2 + 0.1 * 2**2)]
+    torch.testing.assert_close(rates[0], torch.tensor(expected, dtype=rates.dtype))
+
+
+def test_the_textbooks_dimerisation_reads_with_level2_defaults():
+    """Wilkinson's dimerisation (Level 3 Version 1 without the attributes Level 3 requires: 11
+    libsbml errors) is read with Level 2's defaults and one warning: 2 P -> P2 at
+    c1 P (P - 1) / 2 (c1 local, the input), P2 -> 2 P at c2 P2, from 301 monomers."""
+    assert libsbml.readSBMLFromFile(str(DIMERISATION)).getNumErrors() == 11
+    with pytest.warns(SbmlWarning, match="read with SBML Level 2's defaults") as record:
+        model = read_sbml(DIMERISATION, inputs=["Dimerisation.c1"])
+    assert len(record) == 1
+    assert model.species == ("P", "P2") and model.initial_state.tolist() == [301, 0]
+    assert model.reaction_names == ("Dimerisation", "Dissociation")
+    assert model.input_defaults == {"Dimerisation.c1": 0.00166}
+    rates = model.propensities(torch.tensor([[41, 130]]), torch.tensor([0.002]))
+    torch.testing.assert_close(rates[0], torch.tensor([0.002 * 41 * 40 / 2, 0.2 * 130],
+                                                      dtype=rates.dtype))  # fmt: skip
