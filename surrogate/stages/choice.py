@@ -100,22 +100,27 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     heldout_seconds = time.perf_counter() - start
     log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
-    scores: list[KindScore] = []
-    for i, (name, tr) in enumerate(plan.candidates.items()):
+    trains, groups = dict(plan.candidates), dict(plan.groups)
+    scores = [_score(name, tr, fits[name], model, inputs, phi, first.seed + i)
+              for i, (name, tr) in enumerate(trains.items())]  # fmt: skip
+    while (longer := plan.longer_clock(max(scores, key=lambda s: s.log_likelihood).name,
+                                       groups)) is not None:  # fmt: skip
+        # the likelihood's best is the clock at the largest cap: its memory may reach past it
+        name, gp = longer
+        assert plan.make is not None  # longer_clock offers none without it
+        log.info("choice: the best is the clock at its largest cap; adding %s", name)
+        trains[name], groups[name] = plan.make(gp), gp
         start = time.perf_counter()
-        fit_dir, fit_seconds = fits[name]
-        request = LayerRequest.of_fit(model, tr, "lookup", None, torch.device("cpu"))
-        layer, _ = tr.kind.decision_layer(request, fit_dir)
-        s = score_kind(name, tr.kind, layer, inputs, phi, setup.dt, model.internal.lump_names,
-                       seed=first.seed + i)  # fmt: skip
-        scores.append(KindScore(s.name, s.complexity, s.log_likelihood, s.per_cell, s.durations,
-                                fit_seconds, time.perf_counter() - start))  # fmt: skip
+        fits[name] = (fitter(trains[name]), time.perf_counter() - start)
+        scores.append(_score(name, trains[name], fits[name], model, inputs, phi,
+                             first.seed + len(scores)))  # fmt: skip
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
-    chosen = plan.candidates[choice.chosen]
+    chosen = trains[choice.chosen]
     overrides = " ".join(chosen.gp_overrides())
     _log(choice, overrides)
     out = plan.directory
-    record = {"chosen": choice.chosen, "reason": choice.reason, "overrides": overrides,
+    record = {"chosen": choice.chosen, "gp": groups[choice.chosen], "reason": choice.reason,
+              "overrides": overrides,
               "fit": str(fits[choice.chosen][0]), "scores": choice.table,
               "heldout": {"cells": int(inputs.shape[0]), "windows": int(inputs.shape[1]),
                           "seconds": heldout_seconds}}  # fmt: skip
@@ -123,13 +128,33 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     write_json(fits[choice.chosen][0] / CHOICE, record)  # beside the chosen fit's files
     write_manifest(out, stage="choice", config=to_dict(config), seed=first.seed,
                    settings={"choice": settings.identity(),
-                             "candidates": {n: t.fit_identity()
-                                            for n, t in plan.candidates.items()}},
+                             "candidates": {n: t.fit_identity() for n, t in trains.items()}},
                    chosen=choice.chosen, reason=choice.reason, fit=record["fit"],
                    scores=choice.table, wall_time_s=time.perf_counter() - t0)  # fmt: skip
     write_json(out / CHOICE, record)  # last: its presence is what settles gp=auto
     log.info("choice: record in %s", out)
     return out
+
+
+def _score(
+    name: str,
+    tr: TrainSettings,
+    fit: tuple[Path, float],
+    model: Any,
+    inputs: torch.Tensor,
+    phi: torch.Tensor,
+    seed: int,
+) -> KindScore:
+    """Candidate ``name``'s held-out score (its layer from its fit directory, as simulate builds
+    it), with its fit's and its score's seconds."""
+    start = time.perf_counter()
+    fit_dir, fit_seconds = fit
+    request = LayerRequest.of_fit(model, tr, "lookup", None, torch.device("cpu"))
+    layer, _ = tr.kind.decision_layer(request, fit_dir)
+    s = score_kind(name, tr.kind, layer, inputs, phi, tr.setup.dt, model.internal.lump_names,
+                   seed=seed)  # fmt: skip
+    return KindScore(s.name, s.complexity, s.log_likelihood, s.per_cell, s.durations,
+                     fit_seconds, time.perf_counter() - start)  # fmt: skip
 
 
 def _log(choice: Choice, overrides: str) -> None:

@@ -15,6 +15,7 @@ from surrogate.stages import train as train_stage
 from surrogate.stages.settings.choice import (
     LBFGS,
     ChoiceSettings,
+    PendingChoice,
     candidate_groups,
     collecting_pending,
 )
@@ -43,6 +44,7 @@ class Plain:
         ({"optimizer": "sgd"}, "gp.choice.optimizer"),
         ({"kinds": ["two-state", "magic"]}, "gp.choice.kinds"),
         ({"kinds": ["clock", "clock"]}, "gp.choice.kinds"),
+        ({"extend": -1}, "gp.choice.extend"),
         ({"cells": 10}, "gp.choice"),
     ],
 )
@@ -144,3 +146,30 @@ def test_pending_choice_is_refused_by_simulate_and_made_by_train(tmp_path: Path)
     assert (chosen.fit_directory / "choice.json").is_file()
     out = simulate_stage.run(sim)
     assert (Path(out) / "manifest.json").is_file()
+    # a clock the choice added at a longer cap is read from the record, not the plan
+    added = {**plan.groups["clock max_age=1"], "max_age": 2.0}
+    (plan.directory / "choice.json").write_text(json.dumps(
+        {**record, "chosen": "clock max_age=2", "gp": added}))  # fmt: skip
+    longer = train_stage.validate(cfg)
+    assert longer.max_age == 2.0 and longer.auto_recipe == "measured: clock max_age=2"
+
+
+def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> None:
+    """The likelihood's best being the clock at the largest cap tried, the choice adds one at
+    twice it (up to gp.choice.extend); a clock below the largest cap, or another kind, none."""
+    settings = ChoiceSettings.from_config({"max_ages": [1, 2], "extend": 2})
+    groups = {"two-state": {"history": "none"}, "clock max_age=1": {"history": "age", "max_age": 1.0},
+              "clock max_age=2": {"history": "age", "max_age": 2.0}}  # fmt: skip
+    plan = PendingChoice(settings, {}, Path("."), groups, make=lambda gp: gp)
+    assert plan.longer_clock("two-state", groups) is None
+    assert plan.longer_clock("clock max_age=1", groups) is None
+    name, gp = plan.longer_clock("clock max_age=2", groups)
+    assert (name, gp["max_age"], gp["history"]) == ("clock max_age=4", 4.0, "age")
+    groups[name] = gp
+    name, gp = plan.longer_clock(name, groups)
+    assert name == "clock max_age=8"
+    groups[name] = gp
+    assert plan.longer_clock(name, groups) is None  # two added: gp.choice.extend=2
+    none = PendingChoice(ChoiceSettings.from_config({"max_ages": [2], "extend": 0}), {},
+                         Path("."), {"clock max_age=2": groups["clock max_age=2"]}, lambda g: g)  # fmt: skip
+    assert none.longer_clock("clock max_age=2", none.groups) is None

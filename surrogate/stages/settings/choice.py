@@ -20,8 +20,8 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -56,6 +56,7 @@ DEFAULTS: dict[str, Any] = {
     "tie_se": 1.0,
     "duration_tolerance": 0.03,
     "optimizer": "lbfgs",
+    "extend": 2,
 }
 
 
@@ -75,6 +76,9 @@ class ChoiceSettings:
     tie_se: float
     duration_tolerance: float
     optimizer: str
+    #: clocks the choice may add, each at twice the largest cap, while the best is a clock at
+    #: the largest cap tried (the memory reaches past it: Tyson's oscillator, period 3.5 s)
+    extend: int = 2
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -113,7 +117,7 @@ class ChoiceSettings:
         return cls(str(options["by"]), tuple(str(k) for k in kinds), tuple(caps), n_cells, _number(options, "t_end"),
                    _number(options, "equilibration_time", zero=True),
                    _number(options, "tie_se"), _number(options, "duration_tolerance"),
-                   str(options["optimizer"]))  # fmt: skip
+                   str(options["optimizer"]), _count(options, "extend"))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -140,7 +144,16 @@ class ChoiceSettings:
         """What the held-out run and the choice depend on (not ``by``: the rule makes none)."""
         return {"kinds": list(self.kinds), "max_ages": list(self.max_ages), "n_cells": self.n_cells, "t_end": self.t_end,
                 "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
-                "duration_tolerance": self.duration_tolerance}  # fmt: skip
+                "duration_tolerance": self.duration_tolerance, "extend": self.extend}  # fmt: skip
+
+
+def _count(options: Mapping[str, Any], key: str) -> int:
+    """``gp.choice.<key>``: an integer >= 0."""
+    value = options[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ConfigError(f"gp.choice.{key} must be an integer >= 0, got {value!r}; default "
+                          f"{DEFAULTS[key]!r}")  # fmt: skip
+    return value
 
 
 def _number(options: Mapping[str, Any], key: str, integer: bool = False, zero: bool = False) -> Any:
@@ -216,6 +229,26 @@ class PendingChoice:
     settings: ChoiceSettings
     candidates: dict[str, Any]  # name -> TrainSettings (a Candidate)
     directory: Path
+    #: the candidates' gp groups (by name), and what makes a candidate's train settings of a
+    #: gp group on the same collection (a clock at a longer cap, :meth:`longer_clock`)
+    groups: dict[str, dict[str, Any]] = field(default_factory=dict)
+    make: Callable[[dict[str, Any]], Any] | None = None
+
+    def longer_clock(
+        self, name: str, groups: Mapping[str, dict[str, Any]]
+    ) -> tuple[str, dict[str, Any]] | None:
+        """A clock candidate at twice ``name``'s cap, where ``name`` is a clock at the largest
+        cap among ``groups`` (the candidates so far) and extensions are left
+        (``gp.choice.extend``): the memory may reach past it."""
+        gp = groups.get(name)
+        if gp is None or gp.get("history") != "age" or self.make is None:
+            return None
+        caps = [g["max_age"] for g in groups.values() if g.get("history") == "age"]
+        extended = len(caps) - len(self.settings.max_ages)
+        if gp["max_age"] < max(caps) or extended >= self.settings.extend:
+            return None
+        age = 2.0 * float(gp["max_age"])
+        return f"clock max_age={age:g}", {**gp, "max_age": age}
 
     def command(self) -> str:
         """The command that makes it (the first candidate's train command with ``gp=auto``)."""
@@ -242,17 +275,19 @@ def collecting_pending() -> Iterator[list[PendingChoice]]:
         _PENDING.reset(token)
 
 
-def stored_choice(plan: PendingChoice) -> str | None:
-    """The chosen candidate's name where ``plan``'s record exists (None: not made yet)."""
+def stored_choice(plan: PendingChoice) -> tuple[str, dict[str, Any]] | None:
+    """The chosen candidate's name and gp group where ``plan``'s record exists (None: not made
+    yet); a clock the choice added at a longer cap is in the record, not among the plan's."""
     path = plan.directory / CHOICE
     if not path.is_file():
         return None
-    chosen = read_json(path, made_by=plan.command()).get("chosen")
-    if chosen not in plan.candidates:
+    record = read_json(path, made_by=plan.command())
+    chosen, gp = str(record.get("chosen")), record.get("gp")
+    if chosen not in plan.candidates and not isinstance(gp, dict):
         raise ConfigError(f"{path} chose {chosen!r}, not one of the candidates "
                           f"{sorted(plan.candidates)}: remove the directory and run "
                           f"`{plan.command()}` again")  # fmt: skip
-    return str(chosen)
+    return chosen, dict(gp) if isinstance(gp, dict) else plan.groups[chosen]
 
 
 def pending(plan: PendingChoice) -> None:

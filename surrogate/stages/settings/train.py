@@ -388,12 +388,15 @@ def _measured(
                 "choice": choice.identity(), "seed": setup.seed}  # fmt: skip
     plan = PendingChoice(choice, candidates,
                          artefact_dir(job.data_dir, "choice", {"model": setup.model.name},
-                                      identity))  # fmt: skip
-    chosen = stored_choice(plan)
-    if chosen is None:
+                                      identity), groups,
+                         lambda gp: cls._build(setup, source, job, gp))  # fmt: skip
+    stored = stored_choice(plan)
+    if stored is None:
         pending(plan)
         return None
-    return dataclasses.replace(candidates[chosen], auto_recipe=f"{MEASURED}: {chosen}",
+    chosen, gp = stored
+    settings = candidates[chosen] if chosen in candidates else cls._build(setup, source, job, gp)
+    return dataclasses.replace(settings, auto_recipe=f"{MEASURED}: {chosen}",
                                choice_directory=plan.directory)  # fmt: skip
 
 
