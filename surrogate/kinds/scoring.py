@@ -7,8 +7,8 @@ full-model phi sequences, and the best one picked.
   input traces: the two-sample KS and the mean's relative difference of the simulated segment
   durations per lump against the observed ones (:func:`duration_scores`).
 * :func:`choose`: the best kind by log-likelihood per window among those whose simulated
-  durations hold (:func:`holds_durations`: every lump's KS within its critical value and mean
-  within a tolerance; all candidates where none does); a candidate within the standard error of
+  durations hold (:func:`holds_durations`: every lump's mean within a tolerance; all
+  candidates where none does); a candidate within the standard error of
   that best (of the paired difference over held-out cells) is a tie, which goes to the simplest
   (:attr:`ChainKind.complexity <surrogate.kinds.base.ChainKind.complexity>`).
 
@@ -192,12 +192,14 @@ class Choice:
 
 
 def holds_durations(score: KindScore, tolerance: float) -> bool:
-    """Whether ``score``'s simulated durations hold on every lump: the KS within its 5 %
-    critical value and the means' relative difference within ``tolerance`` (a lump with too
-    few segments to compare, NaN, does not hold)."""
+    """Whether ``score``'s simulated durations hold on every lump: the means' relative
+    difference within ``tolerance`` (a lump with too few segments to compare, NaN, does not
+    hold). Not the KS: at 1,000 held-out cells its critical value (~0.008) sees shape
+    differences of a fraction of a percent that the population checks do not (E. coli's K
+    lumps, at the noise floor at 1e5 cells, miss it by 0.003 on tumbles), and the likelihood
+    already weighs the durations' shape."""
     return bool(score.durations) and all(
-        d.ks <= d.ks_critical_05 and abs(d.mean_rel_diff) <= tolerance
-        for d in score.durations.values()
+        abs(d.mean_rel_diff) <= tolerance for d in score.durations.values()
     )  # NaN compares false
 
 
@@ -269,8 +271,7 @@ def choose(
                   f"(complexity {chosen.complexity} < {best.complexity})")  # fmt: skip
     if duration_tolerance is not None:
         left = [s.name for s in scores if not holding[s.name]]
-        rule = (f"every lump's KS within its critical value and mean within "
-                f"{duration_tolerance:.0%}")  # fmt: skip
+        rule = f"every lump's mean within {duration_tolerance:.0%}"
         if len(pool) < len(scores):
             gap, se = _paired(top, best)
             reason += (f"; chosen among the {len(pool)} that hold their durations ({rule}), not "

@@ -299,13 +299,15 @@ def test_choose_ties_go_to_the_simpler_kind() -> None:
 
 
 def test_a_candidate_whose_durations_miss_is_not_chosen() -> None:
-    """The likelihood's best whose simulated durations miss (its KS over the critical value,
-    or its mean off by more than the tolerance) gives way to the best that holds them; where
-    none holds, the likelihood alone chooses, and the reason says so."""
+    """The likelihood's best whose simulated mean durations miss (off by more than the
+    tolerance on a lump) gives way to the best that holds them; a KS over its critical value
+    alone does not rule a candidate out; where none holds, the likelihood alone chooses, and
+    the reason says so."""
     rng = np.random.default_rng(1)
     base = rng.normal(-0.2, 0.01, 400)
     holds = {"off": DurationScore(0.01, 0.02, 0.005, 0.003, 900, 900)}
-    ks_miss = {"off": DurationScore(0.05, 0.02, 0.005, 0.003, 900, 900)}
+    ks_miss = {"off": DurationScore(0.05, 0.02, -0.04, 0.003, 900, 900)}
+    ks_only = {"off": DurationScore(0.05, 0.02, 0.005, 0.003, 900, 900)}
     mean_miss = {"off": DurationScore(0.01, 0.02, 0.08, 0.003, 900, 900)}
 
     def score(name: str, complexity: int, shift: float, durations: dict) -> KindScore:
@@ -320,6 +322,8 @@ def test_a_candidate_whose_durations_miss_is_not_chosen() -> None:
     rows = {r["kind"]: r for r in picked.table}
     assert rows["phases"]["diff_from_best"] == 0.0 and not rows["phases"]["holds_durations"]
     assert choose([best, second], 1.0, None).chosen == "phases"  # the likelihood alone
+    shape = score("phases", 3, 1e-3, ks_only)
+    assert choose([shape, second], 1.0, 0.03).chosen == "phases"  # the KS alone rules none out
     neither = choose([best, score("two-state", 0, 0.0, mean_miss)], 1.0, 0.03)
     assert neither.chosen == "phases" and "likelihood alone" in neither.reason
 
