@@ -233,6 +233,8 @@ class PendingChoice:
     #: gp group on the same collection (a clock at a longer cap, :meth:`longer_clock`)
     groups: dict[str, dict[str, Any]] = field(default_factory=dict)
     make: Callable[[dict[str, Any]], Any] | None = None
+    #: the train command that makes it (None: the first candidate's, with ``gp=auto``)
+    made_by: str | None = None
 
     def longer_clock(
         self, name: str, groups: Mapping[str, dict[str, Any]]
@@ -252,6 +254,8 @@ class PendingChoice:
 
     def command(self) -> str:
         """The command that makes it (the first candidate's train command with ``gp=auto``)."""
+        if self.made_by is not None:
+            return self.made_by
         first = next(iter(self.candidates.values()))
         head = first.command().split(" gp=")[0]
         return f"{head} gp=auto"

@@ -31,6 +31,7 @@ from surrogate.kinds import (
 )
 from surrogate.models.capabilities import start_size_of
 from surrogate.stages.settings.choice import (
+    DEFAULTS,
     ChoiceSettings,
     PendingChoice,
     candidate_groups,
@@ -389,7 +390,9 @@ def _measured(
     plan = PendingChoice(choice, candidates,
                          artefact_dir(job.data_dir, "choice", {"model": setup.model.name},
                                       identity), groups,
-                         lambda gp: cls._build(setup, source, job, gp))  # fmt: skip
+                         lambda gp: cls._build(setup, source, job, gp),
+                         command_line(TRAIN_CMD, [*setup.overrides(), *source._overrides()],
+                                      _choice_overrides(raw_gp), job.device_overrides()))  # fmt: skip
     stored = stored_choice(plan)
     if stored is None:
         pending(plan)
@@ -398,6 +401,22 @@ def _measured(
     settings = candidates[chosen] if chosen in candidates else cls._build(setup, source, job, gp)
     return dataclasses.replace(settings, auto_recipe=f"{MEASURED}: {chosen}",
                                choice_directory=plan.directory)  # fmt: skip
+
+
+def _choice_overrides(raw_gp: Mapping[str, Any]) -> list[str]:
+    """``gp=auto`` and the ``gp.choice`` keys that differ from conf/gp/auto.yaml's (what the
+    command that makes a measured choice needs)."""
+    default = {**DEFAULTS, "by": "measure"}
+    given = raw_gp.get("choice") or {}
+    return ["gp=auto", *(f"gp.choice.{k}={_override_value(v)}" for k, v in given.items()
+                         if k in default and default[k] != v)]  # fmt: skip
+
+
+def _override_value(value: Any) -> str:
+    """A value as a Hydra override writes it (lists without spaces)."""
+    if isinstance(value, list | tuple):
+        return "[" + ",".join(_override_value(v) for v in value) + "]"
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str, Any]:
