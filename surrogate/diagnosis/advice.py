@@ -30,7 +30,12 @@ range) and names, in order, the first causes that apply:
    finer than phi (``gp=classes``, with ``model.classes=auto`` for a network) or a switch clock
    (``gp=clock``). Where the clock ran already, what was not tried (:func:`~surrogate.diagnosis.remedies.clock_step`): a
    longer clock (twice ``gp.max_age``), more transitions, and classes only where the memory is
-   a slow count rather than a cycle's phase; never the setting in use.
+   a slow count rather than a cycle's phase; never the setting in use. Where the chain was
+   chosen by measurement (``gp=auto``), through the choice, not around it
+   (:func:`~surrogate.diagnosis.remedies.choice_remedies`): wider candidates (a longer cap in
+   ``gp.choice.max_ages`` where the clock won at the largest; the memory families
+   ``gp.choice.kinds`` left out), more held-out cells where the choice was a tie, more
+   transitions, and the next candidate with more memory only as an explicit alternative.
 
 None applying: every comparison is within the noise floor or the critical value at this
 population size; trust it there and check at scale (``scripts/fidelity.py``).
@@ -46,7 +51,9 @@ from typing import Any
 from surrogate.diagnosis.remedies import (
     Advisor,
     Check,
+    MeasuredChoice,
     Remedy,
+    choice_remedies,
     clock_remedies,
     coarser_remedy,
     more_rows,
@@ -153,6 +160,8 @@ class VerdictInputs:
         max_age: the switch clock's cap (s) where the chain ran with one (``kind.clock``).
         count_classes: the model's classes where they are bins of a count: coarser classes
             are then advised as edges (:func:`~surrogate.diagnosis.remedies.coarser_classes`).
+        choice: the measured choice that chose ``kind`` (``gp=auto``); None where the kind was
+            named or the rule chose it. Its memory remedies then work through the choice.
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -167,6 +176,7 @@ class VerdictInputs:
     class_shares: Mapping[str, Any] | None = None
     max_age: float | None = None
     count_classes: CountClasses | None = None
+    choice: MeasuredChoice | None = None
 
 
 def verdict(  # noqa: C901  # one branch per first cause, in the report's order
@@ -282,11 +292,14 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         if kind.relaxation:
             remedies = [more, Remedy("other_classes", "other classes (`model.classes`)")]
         else:
-            remedies = [Remedy("relaxation", "`gp.class_moves=relaxation` where the classes "
+            # under gp=auto the group has no class_moves: relaxation is K lumps named outright
+            relax = (("gp=classes", "gp.class_moves=relaxation") if run.choice is not None
+                     else ("gp.class_moves=relaxation",))  # fmt: skip
+            beside = " (outside the measured choice)" if run.choice is not None else ""
+            remedies = [Remedy("relaxation", f"`{' '.join(relax)}`{beside} where the classes "
                                "are bins of a slow count (the learned moves between bins, rare "
                                "per window and mostly a count jittering across an edge, mix "
-                               "them faster than the count moves)",
-                               ("gp.class_moves=relaxation",)),
+                               "them faster than the count moves)", relax),
                         more]  # fmt: skip
         causes.append((
             name,
@@ -305,7 +318,13 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
                    if network else
                    Remedy("classes", "classes finer than phi, `gp=classes` where the model "
                           "declares classes", ("gp=classes",)))  # fmt: skip
-        if kind.classes:
+        if run.choice is not None:  # the measured choice: widen or sharpen it
+            other = ([Remedy("other_classes", "More classes or other bins (`model.classes`): "
+                             "the K-lumps candidate changes, and the choice measures it again.")]
+                     if kind.classes else [])  # fmt: skip
+            step = advisor.step(name, other + choice_remedies(run.choice, n_per_state, network),
+                                sep=" ")  # fmt: skip
+        elif kind.classes:
             step = advisor.step(name, [
                 Remedy("other_classes", "more classes or other bins (`model.classes`)"),
                 more_rows(n_per_state, "more transitions per class ({more})")], then=".")  # fmt: skip

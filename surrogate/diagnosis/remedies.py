@@ -1,11 +1,15 @@
 """The remedies the verdict (:mod:`surrogate.diagnosis.advice`) prints: each a setting to change,
 checked before it is printed and never advised again where a previous run applied it without a
-gain; coarser classes as concrete edges; what the switch clock tries next."""
+gain; coarser classes as concrete edges; what the switch clock tries next; and, where the chain
+was chosen by measurement (``gp=auto``), what widens or sharpens that choice rather than a kind
+named around it (:func:`choice_remedies`)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from surrogate.models.count_classes import CountClasses
 
@@ -171,10 +175,152 @@ def clock_step(max_age: float | None, n_per_state: int | None, classes: str) -> 
     return " ".join(r.text for r in remedies)
 
 
+@dataclass(frozen=True)
+class MeasuredChoice:
+    """What the verdict reads of the measured choice that made the run's chain (``gp=auto``:
+    the record's ``choice.json`` and the ``gp.choice`` settings it was made with).
+
+    Attributes:
+        chosen: the chosen candidate's name (``two-state``, ``clock max_age=2``, ``classes``,
+            ``phases``).
+        scores: the record's table, one row per candidate (``kind``, ``complexity``,
+            ``log_likelihood_per_window``, ``diff_from_best``, ``diff_se``,
+            ``tied_with_best``, ``holds_durations``).
+        kinds: ``gp.choice.kinds``: the candidate families asked for.
+        max_ages: ``gp.choice.max_ages`` (s): the clock's caps tried.
+        n_cells: ``gp.choice.n_cells``: the held-out full-model cells.
+        tie_se: ``gp.choice.tie_se``: how many SE make a tie.
+        classes: whether the model declares classes (K lumps can be a candidate).
+    """
+
+    chosen: str
+    scores: tuple[Mapping[str, Any], ...]
+    kinds: tuple[str, ...]
+    max_ages: tuple[float, ...]
+    n_cells: int
+    tie_se: float
+    classes: bool
+
+
+#: the candidate families that hold memory phi alone forgets (two-state holds none)
+MEMORY_FAMILIES = ("clock", "classes", "phases")
+
+
+def candidate_cap(name: str) -> float | None:
+    """The switch clock's cap (s) of a candidate named ``clock max_age=X``; None otherwise."""
+    head = "clock max_age="
+    return float(name[len(head):]) if name.startswith(head) else None  # fmt: skip
+
+
+def candidate_overrides(name: str) -> tuple[str, ...]:
+    """The overrides that train candidate ``name`` outright, without the choice:
+    ``gp=svgp`` (two-state), ``gp=clock gp.max_age=X``, else ``gp=<name>`` (its recipe)."""
+    cap = candidate_cap(name)
+    if cap is not None:
+        return ("gp=clock", f"gp.max_age={cap:g}")
+    return ("gp=svgp",) if name == "two-state" else (f"gp={name}",)
+
+
+def _listed(values: Sequence[Any]) -> str:
+    return "[" + ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in values) + "]"
+
+
+def _holds_more_memory(row: Mapping[str, Any], chosen: Mapping[str, Any]) -> bool:
+    """Whether candidate ``row`` holds more memory than the ``chosen`` one: a clock with a
+    longer cap, else a more complex kind."""
+    cap, chosen_cap = candidate_cap(str(row["kind"])), candidate_cap(str(chosen["kind"]))
+    if cap is not None and chosen_cap is not None:
+        return cap > chosen_cap
+    return int(row["complexity"]) > int(chosen["complexity"])
+
+
+def _standing(row: Mapping[str, Any]) -> str:
+    """A candidate's standing in the table, in words."""
+    gap, se = float(row["diff_from_best"]), float(row.get("diff_se") or math.nan)
+    if gap == 0:
+        where = "had the highest held-out log-likelihood"
+    elif math.isfinite(se) and se > 0:
+        where = f"was {-gap / se:.1f} SE below the best held-out log-likelihood"
+    else:
+        where = f"was {-gap:.1e} per window below the best held-out log-likelihood"
+    return where + ("" if row.get("holds_durations") else " and did not hold its durations")
+
+
+def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bool) -> list[Remedy]:
+    """The next steps where the runs miss memory that the kind the measured choice chose
+    (``gp=auto``) does not hold: work through the choice, not around it (a kind named outright
+    throws the measurement away). In order: wider candidates (a longer cap where the clock was
+    chosen at the largest of ``gp.choice.max_ages``; the memory families ``gp.choice.kinds``
+    left out; K lumps over ``++model.classes=auto`` for a network that declares no classes);
+    more held-out cells where the choice was a tie within its SE (four times: the SE halves);
+    more transitions; last, as an explicit alternative outside the choice, the best candidate
+    that holds more memory than the chosen (a longer clock or a more complex kind), named with
+    its standing in the table.
+
+    Args:
+        choice: the measured choice's record and settings.
+        n_per_state: the collection's transitions per origin (None: unknown).
+        network: whether the model is a reaction network (``model.classes=auto`` applies).
+    """
+    rows = {str(r["kind"]): r for r in choice.scores}
+    chosen = rows.get(choice.chosen)
+    out: list[Remedy] = []
+    cap = candidate_cap(choice.chosen)
+    if cap is not None and cap >= max(choice.max_ages):
+        ages = _listed([*choice.max_ages, 2 * cap])
+        out.append(Remedy("wider_caps", f"The choice chose the switch clock at its largest cap, "
+                          f"{cap:g} s, and an age beyond the cap is clamped to it: a longer cap "
+                          f"among the candidates, `gp.choice.max_ages={ages}` (the choice "
+                          f"measures it against the rest).", (f"gp.choice.max_ages={ages}",)))  # fmt: skip
+    # K lumps are a candidate only where the model declares classes: a network gets them
+    auto_classes = not choice.classes and network
+    missing = [f for f in MEMORY_FAMILIES if f not in choice.kinds
+               and (f != "classes" or choice.classes or auto_classes)]  # fmt: skip
+    overrides: list[str] = []
+    if missing:
+        kinds = [*choice.kinds, *missing]
+        overrides.append(f"gp.choice.kinds=[{','.join(kinds)}]")
+    if auto_classes and ("classes" in choice.kinds or "classes" in missing):
+        overrides.append("++model.classes=auto")
+    if overrides:
+        left = f"left {', '.join(missing)} out (`gp.choice.kinds`)" if missing else ""
+        none = "had no K lumps (the model declares no classes)" if auto_classes else ""
+        out.append(Remedy("wider_kinds", f"The choice {' and '.join(w for w in (left, none) if w)}: "
+                          f"wider candidates, `{' '.join(overrides)}`"
+                          + (" (`model.classes=auto` chooses bins of the count that holds the "
+                             "memory)" if auto_classes else "") + ".", tuple(overrides)))  # fmt: skip
+    tied = [k for k, r in rows.items() if r.get("tied_with_best") and k != choice.chosen]
+    if tied:
+        n = 4 * choice.n_cells
+        out.append(Remedy("more_cells", f"The choice was a tie within {choice.tie_se:g} SE "
+                          f"between {choice.chosen} (chosen) and {', '.join(tied)}: four times "
+                          f"the held-out cells, `gp.choice.n_cells={n}`, halve the SE and may "
+                          f"tell them apart.", (f"gp.choice.n_cells={n}",)))  # fmt: skip
+    out.append(more_rows(n_per_state, "More transitions ({more}): every candidate's fit "
+                         "sharpens, and with it the choice."))  # fmt: skip
+    if chosen is not None:
+        more = [r for k, r in rows.items() if k != choice.chosen and _holds_more_memory(r, chosen)]
+        runner = max(more, key=lambda r: (bool(r.get("holds_durations")),
+                                          float(r["log_likelihood_per_window"])), default=None)  # fmt: skip
+        if runner is not None:
+            name = str(runner["kind"])
+            named = candidate_overrides(name)
+            out.append(Remedy("runner_up", f"Outside the choice (it throws the measurement "
+                              f"away): the next candidate with more memory, {name}, "
+                              f"{_standing(runner)}: `{' '.join(named)}` to try it outright.",
+                              named))  # fmt: skip
+    return out
+
+
 __all__ = [
+    "MEMORY_FAMILIES",
     "Advisor",
     "Check",
+    "MeasuredChoice",
     "Remedy",
+    "candidate_cap",
+    "candidate_overrides",
+    "choice_remedies",
     "classes_override",
     "clock_remedies",
     "clock_step",

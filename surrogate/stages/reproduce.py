@@ -23,6 +23,7 @@ import pandas as pd
 import torch
 
 from surrogate.config import to_dict
+from surrogate.diagnosis.remedies import MeasuredChoice
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
 from surrogate.evaluate.statistics import family_failures
 from surrogate.io import (
@@ -44,6 +45,7 @@ from surrogate.stages.collect import collect
 from surrogate.stages.settings import (
     CollectSettings,
     ReproduceSettings,
+    TrainSettings,
 )
 from surrogate.stages.settings.choice import CHOICE
 from surrogate.stages.simulate import build_decision, simulate_together
@@ -382,6 +384,7 @@ def _verdict(
         network=isinstance(tr.setup.model.internal, NetworkInternalModel),
         n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
         max_age=tr.max_age if tr.kind.clock else None, count_classes=count_classes,
+        choice=measured_choice(tr),
     )  # fmt: skip
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip
@@ -394,6 +397,28 @@ def _verdict(
             f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
             f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
     return v.markdown() + note
+
+
+def measured_choice(tr: TrainSettings) -> MeasuredChoice | None:
+    """What the verdict reads of the measured choice that made ``tr``'s chain (its record's
+    ``choice.json`` and the ``gp.choice`` settings in its manifest), or None where the chain
+    was named or the rule chose it."""
+    from surrogate.models.capabilities import lump_classes_of
+
+    directory = tr.measured_choice()
+    if directory is None:
+        return None
+    record = read_json(directory / CHOICE, made_by="python scripts/train.py gp=auto")
+    options = read_manifest(directory, made_by="python scripts/train.py gp=auto")["settings"][
+        "choice"
+    ]
+    return MeasuredChoice(
+        chosen=str(record["chosen"]), scores=tuple(record["scores"]),
+        kinds=tuple(str(k) for k in options["kinds"]),
+        max_ages=tuple(float(a) for a in options["max_ages"]), n_cells=int(options["n_cells"]),
+        tie_se=float(options["tie_se"]),
+        classes=lump_classes_of(tr.setup.model.internal) is not None,
+    )  # fmt: skip
 
 
 #: the verdict's record in a report's directory (:func:`~surrogate.stages.advice.verdict_record`)

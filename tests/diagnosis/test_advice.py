@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from surrogate.diagnosis.advice import VerdictInputs, verdict
+from surrogate.diagnosis.remedies import MeasuredChoice
 from surrogate.kinds import chain_kind
 
 
@@ -110,3 +111,63 @@ def test_a_failing_clock_is_told_what_was_not_tried() -> None:
     assert "cycle's phase" in step
     # without a clock, the clock is still offered
     assert "`gp=clock`" in _read(failures={"gaussian": ["off"]}).causes[0][2]
+
+
+def _row(kind: str, complexity: int, gap: float, se: float = 2e-5, tied: bool = False,
+         holds: bool = True) -> dict[str, Any]:  # fmt: skip
+    """A row of a measured choice's table (the log-likelihood the gap from a best at -0.345)."""
+    return {"kind": kind, "complexity": complexity, "log_likelihood_per_window": -0.345 + gap,
+            "diff_from_best": gap, "diff_se": se, "tied_with_best": tied,
+            "holds_durations": holds}  # fmt: skip
+
+
+def _choice(chosen: str, rows: list[dict[str, Any]], **changes: Any) -> MeasuredChoice:
+    base = {"kinds": ("two-state", "clock", "classes", "phases"), "max_ages": (1.0, 2.0, 5.0),
+            "n_cells": 1000, "tie_se": 1.0, "classes": False}  # fmt: skip
+    return MeasuredChoice(chosen, tuple(rows), **{**base, **changes})
+
+
+def test_memory_under_a_measured_choice_widens_the_choice_not_a_kind() -> None:
+    """gp=auto chose the clock at its largest cap: the memory remedy widens the caps and the
+    families left out, names no kind but the runner-up with more memory (with its standing),
+    and never doubles gp.max_age (which, under gp=auto, set every clock candidate's cap alike)."""
+    rows = [_row("two-state", 0, -4e-4), _row("clock max_age=1", 1, -1e-4),
+            _row("clock max_age=5", 1, 0.0), _row("phases", 3, -8e-5, holds=False)]  # fmt: skip
+    choice = _choice("clock max_age=5", rows, kinds=("two-state", "clock", "phases"))
+    v = _read(failures={"gaussian": ["off"]}, history="age", max_age=5.0, choice=choice)
+    (cause,) = v.causes
+    kinds = [r.kind for _, r in v.remedies]
+    assert kinds == ["wider_caps", "wider_kinds", "more_rows", "runner_up"]
+    overrides = {r.kind: r.overrides for _, r in v.remedies}
+    assert overrides["wider_caps"] == ("gp.choice.max_ages=[1,2,5,10]",)
+    assert overrides["wider_kinds"] == ("gp.choice.kinds=[two-state,clock,phases,classes]",
+                                        "++model.classes=auto")  # fmt: skip
+    assert overrides["runner_up"] == ("gp=phases",)
+    assert "phases, was 4.0 SE below the best" in cause[2] and "did not hold" in cause[2]
+    assert "gp.max_age=10" not in cause[2] and "`gp=clock`" not in cause[2]
+    # the named chain (no choice): today's remedy, the cap doubled
+    named = _read(failures={"gaussian": ["off"]}, history="age", max_age=5.0)
+    assert named.remedies[0][1].kind == "longer_clock"
+
+
+def test_a_tie_asks_for_more_held_out_cells_and_no_wider_cap_below_the_largest() -> None:
+    """Two-state chosen as the simplest of a tie: four times the held-out cells; no longer cap
+    (the clock did not win at its largest), every family already a candidate, and a model
+    that declares classes (K lumps were a candidate) is not told model.classes=auto; the
+    runner-up is the best with more memory that holds its durations, whatever its likelihood."""
+    rows = [_row("two-state", 0, -1e-5, tied=True), _row("clock max_age=1", 1, 0.0, tied=True),
+            _row("classes", 2, 5e-5, holds=False), _row("clock max_age=5", 1, -2e-4)]  # fmt: skip
+    choice = _choice("two-state", rows, classes=True)
+    v = _read(failures={"gaussian": ["off"]}, choice=choice)
+    overrides = {r.kind: r.overrides for _, r in v.remedies}
+    assert list(overrides) == ["more_cells", "more_rows", "runner_up"]
+    assert overrides["more_cells"] == ("gp.choice.n_cells=4000",)
+    assert overrides["runner_up"] == ("gp=clock", "gp.max_age=1")
+    step = v.causes[0][2]
+    assert "tie within 1 SE between two-state (chosen) and clock max_age=1" in step
+    assert "clock max_age=1, had the highest held-out log-likelihood:" in step
+    # a model that is no network and declares no classes: K lumps cannot join
+    plain = _read(failures={"gaussian": ["off"]}, network=False,
+                  choice=_choice("two-state", rows[:1], kinds=("two-state",)))  # fmt: skip
+    widened = plain.remedies[0][1].overrides
+    assert widened == ("gp.choice.kinds=[two-state,clock,phases]",)

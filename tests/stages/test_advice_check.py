@@ -3,8 +3,10 @@ own checks (issue 52), and a class that cannot exist is refused before collectio
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import itertools
+import json
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -18,7 +20,12 @@ from surrogate.diagnosis import recommendation, settling
 from surrogate.diagnosis.advice import Verdict, VerdictInputs, verdict
 from surrogate.diagnosis.fixed import EXACT_METHOD, FixedInputs
 from surrogate.diagnosis.options import InspectOptions
-from surrogate.diagnosis.remedies import Check, classes_override, coarser_classes
+from surrogate.diagnosis.remedies import (
+    Check,
+    MeasuredChoice,
+    classes_override,
+    coarser_classes,
+)
 from surrogate.errors import ConfigError
 from surrogate.kinds import chain_kind
 from surrogate.models import sbml_agent
@@ -175,6 +182,148 @@ def test_a_remedy_applied_without_a_gain_is_not_advised_again() -> None:
     step = verdict_of(**args, tried=tried).causes[0][2]
     assert "`gp.max_age=8`" not in step and "collect.n_per_state=80000`" not in step
     assert "tried: `gp.max_age=4` ran" in step and "gp=classes" in step
+
+
+def _choice_row(kind: str, complexity: int, gap: float, tied: bool = False) -> dict[str, Any]:
+    return {"kind": kind, "complexity": complexity, "log_likelihood_per_window": -0.345 + gap,
+            "diff_from_best": gap, "diff_se": 2e-5, "tied_with_best": tied,
+            "holds_durations": True}  # fmt: skip
+
+
+def _measured(chosen: str, rows: list[dict[str, Any]], **changes: Any) -> MeasuredChoice:
+    """A fake measured choice's record (its table) and gp.choice settings."""
+    base = {"kinds": ("two-state", "clock", "classes", "phases"), "max_ages": (1.0, 2.0, 5.0),
+            "n_cells": 1000, "tie_se": 1.0, "classes": False}  # fmt: skip
+    return MeasuredChoice(chosen, tuple(rows), **{**base, **changes})
+
+
+def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
+    compose_cfg, chooser
+) -> None:  # fmt: skip
+    """gp=auto measured the chain: the memory remedies widen the choice (a longer cap, the
+    families left out, K lumps over classes: auto for a network without classes), ask for more
+    held-out cells on a tie, and name the runner-up outright; class shares drifting name
+    relaxation with K lumps outright (`gp.class_moves` alone is no key of gp=auto's group:
+    refused). Each printed override passes the stages' checks on a measured config."""
+    measured = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={SPEC}",
+                                                 "gp.choice.by=measure"]))  # fmt: skip
+    declared = copy.deepcopy(measured)
+    declared["model"]["classes"] = SHARED
+    rows = [_choice_row("two-state", 0, -4e-4), _choice_row("clock max_age=2", 1, -3e-5, True),
+            _choice_row("clock max_age=5", 1, 0.0, True), _choice_row("phases", 3, -8e-5)]  # fmt: skip
+    classes_rows = [_choice_row("two-state", 0, -4e-4), _choice_row("clock max_age=2", 1, -3e-5),
+                    _choice_row("classes", 2, 0.0)]  # fmt: skip
+    tie = [_choice_row("two-state", 0, -1e-5, True), _choice_row("clock max_age=2", 1, 0.0, True),
+           *rows[2:]]  # fmt: skip
+    cases = {  # config, chain (lumps, history, moves), choice, branch, the remedies expected
+        "clock at the largest cap": (
+            measured, ("phi", "age", "learned"),
+            _measured("clock max_age=5", rows, kinds=("two-state", "clock")), "memory",
+            ["wider_caps", "wider_kinds", "more_cells", "more_rows", "runner_up"]),
+        "two-state": (
+            measured, ("phi", "none", "learned"), _measured("two-state", tie), "memory",
+            ["wider_kinds", "more_cells", "more_rows", "runner_up"]),
+        "classes chosen": (
+            declared, ("classes", "none", "learned"),
+            _measured("classes", classes_rows, classes=True, kinds=("two-state", "classes")),
+            "memory", ["other_classes", "wider_kinds", "more_rows"]),
+        "classes drift": (
+            declared, ("classes", "none", "learned"),
+            _measured("classes", classes_rows, classes=True), "drift",
+            ["relaxation", "more_rows"]),
+    }  # fmt: skip
+    seen: dict[tuple[str, ...], str | None] = {}
+    for name, (cfg, kind, choice, branch, expected) in cases.items():
+
+        def check(overrides, what, cfg=cfg, name=name):
+            key = (name, *overrides)
+            if key not in seen:
+                seen[key] = check_advice(cfg, overrides)
+            return seen[key]
+
+        v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
+                       kind=chain_kind(*kind), network=True, n_per_state=1000, check=check,
+                       choice=choice, **_measurements(branch))  # fmt: skip
+        assert not v.dropped, (name, v.dropped)
+        assert [r.kind for _, r in v.remedies] == expected, name
+        for _, remedy in v.remedies:
+            assert check(remedy.overrides, "") is None, (name, remedy)
+            assert all(f"`{o}`" in remedy.text or o in remedy.text for o in remedy.overrides)
+            # no kind named around the choice but as the explicit alternatives
+            if remedy.kind not in ("runner_up", "relaxation"):
+                assert not any(o.startswith(("gp=", "gp.max_age")) for o in remedy.overrides)
+    printed = {o for key in seen for o in key[1:]}
+    assert {"gp.choice.max_ages=[1,2,5,10]", "gp.choice.kinds=[two-state,clock,classes,phases]",
+            "++model.classes=auto", "gp.choice.n_cells=4000", "gp=phases",
+            "gp=classes"} <= printed  # fmt: skip
+    # the remedies the named chain prints instead are not the choice's: gp.max_age alone,
+    # accepted by the checks under gp=auto, would set every clock candidate's cap alike
+    assert check_advice(measured, ["gp.class_moves=relaxation"]) is not None
+
+
+def test_a_choice_remedy_applied_without_a_gain_is_not_advised_again(compose_cfg) -> None:
+    """The anti-loop rule for the choice's remedies: a longer cap among the candidates that
+    made the next run worse is not advised again (its cap doubled again neither), and the
+    runner-up tried outright without a gain is not named again when gp=auto measures again."""
+    before = to_dict(compose_cfg("reproduce", ["gp.choice.by=measure"]))
+    wider, runner = ["gp.choice.max_ages=[1,2,5,10]"], ["gp=phases"]
+    record = {"config": before, "outcome": 3, "tried": {},
+              "remedies": [{"cause": "m", "kind": "wider_caps", "overrides": wider},
+                           {"cause": "m", "kind": "runner_up", "overrides": runner}]}  # fmt: skip
+    after = apply_overrides(before, wider)
+    assert applied(before, after, wider) and not applied(before, after, runner)
+    tried = tried_remedies(record, after, 5)
+    assert set(tried) == {"wider_caps"} and "from 3 to 5" in tried["wider_caps"]
+    assert tried_remedies(record, after, 2) == {}  # it helped: advised as usual
+    rows = [_choice_row("two-state", 0, -4e-4), _choice_row("clock max_age=10", 1, 0.0),
+            _choice_row("phases", 3, -8e-5)]  # fmt: skip
+    args: dict[str, Any] = {"diagnostic": {"phi0": UNBIASED, "phi1": UNBIASED},
+                            "lump_names": ("off", "on"), "failures": {"g": ["off"]},
+                            "outside": {"g": {"share_outside": 0.0, "inputs": {}}},
+                            "outside_warning": 0.01, "tolerance": 0.03, "network": False,
+                            "kind": chain_kind("phi", "age", "learned"), "n_per_state": 1000,
+                            "choice": _measured("clock max_age=10", rows,
+                                                max_ages=(1.0, 2.0, 5.0, 10.0))}  # fmt: skip
+    assert "gp.choice.max_ages=[1,2,5,10,20]" in verdict_of(**args).causes[0][2]
+    step = verdict_of(**args, tried=tried).causes[0][2]
+    assert "`gp.choice.max_ages=[1,2,5,10,20]`" not in step
+    assert "tried: `gp.choice.max_ages=[1,2,5,10]` ran" in step and "`gp=phases`" in step
+    # the runner-up run outright and worse: the next measured run does not name it again
+    outright = tried_remedies({**record, "tried": tried}, apply_overrides(before, runner), 6)
+    assert set(outright) == {"wider_caps", "runner_up"}
+    again = verdict_of(**args, tried=outright)
+    assert "runner_up" not in [r.kind for _, r in again.remedies]
+    assert "not advised: gp=phases (tried" in again.causes[0][2]
+
+
+def test_the_report_reads_the_measured_choice_that_made_its_chain(tmp_path) -> None:
+    """reproduce's plumbing, on a choice train made (tiny: two candidates, 20 held-out cells):
+    the verdict's choice is the record's chosen and table with the gp.choice settings it was
+    made with; none where the rule chose the chain."""
+    from surrogate.stages import train as train_stage
+    from surrogate.stages.reproduce import measured_choice
+    from tests.reliability.conftest import compose_in
+
+    measure = ["gp.choice.by=measure", "gp.choice.kinds=[two-state,clock]",
+               "gp.choice.max_ages=[1]", "gp.choice.n_cells=20", "gp.choice.t_end=5",
+               "gp.choice.equilibration_time=1"]  # fmt: skip
+    cfg = compose_in(tmp_path, "train", measure)
+    train_stage.run(cfg)
+    settled = train_stage.validate(cfg)
+    record = json.loads((settled.measured_choice() / "choice.json").read_text())
+    choice = measured_choice(settled)
+    assert choice is not None and choice.chosen == record["chosen"]
+    assert [r["kind"] for r in choice.scores] == ["two-state", "clock max_age=1"]
+    assert (choice.kinds, choice.max_ages, choice.n_cells, choice.tie_se) == (
+        ("two-state", "clock"), (1.0,), 20, 1.0)  # fmt: skip
+    assert choice.classes is True  # E. coli declares classes (phi x CCW motors)
+    v = verdict_of(diagnostic={"phi0": UNBIASED, "phi1": UNBIASED}, lump_names=("off", "on"),
+                   failures={"g": ["off"]}, outside={"g": {"share_outside": 0.0, "inputs": {}}},
+                   outside_warning=0.01, tolerance=0.03, kind=settled.kind, network=False,
+                   n_per_state=100, choice=choice)  # fmt: skip
+    assert "`gp.choice.kinds=[two-state,clock,classes,phases]`" in v.causes[0][2]
+    rule = train_stage.validate(compose_in(tmp_path, "train", ["gp.choice.by=rule"]))
+    assert measured_choice(rule) is None
 
 
 def test_collection_advice_names_the_run_it_needs_and_it_runs(config) -> None:
