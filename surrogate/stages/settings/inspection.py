@@ -141,6 +141,10 @@ class InspectSettings:
         value = self.config.get(group)
         if group == "collect" and isinstance(value, Mapping):
             return identity_options(value)
+        if group == "gp" and isinstance(value, Mapping) and value.get("lumps") != "auto":
+            # gp.choice is gp=auto's: a named chain's command (gp.lumps=..., no gp=) composes
+            # under gp=auto and brings it along, though nothing reads it
+            return {k: v for k, v in value.items() if k != "choice"}
         return value
 
     @functools.cached_property
