@@ -28,6 +28,7 @@ import pandas as pd
 import torch
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.errors import NumericalError
 from surrogate.io import write_csv, write_json, write_manifest
 from surrogate.kinds.base import LayerRequest
 from surrogate.kinds.scoring import Choice, KindScore, choose, score_kind
@@ -84,10 +85,19 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     log.info("gp=auto: choosing the chain by measurement among %s (docs/choice.md; "
              "gp.choice.by=rule or a named kind skips it)", list(plan.candidates))  # fmt: skip
     fits: dict[str, tuple[Path, float]] = {}
+    failed: dict[str, str] = {}
     for name, tr in plan.candidates.items():
         start = time.perf_counter()
-        fits[name] = (fitter(tr), time.perf_counter() - start)
+        try:
+            fits[name] = (fitter(tr), time.perf_counter() - start)
+        except NumericalError as error:
+            # one candidate's numerical failure leaves it out, named, not the whole choice
+            failed[name] = str(error)
+            log.warning("choice: %s left out: its fit failed: %s", name, error)
+            continue
         log.info("choice: %s fitted (or reused) in %.1f s", name, fits[name][1])
+    if not fits:
+        raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     start = time.perf_counter()
     seed_everything(first.seed + HELDOUT_SEED_OFFSET)
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device,
@@ -100,7 +110,8 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     heldout_seconds = time.perf_counter() - start
     log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
-    trains, groups = dict(plan.candidates), dict(plan.groups)
+    trains = {n: t for n, t in plan.candidates.items() if n in fits}
+    groups = {n: g for n, g in plan.groups.items() if n in fits}
     scores = [_score(name, tr, fits[name], model, inputs, phi, first.seed + i)
               for i, (name, tr) in enumerate(trains.items())]  # fmt: skip
     while (longer := plan.longer_clock(max(scores, key=lambda s: s.log_likelihood).name,
@@ -120,7 +131,7 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     _log(choice, overrides)
     out = plan.directory
     record = {"chosen": choice.chosen, "gp": groups[choice.chosen], "reason": choice.reason,
-              "overrides": overrides,
+              "overrides": overrides, "failed": failed,
               "fit": str(fits[choice.chosen][0]), "scores": choice.table,
               "heldout": {"cells": int(inputs.shape[0]), "windows": int(inputs.shape[1]),
                           "seconds": heldout_seconds}}  # fmt: skip

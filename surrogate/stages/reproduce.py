@@ -282,7 +282,12 @@ def choice_text(directory: Path) -> str:
         f"held-out full-model run ({held['cells']} cells x {held['windows']} windows, "
         f"another seed): the log-likelihood per window of the observed phi given the inputs, "
         f"and its durations simulated under the held-out inputs against the observed "
-        f"(docs/choice.md). Record: {directory}.\n\n"
+        f"(docs/choice.md). Record: {directory}."
+        + "".join(
+            f" Left out, its fit failed: {name} ({why})."
+            for name, why in (record.get("failed") or {}).items()
+        )
+        + "\n\n"
         + format_markdown_table(pd.DataFrame(rows), ".4f")
     )
 

@@ -173,3 +173,32 @@ def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> N
     none = PendingChoice(ChoiceSettings.from_config({"max_ages": [2], "extend": 0}), {},
                          Path("."), {"clock max_age=2": groups["clock max_age=2"]}, lambda g: g)  # fmt: skip
     assert none.longer_clock("clock max_age=2", none.groups) is None
+
+
+def test_a_candidate_whose_fit_fails_numerically_is_left_out_and_named(tmp_path: Path) -> None:
+    """One candidate's NumericalError (the hidden phases' mean matching once did not converge
+    on E. coli) leaves that candidate out, named in the record, not the whole choice; every
+    candidate failing is refused."""
+    from surrogate.errors import NumericalError
+    from surrogate.stages.choice import make_choice
+
+    cfg = compose_in(tmp_path, "train", MEASURE)
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+
+    def flaky(settings):
+        if settings.kind.clock:
+            raise NumericalError("did not converge")
+        return train_stage.fit_candidate(settings)
+
+    out = make_choice(plans[0], flaky, cfg)
+    record = json.loads((out / "choice.json").read_text())
+    assert record["chosen"] == "two-state"
+    assert record["failed"] == {"clock max_age=1": "did not converge"}
+    assert [r["kind"] for r in record["scores"]] == ["two-state"]
+
+    def broken(settings):
+        raise NumericalError("no")
+
+    with pytest.raises(NumericalError, match="every candidate's fit failed"):
+        make_choice(plans[0], broken, cfg)
