@@ -301,7 +301,7 @@ def test_the_table_takes_psis_means_where_the_sample_never_went() -> None:
     # the case is real: at the unseen end the sequences' own off sojourn misses by far
     assert abs(float(stationary_leaving(fitted, lumps)[-1, 0] / truth[-1, 0]) - 1) > 0.3
     matched = match_leaving(fitted, lumps, truth)[0]
-    torch.testing.assert_close(stationary_leaving(matched, lumps), truth, rtol=1e-6, atol=0.0)
+    torch.testing.assert_close(stationary_leaving(matched, lumps), truth, rtol=1e-4, atol=0.0)
     # the on lump's move to its next phase against staying: the fit's odds, unscaled
     torch.testing.assert_close(matched[:, 1, 2] / matched[:, 1, 1],
                                fitted[:, 1, 2] / fitted[:, 1, 1], rtol=1e-8, atol=0.0)  # fmt: skip
