@@ -112,25 +112,29 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
     trains = {n: t for n, t in plan.candidates.items() if n in fits}
     groups = {n: g for n, g in plan.groups.items() if n in fits}
+    finals = {n: plan.finals.get(n, g) for n, g in groups.items()}
     scores = [_score(name, tr, fits[name], model, inputs, phi, first.seed + i)
               for i, (name, tr) in enumerate(trains.items())]  # fmt: skip
-    while (longer := plan.longer_clock(max(scores, key=lambda s: s.log_likelihood).name,
+    while (longer := plan.longer_clock(best_name := max(scores, key=lambda s: s.log_likelihood).name,
                                        groups)) is not None:  # fmt: skip
         # the likelihood's best is the clock at the largest cap: its memory may reach past it
         name, gp = longer
         assert plan.make is not None  # longer_clock offers none without it
         log.info("choice: the best is the clock at its largest cap; adding %s", name)
         trains[name], groups[name] = plan.make(gp), gp
+        finals[name] = {**finals[best_name], "max_age": gp["max_age"]}
         start = time.perf_counter()
         fits[name] = (fitter(trains[name]), time.perf_counter() - start)
         scores.append(_score(name, trains[name], fits[name], model, inputs, phi,
                              first.seed + len(scores)))  # fmt: skip
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
-    chosen = trains[choice.chosen]
-    overrides = " ".join(chosen.gp_overrides())
+    final = finals[choice.chosen]
+    chosen = plan.make(final) if plan.make is not None else trains[choice.chosen]
+    overrides = " ".join(chosen.gp_overrides())  # what gp=auto now trains, named outright
     _log(choice, overrides)
     out = plan.directory
-    record = {"chosen": choice.chosen, "gp": groups[choice.chosen], "reason": choice.reason,
+    # what gp=auto trains: the chosen as scored, or refitted with its recipe's own optimiser
+    record = {"chosen": choice.chosen, "gp": final, "reason": choice.reason,
               "overrides": overrides, "failed": failed,
               "fit": str(fits[choice.chosen][0]), "scores": choice.table,
               "heldout": {"cells": int(inputs.shape[0]), "windows": int(inputs.shape[1]),

@@ -45,6 +45,7 @@ class Plain:
         ({"kinds": ["two-state", "magic"]}, "gp.choice.kinds"),
         ({"kinds": ["clock", "clock"]}, "gp.choice.kinds"),
         ({"extend": -1}, "gp.choice.extend"),
+        ({"refit": "yes"}, "gp.choice.refit"),
         ({"cells": 10}, "gp.choice"),
     ],
 )
@@ -140,10 +141,14 @@ def test_pending_choice_is_refused_by_simulate_and_made_by_train(tmp_path: Path)
     assert record["heldout"]["cells"] == 20 and record["heldout"]["windows"] == 100
     settled = train_stage.validate(cfg)
     assert settled.measured_choice() == plan.directory
-    chosen = plan.candidates[record["chosen"]]
-    assert settled.fit_identity() == chosen.fit_identity()
+    scored = plan.candidates[record["chosen"]]
+    assert (scored.fit_directory / "choice.json").is_file()
+    assert scored.gp_config["optimizer"] == "lbfgs"  # scored by L-BFGS (gp.choice.optimizer)
+    # gp.choice.refit (the default): trained with its recipe's own optimiser, Adam
+    assert settled.gp_config["optimizer"] == "adam" and record["gp"]["optimizer"] == "adam"
+    assert settled.fit_identity() == plan.make(plan.finals[record["chosen"]]).fit_identity()
     assert settled.directory == Path(train_dir)
-    assert (chosen.fit_directory / "choice.json").is_file()
+    assert "gp.optimizer=lbfgs" not in record["overrides"]
     out = simulate_stage.run(sim)
     assert (Path(out) / "manifest.json").is_file()
     # a clock the choice added at a longer cap is read from the record, not the plan
@@ -173,6 +178,17 @@ def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> N
     none = PendingChoice(ChoiceSettings.from_config({"max_ages": [2], "extend": 0}), {},
                          Path("."), {"clock max_age=2": groups["clock max_age=2"]}, lambda g: g)  # fmt: skip
     assert none.longer_clock("clock max_age=2", none.groups) is None
+
+
+def test_without_refit_gp_auto_is_the_scored_candidate(tmp_path: Path) -> None:
+    """gp.choice.refit=false: gp=auto trains the candidate as it was scored (its L-BFGS fit)."""
+    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.refit=false"])
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+    train_stage.run(cfg)
+    record = json.loads((plans[0].directory / "choice.json").read_text())
+    settled = train_stage.validate(cfg)
+    assert settled.fit_identity() == plans[0].candidates[record["chosen"]].fit_identity()
 
 
 def test_a_candidate_whose_fit_fails_numerically_is_left_out_and_named(tmp_path: Path) -> None:

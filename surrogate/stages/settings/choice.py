@@ -56,6 +56,7 @@ DEFAULTS: dict[str, Any] = {
     "tie_se": 1.0,
     "duration_tolerance": 0.03,
     "optimizer": "lbfgs",
+    "refit": True,
     "extend": 2,
 }
 
@@ -79,6 +80,10 @@ class ChoiceSettings:
     #: clocks the choice may add, each at twice the largest cap, while the best is a clock at
     #: the largest cap tried (the memory reaches past it: Tyson's oscillator, period 3.5 s)
     extend: int = 2
+    #: the chosen candidate trained with its recipe's own optimiser (gp.choice.optimizer=lbfgs
+    #: scores the candidates; E. coli's K lumps by L-BFGS left one seed of two off the noise
+    #: floor at 1e5 cells, by Adam none)
+    refit: bool = True
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -117,7 +122,8 @@ class ChoiceSettings:
         return cls(str(options["by"]), tuple(str(k) for k in kinds), tuple(caps), n_cells, _number(options, "t_end"),
                    _number(options, "equilibration_time", zero=True),
                    _number(options, "tie_se"), _number(options, "duration_tolerance"),
-                   str(options["optimizer"]), _count(options, "extend"))  # fmt: skip
+                   str(options["optimizer"]), _count(options, "extend"),
+                   _flag(options, "refit"))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -144,7 +150,17 @@ class ChoiceSettings:
         """What the held-out run and the choice depend on (not ``by``: the rule makes none)."""
         return {"kinds": list(self.kinds), "max_ages": list(self.max_ages), "n_cells": self.n_cells, "t_end": self.t_end,
                 "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
-                "duration_tolerance": self.duration_tolerance, "extend": self.extend}  # fmt: skip
+                "duration_tolerance": self.duration_tolerance, "extend": self.extend,
+                "refit": self.refit}  # fmt: skip
+
+
+def _flag(options: Mapping[str, Any], key: str) -> bool:
+    """``gp.choice.<key>``: true or false."""
+    value = options[key]
+    if not isinstance(value, bool):
+        raise ConfigError(f"gp.choice.{key} must be true or false, got {value!r}; default "
+                          f"{DEFAULTS[key]!r}")  # fmt: skip
+    return value
 
 
 def _count(options: Mapping[str, Any], key: str) -> int:
@@ -178,18 +194,19 @@ def user_keys(raw_gp: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def candidate_groups(
-    raw_gp: Mapping[str, Any], settings: ChoiceSettings, internal: Any
+    raw_gp: Mapping[str, Any], settings: ChoiceSettings, internal: Any, scoring: bool = True
 ) -> dict[str, dict[str, Any]]:
-    """The candidates' names and gp groups (those of ``gp.choice.kinds``): the two-state chain (``gp=svgp``), the switch
-    clock at each cap (``gp=clock gp.max_age=...``), K lumps (``gp=classes``) where the model's
-    ``internal`` model declares classes, and each registered candidate kind's recipe (the
-    hidden phases, ``gp=phases``); each the shipped recipe with the user's keys
-    (:func:`user_keys`) and, with ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user
-    set those keys."""
+    """The candidates' names and gp groups (those of ``gp.choice.kinds``): the two-state chain
+    (``gp=svgp``), the switch clock at each cap (``gp=clock gp.max_age=...``), K lumps
+    (``gp=classes``) where the model's ``internal`` model declares classes, and each registered
+    candidate kind's recipe (the hidden phases, ``gp=phases``); each the shipped recipe with the
+    user's keys (:func:`user_keys`) and, to score them (``scoring``) with
+    ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user set those keys
+    (``scoring=False``: the recipes' own optimisers, what ``gp.choice.refit`` trains the chosen
+    with)."""
     user = user_keys(raw_gp)
-    fast = (
-        {k: v for k, v in LBFGS.items() if k not in user} if settings.optimizer == "lbfgs" else {}
-    )
+    lbfgs = scoring and settings.optimizer == "lbfgs"
+    fast = {k: v for k, v in LBFGS.items() if k not in user} if lbfgs else {}
 
     def group(recipe: str, **extra: Any) -> dict[str, Any]:
         return {**group_config("gp", recipe), **extra, **fast, **user}
@@ -233,6 +250,9 @@ class PendingChoice:
     #: gp group on the same collection (a clock at a longer cap, :meth:`longer_clock`)
     groups: dict[str, dict[str, Any]] = field(default_factory=dict)
     make: Callable[[dict[str, Any]], Any] | None = None
+    #: each candidate's gp group as trained once chosen (``gp.choice.refit``: its recipe's own
+    #: optimiser; else its scoring group)
+    finals: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: the train command that makes it (None: the first candidate's, with ``gp=auto``)
     made_by: str | None = None
 
@@ -291,7 +311,9 @@ def stored_choice(plan: PendingChoice) -> tuple[str, dict[str, Any]] | None:
         raise ConfigError(f"{path} chose {chosen!r}, not one of the candidates "
                           f"{sorted(plan.candidates)}: remove the directory and run "
                           f"`{plan.command()}` again")  # fmt: skip
-    return chosen, dict(gp) if isinstance(gp, dict) else plan.groups[chosen]
+    return chosen, dict(gp) if isinstance(gp, dict) else plan.finals.get(
+        chosen, plan.groups[chosen]
+    )
 
 
 def pending(plan: PendingChoice) -> None:

@@ -384,21 +384,25 @@ def _measured(
         return None
     choice.check_windows(setup.dt)
     groups = candidate_groups(raw_gp, choice, setup.model.internal)
+    finals = groups if not choice.refit else candidate_groups(raw_gp, choice, setup.model.internal,
+                                                              scoring=False)  # fmt: skip
     candidates = {name: cls._build(setup, source, job, gp) for name, gp in groups.items()}
     identity = {"candidates": {n: t.fit_identity() for n, t in candidates.items()},
                 "choice": choice.identity(), "seed": setup.seed}  # fmt: skip
-    plan = PendingChoice(choice, candidates,
-                         artefact_dir(job.data_dir, "choice", {"model": setup.model.name},
-                                      identity), groups,
-                         lambda gp: cls._build(setup, source, job, gp),
-                         command_line(TRAIN_CMD, [*setup.overrides(), *source._overrides()],
-                                      _choice_overrides(raw_gp), job.device_overrides()))  # fmt: skip
+    made_by = command_line(TRAIN_CMD, [*setup.overrides(), *source._overrides()],
+                           _choice_overrides(raw_gp), job.device_overrides())  # fmt: skip
+    directory = artefact_dir(job.data_dir, "choice", {"model": setup.model.name}, identity)
+    plan = PendingChoice(choice, candidates, directory, groups,
+                         make=lambda gp: cls._build(setup, source, job, gp), finals=finals,
+                         made_by=made_by)  # fmt: skip
     stored = stored_choice(plan)
     if stored is None:
         pending(plan)
         return None
     chosen, gp = stored
-    settings = candidates[chosen] if chosen in candidates else cls._build(setup, source, job, gp)
+    # the record's group: the candidate refitted with its recipe's optimiser (gp.choice.refit),
+    # or as scored, or a clock the choice added
+    settings = cls._build(setup, source, job, gp)
     return dataclasses.replace(settings, auto_recipe=f"{MEASURED}: {chosen}",
                                choice_directory=plan.directory)  # fmt: skip
 
