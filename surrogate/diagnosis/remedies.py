@@ -202,8 +202,11 @@ class MeasuredChoice:
     classes: bool
 
 
-#: the candidate families that hold memory phi alone forgets (two-state holds none)
+#: the candidate families that hold memory phi alone forgets (two-state holds none), as
+#: gp.choice.kinds names them
 MEMORY_FAMILIES = ("clock", "classes", "phases")
+#: the family that needs classes the model declares (K lumps)
+CLASSES_FAMILY = MEMORY_FAMILIES[1]
 
 
 def candidate_cap(name: str) -> float | None:
@@ -275,12 +278,12 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
     # K lumps are a candidate only where the model declares classes: a network gets them
     auto_classes = not choice.classes and network
     missing = [f for f in MEMORY_FAMILIES if f not in choice.kinds
-               and (f != "classes" or choice.classes or auto_classes)]  # fmt: skip
+               and (f != CLASSES_FAMILY or choice.classes or auto_classes)]  # fmt: skip
     overrides: list[str] = []
     if missing:
         kinds = [*choice.kinds, *missing]
         overrides.append(f"gp.choice.kinds=[{','.join(kinds)}]")
-    if auto_classes and ("classes" in choice.kinds or "classes" in missing):
+    if auto_classes and CLASSES_FAMILY in (*choice.kinds, *missing):
         overrides.append("++model.classes=auto")
     if overrides:
         left = f"left {', '.join(missing)} out (`gp.choice.kinds`)" if missing else ""

@@ -28,7 +28,7 @@ from typing import Any, Protocol
 from surrogate.config import group_config
 from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.io import read_json
-from surrogate.kinds import CHAIN_KINDS
+from surrogate.kinds import CHAIN_KINDS, SWITCH_CLOCK
 from surrogate.models.capabilities import lump_classes_of
 from surrogate.validation import known_keys
 
@@ -263,9 +263,9 @@ class PendingChoice:
         cap among ``groups`` (the candidates so far) and extensions are left
         (``gp.choice.extend``): the memory may reach past it."""
         gp = groups.get(name)
-        if gp is None or gp.get("history") != "age" or self.make is None:
+        if gp is None or gp.get("history") != SWITCH_CLOCK.history or self.make is None:
             return None
-        caps = [g["max_age"] for g in groups.values() if g.get("history") == "age"]
+        caps = [g["max_age"] for g in groups.values() if g.get("history") == SWITCH_CLOCK.history]
         extended = len(caps) - len(self.settings.max_ages)
         if gp["max_age"] < max(caps) or extended >= self.settings.extend:
             return None
