@@ -253,7 +253,7 @@ class PendingChoice:
     #: each candidate's gp group as trained once chosen (``gp.choice.refit``: its recipe's own
     #: optimiser; else its scoring group)
     finals: dict[str, dict[str, Any]] = field(default_factory=dict)
-    #: the train command that makes it (None: the first candidate's, with ``gp=auto``)
+    #: the train command that makes it, with ``gp=auto`` and its choice keys
     made_by: str | None = None
 
     def longer_clock(
@@ -273,12 +273,10 @@ class PendingChoice:
         return f"clock max_age={age:g}", {**gp, "max_age": age}
 
     def command(self) -> str:
-        """The command that makes it (the first candidate's train command with ``gp=auto``)."""
+        """The train command that makes it (:attr:`made_by`; else the first candidate's)."""
         if self.made_by is not None:
             return self.made_by
-        first = next(iter(self.candidates.values()))
-        head = first.command().split(" gp=")[0]
-        return f"{head} gp=auto"
+        return str(next(iter(self.candidates.values())).command())
 
 
 _PENDING: contextvars.ContextVar[list[PendingChoice] | None] = contextvars.ContextVar(
