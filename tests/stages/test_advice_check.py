@@ -55,6 +55,19 @@ def config(compose_cfg) -> dict[str, Any]:
     return to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={SPEC}"]))
 
 
+def memo_check(seen: dict, cfg, name: str):
+    """The verdict's ``check`` for ``cfg``: :func:`check_advice`, each override list checked
+    once per case ``name`` (``seen`` holds the answers across cases)."""
+
+    def check(overrides, what):
+        key = (name, *overrides)
+        if key not in seen:
+            seen[key] = check_advice(cfg, overrides)
+        return seen[key]
+
+    return check
+
+
 def test_overrides_apply_as_hydra_applies_them(config) -> None:
     cfg = apply_overrides(config, ["gp=clock", "gp.max_age=4", "++model.burn_in=7"])
     assert cfg["gp"]["max_age"] == 4 and cfg["model"]["burn_in"] == 7
@@ -112,11 +125,7 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
         base = apply_overrides(config, groups)
         base["model"]["classes"] = SHARED
 
-        def check(overrides, what, base=base, name=name):
-            key = (name, *overrides)
-            if key not in seen:
-                seen[key] = check_advice(base, overrides)
-            return seen[key]
+        check = memo_check(seen, base, name)
 
         v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
                     kind=chain_kind(*kind), network=True, n_per_state=1000, max_age=2.0,
@@ -234,12 +243,7 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
     }  # fmt: skip
     seen: dict[tuple[str, ...], str | None] = {}
     for name, (cfg, kind, choice, branch, expected) in cases.items():
-
-        def check(overrides, what, cfg=cfg, name=name):
-            key = (name, *overrides)
-            if key not in seen:
-                seen[key] = check_advice(cfg, overrides)
-            return seen[key]
+        check = memo_check(seen, cfg, name)
 
         v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
                        kind=chain_kind(*kind), network=True, n_per_state=1000, check=check,
