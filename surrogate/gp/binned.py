@@ -13,6 +13,7 @@ from torch import Tensor
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp.model import PsiGP
+from surrogate.gp.probit import log_normal_cdf
 
 
 def weighted_bins(
@@ -133,12 +134,11 @@ def binned_expected_log_likelihood(
 
     What ``BernoulliLikelihood.expected_log_prob`` computes for each label (with its
     ``log_normal_cdf``), summed, in one quadrature instead of two (a training step at the
-    paper's size ~25 % cheaper). Not ``torch.special.log_ndtr``, though it is closer to the
+    paper's size ~25 % cheaper), with :func:`~surrogate.gp.probit.log_normal_cdf`: gpytorch's
+    values bit for bit, without its masks (a K-lumps step ~2x cheaper). Not ``torch.special.log_ndtr``, though it is closer to the
     exact integral: the objective would change, and the fitted psi with it (measured: up to
     2 % more bias where cells live after the default 1,000 steps on the same data).
     """
-    from gpytorch.functions import log_normal_cdf
-
     return likelihood.quadrature(
         lambda s: k_b * log_normal_cdf(s) + (n_b - k_b) * log_normal_cdf(-s), f
     )
