@@ -18,9 +18,13 @@ choices resolved by the rule, makes the choices, and builds the settings again.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import logging.handlers
+import multiprocessing
 import time
 from collections.abc import Callable, Mapping
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -84,18 +88,8 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     model = setup.model
     log.info("gp=auto: choosing the chain by measurement among %s (docs/choice.md; "
              "gp.choice.by=rule or a named kind skips it)", list(plan.candidates))  # fmt: skip
-    fits: dict[str, tuple[Path, float]] = {}
-    failed: dict[str, str] = {}
-    for name, tr in plan.candidates.items():
-        start = time.perf_counter()
-        try:
-            fits[name] = (fitter(tr), time.perf_counter() - start)
-        except NumericalError as error:
-            # one candidate's numerical failure leaves it out, named, not the whole choice
-            failed[name] = str(error)
-            log.warning("choice: %s left out: its fit failed: %s", name, error)
-            continue
-        log.info("choice: %s fitted (or reused) in %.1f s", name, fits[name][1])
+    workers = settings.worker_count(len(plan.candidates), job.device)
+    fits, failed = fit_candidates(plan.candidates, fitter, workers)
     if not fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     start = time.perf_counter()
@@ -149,6 +143,84 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     write_json(out / CHOICE, record)  # last: its presence is what settles gp=auto
     log.info("choice: record in %s", out)
     return out
+
+
+def fit_candidates(
+    candidates: Mapping[str, Any], fitter: Fitter, workers: int = 1
+) -> tuple[dict[str, tuple[Path, float]], dict[str, str]]:
+    """Fit (or reuse) each candidate: its fit directory and seconds by name, and the reasons of
+    those whose fit failed numerically (left out, named, not the whole choice).
+
+    With ``workers > 1``, in that many spawned processes, the dearest-looking first (the
+    candidates come simplest first); each fit is the one made in this process (its seed and
+    thread count are its settings'), and candidates sharing a fit (the two-state psi) wait for
+    it under the artefact's lock. The workers' log records go through this process's handlers.
+    """
+    fits: dict[str, tuple[Path, float]] = {}
+    failed: dict[str, str] = {}
+
+    def done(name: str, outcome: tuple[str | None, float, str | None]) -> None:
+        path, seconds, error = outcome
+        if error is not None:
+            failed[name] = error
+            log.warning("choice: %s left out: its fit failed: %s", name, error)
+        else:
+            assert path is not None
+            fits[name] = (Path(path), seconds)
+            log.info("choice: %s fitted (or reused) in %.1f s", name, seconds)
+
+    if workers <= 1 or len(candidates) < 2:
+        for name, tr in candidates.items():
+            done(name, _fit_one(fitter, tr))
+        return _in_order(candidates, fits), failed
+    log.info("choice: fitting %d candidates in %d processes, one thread each",
+             len(candidates), workers)  # fmt: skip
+    context = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
+    records: Any = context.Queue()
+    listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
+                                              respect_handler_level=True)  # fmt: skip
+    listener.start()
+    try:
+        with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
+                                 initargs=(records, logging.getLogger().level)) as pool:  # fmt: skip
+            futures = {name: pool.submit(_fit_one, fitter, _quiet(tr))
+                       for name, tr in reversed(list(candidates.items()))}  # fmt: skip
+            for name, future in futures.items():
+                done(name, future.result())
+    finally:
+        listener.stop()
+    return _in_order(candidates, fits), failed
+
+
+def _in_order(candidates: Mapping[str, Any], fits: dict[str, Any]) -> dict[str, Any]:
+    """``fits`` in the candidates' order (the score table's)."""
+    return {name: fits[name] for name in candidates if name in fits}
+
+
+def _quiet(tr: Any) -> Any:
+    """``tr`` without progress bars (processes side by side would interleave them)."""
+    job = getattr(tr, "job", None)
+    if job is None or not getattr(job, "progress", False):
+        return tr
+    return dataclasses.replace(tr, job=dataclasses.replace(job, progress=False))
+
+
+def _worker_start(records: Any, level: int) -> None:
+    """A fitting process: its log records to ``records`` (the parent's handlers print them)."""
+    root = logging.getLogger()
+    root.handlers[:] = [logging.handlers.QueueHandler(records)]
+    root.setLevel(level)
+
+
+def _fit_one(fitter: Fitter, tr: Any) -> tuple[str | None, float, str | None]:
+    """One candidate's fit: (its directory, seconds, None), or (None, seconds, the reason) where
+    it failed numerically (a NumericalError carries a model, which need not cross processes)."""
+    start = time.perf_counter()
+    try:
+        path = fitter(tr)
+    except NumericalError as error:
+        return None, time.perf_counter() - start, str(error)
+    return str(path), time.perf_counter() - start, None
 
 
 def _score(

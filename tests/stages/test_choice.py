@@ -22,7 +22,8 @@ from surrogate.stages.settings.choice import (
 from tests.reliability.conftest import compose_in
 
 MEASURE = ["gp.choice.by=measure", "gp.choice.kinds=[two-state,clock]", "gp.choice.max_ages=[1]",
-           "gp.choice.n_cells=20", "gp.choice.t_end=5", "gp.choice.equilibration_time=1"]  # fmt: skip
+           "gp.choice.n_cells=20", "gp.choice.t_end=5", "gp.choice.equilibration_time=1",
+           "gp.choice.workers=1"]  # fmt: skip
 
 
 class Plain:
@@ -46,6 +47,8 @@ class Plain:
         ({"kinds": ["clock", "clock"]}, "gp.choice.kinds"),
         ({"extend": -1}, "gp.choice.extend"),
         ({"refit": "yes"}, "gp.choice.refit"),
+        ({"workers": 0}, "gp.choice.workers"),
+        ({"workers": "many"}, "gp.choice.workers"),
         ({"cells": 10}, "gp.choice"),
     ],
 )
@@ -191,6 +194,21 @@ def test_without_refit_gp_auto_is_the_scored_candidate(tmp_path: Path) -> None:
     assert settled.fit_identity() == plans[0].candidates[record["chosen"]].fit_identity()
 
 
+def _flaky(settings):
+    """A fitter whose clocks fail numerically (module level: it crosses into the workers)."""
+    from surrogate.errors import NumericalError
+
+    if settings.kind.clock:
+        raise NumericalError("did not converge")
+    return train_stage.fit_candidate(settings)
+
+
+def _broken(settings):
+    from surrogate.errors import NumericalError
+
+    raise NumericalError("no")
+
+
 def test_a_candidate_whose_fit_fails_numerically_is_left_out_and_named(tmp_path: Path) -> None:
     """One candidate's NumericalError (the hidden phases' mean matching once did not converge
     on E. coli) leaves that candidate out, named in the record, not the whole choice; every
@@ -201,20 +219,46 @@ def test_a_candidate_whose_fit_fails_numerically_is_left_out_and_named(tmp_path:
     cfg = compose_in(tmp_path, "train", MEASURE)
     with collecting_pending() as plans:
         train_stage.validate(cfg)
-
-    def flaky(settings):
-        if settings.kind.clock:
-            raise NumericalError("did not converge")
-        return train_stage.fit_candidate(settings)
-
-    out = make_choice(plans[0], flaky, cfg)
+    out = make_choice(plans[0], _flaky, cfg)
     record = json.loads((out / "choice.json").read_text())
     assert record["chosen"] == "two-state"
     assert record["failed"] == {"clock max_age=1": "did not converge"}
     assert [r["kind"] for r in record["scores"]] == ["two-state"]
-
-    def broken(settings):
-        raise NumericalError("no")
-
     with pytest.raises(NumericalError, match="every candidate's fit failed"):
-        make_choice(plans[0], broken, cfg)
+        make_choice(plans[0], _broken, cfg)
+
+
+def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) -> None:
+    """gp.choice.workers=2 fits the candidates in two processes: the same fits, bit for bit, as
+    one after the other here (one thread each, their seeds), a failure still named."""
+    import shutil
+
+    import torch
+
+    from surrogate.kinds.files import PSI
+    from surrogate.stages.choice import fit_candidates
+    from surrogate.stages.collect import collect
+
+    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.kinds=[two-state,clock]",
+                                         "gp.choice.max_ages=[1,2]"])  # fmt: skip
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+    candidates = plans[0].candidates
+    assert all(tr.fit_threads == 1 for tr in candidates.values())
+    collect(next(iter(candidates.values())).source)
+    apart, failed = fit_candidates(candidates, train_stage.fit_candidate, workers=2)
+    assert list(apart) == list(candidates) and not failed
+    states = {n: torch.load(d / PSI, weights_only=True) for n, (d, _) in apart.items()}
+    for d, _ in apart.values():
+        shutil.rmtree(d)
+    here, _ = fit_candidates(candidates, train_stage.fit_candidate, workers=1)
+    assert {n: d for n, (d, _) in here.items()} == {n: d for n, (d, _) in apart.items()}
+    for name, (d, _) in here.items():
+        again = torch.load(d / PSI, weights_only=True)
+        assert again.keys() == states[name].keys()
+        for key, value in again.items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(value, states[name][key]), (name, key)
+    fits, failed = fit_candidates(candidates, _flaky, workers=2)
+    assert list(fits) == ["two-state"]
+    assert failed == {"clock max_age=1": "did not converge", "clock max_age=2": "did not converge"}

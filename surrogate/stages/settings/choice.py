@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
+import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,11 @@ BY = ("measure", "rule")
 OPTIMIZERS = ("lbfgs", "recipe")
 #: what gp.choice.optimizer=lbfgs sets in each candidate (L-BFGS takes no natural gradient)
 LBFGS = {"optimizer": "lbfgs", "epochs": 200, "natural_gradient": False}
+#: the candidates' fits to score run on one torch thread each, in as many processes as
+#: ``gp.choice.workers`` says: the same fits whatever the worker count (a fit's float
+#: reductions depend on its threads), and these small fits gain nothing from a second thread
+#: (E. coli's K-lumps step: 27 ms on two, 26 ms of CPU on one)
+SCORING_THREADS = 1
 #: gp.choice.kinds: the candidates' families (each clock cap is one ``clock`` candidate; K lumps
 #: only where the model declares classes; the registered candidate kinds by their recipe)
 FAMILIES = ("two-state", "clock", "classes", "phases")
@@ -58,6 +64,7 @@ DEFAULTS: dict[str, Any] = {
     "optimizer": "lbfgs",
     "refit": True,
     "extend": 2,
+    "workers": "auto",
 }
 
 
@@ -84,6 +91,10 @@ class ChoiceSettings:
     #: scores the candidates; E. coli's K lumps by L-BFGS left one seed of two off the noise
     #: floor at 1e5 cells, by Adam none)
     refit: bool = True
+    #: processes fitting the candidates side by side (``gp.choice.workers``; "auto": one per
+    #: usable core up to the candidates' count on the CPU, one on a GPU). Not in the identity:
+    #: each fit is the same whichever process makes it (:data:`SCORING_THREADS`)
+    workers: int | str = "auto"
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -123,7 +134,7 @@ class ChoiceSettings:
                    _number(options, "equilibration_time", zero=True),
                    _number(options, "tie_se"), _number(options, "duration_tolerance"),
                    str(options["optimizer"]), _count(options, "extend"),
-                   _flag(options, "refit"))  # fmt: skip
+                   _flag(options, "refit"), _workers(options["workers"]))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -146,12 +157,34 @@ class ChoiceSettings:
                               f"would cap it at one window, not as asked; use caps >= {dt:g}, "
                               f"e.g. gp.choice.max_ages={kept!r}")  # fmt: skip
 
+    def worker_count(self, candidates: int, device: str) -> int:
+        """Processes to fit ``candidates`` candidates on ``device`` with: ``workers``, or for
+        "auto" one per usable core (at most ``candidates``) on the CPU and one on a GPU (its
+        fits are short, and each process would hold its own CUDA context)."""
+        if isinstance(self.workers, int):
+            return max(1, min(self.workers, candidates))
+        if not str(device).startswith("cpu"):
+            return 1
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+        return max(1, min(cores // SCORING_THREADS, candidates))
+
     def identity(self) -> dict[str, Any]:
         """What the held-out run and the choice depend on (not ``by``: the rule makes none)."""
         return {"kinds": list(self.kinds), "max_ages": list(self.max_ages), "n_cells": self.n_cells, "t_end": self.t_end,
                 "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
                 "duration_tolerance": self.duration_tolerance, "extend": self.extend,
                 "refit": self.refit}  # fmt: skip
+
+
+def _workers(value: Any) -> int | str:
+    """``gp.choice.workers``: "auto" or an integer >= 1."""
+    if value == "auto":
+        return "auto"
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"gp.choice.workers must be auto or an integer >= 1 (processes "
+                          f"fitting the candidates side by side), got {value!r}; e.g. "
+                          f"gp.choice.workers=1 to fit them one after the other")  # fmt: skip
+    return value
 
 
 def _flag(options: Mapping[str, Any], key: str) -> bool:
@@ -201,12 +234,15 @@ def candidate_groups(
     (``gp=classes``) where the model's ``internal`` model declares classes, and each registered
     candidate kind's recipe (the hidden phases, ``gp=phases``); each the shipped recipe with the
     user's keys (:func:`user_keys`) and, to score them (``scoring``) with
-    ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user set those keys
+    ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` and :data:`SCORING_THREADS` unless the user
+    set those keys
     (``scoring=False``: the recipes' own optimisers, what ``gp.choice.refit`` trains the chosen
     with)."""
     user = user_keys(raw_gp)
     lbfgs = scoring and settings.optimizer == "lbfgs"
     fast = {k: v for k, v in LBFGS.items() if k not in user} if lbfgs else {}
+    if scoring and "threads" not in user:
+        fast["threads"] = SCORING_THREADS
 
     def group(recipe: str, **extra: Any) -> dict[str, Any]:
         return {**group_config("gp", recipe), **extra, **fast, **user}
