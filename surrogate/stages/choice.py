@@ -49,6 +49,7 @@ from surrogate.stages.settings.choice import (
     collecting_pending,
     stored_choice,
 )
+from surrogate.threads import one_thread
 
 log = logging.getLogger(__name__)
 
@@ -88,10 +89,6 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     model = setup.model
     log.info("gp=auto: choosing the chain by measurement among %s (docs/choice.md; "
              "gp.choice.by=rule or a named kind skips it)", list(plan.candidates))  # fmt: skip
-    workers = settings.worker_count(len(plan.candidates), job.device)
-    fits, failed = fit_candidates(plan.candidates, fitter, workers)
-    if not fits:
-        raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     start = time.perf_counter()
     seed_everything(first.seed + HELDOUT_SEED_OFFSET)
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device,
@@ -104,23 +101,31 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     heldout_seconds = time.perf_counter() - start
     log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
+    workers = settings.worker_count(len(plan.candidates), job.device)
+    heldout_run = HeldOut(inputs, phi, first.seed)
+    fits, failed, scored = fit_candidates(plan.candidates, fitter, workers, heldout_run)
+    if not fits:
+        raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     trains = {n: t for n, t in plan.candidates.items() if n in fits}
     groups = {n: g for n, g in plan.groups.items() if n in fits}
     finals = {n: plan.finals.get(n, g) for n, g in groups.items()}
-    scores = [_score(name, tr, fits[name], model, inputs, phi, first.seed + i)
-              for i, (name, tr) in enumerate(trains.items())]  # fmt: skip
+    scores = list(scored.values())
     while (longer := plan.longer_clock(best_name := max(scores, key=lambda s: s.log_likelihood).name,
                                        groups)) is not None:  # fmt: skip
         # the likelihood's best is the clock at the largest cap: its memory may reach past it
         name, gp = longer
         assert plan.make is not None  # longer_clock offers none without it
         log.info("choice: the best is the clock at its largest cap; adding %s", name)
-        trains[name], groups[name] = plan.make(gp), gp
+        added = plan.make(gp)
+        index = len(plan.candidates) + len(trains) - len(scored)  # a seed after every other's
+        path, seconds, error, score = _fit_one(fitter, added, heldout_run.task(name, index))
+        _log_outcome(name, (path, seconds, error, score))
+        if error is not None or path is None or score is None:
+            failed[name] = str(error)  # named in the record; no longer clock after it
+            break
+        trains[name], groups[name], fits[name] = added, gp, (Path(path), seconds)
         finals[name] = {**finals[best_name], "max_age": gp["max_age"]}
-        start = time.perf_counter()
-        fits[name] = (fitter(trains[name]), time.perf_counter() - start)
-        scores.append(_score(name, trains[name], fits[name], model, inputs, phi,
-                             first.seed + len(scores)))  # fmt: skip
+        scores.append(score)
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
     final = finals[choice.chosen]
     chosen = plan.make(final) if plan.make is not None else trains[choice.chosen]
@@ -145,56 +150,84 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class HeldOut:
+    """The held-out run the candidates are scored on (``n x T`` inputs, ``n x (T + 1)`` phi)
+    and the seed its simulated durations start from (the ``i``-th candidate's: ``seed + i``)."""
+
+    inputs: torch.Tensor
+    phi: torch.Tensor
+    seed: int
+
+    def task(self, name: str, index: int) -> tuple[str, torch.Tensor, torch.Tensor, int]:
+        """What scoring candidate ``name``, the ``index``-th, needs."""
+        return name, self.inputs, self.phi, self.seed + index
+
+
+Outcome = tuple[str | None, float, str | None, KindScore | None]
+
+
 def fit_candidates(
-    candidates: Mapping[str, Any], fitter: Fitter, workers: int = 1
-) -> tuple[dict[str, tuple[Path, float]], dict[str, str]]:
-    """Fit (or reuse) each candidate: its fit directory and seconds by name, and the reasons of
-    those whose fit failed numerically (left out, named, not the whole choice).
+    candidates: Mapping[str, Any],
+    fitter: Fitter,
+    workers: int = 1,
+    heldout: HeldOut | None = None,
+) -> tuple[dict[str, tuple[Path, float]], dict[str, str], dict[str, KindScore]]:
+    """Fit (or reuse) each candidate and, given the ``heldout`` run, score it: its fit directory
+    and seconds by name, the reasons of those whose fit failed numerically (left out, named,
+    not the whole choice) and the scores, each in the candidates' order.
 
     With ``workers > 1``, in that many spawned processes, the dearest-looking first (the
     candidates come simplest first); each fit is the one made in this process (its seed and
-    thread count are its settings'), and candidates sharing a fit (the two-state psi) wait for
-    it under the artefact's lock. The workers' log records go through this process's handlers.
+    thread count are its settings'), each score too (one thread, its seed), and candidates
+    sharing a fit (the two-state psi) wait for it under the artefact's lock. The workers' log
+    records go through this process's handlers.
     """
-    fits: dict[str, tuple[Path, float]] = {}
-    failed: dict[str, str] = {}
-
-    def done(name: str, outcome: tuple[str | None, float, str | None]) -> None:
-        path, seconds, error = outcome
+    outcomes: dict[str, Outcome] = {}
+    tasks = {name: (tr, heldout.task(name, i) if heldout is not None else None)
+             for i, (name, tr) in enumerate(candidates.items())}  # fmt: skip
+    if workers <= 1 or len(candidates) < 2:
+        for name, (tr, task) in tasks.items():
+            outcomes[name] = _fit_one(fitter, tr, task)
+            _log_outcome(name, outcomes[name])
+    else:
+        log.info("choice: fitting %d candidates in %d processes, one thread each",
+                 len(candidates), workers)  # fmt: skip
+        context = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
+        records: Any = context.Queue()
+        listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
+                                                  respect_handler_level=True)  # fmt: skip
+        listener.start()
+        try:
+            with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
+                                     initargs=(records, logging.getLogger().level)) as pool:  # fmt: skip
+                futures = {name: pool.submit(_fit_one, fitter, _quiet(tr), task)
+                           for name, (tr, task) in reversed(list(tasks.items()))}  # fmt: skip
+                for name, future in futures.items():
+                    outcomes[name] = future.result()
+                    _log_outcome(name, outcomes[name])
+        finally:
+            listener.stop()
+    fits, failed, scores = {}, {}, {}
+    for name in candidates:
+        path, seconds, error, score = outcomes[name]
         if error is not None:
             failed[name] = error
-            log.warning("choice: %s left out: its fit failed: %s", name, error)
         else:
             assert path is not None
             fits[name] = (Path(path), seconds)
-            log.info("choice: %s fitted (or reused) in %.1f s", name, seconds)
-
-    if workers <= 1 or len(candidates) < 2:
-        for name, tr in candidates.items():
-            done(name, _fit_one(fitter, tr))
-        return _in_order(candidates, fits), failed
-    log.info("choice: fitting %d candidates in %d processes, one thread each",
-             len(candidates), workers)  # fmt: skip
-    context = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
-    records: Any = context.Queue()
-    listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
-                                              respect_handler_level=True)  # fmt: skip
-    listener.start()
-    try:
-        with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
-                                 initargs=(records, logging.getLogger().level)) as pool:  # fmt: skip
-            futures = {name: pool.submit(_fit_one, fitter, _quiet(tr))
-                       for name, tr in reversed(list(candidates.items()))}  # fmt: skip
-            for name, future in futures.items():
-                done(name, future.result())
-    finally:
-        listener.stop()
-    return _in_order(candidates, fits), failed
+            if score is not None:
+                scores[name] = score
+    return fits, failed, scores
 
 
-def _in_order(candidates: Mapping[str, Any], fits: dict[str, Any]) -> dict[str, Any]:
-    """``fits`` in the candidates' order (the score table's)."""
-    return {name: fits[name] for name in candidates if name in fits}
+def _log_outcome(name: str, outcome: Outcome) -> None:
+    _, seconds, error, score = outcome
+    if error is not None:
+        log.warning("choice: %s left out: its fit failed: %s", name, error)
+    else:
+        log.info("choice: %s fitted (or reused) in %.1f s%s", name, seconds,
+                 f", scored in {score.score_seconds:.1f} s" if score is not None else "")  # fmt: skip
 
 
 def _quiet(tr: Any) -> Any:
@@ -212,15 +245,24 @@ def _worker_start(records: Any, level: int) -> None:
     root.setLevel(level)
 
 
-def _fit_one(fitter: Fitter, tr: Any) -> tuple[str | None, float, str | None]:
-    """One candidate's fit: (its directory, seconds, None), or (None, seconds, the reason) where
-    it failed numerically (a NumericalError carries a model, which need not cross processes)."""
+def _fit_one(
+    fitter: Fitter, tr: Any, task: tuple[str, torch.Tensor, torch.Tensor, int] | None = None
+) -> Outcome:
+    """One candidate's fit and, given its scoring ``task``, its score on one thread: (its
+    directory, seconds, None, the score), or (None, seconds, the reason, None) where the fit
+    failed numerically (a NumericalError carries a model, which need not cross processes)."""
     start = time.perf_counter()
     try:
         path = fitter(tr)
     except NumericalError as error:
-        return None, time.perf_counter() - start, str(error)
-    return str(path), time.perf_counter() - start, None
+        return None, time.perf_counter() - start, str(error), None
+    seconds = time.perf_counter() - start
+    if task is None:
+        return str(path), seconds, None, None
+    name, inputs, phi, seed = task
+    with one_thread(True):
+        score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed)
+    return str(path), seconds, None, score
 
 
 def _score(

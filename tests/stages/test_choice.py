@@ -236,7 +236,7 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
     import torch
 
     from surrogate.kinds.files import PSI
-    from surrogate.stages.choice import fit_candidates
+    from surrogate.stages.choice import HeldOut, fit_candidates
     from surrogate.stages.collect import collect
 
     cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.kinds=[two-state,clock]",
@@ -246,19 +246,29 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
     candidates = plans[0].candidates
     assert all(tr.fit_threads == 1 for tr in candidates.values())
     collect(next(iter(candidates.values())).source)
-    apart, failed = fit_candidates(candidates, train_stage.fit_candidate, workers=2)
-    assert list(apart) == list(candidates) and not failed
+    first = next(iter(candidates.values()))
+    table, _ = train_stage.load_transitions(first)  # inputs where the cells were
+    names = list(first.setup.model.internal.input_names)
+    inputs = torch.tensor(table[names].to_numpy()[: 10 * 40], dtype=torch.float32)
+    gen = torch.Generator().manual_seed(0)
+    heldout = HeldOut(inputs.reshape(10, 40, len(names)),
+                      torch.randint(0, 2, (10, 41), generator=gen), seed=3)  # fmt: skip
+    apart, failed, scores = fit_candidates(candidates, train_stage.fit_candidate, 2, heldout)
+    assert list(apart) == list(candidates) == list(scores) and not failed
     states = {n: torch.load(d / PSI, weights_only=True) for n, (d, _) in apart.items()}
     for d, _ in apart.values():
         shutil.rmtree(d)
-    here, _ = fit_candidates(candidates, train_stage.fit_candidate, workers=1)
+    here, _, again_scores = fit_candidates(candidates, train_stage.fit_candidate, 1, heldout)
     assert {n: d for n, (d, _) in here.items()} == {n: d for n, (d, _) in apart.items()}
+    for name, score in scores.items():  # scored alike: one thread, the candidate's own seed
+        assert again_scores[name].log_likelihood == score.log_likelihood
+        assert again_scores[name].durations == score.durations
     for name, (d, _) in here.items():
         again = torch.load(d / PSI, weights_only=True)
         assert again.keys() == states[name].keys()
         for key, value in again.items():
             if isinstance(value, torch.Tensor):
                 assert torch.equal(value, states[name][key]), (name, key)
-    fits, failed = fit_candidates(candidates, _flaky, workers=2)
+    fits, failed, _ = fit_candidates(candidates, _flaky, workers=2)
     assert list(fits) == ["two-state"]
     assert failed == {"clock max_age=1": "did not converge", "clock max_age=2": "did not converge"}
