@@ -72,6 +72,19 @@ def group_config(group: str, name: str) -> dict[str, Any]:
     path = CONF_DIR / group / f"{name}.yaml"
     if not path.exists():
         raise ConfigError(f"unknown {group} {name!r}; available: {group_options(group)}")
+    return copy.deepcopy(_composed(group, path, _group_stamp(group)))
+
+
+def _group_stamp(group: str) -> tuple[tuple[str, int], ...]:
+    """Each YAML file of ``conf/<group>`` (nested too) with its modification time: a composed
+    config is reused while none of the files it may read has changed."""
+    return tuple(sorted((str(p), p.stat().st_mtime_ns) for p in (CONF_DIR / group).rglob("*.yaml")))
+
+
+@functools.lru_cache(maxsize=256)
+def _composed(group: str, path: Path, stamp: tuple[tuple[str, int], ...]) -> dict[str, Any]:
+    """:func:`_compose_defaults`, once per version of the group's files (a report's settings
+    ask for the same shipped groups ~120 times: 2.9 s of merging each time they are built)."""
     return _compose_defaults(group, path)
 
 

@@ -256,3 +256,25 @@ def test_the_classes_recipe_is_checked_and_leaves_two_state_identities_as_they_w
         SimulateSettings.from_config(
             compose_cfg("simulate", ["decision=exact", "decision.lumps=x"])
         )
+
+
+def test_group_config_is_composed_once_per_version_of_its_files(tmp_path, monkeypatch) -> None:
+    """Composed once and reused (a report asks ~120 times), yet a copy each time, and a base
+    file edited is read again."""
+    import os
+
+    import surrogate.config as config
+
+    group = tmp_path / "thing"
+    group.mkdir()
+    (group / "base.yaml").write_text("a: 1\nb: 2\n")
+    (group / "top.yaml").write_text("defaults:\n  - base\n  - _self_\nb: 3\n")
+    monkeypatch.setattr(config, "CONF_DIR", tmp_path)
+    first = config.group_config("thing", "top")
+    assert first == {"a": 1, "b": 3}
+    first["a"] = 99  # the caller's copy
+    assert config.group_config("thing", "top") == {"a": 1, "b": 3}
+    (group / "base.yaml").write_text("a: 5\nb: 2\n")
+    stat = (group / "base.yaml").stat()
+    os.utime(group / "base.yaml", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    assert config.group_config("thing", "top") == {"a": 5, "b": 3}
