@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import NumericalError
+from surrogate.threads import one_thread
 
 log = logging.getLogger(__name__)
 
@@ -218,18 +219,26 @@ def sequence_log_likelihood(
 
 @torch.no_grad()
 def expected_moves(
-    moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor, start: Tensor | None = None
+    moves: Tensor,
+    lumps: Tensor,
+    node: Tensor,
+    phi: Tensor,
+    start: Tensor | None = None,
+    threads: int = 1,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The forward-backward pass: each cell's log-likelihood (as
     :func:`sequence_log_likelihood`), the expected number of each move at each node given the
     sequences ``G x S x S``, and the first hidden state's posterior law ``n x S``. By Fisher's
     identity the likelihood's gradient is that of ``sum(counts * log P) + sum(first * log
     start law)`` with the expectations held fixed (what :func:`fit_phase_law` differentiates:
-    no autograd graph through the windows; the windows run in compiled code, one cell after
-    another: a Python loop over windows of batched torch ops with autograd cost 9-17x more per
-    evaluation at 300 cells x 300 windows, docs/kinds.md).
+    no autograd graph through the windows; the windows run in compiled code, the cells in
+    :data:`PIECES` pieces over ``threads`` threads: a Python loop over windows of batched torch
+    ops with autograd cost 9-17x more per evaluation at 300 cells x 300 windows, docs/kinds.md).
 
-    Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``.
+    Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``, and
+        ``threads``: numba's threads for the pass (at most its pool's; the results are the
+        same on any number: 1, the default, since a second thread on a busy machine costs
+        more than it saves, docs/kinds.md).
     """
     if start is None:
         start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
@@ -237,56 +246,127 @@ def expected_moves(
     args = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=d) for t, d in (
         (moves, np.float64), (lumps, np.int64), (node, np.int64), (phi, np.int64),
         (start, np.float64))]  # fmt: skip
-    ll, counts, first = _forward_backward(*args)
+    # numba.config sets its settings through globals() at import: no stub declares them
+    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
+    # starting numba's pool resets the process's OpenMP count, torch's too: kept
+    torch_threads, before = torch.get_num_threads(), numba.get_num_threads()
+    numba.set_num_threads(max(1, min(threads, most)))
+    try:
+        ll, counts, first = _forward_backward(*args)
+    finally:
+        numba.set_num_threads(before)
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
     return torch.from_numpy(ll), torch.from_numpy(counts), torch.from_numpy(first)
 
 
+#: the cells' pieces in :func:`_forward_backward` (a few per thread: balanced); fixed, not the
+#: thread count, so the expected moves (summed piece by piece in order) are the same on any
+#: number of threads
+PIECES = 16
+
+
 @numba.njit(cache=True)
-def _forward_backward(
-    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Per cell, the scaled forward pass (alpha, its scales) then the backward one (beta),
-    adding each window's expected moves to its node's counts."""
-    n, steps = node.shape
+def _cells_range(  # noqa: PLR0913  # compiled: plain arrays in, no struct
+    moves: np.ndarray,
+    members: np.ndarray,
+    sizes: np.ndarray,
+    node: np.ndarray,
+    phi: np.ndarray,
+    start: np.ndarray,
+    lo: int,
+    hi: int,
+    ll: np.ndarray,
+    counts: np.ndarray,
+    first: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Cells ``lo`` to ``hi``: per cell the scaled forward pass (alpha, its scales) then the
+    backward one (beta), adding each window's expected moves to its node's ``counts``.
+
+    After the first window alpha is zero outside the lump seen, so only the moves between the
+    lumps seen at a window's edges are summed (``members[l, :sizes[l]]``: lump ``l``'s states
+    in order): the terms left out are exact zeros. The scales' logarithm is taken of their
+    running product (one log per ~1e250 of it, not one per window)."""
+    steps = node.shape[1]
     s = moves.shape[1]
-    ll = np.zeros(n)
-    counts = np.zeros(moves.shape)
-    first = np.zeros((n, s))
-    alphas = np.empty((steps + 1, s))
+    alphas = np.zeros((steps + 1, s))
     scales = np.empty(steps)
-    beta, ahead, back = np.empty(s), np.empty(s), np.empty(s)
-    for i in range(n):
+    beta, ahead, back = np.empty(s), np.zeros(s), np.empty(s)
+    for i in range(lo, hi):
         alphas[0, :] = start[i, :]
-        total = 0.0
+        total, product = 0.0, 1.0
         for t in range(steps):
-            g, seen = node[i, t], phi[i, t + 1]
+            g, was, seen = node[i, t], phi[i, t], phi[i, t + 1]
+            # from every state at the first window (the start law as given), then only from
+            # the lump seen at the window's start
+            na, nb = (s if t == 0 else sizes[was]), sizes[seen]
+            alphas[t + 1, :] = 0.0
             c = 0.0
-            for b in range(s):
+            for jb in range(nb):
+                b = members[seen, jb]
                 v = 0.0
-                if lumps[b] == seen:
-                    for a in range(s):
-                        v += alphas[t, a] * moves[g, a, b]
+                for ja in range(na):
+                    a = ja if t == 0 else members[was, ja]
+                    v += alphas[t, a] * moves[g, a, b]
                 alphas[t + 1, b] = v
                 c += v
             c = max(c, 1e-300)
-            alphas[t + 1, :] /= c
-            scales[t] = c
-            total += math.log(c)
-        ll[i] = total
+            inverse = 1.0 / c
+            for jb in range(nb):
+                alphas[t + 1, members[seen, jb]] *= inverse
+            scales[t] = inverse
+            product *= c
+            if product < 1e-250:
+                total += math.log(product)
+                product = 1.0
+        ll[i] = total + math.log(product)
         beta[:] = 1.0
         for t in range(steps - 1, -1, -1):
-            g, seen = node[i, t], phi[i, t + 1]
-            for b in range(s):
-                ahead[b] = beta[b] / scales[t] if lumps[b] == seen else 0.0
-            for a in range(s):
+            g, was, seen = node[i, t], phi[i, t], phi[i, t + 1]
+            na, nb = (s if t == 0 else sizes[was]), sizes[seen]
+            for jb in range(nb):
+                b = members[seen, jb]
+                ahead[b] = beta[b] * scales[t]
+            # beta at the window's start is read only in the lump seen there (all at the first)
+            for ja in range(na):
+                a = ja if t == 0 else members[was, ja]
+                alpha = alphas[t, a]
                 v = 0.0
-                for b in range(s):
+                for jb in range(nb):
+                    b = members[seen, jb]
                     w = moves[g, a, b] * ahead[b]
-                    counts[g, a, b] += alphas[t, a] * w
+                    counts[g, a, b] += alpha * w
                     v += w
                 back[a] = v
-            beta[:] = back
+            for ja in range(na):
+                a = ja if t == 0 else members[was, ja]
+                beta[a] = back[a]
         first[i, :] = alphas[0, :] * beta
+
+
+@numba.njit(cache=True, parallel=True)
+def _forward_backward(
+    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """The cells in :data:`PIECES` contiguous pieces spread over numba's threads, each by
+    :func:`_cells_range` into its own counts, summed after in the pieces' order."""
+    n = node.shape[0]
+    g, s = moves.shape[0], moves.shape[1]
+    members = np.zeros((2, s), dtype=np.int64)
+    sizes = np.zeros(2, dtype=np.int64)
+    for a in range(s):
+        members[lumps[a], sizes[lumps[a]]] = a
+        sizes[lumps[a]] += 1
+    pieces = max(1, min(n, PIECES))
+    ll = np.zeros(n)
+    first = np.zeros((n, s))
+    partial = np.zeros((pieces, g, s, s))
+    for k in numba.prange(pieces):
+        _cells_range(moves, members, sizes, node, phi, start, n * k // pieces,
+                     n * (k + 1) // pieces, ll, partial[k], first)  # fmt: skip
+    counts = np.zeros((g, s, s))
+    for k in range(pieces):
+        counts += partial[k]
     return ll, counts, first
 
 
@@ -319,12 +399,19 @@ def nearest_node(z: Tensor, axes: Sequence[Tensor]) -> Tensor:
 class PhaseFitSettings:
     """How a hidden-phase law is fitted: ``bumps`` per input (:class:`InputBasis`), the ridge
     ``penalty`` on the basis weights (a Gaussian prior's precision), ``nodes`` per input of the
-    grid the inputs are read on, L-BFGS's ``max_iterations``."""
+    grid the inputs are read on, L-BFGS's ``max_iterations`` and ``tolerance`` (it stops when
+    an iteration changes the objective, the penalised log-likelihood per window, or any weight
+    by less), the forward-backward pass's numba ``threads`` (:func:`expected_moves`; the fit is
+    the same on any number)."""
 
     bumps: int = 4
     penalty: float = 1.0
     nodes: int = 64
     max_iterations: int = 200
+    #: 1e-9 per window (3e-4 nats over E. coli's 300,000): below it the fits only wandered
+    #: along flat directions, their held-out likelihood within ~1e-8 per window (docs/kinds.md)
+    tolerance: float = 1e-9
+    threads: int = 1
 
 
 def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: int) -> Tensor:
@@ -349,18 +436,20 @@ def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: 
 
 
 def log_likelihood_with_gradient(
-    law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor
+    law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor, threads: int = 1
 ) -> Tensor:
     """The sequences' log-likelihood (a float64 scalar) under ``law`` read at the grid
     ``points`` (``G x d``; ``node`` ``n x T``: each window's, ``phi`` ``n x (T + 1)``), its
     gradient added to ``law.weights.grad`` (the weights must require it). By Fisher's identity
     the gradient is that of ``sum(counts * log P) + sum(first * log start law)`` with the
-    expectations of :func:`expected_moves` held fixed: no autograd graph through the windows.
+    expectations of :func:`expected_moves` (on ``threads`` threads) held fixed: no autograd
+    graph through the windows.
     """
     log_moves = law.log_moves(points)
     lumps = law.layout.lumps()
-    ll, counts, first = expected_moves(log_moves.detach().exp(), lumps, node, phi)
     start = _start_law(log_moves.exp(), node, (phi[:, :1] == lumps).to(DTYPE))
+    ll, counts, first = expected_moves(log_moves.detach().exp(), lumps, node, phi,
+                                       start.detach(), threads)  # fmt: skip
     surrogate = ((counts * log_moves.clamp_min(-1e300)).sum()
                  + (first * start.clamp_min(1e-300).log()).sum())  # fmt: skip
     surrogate.backward()
@@ -404,14 +493,15 @@ def fit_phase_law(
     windows = phi.shape[0] * (phi.shape[1] - 1)
     optimiser = torch.optim.LBFGS([weights], lr=1.0, max_iter=settings.max_iterations,
                                   history_size=20, line_search_fn="strong_wolfe",
-                                  tolerance_grad=1e-9, tolerance_change=1e-12)  # fmt: skip
+                                  tolerance_grad=1e-9, tolerance_change=settings.tolerance)  # fmt: skip
     evaluations = 0
 
     def closure() -> Tensor:
         nonlocal evaluations
         evaluations += 1
         optimiser.zero_grad()
-        ll = log_likelihood_with_gradient(law, points, node, phi)  # weights.grad: d ll / dw
+        # weights.grad: d ll / dw
+        ll = log_likelihood_with_gradient(law, points, node, phi, settings.threads)
         assert weights.grad is not None
         with torch.no_grad():
             ridge = torch.cat([torch.zeros_like(weights[:1]), weights[1:]])  # no intercepts
@@ -423,7 +513,8 @@ def fit_phase_law(
                                  f"finite")  # fmt: skip
         return value
 
-    optimiser.step(closure)
+    with one_thread(True):  # small tensors: a second torch thread only waits (same results)
+        optimiser.step(closure)
     weights.requires_grad_(False)
     with torch.no_grad():
         ll = float(sequence_log_likelihood(law.log_moves(points), lumps, node, phi).sum())

@@ -64,8 +64,8 @@ MEANS = ("psi", "sequences")
 #: the sequences' seed is the fit's plus this (its cells are not collect's first cells)
 SEQUENCE_SEED_OFFSET = 2_000_003
 #: a change in the fit's method refits (the fit identity carries it); 2: the table's means
-#: matched to psi (gp.phases.means)
-PHASE_LAW_VERSION = 2
+#: matched to psi (gp.phases.means); 3: L-BFGS stops at a change of 1e-9 per window, not 1e-12
+PHASE_LAW_VERSION = 3
 #: the most entries (S x nodes^d x S) of the tabulated law: 2^28, 1 GiB as float32
 MAX_TABLE_ENTRIES = 2**28
 

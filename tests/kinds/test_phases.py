@@ -68,7 +68,7 @@ def test_the_kinds_identity_and_refusals(compose_cfg) -> None:
     assert isinstance(settings.kind, HiddenPhases)
     gp = settings.fit_identity()["gp"]
     assert gp["lumps"] == "phases" and gp["phases"]["max_per_lump"] == 3
-    assert gp["phase_law_version"] == 2 and "lumps=phases" in settings.fit_directory.name
+    assert gp["phase_law_version"] == 3 and "lumps=phases" in settings.fit_directory.name
     assert PhaseSettings.from_config(gp["phases"]).per_lump is None
     with pytest.raises(ConfigError, match="gp.phases is required with gp.lumps=phases"):
         TrainSettings.from_config(compose_cfg("train", ["gp.lumps=phases"]))
