@@ -224,21 +224,18 @@ def expected_moves(
     node: Tensor,
     phi: Tensor,
     start: Tensor | None = None,
-    threads: int = 1,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The forward-backward pass: each cell's log-likelihood (as
     :func:`sequence_log_likelihood`), the expected number of each move at each node given the
     sequences ``G x S x S``, and the first hidden state's posterior law ``n x S``. By Fisher's
     identity the likelihood's gradient is that of ``sum(counts * log P) + sum(first * log
     start law)`` with the expectations held fixed (what :func:`fit_phase_law` differentiates:
-    no autograd graph through the windows; the windows run in compiled code, the cells in
-    :data:`PIECES` pieces over ``threads`` threads: a Python loop over windows of batched torch
-    ops with autograd cost 9-17x more per evaluation at 300 cells x 300 windows, docs/kinds.md).
+    no autograd graph through the windows; the windows run in compiled code, one cell after
+    another: a Python loop over windows of batched torch ops with autograd cost 9-17x more per
+    evaluation at 300 cells x 300 windows, docs/kinds.md; cells over numba's threads lost on a
+    busy 2-core box, 6x slower than one thread, docs/kinds.md).
 
-    Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``, and
-        ``threads``: numba's threads for the pass (at most its pool's; the results are the
-        same on any number: 1, the default, since a second thread on a busy machine costs
-        more than it saves, docs/kinds.md).
+    Args: as :func:`sequence_log_likelihood`, with ``moves`` (P, not log P) ``G x S x S``.
     """
     if start is None:
         start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
@@ -246,24 +243,8 @@ def expected_moves(
     args = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=d) for t, d in (
         (moves, np.float64), (lumps, np.int64), (node, np.int64), (phi, np.int64),
         (start, np.float64))]  # fmt: skip
-    # numba.config sets its settings through globals() at import: no stub declares them
-    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
-    # starting numba's pool resets the process's OpenMP count, torch's too: kept
-    torch_threads, before = torch.get_num_threads(), numba.get_num_threads()
-    numba.set_num_threads(max(1, min(threads, most)))
-    try:
-        ll, counts, first = _forward_backward(*args)
-    finally:
-        numba.set_num_threads(before)
-        if torch.get_num_threads() != torch_threads:
-            torch.set_num_threads(torch_threads)
+    ll, counts, first = _forward_backward(*args)
     return torch.from_numpy(ll), torch.from_numpy(counts), torch.from_numpy(first)
-
-
-#: the cells' pieces in :func:`_forward_backward` (a few per thread: balanced); fixed, not the
-#: thread count, so the expected moves (summed piece by piece in order) are the same on any
-#: number of threads
-PIECES = 16
 
 
 @numba.njit(cache=True)
@@ -344,12 +325,11 @@ def _cells_range(  # noqa: PLR0913  # compiled: plain arrays in, no struct
         first[i, :] = alphas[0, :] * beta
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _forward_backward(
     moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """The cells in :data:`PIECES` contiguous pieces spread over numba's threads, each by
-    :func:`_cells_range` into its own counts, summed after in the pieces' order."""
+    """Every cell by :func:`_cells_range`, with each lump's states listed in order."""
     n = node.shape[0]
     g, s = moves.shape[0], moves.shape[1]
     members = np.zeros((2, s), dtype=np.int64)
@@ -357,16 +337,10 @@ def _forward_backward(
     for a in range(s):
         members[lumps[a], sizes[lumps[a]]] = a
         sizes[lumps[a]] += 1
-    pieces = max(1, min(n, PIECES))
     ll = np.zeros(n)
     first = np.zeros((n, s))
-    partial = np.zeros((pieces, g, s, s))
-    for k in numba.prange(pieces):
-        _cells_range(moves, members, sizes, node, phi, start, n * k // pieces,
-                     n * (k + 1) // pieces, ll, partial[k], first)  # fmt: skip
     counts = np.zeros((g, s, s))
-    for k in range(pieces):
-        counts += partial[k]
+    _cells_range(moves, members, sizes, node, phi, start, 0, n, ll, counts, first)
     return ll, counts, first
 
 
@@ -401,8 +375,7 @@ class PhaseFitSettings:
     ``penalty`` on the basis weights (a Gaussian prior's precision), ``nodes`` per input of the
     grid the inputs are read on, L-BFGS's ``max_iterations`` and ``tolerance`` (it stops when
     an iteration changes the objective, the penalised log-likelihood per window, or any weight
-    by less), the forward-backward pass's numba ``threads`` (:func:`expected_moves`; the fit is
-    the same on any number)."""
+    by less)."""
 
     bumps: int = 4
     penalty: float = 1.0
@@ -411,7 +384,6 @@ class PhaseFitSettings:
     #: 1e-9 per window (3e-4 nats over E. coli's 300,000): below it the fits only wandered
     #: along flat directions, their held-out likelihood within ~1e-8 per window (docs/kinds.md)
     tolerance: float = 1e-9
-    threads: int = 1
 
 
 def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: int) -> Tensor:
@@ -436,20 +408,19 @@ def _initial_weights(layout: PhaseLayout, basis: InputBasis, phi: Tensor, seed: 
 
 
 def log_likelihood_with_gradient(
-    law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor, threads: int = 1
+    law: PhaseLaw, points: Tensor, node: Tensor, phi: Tensor
 ) -> Tensor:
     """The sequences' log-likelihood (a float64 scalar) under ``law`` read at the grid
     ``points`` (``G x d``; ``node`` ``n x T``: each window's, ``phi`` ``n x (T + 1)``), its
     gradient added to ``law.weights.grad`` (the weights must require it). By Fisher's identity
     the gradient is that of ``sum(counts * log P) + sum(first * log start law)`` with the
-    expectations of :func:`expected_moves` (on ``threads`` threads) held fixed: no autograd
-    graph through the windows.
+    expectations of :func:`expected_moves` held fixed: no autograd graph through the windows.
     """
     log_moves = law.log_moves(points)
     lumps = law.layout.lumps()
     start = _start_law(log_moves.exp(), node, (phi[:, :1] == lumps).to(DTYPE))
     ll, counts, first = expected_moves(log_moves.detach().exp(), lumps, node, phi,
-                                       start.detach(), threads)  # fmt: skip
+                                       start.detach())  # fmt: skip
     surrogate = ((counts * log_moves.clamp_min(-1e300)).sum()
                  + (first * start.clamp_min(1e-300).log()).sum())  # fmt: skip
     surrogate.backward()
@@ -501,7 +472,7 @@ def fit_phase_law(
         evaluations += 1
         optimiser.zero_grad()
         # weights.grad: d ll / dw
-        ll = log_likelihood_with_gradient(law, points, node, phi, settings.threads)
+        ll = log_likelihood_with_gradient(law, points, node, phi)
         assert weights.grad is not None
         with torch.no_grad():
             ridge = torch.cat([torch.zeros_like(weights[:1]), weights[1:]])  # no intercepts
