@@ -42,6 +42,9 @@ from surrogate.gp.predictor import PsiClassifier
 # base kernel name -> Matern smoothness (None = RBF)
 _NU = {"rbf": None, "matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
 
+#: rows per chunk of :meth:`CachedPsi.tabulate`: its (rows, M) temporaries stay in cache
+TABULATE_ROWS = 4096
+
 
 def _base_kernel(fitted: FittedClassifier) -> tuple[float | None, Tensor, float]:
     """(Matern nu or None for RBF, lengthscales (d,), outputscale) of a fitted classifier."""
@@ -215,16 +218,32 @@ class CachedPsi:
             return (1.0 + s) * torch.exp(-s)
         return (1.0 + s + s * s / 3.0) * torch.exp(-s)
 
-    def _latent(self, x: Tensor, c: int | None) -> tuple[Tensor, Tensor]:
+    def _kernel_(self, e: Tensor) -> Tensor:
+        """:meth:`_kernel` computed in ``e``'s memory (``e`` a temporary): fewer passes and
+        allocations, for large evaluations; the same function, rounded in another order."""
+        if self.nu is None:
+            return e.exp_()
+        r = e.neg_().clamp_min_(0.0).sqrt_()
+        if self.nu == 0.5:
+            return r.neg_().exp_()
+        s = r.mul_(math.sqrt(2.0 * self.nu))
+        decay = s.neg().exp_()
+        if self.nu == 2.5:
+            s.addcmul_(s, s, value=1.0 / 3.0)  # s + s^2 / 3
+        return s.add_(1.0).mul_(decay)
+
+    def _latent(self, x: Tensor, c: int | None, inplace: bool = False) -> tuple[Tensor, Tensor]:
         """Latent mean and variance at raw inputs ``x`` (n, d): of classifier ``c``, or of both
-        ((2, n) each) when ``c`` is None."""
+        ((2, n) each) when ``c`` is None; ``inplace``: the kernel by :meth:`_kernel_` (eager
+        evaluations only: a compiled step fuses :meth:`_kernel` anyway)."""
         sel = slice(None) if c is None else c
         if c is None:  # (2, n, d)
             u = x.unsqueeze(0) * self.x_gain.unsqueeze(1) + self.x_bias.unsqueeze(1)
         else:
             u = x * self.x_gain[c] + self.x_bias[c]
         u_aug = torch.cat([u, (u * u).sum(-1, keepdim=True), torch.ones_like(u[..., :1])], -1)
-        k = self._kernel(torch.matmul(u_aug, self.w_aug[sel]))  # (.., n, M)
+        e = torch.matmul(u_aug, self.w_aug[sel])  # -|u - w|^2, (.., n, M)
+        k = self._kernel_(e) if inplace else self._kernel(e)
         out = torch.matmul(k, self.g[sel])  # (.., n, M + 1)
         n_ind = self.n_inducing
         y = out[..., :n_ind]  # V^T a
@@ -291,6 +310,35 @@ class CachedPsi:
                 mean, var = self._latent(x.index_select(0, rows), c)
                 out[rows] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
         return out
+
+    @torch.no_grad()
+    def tabulate(self, phi: Tensor, z: Tensor) -> Tensor:
+        """:meth:`evaluate` for many rows at once, e.g. every node of a lookup table's grid
+        (:meth:`PsiClassifier.tabulator <surrogate.gp.predictor.PsiClassifier.tabulator>`):
+        each classifier on its own rows only (one host sync, on any device), in chunks of
+        ``TABULATE_ROWS`` rows so that the working set (a few ``TABULATE_ROWS x M`` floats)
+        stays in cache, the kernel computed in place. The same values as :meth:`evaluate` up to
+        float32 rounding; eager only (not for a compiled step).
+
+        Args:
+            phi: ``(n,)`` origins 0/1.
+            z: ``n x d`` raw inputs.
+
+        Returns:
+            ``(n,)`` float32 p(phi' = 1) on ``z``'s device.
+        """
+        out_device = z.device
+        x = self._inputs(z)
+        one = phi.to(self.device).reshape(-1).bool()
+        if one.shape[0] != x.shape[0]:
+            raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
+        out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
+        for c, rows in ((0, (~one).nonzero().squeeze(1)), (1, one.nonzero().squeeze(1))):
+            for start in range(0, rows.numel(), TABULATE_ROWS):
+                chunk = rows[start : start + TABULATE_ROWS]
+                mean, var = self._latent(x.index_select(0, chunk), c, inplace=True)
+                out[chunk] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
+        return out.to(out_device, torch.float32)
 
     # data-dependent row counts: run eagerly even inside a compiled simulation step (a graph
     # break there), since halving the matmul outweighs the break at these sizes

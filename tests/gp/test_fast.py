@@ -15,6 +15,7 @@ import torch
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp import GPSettings, PsiClassifier, fit_psi
+from surrogate.gp import fast as fast_module
 from surrogate.gp.fast import CachedPsi
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision
@@ -60,6 +61,27 @@ def test_matches_the_classifier(psi: PsiClassifier, split_rows: int) -> None:
     assert (got - expected).abs().max().item() < TOL
     assert torch.equal(fast.evaluate(phi, z), got)
     assert fast.max_deviation(psi) < TOL
+
+
+def test_tabulate_matches_the_classifier(
+    psi: PsiClassifier, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The many-rows path (lookup tables' grids): each classifier on its own rows, in chunks,
+    the kernel in place: the classifier's values to TOL on mixed origins, over several chunks
+    (a short last one included) and an empty origin."""
+    monkeypatch.setattr(fast_module, "TABULATE_ROWS", 256)
+    phi, z = _queries(3000)
+    fast = CachedPsi.from_classifier(psi)
+    expected = psi(phi, z)
+    got = fast.tabulate(phi, z)
+    assert got.dtype == torch.float32 and got.shape == expected.shape
+    assert (expected.max() - expected.min()).item() > 0.3  # a surface that varies
+    assert (got - expected).abs().max().item() < TOL
+    ones = torch.ones_like(phi)
+    assert (fast.tabulate(ones, z) - psi(ones, z)).abs().max().item() < TOL
+    e = -((8.0 * torch.rand(64, 30, generator=torch.Generator().manual_seed(2))) ** 2)
+    # the in-place kernel is the same function (float32 rounding in another order)
+    torch.testing.assert_close(fast._kernel_(e.clone()), fast._kernel(e), rtol=1e-6, atol=1e-7)
 
 
 def test_latent_matches_gpytorch(psi: PsiClassifier) -> None:
