@@ -27,8 +27,10 @@ routine, so they are those gpytorch uses.
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import gpytorch
 import torch
@@ -37,13 +39,35 @@ from torch import Tensor
 
 from surrogate.errors import NumericalError
 from surrogate.gp.fitted import FittedClassifier
-from surrogate.gp.predictor import PsiClassifier
 
 # base kernel name -> Matern smoothness (None = RBF)
 _NU = {"rbf": None, "matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
 
 #: rows per chunk of :meth:`CachedPsi.tabulate`: its (rows, M) temporaries stay in cache
 TABULATE_ROWS = 4096
+
+
+class ClassifierPair(Protocol):
+    """What :class:`CachedPsi` reads of a :class:`~surrogate.gp.predictor.PsiClassifier` (a
+    structural type: the predictor module tabulates through this one, so this one does not
+    import it)."""
+
+    @property
+    def psi_0(self) -> FittedClassifier: ...  # origin phi = 0
+
+    @property
+    def psi_1(self) -> FittedClassifier: ...  # origin phi = 1
+
+    @property
+    def input_names(self) -> tuple[str, ...]: ...
+
+    @property
+    def domain(self) -> dict[str, tuple[float, float]]: ...
+
+    @property
+    def device(self) -> torch.device: ...
+
+    def __call__(self, phi: Tensor, z: Tensor) -> Tensor: ...
 
 
 def _base_kernel(fitted: FittedClassifier) -> tuple[float | None, Tensor, float]:
@@ -187,7 +211,7 @@ class CachedPsi:
 
     @classmethod
     def from_classifier(
-        cls, psi: PsiClassifier, dtype: torch.dtype = torch.float32, split_rows: int = 4096
+        cls, psi: ClassifierPair, dtype: torch.dtype = torch.float32, split_rows: int = 4096
     ) -> CachedPsi:
         """Cache the factors of both classifiers of ``psi`` (on its device)."""
         factors = (_factors(psi.psi_0), _factors(psi.psi_1))
@@ -340,12 +364,16 @@ class CachedPsi:
                 out[chunk] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
         return out.to(out_device, torch.float32)
 
-    # data-dependent row counts: run eagerly even inside a compiled simulation step (a graph
-    # break there), since halving the matmul outweighs the break at these sizes
-    _split_rows = torch.compiler.disable(_split_rows_impl)
+    def _split_rows(self, phi: Tensor, x: Tensor) -> Tensor:
+        """:meth:`_split_rows_impl`, eagerly even inside a compiled simulation step (a graph
+        break there: data-dependent row counts), since halving the matmul outweighs the break
+        at these sizes."""
+        if torch.compiler.is_compiling():
+            return _eager_split_rows()(self, phi, x)
+        return self._split_rows_impl(phi, x)
 
     @torch.no_grad()
-    def max_deviation(self, psi: PsiClassifier, n_check: int = 4096, seed: int = 0) -> float:
+    def max_deviation(self, psi: ClassifierPair, n_check: int = 4096, seed: int = 0) -> float:
         """Max |cached - psi| over ``n_check`` random (phi, z) points in ``psi.domain`` (widened
         by 10 % on each side; the unit box for an input without a known range)."""
         gen = torch.Generator().manual_seed(seed)
@@ -362,4 +390,12 @@ class CachedPsi:
         return float((approx.to("cpu", torch.float64) - exact).abs().max())
 
 
-__all__ = ["CachedPsi"]
+@functools.cache
+def _eager_split_rows() -> Callable[[CachedPsi, Tensor, Tensor], Tensor]:
+    """``CachedPsi._split_rows_impl`` wrapped by ``torch.compiler.disable`` at first use under
+    ``torch.compile``, not at import: the wrapper imports ``torch._dynamo`` (~1.5-2 s), which
+    a process that never compiles need not pay."""
+    return torch.compiler.disable(CachedPsi._split_rows_impl)
+
+
+__all__ = ["CachedPsi", "ClassifierPair"]

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError, NumericalError
+from surrogate.gp.fast import CachedPsi
 from surrogate.gp.fitted import PREDICT_CHUNK, FittedClassifier
 from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
@@ -133,8 +134,6 @@ class PsiClassifier:
         tabulates with: :meth:`CachedPsi.tabulate <surrogate.gp.fast.CachedPsi.tabulate>` (the
         closed form with cached factors, ~5x faster on a table's grid, equal to float32
         rounding) where the models allow it, else this classifier itself."""
-        from surrogate.gp.fast import CachedPsi  # fast imports this module
-
         try:
             return CachedPsi.from_classifier(self).tabulate
         except TypeError:  # a kernel or strategy the closed form does not cover

@@ -8,6 +8,11 @@ ill-conditioned); CachedPsi reproduces the float32 gpytorch numbers to ~1e-5, so
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -82,6 +87,45 @@ def test_tabulate_matches_the_classifier(
     e = -((8.0 * torch.rand(64, 30, generator=torch.Generator().manual_seed(2))) ** 2)
     # the in-place kernel is the same function (float32 rounding in another order)
     torch.testing.assert_close(fast._kernel_(e.clone()), fast._kernel(e), rtol=1e-6, atol=1e-7)
+
+
+def test_import_leaves_torch_dynamo_alone() -> None:
+    """Importing the GP package (CachedPsi included) does not import torch._dynamo (~1.5-2 s
+    per process): the eager split is wrapped by torch.compiler.disable only under compile."""
+    code = "import sys, surrogate.gp.fast; print('torch._dynamo' in sys.modules)"
+    root = str(Path(fast_module.__file__).parents[2])
+    env = {**os.environ, "PYTHONPATH": root}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=root, timeout=300, check=True)  # fmt: skip
+    assert out.stdout.strip() == "False"
+
+
+def test_split_rows_run_eagerly_under_torch_compile(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside torch.compile the row split still runs eagerly (a graph break: data-dependent
+    row counts), through the wrapper made at first use, and gives the eager numbers."""
+    torch.manual_seed(0)
+    settings = GPSettings(n_inducing=8, epochs=1, batch_size=200)
+    psi = fit_psi(_data(400), INPUTS, settings, progress=False)
+    fast = CachedPsi.from_classifier(psi, split_rows=1)
+    fast.check_finite = False
+    compiling: list[bool] = []
+    impl = CachedPsi._split_rows_impl
+
+    def spy(self: CachedPsi, phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        compiling.append(torch.compiler.is_compiling())
+        return impl(self, phi, x)
+
+    monkeypatch.setattr(CachedPsi, "_split_rows_impl", spy)
+    fast_module._eager_split_rows.cache_clear()  # wrap the spy
+    try:
+        phi, z = _queries(300)
+        eager = fast.evaluate(phi, z)
+        compiled = torch.compile(lambda p, q: fast.evaluate(p, q) * 1.0, backend="eager")
+        got = compiled(phi, z)
+    finally:
+        fast_module._eager_split_rows.cache_clear()
+    assert compiling == [False, False]  # the eager call and the compiled one
+    assert (got - eager).abs().max().item() < 1e-6
 
 
 def test_latent_matches_gpytorch(psi: PsiClassifier) -> None:
