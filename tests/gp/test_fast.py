@@ -8,11 +8,6 @@ ill-conditioned); CachedPsi reproduces the float32 gpytorch numbers to ~1e-5, so
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -87,17 +82,6 @@ def test_tabulate_matches_the_classifier(
     e = -((8.0 * torch.rand(64, 30, generator=torch.Generator().manual_seed(2))) ** 2)
     # the in-place kernel is the same function (float32 rounding in another order)
     torch.testing.assert_close(fast._kernel_(e.clone()), fast._kernel(e), rtol=1e-6, atol=1e-7)
-
-
-def test_import_leaves_torch_dynamo_alone() -> None:
-    """Importing the GP package (CachedPsi included) does not import torch._dynamo (~1.5-2 s
-    per process): the eager split is wrapped by torch.compiler.disable only under compile."""
-    code = "import sys, surrogate.gp.fast; print('torch._dynamo' in sys.modules)"
-    root = str(Path(fast_module.__file__).parents[2])
-    env = {**os.environ, "PYTHONPATH": root}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                         cwd=root, timeout=300, check=True)  # fmt: skip
-    assert out.stdout.strip() == "False"
 
 
 def test_split_rows_run_eagerly_under_torch_compile(monkeypatch: pytest.MonkeyPatch) -> None:
