@@ -664,6 +664,28 @@ def test_every_module_imports_alone() -> None:
     assert "FAILED []" in result.stdout, result.stderr[-4000:]
 
 
+#: libraries that importing the stages must not import (each pays 1.5-2 s in every process,
+#: sweep jobs and workers included): the few functions that need them import them
+LATE_IMPORTS = ("torch._dynamo", "scipy.stats")
+
+
+def test_stages_import_without_dynamo_or_scipy_stats() -> None:
+    """``import surrogate.stages.reproduce`` (the quick start's whole pipeline) leaves
+    torch._dynamo (``torch.compiler.disable`` imports it: CachedPsi applies it under compile
+    only) and scipy.stats (imported by the functions that test) unimported."""
+    import os
+    import subprocess
+
+    code = ("import sys, surrogate.stages.reproduce; "
+            f"print([m for m in {LATE_IMPORTS!r} if m in sys.modules])")  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(PACKAGE.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env=env, cwd=PACKAGE.parent, timeout=600)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-4000:]
+    assert result.stdout.strip() == "[]"
+
+
 def test_stages_never_import_the_cli() -> None:
     """The cli sits above the stages (scripts call both): a stage is given what the cli knows
     (the job's config, its threads), it never reaches up for it."""

@@ -50,7 +50,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from scipy import stats
 
 from surrogate.evaluate.band import band_speed, front_position
 from surrogate.evaluate.ks import ks_c_alpha, ks_critical_value, noise_threshold
@@ -235,6 +234,8 @@ def summarise_pair(
         ``c_l1_max``, ``c_linf_max``, :func:`speed_difference`'s keys, ``speed_critical``
         (``z`` x ``speed_se``).
     """
+    from scipy import stats  # ~1.7 s to import: only where used
+
     k = int(np.argmax(table["ks"].to_numpy()))
     diff = table["front_diff"].dropna().to_numpy()
     speeds = speed_difference(table, t_min)

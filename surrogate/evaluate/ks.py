@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
 
 from surrogate.errors import NumericalError
 
@@ -96,6 +95,8 @@ def compare_samples(
         ValueError: A sample is empty or ``subsample`` is not positive.
         NumericalError: A sample contains NaN or infinite values.
     """
+    from scipy import stats  # ~1.7 s to import: only where used
+
     x = _as_sample(a, f"{name} (first sample)")
     y = _as_sample(b, f"{name} (second sample)")
     if subsample is not None:
@@ -257,6 +258,8 @@ Distribution = ExactSample | BinnedSample
 def ks_pvalue_asymptotic(d: float, n_a: int, n_b: int) -> float:
     """The two-sided KS p-value of ``scipy.stats.ks_2samp``'s asymptotic method:
     ``kstwo.sf(d, round(n_a n_b / (n_a + n_b)))`` (what scipy uses above 10,000 values)."""
+    from scipy import stats  # ~1.7 s to import: only where used
+
     m, n = sorted([float(n_a), float(n_b)], reverse=True)
     en = m * n / (m + n)
     return float(np.clip(stats.kstwo.sf(d, np.round(en)), 0.0, 1.0))
@@ -315,6 +318,8 @@ def compare_distributions(
 
 
 def _compare_weighted(a: ExactSample, b: ExactSample, name: str) -> dict[str, float | int]:
+    from scipy import stats  # ~1.7 s to import: only where used
+
     ua, ub = (
         _as_sample(d.values, f"{name} ({w} sample)") for d, w in ((a, "first"), (b, "second"))
     )
@@ -348,6 +353,8 @@ def _known_points(a: Distribution, b: Distribution) -> np.ndarray:
 
 
 def _compare_binned(a: Distribution, b: Distribution, name: str) -> dict[str, float | int]:
+    from scipy import stats  # ~1.7 s to import: only where used
+
     points = _known_points(a, b)
     f = np.concatenate([[0.0], a.below(points) / a.n, [1.0]])
     g = np.concatenate([[0.0], b.below(points) / b.n, [1.0]])

@@ -38,7 +38,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 import torch
-from scipy import stats
 from torch import Tensor
 
 if TYPE_CHECKING:
@@ -73,6 +72,8 @@ def psi_errors(
     Returns:
         (metrics dict, per-row (exact) or per-bin (empirical) frame for figures).
     """
+    from scipy import stats  # ~1.7 s to import: only where used
+
     phi = occupancy["phi"].to_numpy(np.int64, copy=True)
     z = torch.from_numpy(occupancy[list(inputs)].to_numpy(np.float32, copy=True))
     learned = switching(phi, psi(torch.as_tensor(phi), z).double().cpu().numpy())

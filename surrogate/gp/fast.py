@@ -27,8 +27,10 @@ routine, so they are those gpytorch uses.
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import gpytorch
 import torch
@@ -37,10 +39,36 @@ from torch import Tensor
 
 from surrogate.errors import NumericalError
 from surrogate.gp.fitted import FittedClassifier
-from surrogate.gp.predictor import PsiClassifier
+from surrogate.threads import one_thread
 
 # base kernel name -> Matern smoothness (None = RBF)
 _NU = {"rbf": None, "matern12": 0.5, "matern32": 1.5, "matern52": 2.5}
+
+#: rows per chunk of :meth:`CachedPsi.tabulate`: its (rows, M) temporaries stay in cache
+TABULATE_ROWS = 4096
+
+
+class ClassifierPair(Protocol):
+    """What :class:`CachedPsi` reads of a :class:`~surrogate.gp.predictor.PsiClassifier` (a
+    structural type: the predictor module tabulates through this one, so this one does not
+    import it)."""
+
+    @property
+    def psi_0(self) -> FittedClassifier: ...  # origin phi = 0
+
+    @property
+    def psi_1(self) -> FittedClassifier: ...  # origin phi = 1
+
+    @property
+    def input_names(self) -> tuple[str, ...]: ...
+
+    @property
+    def domain(self) -> dict[str, tuple[float, float]]: ...
+
+    @property
+    def device(self) -> torch.device: ...
+
+    def __call__(self, phi: Tensor, z: Tensor) -> Tensor: ...
 
 
 def _base_kernel(fitted: FittedClassifier) -> tuple[float | None, Tensor, float]:
@@ -184,10 +212,13 @@ class CachedPsi:
 
     @classmethod
     def from_classifier(
-        cls, psi: PsiClassifier, dtype: torch.dtype = torch.float32, split_rows: int = 4096
+        cls, psi: ClassifierPair, dtype: torch.dtype = torch.float32, split_rows: int = 4096
     ) -> CachedPsi:
         """Cache the factors of both classifiers of ``psi`` (on its device)."""
-        factors = (_factors(psi.psi_0), _factors(psi.psi_1))
+        # M x M factorisations (M ~ 200): a second CPU thread only slows them, and on a busy
+        # box the threaded eigh took 0.3-3 s where one thread takes 0.015 s (measured)
+        with one_thread(psi.device.type == "cpu"):
+            factors = (_factors(psi.psi_0), _factors(psi.psi_1))
         return cls(factors, psi.input_names, psi.domain, dtype, split_rows)
 
     @property
@@ -215,16 +246,32 @@ class CachedPsi:
             return (1.0 + s) * torch.exp(-s)
         return (1.0 + s + s * s / 3.0) * torch.exp(-s)
 
-    def _latent(self, x: Tensor, c: int | None) -> tuple[Tensor, Tensor]:
+    def _kernel_(self, e: Tensor) -> Tensor:
+        """:meth:`_kernel` computed in ``e``'s memory (``e`` a temporary): fewer passes and
+        allocations, for large evaluations; the same function, rounded in another order."""
+        if self.nu is None:
+            return e.exp_()
+        r = e.neg_().clamp_min_(0.0).sqrt_()
+        if self.nu == 0.5:
+            return r.neg_().exp_()
+        s = r.mul_(math.sqrt(2.0 * self.nu))
+        decay = s.neg().exp_()
+        if self.nu == 2.5:
+            s.addcmul_(s, s, value=1.0 / 3.0)  # s + s^2 / 3
+        return s.add_(1.0).mul_(decay)
+
+    def _latent(self, x: Tensor, c: int | None, inplace: bool = False) -> tuple[Tensor, Tensor]:
         """Latent mean and variance at raw inputs ``x`` (n, d): of classifier ``c``, or of both
-        ((2, n) each) when ``c`` is None."""
+        ((2, n) each) when ``c`` is None; ``inplace``: the kernel by :meth:`_kernel_` (eager
+        evaluations only: a compiled step fuses :meth:`_kernel` anyway)."""
         sel = slice(None) if c is None else c
         if c is None:  # (2, n, d)
             u = x.unsqueeze(0) * self.x_gain.unsqueeze(1) + self.x_bias.unsqueeze(1)
         else:
             u = x * self.x_gain[c] + self.x_bias[c]
         u_aug = torch.cat([u, (u * u).sum(-1, keepdim=True), torch.ones_like(u[..., :1])], -1)
-        k = self._kernel(torch.matmul(u_aug, self.w_aug[sel]))  # (.., n, M)
+        e = torch.matmul(u_aug, self.w_aug[sel])  # -|u - w|^2, (.., n, M)
+        k = self._kernel_(e) if inplace else self._kernel(e)
         out = torch.matmul(k, self.g[sel])  # (.., n, M + 1)
         n_ind = self.n_inducing
         y = out[..., :n_ind]  # V^T a
@@ -292,12 +339,45 @@ class CachedPsi:
                 out[rows] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
         return out
 
-    # data-dependent row counts: run eagerly even inside a compiled simulation step (a graph
-    # break there), since halving the matmul outweighs the break at these sizes
-    _split_rows = torch.compiler.disable(_split_rows_impl)
+    @torch.no_grad()
+    def tabulate(self, phi: Tensor, z: Tensor) -> Tensor:
+        """:meth:`evaluate` for many rows at once, e.g. every node of a lookup table's grid
+        (:meth:`PsiClassifier.tabulator <surrogate.gp.predictor.PsiClassifier.tabulator>`):
+        each classifier on its own rows only (one host sync, on any device), in chunks of
+        ``TABULATE_ROWS`` rows so that the working set (a few ``TABULATE_ROWS x M`` floats)
+        stays in cache, the kernel computed in place. The same values as :meth:`evaluate` up to
+        float32 rounding; eager only (not for a compiled step).
+
+        Args:
+            phi: ``(n,)`` origins 0/1.
+            z: ``n x d`` raw inputs.
+
+        Returns:
+            ``(n,)`` float32 p(phi' = 1) on ``z``'s device.
+        """
+        out_device = z.device
+        x = self._inputs(z)
+        one = phi.to(self.device).reshape(-1).bool()
+        if one.shape[0] != x.shape[0]:
+            raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
+        out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
+        for c, rows in ((0, (~one).nonzero().squeeze(1)), (1, one.nonzero().squeeze(1))):
+            for start in range(0, rows.numel(), TABULATE_ROWS):
+                chunk = rows[start : start + TABULATE_ROWS]
+                mean, var = self._latent(x.index_select(0, chunk), c, inplace=True)
+                out[chunk] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
+        return out.to(out_device, torch.float32)
+
+    def _split_rows(self, phi: Tensor, x: Tensor) -> Tensor:
+        """:meth:`_split_rows_impl`, eagerly even inside a compiled simulation step (a graph
+        break there: data-dependent row counts), since halving the matmul outweighs the break
+        at these sizes."""
+        if torch.compiler.is_compiling():
+            return _eager_split_rows()(self, phi, x)
+        return self._split_rows_impl(phi, x)
 
     @torch.no_grad()
-    def max_deviation(self, psi: PsiClassifier, n_check: int = 4096, seed: int = 0) -> float:
+    def max_deviation(self, psi: ClassifierPair, n_check: int = 4096, seed: int = 0) -> float:
         """Max |cached - psi| over ``n_check`` random (phi, z) points in ``psi.domain`` (widened
         by 10 % on each side; the unit box for an input without a known range)."""
         gen = torch.Generator().manual_seed(seed)
@@ -314,4 +394,12 @@ class CachedPsi:
         return float((approx.to("cpu", torch.float64) - exact).abs().max())
 
 
-__all__ = ["CachedPsi"]
+@functools.cache
+def _eager_split_rows() -> Callable[[CachedPsi, Tensor, Tensor], Tensor]:
+    """``CachedPsi._split_rows_impl`` wrapped by ``torch.compiler.disable`` at first use under
+    ``torch.compile``, not at import: the wrapper imports ``torch._dynamo`` (~1.5-2 s), which
+    a process that never compiles need not pay."""
+    return torch.compiler.disable(CachedPsi._split_rows_impl)
+
+
+__all__ = ["CachedPsi", "ClassifierPair"]

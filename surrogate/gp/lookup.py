@@ -131,7 +131,9 @@ class PsiLookupTable:
         """Tabulate ``psi(phi, z)`` (a classifier, the exact psi, ...) on a regular grid.
 
         ``size`` defaults to 256 nodes per axis (4,096 for one axis). The table lives on
-        ``psi.device`` when it has one, else on the CPU.
+        ``psi.device`` when it has one, else on the CPU. A ``psi`` with a ``tabulator()``
+        method (:meth:`PsiClassifier.tabulator <surrogate.gp.predictor.PsiClassifier.tabulator>`)
+        is tabulated through the function it returns, a faster form of the same values.
         """
         d = len(ranges)
         if size is None:
@@ -142,11 +144,13 @@ class PsiLookupTable:
         for r in ranges:
             _check_range(r)
         device = getattr(psi, "device", torch.device("cpu"))
+        tabulator = getattr(psi, "tabulator", None)
+        evaluate = tabulator() if callable(tabulator) else psi
         grid = grid_nodes(ranges, size).to(device)
         layers = []
         for phi in (0, 1):
             phis = torch.full((grid.shape[0],), phi, dtype=torch.long, device=device)
-            values = psi(phis, grid.to(torch.float32))
+            values = evaluate(phis, grid.to(torch.float32))
             layers.append(values.to(device, torch.float32).reshape(size))
         return cls(torch.stack(layers), ranges, input_names)
 

@@ -4,7 +4,7 @@ over the abstraction's declared input columns."""
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from surrogate.errors import ArtefactError, NumericalError
+from surrogate.gp.fast import CachedPsi
 from surrogate.gp.fitted import PREDICT_CHUNK, FittedClassifier
 from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
@@ -126,6 +127,17 @@ class PsiClassifier:
             if rows.numel():
                 out[rows] = clf.predict_proba(x[rows], self.chunk_size).float()
         return out.to(out_device)
+
+    def tabulator(self) -> Callable[[Tensor, Tensor], Tensor]:
+        """The same predictive as a faster function ``(phi, z) -> p`` for many rows at once,
+        which :meth:`PsiLookupTable.from_function <surrogate.gp.lookup.PsiLookupTable.from_function>`
+        tabulates with: :meth:`CachedPsi.tabulate <surrogate.gp.fast.CachedPsi.tabulate>` (the
+        closed form with cached factors, 6-9x faster on a table's grid, equal to float32
+        rounding) where the models allow it, else this classifier itself."""
+        try:
+            return CachedPsi.from_classifier(self).tabulate
+        except TypeError:  # a kernel or strategy the closed form does not cover
+            return self
 
     def to_state(self) -> dict[str, Any]:
         """Plain-value export (tensors, numbers, strings, lists, dicts) of both classifiers."""

@@ -34,7 +34,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from surrogate.config import (
     build_field,
@@ -465,6 +464,8 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
     the statistic, the noise floor (the same statistic of the second full run), the threshold
     and whether it passes. The second full run is no candidate: its KS against the full run is
     the floor itself, so its checks could not fail."""
+    from scipy import stats  # ~1.7 s to import: only where used
+
     o = settings.options
     alpha = float(o.get("alpha", 0.05))
     n = int(o["n_cells"])

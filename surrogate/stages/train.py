@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
-from scipy import stats
 from torch import Tensor
 
 from surrogate.config import seed_everything, to_dict
@@ -562,6 +561,8 @@ def share_test(
     full: np.ndarray, chain: np.ndarray, t: float, names: Sequence[str]
 ) -> dict[str, Any]:
     """Chi-square test of homogeneity of two populations' class counts ``(C,)`` each."""
+    from scipy import stats  # ~1.7 s to import: only where used
+
     keep = (full + chain) > 0
     p_full, p_chain = full / max(full.sum(), 1), chain / max(chain.sum(), 1)
     out: dict[str, Any] = {

@@ -15,6 +15,7 @@ import torch
 
 from surrogate.errors import ConfigError, NumericalError
 from surrogate.gp import GPSettings, PsiClassifier, fit_psi
+from surrogate.gp import fast as fast_module
 from surrogate.gp.fast import CachedPsi
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision
@@ -60,6 +61,55 @@ def test_matches_the_classifier(psi: PsiClassifier, split_rows: int) -> None:
     assert (got - expected).abs().max().item() < TOL
     assert torch.equal(fast.evaluate(phi, z), got)
     assert fast.max_deviation(psi) < TOL
+
+
+def test_tabulate_matches_the_classifier(
+    psi: PsiClassifier, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The many-rows path (lookup tables' grids): each classifier on its own rows, in chunks,
+    the kernel in place: the classifier's values to TOL on mixed origins, over several chunks
+    (a short last one included) and an empty origin."""
+    monkeypatch.setattr(fast_module, "TABULATE_ROWS", 256)
+    phi, z = _queries(3000)
+    fast = CachedPsi.from_classifier(psi)
+    expected = psi(phi, z)
+    got = fast.tabulate(phi, z)
+    assert got.dtype == torch.float32 and got.shape == expected.shape
+    assert (expected.max() - expected.min()).item() > 0.3  # a surface that varies
+    assert (got - expected).abs().max().item() < TOL
+    ones = torch.ones_like(phi)
+    assert (fast.tabulate(ones, z) - psi(ones, z)).abs().max().item() < TOL
+    e = -((8.0 * torch.rand(64, 30, generator=torch.Generator().manual_seed(2))) ** 2)
+    # the in-place kernel is the same function (float32 rounding in another order)
+    torch.testing.assert_close(fast._kernel_(e.clone()), fast._kernel(e), rtol=1e-6, atol=1e-7)
+
+
+def test_split_rows_run_eagerly_under_torch_compile(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside torch.compile the row split still runs eagerly (a graph break: data-dependent
+    row counts), through the wrapper made at first use, and gives the eager numbers."""
+    torch.manual_seed(0)
+    settings = GPSettings(n_inducing=8, epochs=1, batch_size=200)
+    psi = fit_psi(_data(400), INPUTS, settings, progress=False)
+    fast = CachedPsi.from_classifier(psi, split_rows=1)
+    fast.check_finite = False
+    compiling: list[bool] = []
+    impl = CachedPsi._split_rows_impl
+
+    def spy(self: CachedPsi, phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        compiling.append(torch.compiler.is_compiling())
+        return impl(self, phi, x)
+
+    monkeypatch.setattr(CachedPsi, "_split_rows_impl", spy)
+    fast_module._eager_split_rows.cache_clear()  # wrap the spy
+    try:
+        phi, z = _queries(300)
+        eager = fast.evaluate(phi, z)
+        compiled = torch.compile(lambda p, q: fast.evaluate(p, q) * 1.0, backend="eager")
+        got = compiled(phi, z)
+    finally:
+        fast_module._eager_split_rows.cache_clear()
+    assert compiling == [False, False]  # the eager call and the compiled one
+    assert (got - eager).abs().max().item() < 1e-6
 
 
 def test_latent_matches_gpytorch(psi: PsiClassifier) -> None:

@@ -20,6 +20,9 @@ from surrogate.gp import (
     StackedPsiLookup,
     fit_classifier,
 )
+from surrogate.gp import fast as fast_module
+from surrogate.gp.fast import CachedPsi
+from surrogate.gp.lookup import grid_nodes
 
 W = 0.1
 M_BOX = (1.0, 3.5)
@@ -263,6 +266,64 @@ def test_from_gp_classifier() -> None:
     z = mL(m_nodes[[0, 5, 15]], L_nodes[[3, 9, 15]]).float()
     expected = psi(torch.tensor([0, 1, 1]), z)
     torch.testing.assert_close(table.table[[0, 1, 1], [0, 5, 15], [3, 9, 15]], expected)
+
+
+def _two_classifiers(d: int) -> PsiClassifier:
+    """psi_0 and psi_1 fitted on different data over (m[, L]): the layers differ."""
+    gen = torch.Generator().manual_seed(4)
+    x = mL(1.0 + 2.5 * torch.rand(600, generator=gen), 0.1 * torch.rand(600, generator=gen))
+    x = x[:, :d].contiguous()
+    settings = GPSettings(kernel="matern52", n_inducing=12, epochs=3, batch_size=200)
+    logit = 4.0 * (x[:, 0] - 2.2 - (10.0 * x[:, 1] if d > 1 else 0.5))
+    fitted = []
+    for phi in (0, 1):  # the origin shifts the surface
+        y = torch.bernoulli(torch.sigmoid(logit + 2.0 * phi - 1.0), generator=gen)
+        fitted.append(fit_classifier(x, y, settings, progress=False))
+    return PsiClassifier(fitted[0], fitted[1], NAMES[:d])
+
+
+@pytest.mark.parametrize("d", [1, 2])
+def test_gp_table_is_tabulated_in_closed_form(d: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A classifier's table comes from its tabulator (CachedPsi.tabulate, ~10x faster than
+    gpytorch on a table's grid), in several chunks, and equals the classifier at every node
+    of both layers to 2e-5: both evaluate one predictive in float32, rounded in another
+    order, and gpytorch's own float32 round-off on such models is ~1e-5 (tests/gp/test_fast.py).
+    """
+    psi = _two_classifiers(d)
+    calls = []
+    tabulate = CachedPsi.tabulate
+
+    def counting(self: CachedPsi, phi: Tensor, z: Tensor) -> Tensor:
+        calls.append(z.shape[0])
+        return tabulate(self, phi, z)
+
+    monkeypatch.setattr(CachedPsi, "tabulate", counting)
+    monkeypatch.setattr(fast_module, "TABULATE_ROWS", 128)  # several chunks per layer
+    size = (300,) if d == 1 else (24, 17)
+    table = PsiLookupTable.from_function(psi, BOX[:d], NAMES[:d], size)
+    grid = grid_nodes(BOX[:d], size).float()
+    assert calls == [grid.shape[0]] * 2  # one call per layer, through the tabulator
+    for phi in (0, 1):
+        expected = psi(torch.full((grid.shape[0],), phi), grid).reshape(size)
+        assert (expected.max() - expected.min()).item() > 0.1  # a surface that varies
+        assert (table.table[phi] - expected).abs().max().item() < 2e-5
+    assert (table.table[1] - table.table[0]).abs().max().item() > 0.1  # layers differ
+
+
+def test_gp_table_without_closed_form_uses_the_classifier(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A model CachedPsi does not cover (TypeError) is tabulated by the classifier itself."""
+    psi = _two_classifiers(2)
+
+    def refuse(*args: object, **kwargs: object) -> CachedPsi:
+        raise TypeError("not covered")
+
+    monkeypatch.setattr(CachedPsi, "from_classifier", refuse)
+    assert psi.tabulator() is psi
+    table = PsiLookupTable.from_function(psi, BOX, NAMES, (9, 7))
+    grid = grid_nodes(BOX, (9, 7)).float()
+    for phi in (0, 1):
+        expected = psi(torch.full((63,), phi), grid).reshape(9, 7)
+        assert torch.equal(table.table[phi], expected)
 
 
 # ----------------------------------------------------------------------------------------------
