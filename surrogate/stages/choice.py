@@ -22,6 +22,7 @@ import dataclasses
 import logging
 import logging.handlers
 import multiprocessing
+import pickle
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ProcessPoolExecutor
@@ -186,6 +187,8 @@ def fit_candidates(
     outcomes: dict[str, Outcome] = {}
     tasks = {name: (tr, heldout.task(name, i) if heldout is not None else None)
              for i, (name, tr) in enumerate(candidates.items())}  # fmt: skip
+    if workers > 1 and not _crosses_processes(fitter, candidates):
+        workers = 1
     if workers <= 1 or len(candidates) < 2:
         for name, (tr, task) in tasks.items():
             outcomes[name] = _fit_one(fitter, tr, task)
@@ -219,6 +222,19 @@ def fit_candidates(
             if score is not None:
                 scores[name] = score
     return fits, failed, scores
+
+
+def _crosses_processes(fitter: Fitter, candidates: Mapping[str, Any]) -> bool:
+    """Whether the fitter and every candidate's settings pickle (a spawned worker rebuilds them
+    by import: a model class defined in an interactive session does not); where one does not,
+    say so: the candidates are then fitted in this process."""
+    try:
+        pickle.dumps((fitter, list(candidates.values())))
+    except (pickle.PicklingError, AttributeError, TypeError) as error:
+        log.info("choice: fitting the candidates in this process, one after the other: their "
+                 "settings cannot go to a worker process (%s)", error)  # fmt: skip
+        return False
+    return True
 
 
 def _log_outcome(name: str, outcome: Outcome) -> None:

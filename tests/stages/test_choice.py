@@ -272,3 +272,9 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
     fits, failed, _ = fit_candidates(candidates, _flaky, workers=2)
     assert list(fits) == ["two-state"]
     assert failed == {"clock max_age=1": "did not converge", "clock max_age=2": "did not converge"}
+
+    def local(settings):  # no worker can import it: fitted here, one after the other
+        return train_stage.fit_candidate(settings)
+
+    fits, failed, _ = fit_candidates(candidates, local, workers=2)
+    assert list(fits) == list(candidates) and not failed
