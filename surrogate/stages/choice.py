@@ -22,10 +22,10 @@ import dataclasses
 import logging
 import logging.handlers
 import multiprocessing
-import pickle
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -228,9 +228,9 @@ def _crosses_processes(fitter: Fitter, candidates: Mapping[str, Any]) -> bool:
     """Whether the fitter and every candidate's settings pickle (a spawned worker rebuilds them
     by import: a model class defined in an interactive session does not); where one does not,
     say so: the candidates are then fitted in this process."""
-    try:
-        pickle.dumps((fitter, list(candidates.values())))
-    except (pickle.PicklingError, AttributeError, TypeError) as error:
+    try:  # serialised as the pool will, never read back here
+        ForkingPickler.dumps((fitter, list(candidates.values())))
+    except Exception as error:  # any object the pickler refuses, whatever its error
         log.info("choice: fitting the candidates in this process, one after the other: their "
                  "settings cannot go to a worker process (%s)", error)  # fmt: skip
         return False
