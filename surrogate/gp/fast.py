@@ -329,14 +329,19 @@ class CachedPsi:
             out = torch.where(one.to(p.dtype) > 0, p[1], p[0])
         return out.to(out_device, torch.float32)
 
-    def _split_rows_impl(self, phi: Tensor, x: Tensor) -> Tensor:
-        """Each classifier on its own rows only (one host sync for the split)."""
+    def _split_rows_impl(
+        self, phi: Tensor, x: Tensor, chunk: int | None = None, inplace: bool = False
+    ) -> Tensor:
+        """Each classifier on its own rows only (one host sync for the split), ``chunk`` rows
+        at a time (None: all at once), the kernel in place where ``inplace``."""
         one = phi.bool()
         out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
         for c, rows in ((0, (~one).nonzero().squeeze(1)), (1, one.nonzero().squeeze(1))):
-            if rows.numel():
-                mean, var = self._latent(x.index_select(0, rows), c)
-                out[rows] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
+            step = chunk or max(1, rows.numel())
+            for start in range(0, rows.numel(), step):
+                part = rows[start : start + step]
+                mean, var = self._latent(x.index_select(0, part), c, inplace=inplace)
+                out[part] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
         return out
 
     @torch.no_grad()
@@ -355,18 +360,12 @@ class CachedPsi:
         Returns:
             ``(n,)`` float32 p(phi' = 1) on ``z``'s device.
         """
-        out_device = z.device
         x = self._inputs(z)
-        one = phi.to(self.device).reshape(-1).bool()
+        one = phi.to(self.device).reshape(-1)
         if one.shape[0] != x.shape[0]:
             raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
-        out = torch.empty(x.shape[0], dtype=self.dtype, device=self.device)
-        for c, rows in ((0, (~one).nonzero().squeeze(1)), (1, one.nonzero().squeeze(1))):
-            for start in range(0, rows.numel(), TABULATE_ROWS):
-                chunk = rows[start : start + TABULATE_ROWS]
-                mean, var = self._latent(x.index_select(0, chunk), c, inplace=True)
-                out[chunk] = torch.special.ndtr(mean * torch.rsqrt(1.0 + var))
-        return out.to(out_device, torch.float32)
+        out = self._split_rows_impl(one, x, chunk=TABULATE_ROWS, inplace=True)
+        return out.to(z.device, torch.float32)
 
     def _split_rows(self, phi: Tensor, x: Tensor) -> Tensor:
         """:meth:`_split_rows_impl`, eagerly even inside a compiled simulation step (a graph
