@@ -248,32 +248,30 @@ def expected_moves(
 
 
 @numba.njit(cache=True)
-def _cells_range(  # noqa: PLR0913  # compiled: plain arrays in, no struct
-    moves: np.ndarray,
-    members: np.ndarray,
-    sizes: np.ndarray,
-    node: np.ndarray,
-    phi: np.ndarray,
-    start: np.ndarray,
-    lo: int,
-    hi: int,
-    ll: np.ndarray,
-    counts: np.ndarray,
-    first: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """Cells ``lo`` to ``hi``: per cell the scaled forward pass (alpha, its scales) then the
-    backward one (beta), adding each window's expected moves to its node's ``counts``.
+def _forward_backward(
+    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Per cell the scaled forward pass (alpha, its scales) then the backward one (beta),
+    adding each window's expected moves to its node's counts.
 
     After the first window alpha is zero outside the lump seen, so only the moves between the
     lumps seen at a window's edges are summed (``members[l, :sizes[l]]``: lump ``l``'s states
     in order): the terms left out are exact zeros. The scales' logarithm is taken of their
     running product (one log per ~1e250 of it, not one per window)."""
+    n, nodes, s = node.shape[0], moves.shape[0], moves.shape[1]
+    members = np.zeros((2, s), dtype=np.int64)
+    sizes = np.zeros(2, dtype=np.int64)
+    for a in range(s):
+        members[lumps[a], sizes[lumps[a]]] = a
+        sizes[lumps[a]] += 1
+    ll = np.zeros(n)
+    first = np.zeros((n, s))
+    counts = np.zeros((nodes, s, s))
     steps = node.shape[1]
-    s = moves.shape[1]
     alphas = np.zeros((steps + 1, s))
     scales = np.empty(steps)
     beta, ahead, back = np.empty(s), np.zeros(s), np.empty(s)
-    for i in range(lo, hi):
+    for i in range(n):
         alphas[0, :] = start[i, :]
         total, product = 0.0, 1.0
         for t in range(steps):
@@ -323,24 +321,6 @@ def _cells_range(  # noqa: PLR0913  # compiled: plain arrays in, no struct
                 a = ja if t == 0 else members[was, ja]
                 beta[a] = back[a]
         first[i, :] = alphas[0, :] * beta
-
-
-@numba.njit(cache=True)
-def _forward_backward(
-    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Every cell by :func:`_cells_range`, with each lump's states listed in order."""
-    n = node.shape[0]
-    g, s = moves.shape[0], moves.shape[1]
-    members = np.zeros((2, s), dtype=np.int64)
-    sizes = np.zeros(2, dtype=np.int64)
-    for a in range(s):
-        members[lumps[a], sizes[lumps[a]]] = a
-        sizes[lumps[a]] += 1
-    ll = np.zeros(n)
-    first = np.zeros((n, s))
-    counts = np.zeros((g, s, s))
-    _cells_range(moves, members, sizes, node, phi, start, 0, n, ll, counts, first)
     return ll, counts, first
 
 
