@@ -248,10 +248,7 @@ def _log_outcome(name: str, outcome: Outcome) -> None:
 
 def _quiet(tr: Any) -> Any:
     """``tr`` without progress bars (processes side by side would interleave them)."""
-    job = getattr(tr, "job", None)
-    if job is None or not getattr(job, "progress", False):
-        return tr
-    return dataclasses.replace(tr, job=dataclasses.replace(job, progress=False))
+    return dataclasses.replace(tr, job=dataclasses.replace(tr.job, progress=False))
 
 
 def _worker_start(records: Any, level: int) -> None:
