@@ -278,3 +278,17 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
 
     fits, failed, _ = fit_candidates(candidates, local, workers=2)
     assert list(fits) == list(candidates) and not failed
+
+
+def test_worker_count_follows_the_setting_the_device_and_the_candidates() -> None:
+    """gp.choice.workers: an integer is kept (never more than the candidates), auto is one per
+    usable core on the CPU and one on a GPU; the value the error message suggests passes."""
+    import os
+
+    assert ChoiceSettings.from_config({"workers": 1}).worker_count(6, "cpu") == 1
+    assert ChoiceSettings.from_config({"workers": 4}).worker_count(3, "cpu") == 3
+    auto = ChoiceSettings.from_config({"workers": "auto"})
+    assert auto.worker_count(6, "cuda") == 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+    assert auto.worker_count(6, "cpu") == max(1, min(cores, 6))
+    assert auto.worker_count(1, "cpu") == 1
