@@ -104,7 +104,8 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
     workers = settings.worker_count(len(plan.candidates), job.device)
     heldout_run = HeldOut(inputs, phi, first.seed)
-    fits, failed, scored = fit_candidates(plan.candidates, fitter, workers, heldout_run)
+    fits, failed, scored = fit_candidates(plan.candidates, fitter, workers, heldout_run,
+                                          ahead=plan.ahead() if workers > 1 else None)  # fmt: skip
     if not fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     trains = {n: t for n, t in plan.candidates.items() if n in fits}
@@ -173,6 +174,7 @@ def fit_candidates(
     fitter: Fitter,
     workers: int = 1,
     heldout: HeldOut | None = None,
+    ahead: tuple[str, Any] | None = None,
 ) -> tuple[dict[str, tuple[Path, float]], dict[str, str], dict[str, KindScore]]:
     """Fit (or reuse) each candidate and, given the ``heldout`` run, score it: its fit directory
     and seconds by name, the reasons of those whose fit failed numerically (left out, named,
@@ -182,7 +184,9 @@ def fit_candidates(
     candidates come simplest first); each fit is the one made in this process (its seed and
     thread count are its settings'), each score too (one thread, its seed), and candidates
     sharing a fit (the two-state psi) wait for it under the artefact's lock. The workers' log
-    records go through this process's handlers.
+    records go through this process's handlers. ``ahead`` (a name and train settings, with
+    more than one worker) is fitted too, first and unscored: the chosen's final fit made
+    while the others are scored (``gp.choice.ahead``); its failure is logged, not raised.
     """
     outcomes: dict[str, Outcome] = {}
     tasks = {name: (tr, heldout.task(name, i) if heldout is not None else None)
@@ -204,11 +208,14 @@ def fit_candidates(
         try:
             with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
                                      initargs=(records, logging.getLogger().level)) as pool:  # fmt: skip
+                early = pool.submit(_fit_one, fitter, _quiet(ahead[1])) if ahead else None
                 futures = {name: pool.submit(_fit_one, fitter, _quiet(tr), task)
                            for name, (tr, task) in reversed(list(tasks.items()))}  # fmt: skip
                 for name, future in futures.items():
                     outcomes[name] = future.result()
                     _log_outcome(name, outcomes[name])
+                if ahead is not None and early is not None:
+                    _log_ahead(ahead[0], early.result())
         finally:
             listener.stop()
     fits, failed, scores = {}, {}, {}
@@ -244,6 +251,15 @@ def _log_outcome(name: str, outcome: Outcome) -> None:
     else:
         log.info("choice: %s fitted (or reused) in %.1f s%s", name, seconds,
                  f", scored in {score.score_seconds:.1f} s" if score is not None else "")  # fmt: skip
+
+
+def _log_ahead(name: str, outcome: Outcome) -> None:
+    _, seconds, error, _ = outcome
+    if error is not None:  # the train after the choice fits it again, and says why, if chosen
+        log.warning("choice: %s with its recipe, fitted ahead, failed: %s", name, error)
+    else:
+        log.info("choice: %s trained ahead with its recipe in %.1f s (gp.choice.ahead: the "
+                 "fit gp=auto trains where it is chosen)", name, seconds)  # fmt: skip
 
 
 def _quiet(tr: Any) -> Any:

@@ -49,6 +49,9 @@ class Plain:
         ({"refit": "yes"}, "gp.choice.refit"),
         ({"workers": 0}, "gp.choice.workers"),
         ({"workers": "many"}, "gp.choice.workers"),
+        ({"ahead": "yes"}, "gp.choice.ahead"),
+        ({"clock_inducing": 0}, "gp.choice.clock_inducing"),
+        ({"clock_inducing": 6.5}, "gp.choice.clock_inducing"),
         ({"cells": 10}, "gp.choice"),
     ],
 )
@@ -60,7 +63,7 @@ def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None
 def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
     """K lumps only where the model declares classes; one clock per cap; the hidden phases (a
     registered candidate) last; L-BFGS in each unless the user set the optimiser's keys; a key
-    the user set (gp.threads) in every candidate."""
+    the user set (gp.threads) in every candidate; the clocks scored on fewer inducing points."""
     settings = ChoiceSettings.from_config({"max_ages": [1, 3]})
     raw = {"lumps": "auto", "threads": 1, "epochs": 7}
     groups = candidate_groups(raw, settings, Plain())
@@ -71,6 +74,18 @@ def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
     assert all(g["threads"] == 1 and g["epochs"] == 7 for g in groups.values())
     assert all(g["optimizer"] == LBFGS["optimizer"] and g["natural_gradient"] is False
                for g in groups.values())  # fmt: skip
+    # the clocks scored on gp.choice.clock_inducing points, trained on the recipe's; every
+    # fit on one thread unless the user set gp.threads
+    assert (
+        groups["clock max_age=1"]["n_inducing"] == 64 and groups["two-state"]["n_inducing"] == 200
+    )
+    finals = candidate_groups({"lumps": "auto"}, settings, Plain(), scoring=False)
+    assert finals["clock max_age=1"]["n_inducing"] == 200
+    assert all(g["threads"] == 1 and g["optimizer"] == "adam" for g in finals.values())
+    assert candidate_groups({**raw, "n_inducing": 50}, settings, Plain())["clock max_age=1"][
+        "n_inducing"] == 50  # fmt: skip
+    recipe = ChoiceSettings.from_config({"clock_inducing": None})
+    assert candidate_groups({}, recipe, Plain())["clock max_age=1"]["n_inducing"] == 200
     only = ChoiceSettings.from_config({"kinds": ["clock"], "max_ages": [2]})
     assert list(candidate_groups({}, only, Plain())) == ["clock max_age=2"]
     with pytest.raises(ConfigError, match=r"gp\.choice\.kinds=\['classes'\] leaves no candidate"):
@@ -278,6 +293,43 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
 
     fits, failed, _ = fit_candidates(candidates, local, workers=2)
     assert list(fits) == list(candidates) and not failed
+
+
+def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would(
+    tmp_path: Path,
+) -> None:
+    """gp.choice.ahead with two workers: the rule's candidate (two-state here: no classes) is
+    trained with its recipe in a worker while the candidates are scored; the fit is the one
+    this process makes from the same settings, bit for bit (one thread, its seed), so the
+    train after the choice reuses it. Not asked, or with refit off, nothing is fitted ahead."""
+    import shutil
+
+    import torch
+
+    from surrogate.kinds.files import PSI
+    from surrogate.stages.choice import make_choice
+
+    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.workers=2"])
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+    plan = plans[0]
+    name, ahead = plan.ahead()
+    assert name == "two-state" and ahead.fit_threads == 1
+    assert ahead.gp_config["optimizer"] == "adam" and ahead.fit_identity() == plan.make(
+        plan.finals["two-state"]).fit_identity()  # fmt: skip
+    make_choice(plan, train_stage.fit_candidate, cfg)
+    made = torch.load(ahead.fit_directory / PSI, weights_only=True)
+    shutil.rmtree(ahead.fit_directory)
+    train_stage.fit_candidate(ahead)
+    again = torch.load(ahead.fit_directory / PSI, weights_only=True)
+    for key, value in again.items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(value, made[key]), key
+    for key in ("ahead", "refit"):  # each a choice not made yet (its own data directory)
+        with collecting_pending() as others:
+            train_stage.validate(compose_in(tmp_path / key, "train",
+                                            [*MEASURE, f"gp.choice.{key}=false"]))  # fmt: skip
+        assert others[0].ahead() is None, key
 
 
 def test_worker_count_follows_the_setting_the_device_and_the_candidates() -> None:

@@ -44,14 +44,17 @@ BY = ("measure", "rule")
 OPTIMIZERS = ("lbfgs", "recipe")
 #: what gp.choice.optimizer=lbfgs sets in each candidate (L-BFGS takes no natural gradient)
 LBFGS = {"optimizer": "lbfgs", "epochs": 200, "natural_gradient": False}
-#: the candidates' fits to score run on one torch thread each, in as many processes as
-#: ``gp.choice.workers`` says: the same fits whatever the worker count (a fit's float
-#: reductions depend on its threads), and these small fits gain nothing from a second thread
-#: (E. coli's K-lumps step: 27 ms on two, 26 ms of CPU on one)
-SCORING_THREADS = 1
+#: every fit the choice makes (the candidates' to score them, the chosen one's with its recipe)
+#: runs on one torch thread, in as many processes as ``gp.choice.workers`` says: the same fits
+#: whatever the worker count and the machine's cores (a fit's float reductions depend on its
+#: threads), and these small fits gain little from a second thread (E. coli's K-lumps step:
+#: 27 ms on two, 26 ms of CPU on one)
+FIT_THREADS = 1
 #: gp.choice.kinds: the candidates' families (each clock cap is one ``clock`` candidate; K lumps
 #: only where the model declares classes; the registered candidate kinds by their recipe)
 FAMILIES = ("two-state", "clock", "classes", "phases")
+#: the rule's candidate (issue 40's chain): the first of these among the candidates
+RULE_CANDIDATES = ("classes", "two-state")
 DEFAULTS: dict[str, Any] = {
     "by": "measure",
     "kinds": list(FAMILIES),
@@ -63,6 +66,8 @@ DEFAULTS: dict[str, Any] = {
     "duration_tolerance": 0.03,
     "optimizer": "lbfgs",
     "refit": True,
+    "ahead": True,
+    "clock_inducing": 64,
     "extend": 2,
     "workers": "auto",
 }
@@ -93,8 +98,19 @@ class ChoiceSettings:
     refit: bool = True
     #: processes fitting the candidates side by side (``gp.choice.workers``; "auto": one per
     #: usable core up to the candidates' count on the CPU, one on a GPU). Not in the identity:
-    #: each fit is the same whichever process makes it (:data:`SCORING_THREADS`)
+    #: each fit is the same whichever process makes it (:data:`FIT_THREADS`)
     workers: int | str = "auto"
+    #: with ``refit`` and more than one worker, the rule's candidate (K lumps where the model
+    #: declares classes, else the two-state chain) is also trained with its recipe while the
+    #: candidates are scored, in a worker of its own: where it is chosen, the train that
+    #: follows finds that fit made (the same fit: its settings and one thread). Not in the
+    #: identity: it changes when a fit is made, not which
+    ahead: bool = True
+    #: inducing points of the clocks' scoring fits (None: the recipe's 200); their trained
+    #: fit keeps the recipe's. A clock's psi is a smooth surface over (inputs, age): on E.
+    #: coli 64 points score within 1e-5 per window of 200's (well inside the SE, 1.2e-5) at
+    #: 2-3x less fitting
+    clock_inducing: int | None = 64
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -134,7 +150,8 @@ class ChoiceSettings:
                    _number(options, "equilibration_time", zero=True),
                    _number(options, "tie_se"), _number(options, "duration_tolerance"),
                    str(options["optimizer"]), _count(options, "extend"),
-                   _flag(options, "refit"), _workers(options["workers"]))  # fmt: skip
+                   _flag(options, "refit"), _workers(options["workers"]),
+                   _flag(options, "ahead"), _inducing(options["clock_inducing"]))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -166,14 +183,14 @@ class ChoiceSettings:
         if not str(device).startswith("cpu"):
             return 1
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
-        return max(1, min(cores // SCORING_THREADS, candidates))
+        return max(1, min(cores // FIT_THREADS, candidates))
 
     def identity(self) -> dict[str, Any]:
         """What the held-out run and the choice depend on (not ``by``: the rule makes none)."""
         return {"kinds": list(self.kinds), "max_ages": list(self.max_ages), "n_cells": self.n_cells, "t_end": self.t_end,
                 "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
                 "duration_tolerance": self.duration_tolerance, "extend": self.extend,
-                "refit": self.refit}  # fmt: skip
+                "refit": self.refit, "clock_inducing": self.clock_inducing}  # fmt: skip
 
 
 def _workers(value: Any) -> int | str:
@@ -184,6 +201,15 @@ def _workers(value: Any) -> int | str:
         raise ConfigError(f"gp.choice.workers must be auto or an integer >= 1 (processes "
                           f"fitting the candidates side by side), got {value!r}; e.g. "
                           f"gp.choice.workers=1 to fit them one after the other")  # fmt: skip
+    return value
+
+
+def _inducing(value: Any) -> int | None:
+    """``gp.choice.clock_inducing``: null or an integer >= 1."""
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ConfigError(f"gp.choice.clock_inducing must be null (the clock recipe's inducing "
+                          f"points) or an integer >= 1, got {value!r}; default "
+                          f"{DEFAULTS['clock_inducing']}")  # fmt: skip
     return value
 
 
@@ -234,21 +260,23 @@ def candidate_groups(
     (``gp=classes``) where the model's ``internal`` model declares classes, and each registered
     candidate kind's recipe (the hidden phases, ``gp=phases``); each the shipped recipe with the
     user's keys (:func:`user_keys`) and, to score them (``scoring``) with
-    ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` and :data:`SCORING_THREADS` unless the user
-    set those keys
+    ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user set those keys
     (``scoring=False``: the recipes' own optimisers, what ``gp.choice.refit`` trains the chosen
-    with)."""
+    with); each on :data:`FIT_THREADS` unless the user set ``gp.threads``; the clocks scored
+    with ``gp.choice.clock_inducing`` inducing points unless the user set ``gp.n_inducing``."""
     user = user_keys(raw_gp)
     lbfgs = scoring and settings.optimizer == "lbfgs"
     fast = {k: v for k, v in LBFGS.items() if k not in user} if lbfgs else {}
-    if scoring and "threads" not in user:
-        fast["threads"] = SCORING_THREADS
+    if "threads" not in user:
+        fast["threads"] = FIT_THREADS
 
     def group(recipe: str, **extra: Any) -> dict[str, Any]:
         return {**group_config("gp", recipe), **extra, **fast, **user}
 
     families: list[tuple[str, str, dict[str, Any]]] = [("two-state", "two-state", group("svgp"))]
-    families += [("clock", f"clock max_age={age:g}", group("clock", max_age=age))
+    light = ({"n_inducing": settings.clock_inducing}
+             if scoring and settings.clock_inducing is not None else {})  # fmt: skip
+    families += [("clock", f"clock max_age={age:g}", group("clock", max_age=age, **light))
                  for age in settings.max_ages]  # fmt: skip
     if lump_classes_of(internal) is not None:
         families.append(("classes", "classes", group("classes")))
@@ -307,6 +335,18 @@ class PendingChoice:
             return None
         age = 2.0 * float(gp["max_age"])
         return f"clock max_age={age:g}", {**gp, "max_age": age}
+
+    def ahead(self) -> tuple[str, Any] | None:
+        """The rule's candidate (:data:`RULE_CANDIDATES`: K lumps where the model declares
+        classes, else the two-state chain) and the train settings it is trained with once
+        chosen, to fit while the candidates are scored (``gp.choice.ahead``); None where it is
+        not asked, there is no such candidate, or it is trained as scored."""
+        if not self.settings.ahead or self.make is None:
+            return None
+        name = next((n for n in RULE_CANDIDATES if n in self.finals), None)
+        if name is None or self.finals[name] == self.groups.get(name):
+            return None
+        return name, self.make(self.finals[name])
 
     def command(self) -> str:
         """The train command that makes it (:attr:`made_by`; else the first candidate's)."""
