@@ -18,12 +18,13 @@ choices resolved by the rule, makes the choices, and builds the settings again.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import logging.handlers
 import multiprocessing
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
@@ -82,6 +83,15 @@ def settle(validate: Callable[[Mapping[str, Any]], S], cfg: Mapping[str, Any], f
 
 def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) -> Path:
     """Fit and score ``plan``'s candidates, choose, write the record; return its directory."""
+    first = next(iter(plan.candidates.values()))
+    workers = plan.settings.worker_count(len(plan.candidates), first.job.device)
+    with candidate_pool(workers, fitter, plan.candidates) as pool:  # starting while we collect
+        return _make_choice(plan, fitter, config, pool)
+
+
+def _make_choice(
+    plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any], pool: ProcessPoolExecutor | None
+) -> Path:
     t0 = time.perf_counter()
     first = next(iter(plan.candidates.values()))
     if isinstance(first.source, CollectSettings):
@@ -102,10 +112,9 @@ def make_choice(plan: PendingChoice, fitter: Fitter, config: Mapping[str, Any]) 
     heldout_seconds = time.perf_counter() - start
     log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
              inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
-    workers = settings.worker_count(len(plan.candidates), job.device)
     heldout_run = HeldOut(inputs, phi, first.seed)
-    fits, failed, scored = fit_candidates(plan.candidates, fitter, workers, heldout_run,
-                                          ahead=plan.ahead() if workers > 1 else None)  # fmt: skip
+    fits, failed, scored = fit_candidates(plan.candidates, fitter, heldout=heldout_run, pool=pool,
+                                          ahead=plan.ahead() if pool is not None else None)  # fmt: skip
     if not fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     trains = {n: t for n, t in plan.candidates.items() if n in fits}
@@ -169,18 +178,54 @@ class HeldOut:
 Outcome = tuple[str | None, float, str | None, KindScore | None]
 
 
+@contextlib.contextmanager
+def candidate_pool(
+    workers: int, fitter: Fitter, candidates: Mapping[str, Any]
+) -> Iterator[ProcessPoolExecutor | None]:
+    """``workers`` spawned processes to fit ``candidates`` with ``fitter`` (None where one is
+    asked, there is one candidate, or their settings cannot cross to a process), each started
+    at once and importing the fitter's modules while this process collects and records the
+    held-out run; their log records go through this process's handlers. On leaving, the
+    processes are let go without waiting for their interpreters to close."""
+    if workers <= 1 or len(candidates) < 2 or not _crosses_processes(fitter, candidates):
+        yield None
+        return
+    context = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
+    records: Any = context.Queue()
+    listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
+                                              respect_handler_level=True)  # fmt: skip
+    listener.start()
+    log.info("choice: %d processes to fit the %d candidates in, one thread each", workers,
+             len(candidates))  # fmt: skip
+    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
+                               initargs=(records, logging.getLogger().level))  # fmt: skip
+    try:
+        for _ in range(workers):  # one process each (spawned as tasks find none idle)
+            pool.submit(_ready, fitter)
+        yield pool
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+        listener.stop()
+
+
+def _ready(fitter: Fitter) -> None:
+    """Nothing: unpickling ``fitter`` imported its modules (what every fit needs)."""
+
+
 def fit_candidates(
     candidates: Mapping[str, Any],
     fitter: Fitter,
     workers: int = 1,
     heldout: HeldOut | None = None,
     ahead: tuple[str, Any] | None = None,
+    pool: ProcessPoolExecutor | None = None,
 ) -> tuple[dict[str, tuple[Path, float]], dict[str, str], dict[str, KindScore]]:
     """Fit (or reuse) each candidate and, given the ``heldout`` run, score it: its fit directory
     and seconds by name, the reasons of those whose fit failed numerically (left out, named,
     not the whole choice) and the scores, each in the candidates' order.
 
-    With ``workers > 1``, in that many spawned processes, the dearest-looking first (the
+    With ``workers > 1`` or a ``pool`` (:func:`candidate_pool`), in its processes, the
+    dearest-looking first (the
     candidates come simplest first); each fit is the one made in this process (its seed and
     thread count are its settings'), each score too (one thread, its seed), and candidates
     sharing a fit (the two-state psi) wait for it under the artefact's lock. The workers' log
@@ -191,33 +236,22 @@ def fit_candidates(
     outcomes: dict[str, Outcome] = {}
     tasks = {name: (tr, heldout.task(name, i) if heldout is not None else None)
              for i, (name, tr) in enumerate(candidates.items())}  # fmt: skip
-    if workers > 1 and not _crosses_processes(fitter, candidates):
-        workers = 1
-    if workers <= 1 or len(candidates) < 2:
-        for name, (tr, task) in tasks.items():
-            outcomes[name] = _fit_one(fitter, tr, task)
-            _log_outcome(name, outcomes[name])
-    else:
-        log.info("choice: fitting %d candidates in %d processes, one thread each",
-                 len(candidates), workers)  # fmt: skip
-        context = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
-        records: Any = context.Queue()
-        listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
-                                                  respect_handler_level=True)  # fmt: skip
-        listener.start()
-        try:
-            with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
-                                     initargs=(records, logging.getLogger().level)) as pool:  # fmt: skip
-                early = pool.submit(_fit_one, fitter, _quiet(ahead[1])) if ahead else None
-                futures = {name: pool.submit(_fit_one, fitter, _quiet(tr), task)
-                           for name, (tr, task) in reversed(list(tasks.items()))}  # fmt: skip
-                for name, future in futures.items():
-                    outcomes[name] = future.result()
-                    _log_outcome(name, outcomes[name])
-                if ahead is not None and early is not None:
-                    _log_ahead(ahead[0], early.result())
-        finally:
-            listener.stop()
+    with contextlib.ExitStack() as stack:
+        if pool is None:
+            pool = stack.enter_context(candidate_pool(workers, fitter, candidates))
+        if pool is None:
+            for name, (tr, task) in tasks.items():
+                outcomes[name] = _fit_one(fitter, tr, task)
+                _log_outcome(name, outcomes[name])
+        else:
+            early = pool.submit(_fit_one, fitter, _quiet(ahead[1])) if ahead else None
+            futures = {name: pool.submit(_fit_one, fitter, _quiet(tr), task)
+                       for name, (tr, task) in reversed(list(tasks.items()))}  # fmt: skip
+            for name, future in futures.items():
+                outcomes[name] = future.result()
+                _log_outcome(name, outcomes[name])
+            if ahead is not None and early is not None:
+                _log_ahead(ahead[0], early.result())
     fits, failed, scores = {}, {}, {}
     for name in candidates:
         path, seconds, error, score = outcomes[name]
