@@ -225,13 +225,13 @@ def fit_candidates(
     not the whole choice) and the scores, each in the candidates' order.
 
     With ``workers > 1`` or a ``pool`` (:func:`candidate_pool`), in its processes, the
-    dearest-looking first (the
-    candidates come simplest first); each fit is the one made in this process (its seed and
-    thread count are its settings'), each score too (one thread, its seed), and candidates
-    sharing a fit (the two-state psi) wait for it under the artefact's lock. The workers' log
-    records go through this process's handlers. ``ahead`` (a name and train settings, with
-    more than one worker) is fitted too, first and unscored: the chosen's final fit made
-    while the others are scored (``gp.choice.ahead``); its failure is logged, not raised.
+    dearest-looking first (the candidates come simplest first); each fit is the one made in
+    this process (its seed and thread count are its settings'), each score too (one thread, its
+    seed), and candidates sharing a fit (the two-state psi) wait for it under the artefact's
+    lock. The workers' log records go through this process's handlers. ``ahead`` (a name and
+    train settings; only in processes) is fitted too, first and unscored, and waited for: the
+    final fit of the rule's candidate, made while the others are scored
+    (``gp.choice.ahead``); its numerical failure is logged, not raised.
     """
     outcomes: dict[str, Outcome] = {}
     tasks = {name: (tr, heldout.task(name, i) if heldout is not None else None)
