@@ -230,7 +230,7 @@ def fit_candidates(
     seed), and candidates sharing a fit (the two-state psi) wait for it under the artefact's
     lock. The workers' log records go through this process's handlers. ``ahead`` (a name and
     train settings; only in processes) is fitted too, first and unscored, and waited for: the
-    final fit of the rule's candidate, made while the others are scored
+    final fit of K lumps, made while the others are scored
     (``gp.choice.ahead``); its numerical failure is logged, not raised.
     """
     outcomes: dict[str, Outcome] = {}

@@ -298,10 +298,10 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
 def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would(
     tmp_path: Path,
 ) -> None:
-    """gp.choice.ahead with two workers: the rule's candidate (two-state here: no classes) is
-    trained with its recipe in a worker while the candidates are scored; the fit is the one
-    this process makes from the same settings, bit for bit (one thread, its seed), so the
-    train after the choice reuses it. Not asked, or with refit off, nothing is fitted ahead."""
+    """gp.choice.ahead with two workers: K lumps (E. coli declares classes) is trained with its
+    recipe in a worker while the candidates are scored; the fit is the one this process makes
+    from the same settings, bit for bit (one thread, its seed), so the train after the choice
+    reuses it. Not asked, with refit off or without K lumps, nothing is fitted ahead."""
     import shutil
 
     import torch
@@ -309,14 +309,15 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
     from surrogate.kinds.files import PSI
     from surrogate.stages.choice import make_choice
 
-    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.workers=2"])
+    kinds = "gp.choice.kinds=[two-state,classes]"
+    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.workers=2", kinds])
     with collecting_pending() as plans:
         train_stage.validate(cfg)
     plan = plans[0]
     name, ahead = plan.ahead()
-    assert name == "two-state" and ahead.fit_threads == 1
+    assert name == "classes" and ahead.fit_threads == 1
     assert ahead.gp_config["optimizer"] == "adam" and ahead.fit_identity() == plan.make(
-        plan.finals["two-state"]).fit_identity()  # fmt: skip
+        plan.finals["classes"]).fit_identity()  # fmt: skip
     make_choice(plan, train_stage.fit_candidate, cfg)
     made = torch.load(ahead.fit_directory / PSI, weights_only=True)
     shutil.rmtree(ahead.fit_directory)
@@ -325,10 +326,10 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
     for key, value in again.items():
         if isinstance(value, torch.Tensor):
             assert torch.equal(value, made[key]), key
-    for key in ("ahead", "refit"):  # each a choice not made yet (its own data directory)
-        with collecting_pending() as others:
-            train_stage.validate(compose_in(tmp_path / key, "train",
-                                            [*MEASURE, f"gp.choice.{key}=false"]))  # fmt: skip
+    for key, extra in (("ahead", [kinds, "gp.choice.ahead=false"]),
+                       ("refit", [kinds, "gp.choice.refit=false"]), ("plain", [])):  # fmt: skip
+        with collecting_pending() as others:  # each a choice not made yet (its own directory)
+            train_stage.validate(compose_in(tmp_path / key, "train", [*MEASURE, *extra]))
         assert others[0].ahead() is None, key
 
 

@@ -53,8 +53,11 @@ FIT_THREADS = 1
 #: gp.choice.kinds: the candidates' families (each clock cap is one ``clock`` candidate; K lumps
 #: only where the model declares classes; the registered candidate kinds by their recipe)
 FAMILIES = ("two-state", "clock", "classes", "phases")
-#: the rule's candidate (issue 40's chain): the first of these among the candidates
-RULE_CANDIDATES = ("classes", "two-state")
+#: the candidates trained ahead with their recipe (``gp.choice.ahead``): K lumps, the rule's
+#: chain where the model declares classes (chosen on E. coli for every seed measured). Not the
+#: two-state chain, the rule's elsewhere: chosen on none of the networks with memory measured,
+#: its fit ahead cost the toggle switch ~70 s of a worker per choice for nothing
+AHEAD_CANDIDATES = ("classes",)
 DEFAULTS: dict[str, Any] = {
     "by": "measure",
     "kinds": list(FAMILIES),
@@ -100,11 +103,11 @@ class ChoiceSettings:
     #: usable core up to the candidates' count on the CPU, one on a GPU). Not in the identity:
     #: each fit is the same whichever process makes it (:data:`FIT_THREADS`)
     workers: int | str = "auto"
-    #: with ``refit`` and more than one worker, the rule's candidate (K lumps where the model
-    #: declares classes, else the two-state chain) is also trained with its recipe while the
-    #: candidates are scored, in a worker of its own: where it is chosen, the train that
-    #: follows finds that fit made (the same fit: its settings and one thread). Not in the
-    #: identity: it changes when a fit is made, not which
+    #: with ``refit`` and more than one worker, K lumps (where the model declares classes:
+    #: :data:`AHEAD_CANDIDATES`) is also trained with its recipe while the candidates are
+    #: scored, in a worker of its own: where it is chosen, the train that follows finds that
+    #: fit made (the same fit: its settings and one thread). Not in the identity: it changes
+    #: when a fit is made, not which
     ahead: bool = True
     #: inducing points of the clocks' scoring fits (None: the recipe's 200); their trained
     #: fit keeps the recipe's. A clock's psi is a smooth surface over (inputs, age): on E.
@@ -337,13 +340,13 @@ class PendingChoice:
         return f"clock max_age={age:g}", {**gp, "max_age": age}
 
     def ahead(self) -> tuple[str, Any] | None:
-        """The rule's candidate (:data:`RULE_CANDIDATES`: K lumps where the model declares
-        classes, else the two-state chain) and the train settings it is trained with once
-        chosen, to fit while the candidates are scored (``gp.choice.ahead``); None where it is
-        not asked, there is no such candidate, or it is trained as scored."""
+        """The candidate to train with its recipe while the candidates are scored
+        (``gp.choice.ahead``; :data:`AHEAD_CANDIDATES`: K lumps where the model declares
+        classes) and the train settings it is trained with once chosen; None where it is not
+        asked, there is no such candidate, or it is trained as scored."""
         if not self.settings.ahead or self.make is None:
             return None
-        name = next((n for n in RULE_CANDIDATES if n in self.finals), None)
+        name = next((n for n in AHEAD_CANDIDATES if n in self.finals), None)
         if name is None or self.finals[name] == self.groups.get(name):
             return None
         return name, self.make(self.finals[name])
