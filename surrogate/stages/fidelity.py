@@ -85,6 +85,7 @@ from surrogate.stages.collect import collect
 from surrogate.stages.reference import ReferenceSettings
 from surrogate.stages.runs import RunPlan, RunResult, mean_observables, simulate_runs
 from surrogate.stages.settings import (
+    FIDELITY_CMD,
     Job,
     ModelSetup,
     TrainSettings,
@@ -103,7 +104,6 @@ from surrogate.stages.train import (
 
 log = logging.getLogger(__name__)
 
-FIDELITY_CMD = "python scripts/fidelity.py"
 TABLE = "fidelity"
 SUMMARY = "summary.json"
 FIGURE = "ks_over_time.png"

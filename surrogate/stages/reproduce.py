@@ -43,9 +43,11 @@ from surrogate.stages.artefacts import DIAGNOSTIC_FIGURE, REPORT, SURFACES_FIGUR
 from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
 from surrogate.stages.settings import (
+    FIDELITY_CMD,
     CollectSettings,
     ReproduceSettings,
     TrainSettings,
+    command_line,
 )
 from surrogate.stages.settings.choice import CHOICE
 from surrogate.stages.simulate import build_decision, simulate_together
@@ -401,7 +403,17 @@ def _verdict(
     note = (f"\n\n(The verdict counts a difference outside sampling noise at a family-wise 5 % "
             f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
             f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
-    return v.markdown() + note
+    return v.markdown(confirm=fidelity_command(tr)) + note
+
+
+def fidelity_command(tr: TrainSettings) -> str:
+    """The check at scale of the run that trained ``tr``: ``scripts/fidelity.py`` with its
+    model, training field, step and collection (not its seed: fidelity trains several); its
+    chain where one was named (``gp=auto`` measures again per training seed)."""
+    data = [o for o in tr.setup.overrides() if not o.startswith("seed=")]
+    collect = tr.source._overrides() if isinstance(tr.source, CollectSettings) else []
+    gp = tr.gp_overrides() if tr.auto_recipe is None else []
+    return command_line(FIDELITY_CMD, data, collect, gp)
 
 
 def measured_choice(tr: TrainSettings) -> MeasuredChoice | None:

@@ -561,3 +561,33 @@ def test_coarser_classes_name_their_edges_and_run(config) -> None:
     assert found is not None and classes_override(found[0]) == (
         "++model.classes={expression: 'P + 2 * D', edges: [3]}")  # fmt: skip
     assert check_advice(config, ["gp=classes", classes_override(found[0])]) is None
+
+
+@pytest.mark.parametrize(
+    ("overrides", "named"),
+    [
+        ([], []),
+        (["model=sbml", f"model.spec={SPEC}", "collect.n_per_state=690280"],
+         ["model.spec=" + SPEC, "collect.n_per_state=690280"]),
+        (["gp=classes"], ["gp=classes"]),
+    ],
+)  # fmt: skip
+def test_the_check_at_scale_a_trusted_run_names_is_its_models_and_runs(
+    compose_cfg, overrides: list[str], named: list[str]
+) -> None:
+    """A trusted verdict names `scripts/fidelity.py` with the run's model, collection and a
+    chain the run named (it once named the bare command, E. coli's, for every model): the
+    command's overrides pass fidelity's checks and check the same model."""
+    from surrogate.stages import fidelity as fidelity_stage
+    from surrogate.stages import train as train_stage
+    from surrogate.stages.reproduce import fidelity_command
+
+    tr = train_stage.validate(compose_cfg("train", overrides))
+    command = fidelity_command(tr)
+    assert command.startswith("python scripts/fidelity.py")
+    assert all(n in command.split() for n in named) and "seed=" not in command
+    assert f"`{command}`" in Verdict(trust=True).markdown(confirm=command)
+    settings = fidelity_stage.validate(compose_cfg("fidelity", command.split()[2:]))
+    assert settings.setup.model.name == tr.setup.model.name
+    train = settings.candidates[0].train  # trained on the run's collection and chain
+    assert train.source.options == tr.source.options and train.kind == tr.kind

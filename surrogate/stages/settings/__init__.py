@@ -30,11 +30,13 @@ from surrogate.stages.settings.collect import DESIGN_KEYS, CollectSettings
 from surrogate.stages.settings.common import (
     COLLECT_CMD,
     EVALUATE_CMD,
+    FIDELITY_CMD,
     REPRODUCE_CMD,
     SIMULATE_CMD,
     TRAIN_CMD,
     Job,
     ModelSetup,
+    command_line,
     group_overrides,
 )
 from surrogate.stages.settings.decision import (
@@ -72,6 +74,7 @@ __all__ = [
     "DESIGN_KEYS",
     "DIAGNOSTIC_DEFAULTS",
     "EVALUATE_CMD",
+    "FIDELITY_CMD",
     "GP_CLOCK",
     "GP_EXTRA",
     "GP_NOT_FIT",
@@ -94,6 +97,7 @@ __all__ = [
     "TrainSettings",
     "batchable",
     "check_memory",
+    "command_line",
     "group_overrides",
     "resolve_start",
     "validate_backend",

@@ -32,6 +32,7 @@ TRAIN_CMD = "python scripts/train.py"
 SIMULATE_CMD = "python scripts/simulate.py"
 EVALUATE_CMD = "python scripts/evaluate.py"
 REPRODUCE_CMD = "python scripts/reproduce.py"
+FIDELITY_CMD = "python scripts/fidelity.py"
 
 #: bytes per value of a transitions table while it is collected (float64 columns, generous for
 #: the rows gathered before the per-origin subsample)
