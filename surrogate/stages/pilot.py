@@ -63,7 +63,8 @@ def pilot_config(
 
     ``gp=auto`` (the user's group where it is auto, else the shipped one) measuring, with
     ``gp.choice``'s caps plus ``cap`` (the hazard's, where measured), ``n_cells`` held-out
-    cells for ``t_end`` s, L-BFGS fits; ``collect.n_per_state=n_per_state``."""
+    cells for ``t_end`` s, L-BFGS fits, nothing trained ahead; ``collect.n_per_state=
+    n_per_state``."""
     cfg = copy.deepcopy(to_dict(config))
     cfg.pop("inspect", None)
     raw = cfg.get("gp") or {}
@@ -72,8 +73,10 @@ def pilot_config(
     added = cap is not None and float(cap) not in ages
     if cap is not None and added:
         ages.append(float(cap))
+    # nothing trained ahead: the pilot trains no chain after its choice
     gp["choice"] = {**(gp.get("choice") or {}), "by": "measure", "n_cells": int(n_cells),
-                    "t_end": float(t_end), "max_ages": ages, "optimizer": "lbfgs"}  # fmt: skip
+                    "t_end": float(t_end), "max_ages": ages, "optimizer": "lbfgs",
+                    "ahead": False}  # fmt: skip
     cfg["gp"] = gp
     cfg["collect"] = {**(cfg.get("collect") or {}), "n_per_state": int(n_per_state)}
     return cfg, ages, added

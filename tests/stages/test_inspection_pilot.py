@@ -68,3 +68,15 @@ def test_the_pilot_respects_the_budget_and_says_where_it_cannot_run(compose_cfg)
     table = run_pilot({**config, "transitions": "rows.parquet"}, PILOT, 40.0, None, 1e-6)
     assert not table["ran"] and "external table" in table["note"]
     assert pilot_advice(config, off)["kind"] is None
+
+
+def test_the_pilot_trains_nothing_ahead(compose_cfg) -> None:
+    """The pilot only scores (no chain is trained after its choice): K lumps, trained ahead
+    with its recipe in a full-size choice, is not trained ahead in the pilot's."""
+    from surrogate.stages.pilot import _plan, pilot_config
+
+    config = to_dict(compose_cfg("inspect", ["gp.choice.by=measure"]))
+    cfg, _, _ = pilot_config(config, 2000, 20, 5.0, None)
+    assert cfg["gp"]["choice"]["ahead"] is False and cfg["gp"]["choice"]["by"] == "measure"
+    plan = _plan(cfg)[1]
+    assert plan is not None and "classes" in plan.finals and plan.ahead() is None
