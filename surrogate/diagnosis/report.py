@@ -376,6 +376,14 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
                   f"inputs' range above), reproduce tabulates its exact chain, the method's "
                   f"limit, instead of computing exp(Q dt) at each cell's inputs every step."]  # fmt: skip
     lines += ["", f"![memory]({MEMORY_FIGURE})", ""]
+    after = a.get("next")
+    if after:
+        lines += ["## Next", "",
+                  f"`{after['command']}`: the settings above, the chain measured and trained, "
+                  f"the full model beside it; its report says whether to trust it and, where "
+                  f"it does, names the check at scale."]  # fmt: skip
+        lines += [f"(Left out, refused together: {d}.)" for d in after.get("dropped") or []]
+        lines.append("")
     return "\n".join(lines)
 
 

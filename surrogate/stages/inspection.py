@@ -122,10 +122,13 @@ from surrogate.stages import budget
 from surrogate.stages.advice_check import checked
 from surrogate.stages.artefacts import INSPECTION, REPORT
 from surrogate.stages.pilot import pilot_advice, run_pilot
-from surrogate.stages.settings import CollectSettings, InspectSettings
+from surrogate.stages.settings import CollectSettings, InspectSettings, command_line
 from surrogate.stages.settings.choice import collecting_pending
 
 log = logging.getLogger(__name__)
+
+#: the run the report advises next (as the README spells it)
+NEXT_CMD = "python3 scripts/reproduce.py"
 
 #: the population runs' (item 2) share of ``inspect.max_seconds`` at most
 POPULATION_BUDGET = 0.25
@@ -335,6 +338,33 @@ def check_printed(
     return refusals
 
 
+def next_command(
+    config: Mapping[str, Any],
+    setup_overrides: list[str],
+    advice: Mapping[str, Any],
+    collection: Mapping[str, Any],
+) -> dict[str, Any]:
+    """The run the report advises next: ``scripts/reproduce.py`` with the inspected model,
+    field, step and seed (``setup_overrides``), the first collection it advises and the pilot's
+    gp overrides (refused ones are not printed), checked as one command; where the stages'
+    checks refuse the combination, the collection is left out, then the gp overrides too
+    (``dropped``: what was left out and why)."""
+    collect = list((collection.get("advised") or [[]])[0])
+    gp = (
+        list(advice.get("overrides") or [])
+        if advice.get("kind") and not advice.get("refused")
+        else []
+    )
+    dropped: list[str] = []
+    for parts in ([*collect, *gp], gp, []):
+        overrides = [*setup_overrides, *parts]
+        reason = checked(config, overrides, "the next command") if parts else None
+        if reason is None:
+            return {"command": command_line(NEXT_CMD, overrides), "dropped": dropped}
+        dropped.append(f"{' '.join(parts)}: {reason}")
+    raise AssertionError("unreachable: the last try sets nothing to check")
+
+
 # ----------------------------------------------------------------------------------------------
 # the stage
 
@@ -380,9 +410,10 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     if bounds:
         advice["signal_bounds"] = bounds
     balanced = balanced_threshold(internal, fixed)
-    refused = check_printed(config if config is not None else settings.config, advice, burn,
-                            collection, "spec" in (settings.config.get("model") or {}),
-                            balanced)  # fmt: skip
+    checked_against = config if config is not None else settings.config
+    refused = check_printed(checked_against, advice, burn, collection,
+                            "spec" in (settings.config.get("model") or {}), balanced)  # fmt: skip
+    advice["next"] = next_command(checked_against, settings.setup.overrides(), advice, collection)
     lump = lump_formula_of(internal) or "the model's own property"
     summary: dict[str, Any] = {
         "model": model.describe(), "command": settings.command(), "lump": lump,

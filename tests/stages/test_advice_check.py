@@ -591,3 +591,23 @@ def test_the_check_at_scale_a_trusted_run_names_is_its_models_and_runs(
     assert settings.setup.model.name == tr.setup.model.name
     train = settings.candidates[0].train  # trained on the run's collection and chain
     assert train.source.options == tr.source.options and train.kind == tr.kind
+
+
+def test_the_next_command_the_inspector_prints_runs_and_drops_what_is_refused(config) -> None:
+    """The inspection report's next run: reproduce with the inspected settings, the advised
+    collection and the pilot's gp overrides, as one command the stages' checks pass; a
+    collection the checks refuse together is left out and named, never printed."""
+    from surrogate.stages.inspection import next_command
+
+    setup = ["model=sbml", f"model.spec={SPEC}", "field=gaussian", "dt=0.05", "seed=0"]
+    advice = {"kind": "phases", "overrides": ["gp.choice.by=measure"]}
+    out = next_command(config, setup, advice, {"advised": [["collect.n_per_state=690280"]]})
+    assert out == {"command": " ".join(["python3 scripts/reproduce.py", *setup,
+                                        "collect.n_per_state=690280", "gp.choice.by=measure"]),
+                   "dropped": []}  # fmt: skip
+    assert check_advice(config, out["command"].split()[2:]) is None
+    bad = next_command(config, setup, advice, {"advised": [["collect.n_per_state=-5"]]})
+    assert bad["command"].split()[2:] == [*setup, "gp.choice.by=measure"]
+    assert bad["dropped"][0].startswith("collect.n_per_state=-5 gp.choice.by=measure: ")
+    refused = {**advice, "refused": "no"}  # a refused pilot advice is not printed here either
+    assert next_command(config, setup, refused, {})["command"].split()[2:] == setup

@@ -54,6 +54,10 @@ def test_the_stage_writes_its_report_and_refuses_an_always_true_lump(tmp_path, c
         "skipped (inspect.pilot.enabled=false)" in report
         and summary["recommendation"]["kind"] is None
     )
+    # the next run, printed as one command that passes the stages' checks
+    after = summary["recommendation"]["next"]
+    assert f"## Next\n\n`{after['command']}`" in report and f"model.spec={spec}" in after["command"]
+    assert after["command"].startswith("python3 scripts/reproduce.py") and not after["dropped"]
     assert inspection.run(compose_cfg("inspect", small)) == out  # reused
     (tmp_path / "always").mkdir()
     _, always = birth_death(tmp_path / "always", "X >= 0", reservoir=True)
