@@ -92,13 +92,15 @@ class Verdict:
         """The verdict as report text; ``confirm`` is the check at scale it names where it
         trusts the run (the fidelity command of the run's model and collection)."""
         if self.trust:
-            return ("**Trust it at this size**: every comparison is within the full model's "
-                    "noise floor or the KS critical value, the learned psi is unbiased where the "
-                    "population lives within its error, and no run left the training data. "
-                    f"Small differences hide at small populations: confirm at scale with "
-                    f"`{confirm}` (thousands of cells, several training seeds)." + "".join(f"\n\nCaveat, **{name}**: {measured} Where a check at "
-                                        f"scale fails: {step}"
-                                        for name, measured, step in self.caveats))  # fmt: skip
+            caveats = "".join(f"\n\nCaveat, **{name}**: {measured} Where a check at scale "
+                              f"fails: {step}" for name, measured, step in self.caveats)  # fmt: skip
+            return (
+                "**Trust it at this size**: every comparison is within the full model's "
+                "noise floor or the KS critical value, the learned psi is unbiased where the "
+                "population lives within its error, and no run left the training data. "
+                "Small differences hide at small populations: confirm at scale with "
+                f"`{confirm}` (thousands of cells, several training seeds)." + caveats
+            )
         lines = ["**Do not trust it yet.** In order (the first is the likeliest cause of the "
                  "others):", ""]  # fmt: skip
         for i, (name, measured, step) in enumerate(self.causes, 1):

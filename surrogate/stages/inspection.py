@@ -356,13 +356,12 @@ def next_command(
         else []
     )
     dropped: list[str] = []
-    for parts in ([*collect, *gp], gp, []):
-        overrides = [*setup_overrides, *parts]
-        reason = checked(config, overrides, "the next command") if parts else None
+    for parts in ([*collect, *gp], gp):
+        reason = checked(config, [*setup_overrides, *parts], "the next command") if parts else None
         if reason is None:
-            return {"command": command_line(NEXT_CMD, overrides), "dropped": dropped}
+            return {"command": command_line(NEXT_CMD, setup_overrides, parts), "dropped": dropped}
         dropped.append(f"{' '.join(parts)}: {reason}")
-    raise AssertionError("unreachable: the last try sets nothing to check")
+    return {"command": command_line(NEXT_CMD, setup_overrides), "dropped": dropped}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -306,7 +306,7 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
 
     import torch
 
-    from surrogate.kinds.files import PSI
+    from surrogate.kinds.files import CLASS_CHAIN, PSI
     from surrogate.stages.choice import make_choice
 
     kinds = "gp.choice.kinds=[two-state,classes]"
@@ -319,18 +319,29 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
     assert ahead.gp_config["optimizer"] == "adam" and ahead.fit_identity() == plan.make(
         plan.finals["classes"]).fit_identity()  # fmt: skip
     make_choice(plan, train_stage.fit_candidate, cfg)
-    made = torch.load(ahead.fit_directory / PSI, weights_only=True)
+    files = (PSI, CLASS_CHAIN)  # psi and the class chain K lumps simulates
+    made = [torch.load(ahead.fit_directory / f, weights_only=True) for f in files]
     shutil.rmtree(ahead.fit_directory)
     train_stage.fit_candidate(ahead)
-    again = torch.load(ahead.fit_directory / PSI, weights_only=True)
-    for key, value in again.items():
-        if isinstance(value, torch.Tensor):
-            assert torch.equal(value, made[key]), key
+    for f, before in zip(files, made, strict=True):
+        _assert_tensors_equal(torch.load(ahead.fit_directory / f, weights_only=True), before, f)
     for key, extra in (("ahead", [kinds, "gp.choice.ahead=false"]),
                        ("refit", [kinds, "gp.choice.refit=false"]), ("plain", [])):  # fmt: skip
         with collecting_pending() as others:  # each a choice not made yet (its own directory)
             train_stage.validate(compose_in(tmp_path / key, "train", [*MEASURE, *extra]))
         assert others[0].ahead() is None, key
+
+
+def _assert_tensors_equal(state: object, reference: object, where: str) -> None:
+    """Every tensor in the nested ``state`` equal, bit for bit, to ``reference``'s."""
+    import torch
+
+    if isinstance(state, torch.Tensor):
+        assert isinstance(reference, torch.Tensor) and torch.equal(state, reference), where
+    elif isinstance(state, dict):
+        assert isinstance(reference, dict) and state.keys() == reference.keys(), where
+        for key, value in state.items():
+            _assert_tensors_equal(value, reference[key], f"{where}/{key}")
 
 
 def test_worker_count_follows_the_setting_the_device_and_the_candidates() -> None:

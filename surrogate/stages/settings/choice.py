@@ -269,12 +269,12 @@ def candidate_groups(
     with ``gp.choice.clock_inducing`` inducing points unless the user set ``gp.n_inducing``."""
     user = user_keys(raw_gp)
     lbfgs = scoring and settings.optimizer == "lbfgs"
-    fast = {k: v for k, v in LBFGS.items() if k not in user} if lbfgs else {}
+    choice_keys = {k: v for k, v in LBFGS.items() if k not in user} if lbfgs else {}
     if "threads" not in user:
-        fast["threads"] = FIT_THREADS
+        choice_keys["threads"] = FIT_THREADS
 
     def group(recipe: str, **extra: Any) -> dict[str, Any]:
-        return {**group_config("gp", recipe), **extra, **fast, **user}
+        return {**group_config("gp", recipe), **extra, **choice_keys, **user}
 
     families: list[tuple[str, str, dict[str, Any]]] = [("two-state", "two-state", group("svgp"))]
     light = ({"n_inducing": settings.clock_inducing}
