@@ -181,16 +181,18 @@ def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> N
     """The likelihood's best being the clock at the largest cap tried, the choice adds one at
     twice it (up to gp.choice.extend); a clock below the largest cap, or another kind, none."""
     settings = ChoiceSettings.from_config({"max_ages": [1, 2], "extend": 2})
-    groups = {"two-state": {"history": "none"}, "clock max_age=1": {"history": "age", "max_age": 1.0},
-              "clock max_age=2": {"history": "age", "max_age": 2.0}}  # fmt: skip
+    clock = {"history": "age", "bins": 200, "clock_bins": 20}
+    groups = {"two-state": {"history": "none"}, "clock max_age=1": {**clock, "max_age": 1.0},
+              "clock max_age=2": {**clock, "max_age": 2.0}}  # fmt: skip
     plan = PendingChoice(settings, {}, Path("."), groups, make=lambda gp: gp)
     assert plan.longer_clock("two-state", groups) is None
     assert plan.longer_clock("clock max_age=1", groups) is None
     name, gp = plan.longer_clock("clock max_age=2", groups)
-    assert (name, gp["max_age"], gp["history"]) == ("clock max_age=4", 4.0, "age")
+    # each at twice the cap with as many bins again: the age bins keep their 0.1 s
+    assert (name, gp["max_age"], gp["history"], gp["clock_bins"]) == ("clock max_age=4", 4.0, "age", 40)
     groups[name] = gp
     name, gp = plan.longer_clock(name, groups)
-    assert name == "clock max_age=8"
+    assert (name, gp["clock_bins"]) == ("clock max_age=8", 80)
     groups[name] = gp
     assert plan.longer_clock(name, groups) is None  # two added: gp.choice.extend=2
     none = PendingChoice(ChoiceSettings.from_config({"max_ages": [2], "extend": 0}), {},

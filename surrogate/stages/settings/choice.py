@@ -328,7 +328,10 @@ class PendingChoice:
     ) -> tuple[str, dict[str, Any]] | None:
         """A clock candidate at twice ``name``'s cap, where ``name`` is a clock at the largest
         cap among ``groups`` (the candidates so far) and extensions are left
-        (``gp.choice.extend``): the memory may reach past it."""
+        (``gp.choice.extend``): the memory may reach past it. Its age axis keeps the width of
+        ``name``'s bins (twice the ``gp.clock_bins``): at the same count a longer cap blurs
+        what the shorter one resolved (Tyson's oscillator: 20 bins over 10 s, 0.5 s each, miss
+        a 3.5-s period's means that 20 over 5 s hold)."""
         gp = groups.get(name)
         if gp is None or gp.get("history") != SWITCH_CLOCK.history or self.make is None:
             return None
@@ -337,7 +340,7 @@ class PendingChoice:
         if gp["max_age"] < max(caps) or extended >= self.settings.extend:
             return None
         age = 2.0 * float(gp["max_age"])
-        return f"clock max_age={age:g}", {**gp, "max_age": age}
+        return f"clock max_age={age:g}", {**gp, "max_age": age, **wider_clock_axis(gp)}
 
     def ahead(self) -> tuple[str, Any] | None:
         """The candidate to train with its recipe while the candidates are scored
@@ -356,6 +359,23 @@ class PendingChoice:
         if self.made_by is not None:
             return self.made_by
         return str(next(iter(self.candidates.values())).command())
+
+
+def wider_clock_axis(gp: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``gp.clock_bins`` of a clock at twice ``gp``'s cap with bins as wide as ``gp``'s
+    (empty where ``gp.bins`` is not one count for every axis: unbinned, or the user's per
+    axis).
+
+    Example:
+        >>> wider_clock_axis({"max_age": 5.0, "bins": 200, "clock_bins": 20})
+        {'clock_bins': 40}
+        >>> wider_clock_axis({"max_age": 5.0, "bins": 200})  # the clock's axis takes gp.bins
+        {'clock_bins': 400}
+    """
+    bins = gp.get("bins")
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins <= 0:
+        return {}
+    return {"clock_bins": 2 * int(gp.get("clock_bins", bins))}
 
 
 _PENDING: contextvars.ContextVar[list[PendingChoice] | None] = contextvars.ContextVar(
