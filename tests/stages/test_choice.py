@@ -189,7 +189,7 @@ def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> N
     assert plan.longer_clock("clock max_age=1", groups) is None
     name, gp = plan.longer_clock("clock max_age=2", groups)
     # each at twice the cap with as many bins again: the age bins keep their 0.1 s
-    assert (name, gp["max_age"], gp["history"], gp["clock_bins"]) == ("clock max_age=4", 4.0, "age", 40)
+    assert (name, gp["max_age"], gp["clock_bins"]) == ("clock max_age=4", 4.0, 40)
     groups[name] = gp
     name, gp = plan.longer_clock(name, groups)
     assert (name, gp["clock_bins"]) == ("clock max_age=8", 80)
