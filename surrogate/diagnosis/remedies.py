@@ -209,6 +209,12 @@ MEMORY_FAMILIES = ("clock", "classes", "phases")
 CLASSES_FAMILY = MEMORY_FAMILIES[1]
 
 
+#: the measured choice's K-lumps candidate whose bins relax (where the model's classes are bins
+#: both lumps share), and the overrides that train it outright
+RELAXING_CANDIDATE = "classes relaxation"
+RELAXING_OVERRIDES = ("gp=classes", "gp.class_moves=relaxation")
+
+
 def candidate_cap(name: str) -> float | None:
     """The switch clock's cap (s) of a candidate named ``clock max_age=X``; None otherwise."""
     head = "clock max_age="
@@ -217,10 +223,14 @@ def candidate_cap(name: str) -> float | None:
 
 def candidate_overrides(name: str) -> tuple[str, ...]:
     """The overrides that train candidate ``name`` outright, without the choice:
-    ``gp=svgp`` (two-state), ``gp=clock gp.max_age=X``, else ``gp=<name>`` (its recipe)."""
+    ``gp=svgp`` (two-state), ``gp=clock gp.max_age=X``, ``gp=classes
+    gp.class_moves=relaxation`` (:data:`RELAXING_CANDIDATE`), else ``gp=<name>`` (its
+    recipe)."""
     cap = candidate_cap(name)
     if cap is not None:
         return ("gp=clock", f"gp.max_age={cap:g}")
+    if name == RELAXING_CANDIDATE:
+        return RELAXING_OVERRIDES
     return ("gp=svgp",) if name == "two-state" else (f"gp={name}",)
 
 
@@ -317,6 +327,8 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
 
 __all__ = [
     "MEMORY_FAMILIES",
+    "RELAXING_CANDIDATE",
+    "RELAXING_OVERRIDES",
     "Advisor",
     "Check",
     "MeasuredChoice",

@@ -36,6 +36,7 @@ from surrogate.stages.reproduce import choice_text
 from surrogate.stages.settings import CollectSettings, TrainSettings
 from surrogate.stages.settings.choice import (
     CHOICE,
+    RELAXING_FAMILY,
     ChoiceSettings,
     PendingChoice,
     collecting_pending,
@@ -63,7 +64,8 @@ def pilot_config(
 
     ``gp=auto`` (the user's group where it is auto, else the shipped one) measuring, with
     ``gp.choice``'s caps plus ``cap`` (the hazard's, where measured), ``n_cells`` held-out
-    cells for ``t_end`` s, L-BFGS fits, nothing trained ahead; ``collect.n_per_state=
+    cells for ``t_end`` s, L-BFGS fits, nothing trained ahead, no K lumps whose bins relax (their
+    stationary sample is a full-model run the pilot does not price); ``collect.n_per_state=
     n_per_state``."""
     cfg = copy.deepcopy(to_dict(config))
     cfg.pop("inspect", None)
@@ -73,10 +75,12 @@ def pilot_config(
     added = cap is not None and float(cap) not in ages
     if cap is not None and added:
         ages.append(float(cap))
-    # nothing trained ahead: the pilot trains no chain after its choice
+    # nothing trained ahead: the pilot trains no chain after its choice; no K lumps whose bins
+    # relax: their stationary sample would cost the pilot a full-model run it does not price
+    kinds = [k for k in ChoiceSettings.from_config(gp.get("choice")).kinds if k != RELAXING_FAMILY]
     gp["choice"] = {**(gp.get("choice") or {}), "by": "measure", "n_cells": int(n_cells),
                     "t_end": float(t_end), "max_ages": ages, "optimizer": "lbfgs",
-                    "ahead": False}  # fmt: skip
+                    "ahead": False, "kinds": kinds or [RELAXING_FAMILY]}  # fmt: skip
     cfg["gp"] = gp
     cfg["collect"] = {**(cfg.get("collect") or {}), "n_per_state": int(n_per_state)}
     return cfg, ages, added

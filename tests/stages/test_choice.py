@@ -5,6 +5,7 @@ until an entry that trains makes it, then gp=auto is the chosen candidate."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -90,6 +91,51 @@ def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
     assert list(candidate_groups({}, only, Plain())) == ["clock max_age=2"]
     with pytest.raises(ConfigError, match=r"gp\.choice\.kinds=\['classes'\] leaves no candidate"):
         candidate_groups({}, ChoiceSettings.from_config({"kinds": ["classes"]}), Plain())
+
+
+class Binned:
+    """An internal model whose classes are two bins of one count in each lump."""
+
+    class_names = ("low|n<5", "low|n>=5", "high|n<5", "high|n>=5")
+    class_lumps = (0, 0, 1, 1)
+    class_bins: tuple[int, ...] | None = (0, 1, 0, 1)
+
+    def classes(self, state: object) -> None:  # declared; never called here
+        raise NotImplementedError
+
+
+class OwnBins(Binned):
+    """Each lump its own bins (a threshold lump on the binned count): nothing relaxes."""
+
+    class_bins = None
+
+
+def test_k_lumps_whose_bins_relax_are_a_candidate_where_both_lumps_share_the_bins() -> None:
+    """Beside K lumps, K lumps whose bins relax where the classes are shared bins of one count:
+    scored as its recipe trains it (no L-BFGS, so never refitted: its stationary sample is
+    paid once), on one thread; not where each lump has its own bins, nor where
+    gp.choice.kinds leaves it out; trained outright by the overrides the advice names."""
+    from surrogate.diagnosis.remedies import candidate_overrides
+    from surrogate.stages.settings.choice import RELAXING_FAMILY
+
+    settings = ChoiceSettings.from_config({"max_ages": [1]})
+    groups = candidate_groups({}, settings, Binned())
+    finals = candidate_groups({}, settings, Binned(), scoring=False)
+    assert list(groups) == ["two-state", "clock max_age=1", "classes", "classes relaxation",
+                            "phases"]  # fmt: skip
+    relaxing = groups["classes relaxation"]
+    assert (relaxing["lumps"], relaxing["class_moves"]) == ("classes", "relaxation")
+    assert groups["classes"]["class_moves"] == "learned"
+    assert relaxing == finals["classes relaxation"]  # trained as scored
+    assert relaxing["optimizer"] == "adam" and relaxing["threads"] == 1
+    assert groups["classes"]["optimizer"] == LBFGS["optimizer"]
+    assert "classes relaxation" not in candidate_groups({}, settings, OwnBins())
+    assert "classes" in candidate_groups({}, settings, OwnBins())
+    without = ChoiceSettings.from_config({"kinds": ["classes"]})
+    assert list(candidate_groups({}, without, Binned())) == ["classes"]
+    only = ChoiceSettings.from_config({"kinds": [RELAXING_FAMILY]})
+    assert list(candidate_groups({}, only, Binned())) == ["classes relaxation"]
+    assert candidate_overrides("classes relaxation") == ("gp=classes", "gp.class_moves=relaxation")
 
 
 def test_a_cap_named_twice_is_refused_with_the_list_that_passes() -> None:
@@ -358,3 +404,32 @@ def test_worker_count_follows_the_setting_the_device_and_the_candidates() -> Non
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
     assert auto.worker_count(6, "cpu") == max(1, min(cores, 6))
     assert auto.worker_count(1, "cpu") == 1
+
+
+def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(tmp_path: Path) -> None:
+    """On a network whose classes are shared bins of a slow count (three gene copies that
+    switch at 0.05/s each: tau 10 s), the choice fits K lumps whose bins relax beside K lumps,
+    both scored on the same held-out cells; the stationary sample's cells and lags are the
+    user's ``gp.relaxation``. Where chosen, the record's group is the scored one (no refit)."""
+    from surrogate.stages.choice import make_choice
+    from tests.models.test_count_classes import _hidden_gene
+
+    _hidden_gene(tmp_path, burn_in=20.0, body={"kind": "static", "perturbation": {"radius": 3.0}},
+                 classes={"species": "G1", "edges": [1, 2, 3]})  # fmt: skip
+    cfg = compose_in(tmp_path / "data", "train", [
+        "model=sbml", f"model.spec={tmp_path / 'model.yaml'}", *MEASURE,
+        "gp.choice.kinds=[classes,relaxation]", "gp.choice.n_cells=40",
+        "+gp.relaxation.n_cells=40", "+gp.relaxation.lags=[2.0,4.0]"])  # fmt: skip
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+    plan = plans[0]
+    assert list(plan.candidates) == ["classes", "classes relaxation"]
+    relaxing = plan.candidates["classes relaxation"]
+    assert relaxing.kind.relaxation and relaxing.relaxation_cells == 40
+    assert plan.finals["classes relaxation"] == plan.groups["classes relaxation"]
+    out = Path(make_choice(plan, train_stage.fit_candidate, cfg))
+    record = json.loads((out / "choice.json").read_text())
+    assert [r["kind"] for r in record["scores"]] == ["classes", "classes relaxation"]
+    assert all(math.isfinite(r["log_likelihood_per_window"]) for r in record["scores"])
+    if record["chosen"] == "classes relaxation":
+        assert record["gp"] == plan.groups["classes relaxation"]

@@ -27,10 +27,12 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from surrogate.config import group_config
+from surrogate.diagnosis.remedies import RELAXING_CANDIDATE
 from surrogate.errors import ConfigError, MissingArtefactError
+from surrogate.gp.class_relaxation import CLASS_MOVES, check_shared_bins
 from surrogate.io import read_json
 from surrogate.kinds import CHAIN_KINDS, SWITCH_CLOCK
-from surrogate.models.capabilities import lump_classes_of
+from surrogate.models.capabilities import class_bins_of, lump_classes_of
 from surrogate.validation import known_keys
 
 #: the record of a made choice, in its directory (``data/choice/...``)
@@ -51,8 +53,11 @@ LBFGS = {"optimizer": "lbfgs", "epochs": 200, "natural_gradient": False}
 #: 27 ms on two, 26 ms of CPU on one)
 FIT_THREADS = 1
 #: gp.choice.kinds: the candidates' families (each clock cap is one ``clock`` candidate; K lumps
-#: only where the model declares classes; the registered candidate kinds by their recipe)
-FAMILIES = ("two-state", "clock", "classes", "phases")
+#: only where the model declares classes, and K lumps whose bins relax, ``relaxation``, only
+#: where they are bins both lumps share; the registered candidate kinds by their recipe)
+FAMILIES = ("two-state", "clock", "classes", "relaxation", "phases")
+#: the family of K lumps whose bins relax (its cost: a stationary full-model sample)
+RELAXING_FAMILY = FAMILIES[3]
 #: the candidates trained ahead with their recipe (``gp.choice.ahead``): K lumps, the rule's
 #: chain where the model declares classes (chosen on E. coli for every seed measured). Not the
 #: two-state chain, the rule's elsewhere: chosen on none of the networks with memory measured,
@@ -260,7 +265,9 @@ def candidate_groups(
 ) -> dict[str, dict[str, Any]]:
     """The candidates' names and gp groups (those of ``gp.choice.kinds``): the two-state chain
     (``gp=svgp``), the switch clock at each cap (``gp=clock gp.max_age=...``), K lumps
-    (``gp=classes``) where the model's ``internal`` model declares classes, and each registered
+    (``gp=classes``) where the model's ``internal`` model declares classes, K lumps whose bins
+    relax (``gp=classes gp.class_moves=relaxation``, scored as its recipe trains it: its cost is
+    a stationary full-model sample, not the fit) where they are bins both lumps share, and each registered
     candidate kind's recipe (the hidden phases, ``gp=phases``); each the shipped recipe with the
     user's keys (:func:`user_keys`) and, to score them (``scoring``) with
     ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user set those keys
@@ -281,8 +288,16 @@ def candidate_groups(
              if scoring and settings.clock_inducing is not None else {})  # fmt: skip
     families += [("clock", f"clock max_age={age:g}", group("clock", max_age=age, **light))
                  for age in settings.max_ages]  # fmt: skip
-    if lump_classes_of(internal) is not None:
+    declared = lump_classes_of(internal)
+    if declared is not None:
         families.append(("classes", "classes", group("classes")))
+        if _shared_bins(internal, declared.lumps):
+            # scored as its recipe trains it, never refitted: its cost is the stationary
+            # sample's full-model cells (minutes on a slow network), paid once
+            recipe = {k: v for k, v in choice_keys.items() if k not in LBFGS}
+            relaxing = {**group_config("gp", "classes"), "class_moves": CLASS_MOVES[1],
+                        **recipe, **user}  # fmt: skip
+            families.append((RELAXING_FAMILY, RELAXING_CANDIDATE, relaxing))
     shipped = {"svgp", "clock", "classes"}
     for kind in CHAIN_KINDS:
         if kind.candidate and kind.recipe not in shipped:
@@ -293,6 +308,16 @@ def candidate_groups(
         raise ConfigError(f"gp.choice.kinds={list(settings.kinds)} leaves no candidate for this "
                           f"model (K lumps need classes the model declares): add two-state")  # fmt: skip
     return out
+
+
+def _shared_bins(internal: Any, lumps: Sequence[int]) -> bool:
+    """Whether ``internal``'s classes are bins of one count both lumps share (what K lumps
+    whose bins relax needs, :func:`~surrogate.gp.class_relaxation.check_shared_bins`)."""
+    try:
+        check_shared_bins(class_bins_of(internal), lumps)
+    except ConfigError:
+        return False
+    return True
 
 
 class Candidate(Protocol):
