@@ -135,7 +135,7 @@ def _make_choice(
             failed[name] = str(error)  # named in the record; no longer clock after it
             break
         trains[name], groups[name], fits[name] = added, gp, (Path(path), seconds)
-        axis = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}  # its cap and bins
+        axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
         finals[name] = {**finals[best_name], **axis}
         scores.append(score)
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
