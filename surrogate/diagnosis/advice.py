@@ -164,6 +164,9 @@ class VerdictInputs:
             are then advised as edges (:func:`~surrogate.diagnosis.remedies.coarser_classes`).
         choice: the measured choice that chose ``kind`` (``gp=auto``); None where the kind was
             named or the rule chose it. Its memory remedies then work through the choice.
+        wider_collection: the overrides that send collect's perturbation further
+            (:meth:`~surrogate.models.base.Model.wider_collection`), advised where the runs
+            leave the trained inputs; empty where the model has none.
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -179,6 +182,7 @@ class VerdictInputs:
     max_age: float | None = None
     count_classes: CountClasses | None = None
     choice: MeasuredChoice | None = None
+    wider_collection: tuple[str, ...] = ()
 
 
 def verdict(  # noqa: C901  # one branch per first cause, in the report's order
@@ -225,12 +229,20 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
             parts.append(
                 f"{f}: {100 * r['share_outside']:.1f} % of cell-steps ({'; '.join(inputs)})"
             )
+        name = "Outside the training data"
+        wider = run.wider_collection
+        remedies = [Remedy("training_field", "training where they go (a `field` whose inputs "
+                           f"span those of {', '.join(sorted(away))})")]  # fmt: skip
+        if wider:
+            remedies.insert(0, Remedy("wider_collection", f"a collection that reaches them, "
+                                      f"`{' '.join(wider)}` (collect's jumps twice as far "
+                                      f"from the field's peak)", wider))  # fmt: skip
         causes.append((
-            "Outside the training data",
+            name,
             "the abstraction ran outside the inputs it was trained on in " + "; ".join(parts)
             + ", where its lookup clamps to the range's edge.",
-            "collect transitions where these cells go: `collect.* field=<that field>`, or a "
-            "wider collection (`model.body.perturbation.radius`, a field with that range).",
+            "collect transitions where these cells go: "
+            + advisor.step(name, remedies, then="."),
         ))  # fmt: skip
     failing = {f: list(q) for f, q in failures.items() if q}
     thin = _sparse_rows(outside, outside_warning, n_per_state, advisor, count_classes,

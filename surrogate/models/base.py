@@ -245,6 +245,9 @@ class Model:
     internal: InternalModel
     body: AgentBody
     perturbation_options: Mapping[str, Any] = {}
+    #: where the config sets :attr:`perturbation_options` (``model.perturbation``), for advice
+    #: that changes them (:meth:`wider_collection`); None: nowhere a user can set
+    perturbation_key: str | None = None
 
     #: the abstraction's default inputs (``gp.inputs=signal``): the internal model's signal
     default_abstraction_inputs: str = "signal"
@@ -260,6 +263,23 @@ class Model:
         if full and estimate is not None:
             return float(estimate(dt))
         return CELL_STEP_SECONDS
+
+    def wider_collection(self, factor: float = 2.0) -> tuple[str, ...]:
+        """The overrides that send collect's perturbation ``factor`` times as far from the
+        field's peak (its jumps' ``radius``): a collection of the inputs that cells further out
+        read; empty where the model names no radius a user can set.
+
+        Example:
+            >>> m = Model()
+            >>> m.perturbation_options, m.perturbation_key = {"radius": 3.0}, "model.perturbation"
+            >>> m.wider_collection()
+            ('++model.perturbation.radius=6',)
+        """
+        radius = self.perturbation_options.get("radius")
+        if (self.perturbation_key is None or isinstance(radius, bool)
+                or not isinstance(radius, int | float) or not radius > 0):  # fmt: skip
+            return ()
+        return (f"++{self.perturbation_key}.radius={factor * float(radius):g}",)
 
     def collect_defaults(self, dt: float) -> dict[str, int]:
         """The default collection budget (``n_per_state``, ``n_cells``, ``record_every``),

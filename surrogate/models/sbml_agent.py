@@ -322,6 +322,7 @@ class SbmlAgentModel(Model):
         if s["classes"] is not None:
             self.internal.set_classes(self._classes(s["classes"], sbml))
         self.perturbation_options = self.body.perturbation_options
+        self.perturbation_key = "model.body.perturbation"
         self.name = str(s["name"] or sbml.id or "sbml")
         self._collect_budget = self._collect(s["collect"])
         self.settings = s

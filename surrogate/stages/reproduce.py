@@ -391,7 +391,7 @@ def _verdict(
         network=isinstance(tr.setup.model.internal, NetworkInternalModel),
         n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
         max_age=tr.max_age if tr.kind.clock else None, count_classes=count_classes,
-        choice=measured_choice(tr),
+        choice=measured_choice(tr), wider_collection=tr.setup.model.wider_collection(),
     )  # fmt: skip
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip

@@ -20,16 +20,21 @@ def _outside(share: float) -> dict[str, Any]:
                              "trained": [0.0, 0.1]}}}  # fmt: skip
 
 
-def _read(lumps: str = "phi", history: str = "none", class_moves: str = "learned",
-          **changes: Any):  # fmt: skip
-    """The verdict of a run of the chain the config's strings name (gp.lumps, gp.history,
-    gp.class_moves), with ``changes`` to the measurements."""
-    args: dict[str, Any] = {
+def _args(lumps: str = "phi", history: str = "none", class_moves: str = "learned") -> dict:
+    """A run of the chain the config's strings name, within noise and unbiased."""
+    return {
         "diagnostic": {"reference": "empirical", "phi0": _score(0.0), "phi1": _score(0.005)},
         "lump_names": ("off", "on"), "failures": {"gaussian": []},
         "outside": {"gaussian": _outside(0.0)}, "outside_warning": 0.01, "tolerance": 0.03,
         "kind": chain_kind(lumps, history, class_moves), "network": True, "n_per_state": 10_000,
     }  # fmt: skip
+
+
+def _read(lumps: str = "phi", history: str = "none", class_moves: str = "learned",
+          **changes: Any):  # fmt: skip
+    """The verdict of a run of the chain the config's strings name (gp.lumps, gp.history,
+    gp.class_moves), with ``changes`` to the measurements."""
+    args = _args(lumps, history, class_moves)
     if isinstance(changes.get("diagnostic"), dict):  # the scores given replace the default's
         changes["diagnostic"] = {**args["diagnostic"], **changes["diagnostic"]}
     return verdict(VerdictInputs(**{**args, **changes}))
@@ -50,6 +55,16 @@ def test_each_cause_names_its_measurement_and_next_step() -> None:
     away = _read(outside={"gaussian": _outside(0.2)})
     assert [c[0] for c in away.causes] == ["Outside the training data"]
     assert "20.0 % of cell-steps" in away.causes[0][1] and "L seen [0, 0.5]" in away.causes[0][1]
+    assert [r.kind for _, r in away.remedies] == ["training_field"]  # the model names no radius
+    wider = ("++model.body.perturbation.radius=6",)
+    further = _read(outside={"gaussian": _outside(0.2)}, wider_collection=wider)
+    assert [r.overrides for _, r in further.remedies] == [wider, ()]
+    assert "`++model.body.perturbation.radius=6`" in further.causes[0][2]
+    refused = verdict(VerdictInputs(**{**_args(), "outside": {"gaussian": _outside(0.2)},
+                                       "wider_collection": wider}),
+                      check=lambda overrides, what: "no such key")  # fmt: skip
+    assert [r.kind for _, r in refused.remedies] == ["training_field"]
+    assert "not advised: ++model.body.perturbation.radius=6 (no such key)" in refused.causes[0][2]
     drifting = _read(diagnostic={"phi0": _score(0.0, settling=-6.0)})
     assert drifting.causes[0][0] == "Not settled" and "model.burn_in" in drifting.causes[0][2]
     biased = _read(diagnostic={"phi0": _score(0.15, se=0.02)})

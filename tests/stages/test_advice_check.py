@@ -611,3 +611,31 @@ def test_the_next_command_the_inspector_prints_runs_and_drops_what_is_refused(co
     assert bad["dropped"][0].startswith("collect.n_per_state=-5 gp.choice.by=measure: ")
     refused = {**advice, "refused": "no"}  # a refused pilot advice is not printed here either
     assert next_command(config, setup, refused, {})["command"].split()[2:] == setup
+
+
+@pytest.mark.parametrize("model", ["sbml", "ecoli"])
+def test_the_wider_collection_the_verdict_advises_runs(compose_cfg, model: str) -> None:
+    """Runs outside the trained inputs: the verdict advises collect's jumps twice as far from
+    the peak, as the model's own key (``model.body.perturbation`` of a yaml network,
+    ``model.perturbation`` of E. coli), and the stages' checks accept it and read the new
+    radius (the gene switch's exponential field came back inside its collection this way)."""
+    from surrogate.config import build_model
+
+    extra = ["model=sbml", f"model.spec={SPEC}"] if model == "sbml" else []
+    config = to_dict(compose_cfg("reproduce", extra))
+    built = build_model(config["model"])
+    wider = built.wider_collection()
+    radius = float(built.perturbation_options["radius"])
+    assert wider == (f"++{built.perturbation_key}.radius={2 * radius:g}",)
+    outside = {"exponential": {"share_outside": 0.5, "sampled_cell_steps": 1000, "inputs": {
+        "L": {"share_below": 0.5, "share_above": 0.0, "seen": [0.0, 0.1],
+              "trained": [0.01, 0.1]}}}}  # fmt: skip
+    check = memo_check({}, config, model)
+    v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
+                   kind=chain_kind("phi", "none", "learned"), network=model == "sbml",
+                   n_per_state=1000, check=check, diagnostic={"phi0": UNBIASED, "phi1": UNBIASED},
+                   failures={"exponential": ["off"]}, outside=outside, wider_collection=wider)  # fmt: skip
+    assert [r.overrides for _, r in v.remedies if r.overrides] == [wider] and not v.dropped
+    assert check_advice(config, list(wider)) is None
+    rebuilt = build_model(apply_overrides(config, list(wider))["model"])
+    assert rebuilt.perturbation_options["radius"] == 2 * radius

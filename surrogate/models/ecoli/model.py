@@ -34,6 +34,8 @@ class EcoliModel(Model):
     internal: MotorInternalModel
     body: ChemotacticBody
 
+    perturbation_key = "model.perturbation"
+
     def __init__(self, perturbation: Mapping[str, Any] | None = None, **constants: Any) -> None:
         self.params = EcoliParameters.from_config(constants)
         self.internal = MotorInternalModel(self.params)
