@@ -45,7 +45,7 @@ from surrogate.config import (
     to_dict,
     validate_start,
 )
-from surrogate.errors import ConfigError
+from surrogate.errors import ArtefactError, ConfigError
 from surrogate.evaluate.report import format_markdown_table, write_report
 from surrogate.evaluate.statistics import KS_C_ALPHA_05, ks_critical_value, noise_threshold
 from surrogate.io import (
@@ -443,6 +443,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         label: class_diagnostic_by_lump(m["class_diagnostic"], settings.setup.model.internal)
         for label, m in metrics.items() if m.get("class_diagnostic")}  # fmt: skip
     summary["outside_training"] = outside
+    summary["wider_collection"] = wider_collection(settings, outside, config)
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
     save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
@@ -457,6 +458,34 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
                    passed=summary["passed"], checks=summary["checks"])  # fmt: skip
     log.info("fidelity: %d of %d checks pass; artefacts in %s", summary["passed"],
              summary["checks"], out)  # fmt: skip
+
+
+def wider_collection(
+    settings: FidelitySettings, outside: Mapping[str, Mapping[str, Any]], config: Mapping[str, Any]
+) -> list[str] | None:
+    """Where a learned run's share of cell-steps outside its trained inputs is above
+    ``outside_warning``: the overrides that send collect's jumps twice as far
+    (:meth:`~surrogate.models.base.Model.wider_collection`), checked by this stage's own
+    settings on ``config`` first; None where no run left them, the model has no such key, or
+    the check refuses them (logged)."""
+    from surrogate.stages.advice_check import apply_overrides
+    from surrogate.stages.settings.choice import collecting_pending
+
+    away = sorted(label for label, r in outside.items()
+                  if float(r.get("share_outside") or 0.0) > settings.job.outside_warning)  # fmt: skip
+    wider = list(settings.setup.model.wider_collection())
+    if not away or not wider:
+        return None
+    try:
+        with collecting_pending():  # the wider collection's choices are not made yet
+            validate(apply_overrides(config, wider))
+    except (ConfigError, ArtefactError) as error:  # e.g. a stored reference of the old radius
+        log.warning("fidelity: %s would reach the inputs of %s, but is refused: %s",
+                    " ".join(wider), ", ".join(away), error)  # fmt: skip
+        return None
+    log.warning("fidelity: runs %s left the collection's inputs; the same command with `%s` "
+                "collects further from the field's peak", ", ".join(away), " ".join(wider))  # fmt: skip
+    return wider
 
 
 def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.DataFrame:
@@ -611,6 +640,11 @@ def report_sections(
                  for n, v in r["inputs"].items())}
             for label, r in outside.items()]))
         if outside else "No learned run.")  # fmt: skip
+    wider = summary.get("wider_collection")
+    if wider:
+        support += (f"\n\nRuns left the inputs their collection covered: the same command with "
+                    f"`{' '.join(wider)}` (checked) collects where they go, collect's jumps "
+                    f"twice as far from the field's peak.")  # fmt: skip
     return [
         ("Setting", setting),
         ("The target", target),

@@ -116,3 +116,27 @@ def test_paired_starts_are_a_setting_with_its_own_identity(compose_cfg) -> None:
     with pytest.raises(ConfigError, match=r"fidelity.starts=paired needs .*fidelity.reference=run"):
         fidelity.validate(compose_cfg("fidelity", [*SMALL, "fidelity.starts=paired",
                                                    "fidelity.reference=stored"]))  # fmt: skip
+
+
+def test_runs_outside_their_collection_get_a_wider_one_checked(compose_cfg, checked) -> None:
+    """A learned run above ``outside_warning`` outside its trained inputs: the report names
+    the same command with collect's jumps twice as far (E. coli's ``model.perturbation``),
+    checked by this stage's settings; none where every run stayed inside, or where the check
+    refuses it (here `fidelity.reference=stored` with none stored: logged, not printed)."""
+    from surrogate.config import to_dict
+
+    settings, _, table = checked
+    config = to_dict(compose_cfg("fidelity", SMALL))
+    radius = float(settings.setup.model.perturbation_options["radius"])
+    away = {"share_outside": 0.5, "inputs": {}}
+    inside = {"share_outside": 0.0, "inputs": {}}
+    wider = fidelity.wider_collection(settings, {"a|exponential": away, "a|gaussian": inside},
+                                      config)  # fmt: skip
+    assert wider == [f"++model.perturbation.radius={2 * radius:g}"]
+    assert fidelity.wider_collection(settings, {"a|gaussian": inside}, config) is None
+    summary = {**fidelity.summarise(table, settings), "wider_collection": wider,
+               "outside_training": {"a|exponential": away}}  # fmt: skip
+    text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
+    assert f"the same command with `{wider[0]}` (checked)" in text
+    stored = {**config, "fidelity": {**config["fidelity"], "reference": "stored"}}
+    assert fidelity.wider_collection(settings, {"a|exponential": away}, stored) is None
