@@ -80,3 +80,10 @@ def test_the_pilot_trains_nothing_ahead(compose_cfg) -> None:
     assert cfg["gp"]["choice"]["ahead"] is False and cfg["gp"]["choice"]["by"] == "measure"
     plan = _plan(cfg)[1]
     assert plan is not None and "classes" in plan.finals and plan.ahead() is None
+    # nor does it fit K lumps whose bins relax: their stationary sample is a full-model run
+    # the pilot does not price; a user's list of that family alone is kept
+    assert "relaxation" not in cfg["gp"]["choice"]["kinds"]
+    assert "two-state" in cfg["gp"]["choice"]["kinds"]
+    alone = to_dict(compose_cfg("inspect", ["gp.choice.by=measure",
+                                            "gp.choice.kinds=[relaxation]"]))  # fmt: skip
+    assert pilot_config(alone, 2000, 20, 5.0, None)[0]["gp"]["choice"]["kinds"] == ["relaxation"]
