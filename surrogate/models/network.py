@@ -90,6 +90,10 @@ STEP_OVERHEAD_SECONDS = 5e-7
 #: ``max_events``): ~1 s of the compiled SSA for that cell, 1,000x the phospho network's
 #: 10,241 per window; past it the network runs away (a RunawayError names the counts)
 RUNAWAY_EVENTS = 10**7
+#: a burn-in is one window of many seconds: its default cap is RUNAWAY_EVENTS per this many
+#: seconds of it (the auto-regulatory network's 4,000-s burn-in makes ~7e6 events at its median
+#: input, and a stationary sample's cell at a high input passed 1e7 in one call: no runaway)
+RUNAWAY_SPAN_SECONDS = 100.0
 #: seconds per cell-step of the exact chain computed directly, per K^3 of a K-state generator
 #: (exp(Q dt) at each cell's inputs, decision.mode=direct): 5.7 ms per cell-step at K = 151
 #: (the textbook's dimerisation, the 2-core box under load), ~1.65e-9 x 151^3
@@ -421,7 +425,18 @@ class NetworkInternalModel:
         (``n x P``, e.g. :meth:`kinetic_inputs`; ``x``: the inputs they came from, named in an
         error)."""
         state = self.start_state(inputs.shape[0], inputs.device, inputs)
-        return self.advance_at(state, inputs, self.burn_in, x) if self.burn_in > 0 else state
+        if self.burn_in <= 0:
+            return state
+        return self.advance_at(state, inputs, self.burn_in, x,
+                               max_events=self.burn_in_cap(self.burn_in))  # fmt: skip
+
+    def burn_in_cap(self, seconds: float) -> int:
+        """The events a cell may make in a burn-in of ``seconds``, one window: the model's
+        :attr:`max_events` where set (a probe's copy), else :data:`RUNAWAY_EVENTS` per
+        :data:`RUNAWAY_SPAN_SECONDS` of it (at least one window's: 4e8 for a 4,000-s burn-in)."""
+        if self.max_events is not None:
+            return int(self.max_events)
+        return int(RUNAWAY_EVENTS * max(1.0, seconds / RUNAWAY_SPAN_SECONDS))
 
     def start_state(
         self, n: int, device: torch.device, inputs: Tensor | None = None

@@ -100,6 +100,12 @@ def _make_choice(
     model = setup.model
     log.info("gp=auto: choosing the chain by measurement among %s (docs/choice.md; "
              "gp.choice.by=rule or a named kind skips it)", list(plan.candidates))  # fmt: skip
+    for name, candidate in plan.candidates.items():
+        if candidate.kind.relaxation:  # the one candidate whose fit simulates the full model
+            log.info("choice: %s fits on a stationary sample of %d full-model cells burned in "
+                     "and held %g s at their inputs (the auto-regulatory network's 2,400: 24-32 "
+                     "min of one core); gp.choice.kinds without relaxation leaves it out", name,
+                     candidate.relaxation_cells, candidate.relaxation_lags[-1])  # fmt: skip
     start = time.perf_counter()
     seed_everything(first.seed + HELDOUT_SEED_OFFSET)
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device,

@@ -117,6 +117,37 @@ def test_a_window_over_max_events_raises_naming_the_cell(tmp_path: Path) -> None
     assert network.bounded(100, burn_in=0.0).max_events == 100 and network.max_events is None
 
 
+def test_a_long_burn_in_of_a_busy_network_is_no_runaway(tmp_path: Path, monkeypatch) -> None:
+    """A burn-in is one window of many seconds: its cap is the runaway cap per
+    ``RUNAWAY_SPAN_SECONDS`` of it. A bounded birth-death making ~2,000 events a second passes a
+    200-s burn-in that the window cap alone refused (the auto-regulatory network's 4,000-s
+    burn-in passed 1e7 events in one cell of a stationary sample); a runaway still trips."""
+    from surrogate.errors import RunawayError
+    from surrogate.models import network as network_module
+
+    (tmp_path / "busy.xml").write_text(build("busy", [Species("X", amount=0)], {"b": 1000.0, "d": 1.0},
+                                             [Reaction("birth", "b", {}, {"X": 1}),
+                                              Reaction("death", "d * X", {"X": 1}, {})]))  # fmt: skip
+    spec = tmp_path / "busy.yaml"
+    spec.write_text(yaml.safe_dump({"name": "busy", "network": "busy.xml", "inputs": {"b": "L"},
+                                    "lump": "X >= 1000", "body": {"kind": "static"},
+                                    "burn_in": 200.0}))  # fmt: skip
+    busy = SbmlAgentModel(str(spec)).internal
+    monkeypatch.setattr(network_module, "RUNAWAY_EVENTS", 50_000)  # ~4e5 events in the burn-in
+    monkeypatch.setattr(network_module, "RUNAWAY_SPAN_SECONDS", 1.0)
+    assert busy.burn_in_cap(200.0) == 10_000_000 and busy.burn_in_cap(0.5) == 50_000
+    inputs = torch.full((3, 1), 1000.0, dtype=torch.float64)
+    torch.manual_seed(0)
+    counts = busy.burn_in_at(inputs)[0]
+    assert bool(((counts > 800) & (counts < 1200)).all())  # settled near b / d = 1,000
+    with pytest.raises(RunawayError):  # the window's own cap: 50,000 events within ~25 s
+        state = busy.start_state(3, torch.device("cpu"), inputs)
+        busy.advance_at(state, inputs, 200.0)
+    grows = runaway(tmp_path).internal  # 1 s of e^(50 t): past any cap
+    with pytest.raises(RunawayError):
+        grows.burn_in_at(grows.file_inputs().expand(2, -1).clone())
+
+
 def test_step_seconds_does_not_pay_a_runaway_burn_in(tmp_path: Path) -> None:
     """The per-step probe starts from the file's counts with windows capped at
     ``PROBE_MAX_EVENTS`` per cell: a runaway network falls back to ``STEP_SECONDS`` in a second

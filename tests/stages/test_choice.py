@@ -406,7 +406,9 @@ def test_worker_count_follows_the_setting_the_device_and_the_candidates() -> Non
     assert auto.worker_count(1, "cpu") == 1
 
 
-def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(tmp_path: Path) -> None:
+def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """On a network whose classes are shared bins of a slow count (three gene copies that
     switch at 0.05/s each: tau 10 s), the choice fits K lumps whose bins relax beside K lumps,
     both scored on the same held-out cells; the stationary sample's cells and lags are the
@@ -427,7 +429,11 @@ def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(tmp_path: 
     relaxing = plan.candidates["classes relaxation"]
     assert relaxing.kind.relaxation and relaxing.relaxation_cells == 40
     assert plan.finals["classes relaxation"] == plan.groups["classes relaxation"]
-    out = Path(make_choice(plan, train_stage.fit_candidate, cfg))
+    with caplog.at_level("INFO", logger="surrogate.stages.choice"):
+        out = Path(make_choice(plan, train_stage.fit_candidate, cfg))
+    # its cost said before it is paid, with how to leave it out
+    assert "stationary sample of 40 full-model cells" in caplog.text
+    assert "gp.choice.kinds without relaxation" in caplog.text
     record = json.loads((out / "choice.json").read_text())
     assert [r["kind"] for r in record["scores"]] == ["classes", "classes relaxation"]
     assert all(math.isfinite(r["log_likelihood_per_window"]) for r in record["scores"])
