@@ -103,7 +103,7 @@ def _make_choice(
     for name, candidate in plan.candidates.items():
         if candidate.kind.relaxation:  # the one candidate whose fit simulates the full model
             log.info("choice: %s fits on a stationary sample of %d full-model cells burned in "
-                     "and held %g s at their inputs (the auto-regulatory network's 2,400: 24-32 "
+                     "and held %g s at their inputs (the auto-regulatory network's 2,400: 16-32 "
                      "min of one core); gp.choice.kinds without relaxation leaves it out", name,
                      candidate.relaxation_cells, candidate.relaxation_lags[-1])  # fmt: skip
     start = time.perf_counter()
