@@ -180,6 +180,27 @@ def test_the_clock_recipe_bins_its_axes_and_leaves_two_state_fits_as_they_were(
         TrainSettings.from_config(compose_cfg("train", ["gp.history=clock"]))
 
 
+@pytest.mark.parametrize("knee", ["0", "-1.0", "fast", "true", "inf"])
+def test_a_clock_knee_that_is_no_positive_number_is_refused(compose_cfg, knee: str) -> None:
+    with pytest.raises(ConfigError, match=r"gp.clock_knee must be a number of seconds > 0"):
+        TrainSettings.from_config(compose_cfg("train", ["gp=clock", f"gp.clock_knee={knee}"]))
+
+
+def test_a_clock_on_a_log_axis_is_a_fit_of_its_own(compose_cfg) -> None:
+    """gp.clock_knee warps the clock psi reads (log(1 + a / knee)); null leaves the linear
+    clock's identity as it was, a knee is a fit of its own, and a two-state fit ignores it."""
+    linear = TrainSettings.from_config(compose_cfg("train", ["gp=clock"]))
+    assert "clock_knee" not in linear.fit_identity()["gp"]
+    assert linear.kind.input_warps(linear.gp_config) == {}
+    log = TrainSettings.from_config(compose_cfg("train", ["gp=clock", "gp.clock_knee=0.5"]))
+    assert log.fit_identity()["gp"]["clock_knee"] == 0.5
+    assert log.kind.input_warps(log.gp_config) == {"phi_age": 0.5}
+    assert log.fit_directory != linear.fit_directory
+    plain = TrainSettings.from_config(compose_cfg("train", ["gp=svgp", "+gp.clock_knee=0.5"]))
+    assert plain.kind.input_warps(plain.gp_config) == {}
+    assert "clock_knee" not in plain.fit_identity()["gp"]
+
+
 def test_class_moves_by_relaxation_are_checked_and_keep_learned_identities(
     compose_cfg, tmp_path
 ) -> None:

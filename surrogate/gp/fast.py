@@ -165,6 +165,7 @@ class CachedPsi:
         domain: dict[str, tuple[float, float]] | None = None,
         dtype: torch.dtype = torch.float32,
         split_rows: int = 4096,
+        warps: dict[str, float] | None = None,
     ) -> None:
         phi0, phi1 = factors  # the classifiers of origin phi = 0 and phi = 1
         if phi0["nu"] != phi1["nu"] or phi0["z"].shape != phi1["z"].shape:
@@ -178,6 +179,11 @@ class CachedPsi:
         # simulation loop turns it off and checks its state at record times instead)
         self.check_finite = True
         self.n_inducing = int(phi0["z"].shape[0])
+        # inputs the classifiers read on a log axis (PsiClassifier.warps): raw values come in
+        self.warps = dict(warps or {})
+        self.warp_knees = torch.tensor([self.warps.get(n, 1.0) for n in self.input_names],
+                                       dtype=dtype)  # fmt: skip
+        self.warped = torch.tensor([n in self.warps for n in self.input_names])
         # RBF: k = exp(-|x - z|^2 / 2) in lengthscale units, so work with u = x / sqrt(2) and
         # get -|u - w|^2 = -r^2 / 2; Matern needs r itself: u = x, r = sqrt(|u - w|^2).
         half = 1.0 / math.sqrt(2.0) if self.nu is None else 1.0
@@ -219,7 +225,8 @@ class CachedPsi:
         # box the threaded eigh took 0.3-3 s where one thread takes 0.015 s (measured)
         with one_thread(psi.device.type == "cpu"):
             factors = (_factors(psi.psi_0), _factors(psi.psi_1))
-        return cls(factors, psi.input_names, psi.domain, dtype, split_rows)
+        return cls(factors, psi.input_names, psi.domain, dtype, split_rows,
+                   getattr(psi, "warps", None))  # fmt: skip
 
     @property
     def device(self) -> torch.device:
@@ -228,7 +235,8 @@ class CachedPsi:
 
     def to(self, device: torch.device | str) -> CachedPsi:
         """Move the cached factors to ``device`` in place; return self."""
-        for name in ("x_gain", "x_bias", "w_aug", "g", "d", "mean", "prior_var"):
+        for name in ("x_gain", "x_bias", "w_aug", "g", "d", "mean", "prior_var", "warp_knees",
+                     "warped"):  # fmt: skip
             setattr(self, name, getattr(self, name).to(device))
         if self.mean_slope is not None:
             self.mean_slope = self.mean_slope.to(device)
@@ -305,7 +313,10 @@ class CachedPsi:
             raise ValueError(
                 f"psi takes {d} input column(s) {self.input_names}, got {tuple(z.shape)}"
             )
-        return z.to(self.device, self.dtype)
+        z = z.to(self.device, self.dtype)
+        if self.warps:  # log(1 + z / knee) on the warped columns (PsiClassifier.warps)
+            z = torch.where(self.warped, torch.log1p(z.clamp(min=0.0) / self.warp_knees), z)
+        return z
 
     def __call__(self, phi: Tensor, z: Tensor) -> Tensor:
         """p(phi' = 1) (float32, on ``z``'s device); refuses NaN/inf inputs while

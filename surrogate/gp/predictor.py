@@ -23,6 +23,20 @@ STATE_FORMAT = "surrogate.gp.psi/2"
 LABELS = ("phi", "phi_next")
 
 Domain = dict[str, tuple[float, float]]
+#: inputs read on a log axis: name -> knee (s), each read as log(1 + value / knee)
+Warps = dict[str, float]
+
+
+def log_warp(z: Tensor, input_names: Sequence[str], warps: Mapping[str, float]) -> Tensor:
+    """``z`` (``n x d``, columns ``input_names``) with each warped column read as
+    ``log(1 + value / knee)`` (``warps``: name -> knee): linear below the knee, compressed
+    beyond, so equal-width bins and one lengthscale resolve short values finely and long ones
+    coarsely (a switch clock with a long cap, ``gp.clock_knee``). ``z`` itself when none is."""
+    if not warps:
+        return z
+    knees = torch.tensor([warps.get(n, 1.0) for n in input_names], dtype=z.dtype, device=z.device)
+    warped = torch.tensor([n in warps for n in input_names], device=z.device)
+    return torch.where(warped, torch.log1p(z.clamp(min=0.0) / knees), z)
 
 
 class PsiClassifier:
@@ -36,6 +50,8 @@ class PsiClassifier:
         domain: ``{name: (min, max)}`` of the training inputs, so users can tell when a
             simulation queries the abstraction outside the data it was fitted on.
         lump_names: names of phi = 0 and 1 (e.g. ``("tumble", "run")``), for reports.
+        warps: inputs the classifiers read on a log axis (name -> knee, :func:`log_warp`);
+            callers pass raw values, the domain is the raw values'.
         chunk_size: rows per GP evaluation, bounding memory (about ``chunk_size * M`` floats).
 
     Example:
@@ -52,6 +68,7 @@ class PsiClassifier:
         domain: Domain | None = None,
         lump_names: tuple[str, str] = ("0", "1"),
         chunk_size: int = PREDICT_CHUNK,
+        warps: Mapping[str, float] | None = None,
     ) -> None:
         if psi_0.device != psi_1.device:
             raise ValueError(
@@ -63,6 +80,11 @@ class PsiClassifier:
         self.domain: Domain = dict(domain) if domain else {}
         self.lump_names = (str(lump_names[0]), str(lump_names[1]))
         self.chunk_size = int(chunk_size)
+        self.warps: Warps = {str(k): float(v) for k, v in (warps or {}).items()}
+        unknown = sorted(set(self.warps) - set(self.input_names))
+        if unknown or not all(v > 0 for v in self.warps.values()):
+            raise ValueError(f"warps {self.warps} must name inputs of {self.input_names} "
+                             f"with knees > 0")  # fmt: skip
         self.check_finite = True
 
     @property
@@ -116,7 +138,7 @@ class PsiClassifier:
         out_device = z.device
         dev = self.device
         one = phi.to(dev).reshape(-1).bool()
-        x = z.to(dev, torch.float32)
+        x = log_warp(z.to(dev, torch.float32), self.input_names, self.warps)
         if one.shape[0] != x.shape[0]:
             raise ValueError(f"phi has {one.shape[0]} rows but the inputs have {x.shape[0]}")
         out = torch.empty(x.shape[0], dtype=torch.float32, device=dev)
@@ -149,6 +171,7 @@ class PsiClassifier:
             "lump_names": list(self.lump_names),
             "domain": {k: [float(v[0]), float(v[1])] for k, v in self.domain.items()},
             "chunk_size": self.chunk_size,
+            "warps": dict(self.warps),
         }
 
     @classmethod
@@ -169,8 +192,9 @@ class PsiClassifier:
                 domain={k: (float(v[0]), float(v[1])) for k, v in state["domain"].items()},
                 lump_names=tuple(state.get("lump_names", ("0", "1"))),
                 chunk_size=int(state.get("chunk_size", PREDICT_CHUNK)),
+                warps={str(k): float(v) for k, v in dict(state.get("warps", {})).items()},
             )
-        except (KeyError, RuntimeError) as exc:
+        except (KeyError, RuntimeError, ValueError) as exc:
             raise ArtefactError(
                 f"psi classifier state is incomplete or inconsistent: {exc}"
             ) from exc
@@ -189,6 +213,7 @@ def fit_psi(
     device: torch.device | str = "cpu",
     lump_names: tuple[str, str] = ("0", "1"),
     label: str = "phi_next",
+    warps: Mapping[str, float] | None = None,
 ) -> PsiClassifier:
     """Fit psi_0 on rows with ``phi == 0`` and psi_1 on rows with ``phi == 1`` of ``data``.
 
@@ -200,6 +225,8 @@ def fit_psi(
         label: the column trained on: ``phi_next`` (0/1 outcomes) or expected labels in
             [0, 1] such as ``phi_next_expected`` (binned training only); the held-out metrics
             always score the outcomes.
+        warps: inputs read on a log axis (name -> knee, :func:`log_warp`): the classifiers
+            are fitted, binned and evaluated on the warped values.
 
     Example:
         >>> psi = fit_psi(table, ["dG"], GPSettings(bins=500), label="phi_next_expected")
@@ -217,6 +244,7 @@ def fit_psi(
         if len(rows) == 0:
             raise ArtefactError(f"transition data has no rows with phi == {phi} to fit psi_{phi}")
         x = torch.tensor(rows[list(input_names)].to_numpy(dtype="float32"))
+        x = log_warp(x, input_names, warps or {})
         y = torch.tensor(rows[label].to_numpy(dtype="float32"))
         outcomes = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
         pairs.append((x, y, outcomes))
@@ -229,6 +257,7 @@ def fit_psi(
         input_names,
         domain=data_domain(data, input_names),
         lump_names=lump_names,
+        warps=warps,
     )
 
 
@@ -253,4 +282,4 @@ def load_psi(
     return classifier, dict(obj.get("metadata", {}))
 
 
-__all__ = ["PsiClassifier", "data_domain", "fit_psi", "load_psi", "save_psi"]
+__all__ = ["PsiClassifier", "data_domain", "fit_psi", "load_psi", "log_warp", "save_psi"]

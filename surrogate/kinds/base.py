@@ -236,6 +236,12 @@ class ChainKind:
         phi: as they are)."""
         return gp, inputs
 
+    def input_warps(self, gp_config: Mapping[str, Any]) -> dict[str, float]:
+        """The inputs psi reads on a log axis (name -> knee, s; :func:`~surrogate.gp.predictor.log_warp`)
+        from the gp group ``gp_config`` (validated by :meth:`configure`): none for a chain over
+        phi."""
+        return {}
+
     def check_train(self, settings: FitSettings) -> None:
         """Refuse train ``settings`` this kind cannot fit, where the check reads more than the gp
         group (the model's ``dt``, the collection): called by the train stage's validation,

@@ -10,6 +10,7 @@ rows, its learned layer (:meth:`~SwitchClock.decision_layer`) and its exact one
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -46,7 +47,22 @@ from surrogate.simulate.memory import (
 log = logging.getLogger(__name__)
 
 #: keys of the gp group that only a fit with a switch clock reads (gp.history=age)
-GP_CLOCK = ("history", "max_age", "clock_bins")
+GP_CLOCK = ("history", "max_age", "clock_bins", "clock_knee")
+
+
+def clock_knee(gp_config: Mapping[str, Any]) -> float | None:
+    """``gp.clock_knee`` validated: None (the clock read in seconds, a linear axis) or the knee
+    (s) of a log axis, ``log(1 + a / knee)``: the clock's bins and psi's lengthscale then
+    resolve short ages finely and long ones coarsely, so a long cap (a slow tail) keeps the
+    resolution a short one had (a period's peak)."""
+    knee = gp_config.get("clock_knee")
+    if knee is None:
+        return None
+    if (isinstance(knee, bool) or not isinstance(knee, int | float) or not math.isfinite(knee)
+            or not knee > 0):  # fmt: skip
+        raise ConfigError(f"gp.clock_knee must be a number of seconds > 0 (a log clock axis, "
+                          f"log(1 + age / knee)) or null (linear), got {knee!r}")  # fmt: skip
+    return float(knee)
 
 
 @register_chain_kind
@@ -71,11 +87,26 @@ class SwitchClock(ChainKind):
         internal: Any,
         model_name: str,
     ) -> tuple[GPSettings, tuple[str, ...]]:
-        """The switch clock is psi's last input, with its own bin count (``gp.clock_bins``)."""
+        """The switch clock is psi's last input, with its own bin count (``gp.clock_bins``),
+        in seconds or on a log axis (``gp.clock_knee``, :func:`clock_knee`)."""
+        clock_knee(gp_config)
         if isinstance(gp.bins, int) and gp.bins:  # the clock's axis has its own bin count
             clock_bins = gp_config.get("clock_bins", gp.bins)
             gp = replace(gp, bins=(*[gp.bins] * len(inputs), clock_bins))  # validated again
         return gp, (*inputs, AGE)
+
+    def fit_identity(self, gp: Mapping[str, Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
+        """The base's, without ``clock_knee: null`` (a linear clock keeps the identity it had
+        before the log axis existed)."""
+        out = super().fit_identity(gp, *args, **kwargs)
+        if out.get("clock_knee", 0) is None:
+            del out["clock_knee"]
+        return out
+
+    def input_warps(self, gp_config: Mapping[str, Any]) -> dict[str, float]:
+        """The clock on a log axis where ``gp.clock_knee`` is set (:func:`clock_knee`)."""
+        knee = clock_knee(gp_config)
+        return {} if knee is None else {AGE: knee}
 
     @classmethod
     def check_exact_history(cls, mode: DecisionMode, internal: Any, model_name: str) -> None:

@@ -53,6 +53,10 @@ CHEAP_CELL_STEP_SECONDS = 1e-4
 #: ... and for a costlier one (an SBML network with ~1e4 events per window, e.g. the phospho
 #: network at ~0.5 ms per cell-step: ~5 minutes of collection on one core)
 COSTLY_COLLECTION: dict[str, int] = {"n_per_state": 10_000, "n_cells": 500, "record_every": 5}
+#: the default perturbation of a collection: jumps per second per cell and the seconds after a
+#: jump without records (E. coli's: ~3 motor relaxation times); a network whose hidden state
+#: settles more slowly after a jump sets its own (an SBML yaml's ``collect``)
+COLLECT_PERTURBATION: dict[str, float] = {"perturb_rate": 0.1, "blackout_time": 1.0}
 
 #: the body's outer state: named per-cell tensors, cells in dimension 0
 BodyState = dict[str, Tensor]
@@ -281,13 +285,14 @@ class Model:
             return ()
         return (f"++{self.perturbation_key}.radius={factor * float(radius):g}",)
 
-    def collect_defaults(self, dt: float) -> dict[str, int]:
-        """The default collection budget (``n_per_state``, ``n_cells``, ``record_every``),
-        used where the collect settings leave them null: :data:`CHEAP_COLLECTION` for a model
-        whose full step costs at most :data:`CHEAP_CELL_STEP_SECONDS` per cell, else
-        :data:`COSTLY_COLLECTION`. A model may override it with figures of its own."""
+    def collect_defaults(self, dt: float) -> dict[str, float]:
+        """The default collection budget (``n_per_state``, ``n_cells``, ``record_every``) and
+        perturbation (``perturb_rate``, ``blackout_time``), used where the collect settings
+        leave them null: :data:`CHEAP_COLLECTION` for a model whose full step costs at most
+        :data:`CHEAP_CELL_STEP_SECONDS` per cell, else :data:`COSTLY_COLLECTION`, with
+        :data:`COLLECT_PERTURBATION`. A model may override it with figures of its own."""
         cheap = self.cell_step_seconds(dt) <= CHEAP_CELL_STEP_SECONDS
-        return dict(CHEAP_COLLECTION if cheap else COSTLY_COLLECTION)
+        return {**(CHEAP_COLLECTION if cheap else COSTLY_COLLECTION), **COLLECT_PERTURBATION}
 
     def sources(self) -> dict[str, str]:
         """Digests of the files the model is read from beyond its config (e.g. an SBML file or
@@ -432,6 +437,7 @@ def burn_in_seconds(value: Any, name: str = "model.burn_in") -> float:
 __all__ = [
     "CELL_STEP_SECONDS",
     "CHEAP_COLLECTION",
+    "COLLECT_PERTURBATION",
     "COSTLY_COLLECTION",
     "AgentBody",
     "BodyState",

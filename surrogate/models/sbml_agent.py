@@ -134,8 +134,10 @@ AUTO_CLASSES_CELLS = 200
 ABSTRACTION_KEYS = ("classes", "collect")
 #: spec keys a collection's rows leave to their reader (the bins; the rows store the count)
 BINS_KEYS = ("classes",)
-#: collection settings a model may carry as its default budget
+#: collection settings a model may carry as its default budget (positive integers) and
+#: perturbation (non-negative seconds or rates: a network slow to settle after a jump)
 COLLECT_KEYS = ("n_per_state", "n_cells", "record_every")
+COLLECT_PERTURBATION_KEYS = ("perturb_rate", "blackout_time")
 
 
 def load_spec(spec: str | Path | None, settings: Mapping[str, Any]) -> tuple[dict, Path]:
@@ -458,12 +460,18 @@ class SbmlAgentModel(Model):
         return {k: (float(v[0]), float(v[1])) for k, v in bounds.items()}
 
     @staticmethod
-    def _collect(options: Any) -> dict[str, int]:
+    def _collect(options: Any) -> dict[str, float]:
         if options is None:
             return {}
-        checked = known_keys(options, COLLECT_KEYS, "model.collect")
+        checked = known_keys(options, (*COLLECT_KEYS, *COLLECT_PERTURBATION_KEYS), "model.collect")
         for key, value in checked.items():
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            if key in COLLECT_PERTURBATION_KEYS:
+                if (isinstance(value, bool) or not isinstance(value, int | float)
+                        or not math.isfinite(value) or value < 0):  # fmt: skip
+                    raise ConfigError(f"model.collect.{key} must be a non-negative number, got "
+                                      f"{value!r}")  # fmt: skip
+                checked[key] = float(value)
+            elif isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"model.collect.{key} must be a positive integer, got {value!r}")
         return checked
 
@@ -486,8 +494,9 @@ class SbmlAgentModel(Model):
         precompiler = getattr(self.body, "kernel_precompiler", None)
         return precompiler() if precompiler is not None else None
 
-    def collect_defaults(self, dt: float) -> dict[str, int]:
-        """The yaml's ``collect`` budget over the default for the network's cost."""
+    def collect_defaults(self, dt: float) -> dict[str, float]:
+        """The yaml's ``collect`` budget and perturbation over the defaults for the network's
+        cost."""
         return {**super().collect_defaults(dt), **self._collect_budget}
 
     def sources(self) -> dict[str, str]:

@@ -121,7 +121,8 @@ def collect_in_rounds(
             torch.set_num_threads(design.fit_threads or threads)
             psi = fit_psi(table, names, design.gp, progress=False, device=job.device,
                           lump_names=model.internal.lump_names,
-                          label=design.label_column(table.columns))  # fmt: skip
+                          label=design.label_column(table.columns),
+                          warps=design.input_warps())  # fmt: skip
         finally:
             torch.set_num_threads(threads)
         cached = CachedPsi.from_classifier(psi.to("cpu"))

@@ -249,6 +249,15 @@ def _spec(**changes) -> dict:
         ({"max_states": "5e3"}, "got '5e3' (YAML reads 5e3 as a string: write 5.0e+3)"),
         ({"burn_in": float("inf")}, "model.burn_in must be a finite number of seconds >= 0"),
         ({"collect": {"n_per_state": 0}}, "model.collect.n_per_state must be a positive integer"),
+        (
+            {"collect": {"blackout_time": -1.0}},
+            "model.collect.blackout_time must be a non-negative",
+        ),
+        (
+            {"collect": {"perturb_rate": "fast"}},
+            "model.collect.perturb_rate must be a non-negative",
+        ),
+        ({"collect": {"jump": 1}}, "unknown model.collect setting(s) ['jump']"),
         ({"colour": "red"}, "unknown model setting(s) ['colour']"),
         # issue 37: required keys, types, local inputs, substance units
         ({"inputs": DROP}, "model.inputs is required (which SBML parameters are the agent's"),

@@ -21,6 +21,8 @@ from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages import simulate as simulate_stage
 from surrogate.stages.settings import EvaluateSettings
 
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
 TINY = [
     "collect.n_per_state=400",
     "collect.n_cells=100",
@@ -313,6 +315,52 @@ def test_collect_records_nothing_inside_the_blackout_after_a_jump(compose_cfg) -
     assert (with_blackout.loc[jumped, "since_jump"] >= 20).all()  # 1 s = 20 steps
     without = table(0.0)
     assert (without["since_jump"].between(0, 19)).sum() > 50
+
+
+def test_a_clock_on_a_log_axis_trains_and_runs(compose_cfg) -> None:
+    """gp=clock with gp.clock_knee: the saved psi reads its clock as log(1 + a / knee) (fitted
+    on the warped clocks), the simulation's table reads it in seconds, one node per step."""
+    from surrogate.gp import load_psi
+    from surrogate.gp.predictor import log_warp
+
+    clock = ["gp=clock", "gp.max_age=2", "gp.clock_knee=0.25", "gp.clock_bins=8"]
+    collect.run(compose_cfg("collect", [o for o in TINY if o.startswith("collect")]))
+    out = train.run(compose_cfg("train", [*_train_overrides(), *clock]))
+    psi, meta = load_psi(out / "psi.pt")
+    assert psi.warps == {"phi_age": 0.25} and meta["settings"]["gp"]["clock_knee"] == 0.25
+    assert psi.domain["phi_age"][1] == pytest.approx(2.0)  # the raw clock's range
+    z = torch.tensor([[0.5, 0.0], [0.5, 1.0], [0.5, 2.0]])
+    phi = torch.tensor([1, 1, 1])
+    warped = log_warp(z, psi.input_names, psi.warps)
+    assert warped[:, 1].tolist() == pytest.approx([0.0, np.log(5.0), np.log(9.0)])
+    assert torch.equal(psi(phi, z), psi.evaluate(phi, z))  # warped once, not twice
+    run = simulate_stage.run(compose_cfg("simulate", [*TINY, *clock, "decision=abstract"]))
+    assert (run / "manifest.json").is_file()
+
+
+def test_the_perturbation_left_null_is_the_models(compose_cfg, tmp_path) -> None:
+    """collect.perturb_rate and collect.blackout_time left null are the model's: E. coli's 0.1/s
+    and 1 s (the options, so the identity, its collections had before), a network yaml's own
+    (`collect: {blackout_time, perturb_rate}`: one slow to settle after a jump), and a value on
+    the command line over either."""
+    import yaml
+
+    from surrogate.stages.settings import CollectSettings
+
+    ecoli = CollectSettings.from_config(compose_cfg("collect"))
+    assert (ecoli.options["perturb_rate"], ecoli.options["blackout_time"]) == (0.1, 1.0)
+    spec = yaml.safe_load((EXAMPLES / "gene_switch" / "model.yaml").read_text())
+    network = (EXAMPLES / "gene_switch" / spec["network"]).resolve()
+    spec.update(network=str(network), collect={"blackout_time": 20.0, "perturb_rate": 0.025})
+    path = tmp_path / "model.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    slow = CollectSettings.from_config(compose_cfg("collect", ["model=sbml",
+                                                               f"model.spec={path}"]))  # fmt: skip
+    assert (slow.options["perturb_rate"], slow.options["blackout_time"]) == (0.025, 20.0)
+    given = CollectSettings.from_config(compose_cfg("collect", ["model=sbml", f"model.spec={path}",
+                                                                "collect.blackout_time=5"]))  # fmt: skip
+    assert given.options["blackout_time"] == 5.0
+    assert given.directory != slow.directory
 
 
 @pytest.mark.parametrize(("lookup", "blocks", "backend"),

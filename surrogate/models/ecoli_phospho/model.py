@@ -31,6 +31,7 @@ from torch import Tensor
 from surrogate.errors import ConfigError, KernelUnsupported
 from surrogate.fields import Field
 from surrogate.models.base import (
+    COLLECT_PERTURBATION,
     CellKernel,
     InternalState,
     Model,
@@ -220,11 +221,11 @@ class EcoliPhosphoModel(Model):
         if dt >= self.params.tau:
             raise ConfigError(f"dt={dt:g} s must be smaller than model.tau={self.params.tau:g} s")
 
-    def collect_defaults(self, dt: float) -> dict[str, int]:
+    def collect_defaults(self, dt: float) -> dict[str, float]:
         """10,000 transitions per origin from 500 cells, every 5th window (experiment=phospho's
         recipe, the figures of docs/fidelity.md): ~10,000 SSA events per cell-step make the first
         model's 100,000 from 2,000 cells hours of work."""
-        return {"n_per_state": 10_000, "n_cells": 500, "record_every": 5}
+        return {"n_per_state": 10_000, "n_cells": 500, "record_every": 5, **COLLECT_PERTURBATION}
 
     def sources(self) -> dict[str, str]:
         """The digest of a network file given by ``model.network`` (the shipped one is

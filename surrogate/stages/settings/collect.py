@@ -65,6 +65,8 @@ class DesignFits(Protocol):
 
     def label_column(self, columns: Sequence[str]) -> str: ...
 
+    def input_warps(self) -> dict[str, float]: ...
+
     def occupancy(self) -> OccupancySettings: ...
 
 
@@ -94,7 +96,8 @@ class CollectSettings:
     ) -> CollectSettings:
         """Validate the collect group (and the model's perturbation options); the budget left
         null (``n_per_state``, ``n_cells``, ``record_every``) is the model's default, which
-        fits its cost (``Model.collect_defaults``).
+        fits its cost, and so is the perturbation left null (``perturb_rate``,
+        ``blackout_time``) (``Model.collect_defaults``).
 
         Args:
             cfg: The job's config (its ``collect`` group; ``gp`` for a sequential design).
@@ -114,7 +117,7 @@ class CollectSettings:
         given = to_dict(cfg["collect"])
         c = dict(given)
         defaults = setup.model.collect_defaults(setup.dt)
-        for key in ("n_per_state", "n_cells", "record_every"):
+        for key in ("n_per_state", "n_cells", "record_every", "perturb_rate", "blackout_time"):
             if c.get(key) is None:
                 c[key] = defaults[key]
         for key in ("n_per_state", "n_cells", "record_every"):

@@ -246,6 +246,11 @@ class TrainSettings:
                    chain.max_age, chain.min_events, chain.max_label_weight, chain.relaxation_cells,
                    chain.relaxation_lags, auto_recipe)  # fmt: skip
 
+    def input_warps(self) -> dict[str, float]:
+        """The inputs psi reads on a log axis (name -> knee, s): the kind's
+        (:meth:`~surrogate.kinds.base.ChainKind.input_warps`; a clock with ``gp.clock_knee``)."""
+        return self.kind.input_warps(self.gp_config)
+
     def measured_choice(self) -> Path | None:
         """The directory of the measured choice that made these settings (``gp=auto``), or
         None."""
