@@ -196,7 +196,7 @@ def test_a_clock_on_a_log_axis_is_a_fit_of_its_own(compose_cfg) -> None:
     assert log.fit_identity()["gp"]["clock_knee"] == 0.5
     assert log.kind.input_warps(log.gp_config) == {"phi_age": 0.5}
     assert log.fit_directory != linear.fit_directory
-    plain = TrainSettings.from_config(compose_cfg("train", ["gp=svgp", "+gp.clock_knee=0.5"]))
+    plain = TrainSettings.from_config(compose_cfg("train", ["gp=svgp", "gp.clock_knee=0.5"]))
     assert plain.kind.input_warps(plain.gp_config) == {}
     assert "clock_knee" not in plain.fit_identity()["gp"]
 

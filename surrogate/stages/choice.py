@@ -121,10 +121,16 @@ def _make_choice(
     heldout_run = HeldOut(inputs, phi, first.seed)
     fits, failed, scored = fit_candidates(plan.candidates, fitter, heldout=heldout_run, pool=pool,
                                           ahead=plan.ahead() if pool is not None else None)  # fmt: skip
-    if not fits:
-        raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     trains = {n: t for n, t in plan.candidates.items() if n in fits}
     groups = {n: g for n, g in plan.groups.items() if n in fits}
+    for i, name in enumerate(list(failed)):  # L-BFGS diverged: the recipe's own optimiser
+        retried = _with_recipe(fitter, plan, name, plan.finals.get(name),
+                               heldout_run.task(name, len(plan.candidates) + i))  # fmt: skip
+        if retried is not None:
+            trains[name], groups[name], fits[name], scored[name] = retried
+            del failed[name]
+    if not fits:
+        raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     finals = {n: plan.finals.get(n, g) for n, g in groups.items()}
     scores = list(scored.values())
     while (longer := plan.longer_clock(best_name := max(scores, key=lambda s: s.log_likelihood).name,
@@ -137,12 +143,18 @@ def _make_choice(
         index = len(plan.candidates) + len(trains) - len(scored)  # a seed after every other's
         path, seconds, error, score = _fit_one(fitter, added, heldout_run.task(name, index))
         _log_outcome(name, (path, seconds, error, score))
-        if error is not None or path is None or score is None:
-            failed[name] = str(error)  # named in the record; no longer clock after it
-            break
-        trains[name], groups[name], fits[name] = added, gp, (Path(path), seconds)
         axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
-        finals[name] = {**finals[best_name], **axis}
+        final_gp = {**finals[best_name], **axis}
+        if error is not None or path is None or score is None:
+            retried = _with_recipe(fitter, plan, name, final_gp,
+                                   heldout_run.task(name, index + 1))  # fmt: skip
+            if retried is None:
+                failed[name] = str(error)  # named in the record; no longer clock after it
+                break
+            added, gp, (path_, seconds), score = retried
+            path = str(path_)
+        trains[name], groups[name], fits[name] = added, gp, (Path(path), seconds)
+        finals[name] = final_gp
         scores.append(score)
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
     final = finals[choice.chosen]
@@ -333,6 +345,29 @@ def _fit_one(
     with one_thread(True):
         score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed)
     return str(path), seconds, None, score
+
+
+def _with_recipe(
+    fitter: Fitter,
+    plan: PendingChoice,
+    name: str,
+    final: dict[str, Any] | None,
+    task: tuple[str, torch.Tensor, torch.Tensor, int],
+) -> tuple[Any, dict[str, Any], tuple[Path, float], KindScore] | None:
+    """Candidate ``name`` fitted (in this process) and scored as its recipe trains it, the gp
+    group ``final``, where its scoring fit failed numerically and that group differs from the
+    scoring one (L-BFGS's line search can leave the region where the covariances are positive
+    definite in its first step: Tyson's clock at 10 s on one collection of two): its train
+    settings, group, fit and score; None where there is no such group or it fails too."""
+    if final is None or plan.make is None or final == plan.groups.get(name):
+        return None
+    log.info("choice: %s: fitting it with its recipe's optimiser instead", name)
+    tr = plan.make(final)
+    path, seconds, error, score = _fit_one(fitter, tr, task)
+    _log_outcome(name, (path, seconds, error, score))
+    if error is not None or path is None or score is None:
+        return None
+    return tr, final, (Path(path), seconds), score
 
 
 def _score(

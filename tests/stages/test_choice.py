@@ -291,6 +291,32 @@ def test_a_candidate_whose_fit_fails_numerically_is_left_out_and_named(tmp_path:
         make_choice(plans[0], _broken, cfg)
 
 
+def _lbfgs_flaky(settings):
+    """A fitter whose clocks diverge under L-BFGS only (module level: it crosses processes)."""
+    from surrogate.errors import NumericalError
+
+    if settings.kind.clock and settings.gp.optimizer == "lbfgs":
+        raise NumericalError("diverged in epoch 1")
+    return train_stage.fit_candidate(settings)
+
+
+def test_a_candidate_whose_lbfgs_fit_diverges_is_fitted_by_its_recipe(tmp_path: Path) -> None:
+    """A scoring fit that diverges under L-BFGS (Tyson's clock at 10 s once did) is fitted and
+    scored with its recipe's own optimiser instead of being left out; the record holds it."""
+    from surrogate.stages.choice import make_choice
+
+    cfg = compose_in(tmp_path, "train", MEASURE)
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+    out = make_choice(plans[0], _lbfgs_flaky, cfg)
+    record = json.loads((out / "choice.json").read_text())
+    assert record["failed"] == {}
+    scored = {r["kind"] for r in record["scores"]}  # with any clock the choice added
+    assert {"clock max_age=1", "two-state"} <= scored
+    if record["chosen"].startswith("clock"):
+        assert record["gp"].get("optimizer", "adam") != "lbfgs"
+
+
 def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) -> None:
     """gp.choice.workers=2 fits the candidates in two processes: the same fits, bit for bit, as
     one after the other here (one thread each, their seeds), a failure still named."""
