@@ -23,6 +23,9 @@ import dataclasses
 import logging
 import logging.handlers
 import multiprocessing
+import os
+import signal
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
@@ -217,7 +220,7 @@ def candidate_pool(
     log.info("choice: %d processes to fit the %d candidates in, one thread each", workers,
              len(candidates))  # fmt: skip
     pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
-                               initargs=(records, logging.getLogger().level))  # fmt: skip
+                               initargs=(records, logging.getLogger().level, os.getpid()))  # fmt: skip
     try:
         for _ in range(workers):  # one process each (spawned as tasks find none idle)
             pool.submit(_ready, fitter)
@@ -320,11 +323,35 @@ def _quiet(tr: Any) -> Any:
     return dataclasses.replace(tr, job=dataclasses.replace(tr.job, progress=False))
 
 
-def _worker_start(records: Any, level: int) -> None:
-    """A fitting process: its log records to ``records`` (the parent's handlers print them)."""
+def _worker_start(records: Any, level: int, parent: int | None = None) -> None:
+    """A fitting process: its log records to ``records`` (the parent's handlers print them);
+    on Linux it ends with the job's process ``parent`` (:func:`end_with_parent`)."""
+    if parent is not None:
+        end_with_parent(parent)
     root = logging.getLogger()
     root.handlers[:] = [logging.handlers.QueueHandler(records)]
     root.setLevel(level)
+
+
+#: prctl's option that sends the calling process a signal when its parent dies (linux/prctl.h)
+PR_SET_PDEATHSIG = 1
+
+
+def end_with_parent(parent: int) -> None:
+    """On Linux, have the kernel send this process SIGTERM when the process that started it
+    (pid ``parent``) dies, however it dies: a job killed (not only stopped by Ctrl-C, which
+    shuts its pool down) left its fitting processes computing for minutes with no one to read
+    their result. Elsewhere nothing (the pool's workers then end at their next task)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):  # no libc prctl: nothing to ask
+        return
+    if os.getppid() != parent:  # the parent died before the request: end now
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _fit_one(

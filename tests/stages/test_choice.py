@@ -465,3 +465,50 @@ def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(
     assert all(math.isfinite(r["log_likelihood_per_window"]) for r in record["scores"])
     if record["chosen"] == "classes relaxation":
         assert record["gp"] == plan.groups["classes relaxation"]
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="prctl: Linux")
+def test_a_fitting_process_ends_when_its_job_is_killed(tmp_path: Path) -> None:
+    """A job killed outright (SIGKILL: no pool shutdown) takes its fitting processes with it:
+    an orphaned worker kept a fit running for minutes after its job was gone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "job.py"
+    script.write_text(
+        "import logging, multiprocessing, os, sys, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from surrogate.stages.choice import _worker_start\n"
+        "if __name__ == '__main__':\n"
+        "    ctx = multiprocessing.get_context('spawn')\n"
+        "    pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_start,\n"
+        "                               initargs=(ctx.Queue(), logging.INFO, os.getpid()))\n"
+        "    print(pool.submit(os.getpid).result(), flush=True)\n"
+        "    pool.submit(time.sleep, 600)\n"
+        "    time.sleep(600)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    job = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                           env=env)  # fmt: skip
+    try:
+        worker = int(job.stdout.readline())  # type: ignore[union-attr]
+        os.kill(job.pid, signal.SIGKILL)
+        job.wait(10)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)  # still there (or a zombie not yet reaped by init)
+                with open(f"/proc/{worker}/stat") as stat:
+                    if stat.read().split(") ")[1].startswith("Z"):
+                        break
+            except (ProcessLookupError, FileNotFoundError):
+                break
+            time.sleep(0.2)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            pytest.fail("the worker outlived its killed job by 20 s")
+    finally:
+        job.kill()
