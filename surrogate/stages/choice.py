@@ -142,23 +142,33 @@ def _make_choice(
         name, gp = longer
         assert plan.make is not None  # longer_clock offers none without it
         log.info("choice: the best is the clock at its largest cap; adding %s", name)
-        added = plan.make(gp)
-        index = len(plan.candidates) + len(trains) - len(scored)  # a seed after every other's
-        path, seconds, error, score = _fit_one(fitter, added, heldout_run.task(name, index))
-        _log_outcome(name, (path, seconds, error, score))
         axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
         final_gp = {**finals[best_name], **axis}
-        if error is not None or path is None or score is None:
-            retried = _with_recipe(fitter, plan, name, final_gp,
-                                   heldout_run.task(name, index + 1))  # fmt: skip
-            if retried is None:
-                failed[name] = str(error)  # named in the record; no longer clock after it
-                break
-            added, gp, (path_, seconds), score = retried
-            path = str(path_)
-        trains[name], groups[name], fits[name] = added, gp, (Path(path), seconds)
+        index = len(plan.candidates) + len(trains) - len(scored)  # a seed after every other's
+        added = _fit_added(fitter, plan, name, gp, final_gp, heldout_run, index)
+        if isinstance(added, str):
+            failed[name] = added  # named in the record; no longer clock after it
+            break
+        trains[name], groups[name], fits[name], score = added
         finals[name] = final_gp
         scores.append(score)
+    best_name = max(scores, key=lambda s: s.log_likelihood).name
+    dt = next(iter(plan.candidates.values())).setup.dt
+    if (logged := plan.log_clock(best_name, groups, dt)) is not None:
+        # the best is a clock in seconds: one on a log axis reaches twice as far
+        name, gp = logged
+        log.info("choice: the best is a clock; adding %s (knee %g s, %d bins)", name,
+                 gp["clock_knee"], gp["clock_bins"])  # fmt: skip
+        final_gp = {**finals[best_name],
+                    **{k: gp[k] for k in ("max_age", "clock_knee", "clock_bins")}}  # fmt: skip
+        index = len(plan.candidates) + len(trains) + 2  # a seed after every other's
+        added = _fit_added(fitter, plan, name, gp, final_gp, heldout_run, index)
+        if isinstance(added, str):
+            failed[name] = added
+        else:
+            trains[name], groups[name], fits[name], score = added
+            finals[name] = final_gp
+            scores.append(score)
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
     final = finals[choice.chosen]
     chosen = plan.make(final) if plan.make is not None else trains[choice.chosen]
@@ -372,6 +382,29 @@ def _fit_one(
     with one_thread(True):
         score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed)
     return str(path), seconds, None, score
+
+
+def _fit_added(
+    fitter: Fitter,
+    plan: PendingChoice,
+    name: str,
+    gp: dict[str, Any],
+    final: dict[str, Any],
+    heldout: HeldOut,
+    index: int,
+) -> tuple[Any, dict[str, Any], tuple[Path, float], KindScore] | str:
+    """A candidate the choice adds (a longer clock, a log clock), the gp group ``gp``, fitted
+    here and scored as the ``index``-th (its seed), or as its recipe trains it (``final``)
+    where that fit fails numerically (:func:`_with_recipe`): its train settings, group, fit
+    and score, or why it failed."""
+    assert plan.make is not None  # the choice adds none without it
+    added = plan.make(gp)
+    path, seconds, error, score = _fit_one(fitter, added, heldout.task(name, index))
+    _log_outcome(name, (path, seconds, error, score))
+    if error is None and path is not None and score is not None:
+        return added, gp, (Path(path), seconds), score
+    retried = _with_recipe(fitter, plan, name, final, heldout.task(name, index + 1))
+    return str(error) if retried is None else retried
 
 
 def _with_recipe(

@@ -246,6 +246,32 @@ def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> N
     assert none.longer_clock("clock max_age=2", none.groups) is None
 
 
+def test_a_clock_on_a_log_axis_is_added_once_where_a_clock_in_seconds_is_best() -> None:
+    """The best a clock in seconds, the choice adds one clock on a log axis at twice its cap
+    (knee five windows, bins as wide as the best's at a third of its cap); none where the best
+    is another kind, a log clock, or one is there already."""
+    import math
+
+    from surrogate.stages.settings.choice import log_clock_axis
+
+    settings = ChoiceSettings.from_config({"max_ages": [5, 10]})
+    clock = {"history": "age", "bins": 200, "clock_bins": 40, "max_age": 10.0}
+    groups = {"two-state": {"history": "none"}, "clock max_age=10": clock}
+    plan = PendingChoice(settings, {}, Path("."), groups, make=lambda gp: gp)
+    assert plan.log_clock("two-state", groups, 0.05) is None
+    name, gp = plan.log_clock("clock max_age=10", groups, 0.05)
+    assert name == "clock log max_age=20"
+    assert (gp["max_age"], gp["clock_knee"]) == (20.0, 0.25)
+    # bins as wide as the best's 0.25 s at 10 / 3 s: (0.25 + 10 / 3) * log1p(20 / 0.25) / bins
+    assert (0.25 + 10 / 3) * math.log1p(80.0) / gp["clock_bins"] == pytest.approx(0.25, rel=0.01)
+    groups[name] = gp
+    assert plan.log_clock("clock max_age=10", groups, 0.05) is None  # one log clock
+    assert plan.log_clock(name, groups, 0.05) is None
+    assert log_clock_axis({"max_age": 5.0, "bins": 0}, 0.05) == {}  # no single bin count
+    without = PendingChoice(settings, {}, Path("."), {"clock max_age=10": clock})
+    assert without.log_clock("clock max_age=10", without.groups, 0.05) is None  # no make
+
+
 def test_without_refit_gp_auto_is_the_scored_candidate(tmp_path: Path) -> None:
     """gp.choice.refit=false: gp=auto trains the candidate as it was scored (its L-BFGS fit)."""
     cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.refit=false"])
