@@ -185,7 +185,8 @@ def pilot_advice(config: Mapping[str, Any], pilot: Mapping[str, Any]) -> dict[st
     (it measures the same candidates at full size), with the overrides the inspected
     ``config`` needs for that (``gp=auto`` where another group is named, ``gp.choice.by=
     measure`` where the rule is set, and ``gp.choice.max_ages=[..., X]`` where the pilot chose
-    the clock at the cap ``X`` it added from the hazard); ``kind`` None where it did not run.
+    the clock at the cap ``X`` it added from the hazard, or the log clock at twice it, which
+    the choice adds from that clock); ``kind`` None where it did not run.
     The overrides are printed only once :func:`~surrogate.stages.advice_check.checked`."""
     if not pilot.get("ran"):
         return {"kind": None, "overrides": [], "named": [], "reason": pilot.get("note", "")}
@@ -194,7 +195,10 @@ def pilot_advice(config: Mapping[str, Any], pilot: Mapping[str, Any]) -> dict[st
     gp = raw if is_auto(raw) else group_config("gp", "auto")
     if ChoiceSettings.from_config(gp.get("choice")).by != "measure":
         overrides.append("gp.choice.by=measure")
-    if pilot["cap_added"] and pilot["chosen"] == cap_name(float(pilot["cap"])):
+    # the clock at the cap it added, or the log clock the choice adds from it at twice the cap
+    cap = pilot.get("cap")
+    from_cap = () if cap is None else (cap_name(float(cap)), f"clock log max_age={2.0 * cap:g}")
+    if pilot["cap_added"] and pilot["chosen"] in from_cap:
         overrides.append(f"gp.choice.max_ages=[{','.join(f'{a:g}' for a in pilot['max_ages'])}]")
     return {"kind": pilot["chosen"], "overrides": overrides, "named": list(pilot["named"]),
             "reason": pilot["reason"]}  # fmt: skip
