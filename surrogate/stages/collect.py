@@ -27,6 +27,7 @@ import pandas as pd
 from surrogate.config import seed_everything, to_dict
 from surrogate.diagnosis import probe
 from surrogate.diagnosis.cost import duration
+from surrogate.diagnosis.jumps import after_jump_lag, lag_message
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.models.capabilities import feature_names_of
@@ -106,6 +107,10 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         for nxt in (0, 1)
     }
     columns = [*model.internal.input_names, *feature_names_of(model.internal)]
+    lag = after_jump_lag(table, model.internal.input_names, setup.dt, lumps)
+    message = lag_message(lag, float(settings.options["blackout_time"])) if lag else None
+    if message is not None:
+        log.warning("collect: %s", message)
     write_manifest(
         out,
         stage="collect",
@@ -120,6 +125,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         lump_names=list(lumps),
         domain={n: [float(table[n].min()), float(table[n].max())] for n in columns},
         **({"design": design} if design is not None else {}),
+        **({"after_jump": lag} if lag is not None else {}),
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
 

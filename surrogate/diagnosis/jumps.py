@@ -1,0 +1,124 @@
+"""How long a collection's cells remember a jump: each origin's switching rate in the rows a
+few seconds after a perturbation, against the rate of rows long after one (or never
+perturbed) at the same inputs and switch clock.
+
+A jump moves a cell to new inputs with the hidden state of the old ones; the rows recorded
+before that state has settled switch at other rates than a population cell's at the same
+inputs, and psi learns their bias. ``collect.blackout_time`` keeps rows within it out of the
+table; this measures, in the table a collection made, whether the rows just after the blackout
+still lag (Tyson's oscillator: rows in `y_high` for 20 s or more at kt > 25 left it 5x as often
+within 2 s of a jump as 20-40 s after; the dimerisation: `many_dimers` left 17 % more often
+0-2 s after a jump, 4.6 % 10-20 s after; docs/choice.md). It reports; the blackout is the
+user's (a network yaml's ``collect``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+#: seconds after a jump: the bins compared (the last one open to :data:`SETTLED_AFTER`)
+AFTER_JUMP_EDGES = (0.0, 2.0, 5.0, 10.0)
+#: rows this long after a jump (or never perturbed) are the settled reference
+SETTLED_AFTER = 20.0
+#: equal-count bins per input, and the clock's edges (s), that rates are matched in
+INPUT_BINS = 16
+CLOCK_EDGES = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
+#: settled rows per origin below which nothing is measured
+MIN_SETTLED_ROWS = 1000
+#: a bin lags where its rate ratio is this many standard errors from 1 ...
+LAG_SE = 3.0
+#: ... and this far from it (E. coli's methylation lag, +-2 to 9 % in these bins, is below it;
+#: the dimerisation's 11 % and Tyson's 13 % in the first 2 s, which moved means by 5-10 %, above)
+LAG_RATIO = 0.10
+
+
+def after_jump_lag(
+    table: pd.DataFrame, inputs: Sequence[str], dt: float, lump_names: Sequence[str]
+) -> dict[str, Any] | None:
+    """Each origin's switching rate in rows ``[a, b)`` s after a jump over the rate expected
+    from the settled rows (``since_jump`` < 0 or >= :data:`SETTLED_AFTER` s) in the same input
+    and clock bins: observed / expected switches, with its Poisson standard error.
+
+    Args:
+        table: a collection's rows (``phi``, ``phi_next``, ``since_jump`` in windows, the
+            ``inputs`` columns, ``phi_age`` where recorded).
+        inputs: the input columns rates are matched on.
+        dt: the window (s).
+        lump_names: phi's names, for the record.
+
+    Returns:
+        ``{"settled_after_s", "origins": {lump: [{"from_s", "to_s", "rows", "ratio",
+        "se"}, ...]}, "lagging": [(lump, from_s, to_s, ratio), ...]}``, or None where the
+        table has no jumps' clocks or too few settled rows for an origin.
+    """
+    if "since_jump" not in table.columns or len(table) == 0:
+        return None
+    since = table["since_jump"].to_numpy(np.float64)
+    jumped = since >= 0
+    after = since * dt
+    settled = ~jumped | (after >= SETTLED_AFTER)
+    phi = table["phi"].to_numpy()
+    switched = (table["phi_next"].to_numpy() != phi).astype(np.float64)
+    cell = _cells(table, inputs)
+    edges = (*AFTER_JUMP_EDGES, SETTLED_AFTER)
+    out: dict[str, Any] = {"settled_after_s": SETTLED_AFTER, "origins": {}, "lagging": []}
+    for origin in (0, 1):
+        rows = phi == origin
+        ref = rows & settled
+        if int(ref.sum()) < MIN_SETTLED_ROWS:
+            return None
+        size = int(cell.max()) + 1
+        n = np.bincount(cell[ref], minlength=size)
+        k = np.bincount(cell[ref], weights=switched[ref], minlength=size)
+        rate = k / np.maximum(n, 1)
+        known = n[cell] >= 20  # a rate from a handful of settled rows is noise
+        bins = []
+        for lo, hi in itertools.pairwise(edges):
+            sel = rows & jumped & known & (after >= lo) & (after < hi)
+            observed, expected = float(switched[sel].sum()), float(rate[cell[sel]].sum())
+            ratio = observed / expected if expected > 0 else math.nan
+            se = math.sqrt(max(observed, 1.0)) / expected if expected > 0 else math.nan
+            bins.append({"from_s": lo, "to_s": hi, "rows": int(sel.sum()), "ratio": ratio,
+                         "se": se})  # fmt: skip
+            if math.isfinite(ratio) and abs(ratio - 1.0) > max(LAG_SE * se, LAG_RATIO):
+                out["lagging"].append((str(lump_names[origin]), lo, hi, ratio))
+        out["origins"][str(lump_names[origin])] = bins
+    return out
+
+
+def _cells(table: pd.DataFrame, inputs: Sequence[str]) -> np.ndarray:
+    """Each row's cell: equal-count bins of every input, times the clock's bins where the
+    table records the clock."""
+    cell = np.zeros(len(table), dtype=np.int64)
+    for name in inputs:
+        x = table[name].to_numpy(np.float64)
+        edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, INPUT_BINS + 1))[1:-1])
+        cell = cell * (len(edges) + 1) + np.searchsorted(edges, x, side="right")
+    if "phi_age" in table.columns:
+        age = table["phi_age"].to_numpy(np.float64)
+        cell = cell * (len(CLOCK_EDGES) + 1) + np.searchsorted(CLOCK_EDGES, age, side="right")
+    return cell
+
+
+def lag_message(lag: dict[str, Any], blackout: float) -> str | None:
+    """The log line where rows after the blackout still lag (None where none does)."""
+    if not lag or not lag["lagging"]:
+        return None
+    parts = [f"{lump} {ratio:.2f}x {lo:g}-{hi:g} s after"
+             for lump, lo, hi, ratio in lag["lagging"]]  # fmt: skip
+    return (
+        f"rows soon after a jump switch at other rates than rows {lag['settled_after_s']:g} s "
+        f"or more after, at the same inputs and clock ({'; '.join(parts)}): the network's "
+        f"hidden state still lags the jump past collect.blackout_time={blackout:g} s, and "
+        f"psi learns that lag; a longer blackout (a network yaml's collect.blackout_time, "
+        f"with a lower collect.perturb_rate) keeps those rows out (docs/choice.md)"
+    )
+
+
+__all__ = ["AFTER_JUMP_EDGES", "SETTLED_AFTER", "after_jump_lag", "lag_message"]

@@ -1,0 +1,58 @@
+"""The after-jump lag of a collection (surrogate/diagnosis/jumps.py): a synthetic table whose
+rows switch faster soon after a jump is flagged, with its ratio; one without a lag is not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from surrogate.diagnosis.jumps import SETTLED_AFTER, after_jump_lag, lag_message
+
+DT = 0.05
+
+
+def table(early_factor: float, n: int = 200_000, seed: int = 0) -> pd.DataFrame:
+    """Rows at inputs x in [0, 1], switching at 0.05 + 0.1 x per window, times
+    ``early_factor`` within 2 s of a jump; a tenth never perturbed (since_jump -1)."""
+    rng = np.random.default_rng(seed)
+    x = rng.random(n)
+    since = rng.integers(0, int(40 / DT), n)
+    since[rng.random(n) < 0.1] = -1
+    rate = (0.05 + 0.1 * x) * np.where((since >= 0) & (since * DT < 2.0), early_factor, 1.0)
+    phi = rng.integers(0, 2, n)
+    switched = rng.random(n) < rate
+    return pd.DataFrame({"x": x, "phi": phi, "phi_next": np.where(switched, 1 - phi, phi),
+                         "since_jump": since})  # fmt: skip
+
+
+def test_rows_that_switch_faster_after_a_jump_are_flagged_with_their_ratio() -> None:
+    lag = after_jump_lag(table(1.5), ["x"], DT, ("off", "on"))
+    assert lag is not None and lag["settled_after_s"] == SETTLED_AFTER
+    for lump in ("off", "on"):
+        first = lag["origins"][lump][0]
+        assert (first["from_s"], first["to_s"]) == (0.0, 2.0)
+        # 1.5x, within 4 standard errors of the ratio (~0.03 here)
+        assert abs(first["ratio"] - 1.5) < 4 * first["se"]
+        later = lag["origins"][lump][1:]
+        assert all(abs(b["ratio"] - 1.0) < 4 * b["se"] for b in later)
+    assert {(lump, lo) for lump, lo, _, _ in lag["lagging"]} == {("off", 0.0), ("on", 0.0)}
+    message = lag_message(lag, 1.0)
+    assert message is not None and "collect.blackout_time=1 s" in message
+    assert "off 1.5" in message or "off 1.4" in message or "off 1.6" in message
+
+
+def test_a_collection_without_a_lag_says_nothing() -> None:
+    lag = after_jump_lag(table(1.0), ["x"], DT, ("off", "on"))
+    assert lag is not None and lag["lagging"] == []
+    assert lag_message(lag, 1.0) is None
+
+
+@pytest.mark.parametrize("drop", ["since_jump", "rows"])
+def test_nothing_is_measured_without_jumps_or_settled_rows(drop: str) -> None:
+    rows = table(1.0, n=5_000)
+    if drop == "since_jump":
+        rows = rows.drop(columns="since_jump")
+    else:  # every row within 20 s of a jump: no settled reference
+        rows = rows.assign(since_jump=np.minimum(rows["since_jump"].clip(lower=0), 10))
+    assert after_jump_lag(rows, ["x"], DT, ("off", "on")) is None
