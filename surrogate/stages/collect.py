@@ -107,7 +107,8 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         for nxt in (0, 1)
     }
     columns = [*model.internal.input_names, *feature_names_of(model.internal)]
-    lag = after_jump_lag(table, model.internal.input_names, setup.dt, lumps)
+    # matched on the signal psi reads by default (E. coli's dG, a network's inputs)
+    lag = after_jump_lag(table, model.internal.signal_names, setup.dt, lumps)
     message = lag_message(lag, float(settings.options["blackout_time"])) if lag else None
     if message is not None:
         log.warning("collect: %s", message)
