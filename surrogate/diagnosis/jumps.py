@@ -67,13 +67,13 @@ def after_jump_lag(
     switched = (table["phi_next"].to_numpy() != phi).astype(np.float64)
     cell = _cells(table, inputs)
     edges = (*AFTER_JUMP_EDGES, SETTLED_AFTER)
+    size = int(cell.max()) + 1
     out: dict[str, Any] = {"settled_after_s": SETTLED_AFTER, "origins": {}, "lagging": []}
     for origin in (0, 1):
         rows = phi == origin
         ref = rows & settled
         if int(ref.sum()) < MIN_SETTLED_ROWS:
             return None
-        size = int(cell.max()) + 1
         n = np.bincount(cell[ref], minlength=size)
         k = np.bincount(cell[ref], weights=switched[ref], minlength=size)
         rate = k / np.maximum(n, 1)
@@ -106,8 +106,9 @@ def _cells(table: pd.DataFrame, inputs: Sequence[str]) -> np.ndarray:
     return cell
 
 
-def lag_message(lag: dict[str, Any], blackout: float) -> str | None:
-    """The log line where rows after the blackout still lag (None where none does)."""
+def lag_message(lag: dict[str, Any] | None, blackout: float) -> str | None:
+    """The log line where rows after the blackout still lag (None where none does, or
+    nothing was measured)."""
     if not lag or not lag["lagging"]:
         return None
     parts = [f"{lump} {ratio:.2f}x {lo:g}-{hi:g} s after"

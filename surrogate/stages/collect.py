@@ -109,8 +109,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     columns = [*model.internal.input_names, *feature_names_of(model.internal)]
     # matched on the signal psi reads by default (E. coli's dG, a network's inputs)
     lag = after_jump_lag(table, model.internal.signal_names, setup.dt, lumps)
-    message = lag_message(lag, float(settings.options["blackout_time"])) if lag else None
-    if message is not None:
+    if (message := lag_message(lag, float(settings.options["blackout_time"]))) is not None:
         log.warning("collect: %s", message)
     write_manifest(
         out,

@@ -39,6 +39,7 @@ from surrogate.stages.settings.choice import (
     RELAXING_FAMILY,
     ChoiceSettings,
     PendingChoice,
+    clock_name,
     collecting_pending,
 )
 from surrogate.stages.train import fit_candidate
@@ -53,7 +54,7 @@ MIN_CELLS = 20
 def cap_name(age: float) -> str:
     """The candidate name of the switch clock at cap ``age`` (s), as
     :func:`~surrogate.stages.settings.choice.candidate_groups` names it."""
-    return f"clock max_age={age:g}"
+    return clock_name(age)
 
 
 def pilot_config(
@@ -197,7 +198,7 @@ def pilot_advice(config: Mapping[str, Any], pilot: Mapping[str, Any]) -> dict[st
         overrides.append("gp.choice.by=measure")
     # the clock at the cap it added, or the log clock the choice adds from it at twice the cap
     cap = pilot.get("cap")
-    from_cap = () if cap is None else (cap_name(float(cap)), f"clock log max_age={2.0 * cap:g}")
+    from_cap = () if cap is None else (cap_name(cap), clock_name(2.0 * cap, log_axis=True))
     if pilot["cap_added"] and pilot["chosen"] in from_cap:
         overrides.append(f"gp.choice.max_ages=[{','.join(f'{a:g}' for a in pilot['max_ages'])}]")
     return {"kind": pilot["chosen"], "overrides": overrides, "named": list(pilot["named"]),

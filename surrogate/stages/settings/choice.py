@@ -260,6 +260,12 @@ def user_keys(raw_gp: Mapping[str, Any]) -> dict[str, Any]:
             if k != "choice" and default.get(k) != v and v != "auto"}  # fmt: skip
 
 
+def clock_name(age: float, log_axis: bool = False) -> str:
+    """The candidate name of the switch clock at cap ``age`` (s), in seconds or on a log axis
+    (``gp.clock_knee``): the one spelling of a clock's name in the choice's table."""
+    return f"clock {'log ' if log_axis else ''}max_age={age:g}"
+
+
 def candidate_groups(
     raw_gp: Mapping[str, Any], settings: ChoiceSettings, internal: Any, scoring: bool = True
 ) -> dict[str, dict[str, Any]]:
@@ -286,7 +292,7 @@ def candidate_groups(
     families: list[tuple[str, str, dict[str, Any]]] = [("two-state", "two-state", group("svgp"))]
     light = ({"n_inducing": settings.clock_inducing}
              if scoring and settings.clock_inducing is not None else {})  # fmt: skip
-    families += [("clock", f"clock max_age={age:g}", group("clock", max_age=age, **light))
+    families += [("clock", clock_name(age), group("clock", max_age=age, **light))
                  for age in settings.max_ages]  # fmt: skip
     declared = lump_classes_of(internal)
     if declared is not None:
@@ -365,7 +371,7 @@ class PendingChoice:
         if gp["max_age"] < max(caps) or extended >= self.settings.extend:
             return None
         age = 2.0 * float(gp["max_age"])
-        return f"clock max_age={age:g}", {**gp, "max_age": age, **wider_clock_axis(gp)}
+        return clock_name(age), {**gp, "max_age": age, **wider_clock_axis(gp)}
 
     def log_clock(
         self, name: str, groups: Mapping[str, dict[str, Any]], dt: float
@@ -383,7 +389,7 @@ class PendingChoice:
         axis = log_clock_axis(gp, dt)
         if not axis:
             return None
-        return f"clock log max_age={axis['max_age']:g}", {**gp, **axis}
+        return clock_name(axis["max_age"], log_axis=True), {**gp, **axis}
 
     def ahead(self) -> tuple[str, Any] | None:
         """The candidate to train with its recipe while the candidates are scored
