@@ -11,6 +11,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap
 from surrogate.models.count_classes import CountClasses
 
 
@@ -215,17 +216,22 @@ RELAXING_CANDIDATE = "classes relaxation"
 RELAXING_OVERRIDES = ("gp=classes", "gp.class_moves=relaxation")
 
 
-def candidate_cap(name: str) -> float | None:
-    """The switch clock's cap (s) of a candidate named ``clock max_age=X``; None otherwise."""
-    head = "clock max_age="
-    return float(name[len(head):]) if name.startswith(head) else None  # fmt: skip
+def candidate_overrides(name: str, row: Mapping[str, Any] | None = None) -> tuple[str, ...]:
+    """The overrides that train candidate ``name`` outright, without the choice: those its
+    row of the choice's table records (``overrides``: every gp key it was made with, a log
+    clock's knee and bins among them), else, for a record without them, ``gp=svgp``
+    (two-state), ``gp=clock gp.max_age=X``, ``gp=classes gp.class_moves=relaxation``
+    (:data:`RELAXING_CANDIDATE`), or ``gp=<name>`` (its recipe).
 
-
-def candidate_overrides(name: str) -> tuple[str, ...]:
-    """The overrides that train candidate ``name`` outright, without the choice:
-    ``gp=svgp`` (two-state), ``gp=clock gp.max_age=X``, ``gp=classes
-    gp.class_moves=relaxation`` (:data:`RELAXING_CANDIDATE`), else ``gp=<name>`` (its
-    recipe)."""
+    Raises:
+        ValueError: an older record's candidate whose name alone cannot say how to train it
+            (a clock on a log axis).
+    """
+    if row is not None and row.get("overrides"):
+        return tuple(str(row["overrides"]).split())
+    if name.startswith(LOG_CLOCK):
+        raise ValueError(f"candidate {name!r}: its knee and bins are in its row's overrides, "
+                         f"which this record lacks")  # fmt: skip
     cap = candidate_cap(name)
     if cap is not None:
         return ("gp=clock", f"gp.max_age={cap:g}")
@@ -313,11 +319,13 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
                          "sharpens, and with it the choice."))  # fmt: skip
     if chosen is not None:
         more = [r for k, r in rows.items() if k != choice.chosen and _holds_more_memory(r, chosen)]
+        # a log clock from a record without rows' overrides cannot be named: not offered
+        more = [r for r in more if r.get("overrides") or not str(r["kind"]).startswith(LOG_CLOCK)]
         runner = max(more, key=lambda r: (bool(r.get("holds_durations")),
                                           float(r["log_likelihood_per_window"])), default=None)  # fmt: skip
         if runner is not None:
             name = str(runner["kind"])
-            named = candidate_overrides(name)
+            named = candidate_overrides(name, runner)
             out.append(Remedy("runner_up", f"Outside the choice (it throws the measurement "
                               f"away): the next candidate with more memory, {name}, "
                               f"{_standing(runner)}: `{' '.join(named)}` to try it outright.",
@@ -333,7 +341,6 @@ __all__ = [
     "Check",
     "MeasuredChoice",
     "Remedy",
-    "candidate_cap",
     "candidate_overrides",
     "choice_remedies",
     "classes_override",

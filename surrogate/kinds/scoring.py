@@ -181,6 +181,38 @@ def score_kind(
                      tuple(float(v) for v in per_cell), durations)  # fmt: skip
 
 
+#: how the name of a clock on a log axis begins (``clock log max_age=20``)
+LOG_CLOCK = "clock log "
+_CLOCK = "clock "
+_CAP = "max_age="
+
+
+def clock_name(age: float, log_axis: bool = False) -> str:
+    """The candidate name of the switch clock at cap ``age`` (s), in seconds or on a log axis
+    (``gp.clock_knee``): the one spelling of a clock's name in the choice's table
+    (:func:`candidate_cap` reads it back).
+
+    Example:
+        >>> clock_name(20.0, log_axis=True)
+        'clock log max_age=20'
+    """
+    return f"{LOG_CLOCK if log_axis else _CLOCK}{_CAP}{age:g}"
+
+
+def candidate_cap(name: str) -> float | None:
+    """The switch clock's cap (s) of a candidate named by :func:`clock_name`; None for
+    another candidate.
+
+    Example:
+        >>> candidate_cap("clock log max_age=20"), candidate_cap("phases")
+        (20.0, None)
+    """
+    for head in (_CLOCK + _CAP, LOG_CLOCK + _CAP):
+        if name.startswith(head):
+            return float(name.removeprefix(head))
+    return None
+
+
 @dataclass(frozen=True)
 class Choice:
     """The measured choice: the chosen candidate's name, why, and every candidate's row with

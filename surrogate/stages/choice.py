@@ -171,23 +171,30 @@ def _make_choice(
             scores.append(score)
     choice = choose(scores, settings.tie_se, settings.duration_tolerance)
     final = finals[choice.chosen]
-    chosen = plan.make(final) if plan.make is not None else trains[choice.chosen]
-    overrides = " ".join(chosen.gp_overrides())  # what gp=auto now trains, named outright
+
+    def trained(name: str) -> Any:  # what gp=auto would train were ``name`` chosen
+        return plan.make(finals[name]) if plan.make is not None else trains[name]
+
+    # each row names its candidate's overrides: a name (``clock log max_age=20``) cannot say
+    # its knee and bins, and a remedy that names a candidate must run as scored
+    table = [{**row, "overrides": " ".join(trained(str(row["kind"])).gp_overrides())}
+             for row in choice.table]  # fmt: skip
+    overrides = next(r["overrides"] for r in table if r["kind"] == choice.chosen)
     _log(choice, overrides)
     out = plan.directory
     # what gp=auto trains: the chosen as scored, or refitted with its recipe's own optimiser
     record = {"chosen": choice.chosen, "gp": final, "reason": choice.reason,
               "overrides": overrides, "failed": failed,
-              "fit": str(fits[choice.chosen][0]), "scores": choice.table,
+              "fit": str(fits[choice.chosen][0]), "scores": table,
               "heldout": {"cells": int(inputs.shape[0]), "windows": int(inputs.shape[1]),
                           "seconds": heldout_seconds}}  # fmt: skip
-    write_csv(out / SCORES, pd.DataFrame(choice.table))
+    write_csv(out / SCORES, pd.DataFrame(table))
     write_json(fits[choice.chosen][0] / CHOICE, record)  # beside the chosen fit's files
     write_manifest(out, stage="choice", config=to_dict(config), seed=first.seed,
                    settings={"choice": settings.identity(),
                              "candidates": {n: t.fit_identity() for n, t in trains.items()}},
                    chosen=choice.chosen, reason=choice.reason, fit=record["fit"],
-                   scores=choice.table, wall_time_s=time.perf_counter() - t0)  # fmt: skip
+                   scores=table, wall_time_s=time.perf_counter() - t0)  # fmt: skip
     write_json(out / CHOICE, record)  # last: its presence is what settles gp=auto
     log.info("choice: record in %s", out)
     return out

@@ -30,6 +30,7 @@ from surrogate.diagnosis.cost import Work, duration, step_seconds
 from surrogate.errors import ConfigError
 from surrogate.io import read_json
 from surrogate.kinds.chains import is_auto
+from surrogate.kinds.scoring import clock_name
 from surrogate.stages import budget
 from surrogate.stages.choice import make_choice
 from surrogate.stages.reproduce import choice_text
@@ -39,7 +40,6 @@ from surrogate.stages.settings.choice import (
     RELAXING_FAMILY,
     ChoiceSettings,
     PendingChoice,
-    clock_name,
     collecting_pending,
 )
 from surrogate.stages.train import fit_candidate

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from surrogate.diagnosis.advice import VerdictInputs, verdict
-from surrogate.diagnosis.remedies import MeasuredChoice
+from surrogate.diagnosis.remedies import MeasuredChoice, candidate_overrides
 from surrogate.kinds import chain_kind
+from surrogate.kinds.scoring import candidate_cap
 
 
 def _score(bias: float, se: float | None = 0.01, settling: float = 0.0) -> dict[str, Any]:
@@ -186,3 +189,24 @@ def test_a_tie_asks_for_more_held_out_cells_and_no_wider_cap_below_the_largest()
                   choice=_choice("two-state", rows[:1], kinds=("two-state",)))  # fmt: skip
     widened = plain.remedies[0][1].overrides
     assert widened == ("gp.choice.kinds=[two-state,clock,phases]",)
+
+
+def test_the_runner_up_is_named_by_its_rows_overrides_a_log_clock_only_so() -> None:
+    """A candidate's name cannot say a log clock's knee and bins: the runner-up is named by
+    the overrides its row records (what the choice trained it with); from a record without
+    them a log clock is not offered (`gp=clock log max_age=20` cannot run), and its cap still
+    reads as memory (twice the clock at 10 s's)."""
+    log_clock = "gp=clock gp.max_age=20 gp.clock_knee=0.25 gp.clock_bins=63"
+    rows = [_row("two-state", 0, -4e-4), _row("clock max_age=10", 1, 0.0),
+            {**_row("clock log max_age=20", 1, -1e-4), "overrides": log_clock}]  # fmt: skip
+    choice = _choice("clock max_age=10", rows, max_ages=(1.0, 2.0, 5.0, 10.0))
+    v = _read(failures={"gaussian": ["off"]}, history="age", max_age=10.0, choice=choice)
+    overrides = {r.kind: r.overrides for _, r in v.remedies}
+    assert overrides["runner_up"] == tuple(log_clock.split())
+    bare = [*rows[:2], _row("clock log max_age=20", 1, -1e-4)]
+    v = _read(failures={"gaussian": ["off"]}, history="age", max_age=10.0,
+              choice=_choice("clock max_age=10", bare, max_ages=(1.0, 2.0, 5.0, 10.0)))  # fmt: skip
+    assert "runner_up" not in [r.kind for _, r in v.remedies]
+    assert candidate_cap("clock log max_age=20") == 20.0 and candidate_cap("classes") is None
+    with pytest.raises(ValueError, match="knee and bins"):
+        candidate_overrides("clock log max_age=20")

@@ -7,8 +7,10 @@ from __future__ import annotations
 import warnings
 
 from surrogate.config import to_dict
+from surrogate.diagnosis.remedies import candidate_overrides
 from surrogate.sbml.errors import SbmlWarning
 from surrogate.stages import inspection
+from surrogate.stages.advice_check import check_advice
 from surrogate.stages.pilot import cap_name, pilot_advice, run_pilot
 
 TOGGLE = ["model=sbml", "model.spec=examples/toggle_switch/model.yaml"]
@@ -45,6 +47,13 @@ def test_the_pilot_chooses_by_measurement_and_its_advice_runs(compose_cfg) -> No
                 "u_leads_mean_rel_diff",
             } <= set(row)
         assert "log-lik / window" in pilot["text"] and pilot["chosen"] in pilot["text"]
+        # each row names what trains it outright, as scored: a log clock's knee and bins too
+        for row in pilot["table"]:
+            named = candidate_overrides(row["kind"], row)
+            assert check_advice(config, named) is None, (row["kind"], named)
+            if row["kind"].startswith("clock log "):
+                assert any(o.startswith("gp.clock_knee=") for o in named)
+                assert any(o.startswith("gp.clock_bins=") for o in named)
         advice = pilot_advice(config, pilot)
         assert advice["kind"] == pilot["chosen"]
         from_cap = (cap_name(1.0), "clock log max_age=2")  # the log clock made from it

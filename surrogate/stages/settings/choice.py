@@ -32,6 +32,7 @@ from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.gp.class_relaxation import CLASS_MOVES, check_shared_bins
 from surrogate.io import read_json
 from surrogate.kinds import CHAIN_KINDS, SWITCH_CLOCK
+from surrogate.kinds.scoring import clock_name
 from surrogate.models.capabilities import class_bins_of, lump_classes_of
 from surrogate.validation import known_keys
 
@@ -258,12 +259,6 @@ def user_keys(raw_gp: Mapping[str, Any]) -> dict[str, Any]:
     default = group_config("gp", "auto")
     return {k: v for k, v in raw_gp.items()
             if k != "choice" and default.get(k) != v and v != "auto"}  # fmt: skip
-
-
-def clock_name(age: float, log_axis: bool = False) -> str:
-    """The candidate name of the switch clock at cap ``age`` (s), in seconds or on a log axis
-    (``gp.clock_knee``): the one spelling of a clock's name in the choice's table."""
-    return f"clock {'log ' if log_axis else ''}max_age={age:g}"
 
 
 def candidate_groups(
