@@ -99,8 +99,6 @@ def _make_choice(
     first = next(iter(plan.candidates.values()))
     if isinstance(first.source, CollectSettings):
         collect(first.source)  # one collection for every candidate (reused where it exists)
-    setup, job, settings = first.setup, first.job, plan.settings
-    model = setup.model
     log.info("gp=auto: choosing the chain by measurement among %s (docs/choice.md; "
              "gp.choice.by=rule or a named kind skips it)", list(plan.candidates))  # fmt: skip
     for name, candidate in plan.candidates.items():
@@ -109,95 +107,148 @@ def _make_choice(
                      "and held %g s at their inputs (the auto-regulatory network's 2,400: 16-32 "
                      "min of one core); gp.choice.kinds without relaxation leaves it out", name,
                      candidate.relaxation_cells, candidate.relaxation_lags[-1])  # fmt: skip
-    start = time.perf_counter()
-    seed_everything(first.seed + HELDOUT_SEED_OFFSET)
-    simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device,
-                          backend="auto")  # fmt: skip
-    heldout = record_occupancy(simulator, settings.n_cells, settings.t_end,
-                               torch.tensor(first.diagnostic["start"]), record_every=1,
-                               equilibration_time=settings.equilibration_time)  # fmt: skip
-    inputs, phi = phi_sequences(heldout, model.internal.input_names)
-    inputs = inputs.to(torch.float32)  # the layers read float32 inputs, as simulate gives them
-    heldout_seconds = time.perf_counter() - start
-    log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
-             inputs.shape[0], inputs.shape[1], heldout_seconds)  # fmt: skip
-    heldout_run = HeldOut(inputs, phi, first.seed)
-    fits, failed, scored = fit_candidates(plan.candidates, fitter, heldout=heldout_run, pool=pool,
+    heldout, heldout_seconds = _heldout_run(plan)
+    fits, failed, scored = fit_candidates(plan.candidates, fitter, heldout=heldout, pool=pool,
                                           ahead=plan.ahead() if pool is not None else None)  # fmt: skip
-    trains = {n: t for n, t in plan.candidates.items() if n in fits}
-    groups = {n: g for n, g in plan.groups.items() if n in fits}
+    made = _Fitted(plan, fitter, heldout, failed, scored, fits)
     for i, name in enumerate(list(failed)):  # L-BFGS diverged: the recipe's own optimiser
-        retried = _with_recipe(fitter, plan, name, plan.finals.get(name),
-                               heldout_run.task(name, len(plan.candidates) + i))  # fmt: skip
-        if retried is not None:
-            trains[name], groups[name], fits[name], scored[name] = retried
-            del failed[name]
-    if not fits:
+        made.retry(name, len(plan.candidates) + i)
+    if not made.fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
-    finals = {n: plan.finals.get(n, g) for n, g in groups.items()}
-    scores = list(scored.values())
-    while (longer := plan.longer_clock(best_name := max(scores, key=lambda s: s.log_likelihood).name,
-                                       groups)) is not None:  # fmt: skip
-        # the likelihood's best is the clock at the largest cap: its memory may reach past it
-        name, gp = longer
-        assert plan.make is not None  # longer_clock offers none without it
-        log.info("choice: the best is the clock at its largest cap; adding %s", name)
-        axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
-        final_gp = {**finals[best_name], **axis}
-        index = len(plan.candidates) + len(trains) - len(scored)  # a seed after every other's
-        added = _fit_added(fitter, plan, name, gp, final_gp, heldout_run, index)
-        if isinstance(added, str):
-            failed[name] = added  # named in the record; no longer clock after it
-            break
-        trains[name], groups[name], fits[name], score = added
-        finals[name] = final_gp
-        scores.append(score)
-    best_name = max(scores, key=lambda s: s.log_likelihood).name
-    dt = next(iter(plan.candidates.values())).setup.dt
-    if (logged := plan.log_clock(best_name, groups, dt)) is not None:
-        # the best is a clock in seconds: one on a log axis reaches twice as far
-        name, gp = logged
-        log.info("choice: the best is a clock; adding %s (knee %g s, %d bins)", name,
-                 gp["clock_knee"], gp["clock_bins"])  # fmt: skip
-        final_gp = {**finals[best_name],
-                    **{k: gp[k] for k in ("max_age", "clock_knee", "clock_bins")}}  # fmt: skip
-        index = len(plan.candidates) + len(trains) + 2  # a seed after every other's
-        added = _fit_added(fitter, plan, name, gp, final_gp, heldout_run, index)
-        if isinstance(added, str):
-            failed[name] = added
-        else:
-            trains[name], groups[name], fits[name], score = added
-            finals[name] = final_gp
-            scores.append(score)
-    choice = choose(scores, settings.tie_se, settings.duration_tolerance)
-    final = finals[choice.chosen]
-
-    def trained(name: str) -> Any:  # what gp=auto would train were ``name`` chosen
-        return plan.make(finals[name]) if plan.make is not None else trains[name]
-
+    made.extend()
+    choice = choose(made.scores, plan.settings.tie_se, plan.settings.duration_tolerance)
     # each row names its candidate's overrides: a name (``clock log max_age=20``) cannot say
     # its knee and bins, and a remedy that names a candidate must run as scored
-    table = [{**row, "overrides": " ".join(trained(str(row["kind"])).gp_overrides())}
+    table = [{**row, "overrides": " ".join(made.trained(str(row["kind"])).gp_overrides())}
              for row in choice.table]  # fmt: skip
     overrides = next(r["overrides"] for r in table if r["kind"] == choice.chosen)
     _log(choice, overrides)
     out = plan.directory
     # what gp=auto trains: the chosen as scored, or refitted with its recipe's own optimiser
-    record = {"chosen": choice.chosen, "gp": final, "reason": choice.reason,
-              "overrides": overrides, "failed": failed,
-              "fit": str(fits[choice.chosen][0]), "scores": table,
-              "heldout": {"cells": int(inputs.shape[0]), "windows": int(inputs.shape[1]),
+    record = {"chosen": choice.chosen, "gp": made.finals[choice.chosen], "reason": choice.reason,
+              "overrides": overrides, "failed": made.failed,
+              "fit": str(made.fits[choice.chosen][0]), "scores": table,
+              "heldout": {"cells": int(heldout.inputs.shape[0]),
+                          "windows": int(heldout.inputs.shape[1]),
                           "seconds": heldout_seconds}}  # fmt: skip
     write_csv(out / SCORES, pd.DataFrame(table))
-    write_json(fits[choice.chosen][0] / CHOICE, record)  # beside the chosen fit's files
+    write_json(made.fits[choice.chosen][0] / CHOICE, record)  # beside the chosen fit's files
     write_manifest(out, stage="choice", config=to_dict(config), seed=first.seed,
-                   settings={"choice": settings.identity(),
-                             "candidates": {n: t.fit_identity() for n, t in trains.items()}},
+                   settings={"choice": plan.settings.identity(),
+                             "candidates": {n: t.fit_identity() for n, t in made.trains.items()}},
                    chosen=choice.chosen, reason=choice.reason, fit=record["fit"],
                    scores=table, wall_time_s=time.perf_counter() - t0)  # fmt: skip
     write_json(out / CHOICE, record)  # last: its presence is what settles gp=auto
     log.info("choice: record in %s", out)
     return out
+
+
+def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
+    """The full model's held-out run the candidates are scored on (``gp.choice.n_cells`` x
+    ``gp.choice.t_end``, every window recorded, another seed than the collection's) and the
+    seconds it took."""
+    first = next(iter(plan.candidates.values()))
+    setup, settings = first.setup, plan.settings
+    start = time.perf_counter()
+    seed_everything(first.seed + HELDOUT_SEED_OFFSET)
+    simulator = Simulator(setup.model, FullDecision(setup.model.internal), setup.field, setup.dt,
+                          first.job.device, backend="auto")  # fmt: skip
+    run = record_occupancy(simulator, settings.n_cells, settings.t_end,
+                           torch.tensor(first.diagnostic["start"]), record_every=1,
+                           equilibration_time=settings.equilibration_time)  # fmt: skip
+    inputs, phi = phi_sequences(run, setup.model.internal.input_names)
+    inputs = inputs.to(torch.float32)  # the layers read float32 inputs, as simulate gives them
+    seconds = time.perf_counter() - start
+    log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
+             inputs.shape[0], inputs.shape[1], seconds)  # fmt: skip
+    return HeldOut(inputs, phi, first.seed), seconds
+
+
+class _Fitted:
+    """The candidates fitted and scored so far, by name: their train settings (``trains``),
+    gp groups as scored (``groups``) and as gp=auto trains them once chosen (``finals``),
+    fits, scores, and those that failed, with why; it retries a failed fit with its recipe
+    and adds the candidates the choice adds (a longer clock, a log clock)."""
+
+    def __init__(
+        self,
+        plan: PendingChoice,
+        fitter: Fitter,
+        heldout: HeldOut,
+        failed: dict[str, str],
+        scored: Mapping[str, KindScore],
+        fits: dict[str, tuple[Path, float]],
+    ) -> None:
+        self.plan, self.fitter, self.heldout, self.failed, self.fits = (
+            plan, fitter, heldout, failed, fits)  # fmt: skip
+        self.trains = {n: t for n, t in plan.candidates.items() if n in fits}
+        self.groups = {n: g for n, g in plan.groups.items() if n in fits}
+        self.finals = {n: plan.finals.get(n, g) for n, g in self.groups.items()}
+        self.scores = list(scored.values())
+        self.added = 0  # candidates the choice added so far
+
+    def _keep(self, name: str, made: tuple[Any, dict[str, Any], tuple[Path, float], KindScore],
+              final: dict[str, Any]) -> None:  # fmt: skip
+        self.trains[name], self.groups[name], self.fits[name], score = made
+        self.finals[name] = final
+        self.scores.append(score)
+
+    def retry(self, name: str, index: int) -> None:
+        """Fit failed candidate ``name`` with its recipe's optimiser and score it as the
+        ``index``-th (its seed): kept where that fit holds, left among the failed otherwise."""
+        final = self.plan.finals.get(name)
+        retried = _with_recipe(self.fitter, self.plan, name, final,
+                               self.heldout.task(name, index))  # fmt: skip
+        if retried is not None:
+            assert final is not None  # _with_recipe fits none without it
+            self._keep(name, retried, final)
+            del self.failed[name]
+
+    def best(self) -> str:
+        """The name of the candidate with the highest held-out log-likelihood so far."""
+        return max(self.scores, key=lambda s: s.log_likelihood).name
+
+    def extend(self) -> None:
+        """Add the clocks the scores ask for: a clock at twice the cap while the best is the
+        clock at the largest (``gp.choice.extend`` times), then one on a log axis where the
+        best is a clock in seconds; each fitted and scored here."""
+        while (longer := self.plan.longer_clock(best := self.best(), self.groups)) is not None:
+            # the likelihood's best is the clock at the largest cap: its memory may reach past it
+            name, gp = longer
+            log.info("choice: the best is the clock at its largest cap; adding %s", name)
+            axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
+            # seeds after every candidate's, as they were numbered before this class
+            index = len(self.plan.candidates) + self.added
+            if not self._add(name, gp, {**self.finals[best], **axis}, index):
+                break  # named among the failed; no longer clock after it
+        best = self.best()
+        dt = next(iter(self.plan.candidates.values())).setup.dt
+        # the best is a clock in seconds: one on a log axis reaches twice as far
+        if (logged := self.plan.log_clock(best, self.groups, dt)) is not None:
+            name, gp = logged
+            log.info("choice: the best is a clock; adding %s (knee %g s, %d bins)", name,
+                     gp["clock_knee"], gp["clock_bins"])  # fmt: skip
+            axis = {k: gp[k] for k in ("max_age", "clock_knee", "clock_bins")}
+            self._add(name, gp, {**self.finals[best], **axis},
+                      len(self.plan.candidates) + len(self.trains) + 2)  # fmt: skip
+
+    def _add(self, name: str, gp: dict[str, Any], final: dict[str, Any], index: int) -> bool:
+        """Fit and score added candidate ``name`` (gp group ``gp``; ``final`` as gp=auto trains
+        it) as the ``index``-th (its seed); whether it was kept (else it is named among the
+        failed)."""
+        self.added += 1
+        added = _fit_added(self.fitter, self.plan, name, gp, final, self.heldout, index)
+        if isinstance(added, str):
+            self.failed[name] = added
+            return False
+        self._keep(name, added, final)
+        return True
+
+    def trained(self, name: str) -> Any:
+        """What gp=auto trains were candidate ``name`` chosen: its recipe's settings with
+        ``finals[name]``, else (no recipe to make them) the settings it was scored with."""
+        make = self.plan.make
+        return make(self.finals[name]) if make is not None else self.trains[name]
 
 
 @dataclasses.dataclass(frozen=True)
