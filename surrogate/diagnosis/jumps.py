@@ -8,8 +8,9 @@ inputs, and psi learns their bias. ``collect.blackout_time`` keeps rows within i
 table; this measures, in the table a collection made, whether the rows just after the blackout
 still lag (Tyson's oscillator: rows in `y_high` for 20 s or more at kt > 25 left it 5x as often
 within 2 s of a jump as 20-40 s after; the dimerisation: `many_dimers` left 17 % more often
-0-2 s after a jump, 4.6 % 10-20 s after; docs/choice.md). It reports; the blackout is the
-user's (a network yaml's ``collect``).
+0-2 s after a jump, 4.6 % 10-20 s after; docs/choice.md). It reports, and names the blackout
+that keeps the lagging rows out (:func:`blackout_advice`); the blackout is the user's (a
+network yaml's ``collect``).
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ LAG_SE = 3.0
 #: ... and this far from it (E. coli's methylation lag, +-2 to 9 % in these bins, is below it;
 #: the dimerisation's 11 % and Tyson's 13 % in the first 2 s, which moved means by 5-10 %, above)
 LAG_RATIO = 0.10
+#: the share of a collected cell's time the advised blackout may take (Tyson's 20 s at one
+#: jump per 40 s; E. coli's default, 1 s at 0.1 per s, is 0.1)
+BLACKOUT_SHARE = 0.5
 
 
 def after_jump_lag(
@@ -106,20 +110,54 @@ def _cells(table: pd.DataFrame, inputs: Sequence[str]) -> np.ndarray:
     return cell
 
 
-def lag_message(lag: dict[str, Any] | None, blackout: float) -> str | None:
+def blackout_advice(
+    lag: dict[str, Any] | None, blackout: float, perturb_rate: float
+) -> tuple[str, ...]:
+    """The collection that keeps the lagging rows out: ``collect.blackout_time`` at the end
+    of the last bin that lags (rows recorded from then on switch as settled ones do), and
+    ``collect.perturb_rate`` lowered where needed so that a cell spends at most
+    :data:`BLACKOUT_SHARE` of its time blacked out (one jump per ``1 / rate`` s on average);
+    empty where nothing lags past ``blackout``.
+
+    Example:
+        >>> lag = {"lagging": [("y_low", 0.0, 2.0, 0.87), ("y_high", 10.0, 20.0, 0.8)]}
+        >>> blackout_advice(lag, 1.0, 0.1)
+        ('collect.blackout_time=20', 'collect.perturb_rate=0.025')
+    """
+    if not lag or not lag["lagging"]:
+        return ()
+    until = max(float(hi) for _, _, hi, _ in lag["lagging"])
+    if until <= blackout:
+        return ()
+    advice = [f"collect.blackout_time={until:g}"]
+    if perturb_rate * until > BLACKOUT_SHARE:
+        advice.append(f"collect.perturb_rate={BLACKOUT_SHARE / until:g}")
+    return tuple(advice)
+
+
+def lag_message(
+    lag: dict[str, Any] | None, blackout: float, advice: Sequence[str] = (), refused: str = ""
+) -> str | None:
     """The log line where rows after the blackout still lag (None where none does, or
-    nothing was measured)."""
+    nothing was measured), with ``advice`` (:func:`blackout_advice`, checked by the caller)
+    or why the checks ``refused`` it."""
     if not lag or not lag["lagging"]:
         return None
     parts = [f"{lump} {ratio:.2f}x {lo:g}-{hi:g} s after"
              for lump, lo, hi, ratio in lag["lagging"]]  # fmt: skip
+    if advice:
+        fix = (f"collect with `{' '.join(advice)}` (or in a network yaml's `collect:`) to keep "
+               f"those rows out")  # fmt: skip
+    else:
+        fix = ("a longer blackout (a network yaml's collect.blackout_time, with a lower "
+               "collect.perturb_rate) keeps those rows out"
+               + (f" (the measured one was refused: {refused})" if refused else ""))  # fmt: skip
     return (
         f"rows soon after a jump switch at other rates than rows {lag['settled_after_s']:g} s "
         f"or more after, at the same inputs and clock ({'; '.join(parts)}): the network's "
         f"hidden state still lags the jump past collect.blackout_time={blackout:g} s, and "
-        f"psi learns that lag; a longer blackout (a network yaml's collect.blackout_time, "
-        f"with a lower collect.perturb_rate) keeps those rows out (docs/choice.md)"
+        f"psi learns that lag; {fix} (docs/choice.md)"
     )
 
 
-__all__ = ["AFTER_JUMP_EDGES", "SETTLED_AFTER", "after_jump_lag", "lag_message"]
+__all__ = ["AFTER_JUMP_EDGES", "SETTLED_AFTER", "after_jump_lag", "blackout_advice", "lag_message"]

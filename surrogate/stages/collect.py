@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +27,7 @@ import pandas as pd
 from surrogate.config import seed_everything, to_dict
 from surrogate.diagnosis import probe
 from surrogate.diagnosis.cost import duration
-from surrogate.diagnosis.jumps import after_jump_lag, lag_message
+from surrogate.diagnosis.jumps import after_jump_lag, blackout_advice, lag_message
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.models.capabilities import feature_names_of
@@ -109,7 +109,13 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     columns = [*model.internal.input_names, *feature_names_of(model.internal)]
     # matched on the signal psi reads by default (E. coli's dG, a network's inputs)
     lag = after_jump_lag(table, model.internal.signal_names, setup.dt, lumps)
-    if (message := lag_message(lag, float(settings.options["blackout_time"]))) is not None:
+    blackout = float(settings.options["blackout_time"])
+    advice = blackout_advice(lag, blackout, float(settings.options["perturb_rate"]))
+    refused = check_collection(settings, config, advice) if advice else None
+    if lag is not None:
+        lag["advice"] = [] if refused else list(advice)
+    message = lag_message(lag, blackout, () if refused else advice, refused or "")
+    if message is not None:
         log.warning("collect: %s", message)
     write_manifest(
         out,
@@ -128,6 +134,23 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         **({"after_jump": lag} if lag is not None else {}),
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
+
+
+def check_collection(
+    settings: CollectSettings, config: Mapping[str, Any] | None, overrides: Sequence[str]
+) -> str | None:
+    """Why collect's own checks refuse ``overrides`` (``collect.`` keys) on the run's
+    ``config`` (else on ``settings``' collect group), or None where they accept them."""
+    from surrogate.stages.advice_check import apply_overrides
+
+    base = config if config is not None else {"collect": settings.given or {}}
+    try:
+        cfg = apply_overrides(base, overrides)
+        CollectSettings.from_config(cfg, setup=settings.setup, job=settings.job,
+                                    fits=TrainSettings.design_fits)  # fmt: skip
+    except (ConfigError, KeyError) as error:  # KeyError: a design's gp group not at hand
+        return str(error)
+    return None
 
 
 def cost_probe(settings: CollectSettings) -> dict[str, Any] | None:

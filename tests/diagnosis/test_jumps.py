@@ -7,7 +7,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from surrogate.diagnosis.jumps import SETTLED_AFTER, after_jump_lag, lag_message
+from surrogate.diagnosis.jumps import (
+    BLACKOUT_SHARE,
+    SETTLED_AFTER,
+    after_jump_lag,
+    blackout_advice,
+    lag_message,
+)
 
 DT = 0.05
 
@@ -56,3 +62,23 @@ def test_nothing_is_measured_without_jumps_or_settled_rows(drop: str) -> None:
     else:  # every row within 20 s of a jump: no settled reference
         rows = rows.assign(since_jump=np.minimum(rows["since_jump"].clip(lower=0), 10))
     assert after_jump_lag(rows, ["x"], DT, ("off", "on")) is None
+
+
+def test_the_advised_blackout_ends_where_the_last_lagging_bin_ends() -> None:
+    """Rows lag 0-2 s after a jump: a 2-s blackout keeps them out, at the same rate of jumps
+    (2 s of every 10 blacked out); a lag up to 20 s asks for 20 s and one jump per 40 s
+    (BLACKOUT_SHARE of the time); a blackout already that long asks for nothing."""
+    lag = after_jump_lag(table(1.5), ["x"], DT, ("off", "on"))
+    advice = blackout_advice(lag, 1.0, 0.1)
+    assert advice == ("collect.blackout_time=2",)
+    message = lag_message(lag, 1.0, advice)
+    assert message is not None and "`collect.blackout_time=2`" in message
+    late = {"lagging": [("on", 0.0, 2.0, 1.2), ("off", 10.0, 20.0, 0.8)]}
+    assert blackout_advice(late, 1.0, 0.1) == ("collect.blackout_time=20",
+                                               f"collect.perturb_rate={BLACKOUT_SHARE / 20:g}")  # fmt: skip
+    assert blackout_advice(late, 20.0, 0.025) == ()
+    assert (
+        blackout_advice({"lagging": []}, 1.0, 0.1) == () and blackout_advice(None, 1.0, 0.1) == ()
+    )
+    refused = lag_message(lag, 1.0, (), "collect.blackout_time must be >= 0")
+    assert refused is not None and "refused: collect.blackout_time must be >= 0" in refused

@@ -363,6 +363,27 @@ def test_the_perturbation_left_null_is_the_models(compose_cfg, tmp_path) -> None
     assert given.directory != slow.directory
 
 
+def test_the_blackout_collect_advises_passes_collects_checks(compose_cfg) -> None:
+    """Every blackout the lag can advise (each bin's end, from E. coli's rate and from a slow
+    network's) passes collect's own settings checks, with the run's config and without it (a
+    collection the choice makes); one the checks refuse is not printed, and says why."""
+    from surrogate.diagnosis.jumps import AFTER_JUMP_EDGES, SETTLED_AFTER, blackout_advice
+    from surrogate.stages.collect import check_collection, validate
+
+    cfg = compose_cfg("collect")
+    settings = validate(cfg)
+    ends = [*AFTER_JUMP_EDGES[1:], SETTLED_AFTER]
+    for end in ends:
+        for rate in (0.1, 1.0, 0.01):
+            lag = {"lagging": [("run", end - 1.0, end, 0.8)]}
+            advice = blackout_advice(lag, 1.0, rate)
+            assert advice and advice[0] == f"collect.blackout_time={end:g}"
+            assert check_collection(settings, cfg, advice) is None, advice
+            assert check_collection(settings, None, advice) is None, advice
+    refused = check_collection(settings, cfg, ("collect.blackout_time=-2",))
+    assert refused is not None and "collect.blackout_time" in refused
+
+
 @pytest.mark.parametrize(("lookup", "blocks", "backend"),
                          [("[64]", 3, "numba"), ("null", 2, "numba"), ("null", 2, "torch")],
                          ids=["own_tables", "stacked_tables", "stacked_tables_torch"])  # fmt: skip
