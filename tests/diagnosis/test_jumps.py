@@ -64,21 +64,20 @@ def test_nothing_is_measured_without_jumps_or_settled_rows(drop: str) -> None:
     assert after_jump_lag(rows, ["x"], DT, ("off", "on")) is None
 
 
-def test_the_advised_blackout_ends_where_the_last_lagging_bin_ends() -> None:
-    """Rows lag 0-2 s after a jump: a 2-s blackout keeps them out, at the same rate of jumps
-    (2 s of every 10 blacked out); a lag up to 20 s asks for 20 s and one jump per 40 s
-    (BLACKOUT_SHARE of the time); a blackout already that long asks for nothing."""
+def test_the_advised_blackout_ends_where_rows_count_as_settled() -> None:
+    """Rows lag 0-2 s after a jump: the advice is a blackout until rows count as settled
+    (20 s) and one jump per 40 s (BLACKOUT_SHARE of the time blacked out); a rate already that
+    low is left; a blackout already that long, or no lag, asks for nothing."""
     lag = after_jump_lag(table(1.5), ["x"], DT, ("off", "on"))
+    assert lag is not None
     advice = blackout_advice(lag, 1.0, 0.1)
-    assert advice == ("collect.blackout_time=2",)
+    assert advice == (f"collect.blackout_time={SETTLED_AFTER:g}",
+                      f"collect.perturb_rate={BLACKOUT_SHARE / SETTLED_AFTER:g}")  # fmt: skip
     message = lag_message(lag, 1.0, advice)
-    assert message is not None and "`collect.blackout_time=2`" in message
-    late = {"lagging": [("on", 0.0, 2.0, 1.2), ("off", 10.0, 20.0, 0.8)]}
-    assert blackout_advice(late, 1.0, 0.1) == ("collect.blackout_time=20",
-                                               f"collect.perturb_rate={BLACKOUT_SHARE / 20:g}")  # fmt: skip
-    assert blackout_advice(late, 20.0, 0.025) == ()
-    assert (
-        blackout_advice({"lagging": []}, 1.0, 0.1) == () and blackout_advice(None, 1.0, 0.1) == ()
-    )
+    assert message is not None and f"`{' '.join(advice)}`" in message
+    assert blackout_advice(lag, 1.0, 0.01) == (f"collect.blackout_time={SETTLED_AFTER:g}",)
+    assert blackout_advice(lag, SETTLED_AFTER, 0.01) == ()
+    assert blackout_advice({**lag, "lagging": []}, 1.0, 0.1) == ()
+    assert blackout_advice(None, 1.0, 0.1) == ()
     refused = lag_message(lag, 1.0, (), "collect.blackout_time must be >= 0")
     assert refused is not None and "refused: collect.blackout_time must be >= 0" in refused
