@@ -167,6 +167,9 @@ class VerdictInputs:
         wider_collection: the overrides that send collect's perturbation further
             (:meth:`~surrogate.models.base.Model.wider_collection`), advised where the runs
             leave the trained inputs; empty where the model has none.
+        blackout: the collection that keeps out rows still lagging a jump (collect's
+            manifest, ``after_jump.advice``: :func:`~surrogate.diagnosis.jumps.blackout_advice`),
+            advised first where psi is biased; empty where its rows did not lag.
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -183,6 +186,7 @@ class VerdictInputs:
     count_classes: CountClasses | None = None
     choice: MeasuredChoice | None = None
     wider_collection: tuple[str, ...] = ()
+    blackout: tuple[str, ...] = ()
 
 
 def verdict(  # noqa: C901  # one branch per first cause, in the report's order
@@ -286,8 +290,9 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         causes.append((
             name,
             "where the population lives the learned psi is off: " + "; ".join(biased) + ".",
-            advisor.step(name, [more_rows(n_per_state, "more transitions ({more}: the bias "
-                                           "of a GP fit falls with its data)")],
+            advisor.step(name, [*_blackout(run.blackout),
+                                more_rows(n_per_state, "more transitions ({more}: the bias "
+                                          "of a GP fit falls with its data)")],
                          then=", and check `gp.epochs`/`gp.n_inducing` converged (the training "
                               "history figure)."),
         ))  # fmt: skip
@@ -358,6 +363,16 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         causes, caveats = causes + caveats, []
     return Verdict(trust=not causes, causes=causes, caveats=caveats,
                    remedies=advisor.remedies, dropped=advisor.dropped)  # fmt: skip
+
+
+def _blackout(advice: Sequence[str]) -> list[Remedy]:
+    """The remedy of a collection whose rows lag a jump (none where they did not)."""
+    if not advice:
+        return []
+    return [Remedy("blackout", f"rows recorded only once a jump has settled, `{' '.join(advice)}` "
+                   f"(collect measured its rows soon after a jump switching at other rates than "
+                   f"settled ones at the same inputs, and psi learns that lag; docs/choice.md)",
+                   tuple(advice))]  # fmt: skip
 
 
 def _sparse_rows(

@@ -392,6 +392,7 @@ def _verdict(
         n_per_state=n_per_state, class_shares=metrics.get("class_shares"),
         max_age=tr.max_age if tr.kind.clock else None, count_classes=count_classes,
         choice=measured_choice(tr), wider_collection=tr.setup.model.wider_collection(),
+        blackout=collection_blackout(tr),
     )  # fmt: skip
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip
@@ -404,6 +405,16 @@ def _verdict(
             f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
             f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
     return v.markdown(confirm=fidelity_command(tr)) + note
+
+
+def collection_blackout(tr: TrainSettings) -> tuple[str, ...]:
+    """The blackout collect advised for ``tr``'s collection (its manifest's
+    ``after_jump.advice``, checked by collect before it was written); empty for an external
+    table or a collection whose rows did not lag."""
+    if not isinstance(tr.source, CollectSettings):
+        return ()
+    lag = read_manifest(tr.source.directory, made_by=tr.source.command()).get("after_jump")
+    return tuple(str(o) for o in (lag or {}).get("advice", ()))
 
 
 def fidelity_command(tr: TrainSettings) -> str:

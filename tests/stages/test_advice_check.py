@@ -19,6 +19,7 @@ from surrogate.config import to_dict
 from surrogate.diagnosis import recommendation, settling
 from surrogate.diagnosis.advice import Verdict, VerdictInputs, verdict
 from surrogate.diagnosis.fixed import EXACT_METHOD, FixedInputs
+from surrogate.diagnosis.jumps import blackout_advice
 from surrogate.diagnosis.options import InspectOptions
 from surrogate.diagnosis.remedies import (
     Check,
@@ -48,6 +49,9 @@ SPEC = "examples/gene_switch/model.yaml"  # D >= 2 is on; 25 states
 UNBIASED = {"rel_bias": 0.0, "rel_bias_se": 0.01, "settling_z": 0.0}
 SHARED = {"species": "P", "edges": [2, 4]}  # P runs 0-8 in both lumps
 CLASSES = CountClasses("P", ((2.0, 4.0), (2.0, 4.0)), ("off", "on"))  # SHARED, built
+#: what collect advises where its rows lag a jump in the first 2 s (at 0.1 jumps per s)
+BLACKOUT = blackout_advice({"settled_after_s": 20.0, "lagging": [("off", 0.0, 2.0, 1.2)]}, 1.0,
+                           0.1)  # fmt: skip
 
 
 @pytest.fixture
@@ -129,8 +133,11 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
 
         v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
                     kind=chain_kind(*kind), network=True, n_per_state=1000, max_age=2.0,
-                    check=check, count_classes=CLASSES, **_measurements(branch))  # fmt: skip
+                    check=check, count_classes=CLASSES, blackout=BLACKOUT,
+                    **_measurements(branch))  # fmt: skip
         assert not v.trust
+        if branch == "biased":  # the collection's lag first: more of the same rows keep it
+            assert [r.kind for _, r in v.remedies][:2] == ["blackout", "more_rows"], name
         for _, remedy in v.remedies:
             printed += bool(remedy.overrides)
             assert check(remedy.overrides, "") is None, (name, branch, remedy)

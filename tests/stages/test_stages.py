@@ -384,6 +384,22 @@ def test_the_blackout_collect_advises_passes_collects_checks(compose_cfg) -> Non
     assert refused is not None and "collect.blackout_time" in refused
 
 
+def test_the_verdict_reads_the_blackout_its_collection_advised(compose_cfg) -> None:
+    """The reproduce verdict's blackout remedy is the one collect wrote beside its rows
+    (``after_jump.advice``, checked there); none for a collection without it."""
+    from surrogate.io import read_manifest, write_json
+    from surrogate.stages.reproduce import collection_blackout
+
+    path = collect.run(compose_cfg("collect", [o for o in TINY if o.startswith("collect")]))
+    settings = train.validate(compose_cfg("train", _train_overrides()))
+    manifest = read_manifest(path)
+    assert collection_blackout(settings) == tuple((manifest.get("after_jump") or {})
+                                                  .get("advice", ()))  # fmt: skip
+    advice = ["collect.blackout_time=20", "collect.perturb_rate=0.025"]
+    write_json(path / "manifest.json", {**manifest, "after_jump": {"advice": advice}})
+    assert collection_blackout(settings) == tuple(advice)
+
+
 @pytest.mark.parametrize(("lookup", "blocks", "backend"),
                          [("[64]", 3, "numba"), ("null", 2, "numba"), ("null", 2, "torch")],
                          ids=["own_tables", "stacked_tables", "stacked_tables_torch"])  # fmt: skip
