@@ -370,6 +370,11 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
         if a.get("named") and not a.get("named_refused"):
             lines.append(f"- The pilot's choice named outright (skips the full-size "
                          f"measurement): `{' '.join(a['named'])}`.")  # fmt: skip
+        if a.get("blackout"):
+            lines.append(f"- The pilot's collection: rows soon after a jump switched at other "
+                         f"rates than settled rows at the same inputs (collect's lag "
+                         f"measurement, docs/choice.md), and psi would learn that lag: collect "
+                         f"with `{' '.join(a['blackout'])}` (in the next command below).")  # fmt: skip
         lines += ["", pilot["text"]]
     if a.get("signal_bounds"):
         lines += ["", f"The network is enumerable: with `{a['signal_bounds']}` in the yaml (the "

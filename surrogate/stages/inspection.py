@@ -345,11 +345,13 @@ def next_command(
     collection: Mapping[str, Any],
 ) -> dict[str, Any]:
     """The run the report advises next: ``scripts/reproduce.py`` with the inspected model,
-    field, step and seed (``setup_overrides``), the first collection it advises and the pilot's
+    field, step and seed (``setup_overrides``), the first collection it advises (with the
+    blackout collect advised where the pilot's rows lagged a jump) and the pilot's
     gp overrides (refused ones are not printed), checked as one command; where the stages'
     checks refuse the combination, the collection is left out, then the gp overrides too
     (``dropped``: what was left out and why)."""
-    collect = list((collection.get("advised") or [[]])[0])
+    # the collection's size, and where the pilot's rows lagged a jump, its blackout
+    collect = [*(collection.get("advised") or [[]])[0], *(advice.get("blackout") or [])]
     gp = (
         list(advice.get("overrides") or [])
         if advice.get("kind") and not advice.get("refused")

@@ -33,7 +33,7 @@ from surrogate.kinds.chains import is_auto
 from surrogate.kinds.scoring import clock_name
 from surrogate.stages import budget
 from surrogate.stages.choice import make_choice
-from surrogate.stages.reproduce import choice_text
+from surrogate.stages.reproduce import choice_text, collection_blackout
 from surrogate.stages.settings import CollectSettings, TrainSettings
 from surrogate.stages.settings.choice import (
     CHOICE,
@@ -135,7 +135,9 @@ def run_pilot(
         ``{"ran": False, "note": why}`` where skipped; else ``ran``, ``chosen``, ``reason``,
         ``table`` (the choice's rows), ``named`` (the chosen candidate's overrides),
         ``max_ages``, ``cap``, ``cap_added``, the sizes it ran at, ``estimate_s``,
-        ``wall_s``, ``directory``, ``text`` (the report's section) and ``note``.
+        ``wall_s``, ``directory``, ``text`` (the report's section), ``note`` and
+        ``blackout`` (the collection collect advised where the pilot's rows lag a jump,
+        :func:`~surrogate.stages.reproduce.collection_blackout`).
     """
     if not pilot["enabled"]:
         return {"ran": False, "note": "skipped (inspect.pilot.enabled=false)"}
@@ -178,7 +180,8 @@ def run_pilot(
             "max_ages": ages, "cap": cap, "cap_added": added, "n_per_state": n,
             "n_cells": cells, "t_end": t_end, "estimate_s": estimate,
             "wall_s": time.perf_counter() - t0, "directory": str(directory),
-            "text": choice_text(directory), "note": "; ".join(notes)}  # fmt: skip
+            "text": choice_text(directory), "note": "; ".join(notes),
+            "blackout": list(collection_blackout(train))}  # fmt: skip
 
 
 def pilot_advice(config: Mapping[str, Any], pilot: Mapping[str, Any]) -> dict[str, Any]:
@@ -202,7 +205,7 @@ def pilot_advice(config: Mapping[str, Any], pilot: Mapping[str, Any]) -> dict[st
     if pilot["cap_added"] and pilot["chosen"] in from_cap:
         overrides.append(f"gp.choice.max_ages=[{','.join(f'{a:g}' for a in pilot['max_ages'])}]")
     return {"kind": pilot["chosen"], "overrides": overrides, "named": list(pilot["named"]),
-            "reason": pilot["reason"]}  # fmt: skip
+            "reason": pilot["reason"], "blackout": list(pilot.get("blackout") or [])}  # fmt: skip
 
 
 __all__ = ["MIN_CELLS", "MIN_ROWS", "cap_name", "pilot_advice", "pilot_config", "pilot_work",

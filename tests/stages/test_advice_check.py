@@ -618,6 +618,12 @@ def test_the_next_command_the_inspector_prints_runs_and_drops_what_is_refused(co
     assert bad["dropped"][0].startswith("collect.n_per_state=-5 gp.choice.by=measure: ")
     refused = {**advice, "refused": "no"}  # a refused pilot advice is not printed here either
     assert next_command(config, setup, refused, {})["command"].split()[2:] == setup
+    # the pilot's rows lagged a jump: its blackout joins the collection, checked as one
+    lagged = {**advice, "blackout": list(BLACKOUT)}
+    out = next_command(config, setup, lagged, {"advised": [["collect.n_per_state=690280"]]})
+    assert out["command"].split()[2:] == [*setup, "collect.n_per_state=690280", *BLACKOUT,
+                                          "gp.choice.by=measure"]  # fmt: skip
+    assert check_advice(config, out["command"].split()[2:]) is None
 
 
 @pytest.mark.parametrize("model", ["sbml", "ecoli"])
