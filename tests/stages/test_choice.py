@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -182,6 +183,33 @@ def test_the_rule_and_a_named_kind_leave_identities_as_they_were(tmp_path: Path)
     named = train_stage.validate(compose_in(tmp_path, "train", ["gp.choice.by=measure",
                                                                 "gp.lumps=phi"]))  # fmt: skip
     assert named.fit_identity() == svgp.fit_identity()
+
+
+def test_a_recipe_changed_makes_another_choice(tmp_path: Path, monkeypatch) -> None:
+    """The record names the chosen's recipe group, which gp=auto trains: a recipe changed
+    since (here the clock's optimiser; the suite sets gp.epochs, a user key over every recipe)
+    makes a choice of its own, not the old group's fit; the scoring fits, L-BFGS's, keep their
+    identities (reused). Without refit the recipes are no part of it."""
+    from surrogate.stages.settings import choice as choice_settings
+
+    def plan(options: list[str]) -> Any:
+        with collecting_pending() as plans:
+            train_stage.validate(compose_in(tmp_path, "train", [*MEASURE, *options]))
+        return plans[0]
+
+    before, unrefit = plan([]), plan(["gp.choice.refit=false"])
+    shipped = choice_settings.group_config
+
+    def other_optimiser(group: str, name: str) -> dict[str, Any]:
+        out = shipped(group, name)
+        return {**out, "natural_gradient": False} if name == "clock" else out
+
+    monkeypatch.setattr(choice_settings, "group_config", other_optimiser)
+    after = plan([])
+    assert after.directory != before.directory
+    assert {n: t.fit_identity() for n, t in after.candidates.items()} == {
+        n: t.fit_identity() for n, t in before.candidates.items()}  # fmt: skip
+    assert plan(["gp.choice.refit=false"]).directory == unrefit.directory
 
 
 def test_pending_choice_is_refused_by_simulate_and_made_by_train(tmp_path: Path) -> None:

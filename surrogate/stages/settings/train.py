@@ -394,6 +394,10 @@ def _measured(
     candidates = {name: cls._build(setup, source, job, gp) for name, gp in groups.items()}
     identity = {"candidates": {n: t.fit_identity() for n, t in candidates.items()},
                 "choice": choice.identity(), "seed": setup.seed}  # fmt: skip
+    if finals is not groups:
+        # the record names the chosen's recipe group, which gp=auto then trains: a recipe
+        # changed since (the clock's epochs) makes another choice, not the old group's fit
+        identity["recipes"] = {n: g for n, g in finals.items() if g != groups.get(n)}
     made_by = command_line(TRAIN_CMD, [*setup.overrides(), *source._overrides()],
                            _choice_overrides(raw_gp), job.device_overrides())  # fmt: skip
     directory = artefact_dir(job.data_dir, "choice", {"model": setup.model.name}, identity)
