@@ -8,7 +8,13 @@ simulation.
 
 from __future__ import annotations
 
-from surrogate.gp.figures import binned_frequencies, plot_psi, plot_training_history, psi_grid_frame
+from surrogate.gp.figures import (
+    binned_frequencies,
+    last_tenth_drop,
+    plot_psi,
+    plot_training_history,
+    psi_grid_frame,
+)
 from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.lookup import PsiFunction, PsiLookupTable, StackedPsiLookup
 from surrogate.gp.metrics import classification_metrics
@@ -32,6 +38,7 @@ __all__ = [
     "data_domain",
     "fit_classifier",
     "fit_psi",
+    "last_tenth_drop",
     "load_psi",
     "make_kernel",
     "plot_psi",

@@ -38,6 +38,7 @@ from surrogate.gp import (
     PsiClassifier,
     PsiLookupTable,
     fit_psi,
+    last_tenth_drop,
     load_psi,
     plot_psi,
     plot_training_history,
@@ -285,9 +286,15 @@ def _fit(
                 "n_val": clf.n_val,
                 "train_seconds": clf.train_seconds,
                 "final_loss": clf.history[-1] if clf.history else None,
+                "last_tenth_drop": last_tenth_drop(clf.history),
             }
             for phi, clf in enumerate(psi.classifiers)
         }
+        for name, m in metrics.items():
+            if m["last_tenth_drop"] is not None:
+                log.info("%s: loss per point fell %.2g over the last tenth of its steps (the "
+                         "training history figure's right panel shows whether it flattened)",
+                         name, m["last_tenth_drop"])  # fmt: skip
     else:  # the classifiers' scores as their fit wrote them
         fitted = read_json(psi_dir / FIT_METRICS, made_by=settings.command())
         metrics = {"psi_0": fitted["psi_0"], "psi_1": fitted["psi_1"], "psi_fit": str(psi_dir)}

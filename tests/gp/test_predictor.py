@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -304,6 +305,12 @@ def test_grid_frame_and_figure(psi: PsiClassifier, data: pd.DataFrame, tmp_path:
     lines = hist.axes[0].get_lines()
     assert [line.get_label() for line in lines] == ["psi_0", "psi_1"]
     np.testing.assert_array_equal(lines[1].get_ydata(), psi.psi_1.history)
+    # beside it, each loss above its lowest on a log axis (zero, its lowest point, left out)
+    gap = hist.axes[1]
+    assert gap.get_yscale() == "log"
+    above = np.asarray(psi.psi_1.history) - min(psi.psi_1.history)
+    np.testing.assert_allclose(gap.get_lines()[1].get_ydata(),
+                               np.where(above > 0, above, np.nan))  # fmt: skip
     save_figure(tmp_path / "hist.png", hist)
     assert (tmp_path / "psi.png").stat().st_size > 0
 
@@ -491,3 +498,13 @@ def test_log_warp_reads_an_input_on_a_log_axis(data: pd.DataFrame, tmp_path: Pat
         PsiClassifier(warped.psi_0, warped.psi_1, INPUTS, warps={"age": 1.0})
     with pytest.raises(ValueError, match="knees > 0"):
         PsiClassifier(warped.psi_0, warped.psi_1, INPUTS, warps={"m": 0.0})
+
+
+def test_the_last_tenth_drop_says_whether_the_loss_has_flattened() -> None:
+    """The loss's fall over the last tenth of its steps: 0 where flat, the fall where still
+    falling, None where there are too few steps to say."""
+    from surrogate.gp import last_tenth_drop
+
+    assert last_tenth_drop([1.0] * 20) == 0.0
+    assert last_tenth_drop(list(np.linspace(1.0, 0.0, 101))) == pytest.approx(0.1)
+    assert last_tenth_drop([1.0, 0.5]) is None
