@@ -221,7 +221,8 @@ class FidelitySettings:
             **({"exact_classes": True} if self.exact_classes else {}),
             # checks from independent starts keep the identity they had before the key
             "fidelity": {**{k: v for k, v in self.options.items() if k != "initial"
-                            and not (k == "starts" and v == "independent")},
+                            and not (k == "starts" and v == "independent")
+                            and not (k == "chain_repeats" and v == 1)},
                          "times": list(self.times)},
             "compile": self.compile,
             "backend": self.backend,
@@ -249,6 +250,10 @@ EXACT_CLOCK = "exact+clock"
 EXACT_CLASSES = "exact+classes"
 #: reference rows (not learned abstractions): not counted in the summary's checks
 REFERENCES = ("exact", EXACT_CLOCK, EXACT_CLASSES)
+#: ``fidelity.chain_repeats``: repeat r of abstraction i runs at its seed + r x this stride
+#: (far from every other run's sim_seed + k x offset + i), labelled ``<label>|<field>|repeat<r>``
+REPEAT_SEED_STRIDE = 100_000
+REPEAT = "repeat"
 
 #: decision.mode of the abstractions under test
 MODES = ("lookup", "classifier")
@@ -318,6 +323,11 @@ def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
             f">= 0 for k = 1, 2, 3 (the noise floor, the exact chain and the abstractions use "
             f"those seeds), got {offset!r}"
         )
+    repeats = f.get("chain_repeats", 1)
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+        raise ConfigError(f"fidelity.chain_repeats must be an integer >= 1 (each abstraction's "
+                          f"runs per field; the check reads the first, the table the spread of "
+                          f"all), got {repeats!r}")  # fmt: skip
     starts = f.get("starts", "independent")
     if starts not in STARTS:
         raise ConfigError(f"fidelity.starts must be one of {list(STARTS)}, got {starts!r}")
@@ -411,6 +421,10 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         for name in settings.fields:
             reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
             labels.append(f"{c.label}|{name}")
+            for again in range(1, int(o.get("chain_repeats", 1))):  # the chain's own spread
+                reps.append(Replicate(decision, fields[name], n,
+                                      seed + 3 * offset + i + again * REPEAT_SEED_STRIDE, start))  # fmt: skip
+                labels.append(f"{c.label}|{name}|{REPEAT}{again}")
     seed_everything(seed)
     info: dict[str, Any] = {}
     paired = o.get("starts", "independent") == "paired"
@@ -434,7 +448,9 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     write_csv(out / f"{TABLE}.csv", table)
     summary = summarise(table, settings)
     # the drift itself: each run's mean observable per check time, with its standard error
-    summary["mean_observable"] = mean_observables(results)
+    summary["mean_observable"] = mean_observables(
+        {k: r for k, r in results.items() if f"|{REPEAT}" not in k}
+    )  # one run per chain drawn
     metrics = {c.label: read_metrics(c.train.directory) for c in settings.candidates}
     summary["diagnostics"] = {label: m.get("diagnostic") for label, m in metrics.items()}
     # the K-lumps chain's own switching, class-weighted where cells live (the two-state psi
@@ -517,15 +533,21 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
                 rows.append({"field": name, "candidate": cand, "quantity": f"distance_t{t:g}",
                              "value": ks, "noise_floor": floor, "threshold": limit,
                              "passed": ks <= limit})  # fmt: skip
+            again = [results[k] for k in results if k.startswith(f"{cand}|{name}|{REPEAT}")]
             for p in (1, 0):
                 kind = lumps[p]
                 rel = run.mean_durations[kind] / full.mean_durations[kind] - 1.0
-                rows.append({"field": name, "candidate": cand, "quantity": f"mean_{kind}",
-                             "value": rel, "noise_floor": repeat.mean_durations[kind]
-                             / full.mean_durations[kind] - 1.0, "threshold": tol,
-                             "passed": abs(rel) <= tol, "mean_s": run.mean_durations[kind],
-                             "full_mean_s": full.mean_durations[kind],
-                             "segments": run.segments[kind]})  # fmt: skip
+                row = {"field": name, "candidate": cand, "quantity": f"mean_{kind}",
+                       "value": rel, "noise_floor": repeat.mean_durations[kind]
+                       / full.mean_durations[kind] - 1.0, "threshold": tol,
+                       "passed": abs(rel) <= tol, "mean_s": run.mean_durations[kind],
+                       "full_mean_s": full.mean_durations[kind],
+                       "segments": run.segments[kind]}  # fmt: skip
+                if again:  # fidelity.chain_repeats: the same chain's means from other seeds
+                    means = np.array([r.mean_durations[kind] for r in (run, *again)])
+                    row["chain_rel_sd"] = float(means.std(ddof=1) / means.mean())
+                    row["chain_mean_rel"] = float(means.mean() / full.mean_durations[kind] - 1.0)
+                rows.append(row)
     return pd.DataFrame(rows)
 
 
@@ -581,7 +603,10 @@ def report_sections(
                     f"{r['value']:.3f} ({r['noise_floor']:.3f}){mark}"
                 )
             else:
-                row[q.replace("mean_", "mean ")] = f"{100 * r['value']:+.1f} %{mark}"
+                spread = (f" (runs {100 * r['chain_mean_rel']:+.1f} % +- "
+                          f"{100 * r['chain_rel_sd']:.1f} % sd)"
+                          if pd.notna(r.get("chain_rel_sd", np.nan)) else "")  # fmt: skip
+                row[q.replace("mean_", "mean ")] = f"{100 * r['value']:+.1f} %{mark}{spread}"
         row["passed"] = f"{int(g['passed'].sum())}/{len(g)}"
         rows.append(row)
     alpha = float(o.get("alpha", 0.05))
@@ -597,7 +622,16 @@ def report_sections(
         "runs, the noise floor), and the relative error of the mean segment durations; ✗ marks a "
         "failed check. The row `exact` is the chain driven by the exact lumped psi: the psi of "
         "cells adapted to their current input (moving cells are not adapted, so a psi learned "
-        "from the full model's transitions can pass checks it fails).\n\n"
+        "from the full model's transitions can pass checks it fails)."
+        + (
+            f" With `fidelity.chain_repeats={o['chain_repeats']}`, each abstraction ran that "
+            f"many times per field from other seeds: `runs` gives its means' average error and "
+            f"their sd from one run to the next (the check reads the first run; the full "
+            f"model's own run has a spread of its own)."
+            if int(o.get("chain_repeats", 1)) > 1
+            else ""
+        )
+        + "\n\n"
         + format_markdown_table(pd.DataFrame(rows))
     )
     diag_rows = []

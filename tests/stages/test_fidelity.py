@@ -140,3 +140,34 @@ def test_runs_outside_their_collection_get_a_wider_one_checked(compose_cfg, chec
     assert f"the same command with `{wider[0]}` (checked)" in text
     stored = {**config, "fidelity": {**config["fidelity"], "reference": "stored"}}
     assert fidelity.wider_collection(settings, {"a|exponential": away}, stored) is None
+
+
+def test_chain_repeats_give_the_means_spread_and_their_own_identity(compose_cfg) -> None:
+    """fidelity.chain_repeats=3: the check reads the first run, the table adds the means'
+    sd from run to run and their average error, the report says so; 1 keeps the identity of
+    checks made before the key; a bad count is refused by name."""
+    plain = fidelity.validate(compose_cfg("fidelity", SMALL))
+    assert "chain_repeats" not in plain.identity()["fidelity"]
+    three = fidelity.validate(compose_cfg("fidelity", [*SMALL, "fidelity.chain_repeats=3"]))
+    assert three.directory != plain.directory
+    for bad in ("0", "1.5", "true"):
+        with pytest.raises(ConfigError, match=r"fidelity.chain_repeats must be an integer >= 1"):
+            fidelity.validate(compose_cfg("fidelity", [*SMALL, f"fidelity.chain_repeats={bad}"]))
+    (candidate,) = three.candidates
+    rng = np.random.default_rng(0)
+    results = {k: _run(rng, three.times, 0.0) for k in ("full|gaussian", "full_repeat|gaussian",
+                                                         "exact|gaussian")}  # fmt: skip
+    shifts = (0.01, 0.03, 0.05)  # the first run's run mean +1 %, the three's average +3 %
+    results[f"{candidate.label}|gaussian"] = _run(rng, three.times, shifts[0])
+    for r, shift in enumerate(shifts[1:], start=1):
+        results[f"{candidate.label}|gaussian|{fidelity.REPEAT}{r}"] = _run(rng, three.times, shift)
+    table = fidelity.check(three, results)
+    row = table[(table["candidate"] == candidate.label) & (table["quantity"] == "mean_run")].iloc[0]
+    assert row["value"] == pytest.approx(0.01) and row["chain_mean_rel"] == pytest.approx(0.03)
+    means = np.array([1.01, 1.03, 1.05])
+    assert row["chain_rel_sd"] == pytest.approx(means.std(ddof=1) / means.mean())
+    exact = table[(table["candidate"] == "exact") & (table["quantity"] == "mean_run")].iloc[0]
+    assert np.isnan(exact["chain_rel_sd"])  # only the abstractions are repeated
+    summary = fidelity.summarise(table, three)
+    text = "".join(body for _, body in fidelity.report_sections(table, summary, three))
+    assert "fidelity.chain_repeats=3" in text and "(runs +3.0 % +- 1.9 % sd)" in text
