@@ -15,7 +15,11 @@ rows of every step's random numbers in the layout a standalone run would use. So
 sees the same random numbers as the same run simulated alone; eager CPU kernels are
 elementwise per cell, which makes an eager batched replicate bit-for-bit the standalone run
 (tested), while compiled kernels may round the last bits of a few cells differently (a
-vectorised body and a scalar tail), which leaves it identical in distribution.
+vectorised body and a scalar tail), which leaves it identical in distribution. Where a layer
+is not fusable (the hidden phases), the batch steps eagerly, one layer per replicate, each on
+its replicate's generator: a replicate's draws then depend on its seed and the batch's
+fusability, not on which other replicates run beside it (a fusable layer in such a batch
+steps eagerly too, so it is its standalone run in distribution, not bit for bit).
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from surrogate.models.base import Model, Randoms
 from surrogate.models.capabilities import concat_states_of, histogram_grids_of
 from surrogate.simulate.coupling import positions_of
 from surrogate.simulate.decision import AbstractDecision, DecisionLayer, is_fusable
-from surrogate.simulate.decision_batch import DecisionBatch
+from surrogate.simulate.decision_batch import DecisionBatch, global_state, own_stream
 from surrogate.simulate.loop import PopulationState, RandomBlock, Simulator
 from surrogate.simulate.population import PopulationSummary, steps_between
 from surrogate.simulate.profiles import ProfileRecorder
@@ -141,8 +145,12 @@ class BatchSimulator(Simulator):
             # read now: a layer object serving several replicates holds only the last one's
             layer_states.append(rep.decision.fused_state())
             gen = torch.Generator(device=self.device)
-            gen.set_state(_global_state(self.device))
+            gen.set_state(global_state(self.device))
             self.generators.append(gen)
+        if not is_fusable(self.decision):
+            # eager layers draw from the global generator: each from its replicate's own
+            # (one replicate per layer, _decision_blocks)
+            self.decision.generators = [self.generators[g[0]] for g in self.groups]
         internal = self.model.internal
         for member, group in zip(self.decision.members, self.groups, strict=True):
             parts = [layer_states[i] for i in group]
@@ -225,14 +233,8 @@ class BatchSimulator(Simulator):
         the body), taken from the replicate's generator by swapping states around the call."""
         if self.body.sample_extra(0, self.device) is None:
             return None
-        saved = _global_state(self.device)
-        _set_global_state(self.device, gen.get_state())
-        try:
-            extra = self.body.sample_extra(m, self.device)
-            gen.set_state(_global_state(self.device))
-        finally:
-            _set_global_state(self.device, saved)
-        return extra
+        with own_stream(gen, self.device):
+            return self.body.sample_extra(m, self.device)
 
 
 def _own_coupled_fields(replicates: Sequence[Replicate]) -> list[Replicate]:
@@ -266,20 +268,25 @@ def _decision_blocks(
 ) -> tuple[list[list[int]], list[DecisionLayer]]:
     """The batch's decision blocks: (replicate indices, decision layer) per block.
 
-    Consecutive interchangeable layers share one block (:func:`_groups`); then consecutive
+    Where any layer is not fusable (the batch steps eagerly), every replicate is its own
+    block. Else consecutive interchangeable layers share one block (:func:`_groups`); then consecutive
     blocks of two-state chains over lookup tables of one shape and the same features (e.g.
     the learned abstraction and the exact-psi chain) are stacked into one layer over a
     :class:`~surrogate.gp.lookup.StackedPsiLookup`: one featurisation and one interpolation
     per step for all of them, with the same numbers as separate blocks.
     """
-    groups = _groups([r.decision for r in replicates])
+    decisions = [r.decision for r in replicates]
+    eager = not all(is_fusable(d) for d in decisions)
+    # eager (a layer not fusable): one layer per replicate, each on its replicate's generator
+    # (merged, several replicates' draws would share one stream)
+    groups = [[i] for i in range(len(replicates))] if eager else _groups(decisions)
     members = [replicates[g[0]].decision for g in groups]
     merged_groups: list[list[int]] = []
     merged: list[DecisionLayer] = []
     k = 0
     while k < len(groups):
         end = k + 1
-        while end < len(groups) and _stackable(members[k], members[end]):
+        while end < len(groups) and not eager and _stackable(members[k], members[end]):
             end += 1
         if end - k == 1:
             merged_groups.append(groups[k])
@@ -350,19 +357,6 @@ def _offsets(sizes: Sequence[int]) -> list[int]:
         out.append(acc)
         acc += n
     return out
-
-
-def _global_state(device: torch.device) -> Tensor:
-    if device.type == "cuda":
-        return torch.cuda.get_rng_state(device)
-    return torch.random.get_rng_state()
-
-
-def _set_global_state(device: torch.device, state: Tensor) -> None:
-    if device.type == "cuda":
-        torch.cuda.set_rng_state(state, device)
-    else:
-        torch.random.set_rng_state(state)
 
 
 def simulate_batch(

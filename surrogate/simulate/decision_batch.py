@@ -7,13 +7,42 @@ the loop imports the packer.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import Tensor
 
 from surrogate.models.base import InternalState, Randoms
 from surrogate.simulate.decision import DecisionLayer, is_fusable
+
+
+def global_state(device: torch.device) -> Tensor:
+    """The global generator's state on ``device``'s type (CPU or CUDA)."""
+    if device.type == "cuda":
+        return torch.cuda.get_rng_state(device)
+    return torch.random.get_rng_state()
+
+
+def set_global_state(device: torch.device, state: Tensor) -> None:
+    """Set the global generator's state on ``device``'s type."""
+    if device.type == "cuda":
+        torch.cuda.set_rng_state(state, device)
+    else:
+        torch.random.set_rng_state(state)
+
+
+@contextlib.contextmanager
+def own_stream(gen: torch.Generator, device: torch.device) -> Iterator[None]:
+    """Code that draws from the global generator draws from ``gen`` instead (its state
+    swapped in, and back out with what was drawn)."""
+    saved = global_state(device)
+    set_global_state(device, gen.get_state())
+    try:
+        yield
+        gen.set_state(global_state(device))
+    finally:
+        set_global_state(device, saved)
 
 
 class DecisionBatch:
@@ -37,6 +66,10 @@ class DecisionBatch:
             max(r.uniform for r in rs), max(r.uniform64 for r in rs), max(r.normal for r in rs)
         )
         self._state_lengths: list[int] = []
+        #: one generator per member where each member decides one replicate's cells and the
+        #: batch is not fusable (set by the batch simulator): its eager step draws from its
+        #: replicate's own stream, so a replicate's draws do not depend on the batch
+        self.generators: list[torch.Generator] | None = None
 
     @property
     def internal(self):
@@ -53,9 +86,16 @@ class DecisionBatch:
         )
 
     def step(self, phi: Tensor, x: Tensor, dt: float) -> Tensor:
-        """Each member's eager window on its block."""
+        """Each member's eager window on its block (on its replicate's generator, where
+        :attr:`generators` is set)."""
         blocks = zip(self.members, self._split(phi), self._split(x), strict=True)
-        return torch.cat([m.step(p, b, dt) for m, p, b in blocks])
+        if self.generators is None:
+            return torch.cat([m.step(p, b, dt) for m, p, b in blocks])
+        out = []
+        for (m, p, b), gen in zip(blocks, self.generators, strict=True):
+            with own_stream(gen, p.device):
+                out.append(m.step(p, b, dt))
+        return torch.cat(out)
 
     def fused_state(self) -> InternalState:
         """The members' states, one after the other."""

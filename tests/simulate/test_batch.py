@@ -19,6 +19,7 @@ from surrogate.gp import PsiLookupTable, StackedPsiLookup
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import AbstractDecision, ExactDecision, FullDecision, Simulator
 from surrogate.simulate.batch import BatchSimulator, DecisionBatch, Replicate
+from surrogate.simulate.memory import AGE, MemoryDecision
 
 MODEL = EcoliModel()
 DT = 0.05
@@ -81,6 +82,63 @@ def test_eager_replicates_are_their_standalone_runs_bit_for_bit(spec) -> None:
             assert torch.equal(state.body[key][cells], alone[i].body[key]), (i, key)
         assert torch.equal(state.phi[cells], alone[i].phi)
         assert torch.equal(state.segment_steps[cells], alone[i].segment_steps)
+
+
+class _Eager(AbstractDecision):
+    """The abstract layer with its fused step switched off: it steps eagerly, drawing from
+    the global generator (as every layer does in a batch with a network whose full model is
+    not fusable)."""
+
+    fusable = False
+
+
+class _EagerClock(MemoryDecision):
+    """A switch clock (a per-cell state) stepped eagerly."""
+
+    fusable = False
+
+
+def _clock() -> _EagerClock:
+    table = PsiLookupTable.from_function(
+        lambda phi, z: torch.sigmoid(z[:, 0] - 2.0 * z[:, 1] - phi.float()),
+        [(-3.0, 10.0), (0.0, 2.0)], ("dG", AGE), (64, 9))  # fmt: skip
+    return _EagerClock(table, MODEL.internal, MODEL.featurizer(["dG"]), max_age=2.0)
+
+
+@pytest.mark.parametrize("kind", ["two-state", "clock"])
+def test_eager_layers_draw_from_their_replicates_own_streams(kind: str) -> None:
+    """A batch that is not fusable steps each layer eagerly: each draws from its replicate's
+    own generator, so a replicate is its standalone run bit for bit whatever runs beside it
+    (before, every layer drew from the one global stream: a chain's run moved when repeats
+    of it joined the batch)."""
+    spec = [(GaussianField(), 80, 7), (LinearField(), 60, 8), (GaussianField(), 70, 9)]
+
+    def layer() -> AbstractDecision:
+        if kind == "clock":  # its clocks: one per cell, each replicate's its own
+            return _clock()
+        return _Eager(_table(), MODEL.internal, MODEL.featurizer(["dG"]))
+
+    alone = []
+    for field, n, seed in spec:
+        torch.manual_seed(seed)
+        sim = Simulator(MODEL, layer(), field, DT)
+        state = sim.initial_state(n, (2.0, 0.0), equilibration_time=1.0)
+        for _ in range(150):
+            sim.step(state)
+        alone.append(state)
+    shared = layer()  # one layer object for several replicates (a chain's repeats) too
+    for picked, make in (([0, 1, 2], layer), ([2, 0], layer), ([1], layer),
+                         ([0, 2], lambda: shared)):  # fmt: skip
+        batch = BatchSimulator(MODEL, [Replicate(make(), *spec[i]) for i in picked], DT)
+        assert batch.groups == [[k] for k in range(len(picked))]  # one layer per replicate
+        state = batch.initial_state(equilibration_time=1.0)
+        assert batch.decision.generators is not None  # one per layer, each its replicate's
+        torch.manual_seed(99)
+        for _ in range(150):
+            batch.step(state)
+        for cells, i in zip(batch.slices, picked, strict=True):
+            assert torch.equal(state.phi[cells], alone[i].phi), (picked, i)
+            assert torch.equal(state.body["position"][cells], alone[i].body["position"])
 
 
 def test_field_and_decision_batches_split_by_block() -> None:
