@@ -16,7 +16,8 @@ sees the same random numbers as the same run simulated alone; eager CPU kernels 
 elementwise per cell, which makes an eager batched replicate bit-for-bit the standalone run
 (tested), while compiled kernels may round the last bits of a few cells differently (a
 vectorised body and a scalar tail), which leaves it identical in distribution. Where a layer
-is not fusable (the hidden phases), the batch steps eagerly, one layer per replicate, each on
+is not fusable (a network's full model stepped eagerly), the batch steps eagerly, one layer
+per replicate, each on
 its replicate's generator: a replicate's draws then depend on its seed and the batch's
 fusability, not on which other replicates run beside it (a fusable layer in such a batch
 steps eagerly too, so it is its standalone run in distribution, not bit for bit).
