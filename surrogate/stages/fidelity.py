@@ -526,14 +526,19 @@ def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.Da
         full, repeat = results[f"full|{name}"], results[f"full_repeat|{name}"]
         for cand in candidates:
             run = results[f"{cand}|{name}"]
+            again = [results[k] for k in results if k.startswith(f"{cand}|{name}|{REPEAT}")]
             for t in settings.times:
                 ks = float(stats.ks_2samp(run.observables[t], full.observables[t]).statistic)
                 floor = float(stats.ks_2samp(repeat.observables[t], full.observables[t]).statistic)
                 limit = float(noise_threshold(floor, crit, factor, ks_max))
-                rows.append({"field": name, "candidate": cand, "quantity": f"distance_t{t:g}",
-                             "value": ks, "noise_floor": floor, "threshold": limit,
-                             "passed": ks <= limit})  # fmt: skip
-            again = [results[k] for k in results if k.startswith(f"{cand}|{name}|{REPEAT}")]
+                row = {"field": name, "candidate": cand, "quantity": f"distance_t{t:g}",
+                       "value": ks, "noise_floor": floor, "threshold": limit,
+                       "passed": ks <= limit}  # fmt: skip
+                if again:  # fidelity.chain_repeats: the share of the chain's runs that pass
+                    others = [float(stats.ks_2samp(r.observables[t], full.observables[t]).statistic)
+                              for r in again]  # fmt: skip
+                    row["chain_pass_share"] = float(np.mean([v <= limit for v in (ks, *others)]))
+                rows.append(row)
             for p in (1, 0):
                 kind = lumps[p]
                 rel = run.mean_durations[kind] / full.mean_durations[kind] - 1.0
@@ -599,8 +604,10 @@ def report_sections(
             q = r["quantity"]
             mark = "" if r["passed"] else " ✗"
             if q.startswith(f"{name}_t"):
+                share = (f" (runs pass {100 * r['chain_pass_share']:.0f} %)"
+                         if pd.notna(r.get("chain_pass_share", np.nan)) else "")  # fmt: skip
                 row[q.replace(f"{name}_", "KS ")] = (
-                    f"{r['value']:.3f} ({r['noise_floor']:.3f}){mark}"
+                    f"{r['value']:.3f} ({r['noise_floor']:.3f}){mark}{share}"
                 )
             else:
                 spread = (f" (runs {100 * r['chain_mean_rel']:+.1f} % +- "
@@ -625,8 +632,8 @@ def report_sections(
         "from the full model's transitions can pass checks it fails)."
         + (
             f" With `fidelity.chain_repeats={o['chain_repeats']}`, each abstraction ran that "
-            f"many times per field from other seeds: `runs` gives its means' average error and "
-            f"their sd from one run to the next (the check reads the first run; the full "
+            f"many times per field from other seeds: `runs` gives the share of its runs that "
+            f"pass each KS check, and its means' average error and their sd from one run to the next (the check reads the first run; the full "
             f"model's own run has a spread of its own)."
             if int(o.get("chain_repeats", 1)) > 1
             else ""

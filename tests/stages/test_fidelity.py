@@ -168,6 +168,19 @@ def test_chain_repeats_give_the_means_spread_and_their_own_identity(compose_cfg)
     assert row["chain_rel_sd"] == pytest.approx(means.std(ddof=1) / means.mean())
     exact = table[(table["candidate"] == "exact") & (table["quantity"] == "mean_run")].iloc[0]
     assert np.isnan(exact["chain_rel_sd"])  # only the abstractions are repeated
+    # each KS row: the share of the chain's runs within that row's limit
+    from scipy import stats
+
+    runs = [results[f"{candidate.label}|gaussian"],
+            *(results[f"{candidate.label}|gaussian|{fidelity.REPEAT}{r}"] for r in (1, 2))]  # fmt: skip
+    for t in three.times:
+        ks_row = table[(table["candidate"] == candidate.label)
+                       & (table["quantity"] == f"distance_t{t:g}")].iloc[0]  # fmt: skip
+        full = results["full|gaussian"].observables[t]
+        passing = [stats.ks_2samp(r.observables[t], full).statistic <= ks_row["threshold"]
+                   for r in runs]  # fmt: skip
+        assert ks_row["chain_pass_share"] == pytest.approx(np.mean(passing))
     summary = fidelity.summarise(table, three)
     text = "".join(body for _, body in fidelity.report_sections(table, summary, three))
     assert "fidelity.chain_repeats=3" in text and "(runs +3.0 % +- 1.9 % sd)" in text
+    assert "(runs pass " in text
