@@ -633,8 +633,9 @@ def report_sections(
         + (
             f" With `fidelity.chain_repeats={o['chain_repeats']}`, each abstraction ran that "
             f"many times per field from other seeds: `runs` gives the share of its runs that "
-            f"pass each KS check, and its means' average error and their sd from one run to the next (the check reads the first run; the full "
-            f"model's own run has a spread of its own)."
+            f"pass each KS check, and its means' average error and their sd from one run to "
+            f"the next (the check reads the first run; the full model's own run has a spread "
+            f"of its own)."
             if int(o.get("chain_repeats", 1)) > 1
             else ""
         )
