@@ -10,14 +10,13 @@ from __future__ import annotations
 
 from surrogate.gp.figures import (
     binned_frequencies,
-    last_tenth_drop,
     plot_psi,
     plot_training_history,
     psi_grid_frame,
 )
 from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.lookup import PsiFunction, PsiLookupTable, StackedPsiLookup
-from surrogate.gp.metrics import classification_metrics
+from surrogate.gp.metrics import classification_metrics, last_tenth_drop
 from surrogate.gp.model import KERNELS, PsiGP, make_kernel
 from surrogate.gp.predictor import PsiClassifier, data_domain, fit_psi, load_psi, save_psi
 from surrogate.gp.settings import GPSettings

@@ -227,23 +227,8 @@ def plot_training_history(histories: dict[str, Sequence[float]]) -> Figure:
     return fig
 
 
-def last_tenth_drop(history: Sequence[float]) -> float | None:
-    """How far the loss (per point) fell over the last tenth of its steps: near zero where
-    the fit has flattened; None for fewer than ten steps.
-
-    Example:
-        >>> last_tenth_drop([1.0] * 5 + [0.5] * 4 + [0.4])
-        0.09999999999999998
-    """
-    n = len(history)
-    if n < 10:
-        return None
-    return float(history[n - 1 - n // 10]) - float(history[-1])
-
-
 __all__ = [
     "binned_frequencies",
-    "last_tenth_drop",
     "plot_psi",
     "plot_training_history",
     "psi_grid_frame",

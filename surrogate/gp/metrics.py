@@ -1,8 +1,10 @@
-"""Scores for probabilistic binary classifiers, returned as JSON-able plain Python values."""
+"""Scores for probabilistic binary classifiers and their fits, returned as JSON-able plain
+Python values."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -99,4 +101,18 @@ def classification_metrics(
     }
 
 
-__all__ = ["classification_metrics"]
+def last_tenth_drop(history: Sequence[float]) -> float | None:
+    """How far the loss (per point) fell over the last tenth of its steps: near zero where
+    the fit has flattened; None for fewer than ten steps.
+
+    Example:
+        >>> last_tenth_drop([1.0] * 5 + [0.5] * 4 + [0.4])
+        0.09999999999999998
+    """
+    n = len(history)
+    if n < 10:
+        return None
+    return float(history[n - 1 - n // 10]) - float(history[-1])
+
+
+__all__ = ["classification_metrics", "last_tenth_drop"]
