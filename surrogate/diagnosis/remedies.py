@@ -216,6 +216,12 @@ RELAXING_CANDIDATE = "classes relaxation"
 RELAXING_OVERRIDES = ("gp=classes", "gp.class_moves=relaxation")
 
 
+def nameable(name: str, row: Mapping[str, Any] | None = None) -> bool:
+    """Whether candidate ``name`` can be trained outright from its record: a log clock only
+    with its row's recorded overrides (its knee and bins are not in its name)."""
+    return bool(row is not None and row.get("overrides")) or not name.startswith(LOG_CLOCK)
+
+
 def candidate_overrides(name: str, row: Mapping[str, Any] | None = None) -> tuple[str, ...]:
     """The overrides that train candidate ``name`` outright, without the choice: those its
     row of the choice's table records (``overrides``: every gp key it was made with, a log
@@ -229,7 +235,7 @@ def candidate_overrides(name: str, row: Mapping[str, Any] | None = None) -> tupl
     """
     if row is not None and row.get("overrides"):
         return tuple(str(row["overrides"]).split())
-    if name.startswith(LOG_CLOCK):
+    if not nameable(name, row):
         raise ValueError(f"candidate {name!r}: its knee and bins are in its row's overrides, "
                          f"which this record lacks")  # fmt: skip
     cap = candidate_cap(name)
@@ -319,8 +325,7 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
                          "sharpens, and with it the choice."))  # fmt: skip
     if chosen is not None:
         more = [r for k, r in rows.items() if k != choice.chosen and _holds_more_memory(r, chosen)]
-        # a log clock from a record without rows' overrides cannot be named: not offered
-        more = [r for r in more if r.get("overrides") or not str(r["kind"]).startswith(LOG_CLOCK)]
+        more = [r for r in more if nameable(str(r["kind"]), r)]
         runner = max(more, key=lambda r: (bool(r.get("holds_durations")),
                                           float(r["log_likelihood_per_window"])), default=None)  # fmt: skip
         if runner is not None:
