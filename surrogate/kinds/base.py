@@ -29,7 +29,7 @@ from surrogate.kinds.files import PSI
 from surrogate.kinds.layers import abstract_decision, exact_decision
 from surrogate.models.base import Model
 from surrogate.simulate.classes import STARTS
-from surrogate.simulate.decision import DecisionLayer
+from surrogate.simulate.decision import AbstractDecision, DecisionLayer
 
 #: gp.lumps=auto (conf/gp/auto.yaml, the default): the best measured chain for the model, as
 #: these shipped recipes: the first where the model declares classes finer than phi, else the second
@@ -384,8 +384,13 @@ class ChainKind:
     def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
         """Put ``layer`` where sequences that start in ``phi0`` (``(n,)``) at the inputs ``x0``
         (``n x d``) begin, before it is stepped from ``phi0`` (the measured choice's simulated
-        durations): its own start (a clock starts settled, as it does in a run)."""
-        layer.initialize(x0)
+        durations): its own start (a clock starts settled, as it does in a run), without
+        the internal model's draw of phi where the layer can skip it
+        (:meth:`AbstractDecision.start_at`)."""
+        if isinstance(layer, AbstractDecision):
+            layer.start_at(x0, phi0)
+        else:
+            layer.initialize(x0)
 
     def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
         """The chain driven by the model's exact law (decision=exact, checked by

@@ -178,6 +178,12 @@ class AbstractDecision:
         """phi of an internal state drawn from its stationary law at each cell's inputs."""
         return self.internal.phi(self.internal.initial_state(x)) > 0
 
+    def start_at(self, x: Tensor, phi: Tensor) -> None:
+        """Start cells whose first phi (``(n,)``) is given, at inputs ``x`` (``n x d``), as
+        :meth:`initialize` would but without drawing phi: no internal state is made (a full
+        model's burn-in can cost minutes: the auto-regulatory network's is 4,000 s a cell).
+        The chain carries nothing of its own."""
+
     def step(self, phi: Tensor, x: Tensor, dt: float) -> Tensor:
         """One Bernoulli draw per cell."""
         p = self.probability(phi, x)

@@ -214,8 +214,12 @@ class MemoryDecision(StatefulDecision, AbstractDecision):
 
     def initialize(self, x: Tensor) -> Tensor:
         """phi from the internal model's stationary law; clocks settled."""
-        self.age = torch.full((x.shape[0],), SETTLED, dtype=torch.float32, device=x.device)
+        self.start_at(x, torch.zeros(x.shape[0], device=x.device))
         return super().initialize(x)
+
+    def start_at(self, x: Tensor, phi: Tensor) -> None:
+        """Clocks settled, as :meth:`initialize` starts them (phi given, not drawn)."""
+        self.age = torch.full((x.shape[0],), SETTLED, dtype=torch.float32, device=x.device)
 
     def _eager_step(
         self, phi: Tensor, x: Tensor, dt: float, carried: Tensor

@@ -33,7 +33,7 @@ from surrogate.kinds.scoring import (
 )
 from surrogate.simulate.classes import ClassDecision, ClassTable
 from surrogate.simulate.decision import AbstractDecision
-from surrogate.simulate.memory import MemoryDecision
+from surrogate.simulate.memory import SETTLED, MemoryDecision
 from surrogate.simulate.phases import PhaseDecision
 from surrogate.simulate.sequences import phi_sequences
 
@@ -390,3 +390,25 @@ def test_a_nan_log_likelihood_is_refused_by_the_choice() -> None:
     with pytest.raises(ValueError, match=r"\['broken'\] have a NaN held-out log-likelihood"):
         choose([nan, good])
     assert choose([good]).chosen == "good"  # without it, the choice stands
+
+
+class CostlyInternal(Internal):
+    """An internal model whose stationary draw must not run: a full model's burn-in (the
+    auto-regulatory network's is 4,000 s a cell, minutes for a held-out run's cells)."""
+
+    def initial_state(self, x: Tensor) -> Tensor:
+        raise AssertionError("the held-out scoring drew phi from the internal model")
+
+
+def test_simulated_durations_start_from_the_observed_phi_without_the_internal_model() -> None:
+    """Sequences given their first phi: the two-state chain and the clock start without the
+    internal model's draw (the phi it gives is not used), the clock settled as in a run."""
+    x, phi = telegraph(50, 40, erlang=2, seed=4)
+    inputs, observed = torch.tensor(x, dtype=torch.float32), torch.tensor(phi).float()
+    two = AbstractDecision(binned(x, phi, clock=False), CostlyInternal())
+    clock = MemoryDecision(binned(x, phi, clock=True), CostlyInternal(), max_age=CAP * DT)
+    for name, kind, layer in (("two-state", TWO_STATE, two), ("clock", CLOCK, clock)):
+        score = score_kind(name, kind, layer, inputs, observed, DT, ("off", "on"), seed=3)
+        assert math.isfinite(score.log_likelihood)
+    CLOCK.start_sequences(clock, inputs[:, 0], observed[:, 0])
+    assert clock.age is not None and bool((clock.age == SETTLED).all())
