@@ -634,8 +634,9 @@ def report_sections(
             f" With `fidelity.chain_repeats={o['chain_repeats']}`, each abstraction ran that "
             f"many times per field from other seeds: `runs` gives the share of its runs that "
             f"pass each KS check, and its means' average error and their sd from one run to "
-            f"the next (the check reads the first run; the full model's own run has a spread "
-            f"of its own)."
+            f"the next (the check reads the first run). Every run is compared with the one "
+            f"full-model run, so the shares carry that run's own draw too; another "
+            f"`fidelity.sim_seed` draws the whole check again (full model, floor and chains)."
             if int(o.get("chain_repeats", 1)) > 1
             else ""
         )
