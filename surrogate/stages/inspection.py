@@ -80,7 +80,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -338,20 +338,33 @@ def check_printed(
     return refusals
 
 
+def burn_in_overrides(burn: Mapping[str, Any], yaml_model: bool) -> list[str]:
+    """The burn-in the report advises as an override (``++model.burn_in=480``): where the
+    model's is too short, the model is a yaml (its keys can be given so) and the checks did
+    not refuse it (:func:`check_printed`); else none."""
+    if not (yaml_model and burn.get("applies") and burn.get("enough") is False) \
+            or burn.get("refused"):  # fmt: skip
+        return []
+    return [f"++model.burn_in={burn['needed_s']:g}"]
+
+
 def next_command(
     config: Mapping[str, Any],
     setup_overrides: list[str],
     advice: Mapping[str, Any],
     collection: Mapping[str, Any],
+    burn_in: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The run the report advises next: ``scripts/reproduce.py`` with the inspected model,
-    field, step and seed (``setup_overrides``), the first collection it advises (with the
-    blackout collect advised where the pilot's rows lagged a jump) and the pilot's
-    gp overrides (refused ones are not printed), checked as one command; where the stages'
-    checks refuse the combination, the collection is left out, then the gp overrides too
+    field, step and seed (``setup_overrides``), the burn-in it advises (``burn_in``,
+    :func:`burn_in_overrides`), the first collection it advises (with the blackout collect
+    advised where the pilot's rows lagged a jump) and the pilot's gp overrides (refused ones
+    are not printed), checked as one command; where the stages' checks refuse the
+    combination, the burn-in and collection are left out, then the gp overrides too
     (``dropped``: what was left out and why)."""
-    # the collection's size, and where the pilot's rows lagged a jump, its blackout
-    collect = [*(collection.get("advised") or [[]])[0], *(advice.get("blackout") or [])]
+    # the burn-in, the collection's size, and where the pilot's rows lagged a jump, its blackout
+    collect = [*burn_in, *(collection.get("advised") or [[]])[0],
+               *(advice.get("blackout") or [])]  # fmt: skip
     gp = (
         list(advice.get("overrides") or [])
         if advice.get("kind") and not advice.get("refused")
@@ -412,9 +425,10 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
         advice["signal_bounds"] = bounds
     balanced = balanced_threshold(internal, fixed)
     checked_against = config if config is not None else settings.config
-    refused = check_printed(checked_against, advice, burn, collection,
-                            "spec" in (settings.config.get("model") or {}), balanced)  # fmt: skip
-    advice["next"] = next_command(checked_against, settings.setup.overrides(), advice, collection)
+    yaml_model = "spec" in (settings.config.get("model") or {})
+    refused = check_printed(checked_against, advice, burn, collection, yaml_model, balanced)
+    advice["next"] = next_command(checked_against, settings.setup.overrides(), advice, collection,
+                                  burn_in_overrides(burn, yaml_model))  # fmt: skip
     lump = lump_formula_of(internal) or "the model's own property"
     summary: dict[str, Any] = {
         "model": model.describe(), "command": settings.command(), "lump": lump,
@@ -527,10 +541,12 @@ def _refusal(summary: dict[str, Any], grid: Grid, fixed: FixedInputs) -> str:
 
 __all__ = [
     "POPULATION_BUDGET",
+    "burn_in_overrides",
     "check_printed",
     "collection_budget",
     "cost_probe",
     "inspect",
+    "next_command",
     "run",
     "runs_of",
     "stage_costs",

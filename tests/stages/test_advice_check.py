@@ -624,6 +624,26 @@ def test_the_next_command_the_inspector_prints_runs_and_drops_what_is_refused(co
     assert out["command"].split()[2:] == [*setup, "collect.n_per_state=690280", *BLACKOUT,
                                           "gp.choice.by=measure"]  # fmt: skip
     assert check_advice(config, out["command"].split()[2:]) is None
+    # a burn-in the report calls too short is in the command, checked with the rest
+    from surrogate.stages.inspection import burn_in_overrides
+
+    short = {"applies": True, "enough": False, "needed_s": 480.0}
+    burn = burn_in_overrides(short, yaml_model=True)
+    assert burn == ["++model.burn_in=480"]
+    out = next_command(config, setup, advice, {"advised": [["collect.n_per_state=690280"]]}, burn)
+    assert out["command"].split()[2:] == [*setup, *burn, "collect.n_per_state=690280",
+                                          "gp.choice.by=measure"]  # fmt: skip
+    assert check_advice(config, out["command"].split()[2:]) is None
+    rebuilt = apply_overrides(config, out["command"].split()[2:])
+    assert rebuilt["model"]["burn_in"] == 480
+    # not where it is enough, refused, or the model is no yaml
+    assert burn_in_overrides({**short, "enough": True}, yaml_model=True) == []
+    assert burn_in_overrides({**short, "refused": "no"}, yaml_model=True) == []
+    assert burn_in_overrides(short, yaml_model=False) == []
+    # a burn-in the stages refuse is dropped with the collection, and named
+    bad = next_command(config, setup, advice, {}, ["++model.burn_in=-1"])
+    assert bad["command"].split()[2:] == [*setup, "gp.choice.by=measure"]
+    assert bad["dropped"][0].startswith("++model.burn_in=-1 gp.choice.by=measure: ")
 
 
 @pytest.mark.parametrize("model", ["sbml", "ecoli"])
