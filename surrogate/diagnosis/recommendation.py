@@ -23,15 +23,24 @@ from surrogate.models.network import NetworkInternalModel
 def collection_overrides(collection: Mapping[str, Any]) -> list[list[str]]:
     """The collection advice (:func:`collection_budget`) as override sets: the rows per origin,
     with the longer run or (else) the more cells it needs where ``collect.max_time`` is too
-    short; empty where nothing is advised."""
+    short; first, where offered (``dense``), the same with every window recorded
+    (``collect.record_every=1``); empty where nothing is advised."""
     if not collection.get("recommended_n_per_state"):
         return []
     rows = f"collect.n_per_state={collection['recommended_n_per_state']}"
-    if "max_time_needed" not in collection:
-        return [[rows]]
-    out = [[rows, f"collect.max_time={collection['max_time_needed']:g}"]]
-    if "n_cells_needed" in collection:
-        out.append([rows, f"collect.n_cells={collection['n_cells_needed']}"])
+    dense = collection.get("dense")
+    out = [[rows, "collect.record_every=1", *extra] for extra in _longer(dense)] if dense else []
+    return out + [[rows, *extra] for extra in _longer(collection)]
+
+
+def _longer(timing: Mapping[str, Any]) -> list[list[str]]:
+    """The settings that give a collection's rows in time: none where ``collect.max_time``
+    suffices, else the longer run, then (where it can) more cells."""
+    if "max_time_needed" not in timing:
+        return [[]]
+    out = [[f"collect.max_time={timing['max_time_needed']:g}"]]
+    if "n_cells_needed" in timing:
+        out.append([f"collect.n_cells={timing['n_cells_needed']}"])
     return out
 
 

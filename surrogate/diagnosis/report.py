@@ -345,6 +345,17 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
                      f"{max(col['rows_needed']):.3g} rows per origin: {more} (now "
                      f"{col['n_per_state']}), ~{col['cost_s']:.3g} s at the measured events; "
                      f"{timing}.")  # fmt: skip
+        dense = col.get("dense")
+        if dense and advised and "collect.record_every=1" in advised[0]:
+            longer = [
+                o for o in advised[0] if o.startswith(("collect.max_time", "collect.n_cells"))
+            ]
+            lines.append(f"- Recording every window (`collect.record_every=1`, now every "
+                         f"{col['record_every']}th) gives the same rows, so the same switches, "
+                         f"from ~{max(dense['seconds_needed']):.3g} s of simulated time"
+                         + (f" (`{' '.join(longer)}`)" if longer else "")
+                         + f", ~{dense['cost_s']:.3g} s at the measured events: the collection "
+                         f"advised first (its rows are closer together in their inputs).")  # fmt: skip
     a, pilot = summary["recommendation"], summary.get("pilot") or {}
     lines += ["", "## The chain kind, measured", ""]
     lines.append(f"- Memory (the hazard of leaving phi against the time since it changed, at "

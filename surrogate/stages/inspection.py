@@ -243,6 +243,11 @@ def stage_costs(settings: InspectSettings, measured_step: float) -> dict[str, An
     return {"rows": list(rows.values()), "note": ""}
 
 
+#: the simulation (s, at the measured events) recording every window must save before the
+#: inspector advises it over collect's thinning (``collect.record_every=1``)
+DENSE_SAVING_S = 300.0
+
+
 def collection_budget(
     settings: InspectSettings,
     options: InspectOptions,
@@ -252,12 +257,18 @@ def collection_budget(
 ) -> dict[str, Any]:
     """The rows per origin that give ``inspect.min_switches`` switches from each origin at the
     switching probability per window measured at the median inputs, what collecting them
-    costs, and the simulated time it takes at the population's occupancy of each lump."""
+    costs, and the simulated time it takes at the population's occupancy of each lump.
+
+    Where collect thins its rows (``record_every`` k > 1) and recording every window would
+    save more than :data:`DENSE_SAVING_S` of simulation, that is offered first (``dense``):
+    the same rows, so the same switches, from 1/k of the simulated time (each window is one
+    Bernoulli draw of psi whether or not its neighbours are kept; what thinning buys is rows
+    spread over more of the inputs, which a slow-switching lump pays k times for)."""
     o = options
     source = _collect_source(settings)
     if source is None:
         return {}
-    c, dt = source.options, settings.setup.dt
+    c = source.options
     needed = [math.ceil(o.min_switches / p) if p > 0 else math.inf for p in fixed.switch]
     rows = max(needed)
     out: dict[str, Any] = {"switch_per_window": fixed.switch.tolist(), "rows_needed": needed,
@@ -265,15 +276,39 @@ def collection_budget(
     if not math.isfinite(rows):
         return out
     out["recommended_n_per_state"] = max(int(rows), int(c["n_per_state"]))
-    more = replace(source, options={**c, "n_per_state": out["recommended_n_per_state"]})
+    out.update(_collection_time(settings, source, population, measured_step,
+                                out["recommended_n_per_state"], int(c["record_every"])))  # fmt: skip
+    if int(c["record_every"]) > 1:
+        dense = _collection_time(settings, source, population, measured_step,
+                                 out["recommended_n_per_state"], 1)  # fmt: skip
+        if out["cost_s"] - dense["cost_s"] > DENSE_SAVING_S:
+            out["dense"] = dense
+    return out
+
+
+def _collection_time(
+    settings: InspectSettings,
+    source: Any,
+    population: Population,
+    measured_step: float,
+    n_per_state: int,
+    record_every: int,
+) -> dict[str, Any]:
+    """The cost (s at the measured events) and simulated time of collecting ``n_per_state``
+    rows per origin, one every ``record_every`` windows; the longer run or more cells it
+    needs where ``collect.max_time`` is too short."""
+    c, dt = source.options, settings.setup.dt
+    more = replace(source, options={**c, "n_per_state": n_per_state, "record_every": record_every})
     work = budget.collect_work(more, reuse=False)
-    out["cost_s"] = sum(replace(w, cell_step_seconds=measured_step).seconds for w in work)
+    out: dict[str, Any] = {"record_every": record_every,
+                           "cost_s": sum(replace(w, cell_step_seconds=measured_step).seconds
+                                         for w in work)}  # fmt: skip
     field = settings.setup.field_name
     share1 = population.fields.get(field, next(iter(population.fields.values())))["phi_share"]
     times = []
     for share in (1.0 - share1, share1):
-        rate = int(c["n_cells"]) * share / (int(c["record_every"]) * dt)  # rows per second
-        times.append(float(c["equilibration_time"]) + out["recommended_n_per_state"] / rate
+        rate = int(c["n_cells"]) * share / (record_every * dt)  # rows per second
+        times.append(float(c["equilibration_time"]) + n_per_state / rate
                      if rate > 0 else math.inf)  # fmt: skip
     out["seconds_needed"] = times
     out["max_time"] = float(c["max_time"])

@@ -353,6 +353,25 @@ def test_collection_advice_names_the_run_it_needs_and_it_runs(config) -> None:
     burn = {"applies": True, "enough": False, "needed_s": 30.0}
     assert inspection.check_printed(config, advice, burn, collection, True) == []
     assert collection["advised"] == sets and "refused" not in advice
+    # every window recorded (collect.record_every=1) where it saves simulation: offered
+    # first, with the longer run it needs in its turn
+    dense = {
+        **collection,
+        "dense": {
+            "record_every": 1,
+            "cost_s": 60.0,
+            "max_time": 200.0,
+            "seconds_needed": [300.0, 150.0],
+            "max_time_needed": 300.0,
+        },
+    }
+    assert recommendation.collection_overrides(dense) == [
+        ["collect.n_per_state=5000", "collect.record_every=1", "collect.max_time=300"],
+        *sets,
+    ]
+    assert inspection.check_printed(config, {}, {}, dense, True) == []
+    assert dense["advised"][0] == ["collect.n_per_state=5000", "collect.record_every=1",
+                                   "collect.max_time=300"]  # fmt: skip
     # a cap below one window (dt = 0.05 s) is refused by gp.choice's own check
     bad = {"kind": "clock max_age=0.01", "named": [],
            "overrides": ["gp.choice.by=measure", "gp.choice.max_ages=[1,0.01]"]}  # fmt: skip
@@ -522,7 +541,14 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
             assert collection["advised"] == [] and "GiB" in collection["refused"], refusals
         else:
             assert refusals == [] and collection["advised"] == sets, (fits, refusals)
-            assert (len(sets) == 2) == (fits == "time"), collection
+            # a run too short at collect's thinning (every 10th window): first every window
+            # recorded, the same rows from a tenth of the simulation, which fits max_time here
+            assert sets[0] == (
+                ["collect.n_per_state=30000000", "collect.record_every=1"]
+                if fits == "time"
+                else ["collect.n_per_state=600000"]
+            ), sets
+            assert len(sets) == (3 if fits == "time" else 1), collection
     assert len(checks) >= 10  # the distinct settings checked
 
 
