@@ -393,6 +393,7 @@ def _verdict(
         max_age=tr.max_age if tr.kind.clock else None, count_classes=count_classes,
         choice=measured_choice(tr), wider_collection=tr.setup.model.wider_collection(),
         blackout=collection_blackout(tr),
+        diagnostic_cells=int(tr.diagnostic["n_cells"]) if tr.diagnostic.get("n_cells") else None,
     )  # fmt: skip
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip

@@ -78,6 +78,11 @@ def test_each_cause_names_its_measurement_and_next_step() -> None:
     noisy = _read(diagnostic={"phi0": _score(0.15, se=0.1)})
     assert noisy.causes[0][0] == "A reference too noisy to judge"
     assert "gp.diagnostic.n_cells" in noisy.causes[0][2]
+    # with the diagnostic's size known, a value: its error over the root of its cells, under
+    # the tolerance with a margin (10 % at 1,000 cells: 1000 x 1.5 x (0.1 / 0.03)^2)
+    sized = _read(diagnostic={"phi0": _score(0.15, se=0.1)}, diagnostic_cells=1000)
+    assert [r.overrides for _, r in sized.remedies] == [("gp.diagnostic.n_cells=16700",)]
+    assert "`gp.diagnostic.n_cells=16700` (now 1000" in sized.causes[0][2]
 
 
 def test_failing_runs_with_an_unbiased_psi_point_to_memory() -> None:
