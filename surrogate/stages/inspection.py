@@ -288,7 +288,7 @@ def collection_budget(
 
 def _collection_time(
     settings: InspectSettings,
-    source: Any,
+    source: CollectSettings,
     population: Population,
     measured_step: float,
     n_per_state: int,
