@@ -270,24 +270,39 @@ def _decision_blocks(
     """The batch's decision blocks: (replicate indices, decision layer) per block.
 
     Where any layer is not fusable (the batch steps eagerly), every replicate is its own
-    block. Else consecutive interchangeable layers share one block (:func:`_groups`); then consecutive
-    blocks of two-state chains over lookup tables of one shape and the same features (e.g.
-    the learned abstraction and the exact-psi chain) are stacked into one layer over a
-    :class:`~surrogate.gp.lookup.StackedPsiLookup`: one featurisation and one interpolation
-    per step for all of them, with the same numbers as separate blocks.
+    block, stepped on its replicate's generator (merged, several replicates' draws would share
+    one stream). Else consecutive interchangeable layers share one block (:func:`_groups`),
+    and consecutive blocks of two-state chains over lookup tables of one shape are stacked
+    (:func:`_stacked`).
     """
     decisions = [r.decision for r in replicates]
     eager = not all(is_fusable(d) for d in decisions)
-    # eager (a layer not fusable): one layer per replicate, each on its replicate's generator
-    # (merged, several replicates' draws would share one stream)
     groups = [[i] for i in range(len(replicates))] if eager else _groups(decisions)
     members = [replicates[g[0]].decision for g in groups]
+    merged_groups, merged = (groups, members) if eager else _stacked(replicates, groups, members)
+    # one layer object in two blocks (replicates apart): the second gets a copy of its own,
+    # else the blocks would share one per-cell state (classes, clocks, motor states)
+    seen: set[int] = set()
+    for k, member in enumerate(merged):
+        if id(member) in seen:
+            merged[k] = copy.copy(member)
+        seen.add(id(member))
+    return merged_groups, merged
+
+
+def _stacked(
+    replicates: Sequence[Replicate], groups: list[list[int]], members: list[DecisionLayer]
+) -> tuple[list[list[int]], list[DecisionLayer]]:
+    """Consecutive blocks of two-state chains over lookup tables of one shape and the same
+    features (e.g. the learned abstraction and the exact-psi chain) stacked into one layer
+    over a :class:`~surrogate.gp.lookup.StackedPsiLookup`: one featurisation and one
+    interpolation per step for all of them, with the same numbers as separate blocks."""
     merged_groups: list[list[int]] = []
     merged: list[DecisionLayer] = []
     k = 0
     while k < len(groups):
         end = k + 1
-        while end < len(groups) and not eager and _stackable(members[k], members[end]):
+        while end < len(groups) and _stackable(members[k], members[end]):
             end += 1
         if end - k == 1:
             merged_groups.append(groups[k])
@@ -302,13 +317,6 @@ def _decision_blocks(
             merged.append(first.restacked(table, name))  # type: ignore[attr-defined]
             merged_groups.append([i for g in groups[k:end] for i in g])
         k = end
-    # one layer object in two blocks (replicates apart): the second gets a copy of its own,
-    # else the blocks would share one per-cell state (classes, clocks, motor states)
-    seen: set[int] = set()
-    for k, member in enumerate(merged):
-        if id(member) in seen:
-            merged[k] = copy.copy(member)
-        seen.add(id(member))
     return merged_groups, merged
 
 
