@@ -8,12 +8,7 @@ simulation.
 
 from __future__ import annotations
 
-from surrogate.gp.figures import (
-    binned_frequencies,
-    plot_psi,
-    plot_training_history,
-    psi_grid_frame,
-)
+from surrogate.gp.figures import binned_frequencies, plot_psi, plot_training_history, psi_grid_frame
 from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.lookup import PsiFunction, PsiLookupTable, StackedPsiLookup
 from surrogate.gp.metrics import classification_metrics, last_tenth_drop

@@ -227,9 +227,4 @@ def plot_training_history(histories: dict[str, Sequence[float]]) -> Figure:
     return fig
 
 
-__all__ = [
-    "binned_frequencies",
-    "plot_psi",
-    "plot_training_history",
-    "psi_grid_frame",
-]
+__all__ = ["binned_frequencies", "plot_psi", "plot_training_history", "psi_grid_frame"]
