@@ -300,7 +300,7 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
             "scripts/inspect_model.py` measures the settling time), or a longer "
             "`equilibration_time`.",
         ))  # fmt: skip
-    biased, noisy = [], []
+    biased, noisy, noisy_se = [], [], []
     for p, s in scores.items():
         if not s or _missing(s.get("rel_bias")):
             continue
@@ -309,6 +309,7 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         bias = s["rel_bias"]
         if se is not None and se > tolerance:
             noisy.append(f"leaving {lump_names[p]}: {100 * bias:+.1f} % +- {100 * se:.1f} %")
+            noisy_se.append(float(se))
         elif abs(bias) > tolerance and (se is None or abs(bias) > BIAS_Z * se):
             pred = s.get("predicted_duration_error") or (1 / (1 + bias) - 1)
             err = f"+- {100 * se:.1f} %" if se is not None else "(exact reference)"
@@ -327,13 +328,11 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         ))  # fmt: skip
     if noisy:
         name = "A reference too noisy to judge"
-        worst = max(float(s["rel_bias_se"]) for s in scores.values()
-                    if s and not _missing(s.get("rel_bias_se")))  # fmt: skip
         causes.append((
             name,
             "the diagnostic's full-model reference cannot tell the learned psi's bias from "
             "none: " + "; ".join(noisy) + ".",
-            advisor.step(name, [larger_diagnostic(run.diagnostic_cells, worst, tolerance)],
+            advisor.step(name, [larger_diagnostic(run.diagnostic_cells, max(noisy_se), tolerance)],
                          then="."),
         ))  # fmt: skip
     shares = class_shares or {}

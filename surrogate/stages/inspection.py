@@ -357,7 +357,7 @@ def check_printed(
         mark(bounds, [], "signal_bounds", advice["signal_bounds"])
         if "refused" in bounds:
             del advice["signal_bounds"]
-    if burn.get("applies") and burn.get("enough") is False and yaml_model:
+    if _burn_in_short(burn, yaml_model):
         mark(burn, [], "the burn-in", f"burn_in: {burn['needed_s']:g}")
     sets = collection_overrides(collection)
     kept = []
@@ -373,12 +373,16 @@ def check_printed(
     return refusals
 
 
+def _burn_in_short(burn: Mapping[str, Any], yaml_model: bool) -> bool:
+    """Whether the report advises a longer burn-in as a key of the model's yaml."""
+    return bool(yaml_model and burn.get("applies") and burn.get("enough") is False)
+
+
 def burn_in_overrides(burn: Mapping[str, Any], yaml_model: bool) -> list[str]:
     """The burn-in the report advises as an override (``++model.burn_in=480``): where the
     model's is too short, the model is a yaml (its keys can be given so) and the checks did
     not refuse it (:func:`check_printed`); else none."""
-    if not (yaml_model and burn.get("applies") and burn.get("enough") is False) \
-            or burn.get("refused"):  # fmt: skip
+    if not _burn_in_short(burn, yaml_model) or burn.get("refused"):
         return []
     return [f"++model.burn_in={burn['needed_s']:g}"]
 
