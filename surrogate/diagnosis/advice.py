@@ -57,7 +57,6 @@ from surrogate.diagnosis.remedies import (
     clock_remedies,
     coarser_remedy,
     more_rows,
-    sharper_collection,
 )
 from surrogate.kinds import ChainKind
 from surrogate.models.count_classes import CountClasses
@@ -174,14 +173,6 @@ class VerdictInputs:
         diagnostic_cells: the diagnostic population's cells (``gp.diagnostic.n_cells``): a
             reference too noisy to judge is advised the cells that bring its error under the
             tolerance (:func:`larger_diagnostic`); None: no value to advise.
-        n_cells: the collection's cells (``collect.n_cells``), scaled with its rows where a
-            larger collection is advised; None: no value to advise.
-        posterior: the origin whose switching the fit knows least well where cells live and
-            its posterior relative sd (:func:`~surrogate.gp.diagnostics.loosest_posterior`);
-            above half the tolerance, the collection that knows it better is advised
-            (:func:`~surrogate.diagnosis.remedies.sharper_collection`): in place of four times
-            the rows where psi is biased, as a caveat where the run is trusted. None: not known
-            (expected labels, an older fit).
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -200,8 +191,6 @@ class VerdictInputs:
     wider_collection: tuple[str, ...] = ()
     blackout: tuple[str, ...] = ()
     diagnostic_cells: int | None = None
-    n_cells: int | None = None
-    posterior: tuple[int, float] | None = None
 
 
 #: the margin on the diagnostic's cells a noisy reference is advised (its error falls as one
@@ -326,16 +315,14 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
             err = f"+- {100 * se:.1f} %" if se is not None else "(exact reference)"
             biased.append(f"leaving {lump_names[p]}: {100 * bias:+.1f} % {err}, which predicts "
                           f"{100 * pred:+.1f} % in the mean {lump_names[p]} duration")  # fmt: skip
-    sharper = (None if run.posterior is None else
-               sharper_collection(n_per_state, run.n_cells, run.posterior[1], tolerance))  # fmt: skip
     if biased:
         name = "Biased switching probabilities"
         causes.append((
             name,
             "where the population lives the learned psi is off: " + "; ".join(biased) + ".",
             advisor.step(name, [*_blackout(run.blackout),
-                                sharper or more_rows(n_per_state, "more transitions ({more}: the "
-                                                     "bias of a GP fit falls with its data)")],
+                                more_rows(n_per_state, "more transitions ({more}: the bias "
+                                          "of a GP fit falls with its data)")],
                          then=", and check `gp.epochs`/`gp.n_inducing` converged (the training "
                               "history figure)."),
         ))  # fmt: skip
@@ -403,16 +390,6 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
             "learned switching probabilities match the full model's where the population "
             "lives: what phi alone forgets (the network's hidden state) shapes the runs.",
             step,
-        ))  # fmt: skip
-    if sharper is not None and run.posterior is not None and not biased:
-        name = "Psi known loosely where cells live"
-        p, sd = run.posterior
-        caveats.append((
-            name,
-            f"the fit's own posterior puts psi leaving {lump_names[p]} where the population "
-            f"lives within +- {100 * sd:.1f} % (one sd), against a {100 * tolerance:g} % "
-            f"tolerance on the mean durations: a check at scale can see an error that size.",
-            advisor.step(name, [sharper], then="."),
         ))  # fmt: skip
     if causes:  # not trusted anyway: thin rows are one more thing to mend
         causes, caveats = causes + caveats, []

@@ -74,40 +74,6 @@ def more_rows(n_per_state: int | None, text: str = "more transitions ({more})") 
     return Remedy("more_rows", text.format(more="a larger `collect.n_per_state`"))
 
 
-#: the share of the mean-duration tolerance psi's posterior sd where cells live may take: a fit
-#: known to half the tolerance misses it by chance about once in twenty (two sd)
-POSTERIOR_SHARE = 0.5
-
-
-def sharper_collection(
-    n_per_state: int | None, n_cells: int | None, rel_sd: float, tolerance: float
-) -> Remedy | None:
-    """A collection whose psi is known to ``tolerance`` x :data:`POSTERIOR_SHARE` where cells
-    live: psi's posterior relative sd there (``rel_sd``, the train diagnostic's
-    ``posterior_rel_sd``) falls as one over the root of the rows, so ``n_per_state`` x
-    (``rel_sd`` / target)^2 rows per origin (rounded up to three figures), collected by as many
-    more cells (``n_cells`` scaled alike: the same simulated time the collection already fitted
-    in). None where psi is known well enough or the collection's size is not known.
-
-    Example:
-        >>> sharper_collection(2_000_000, 2000, 0.03, 0.03).overrides
-        ('collect.n_per_state=8000000', 'collect.n_cells=8000')
-    """
-    target = tolerance * POSTERIOR_SHARE
-    if not n_per_state or not n_cells or not target > 0 or not rel_sd > target:
-        return None
-    wanted = n_per_state * (rel_sd / target) ** 2
-    step = 10 ** max(0, math.floor(math.log10(wanted)) - 2)  # three significant figures
-    rows = int(math.ceil(wanted / step) * step)
-    cells = math.ceil(n_cells * rows / n_per_state)
-    return Remedy("sharper_collection",
-                  f"a collection that knows psi to {100 * target:.1f} % where cells live, "
-                  f"`collect.n_per_state={rows} collect.n_cells={cells}` (its posterior sd there "
-                  f"is {100 * rel_sd:.1f} % at {n_per_state} rows per origin and falls as one over "
-                  f"the root of the rows)",
-                  (f"collect.n_per_state={rows}", f"collect.n_cells={cells}"))  # fmt: skip
-
-
 def coarser_classes(
     classes: CountClasses, sparse: str, shared: bool = False
 ) -> tuple[CountClasses, str] | None:
@@ -374,7 +340,6 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
 
 __all__ = [
     "MEMORY_FAMILIES",
-    "POSTERIOR_SHARE",
     "RELAXING_CANDIDATE",
     "RELAXING_OVERRIDES",
     "Advisor",
@@ -389,5 +354,4 @@ __all__ = [
     "coarser_classes",
     "coarser_remedy",
     "more_rows",
-    "sharper_collection",
 ]

@@ -32,7 +32,7 @@ its 90th percentile. With the empirical reference, also (the statistics to trust
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -42,8 +42,6 @@ from torch import Tensor
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
-
-    from surrogate.gp.fast import CachedPsi
 
 from surrogate.gp.lookup import PsiFunction
 
@@ -140,53 +138,6 @@ def psi_errors(
         scores["settling_z"] = float((a.mean() - b.mean()) / se_ab) if se_ab > 0 else 0.0
         out[f"phi{p}"] = scores
     return out, frame
-
-
-def posterior_error(
-    psi: CachedPsi, rows: pd.DataFrame, names: list[str], ratio: list[float] | None = None
-) -> list[float]:
-    """Per origin state: the mean of ``sd / s`` over the ``rows`` (an occupancy run's) that start
-    in it, ``s`` the learned switching probability (psi leaving phi = 0, 1 - psi leaving 1) and
-    ``sd`` its posterior standard deviation, scaled by ``sqrt(ratio)`` where given (the labels'
-    residual variance over the outcomes', :func:`surrogate.stages.design.noise_ratio`); NaN for
-    an origin no row starts in.
-
-    Args:
-        psi: the classifiers in closed form (their ``spread``).
-        rows: ``n`` rows with ``phi`` and the ``names`` columns (psi's inputs).
-        names: psi's input columns, in its order.
-        ratio: per origin, a variance ratio the sd is scaled by (None: 1).
-    """
-    out = []
-    for p in (0, 1):
-        part = rows[rows["phi"] == p]
-        if part.empty:
-            out.append(float("nan"))
-            continue
-        z = torch.from_numpy(part[names].to_numpy(np.float32, copy=True))
-        value, sd = (v.double() for v in psi.spread(torch.full((len(part),), p), z))
-        leave = value if p == 0 else 1.0 - value
-        scale = 1.0 if ratio is None else float(np.sqrt(ratio[p]))
-        out.append(float((scale * sd / leave.clamp_min(1e-12)).mean()))
-    return out
-
-
-def loosest_posterior(
-    diagnostic: Mapping[str, Any] | None, outcome: str
-) -> tuple[int, float] | None:
-    """The origin (0/1) whose switching the fit knows least well where cells live, and its
-    posterior relative sd (a train diagnostic's ``posterior_rel_sd``), where the fit trained on
-    the 0/1 outcomes (``diagnostic["label_column"] == outcome``: with expected labels the
-    posterior reads them as Bernoulli trials and overstates its error); None where it did not
-    or recorded no finite sd."""
-    d = diagnostic or {}
-    if d.get("label_column") != outcome:
-        return None
-    found = [(p, float(s["posterior_rel_sd"])) for p in (0, 1)
-             if isinstance(s := d.get(f"phi{p}"), Mapping)
-             and isinstance(s.get("posterior_rel_sd"), float)
-             and math.isfinite(s["posterior_rel_sd"])]  # fmt: skip
-    return max(found, key=lambda f: f[1]) if found else None
 
 
 def cluster_se(values: np.ndarray, clusters: np.ndarray) -> float:
@@ -332,12 +283,4 @@ def exact_reference(internal: Any, dt: float) -> Callable[[pd.DataFrame], np.nda
     return reference
 
 
-__all__ = [
-    "cluster_se",
-    "exact_reference",
-    "loosest_posterior",
-    "plot_psi_errors",
-    "posterior_error",
-    "psi_errors",
-    "switching",
-]
+__all__ = ["cluster_se", "exact_reference", "plot_psi_errors", "psi_errors", "switching"]

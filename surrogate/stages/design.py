@@ -34,7 +34,6 @@ import numpy as np
 import pandas as pd
 import torch
 
-from surrogate.gp.diagnostics import posterior_error
 from surrogate.gp.fast import CachedPsi
 from surrogate.gp.predictor import fit_psi
 from surrogate.models.base import Perturbation
@@ -62,6 +61,26 @@ def noise_ratio(psi: CachedPsi, table: pd.DataFrame, names: list[str], label: st
         outcome = ((part["phi_next"].to_numpy(np.float64) - fitted) ** 2).mean()
         expected = ((part[label].to_numpy(np.float64) - fitted) ** 2).mean()
         out.append(float(expected / outcome) if outcome > 0 else 1.0)
+    return out
+
+
+def posterior_error(
+    psi: CachedPsi, rows: pd.DataFrame, names: list[str], ratio: list[float] | None = None
+) -> list[float]:
+    """Per origin state: the mean of ``sd / s`` over the ``rows`` (an occupancy run's) that start
+    in it, ``s`` the learned switching probability (psi leaving phi = 0, 1 - psi leaving 1) and
+    ``sd`` its posterior standard deviation, scaled by ``sqrt(ratio)`` (:func:`noise_ratio`)."""
+    out = []
+    for p in (0, 1):
+        part = rows[rows["phi"] == p]
+        if part.empty:
+            out.append(float("nan"))
+            continue
+        z = torch.from_numpy(part[names].to_numpy(np.float32, copy=True))
+        value, sd = (v.double() for v in psi.spread(torch.full((len(part),), p), z))
+        leave = value if p == 0 else 1.0 - value
+        scale = 1.0 if ratio is None else float(np.sqrt(ratio[p]))
+        out.append(float((scale * sd / leave.clamp_min(1e-12)).mean()))
     return out
 
 
@@ -135,4 +154,4 @@ def collect_in_rounds(
     return pd.concat(tables, ignore_index=True), record
 
 
-__all__ = ["collect_in_rounds", "noise_ratio"]
+__all__ = ["collect_in_rounds", "noise_ratio", "posterior_error"]

@@ -48,7 +48,6 @@ from surrogate.config import (
 from surrogate.errors import ArtefactError, ConfigError
 from surrogate.evaluate.report import format_markdown_table, write_report
 from surrogate.evaluate.statistics import KS_C_ALPHA_05, ks_critical_value, noise_threshold
-from surrogate.gp.diagnostics import loosest_posterior
 from surrogate.io import (
     MANIFEST,
     artefact_dir,
@@ -87,8 +86,6 @@ from surrogate.stages.reference import ReferenceSettings
 from surrogate.stages.runs import RunPlan, RunResult, mean_observables, simulate_runs
 from surrogate.stages.settings import (
     FIDELITY_CMD,
-    LABEL_COLUMNS,
-    CollectSettings,
     Job,
     ModelSetup,
     TrainSettings,
@@ -463,7 +460,6 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         for label, m in metrics.items() if m.get("class_diagnostic")}  # fmt: skip
     summary["outside_training"] = outside
     summary["wider_collection"] = wider_collection(settings, outside, config)
-    summary["sharper_collection"] = sharper_collection(settings, metrics, config)
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
     save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
@@ -506,45 +502,6 @@ def wider_collection(
     log.warning("fidelity: runs %s left the collection's inputs; the same command with `%s` "
                 "collects further from the field's peak", ", ".join(away), " ".join(wider))  # fmt: skip
     return wider
-
-
-def sharper_collection(
-    settings: FidelitySettings, metrics: Mapping[str, Mapping[str, Any]], config: Mapping[str, Any]
-) -> dict[str, Any] | None:
-    """Where a candidate's psi is known, by its own posterior, less well where cells live than
-    half the duration tolerance (:func:`~surrogate.diagnosis.remedies.sharper_collection`; fits
-    on 0/1 outcomes only: with expected labels the posterior overstates its error): the
-    collection that knows it to that, checked by this stage's own settings on ``config``
-    first, for the least known candidate; None where every psi is known well enough, none
-    recorded its posterior, or the check refuses it (logged)."""
-    from surrogate.diagnosis.remedies import sharper_collection as remedy_for
-    from surrogate.stages.advice_check import apply_overrides
-    from surrogate.stages.settings.choice import collecting_pending
-
-    loose = [(found[1], c) for c in settings.candidates
-             if isinstance(c.train.source, CollectSettings)  # not an external table
-             and (found := loosest_posterior((metrics.get(c.label) or {}).get("diagnostic"),
-                                             LABEL_COLUMNS["outcome"]))]  # fmt: skip
-    if not loose:
-        return None
-    sd, c = max(loose, key=lambda f: f[0])
-    o = c.train.source.options  # type: ignore[union-attr]  # a collection, above
-    remedy = remedy_for(int(o["n_per_state"]), int(o["n_cells"]), sd,
-                        float(settings.options["duration_tolerance"]))  # fmt: skip
-    if remedy is None:
-        return None
-    try:
-        with collecting_pending():  # the larger collection's choices are not made yet
-            validate(apply_overrides(config, list(remedy.overrides)))
-    except (ConfigError, ArtefactError) as error:
-        log.warning("fidelity: %s would know psi better where cells live, but is refused: %s",
-                    " ".join(remedy.overrides), error)  # fmt: skip
-        return None
-    log.warning("fidelity: %s's psi is known to %.1f %% where cells live (its posterior sd); "
-                "the same command with `%s` knows it to half the duration tolerance", c.label,
-                100 * sd, " ".join(remedy.overrides))  # fmt: skip
-    return {"candidate": c.label, "posterior_rel_sd": sd, "overrides": list(remedy.overrides),
-            "text": remedy.text}  # fmt: skip
 
 
 def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.DataFrame:
@@ -697,9 +654,7 @@ def report_sections(
                 continue
             row = {"abstraction": label, "leaving": settings.setup.model.internal.lump_names[p],
                    "bias": f"{100 * s['rel_bias']:+.1f} %",
-                   "mean abs. rel. error": f"{100 * s['mean_abs_rel_error']:.1f} %",
-                   "posterior sd": ("-" if s.get("posterior_rel_sd") is None
-                                    else f"{100 * s['posterior_rel_sd']:.1f} %")}  # fmt: skip
+                   "mean abs. rel. error": f"{100 * s['mean_abs_rel_error']:.1f} %"}  # fmt: skip
             k = (classes.get(label) or {}).get(f"phi{p}")
             if k:
                 se = f" +- {100 * k['rel_bias_se']:.1f} %" if "rel_bias_se" in k else ""
@@ -708,17 +663,8 @@ def report_sections(
     diag = ("The learned switching probabilities against the reference where the population "
             "lives (train_metrics.json of each abstraction): the two-state psi's, and for a "
             "K-lumps chain its classes' switching out of each lump weighted by the population's "
-            "class shares (what it simulates, if its class shares stay the population's). "
-            "`posterior sd`: the fit's own relative uncertainty of psi there (its posterior, "
-            "averaged over the population's rows; an overstatement where it trained on expected "
-            "labels), which a larger collection lowers as one over the root of its rows.\n\n"
+            "class shares (what it simulates, if its class shares stay the population's).\n\n"
             + (format_markdown_table(pd.DataFrame(diag_rows)) if diag_rows else "none"))  # fmt: skip
-    sharper = summary.get("sharper_collection")
-    if sharper:
-        diag += (f"\n\n{sharper['candidate']}'s psi is known to "
-                 f"{100 * sharper['posterior_rel_sd']:.1f} % where cells live, against a "
-                 f"{100 * float(o['duration_tolerance']):g} % tolerance on the mean durations: "
-                 f"the same command with {sharper['text']} (checked).")  # fmt: skip
     outside = summary.get("outside_training") or {}
     support = (
         "The share of each run's cell-steps (sampled every few steps) whose abstraction inputs "

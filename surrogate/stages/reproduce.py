@@ -44,7 +44,6 @@ from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
 from surrogate.stages.settings import (
     FIDELITY_CMD,
-    LABEL_COLUMNS,
     CollectSettings,
     ReproduceSettings,
     TrainSettings,
@@ -362,7 +361,6 @@ def _verdict(
     printed, and one the previous run of the model advised that this run applied without a
     gain is not advised again (``out / verdict.json`` keeps what the next run compares with)."""
     from surrogate.diagnosis.advice import VerdictInputs, verdict
-    from surrogate.gp.diagnostics import loosest_posterior
     from surrogate.models.count_classes import CountClasses
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages import advice
@@ -396,8 +394,6 @@ def _verdict(
         choice=measured_choice(tr), wider_collection=tr.setup.model.wider_collection(),
         blackout=collection_blackout(tr),
         diagnostic_cells=int(tr.diagnostic["n_cells"]) if tr.diagnostic.get("n_cells") else None,
-        n_cells=int(source.options["n_cells"]) if isinstance(source, CollectSettings) else None,
-        posterior=loosest_posterior(metrics.get("diagnostic"), LABEL_COLUMNS["outcome"]),
     )  # fmt: skip
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip

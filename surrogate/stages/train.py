@@ -45,13 +45,7 @@ from surrogate.gp import (
     psi_grid_frame,
     save_psi,
 )
-from surrogate.gp.diagnostics import (
-    class_law_errors,
-    plot_psi_errors,
-    posterior_error,
-    psi_errors,
-)
-from surrogate.gp.fast import CachedPsi
+from surrogate.gp.diagnostics import class_law_errors, plot_psi_errors, psi_errors
 from surrogate.io import (
     MANIFEST,
     make_once,
@@ -411,7 +405,6 @@ def _train(
                              f"gp.grid_size={settings.grid_size}; nothing was written to {out}")  # fmt: skip
     exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
     diagnostic, frame = diagnose(psi, settings, model, exact_fn)
-    diagnostic["label_column"] = fit_manifest["label_column"]  # how to read its posterior sd
     metrics["diagnostic"] = diagnostic
     chain = settings.kind.load(fit_dir)
     if isinstance(chain, ClassTable):  # a chain over classes: scored class by class
@@ -454,10 +447,9 @@ def _train(
         if d:
             log.info(
                 "leaving %s where the population lives: switching probability %.4f vs %s %.4f "
-                "(bias %+.1f %%, mean |error| %.1f %%; the fit's posterior sd there %.1f %%)",
-                lumps[p], d["mean_switching_learned"], diagnostic["reference"],
-                d["mean_switching_reference"], 100 * d["rel_bias"],
-                100 * d["mean_abs_rel_error"], 100 * d.get("posterior_rel_sd", float("nan")),
+                "(bias %+.1f %%, mean |error| %.1f %%)", lumps[p], d["mean_switching_learned"],
+                diagnostic["reference"], d["mean_switching_reference"], 100 * d["rel_bias"],
+                100 * d["mean_abs_rel_error"],
             )  # fmt: skip
     for name, d in metrics.get("class_diagnostic", {}).items():
         if isinstance(d, dict):
@@ -649,13 +641,6 @@ def diagnose(
             return np.stack([psi(torch.full((n,), p), s).double().numpy() for p in (0, 1)], -1)
 
     metrics, frame = psi_errors(_as_simulated(psi), rows, list(settings.inputs), reference)
-    # the fit's own uncertainty where cells live (the design's score): what a collection of
-    # this size can know of psi there, bias or not (0/1 outcomes; with expected labels the
-    # posterior reads them as Bernoulli trials, so it overstates it)
-    spread = posterior_error(CachedPsi.from_classifier(psi.to("cpu")), rows, list(psi.input_names))
-    for p, sd in enumerate(spread):
-        if f"phi{p}" in metrics:
-            metrics[f"phi{p}"]["posterior_rel_sd"] = sd
     metrics["settings"] = dict(settings.diagnostic)
     metrics["seconds"] = time.perf_counter() - t0
     return metrics, frame

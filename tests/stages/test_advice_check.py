@@ -155,36 +155,6 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
     assert printed >= 10
 
 
-def test_a_psi_known_loosely_gets_the_collection_that_knows_it_and_it_runs(config) -> None:
-    """psi's posterior sd where cells live at the 3 % tolerance (the toggle switch's clock fit
-    knew it to 5-7 % and its chain was 4 % short there at 4,000 cells): a trusted run gets a
-    caveat with the collection that knows it to half the tolerance, four times the rows by
-    four times the cells; a biased one gets that collection in place of four times the rows;
-    the stages' checks accept it. Known to 1 %, or from expected labels: nothing."""
-    from surrogate.gp.diagnostics import loosest_posterior
-
-    diag = {"label_column": "phi_next", "phi0": {**UNBIASED, "posterior_rel_sd": 0.01},
-            "phi1": {**UNBIASED, "posterior_rel_sd": 0.03}}  # fmt: skip
-    assert loosest_posterior(diag, "phi_next") == (1, 0.03)
-    assert loosest_posterior({**diag, "label_column": "phi_next_expected"}, "phi_next") is None
-    check = memo_check({}, config, "loose")
-    common = dict(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
-                  kind=chain_kind("phi", "none", "learned"), network=True, n_per_state=1000,
-                  n_cells=100, check=check, outside={"gaussian": {"share_outside": 0.0,
-                                                                  "inputs": {}}})  # fmt: skip
-    wanted = ("collect.n_per_state=4000", "collect.n_cells=400")
-    v = verdict_of(diagnostic=diag, failures={}, posterior=(1, 0.03), **common)
-    assert v.trust and [c[0] for c in v.caveats] == ["Psi known loosely where cells live"]
-    assert [r.overrides for _, r in v.remedies] == [wanted] and not v.dropped
-    assert f"`{' '.join(wanted)}`" in v.markdown()
-    assert check_advice(config, list(wanted)) is None
-    assert not verdict_of(diagnostic=diag, failures={}, posterior=(1, 0.01), **common).caveats
-    biased = {**diag, "phi0": {**UNBIASED, "rel_bias": 0.2, "rel_bias_se": 0.02}}
-    v = verdict_of(diagnostic=biased, failures={"gaussian": ["off"]}, posterior=(1, 0.03),
-                   **common)  # fmt: skip
-    assert [r.kind for _, r in v.remedies] == ["sharper_collection"] and not v.caveats
-
-
 def test_nan_or_missing_measurements_are_not_measured_never_trust() -> None:
     """Issue 54 item 7: a NaN bias (a reference that never left a lump), an absent
     diagnostic or an absent outside-training report made the verdict trust the run."""

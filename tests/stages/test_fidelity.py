@@ -142,41 +142,6 @@ def test_runs_outside_their_collection_get_a_wider_one_checked(compose_cfg, chec
     assert fidelity.wider_collection(settings, {"a|exponential": away}, stored) is None
 
 
-def test_a_psi_known_loosely_where_cells_live_gets_a_larger_collection_checked(
-    compose_cfg, checked
-) -> None:
-    """A candidate whose fit (on 0/1 outcomes) knows psi where cells live to 3 %, its posterior
-    sd, against the 3 % tolerance: the report names the same command with the collection that
-    knows it to 1.5 %, four times the rows by four times the cells, checked by this stage's
-    settings; nothing where it is known to 1.5 % or better, where the fit trained on expected
-    labels (its posterior overstates), or where the check refuses it (a stored reference)."""
-    from surrogate.config import to_dict
-
-    settings, _, table = checked
-    (candidate,) = settings.candidates
-    config = to_dict(compose_cfg("fidelity", SMALL))
-
-    def metrics(sd: float, labels: str = "phi_next") -> dict:
-        return {candidate.label: {"diagnostic": {
-            "label_column": labels, "phi0": {"posterior_rel_sd": sd / 2},
-            "phi1": {"posterior_rel_sd": sd}}}}  # fmt: skip
-
-    sharper = fidelity.sharper_collection(settings, metrics(0.03), config)
-    assert sharper is not None and sharper["posterior_rel_sd"] == 0.03
-    assert sharper["overrides"] == ["collect.n_per_state=800", "collect.n_cells=200"]
-    assert fidelity.sharper_collection(settings, metrics(0.015), config) is None
-    assert fidelity.sharper_collection(settings, metrics(0.03, "phi_next_expected"), config) is None
-    assert fidelity.sharper_collection(settings, {}, config) is None
-    summary = {**fidelity.summarise(table, settings), "sharper_collection": sharper,
-               "diagnostics": {candidate.label: {"phi1": {
-                   "rel_bias": 0.01, "mean_abs_rel_error": 0.02, "posterior_rel_sd": 0.03}}}}  # fmt: skip
-    text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
-    assert "`collect.n_per_state=800 collect.n_cells=200`" in text and "(checked)" in text
-    assert "| 3.0 % |" in text  # the posterior sd column
-    stored = {**config, "fidelity": {**config["fidelity"], "reference": "stored"}}
-    assert fidelity.sharper_collection(settings, metrics(0.03), stored) is None
-
-
 def test_chain_repeats_give_the_means_spread_and_their_own_identity(compose_cfg) -> None:
     """fidelity.chain_repeats=3: the check reads the first run, the table adds the means'
     sd from run to run and their average error, the report says so; 1 keeps the identity of

@@ -119,9 +119,6 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
         learned, reference = d[phi]["mean_switching_learned"], d[phi]["mean_switching_reference"]
         assert d[phi]["rel_bias"] == pytest.approx(learned / reference - 1, rel=1e-12)
         assert d[phi]["p90_abs_rel_error"] >= 0 and d[phi]["mean_abs_rel_error"] >= 0
-        # the fit's own uncertainty where cells live, and the labels that say how to read it
-        assert 0 < d[phi]["posterior_rel_sd"] < 5
-    assert d["label_column"] == manifest["label_column"]
 
 
 def test_the_fit_runs_on_gp_threads(compose_cfg) -> None:
