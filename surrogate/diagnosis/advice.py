@@ -56,6 +56,7 @@ from surrogate.diagnosis.remedies import (
     choice_remedies,
     clock_remedies,
     coarser_remedy,
+    larger_diagnostic,
     more_rows,
 )
 from surrogate.kinds import ChainKind
@@ -172,7 +173,7 @@ class VerdictInputs:
             advised first where psi is biased; empty where its rows did not lag.
         diagnostic_cells: the diagnostic population's cells (``gp.diagnostic.n_cells``): a
             reference too noisy to judge is advised the cells that bring its error under the
-            tolerance (:func:`larger_diagnostic`); None: no value to advise.
+            tolerance (:func:`~surrogate.diagnosis.remedies.larger_diagnostic`); None: no value to advise.
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -191,31 +192,6 @@ class VerdictInputs:
     wider_collection: tuple[str, ...] = ()
     blackout: tuple[str, ...] = ()
     diagnostic_cells: int | None = None
-
-
-#: the margin on the diagnostic's cells a noisy reference is advised (its error falls as one
-#: over the root of its cells: the advised ones bring it to the tolerance / sqrt(margin))
-DIAGNOSTIC_MARGIN = 1.5
-
-
-def larger_diagnostic(cells: int | None, rel_se: float, tolerance: float) -> Remedy:
-    """A diagnostic population large enough to judge psi's bias: its relative error
-    ``rel_se`` falls as one over the root of its cells, so ``cells`` x (``rel_se`` /
-    ``tolerance``)^2 x :data:`DIAGNOSTIC_MARGIN`, rounded up to hundreds, bring it under
-    ``tolerance``; without ``cells``, no value.
-
-    Example:
-        >>> larger_diagnostic(1000, 0.046, 0.03).overrides
-        ('gp.diagnostic.n_cells=3600',)
-    """
-    if not cells or not rel_se > 0 or not tolerance > 0:
-        return Remedy("larger_diagnostic", "a larger diagnostic population "
-                                           "(`gp.diagnostic.n_cells`, `gp.diagnostic.t_end`)")  # fmt: skip
-    n = int(math.ceil(cells * DIAGNOSTIC_MARGIN * (rel_se / tolerance) ** 2 / 100.0) * 100)
-    n = max(n, cells + 100)
-    return Remedy("larger_diagnostic", f"a larger diagnostic population, `gp.diagnostic.n_cells="
-                  f"{n}` (now {cells}: its error falls as one over the root of its cells)",
-                  (f"gp.diagnostic.n_cells={n}",))  # fmt: skip
 
 
 def verdict(  # noqa: C901  # one branch per first cause, in the report's order
@@ -465,11 +441,9 @@ def _first_sparse_class(thin: Mapping[str, Mapping[str, Any]]) -> str | None:
 
 __all__ = [
     "BIAS_Z",
-    "DIAGNOSTIC_MARGIN",
     "SETTLING_Z",
     "Verdict",
     "VerdictInputs",
-    "larger_diagnostic",
     "unmeasured",
     "verdict",
 ]

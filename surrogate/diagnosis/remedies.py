@@ -74,6 +74,31 @@ def more_rows(n_per_state: int | None, text: str = "more transitions ({more})") 
     return Remedy("more_rows", text.format(more="a larger `collect.n_per_state`"))
 
 
+#: the margin on the diagnostic's cells a noisy reference is advised (its error falls as one
+#: over the root of its cells: the advised ones bring it to the tolerance / sqrt(margin))
+DIAGNOSTIC_MARGIN = 1.5
+
+
+def larger_diagnostic(cells: int | None, rel_se: float, tolerance: float) -> Remedy:
+    """A diagnostic population large enough to judge psi's bias: its relative error
+    ``rel_se`` falls as one over the root of its cells, so ``cells`` x (``rel_se`` /
+    ``tolerance``)^2 x :data:`DIAGNOSTIC_MARGIN`, rounded up to hundreds, bring it under
+    ``tolerance``; without ``cells``, no value.
+
+    Example:
+        >>> larger_diagnostic(1000, 0.046, 0.03).overrides
+        ('gp.diagnostic.n_cells=3600',)
+    """
+    if not cells or not rel_se > 0 or not tolerance > 0:
+        return Remedy("larger_diagnostic", "a larger diagnostic population "
+                                           "(`gp.diagnostic.n_cells`, `gp.diagnostic.t_end`)")  # fmt: skip
+    n = int(math.ceil(cells * DIAGNOSTIC_MARGIN * (rel_se / tolerance) ** 2 / 100.0) * 100)
+    n = max(n, cells + 100)
+    return Remedy("larger_diagnostic", f"a larger diagnostic population, `gp.diagnostic.n_cells="
+                  f"{n}` (now {cells}: its error falls as one over the root of its cells)",
+                  (f"gp.diagnostic.n_cells={n}",))  # fmt: skip
+
+
 def coarser_classes(
     classes: CountClasses, sparse: str, shared: bool = False
 ) -> tuple[CountClasses, str] | None:
@@ -339,6 +364,7 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
 
 
 __all__ = [
+    "DIAGNOSTIC_MARGIN",
     "MEMORY_FAMILIES",
     "RELAXING_CANDIDATE",
     "RELAXING_OVERRIDES",
@@ -353,5 +379,6 @@ __all__ = [
     "clock_step",
     "coarser_classes",
     "coarser_remedy",
+    "larger_diagnostic",
     "more_rows",
 ]

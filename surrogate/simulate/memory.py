@@ -214,8 +214,9 @@ class MemoryDecision(StatefulDecision, AbstractDecision):
 
     def initialize(self, x: Tensor) -> Tensor:
         """phi from the internal model's stationary law; clocks settled."""
-        self.start_at(x, torch.zeros(x.shape[0], device=x.device))
-        return super().initialize(x)
+        phi = super().initialize(x)
+        self.start_at(x, phi)
+        return phi
 
     def start_at(self, x: Tensor, phi: Tensor) -> None:
         """Clocks settled, as :meth:`initialize` starts them (phi given, not drawn)."""
