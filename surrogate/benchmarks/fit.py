@@ -13,8 +13,10 @@ sd of psi there. A method is *equal* where ``|Δpsi| < 1`` sd at every such poin
 The same scores against a fit converged further (Adam, 2,000 steps) say how far the reference
 itself is from the optimum in those units.
 
-Methods: ``adam`` (:func:`~surrogate.gp.training.fit_classifiers`' default loop), ``ngd`` and
-``lbfgs`` (:mod:`surrogate.gp.optimizers`), and ``adam+ngd``: hyperparameters from a short
+Methods: ``adam`` (:func:`~surrogate.gp.training.fit_classifiers`' default loop), ``newton``
+(``gp.optimizer=newton`` through that function: q(u) by Newton's method, the hyperparameters by
+L-BFGS; :mod:`surrogate.gp.newton`), ``ngd`` and ``lbfgs`` (:mod:`surrogate.gp.optimizers`),
+and ``adam+ngd``: hyperparameters from a short
 Adam fit, then natural-gradient steps on the variational parameters alone with the
 hyperparameters frozen (at ``natural_lr = 1`` each step is the closed-form update of the
 Gaussian fit to the current likelihood's local quadratic: a Newton step on q(u)).
@@ -76,6 +78,7 @@ DEFAULT_METHODS: tuple[Method, ...] = (
     *(Method("ngd", n, lr) for lr in (0.1, 0.5, 1.0) for n in (25, 50, 100, 200)),
     *(Method("lbfgs", n) for n in (20, 50, 100, 200)),
     Method("adam", 100, 1.0, 10),
+    *(Method("newton", n) for n in (20, 50, 100, 200)),
 )
 #: a fit converged further than the reference (twice its steps): every method's distance to
 #: it against the reference's own says whether the reference is within its sd of the optimum
@@ -88,9 +91,9 @@ def fit_problems(
     """Fit ``problems`` with ``method``: the classifiers, wall and CPU seconds. Adam runs
     :func:`~surrogate.gp.training.fit_classifiers` itself (the default fit's code path)."""
     wall, cpu = time.perf_counter(), time.process_time()
-    if method.optimizer == "adam":
-        adam = dataclasses.replace(settings, epochs=method.steps)
-        fitted = fit_classifiers(problems, adam, progress=False, weights=weights)
+    if method.optimizer in ("adam", "newton"):  # the stage's own fit
+        own = dataclasses.replace(settings, epochs=method.steps, optimizer=method.optimizer)
+        fitted = fit_classifiers(problems, own, progress=False, weights=weights)
         if method.refine:
             fitted = _refine(fitted, problems, weights, settings, method)
     else:

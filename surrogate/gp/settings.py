@@ -38,10 +38,12 @@ class GPSettings:
     seed: int = 0
     #: the latent f's prior mean (:data:`~surrogate.gp.model.MEANS`)
     mean: str = DEFAULT_MEAN
-    #: the batched binned fit's optimiser: ``adam`` (``epochs`` steps of ``lr``) or ``lbfgs``
+    #: the batched binned fit's optimiser: ``adam`` (``epochs`` steps of ``lr``), ``lbfgs``
     #: (at most ``epochs`` L-BFGS iterations with a strong-Wolfe line search, stopping on its own
-    #: tolerance; docs/performance.md, "Faster fits: measured"); opt-in, not in the identity of
-    #: a fit with ``adam``
+    #: tolerance; docs/performance.md, "Faster fits: measured") or ``newton`` (q(u) solved
+    #: exactly by Newton's method at every step, ``epochs`` Adam steps of ``lr`` on the
+    #: hyperparameters; ``natural_gradient`` has no effect there: :mod:`surrogate.gp.newton`);
+    #: opt-in, not in the identity of a fit with ``adam``
     optimizer: str = "adam"
 
     def __post_init__(self) -> None:
@@ -72,11 +74,15 @@ class GPSettings:
                 f"gp.optimizer: unknown optimizer {self.optimizer!r}; allowed values are "
                 f"{OPTIMIZERS}"
             )
-        if self.optimizer == "lbfgs" and (not self.bins or self.natural_gradient):
+        if self.optimizer != "adam" and not self.bins:
             raise ConfigError(
-                "gp.optimizer=lbfgs fits the batched binned GP only: it needs gp.bins > 0 and "
-                f"gp.natural_gradient=false (now bins={self.bins!r}, natural_gradient="
-                f"{self.natural_gradient}); or set gp.optimizer=adam"
+                f"gp.optimizer={self.optimizer} fits the batched binned GP only: it needs "
+                f"gp.bins > 0 (now {self.bins!r}); or set gp.optimizer=adam"
+            )
+        if self.optimizer == "lbfgs" and self.natural_gradient:
+            raise ConfigError(
+                "gp.optimizer=lbfgs takes no natural gradient: set gp.natural_gradient=false "
+                "(now true), or gp.optimizer=adam"
             )
         value = _check_float("validation_fraction", self.validation_fraction)
         if not 0.0 <= value < 1.0:
@@ -106,7 +112,7 @@ class GPSettings:
 
 
 #: the batched binned fit's optimisers (``gp.optimizer``)
-OPTIMIZERS = ("adam", "lbfgs")
+OPTIMIZERS = ("adam", "lbfgs", "newton")
 
 
 def _check_int(name: str, value: Any, minimum: int) -> int:
@@ -129,8 +135,10 @@ def psi_gp(inducing: Tensor, settings: GPSettings) -> PsiGP:
     """The untrained :class:`PsiGP` over ``inducing`` points (``(M, d)``, or ``(B, M, d)``
     batched) that ``settings`` describes: the one place the gp group's model keys (kernel, ard,
     learn_inducing, natural_gradient, mean) reach the model, so a fit and its reload agree."""
+    # the Newton fit solves q(u) itself, natural gradient or not: a Cholesky q stores it
+    natural = settings.natural_gradient and settings.optimizer != "newton"
     return PsiGP(inducing, kernel=settings.kernel, ard=settings.ard,
-                 learn_inducing=settings.learn_inducing, natural=settings.natural_gradient,
+                 learn_inducing=settings.learn_inducing, natural=natural,
                  mean=settings.mean)  # fmt: skip
 
 

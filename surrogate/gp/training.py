@@ -33,6 +33,7 @@ from surrogate.gp.binned import bin_inputs, binned_loss, padded_bins, weighted_b
 from surrogate.gp.fitted import FittedClassifier, Normalizer
 from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import PsiGP
+from surrogate.gp.newton import fit_newton
 from surrogate.gp.optimizers import fit_lbfgs
 from surrogate.gp.settings import GPSettings, psi_gp
 
@@ -151,7 +152,7 @@ def fit_classifier(
     :func:`label_weight`; binned training only).
     """
     settings = settings or GPSettings()
-    if settings.optimizer == "lbfgs":  # the L-BFGS fit is the batched one's (a batch of one)
+    if settings.optimizer != "adam":  # L-BFGS and Newton fits are the batched one's (of one)
         data = (x, y) if outcomes is None else (x, y, outcomes)
         return fit_classifiers([data], settings, progress, device, desc, [weight])[0]
     device = torch.device(device)
@@ -285,8 +286,9 @@ def fit_classifiers(
                                weight=w)
                 for i, (d, w) in enumerate(zip(data, weights, strict=True))]  # fmt: skip
 
-    lbfgs = settings.optimizer == "lbfgs"  # batched whatever the count (settings check bins)
-    if not settings.bins or settings.natural_gradient or (len(data) < 2 and not lbfgs):
+    lbfgs = settings.optimizer != "adam"  # batched whatever the count (settings check bins)
+    natural = settings.natural_gradient and settings.optimizer == "adam"
+    if not settings.bins or natural or (len(data) < 2 and not lbfgs):
         return one_by_one()
     preps = [_prepare(d[0], d[1], settings, device, d[2] if len(d) > 2 else None) for d in data]
     binned = [weighted_bins(bin_inputs(p.z_train, p.y_train, settings.bins), w)
@@ -314,9 +316,12 @@ def fit_classifiers(
     t0 = time.perf_counter()
     if lbfgs:
         try:
-            fit_lbfgs([*model.parameters(), *likelihood.parameters()],
-                      lambda: binned_loss(model, likelihood, z_b, n_b, k_b), settings.epochs,
-                      histories)  # fmt: skip
+            if settings.optimizer == "newton":
+                fit_newton(model, z_b, n_b, k_b, settings.epochs, settings.lr, histories)
+            else:
+                fit_lbfgs([*model.parameters(), *likelihood.parameters()],
+                          lambda: binned_loss(model, likelihood, z_b, n_b, k_b),
+                          settings.epochs, histories)  # fmt: skip
         except (NotPSDError, NanError, FloatingPointError) as exc:
             raise _batch_failure(model, good_state, preps, settings, histories, 0,
                                  str(exc)) from exc  # fmt: skip

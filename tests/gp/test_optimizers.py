@@ -123,7 +123,7 @@ def test_gp_optimizer_lbfgs_through_the_fit_matches_adam(reference) -> None:
     [
         ({"optimizer": "sgd"}, "gp.optimizer: unknown optimizer 'sgd'"),
         ({"optimizer": "lbfgs"}, "gp.optimizer=lbfgs fits the batched binned GP only"),
-        ({"optimizer": "lbfgs", "bins": 10, "natural_gradient": True}, "natural_gradient=True"),
+        ({"optimizer": "lbfgs", "bins": 10, "natural_gradient": True}, "takes no natural gradient"),
     ],
 )
 def test_a_bad_gp_optimizer_is_refused_with_its_fix(values, match) -> None:
