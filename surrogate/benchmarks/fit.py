@@ -15,7 +15,7 @@ itself is from the optimum in those units.
 
 Methods: ``adam`` (:func:`~surrogate.gp.training.fit_classifiers`' default loop), ``newton``
 (``gp.optimizer=newton`` through that function: q(u) by Newton's method, the hyperparameters by
-L-BFGS; :mod:`surrogate.gp.newton`), ``ngd`` and ``lbfgs`` (:mod:`surrogate.gp.optimizers`),
+Adam; :mod:`surrogate.gp.newton`), ``ngd`` and ``lbfgs`` (:mod:`surrogate.gp.optimizers`),
 and ``adam+ngd``: hyperparameters from a short
 Adam fit, then natural-gradient steps on the variational parameters alone with the
 hyperparameters frozen (at ``natural_lr = 1`` each step is the closed-form update of the

@@ -286,14 +286,14 @@ def fit_classifiers(
                                weight=w)
                 for i, (d, w) in enumerate(zip(data, weights, strict=True))]  # fmt: skip
 
-    lbfgs = settings.optimizer != "adam"  # batched whatever the count (settings check bins)
+    batched_only = settings.optimizer != "adam"  # whatever the count (settings check bins)
     natural = settings.natural_gradient and settings.optimizer == "adam"
-    if not settings.bins or natural or (len(data) < 2 and not lbfgs):
+    if not settings.bins or natural or (len(data) < 2 and not batched_only):
         return one_by_one()
     preps = [_prepare(d[0], d[1], settings, device, d[2] if len(d) > 2 else None) for d in data]
     binned = [weighted_bins(bin_inputs(p.z_train, p.y_train, settings.bins), w)
               for p, w in zip(preps, weights, strict=True)]  # fmt: skip
-    if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS and not lbfgs:
+    if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS and not batched_only:
         return one_by_one()
     model = psi_gp(torch.stack([p.inducing for p in preps]).clone(), settings).to(device)
     # the initial variational mean of each separate fit: 1e-3 N(0, I) drawn right after seeding
@@ -314,7 +314,7 @@ def fit_classifiers(
     likelihood.train()
     good_state = _model_state(model)
     t0 = time.perf_counter()
-    if lbfgs:
+    if batched_only:
         try:
             if settings.optimizer == "newton":
                 fit_newton(model, z_b, n_b, k_b, settings.epochs, settings.lr, histories)
@@ -322,7 +322,7 @@ def fit_classifiers(
                 fit_lbfgs([*model.parameters(), *likelihood.parameters()],
                           lambda: binned_loss(model, likelihood, z_b, n_b, k_b),
                           settings.epochs, histories)  # fmt: skip
-        except (NotPSDError, NanError, FloatingPointError) as exc:
+        except (NotPSDError, NanError, FloatingPointError, torch.linalg.LinAlgError) as exc:
             raise _batch_failure(model, good_state, preps, settings, histories, 0,
                                  str(exc)) from exc  # fmt: skip
         return _finish(model, preps, settings, histories, time.perf_counter() - t0)

@@ -170,3 +170,28 @@ def test_newton_overrides_a_recipes_natural_gradient() -> None:
     problems, weights = _problems()
     fitted = fit_classifiers(problems[:2], settings, progress=False, weights=weights[:2])
     assert len(fitted[0].history) == 21
+
+
+def test_a_failing_newton_fit_is_a_numerical_error_naming_its_fix(monkeypatch) -> None:
+    # a Cholesky that breaks (here forced) is the fit's NumericalError with the restored
+    # model attached and the setting to lower, not a bare torch error
+    import surrogate.gp.newton as newton
+    from surrogate.errors import NumericalError
+
+    def broken(*args, **kwargs):
+        raise torch.linalg.LinAlgError("linalg.cholesky: not positive-definite")
+
+    monkeypatch.setattr(newton, "solve_q", broken)
+    problems, weights = _problems()
+    with pytest.raises(NumericalError, match="Try a smaller gp.lr") as info:
+        fit_classifiers(problems[:2], SETTINGS, progress=False, weights=weights[:2])
+    assert info.value.partial is not None
+
+
+def test_newton_is_its_own_fit_identity() -> None:
+    from surrogate.kinds import chain_kind
+
+    assert GPSettings(bins=10, optimizer="newton").to_dict()["optimizer"] == "newton"
+    base = {"kernel": "rbf", "bins": 10}
+    kind = chain_kind()
+    assert kind.fit_identity({**base, "optimizer": "newton"}) != kind.fit_identity(base)
