@@ -250,9 +250,11 @@ def fit_newton(
     optimizer = torch.optim.Adam(hyper, lr=lr)
     for _ in range(steps):
         optimizer.zero_grad(set_to_none=True)
+        prior = _prior(model, z_b)  # built once: the Newton step reads it detached
+        fixed = _Prior(prior.a.detach(), prior.mean.detach(), prior.var.detach())
         with torch.no_grad():  # one Newton step tracks q* as theta moves; solved at the end
-            q = solve_q(_prior(model, z_b), bins, q, max_steps=1)[0]
-        losses = -_elbo(_prior(model, z_b), q, bins) / bins.total
+            q = solve_q(fixed, bins, q, max_steps=1)[0]
+        losses = -_elbo(prior, q, bins) / bins.total
         _record(losses, histories)
         losses.sum().backward()
         optimizer.step()
