@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -32,13 +31,7 @@ NAMES = ("m", "L")
 MAX_S2 = 1.0 / (6.0 * math.sqrt(3.0))  # max |sigmoid''|
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Shared 2-core machine: avoid OpenMP oversubscription with other test processes.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def analytic(phi: Tensor, z: Tensor) -> Tensor:

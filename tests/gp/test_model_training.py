@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterator
 
 import gpytorch
 import pytest
@@ -26,14 +25,7 @@ L_BOX = (0.0, 0.1)
 W = 0.1  # switch width in m: steep, like the real psi surfaces
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Other test processes share the 2 CPU cores; one intra-op thread avoids the OpenMP
-    # oversubscription that makes small-matrix training 10x slower under contention.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def p_true(x: Tensor) -> Tensor:

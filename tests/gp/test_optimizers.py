@@ -3,8 +3,6 @@ as scripts/bench_fit.py scores them (surrogate/benchmarks/fit.py)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 import torch
 
@@ -12,13 +10,7 @@ from surrogate.benchmarks.fit import Method, fit_problems, psi_sd, score
 from surrogate.gp.optimizers import natural_step
 from surrogate.gp.training import GPSettings
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)  # the cores are shared; small fits gain nothing from more
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_natural_step_scales_each_gp_by_its_own_data() -> None:
