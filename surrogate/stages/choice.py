@@ -4,7 +4,8 @@ Fits the candidate kinds on one collection (the two-state chain, the switch cloc
 ``gp.choice.max_ages``, K lumps where the model declares classes, and every registered kind that
 declares itself a :attr:`~surrogate.kinds.base.ChainKind.candidate` with its recipe), records a
 held-out full-model run at the training inputs (every window of ``gp.choice.n_cells`` cells for
-``gp.choice.t_end`` s, another seed than the collection's), scores each kind on it
+``gp.choice.t_end`` s, another seed than the collection's; in the fields ``gp.choice.fields``
+names, the cells split among them, where it is set), scores each kind on it
 (:func:`~surrogate.kinds.scoring.score_kind`: log-likelihood per window of the observed phi
 sequences, simulated durations' KS and means) and picks the best that holds its durations
 (:func:`~surrogate.kinds.scoring.choose`). The record (``choice.json``, ``scores.csv``, the
@@ -36,7 +37,7 @@ from typing import Any, TypeVar
 import pandas as pd
 import torch
 
-from surrogate.config import seed_everything, to_dict
+from surrogate.config import build_field, field_config, seed_everything, to_dict
 from surrogate.errors import NumericalError
 from surrogate.io import write_csv, write_json, write_manifest
 from surrogate.kinds.base import LayerRequest
@@ -151,16 +152,27 @@ def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
     setup, settings = first.setup, plan.settings
     start = time.perf_counter()
     seed_everything(first.seed + HELDOUT_SEED_OFFSET)
-    simulator = Simulator(setup.model, FullDecision(setup.model.internal), setup.field, setup.dt,
-                          first.job.device, backend="auto")  # fmt: skip
-    run = record_occupancy(simulator, settings.n_cells, settings.t_end,
-                           torch.tensor(first.diagnostic["start"]), record_every=1,
-                           equilibration_time=settings.equilibration_time)  # fmt: skip
-    inputs, phi = phi_sequences(run, setup.model.internal.input_names)
+    # the training field, or gp.choice.fields: the cells split evenly, the first takes the rest
+    fields = ([setup.field] if settings.fields is None
+              else [build_field(field_config(name)) for name in settings.fields])  # fmt: skip
+    cells = [settings.n_cells // len(fields)] * len(fields)
+    cells[0] += settings.n_cells - sum(cells)
+    parts = []
+    for field, n in zip(fields, cells, strict=True):
+        simulator = Simulator(setup.model, FullDecision(setup.model.internal), field, setup.dt,
+                              first.job.device, backend="auto")  # fmt: skip
+        run = record_occupancy(simulator, n, settings.t_end,
+                               torch.tensor(first.diagnostic["start"]), record_every=1,
+                               equilibration_time=settings.equilibration_time)  # fmt: skip
+        parts.append(phi_sequences(run, setup.model.internal.input_names))
+    inputs = torch.cat([p[0] for p in parts])
+    phi = torch.cat([p[1] for p in parts])
     inputs = inputs.to(torch.float32)  # the layers read float32 inputs, as simulate gives them
     seconds = time.perf_counter() - start
-    log.info("choice: held-out full-model run, %d cells x %d windows, in %.1f s",
-             inputs.shape[0], inputs.shape[1], seconds)  # fmt: skip
+    log.info("choice: held-out full-model run, %d cells x %d windows%s, in %.1f s",
+             inputs.shape[0], inputs.shape[1],
+             "" if settings.fields is None else f" in fields {list(settings.fields)}",
+             seconds)  # fmt: skip
     return HeldOut(inputs, phi, first.seed), seconds
 
 

@@ -55,6 +55,12 @@ class Plain:
         ({"clock_inducing": 0}, "gp.choice.clock_inducing"),
         ({"clock_inducing": 6.5}, "gp.choice.clock_inducing"),
         ({"cells": 10}, "gp.choice"),
+        ({"fields": "linear"}, "gp.choice.fields"),
+        ({"fields": []}, "gp.choice.fields"),
+        ({"fields": ["gaussian", "gaussian"]}, "gp.choice.fields"),
+        ({"fields": ["nowhere"]}, "gp.choice.fields"),
+        ({"fields": [3]}, "gp.choice.fields"),
+        ({"fields": ["gaussian", "linear", "zero"], "n_cells": 2}, "gp.choice.n_cells"),
     ],
 )
 def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None:
@@ -163,6 +169,29 @@ def test_windows_shorter_than_dt_are_refused() -> None:
                                           r"window.*gp\.choice\.max_ages=\[2\.0\]"):  # fmt: skip
         ChoiceSettings.from_config({"max_ages": [0.01, 2.0]}).check_windows(0.05)
     ChoiceSettings.from_config({"max_ages": [2.0], "t_end": 50.0}).check_windows(0.05)
+
+
+def test_held_out_cells_split_among_the_fields_named(tmp_path: Path) -> None:
+    """gp.choice.fields: the held-out cells move in each field named, split evenly (the first
+    takes the rest); unset, the identity is what it was (choices made before are reused)."""
+    from surrogate.stages.choice import _heldout_run
+
+    assert "fields" not in ChoiceSettings.from_config({}).identity()
+    fields = ["gp.choice.fields=[zero,gaussian]", "gp.choice.n_cells=9"]
+    with collecting_pending() as plans:
+        train_stage.validate(compose_in(tmp_path, "train", [*MEASURE, *fields]))
+    plan = plans[0]
+    assert plan.settings.fields == ("zero", "gaussian")
+    heldout, _ = _heldout_run(plan)
+    assert heldout.inputs.shape[0] == 9 and heldout.phi.shape[0] == 9
+    # the ligand the cells sense: none in the zero field's 5 cells, some in the gaussian's 4
+    names = next(iter(plan.candidates.values())).setup.model.internal.input_names
+    ligand = heldout.inputs[..., names.index("L")]
+    assert float(ligand[:5].abs().max()) == 0.0
+    assert bool((ligand[5:] > 0).all())
+    with collecting_pending() as plans:
+        train_stage.validate(compose_in(tmp_path, "train", MEASURE))
+    assert plans[0].directory != plan.directory  # another held-out run, another choice
 
 
 def test_the_train_settings_check_the_choice_before_any_work(tmp_path: Path) -> None:
