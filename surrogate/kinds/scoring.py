@@ -19,6 +19,7 @@ records the held-out run (:mod:`surrogate.stages.choice`), read as sequences by
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -134,7 +135,7 @@ class KindScore:
         return out
 
 
-def score_kind(
+def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword-only
     name: str,
     kind: ChainKind,
     layer: DecisionLayer,
@@ -142,7 +143,9 @@ def score_kind(
     phi: Tensor,
     dt: float,
     lump_names: Sequence[str],
+    *,
     seed: int = 0,
+    groups: Sequence[int] = (),
 ) -> KindScore:
     """A fitted kind's held-out score (:class:`KindScore`).
 
@@ -155,10 +158,20 @@ def score_kind(
         dt: the window (s).
         lump_names: the two lumps' names.
         seed: the simulated durations' seed.
+        groups: the cells' groups in order, by their sizes (summing to ``n``; the held-out
+            cells of each field, ``gp.choice.fields``): each lump's durations are scored per
+            group and the group farthest off (the largest relative difference of the means)
+            stands for the lump, so a kind off in one field is not averaged away by another
+            (the dimerisation's phases: -0.2 % over two fields, +4.3 % on L2 alone).
+            Empty or one group: all cells together.
 
     Raises:
-        ValueError: the shapes disagree, a phi is not 0 or 1, or an input is not finite.
+        ValueError: the shapes disagree, a phi is not 0 or 1, an input is not finite, or the
+            groups do not add up to the cells.
     """
+    if groups and (sum(groups) != inputs.shape[0] or any(g < 1 for g in groups)):
+        raise ValueError(f"groups {list(groups)} must be positive cell counts adding up to the "
+                         f"{inputs.shape[0]} held-out cells")  # fmt: skip
     if inputs.ndim != 3 or phi.shape != (inputs.shape[0], inputs.shape[1] + 1):
         raise ValueError(f"inputs must be n x T x d and phi n x (T + 1), got "
                          f"{tuple(inputs.shape)} and {tuple(phi.shape)}")  # fmt: skip
@@ -176,9 +189,22 @@ def score_kind(
         ll = kind.sequence_log_likelihood(layer, inputs, phi, dt) / inputs.shape[1]
         simulated = simulate_sequences(kind, layer, inputs, phi[:, 0], dt, seed)
     per_cell = ll.cpu().numpy()
-    durations = duration_scores(phi.cpu().numpy(), simulated.cpu().numpy(), dt, lump_names)
+    observed, sims = phi.cpu().numpy(), simulated.cpu().numpy()
+    if len(groups) > 1:
+        edges = np.cumsum([0, *groups])
+        parts = [duration_scores(observed[a:b], sims[a:b], dt, lump_names)
+                 for a, b in itertools.pairwise(edges)]  # fmt: skip
+        durations = {lump: max((part[lump] for part in parts), key=_farthest)
+                     for lump in lump_names}  # fmt: skip
+    else:
+        durations = duration_scores(observed, sims, dt, lump_names)
     return KindScore(name, kind.complexity, float(per_cell.mean()),
                      tuple(float(v) for v in per_cell), durations)  # fmt: skip
+
+
+def _farthest(score: DurationScore) -> float:
+    """How far a group's simulated mean is off (a group too small to compare, NaN, farthest)."""
+    return math.inf if math.isnan(score.mean_rel_diff) else abs(score.mean_rel_diff)
 
 
 #: how the name of a clock on a log axis begins (``clock log max_age=20``)

@@ -173,7 +173,9 @@ def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
              inputs.shape[0], inputs.shape[1],
              "" if settings.fields is None else f" in fields {list(settings.fields)}",
              seconds)  # fmt: skip
-    return HeldOut(inputs, phi, first.seed), seconds
+    return HeldOut(
+        inputs, phi, first.seed, () if settings.fields is None else tuple(cells)
+    ), seconds
 
 
 class _Fitted:
@@ -271,13 +273,17 @@ class HeldOut:
     inputs: torch.Tensor
     phi: torch.Tensor
     seed: int
+    #: the cells of each field in order (``gp.choice.fields``; empty: one field)
+    groups: tuple[int, ...] = ()
 
-    def task(self, name: str, index: int) -> tuple[str, torch.Tensor, torch.Tensor, int]:
+    def task(self, name: str, index: int) -> Task:
         """What scoring candidate ``name``, the ``index``-th, needs."""
-        return name, self.inputs, self.phi, self.seed + index
+        return name, self.inputs, self.phi, self.seed + index, self.groups
 
 
 Outcome = tuple[str | None, float, str | None, KindScore | None]
+#: a candidate's scoring: its name, the held-out inputs and phi, its seed, the cells' groups
+Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...]]
 
 
 @contextlib.contextmanager
@@ -434,9 +440,7 @@ def end_with_parent(parent: int) -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
 
-def _fit_one(
-    fitter: Fitter, tr: Any, task: tuple[str, torch.Tensor, torch.Tensor, int] | None = None
-) -> Outcome:
+def _fit_one(fitter: Fitter, tr: Any, task: Task | None = None) -> Outcome:
     """One candidate's fit and, given its scoring ``task``, its score on one thread: (its
     directory, seconds, None, the score), or (None, seconds, the reason, None) where the fit
     failed numerically (a NumericalError carries a model, which need not cross processes)."""
@@ -448,9 +452,9 @@ def _fit_one(
     seconds = time.perf_counter() - start
     if task is None:
         return str(path), seconds, None, None
-    name, inputs, phi, seed = task
+    name, inputs, phi, seed, groups = task
     with one_thread(True):
-        score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed)
+        score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed, groups)
     return str(path), seconds, None, score
 
 
@@ -482,7 +486,7 @@ def _with_recipe(
     plan: PendingChoice,
     name: str,
     final: dict[str, Any] | None,
-    task: tuple[str, torch.Tensor, torch.Tensor, int],
+    task: Task,
 ) -> tuple[Any, dict[str, Any], tuple[Path, float], KindScore] | None:
     """Candidate ``name`` fitted (in this process) and scored as its recipe trains it, the gp
     group ``final``, where its scoring fit failed numerically and that group differs from the
@@ -508,15 +512,17 @@ def _score(
     inputs: torch.Tensor,
     phi: torch.Tensor,
     seed: int,
+    groups: tuple[int, ...] = (),
 ) -> KindScore:
     """Candidate ``name``'s held-out score (its layer from its fit directory, as simulate builds
-    it), with its fit's and its score's seconds."""
+    it; its durations per group of cells, ``groups``), with its fit's and its score's
+    seconds."""
     start = time.perf_counter()
     fit_dir, fit_seconds = fit
     request = LayerRequest.of_fit(model, tr, "lookup", None, torch.device("cpu"))
     layer, _ = tr.kind.decision_layer(request, fit_dir)
     s = score_kind(name, tr.kind, layer, inputs, phi, tr.setup.dt, model.internal.lump_names,
-                   seed=seed)  # fmt: skip
+                   seed=seed, groups=groups)  # fmt: skip
     return KindScore(s.name, s.complexity, s.log_likelihood, s.per_cell, s.durations,
                      fit_seconds, time.perf_counter() - start)  # fmt: skip
 

@@ -361,6 +361,44 @@ def _constant_psi(p: Tensor, z: Tensor) -> Tensor:
     return torch.full_like(z[:, 0], 0.3)
 
 
+def _biased_on_time(p: Tensor, z: Tensor) -> Tensor:
+    """The telegraph's own psi (P(next phi = 1)), its ON time 12 % short below x = 0.5 and 8 %
+    long above: two fields' worth of error that cancel in the mean over all cells."""
+    scale = torch.where(z[:, 0] < 0.5, 0.88, 1.08)
+    return torch.where(p > 0.5, 1.0 - 0.25 / scale, 0.04 + 0.08 * z[:, 0])
+
+
+def test_durations_per_group_are_not_averaged_away() -> None:
+    """Cells in two groups (two fields' held-out cells): each lump's row is its worst group's,
+    so a layer off in both groups in opposite directions fails the 3 % screen that its mean
+    over all cells passes. 6,000-8,000 ON segments per group: each group's SE ~1.5 %, so its
+    bias is 3-6 SE past 3 %; all cells' expected -0.5 % (SE 1 %) is 2.5 SE inside it."""
+    from surrogate.kinds.scoring import duration_scores, holds_durations, simulate_sequences
+
+    x, phi = telegraph(400, 600, erlang=1, seed=5)
+    order = np.argsort(x[:, 0, 0])  # cells with x < 0.5 first: the two groups
+    x, phi = x[order], phi[order]
+    low = int((x[:, 0, 0] < 0.5).sum())
+    inputs, observed = torch.tensor(x, dtype=torch.float32), torch.tensor(phi).float()
+    layer = AbstractDecision(_biased_on_time, Internal())
+    together = score_kind("biased", TWO_STATE, layer, inputs, observed, DT, ("off", "on"), seed=3)
+    grouped = score_kind("biased", TWO_STATE, layer, inputs, observed, DT, ("off", "on"), seed=3,
+                         groups=(low, 400 - low))  # fmt: skip
+    assert abs(together.durations["on"].mean_rel_diff) < 0.03 and holds_durations(together, 0.03)
+    assert not holds_durations(grouped, 0.03)
+    assert grouped.log_likelihood == together.log_likelihood  # the groups touch durations only
+    # the row is the farther group's, as each group alone scores it (the same draws)
+    simulated = simulate_sequences(TWO_STATE, layer, inputs, observed[:, 0], DT, seed=3).numpy()
+    parts = [duration_scores(phi[a:b], simulated[a:b], DT, ("off", "on"))["on"]
+             for a, b in ((0, low), (low, 400))]  # fmt: skip
+    assert grouped.durations["on"] == max(parts, key=lambda d: abs(d.mean_rel_diff))
+    assert parts[0].mean_rel_diff < -0.05 and parts[1].mean_rel_diff > 0.03
+    with pytest.raises(ValueError, match=r"groups \[10, 10\] must be positive cell counts "
+                                         r"adding up to the 400"):  # fmt: skip
+        score_kind("biased", TWO_STATE, layer, inputs, observed, DT, ("off", "on"),
+                   groups=(10, 10))  # fmt: skip
+
+
 def test_a_phi_outside_0_1_is_refused_before_scoring() -> None:
     """A phi of 2 (a count, not a lump) would score as phi = 1 in the two-state chain and as no
     lump in K lumps: refused, naming the values and the fix."""
