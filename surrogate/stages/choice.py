@@ -131,7 +131,10 @@ def _make_choice(
               "fit": str(made.fits[choice.chosen][0]), "scores": table,
               "heldout": {"cells": int(heldout.inputs.shape[0]),
                           "windows": int(heldout.inputs.shape[1]),
-                          "seconds": heldout_seconds}}  # fmt: skip
+                          "seconds": heldout_seconds,
+                          **({"fields": list(plan.settings.fields or ()),
+                              "cells_per_field": list(heldout.groups)}
+                             if heldout.groups else {})}}  # fmt: skip
     write_csv(out / SCORES, pd.DataFrame(table))
     write_json(made.fits[choice.chosen][0] / CHOICE, record)  # beside the chosen fit's files
     write_manifest(out, stage="choice", config=to_dict(config), seed=first.seed,

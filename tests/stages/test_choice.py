@@ -178,9 +178,14 @@ def test_held_out_cells_split_among_the_fields_named(tmp_path: Path) -> None:
 
     assert "fields" not in ChoiceSettings.from_config({}).identity()
     fields = ["gp.choice.fields=[zero,gaussian]", "gp.choice.n_cells=9"]
+    cfg = compose_in(tmp_path, "train", [*MEASURE, *fields])
     with collecting_pending() as plans:
-        train_stage.validate(compose_in(tmp_path, "train", [*MEASURE, *fields]))
+        train_stage.validate(cfg)
     plan = plans[0]
+    train_stage.run(cfg)  # the whole choice: its record names the fields and their cells
+    record = json.loads((plan.directory / "choice.json").read_text())
+    assert record["heldout"]["fields"] == ["zero", "gaussian"]
+    assert record["heldout"]["cells_per_field"] == [5, 4] and record["heldout"]["cells"] == 9
     assert plan.settings.fields == ("zero", "gaussian")
     heldout, _ = _heldout_run(plan)
     assert heldout.inputs.shape[0] == 9 and heldout.phi.shape[0] == 9
@@ -189,6 +194,7 @@ def test_held_out_cells_split_among_the_fields_named(tmp_path: Path) -> None:
     ligand = heldout.inputs[..., names.index("L")]
     assert float(ligand[:5].abs().max()) == 0.0
     assert bool((ligand[5:] > 0).all())
+    assert heldout.groups == (5, 4)  # the durations are screened per field
     with collecting_pending() as plans:
         train_stage.validate(compose_in(tmp_path, "train", MEASURE))
     assert plans[0].directory != plan.directory  # another held-out run, another choice
