@@ -21,9 +21,11 @@ from surrogate.sweep import summarize
 ROOT = Path(__file__).resolve().parents[1]
 
 # A reproduce job in seconds: one field, 20 cells for 10 s, 300 transitions per origin state,
-# 2 epochs of a 10-inducing-point GP, a coarse lookup table (over the default single input, the
-# E. coli model's signal dG).
+# the two-state chain (these tests are about launchers, not the K lumps gp=auto trains for E.
+# coli) from 2 epochs of a 10-inducing-point GP, a diagnostic of 100 cells for 10 s, a coarse
+# lookup table (over the default single input, the E. coli model's signal dG).
 TINY = [
+    "gp=svgp",
     "fields=[gaussian]",
     "n_cells=20",
     "t_end=10",
@@ -31,6 +33,8 @@ TINY = [
     "collect.n_per_state=300",
     "gp.epochs=2",
     "gp.n_inducing=10",
+    "gp.diagnostic.n_cells=100",
+    "gp.diagnostic.t_end=10.0",
     "decision.lookup_size=[64]",
     "evaluate.times=null",
     "evaluate.subsample=50",
