@@ -9,9 +9,9 @@ full-model phi sequences, and the best one picked.
 * :func:`choose`: the best kind by log-likelihood per window among those whose simulated
   durations hold (:func:`holds_durations`: every lump's mean within a tolerance; where none
   does, the one closest to holding them, :func:`duration_miss`); a candidate within the
-  standard error of
-  that best (of the paired difference over held-out cells) is a tie, which goes to the simplest
-  (:attr:`ChainKind.complexity <surrogate.kinds.base.ChainKind.complexity>`).
+  standard error of that best (of the paired difference over held-out cells) is a tie, which
+  goes to the simplest (:attr:`ChainKind.complexity
+  <surrogate.kinds.base.ChainKind.complexity>`).
 
 These take plain values (layers, tensors, scores); the train stage fits the candidates and
 records the held-out run (:mod:`surrogate.stages.choice`), read as sequences by
