@@ -38,7 +38,11 @@ range) and names, in order, the first causes that apply:
    transitions, and the next candidate with more memory only as an explicit alternative.
 
 None applying: every comparison is within the noise floor or the critical value at this
-population size; trust it there and check at scale (``scripts/fidelity.py``).
+population size; trust it there and check at scale (``scripts/fidelity.py``). Where the chain
+was chosen by measurement and no candidate held its durations on the choice's held-out cells
+(``MeasuredChoice.none_held``: the closest was chosen), that is a caveat beside the trust, with
+the choice's remedies (a cause where another cause applies; left to the memory cause, which
+prints the same remedies, where that applies).
 """
 
 from __future__ import annotations
@@ -68,6 +72,8 @@ from surrogate.simulate.support import describe_sparse_where, sparse_share
 SETTLING_Z = 4.0
 #: a bias is significant above this many standard errors
 BIAS_Z = 2.0
+#: the cause read where the runs fail with psi unbiased
+MEMORY_CAUSE = "Memory the chain over phi does not hold"
 
 
 @dataclass
@@ -337,7 +343,7 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
             advisor.step(name, remedies, then="."),
         ))  # fmt: skip
     if failing and not biased and not away and thin is None and not drift:
-        name = "Memory the chain over phi does not hold"
+        name = MEMORY_CAUSE
         what = "; ".join(f"{f}: {', '.join(q)}" for f, q in failing.items())
         classes = (Remedy("classes", "classes finer than phi, `gp=classes` with "
                           "`++model.classes=auto` (or declared bins of the count that holds "
@@ -366,6 +372,21 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
             "learned switching probabilities match the full model's where the population "
             "lives: what phi alone forgets (the network's hidden state) shapes the runs.",
             step,
+        ))  # fmt: skip
+    memory = any(c[0] == MEMORY_CAUSE for c in causes)
+    choice = run.choice
+    held_none = choice.none_held() if choice is not None else None
+    if choice is not None and held_none is not None and not memory:  # memory: same remedies
+        name = "No candidate held its durations"
+        lump, miss = held_none
+        caveats.append((
+            name,
+            f"on the measured choice's held-out full-model cells no candidate kept every "
+            f"lump's mean duration within {choice.duration_tolerance:.0%} "
+            f"(`gp.choice.duration_tolerance`); {choice.chosen}, chosen as the closest, "
+            f"was {100 * miss:+.1f} % on {lump} there, so these runs agreeing at this size "
+            "says less than it would of a chain that held them (docs/choice.md).",
+            advisor.step(name, choice_remedies(choice, n_per_state, network), sep=" "),
         ))  # fmt: skip
     if causes:  # not trusted anyway: thin rows are one more thing to mend
         causes, caveats = causes + caveats, []

@@ -217,6 +217,8 @@ class MeasuredChoice:
         n_cells: ``gp.choice.n_cells``: the held-out full-model cells.
         tie_se: ``gp.choice.tie_se``: how many SE make a tie.
         classes: whether the model declares classes (K lumps can be a candidate).
+        duration_tolerance: ``gp.choice.duration_tolerance``: the means' relative difference
+            a candidate held to be chosen first (None: a record that does not say).
     """
 
     chosen: str
@@ -226,6 +228,23 @@ class MeasuredChoice:
     n_cells: int
     tie_se: float
     classes: bool
+    duration_tolerance: float | None = None
+
+    def none_held(self) -> tuple[str, float] | None:
+        """Where the choice's screen held no candidate (every row's ``holds_durations``
+        false, under a known tolerance): the chosen candidate's farthest lump and its
+        relative difference of the means; else None."""
+        if self.duration_tolerance is None or not self.scores:
+            return None
+        if any(r.get("holds_durations", True) for r in self.scores):
+            return None  # one held, or a record that does not say
+        row = next((r for r in self.scores if str(r["kind"]) == self.chosen), None)
+        misses = {k[: -len("_mean_rel_diff")]: float(v) for k, v in (row or {}).items()
+                  if k.endswith("_mean_rel_diff") and v is not None and math.isfinite(float(v))}  # fmt: skip
+        if not misses:
+            return None
+        lump = max(misses, key=lambda k: abs(misses[k]))
+        return lump, misses[lump]
 
 
 #: the candidate families that hold memory phi alone forgets (two-state holds none), as

@@ -447,6 +447,8 @@ def measured_choice(tr: TrainSettings) -> MeasuredChoice | None:
         max_ages=tuple(float(a) for a in options["max_ages"]), n_cells=int(options["n_cells"]),
         tie_se=float(options["tie_se"]),
         classes=lump_classes_of(tr.setup.model.internal) is not None,
+        duration_tolerance=(None if options.get("duration_tolerance") is None
+                            else float(options["duration_tolerance"])),
     )  # fmt: skip
 
 

@@ -196,6 +196,42 @@ def test_a_tie_asks_for_more_held_out_cells_and_no_wider_cap_below_the_largest()
     assert widened == ("gp.choice.kinds=[two-state,clock,phases]",)
 
 
+def test_a_choice_where_none_held_is_a_caveat_beside_the_trust() -> None:
+    """Runs within noise from a chain the choice took as the closest where no candidate held
+    its durations: trusted, with a caveat naming the chosen's farthest lump and the choice's
+    remedies (each checked as any remedy); a choice where one held, or a record without the
+    tolerance, adds none; failing runs fold it into the causes, and the memory cause, which
+    gives the same remedies, leaves it out."""
+
+    def row(kind: str, complexity: int, gap: float, few: float, many: float) -> dict[str, Any]:
+        return {**_row(kind, complexity, gap, holds=False),
+                "few_mean_rel_diff": few, "many_mean_rel_diff": many}  # fmt: skip
+
+    rows = [row("two-state", 0, -2e-2, 0.004, 0.067), row("clock max_age=5", 1, -8e-4, -0.034,
+            0.003), row("classes", 2, 0.0, 0.011, 0.068)]  # fmt: skip
+    choice = _choice("clock max_age=5", rows, classes=True, duration_tolerance=0.03)
+    assert choice.none_held() == ("few", -0.034)
+    v = _read(history="age", max_age=5.0, choice=choice)
+    assert v.trust and [c[0] for c in v.caveats] == ["No candidate held its durations"]
+    name, measured, step = v.caveats[0]
+    assert "within 3%" in measured
+    assert "clock max_age=5, chosen as the closest, was -3.4 % on few" in measured
+    assert "gp.choice.max_ages=[1,2,5,10]" in step and "collect.n_per_state=40000" in step
+    assert {r.kind for c, r in v.remedies if c == name} >= {"wider_caps", "more_rows"}
+    assert "Caveat, **No candidate held its durations**" in v.markdown()
+    refused = verdict(VerdictInputs(**{**_args("phi", "age"), "max_age": 5.0, "choice": choice}),
+                      check=lambda overrides, what: "refused here")  # fmt: skip
+    assert "not advised: gp.choice.max_ages=[1,2,5,10] (refused here)" in refused.caveats[0][2]
+    held = [{**rows[0], "holds_durations": True}, *rows[1:]]
+    assert _read(choice=_choice("two-state", held, duration_tolerance=0.03)).caveats == []
+    assert _read(choice=_choice("clock max_age=5", rows)).caveats == []  # tolerance unknown
+    biased = _read(choice=choice, diagnostic={"phi0": _score(0.2, se=0.02)})
+    assert [c[0] for c in biased.causes] == ["Biased switching probabilities",
+                                             "No candidate held its durations"]  # fmt: skip
+    memory = _read(failures={"gaussian": ["off"]}, history="age", max_age=5.0, choice=choice)
+    assert [c[0] for c in memory.causes] == ["Memory the chain over phi does not hold"]
+
+
 def test_the_runner_up_is_named_by_its_rows_overrides_a_log_clock_only_so() -> None:
     """A candidate's name cannot say a log clock's knee and bins: the runner-up is named by
     the overrides its row records (what the choice trained it with); from a record without

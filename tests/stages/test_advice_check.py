@@ -110,6 +110,8 @@ def _measurements(branch: str) -> dict[str, Any]:
     elif branch == "drift":
         out["class_shares"] = {"t": 100.0, "total_variation": 0.1, "p_value": 1e-6,
                                "drift": True}  # fmt: skip
+    elif branch == "within":  # every comparison within noise: trusted, caveats only
+        out["failures"] = {"gaussian": []}
     return out
 
 
@@ -224,7 +226,8 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
     families left out, K lumps over classes: auto for a network without classes), ask for more
     held-out cells on a tie, and name the runner-up outright; class shares drifting name
     relaxation with K lumps outright (`gp.class_moves` alone is no key of gp=auto's group:
-    refused). Each printed override passes the stages' checks on a measured config."""
+    refused); a trusted run whose choice held no candidate's durations gets the same remedies
+    in its caveat. Each printed override passes the stages' checks on a measured config."""
     measured = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={SPEC}",
                                                  "gp.choice.by=measure"]))  # fmt: skip
     declared = copy.deepcopy(measured)
@@ -235,6 +238,8 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
                     _choice_row("classes", 2, 0.0)]  # fmt: skip
     tie = [_choice_row("two-state", 0, -1e-5, True), _choice_row("clock max_age=2", 1, 0.0, True),
            *rows[2:]]  # fmt: skip
+    none_held = [{**r, "holds_durations": False, "off_mean_rel_diff": 0.01 * (i + 3)}
+                 for i, r in enumerate(rows)]  # fmt: skip
     cases = {  # config, chain (lumps, history, moves), choice, branch, the remedies expected
         "clock at the largest cap": (
             measured, ("phi", "age", "learned"),
@@ -251,6 +256,10 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
             declared, ("classes", "none", "learned"),
             _measured("classes", classes_rows, classes=True), "drift",
             ["relaxation", "more_rows"]),
+        "none held, trusted": (
+            measured, ("phi", "age", "learned"),
+            _measured("clock max_age=5", none_held, duration_tolerance=0.03), "within",
+            ["wider_caps", "wider_kinds", "more_cells", "more_rows", "runner_up"]),
     }  # fmt: skip
     seen: dict[tuple[str, ...], str | None] = {}
     for name, (cfg, kind, choice, branch, expected) in cases.items():
@@ -260,6 +269,7 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
                        kind=chain_kind(*kind), network=True, n_per_state=1000, check=check,
                        choice=choice, **_measurements(branch))  # fmt: skip
         assert not v.dropped, (name, v.dropped)
+        assert v.trust == (branch == "within"), name
         assert [r.kind for _, r in v.remedies] == expected, name
         for _, remedy in v.remedies:
             assert check(remedy.overrides, "") is None, (name, remedy)
@@ -332,6 +342,7 @@ def test_the_report_reads_the_measured_choice_that_made_its_chain(tmp_path) -> N
     assert (choice.kinds, choice.max_ages, choice.n_cells, choice.tie_se) == (
         ("two-state", "clock"), (1.0,), 20, 1.0)  # fmt: skip
     assert choice.classes is True  # E. coli declares classes (phi x CCW motors)
+    assert choice.duration_tolerance == 0.03  # the screen the caveat "none held" reads
     v = verdict_of(diagnostic={"phi0": UNBIASED, "phi1": UNBIASED}, lump_names=("off", "on"),
                    failures={"g": ["off"]}, outside={"g": {"share_outside": 0.0, "inputs": {}}},
                    outside_warning=0.01, tolerance=0.03, kind=settled.kind, network=False,
