@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap
+from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap, farthest_lump
 from surrogate.models.count_classes import CountClasses
 
 
@@ -48,21 +48,27 @@ class Advisor:
     def step(self, cause: str, remedies: Sequence[Remedy], sep: str = "; or ",
              then: str = "") -> str:  # fmt: skip
         """The printed step of ``cause``: its remedies that pass, joined by ``sep``, then
-        ``then``; a note names each one left out and why."""
-        kept, notes = [], []
+        ``then``; a note names each one left out and why, and each one already advised under
+        an earlier cause (printed once)."""
+        kept, repeated, notes = [], [], []
+        earlier = {(p.kind, p.overrides): c for c, p in self.remedies if p.overrides}
         for r in remedies:
             why = self.tried.get(r.kind)
             if why is None and r.overrides and self.check is not None:
                 why = self.check(r.overrides, r.text)
-            if why is None:
+            if why is None and earlier.get((r.kind, r.overrides), cause) != cause:
+                repeated.append(f"also `{' '.join(r.overrides)}`, advised above under "
+                                f"\"{earlier[(r.kind, r.overrides)]}\"")  # fmt: skip
+            elif why is None:
                 kept.append(r)
                 self.remedies.append((cause, r))
             else:
                 self.dropped.append((cause, r, why))
                 notes.append(f"not advised: {' '.join(r.overrides) or r.kind} ({why})")
         text = sep.join(r.text for r in kept) + then if kept else \
+            "the remedies advised above" if repeated else \
             "nothing this reading can advise runs or is untried"  # fmt: skip
-        return text + "".join(f" [{n}]" for n in notes)
+        return text + "".join(f" [{n}]" for n in repeated + notes)
 
 
 def more_rows(n_per_state: int | None, text: str = "more transitions ({more})") -> Remedy:
@@ -239,12 +245,9 @@ class MeasuredChoice:
         if any(r.get("holds_durations", True) for r in self.scores):
             return None  # one held, or a record that does not say
         row = next((r for r in self.scores if str(r["kind"]) == self.chosen), None)
-        misses = {k[: -len("_mean_rel_diff")]: float(v) for k, v in (row or {}).items()
-                  if k.endswith("_mean_rel_diff") and v is not None and math.isfinite(float(v))}  # fmt: skip
-        if not misses:
-            return None
-        lump = max(misses, key=lambda k: abs(misses[k]))
-        return lump, misses[lump]
+        suffix = "_mean_rel_diff"
+        return farthest_lump({k[: -len(suffix)]: float(v) for k, v in (row or {}).items()
+                              if k.endswith(suffix) and v is not None})  # fmt: skip
 
 
 #: the candidate families that hold memory phi alone forgets (two-state holds none), as

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -262,14 +262,30 @@ def holds_durations(score: KindScore, tolerance: float) -> bool:
     )  # NaN compares false
 
 
+def farthest_lump(mean_rel_diffs: Mapping[str, float]) -> tuple[str, float] | None:
+    """The lump whose simulated mean duration is farthest from the observed one, and its
+    relative difference, among the lumps with a finite one; None where none has.
+
+    Example:
+        >>> farthest_lump({"low": 0.012, "high": -0.034})
+        ('high', -0.034)
+    """
+    finite = {k: v for k, v in mean_rel_diffs.items() if math.isfinite(v)}
+    if not finite:
+        return None
+    lump = max(finite, key=lambda k: abs(finite[k]))
+    return lump, finite[lump]
+
+
 def duration_miss(score: KindScore) -> float:
     """How far ``score``'s simulated durations are from holding: the largest relative
-    difference of the means over its lumps (inf where a lump has too few segments to compare,
-    or there are none)."""
-    misses = [abs(d.mean_rel_diff) for d in score.durations.values()]
-    if not misses or any(math.isnan(m) for m in misses):
+    difference of the means over its lumps (:func:`farthest_lump`; inf where a lump has too
+    few segments to compare, or there are none)."""
+    diffs = {k: d.mean_rel_diff for k, d in score.durations.items()}
+    far = farthest_lump(diffs)
+    if far is None or not all(math.isfinite(v) for v in diffs.values()):
         return math.inf
-    return max(misses)
+    return abs(far[1])
 
 
 def choose(

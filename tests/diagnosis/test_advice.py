@@ -7,7 +7,7 @@ from typing import Any
 import pytest
 
 from surrogate.diagnosis.advice import VerdictInputs, verdict
-from surrogate.diagnosis.remedies import MeasuredChoice, candidate_overrides
+from surrogate.diagnosis.remedies import Advisor, MeasuredChoice, Remedy, candidate_overrides
 from surrogate.kinds import chain_kind
 from surrogate.kinds.scoring import candidate_cap
 
@@ -228,6 +228,12 @@ def test_a_choice_where_none_held_is_a_caveat_beside_the_trust() -> None:
     biased = _read(choice=choice, diagnostic={"phi0": _score(0.2, se=0.02)})
     assert [c[0] for c in biased.causes] == ["Biased switching probabilities",
                                              "No candidate held its durations"]  # fmt: skip
+    # more rows, advised under the bias, is printed once: the caveat's step points to it
+    assert "collect.n_per_state=40000" in biased.causes[0][2]
+    assert "[also `collect.n_per_state=40000`, advised above under \"Biased switching " \
+        "probabilities\"]" in biased.causes[1][2]  # fmt: skip
+    assert [c for c, r in biased.remedies if r.kind == "more_rows"] == [
+        "Biased switching probabilities"]  # fmt: skip
     memory = _read(failures={"gaussian": ["off"]}, history="age", max_age=5.0, choice=choice)
     assert [c[0] for c in memory.causes] == ["Memory the chain over phi does not hold"]
 
@@ -251,3 +257,23 @@ def test_the_runner_up_is_named_by_its_rows_overrides_a_log_clock_only_so() -> N
     assert candidate_cap("clock log max_age=20") == 20.0 and candidate_cap("classes") is None
     with pytest.raises(ValueError, match="knee and bins"):
         candidate_overrides("clock log max_age=20")
+
+
+def test_a_remedy_advised_under_an_earlier_cause_is_printed_once() -> None:
+    """The same remedy under a second cause points to the first instead of being printed
+    again; a step left with nothing new says so, not that nothing runs; a refused one is still
+    named as refused."""
+    advisor = Advisor(check=lambda overrides, what: "refused" if "gp=x" in overrides else None,
+                      tried=None)  # fmt: skip
+    rows = Remedy(
+        "more_rows", "more rows (`collect.n_per_state=400`)", ("collect.n_per_state=400",)
+    )
+    first = advisor.step("Bias", [rows])
+    assert first == "more rows (`collect.n_per_state=400`)"
+    second = advisor.step("Memory", [rows])
+    assert second == ('the remedies advised above [also `collect.n_per_state=400`, advised above '
+                      'under "Bias"]')  # fmt: skip
+    third = advisor.step("Other", [rows, Remedy("x", "x", ("gp=x",))])
+    assert third.startswith("the remedies advised above") and "not advised: gp=x (refused)" in third
+    assert [c for c, _ in advisor.remedies] == ["Bias"]
+    assert advisor.step("Bias", [rows]) == first  # the same cause again: printed as before
