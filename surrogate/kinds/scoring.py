@@ -52,6 +52,44 @@ def segment_durations(phi: np.ndarray, dt: float) -> dict[int, np.ndarray]:
     return {p: lengths[lump == bool(p)] for p in (0, 1)}
 
 
+#: the share of a lump's segments a clock's cap should reach past (the inspector's hazard cap
+#: reads the same 90th percentile)
+HORIZON_QUANTILE = 0.9
+#: complete segments a lump needs for its horizon to be read
+HORIZON_MIN_SEGMENTS = 50
+
+
+def memory_horizon(phi: np.ndarray, dt: float) -> float | None:
+    """How far back phi's switching remembers, read from observed sequences: the largest over
+    the lumps of the :data:`HORIZON_QUANTILE` quantile of the segments' durations (s).
+
+    Only complete segments are seen, and a segment of length L lies whole inside a sequence of
+    length T in proportion to T - L, so each is weighted by 1 / (T - L) to undo the window's
+    bias towards short ones. None where a lump has fewer than :data:`HORIZON_MIN_SEGMENTS`
+    complete segments (phi too slow for these sequences to tell).
+
+    Args:
+        phi: ``n x (T + 1)`` phi (0/1).
+        dt: the window (s).
+
+    Example:
+        >>> phi = np.tile(np.r_[np.zeros(10), np.ones(30)], 60)[None, :]  # 0.5 s and 1.5 s
+        >>> memory_horizon(phi, 0.05)
+        1.5
+    """
+    length = (np.asarray(phi).shape[1] - 1) * dt
+    horizon = 0.0
+    for durations in segment_durations(phi, dt).values():
+        if durations.size < HORIZON_MIN_SEGMENTS:
+            return None
+        order = np.sort(durations)
+        weights = 1.0 / np.maximum(length - order, dt)
+        cumulative = np.cumsum(weights) / weights.sum()
+        at = min(int(np.searchsorted(cumulative, HORIZON_QUANTILE)), order.size - 1)
+        horizon = max(horizon, float(order[at]))
+    return horizon
+
+
 @dataclass(frozen=True)
 class DurationScore:
     """One lump's simulated segment durations against the observed: the two-sample KS, its 5 %

@@ -41,7 +41,15 @@ from surrogate.config import build_field, field_config, seed_everything, to_dict
 from surrogate.errors import NumericalError
 from surrogate.io import write_csv, write_json, write_manifest
 from surrogate.kinds.base import LayerRequest
-from surrogate.kinds.scoring import Choice, KindScore, choose, score_kind
+from surrogate.kinds.scoring import (
+    LOG_CLOCK,
+    Choice,
+    KindScore,
+    candidate_cap,
+    choose,
+    memory_horizon,
+    score_kind,
+)
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.sequences import phi_sequences
@@ -226,10 +234,25 @@ class _Fitted:
         return max(self.scores, key=lambda s: s.log_likelihood).name
 
     def extend(self) -> None:
-        """Add the clocks the scores ask for: a clock at twice the cap while the best is the
-        clock at the largest (``gp.choice.extend`` times), then one on a log axis where the
-        best is a clock in seconds; each fitted and scored here."""
-        while (longer := self.plan.longer_clock(best := self.best(), self.groups)) is not None:
+        """Add the clocks the held-out run and the scores ask for: one at the run's memory
+        horizon where it reaches past twice the largest cap
+        (:meth:`~surrogate.stages.settings.choice.PendingChoice.reach_clock`), a clock at twice
+        the cap while the best is the clock at the largest (``gp.choice.extend`` times), then
+        one on a log axis where the best is a clock in seconds; each fitted and scored here."""
+        dt = next(iter(self.plan.candidates.values())).setup.dt
+        reached = 0
+        horizon = memory_horizon(self.heldout.phi.cpu().numpy(), dt)
+        if (reach := self.plan.reach_clock(horizon, self.groups)) is not None:
+            name, gp = reach
+            log.info("choice: the held-out cells' segments reach %.3g s (90 %% of them, the "
+                     "longest lump's), past twice the largest cap; adding %s", horizon, name)  # fmt: skip
+            base = max((n for n in self.groups if candidate_cap(n) is not None
+                        and not n.startswith(LOG_CLOCK)), key=lambda n: candidate_cap(n) or 0.0)  # fmt: skip
+            reach_axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
+            reached = int(self._add(name, gp, {**self.finals[base], **reach_axis},
+                                    len(self.plan.candidates) + self.added))  # fmt: skip
+        while (longer := self.plan.longer_clock(best := self.best(), self.groups,
+                                                reached)) is not None:  # fmt: skip
             # the likelihood's best is the clock at the largest cap: its memory may reach past it
             name, gp = longer
             log.info("choice: the best is the clock at its largest cap; adding %s", name)
@@ -239,7 +262,6 @@ class _Fitted:
             if not self._add(name, gp, {**self.finals[best], **axis}, index):
                 break  # named among the failed; no longer clock after it
         best = self.best()
-        dt = next(iter(self.plan.candidates.values())).setup.dt
         # the best is a clock in seconds: one on a log axis reaches twice as far
         if (logged := self.plan.log_clock(best, self.groups, dt)) is not None:
             name, gp = logged

@@ -484,3 +484,27 @@ def test_simulated_durations_start_from_the_observed_phi_without_the_internal_mo
         assert math.isfinite(score.log_likelihood)
     CLOCK.start_sequences(clock, inputs[:, 0], observed[:, 0])
     assert clock.age is not None and bool((clock.age == SETTLED).all())
+
+
+def test_the_memory_horizon_undoes_the_windows_bias_towards_short_segments() -> None:
+    """Renewal sequences with exponential segments (mean 10 s) seen through 50-s windows: the
+    complete segments' own 90th percentile is biased short (long ones rarely fit whole); the
+    horizon, each weighted by 1 / (T - L), recovers the law's 10 ln 10 = 23.0 s; None where a
+    lump has too few complete segments."""
+    from surrogate.kinds.scoring import memory_horizon, segment_durations
+
+    rng = np.random.default_rng(0)
+    dt, windows, cells = 0.05, 1000, 2000
+    phi = np.empty((cells, windows + 1))
+    for c in range(cells):
+        seq: list[float] = []
+        lump = float(rng.integers(2))
+        while len(seq) <= windows:
+            seq += [lump] * max(1, int(rng.exponential(10.0) / dt))
+            lump = 1.0 - lump
+        phi[c] = seq[: windows + 1]
+    truth = 10.0 * np.log(10.0)
+    naive = max(float(np.quantile(d, 0.9)) for d in segment_durations(phi, dt).values())
+    assert naive < 0.85 * truth
+    assert memory_horizon(phi, dt) == pytest.approx(truth, rel=0.05)
+    assert memory_horizon(phi[:5], dt) is None  # ~10 complete segments a lump

@@ -309,6 +309,34 @@ def test_a_clock_at_the_largest_cap_is_extended_while_extensions_are_left() -> N
     assert none.longer_clock("clock max_age=2", none.groups) is None
 
 
+def test_a_clock_at_the_held_out_memory_horizon_is_added_past_twice_the_largest_cap() -> None:
+    """Doubling stops where one cap scores below the one under it (the Vilar oscillator's seed
+    1: 10 s below 5 s, its segments of 16 s unreached): where the held-out run's segments reach
+    past twice the largest cap in seconds, a clock at that horizon (two significant figures,
+    bins as wide as the largest's) is a candidate, and the doubling counts past it; none
+    within twice the cap, without a horizon, clocks or a way to make settings."""
+    settings = ChoiceSettings.from_config({"max_ages": [1, 5], "extend": 1})
+    clock = {"history": "age", "bins": 200, "clock_bins": 20}
+    groups = {"two-state": {"history": "none"}, "clock max_age=1": {**clock, "max_age": 1.0},
+              "clock max_age=5": {**clock, "max_age": 5.0}}  # fmt: skip
+    plan = PendingChoice(settings, {}, Path("."), groups, make=lambda gp: gp)
+    name, gp = plan.reach_clock(22.34, groups)
+    # 0.25 s bins like the clock at 5 s: 88 over 22 s
+    assert (name, gp["max_age"], gp["clock_bins"]) == ("clock max_age=22", 22.0, 88)
+    assert plan.reach_clock(10.0, groups) is None  # within twice the largest cap
+    assert plan.reach_clock(None, groups) is None  # too few segments to read one
+    assert plan.reach_clock(22.0, {"two-state": groups["two-state"]}) is None
+    assert PendingChoice(settings, {}, Path("."), groups).reach_clock(22.0, groups) is None
+    logged = {**groups, "clock log max_age=40": {**clock, "max_age": 40.0, "clock_knee": 0.25}}
+    assert plan.reach_clock(22.0, logged)[0] == "clock max_age=22"  # measured from seconds
+    groups[name] = gp
+    longer, more = plan.longer_clock(name, groups, reached=1)  # extend=1 left after it
+    assert (longer, more["max_age"], more["clock_bins"]) == ("clock max_age=44", 44.0, 176)
+    groups[longer] = more
+    assert plan.longer_clock(longer, groups, reached=1) is None
+    assert plan.longer_clock(name, {k: v for k, v in groups.items() if k != longer}) is None
+
+
 def test_a_clock_on_a_log_axis_is_added_once_where_a_clock_in_seconds_is_best() -> None:
     """The best a clock in seconds, the choice adds one clock on a log axis at twice its cap
     (knee five windows, bins as wide as the best's at a third of its cap); none where the best

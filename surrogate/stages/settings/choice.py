@@ -385,20 +385,46 @@ class PendingChoice:
     #: the train command that makes it, with ``gp=auto`` and its choice keys
     made_by: str | None = None
 
+    def reach_clock(
+        self, horizon: float | None, groups: Mapping[str, dict[str, Any]]
+    ) -> tuple[str, dict[str, Any]] | None:
+        """A clock candidate at the held-out sequences' memory ``horizon`` (s,
+        :func:`~surrogate.kinds.scoring.memory_horizon`, to two significant figures), where it
+        is more than twice the largest cap among ``groups``' clocks in seconds: what the
+        inspector's pilot adds from the hazard it measures, here from the run the candidates
+        are scored on. Doubling from the caps asked for stops at the first cap that scores
+        worse than the one below it, short of a long period's memory (the Vilar oscillator's
+        segments of 16 s: the clock at 10 s below the one at 5 s for one training seed, every
+        candidate's `a_low` mean 11-45 % short, docs/choice.md). Its age axis keeps the width
+        of that largest clock's bins."""
+        clocks = {n: g for n, g in groups.items()
+                  if g.get("history") == SWITCH_CLOCK.history and g.get("clock_knee") is None}  # fmt: skip
+        if horizon is None or not clocks or self.make is None:
+            return None
+        base = max(clocks.values(), key=lambda g: float(g["max_age"]))
+        cap, age = float(base["max_age"]), float(f"{horizon:.2g}")
+        if age <= 2.0 * cap:
+            return None
+        axis = wider_clock_axis(base)
+        if axis:  # as wide as the base's bins: its count scaled with the cap
+            axis = {"clock_bins": max(1, round(axis["clock_bins"] / 2 * age / cap))}
+        return clock_name(age), {**base, "max_age": age, **axis}
+
     def longer_clock(
-        self, name: str, groups: Mapping[str, dict[str, Any]]
+        self, name: str, groups: Mapping[str, dict[str, Any]], reached: int = 0
     ) -> tuple[str, dict[str, Any]] | None:
         """A clock candidate at twice ``name``'s cap, where ``name`` is a clock at the largest
         cap among ``groups`` (the candidates so far) and extensions are left
-        (``gp.choice.extend``): the memory may reach past it. Its age axis keeps the width of
-        ``name``'s bins (twice the ``gp.clock_bins``): at the same count a longer cap blurs
-        what the shorter one resolved (Tyson's oscillator: 20 bins over 10 s, 0.5 s each, miss
-        a 3.5-s period's means that 20 over 5 s hold)."""
+        (``gp.choice.extend``, counted past the caps asked for and the ``reached`` ones
+        :meth:`reach_clock` added): the memory may reach past it. Its age axis keeps the
+        width of ``name``'s bins (twice the ``gp.clock_bins``): at the same count a longer cap
+        blurs what the shorter one resolved (Tyson's oscillator: 20 bins over 10 s, 0.5 s
+        each, miss a 3.5-s period's means that 20 over 5 s hold)."""
         gp = groups.get(name)
         if gp is None or gp.get("history") != SWITCH_CLOCK.history or self.make is None:
             return None
         caps = [g["max_age"] for g in groups.values() if g.get("history") == SWITCH_CLOCK.history]
-        extended = len(caps) - len(self.settings.max_ages)
+        extended = len(caps) - len(self.settings.max_ages) - reached
         if gp["max_age"] < max(caps) or extended >= self.settings.extend:
             return None
         age = 2.0 * float(gp["max_age"])
