@@ -22,6 +22,7 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 TOGGLE = EXAMPLES / "toggle_switch" / "Genetic_Toggle_Switch.sbml"
 AUTOREGULATION = EXAMPLES / "autoregulation" / "ch07-ar-stoch.xml"
 TYSON = EXAMPLES / "tyson_oscillator" / "Tyson_2_State_Oscillator.sbml"
+VILAR = EXAMPLES / "vilar_oscillator" / "Vilar_Oscillator.sbml"
 DIMERISATION = EXAMPLES / "dimerisation" / "ch07-dimer-stoch.xml"
 
 
@@ -902,7 +903,7 @@ def test_a_rule_on_an_input_without_a_value_is_set_from_each_cells_inputs():
 @pytest.mark.parametrize(
     "path",
     [TOGGLE, AUTOREGULATION, AUTOREGULATION.parent / "head" / "ch07-ar-stoch.xml", TYSON,
-     DIMERISATION],
+     DIMERISATION, VILAR],
     ids=lambda path: f"{path.parent.name}/{path.name}",
 )  # fmt: skip
 def test_the_vendored_files_are_the_published_bytes(path: Path) -> None:
