@@ -41,15 +41,7 @@ from surrogate.config import build_field, field_config, seed_everything, to_dict
 from surrogate.errors import NumericalError
 from surrogate.io import write_csv, write_json, write_manifest
 from surrogate.kinds.base import LayerRequest
-from surrogate.kinds.scoring import (
-    LOG_CLOCK,
-    Choice,
-    KindScore,
-    candidate_cap,
-    choose,
-    memory_horizon,
-    score_kind,
-)
+from surrogate.kinds.scoring import Choice, KindScore, choose, memory_horizon, score_kind
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.sequences import phi_sequences
@@ -61,6 +53,7 @@ from surrogate.stages.settings.choice import (
     SCORES,
     PendingChoice,
     collecting_pending,
+    largest_clock,
     stored_choice,
 )
 from surrogate.threads import one_thread
@@ -246,8 +239,8 @@ class _Fitted:
             name, gp = reach
             log.info("choice: the held-out cells' segments reach %.3g s (90 %% of them, the "
                      "longest lump's), past twice the largest cap; adding %s", horizon, name)  # fmt: skip
-            base = max((n for n in self.groups if candidate_cap(n) is not None
-                        and not n.startswith(LOG_CLOCK)), key=lambda n: candidate_cap(n) or 0.0)  # fmt: skip
+            base = largest_clock(self.groups)  # what reach_clock widened
+            assert base is not None
             reach_axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
             reached = int(self._add(name, gp, {**self.finals[base], **reach_axis},
                                     len(self.plan.candidates) + self.added))  # fmt: skip

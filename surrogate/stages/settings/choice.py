@@ -397,11 +397,10 @@ class PendingChoice:
         segments of 16 s: the clock at 10 s below the one at 5 s for one training seed, every
         candidate's `a_low` mean 11-45 % short, docs/choice.md). Its age axis keeps the width
         of that largest clock's bins."""
-        clocks = {n: g for n, g in groups.items()
-                  if g.get("history") == SWITCH_CLOCK.history and g.get("clock_knee") is None}  # fmt: skip
-        if horizon is None or not clocks or self.make is None:
+        largest = largest_clock(groups)
+        if horizon is None or largest is None or self.make is None:
             return None
-        base = max(clocks.values(), key=lambda g: float(g["max_age"]))
+        base = groups[largest]
         cap, age = float(base["max_age"]), float(f"{horizon:.2g}")
         if age <= 2.0 * cap:
             return None
@@ -465,6 +464,14 @@ class PendingChoice:
         if self.made_by is not None:
             return self.made_by
         return str(next(iter(self.candidates.values())).command())
+
+
+def largest_clock(groups: Mapping[str, dict[str, Any]]) -> str | None:
+    """The name of the clock in seconds (not on a log axis) at the largest cap among
+    ``groups``; None where there is none."""
+    clocks = [n for n, g in groups.items()
+              if g.get("history") == SWITCH_CLOCK.history and g.get("clock_knee") is None]  # fmt: skip
+    return max(clocks, key=lambda n: float(groups[n]["max_age"]), default=None)
 
 
 def wider_clock_axis(gp: Mapping[str, Any]) -> dict[str, Any]:
