@@ -395,7 +395,7 @@ class PendingChoice:
         are scored on. Doubling from the caps asked for stops at the first cap that scores
         worse than the one below it, short of a long period's memory (the Vilar oscillator's
         segments of 16 s: the clock at 10 s below the one at 5 s for one training seed, every
-        candidate's `a_low` mean 11-45 % short, docs/choice.md). Its age axis keeps the width
+        candidate's `a_low` mean 11-42 % short, docs/choice.md). Its age axis keeps the width
         of that largest clock's bins."""
         largest = largest_clock(groups)
         if horizon is None or largest is None or self.make is None:
