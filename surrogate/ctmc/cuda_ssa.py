@@ -42,6 +42,13 @@ from surrogate.ctmc.kinetics import Kinetics
 
 __all__ = ["THREADS_PER_BLOCK", "CudaSSA", "cuda_ssa_available", "simulated"]
 
+# numba-cuda (0.30.4 and earlier) registers an overload for ``np.row_stack`` when its compiler
+# first loads, and numpy 2.5 removed that alias of ``np.vstack``: every kernel compile then
+# fails with "module 'numpy' has no attribute 'row_stack'" (seen on an H200 with numpy 2.5.2).
+# Restoring the alias is all numba-cuda needs of it.
+if not hasattr(np, "row_stack"):  # pragma: no cover - numpy >= 2.5
+    setattr(np, "row_stack", np.vstack)  # noqa: B010 - the name numba-cuda looks up
+
 #: threads per block: small blocks keep more blocks resident while cells' windows differ in
 #: length (a warp waits for its slowest cell)
 THREADS_PER_BLOCK = 128
