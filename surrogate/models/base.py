@@ -256,14 +256,16 @@ class Model:
     #: the abstraction's default inputs (``gp.inputs=signal``): the internal model's signal
     default_abstraction_inputs: str = "signal"
 
-    def cell_step_seconds(self, dt: float, full: bool = True) -> float:
+    def cell_step_seconds(
+        self, dt: float, full: bool = True, device: torch.device | str = "cpu"
+    ) -> float:
         """Estimated wall time of one cell and step (s) under the full model (``full``,
-        ``decision=full``: the internal model's own estimate, ``cell_step_seconds(dt)``, where
-        it gives one) or a chain (``full=False``; the chains and models without an estimate:
-        :data:`CELL_STEP_SECONDS`). The stages multiply it by steps and cells to say, before
-        they start, what a run will cost: an order of magnitude to refuse absurd runs by, with
-        no accuracy guarantee (:mod:`surrogate.diagnosis.cost`)."""
-        estimate = cell_step_seconds_of(self.internal)
+        ``decision=full``: the internal model's own estimate on ``device``,
+        ``cell_step_seconds(dt)``, where it gives one) or a chain (``full=False``; the chains
+        and models without an estimate: :data:`CELL_STEP_SECONDS`). The stages multiply it by
+        steps and cells to say, before they start, what a run will cost: an order of magnitude
+        to refuse absurd runs by, with no accuracy guarantee (:mod:`surrogate.diagnosis.cost`)."""
+        estimate = cell_step_seconds_of(self.internal, device)
         if full and estimate is not None:
             return float(estimate(dt))
         return CELL_STEP_SECONDS

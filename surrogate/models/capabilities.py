@@ -47,6 +47,8 @@ layer itself.
 from __future__ import annotations
 
 import difflib
+import functools
+import inspect
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -243,10 +245,15 @@ def expected_phi_next_of(internal: Any) -> Callable[[InternalState, Tensor, floa
     return _callable(internal, "expected_phi_next")
 
 
-def cell_step_seconds_of(internal: Any) -> Callable[[float], float] | None:
-    """``cell_step_seconds(dt) -> s``: ``internal``'s own estimate of one cell-step's cost, or
-    None."""
-    return _callable(internal, "cell_step_seconds")
+def cell_step_seconds_of(
+    internal: Any, device: torch.device | str = "cpu"
+) -> Callable[[float], float] | None:
+    """``cell_step_seconds(dt) -> s``: ``internal``'s own estimate of one cell-step's cost on
+    ``device`` (passed where its ``cell_step_seconds`` takes a ``device``), or None."""
+    estimate = _callable(internal, "cell_step_seconds")
+    if estimate is None or "device" not in inspect.signature(estimate).parameters:
+        return estimate
+    return functools.partial(estimate, device=device)
 
 
 def burn_in_of(internal: Any) -> float:

@@ -76,6 +76,13 @@ SSA_BACKENDS = ("auto", "compiled", "batched", "cuda")
 #: compiled SSA 1.33e7 events/s, the batched torch SSA 5.3e5 events/s
 COMPILED_EVENT_SECONDS = 1 / 1.33e7
 BATCHED_EVENT_SECONDS = 1 / 5.3e5
+#: seconds per SSA event on the CUDA SSA (one thread per cell): the phospho network through
+#: the simulate stage on one H200, 10,000 cells, 2.7e9 events/s (2.73e5 cell-steps/s at ~1e4
+#: events a window; the kernel alone 3.7e9 at 1e4 cells, 1.2e10 at 1e5: docs/performance.md).
+#: The smallest population measured, so larger ones are priced high, as a guard should be; a
+#: population too small to fill the GPU waits on its slowest thread, which the stage's measured
+#: fixed cost per step (:func:`surrogate.diagnosis.cost.step_seconds`) holds
+CUDA_EVENT_SECONDS = 1 / 2.7e9
 #: seconds per cell and step around the window's events (the SSA call's per-cell work, the
 #: step's other per-cell tensor work, collect's records), measured as the slope of the wall
 #: time per step between 200 and 4,000 cells (the loop's fixed part cancels; best of 3-5
@@ -689,24 +696,25 @@ class NetworkInternalModel:
         rates = self.kinetics.propensities(state, inputs.reshape(1, -1).to(torch.float64))
         return float(rates.clamp_min(0).sum()) * dt
 
-    def cell_step_seconds(self, dt: float, events: float | None = None) -> float:
+    def cell_step_seconds(
+        self, dt: float, events: float | None = None, device: torch.device | str = "cpu"
+    ) -> float:
         """Estimated wall time of one cell and step of the full model (s), from the events of
         a window (``events``; default: :meth:`events_per_window` at the initial state) and the
-        measured cost of an event on this SSA (no accuracy guarantee: events far from the
-        initial counts and default inputs differ)."""
+        measured cost of an event on ``device``'s SSA (no accuracy guarantee: events far from
+        the initial counts and default inputs differ)."""
         if events is None:
             events = self.events_per_window(dt)
         if events != events:  # no estimate of the inputs: one event per window
             events = 1.0
-        return STEP_OVERHEAD_SECONDS + events * self.event_seconds()
+        return STEP_OVERHEAD_SECONDS + events * self.event_seconds(device)
 
     def event_seconds(self, device: torch.device | str = "cpu") -> float:
-        """The measured cost of one SSA event on ``device``'s SSA (:data:`COMPILED_EVENT_SECONDS`
-        or :data:`BATCHED_EVENT_SECONDS`): what :meth:`cell_step_seconds` prices events at."""
-        # the CUDA SSA is priced as the compiled one's per-cell event (not measured on a GPU
-        # here: an upper bound for a GPU's many threads)
-        compiled = self.backend(torch.device(device)) in ("compiled", "cuda")
-        return COMPILED_EVENT_SECONDS if compiled else BATCHED_EVENT_SECONDS
+        """The measured cost of one SSA event on ``device``'s SSA
+        (:data:`COMPILED_EVENT_SECONDS`, :data:`CUDA_EVENT_SECONDS` or
+        :data:`BATCHED_EVENT_SECONDS`): what :meth:`cell_step_seconds` prices events at."""
+        return {"compiled": COMPILED_EVENT_SECONDS, "cuda": CUDA_EVENT_SECONDS}.get(
+            self.backend(torch.device(device)), BATCHED_EVENT_SECONDS)  # fmt: skip
 
     def prepare(self, device: torch.device | str = "cpu") -> None:
         """Compile (or load) the SSA that runs on ``device`` now, where it is compiled, so that

@@ -37,6 +37,8 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import torch
+
 from surrogate.diagnosis.cost import Work, duration, step_seconds
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST
@@ -80,11 +82,12 @@ def collect_work(
              f"of collect.n_cells={cells}, collect.equilibration_time="
              f"{float(c['equilibration_time']):g} s, dt={setup.dt:g} s")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
-    cell_step = setup.model.cell_step_seconds(setup.dt) if cell_step_seconds is None \
-        else cell_step_seconds  # fmt: skip
+    device = settings.job.device
+    cell_step = setup.model.cell_step_seconds(setup.dt, device=device) \
+        if cell_step_seconds is None else cell_step_seconds  # fmt: skip
     return [Work("collect (at least)", cells, steps, cell_step, where, setup.model.name,
                  step_seconds=fixed),
-            *burn_in_work(setup.model, cells, setup.dt, cell_step_seconds)]  # fmt: skip
+            *burn_in_work(setup.model, cells, setup.dt, cell_step_seconds, device)]  # fmt: skip
 
 
 def collect_cost(source: CollectSettings, cell_step: float) -> tuple[float, str] | None:
@@ -111,9 +114,11 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
                  f"dt={setup.dt:g} s")  # fmt: skip
         fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
         works.append(Work("the train diagnostic's full-model population", int(d["n_cells"]),
-                          span / setup.dt, setup.model.cell_step_seconds(setup.dt), where,
-                          setup.model.name, step_seconds=fixed))  # fmt: skip
-        works += burn_in_work(setup.model, int(d["n_cells"]), setup.dt)
+                          span / setup.dt,
+                          setup.model.cell_step_seconds(setup.dt, device=settings.job.device),
+                          where, setup.model.name, step_seconds=fixed))  # fmt: skip
+        works += burn_in_work(setup.model, int(d["n_cells"]), setup.dt,
+                              device=settings.job.device)  # fmt: skip
     return works
 
 
@@ -128,26 +133,33 @@ def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:
     label = {"full": "the full-model run", "abstract": "the abstraction's run",
              "exact": "the exact-psi chain's run"}.get(name, f"the {name} run")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, name, settings.job.device)
-    per_cell = setup.model.cell_step_seconds(setup.dt, full)
+    per_cell = setup.model.cell_step_seconds(setup.dt, full, settings.job.device)
     mode = settings.decision.mode
     if settings.decision.kind.exact and mode is not None and not mode_kind(mode).table:
         # the exact law computed directly: exp(Q dt) per cell and step
         per_cell += direct_exact_step_seconds(setup.model.internal)
     return [Work(label, settings.n_cells, span / setup.dt, per_cell, where, setup.model.name,
-                 name, fixed), *burn_in_work(setup.model, settings.n_cells, setup.dt)]  # fmt: skip
+                 name, fixed),
+            *burn_in_work(setup.model, settings.n_cells, setup.dt, device=settings.job.device)]  # fmt: skip
 
 
 def burn_in_work(
-    model: Any, cells: int, dt: float, cell_step_seconds: float | None = None
+    model: Any,
+    cells: int,
+    dt: float,
+    cell_step_seconds: float | None = None,
+    device: torch.device | str = "cpu",
 ) -> list[Work]:
     """The full model's burn-in of ``cells`` initial states, where the model simulates one
     (:func:`~surrogate.models.capabilities.burn_in_of`; every decision layer starts its cells
     from the internal model's initial state). One SSA call of ``seconds``, not a loop of
-    steps: no fixed cost per step. ``cell_step_seconds``: instead of the model's estimate."""
+    steps: no fixed cost per step. ``cell_step_seconds``: instead of the model's estimate on
+    ``device``."""
     seconds = burn_in_of(model.internal)
     if seconds <= 0:
         return []
-    cell_step = model.cell_step_seconds(dt) if cell_step_seconds is None else cell_step_seconds
+    cell_step = model.cell_step_seconds(dt, device=device) if cell_step_seconds is None \
+        else cell_step_seconds  # fmt: skip
     return [Work("the initial states' burn-in", cells, seconds / dt, cell_step,
                  f"model.burn_in={seconds:g} s", model.name, step_seconds=0.0)]  # fmt: skip
 

@@ -227,7 +227,7 @@ def measured_cost(
         return None
     events, file_events = float(measured["events_per_window_last"]), float(
         measured["events_per_window_file"])  # fmt: skip
-    cell_step = network.cell_step_seconds(setup.dt, events)
+    cell_step = network.cell_step_seconds(setup.dt, events, settings.job.device)
     try:
         file_works = budget.collect_work(settings, reuse=False)
         works = budget.collect_work(settings, reuse=False, cell_step_seconds=cell_step)

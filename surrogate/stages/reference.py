@@ -281,7 +281,8 @@ def validate(cfg: Mapping[str, Any]) -> ReferenceSettings:
                 f"the {run.describe()} ({missing} of {run.shard_count} shards left, "
                 f"{settings.workers} at once)",
                 max(1, cells // settings.workers), steps_between(run.t_end, run.setup.dt, "t_end"),
-                run.setup.model.cell_step_seconds(run.setup.dt), "fidelity.n_cells, fidelity.t_end",
+                run.setup.model.cell_step_seconds(run.setup.dt, device=settings.job.device),
+                "fidelity.n_cells, fidelity.t_end",
                 run.setup.model.name, step_seconds=fixed))  # fmt: skip
     budget.check(cfg, works, "reference")
     return settings

@@ -16,6 +16,7 @@ import logging
 from pathlib import Path
 
 import pytest
+import torch
 
 from surrogate.config import CONF_DIR
 from surrogate.errors import ConfigError
@@ -214,3 +215,34 @@ def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> 
         assert work.step_seconds > 0
         assert work.seconds == pytest.approx(steps * (work.step_seconds + 50 * cell_step),
                                              rel=1e-12)  # fmt: skip
+
+
+def test_a_network_on_the_cuda_ssa_is_priced_at_the_gpus_event_cost(tmp_path, monkeypatch) -> None:
+    """On ``device=cuda`` a network whose windows run on the CUDA SSA is priced at that SSA's
+    measured cost of an event (an H200: 2.7e9 events/s), not the CPU's: priced as the
+    compiled SSA, the phospho network's 10,000 cells x 11 s were estimated at 34 min and
+    warned about where they ran in 22 s. Where no CUDA SSA runs, CUDA gets the torch SSA's."""
+    from surrogate.models import network
+    from surrogate.models.network import (
+        BATCHED_EVENT_SECONDS,
+        COMPILED_EVENT_SECONDS,
+        CUDA_EVENT_SECONDS,
+        STEP_OVERHEAD_SECONDS,
+    )
+
+    model = CollectSettings.from_config(
+        compose_in(tmp_path / "data", "collect", [*GENE, "dt=0.05"])).setup.model  # fmt: skip
+    events = 20.0 * 0.05  # the gene switch's events per window at its file's counts (above)
+    on_cpu = model.cell_step_seconds(0.05)
+    assert on_cpu == pytest.approx(STEP_OVERHEAD_SECONDS + events * COMPILED_EVENT_SECONDS)
+    monkeypatch.setattr(network, "_cuda_ssa_available", lambda: True)
+    assert model.internal.backend(torch.device("cuda")) == "cuda"
+    assert model.cell_step_seconds(0.05, device="cuda") == pytest.approx(
+        STEP_OVERHEAD_SECONDS + events * CUDA_EVENT_SECONDS)  # fmt: skip
+    assert CUDA_EVENT_SECONDS < COMPILED_EVENT_SECONDS / 100
+    monkeypatch.setattr(network, "_cuda_ssa_available", lambda: False)
+    assert model.cell_step_seconds(0.05, device="cuda") == pytest.approx(
+        STEP_OVERHEAD_SECONDS + events * BATCHED_EVENT_SECONDS)  # fmt: skip
+    # a chain's cell-step is the same on any device (the base figure)
+    assert model.cell_step_seconds(0.05, full=False, device="cuda") == model.cell_step_seconds(
+        0.05, full=False)  # fmt: skip
