@@ -241,18 +241,16 @@ class _Fitted:
                      "longest lump's), past twice the largest cap; adding %s", horizon, name)  # fmt: skip
             base = largest_clock(self.groups)  # what reach_clock widened
             assert base is not None
-            reach_axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
-            reached = int(self._add(name, gp, {**self.finals[base], **reach_axis},
+            reached = int(self._add(name, gp, {**self.finals[base], **_clock_axis(gp)},
                                     len(self.plan.candidates) + self.added))  # fmt: skip
         while (longer := self.plan.longer_clock(best := self.best(), self.groups,
                                                 reached)) is not None:  # fmt: skip
             # the likelihood's best is the clock at the largest cap: its memory may reach past it
             name, gp = longer
             log.info("choice: the best is the clock at its largest cap; adding %s", name)
-            axis: dict[str, Any] = {k: gp[k] for k in ("max_age", "clock_bins") if k in gp}
             # seeds after every candidate's, as they were numbered before this class
             index = len(self.plan.candidates) + self.added
-            if not self._add(name, gp, {**self.finals[best], **axis}, index):
+            if not self._add(name, gp, {**self.finals[best], **_clock_axis(gp)}, index):
                 break  # named among the failed; no longer clock after it
         best = self.best()
         # the best is a clock in seconds: one on a log axis reaches twice as far
@@ -260,7 +258,7 @@ class _Fitted:
             name, gp = logged
             log.info("choice: the best is a clock; adding %s (knee %g s, %d bins)", name,
                      gp["clock_knee"], gp["clock_bins"])  # fmt: skip
-            axis = {k: gp[k] for k in ("max_age", "clock_knee", "clock_bins")}
+            axis = _clock_axis(gp, ("max_age", "clock_knee", "clock_bins"))
             self._add(name, gp, {**self.finals[best], **axis},
                       len(self.plan.candidates) + len(self.trains) + 2)  # fmt: skip
 
@@ -297,6 +295,14 @@ class HeldOut:
     def task(self, name: str, index: int) -> Task:
         """What scoring candidate ``name``, the ``index``-th, needs."""
         return name, self.inputs, self.phi, self.seed + index, self.groups
+
+
+def _clock_axis(
+    gp: Mapping[str, Any], keys: tuple[str, ...] = ("max_age", "clock_bins")
+) -> dict[str, Any]:
+    """An added clock's axis in its gp group ``gp`` (its cap and bins; a log clock's knee
+    too): what it changes in the recipe of the clock it was made from."""
+    return {k: gp[k] for k in keys if k in gp}
 
 
 Outcome = tuple[str | None, float, str | None, KindScore | None]
