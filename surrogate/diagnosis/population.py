@@ -93,7 +93,7 @@ def population_inputs(runs: Runs, options: InspectOptions, seconds: float) -> Po
     network = network_of(model)
     names = tuple(model.internal.input_names)
     kinetic_names = network.kinetics.input_names if network is not None else ()
-    step_cost = model.cell_step_seconds(dt)
+    step_cost = model.cell_step_seconds(dt, device=runs.device)
     burn_in = network.burn_in if network is not None and network.state_space is None else 0.0
     share = seconds / len(runs.fields)
     xs, kins, states, per_field, notes, spent = [], [], [], {}, [], 0.0

@@ -84,7 +84,7 @@ def simulate_fixed_inputs(  # noqa: C901  # one branch per optional measurement
     kin = network.kinetic_inputs(x) if network is not None else None
     state = network.start_state(x.shape[0], device, kin) if network is not None else \
         internal.initial_state(x)  # fmt: skip
-    step_cost = model.cell_step_seconds(dt)
+    step_cost = model.cell_step_seconds(dt, device=device)
 
     def cost(state: tuple[Tensor, ...], kin: Tensor | None, cells: int, span: float) -> float:
         """Estimated seconds of advancing ``cells`` cells by ``span`` (the events expected at
@@ -93,7 +93,7 @@ def simulate_fixed_inputs(  # noqa: C901  # one branch per optional measurement
             return cells * span / dt * step_cost
         assert kin is not None  # a network's kinetic inputs
         a0 = network.kinetics.torch_propensity(state[0], kin).sum(1)
-        return cells * network.cell_step_seconds(span, float(a0.mean()) * span)
+        return cells * network.cell_step_seconds(span, float(a0.mean()) * span, device)
 
     def sample(state: tuple[Tensor, ...]) -> tuple[np.ndarray, np.ndarray | None]:
         phi = internal.phi(state).cpu().numpy()

@@ -443,9 +443,9 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     else:
         fixed = simulate_fixed_inputs(model, grid, o, dt, settings.job.device, left)
     model_events = network.events_per_window(dt) if network is not None else None
-    step_model = model.cell_step_seconds(dt)
-    step_measured = network.cell_step_seconds(dt, fixed.events) if network is not None \
-        and fixed.events is not None else step_model  # fmt: skip
+    step_model = model.cell_step_seconds(dt, device=settings.job.device)
+    step_measured = network.cell_step_seconds(dt, fixed.events, settings.job.device) \
+        if network is not None and fixed.events is not None else step_model  # fmt: skip
     costs = stage_costs(settings, step_measured)
     collection = collection_budget(settings, o, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o.burn_in_factor, o.settle_tolerance)
