@@ -205,7 +205,7 @@ def data_domain(data: pd.DataFrame, columns: Sequence[str]) -> Domain:
     return {c: (float(data[c].min()), float(data[c].max())) for c in columns}
 
 
-def fit_psi(
+def fit_psi(  # noqa: PLR0913  # the public fit: its options are keyword-only
     data: pd.DataFrame,
     input_names: Sequence[str],
     settings: GPSettings | None = None,
@@ -214,6 +214,8 @@ def fit_psi(
     lump_names: tuple[str, str] = ("0", "1"),
     label: str = "phi_next",
     warps: Mapping[str, float] | None = None,
+    *,
+    processes: int = 1,
 ) -> PsiClassifier:
     """Fit psi_0 on rows with ``phi == 0`` and psi_1 on rows with ``phi == 1`` of ``data``.
 
@@ -227,6 +229,9 @@ def fit_psi(
             always score the outcomes.
         warps: inputs read on a log axis (name -> knee, :func:`log_warp`): the classifiers
             are fitted, binned and evaluated on the warped values.
+        processes: where the two are fitted one after the other (natural gradients, many
+            bins), fit them in this many spawned processes instead, each on this process's
+            torch threads: the same fits (:func:`~surrogate.gp.training.fit_classifiers`).
 
     Example:
         >>> psi = fit_psi(table, ["dG"], GPSettings(bins=500), label="phi_next_expected")
@@ -250,7 +255,8 @@ def fit_psi(
         pairs.append((x, y, outcomes))
     # side by side (one batched GP) where the settings allow; the same steps as one by one
     label = f"psi_0, psi_1 (from {lump_names[0]}, {lump_names[1]})"
-    fitted = fit_classifiers(pairs, settings, progress=progress, device=device, desc=label)
+    fitted = fit_classifiers(pairs, settings, progress=progress, device=device, desc=label,
+                             processes=processes)  # fmt: skip
     return PsiClassifier(
         fitted[0],
         fitted[1],

@@ -36,6 +36,7 @@ from surrogate.gp.model import PsiGP
 from surrogate.gp.newton import fit_newton
 from surrogate.gp.optimizers import fit_lbfgs
 from surrogate.gp.settings import GPSettings, psi_gp
+from surrogate.processes import spawned_pool
 
 #: classifiers are trained side by side (one batched GP) up to this many occupied bins each:
 #: where a step's fixed cost dominates. Measured: 200 bins, 50 inducing points 2.5x faster than
@@ -257,6 +258,7 @@ def fit_classifiers(
     device: torch.device | str = "cpu",
     desc: str = "GP",
     weights: Sequence[float] | None = None,
+    processes: int = 1,
 ) -> list[FittedClassifier]:
     """:func:`fit_classifier` for several data sets (``(x, y)`` or ``(x, y, outcomes)``),
     trained side by side.
@@ -267,7 +269,10 @@ def fit_classifiers(
     the sum of theirs: Adam's update is elementwise, so each follows the steps its own
     :func:`fit_classifier` would take (the same split, inducing points and initial noise), at
     about the per-step cost of one. ``train_seconds`` is the shared loop's. Otherwise
-    (minibatches, natural gradients, many bins) they are fitted one after the other.
+    (minibatches, natural gradients, many bins) they are fitted one after the other, or, with
+    ``processes > 1`` on the CPU, in that many spawned processes on this process's torch
+    threads each (:func:`_in_processes`): each fit seeds itself and sees its own data only, so
+    it is the fit made here, bit for bit.
     ``weights``: one per data set, as :func:`fit_classifier`'s ``weight`` (default 1).
     """
     settings = settings or GPSettings()
@@ -281,6 +286,8 @@ def fit_classifiers(
         log.info("%s: fitting %d classifier(s), %d steps each", desc, len(data), settings.epochs)
 
     def one_by_one() -> list[FittedClassifier]:
+        if processes > 1 and len(data) > 1 and device.type == "cpu":
+            return _in_processes(data, weights, settings, min(processes, len(data)), desc)
         return [fit_classifier(d[0], d[1], settings, progress=progress, device=device,
                                desc=f"{desc} {i}", outcomes=d[2] if len(d) > 2 else None,
                                weight=w)
@@ -350,6 +357,48 @@ def fit_classifiers(
         bar.set_postfix(loss=" ".join(f"{v:.4f}" for v in values))
     bar.close()
     return _finish(model, preps, settings, histories, time.perf_counter() - t0)
+
+
+def _in_processes(
+    data: Sequence[tuple[Tensor, ...]],
+    weights: Sequence[float],
+    settings: GPSettings,
+    processes: int,
+    desc: str,
+) -> list[FittedClassifier]:
+    """:func:`fit_classifier` of each data set in ``processes`` spawned processes of this
+    process's torch threads, in their order; the first fit that failed numerically (in the
+    data sets' order, as one by one would have stopped) is raised here, its restored model
+    attached as ``exc.partial``."""
+    threads = torch.get_num_threads()
+    log.info("%s: fitting %d classifier(s) in %d processes of %d thread(s), %d steps each",
+             desc, len(data), processes, threads, settings.epochs)  # fmt: skip
+    with spawned_pool(processes, threads=threads) as pool:
+        futures = [pool.submit(_fit_state, d, settings, f"{desc} {i}", w)
+                   for i, (d, w) in enumerate(zip(data, weights, strict=True))]  # fmt: skip
+        states = [f.result() for f in futures]
+    for error, state in states:
+        if error is not None:
+            err = NumericalError(error)
+            if state is not None:
+                err.partial = FittedClassifier.from_state(state)  # type: ignore[attr-defined]
+            raise err
+    return [FittedClassifier.from_state(state) for _, state in states if state is not None]
+
+
+def _fit_state(
+    data: tuple[Tensor, ...], settings: GPSettings, desc: str, weight: float
+) -> tuple[str | None, dict[str, Any] | None]:
+    """A worker's task: :func:`fit_classifier` of ``data`` as (None, its state), or (the
+    error's message, the restored model's state if it has one) where it raised a
+    :class:`NumericalError` (an exception's attributes do not cross processes)."""
+    try:
+        fitted = fit_classifier(data[0], data[1], settings, progress=False, desc=desc,
+                                outcomes=data[2] if len(data) > 2 else None, weight=weight)  # fmt: skip
+    except NumericalError as exc:
+        partial = getattr(exc, "partial", None)
+        return str(exc), partial.to_state() if partial is not None else None
+    return None, fitted.to_state()
 
 
 def _finish(

@@ -22,11 +22,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import logging.handlers
-import multiprocessing
-import os
-import signal
-import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
@@ -42,6 +37,7 @@ from surrogate.errors import NumericalError
 from surrogate.io import write_csv, write_json, write_manifest
 from surrogate.kinds.base import LayerRequest
 from surrogate.kinds.scoring import Choice, KindScore, choose, memory_horizon, score_kind
+from surrogate.processes import spawned_pool
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.sequences import phi_sequences
@@ -50,6 +46,7 @@ from surrogate.stages.collect import collect
 from surrogate.stages.settings import CollectSettings, TrainSettings
 from surrogate.stages.settings.choice import (
     CHOICE,
+    FIT_THREADS,
     SCORES,
     PendingChoice,
     collecting_pending,
@@ -314,30 +311,21 @@ Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...]]
 def candidate_pool(
     workers: int, fitter: Fitter, candidates: Mapping[str, Any]
 ) -> Iterator[ProcessPoolExecutor | None]:
-    """``workers`` spawned processes to fit ``candidates`` with ``fitter`` (None where one is
-    asked, there is one candidate, or their settings cannot cross to a process), each started
-    at once and importing the fitter's modules while this process collects and records the
-    held-out run; their log records go through this process's handlers. On leaving, the
-    processes are let go without waiting for their interpreters to close."""
+    """``workers`` spawned processes of :data:`FIT_THREADS` torch thread(s) each
+    (:func:`~surrogate.processes.spawned_pool`) to fit ``candidates`` with ``fitter`` (None
+    where one is asked, there is one candidate, or their settings cannot cross to a process),
+    each started at once and importing the fitter's modules while this process collects and
+    records the held-out run. A fit in a worker therefore sees one core: it does not spread its
+    classifiers over processes of its own."""
     if workers <= 1 or len(candidates) < 2 or not _crosses_processes(fitter, candidates):
         yield None
         return
-    context = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
-    records: Any = context.Queue()
-    listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
-                                              respect_handler_level=True)  # fmt: skip
-    listener.start()
     log.info("choice: %d processes to fit the %d candidates in, one thread each", workers,
              len(candidates))  # fmt: skip
-    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start,
-                               initargs=(records, logging.getLogger().level, os.getpid()))  # fmt: skip
-    try:
+    with spawned_pool(workers, threads=FIT_THREADS) as pool:
         for _ in range(workers):  # one process each (spawned as tasks find none idle)
             pool.submit(_ready, fitter)
         yield pool
-    finally:
-        pool.shutdown(wait=False, cancel_futures=True)
-        listener.stop()
 
 
 def _ready(fitter: Fitter) -> None:
@@ -431,37 +419,6 @@ def _log_ahead(name: str, outcome: Outcome) -> None:
 def _quiet(tr: Any) -> Any:
     """``tr`` without progress bars (processes side by side would interleave them)."""
     return dataclasses.replace(tr, job=dataclasses.replace(tr.job, progress=False))
-
-
-def _worker_start(records: Any, level: int, parent: int | None = None) -> None:
-    """A fitting process: its log records to ``records`` (the parent's handlers print them);
-    on Linux it ends with the job's process ``parent`` (:func:`end_with_parent`)."""
-    if parent is not None:
-        end_with_parent(parent)
-    root = logging.getLogger()
-    root.handlers[:] = [logging.handlers.QueueHandler(records)]
-    root.setLevel(level)
-
-
-#: prctl's option that sends the calling process a signal when its parent dies (linux/prctl.h)
-PR_SET_PDEATHSIG = 1
-
-
-def end_with_parent(parent: int) -> None:
-    """On Linux, have the kernel send this process SIGTERM when the process that started it
-    (pid ``parent``) dies, however it dies: a job killed (not only stopped by Ctrl-C, which
-    shuts its pool down) left its fitting processes computing for minutes with no one to read
-    their result. Elsewhere nothing (the pool's workers then end at their next task)."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):  # no libc prctl: nothing to ask
-        return
-    if os.getppid() != parent:  # the parent died before the request: end now
-        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _fit_one(fitter: Fitter, tr: Any, task: Task | None = None) -> Outcome:

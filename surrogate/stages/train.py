@@ -256,7 +256,8 @@ def _fit(
             psi = fit_psi(table, settings.inputs, settings.gp, progress=job.progress,
                           device=job.device, lump_names=lumps,
                           label=settings.label_column(table.columns),
-                          warps=settings.input_warps())  # fmt: skip
+                          warps=settings.input_warps(),
+                          processes=threads // settings.fit_threads)  # fmt: skip
         else:
             psi, _ = load_psi(psi_dir / PSI, device=job.device)
             log.info("psi: the two-state fit's, %s", psi_dir)

@@ -501,3 +501,35 @@ def test_expected_labels_need_bins_and_outcomes() -> None:
         fit_classifier(x, q, GPSettings(**TINY), progress=False, outcomes=y)
     with pytest.raises(NumericalError, match="0/1 outcomes"):
         fit_classifier(x, q, GPSettings(**TINY, bins=20), progress=False)
+
+
+def test_classifiers_fitted_in_processes_are_those_fitted_here() -> None:
+    """One by one (natural gradients), in two spawned processes of this process's one thread:
+    each classifier is the fit made here bit for bit (its state, history and held-out scores),
+    returned in the data's order."""
+    from surrogate.gp.training import fit_classifiers
+
+    data = _two_surfaces(600)
+    s = GPSettings(n_inducing=10, epochs=30, bins=50, seed=1, natural_gradient=True)
+    here = fit_classifiers(data, s, progress=False)
+    spawned = fit_classifiers(data, s, progress=False, processes=2)
+    for a, b in zip(here, spawned, strict=True):
+        assert _same_state(_state(a), _state(b))
+        assert a.history == b.history and a.validation == b.validation
+    assert not _same_state(_state(spawned[0]), _state(spawned[1]))
+
+
+def test_a_fit_that_fails_in_a_process_raises_here_with_its_restored_model() -> None:
+    """A classifier whose fit fails numerically in a worker raises the fit's own error here,
+    with the restored model attached as ``exc.partial``, as one by one would."""
+    from surrogate.gp.training import fit_classifiers
+
+    data = _two_surfaces(600)
+    s = GPSettings(n_inducing=10, epochs=30, bins=50, seed=1, natural_gradient=True,
+                   natural_lr=1e6)  # fmt: skip
+    with pytest.raises(NumericalError) as here:
+        fit_classifiers(data, s, progress=False)
+    with pytest.raises(NumericalError) as spawned:
+        fit_classifiers(data, s, progress=False, processes=2)
+    assert str(spawned.value) == str(here.value)
+    assert _same_state(_state(spawned.value.partial), _state(here.value.partial))
