@@ -276,6 +276,13 @@ def test_pending_choice_is_refused_by_simulate_and_made_by_train(tmp_path: Path)
     assert settled.fit_identity() == plan.make(plan.finals[record["chosen"]]).fit_identity()
     assert settled.directory == Path(train_dir)
     assert "gp.optimizer=lbfgs" not in record["overrides"]
+    # the verdict's "gp.diagnostic.n_cells=N" (or another output grid) reads the same choice
+    # and fit: those keys change no candidate's fit or score
+    after = train_stage.validate(compose_in(tmp_path, "train", [
+        *MEASURE, "gp.diagnostic.n_cells=30", "gp.grid_size=[8]"]))  # fmt: skip
+    assert after.measured_choice() == plan.directory
+    assert after.fit_directory == settled.fit_directory != after.directory
+    assert after.diagnostic["n_cells"] == 30 and set(after.grid_size or ()) == {8}
     out = simulate_stage.run(sim)
     assert (Path(out) / "manifest.json").is_file()
     # a clock the choice added at a longer cap is read from the record, not the plan

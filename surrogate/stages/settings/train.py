@@ -57,6 +57,10 @@ GP_EXTRA = (*FIT_GP_KEYS, "history", "max_age", "clock_bins", "lumps", "min_even
 #: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
 #: enter its identity resolved (threads: null means the job's count)
 GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
+#: keys of the gp group that the train stage reads after the fit (its diagnostic and output
+#: grid): they change neither a candidate's fit nor its score, so a measured choice is made
+#: without them and gp=auto's chosen candidate takes the job's own
+GP_AFTER_FIT = ("grid_size", "diagnostic")
 #: auto_recipe's prefix where gp=auto is a measured choice's candidate
 MEASURED = "measured"
 #: gp.labels: the column each option trains on (auto: expected where the table has them)
@@ -396,8 +400,10 @@ def _measured(
                 "choice": choice.identity(), "seed": setup.seed}  # fmt: skip
     if finals is not groups:
         # the record names the chosen's recipe group, which gp=auto then trains: a recipe
-        # changed since (the clock's epochs) makes another choice, not the old group's fit
-        identity["recipes"] = {n: g for n, g in finals.items() if g != groups.get(n)}
+        # changed since (the clock's epochs) makes another choice, not the old group's fit;
+        # the keys read after the fit do not (the verdict's gp.diagnostic.n_cells=N reuses it)
+        identity["recipes"] = {n: {k: v for k, v in g.items() if k not in GP_AFTER_FIT}
+                               for n, g in finals.items() if g != groups.get(n)}  # fmt: skip
     made_by = command_line(TRAIN_CMD, [*setup.overrides(), *source._overrides()],
                            _choice_overrides(raw_gp), job.device_overrides())  # fmt: skip
     directory = artefact_dir(job.data_dir, "choice", {"model": setup.model.name}, identity)
@@ -410,7 +416,8 @@ def _measured(
         return None
     chosen, gp = stored
     # the record's group: the candidate refitted with its recipe's optimiser (gp.choice.refit),
-    # or as scored, or a clock the choice added
+    # or as scored, or a clock the choice added; its diagnostic and grid this job's
+    gp = {**gp, **{k: raw_gp[k] for k in GP_AFTER_FIT if k in raw_gp}}
     settings = cls._build(setup, source, job, gp)
     return dataclasses.replace(settings, auto_recipe=f"{MEASURED}: {chosen}",
                                choice_directory=plan.directory)  # fmt: skip
