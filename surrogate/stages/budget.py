@@ -31,6 +31,7 @@ Example::
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -39,6 +40,7 @@ from typing import Any
 
 import torch
 
+from surrogate.diagnosis import probe
 from surrogate.diagnosis.cost import Work, duration, step_seconds
 from surrogate.errors import ConfigError
 from surrogate.io import MANIFEST
@@ -101,10 +103,14 @@ def collect_cost(source: CollectSettings, cell_step: float) -> tuple[float, str]
 
 
 def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
-    """The collection it needs (if missing) and its diagnostic's full-model population."""
+    """The collection it needs (if missing) and its diagnostic's full-model population (at
+    the events per window its collection's cost probe measured, where it did:
+    :func:`collected_cell_step`)."""
     works: list[Work] = []
+    measured = None
     if isinstance(settings.source, CollectSettings):
         works += collect_work(settings.source, reuse)
+        measured = collected_cell_step(settings.source)
     occupancy = settings.occupancy()
     if not _exists(occupancy.directory, reuse):
         d, setup = occupancy.options, settings.setup
@@ -113,13 +119,34 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
                  f"+ gp.diagnostic.equilibration_time={d['equilibration_time']:g} s at "
                  f"dt={setup.dt:g} s")  # fmt: skip
         fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
+        per_cell = setup.model.cell_step_seconds(setup.dt, device=settings.job.device) \
+            if measured is None else measured  # fmt: skip
         works.append(Work("the train diagnostic's full-model population", int(d["n_cells"]),
-                          span / setup.dt,
-                          setup.model.cell_step_seconds(setup.dt, device=settings.job.device),
-                          where, setup.model.name, step_seconds=fixed))  # fmt: skip
-        works += burn_in_work(setup.model, int(d["n_cells"]), setup.dt,
+                          span / setup.dt, per_cell, where, setup.model.name,
+                          step_seconds=fixed))  # fmt: skip
+        works += burn_in_work(setup.model, int(d["n_cells"]), setup.dt, measured,
                               device=settings.job.device)  # fmt: skip
     return works
+
+
+def collected_cell_step(source: CollectSettings) -> float | None:
+    """The full model's cost per cell-step on ``source``'s device at the events per window
+    its collection's cost probe measured after the burn-in (``cost_probe`` in its manifest:
+    where its cells live, which the file's counts may miss by orders of magnitude: Vilar's
+    oscillator 2.5 events per window there, 213 after its 480-s burn-in); None where the
+    collection is not made yet or measured nothing."""
+    path = source.directory / MANIFEST
+    network = probe.probed_network(source.setup.model)
+    if network is None or not path.is_file():
+        return None
+    try:
+        measured = json.loads(path.read_text()).get("cost_probe")
+    except (OSError, ValueError):  # an estimate: an unreadable manifest is the stage's to report
+        return None
+    if not isinstance(measured, dict) or not float(measured.get("reached_s", 0.0)) > 0:
+        return None
+    events = float(measured["events_per_window_last"])
+    return network.cell_step_seconds(source.setup.dt, events, source.job.device)
 
 
 def run_work(settings: SimulateSettings, reuse: bool = True) -> list[Work]:

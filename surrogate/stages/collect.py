@@ -69,7 +69,8 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     """Simulate, then write the table, the figure and (last) the manifest into ``out``."""
     setup, c, job = settings.setup, settings.options, settings.job
     # a runaway network refused in seconds, before any burn-in; else the estimate at its rate
-    measured_cost(settings, cost_probe(settings), config or {})
+    probed = cost_probe(settings)
+    measured_cost(settings, probed, config or {})
     seed_everything(setup.seed)
     model = setup.model
     simulator = Simulator(model, FullDecision(model.internal), setup.field, setup.dt, job.device)
@@ -132,6 +133,8 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         domain={n: [float(table[n].min()), float(table[n].max())] for n in columns},
         **({"design": design} if design is not None else {}),
         **({"after_jump": lag} if lag is not None else {}),
+        # the rate later stages price this model's full-model cells at (budget.train_work)
+        **({"cost_probe": {k: probed[k] for k in PROBE_RECORD}} if probed is not None else {}),
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
 
@@ -151,6 +154,10 @@ def check_collection(
     except (ConfigError, KeyError) as error:  # KeyError: a design's gp group not at hand
         return str(error)
     return None
+
+
+#: what the collection's manifest keeps of its cost probe (``cost_probe``)
+PROBE_RECORD = ("events_per_window_last", "events_per_window_file", "reached_s", "completed")
 
 
 def cost_probe(settings: CollectSettings) -> dict[str, Any] | None:

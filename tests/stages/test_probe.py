@@ -9,6 +9,7 @@ tests'."""
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import replace
@@ -81,6 +82,10 @@ def test_the_probe_changes_neither_a_collection_nor_its_directory(
             caplog.at_level(logging.INFO, logger="surrogate.stages.budget"):  # fmt: skip
         table = pd.read_parquet(collect.collect(on) / "transitions.parquet")
     assert sum("collect: cost probe, 4 cells" in r.getMessage() for r in caplog.records) == 1
+    # its rate kept for the later stages' estimates (budget.collected_cell_step)
+    manifest = on.directory / "manifest.json"
+    assert json.loads(manifest.read_text())["cost_probe"] == {
+        k: measured[k] for k in collect.PROBE_RECORD}  # fmt: skip
     assert sum(MEASURED in r.getMessage() for r in caplog.records) == 1  # its estimate
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="surrogate.diagnosis.probe"), \
@@ -90,6 +95,7 @@ def test_the_probe_changes_neither_a_collection_nor_its_directory(
                    for r in caplog.records)  # fmt: skip
     assert len(table) >= 200
     pd.testing.assert_frame_equal(table, again, check_exact=True)
+    assert "cost_probe" not in json.loads(manifest.read_text())
 
 
 def test_a_negative_probe_budget_is_refused_by_name(compose_cfg) -> None:
@@ -162,6 +168,44 @@ def test_collect_prices_its_windows_at_the_rate_measured_after_the_burn_in(
     with pytest.raises(ConfigError, match=r"above max_hours=.*raise max_hours") as error:
         collect.measured_cost(settings, collect.cost_probe(settings), {"max_hours": limit})
     assert f"~{duration(estimate.seconds)} {MEASURED} (" in str(error.value)
+
+
+def test_the_train_diagnostic_is_priced_at_the_rate_its_collection_measured(
+    tmp_path, compose_cfg
+) -> None:
+    """The collection keeps its probe's rate in its manifest; the train stage's estimate of its
+    diagnostic population (and that population's burn-in) is priced at it, not at the file's
+    counts (~2e4x fewer events: Vilar's oscillator's diagnostic was estimated at 42 s and took
+    6 min); before the collection exists, at the file's counts (what the collection's manifest
+    records is the test above's)."""
+    from surrogate.io import write_manifest
+    from surrogate.stages import train as train_stage
+
+    overrides = ["model=sbml", f"model.spec={logistic(tmp_path)}", "collect.n_per_state=100",
+                 "collect.n_cells=50", "collect.record_every=1", "collect.equilibration_time=1",
+                 "collect.probe_seconds=3"]  # fmt: skip
+    train = train_stage.validate(compose_cfg("train", [*overrides, "gp.n_inducing=10"]))
+    network, dt = train.setup.model.internal, train.setup.dt
+
+    def diagnostic() -> list[float]:  # the population's cell-step and its burn-in's
+        works = budget.train_work(train)
+        [i] = [i for i, w in enumerate(works)
+               if w.what == "the train diagnostic's full-model population"]  # fmt: skip
+        assert works[i + 1].what == "the initial states' burn-in"
+        return [works[i].cell_step_seconds, works[i + 1].cell_step_seconds]
+
+    at_file = network.cell_step_seconds(dt)
+    assert budget.collected_cell_step(train.source) is None
+    assert diagnostic() == [at_file, at_file]
+    events = 2e4 * network.events_per_window(dt)  # the probe's ~2e4x after the burn-in
+    recorded = {"events_per_window_last": events, "events_per_window_file": events / 2e4,
+                "reached_s": 20.0, "completed": True}  # fmt: skip
+    write_manifest(train.source.directory, stage="collect", config={}, seed=0,
+                   cost_probe=recorded)  # fmt: skip
+    measured = network.cell_step_seconds(dt, events)
+    assert measured > 100 * at_file
+    assert budget.collected_cell_step(train.source) == measured
+    assert diagnostic() == [measured, measured]
 
 
 def test_collect_prices_at_the_rate_reached_where_the_probe_ran_out(
