@@ -16,7 +16,8 @@ range) and names, in order, the first causes that apply:
    with a quarter of its cell-steps in such bins, docs/fields.md).
 2. **Not settled** (the diagnostic population's switching frequency differs between the first
    and second half of its run by more than 4 standard errors): the full model's cells were
-   still drifting from their start: the burn-in is too short.
+   still drifting from their start: the diagnostic's record starts half its run later
+   (``gp.diagnostic.equilibration_time``), or the burn-in is too short.
 3. **Biased psi** (|bias| above two standard errors and above the duration tolerance): the
    learned switching probability where cells live is off, and the mean durations with it (the
    predicted error beside the measured): more transitions. A reference too noisy to tell (its
@@ -53,6 +54,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from surrogate.diagnosis.remedies import (
+    LONGER_BURN_IN,
     Advisor,
     Check,
     MeasuredChoice,
@@ -61,6 +63,7 @@ from surrogate.diagnosis.remedies import (
     clock_remedies,
     coarser_remedy,
     larger_diagnostic,
+    later_diagnostic_start,
     more_rows,
 )
 from surrogate.kinds import ChainKind
@@ -180,6 +183,10 @@ class VerdictInputs:
         diagnostic_cells: the diagnostic population's cells (``gp.diagnostic.n_cells``): a
             reference too noisy to judge is advised the cells that bring its error under the
             tolerance (:func:`~surrogate.diagnosis.remedies.larger_diagnostic`); None: no value to advise.
+        diagnostic_span: the diagnostic population's settling and recorded spans (s,
+            ``gp.diagnostic.equilibration_time`` and ``t_end``): a population not settled is
+            advised a later start of its record
+            (:func:`~surrogate.diagnosis.remedies.later_diagnostic_start`); None: no value.
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -198,6 +205,7 @@ class VerdictInputs:
     wider_collection: tuple[str, ...] = ()
     blackout: tuple[str, ...] = ()
     diagnostic_cells: int | None = None
+    diagnostic_span: tuple[float, float] | None = None
 
 
 def verdict(  # noqa: C901  # one branch per first cause, in the report's order
@@ -273,14 +281,14 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
     if settling:
         what = ", ".join(f"leaving {lump_names[p]}: {z:+.1f} standard errors"
                          for p, z in settling)  # fmt: skip
+        step = advisor.step("Not settled", [later_diagnostic_start(run.diagnostic_span),
+                                             LONGER_BURN_IN], then=".")  # fmt: skip
         causes.append((
             "Not settled",
             f"the full model's diagnostic population switched at different rates in the first "
             f"and second half of its run ({what}): its cells were still drifting from where they "
             f"started, so its transitions (and the collection's) are not those of settled cells.",
-            "a longer burn-in (`model.burn_in`, where the model has one; `python3 "
-            "scripts/inspect_model.py` measures the settling time), or a longer "
-            "`equilibration_time`.",
+            step,
         ))  # fmt: skip
     biased, noisy, noisy_se = [], [], []
     for p, s in scores.items():

@@ -105,6 +105,33 @@ def larger_diagnostic(cells: int | None, rel_se: float, tolerance: float) -> Rem
                   (f"gp.diagnostic.n_cells={n}",))  # fmt: skip
 
 
+def later_diagnostic_start(span: tuple[float, float] | None) -> Remedy:
+    """The diagnostic population's record started half its run later: its first half switched
+    at another rate than its second, so its cells were still drifting in that first half;
+    ``gp.diagnostic.equilibration_time`` plus half of ``gp.diagnostic.t_end`` (``span``: the
+    two, in s), in whole seconds, leaves that half out of the record. Without ``span``, no
+    value.
+
+    Example:
+        >>> later_diagnostic_start((10.0, 100.0)).overrides
+        ('gp.diagnostic.equilibration_time=60',)
+    """
+    if span is None or not span[1] > 0:
+        return Remedy("later_diagnostic_start", "a longer `gp.diagnostic.equilibration_time`")
+    equilibration, t_end = span
+    start = math.ceil(equilibration + t_end / 2)
+    return Remedy("later_diagnostic_start",
+                  f"the diagnostic's record started later, `gp.diagnostic.equilibration_time="
+                  f"{start}` (now {equilibration:g} s; its first {t_end / 2:g} s drifted from "
+                  f"its last)", (f"gp.diagnostic.equilibration_time={start}",))  # fmt: skip
+
+
+#: the step that names the burn-in (a model's setting with no value to advise from here)
+LONGER_BURN_IN = Remedy("longer_burn_in", "a longer burn-in (`model.burn_in`, where the model "
+                        "has one; `python3 scripts/inspect_model.py` measures the settling "
+                        "time)")  # fmt: skip
+
+
 def coarser_classes(
     classes: CountClasses, sparse: str, shared: bool = False
 ) -> tuple[CountClasses, str] | None:
@@ -387,6 +414,7 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
 
 __all__ = [
     "DIAGNOSTIC_MARGIN",
+    "LONGER_BURN_IN",
     "MEMORY_FAMILIES",
     "RELAXING_CANDIDATE",
     "RELAXING_OVERRIDES",
@@ -402,5 +430,6 @@ __all__ = [
     "coarser_classes",
     "coarser_remedy",
     "larger_diagnostic",
+    "later_diagnostic_start",
     "more_rows",
 ]

@@ -394,6 +394,8 @@ def _verdict(
         choice=measured_choice(tr), wider_collection=tr.setup.model.wider_collection(),
         blackout=collection_blackout(tr),
         diagnostic_cells=int(tr.diagnostic["n_cells"]) if tr.diagnostic.get("n_cells") else None,
+        diagnostic_span=(float(tr.diagnostic["equilibration_time"]), float(tr.diagnostic["t_end"]))
+        if tr.diagnostic.get("t_end") else None,
     )  # fmt: skip
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip

@@ -70,6 +70,11 @@ def test_each_cause_names_its_measurement_and_next_step() -> None:
     assert "not advised: ++model.body.perturbation.radius=6 (no such key)" in refused.causes[0][2]
     drifting = _read(diagnostic={"phi0": _score(0.0, settling=-6.0)})
     assert drifting.causes[0][0] == "Not settled" and "model.burn_in" in drifting.causes[0][2]
+    assert [r.overrides for _, r in drifting.remedies] == [(), ()]  # no span: no value
+    later = _read(diagnostic={"phi0": _score(0.0, settling=-6.0)}, diagnostic_span=(10.0, 100.0))
+    assert [r.overrides for _, r in later.remedies] == [
+        ("gp.diagnostic.equilibration_time=60",), ()]  # fmt: skip
+    assert "`gp.diagnostic.equilibration_time=60` (now 10 s; its first 50 s" in later.causes[0][2]
     biased = _read(diagnostic={"phi0": _score(0.15, se=0.02)})
     (cause,) = biased.causes
     assert cause[0] == "Biased switching probabilities"

@@ -107,6 +107,8 @@ def _measurements(branch: str) -> dict[str, Any]:
         out["outside"] = {"gaussian": {**sparse, "classes": True, "sparse_class": "on|P>=4"}}
     elif branch == "noisy":  # a reference too noisy to judge: the cells that make it judge
         diag["phi0"] = {**UNBIASED, "rel_bias": -0.07, "rel_bias_se": 0.046}
+    elif branch == "settling":  # the diagnostic's halves apart: a later start of its record
+        diag["phi0"] = {**UNBIASED, "settling_z": -6.0}
     elif branch == "drift":
         out["class_shares"] = {"t": 100.0, "total_variation": 0.1, "p_value": 1e-6,
                                "drift": True}  # fmt: skip
@@ -128,7 +130,8 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
     printed, dropped = 0, 0
     seen: dict[tuple[str, ...], str | None] = {}  # a model build per distinct advice only
     for (name, (groups, *kind)), branch in itertools.product(
-        chains.items(), ("memory", "biased", "sparse", "sparse_classes", "drift", "noisy")
+        chains.items(),
+        ("memory", "biased", "sparse", "sparse_classes", "drift", "noisy", "settling"),
     ):
         base = apply_overrides(config, groups)
         base["model"]["classes"] = SHARED
@@ -138,8 +141,11 @@ def test_every_remedy_the_verdict_prints_passes_the_settings_checks(config) -> N
         v = verdict_of(lump_names=("off", "on"), outside_warning=0.01, tolerance=0.03,
                     kind=chain_kind(*kind), network=True, n_per_state=1000, max_age=2.0,
                     check=check, count_classes=CLASSES, blackout=BLACKOUT, diagnostic_cells=1000,
-                    **_measurements(branch))  # fmt: skip
+                    diagnostic_span=(10.0, 100.0), **_measurements(branch))  # fmt: skip
         assert not v.trust
+        if branch == "settling":
+            assert next(r.overrides for _, r in v.remedies) == (
+                "gp.diagnostic.equilibration_time=60",)  # fmt: skip
         if branch == "noisy":
             assert next(r.overrides for _, r in v.remedies) == ("gp.diagnostic.n_cells=3600",)
         if branch == "biased":  # the collection's lag first: more of the same rows keep it
