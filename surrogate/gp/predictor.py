@@ -232,6 +232,8 @@ def fit_psi(  # noqa: PLR0913  # the public fit: its options are keyword-only
         processes: where the two are fitted one after the other (natural gradients, many
             bins), fit them in this many spawned processes instead, each on this process's
             torch threads: the same fits (:func:`~surrogate.gp.training.fit_classifiers`).
+            From a script, call it under ``if __name__ == "__main__":`` (a spawned process
+            imports the script first, as Python's multiprocessing says).
 
     Example:
         >>> psi = fit_psi(table, ["dG"], GPSettings(bins=500), label="phi_next_expected")
