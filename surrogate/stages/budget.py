@@ -31,7 +31,6 @@ Example::
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -42,8 +41,8 @@ import torch
 
 from surrogate.diagnosis import probe
 from surrogate.diagnosis.cost import Work, duration, step_seconds
-from surrogate.errors import ConfigError
-from surrogate.io import MANIFEST
+from surrogate.errors import ArtefactError, ConfigError
+from surrogate.io import MANIFEST, read_manifest
 from surrogate.kinds import mode_kind
 from surrogate.models.capabilities import burn_in_of
 from surrogate.models.network import direct_exact_step_seconds
@@ -107,12 +106,12 @@ def train_work(settings: TrainSettings, reuse: bool = True) -> list[Work]:
     the events per window its collection's cost probe measured, where it did:
     :func:`collected_cell_step`)."""
     works: list[Work] = []
-    measured = None
-    if isinstance(settings.source, CollectSettings):
-        works += collect_work(settings.source, reuse)
-        measured = collected_cell_step(settings.source)
+    source = settings.source if isinstance(settings.source, CollectSettings) else None
+    if source is not None:
+        works += collect_work(source, reuse)
     occupancy = settings.occupancy()
     if not _exists(occupancy.directory, reuse):
+        measured = collected_cell_step(source) if source is not None else None
         d, setup = occupancy.options, settings.setup
         span = float(d["t_end"]) + float(d["equilibration_time"])
         where = (f"gp.diagnostic.n_cells={d['n_cells']}, gp.diagnostic.t_end={d['t_end']:g} s "
@@ -135,13 +134,12 @@ def collected_cell_step(source: CollectSettings) -> float | None:
     where its cells live, which the file's counts may miss by orders of magnitude: Vilar's
     oscillator 2.5 events per window there, 213 after its 480-s burn-in); None where the
     collection is not made yet or measured nothing."""
-    path = source.directory / MANIFEST
     network = probe.probed_network(source.setup.model)
-    if network is None or not path.is_file():
+    if network is None or not (source.directory / MANIFEST).is_file():
         return None
     try:
-        measured = json.loads(path.read_text()).get("cost_probe")
-    except (OSError, ValueError):  # an estimate: an unreadable manifest is the stage's to report
+        measured = read_manifest(source.directory).get("cost_probe")
+    except ArtefactError:  # an estimate: an unreadable manifest is the train stage's to report
         return None
     if not isinstance(measured, dict) or not float(measured.get("reached_s", 0.0)) > 0:
         return None

@@ -54,13 +54,13 @@ from surrogate.validation import known_keys
 #: :func:`~surrogate.kinds.kind_gp_keys`)
 GP_EXTRA = (*FIT_GP_KEYS, "history", "max_age", "clock_bins", "lumps", "min_events",
             "max_label_weight", "class_moves", "relaxation", "choice")  # fmt: skip
-#: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
-#: enter its identity resolved (threads: null means the job's count)
-GP_NOT_FIT = ("grid_size", "diagnostic", "threads")
 #: keys of the gp group that the train stage reads after the fit (its diagnostic and output
 #: grid): they change neither a candidate's fit nor its score, so a measured choice is made
 #: without them and gp=auto's chosen candidate takes the job's own
 GP_AFTER_FIT = ("grid_size", "diagnostic")
+#: keys of the gp group that do not change the fit (the diagnostic and the output grid), or
+#: enter its identity resolved (threads: null means the job's count)
+GP_NOT_FIT = (*GP_AFTER_FIT, "threads")
 #: auto_recipe's prefix where gp=auto is a measured choice's candidate
 MEASURED = "measured"
 #: gp.labels: the column each option trains on (auto: expected where the table has them)
