@@ -244,7 +244,9 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
         for n in s["breakdown_sizes"]:
             for name in MODELS:
                 sim = make_simulator(name, model, field, dt, device, tables, best_compile)
-                breakdown.append({"model": name, "n_cells": n, **step_breakdown(sim, n)})
+                # the settings' repeats and step cap (the quick bench's 50, not 500 calls)
+                split = step_breakdown(sim, n, int(s["repeats"]), min(500, int(s["max_steps"])))
+                breakdown.append({"model": name, "n_cells": n, **split})
         results["breakdown"] = breakdown
 
         # 6. the paper's workload through simulate_population: eager, compiled, numba

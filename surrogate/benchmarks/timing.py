@@ -75,9 +75,12 @@ def ratio(full: Mapping[str, Any], candidate: Mapping[str, Any]) -> float | None
     return compare(full, candidate)[0]
 
 
-def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict[str, float]:
+def step_breakdown(
+    simulator: Simulator, n_cells: int, repeats: int = 5, max_calls: int = 500
+) -> dict[str, float]:
     """Per-step microseconds of the torch step: drawing the random numbers, the fused kernel
-    alone, the whole step, and the rest (Python, bookkeeping) = step - randoms - kernel."""
+    alone, the whole step, and the rest (Python, bookkeeping) = step - randoms - kernel; each
+    the best of ``repeats`` timings of up to ``max_calls`` calls (fewer on many cells)."""
     if not is_fusable(simulator.decision) or simulator.kernel is not None:
         return {}
     device = simulator.device
@@ -97,7 +100,7 @@ def step_breakdown(simulator: Simulator, n_cells: int, repeats: int = 5) -> dict
     with torch.inference_mode():  # cheaper per op than no_grad
         state = simulator.initial_state(n_cells, (2.0, 0.0), 0.0)
         simulator.warm_up(state)
-        k = max(3, min(500, 2_000_000 // n_cells))
+        k = max(3, min(max_calls, 2_000_000 // n_cells))
         u, u64, z, extra = simulator.draw_randoms(n_cells)
         decision = simulator.decision
         args = (
