@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import copy
 import os
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 import torch
@@ -22,15 +24,31 @@ torch.set_num_threads(1)
 os.environ["SURROGATE_GP_CHOICE"] = "rule"
 
 
+#: configs composed so far, by name and overrides (Hydra's compose takes ~0.25 s, most of it
+#: parsing the same yaml files again; ~700 composes made it ~11 % of the suite)
+_COMPOSED: dict[tuple[str, tuple[str, ...]], DictConfig] = {}
+
+
+def composer(data_dir: Path) -> Callable[..., DictConfig]:
+    """``compose(name, overrides)``: a primary config with overrides, artefacts in ``data_dir``
+    (unless the overrides name one). Each call returns a config of its own: a copy of the one
+    composed for the same name and overrides, its ``data_dir`` set, since the data directory
+    changes nothing else of a composition."""
+
+    def _compose(name: str, overrides: list[str] | None = None) -> DictConfig:
+        key = (name, tuple(overrides or ()))
+        if key not in _COMPOSED:
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                _COMPOSED[key] = compose(config_name=name, overrides=["progress=false", *key[1]])
+        cfg = copy.deepcopy(_COMPOSED[key])
+        if not any(o.lstrip("+~").startswith("data_dir=") for o in key[1]):
+            cfg.data_dir = str(data_dir)
+        return cfg
+
+    return _compose
+
+
 @pytest.fixture
 def compose_cfg(tmp_path) -> Callable[..., DictConfig]:
     """Compose a primary config with overrides; artefacts go to a temporary data_dir."""
-
-    def _compose(name: str, overrides: list[str] | None = None) -> DictConfig:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            return compose(
-                config_name=name,
-                overrides=[f"data_dir={tmp_path / 'data'}", "progress=false", *(overrides or [])],
-            )
-
-    return _compose
+    return composer(tmp_path / "data")
