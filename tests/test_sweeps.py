@@ -298,23 +298,23 @@ def test_joblib_sweep_of_reproduce(workdir: Path) -> None:
 
 @pytest.mark.slow
 def test_submitit_sweep_survives_a_failing_job(workdir: Path) -> None:
-    """Through submitit_local, with hydra.job.chdir=true: the jobs with an invalid kernel fail,
-    the sweep completes, and the summary reports them with their error."""
+    """Through submitit_local, with hydra.job.chdir=true: the job with an invalid kernel fails,
+    the sweep completes, and the summary reports it with its error. (Each dt its own
+    collection: the joblib test above.)"""
     sweep = workdir / "sweep_submitit"
     result = run_script(
         "reproduce.py", "-m", "hydra/launcher=submitit_local", f"hydra.sweep.dir={sweep}",
-        "hydra.job.chdir=true", "threads=1", "gp.kernel=rbf,bogus", "dt=0.05,0.1", *TINY,
+        "hydra.job.chdir=true", "threads=1", "gp.kernel=rbf,bogus", "dt=0.1", *TINY,
         cwd=workdir,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
 
     df = pd.read_csv(sweep / "summary.csv")
-    assert len(df) == 4
+    assert len(df) == 2
     failed, ok = df[df["gp.kernel"] == "bogus"], df[df["gp.kernel"] == "rbf"]
+    assert len(failed) == len(ok) == 1
     assert (failed["status"] == "failed").all() and (failed["error_type"] == "ConfigError").all()
     assert failed["error"].str.contains("unknown kernel 'bogus'").all()
     assert (ok["status"] == "ok").all() and ok["max_ks_gaussian"].notna().all()
-    # artefacts stayed in the launching directory although jobs ran in their output dirs
+    # artefacts stayed in the launching directory although the job ran in its output dir
     assert all(Path(p).is_relative_to(workdir / "data") for p in ok["artefact_dir"])
-    # each dt its own collection (the joblib test above shares one across kernels)
-    assert len({read_json(Path(p) / "manifest.json")["collect"] for p in ok["artefact_dir"]}) == 2

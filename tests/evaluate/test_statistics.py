@@ -404,13 +404,15 @@ def test_comparison_table_is_generic_over_observables_and_lumps(tmp_path: Path) 
 def _population(rng: np.random.Generator, n_cells: int, cv: float, t_end: float = 200.0):
     """Each cell's segments: exponential durations with a mean of its own (log-normal across
     cells with coefficient of variation ``cv``), back to back until ``t_end``."""
-    rows = []
+    durations, cells = [], []
     scale = rng.lognormal(np.log(0.5), cv, n_cells) if cv else np.full(n_cells, 0.5)
-    for cell, mean in enumerate(scale):
+    for cell, mean in enumerate(scale):  # the same draws as a frame per cell, one frame made
         d = rng.exponential(mean, int(2 * t_end / mean))
         d = d[np.cumsum(d) < t_end]
-        rows.append(pd.DataFrame({"kind": "run", "duration": d, "cell": cell}))
-    return pd.concat(rows, ignore_index=True)
+        durations.append(d)
+        cells.append(np.full(len(d), cell))
+    return pd.DataFrame({"kind": "run", "duration": np.concatenate(durations),
+                         "cell": np.concatenate(cells)})  # fmt: skip
 
 
 def _se(durations: pd.DataFrame, n_cells: int) -> float | None:

@@ -337,7 +337,7 @@ def test_the_report_reads_the_measured_choice_that_made_its_chain(tmp_path) -> N
 
     measure = ["gp.choice.by=measure", "gp.choice.kinds=[two-state,clock]",
                "gp.choice.max_ages=[1]", "gp.choice.n_cells=20", "gp.choice.t_end=5",
-               "gp.choice.equilibration_time=1"]  # fmt: skip
+               "gp.choice.equilibration_time=1", "gp.choice.workers=1"]  # fmt: skip
     cfg = compose_in(tmp_path, "train", measure)
     train_stage.run(cfg)
     settled = train_stage.validate(cfg)

@@ -449,7 +449,7 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
     import torch
 
     from surrogate.kinds.files import PSI
-    from surrogate.stages.choice import HeldOut, fit_candidates
+    from surrogate.stages.choice import HeldOut, candidate_pool, fit_candidates
     from surrogate.stages.collect import collect
 
     cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.kinds=[two-state,clock]",
@@ -466,7 +466,15 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
     gen = torch.Generator().manual_seed(0)
     heldout = HeldOut(inputs.reshape(10, 40, len(names)),
                       torch.randint(0, 2, (10, 41), generator=gen), seed=3)  # fmt: skip
-    apart, failed, scores = fit_candidates(candidates, train_stage.fit_candidate, 2, heldout)
+    # one pool of two processes for both fits in processes (spawning costs seconds each)
+    with candidate_pool(2, train_stage.fit_candidate, candidates) as pool:
+        assert pool is not None
+        apart, failed, scores = fit_candidates(candidates, train_stage.fit_candidate, 2, heldout,
+                                               pool=pool)  # fmt: skip
+        fits, flaky_failed, _ = fit_candidates(candidates, _flaky, workers=2, pool=pool)
+    assert list(fits) == ["two-state"]
+    assert flaky_failed == {"clock max_age=1": "did not converge",
+                            "clock max_age=2": "did not converge"}  # fmt: skip
     assert list(apart) == list(candidates) == list(scores) and not failed
     states = {n: torch.load(d / PSI, weights_only=True) for n, (d, _) in apart.items()}
     for d, _ in apart.values():
@@ -482,9 +490,6 @@ def test_candidates_fitted_in_processes_are_those_fitted_here(tmp_path: Path) ->
         for key, value in again.items():
             if isinstance(value, torch.Tensor):
                 assert torch.equal(value, states[name][key]), (name, key)
-    fits, failed, _ = fit_candidates(candidates, _flaky, workers=2)
-    assert list(fits) == ["two-state"]
-    assert failed == {"clock max_age=1": "did not converge", "clock max_age=2": "did not converge"}
 
     def local(settings):  # no worker can import it: fitted here, one after the other
         return train_stage.fit_candidate(settings)

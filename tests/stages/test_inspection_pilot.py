@@ -15,9 +15,11 @@ from surrogate.stages.advice_check import check_advice
 from surrogate.stages.pilot import cap_name, pilot_advice, run_pilot
 
 TOGGLE = ["model=sbml", "model.spec=examples/toggle_switch/model.yaml"]
-#: small fits (the user's gp keys go into every candidate): the test times the machinery
+#: small fits (the user's gp keys go into every candidate): the test times the machinery; one
+#: process (the choice's own: tests/stages/test_choice.py)
 SMALL = [*TOGGLE, "gp.n_inducing=16", "gp.epochs=15", "gp.choice.kinds=[two-state,clock]",
-         "gp.choice.max_ages=[2.0]", "gp.choice.extend=0", "collect.n_cells=500"]  # fmt: skip
+         "gp.choice.max_ages=[2.0]", "gp.choice.extend=0", "collect.n_cells=500",
+         "gp.choice.workers=1"]  # fmt: skip
 PILOT = {"enabled": True, "n_per_state": 2000, "n_cells": 20, "t_end": 10.0}
 
 

@@ -5,12 +5,15 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import torch
+from omegaconf import DictConfig
 
 from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.evaluate.statistics import load_run
@@ -20,6 +23,7 @@ from surrogate.stages import collect, train
 from surrogate.stages import evaluate as evaluate_stage
 from surrogate.stages import simulate as simulate_stage
 from surrogate.stages.settings import EvaluateSettings
+from tests.conftest import composer
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
@@ -43,13 +47,26 @@ def _train_overrides() -> list[str]:
     return [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
 
 
-@pytest.fixture
-def trained(compose_cfg):
-    """A tiny collect + train, shared settings for the tests below."""
-    cfg = compose_cfg("train", _train_overrides())
+@pytest.fixture(scope="module")
+def trained_data(tmp_path_factory) -> Path:
+    """The data directory of :func:`trained`, shared by the tests that build on it."""
+    return tmp_path_factory.mktemp("trained") / "data"
+
+
+@pytest.fixture(scope="module")
+def trained(trained_data):
+    """A tiny collect + train, made once for the module: the tests below read it, or add
+    artefacts of their own settings beside it (:func:`beside`), and never change it."""
+    cfg = composer(trained_data)("train", _train_overrides())
     collect_dir = collect.run(cfg)
     train_dir = train.run(cfg)
     return cfg, collect_dir, train_dir
+
+
+@pytest.fixture
+def beside(trained, trained_data) -> Callable[..., DictConfig]:
+    """Compose configs whose artefacts go beside :func:`trained`'s (which they reuse)."""
+    return composer(trained_data)
 
 
 def test_collect_writes_columns_counts_and_manifest(trained) -> None:
@@ -200,13 +217,13 @@ def test_a_compiled_run_that_falls_back_to_eager_is_refused(compose_cfg, monkeyp
     assert not (settings.directory / "manifest.json").exists()
 
 
-def test_the_diagnostic_and_the_grid_do_not_refit(trained, compose_cfg, caplog) -> None:
+def test_the_diagnostic_and_the_grid_do_not_refit(trained, beside, caplog) -> None:
     """Other ``gp.diagnostic`` or ``gp.grid_size`` settings reuse the fit (same classifiers,
     same simulations) and re-run only the diagnostic and the grid, in their own directory."""
     cfg, _, train_dir = trained
     first = train.validate(cfg)
     overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
-    other_cfg = compose_cfg("train", [*overrides, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
+    other_cfg = beside("train", [*overrides, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
     other = train.validate(other_cfg)
     assert other.fit_directory == first.fit_directory and other.directory != train_dir
     assert other.fit_identity() == first.fit_identity()
@@ -223,9 +240,9 @@ def test_the_diagnostic_and_the_grid_do_not_refit(trained, compose_cfg, caplog) 
     assert old["diagnostic"]["n_occupancy"] == 100 * 200 // 10  # the first one's is kept
     # a simulation of either uses the same abstraction: one run directory
     sim = [*TINY, "decision=abstract"]
-    a = simulate_stage.validate(compose_cfg("simulate", sim))
+    a = simulate_stage.validate(beside("simulate", sim))
     b = simulate_stage.validate(
-        compose_cfg("simulate", [*sim, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
+        beside("simulate", [*sim, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
     )
     assert a.directory == b.directory
 
@@ -237,15 +254,15 @@ def test_train_without_collect_names_the_command(compose_cfg) -> None:
 
 
 @pytest.mark.parametrize("mode", ["lookup", "classifier"])
-def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
+def test_full_vs_abstract_end_to_end(trained, beside, mode: str) -> None:
     overrides = [*TINY, "decision=abstract", f"decision.mode={mode}", "decision.lookup_size=[64]",
                  "evaluate.times=null", "evaluate.subsample=200", "evaluate.run_missing=true"]  # fmt: skip
     if (
         mode == "classifier"
     ):  # the two-state chain's GP every step (K lumps, the default, is a table)
         overrides.append("gp=svgp")
-        train.run(compose_cfg("train", [*_train_overrides(), "gp=svgp"]))
-    cfg = compose_cfg("evaluate", overrides)
+        train.run(beside("train", [*_train_overrides(), "gp=svgp"]))
+    cfg = beside("evaluate", overrides)
     out = evaluate_stage.run(cfg)
     table = pd.read_csv(out / "comparison.csv")
     assert table["quantity"].tolist() == [
@@ -275,13 +292,13 @@ def test_full_vs_abstract_end_to_end(trained, compose_cfg, mode: str) -> None:
     assert abstract.manifest["decision"] == "abstract"
 
 
-def test_evaluation_without_figures_writes_the_same_tables(trained, compose_cfg) -> None:
+def test_evaluation_without_figures_writes_the_same_tables(trained, beside) -> None:
     """evaluate.figures=false (reproduce's exact-psi evaluations): the same comparison, no
     figures, in a directory of its own."""
     overrides = [*TINY, "decision=abstract", "decision.lookup_size=[64]", "evaluate.times=null",
                  "evaluate.subsample=200", "evaluate.run_missing=true"]  # fmt: skip
-    with_figures = evaluate_stage.run(compose_cfg("evaluate", overrides))
-    without = evaluate_stage.run(compose_cfg("evaluate", [*overrides, "evaluate.figures=false"]))
+    with_figures = evaluate_stage.run(beside("evaluate", overrides))
+    without = evaluate_stage.run(beside("evaluate", [*overrides, "evaluate.figures=false"]))
     assert without != with_figures
     assert not list(without.glob("*.png"))
     figures = {p.name for p in with_figures.glob("*.png")}
@@ -404,7 +421,7 @@ def test_the_verdict_reads_the_blackout_its_collection_advised(compose_cfg) -> N
                          [("[64]", 3, "numba"), ("null", 2, "numba"), ("null", 2, "torch")],
                          ids=["own_tables", "stacked_tables", "stacked_tables_torch"])  # fmt: skip
 def test_runs_simulated_together_are_the_standalone_runs(
-    trained, compose_cfg, caplog, lookup: str, blocks: int, backend: str
+    trained, beside, caplog, lookup: str, blocks: int, backend: str
 ) -> None:
     """reproduce simulates its runs as one batch: with the per-cell kernel or the eager torch
     step, each run is its standalone run bit for bit (same directory, same files), whatever
@@ -415,13 +432,15 @@ def test_runs_simulated_together_are_the_standalone_runs(
     # stacking needs the two-state chain's table (K lumps, the default, keeps its own block)
     chain = ["gp=svgp"] if lookup == "null" else []
     if chain:
-        train.run(compose_cfg("train", [*_train_overrides(), *chain]))
-    cfg = compose_cfg("reproduce", [*TINY, f"decision.lookup_size={lookup}",
+        train.run(beside("train", [*_train_overrides(), *chain]))
+    cfg = beside("reproduce", [*TINY, f"decision.lookup_size={lookup}",
                                     "fields=[gaussian,linear]", "record_cells=16",
                                     f"backend={backend}", *chain])  # fmt: skip
     settings = ReproduceSettings.from_config(cfg)
     runs = settings.runs()
     assert {s.decision.name for s in runs} == {"full", "abstract", "exact"} and len(runs) == 8
+    for s in runs:  # all made here: the tests beside this one made some of the same runs
+        shutil.rmtree(s.directory, ignore_errors=True)
     with caplog.at_level(logging.INFO, logger="surrogate.stages.simulate"):
         dirs = simulate_stage.simulate_together(runs)
     assert (
@@ -517,10 +536,10 @@ def test_a_run_outside_the_trained_inputs_warns_with_the_share(compose_cfg, capl
     assert f"L seen [{L['seen'][0]:.4g}, {L['seen'][1]:.4g}]" in record.getMessage()
 
 
-def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
+def test_speed_times_both_models_side_by_side(trained, beside) -> None:
     from surrogate.stages import speed
 
-    cfg = compose_cfg("speed", [*TINY, "decision.lookup_size=[64]", "steps=5"])
+    cfg = beside("speed", [*TINY, "decision.lookup_size=[64]", "steps=5"])
     out = speed.run(cfg)
     result = json.loads((out / "speed.json").read_text())
     assert result["steps"] == 5 and result["n_cells"] == 40
@@ -537,9 +556,9 @@ def test_speed_times_both_models_side_by_side(trained, compose_cfg) -> None:
             loops["full"][loop]["seconds"] / loops["abstract"][loop]["seconds"]
         )
     with pytest.raises(ConfigError, match="loops must be auto or a list"):
-        speed.run(compose_cfg("speed", [*TINY, "decision.lookup_size=[64]", "loops=[gpu]"]))
+        speed.run(beside("speed", [*TINY, "decision.lookup_size=[64]", "loops=[gpu]"]))
     with pytest.raises(ConfigError, match="decision=abstract"):
-        speed.run(compose_cfg("speed", [*TINY, "decision=full"]))
+        speed.run(beside("speed", [*TINY, "decision=full"]))
 
 
 def test_auto_labels_are_the_expected_labels_where_the_table_has_them(compose_cfg) -> None:
@@ -581,13 +600,13 @@ def test_the_occupancy_run_is_seeded_and_reused(compose_cfg, caplog) -> None:
     assert "occupancy run exists, reusing" in caplog.text
 
 
-def test_reproduce_writes_the_report_of_every_field(compose_cfg) -> None:
+def test_reproduce_writes_the_report_of_every_field(beside) -> None:
     """reproduce (one process) makes every run, the learned and the exact chain's evaluations
     on each field, and the report; a rerun reuses all of it."""
     from surrogate.stages import reproduce
     from surrogate.stages.settings import ReproduceSettings
 
-    cfg = compose_cfg("reproduce", [*TINY, "fields=[gaussian,linear,dynamic]", "record_cells=16"])
+    cfg = beside("reproduce", [*TINY, "fields=[gaussian,linear,dynamic]", "record_cells=16"])
     out = reproduce.run(cfg)
     report = (out / "report.md").read_text()  # the exact chain: adapted cells, not a bound
     assert "The exact lumped psi (cells adapted to their current input)" in report
