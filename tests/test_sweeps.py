@@ -289,7 +289,10 @@ def test_joblib_sweep_of_reproduce(workdir: Path) -> None:
     assert (sweep / "summary.png").stat().st_size > 0
 
     before = _artefact_manifests(data)
-    rerun = run_script("reproduce.py", *args[:3], f"hydra.sweep.dir={sweep}_again", *args[4:],
+    # the same jobs through Hydra's basic launcher (one process, no workers to spawn), on the
+    # threads the wrapper gave the joblib jobs: what a job makes does not depend on its launcher
+    threads = f"threads={max(1, cli.available_cores() // 2)}"
+    rerun = run_script("reproduce.py", "-m", f"hydra.sweep.dir={sweep}_again", threads, *args[4:],
                        cwd=workdir)  # fmt: skip
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert all(j["status"] == "ok" for j in statuses(Path(f"{sweep}_again")).values())

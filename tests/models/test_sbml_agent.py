@@ -17,7 +17,6 @@ import pandas as pd
 import pytest
 import torch
 import yaml
-from hydra import compose, initialize_config_dir
 
 from examples.python_model.gene_switch import GeneSwitchModel
 from surrogate.config import CONF_DIR, build_model
@@ -30,6 +29,7 @@ from surrogate.sbml import SbmlError, SbmlWarning
 from surrogate.simulate import AbstractDecision, FullDecision, Simulator
 from surrogate.simulate.decision import ExactPsi
 from surrogate.stages import collect, evaluate, simulate, train
+from tests.conftest import composer
 
 REPO = CONF_DIR.parent
 PHOSPHO = REPO / "examples" / "ecoli_phospho" / "model.yaml"
@@ -42,9 +42,7 @@ DROP = object()  # a key to remove from the spec
 
 
 def compose_config(data_dir: Path, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="evaluate",
-                       overrides=[f"data_dir={data_dir}", "progress=false", *overrides])  # fmt: skip
+    return composer(data_dir)("evaluate", overrides)
 
 
 def run_full(model, n_cells: int, steps: int, seed: int = 7):

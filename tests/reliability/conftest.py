@@ -11,11 +11,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from surrogate.config import CONF_DIR
 from surrogate.stages import collect, train
+from tests.conftest import composer
 
 # collect: 200 transitions per origin state from 50 cells
 COLLECT = ["collect.n_per_state=200", "collect.n_cells=50", "collect.equilibration_time=1.0"]
@@ -45,16 +44,7 @@ Compose = Callable[..., DictConfig]
 
 def compose_in(data_dir: Path, name: str, overrides: list[str] | None = None) -> DictConfig:
     """Compose primary config ``name`` with the tiny settings of its stage, then ``overrides``."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(
-            config_name=name,
-            overrides=[
-                f"data_dir={data_dir}",
-                "progress=false",
-                *STAGE_OVERRIDES[name],
-                *(overrides or []),
-            ],
-        )
+    return composer(data_dir)(name, [*STAGE_OVERRIDES[name], *(overrides or [])])
 
 
 @pytest.fixture
