@@ -47,6 +47,7 @@ from surrogate.benchmarks.layers import make_simulator
 from surrogate.benchmarks.lookup import format_lookup_report, run_lookup_bench
 from surrogate.benchmarks.machine import bench_settings, num_threads, read_load, setup
 from surrogate.benchmarks.timing import (
+    BREAKDOWN_CALLS,
     memory_run,
     modes,
     paper_workload,
@@ -244,8 +245,9 @@ def run_bench(cfg: Mapping[str, Any], log: Callable[[str], None] = print) -> dic
         for n in s["breakdown_sizes"]:
             for name in MODELS:
                 sim = make_simulator(name, model, field, dt, device, tables, best_compile)
-                # the settings' repeats and step cap (the quick bench's 50, not 500 calls)
-                split = step_breakdown(sim, n, int(s["repeats"]), min(500, int(s["max_steps"])))
+                # the settings' repeats and step cap (the quick bench's 50 calls, not 500)
+                calls = min(BREAKDOWN_CALLS, int(s["max_steps"]))
+                split = step_breakdown(sim, n, int(s["repeats"]), calls)
                 breakdown.append({"model": name, "n_cells": n, **split})
         results["breakdown"] = breakdown
 

@@ -75,8 +75,12 @@ def ratio(full: Mapping[str, Any], candidate: Mapping[str, Any]) -> float | None
     return compare(full, candidate)[0]
 
 
+#: most calls per timing in :func:`step_breakdown` (fewer where many cells make a call long)
+BREAKDOWN_CALLS = 500
+
+
 def step_breakdown(
-    simulator: Simulator, n_cells: int, repeats: int = 5, max_calls: int = 500
+    simulator: Simulator, n_cells: int, repeats: int = 5, max_calls: int = BREAKDOWN_CALLS
 ) -> dict[str, float]:
     """Per-step microseconds of the torch step: drawing the random numbers, the fused kernel
     alone, the whole step, and the rest (Python, bookkeeping) = step - randoms - kernel; each
@@ -235,6 +239,7 @@ def si(x: float) -> str:
 
 
 __all__ = [
+    "BREAKDOWN_CALLS",
     "CHUNK_STEPS",
     "memory_child",
     "memory_run",

@@ -157,7 +157,7 @@ def test_expected_labels_average_to_the_outcomes() -> None:
     model = EcoliPhosphoModel(ssa="compiled", burn_in=0.5)
     internal = model.internal
     gen = torch.Generator().manual_seed(8)
-    n = 750  # ~20 s: the phospho SSA costs ~30 ms per cell-second here
+    n = 750  # ~20 s: the phospho SSA costs ~25 ms per cell-second here
     x = torch.stack([2.2 + 0.25 * torch.randn(n, generator=gen), torch.zeros(n)], 1)
     torch.manual_seed(8)
     state = internal.initial_state(x)

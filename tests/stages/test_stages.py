@@ -141,7 +141,7 @@ def test_train_writes_artefacts_and_round_trips(trained) -> None:
 def test_the_fit_runs_on_gp_threads(compose_cfg) -> None:
     """``gp.threads`` sets the fit's torch threads (its result depends on them), recorded in
     the manifest and in the abstraction's identity; the job's own count is restored after."""
-    overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    overrides = _train_overrides()
     cfg = compose_cfg("train", [*overrides, "gp.threads=2"])
     collect.run(cfg)
     before = torch.get_num_threads()
@@ -157,7 +157,7 @@ def test_the_fits_identity_holds_the_resolved_thread_count(compose_cfg) -> None:
     """``gp.threads=null`` fits on the job's threads: one and two threads are two fits (psi
     moves by up to 3 % between them), not one directory a single run and a sweep share; the
     command names the count that reproduces it."""
-    overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    overrides = _train_overrides()
     before = torch.get_num_threads()
     made = {}
     try:
@@ -222,8 +222,8 @@ def test_the_diagnostic_and_the_grid_do_not_refit(trained, beside, caplog) -> No
     same simulations) and re-run only the diagnostic and the grid, in their own directory."""
     cfg, _, train_dir = trained
     first = train.validate(cfg)
-    overrides = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
-    other_cfg = beside("train", [*overrides, "gp.diagnostic.n_cells=50", "gp.grid_size=[7]"])
+    other_cfg = beside("train", [*_train_overrides(), "gp.diagnostic.n_cells=50",
+                                 "gp.grid_size=[7]"])  # fmt: skip
     other = train.validate(other_cfg)
     assert other.fit_directory == first.fit_directory and other.directory != train_dir
     assert other.fit_identity() == first.fit_identity()
@@ -434,8 +434,8 @@ def test_runs_simulated_together_are_the_standalone_runs(
     if chain:
         train.run(beside("train", [*_train_overrides(), *chain]))
     cfg = beside("reproduce", [*TINY, f"decision.lookup_size={lookup}",
-                                    "fields=[gaussian,linear]", "record_cells=16",
-                                    f"backend={backend}", *chain])  # fmt: skip
+                               "fields=[gaussian,linear]", "record_cells=16",
+                               f"backend={backend}", *chain])  # fmt: skip
     settings = ReproduceSettings.from_config(cfg)
     runs = settings.runs()
     assert {s.decision.name for s in runs} == {"full", "abstract", "exact"} and len(runs) == 8
@@ -586,7 +586,7 @@ def test_the_occupancy_run_is_seeded_and_reused(compose_cfg, caplog) -> None:
     from surrogate.stages.occupancy import OCCUPANCY, occupancy
     from surrogate.stages.settings import TrainSettings
 
-    train_only = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    train_only = _train_overrides()
     settings = TrainSettings.from_config(compose_cfg("train", train_only)).occupancy()
     rows = occupancy(settings)
     assert len(rows) == 100 * 200 // 10 and {"dG", "phi", "phi_next"} <= set(rows.columns)
@@ -645,7 +645,7 @@ def test_the_k_lumps_chain_trains_is_diagnosed_and_simulates(compose_cfg, caplog
     """gp=classes end to end on tiny settings: the class chain is written beside psi, scored
     against E. coli's exact class law where the occupancy run lives (every class the run
     visits, their shares adding up to 1), and `decision=abstract gp=classes` runs it."""
-    tiny = [o for o in TINY if o.split("=")[0].split(".")[0] in ("collect", "gp")]
+    tiny = _train_overrides()
     cfg = compose_cfg("train", ["gp=classes", *tiny, "gp.n_inducing=8"])
     collect.run(cfg)
     with caplog.at_level(logging.INFO, logger="surrogate.stages.train"):
