@@ -304,7 +304,12 @@ def test_train_refuses_minibatch_expected_labels_before_collecting(tiny, monkeyp
     _forbid(monkeypatch, "surrogate.stages.train.load_transitions")
     with pytest.raises(ConfigError, match=r"gp\.labels=auto .* gp\.bins=0"):
         train.run(tiny("train", ["gp.bins=0"]))
-    TrainSettings.from_config(tiny("train", ["gp.bins=0", "gp.labels=outcome"]))
+    # minibatch needs Adam: the default K lumps fit by Newton, which bins (its own error)
+    with pytest.raises(ConfigError, match=r"gp\.optimizer=newton .* or set gp\.optimizer=adam"):
+        TrainSettings.from_config(tiny("train", ["gp.bins=0", "gp.labels=outcome"]))
+    TrainSettings.from_config(
+        tiny("train", ["gp.bins=0", "gp.labels=outcome", "gp.optimizer=adam"])
+    )
 
 
 def test_an_external_table_with_expected_labels_and_minibatch_is_refused(tmp_path) -> None:
@@ -316,7 +321,9 @@ def test_an_external_table_with_expected_labels_and_minibatch_is_refused(tmp_pat
     pd.DataFrame({"dG": [0.1, 0.2], "phi": [0.0, 1.0], "phi_next": [0.0, 1.0],
                   "phi_next_expected": [0.2, 0.9]}).to_csv(path, index=False)  # fmt: skip
     settings = TrainSettings.from_config(
-        compose_in(tmp_path / "data", "train", ["gp.bins=0", f"+transitions={path}"])
+        compose_in(
+            tmp_path / "data", "train", ["gp.bins=0", "gp.optimizer=adam", f"+transitions={path}"]
+        )
     )
     with pytest.raises(ConfigError, match=rf"{path} has expected labels: gp\.labels=auto .* "
                                           r"gp\.bins=0 \(minibatch"):  # fmt: skip

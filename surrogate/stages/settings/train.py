@@ -198,6 +198,28 @@ class TrainSettings:
         )
         extra = {*GP_EXTRA, *kind_gp_keys()}  # a chain kind's own keys are no hyperparameters
         hyper = {k: v for k, v in gp_config.items() if k not in extra}
+        # the labels first: gp.bins=0 with expected labels is refused whatever the optimiser
+        # (Newton, K lumps' recipe, needs bins too, and its own advice would not run)
+        labels = gp_config.get("labels", "outcome")
+        if labels not in LABEL_CHOICES:
+            raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
+        if not gp_config.get("bins") and (
+            labels == "expected"
+            or (labels == "auto" and isinstance(source, CollectSettings) and source.expected_labels)
+        ):
+            # minibatch training reads 0/1 labels only; found here, not after the collection
+            raise ConfigError(bins_labels_conflict(labels))
+        if labels == "expected":
+            if isinstance(source, CollectSettings) and not source.expected_labels:
+                why = (
+                    "collect.expected_labels=false"
+                    if not source.options.get("expected_labels", False)
+                    else f"model {setup.model.name!r} gives none (no expected_phi_next)"
+                )
+                raise ConfigError(
+                    f"gp.labels=expected trains on expected labels, but {why}; use "
+                    "gp.labels=outcome"
+                )
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
         # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
         if not 0.0 < gp.validation_fraction < 1.0:
@@ -223,26 +245,6 @@ class TrainSettings:
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
                                     or threads < 1):  # fmt: skip
             raise ConfigError(f"gp.threads must be a positive integer or null, got {threads!r}")
-        labels = gp_config.get("labels", "outcome")
-        if labels not in LABEL_CHOICES:
-            raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
-        if not gp.bins and (
-            labels == "expected"
-            or (labels == "auto" and isinstance(source, CollectSettings) and source.expected_labels)
-        ):
-            # minibatch training reads 0/1 labels only; found here, not after the collection
-            raise ConfigError(bins_labels_conflict(labels))
-        if labels == "expected":
-            if isinstance(source, CollectSettings) and not source.expected_labels:
-                why = (
-                    "collect.expected_labels=false"
-                    if not source.options.get("expected_labels", False)
-                    else f"model {setup.model.name!r} gives none (no expected_phi_next)"
-                )
-                raise ConfigError(
-                    f"gp.labels=expected trains on expected labels, but {why}; use "
-                    "gp.labels=outcome"
-                )
         # gp.lumps=auto: the recipe it chose, for the log
         auto_recipe = chain.kind.recipe if is_auto(raw_gp) else None
         return cls(setup, source, gp, gp_config, inputs, sizes, diagnostic, job,
