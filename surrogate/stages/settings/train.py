@@ -83,6 +83,29 @@ def bins_labels_conflict(labels: str) -> str:
             f"gp.bins > 0 (default 500) or gp.labels=outcome")  # fmt: skip
 
 
+def _check_labels(
+    gp_config: Mapping[str, Any], source: CollectSettings | ExternalTable, model_name: str
+) -> None:
+    """Refuse a ``gp.labels`` that ``gp_config``'s training cannot read from ``source``: an
+    unknown one, expected labels with minibatches (``gp.bins=0``; found here, not after the
+    collection), or ``expected`` where the collection records none."""
+    labels = gp_config.get("labels", "outcome")
+    if labels not in LABEL_CHOICES:
+        raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
+    expected = isinstance(source, CollectSettings) and source.expected_labels
+    if not gp_config.get("bins") and (labels == "expected" or (labels == "auto" and expected)):
+        raise ConfigError(bins_labels_conflict(labels))  # minibatches read 0/1 labels only
+    if labels == "expected" and isinstance(source, CollectSettings) and not expected:
+        why = (
+            "collect.expected_labels=false"
+            if not source.options.get("expected_labels", False)
+            else f"model {model_name!r} gives none (no expected_phi_next)"
+        )
+        raise ConfigError(
+            f"gp.labels=expected trains on expected labels, but {why}; use gp.labels=outcome"
+        )
+
+
 @dataclass(frozen=True)
 class ExternalTable:
     """A transitions table from outside the pipeline (CSV or Parquet), identified by content."""
@@ -200,26 +223,7 @@ class TrainSettings:
         hyper = {k: v for k, v in gp_config.items() if k not in extra}
         # the labels first: gp.bins=0 with expected labels is refused whatever the optimiser
         # (Newton, K lumps' recipe, needs bins too, and its own advice would not run)
-        labels = gp_config.get("labels", "outcome")
-        if labels not in LABEL_CHOICES:
-            raise ConfigError(f"gp.labels must be one of {list(LABEL_CHOICES)}, got {labels!r}")
-        if not gp_config.get("bins") and (
-            labels == "expected"
-            or (labels == "auto" and isinstance(source, CollectSettings) and source.expected_labels)
-        ):
-            # minibatch training reads 0/1 labels only; found here, not after the collection
-            raise ConfigError(bins_labels_conflict(labels))
-        if labels == "expected":
-            if isinstance(source, CollectSettings) and not source.expected_labels:
-                why = (
-                    "collect.expected_labels=false"
-                    if not source.options.get("expected_labels", False)
-                    else f"model {setup.model.name!r} gives none (no expected_phi_next)"
-                )
-                raise ConfigError(
-                    f"gp.labels=expected trains on expected labels, but {why}; use "
-                    "gp.labels=outcome"
-                )
+        _check_labels(gp_config, source, setup.model.name)
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
         # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
         if not 0.0 < gp.validation_fraction < 1.0:
