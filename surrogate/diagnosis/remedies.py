@@ -285,13 +285,9 @@ CLASSES_FAMILY = MEMORY_FAMILIES[1]
 
 
 #: the measured choice's K-lumps candidate whose bins relax (where the model's classes are bins
-#: both lumps share), its fit (Adam's 1,000 steps, as its figures were measured on the
-#: auto-regulatory network, docs/choice.md; gp=classes' Newton fit is not measured there) and
-#: the overrides that train it outright
+#: both lumps share), fitted by gp=classes' recipe, and the overrides that train it outright
 RELAXING_CANDIDATE = "classes relaxation"
-RELAXING_FIT: dict[str, Any] = {"optimizer": "adam", "epochs": 1000}
-RELAXING_OVERRIDES = ("gp=classes", "gp.class_moves=relaxation",
-                      *(f"gp.{k}={v}" for k, v in RELAXING_FIT.items()))  # fmt: skip
+RELAXING_OVERRIDES = ("gp=classes", "gp.class_moves=relaxation")
 
 
 def nameable(name: str, row: Mapping[str, Any] | None = None) -> bool:
@@ -421,7 +417,6 @@ __all__ = [
     "LONGER_BURN_IN",
     "MEMORY_FAMILIES",
     "RELAXING_CANDIDATE",
-    "RELAXING_FIT",
     "RELAXING_OVERRIDES",
     "Advisor",
     "Check",

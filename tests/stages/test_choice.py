@@ -134,9 +134,9 @@ def test_k_lumps_whose_bins_relax_are_a_candidate_where_both_lumps_share_the_bin
     assert (relaxing["lumps"], relaxing["class_moves"]) == ("classes", "relaxation")
     assert groups["classes"]["class_moves"] == "learned"
     assert relaxing == finals["classes relaxation"]  # trained as scored
-    # K lumps trained by their recipe's Newton; the relaxing ones by Adam's 1,000 steps, as
-    # measured (RELAXING_FIT), also where the advice trains them outright
-    assert (relaxing["optimizer"], relaxing["epochs"], relaxing["threads"]) == ("adam", 1000, 1)
+    # K lumps, the relaxing ones too, trained by their recipe's Newton (also where the advice
+    # trains them outright); only the plain ones are scored on L-BFGS fits
+    assert (relaxing["optimizer"], relaxing["epochs"], relaxing["threads"]) == ("newton", 200, 1)
     assert groups["classes"]["optimizer"] == LBFGS["optimizer"]
     assert (finals["classes"]["optimizer"], finals["classes"]["epochs"]) == ("newton", 200)
     assert "classes relaxation" not in candidate_groups({}, settings, OwnBins())
@@ -145,8 +145,7 @@ def test_k_lumps_whose_bins_relax_are_a_candidate_where_both_lumps_share_the_bin
     assert list(candidate_groups({}, without, Binned())) == ["classes"]
     only = ChoiceSettings.from_config({"kinds": [RELAXING_FAMILY]})
     assert list(candidate_groups({}, only, Binned())) == ["classes relaxation"]
-    assert candidate_overrides("classes relaxation") == (
-        "gp=classes", "gp.class_moves=relaxation", "gp.optimizer=adam", "gp.epochs=1000")  # fmt: skip
+    assert candidate_overrides("classes relaxation") == ("gp=classes", "gp.class_moves=relaxation")
 
 
 def test_a_cap_named_twice_is_refused_with_the_list_that_passes() -> None:

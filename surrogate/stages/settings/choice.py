@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from surrogate.config import field_config, group_config
-from surrogate.diagnosis.remedies import RELAXING_CANDIDATE, RELAXING_FIT
+from surrogate.diagnosis.remedies import RELAXING_CANDIDATE
 from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.gp.class_relaxation import CLASS_MOVES, check_shared_bins
 from surrogate.io import read_json
@@ -333,7 +333,7 @@ def candidate_groups(
             # sample's full-model cells (minutes on a slow network), paid once
             recipe = {k: v for k, v in choice_keys.items() if k not in LBFGS}
             relaxing = {**group_config("gp", "classes"), "class_moves": CLASS_MOVES[1],
-                        **RELAXING_FIT, **recipe, **user}  # fmt: skip
+                        **recipe, **user}  # fmt: skip
             families.append((RELAXING_FAMILY, RELAXING_CANDIDATE, relaxing))
     shipped = {"svgp", "clock", "classes"}
     for kind in CHAIN_KINDS:
