@@ -633,9 +633,11 @@ def match_leaving(
         lumps: ``(S,)`` each state's phi.
         target: ``(..., 2)`` each lump's leave probability wanted, in (0, 1).
         tolerance: the largest relative error of the matched leave probabilities (1e-4: psi
-            itself is known to ~1 %; on E. coli's tables the fixed point stalled at 2e-8 to
+            itself is known to ~1 %; on E. coli's tables the ratio step stalled at 2e-8 to
             4e-5 after 200 rounds, short of the 1e-10 first asked).
-        rounds: the most rounds of the fixed point (a ratio step in log odds per lump).
+        rounds: the most rounds of the root search in the log factor per lump and point: a
+            secant step on the log leave probability (the ratio step, slope 1, first),
+            bisecting the bracket where a step would leave it.
 
     Returns:
         The matched moves ``(..., S, S)`` float64 and the factors ``(..., 2)`` on the leaving
@@ -647,19 +649,44 @@ def match_leaving(
     moves, target = moves.to(DTYPE), target.to(DTYPE).clamp(1e-12, 1 - 1e-12)
     lumps = lumps.to(moves.device)
     outside = (lumps.unsqueeze(-1) != lumps).to(DTYPE)  # (S, S): the move leaves a's lump
-    log_factor = torch.zeros(target.shape, dtype=DTYPE, device=moves.device)
+    log_target = target.log()
+    x = torch.zeros(target.shape, dtype=DTYPE, device=moves.device)  # log factor per lump
+    # a bracket on x per lump and point (f < 0 at lo, f > 0 at hi), once seen
+    lo = torch.full_like(x, -math.inf)
+    hi = torch.full_like(x, math.inf)
+    slope = torch.ones_like(x)  # d log(leave) / d log(factor): 1 while leaving is rare
+    last_x = last_f = None
     matched, error = moves, math.inf
     for _ in range(rounds):
         # each row's factor is its own lump's: c on the leaving moves, then renormalised
-        row = log_factor[..., lumps].exp().unsqueeze(-1)  # (..., S, 1)
+        row = x[..., lumps].exp().unsqueeze(-1)  # (..., S, 1)
         scaled = moves * (1.0 + (row - 1.0) * outside)
         matched = scaled / scaled.sum(-1, keepdim=True)
         leave = stationary_leaving(matched, lumps)
         error = float((leave / target - 1.0).abs().max())
         if error <= tolerance:
-            return matched, log_factor.exp()
-        # leave ~ proportional to c while leaving is rare: the ratio step is Newton's there
-        log_factor = log_factor + (target.log() - leave.clamp_min(1e-300).log())
+            return matched, x.exp()
+        f = leave.clamp_min(1e-300).log() - log_target
+        lo = torch.where(f < 0, torch.maximum(lo, x), lo)
+        hi = torch.where(f > 0, torch.minimum(hi, x), hi)
+        # with moves across lumps (structure full) a lump's root moves with the other's
+        # factor: a bracket that closed without a match is stale, and is dropped
+        stale = (hi - lo) < 1e-9
+        lo, hi = lo.masked_fill(stale, -math.inf), hi.masked_fill(stale, math.inf)
+        if last_x is not None and last_f is not None:
+            # the secant's slope: leave grows faster than the factor where a slow phase
+            # holds most of the lump (fewer cells reach it, and it empties sooner), and the
+            # plain ratio step (slope 1) then overshoots and oscillates
+            dx = x - last_x
+            moved = dx.abs() > 1e-12
+            secant = torch.where(moved, (f - last_f) / torch.where(moved, dx, 1.0), slope)
+            slope = torch.where(secant > 0, secant.clamp(0.1, 10.0), slope)
+        step = x - f / slope
+        # a step out of the bracket bisects it (the leave probability rises with the factor)
+        bracketed = lo.isfinite() & hi.isfinite()
+        outside_bracket = (step <= lo) | (step >= hi)
+        step = torch.where(bracketed & outside_bracket, 0.5 * (lo + hi), step)
+        last_x, last_f, x = x, f, step
     raise NumericalError(f"the hidden-phase chain's leave probabilities match psi's only to "
                          f"{error:.2g} (relative) after {rounds} rounds")  # fmt: skip
 
