@@ -48,6 +48,39 @@ def test_rows_that_switch_faster_after_a_jump_are_flagged_with_their_ratio() -> 
     assert "off 1.5" in message or "off 1.4" in message or "off 1.6" in message
 
 
+def test_a_lag_in_the_clocks_alone_is_flagged_without_the_clock() -> None:
+    """Rows switch at a rate set by their clock alone (fast in the first 0.5 s of a segment),
+    and rows 0-2 s after a jump carry old clocks (no young ones): at the same clock they switch
+    as settled rows do, so the clock's view sees nothing; at the same inputs alone they switch
+    slower, which the two-state psi learns. Flagged as lagging without the clock."""
+    rng = np.random.default_rng(1)
+    n = 200_000
+    x = rng.random(n)
+    since = rng.integers(0, int(40 / DT), n)
+    early = since * DT < 2.0
+    age = np.where(early, rng.uniform(0.5, 10.0, n), rng.uniform(0.0, 10.0, n))
+    rate = np.where(age < 0.5, 0.3, 0.03)
+    phi = rng.integers(0, 2, n)
+    switched = rng.random(n) < rate
+    rows = pd.DataFrame({"x": x, "phi": phi, "phi_next": np.where(switched, 1 - phi, phi),
+                         "since_jump": since, "phi_age": age})  # fmt: skip
+    lag = after_jump_lag(rows, ["x"], DT, ("off", "on"))
+    assert lag is not None
+    assert all(abs(b["ratio"] - 1.0) < 4 * b["se"] for bins in lag["origins"].values()
+               for b in bins)  # fmt: skip
+    # expected 0.03 against the settled mix 0.05 x 0.3 + 0.95 x 0.03 = 0.0435: 0.69x
+    first = lag["origins_without_clock"]["on"][0]
+    assert abs(first["ratio"] - 0.03 / 0.0435) < 4 * first["se"]
+    assert {(lump, lo) for lump, lo, _, _ in lag["lagging"]} == {
+        ("off (without the clock)", 0.0),
+        ("on (without the clock)", 0.0),
+    }
+    advice = blackout_advice(lag, 1.0, 0.1)
+    assert advice[0] == f"collect.blackout_time={SETTLED_AFTER:g}"
+    message = lag_message(lag, 1.0, advice)
+    assert message is not None and "on (without the clock) 0." in message
+
+
 def test_a_collection_without_a_lag_says_nothing() -> None:
     lag = after_jump_lag(table(1.0), ["x"], DT, ("off", "on"))
     assert lag is not None and lag["lagging"] == []
