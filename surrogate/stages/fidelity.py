@@ -460,6 +460,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         for label, m in metrics.items() if m.get("class_diagnostic")}  # fmt: skip
     summary["outside_training"] = outside
     summary["wider_collection"] = wider_collection(settings, outside, config)
+    summary["settled_collection"] = settled_collection(settings, summary, config)
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
     save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
@@ -502,6 +503,38 @@ def wider_collection(
     log.warning("fidelity: runs %s left the collection's inputs; the same command with `%s` "
                 "collects further from the field's peak", ", ".join(away), " ".join(wider))  # fmt: skip
     return wider
+
+
+def settled_collection(
+    settings: FidelitySettings, summary: Mapping[str, Any], config: Mapping[str, Any]
+) -> list[str] | None:
+    """Where a check failed and a candidate's collection lagged its jumps (collect's warning):
+    the blackout collect advised (:func:`~surrogate.stages.reproduce.collection_blackout`, the
+    union over the candidates), checked by this stage's own settings on ``config`` first;
+    None where every check passed, no collection lagged, or the check refuses it (logged).
+    CERENA's gene-expression network: its default collection 14 of 24, with the blackout
+    collect advised 19 of 24 (docs/choice.md)."""
+    from surrogate.stages.advice_check import apply_overrides
+    from surrogate.stages.reproduce import collection_blackout
+    from surrogate.stages.settings.choice import collecting_pending
+
+    if summary["passed"] >= summary["checks"]:
+        return None
+    advice = list(dict.fromkeys(o for c in settings.candidates
+                                for o in collection_blackout(c.train)))  # fmt: skip
+    if not advice:
+        return None
+    try:
+        with collecting_pending():  # the settled collection's choices are not made yet
+            validate(apply_overrides(config, advice))
+    except (ConfigError, ArtefactError) as error:
+        log.warning("fidelity: the collection's rows lagged its jumps; %s would keep them out, "
+                    "but is refused: %s", " ".join(advice), error)  # fmt: skip
+        return None
+    log.warning("fidelity: checks failed and the collection's rows lagged its jumps (collect's "
+                "warning); the same command with `%s` records rows only once a jump has "
+                "settled", " ".join(advice))  # fmt: skip
+    return advice
 
 
 def check(settings: FidelitySettings, results: Mapping[str, RunResult]) -> pd.DataFrame:
@@ -688,6 +721,14 @@ def report_sections(
         support += (f"\n\nRuns left the inputs their collection covered: the same command with "
                     f"`{' '.join(wider)}` (checked) collects where they go, collect's jumps "
                     f"twice as far from the field's peak.")  # fmt: skip
+    settled = summary.get("settled_collection")
+    if settled:
+        target += (f"\n\nThe training collections' rows switched at other rates soon after a "
+                   f"jump than once it had settled (collect's warning, the `after_jump` of its "
+                   f"manifest), and psi learns that lag: the same command with "
+                   f"`{' '.join(settled)}` (checked) records rows only once a jump has "
+                   f"settled, a new collection and new fits (docs/choice.md, \"The lag without "
+                   f"the clock\").")  # fmt: skip
     return [
         ("Setting", setting),
         ("The target", target),

@@ -142,6 +142,34 @@ def test_runs_outside_their_collection_get_a_wider_one_checked(compose_cfg, chec
     assert fidelity.wider_collection(settings, {"a|exponential": away}, stored) is None
 
 
+def test_failed_checks_on_a_lagging_collection_get_its_blackout_checked(
+    compose_cfg, checked, monkeypatch
+) -> None:
+    """A check failed and the candidate's collection lagged its jumps (the blackout collect
+    advised, read from its manifest): the report names the same command with that blackout,
+    checked by this stage's settings; none where every check passed, no collection lagged, or
+    the check refuses it (a negative blackout here: logged, not printed)."""
+    from surrogate.config import to_dict
+    from surrogate.stages import reproduce
+
+    settings, _, table = checked
+    config = to_dict(compose_cfg("fidelity", SMALL))
+    summary = fidelity.summarise(table, settings)
+    assert summary["passed"] < summary["checks"]
+    advice = ["collect.blackout_time=20", "collect.perturb_rate=0.025"]
+    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr: tuple(advice))
+    assert fidelity.settled_collection(settings, summary, config) == advice
+    passed = {**summary, "passed": summary["checks"]}
+    assert fidelity.settled_collection(settings, passed, config) is None
+    text = "\n".join(body for _, body in fidelity.report_sections(
+        table, {**summary, "settled_collection": advice}, settings))  # fmt: skip
+    assert f"the same command with `{' '.join(advice)}` (checked)" in text
+    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr: ("collect.blackout_time=-1",))
+    assert fidelity.settled_collection(settings, summary, config) is None
+    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr: ())
+    assert fidelity.settled_collection(settings, summary, config) is None
+
+
 def test_chain_repeats_give_the_means_spread_and_their_own_identity(compose_cfg) -> None:
     """fidelity.chain_repeats=3: the check reads the first run, the table adds the means'
     sd from run to run and their average error, the report says so; 1 keeps the identity of
