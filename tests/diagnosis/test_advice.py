@@ -243,6 +243,28 @@ def test_a_choice_where_none_held_is_a_caveat_beside_the_trust() -> None:
     assert [c[0] for c in memory.causes] == ["Memory the chain over phi does not hold"]
 
 
+def test_a_lagging_collection_is_a_caveat_beside_the_trust() -> None:
+    """Runs within noise and psi unbiased, but collect measured its rows lagging their jumps:
+    trusted, with a caveat naming the blackout collect advised (checked as any remedy); where
+    psi is biased the blackout is that cause's first remedy instead, printed once; no caveat
+    where nothing lagged. The chosen psi may read the clock while the candidates that read
+    none learned the lag (CERENA's gene-expression network, docs/choice.md)."""
+    blackout = ("collect.blackout_time=20", "collect.perturb_rate=0.025")
+    v = _read(history="age", max_age=2.0, blackout=blackout)
+    assert v.trust and [c[0] for c in v.caveats] == ["Rows that lag their jumps"]
+    assert f"`{' '.join(blackout)}`" in v.caveats[0][2]
+    assert [r.overrides for _, r in v.remedies] == [blackout]
+    assert "Caveat, **Rows that lag their jumps**" in v.markdown()
+    refused = verdict(VerdictInputs(**{**_args("phi", "age"), "max_age": 2.0,
+                                       "blackout": blackout}),
+                      check=lambda overrides, what: "refused here")  # fmt: skip
+    assert refused.trust and "not advised: " + " ".join(blackout) in refused.caveats[0][2]
+    biased = _read(blackout=blackout, diagnostic={"phi0": _score(0.2, se=0.02)})
+    assert [c[0] for c in biased.causes] == ["Biased switching probabilities"]
+    assert biased.remedies[0][1].overrides == blackout
+    assert _read(history="age", max_age=2.0).caveats == []
+
+
 def test_the_runner_up_is_named_by_its_rows_overrides_a_log_clock_only_so() -> None:
     """A candidate's name cannot say a log clock's knee and bins: the runner-up is named by
     the overrides its row records (what the choice trained it with); from a record without
