@@ -406,8 +406,9 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         caveats.append((
             name,
             "collect measured its rows soon after a jump switching at other rates than "
-            "settled ones at the same inputs (its warning); the candidates whose psi reads no "
-            "clock learned that lag, and the chain was chosen among them.",
+            "settled ones at the same inputs (its warning); a psi that reads no clock learns "
+            "that lag" + ("; the chain was chosen among candidates that do." if choice is not None
+                          else "."),
             advisor.step(name, _blackout(run.blackout), then="."),
         ))  # fmt: skip
     if causes:  # not trusted anyway: thin rows are one more thing to mend

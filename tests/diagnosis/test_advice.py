@@ -255,6 +255,11 @@ def test_a_lagging_collection_is_a_caveat_beside_the_trust() -> None:
     assert f"`{' '.join(blackout)}`" in v.caveats[0][2]
     assert [r.overrides for _, r in v.remedies] == [blackout]
     assert "Caveat, **Rows that lag their jumps**" in v.markdown()
+    assert v.caveats[0][1].endswith("a psi that reads no clock learns that lag.")  # named
+    rows = [_row("two-state", 0, -2e-2), _row("clock max_age=2", 1, 0.0)]
+    chosen = _read(history="age", max_age=2.0, blackout=blackout,
+                   choice=_choice("clock max_age=2", rows, duration_tolerance=0.03))  # fmt: skip
+    assert chosen.caveats[0][1].endswith("the chain was chosen among candidates that do.")
     refused = verdict(VerdictInputs(**{**_args("phi", "age"), "max_age": 2.0,
                                        "blackout": blackout}),
                       check=lambda overrides, what: "refused here")  # fmt: skip
