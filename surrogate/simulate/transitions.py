@@ -228,6 +228,20 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
             yield chunk
 
 
+def recorded_share(perturb_rate: float, blackout_time: float) -> float:
+    """The share of a collected cell's windows outside the blackout once jumps are steady:
+    the chance that the last jump (one per ``1 / perturb_rate`` s on average, a Bernoulli
+    draw each window) came ``blackout_time`` s or more ago, ``exp(-rate x blackout)``. What
+    the stages' cost estimates divide a collection's rows by (a cell never yet perturbed is
+    recorded too, so the start's windows are a little cheaper).
+
+    Example:
+        >>> round(recorded_share(0.1, 1.0), 3), round(recorded_share(0.025, 20.0), 3)
+        (0.905, 0.607)
+    """
+    return math.exp(-max(perturb_rate, 0.0) * max(blackout_time, 0.0))
+
+
 def _internal_state(simulator: Simulator) -> tuple[Tensor, ...]:
     """A copy of the full decision layer's internal state (a kernel writes it in place)."""
     return tuple(t.clone() for t in simulator.decision.fused_state())

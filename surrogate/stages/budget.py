@@ -46,6 +46,7 @@ from surrogate.io import MANIFEST, read_manifest
 from surrogate.kinds import mode_kind
 from surrogate.models.capabilities import burn_in_of
 from surrogate.models.network import direct_exact_step_seconds
+from surrogate.simulate.transitions import recorded_share
 from surrogate.stages.settings import (
     CollectSettings,
     EvaluateSettings,
@@ -68,8 +69,9 @@ def collect_work(
     settings: CollectSettings, reuse: bool = True, cell_step_seconds: float | None = None
 ) -> list[Work]:
     """The collection's windows, at least: the equilibration of every cell, then twice
-    ``n_per_state`` recorded windows (both origins equally common, none in a blackout), each
-    every ``record_every``-th window of a cell. ``reuse=False``: the cost even where the
+    ``n_per_state`` recorded windows (both origins equally common), each every
+    ``record_every``-th window of a cell outside the blackout after a jump
+    (:func:`~surrogate.simulate.transitions.recorded_share` of them). ``reuse=False``: the cost even where the
     artefact exists (for every function here). ``cell_step_seconds``: the full model's cost
     per cell-step (its windows' and the burn-in's) instead of the model's estimate (collect's
     at the events its cost probe measured, :func:`surrogate.stages.collect.measured_cost`)."""
@@ -78,10 +80,13 @@ def collect_work(
     setup, c = settings.setup, settings.options
     n, every, cells = int(c["n_per_state"]), int(c["record_every"]), int(c["n_cells"])
     equilibration = float(c["equilibration_time"]) / setup.dt
-    steps = equilibration + 2.0 * n * every / cells
+    share = recorded_share(float(c["perturb_rate"]), float(c["blackout_time"]))
+    steps = equilibration + 2.0 * n * every / (cells * share)
     where = (f"collect.n_per_state={n} per origin, every collect.record_every={every}th window "
-             f"of collect.n_cells={cells}, collect.equilibration_time="
-             f"{float(c['equilibration_time']):g} s, dt={setup.dt:g} s")  # fmt: skip
+             f"of collect.n_cells={cells} outside collect.blackout_time="
+             f"{float(c['blackout_time']):g} s after a jump ({100 * share:.0f} % of windows), "
+             f"collect.equilibration_time={float(c['equilibration_time']):g} s, "
+             f"dt={setup.dt:g} s")  # fmt: skip
     fixed = step_seconds(setup.model, setup.field, setup.dt, "full", settings.job.device)
     device = settings.job.device
     cell_step = setup.model.cell_step_seconds(setup.dt, device=device) \

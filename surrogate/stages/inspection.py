@@ -118,6 +118,7 @@ from surrogate.diagnosis.simulated import simulate_fixed_inputs
 from surrogate.errors import ConfigError
 from surrogate.io import make_once, save_figure, write_json, write_manifest, write_text
 from surrogate.models.capabilities import lump_formula_of
+from surrogate.simulate.transitions import recorded_share
 from surrogate.stages import budget
 from surrogate.stages.advice_check import checked
 from surrogate.stages.artefacts import INSPECTION, REPORT
@@ -306,8 +307,9 @@ def _collection_time(
     field = settings.setup.field_name
     share1 = population.fields.get(field, next(iter(population.fields.values())))["phi_share"]
     times = []
+    recorded = recorded_share(float(c["perturb_rate"]), float(c["blackout_time"]))
     for share in (1.0 - share1, share1):
-        rate = int(c["n_cells"]) * share / (record_every * dt)  # rows per second
+        rate = int(c["n_cells"]) * share * recorded / (record_every * dt)  # rows per second
         times.append(float(c["equilibration_time"]) + n_per_state / rate
                      if rate > 0 else math.inf)  # fmt: skip
     out["seconds_needed"] = times

@@ -13,6 +13,7 @@ Each entry failed before the fix (a traceback, a silent hours-long run, or a run
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import pytest
@@ -186,7 +187,9 @@ def test_a_default_budget_is_the_same_artefact_as_the_same_budget_given(tmp_path
 def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> None:
     """The estimate's formula, pinned with numbers computed here (its accuracy is measured,
     not guaranteed: docs/performance.md): a collection's steps are the equilibration's plus
-    2 n_per_state record_every / n_cells, each costing the loop's measured fixed cost per step
+    2 n_per_state record_every / n_cells over the share of windows outside the blackout after
+    a jump, exp(-perturb_rate blackout_time) (0.1 per s and 1 s here, both models' default),
+    each costing the loop's measured fixed cost per step
     (surrogate.diagnosis.cost.step_seconds, > 0) plus n_cells cell-steps;
     the gene switch's cell-step is the SSA overhead plus its expected events per window at the
     file's counts and inputs (8 inactive proteins, inducer 0.05: only activation fires, at
@@ -203,7 +206,7 @@ def test_the_cost_estimate_is_steps_x_cells_x_the_models_cell_step(tmp_path) -> 
 
     sizes = ["collect.n_per_state=1000", "collect.n_cells=50", "collect.record_every=2",
              "collect.equilibration_time=1.0", "dt=0.05"]  # fmt: skip
-    steps = 1.0 / 0.05 + 2 * 1000 * 2 / 50
+    steps = 1.0 / 0.05 + 2 * 1000 * 2 / (50 * math.exp(-0.1 * 1.0))
     for model, cell_step in (
         (GENE, STEP_OVERHEAD_SECONDS + 20.0 * 0.05 * COMPILED_EVENT_SECONDS),
         (["model=ecoli"], CELL_STEP_SECONDS),
