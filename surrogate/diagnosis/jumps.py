@@ -149,6 +149,15 @@ def _cells(table: pd.DataFrame, inputs: Sequence[str], clock: bool = True) -> np
     return cell
 
 
+def outlasts(lag: dict[str, Any]) -> bool:
+    """Whether rows still lag in the last bin before they count as settled (10-20 s after a
+    jump): then the settled rows lag too, and no blackout this measurement can name keeps the
+    lag out. The auto-regulatory network (a protein count relaxing over ~1,900 s): `low` rows
+    at 0.84-0.85x in every bin without the clock, flat through 20 s."""
+    until = float(lag["settled_after_s"])
+    return any(hi >= until for _, _, hi, _ in lag["lagging"])
+
+
 def blackout_advice(
     lag: dict[str, Any] | None, blackout: float, perturb_rate: float
 ) -> tuple[str, ...]:
@@ -156,16 +165,17 @@ def blackout_advice(
     :data:`SETTLED_AFTER` (``lag["settled_after_s"]``: every row recorded is then one this
     measurement counts as settled), and ``collect.perturb_rate`` lowered where needed so that
     a cell spends at most :data:`BLACKOUT_SHARE` of its time blacked out (one jump per
-    ``1 / rate`` s on average); empty where nothing lags. Not the end of the last bin that
-    lags: the dimerisation's first 2 s lag by 11 %, the next 18 s by 4-7 % (significant in
-    one collection, not in another), and only 20 s took psi's bias out (-6.6 to +0.3 %).
+    ``1 / rate`` s on average); empty where nothing lags, and where the lag lasts through the
+    last bin (:func:`outlasts`). Not the end of the last bin that lags: the dimerisation's
+    first 2 s lag by 11 %, the next 18 s by 4-7 % (significant in one collection, not in
+    another), and only 20 s took psi's bias out (-6.6 to +0.3 %).
 
     Example:
         >>> blackout_advice({"settled_after_s": 20.0, "lagging": [("y_low", 0.0, 2.0, 0.87)]},
         ...                 1.0, 0.1)
         ('collect.blackout_time=20', 'collect.perturb_rate=0.025')
     """
-    if not lag or not lag["lagging"]:
+    if not lag or not lag["lagging"] or outlasts(lag):
         return ()
     until = float(lag["settled_after_s"])
     if until <= blackout:
@@ -189,6 +199,11 @@ def lag_message(
     if advice:
         fix = (f"collect with `{' '.join(advice)}` (or in a network yaml's `collect:`) to keep "
                f"those rows out")  # fmt: skip
+    elif outlasts(lag):
+        fix = (f"the lag lasts through the last bin, so rows {lag['settled_after_s']:g} s after "
+               f"a jump lag too and no blackout measured here keeps it out: the network holds "
+               f"a hidden state slower than that, which a kind that carries it (K lumps whose "
+               f"bins relax) holds and a blackout does not")  # fmt: skip
     else:
         fix = ("a longer blackout (a network yaml's collect.blackout_time, with a lower "
                "collect.perturb_rate) keeps those rows out"
@@ -203,4 +218,11 @@ def lag_message(
     )
 
 
-__all__ = ["AFTER_JUMP_EDGES", "SETTLED_AFTER", "after_jump_lag", "blackout_advice", "lag_message"]
+__all__ = [
+    "AFTER_JUMP_EDGES",
+    "SETTLED_AFTER",
+    "after_jump_lag",
+    "blackout_advice",
+    "lag_message",
+    "outlasts",
+]

@@ -13,6 +13,7 @@ from surrogate.diagnosis.jumps import (
     after_jump_lag,
     blackout_advice,
     lag_message,
+    outlasts,
 )
 
 DT = 0.05
@@ -79,6 +80,32 @@ def test_a_lag_in_the_clocks_alone_is_flagged_without_the_clock() -> None:
     assert advice[0] == f"collect.blackout_time={SETTLED_AFTER:g}"
     message = lag_message(lag, 1.0, advice)
     assert message is not None and "on (without the clock) 0." in message
+
+
+def test_a_lag_through_the_last_bin_gets_no_blackout() -> None:
+    """Rows lag by the same factor in every bin up to 20 s after a jump (a hidden state slower
+    than that, as the auto-regulatory network's protein count): the rows counted as settled
+    lag too, so no blackout this measurement can name is advised, and the message says why;
+    a lag in the first bins only is still advised its blackout."""
+    rng = np.random.default_rng(2)
+    n = 200_000
+    x = rng.random(n)
+    since = rng.integers(0, int(40 / DT), n)
+    since[rng.random(n) < 0.1] = -1
+    within = (since >= 0) & (since * DT < SETTLED_AFTER)
+    rate = (0.05 + 0.1 * x) * np.where(within, 0.8, 1.0)
+    phi = rng.integers(0, 2, n)
+    switched = rng.random(n) < rate
+    rows = pd.DataFrame({"x": x, "phi": phi, "phi_next": np.where(switched, 1 - phi, phi),
+                         "since_jump": since})  # fmt: skip
+    lag = after_jump_lag(rows, ["x"], DT, ("off", "on"))
+    assert lag is not None and outlasts(lag)
+    assert {hi for _, _, hi, _ in lag["lagging"]} >= {SETTLED_AFTER}
+    assert blackout_advice(lag, 1.0, 0.1) == ()
+    message = lag_message(lag, 1.0)
+    assert message is not None and "lasts through the last bin" in message
+    early = after_jump_lag(table(1.5), ["x"], DT, ("off", "on"))
+    assert early is not None and not outlasts(early) and blackout_advice(early, 1.0, 0.1)
 
 
 def test_a_collection_without_a_lag_says_nothing() -> None:
