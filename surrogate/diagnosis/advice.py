@@ -405,10 +405,10 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         name = "Rows that lag their jumps"
         caveats.append((
             name,
-            "collect measured its rows soon after a jump switching at other rates than "
-            "settled ones at the same inputs (its warning); a psi that reads no clock learns "
-            "that lag" + ("; the chain was chosen among candidates that do." if choice is not None
-                          else "."),
+            "collect warned that its rows soon after a jump switch at other rates than "
+            "settled ones; a psi that reads no clock learns that lag"
+            + ("; the chain was chosen among candidates that do." if choice is not None
+               else "."),
             advisor.step(name, _blackout(run.blackout), then="."),
         ))  # fmt: skip
     if causes:  # not trusted anyway: thin rows are one more thing to mend

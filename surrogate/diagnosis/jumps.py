@@ -95,9 +95,14 @@ def after_jump_lag(
         seen = {(lump, lo) for lump, lo, _, _ in out["lagging"]}  # the clock's view first
         for lump, bins in origins.items():
             out["lagging"] += [(lump + note, b["from_s"], b["to_s"], b["ratio"]) for b in bins
-                               if (lump, b["from_s"]) not in seen and math.isfinite(b["ratio"])
-                               and abs(b["ratio"] - 1.0) > max(LAG_SE * b["se"], LAG_RATIO)]  # fmt: skip
+                               if (lump, b["from_s"]) not in seen and _lags_by(b)]  # fmt: skip
     return out
+
+
+def _lags_by(b: dict[str, float]) -> bool:
+    """Whether a bin's ratio is off by more than :data:`LAG_RATIO` and :data:`LAG_SE` SEs."""
+    ratio = b["ratio"]
+    return math.isfinite(ratio) and abs(ratio - 1.0) > max(LAG_SE * b["se"], LAG_RATIO)
 
 
 def _lags(

@@ -71,8 +71,8 @@ def collect_work(
     """The collection's windows, at least: the equilibration of every cell, then twice
     ``n_per_state`` recorded windows (both origins equally common), each every
     ``record_every``-th window of a cell outside the blackout after a jump
-    (:func:`~surrogate.simulate.transitions.recorded_share` of them). ``reuse=False``: the cost even where the
-    artefact exists (for every function here). ``cell_step_seconds``: the full model's cost
+    (:func:`~surrogate.simulate.transitions.recorded_share` of them). ``reuse=False``: the
+    cost even where the artefact exists (for every function here). ``cell_step_seconds``: the full model's cost
     per cell-step (its windows' and the burn-in's) instead of the model's estimate (collect's
     at the events its cost probe measured, :func:`surrogate.stages.collect.measured_cost`)."""
     if _exists(settings.directory, reuse):

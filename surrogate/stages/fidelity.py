@@ -477,6 +477,20 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
              summary["checks"], out)  # fmt: skip
 
 
+def _refusal(config: Mapping[str, Any], overrides: list[str]) -> str | None:
+    """Why this stage's own settings refuse the same command with ``overrides`` (a new
+    collection, whose measured choices are not made yet), or None where they accept it."""
+    from surrogate.stages.advice_check import apply_overrides
+    from surrogate.stages.settings.choice import collecting_pending
+
+    try:
+        with collecting_pending():
+            validate(apply_overrides(config, overrides))
+    except (ConfigError, ArtefactError) as error:
+        return str(error)
+    return None
+
+
 def wider_collection(
     settings: FidelitySettings, outside: Mapping[str, Mapping[str, Any]], config: Mapping[str, Any]
 ) -> list[str] | None:
@@ -485,20 +499,15 @@ def wider_collection(
     (:meth:`~surrogate.models.base.Model.wider_collection`), checked by this stage's own
     settings on ``config`` first; None where no run left them, the model has no such key, or
     the check refuses them (logged)."""
-    from surrogate.stages.advice_check import apply_overrides
-    from surrogate.stages.settings.choice import collecting_pending
-
     away = sorted(label for label, r in outside.items()
                   if float(r.get("share_outside") or 0.0) > settings.job.outside_warning)  # fmt: skip
     wider = list(settings.setup.model.wider_collection())
     if not away or not wider:
         return None
-    try:
-        with collecting_pending():  # the wider collection's choices are not made yet
-            validate(apply_overrides(config, wider))
-    except (ConfigError, ArtefactError) as error:  # e.g. a stored reference of the old radius
+    refused = _refusal(config, wider)  # e.g. a stored reference of the old radius
+    if refused is not None:
         log.warning("fidelity: %s would reach the inputs of %s, but is refused: %s",
-                    " ".join(wider), ", ".join(away), error)  # fmt: skip
+                    " ".join(wider), ", ".join(away), refused)  # fmt: skip
         return None
     log.warning("fidelity: runs %s left the collection's inputs; the same command with `%s` "
                 "collects further from the field's peak", ", ".join(away), " ".join(wider))  # fmt: skip
@@ -514,9 +523,7 @@ def settled_collection(
     None where every check passed, no collection lagged, or the check refuses it (logged).
     CERENA's gene-expression network: its default collection 14 of 24, with the blackout
     collect advised 19 of 24 (docs/choice.md)."""
-    from surrogate.stages.advice_check import apply_overrides
     from surrogate.stages.reproduce import collection_blackout
-    from surrogate.stages.settings.choice import collecting_pending
 
     if summary["passed"] >= summary["checks"]:
         return None
@@ -524,12 +531,10 @@ def settled_collection(
                                 for o in collection_blackout(c.train)))  # fmt: skip
     if not advice:
         return None
-    try:
-        with collecting_pending():  # the settled collection's choices are not made yet
-            validate(apply_overrides(config, advice))
-    except (ConfigError, ArtefactError) as error:
+    refused = _refusal(config, advice)
+    if refused is not None:
         log.warning("fidelity: the collection's rows lagged its jumps; %s would keep them out, "
-                    "but is refused: %s", " ".join(advice), error)  # fmt: skip
+                    "but is refused: %s", " ".join(advice), refused)  # fmt: skip
         return None
     log.warning("fidelity: checks failed and the collection's rows lagged its jumps (collect's "
                 "warning); the same command with `%s` records rows only once a jump has "
