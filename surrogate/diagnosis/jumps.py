@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -77,7 +77,7 @@ def after_jump_lag(
     since = table["since_jump"].to_numpy(np.float64)
     jumped = since >= 0
     after = since * dt
-    settled = ~jumped | (after >= SETTLED_AFTER)
+    settled = settled_rows(since, dt, SETTLED_AFTER)
     phi = table["phi"].to_numpy()
     switched = (table["phi_next"].to_numpy() != phi).astype(np.float64)
     out: dict[str, Any] = {"settled_after_s": SETTLED_AFTER, "origins": {}, "lagging": []}
@@ -154,13 +154,34 @@ def _cells(table: pd.DataFrame, inputs: Sequence[str], clock: bool = True) -> np
     return cell
 
 
-def outlasts(lag: dict[str, Any]) -> bool:
+def outlasts(lag: Mapping[str, Any]) -> bool:
     """Whether rows still lag in the last bin before they count as settled (10-20 s after a
     jump): then the settled rows lag too, and no blackout this measurement can name keeps the
     lag out. The auto-regulatory network (a protein count relaxing over ~1,900 s): `low` rows
     at 0.84-0.85x in every bin without the clock, flat through 20 s."""
     until = float(lag["settled_after_s"])
     return any(hi >= until for _, _, hi, _ in lag["lagging"])
+
+
+def lagging_window(lag: Mapping[str, Any] | None) -> float | None:
+    """The seconds after a jump whose rows train leaves out of the fit by default
+    (``gp.jump_rows=auto``): :data:`SETTLED_AFTER` (``lag["settled_after_s"]``) where rows
+    lagged and the lag ends within the measurement; None where nothing lagged or it outlasts
+    the measurement (:func:`outlasts`: the rows after it lag too). Rows this measurement
+    counts as settled are the ones a blackout of that length would have recorded: CERENA's
+    gene-expression network, its default collection 14 of 24 at the issue's check, the same
+    collection's settled rows alone (16 % of them) 19 of 24, as a collection with the blackout
+    (docs/choice.md)."""
+    if not lag or not lag.get("lagging") or outlasts(lag):
+        return None
+    return float(lag["settled_after_s"])
+
+
+def settled_rows(since_jump: np.ndarray, dt: float, window: float) -> np.ndarray:
+    """Which rows lie ``window`` s or more after their cell's last jump, or before its first
+    (``since_jump``: windows since the jump, -1 where none; ``dt``: the window, s)."""
+    since = np.asarray(since_jump, dtype=np.float64)
+    return (since < 0) | (since * dt >= window)
 
 
 def blackout_advice(
@@ -201,25 +222,30 @@ def lag_message(
         return None
     parts = [f"{lump} {ratio:.2f}x {lo:g}-{hi:g} s after"
              for lump, lo, hi, ratio in lag["lagging"]]  # fmt: skip
+    window = lagging_window(lag)
+    dropped = ("" if window is None else
+               f"train leaves the rows within {window:g} s of a jump out of the fit "
+               f"(gp.jump_rows=auto, the default); ")  # fmt: skip
     if advice:
-        fix = (f"collect with `{' '.join(advice)}` (or in a network yaml's `collect:`) to keep "
-               f"those rows out")  # fmt: skip
+        what = "only settled rows, more of them" if dropped else "none of those rows"
+        fix = (f"{dropped}collect with `{' '.join(advice)}` (or in a network yaml's `collect:`) "
+               f"to record {what}")  # fmt: skip
     elif outlasts(lag):
         fix = (f"the lag lasts through the last bin, so rows {lag['settled_after_s']:g} s after "
                f"a jump lag too and no blackout measured here keeps it out: the network holds "
                f"a hidden state slower than that, which a kind that carries it (K lumps whose "
                f"bins relax) holds and a blackout does not")  # fmt: skip
     else:
-        fix = ("a longer blackout (a network yaml's collect.blackout_time, with a lower "
-               "collect.perturb_rate) keeps those rows out"
+        fix = (f"{dropped}a longer blackout (a network yaml's collect.blackout_time, with a "
+               f"lower collect.perturb_rate) keeps those rows out of the collection"
                + (f" (the measured one was refused: {refused})" if refused else ""))  # fmt: skip
     alone = ("; without the clock: at the same inputs alone, as the two-state psi reads them"
              if any(NO_CLOCK in lump for lump, *_ in lag["lagging"]) else "")  # fmt: skip
     return (
         f"rows soon after a jump switch at other rates than rows {lag['settled_after_s']:g} s "
         f"or more after, at the same inputs and clock ({'; '.join(parts)}{alone}): the network's "
-        f"hidden state still lags the jump past collect.blackout_time={blackout:g} s, and "
-        f"psi learns that lag; {fix} (docs/choice.md)"
+        f"hidden state still lags the jump past collect.blackout_time={blackout:g} s"
+        f"{'' if dropped else ', and psi learns that lag'}; {fix} (docs/choice.md)"
     )
 
 
@@ -229,5 +255,7 @@ __all__ = [
     "after_jump_lag",
     "blackout_advice",
     "lag_message",
+    "lagging_window",
     "outlasts",
+    "settled_rows",
 ]

@@ -74,6 +74,7 @@ from surrogate.kinds.files import PSI as PSI
 if TYPE_CHECKING:
     from surrogate.kinds.base import CHAIN_KINDS as CHAIN_KINDS
     from surrogate.kinds.base import FIT_GP_KEYS as FIT_GP_KEYS
+    from surrogate.kinds.base import JUMP_ROWS as JUMP_ROWS
     from surrogate.kinds.base import LayerRequest as LayerRequest
     from surrogate.kinds.base import kind_gp_keys as kind_gp_keys
     from surrogate.kinds.base import register_chain_kind as register_chain_kind
@@ -123,6 +124,7 @@ __all__ = [
     "FIT_GP_KEYS",
     "GP_CLASSES",
     "GP_CLOCK",
+    "JUMP_ROWS",
     "KIND_MODULES",
     "LOOKUP",
     "SWITCH_CLOCK",

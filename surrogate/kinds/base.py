@@ -38,7 +38,9 @@ AUTO_RECIPES = ("classes", "svgp")
 CPU = torch.device("cpu")
 #: the keys of the gp group that every fit reads besides the GP hyperparameters (the fields of
 #: :class:`GPSettings`): no kind may claim them as its own (:func:`register_chain_kind`)
-FIT_GP_KEYS = ("inputs", "grid_size", "diagnostic", "threads", "labels")
+FIT_GP_KEYS = ("inputs", "grid_size", "diagnostic", "threads", "labels", "jump_rows")
+#: gp.jump_rows: the rows soon after a jump (auto: left out where collect measured them lagging)
+JUMP_ROWS = ("auto", "keep", "drop")
 
 
 class FitSetup(Protocol):
@@ -281,6 +283,8 @@ class ChainKind:
             drop.add("mean")
         if gp.get("optimizer", "adam") == "adam":  # fits before gp.optimizer keep theirs
             drop.add("optimizer")
+        if gp.get("jump_rows", JUMP_ROWS[0]) == JUMP_ROWS[0]:  # and before gp.jump_rows
+            drop.add("jump_rows")
         out = {k: v for k, v in gp.items() if k not in drop}
         if self.law_version is not None:
             out[self.law_version[0]] = self.law_version[1]

@@ -23,6 +23,7 @@ import pandas as pd
 import torch
 
 from surrogate.config import to_dict
+from surrogate.diagnosis.jumps import lagging_window
 from surrogate.diagnosis.remedies import MeasuredChoice
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
 from surrogate.evaluate.statistics import family_failures
@@ -412,12 +413,26 @@ def _verdict(
 
 def collection_blackout(tr: TrainSettings) -> tuple[str, ...]:
     """The blackout collect advised for ``tr``'s collection (its manifest's
-    ``after_jump.advice``, checked by collect before it was written); empty for an external
-    table or a collection whose rows did not lag."""
+    ``after_jump.advice``, checked by collect before it was written), where ``tr``'s fit
+    trained on the rows it would keep out; empty for an external table, a collection whose
+    rows did not lag, or a fit that left them out (``gp.jump_rows``,
+    :func:`left_out_lagging_rows`)."""
     if not isinstance(tr.source, CollectSettings):
         return ()
     lag = read_manifest(tr.source.directory, made_by=tr.source.command()).get("after_jump")
-    return tuple(str(o) for o in (lag or {}).get("advice", ()))
+    advice = tuple(str(o) for o in (lag or {}).get("advice", ()))
+    return () if advice and left_out_lagging_rows(tr, lag) else advice
+
+
+def left_out_lagging_rows(tr: TrainSettings, lag: Mapping[str, Any] | None) -> bool:
+    """Whether ``tr``'s fit left out the rows soon after a jump: as its manifest records
+    (``jump_rows``), else as ``gp.jump_rows`` would on a collection whose ``after_jump`` is
+    ``lag`` (a fit not made yet: the pilot's rule-chosen chain)."""
+    manifest = tr.fit_directory / MANIFEST
+    if manifest.exists():
+        record = read_json(manifest, made_by=tr.command()).get("jump_rows") or {}
+        return bool(record) and int(record["kept"]) < int(record["rows"])
+    return tr.jump_rows == "drop" or (tr.jump_rows == "auto" and lagging_window(lag) is not None)
 
 
 def fidelity_command(tr: TrainSettings) -> str:

@@ -33,6 +33,12 @@ import torch
 from torch import Tensor
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.diagnosis.jumps import (
+    MIN_SETTLED_ROWS,
+    SETTLED_AFTER,
+    lagging_window,
+    settled_rows,
+)
 from surrogate.errors import ArtefactError, NumericalError
 from surrogate.gp import (
     PsiClassifier,
@@ -197,6 +203,7 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
                 f"{manifest['n_rows']}; re-create it with `{source.command()}`"
             )
         where = str(directory)
+        table = _settled(settings, table, manifest.get("after_jump"), where)
     else:
         path = source.path
         try:
@@ -204,6 +211,8 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         except (OSError, ValueError) as exc:
             raise ArtefactError(f"cannot read the transitions table {path}: {exc}") from exc
         where = str(path)
+        table = _settled(settings, table, None, where)
+    left_out = table.attrs.get("jump_rows")  # kept through the steps below, for the manifest
     count = class_count_of(settings.setup.model.internal)
     if count is not None:  # the classes of these settings' bins, from the rows' count
         table = reclassify(table, count)
@@ -230,7 +239,55 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         p = table[label].to_numpy(dtype=np.float64)
         if not (np.isfinite(p).all() and (p >= 0).all() and (p <= 1).all()):
             raise ArtefactError(f"{where}: {label} must be probabilities in [0, 1]")
+    if left_out is not None:
+        table.attrs["jump_rows"] = left_out
     return table, where
+
+
+def _settled(
+    settings: TrainSettings, table: pd.DataFrame, lag: Mapping[str, Any] | None, where: str
+) -> pd.DataFrame:
+    """``table`` without the rows soon after a jump where ``gp.jump_rows`` leaves them out
+    (auto: where collect measured them lagging, its manifest's ``after_jump`` ``lag``,
+    :func:`~surrogate.diagnosis.jumps.lagging_window`; drop: whatever was measured), each
+    origin keeping at least :data:`~surrogate.diagnosis.jumps.MIN_SETTLED_ROWS` rows (else all
+    are kept, with a warning). What was left out is recorded in ``table.attrs["jump_rows"]``
+    for the fit's manifest."""
+    mode = settings.jump_rows
+    window = SETTLED_AFTER if mode == "drop" else lagging_window(lag) if mode == "auto" else None
+    if window is None:
+        return table
+    if "since_jump" not in table.columns:
+        if mode == "drop":
+            raise ArtefactError(f"{where} has no `since_jump` column, so gp.jump_rows=drop cannot "
+                                f"tell the rows soon after a jump; use gp.jump_rows=keep")  # fmt: skip
+        return table
+    keep = settled_rows(table["since_jump"].to_numpy(), settings.setup.dt, window)
+    phi = table["phi"].to_numpy()
+    kept = {int(p): int((keep & (phi == p)).sum()) for p in (0, 1)}
+    lumps = settings.setup.model.internal.lump_names
+    record: dict[str, Any] = {"mode": mode, "window_s": window, "rows": len(table),
+                              "kept": int(keep.sum())}  # fmt: skip
+    if min(kept.values()) < MIN_SETTLED_ROWS:
+        log.warning("train: gp.jump_rows=%s would keep %s rows more than %g s after a jump, "
+                    "under %d for an origin: training on every row (collect with "
+                    "collect.blackout_time=%g to record settled rows only)", mode,
+                    {lumps[p]: n for p, n in kept.items()}, window, MIN_SETTLED_ROWS,
+                    window)  # fmt: skip
+        out = table
+        record["kept"] = len(table)
+    else:
+        why = (
+            "collect measured them lagging (its warning, the manifest's after_jump)"
+            if mode == "auto"
+            else "gp.jump_rows=drop"
+        )
+        log.info("train: %d of %d rows kept, those %g s or more after a jump (or before the "
+                 "first): the rows sooner after one left out, as %s; gp.jump_rows=keep trains "
+                 "on every row", record["kept"], len(table), window, why)  # fmt: skip
+        out = table.loc[keep].reset_index(drop=True)
+    out.attrs["jump_rows"] = record
+    return out
 
 
 def _fit(
@@ -326,6 +383,8 @@ def _fit(
         domain={k: list(v) for k, v in psi.domain.items()},
         # diagnostic, not part of the fit's identity: where the training rows are sparse
         support_histogram=support_histogram(table, settings.inputs),
+        # the rows soon after a jump left out (gp.jump_rows), where any were
+        **({"jump_rows": table.attrs["jump_rows"]} if "jump_rows" in table.attrs else {}),
         **class_support(table, settings),
     )
     for name in ("psi_0", "psi_1"):

@@ -13,7 +13,9 @@ from surrogate.diagnosis.jumps import (
     after_jump_lag,
     blackout_advice,
     lag_message,
+    lagging_window,
     outlasts,
+    settled_rows,
 )
 
 DT = 0.05
@@ -104,6 +106,7 @@ def test_a_lag_through_the_last_bin_gets_no_blackout() -> None:
     assert blackout_advice(lag, 1.0, 0.1) == ()
     message = lag_message(lag, 1.0)
     assert message is not None and "lasts through the last bin" in message
+    assert lagging_window(lag) is None and "gp.jump_rows" not in message  # train keeps all
     early = after_jump_lag(table(1.5), ["x"], DT, ("off", "on"))
     assert early is not None and not outlasts(early) and blackout_advice(early, 1.0, 0.1)
 
@@ -141,3 +144,19 @@ def test_the_advised_blackout_ends_where_rows_count_as_settled() -> None:
     assert blackout_advice(None, 1.0, 0.1) == ()
     refused = lag_message(lag, 1.0, (), "collect.blackout_time must be >= 0")
     assert refused is not None and "refused: collect.blackout_time must be >= 0" in refused
+
+
+def test_train_leaves_out_the_rows_of_a_lag_that_ends_within_the_measurement() -> None:
+    """The window train leaves out (gp.jump_rows=auto) is the settled rows' 20 s where rows
+    lag in the first bins only; none where nothing lags or the lag outlasts the bins; the rows
+    kept are those 20 s or more after a jump and those before the first; collect's warning
+    says train leaves them out, and that psi learns the lag only where it does not."""
+    early = after_jump_lag(table(1.5), ["x"], DT, ("off", "on"))
+    assert early is not None and lagging_window(early) == SETTLED_AFTER
+    assert lagging_window(after_jump_lag(table(1.0), ["x"], DT, ("off", "on"))) is None
+    assert lagging_window(None) is None
+    kept = settled_rows(np.array([-1, 0, 399, 400, 1000]), DT, SETTLED_AFTER)
+    assert kept.tolist() == [True, False, False, True, True]
+    message = lag_message(early, 1.0, blackout_advice(early, 1.0, 0.1))
+    assert message is not None and "gp.jump_rows=auto" in message
+    assert "psi learns that lag" not in message and "more of them" in message

@@ -417,6 +417,94 @@ def test_the_verdict_reads_the_blackout_its_collection_advised(compose_cfg) -> N
     assert collection_blackout(settings) == tuple(advice)
 
 
+def _lagging(path: Path) -> dict:
+    """Collection ``path``'s manifest, made to say its rows lag 0-2 s after a jump (the lag
+    ends within the measurement), with collect's advice for it; the original, for restoring."""
+    from surrogate.io import read_manifest, write_json
+
+    manifest = read_manifest(path)
+    lag = {"settled_after_s": 20.0, "lagging": [("run", 0.0, 2.0, 0.8)],
+           "advice": ["collect.blackout_time=20", "collect.perturb_rate=0.025"]}  # fmt: skip
+    write_json(path / "manifest.json", {**manifest, "after_jump": lag})
+    return manifest
+
+
+def test_train_leaves_out_the_rows_collect_measured_lagging(
+    compose_cfg, monkeypatch, caplog
+) -> None:
+    """gp.jump_rows=auto: where collect measured rows lagging a jump (a lag that ends within
+    its bins) the fit reads only rows 20 s or more after one (or before the first), says so,
+    and records it for its manifest; gp.jump_rows=keep reads every row under another fit
+    identity; a collection that did not lag keeps every row; too few settled rows per origin
+    keep every row, with a warning naming the blackout."""
+    from surrogate.io import write_json
+    from surrogate.stages import train as train_stage
+
+    path = collect.run(compose_cfg("collect", [o for o in TINY if o.startswith("collect")]))
+    auto = train.validate(compose_cfg("train", _train_overrides()))
+    keep = train.validate(compose_cfg("train", [*_train_overrides(), "gp.jump_rows=keep"]))
+    assert "jump_rows" not in auto.fit_identity()["gp"]  # fits before the key keep theirs
+    assert keep.fit_identity()["gp"]["jump_rows"] == "keep"
+    everything, _ = train_stage.load_transitions(keep)
+    manifest = _lagging(path)
+    try:
+        dt = auto.setup.dt
+        settled = (everything["since_jump"] < 0) | (everything["since_jump"] * dt >= 20.0)
+        assert 0 < settled.sum() < len(everything)
+        monkeypatch.setattr(train_stage, "MIN_SETTLED_ROWS", 1)
+        with caplog.at_level(logging.INFO, logger="surrogate.stages.train"):
+            kept, _ = train_stage.load_transitions(auto)
+        assert len(kept) == int(settled.sum())
+        assert ((kept["since_jump"] < 0) | (kept["since_jump"] * dt >= 20.0)).all()
+        assert kept.attrs["jump_rows"] == {"mode": "auto", "window_s": 20.0,
+                                           "rows": len(everything), "kept": len(kept)}  # fmt: skip
+        assert f"{len(kept)} of {len(everything)} rows kept" in caplog.text
+        assert len(train_stage.load_transitions(keep)[0]) == len(everything)
+        # too few settled rows for an origin: every row, and the blackout named
+        monkeypatch.setattr(train_stage, "MIN_SETTLED_ROWS", len(everything))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="surrogate.stages.train"):
+            fallback, _ = train_stage.load_transitions(auto)
+        assert len(fallback) == len(everything)
+        assert fallback.attrs["jump_rows"]["kept"] == len(everything)
+        assert "collect.blackout_time=20" in caplog.text
+    finally:
+        write_json(path / "manifest.json", manifest)
+    assert len(train_stage.load_transitions(auto)[0]) == len(everything)  # nothing lagged
+    assert "jump_rows" not in train_stage.load_transitions(auto)[0].attrs
+
+
+def test_a_bad_jump_rows_setting_is_refused(compose_cfg) -> None:
+    with pytest.raises(ConfigError, match="gp.jump_rows must be one of"):
+        train.validate(compose_cfg("train", [*_train_overrides(), "gp.jump_rows=sometimes"]))
+
+
+def test_no_blackout_is_named_where_the_fit_left_the_lagging_rows_out(compose_cfg) -> None:
+    """The verdict's and the fidelity report's blackout (collect's advice) is named where the
+    fit trained on the lagging rows: as the fit's manifest records, else as gp.jump_rows
+    would (a fit not made yet)."""
+    from surrogate.io import MANIFEST, write_json
+    from surrogate.stages.reproduce import collection_blackout
+
+    path = collect.run(compose_cfg("collect", [o for o in TINY if o.startswith("collect")]))
+    auto = train.validate(compose_cfg("train", _train_overrides()))
+    keep = train.validate(compose_cfg("train", [*_train_overrides(), "gp.jump_rows=keep"]))
+    manifest = _lagging(path)
+    advice = ("collect.blackout_time=20", "collect.perturb_rate=0.025")
+    try:
+        assert collection_blackout(auto) == ()  # not fitted: auto would leave them out
+        assert collection_blackout(keep) == advice
+        auto.fit_directory.mkdir(parents=True, exist_ok=True)
+        for kept, named in ((100, ()), (400, advice)):  # the fit's record decides
+            write_json(auto.fit_directory / MANIFEST,
+                       {"jump_rows": {"mode": "auto", "window_s": 20.0, "rows": 400,
+                                      "kept": kept}})  # fmt: skip
+            assert collection_blackout(auto) == named
+    finally:
+        write_json(path / "manifest.json", manifest)
+        (auto.fit_directory / MANIFEST).unlink(missing_ok=True)
+
+
 @pytest.mark.parametrize(("lookup", "blocks", "backend"),
                          [("[64]", 3, "numba"), ("null", 2, "numba"), ("null", 2, "torch")],
                          ids=["own_tables", "stacked_tables", "stacked_tables_torch"])  # fmt: skip

@@ -22,6 +22,7 @@ from surrogate.io import artefact_dir
 from surrogate.kinds import (
     DEFAULT_MEAN,
     FIT_GP_KEYS,
+    JUMP_ROWS,
     TWO_STATE,
     ChainKind,
     fit_chain,
@@ -224,6 +225,11 @@ class TrainSettings:
         # the labels first: gp.bins=0 with expected labels is refused whatever the optimiser
         # (Newton, K lumps' recipe, needs bins too, and its own advice would not run)
         _check_labels(gp_config, source, setup.model.name)
+        jump_rows = gp_config.get("jump_rows", JUMP_ROWS[0])
+        if jump_rows not in JUMP_ROWS:
+            raise ConfigError(f"gp.jump_rows must be one of {list(JUMP_ROWS)}, got "
+                              f"{jump_rows!r} (auto: the rows soon after a jump left out where "
+                              f"collect measured them lagging)")  # fmt: skip
         gp = GPSettings.from_config({**hyper, "seed": setup.seed})
         # the stage reports held-out metrics, so it needs a validation split (GPSettings allows 0)
         if not 0.0 < gp.validation_fraction < 1.0:
@@ -288,6 +294,11 @@ class TrainSettings:
         if column == LABEL_COLUMNS["expected"] and not self.gp.bins:
             labels = self.gp_config.get("labels", "outcome")
             raise ConfigError(f"{where} has expected labels: {bins_labels_conflict(labels)}")
+
+    @property
+    def jump_rows(self) -> str:
+        """gp.jump_rows: auto | keep | drop (the rows soon after a jump, :data:`JUMP_ROWS`)."""
+        return str(self.gp_config.get("jump_rows", JUMP_ROWS[0]))
 
     def label_column(self, columns: Sequence[str]) -> str:
         """The column of a transitions table (with ``columns``) the classifiers are trained on
