@@ -411,27 +411,36 @@ def _verdict(
     return v.markdown(confirm=fidelity_command(tr)) + note
 
 
-def collection_blackout(tr: TrainSettings) -> tuple[str, ...]:
+def collection_blackout(tr: TrainSettings, unless_left_out: bool = True) -> tuple[str, ...]:
     """The blackout collect advised for ``tr``'s collection (its manifest's
-    ``after_jump.advice``, checked by collect before it was written), where ``tr``'s fit
-    trained on the rows it would keep out; empty for an external table, a collection whose
-    rows did not lag, or a fit that left them out (``gp.jump_rows``,
-    :func:`left_out_lagging_rows`)."""
+    ``after_jump.advice``, checked by collect before it was written); empty for an external
+    table or a collection whose rows did not lag, and (``unless_left_out``) where ``tr``'s fit
+    left the lagging rows out (``gp.jump_rows``, :func:`left_out_lagging_rows`): the
+    blackout then records no other rows, only more of them."""
     if not isinstance(tr.source, CollectSettings):
         return ()
     lag = read_manifest(tr.source.directory, made_by=tr.source.command()).get("after_jump")
     advice = tuple(str(o) for o in (lag or {}).get("advice", ()))
-    return () if advice and left_out_lagging_rows(tr, lag) else advice
+    return () if advice and unless_left_out and left_out_lagging_rows(tr, lag) else advice
+
+
+def kept_share(tr: TrainSettings) -> float | None:
+    """The share of its collection's rows ``tr``'s fit read where it left the rows soon after
+    a jump out (its manifest's ``jump_rows``); None where it read every row or is not made."""
+    manifest = tr.fit_directory / MANIFEST
+    if not manifest.exists():
+        return None
+    record = read_json(manifest, made_by=tr.command()).get("jump_rows") or {}
+    kept, rows = int(record.get("kept", 0)), int(record.get("rows", 0))
+    return kept / rows if 0 < kept < rows else None
 
 
 def left_out_lagging_rows(tr: TrainSettings, lag: Mapping[str, Any] | None) -> bool:
     """Whether ``tr``'s fit left out the rows soon after a jump: as its manifest records
-    (``jump_rows``), else as ``gp.jump_rows`` would on a collection whose ``after_jump`` is
-    ``lag`` (a fit not made yet: the pilot's rule-chosen chain)."""
-    manifest = tr.fit_directory / MANIFEST
-    if manifest.exists():
-        record = read_json(manifest, made_by=tr.command()).get("jump_rows") or {}
-        return bool(record) and int(record["kept"]) < int(record["rows"])
+    (:func:`kept_share`), else as ``gp.jump_rows`` would on a collection whose ``after_jump``
+    is ``lag`` (a fit not made yet: the pilot's rule-chosen chain)."""
+    if (tr.fit_directory / MANIFEST).exists():
+        return kept_share(tr) is not None
     return tr.jump_rows == "drop" or (tr.jump_rows == "auto" and lagging_window(lag) is not None)
 
 

@@ -157,16 +157,24 @@ def test_failed_checks_on_a_lagging_collection_get_its_blackout_checked(
     summary = fidelity.summarise(table, settings)
     assert summary["passed"] < summary["checks"]
     advice = ["collect.blackout_time=20", "collect.perturb_rate=0.025"]
-    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr: tuple(advice))
+    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr, **_: tuple(advice))
     assert fidelity.settled_collection(settings, summary, config) == advice
     passed = {**summary, "passed": summary["checks"]}
     assert fidelity.settled_collection(settings, passed, config) is None
     text = "\n".join(body for _, body in fidelity.report_sections(
         table, {**summary, "settled_collection": advice}, settings))  # fmt: skip
     assert f"the same command with `{' '.join(advice)}` (checked)" in text
-    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr: ("collect.blackout_time=-1",))
+    assert "psi learns that lag" in text
+    # fits that left the lagging rows out (gp.jump_rows): the blackout records more of them
+    text = "\n".join(body for _, body in fidelity.report_sections(
+        table, {**summary, "settled_collection": advice, "settled_kept": 0.16}, settings))  # fmt: skip
+    assert "reading 16% of the rows" in text and "as many as the collection asks" in text
+    assert "psi learns that lag" not in text
+    monkeypatch.setattr(
+        reproduce, "collection_blackout", lambda tr, **_: ("collect.blackout_time=-1",)
+    )
     assert fidelity.settled_collection(settings, summary, config) is None
-    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr: ())
+    monkeypatch.setattr(reproduce, "collection_blackout", lambda tr, **_: ())
     assert fidelity.settled_collection(settings, summary, config) is None
 
 

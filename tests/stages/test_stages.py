@@ -480,11 +480,11 @@ def test_a_bad_jump_rows_setting_is_refused(compose_cfg) -> None:
 
 
 def test_no_blackout_is_named_where_the_fit_left_the_lagging_rows_out(compose_cfg) -> None:
-    """The verdict's and the fidelity report's blackout (collect's advice) is named where the
-    fit trained on the lagging rows: as the fit's manifest records, else as gp.jump_rows
-    would (a fit not made yet)."""
+    """The verdict's blackout (collect's advice) is named where the fit trained on the lagging
+    rows: as the fit's manifest records, else as gp.jump_rows would (a fit not made yet); the
+    fidelity report's whatever the fit read, with the share it read."""
     from surrogate.io import MANIFEST, write_json
-    from surrogate.stages.reproduce import collection_blackout
+    from surrogate.stages.reproduce import collection_blackout, kept_share
 
     path = collect.run(compose_cfg("collect", [o for o in TINY if o.startswith("collect")]))
     auto = train.validate(compose_cfg("train", _train_overrides()))
@@ -495,11 +495,14 @@ def test_no_blackout_is_named_where_the_fit_left_the_lagging_rows_out(compose_cf
         assert collection_blackout(auto) == ()  # not fitted: auto would leave them out
         assert collection_blackout(keep) == advice
         auto.fit_directory.mkdir(parents=True, exist_ok=True)
-        for kept, named in ((100, ()), (400, advice)):  # the fit's record decides
+        for kept, named, share in ((100, (), 0.25), (400, advice, None)):  # the fit's record
             write_json(auto.fit_directory / MANIFEST,
                        {"jump_rows": {"mode": "auto", "window_s": 20.0, "rows": 400,
                                       "kept": kept}})  # fmt: skip
             assert collection_blackout(auto) == named
+            assert kept_share(auto) == share
+            # the fidelity report names it either way: it records more of the rows read
+            assert collection_blackout(auto, unless_left_out=False) == advice
     finally:
         write_json(path / "manifest.json", manifest)
         (auto.fit_directory / MANIFEST).unlink(missing_ok=True)
