@@ -244,6 +244,10 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
     return table, where
 
 
+#: the collections whose left-out rows this process has logged
+_SAID: set[tuple[str, str, float]] = set()
+
+
 def _settled(
     settings: TrainSettings, table: pd.DataFrame, lag: Mapping[str, Any] | None, where: str
 ) -> pd.DataFrame:
@@ -282,9 +286,12 @@ def _settled(
             if mode == "auto"
             else "gp.jump_rows=drop"
         )
-        log.info("train: %d of %d rows kept, those %g s or more after a jump (or before the "
-                 "first): the rows sooner after one left out, as %s; gp.jump_rows=keep trains "
-                 "on every row", record["kept"], len(table), window, why)  # fmt: skip
+        said = (where, mode, window)
+        if said not in _SAID:  # once per collection: each candidate of a choice loads it
+            _SAID.add(said)
+            log.info("train: %d of %d rows kept, those %g s or more after a jump (or before "
+                     "the first): the rows sooner after one left out, as %s; gp.jump_rows=keep "
+                     "trains on every row", record["kept"], len(table), window, why)  # fmt: skip
         out = table.loc[keep].reset_index(drop=True)
     out.attrs["jump_rows"] = record
     return out
