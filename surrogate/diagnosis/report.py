@@ -384,8 +384,10 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
         if a.get("blackout"):
             lines.append(f"- The pilot's collection: rows soon after a jump switched at other "
                          f"rates than settled rows at the same inputs (collect's lag "
-                         f"measurement, docs/choice.md), and psi would learn that lag: collect "
-                         f"with `{' '.join(a['blackout'])}` (in the next command below).")  # fmt: skip
+                         f"measurement, docs/choice.md); train leaves such rows out "
+                         f"(`gp.jump_rows=auto`), and a collection with "
+                         f"`{' '.join(a['blackout'])}` (in the next command below) records as "
+                         f"many settled rows as it asks for.")  # fmt: skip
         lines += ["", pilot["text"]]
     if a.get("signal_bounds"):
         lines += ["", f"The network is enumerable: with `{a['signal_bounds']}` in the yaml (the "

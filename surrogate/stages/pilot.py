@@ -181,7 +181,9 @@ def run_pilot(
             "n_cells": cells, "t_end": t_end, "estimate_s": estimate,
             "wall_s": time.perf_counter() - t0, "directory": str(directory),
             "text": choice_text(directory), "note": "; ".join(notes),
-            "blackout": list(collection_blackout(train))}  # fmt: skip
+            # whatever train would read: the blackout records as many settled rows as the
+            # collection asks for, where train would leave the lagging ones out of its rows
+            "blackout": list(collection_blackout(train, unless_left_out=False))}  # fmt: skip
 
 
 def pilot_advice(config: Mapping[str, Any], pilot: Mapping[str, Any]) -> dict[str, Any]:
