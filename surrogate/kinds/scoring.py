@@ -131,6 +131,66 @@ def duration_scores(
     return out
 
 
+#: the spread's block, in mean segment durations (both lumps' observed segments together)
+SPREAD_SEGMENTS = 5.0
+#: blocks per held-out cell the spread's block length leaves at least
+SPREAD_MIN_BLOCKS = 5
+
+
+@dataclass(frozen=True)
+class SpreadScore:
+    """How far a kind's simulated occupancy fluctuates from the observed at a few seconds: the
+    variance of each cell's share of time in lump 1 over blocks of ``block_s`` s (simulated
+    over observed, minus 1) and its standard error."""
+
+    block_s: float
+    rel_diff: float
+    rel_se: float
+
+
+def occupancy_spread(observed: np.ndarray, simulated: np.ndarray, dt: float) -> SpreadScore:
+    """The variance of the share of time in lump 1 over blocks of several sojourns
+    (:data:`SPREAD_SEGMENTS` observed mean segment durations, at most a
+    :data:`SPREAD_MIN_BLOCKS`-th of a cell's windows), simulated against observed: what a body
+    that integrates phi (a walker's distance) weighs, and what a kind that draws successive
+    sojourns independently misses where the network's state carries across a switch
+    (CERENA's gene-expression network: every clock +3.6 to +13 % at 2.5-10 s, the hidden
+    phases +0.5 to +2.7 %; docs/choice.md). Each side's blocks are centred on its own mean
+    occupancy; the standard error is the delta method's over the cells (independent).
+
+    Args:
+        observed, simulated: ``n x (T + 1)`` phi sequences (0/1), the same cells.
+        dt: the window (s).
+
+    Returns:
+        NaN ``rel_diff`` and ``rel_se`` where there are no complete segments to size the
+        block, fewer than two blocks per cell, or no variance observed.
+    """
+    nan = SpreadScore(math.nan, math.nan, math.nan)
+    segments = np.concatenate(list(segment_durations(observed, dt).values()))
+    n, windows = np.asarray(observed).shape
+    if segments.size == 0 or n < 2:
+        return nan
+    block = max(1, min(round(SPREAD_SEGMENTS * float(segments.mean()) / dt),
+                       windows // SPREAD_MIN_BLOCKS))  # fmt: skip
+    k = windows // block
+    if k < 2:
+        return nan
+
+    def per_cell(phi: np.ndarray) -> np.ndarray:
+        shares = np.asarray(phi, dtype=np.float64)[:, : k * block].reshape(n, k, block).mean(2)
+        return ((shares - shares.mean()) ** 2).sum(1)  # each cell's squared deviations
+
+    obs, sim = per_cell(observed), per_cell(simulated)
+    total_obs, total_sim = float(obs.sum()), float(sim.sum())
+    if not total_obs > 0:
+        return SpreadScore(block * dt, math.nan, math.nan)
+    ratio = total_sim / total_obs
+    se = ratio * math.sqrt(n * obs.var(ddof=1) / total_obs**2
+                           + n * sim.var(ddof=1) / max(total_sim, 1e-300) ** 2)  # fmt: skip
+    return SpreadScore(block * dt, ratio - 1.0, se)
+
+
 def simulate_sequences(
     kind: ChainKind, layer: DecisionLayer, inputs: Tensor, phi0: Tensor, dt: float, seed: int
 ) -> Tensor:
@@ -162,6 +222,8 @@ class KindScore:
     durations: dict[str, DurationScore]
     fit_seconds: float = math.nan
     score_seconds: float = math.nan
+    #: the occupancy's spread over blocks of a few sojourns (:func:`occupancy_spread`)
+    spread: SpreadScore | None = None
 
     def row(self) -> dict[str, Any]:
         """The score as a flat row for the table (no per-cell values)."""
@@ -170,6 +232,8 @@ class KindScore:
         for lump, d in self.durations.items():
             for key, value in asdict(d).items():
                 out[f"{lump}_{key}"] = value
+        if self.spread is not None:
+            out.update({f"spread_{k}": v for k, v in asdict(self.spread).items()})
         out["fit_seconds"], out["score_seconds"] = self.fit_seconds, self.score_seconds
         return out
 
@@ -238,7 +302,8 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
     else:
         durations = duration_scores(observed, sims, dt, lump_names)
     return KindScore(name, kind.complexity, float(per_cell.mean()),
-                     tuple(float(v) for v in per_cell), durations)  # fmt: skip
+                     tuple(float(v) for v in per_cell), durations,
+                     spread=occupancy_spread(observed, sims, dt))  # fmt: skip
 
 
 def _farthest(score: DurationScore) -> float:
@@ -288,6 +353,16 @@ class Choice:
     table: list[dict[str, Any]]
 
 
+def holds_spread(score: KindScore, tolerance: float | None) -> bool:
+    """Whether ``score``'s occupancy spread (:func:`occupancy_spread`) holds: within
+    ``tolerance`` of the observed, or within two standard errors of it (a difference the held-out
+    cells cannot tell from none); True where no tolerance is asked or nothing was measured."""
+    spread = score.spread
+    if tolerance is None or spread is None or not math.isfinite(spread.rel_diff):
+        return True
+    return abs(spread.rel_diff) <= max(tolerance, 2.0 * spread.rel_se)
+
+
 def holds_durations(score: KindScore, tolerance: float) -> bool:
     """Whether ``score``'s simulated durations hold on every lump: the means' relative
     difference within ``tolerance`` (a lump with too few segments to compare, NaN, does not
@@ -327,7 +402,10 @@ def duration_miss(score: KindScore) -> float:
 
 
 def choose(
-    scores: Sequence[KindScore], tie_se: float = 1.0, duration_tolerance: float | None = None
+    scores: Sequence[KindScore],
+    tie_se: float = 1.0,
+    duration_tolerance: float | None = None,
+    spread_tolerance: float | None = None,
 ) -> Choice:
     """The best candidate by held-out log-likelihood per window among those that hold their
     durations (:func:`holds_durations`, where ``duration_tolerance`` is given); one within
@@ -345,6 +423,9 @@ def choose(
         tie_se: how many standard errors make a tie (> 0).
         duration_tolerance: the means' relative difference a candidate must hold on every lump
             (with its KS) to be chosen; None: the likelihood alone.
+        spread_tolerance: with ``duration_tolerance``, the occupancy spread's relative
+            difference a candidate holding its durations must also hold (:func:`holds_spread`)
+            where one of them does; None: not asked.
 
     Raises:
         ConfigError: no candidate, a non-positive ``tie_se`` or two candidates of one name.
@@ -368,6 +449,13 @@ def choose(
                          f"choice or refit them")  # fmt: skip
     holding = {s.name: duration_tolerance is not None and holds_durations(s, duration_tolerance)
                for s in scores}  # fmt: skip
+    spread_held = {n: h and holds_spread(s, spread_tolerance)
+                   for s, (n, h) in zip(scores, holding.items(), strict=True)}  # fmt: skip
+    # the spread screens the candidates that hold their durations where one of them holds it
+    # too; where none does, it is not asked (the durations' rule alone)
+    spread_asked = spread_tolerance is not None and any(spread_held.values())
+    if spread_asked:
+        holding = spread_held
     pool = [s for s in scores if holding[s.name]]
     closest = min(scores, key=lambda s: (duration_miss(s), -s.log_likelihood))
     # none holds: the closest to holding (where one has durations to compare), else all
@@ -404,7 +492,9 @@ def choose(
                   f"(complexity {chosen.complexity} < {best.complexity})")  # fmt: skip
     if duration_tolerance is not None:
         left = [s.name for s in scores if not holding[s.name]]
-        rule = f"every lump's mean within {duration_tolerance:.0%}"
+        rule = f"every lump's mean within {duration_tolerance:.0%}" + (
+            f", the occupancy's spread within {spread_tolerance:.0%} or 2 SE" if spread_asked
+            else "")  # fmt: skip
         if nearest:
             reason = (f"none holds its durations ({rule}): {best.name} is the closest to "
                       f"holding them, its farthest lump {_miss(best)}" + (

@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import time
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
@@ -115,7 +116,12 @@ def _make_choice(
     if not made.fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     made.extend()
-    choice = choose(made.scores, plan.settings.tie_se, plan.settings.duration_tolerance)
+    choice = choose(
+        made.scores,
+        plan.settings.tie_se,
+        plan.settings.duration_tolerance,
+        plan.settings.spread_tolerance,
+    )
     # each row names its candidate's overrides: a name (``clock log max_age=20``) cannot say
     # its knee and bins, and a remedy that names a candidate must run as scored
     table = [{**row, "overrides": " ".join(made.trained(str(row["kind"])).gp_overrides())}
@@ -504,18 +510,22 @@ def _score(
     layer, _ = tr.kind.decision_layer(request, fit_dir)
     s = score_kind(name, tr.kind, layer, inputs, phi, tr.setup.dt, model.internal.lump_names,
                    seed=seed, groups=groups)  # fmt: skip
-    return KindScore(s.name, s.complexity, s.log_likelihood, s.per_cell, s.durations,
-                     fit_seconds, time.perf_counter() - start)  # fmt: skip
+    return dataclasses.replace(
+        s, fit_seconds=fit_seconds, score_seconds=time.perf_counter() - start
+    )
 
 
 def _log(choice: Choice, overrides: str) -> None:
     """The score table and the reason, in the log."""
     for row in choice.table:
         on = [k for k in row if k.endswith("_ks")]
-        log.info("choice: %-18s log-lik/window %.5f (%+.2e, SE %.1e)  %s  fit %.1f s, score "
+        spread = (f"  spread {row['spread_rel_diff']:+.1%} (SE {row['spread_rel_se']:.1%}, "
+                  f"{row['spread_block_s']:g}-s blocks)"
+                  if math.isfinite(row.get("spread_rel_diff", math.nan)) else "")  # fmt: skip
+        log.info("choice: %-18s log-lik/window %.5f (%+.2e, SE %.1e)  %s%s  fit %.1f s, score "
                  "%.1f s", row["kind"], row["log_likelihood_per_window"], row["diff_from_best"],
                  row["diff_se"], "  ".join(f"{k} {row[k]:.3f} (crit {row[k + '_critical_05']:.3f})"
-                                           for k in on),
+                                           for k in on), spread,
                  row["fit_seconds"], row["score_seconds"])  # fmt: skip
     log.info("choice: %s, because %s; simulate with `%s`", choice.chosen, choice.reason,
              overrides)  # fmt: skip

@@ -27,7 +27,9 @@ from surrogate.kinds.phases import HiddenPhases, phase_table
 from surrogate.kinds.scoring import (
     DurationScore,
     KindScore,
+    SpreadScore,
     choose,
+    occupancy_spread,
     score_kind,
     segment_durations,
 )
@@ -323,6 +325,69 @@ def test_a_candidate_whose_durations_miss_is_not_chosen() -> None:
     assert choose([best, second], 1.0, None).chosen == "phases"  # the likelihood alone
     shape = score("phases", 3, 1e-3, ks_only)
     assert choose([shape, second], 1.0, 0.03).chosen == "phases"  # the KS alone rules none out
+
+
+def _regimes(n: int, windows: int, slow: bool, seed: int) -> np.ndarray:
+    """``n x windows`` phi of a telegraph whose leaving probabilities per window are 0.2 / 0.2
+    in one regime and 0.05 / 0.05 in the other: with ``slow``, each cell keeps its regime for
+    its whole sequence (the state carries across switches); else each segment draws its regime
+    afresh (the same mix of segment lengths, successive segments independent)."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((n, windows), dtype=np.float64)
+    regime = rng.random(n) < 0.5
+    phi = rng.random(n) < 0.5
+    for t in range(windows):
+        out[:, t] = phi
+        leave = rng.random(n) < np.where(regime, 0.05, 0.2)
+        phi = np.where(leave, ~phi, phi)
+        if not slow:  # a fresh regime at every switch, weighted as the segments' mix
+            regime = np.where(leave, rng.random(n) < 0.2, regime)
+    return out
+
+
+def test_the_occupancy_spread_sees_a_state_that_carries_across_switches() -> None:
+    """Cells that keep their regime spread their share of time otherwise than the same mix
+    of segments with a fresh regime at every switch (the mean segment within 10 %): the
+    spread's relative difference is over 15 % and 5 SE; a process against another draw of
+    itself is within 3 SE; the block is a few mean sojourns long."""
+    slow = _regimes(600, 2000, True, 0)
+    again = _regimes(600, 2000, True, 1)
+    fresh = _regimes(600, 2000, False, 2)
+    same = occupancy_spread(slow, again, 0.05)
+    assert abs(same.rel_diff) < 3 * same.rel_se
+    mean = float(np.concatenate(list(segment_durations(slow, 0.05).values())).mean())
+    mixed = float(np.concatenate(list(segment_durations(fresh, 0.05).values())).mean())
+    assert mixed == pytest.approx(mean, rel=0.1)
+    independent = occupancy_spread(slow, fresh, 0.05)
+    assert abs(independent.rel_diff) > max(0.15, 5 * independent.rel_se)
+    assert independent.block_s == pytest.approx(5 * mean, abs=0.05)
+    assert math.isnan(occupancy_spread(np.zeros((3, 40)), np.zeros((3, 40)), 0.05).rel_diff)
+
+
+def test_a_candidate_whose_spread_misses_gives_way_where_another_holds_it() -> None:
+    """With gp.choice.spread_tolerance, the likelihood's best that holds its durations but not
+    the occupancy's spread (off by more than the tolerance and 2 SE) gives way to one holding
+    both; a miss within 2 SE holds; where no candidate holds both, the spread is not asked;
+    without the setting, the likelihood as before; the table records the spread."""
+    rng = np.random.default_rng(3)
+    base = rng.normal(-0.2, 0.01, 400)
+    holds = {"off": DurationScore(0.01, 0.02, 0.005, 0.003, 900, 900)}
+
+    def score(name: str, complexity: int, shift: float, spread: float, se: float) -> KindScore:
+        values = base + shift + rng.normal(0.0, 1e-4, 400)
+        return KindScore(name, complexity, float(values.mean()), tuple(values), holds,
+                         spread=SpreadScore(4.3, spread, se))  # fmt: skip
+
+    clock, phases = score("clock", 1, 1e-3, 0.085, 0.015), score("phases", 3, 5e-4, 0.01, 0.015)
+    picked = choose([clock, phases], 1.0, 0.03, 0.05)
+    assert picked.chosen == "phases" and "occupancy's spread within 5%" in picked.reason
+    assert {r["kind"]: r["spread_rel_diff"] for r in picked.table}["clock"] == 0.085
+    assert choose([clock, phases], 1.0, 0.03).chosen == "clock"  # not asked
+    noisy = score("clock", 1, 1e-3, 0.085, 0.05)  # within 2 SE
+    assert choose([noisy, phases], 1.0, 0.03, 0.05).chosen == "clock"
+    off = score("phases", 3, 5e-4, -0.2, 0.015)  # no candidate holds both
+    unasked = choose([clock, off], 1.0, 0.03, 0.05)
+    assert unasked.chosen == "clock" and "spread" not in unasked.reason
 
 
 def test_where_none_holds_the_closest_to_holding_is_chosen() -> None:

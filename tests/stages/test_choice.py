@@ -61,6 +61,8 @@ class Plain:
         ({"fields": ["nowhere"]}, "gp.choice.fields"),
         ({"fields": [3]}, "gp.choice.fields"),
         ({"fields": ["gaussian", "linear", "zero"], "n_cells": 2}, "gp.choice.n_cells"),
+        ({"spread_tolerance": 0}, "gp.choice.spread_tolerance"),
+        ({"spread_tolerance": "wide"}, "gp.choice.spread_tolerance"),
     ],
 )
 def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None:
@@ -597,3 +599,14 @@ def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(
     assert all(math.isfinite(r["log_likelihood_per_window"]) for r in record["scores"])
     if record["chosen"] == "classes relaxation":
         assert record["gp"] == plan.groups["classes relaxation"]
+
+
+def test_the_spread_tolerance_enters_the_choice_identity_only_when_asked() -> None:
+    """gp.choice.spread_tolerance: null (the default) keeps the identity choices had before
+    it; a value makes another choice."""
+    plain, asked = (
+        ChoiceSettings.from_config({}),
+        ChoiceSettings.from_config({"spread_tolerance": 0.05}),
+    )
+    assert "spread_tolerance" not in plain.identity()
+    assert asked.identity()["spread_tolerance"] == 0.05 and asked.spread_tolerance == 0.05

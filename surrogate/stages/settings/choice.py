@@ -80,6 +80,7 @@ DEFAULTS: dict[str, Any] = {
     "extend": 2,
     "workers": "auto",
     "fields": None,
+    "spread_tolerance": None,
 }
 
 
@@ -127,6 +128,11 @@ class ChoiceSettings:
     #: +7.5 to +9.0 % on L2's high inputs with every fit, within 0.2 % at the training
     #: field's (docs/choice.md, session 18)
     fields: tuple[str, ...] | None = None
+    #: the occupancy spread's relative difference a candidate holding its durations must also
+    #: hold (:func:`~surrogate.kinds.scoring.holds_spread`); None: not asked. CERENA's
+    #: gene-expression network: every clock +3.6 to +13 %, the phases within 3 % (opt-in:
+    #: measured there and on the toggle switch only, docs/choice.md)
+    spread_tolerance: float | None = None
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -168,7 +174,9 @@ class ChoiceSettings:
                    str(options["optimizer"]), _count(options, "extend"),
                    _flag(options, "refit"), _workers(options["workers"]),
                    _flag(options, "ahead"), _inducing(options["clock_inducing"]),
-                   _fields(options["fields"], n_cells))  # fmt: skip
+                   _fields(options["fields"], n_cells),
+                   None if options["spread_tolerance"] is None
+                   else _number(options, "spread_tolerance"))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -208,7 +216,9 @@ class ChoiceSettings:
                 "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
                 "duration_tolerance": self.duration_tolerance, "extend": self.extend,
                 "refit": self.refit, "clock_inducing": self.clock_inducing,
-                **({} if self.fields is None else {"fields": list(self.fields)})}  # fmt: skip
+                **({} if self.fields is None else {"fields": list(self.fields)}),
+                **({} if self.spread_tolerance is None
+                   else {"spread_tolerance": self.spread_tolerance})}  # fmt: skip
 
 
 def _fields(value: Any, n_cells: int) -> tuple[str, ...] | None:
