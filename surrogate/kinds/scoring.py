@@ -449,8 +449,7 @@ def choose(
                          f"choice or refit them")  # fmt: skip
     holding = {s.name: duration_tolerance is not None and holds_durations(s, duration_tolerance)
                for s in scores}  # fmt: skip
-    spread_held = {n: h and holds_spread(s, spread_tolerance)
-                   for s, (n, h) in zip(scores, holding.items(), strict=True)}  # fmt: skip
+    spread_held = {s.name: holding[s.name] and holds_spread(s, spread_tolerance) for s in scores}
     # the spread screens the candidates that hold their durations where one of them holds it
     # too; where none does, it is not asked (the durations' rule alone)
     spread_asked = spread_tolerance is not None and any(spread_held.values())
