@@ -201,10 +201,8 @@ def blackout_advice(
         ...                 1.0, 0.1)
         ('collect.blackout_time=20', 'collect.perturb_rate=0.025')
     """
-    if not lag or not lag["lagging"] or outlasts(lag):
-        return ()
-    until = float(lag["settled_after_s"])
-    if until <= blackout:
+    until = lagging_window(lag)  # the rows a settled collection would not record
+    if until is None or until <= blackout:
         return ()
     advice = [f"collect.blackout_time={until:g}"]
     if perturb_rate * until > BLACKOUT_SHARE:
