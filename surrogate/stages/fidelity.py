@@ -122,6 +122,9 @@ class Candidate:
     train: TrainSettings
     #: where its cells start (``fidelity.initial`` resolved, :func:`resolve_start`)
     start: str = "internal"
+    #: its chains' stream past ``sim_seed + 3 x offset``: its training seed, plus
+    #: :data:`INPUTS_SEED_STRIDE` per input choice before its own (:func:`chain_stream`)
+    stream: int = 0
 
     @property
     def label(self) -> str:
@@ -162,14 +165,18 @@ class FidelitySettings:
         seeds = [int(s) for s in f.get("train_seeds") or []]
         if not seeds or min(seeds) < 0:
             raise ConfigError("fidelity.train_seeds must list non-negative training seeds")
+        if len(set(seeds)) < len(seeds):
+            raise ConfigError(f"fidelity.train_seeds lists a seed twice, {seeds}: the same seed "
+                              f"trains the same abstraction")  # fmt: skip
         choices = f.get("inputs") or ["signal"]
         candidates = []
-        for choice in choices:
+        for j, choice in enumerate(choices):
             for seed in seeds:
                 tc = {**c, "seed": seed, "gp": {**c["gp"], "inputs": choice}}
                 train = TrainSettings.from_config(tc)
                 start = resolve_start(f.get("initial", "internal"), train, "fidelity.initial")
-                candidates.append(Candidate(str(choice), seed, train, start))
+                candidates.append(Candidate(str(choice), seed, train, start,
+                                            chain_stream(j, seed)))  # fmt: skip
         setup = candidates[0].train.setup
         positive(f, "n_cells", "fidelity.", integer=True)
         t_end = float(positive(f, "t_end", "fidelity."))
@@ -179,6 +186,7 @@ class FidelitySettings:
             raise ConfigError(str(exc)) from None
         times = _times(f.get("times"), t_end, setup.dt)
         _check_run_and_checks(f, start_size_of(setup.model.body))
+        _check_streams(f, candidates)
         for cand in candidates:
             if not mode_kind(str(f.get("mode", "lookup"))).table:  # validated just above
                 continue
@@ -217,6 +225,10 @@ class FidelitySettings:
             **({"initial": [c.start for c in self.candidates]}
                if any(c.start != "internal" for c in self.candidates) else {}),
             "exact_psi": self.exact_psi,
+            # chains keyed by training seed (chain_stream); where that differs from the old
+            # rule (the i-th listed drew + i), a check made before is not read as this one
+            **({"chain_streams": [c.stream for c in self.candidates]}
+               if any(c.stream != i for i, c in enumerate(self.candidates)) else {}),
             **({"exact_clocks": list(self.exact_clocks)} if self.exact_clocks else {}),
             **({"exact_classes": True} if self.exact_classes else {}),
             # checks from independent starts keep the identity they had before the key
@@ -254,6 +266,21 @@ REFERENCES = ("exact", EXACT_CLOCK, EXACT_CLASSES)
 #: (far from every other run's sim_seed + k x offset + i), labelled ``<label>|<field>|repeat<r>``
 REPEAT_SEED_STRIDE = 100_000
 REPEAT = "repeat"
+#: the chains of the j-th ``fidelity.inputs`` choice run past those of the first by j x this
+INPUTS_SEED_STRIDE = 10_000
+
+
+def chain_stream(choice_index: int, train_seed: int) -> int:
+    """The stream of an abstraction's chains past ``sim_seed + 3 x noise_seed_offset``.
+
+    Keyed by what the abstraction is (its input choice and training seed), not by where it
+    stands in the run's list: a training seed's check draws the same chains whether it is run
+    alone or beside others, and two runs that list different seeds first do not share a stream
+    (they did until 2026-12-01, session 28: abstraction i drew ``+ i``; with the default
+    ``train_seeds=[0,1]`` and one input choice, the two rules agree).
+    """
+    return choice_index * INPUTS_SEED_STRIDE + train_seed
+
 
 #: decision.mode of the abstractions under test
 MODES = ("lookup", "classifier")
@@ -303,6 +330,36 @@ def _stored_references(
     for r in settings.runs:
         reference.load(r, settings.command, times)  # present, and at these times
     return settings
+
+
+def _chain_seeds(settings: FidelitySettings) -> str:
+    """Each abstraction's chain seed, e.g. ``seed 0: 8000, seed 1: 8001``."""
+    o = settings.options
+    base = int(o["sim_seed"]) + 3 * int(o.get("noise_seed_offset", 1000))
+    return ", ".join(f"{c.label}: {base + c.stream}" for c in settings.candidates)
+
+
+def _check_streams(f: Mapping[str, Any], candidates: list[Candidate]) -> None:
+    """Every run of the check on its own stream: the full model, its floor, the exact chains
+    and each abstraction's chains (and repeats) at distinct, non-negative seeds."""
+    seed, offset = int(f["sim_seed"]), int(f.get("noise_seed_offset", 1000))
+    runs = {
+        seed: "the full model",
+        seed + offset: "the noise floor",
+        seed + 2 * offset: "the exact chain",
+    }
+    for c in candidates:
+        for again in range(int(f.get("chain_repeats", 1))):
+            s = seed + 3 * offset + c.stream + again * REPEAT_SEED_STRIDE
+            what = c.label + (f" (repeat {again})" if again else "")
+            if s < 0 or s in runs:
+                raise ConfigError(
+                    f"fidelity: {what} would draw its chains from seed {s}, "
+                    + ("negative" if s < 0 else f"the seed of {runs[s]}")
+                    + ": choose a fidelity.sim_seed or noise_seed_offset that keeps sim_seed + 3 "
+                    "x offset + training seed apart from sim_seed, + offset and + 2 x offset"
+                )
+            runs[s] = what
 
 
 def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
@@ -413,17 +470,18 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         for name in settings.fields:
             reps.append(Replicate(classed, fields[name], n, seed + 2 * offset, start))
             labels.append(f"{EXACT_CLASSES}|{name}")
-    for i, c in enumerate(settings.candidates):
+    for c in settings.candidates:
         request = LayerRequest.of_fit(model, c.train, str(o.get("mode", "lookup")),
                                       o.get("lookup_size"), job.device, c.start)  # fmt: skip
         decision, _ = learned_decision(request, c.train, resolve_abstraction(c.train),
                                        job.support_min_rows)  # fmt: skip
         for name in settings.fields:
-            reps.append(Replicate(decision, fields[name], n, seed + 3 * offset + i, start))
+            chain = seed + 3 * offset + c.stream
+            reps.append(Replicate(decision, fields[name], n, chain, start))
             labels.append(f"{c.label}|{name}")
             for again in range(1, int(o.get("chain_repeats", 1))):  # the chain's own spread
                 reps.append(Replicate(decision, fields[name], n,
-                                      seed + 3 * offset + i + again * REPEAT_SEED_STRIDE, start))  # fmt: skip
+                                      chain + again * REPEAT_SEED_STRIDE, start))  # fmt: skip
                 labels.append(f"{c.label}|{name}|{REPEAT}{again}")
     seed_everything(seed)
     info: dict[str, Any] = {}
@@ -644,7 +702,8 @@ def report_sections(
         f"dt {settings.setup.dt:g} s, start {list(o['start'])}; abstractions trained on "
         f"`{settings.setup.field_name}` with seeds {sorted({c.train_seed for c in settings.candidates})} "
         f"(collection and training), inputs {sorted({'+'.join(c.train.inputs) for c in settings.candidates})}. "
-        f"Full model seed {o['sim_seed']}, noise floor seed {int(o['sim_seed']) + int(o.get('noise_seed_offset', 1000))}. "
+        f"Full model seed {o['sim_seed']}, noise floor seed {int(o['sim_seed']) + int(o.get('noise_seed_offset', 1000))}, "
+        f"chain seeds {_chain_seeds(settings)}. "
         f"Check: {name} KS <= min(max({o['ks_factor']} x full-vs-full KS, KS critical {crit:.4f} at "
         f"alpha {o.get('alpha', 0.05)}), {o['ks_max']}); mean segment durations within "
         f"{100 * float(o['duration_tolerance']):g} % of the full model's."

@@ -169,6 +169,12 @@ BAD_INPUTS = [
         ["fidelity.sim_seed=10", "fidelity.noise_seed_offset=-4"],
         "fidelity.noise_seed_offset must be a non-zero integer with sim_seed + k x offset",
     ),
+    ("fidelity", ["fidelity.train_seeds=[0,0]"], "fidelity.train_seeds lists a seed twice"),
+    (
+        "fidelity",
+        ["fidelity.noise_seed_offset=-1000", "fidelity.train_seeds=[3000]"],
+        "seed 3000 would draw its chains from seed 5000, the seed of the full model",
+    ),
     ("fidelity", ["fidelity.times=[a]"], "fidelity.times must be a list of times"),
     ("fidelity", ["fidelity.times=[5.0]"], "fidelity.times 5 outside (0, t_end=2]"),
     ("fidelity", ["fidelity.alpha=abc"], "fidelity.alpha must be one of [0.001, 0.01, 0.05]"),

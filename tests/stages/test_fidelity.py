@@ -178,6 +178,29 @@ def test_failed_checks_on_a_lagging_collection_get_its_blackout_checked(
     assert fidelity.settled_collection(settings, summary, config) is None
 
 
+def test_a_training_seeds_chains_are_its_own_wherever_it_is_listed(compose_cfg) -> None:
+    """Abstraction chains are keyed by training seed (and input choice), not by position: seed
+    1 draws sim_seed + 3 x offset + 1 alone, first or second, and the report names the seeds."""
+    base = [s for s in SMALL if not s.startswith("fidelity.train_seeds")]
+    streams = {}
+    for seeds in ("[1]", "[0,1]", "[1,0]", "[3,1]"):
+        settings = fidelity.validate(
+            compose_cfg("fidelity", [*base, f"fidelity.train_seeds={seeds}"])
+        )
+        streams[seeds] = {c.train_seed: c.stream for c in settings.candidates}
+        assert fidelity._chain_seeds(settings).count("seed 1: 8001") == 1
+    assert {s[1] for s in streams.values()} == {1}
+    # the streams' identity only where the old rule (the i-th listed drew + i) differs
+    identity = fidelity.validate(compose_cfg("fidelity", [*base, "fidelity.train_seeds=[0,1]"]))
+    assert "chain_streams" not in identity.identity()
+    moved = fidelity.validate(compose_cfg("fidelity", [*base, "fidelity.train_seeds=[1]"]))
+    assert moved.identity()["chain_streams"] == [1]
+    assert streams["[3,1]"][3] == 3
+    two = fidelity.validate(compose_cfg("fidelity", [*base, "fidelity.train_seeds=[0]",
+                                                     "fidelity.inputs=[signal,signal]"]))  # fmt: skip
+    assert [c.stream for c in two.candidates] == [0, fidelity.INPUTS_SEED_STRIDE]
+
+
 def test_chain_repeats_give_the_means_spread_and_their_own_identity(compose_cfg) -> None:
     """fidelity.chain_repeats=3: the check reads the first run, the table adds the means'
     sd from run to run and their average error, the report says so; 1 keeps the identity of
