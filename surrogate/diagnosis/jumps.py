@@ -181,7 +181,8 @@ def settled_rows(since_jump: np.ndarray, dt: float, window: float) -> np.ndarray
     """Which rows lie ``window`` s or more after their cell's last jump, or before its first
     (``since_jump``: windows since the jump, -1 where none; ``dt``: the window, s)."""
     since = np.asarray(since_jump, dtype=np.float64)
-    return (since < 0) | (since * dt >= window)
+    # in windows, with a hair of slack: a blackout of ceil(window / dt) steps records only these
+    return (since < 0) | (since >= window / dt - 1e-6)
 
 
 def blackout_advice(
@@ -211,11 +212,15 @@ def blackout_advice(
 
 
 def lag_message(
-    lag: dict[str, Any] | None, blackout: float, advice: Sequence[str] = (), refused: str = ""
+    lag: dict[str, Any] | None,
+    blackout: float,
+    advice: Sequence[str] = (),
+    refused: str = "",
+    topped_up: str = "",
 ) -> str | None:
     """The log line where rows after the blackout still lag (None where none does, or
     nothing was measured), with ``advice`` (:func:`blackout_advice`, checked by the caller)
-    or why the checks ``refused`` it."""
+    or why the checks ``refused`` it, or what collect's top-up recorded (``topped_up``)."""
     if not lag or not lag["lagging"]:
         return None
     parts = [f"{lump} {ratio:.2f}x {lo:g}-{hi:g} s after"
@@ -224,7 +229,9 @@ def lag_message(
     dropped = ("" if window is None else
                f"train leaves the rows within {window:g} s of a jump out of the fit "
                f"(gp.jump_rows=auto, the default); ")  # fmt: skip
-    if advice:
+    if topped_up:
+        fix = f"{dropped}{topped_up}"
+    elif advice:
         what = "only settled rows, more of them" if dropped else "none of those rows"
         fix = (f"{dropped}collect with `{' '.join(advice)}` (or in a network yaml's `collect:`) "
                f"to record {what}")  # fmt: skip
@@ -249,6 +256,7 @@ def lag_message(
 
 __all__ = [
     "AFTER_JUMP_EDGES",
+    "BLACKOUT_SHARE",
     "SETTLED_AFTER",
     "after_jump_lag",
     "blackout_advice",

@@ -83,7 +83,10 @@ def pilot_config(
                     "t_end": float(t_end), "max_ages": ages, "optimizer": "lbfgs",
                     "ahead": False, "kinds": kinds or [RELAXING_FAMILY]}  # fmt: skip
     cfg["gp"] = gp
-    cfg["collect"] = {**(cfg.get("collect") or {}), "n_per_state": int(n_per_state)}
+    # no top-up: the pilot is priced as one collection, and its lag is what it reports (the
+    # blackout it advises records settled rows in one pass, collect's top-up in two)
+    cfg["collect"] = {**(cfg.get("collect") or {}), "n_per_state": int(n_per_state),
+                      "top_up": "off"}  # fmt: skip
     return cfg, ages, added
 
 

@@ -474,6 +474,45 @@ def test_train_leaves_out_the_rows_collect_measured_lagging(
     assert "jump_rows" not in train_stage.load_transitions(auto)[0].attrs
 
 
+def test_collect_tops_up_the_settled_rows_where_rows_lag(compose_cfg, monkeypatch) -> None:
+    """collect.top_up=auto: where the first pass's rows lag a jump within the measurement,
+    fresh cells collected with the blackout add settled rows until each origin has
+    n_per_state (every row they add settled, under new cell numbers), the manifest records it
+    and advises no blackout; off keeps the table and advises it; a bad value is refused."""
+    from surrogate.diagnosis.jumps import settled_rows
+    from surrogate.io import read_manifest
+    from surrogate.stages import collect as collect_stage
+
+    def lagging(*args, **kwargs):
+        return {"settled_after_s": 20.0, "lagging": [("run", 0.0, 2.0, 0.8)]}
+
+    monkeypatch.setattr(collect_stage, "after_jump_lag", lagging)
+    base = ["collect.n_per_state=400", "collect.n_cells=100", "collect.perturb_rate=0.5",
+            "collect.max_time=400"]  # fmt: skip
+    off = collect.run(compose_cfg("collect", [*base, "collect.top_up=off"]))
+    first = pd.read_parquet(off / "transitions.parquet")
+    assert len(first) == 800 and "top_up" not in read_manifest(off)
+    assert read_manifest(off)["after_jump"]["advice"][0] == "collect.blackout_time=20"
+    auto = collect.run(compose_cfg("collect", base))
+    assert auto != off  # off enters the identity, auto (the default) does not
+    table = pd.read_parquet(auto / "transitions.parquet")
+    manifest = read_manifest(auto)
+    record, dt = manifest["top_up"], collect.validate(compose_cfg("collect", base)).setup.dt
+    settled = settled_rows(table["since_jump"].to_numpy(), dt, 20.0)
+    before = settled_rows(first["since_jump"].to_numpy(), dt, 20.0)
+    assert record["settled_before"] == [int((before & (first["phi"] == p)).sum()) for p in (0, 1)]
+    assert record["per_origin"] == 400 - min(record["settled_before"]) > 0
+    assert record["perturb_rate"] == 0.025 and record["blackout_time"] == 20.0
+    assert len(table) == 800 + record["rows"] == 800 + 2 * record["per_origin"]
+    added = table.iloc[800:]
+    assert settled[800:].all() and (added["cell"] >= 100).all()
+    assert min(int((settled & (table["phi"] == p)).sum()) for p in (0, 1)) >= 400
+    pd.testing.assert_frame_equal(table.iloc[:800], first)  # the first pass as it was
+    assert manifest["after_jump"]["advice"] == []
+    with pytest.raises(ConfigError, match="collect.top_up must be one of"):
+        collect.validate(compose_cfg("collect", [*base, "collect.top_up=always"]))
+
+
 def test_a_bad_jump_rows_setting_is_refused(compose_cfg) -> None:
     with pytest.raises(ConfigError, match="gp.jump_rows must be one of"):
         train.validate(compose_cfg("train", [*_train_overrides(), "gp.jump_rows=sometimes"]))

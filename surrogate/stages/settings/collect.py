@@ -42,6 +42,9 @@ PROBE_SECONDS = 3.0
 #: collect keys that change how a collection is checked, not the table: kept out of its identity
 #: (and so of its directory's name and of every identity built on it)
 NOT_IDENTITY = ("probe_seconds",)
+#: ``collect.top_up``: where rows lag a jump within the measured window, record settled rows
+#: until each origin has ``n_per_state`` of them (auto), or keep the table as collected (off)
+TOP_UP = ("auto", "off")
 
 
 class DesignFits(Protocol):
@@ -126,6 +129,11 @@ class CollectSettings:
         non_negative(c, "equilibration_time", "collect.")
         non_negative(c, "blackout_time", "collect.")
         c.setdefault("probe_seconds", PROBE_SECONDS)
+        c.setdefault("top_up", "auto")
+        if c["top_up"] not in TOP_UP:
+            raise ConfigError(f"collect.top_up must be one of {list(TOP_UP)} (auto: where rows "
+                              f"lag a jump, record settled rows until each origin has "
+                              f"n_per_state of them), got {c['top_up']!r}")  # fmt: skip
         non_negative(c, "probe_seconds", "collect.")  # 0: no cost probe
         rate = non_negative(c, "perturb_rate", "collect.")
         if rate * setup.dt > 1.0:
@@ -223,8 +231,11 @@ class CollectSettings:
 
 
 def identity_options(options: Mapping[str, Any]) -> dict[str, Any]:
-    """The collect ``options`` that define a table: all but :data:`NOT_IDENTITY`."""
-    return {k: v for k, v in options.items() if k not in NOT_IDENTITY}
+    """The collect ``options`` that define a table: all but :data:`NOT_IDENTITY`, and
+    ``top_up`` at its default (a collection whose rows did not lag is the same table with it;
+    one that lagged, made before the key, is read as it was: delete it to top it up)."""
+    return {k: v for k, v in options.items()
+            if k not in NOT_IDENTITY and not (k == "top_up" and v == "auto")}  # fmt: skip
 
 
 #: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
