@@ -201,13 +201,14 @@ def top_up(
     refused = check_collection(settings, config, overrides)
     if refused or estimate > limit:
         why = refused or f"~{duration(estimate)} estimated, above max_hours"
-        log.warning("collect: rows lag a jump and only the settled ones are read (%s of %d per "
-                    "origin); not topped up with `%s`: %s", held, wanted, " ".join(overrides), why)  # fmt: skip
+        log.warning("collect: rows lag a jump and only the settled ones are read (%s of %s per "
+                    "origin); not topped up with `%s`: %s", held, f"{wanted:,}",
+                    " ".join(overrides), why)  # fmt: skip
         return table, {**record, "skipped": why}
     log.info("collect: rows within %g s of a jump lag it and train reads only the settled ones "
-             "(%s of %d per origin): recording %d more per origin with `%s` (~%s at the first "
+             "(%s of %s per origin): recording %s more per origin with `%s` (~%s at the first "
              "pass's pace; collect.top_up=off keeps the table as collected)", window, held,
-             wanted, need, " ".join(overrides), duration(estimate))  # fmt: skip
+             f"{wanted:,}", f"{need:,}", " ".join(overrides), duration(estimate))  # fmt: skip
     options = CollectOptions(
         record_every=int(c["record_every"]),
         equilibration_time=float(c["equilibration_time"]),

@@ -509,6 +509,21 @@ def test_collect_tops_up_the_settled_rows_where_rows_lag(compose_cfg, monkeypatc
     assert min(int((settled & (table["phi"] == p)).sum()) for p in (0, 1)) >= 400
     pd.testing.assert_frame_equal(table.iloc[:800], first)  # the first pass as it was
     assert manifest["after_jump"]["advice"] == []
+    # a top-up that stops short keeps the first pass, records why and advises the blackout
+    passes = []
+    real = collect_stage.collect_transitions
+
+    def short_second(*args, **kwargs):
+        passes.append(kwargs["n_per_state"])
+        if len(passes) > 1:
+            raise ConfigError("collect reached collect.max_time short of the rows wanted")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(collect_stage, "collect_transitions", short_second)
+    short = collect.run(compose_cfg("collect", [*base, "collect.n_cells=101"]))
+    assert len(passes) == 2 and len(pd.read_parquet(short / "transitions.parquet")) == 800
+    assert "max_time short" in read_manifest(short)["top_up"]["skipped"]
+    assert read_manifest(short)["after_jump"]["advice"][0] == "collect.blackout_time=20"
     with pytest.raises(ConfigError, match="collect.top_up must be one of"):
         collect.validate(compose_cfg("collect", [*base, "collect.top_up=always"]))
 
