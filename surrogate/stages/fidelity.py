@@ -724,7 +724,9 @@ def report_sections(
                 spread = (f" (runs {100 * r['chain_mean_rel']:+.1f} % +- "
                           f"{100 * r['chain_rel_sd']:.1f} % sd)"
                           if pd.notna(r.get("chain_rel_sd", np.nan)) else "")  # fmt: skip
-                row[q.replace("mean_", "mean ")] = f"{100 * r['value']:+.1f} %{mark}{spread}"
+                floor = (f" ({100 * r['noise_floor']:+.1f} %)"
+                         if pd.notna(r.get("noise_floor", np.nan)) else "")  # fmt: skip
+                row[q.replace("mean_", "mean ")] = f"{100 * r['value']:+.1f} %{floor}{mark}{spread}"
         row["passed"] = f"{int(g['passed'].sum())}/{len(g)}"
         rows.append(row)
     alpha = float(o.get("alpha", 0.05))
@@ -736,9 +738,10 @@ def report_sections(
         f"with the full model's own law still fails each with probability up to alpha: up to "
         f"{alpha * n_ks:.1f} of these {n_ks} KS checks by chance (for E. coli, `python "
         "scripts/fidelity_null.py` runs the full model itself as the candidate). "
-        "Cells: KS distance abstraction vs full model (in brackets: the same between two full "
-        "runs, the noise floor), and the relative error of the mean segment durations; ✗ marks a "
-        "failed check. The row `exact` is the chain driven by the exact lumped psi: the psi of "
+        "Cells: KS distance abstraction vs full model, and the relative error of the mean "
+        "segment durations (in brackets: the same between two full runs, the noise floor: a "
+        "mean whose floor is near the tolerance is checked at the full model's own spread); ✗ "
+        "marks a failed check. The row `exact` is the chain driven by the exact lumped psi: the psi of "
         "cells adapted to their current input (moving cells are not adapted, so a psi learned "
         "from the full model's transitions can pass checks it fails)."
         + (

@@ -76,6 +76,8 @@ def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
     learned = table[~table["candidate"].isin(fidelity.REFERENCES)]
     n_ks = int(learned["quantity"].str.startswith("distance_t").sum())
     assert f"up to {0.05 * n_ks:.1f} of these {n_ks} KS checks by chance" in text
+    # each mean's error beside the two full runs' own difference (the floor), as each KS's
+    assert "+50.0 % (+0.0 %) ✗" in text
     fig = fidelity.plot_ks(table, settings)
     labels = fig.axes[0].get_legend_handles_labels()[1]
     assert labels[0] == "noise floor" and "full_repeat" not in labels
