@@ -174,8 +174,9 @@ def top_up(
     stopped short: the table as collected, train's fallback then reads it).
 
     CERENA's gene-expression network (docs/choice.md): its default collection keeps 16 % of
-    its rows settled, so every fit read a sixth of ``n_per_state``; with the blackout's
-    collection instead, the issue's check over four training seeds passed 42 of 48, against 38.
+    its rows settled, so every fit read a sixth of ``n_per_state``; topped up (36-43 s more),
+    the issue's check over four training seeds passed 40 of 48, against 38 on the sixth and 42
+    on the blackout's collection.
     """
     window = lagging_window(lag)
     c, dt = settings.options, settings.setup.dt
