@@ -245,3 +245,24 @@ def test_chain_repeats_give_the_means_spread_and_their_own_identity(compose_cfg)
     text = "".join(body for _, body in fidelity.report_sections(table, summary, three))
     assert "fidelity.chain_repeats=3" in text and "(runs +3.0 % +- 1.9 % sd)" in text
     assert "(runs pass " in text
+
+
+def test_failed_checks_name_the_check_drawn_again(compose_cfg, checked, monkeypatch) -> None:
+    """A check failed: the report names the same command at sim_seed + 10,000 (every run drawn
+    again on the same fits), checked by this stage's settings; none where every check passed
+    or the settings refuse it."""
+    from surrogate.config import to_dict
+
+    settings, _, table = checked
+    config = to_dict(compose_cfg("fidelity", SMALL))
+    summary = fidelity.summarise(table, settings)
+    again = fidelity.draw_again(settings, summary, config)
+    assert again == [f"fidelity.sim_seed={5000 + fidelity.DRAW_AGAIN_STRIDE}"]
+    assert fidelity._refusal(config, again) is None  # the advice runs
+    assert fidelity.draw_again(settings, {**summary, "passed": summary["checks"]}, config) is None
+    text = "\n".join(body for _, body in fidelity.report_sections(
+        table, {**summary, "draw_again": again}, settings))  # fmt: skip
+    assert "the same command with `fidelity.sim_seed=15000` (checked) draws" in text
+    # refused by the stage's settings (e.g. stored references of the old seed): not printed
+    monkeypatch.setattr(fidelity, "_refusal", lambda *_: "no stored reference at seed 15000")
+    assert fidelity.draw_again(settings, summary, config) is None
