@@ -42,7 +42,7 @@ from surrogate.models.base import Perturbation
 from surrogate.models.capabilities import feature_names_of
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
-from surrogate.simulate.transitions import CollectOptions, collect_transitions
+from surrogate.simulate.transitions import CollectOptions, collect_transitions, recorded_share
 from surrogate.stages import budget
 from surrogate.stages.artefacts import COVERAGE_FIGURE, TRANSITIONS
 from surrogate.stages.design import collect_in_rounds
@@ -194,8 +194,8 @@ def top_up(
     record: dict[str, Any] = {"window_s": window, "settled_before": have, "per_origin": need,
                               "blackout_time": window, "perturb_rate": rate}  # fmt: skip
     # priced at the first pass's pace: its share of windows recordable against the blackout's
-    old_share = math.exp(-float(c["perturb_rate"]) * float(c["blackout_time"]))
-    estimate = wall * need / wanted * old_share / math.exp(-rate * window)
+    first = recorded_share(float(c["perturb_rate"]), float(c["blackout_time"]))
+    estimate = wall * need / wanted * first / recorded_share(rate, window)
     limit = 3600.0 * budget.max_hours(config or {})
     lumps = settings.setup.model.internal.lump_names
     held = ", ".join(f"{lumps[p]} {have[p]:,}" for p in (0, 1))
