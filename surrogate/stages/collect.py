@@ -18,7 +18,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -101,15 +101,15 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
     lumps = model.internal.lump_names
     if settings.design is not None:  # rounds until the posterior meets the target
         table, design = collect_in_rounds(settings, simulator, perturbation, **arguments)
-        lag = after_jump_lag(table, model.internal.signal_names, setup.dt, lumps)
     else:
         table = collect_transitions(simulator, perturbation, n_per_state=int(c["n_per_state"]),
                                     progress=job.progress, **arguments)  # fmt: skip
-        # matched on the signal psi reads by default (E. coli's dG, a network's inputs)
-        lag = after_jump_lag(table, model.internal.signal_names, setup.dt, lumps)
-        if c.get("top_up", "auto") == "auto":
-            table, topped = top_up(settings, simulator, perturbation, table, lag,
-                                   time.perf_counter() - t0, config)  # fmt: skip
+    # matched on the signal psi reads by default (E. coli's dG, a network's inputs); measured
+    # on the rows as first collected, before any top-up (whose rows are all settled)
+    lag = after_jump_lag(table, model.internal.signal_names, setup.dt, lumps)
+    if settings.design is None and c.get("top_up", "auto") == "auto":
+        table, topped = top_up(settings, simulator, perturbation, table, lag, options,
+                               time.perf_counter() - t0, config)  # fmt: skip
     wall = time.perf_counter() - t0
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
@@ -161,6 +161,7 @@ def top_up(
     perturbation: Perturbation,
     table: pd.DataFrame,
     lag: dict[str, Any] | None,
+    options: CollectOptions,
     wall: float,
     config: Mapping[str, Any] | None,
 ) -> tuple[pd.DataFrame, dict[str, Any] | None]:
@@ -169,7 +170,8 @@ def top_up(
     (``gp.jump_rows=auto``: those 20 s or more after a jump) topped up to ``n_per_state`` per
     origin: fresh cells collected with the blackout collect would advise
     (:func:`~surrogate.diagnosis.jumps.blackout_advice`: every row they record is settled),
-    appended with their own cell numbers. Returns the table and the record (None where nothing
+    appended with their own cell numbers (``options``: the first pass's, its blackout moved).
+    Returns the table and the record (None where nothing
     lagged or enough rows were settled; ``{"skipped": why}`` where the top-up was refused or
     stopped short: the table as collected, train's fallback then reads it).
 
@@ -210,17 +212,11 @@ def top_up(
              "(%s of %s per origin): recording %s more per origin with `%s` (~%s at the first "
              "pass's pace; collect.top_up=off keeps the table as collected)", window, held,
              f"{wanted:,}", f"{need:,}", " ".join(overrides), duration(estimate))  # fmt: skip
-    options = CollectOptions(
-        record_every=int(c["record_every"]),
-        equilibration_time=float(c["equilibration_time"]),
-        max_time=float(c["max_time"]),
-        blackout=math.ceil(window / dt - 1e-6),
-        expected=settings.expected_labels,
-    )
+    settled_options = replace(options, blackout=math.ceil(window / dt - 1e-6))
     t0 = time.perf_counter()
     try:
         more = collect_transitions(simulator, perturbation, n_cells=int(c["n_cells"]),
-                                   n_per_state=need, perturb_rate=rate, options=options,
+                                   n_per_state=need, perturb_rate=rate, options=settled_options,
                                    progress=settings.job.progress)  # fmt: skip
     except ConfigError as error:  # short of rows by max_time: the first pass stands
         log.warning("collect: the top-up stopped short, the table is kept as collected: %s", error)

@@ -282,6 +282,14 @@ def chain_stream(choice_index: int, train_seed: int) -> int:
     return choice_index * INPUTS_SEED_STRIDE + train_seed
 
 
+def chain_seed(options: Mapping[str, Any], candidate: Candidate, repeat: int = 0) -> int:
+    """The seed of ``candidate``'s chains (its ``repeat``-th run) under the fidelity
+    ``options``: ``sim_seed + 3 x noise_seed_offset + stream + repeat x``
+    :data:`REPEAT_SEED_STRIDE`."""
+    base = int(options["sim_seed"]) + 3 * int(options.get("noise_seed_offset", 1000))
+    return base + candidate.stream + repeat * REPEAT_SEED_STRIDE
+
+
 #: decision.mode of the abstractions under test
 MODES = ("lookup", "classifier")
 #: fidelity.reference: simulate the full model beside the candidates, or read stored runs
@@ -334,9 +342,7 @@ def _stored_references(
 
 def _chain_seeds(settings: FidelitySettings) -> str:
     """Each abstraction's chain seed, e.g. ``seed 0: 8000, seed 1: 8001``."""
-    o = settings.options
-    base = int(o["sim_seed"]) + 3 * int(o.get("noise_seed_offset", 1000))
-    return ", ".join(f"{c.label}: {base + c.stream}" for c in settings.candidates)
+    return ", ".join(f"{c.label}: {chain_seed(settings.options, c)}" for c in settings.candidates)
 
 
 def _check_streams(f: Mapping[str, Any], candidates: list[Candidate]) -> None:
@@ -350,7 +356,7 @@ def _check_streams(f: Mapping[str, Any], candidates: list[Candidate]) -> None:
     }
     for c in candidates:
         for again in range(int(f.get("chain_repeats", 1))):
-            s = seed + 3 * offset + c.stream + again * REPEAT_SEED_STRIDE
+            s = chain_seed(f, c, again)
             what = c.label + (f" (repeat {again})" if again else "")
             if s < 0 or s in runs:
                 raise ConfigError(
@@ -476,12 +482,10 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         decision, _ = learned_decision(request, c.train, resolve_abstraction(c.train),
                                        job.support_min_rows)  # fmt: skip
         for name in settings.fields:
-            chain = seed + 3 * offset + c.stream
-            reps.append(Replicate(decision, fields[name], n, chain, start))
+            reps.append(Replicate(decision, fields[name], n, chain_seed(o, c), start))
             labels.append(f"{c.label}|{name}")
             for again in range(1, int(o.get("chain_repeats", 1))):  # the chain's own spread
-                reps.append(Replicate(decision, fields[name], n,
-                                      chain + again * REPEAT_SEED_STRIDE, start))  # fmt: skip
+                reps.append(Replicate(decision, fields[name], n, chain_seed(o, c, again), start))
                 labels.append(f"{c.label}|{name}|{REPEAT}{again}")
     seed_everything(seed)
     info: dict[str, Any] = {}
