@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from surrogate.errors import ConfigError, MissingArtefactError
+from surrogate.kinds.phases import PhaseSettings
 from surrogate.stages import simulate as simulate_stage
 from surrogate.stages import train as train_stage
 from surrogate.stages.settings.choice import (
@@ -98,6 +99,10 @@ def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
     assert candidate_groups({}, recipe, Plain())["clock max_age=1"]["n_inducing"] == 200
     only = ChoiceSettings.from_config({"kinds": ["clock"], "max_ages": [2]})
     assert list(candidate_groups({}, only, Plain())) == ["clock max_age=2"]
+    # a kind's own block given in part (+gp.phases.counts=max) keeps the recipe's other keys
+    phases = candidate_groups({"phases": {"counts": "max"}}, settings, Plain())["phases"]
+    assert phases["phases"]["counts"] == "max" and phases["phases"]["max_per_lump"] == 3
+    assert PhaseSettings.from_config(phases["phases"]).per_lump == (3, 3)
     with pytest.raises(ConfigError, match=r"gp\.choice\.kinds=\['classes'\] leaves no candidate"):
         candidate_groups({}, ChoiceSettings.from_config({"kinds": ["classes"]}), Plain())
 

@@ -328,7 +328,11 @@ def candidate_groups(
         choice_keys["threads"] = FIT_THREADS
 
     def group(recipe: str, **extra: Any) -> dict[str, Any]:
-        return {**group_config("gp", recipe), **extra, **choice_keys, **user}
+        shipped = group_config("gp", recipe)
+        # a kind's own block (gp.phases) given in part keeps the recipe's other keys
+        nested = {k: {**shipped[k], **v} for k, v in user.items()
+                  if isinstance(v, Mapping) and isinstance(shipped.get(k), Mapping)}  # fmt: skip
+        return {**shipped, **extra, **choice_keys, **user, **nested}
 
     families: list[tuple[str, str, dict[str, Any]]] = [("two-state", "two-state", group("svgp"))]
     light = ({"n_inducing": settings.clock_inducing}
