@@ -2,8 +2,9 @@
 hidden phases, learned from phi sequences with no species named by the user
 (:mod:`surrogate.gp.phases`). Its fit simulates its own sample (an unperturbed full-model
 population where collect starts its cells, every window recorded:
-:func:`~surrogate.simulate.transitions.record_occupancy`), chooses each lump's phase count by
-held-out likelihood, and tabulates the law over the abstraction's inputs, each lump's mean
+:func:`~surrogate.simulate.transitions.record_occupancy`), fits ``gp.phases.max_per_lump``
+phases per lump (or chooses each lump's count by held-out likelihood,
+``gp.phases.counts=held_out``), and tabulates the law over the abstraction's inputs, each lump's mean
 sojourn matched to psi's at every node (``gp.phases.means``); its layer
 (:class:`~surrogate.simulate.phases.PhaseDecision`) keeps one hidden state per cell."""
 
@@ -56,8 +57,11 @@ log = logging.getLogger(__name__)
 #: keys of the gp group that only a fit of the hidden-phase chain reads (gp.lumps=phases)
 GP_PHASES = ("phases",)
 #: gp.phases' keys (conf/gp/phases.yaml holds their defaults)
-PHASE_KEYS = ("max_per_lump", "per_lump", "structure", "bumps", "penalty", "nodes",
+PHASE_KEYS = ("max_per_lump", "counts", "per_lump", "structure", "bumps", "penalty", "nodes",
               "max_iterations", "n_cells", "t_end", "held_out", "means")  # fmt: skip
+#: gp.phases.counts: ``max_per_lump`` phases in every lump, or counts chosen by held-out
+#: likelihood from one per lump (a phase kept where its gain exceeds twice its standard error)
+COUNTS = ("max", "held_out")
 #: gp.phases.means: each lump's mean sojourn at each input from psi (the sequences' law
 #: matched to it, :func:`~surrogate.gp.phases.match_leaving`) or from the sequences alone
 MEANS = ("psi", "sequences")
@@ -88,8 +92,9 @@ def _number(options: Mapping[str, Any], key: str, low: float, high: float = math
 
 @dataclass(frozen=True)
 class PhaseSettings:
-    """``gp.phases`` validated: the phase counts (``per_lump`` fixed, or chosen up to
-    ``max_per_lump`` by held-out likelihood on the ``held_out`` share of cells), the moves
+    """``gp.phases`` validated: the phase counts (``per_lump`` fixed; else ``max_per_lump`` in
+    every lump with ``counts: max``, or chosen up to it by held-out likelihood on the
+    ``held_out`` share of cells with ``counts: held_out``: ``per_lump`` None), the moves
     (``structure``), the fit's settings, the sample (``n_cells`` cells for ``t_end`` s) and
     where each lump's mean sojourn comes from (``means``, one of :data:`MEANS`)."""
 
@@ -121,6 +126,13 @@ class PhaseSettings:
                 raise ConfigError(f"gp.phases.per_lump must be null or two integers >= 1 (the "
                                   f"phases of each lump), got {per_lump!r}")  # fmt: skip
             per_lump = (int(per_lump[0]), int(per_lump[1]))
+        if options["counts"] not in COUNTS:
+            raise ConfigError(f"gp.phases.counts must be one of {list(COUNTS)}, got "
+                              f"{options['counts']!r}")  # fmt: skip
+        max_per_lump = _count(options, "max_per_lump", 1)
+        if per_lump is None and options["counts"] == "max":
+            # the held-out likelihood cannot see a lump's tail: docs/kinds.md, "Phase counts"
+            per_lump = (max_per_lump, max_per_lump)
         if options["means"] not in MEANS:
             raise ConfigError(f"gp.phases.means must be one of {list(MEANS)}, got "
                               f"{options['means']!r}")  # fmt: skip
@@ -147,7 +159,7 @@ class PhaseSettings:
                 f"need >= 2 on either side: use gp.phases.n_cells="
                 f"{smallest_split(held_out)} or more"
             )
-        return cls(_count(options, "max_per_lump", 1), per_lump, str(options["structure"]), fit,
+        return cls(max_per_lump, per_lump, str(options["structure"]), fit,
                    n_cells, t_end, held_out, str(options["means"]))  # fmt: skip
 
     def states(self) -> int:
@@ -182,6 +194,14 @@ class HiddenPhases(ChainKind):
     #: the fit reads psi's domain only, and its recipe is gp=svgp's plus gp.phases
     shares_psi = True
     law_version = ("phase_law_version", PHASE_LAW_VERSION)
+
+    def fit_identity(self, gp: Mapping[str, Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
+        """:meth:`ChainKind.fit_identity`, with ``gp.phases.counts`` left out where it is
+        ``held_out`` (the rule before the key existed): those fits keep their identity."""
+        phases = gp.get("phases")
+        if isinstance(phases, Mapping) and phases.get("counts") == COUNTS[1]:
+            gp = {**gp, "phases": {k: v for k, v in phases.items() if k != "counts"}}
+        return super().fit_identity(gp, *args, **kwargs)
 
     @classmethod
     def check_fit(cls, history: str, internal: Any, model_name: str) -> None:

@@ -55,6 +55,7 @@ PHASES = ["gp=phases", "gp.phases.n_cells=40", "gp.phases.t_end=10.0",
         ("gp.phases.t_end=0.0", r"gp.phases.t_end must be positive"),
         ("+gp.phases.phases=3", r"gp.phases.*phases"),
         ("gp.phases.means=mine", r"gp.phases.means must be one of \['psi', 'sequences'\]"),
+        ("gp.phases.counts=best", r"gp.phases.counts must be one of \['max', 'held_out'\]"),
         ("gp.history=age", r"gp.lumps=phases takes no switch clock"),
     ],
 )  # fmt: skip
@@ -69,7 +70,16 @@ def test_the_kinds_identity_and_refusals(compose_cfg) -> None:
     gp = settings.fit_identity()["gp"]
     assert gp["lumps"] == "phases" and gp["phases"]["max_per_lump"] == 3
     assert gp["phase_law_version"] == 3 and "lumps=phases" in settings.fit_directory.name
-    assert PhaseSettings.from_config(gp["phases"]).per_lump is None
+    # the counts chosen by held-out likelihood (the default, its identity as before the key);
+    # counts: max puts max_per_lump phases in every lump, its own identity; per_lump wins
+    assert "counts" not in gp["phases"]
+    assert PhaseSettings.from_config({**gp["phases"], "counts": "held_out"}).per_lump is None
+    assert PhaseSettings.from_config({**gp["phases"], "counts": "max"}).per_lump == (3, 3)
+    fixed = {**gp["phases"], "counts": "max", "per_lump": [1, 2]}
+    assert PhaseSettings.from_config(fixed).per_lump == (1, 2)
+    most = TrainSettings.from_config(compose_cfg("train", ["gp=phases", "gp.phases.counts=max"]))
+    assert most.fit_identity()["gp"]["phases"]["counts"] == "max"
+    assert most.fit_directory != settings.fit_directory
     with pytest.raises(ConfigError, match="gp.phases is required with gp.lumps=phases"):
         TrainSettings.from_config(compose_cfg("train", ["gp.lumps=phases"]))
     with pytest.raises(ConfigError, match="the hidden-phase chain is a table"):
