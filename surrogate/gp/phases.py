@@ -11,8 +11,8 @@ or a slow phase), nothing the user names.
 The fit maximises the exact likelihood of observed phi sequences (the forward algorithm over the
 hidden states, batched over cells, float64, scaled per step) by L-BFGS, with a ridge penalty on
 the basis weights; ``K_l`` is given, or chosen by the held-out likelihood of held-out cells
-(:func:`select_phases`; that sum over every window can miss a slow lump's tail, docs/kinds.md). With ``K = (1, 1)`` the chain is the two-state chain with psi's logit
-in the basis.
+(:func:`select_phases`; that sum over every window can miss a slow lump's tail, docs/kinds.md).
+With ``K = (1, 1)`` the chain is the two-state chain with psi's logit in the basis.
 
 Moves (:class:`PhaseLayout`): ``series`` (a Coxian chain per lump: a phase stays, moves to the
 next phase of its lump, or leaves to the other lump's first phase; every acyclic phase-type law

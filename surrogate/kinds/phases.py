@@ -2,10 +2,10 @@
 hidden phases, learned from phi sequences with no species named by the user
 (:mod:`surrogate.gp.phases`). Its fit simulates its own sample (an unperturbed full-model
 population where collect starts its cells, every window recorded:
-:func:`~surrogate.simulate.transitions.record_occupancy`), fits ``gp.phases.max_per_lump``
-phases per lump (or chooses each lump's count by held-out likelihood,
-``gp.phases.counts=held_out``), and tabulates the law over the abstraction's inputs, each lump's mean
-sojourn matched to psi's at every node (``gp.phases.means``); its layer
+:func:`~surrogate.simulate.transitions.record_occupancy`), chooses each lump's phase count by
+held-out likelihood (or fits ``gp.phases.max_per_lump`` in every lump,
+``gp.phases.counts=max``), and tabulates the law over the abstraction's inputs, each lump's
+mean sojourn matched to psi's at every node (``gp.phases.means``); its layer
 (:class:`~surrogate.simulate.phases.PhaseDecision`) keeps one hidden state per cell."""
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ class PhaseSettings:
                               f"{options['counts']!r}")  # fmt: skip
         max_per_lump = _count(options, "max_per_lump", 1)
         if per_lump is None and options["counts"] == "max":
-            # the held-out likelihood cannot see a lump's tail: docs/kinds.md, "Phase counts"
+            # the held-out likelihood can miss a slow lump's tail: docs/kinds.md, "Phase counts"
             per_lump = (max_per_lump, max_per_lump)
         if options["means"] not in MEANS:
             raise ConfigError(f"gp.phases.means must be one of {list(MEANS)}, got "
