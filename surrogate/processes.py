@@ -23,10 +23,31 @@ from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-__all__ = ["PR_SET_PDEATHSIG", "end_with_parent", "spawned_pool", "worker_start"]
+__all__ = ["PR_SET_PDEATHSIG", "RecordQueue", "end_with_parent", "spawned_pool", "worker_start"]
 
 #: prctl's option that sends the calling process a signal when its parent dies (linux/prctl.h)
 PR_SET_PDEATHSIG = 1
+
+
+class RecordQueue:
+    """The workers' log records on their way to the parent: a ``SimpleQueue`` with the methods
+    ``QueueHandler`` and ``QueueListener`` call. Its put writes the record into the pipe before
+    it returns; a ``multiprocessing.Queue`` hands it to a feeder thread, which could still hold
+    a worker's last record when that task's result had arrived and the pool's listener stopped
+    (the record lost: seen as a flaky test)."""
+
+    def __init__(self, context: Any) -> None:
+        self._queue = context.SimpleQueue()
+
+    def put_nowait(self, item: Any) -> None:
+        """Write ``item`` into the pipe (blocking only while another writer holds it)."""
+        self._queue.put(item)
+
+    put = put_nowait
+
+    def get(self, block: bool = True) -> Any:
+        """The next item (waits for one: the listener always blocks)."""
+        return self._queue.get()
 
 
 @contextlib.contextmanager
@@ -36,7 +57,7 @@ def spawned_pool(workers: int, threads: int | None = None) -> Iterator[ProcessPo
     processes let go without waiting for their interpreters to close (a task still running ends
     with its result unread; a worker whose job dies ends too: :func:`end_with_parent`)."""
     context = multiprocessing.get_context("spawn")
-    records: Any = context.Queue()
+    records: Any = RecordQueue(context)
     listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
                                               respect_handler_level=True)  # fmt: skip
     listener.start()
