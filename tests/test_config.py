@@ -113,6 +113,24 @@ def test_the_phospho_commands_reproduce_the_settings(compose_cfg, tmp_path) -> N
     assert again.identity() == settings.identity(), settings.command()
 
 
+def test_a_collection_already_made_is_not_refused_for_memory(compose_cfg, monkeypatch) -> None:
+    """The table's memory is checked where it would be collected: with too little free, a
+    new collection is refused naming collect.n_per_state, one already made (its manifest
+    written) is read and not refused."""
+    from surrogate.stages.settings import common
+
+    monkeypatch.setattr(common, "free_memory_bytes", lambda: 2**20)  # 1 MiB free
+    cfg = compose_cfg("collect", [])
+    with pytest.raises(ConfigError, match="collect.n_per_state=.*GiB"):
+        CollectSettings.from_config(cfg)
+    monkeypatch.setattr(common, "free_memory_bytes", lambda: None)  # unreadable: not checked
+    settings = CollectSettings.from_config(cfg)
+    settings.directory.mkdir(parents=True)
+    (settings.directory / "manifest.json").write_text("{}")
+    monkeypatch.setattr(common, "free_memory_bytes", lambda: 2**20)
+    assert CollectSettings.from_config(cfg).directory == settings.directory
+
+
 def _compose_command(command: str, data_dir: str):
     """Compose the config a printed command would run (script name -> primary config)."""
     words = shlex.split(command)

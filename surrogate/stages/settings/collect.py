@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from surrogate.config import non_negative, positive, to_dict
 from surrogate.errors import ConfigError
 from surrogate.grid.coupled import is_coupled
-from surrogate.io import artefact_dir
+from surrogate.io import MANIFEST, artefact_dir
 from surrogate.models.capabilities import (
     class_count_of,
     expected_class_next_of,
@@ -141,9 +141,6 @@ class CollectSettings:
                 f"collect.perturb_rate={rate:g}/s cannot be met with dt={setup.dt:g} s: at most "
                 f"one perturbation per step, so the rate must be <= 1/dt = {1 / setup.dt:g}/s"
             )
-        internal = setup.model.internal
-        check_table_memory(int(c["n_per_state"]),
-                           len(internal.input_names) + len(feature_names_of(internal)) + 7)  # fmt: skip
         expected = c.get("expected_labels", False)
         if not isinstance(expected, bool):
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
@@ -152,6 +149,7 @@ class CollectSettings:
         out = cls(setup, c, Job.from_config(cfg) if job is None else job, given=given)
         design = _design_options(cfg, c, rate)
         if design is None:
+            out.check_memory()
             return out
         if fits is None:
             raise TypeError("collect.design.target_error is set: build the collect settings "
@@ -163,7 +161,20 @@ class CollectSettings:
         gp = to_dict(cfg["gp"])
         if gp.get("lumps") == "auto":
             gp = {**gp, "lumps": "phi"}
-        return replace(out, design=fits(plain, gp))
+        out = replace(out, design=fits(plain, gp))
+        out.check_memory()
+        return out
+
+    def check_memory(self) -> None:
+        """Refuse a collection whose table cannot fit in the free memory while it is collected
+        (:func:`~surrogate.stages.settings.common.check_table_memory`). One already made is
+        read, not collected: not refused (a fidelity run was, after its own choice's fits on
+        12.7 million rows per origin had left 5.4 GiB free)."""
+        if (self.directory / MANIFEST).exists():
+            return
+        internal = self.setup.model.internal
+        check_table_memory(int(self.options["n_per_state"]),
+                           len(internal.input_names) + len(feature_names_of(internal)) + 7)  # fmt: skip
 
     @property
     def expected_labels(self) -> bool:
