@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 from surrogate.config import CONF_DIR, build_field, build_model, group_config, group_options
 from surrogate.errors import ConfigError
 from surrogate.fields import Field
+from surrogate.io import MANIFEST
 from surrogate.models.base import Model
 from surrogate.models.ecoli import EcoliModel
 from surrogate.stages.settings import (
@@ -126,7 +127,7 @@ def test_a_collection_already_made_is_not_refused_for_memory(compose_cfg, monkey
     monkeypatch.setattr(common, "free_memory_bytes", lambda: None)  # unreadable: not checked
     settings = CollectSettings.from_config(cfg)
     settings.directory.mkdir(parents=True)
-    (settings.directory / "manifest.json").write_text("{}")
+    (settings.directory / MANIFEST).write_text("{}")
     monkeypatch.setattr(common, "free_memory_bytes", lambda: 2**20)
     assert CollectSettings.from_config(cfg).directory == settings.directory
 

@@ -148,21 +148,19 @@ class CollectSettings:
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
         out = cls(setup, c, Job.from_config(cfg) if job is None else job, given=given)
         design = _design_options(cfg, c, rate)
-        if design is None:
-            out.check_memory()
-            return out
-        if fits is None:
-            raise TypeError("collect.design.target_error is set: build the collect settings "
-                            "with fits=TrainSettings.design_fits (its rounds fit psi)")  # fmt: skip
-        # the rounds fit on the collection without its design (as the fixed design identifies
-        # it), psi's two-state chain (gp.lumps=auto: the design needs psi)
-        options = {**c, "design": {**design, "target_error": None}}
-        plain = replace(out, options=options, given=options)
-        gp = to_dict(cfg["gp"])
-        if gp.get("lumps") == "auto":
-            gp = {**gp, "lumps": "phi"}
-        out = replace(out, design=fits(plain, gp))
-        out.check_memory()
+        if design is not None:
+            if fits is None:
+                raise TypeError("collect.design.target_error is set: build the collect settings "
+                                "with fits=TrainSettings.design_fits (its rounds fit psi)")  # fmt: skip
+            # the rounds fit on the collection without its design (as the fixed design
+            # identifies it), psi's two-state chain (gp.lumps=auto: the design needs psi)
+            options = {**c, "design": {**design, "target_error": None}}
+            plain = replace(out, options=options, given=options)
+            gp = to_dict(cfg["gp"])
+            if gp.get("lumps") == "auto":
+                gp = {**gp, "lumps": "phi"}
+            out = replace(out, design=fits(plain, gp))
+        out.check_memory()  # on the directory the settings name (a design's is its own)
         return out
 
     def check_memory(self) -> None:
