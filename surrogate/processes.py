@@ -57,7 +57,7 @@ def spawned_pool(workers: int, threads: int | None = None) -> Iterator[ProcessPo
     processes let go without waiting for their interpreters to close (a task still running ends
     with its result unread; a worker whose job dies ends too: :func:`end_with_parent`)."""
     context = multiprocessing.get_context("spawn")
-    records: Any = RecordQueue(context)
+    records = RecordQueue(context)
     listener = logging.handlers.QueueListener(records, *logging.getLogger().handlers,
                                               respect_handler_level=True)  # fmt: skip
     listener.start()
@@ -72,7 +72,7 @@ def spawned_pool(workers: int, threads: int | None = None) -> Iterator[ProcessPo
 
 
 def worker_start(
-    records: Any, level: int, parent: int | None = None, threads: int | None = None
+    records: RecordQueue, level: int, parent: int | None = None, threads: int | None = None
 ) -> None:
     """A worker process: its log records to ``records`` (the parent's handlers print them), its
     torch threads ``threads`` (where given); on Linux it ends with the job's process ``parent``
