@@ -318,3 +318,26 @@ def test_group_config_is_composed_once_per_version_of_its_files(tmp_path, monkey
     stat = (group / "base.yaml").stat()
     os.utime(group / "base.yaml", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
     assert config.group_config("thing", "top") == {"a": 5, "b": 3}
+
+
+def test_keep_switches_is_checked_and_leaves_the_default_identity_alone(compose_cfg) -> None:
+    """collect.keep_switches: a bool; false leaves a collection's identity (its directory) as
+    before the key; true names another table, records no expected labels (gp.labels=expected
+    is refused saying why) and is refused with minibatch training and with a sequential
+    design, each before any work."""
+    plain = CollectSettings.from_config(compose_cfg("collect", []))
+    assert "keep_switches" not in plain.identity()["collect"] and not plain.keep_switches
+    kept = CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=true"]))
+    assert kept.keep_switches and kept.directory != plain.directory
+    assert plain.expected_labels and not kept.expected_labels
+    with pytest.raises(ConfigError, match="collect.keep_switches must be true or false"):
+        CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=3"]))
+    with pytest.raises(ConfigError, match="keep_switches=true records none"):
+        TrainSettings.from_config(compose_cfg("train", ["collect.keep_switches=true",
+                                                        "gp.labels=expected"]))  # fmt: skip
+    with pytest.raises(ConfigError, match="gp.bins=0"):
+        TrainSettings.from_config(compose_cfg("train", ["collect.keep_switches=true",
+                                                        "gp.bins=0", "gp.labels=outcome"]))  # fmt: skip
+    with pytest.raises(ConfigError, match="sequential design"):
+        CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=true",
+                                                            "collect.design.target_error=0.05"]))  # fmt: skip

@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from surrogate.gp.windows import row_windows
+
 #: seconds after a jump: the bins compared (the last one open to :data:`SETTLED_AFTER`)
 AFTER_JUMP_EDGES = (0.0, 2.0, 5.0, 10.0)
 #: rows this long after a jump (or never perturbed) are the settled reference
@@ -80,6 +82,9 @@ def after_jump_lag(
     settled = settled_rows(since, dt, SETTLED_AFTER)
     phi = table["phi"].to_numpy()
     switched = (table["phi_next"].to_numpy() != phi).astype(np.float64)
+    # rows weighted by the windows they stand for (a collection that keeps every switch)
+    windows = row_windows(table)
+    weight = np.ones(len(table)) if windows is None else windows
     out: dict[str, Any] = {"settled_after_s": SETTLED_AFTER, "origins": {}, "lagging": []}
     # matched on the clock where it is recorded (what a clock's psi reads), and on the inputs
     # alone (what the two-state chain's psi reads, and the hidden phases' means from it): a
@@ -88,7 +93,7 @@ def after_jump_lag(
     if "phi_age" in table.columns:
         views.append(("origins_without_clock", _cells(table, inputs, clock=False), NO_CLOCK))
     for key, cell, note in views:
-        origins = _lags(cell, phi, switched, jumped, after, settled, lump_names)
+        origins = _lags(cell, phi, switched, weight, jumped, after, settled, lump_names)
         if origins is None:
             return None
         out[key] = origins
@@ -109,13 +114,15 @@ def _lags(
     cell: np.ndarray,
     phi: np.ndarray,
     switched: np.ndarray,
+    weight: np.ndarray,
     jumped: np.ndarray,
     after: np.ndarray,
     settled: np.ndarray,
     lump_names: Sequence[str],
 ) -> dict[str, list[dict[str, float]]] | None:
-    """Each origin's bins of :func:`after_jump_lag` with rates matched in ``cell``; None where
-    an origin has too few settled rows."""
+    """Each origin's bins of :func:`after_jump_lag` with rates matched in ``cell``, each row
+    counted as the windows it stands for (``weight``); None where an origin has too few
+    settled rows."""
     edges = (*AFTER_JUMP_EDGES, SETTLED_AFTER)
     size = int(cell.max()) + 1
     out: dict[str, list[dict[str, float]]] = {}
@@ -124,14 +131,15 @@ def _lags(
         ref = rows & settled
         if int(ref.sum()) < MIN_SETTLED_ROWS:
             return None
-        n = np.bincount(cell[ref], minlength=size)
-        k = np.bincount(cell[ref], weights=switched[ref], minlength=size)
+        n = np.bincount(cell[ref], weights=weight[ref], minlength=size)
+        k = np.bincount(cell[ref], weights=(switched * weight)[ref], minlength=size)
         rate = k / np.maximum(n, 1)
-        known = n[cell] >= 20  # a rate from a handful of settled rows is noise
+        known = n[cell] >= 20  # a rate from a handful of settled windows is noise
         bins = []
         for lo, hi in itertools.pairwise(edges):
             sel = rows & jumped & known & (after >= lo) & (after < hi)
-            observed, expected = float(switched[sel].sum()), float(rate[cell[sel]].sum())
+            observed = float((switched * weight)[sel].sum())
+            expected = float((rate[cell[sel]] * weight[sel]).sum())
             ratio = observed / expected if expected > 0 else math.nan
             se = math.sqrt(max(observed, 1.0)) / expected if expected > 0 else math.nan
             bins.append({"from_s": lo, "to_s": hi, "rows": int(sel.sum()), "ratio": ratio,

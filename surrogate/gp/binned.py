@@ -56,23 +56,29 @@ def _bin_index(z: Tensor, bins: int | Sequence[int]) -> tuple[Tensor, int]:
     return index, math.prod(per_axis)
 
 
-def bin_inputs(z: Tensor, y: Tensor, bins: int | Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
+def bin_inputs(
+    z: Tensor, y: Tensor, bins: int | Sequence[int], rows: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """Aggregate points into equal-width bins of every (normalised) input column: ``bins`` per
     column, or ``bins[j]`` for column ``j``.
 
     Returns the occupied bins' mean inputs ``b x d``, point counts ``n_b`` and counts of y = 1
-    ``k_b``. With one input and hundreds of bins the bins are far narrower than any lengthscale
+    ``k_b``; with ``rows`` (``n``), each point counts as that many (the windows a row of a
+    collection that keeps every switch stands for), in the counts and the means alike. With one input and hundreds of bins the bins are far narrower than any lengthscale
     psi varies on, so placing a bin's points at their mean changes the fit negligibly, while a
     full-batch step on ~``bins`` rows is cheap enough to converge (minibatch training on the
     points left the fit measurably off; see docs/fidelity.md).
     """
     d = z.shape[1]
     index, size = _bin_index(z, bins)
-    n_b = torch.bincount(index, minlength=size).to(z.dtype)
-    k_b = torch.bincount(index, weights=y.to(z.dtype), minlength=size)
+    w = None if rows is None else rows.to(z.dtype).reshape(-1)
+    n_b = (torch.bincount(index, minlength=size).to(z.dtype) if w is None
+           else torch.bincount(index, weights=w, minlength=size))  # fmt: skip
+    k_b = torch.bincount(index, weights=y.to(z.dtype) * (1.0 if w is None else w), minlength=size)
     sums = torch.stack(
-        [torch.bincount(index, weights=z[:, j], minlength=size) for j in range(d)], 1
-    )
+        [torch.bincount(index, weights=z[:, j] * (1.0 if w is None else w), minlength=size)
+         for j in range(d)], 1
+    )  # fmt: skip
     keep = n_b > 0
     return sums[keep] / n_b[keep].unsqueeze(1), n_b[keep], k_b[keep]
 

@@ -38,6 +38,7 @@ from surrogate.gp.binned import label_weight
 from surrogate.gp.lookup import grid_nodes
 from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
+from surrogate.gp.windows import row_windows
 
 Domain = dict[str, tuple[float, float]]
 #: per origin class, each destination's problem index (a GP) or constant rate
@@ -154,9 +155,11 @@ def class_problems(
     n_classes: int,
     settings: GPSettings,
     options: ClassFitOptions = ClassFitOptions(),
-) -> tuple[list[tuple[Tensor, Tensor, Tensor]], list[float], Plan, dict[str, Any]]:
+) -> tuple[list[tuple[Tensor, ...]], list[float], Plan, dict[str, Any]]:
     """The binary problems :func:`fit_class_law` fits (its arguments, which see): each
-    ``(z, y, outcomes)`` (``n x d``, ``n``, ``n``) with its likelihood weight; the plan, per
+    ``(z, y, outcomes)`` (``n x d``, ``n``, ``n``), with the windows each row stands for
+    where the table has them (:func:`~surrogate.gp.windows.row_windows`), and its likelihood
+    weight; the plan, per
     origin class its destinations' problem index (int) or constant rate (float); and the
     metrics so far."""
     origin, destination, min_events = options.origin, options.destination, options.min_events
@@ -179,9 +182,12 @@ def class_problems(
     min_events = MIN_EVENTS[label_kind] if min_events is None else min_events
     max_weight = DEFAULT_MAX_LABEL_WEIGHT if options.max_weight is None else options.max_weight
     z_all = torch.tensor(data[names].to_numpy(dtype="float32"))
+    # the windows each row stands for (a collection that keeps every switch), else one each
+    windows = row_windows(data)
+    w_all = np.ones(len(data)) if windows is None else windows
     # rows a binary classifier needs: its inducing points within the training split
     need = math.ceil(2 * settings.n_inducing / max(1e-9, 1.0 - settings.validation_fraction))
-    problems: list[tuple[Tensor, Tensor, Tensor]] = []
+    problems: list[tuple[Tensor, ...]] = []
     weights: list[float] = []
     plan: Plan = []
     metrics: dict[str, Any] = {"labels": label_kind, "min_events": min_events}
@@ -192,22 +198,27 @@ def class_problems(
                 f"transition data has no rows from class {a}: collect more (collect.n_per_state)"
             )
         counts = np.bincount(b_col[rows], minlength=n_classes)
-        mass = labels[rows].sum(0)
+        w = w_all[rows]
+        mass = (labels[rows] * w[:, None]).sum(0)  # in windows
         reached = [b for b in range(n_classes) if counts[b] > 0 or mass[b] > 0]
         steps: dict[int, int | float] = {}
         for b in reached:
-            hits = float(mass[b]) if use_expected else float(counts[b])
-            events = min(hits, rows.size - hits)
+            hits = float(mass[b]) if use_expected else float(w[b_col[rows] == b].sum())
+            events = min(hits, float(w.sum()) - hits)
             if len(reached) > 1 and events >= min_events and rows.size >= need:
                 hit = torch.tensor((b_col[rows] == b).astype(np.float32))
                 y = torch.tensor(labels[rows, b])
-                problems.append((z_all[rows], y, hit))
+                problems.append(
+                    (z_all[rows], y, hit)
+                    if windows is None
+                    else (z_all[rows], y, hit, torch.tensor(w, dtype=torch.float32))
+                )
                 weights.append(label_weight(z_all[rows], y, settings.bins, max_weight)
                                if use_expected and max_weight > 1 and settings.bins
                                else 1.0)  # fmt: skip
                 steps[b] = len(problems) - 1
             else:  # too few events to learn a surface: the constant mean label
-                steps[b] = float(mass[b] / rows.size)
+                steps[b] = float(mass[b] / w.sum())
         plan.append((a, steps))
         metrics[str(a)] = {"rows": int(rows.size),
                            "destinations": {str(b): int(counts[b]) for b in reached}}  # fmt: skip

@@ -25,9 +25,15 @@ def _as_array(a: Tensor | np.ndarray | Any, name: str) -> np.ndarray:
 
 
 def classification_metrics(
-    p: Tensor | np.ndarray, y: Tensor | np.ndarray, n_bins: int = 10
+    p: Tensor | np.ndarray,
+    y: Tensor | np.ndarray,
+    n_bins: int = 10,
+    weights: Tensor | np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """Score predicted probabilities ``p`` = p(y = 1) against binary outcomes ``y``.
+    """Score predicted probabilities ``p`` = p(y = 1) against binary outcomes ``y``; with
+    ``weights`` (the windows each row of a collection that keeps every switch stands for),
+    every mean and count below is weighted by them (``n`` stays the rows, the standard error
+    uses Kish's effective sample size).
 
     Returns a dict of plain floats/ints:
 
@@ -57,46 +63,54 @@ def classification_metrics(
         raise ValueError("y must contain only 0 and 1")
     if np.any((pa < 0) | (pa > 1)):
         raise ValueError("p must lie in [0, 1]")
+    wa = np.ones_like(pa) if weights is None else _as_array(weights, "weights")
+    if wa.shape != pa.shape or np.any(wa <= 0):
+        raise ValueError("weights must be one positive number per sample")
+
+    def mean(a: np.ndarray) -> float:
+        return float(np.average(a, weights=wa))
 
     n = pa.size
-    base_rate = float(ya.mean())
+    base_rate = mean(ya)
     pc = np.clip(pa, P_CLIP, 1.0 - P_CLIP)
     log_pred = np.where(ya == 1, np.log(pc), np.log1p(-pc))
     sq_model = (pa - ya) ** 2
     sq_base = (base_rate - ya) ** 2
-    brier = float(sq_model.mean())
-    brier_baseline = float(sq_base.mean())
+    brier = mean(sq_model)
+    brier_baseline = mean(sq_base)
     diff = sq_base - sq_model
-    gain_se = float(diff.std(ddof=1) / math.sqrt(n)) if n > 1 else None
+    effective = wa.sum() ** 2 / (wa**2).sum()  # Kish's; n where every weight is one
+    spread = math.sqrt(mean((diff - mean(diff)) ** 2) * n / (n - 1)) if n > 1 else 0.0
+    gain_se = spread / math.sqrt(effective) if n > 1 else None
 
     # Bin index: equal-width bins, with p == 1 put into the last bin rather than a bin of its own.
     idx = np.minimum((pa * n_bins).astype(np.int64), n_bins - 1)
-    counts = np.bincount(idx, minlength=n_bins)
-    sum_p = np.bincount(idx, weights=pa, minlength=n_bins)
-    sum_y = np.bincount(idx, weights=ya, minlength=n_bins)
+    counts = np.bincount(idx, weights=wa, minlength=n_bins)
+    sum_p = np.bincount(idx, weights=pa * wa, minlength=n_bins)
+    sum_y = np.bincount(idx, weights=ya * wa, minlength=n_bins)
     calibration = []
     for b in range(n_bins):
-        c = int(counts[b])
+        c = round(float(counts[b]))
         calibration.append(
             {
                 "bin_lo": b / n_bins,
                 "bin_hi": (b + 1) / n_bins,
                 "n": c,
-                "mean_predicted": float(sum_p[b] / c) if c else None,
-                "observed_frequency": float(sum_y[b] / c) if c else None,
+                "mean_predicted": float(sum_p[b] / counts[b]) if c else None,
+                "observed_frequency": float(sum_y[b] / counts[b]) if c else None,
             }
         )
 
     return {
         "n": int(n),
         "base_rate": base_rate,
-        "mean_log_predictive": float(log_pred.mean()),
+        "mean_log_predictive": mean(log_pred),
         "brier": brier,
         "brier_baseline": brier_baseline,
         "brier_skill": (1.0 - brier / brier_baseline) if brier_baseline > 0 else None,
-        "brier_gain": float(diff.mean()),
+        "brier_gain": mean(diff),
         "brier_gain_se": gain_se,
-        "accuracy": float(((pa >= 0.5) == (ya == 1)).mean()),
+        "accuracy": mean(((pa >= 0.5) == (ya == 1)).astype(np.float64)),
         "calibration": calibration,
     }
 

@@ -17,6 +17,7 @@ from surrogate.gp.fast import CachedPsi
 from surrogate.gp.fitted import PREDICT_CHUNK, FittedClassifier
 from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
+from surrogate.gp.windows import row_windows
 from surrogate.io import load_tensors, save_tensors
 
 STATE_FORMAT = "surrogate.gp.psi/2"
@@ -221,7 +222,8 @@ def fit_psi(  # noqa: PLR0913  # the public fit: its options are keyword-only
 
     Args:
         data: a transitions table with the columns ``input_names``, ``phi`` and ``phi_next``
-            (the outcome), e.g. from the collect stage or tracked cells of an experiment.
+            (the outcome), e.g. from the collect stage or tracked cells of an experiment;
+            where it has ``windows`` (collect.keep_switches), each row counts as that many.
         input_names: the ``d`` input columns the classifiers are functions of.
         settings: GP settings (kernel, inducing points, epochs, ...).
         label: the column trained on: ``phi_next`` (0/1 outcomes) or expected labels in
@@ -254,7 +256,9 @@ def fit_psi(  # noqa: PLR0913  # the public fit: its options are keyword-only
         x = log_warp(x, input_names, warps or {})
         y = torch.tensor(rows[label].to_numpy(dtype="float32"))
         outcomes = torch.tensor(rows["phi_next"].to_numpy(dtype="float32"))
-        pairs.append((x, y, outcomes))
+        windows = row_windows(rows)  # a collection that keeps every switch: rows weighted
+        pairs.append((x, y, outcomes) if windows is None
+                     else (x, y, outcomes, torch.tensor(windows, dtype=torch.float32)))  # fmt: skip
     # side by side (one batched GP) where the settings allow; the same steps as one by one
     label = f"psi_0, psi_1 (from {lump_names[0]}, {lump_names[1]})"
     fitted = fit_classifiers(pairs, settings, progress=progress, device=device, desc=label,

@@ -80,6 +80,9 @@ class _Prepared:
     inducing: Tensor
     x: Tensor
     outcomes: Tensor
+    #: the windows each row stands for (None: one each), all rows and the training split's
+    rows: Tensor | None = None
+    rows_train: Tensor | None = None
 
 
 def _prepare(
@@ -88,13 +91,25 @@ def _prepare(
     settings: GPSettings,
     device: torch.device,
     outcomes: Tensor | None = None,
+    rows: Tensor | None = None,
 ) -> _Prepared:
     """The validation split (fixed by ``settings.seed``), the normaliser and the inducing points
     (a random subset of training inputs), both from the training part only. Seeds torch's
     global generator with ``settings.seed`` first (the variational mean's initial noise).
     ``outcomes``: the 0/1 outcomes the held-out metrics score (default ``y``, which must then
-    be 0/1)."""
+    be 0/1). ``rows``: the windows each row stands for (a collection that keeps every switch;
+    None: one each), which only binned training reads."""
     x, y = _check_data(x, y)
+    if rows is not None:
+        rows = rows.reshape(-1).to(torch.float32)
+        if rows.shape != y.shape or not bool((torch.isfinite(rows) & (rows > 0)).all()):
+            raise NumericalError("each row's windows must be one positive number per row")
+        if not settings.bins:
+            raise ConfigError(
+                "rows that stand for several windows each (a collection with "
+                "collect.keep_switches=true) need binned training (gp.bins > 0): the "
+                "unbinned ELBO counts each row once"
+            )
     if not settings.bins and not bool(((y == 0) | (y == 1)).all()):
         # gpytorch's Bernoulli likelihood reads labels as signs: a fraction would be misread
         raise ConfigError("expected (fractional) labels need binned training (gp.bins > 0)")
@@ -127,11 +142,12 @@ def _prepare(
     normaliser = Normalizer.fit(x_train)
     z_train = normaliser.transform(x_train)
     inducing = z_train[torch.randperm(n_train, generator=gen)[: settings.n_inducing].to(device)]
+    rows_train = None if rows is None else rows[train_idx].to(device)
     return _Prepared(n_train, n_val, gen, normaliser, z_train, y_train, val_idx, inducing, x,
-                     outcomes)  # fmt: skip
+                     outcomes, rows, rows_train)  # fmt: skip
 
 
-def fit_classifier(
+def fit_classifier(  # noqa: PLR0913  # rows: a table's per-row windows, beside its weight
     x: Tensor,
     y: Tensor,
     settings: GPSettings | None = None,
@@ -140,6 +156,7 @@ def fit_classifier(
     desc: str = "GP",
     outcomes: Tensor | None = None,
     weight: float = 1.0,
+    rows: Tensor | None = None,
 ) -> FittedClassifier:
     """Train a sparse variational GP probit classifier on inputs ``x`` (``n x d``), labels ``y``
     (``n``: 0/1 outcomes, or expected labels in [0, 1], whose binned likelihood counts each row
@@ -150,15 +167,18 @@ def fit_classifier(
     negative ELBO is minimised with minibatch Adam (plus NGD on the variational parameters when
     ``settings.natural_gradient``). See the module docstring for the numerical guard.
     ``weight``: each row counts as this many draws in the binned likelihood (expected labels'
-    :func:`label_weight`; binned training only).
+    :func:`label_weight`; binned training only). ``rows`` (``n``): the windows each row
+    stands for (a collection that keeps every switch; binned training only), in the bins and
+    the held-out metrics.
     """
     settings = settings or GPSettings()
     if settings.optimizer != "adam":  # L-BFGS and Newton fits are the batched one's (of one)
-        data = (x, y) if outcomes is None else (x, y, outcomes)
+        data: tuple[Tensor, ...] = (x, y, y if outcomes is None else outcomes)
+        data = data if rows is None else (*data, rows)
         return fit_classifiers([data], settings, progress, device, desc, [weight])[0]
     device = torch.device(device)
     _check_weight(weight, settings)
-    prep = _prepare(x, y, settings, device, outcomes)
+    prep = _prepare(x, y, settings, device, outcomes, rows)
     n_train, n_val, gen, z_train, y_train, inducing = (
         prep.n_train,
         prep.n_val,
@@ -195,7 +215,7 @@ def fit_classifier(
     model.train()
     likelihood.train()
     binned = (
-        weighted_bins(bin_inputs(z_train, y_train, settings.bins), weight)
+        weighted_bins(bin_inputs(z_train, y_train, settings.bins, prep.rows_train), weight)
         if settings.bins
         else None
     )
@@ -248,7 +268,9 @@ def _validate(fitted: FittedClassifier, prep: _Prepared) -> None:
     """Held-out metrics of a trained classifier (none without a validation split)."""
     if prep.n_val > 0:
         p_val = fitted.predict_proba(prep.x[prep.val_idx])
-        fitted.validation = classification_metrics(p_val, prep.outcomes[prep.val_idx])
+        rows = None if prep.rows is None else prep.rows[prep.val_idx]
+        fitted.validation = classification_metrics(p_val, prep.outcomes[prep.val_idx],
+                                                   weights=rows)  # fmt: skip
 
 
 def fit_classifiers(
@@ -260,8 +282,9 @@ def fit_classifiers(
     weights: Sequence[float] | None = None,
     processes: int = 1,
 ) -> list[FittedClassifier]:
-    """:func:`fit_classifier` for several data sets (``(x, y)`` or ``(x, y, outcomes)``),
-    trained side by side.
+    """:func:`fit_classifier` for several data sets (``(x, y)``, ``(x, y, outcomes)`` or
+    ``(x, y, outcomes, rows)``: ``rows`` the windows each row stands for), trained
+    side by side.
 
     With binned training (``settings.bins > 0``) on at most :data:`BATCH_MAX_BINS` occupied
     bins each, and Adam alone, the classifiers are one batched GP (independent
@@ -289,16 +312,16 @@ def fit_classifiers(
         if processes > 1 and len(data) > 1 and device.type == "cpu":
             return _in_processes(data, weights, settings, min(processes, len(data)), desc)
         return [fit_classifier(d[0], d[1], settings, progress=progress, device=device,
-                               desc=f"{desc} {i}", outcomes=d[2] if len(d) > 2 else None,
-                               weight=w)
+                               desc=f"{desc} {i}", outcomes=_part(d, 2), weight=w,
+                               rows=_part(d, 3))
                 for i, (d, w) in enumerate(zip(data, weights, strict=True))]  # fmt: skip
 
     batched_only = settings.optimizer != "adam"  # whatever the count (settings check bins)
     natural = settings.natural_gradient and settings.optimizer == "adam"
     if not settings.bins or natural or (len(data) < 2 and not batched_only):
         return one_by_one()
-    preps = [_prepare(d[0], d[1], settings, device, d[2] if len(d) > 2 else None) for d in data]
-    binned = [weighted_bins(bin_inputs(p.z_train, p.y_train, settings.bins), w)
+    preps = [_prepare(d[0], d[1], settings, device, _part(d, 2), _part(d, 3)) for d in data]
+    binned = [weighted_bins(bin_inputs(p.z_train, p.y_train, settings.bins, p.rows_train), w)
               for p, w in zip(preps, weights, strict=True)]  # fmt: skip
     if max(z.shape[0] for z, _, _ in binned) > BATCH_MAX_BINS and not batched_only:
         return one_by_one()
@@ -394,11 +417,17 @@ def _fit_state(
     :class:`NumericalError` (an exception's attributes do not cross processes)."""
     try:
         fitted = fit_classifier(data[0], data[1], settings, progress=False, desc=desc,
-                                outcomes=data[2] if len(data) > 2 else None, weight=weight)  # fmt: skip
+                                outcomes=_part(data, 2), weight=weight,
+                                rows=_part(data, 3))  # fmt: skip
     except NumericalError as exc:
         partial = getattr(exc, "partial", None)
         return str(exc), partial.to_state() if partial is not None else None
     return None, fitted.to_state()
+
+
+def _part(data: Sequence[Tensor], i: int) -> Tensor | None:
+    """A data set's ``i``-th part (outcomes 2, rows' windows 3), None where it has none."""
+    return data[i] if len(data) > i else None
 
 
 def _finish(

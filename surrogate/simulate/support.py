@@ -134,9 +134,12 @@ class TrainingHistogram:
         switched: Any,
         names: Sequence[str],
         classes: Sequence[str] | None = None,
+        windows: Any = None,
     ) -> TrainingHistogram:
         """The histogram of training rows ``values`` (``n x d``, columns ``names``), their
-        states ``phi`` (0/1) and whether each switched.
+        states ``phi`` (0/1) and whether each switched; with ``windows`` (``n``, a collection
+        that keeps every switch), each row counted as the windows it stands for, in the counts
+        and the switching shares alike (their product: the switches the fit read).
 
         With ``classes`` (a K-lumps fit's class names), ``phi`` is each row's class at the
         window's start (an index into ``classes``, collect's ``phi_class``) and ``switched``
@@ -154,6 +157,8 @@ class TrainingHistogram:
         z = torch.tensor(np.asarray(values, dtype=np.float64)).reshape(-1, len(names))
         state = torch.tensor(np.asarray(phi, dtype=np.int64)).reshape(-1)
         moved = torch.tensor(np.asarray(switched, dtype=bool)).reshape(-1)
+        w = (torch.ones(moved.shape[0], dtype=torch.float64) if windows is None
+             else torch.tensor(np.asarray(windows, dtype=np.float64)).reshape(-1))  # fmt: skip
         d = len(names)
         joint = d <= 2
         bins = (HISTOGRAM_BINS[d],) * d if joint else (MARGINAL_BINS,) * d
@@ -166,10 +171,12 @@ class TrainingHistogram:
         for s in range(len(classes) if classes is not None else 2):
             mine = state == s
             # joint: one flat bin a row; else d, one in each input's own histogram
-            c = torch.bincount(flat[mine].reshape(-1), minlength=size)
-            counts.append(tuple(int(v) for v in c.tolist()))
-            n = int(mine.sum())
-            switching.append(float(moved[mine].sum()) / n if n else 0.0)
+            mine_flat = flat[mine]
+            per_bin = w[mine] if joint else w[mine].unsqueeze(1).expand_as(mine_flat)
+            c = torch.bincount(mine_flat.reshape(-1), weights=per_bin.reshape(-1), minlength=size)
+            counts.append(tuple(round(v) for v in c.tolist()))
+            n = float(w[mine].sum())
+            switching.append(float(w[mine & moved].sum()) / n if n else 0.0)
         return cls(tuple(names), tuple(lo), tuple(hi), bins, joint, tuple(counts),
                    tuple(switching), tuple(classes or ()))  # fmt: skip
 

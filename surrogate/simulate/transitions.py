@@ -21,6 +21,15 @@ class before and after; with ``expected`` and a model that gives it
 (``expected_class_next``), ``phi_class_next_expected_<b>``: the law of the class after the window
 given the internal state at its start.
 
+With ``keep_switches`` (``collect.keep_switches``) a thinned collection also keeps every window
+where phi changed, off the thinned steps too, and gives each row the :data:`WINDOWS` it stands
+for: ``record_every`` for a window where phi held (one recorded of every ``record_every``), 1 for
+one where it changed (all recorded). Weighting each row by them (inverse-probability weighting)
+makes every sum over rows the sum over all windows in expectation, so psi's bins, the support
+histograms and the after-jump rates read the rows as they read every window, with every switch
+in them: the switches that psi rests on, at the rows of the thinned collection (a case-control
+sample; docs/choice.md).
+
 No window within ``blackout`` steps after a perturbation is recorded: right after a jump the
 internal network's hidden state (which motors are where, within the current lump) still belongs
 to the old inputs, so those transitions are not draws of psi at the recorded inputs (measured:
@@ -42,6 +51,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from surrogate.errors import ConfigError, NumericalError
+from surrogate.gp.windows import WINDOWS, origin_rows
 from surrogate.models.base import Perturbation
 from surrogate.models.capabilities import (
     class_count_of,
@@ -90,6 +100,8 @@ class CollectOptions:
         blackout: steps after a jump during which a cell's windows are not recorded (see the
             module docstring).
         expected: also record each window's expected label (``phi_next_expected``).
+        keep_switches: also record every window where phi changed, off the thinned steps, each
+            row with the :data:`WINDOWS` it stands for (see the module docstring).
     """
 
     record_every: int = 1
@@ -97,6 +109,7 @@ class CollectOptions:
     max_time: float = 2000.0
     blackout: int = 0
     expected: bool = False
+    keep_switches: bool = False
 
 
 @dataclass(frozen=True)
@@ -124,6 +137,8 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
     ``clock``: keep the switch clocks (every step one call; without it and without jumps the
     unrecorded steps run in one call and the rows have no ``phi_age``)."""
     record_every, blackout, expected = options.record_every, options.blackout, options.expected
+    # every switch kept where the rows are thinned (one in record_every windows otherwise)
+    keep_switches = options.keep_switches and record_every > 1
     perturbation = None if jumps is None else jumps.perturbation
     perturb_rate = 0.0 if jumps is None else jumps.rate
     guide = None if jumps is None else jumps.guide
@@ -168,15 +183,21 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
             since = torch.where(jump, 0, torch.where(since >= 0, since + 1, since))
         recorded = k % record_every == 0
         age_before, censored_before = age, censored
+        # the internal state before the window, where a column reads it (a switch off the
+        # thinned steps is known only after the step: kept for every step then)
+        wanted = recorded or keep_switches
         before = (
-            _internal_state(simulator) if recorded and (expected or classes is not None) else None
+            _internal_state(simulator) if wanted and (expected or classes is not None) else None
         )
         x, phi_before, phi_after = _one_step(simulator, state)
         age, censored = tick(age, phi_before, phi_after), censored & (phi_after == phi_before)
-        if not recorded:
+        if not wanted:
             return None
-        # every cell on thinned steps, except those still inside the blackout after a jump
-        rows = ((since < 0) | (since >= blackout)).nonzero().squeeze(1)
+        # every cell on thinned steps (and, keeping switches, every switch on the others),
+        # except those still inside the blackout after a jump
+        settled = (since < 0) | (since >= blackout)
+        switched = phi_after != phi_before
+        rows = (settled if recorded else settled & switched).nonzero().squeeze(1)
         if rows.numel() == 0:
             return None
         values = features_of(internal, x[rows], names).float().cpu().numpy()
@@ -195,6 +216,8 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
             t=np.full(rows.numel(), (k - 1) * dt),
             since_jump=since[rows].cpu().numpy(),
         )
+        if keep_switches:  # a held window stands for record_every, a switch for itself
+            chunk[WINDOWS] = torch.where(switched[rows], 1.0, float(record_every)).cpu().numpy()
         if clock:
             chunk[AGE] = (age_before[rows] * dt).cpu().numpy()
             chunk[CENSORED] = censored_before[rows].cpu().numpy()
@@ -302,6 +325,7 @@ class TransitionCollector:
         #: guided jumps of a sequential design (None: the perturbation as drawn)
         self.guide: GuidedJump | None = None
         self.kept = np.zeros(2, dtype=np.int64)
+        self.record_every = int(options.record_every)
         start = perturbation.start(n_cells, simulator.device)
         max_steps = math.ceil(self.max_time / simulator.dt)
         self._rows = _rows(simulator, n_cells, start, options, max_steps,
@@ -310,15 +334,16 @@ class TransitionCollector:
     def take(self, n_per_state: int) -> pd.DataFrame:
         """Simulate on until ``n_per_state`` more transitions from each origin state are
         recorded; return a random (seeded) subsample of exactly ``n_per_state`` per origin (the
-        rest of the last steps' rows is dropped)."""
+        rest of the last steps' rows is dropped; keeping switches, rows counted as
+        :func:`origin_rows` counts them, ``n_per_state`` in expectation)."""
         chunks: list[dict[str, np.ndarray]] = []
-        counts = np.zeros(2, dtype=np.int64)
+        counts = np.zeros(2, dtype=np.float64)
         bar = tqdm(total=2 * n_per_state, desc="collect transitions", disable=not self.progress,
                    mininterval=1.0)  # fmt: skip
         first = now = None
         for chunk in self._rows:
             chunks.append(chunk)
-            new = np.bincount(chunk["phi"], minlength=2)
+            new = origin_rows(chunk, self.record_every)
             bar.update(int(np.minimum(counts + new, n_per_state).sum()
                            - np.minimum(counts, n_per_state).sum()))  # fmt: skip
             counts += new
@@ -337,12 +362,17 @@ class TransitionCollector:
         if not (counts >= n_per_state).all():
             raise ConfigError(self._shortfall(counts, n_per_state, first, now, early=False))
         table = _table(chunks)
-        # a random (seeded) subsample per origin spreads the kept rows over the whole take
+        # a random (seeded) subsample per origin spreads the kept rows over the whole take;
+        # keeping switches, the same share of each origin's switches and held rows (each row's
+        # windows then stand as they were, n_per_state x record_every per origin within one)
         gen = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
         phi = table["phi"].to_numpy()
+        windows = table[WINDOWS].to_numpy() if WINDOWS in table else np.ones(len(table))
         keep = np.concatenate([
-            np.sort(gen.choice(np.flatnonzero(phi == p), n_per_state, replace=False))
-            for p in (0, 1)
+            np.sort(gen.choice(rows, round(rows.size * min(1.0, n_per_state / counts[p])),
+                               replace=False))
+            for p in (0, 1) for w in np.unique(windows[phi == p])
+            if (rows := np.flatnonzero((phi == p) & (windows == w))).size
         ])  # fmt: skip
         self.kept += n_per_state
         return table.iloc[np.sort(keep)].reset_index(drop=True)
@@ -360,6 +390,7 @@ class TransitionCollector:
         from ``first`` to ``now`` s), with the occupancy measured and the fix that fits: a lump
         almost never (or always) true (``never``, of an ``early`` stop) is changed or inspected;
         a slow but steady rate is given time or cells."""
+        counts = np.rint(counts).astype(np.int64)  # thinned rows (fractional keeping switches)
         lumps, total = self.lump_names, int(counts.sum())
         start = first if first is not None else 0.0
         span = max((now if now is not None else start) - start, self.dt)

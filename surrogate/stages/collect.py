@@ -37,6 +37,7 @@ from surrogate.diagnosis.jumps import (
     settled_rows,
 )
 from surrogate.errors import ConfigError
+from surrogate.gp.windows import origin_rows, row_windows
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.models.base import Perturbation
 from surrogate.models.capabilities import feature_names_of
@@ -91,6 +92,7 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         max_time=float(c["max_time"]),
         blackout=round(float(c.get("blackout_time", 0.0)) / setup.dt),
         expected=settings.expected_labels,
+        keep_switches=settings.keep_switches,
     )
     arguments: dict[str, Any] = {
         "n_cells": int(c["n_cells"]),
@@ -147,12 +149,23 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
         lump_names=list(lumps),
         domain={n: [float(table[n].min()), float(table[n].max())] for n in columns},
         **({"design": design} if design is not None else {}),
+        **_windows_record(table, lumps),
         **({"after_jump": lag} if lag is not None else {}),
         **({"top_up": topped} if topped is not None else {}),
         # the rate later stages price this model's full-model cells at (budget.train_work)
         **({"cost_probe": {k: probed[k] for k in PROBE_RECORD}} if probed is not None else {}),
     )
     log.info("collected %d transitions in %.1f s; artefacts in %s", len(table), wall, out)
+
+
+def _windows_record(table: pd.DataFrame, lumps: Sequence[str]) -> dict[str, Any]:
+    """The manifest's ``windows_per_origin`` where the rows keep every switch (the windows
+    they stand for, :mod:`surrogate.gp.windows`); else nothing."""
+    windows = row_windows(table)
+    if windows is None:
+        return {}
+    phi = table["phi"].to_numpy()
+    return {"windows_per_origin": {lumps[p]: float(windows[phi == p].sum()) for p in (0, 1)}}
 
 
 def top_up(
@@ -184,9 +197,10 @@ def top_up(
     c, dt = settings.options, settings.setup.dt
     if window is None or float(c["blackout_time"]) >= window:
         return table, None
-    phi = table["phi"].to_numpy()
     settled = settled_rows(table["since_jump"].to_numpy(), dt, window)
-    have = [int((settled & (phi == p)).sum()) for p in (0, 1)]
+    # the settled rows per origin as the collection counts them (keeping switches: in thinned
+    # rows, origin_rows)
+    have = [round(v) for v in origin_rows(table[settled], int(c["record_every"]))]
     wanted = int(c["n_per_state"])
     need = wanted - min(have)
     if need <= 0:

@@ -39,7 +39,7 @@ from surrogate.diagnosis.jumps import (
     lagging_window,
     settled_rows,
 )
-from surrogate.errors import ArtefactError, NumericalError
+from surrogate.errors import ArtefactError, ConfigError, NumericalError
 from surrogate.gp import (
     PsiClassifier,
     PsiLookupTable,
@@ -52,6 +52,7 @@ from surrogate.gp import (
     save_psi,
 )
 from surrogate.gp.diagnostics import class_law_errors, plot_psi_errors, psi_errors
+from surrogate.gp.windows import WINDOWS, row_windows
 from surrogate.io import (
     MANIFEST,
     make_once,
@@ -239,6 +240,18 @@ def load_transitions(settings: TrainSettings) -> tuple[pd.DataFrame, str]:
         p = table[label].to_numpy(dtype=np.float64)
         if not (np.isfinite(p).all() and (p >= 0).all() and (p <= 1).all()):
             raise ArtefactError(f"{where}: {label} must be probabilities in [0, 1]")
+    windows = row_windows(table)
+    if windows is not None:
+        if not (np.isfinite(windows).all() and (windows > 0).all()):
+            raise ArtefactError(f"{where}: {WINDOWS} (the windows each row stands for) must be "
+                                f"positive numbers")  # fmt: skip
+        if label not in LABELS:
+            raise ConfigError(
+                f"{where} keeps every switch (collect.keep_switches=true: its rows stand for "
+                f"{WINDOWS} each), which the outcomes' fit weights; {label} is the window's "
+                f"law given its state, which does not need the switches kept: train with "
+                f"gp.labels=outcome, or collect with collect.keep_switches=false"
+            )
     if left_out is not None:
         table.attrs["jump_rows"] = left_out
     return table, where
@@ -416,7 +429,8 @@ def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, A
     phi = table["phi"].to_numpy(dtype=np.int64)
     switched = phi != table["phi_next"].to_numpy(dtype=np.int64)
     values = table[names].to_numpy(dtype=np.float64)
-    return TrainingHistogram.of_rows(values, phi, switched, names).as_dict()
+    return TrainingHistogram.of_rows(values, phi, switched, names,
+                                     windows=row_windows(table)).as_dict()  # fmt: skip
 
 
 def class_support(table: pd.DataFrame, settings: TrainSettings) -> dict[str, Any]:
@@ -446,7 +460,8 @@ def support_class_histogram(
     origin = table[CLASS].to_numpy(dtype=np.int64)
     moved = origin != table[CLASS_NEXT].to_numpy(dtype=np.int64)
     values = table[names].to_numpy(dtype=np.float64)
-    return TrainingHistogram.of_rows(values, origin, moved, names, classes).as_dict()
+    return TrainingHistogram.of_rows(values, origin, moved, names, classes,
+                                     windows=row_windows(table)).as_dict()  # fmt: skip
 
 
 def _train(

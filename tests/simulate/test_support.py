@@ -572,3 +572,18 @@ def test_a_two_state_runs_report_keeps_its_keys() -> None:
         report
     )
     assert hist.as_dict().keys() == {"inputs", "lo", "hi", "bins", "joint", "counts", "switching"}
+
+
+@pytest.mark.parametrize("names", [["a"], ["a", "b", "c"]])  # joint, and marginal per input
+def test_rows_standing_for_several_windows_count_as_that_many(names) -> None:
+    """A collection that keeps every switch: each row counted as the windows it stands for,
+    in the counts and the switching shares alike, as the rows replicated that many times."""
+    rng = np.random.default_rng(3)
+    values = rng.random((300, len(names)))
+    phi, switched = rng.integers(0, 2, 300), rng.random(300) < 0.2
+    windows = np.where(switched, 1, rng.integers(2, 6, 300))
+    copies = np.repeat(np.arange(300), windows)
+    weighted = TrainingHistogram.of_rows(values, phi, switched, names, windows=windows)
+    replicated = TrainingHistogram.of_rows(values[copies], phi[copies], switched[copies], names)
+    assert weighted.counts == replicated.counts
+    assert weighted.switching == pytest.approx(replicated.switching, rel=1e-12)

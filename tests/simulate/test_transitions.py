@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import torch
 
 from surrogate.fields import GaussianField
@@ -113,3 +114,58 @@ def test_recorded_switch_clocks_follow_each_cells_phi() -> None:
     torch.manual_seed(6)
     plain = record_occupancy(_simulator("torch"), 20, 1.0, (2.0, 0.0), 1, 1.0)
     assert AGE not in plain and CENSORED not in plain
+
+
+def test_keeping_switches_records_every_switch_and_the_thinned_rows_weighted() -> None:
+    """collect.keep_switches with record_every=4 records, from one seed, exactly the windows
+    of an every-window collection that fall on the thinned steps or changed phi (recording
+    draws no random numbers), each carrying the windows it stands for: 4 where phi held, 1
+    where it changed."""
+    from surrogate.gp.windows import WINDOWS
+    from surrogate.simulate.transitions import _Jumps, _rows
+
+    model = EcoliModel()
+    tables = []
+    for options in (CollectOptions(record_every=1, equilibration_time=1.0, blackout=4),
+                    CollectOptions(record_every=4, equilibration_time=1.0, blackout=4,
+                                   keep_switches=True)):  # fmt: skip
+        torch.manual_seed(7)
+        sim = _simulator("torch")
+        perturbation = model.body.perturbation(sim.field, model.perturbation_options)
+        start = perturbation.start(200, sim.device)
+        chunks = list(_rows(sim, 200, start, options, 200, _Jumps(perturbation, 0.5)))
+        tables.append(pd.DataFrame({k: np.concatenate([c[k] for c in chunks])
+                                    for k in chunks[0]}))  # fmt: skip
+    every, kept = tables
+    assert WINDOWS not in every.columns
+    step = np.rint(every["t"].to_numpy() / 0.05).astype(np.int64) + 1  # the step k recorded
+    switched = every["phi"] != every["phi_next"]
+    expected = every[(step % 4 == 0) | switched]
+    assert switched.sum() > 200 and (~switched & (step % 4 != 0)).sum() > 1000
+    for column in ("cell", "t", "phi", "phi_next", "since_jump"):
+        np.testing.assert_array_equal(kept[column].to_numpy(), expected[column].to_numpy())
+    np.testing.assert_array_equal(kept[WINDOWS].to_numpy(),
+                                  np.where(kept["phi"] != kept["phi_next"], 1.0, 4.0))  # fmt: skip
+
+
+def test_a_take_that_keeps_switches_counts_thinned_rows() -> None:
+    """collect_transitions keeping switches stops when each origin's rows, counted as a
+    thinned collection counts them (windows / record_every), reach n_per_state, and keeps the
+    same share of switches and held rows: the windows kept per origin are n_per_state x
+    record_every within 3 windows (half a held row and half a switch)."""
+    from surrogate.gp.windows import WINDOWS, origin_rows
+
+    model = EcoliModel()
+    torch.manual_seed(8)
+    sim = _simulator("torch")
+    perturbation = model.body.perturbation(sim.field, model.perturbation_options)
+    table = collect_transitions(sim, perturbation, n_cells=300, n_per_state=2000,
+                                perturb_rate=0.1, progress=False,
+                                options=CollectOptions(record_every=5, equilibration_time=1.0,
+                                                       keep_switches=True))  # fmt: skip
+    assert WINDOWS in table.columns
+    np.testing.assert_allclose(origin_rows(table, 5), [2000, 2000], atol=0.6)
+    switched = table["phi"] != table["phi_next"]
+    assert (table.loc[switched, WINDOWS] == 1.0).all() and (
+        table.loc[~switched, WINDOWS] == 5
+    ).all()

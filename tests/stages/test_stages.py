@@ -824,3 +824,28 @@ def test_the_k_lumps_chain_trains_is_diagnosed_and_simulates(compose_cfg, caplog
     assert "support_class_histogram" not in train.validate(cfg).fit_identity()
     report = run.manifest["outside_training"]
     assert report["classes"] == list(chain.class_names) and "sparse_class" in report
+
+
+def test_a_collection_that_keeps_every_switch_trains_and_says_so(compose_cfg) -> None:
+    """collect.keep_switches=true through the stages: the table holds every switch of its
+    simulated time and the thinned held rows, each with its windows; the manifest records the
+    windows per origin; train fits psi on the outcomes, its support histogram counting windows."""
+    import json
+
+    from surrogate.gp.windows import WINDOWS
+
+    keep = ["collect.keep_switches=true", "collect.record_every=5"]
+    out = collect.run(compose_cfg("collect", [*[o for o in TINY if o.startswith("collect")],
+                                              *keep]))  # fmt: skip
+    table = pd.read_parquet(out / "transitions.parquet")
+    switched = table["phi"] != table["phi_next"]
+    assert set(table.loc[switched, WINDOWS]) == {1.0} and set(table.loc[~switched, WINDOWS]) == {
+        5.0
+    }
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert sum(manifest["windows_per_origin"].values()) == pytest.approx(table[WINDOWS].sum())
+    fit = train.run(compose_cfg("train", [*_train_overrides(), *keep, "gp=svgp"]))
+    meta = json.loads((fit / "manifest.json").read_text())
+    assert meta["label_column"] == "phi_next"  # E. coli's expected labels not recorded
+    per_state = meta["support_histogram"]["counts"]
+    assert sum(map(sum, per_state)) == pytest.approx(table[WINDOWS].sum(), abs=2)

@@ -144,10 +144,19 @@ class CollectSettings:
         expected = c.get("expected_labels", False)
         if not isinstance(expected, bool):
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
+        keep = c.setdefault("keep_switches", False)
+        if not isinstance(keep, bool):
+            raise ConfigError(f"collect.keep_switches must be true or false (true: every window "
+                              f"where phi changes recorded besides the thinned ones, each row "
+                              f"weighted by the windows it stands for), got {keep!r}")  # fmt: skip
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
         out = cls(setup, c, Job.from_config(cfg) if job is None else job, given=given)
         design = _design_options(cfg, c, rate)
+        if design is not None and keep:
+            raise ConfigError("collect.keep_switches=true with a sequential design "
+                              "(collect.design.target_error): its rounds' fits weigh every row "
+                              "once; use one or the other")  # fmt: skip
         if design is not None:
             if fits is None:
                 raise TypeError("collect.design.target_error is set: build the collect settings "
@@ -181,7 +190,15 @@ class CollectSettings:
         from surrogate.simulate.transitions import can_expect
 
         wanted = bool(self.options.get("expected_labels", False))
-        return wanted and can_expect(self.setup.model.internal)
+        return wanted and not self.keep_switches and can_expect(self.setup.model.internal)
+
+    @property
+    def keep_switches(self) -> bool:
+        """Whether every window where phi changes is recorded besides the thinned ones
+        (``collect.keep_switches``; its rows then carry the windows each stands for,
+        :mod:`surrogate.gp.windows`, and no expected labels: a window's law given its state
+        is not what the switches are kept for)."""
+        return bool(self.options.get("keep_switches", False))
 
     @property
     def target_error(self) -> float | None:
@@ -242,9 +259,11 @@ class CollectSettings:
 def identity_options(options: Mapping[str, Any]) -> dict[str, Any]:
     """The collect ``options`` that define a table: all but :data:`NOT_IDENTITY`, and
     ``top_up`` at its default (a collection whose rows did not lag is the same table with it;
-    one that lagged, made before the key, is read as it was: delete it to top it up)."""
+    one that lagged, made before the key, is read as it was: delete it to top it up), nor
+    ``keep_switches`` at its default (false: the tables made before the key)."""
     return {k: v for k, v in options.items()
-            if k not in NOT_IDENTITY and not (k == "top_up" and v == "auto")}  # fmt: skip
+            if k not in NOT_IDENTITY and not (k == "top_up" and v == "auto")
+            and not (k == "keep_switches" and v is False)}  # fmt: skip
 
 
 #: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)

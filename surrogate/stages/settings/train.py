@@ -96,10 +96,16 @@ def _check_labels(
     expected = isinstance(source, CollectSettings) and source.expected_labels
     if not gp_config.get("bins") and (labels == "expected" or (labels == "auto" and expected)):
         raise ConfigError(bins_labels_conflict(labels))  # minibatches read 0/1 labels only
+    if not gp_config.get("bins") and isinstance(source, CollectSettings) and source.keep_switches:
+        raise ConfigError("collect.keep_switches=true weights each row by the windows it stands "
+                          "for, which binned training reads; gp.bins=0 (minibatches) counts "
+                          "each row once: set gp.bins > 0 or collect.keep_switches=false")  # fmt: skip
     if labels == "expected" and isinstance(source, CollectSettings) and not expected:
         why = (
             "collect.expected_labels=false"
             if not source.options.get("expected_labels", False)
+            else "collect.keep_switches=true records none"
+            if source.keep_switches
             else f"model {model_name!r} gives none (no expected_phi_next)"
         )
         raise ConfigError(
