@@ -342,7 +342,11 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
                      f"{summary['lump_names'][0]}) and {sw[1]:.3g} (from "
                      f"{summary['lump_names'][1]}) of windows at the median inputs, so "
                      f"{summary['settings']['min_switches']:,} switches per origin need "
-                     f"{max(col['rows_needed']):.3g} rows per origin: {more} (now "
+                     f"{max(col['rows_needed']):.3g} rows per origin"
+                     + (f" (every switch kept, collect.keep_switches: a row stands for "
+                        f"{col['windows_per_row']} windows)"
+                        if col.get("windows_per_row", 1) > 1 else "")
+                     + f": {more} (now "
                      f"{col['n_per_state']}), ~{col['cost_s']:.3g} s at the measured events; "
                      f"{timing}.")  # fmt: skip
         dense = col.get("dense")

@@ -260,7 +260,9 @@ def collection_budget(
     switching probability per window measured at the median inputs, what collecting them
     costs, and the simulated time it takes at the population's occupancy of each lump.
 
-    Where collect thins its rows (``record_every`` k > 1) and recording every window would
+    Where collect keeps every switch (``collect.keep_switches``), a row counts the switches of
+    the ``record_every`` windows it stands for. Where it thins them without (``record_every``
+    k > 1) and recording every window would
     save more than :data:`DENSE_SAVING_S` of simulation, that is offered first (``dense``):
     the same rows, so the same switches, from 1/k of the simulated time (each window is one
     Bernoulli draw of psi whether or not its neighbours are kept; what thinning buys is rows
@@ -270,16 +272,21 @@ def collection_budget(
     if source is None:
         return {}
     c = source.options
-    needed = [math.ceil(o.min_switches / p) if p > 0 else math.inf for p in fixed.switch]
+    # keeping every switch (collect.keep_switches) a thinned row brings the switches of the
+    # record_every windows it stands for
+    per_row = int(c["record_every"]) if source.keep_switches else 1
+    needed = [math.ceil(o.min_switches / (p * per_row)) if p > 0 else math.inf
+              for p in fixed.switch]  # fmt: skip
     rows = max(needed)
     out: dict[str, Any] = {"switch_per_window": fixed.switch.tolist(), "rows_needed": needed,
-                           "n_per_state": int(c["n_per_state"])}  # fmt: skip
+                           "n_per_state": int(c["n_per_state"]),
+                           "windows_per_row": per_row}  # fmt: skip
     if not math.isfinite(rows):
         return out
     out["recommended_n_per_state"] = max(int(rows), int(c["n_per_state"]))
     out.update(_collection_time(settings, source, population, measured_step,
                                 out["recommended_n_per_state"], int(c["record_every"])))  # fmt: skip
-    if int(c["record_every"]) > 1:
+    if int(c["record_every"]) > 1 and not source.keep_switches:  # else every switch is kept
         dense = _collection_time(settings, source, population, measured_step,
                                  out["recommended_n_per_state"], 1)  # fmt: skip
         if out["cost_s"] - dense["cost_s"] > DENSE_SAVING_S:

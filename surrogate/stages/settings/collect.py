@@ -20,6 +20,7 @@ from surrogate.io import MANIFEST, artefact_dir
 from surrogate.models.capabilities import (
     class_count_of,
     expected_class_next_of,
+    expected_phi_next_of,
     feature_names_of,
 )
 from surrogate.stages.settings.common import (
@@ -42,6 +43,10 @@ PROBE_SECONDS = 3.0
 #: collect keys that change how a collection is checked, not the table: kept out of its identity
 #: (and so of its directory's name and of every identity built on it)
 NOT_IDENTITY = ("probe_seconds",)
+#: ``collect.keep_switches``: auto is true where the rows are thinned (``record_every`` > 1),
+#: carry no expected labels (the model gives none, or ``collect.expected_labels=false``) and no
+#: sequential design is asked for
+KEEP_SWITCHES = ("auto", True, False)
 #: ``collect.top_up``: where rows lag a jump within the measured window, record settled rows
 #: until each origin has ``n_per_state`` of them (auto), or keep the table as collected (off)
 TOP_UP = ("auto", "off")
@@ -144,11 +149,17 @@ class CollectSettings:
         expected = c.get("expected_labels", False)
         if not isinstance(expected, bool):
             raise ConfigError(f"collect.expected_labels must be true or false, got {expected!r}")
-        keep = c.setdefault("keep_switches", False)
-        if not isinstance(keep, bool):
-            raise ConfigError(f"collect.keep_switches must be true or false (true: every window "
-                              f"where phi changes recorded besides the thinned ones, each row "
-                              f"weighted by the windows it stands for), got {keep!r}")  # fmt: skip
+        keep = c.get("keep_switches", "auto")
+        if keep not in KEEP_SWITCHES or (keep in (0, 1) and not isinstance(keep, bool)):
+            raise ConfigError(f"collect.keep_switches must be auto, true or false (true: every "
+                              f"window where phi changes recorded besides the thinned ones, "
+                              f"each row weighted by the windows it stands for; auto: true "
+                              f"where the rows are thinned and carry no expected labels), got "
+                              f"{keep!r}")  # fmt: skip
+        if keep == "auto":
+            keep = (int(c["record_every"]) > 1 and not _design_asked(c)
+                    and not (expected and expected_phi_next_of(setup.model.internal) is not None))  # fmt: skip
+        c["keep_switches"] = keep
         # the body checks its own perturbation options now, not after simulating
         setup.model.body.perturbation(setup.field, setup.model.perturbation_options)
         out = cls(setup, c, Job.from_config(cfg) if job is None else job, given=given)
@@ -187,10 +198,9 @@ class CollectSettings:
     def expected_labels(self) -> bool:
         """Whether the table gets the expected labels (``collect.expected_labels`` and a model
         whose internal model gives them)."""
-        from surrogate.simulate.transitions import can_expect
-
         wanted = bool(self.options.get("expected_labels", False))
-        return wanted and not self.keep_switches and can_expect(self.setup.model.internal)
+        return (wanted and not self.keep_switches
+                and expected_phi_next_of(self.setup.model.internal) is not None)  # fmt: skip
 
     @property
     def keep_switches(self) -> bool:
@@ -264,6 +274,12 @@ def identity_options(options: Mapping[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in options.items()
             if k not in NOT_IDENTITY and not (k == "top_up" and v == "auto")
             and not (k == "keep_switches" and v is False)}  # fmt: skip
+
+
+def _design_asked(options: Mapping[str, Any]) -> bool:
+    """Whether ``options`` ask for a sequential design (``design.target_error`` set)."""
+    design = options.get("design")
+    return isinstance(design, Mapping) and design.get("target_error") is not None
 
 
 #: keys of ``collect.design`` (the sequential design; surrogate/stages/design.py)
