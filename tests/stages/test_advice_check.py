@@ -545,7 +545,7 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     assert inspection.check_printed(config, {}, {}, {}, True, balanced) == []
     # the collection: the rows alone; a run too short; rows no memory holds (refused); the
     # memory a table may take pinned at 24 GiB (this box's size), not the free memory of the
-    # moment (the run too short needs 16.1 GiB: refused on a box with 16.0 GiB free)
+    # moment (the run too short needs ~17 GiB: refused on a box with 16.0 GiB free)
     from surrogate.stages.settings import common
 
     monkeypatch.setattr(common, "free_memory_bytes", lambda: 24 * 2**30)
@@ -553,23 +553,37 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     settings = InspectSettings.from_config(icfg)
     options = InspectOptions.from_mapping(settings.options)
     population = SimpleNamespace(fields={"gaussian": {"phi_share": 0.5}})
-    for switch, fits in ((0.05, "rows"), (1e-3, "time"), (1e-9, "refused")):
+    # the network's thinned rows keep every switch (collect.keep_switches=auto): a row brings
+    # its 10 windows' switches, so 30,000 switches at 0.005 per window need 600,000 rows
+    for switch, fits in ((5e-3, "rows"), (1e-4, "time"), (1e-9, "refused")):
         collection = inspection.collection_budget(settings, options, _fixed(switch=np.full(2, switch)),
                                                   population, 1e-5)  # fmt: skip
         refusals = inspection.check_printed(to_dict(icfg), {}, {}, collection, True)
         sets = recommendation.collection_overrides(collection)
+        assert collection["windows_per_row"] == 10 and "dense" not in collection
         if fits == "refused":
             assert collection["advised"] == [] and "GiB" in collection["refused"], refusals
         else:
             assert refusals == [] and collection["advised"] == sets, (fits, refusals)
-            # a run too short at collect's thinning (every 10th window): first every window
-            # recorded, the same rows from a tenth of the simulation, which fits max_time here
-            assert sets[0] == (
-                ["collect.n_per_state=30000000", "collect.record_every=1"]
-                if fits == "time"
-                else ["collect.n_per_state=600000"]
-            ), sets
-            assert len(sets) == (3 if fits == "time" else 1), collection
+            # a run too short: the longer run first, then more cells
+            rows = "collect.n_per_state=" + ("30000000" if fits == "time" else "600000")
+            assert sets[0][0] == rows, sets
+            assert len(sets) == (2 if fits == "time" else 1), collection
+            if fits == "time":
+                assert sets[0][1].startswith("collect.max_time=")
+                assert sets[1][1].startswith("collect.n_cells=")
+    # without (collect.keep_switches=false), a run too short at collect's thinning (every 10th
+    # window) is first offered every window recorded: the same rows from a tenth of the time
+    tcfg = compose_cfg(
+        "inspect", ["model=sbml", f"model.spec={spec}", "collect.keep_switches=false"]
+    )
+    thinned = InspectSettings.from_config(tcfg)
+    collection = inspection.collection_budget(thinned, options, _fixed(switch=np.full(2, 1e-3)),
+                                              population, 1e-5)  # fmt: skip
+    sets = recommendation.collection_overrides(collection)
+    assert inspection.check_printed(to_dict(tcfg), {}, {}, collection, True) == []
+    assert sets[0] == ["collect.n_per_state=30000000", "collect.record_every=1"], sets
+    assert len(sets) == 3 and collection["windows_per_row"] == 1
     assert len(checks) >= 10  # the distinct settings checked
 
 

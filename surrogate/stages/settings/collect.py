@@ -191,8 +191,8 @@ class CollectSettings:
         if (self.directory / MANIFEST).exists():
             return
         internal = self.setup.model.internal
-        check_table_memory(int(self.options["n_per_state"]),
-                           len(internal.input_names) + len(feature_names_of(internal)) + 7)  # fmt: skip
+        columns = len(internal.input_names) + len(feature_names_of(internal)) + 7
+        check_table_memory(int(self.options["n_per_state"]), columns + self.keep_switches)
 
     @property
     def expected_labels(self) -> bool:
