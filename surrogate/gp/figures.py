@@ -17,6 +17,7 @@ import pandas as pd
 import torch
 
 from surrogate.gp.lookup import PsiFunction
+from surrogate.gp.windows import row_windows
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -72,18 +73,22 @@ def binned_frequencies(
     data: pd.DataFrame, name: str, phi: int, bins: int = 30
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centres, frequency of phi' = 1 and its binomial s.e. of the transitions from ``phi`` in
-    equal-count bins of input ``name`` (the data's own estimate of psi)."""
+    equal-count bins of input ``name`` (the data's own estimate of psi); rows that stand for
+    several windows (a collection that keeps every switch) weighted by them."""
     rows = data[data["phi"] == phi]
     x = rows[name].to_numpy(float)
     y = rows["phi_next"].to_numpy(float)
     if x.size == 0:
         return np.empty(0), np.empty(0), np.empty(0)
+    windows = row_windows(rows)
+    w = np.ones_like(x) if windows is None else windows
     edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
     idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
-    count = np.bincount(idx, minlength=len(edges) - 1)
+    count = np.bincount(idx, weights=w, minlength=len(edges) - 1)
     ok = count > 0
-    freq = np.bincount(idx, weights=y, minlength=len(edges) - 1)[ok] / count[ok]
-    centre = np.bincount(idx, weights=x, minlength=len(edges) - 1)[ok] / count[ok]
+    freq = np.bincount(idx, weights=y * w, minlength=len(edges) - 1)[ok] / count[ok]
+    centre = np.bincount(idx, weights=x * w, minlength=len(edges) - 1)[ok] / count[ok]
+    # the binomial s.e. of a bin's windows (of its switches, where every one is kept)
     se = np.sqrt(freq * (1 - freq) / count[ok])
     return centre, freq, se
 

@@ -99,3 +99,16 @@ def test_origin_rows_count_a_switch_as_a_fraction_of_a_thinned_row() -> None:
     np.testing.assert_allclose(origin_rows(table, 5), [1.4, 1.0])
     assert row_windows({"phi": [0]}) is None
     np.testing.assert_allclose(origin_rows({"phi": np.array([0, 1, 1])}, 5), [1.0, 2.0])
+
+
+def test_the_figures_data_frequencies_read_the_windows() -> None:
+    """psi's figure overlays the data's own switching frequency: on kept switches, weighted,
+    each of two bins within 4 binomial s.e. of the windows' rate there (unweighted: ~7x)."""
+    from surrogate.gp import binned_frequencies
+
+    rows = case_control(telegraph(200_000, 4), 10, 5)
+    centre, freq, se = binned_frequencies(rows, "x", phi=0, bins=2)
+    true = 0.02 + 0.04 * centre
+    assert (np.abs(freq - true) < 4 * se).all(), (freq, true, se)
+    _, plain, _ = binned_frequencies(rows.drop(columns=WINDOWS), "x", phi=0, bins=2)
+    assert (plain > 4 * true).all()
