@@ -64,8 +64,9 @@ def bin_inputs(
 
     Returns the occupied bins' mean inputs ``b x d``, point counts ``n_b`` and counts of y = 1
     ``k_b``; with ``rows`` (``n``), each point counts as that many (the windows a row of a
-    collection that keeps every switch stands for), in the counts and the means alike. With one input and hundreds of bins the bins are far narrower than any lengthscale
-    psi varies on, so placing a bin's points at their mean changes the fit negligibly, while a
+    collection that keeps every switch stands for), in the counts and the means alike. With
+    one input and hundreds of bins the bins are far narrower than any lengthscale psi varies
+    on, so placing a bin's points at their mean changes the fit negligibly, while a
     full-batch step on ~``bins`` rows is cheap enough to converge (minibatch training on the
     points left the fit measurably off; see docs/fidelity.md).
     """

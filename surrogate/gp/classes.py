@@ -159,9 +159,8 @@ def class_problems(
     """The binary problems :func:`fit_class_law` fits (its arguments, which see): each
     ``(z, y, outcomes)`` (``n x d``, ``n``, ``n``), with the windows each row stands for
     where the table has them (:func:`~surrogate.gp.windows.row_windows`), and its likelihood
-    weight; the plan, per
-    origin class its destinations' problem index (int) or constant rate (float); and the
-    metrics so far."""
+    weight; the plan, per origin class its destinations' problem index (int) or constant rate
+    (float, in windows); and the metrics so far."""
     origin, destination, min_events = options.origin, options.destination, options.min_events
     names = list(input_names)
     missing = [c for c in (*names, origin, destination) if c not in data.columns]
