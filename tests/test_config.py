@@ -321,7 +321,7 @@ def test_group_config_is_composed_once_per_version_of_its_files(tmp_path, monkey
 
 
 def test_keep_switches_is_checked_and_leaves_the_default_identity_alone(compose_cfg) -> None:
-    """collect.keep_switches: auto, true or false; auto is false for E. coli's thinned rows with
+    """collect.keep_switches: auto, true or false (false by default); auto is false for E. coli's thinned rows with
     expected labels, true without them, false where every window is recorded; false leaves a
     collection's identity (its directory) as before the key; true names another table, records no expected labels (gp.labels=expected
     is refused saying why) and is refused with minibatch training and with a sequential
@@ -331,11 +331,15 @@ def test_keep_switches_is_checked_and_leaves_the_default_identity_alone(compose_
     kept = CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=true"]))
     assert kept.keep_switches and kept.directory != plain.directory
     assert plain.expected_labels and not kept.expected_labels
-    no_labels = CollectSettings.from_config(compose_cfg("collect",
-                                                        ["collect.expected_labels=false"]))  # fmt: skip
+    no_labels = CollectSettings.from_config(compose_cfg("collect", ["collect.expected_labels=false",
+                                                                    "collect.keep_switches=auto"]))  # fmt: skip
+    assert not CollectSettings.from_config(
+        compose_cfg("collect", ["collect.expected_labels=false"])
+    ).keep_switches  # default: false
     assert no_labels.keep_switches  # auto: thinned rows without expected labels keep switches
     every = CollectSettings.from_config(compose_cfg("collect", ["collect.expected_labels=false",
-                                                                "collect.record_every=1"]))  # fmt: skip
+                                                                "collect.record_every=1",
+                                                                "collect.keep_switches=auto"]))  # fmt: skip
     assert not every.keep_switches  # every window recorded: nothing more to keep
     with pytest.raises(ConfigError, match="collect.keep_switches must be auto, true or false"):
         CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=3"]))

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -18,7 +17,6 @@ from examples.python_model.gene_switch import GeneSwitchModel
 from examples.python_model.minimal import TelegraphInternal, TelegraphModel
 from surrogate.config import CONF_DIR, build_model, group_config, validate_start
 from surrogate.errors import ConfigError
-from surrogate.gp.windows import WINDOWS, origin_rows
 from surrogate.models import Randoms
 from surrogate.models.capabilities import (
     concat_states_of,
@@ -116,10 +114,7 @@ def test_the_minimal_model_runs_through_collect_train_and_simulate(tmp_path) -> 
     cfg = config(tmp_path / "data")
     table = pd.read_parquet(collect.run(cfg) / "transitions.parquet")
     assert {"s", "phi", "phi_next"} <= set(table.columns)
-    # a network's thinned rows keep every switch (collect.keep_switches=auto): 1,500 thinned
-    # rows per origin, a switch off the thinned steps counting 1 / record_every of one
-    every = int(table[WINDOWS].max())
-    np.testing.assert_allclose(origin_rows(table, every), [1500, 1500], atol=0.6)
+    assert (table["phi"] == 0).sum() == 1500 and (table["phi"] == 1).sum() == 1500
     train_dir = train.run(cfg)
     assert train.load_abstraction(train_dir).lump_names == ("off", "on")
     assert train.read_metrics(train_dir)["diagnostic"]["reference"] != "exact"

@@ -549,11 +549,13 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     from surrogate.stages.settings import common
 
     monkeypatch.setattr(common, "free_memory_bytes", lambda: 24 * 2**30)
-    icfg = compose_cfg("inspect", ["model=sbml", f"model.spec={spec}"])
+    icfg = compose_cfg(
+        "inspect", ["model=sbml", f"model.spec={spec}", "collect.keep_switches=auto"]
+    )
     settings = InspectSettings.from_config(icfg)
     options = InspectOptions.from_mapping(settings.options)
     population = SimpleNamespace(fields={"gaussian": {"phi_share": 0.5}})
-    # the network's thinned rows keep every switch (collect.keep_switches=auto): a row brings
+    # the network's thinned rows keeping every switch (collect.keep_switches=auto): a row brings
     # its 10 windows' switches, so 30,000 switches at 0.005 per window need 600,000 rows
     for switch, fits in ((5e-3, "rows"), (1e-4, "time"), (1e-9, "refused")):
         collection = inspection.collection_budget(settings, options, _fixed(switch=np.full(2, switch)),
