@@ -72,14 +72,19 @@ def bin_inputs(
     """
     d = z.shape[1]
     index, size = _bin_index(z, bins)
-    w = None if rows is None else rows.to(z.dtype).reshape(-1)
-    n_b = (torch.bincount(index, minlength=size).to(z.dtype) if w is None
-           else torch.bincount(index, weights=w, minlength=size))  # fmt: skip
-    k_b = torch.bincount(index, weights=y.to(z.dtype) * (1.0 if w is None else w), minlength=size)
+    # the labels and inputs summed per bin as one stack of columns, weighted once where rows are
+    columns = torch.cat([y.to(z.dtype).reshape(-1, 1), z], 1)
+    if rows is None:
+        n_b = torch.bincount(index, minlength=size).to(z.dtype)
+    else:
+        w = rows.to(z.dtype).reshape(-1)
+        n_b = torch.bincount(index, weights=w, minlength=size)
+        columns = columns * w.unsqueeze(1)
     sums = torch.stack(
-        [torch.bincount(index, weights=z[:, j] * (1.0 if w is None else w), minlength=size)
-         for j in range(d)], 1
-    )  # fmt: skip
+        [torch.bincount(index, weights=columns[:, j], minlength=size) for j in range(d + 1)], 1
+    )
+    k_b = sums[:, 0]
+    sums = sums[:, 1:]
     keep = n_b > 0
     return sums[keep] / n_b[keep].unsqueeze(1), n_b[keep], k_b[keep]
 

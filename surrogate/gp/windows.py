@@ -26,6 +26,20 @@ def row_windows(table: Mapping[str, Any]) -> np.ndarray | None:
     return np.asarray(table[WINDOWS], dtype=np.float64) if WINDOWS in table else None
 
 
+def origin_windows(table: Mapping[str, Any]) -> np.ndarray | None:
+    """The windows the rows from each origin (phi = 0, 1) stand for, or None where rows carry
+    no :data:`WINDOWS` column.
+
+    Example:
+        >>> origin_windows({"phi": [0, 0, 1], "windows": [10.0, 1.0, 10.0]})
+        array([11., 10.])
+    """
+    windows = row_windows(table)
+    if windows is None:
+        return None
+    return np.bincount(np.asarray(table["phi"], dtype=np.int64), weights=windows, minlength=2)
+
+
 def origin_rows(table: Mapping[str, Any], record_every: int) -> np.ndarray:
     """The rows from each origin (phi = 0, 1) as a thinned collection counts them: the rows
     themselves, or, where rows carry :data:`WINDOWS` (every switch kept), their windows over
@@ -35,11 +49,11 @@ def origin_rows(table: Mapping[str, Any], record_every: int) -> np.ndarray:
         >>> origin_rows({"phi": [0, 0, 1], "windows": [10.0, 1.0, 10.0]}, 10)
         array([1.1, 1. ])
     """
-    phi = np.asarray(table["phi"], dtype=np.int64)
-    windows = row_windows(table)
+    windows = origin_windows(table)
     if windows is None:
+        phi = np.asarray(table["phi"], dtype=np.int64)
         return np.bincount(phi, minlength=2).astype(np.float64)
-    return np.bincount(phi, weights=windows, minlength=2) / record_every
+    return windows / record_every
 
 
-__all__ = ["WINDOWS", "origin_rows", "row_windows"]
+__all__ = ["WINDOWS", "origin_rows", "origin_windows", "row_windows"]

@@ -37,7 +37,7 @@ from surrogate.diagnosis.jumps import (
     settled_rows,
 )
 from surrogate.errors import ConfigError
-from surrogate.gp.windows import origin_rows, row_windows
+from surrogate.gp.windows import origin_rows, origin_windows
 from surrogate.io import MANIFEST, make_once, save_figure, write_manifest, write_parquet
 from surrogate.models.base import Perturbation
 from surrogate.models.capabilities import feature_names_of
@@ -161,11 +161,10 @@ def _collect(settings: CollectSettings, out: Path, config: Mapping[str, Any] | N
 def _windows_record(table: pd.DataFrame, lumps: Sequence[str]) -> dict[str, Any]:
     """The manifest's ``windows_per_origin`` where the rows keep every switch (the windows
     they stand for, :mod:`surrogate.gp.windows`); else nothing."""
-    windows = row_windows(table)
+    windows = origin_windows(table)
     if windows is None:
         return {}
-    phi = table["phi"].to_numpy()
-    return {"windows_per_origin": {lumps[p]: float(windows[phi == p].sum()) for p in (0, 1)}}
+    return {"windows_per_origin": {lumps[p]: float(windows[p]) for p in (0, 1)}}
 
 
 def top_up(

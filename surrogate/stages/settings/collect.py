@@ -187,7 +187,10 @@ class CollectSettings:
         """Refuse a collection whose table cannot fit in the free memory while it is collected
         (:func:`~surrogate.stages.settings.common.check_table_memory`). One already made is
         read, not collected: not refused (a fidelity run was, after its own choice's fits on
-        12.7 million rows per origin had left 5.4 GiB free)."""
+        12.7 million rows per origin had left 5.4 GiB free). A collection that keeps every
+        switch is priced at its thinned rows plus the weights' column: its extra switch rows,
+        ``record_every`` x phi's switching share per window of them (+30 % at 3 % and 10), are
+        not known before it runs, so for it the check is a floor, not a bound."""
         if (self.directory / MANIFEST).exists():
             return
         internal = self.setup.model.internal
