@@ -82,7 +82,12 @@ from surrogate.simulate.support import describe_sparse_where, sparse_share, warn
 from surrogate.stages import reference
 from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
-from surrogate.stages.reference import ReferenceSettings
+from surrogate.stages.reference import (
+    FIELD_SEED_STRIDE,
+    ReferenceSettings,
+    field_seed,
+    streams_of,
+)
 from surrogate.stages.runs import RunPlan, RunResult, mean_observables, simulate_runs
 from surrogate.stages.settings import (
     FIDELITY_CMD,
@@ -340,6 +345,15 @@ def _stored_references(
     return settings
 
 
+def field_stream(options: Mapping[str, Any], run_seed: int, field: str) -> int:
+    """The seed a run whose stream is ``run_seed`` (the full model, its floor, a chain) draws
+    from on ``field``, under the fidelity ``options``: moved by the field's place in
+    ``fidelity.fields`` where ``fidelity.streams`` is ``per_field``
+    (:func:`~surrogate.stages.reference.field_seed`, the rule stored references are made by)."""
+    fields = [str(x) for x in options["fields"]]
+    return field_seed(run_seed, fields.index(field), streams_of(options))
+
+
 def _chain_seeds(settings: FidelitySettings) -> str:
     """Each abstraction's chain seed, e.g. ``seed 0: 8000, seed 1: 8001``."""
     return ", ".join(f"{c.label}: {chain_seed(settings.options, c)}" for c in settings.candidates)
@@ -349,23 +363,28 @@ def _check_streams(f: Mapping[str, Any], candidates: list[Candidate]) -> None:
     """Every run of the check on its own stream: the full model, its floor, the exact chains
     and each abstraction's chains (and repeats) at distinct, non-negative seeds."""
     seed, offset = int(f["sim_seed"]), int(f.get("noise_seed_offset", 1000))
-    runs = {
-        seed: "the full model",
-        seed + offset: "the noise floor",
-        seed + 2 * offset: "the exact chain",
-    }
-    for c in candidates:
-        for again in range(int(f.get("chain_repeats", 1))):
-            s = chain_seed(f, c, again)
-            what = c.label + (f" (repeat {again})" if again else "")
-            if s < 0 or s in runs:
-                raise ConfigError(
-                    f"fidelity: {what} would draw its chains from seed {s}, "
-                    + ("negative" if s < 0 else f"the seed of {runs[s]}")
-                    + ": choose a fidelity.sim_seed or noise_seed_offset that keeps sim_seed + 3 "
-                    "x offset + training seed apart from sim_seed, + offset and + 2 x offset"
-                )
-            runs[s] = what
+    streams, fields = streams_of(f), [str(x) for x in f.get("fields") or []]
+    runs: dict[int, str] = {}
+    most_repeats = FIELD_SEED_STRIDE // REPEAT_SEED_STRIDE
+    for name in fields if streams == "per_field" else fields[:1]:
+        where = f" on {name}" if streams == "per_field" else ""
+        for s, what in ((seed, "the full model"), (seed + offset, "the noise floor"),
+                        (seed + 2 * offset, "the exact chain")):  # fmt: skip
+            runs[field_stream(f, s, name)] = what + where
+        for c in candidates:
+            for again in range(int(f.get("chain_repeats", 1))):
+                s = field_stream(f, chain_seed(f, c, again), name)
+                what = c.label + (f" (repeat {again})" if again else "") + where
+                if s < 0 or s in runs:
+                    raise ConfigError(
+                        f"fidelity: {what} would draw its chains from seed {s}, "
+                        + ("negative" if s < 0 else f"the seed of {runs[s]}")
+                        + ": choose a fidelity.sim_seed or noise_seed_offset that keeps sim_seed "
+                        "+ 3 x offset + training seed apart from sim_seed, + offset and + 2 x "
+                        f"offset (and fewer chain_repeats than {most_repeats}: each field's "
+                        f"streams start {FIELD_SEED_STRIDE:,} past the last's)"
+                    )
+                runs[s] = what
 
 
 def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
@@ -391,6 +410,7 @@ def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:
         raise ConfigError(f"fidelity.chain_repeats must be an integer >= 1 (each abstraction's "
                           f"runs per field; the check reads the first, the table the spread of "
                           f"all), got {repeats!r}")  # fmt: skip
+    streams_of(f)
     starts = f.get("starts", "independent")
     if starts not in STARTS:
         raise ConfigError(f"fidelity.starts must be one of {list(STARTS)}, got {starts!r}")
@@ -446,6 +466,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     start = tuple(float(v) for v in o["start"])
     seed = int(o["sim_seed"])
     offset = int(o.get("noise_seed_offset", 1000))
+    at_field = functools.partial(field_stream, o)  # each field its own stream (per_field)
     t1 = time.perf_counter()
     reps, labels = [], []
     stored: dict[str, RunResult] = {}
@@ -457,24 +478,28 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     else:
         for which, s in (("full", seed), ("full_repeat", seed + offset)):
             for name in settings.fields:
-                reps.append(Replicate(FullDecision(model.internal), fields[name], n, s, start))
+                reps.append(Replicate(FullDecision(model.internal), fields[name], n,
+                                      at_field(s, name), start))  # fmt: skip
                 labels.append(f"{which}|{name}")
     if settings.exact_psi:
         exact, _ = exact_decision(model, setup.dt, "lookup", None, job.device)
         for name in settings.fields:
-            reps.append(Replicate(exact, fields[name], n, seed + 2 * offset, start))
+            reps.append(Replicate(exact, fields[name], n, at_field(seed + 2 * offset, name),
+                                  start))  # fmt: skip
             labels.append(f"exact|{name}")
     for max_age in settings.exact_clocks:
         # the exact psi with a switch clock: the limit of the candidates with gp.history=age
         clocked = exact_clock_decision(model, setup.dt, max_age, job.device, EXACT_CLOCK)
         for name in settings.fields:
-            reps.append(Replicate(clocked, fields[name], n, seed + 2 * offset, start))
+            reps.append(Replicate(clocked, fields[name], n, at_field(seed + 2 * offset, name),
+                                  start))  # fmt: skip
             labels.append(f"{EXACT_CLOCK}|{name}")
     if settings.exact_classes:
         # the exact K-lumps chain: the limit of the candidates with gp.lumps=classes
         classed = exact_class_decision(model, setup.dt, job.device, EXACT_CLASSES)
         for name in settings.fields:
-            reps.append(Replicate(classed, fields[name], n, seed + 2 * offset, start))
+            reps.append(Replicate(classed, fields[name], n, at_field(seed + 2 * offset, name),
+                                  start))  # fmt: skip
             labels.append(f"{EXACT_CLASSES}|{name}")
     for c in settings.candidates:
         request = LayerRequest.of_fit(model, c.train, str(o.get("mode", "lookup")),
@@ -482,10 +507,12 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         decision, _ = learned_decision(request, c.train, resolve_abstraction(c.train),
                                        job.support_min_rows)  # fmt: skip
         for name in settings.fields:
-            reps.append(Replicate(decision, fields[name], n, chain_seed(o, c), start))
+            reps.append(Replicate(decision, fields[name], n, at_field(chain_seed(o, c), name),
+                                  start))  # fmt: skip
             labels.append(f"{c.label}|{name}")
             for again in range(1, int(o.get("chain_repeats", 1))):  # the chain's own spread
-                reps.append(Replicate(decision, fields[name], n, chain_seed(o, c, again), start))
+                reps.append(Replicate(decision, fields[name], n,
+                                      at_field(chain_seed(o, c, again), name), start))  # fmt: skip
                 labels.append(f"{c.label}|{name}|{REPEAT}{again}")
     seed_everything(seed)
     info: dict[str, Any] = {}
@@ -732,8 +759,13 @@ def report_sections(
         f"`{settings.setup.field_name}` with seeds {sorted({c.train_seed for c in settings.candidates})} "
         f"(collection and training), inputs {sorted({'+'.join(c.train.inputs) for c in settings.candidates})}. "
         f"Full model seed {o['sim_seed']}, noise floor seed {int(o['sim_seed']) + int(o.get('noise_seed_offset', 1000))}, "
-        f"chain seeds {_chain_seeds(settings)}. "
-        f"Check: {name} KS <= min(max({o['ks_factor']} x full-vs-full KS, KS critical {crit:.4f} at "
+        f"chain seeds {_chain_seeds(settings)}"
+        + (
+            f", each field past the last's by {FIELD_SEED_STRIDE:,} (fidelity.streams=per_field). "
+            if streams_of(o) == "per_field"
+            else ", every field the same (fidelity.streams=shared). "
+        )
+        + f"Check: {name} KS <= min(max({o['ks_factor']} x full-vs-full KS, KS critical {crit:.4f} at "
         f"alpha {o.get('alpha', 0.05)}), {o['ks_max']}); mean segment durations within "
         f"{100 * float(o['duration_tolerance']):g} % of the full model's."
     )

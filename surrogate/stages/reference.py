@@ -6,7 +6,7 @@ not depend on the abstraction, so they are made once and kept:
 
 ``python scripts/reference.py [experiment=phospho]`` simulates, for every field of the fidelity
 group, the full model (seed ``fidelity.sim_seed``) and its noise-floor run (seed ``sim_seed +
-noise_seed_offset``), ``fidelity.n_cells`` cells for ``fidelity.t_end`` s each, in shards of
+noise_seed_offset``), each moved per field by :func:`field_seed`, ``fidelity.n_cells`` cells for ``fidelity.t_end`` s each, in shards of
 ``reference.shard_cells`` cells (shard i: seed ``SeedSequence(seed).spawn(K)[i]``, as population
 shards, :func:`~surrogate.stages.shards.shard_seed`), ``reference.workers`` processes at once.
 
@@ -89,9 +89,38 @@ REFERENCE_CMD = "python scripts/reference.py"
 REFERENCE_VERSION = 1
 #: the two runs of a field: the full model and its noise floor (seed + noise_seed_offset)
 WHICH = ("full", "full_repeat")
+#: ``fidelity.streams``: ``per_field``, every run of the i-th field of ``fidelity.fields`` draws
+#: from its seed + i x :data:`FIELD_SEED_STRIDE` (each field its own stream); ``shared``, every
+#: field from the same seeds, the draws before 2026-12-01 (session 32: one seed's cells on two
+#: fields that both start at the peak moved alike, their distances correlated 0.93 per cell, so
+#: a check's two fields were nearly one draw counted twice)
+STREAMS = ("per_field", "shared")
+FIELD_SEED_STRIDE = 10_000_000
 OBSERVABLES = "observables.parquet"
 SEGMENTS = "duration_histogram.parquet"
 SHARDS_DIR = "reference_shards"
+
+
+def streams_of(f: Mapping[str, Any]) -> str:
+    """``fidelity.streams`` of the fidelity group ``f``, checked (:data:`STREAMS`)."""
+    streams = f.get("streams", "per_field")
+    if streams not in STREAMS:
+        raise ConfigError(f"fidelity.streams must be one of {list(STREAMS)} (per_field: each "
+                          f"field its own draws; shared: every field the same seeds, as stored "
+                          f"references made before 2026-12-01 were drawn), got {streams!r}")  # fmt: skip
+    return str(streams)
+
+
+def field_seed(seed: int, field_index: int, streams: str) -> int:
+    """The seed a run of the ``field_index``-th field of ``fidelity.fields`` draws from, for a
+    run whose stream is ``seed`` (the full model, its floor, a chain): ``seed`` + index x
+    :data:`FIELD_SEED_STRIDE` where ``streams`` is ``per_field``, else ``seed``.
+
+    Example:
+        >>> field_seed(5000, 1, "per_field"), field_seed(5000, 1, "shared")
+        (10005000, 5000)
+    """
+    return seed + field_index * FIELD_SEED_STRIDE if streams == "per_field" else seed
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,12 +259,14 @@ class ReferenceSettings:
         if offset == 0 or seed < 0 or seed + offset < 0:
             raise ConfigError(f"fidelity.sim_seed ({seed!r}) and sim_seed + noise_seed_offset "
                               f"({offset!r}) must be two different non-negative seeds")  # fmt: skip
+        streams = streams_of(f)
         job = Job.from_config(c)
         root = Path(str(r["dir"]))
         runs = tuple(
             ReferenceRun(setup.with_field(field_config(name)), which, name, n_cells, t_end,
-                         interval, start, eq, int(s), shard_cells, root, job.data_dir)
-            for name in fields
+                         interval, start, eq, field_seed(s, i, streams), shard_cells, root,
+                         job.data_dir)
+            for i, name in enumerate(fields)
             for which, s in zip(WHICH, (seed, seed + offset), strict=True)
         )  # fmt: skip
         return cls(runs, int(workers), job, _command(c, setup), c)
@@ -255,6 +286,8 @@ def _command(c: Mapping[str, Any], setup: ModelSetup) -> str:
     for key in ("fields", "n_cells", "t_end", "start", "equilibration_time", "sim_seed",
                 "noise_seed_offset"):  # fmt: skip
         parts.append(f"fidelity.{key}={format_value(f.get(key))}")
+    if streams_of(f) != STREAMS[0]:
+        parts.append(f"fidelity.streams={streams_of(f)}")
     parts += [f"reference.{k}={format_value(r[k])}" for k in ("shard_cells", "record_interval")]
     if str(r["dir"]) != "references":
         parts.append(f"reference.dir={r['dir']}")
@@ -588,13 +621,17 @@ def _differences(want: Mapping[str, Any], have: Mapping[str, Any], prefix: str =
 
 
 __all__ = [
+    "FIELD_SEED_STRIDE",
     "REFERENCE_CMD",
+    "STREAMS",
     "ReferenceRun",
     "ReferenceSettings",
+    "field_seed",
     "load",
     "make",
     "read_result",
     "run",
+    "streams_of",
     "validate",
     "write_result",
 ]

@@ -266,3 +266,37 @@ def test_failed_checks_name_the_check_drawn_again(compose_cfg, checked, monkeypa
     # refused by the stage's settings (e.g. stored references of the old seed): not printed
     monkeypatch.setattr(fidelity, "_refusal", lambda *_: "no stored reference at seed 15000")
     assert fidelity.draw_again(settings, summary, config) is None
+
+
+def test_each_field_draws_its_own_stream_as_stored_references_do(compose_cfg) -> None:
+    """fidelity.streams=per_field (the default): every run of the second field draws 10,000,000
+    past the first's seed (the full model, its floor, the exact chain, each abstraction), the
+    stored references by the same rule; shared keeps one seed for every field; every run's
+    seed is distinct; an unknown value is refused by name."""
+    from surrogate.stages.reference import FIELD_SEED_STRIDE, ReferenceSettings
+
+    two = [s for s in SMALL if not s.startswith("fidelity.fields")]
+    two += ["fidelity.fields=[gaussian,linear]", "reference.record_interval=1.0"]
+    per_field = fidelity.validate(compose_cfg("fidelity", two))
+    o = per_field.options
+    (candidate,) = per_field.candidates
+    for run_seed in (5000, 6000, 7000, fidelity.chain_seed(o, candidate)):
+        assert fidelity.field_stream(o, run_seed, "gaussian") == run_seed
+        assert fidelity.field_stream(o, run_seed, "linear") == run_seed + FIELD_SEED_STRIDE
+    refs = ReferenceSettings.from_config(compose_cfg("fidelity", two))
+    assert {(r.field_name, r.which): r.seed for r in refs.runs} == {
+        ("gaussian", "full"): 5000, ("gaussian", "full_repeat"): 6000,
+        ("linear", "full"): 5000 + FIELD_SEED_STRIDE,
+        ("linear", "full_repeat"): 6000 + FIELD_SEED_STRIDE,
+    }  # fmt: skip
+    assert "fidelity.streams" not in refs.command
+    shared_cfg = compose_cfg("fidelity", [*two, "fidelity.streams=shared"])
+    shared = fidelity.validate(shared_cfg)
+    assert fidelity.field_stream(shared.options, 5000, "linear") == 5000
+    assert shared.directory != per_field.directory  # another draw, another check
+    assert "fidelity.streams=shared" in ReferenceSettings.from_config(shared_cfg).command
+    with pytest.raises(ConfigError, match=r"fidelity.streams must be one of"):
+        fidelity.validate(compose_cfg("fidelity", [*two, "fidelity.streams=paired"]))
+    # a repeat stride that reaches the next field's streams is refused before any work
+    with pytest.raises(ConfigError, match=r"fewer chain_repeats than 100"):
+        fidelity.validate(compose_cfg("fidelity", [*two, "fidelity.chain_repeats=101"]))
