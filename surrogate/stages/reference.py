@@ -6,9 +6,10 @@ not depend on the abstraction, so they are made once and kept:
 
 ``python scripts/reference.py [experiment=phospho]`` simulates, for every field of the fidelity
 group, the full model (seed ``fidelity.sim_seed``) and its noise-floor run (seed ``sim_seed +
-noise_seed_offset``), each moved per field by :func:`field_seed`, ``fidelity.n_cells`` cells for ``fidelity.t_end`` s each, in shards of
-``reference.shard_cells`` cells (shard i: seed ``SeedSequence(seed).spawn(K)[i]``, as population
-shards, :func:`~surrogate.stages.shards.shard_seed`), ``reference.workers`` processes at once.
+noise_seed_offset``), each moved per field by :func:`field_seed`, ``fidelity.n_cells`` cells
+for ``fidelity.t_end`` s each, in shards of ``reference.shard_cells`` cells (shard i: seed
+``SeedSequence(seed).spawn(K)[i]``, as population shards,
+:func:`~surrogate.stages.shards.shard_seed`), ``reference.workers`` processes at once.
 
 * **Resumable.** Each shard is an artefact of its own under ``data/reference_shards/`` (written
   atomically, manifest last, under a lock): a stopped run continues from its finished shards, and
