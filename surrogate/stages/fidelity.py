@@ -374,17 +374,17 @@ def _check_streams(f: Mapping[str, Any], candidates: list[Candidate]) -> None:
         for c in candidates:
             for again in range(int(f.get("chain_repeats", 1))):
                 s = field_stream(f, chain_seed(f, c, again), name)
-                what = c.label + (f" (repeat {again})" if again else "") + where
+                what = c.label + (f" (repeat {again})" if again else "")
                 if s < 0 or s in runs:
                     raise ConfigError(
-                        f"fidelity: {what} would draw its chains from seed {s}, "
+                        f"fidelity: {what} would draw its chains{where} from seed {s}, "
                         + ("negative" if s < 0 else f"the seed of {runs[s]}")
                         + ": choose a fidelity.sim_seed or noise_seed_offset that keeps sim_seed "
                         "+ 3 x offset + training seed apart from sim_seed, + offset and + 2 x "
                         f"offset (and fewer chain_repeats than {most_repeats}: each field's "
                         f"streams start {FIELD_SEED_STRIDE:,} past the last's)"
                     )
-                runs[s] = what
+                runs[s] = what + where
 
 
 def _check_run_and_checks(f: Mapping[str, Any], start_size: int | None) -> None:

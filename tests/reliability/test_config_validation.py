@@ -173,7 +173,7 @@ BAD_INPUTS = [
     (
         "fidelity",
         ["fidelity.noise_seed_offset=-1000", "fidelity.train_seeds=[3000]"],
-        "seed 3000 would draw its chains from seed 5000, the seed of the full model",
+        "seed 3000 would draw its chains on gaussian from seed 5000, the seed of the full model",
     ),
     ("fidelity", ["fidelity.times=[a]"], "fidelity.times must be a list of times"),
     ("fidelity", ["fidelity.times=[5.0]"], "fidelity.times 5 outside (0, t_end=2]"),
