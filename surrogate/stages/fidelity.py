@@ -381,7 +381,7 @@ def _check_streams(f: Mapping[str, Any], candidates: list[Candidate]) -> None:
                         + ("negative" if s < 0 else f"the seed of {runs[s]}")
                         + ": choose a fidelity.sim_seed or noise_seed_offset that keeps sim_seed "
                         "+ 3 x offset + training seed apart from sim_seed, + offset and + 2 x "
-                        f"offset (and fewer chain_repeats than {most_repeats}: each field's "
+                        f"offset (and at most {most_repeats} chain_repeats: each field's "
                         f"streams start {FIELD_SEED_STRIDE:,} past the last's)"
                     )
                 runs[s] = what + where
