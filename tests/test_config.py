@@ -321,11 +321,12 @@ def test_group_config_is_composed_once_per_version_of_its_files(tmp_path, monkey
 
 
 def test_keep_switches_is_checked_and_leaves_the_default_identity_alone(compose_cfg) -> None:
-    """collect.keep_switches: auto, true or false (false by default); auto is false for E. coli's thinned rows with
-    expected labels, true without them, false where every window is recorded; false leaves a
-    collection's identity (its directory) as before the key; true names another table, records no expected labels (gp.labels=expected
-    is refused saying why) and is refused with minibatch training and with a sequential
-    design, each before any work."""
+    """collect.keep_switches: auto, true or false (false by default); auto is false for E.
+    coli's thinned rows with expected labels, true without them, false where every window is
+    recorded; false leaves a collection's identity (its directory) as before the key; true
+    names another table, records no expected labels (gp.labels=expected is refused saying
+    why) and is refused with minibatch training and with a sequential design, each before any
+    work."""
     plain = CollectSettings.from_config(compose_cfg("collect", []))
     assert "keep_switches" not in plain.identity()["collect"] and not plain.keep_switches
     kept = CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=true"]))
