@@ -18,7 +18,10 @@ The yaml (``model.spec``, or the same keys in the model config itself) names
   counts whatever substance units it declares, e.g. a StochSS export's ``mole``),
   ``species_in_laws`` (``counts``: a species symbol in the file's formulas is its count, as
   StochSS and GillesPy2 write propensities; ``concentrations``: SBML's reading; required where
-  the two differ in a file read with ``substance_units: items``), ``ssa``
+  the two differ in a file read with ``substance_units: items``), ``reactant_guard``
+  (default true: a kinetic law that does not read a species its reaction uses up, ``I -> A``
+  at ``alpha``, is read as 0 while that species lacks the molecules; false: as written, and a
+  count it drives negative is refused when simulated; one warning names such laws), ``ssa``
   (auto|compiled|batched), ``burn_in`` (s), ``max_states``, ``signal_bounds``
   (``{input: [lo, hi]}``, lets the exact psi be tabulated), ``collect`` (the model's default
   collection budget: ``n_per_state``, ``n_cells``, ``record_every``) and ``classes``: classes
@@ -106,6 +109,7 @@ SPEC_DEFAULTS: dict[str, Any] = {
     "body": None,
     "substance_units": None,
     "species_in_laws": None,
+    "reactant_guard": None,
     "ssa": "auto",
     "burn_in": 50.0,
     "max_states": 5000,
@@ -115,7 +119,7 @@ SPEC_DEFAULTS: dict[str, Any] = {
 }
 #: keys added after artefacts were stored: left out of the spec's digests (the full model's
 #: law, the artefacts' sources) while unset, so those artefacts keep their identity
-LATER_KEYS = ("species_in_laws",)
+LATER_KEYS = ("species_in_laws", "reactant_guard")
 #: the keys a spec must give, and what each is (for the message when one is missing)
 REQUIRED_KEYS: dict[str, str] = {
     "network": "the SBML file, a path relative to the yaml",
@@ -276,6 +280,7 @@ class SbmlAgentModel(Model):
                 inputs=list(inputs),
                 substance_units=s["substance_units"],
                 species_in_laws=s["species_in_laws"],
+                reactant_guard=s["reactant_guard"] is not False,
             )
         except SbmlError as error:
             raise SbmlError(f"model.network / model.inputs: {error}") from None
@@ -396,6 +401,11 @@ class SbmlAgentModel(Model):
             raise ConfigError(f"model.substance_units must be items (read the file's amounts "
                               f"as molecule counts) or unset, got "
                               f"{s['substance_units']!r}")  # fmt: skip
+        if s["reactant_guard"] not in (None, True, False):
+            raise ConfigError(f"model.reactant_guard must be true (a kinetic law that does not "
+                              f"read a species its reaction uses up is 0 while that species "
+                              f"lacks the molecules; the default), false (the laws as written) "
+                              f"or unset, got {s['reactant_guard']!r}")  # fmt: skip
         if s["species_in_laws"] not in SPECIES_IN_LAWS:
             raise ConfigError(f"model.species_in_laws must be counts (a species symbol in the "
                               f"file's formulas is its count, as StochSS and GillesPy2 write "

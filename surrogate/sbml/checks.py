@@ -23,12 +23,14 @@ class ReaderChecks:
         label: str,
         substance_units: str | None = None,
         species_in_laws: str | None = None,
+        reactant_guard: bool = True,
     ) -> None:
         self.model = model
         self.label = label
         self.inputs = inputs
         self.substance_units = substance_units
         self.species_in_laws = species_in_laws
+        self.reactant_guard = reactant_guard
         self.local_parameters = {
             r.getId(): {p.getId(): p for p in _local_parameters(r)}
             for r in model.getListOfReactions()

@@ -41,14 +41,28 @@ model test suite):
   floor, ceiling); any other function (exp, sqrt, abs, ln, ...), a power's exponent and an
   even integer power are one positive factor, whatever minus they hold. The law is a *net
   rate* (forward minus backward) when some negative term depends on a product species of the
-  reaction (boundary species included), e.g. ``kf * A - kr * B`` or ``kf * A + (-kr) * B``
-  with product ``B``, or ``k * A * (1 - B / K)``; it is refused, naming the reaction, its law
+  reaction that it does not also consume (boundary species included), e.g. ``kf * A - kr * B``
+  or ``kf * A + (-kr) * B`` with product ``B``, or ``k * A * (1 - B / K)``; not an
+  autocatalytic law, ``k * Y * X * (X - 1) / 2`` for ``2 X + Y -> 3 X`` (StochSS's
+  Brusselator), whose falling factorial subtracts a term in the reactant X, which is also a
+  product. A net rate is refused, naming the reaction, its law
   and the product (write the reaction as two irreversible ones). Otherwise the law is one-way
   (e.g. ``alpha / (1 + V^beta)``, ``mu * U``, ``kf * A * exp(-B / K)``, ``kf * A * K^(-B)``,
   or ``k1 * A - k2 * C`` with ``C`` not a product) and the reaction is read as irreversible,
   with one :class:`~surrogate.sbml.errors.SbmlWarning` listing every such reaction. A
   propensity that turns out negative at run time is refused by both simulators (the compiled
   SSA names the reaction).
+* A kinetic law that does not read a species its reaction uses up (consumed more than made,
+  not fixed) stays positive at that species' count 0, and the SSA would drive the count
+  negative (Wilkinson's ``ch05-act.xml``: ``I -> A`` at ``alpha``, ``A -> I`` at ``beta``, one
+  molecule between them). By default (``reactant_guard=True``, the yaml's ``reactant_guard``
+  unset) such a law is read as 0 while any such species has fewer molecules than the reaction
+  consumes, its value as written otherwise: the propensity on the lattice of counts, where a
+  reaction without its molecules cannot happen. A law that reads the species (mass action) is
+  read as written, as is a species consumed and made again (a catalyst). One
+  :class:`~surrogate.sbml.errors.SbmlWarning` names every such law and what it needs;
+  ``reactant_guard=False`` reads them as written (a count driven negative is then refused when
+  simulated, naming the reaction).
 * An assignment rule on a species makes its count that function of the others (an amount, or
   a concentration x size), recomputed after every reaction and event and at every window's
   start; wherever the species is used, the rule's formula is inlined. Its initial value is
@@ -88,7 +102,7 @@ import libsbml
 import torch
 from torch import Tensor
 
-from surrogate.ctmc.kinetics import Expr, Kinetics, const, input_ref
+from surrogate.ctmc.kinetics import Expr, Kinetics, call, const, input_ref, species_ref
 from surrogate.ctmc.network import ReactionNetwork
 from surrogate.sbml.checks import file_value
 from surrogate.sbml.defaults import fill_level2_defaults
@@ -233,6 +247,7 @@ def read_sbml(
     inputs: Sequence[str] = (),
     substance_units: str | None = None,
     species_in_laws: str | None = None,
+    reactant_guard: bool = True,
 ) -> SbmlModel:
     """Read an SBML file (levels 2 and 3) as a stochastic reaction network.
 
@@ -251,6 +266,11 @@ def read_sbml(
             ``amount / compartment size``) or ``"counts"`` (its count, as StochSS and GillesPy2
             write propensities). With ``substance_units="items"`` and a compartment size other
             than 1 where such a species is used, it must be given (see the module docstring).
+        reactant_guard: A kinetic law that does not read a species its reaction uses up stays
+            positive at that species' count 0 (``I -> A`` at ``alpha``): with True, it is read
+            as 0 while any such species has fewer molecules than the reaction consumes, as the
+            SSA's propensity must be; with False, as written (a count it drives negative is
+            refused when simulated). Either way one warning names every such law.
 
     Returns:
         The :class:`SbmlModel`.
@@ -274,7 +294,9 @@ def read_sbml(
     if not path.is_file():
         raise SbmlError(f"SBML file {str(path)!r} does not exist")
     document = libsbml.readSBMLFromFile(str(path))
-    return _read_document(document, inputs, str(path), path, substance_units, species_in_laws)
+    return _read_document(
+        document, inputs, str(path), path, substance_units, species_in_laws, reactant_guard
+    )
 
 
 def read_sbml_string(
@@ -282,10 +304,13 @@ def read_sbml_string(
     inputs: Sequence[str] = (),
     substance_units: str | None = None,
     species_in_laws: str | None = None,
+    reactant_guard: bool = True,
 ) -> SbmlModel:
     """Like :func:`read_sbml`, from the SBML document's text."""
     document = libsbml.readSBMLFromString(text)
-    return _read_document(document, inputs, "<string>", None, substance_units, species_in_laws)
+    return _read_document(
+        document, inputs, "<string>", None, substance_units, species_in_laws, reactant_guard
+    )
 
 
 def _read_document(
@@ -295,7 +320,10 @@ def _read_document(
     source: Path | None,
     substance_units: str | None = None,
     species_in_laws: str | None = None,
+    reactant_guard: bool = True,
 ) -> SbmlModel:
+    if not isinstance(reactant_guard, bool):
+        raise SbmlError(f"reactant_guard must be true or false, got {reactant_guard!r}")
     if substance_units not in SUBSTANCE_UNITS:
         raise SbmlError(
             f"substance_units must be 'items' (read the file's amounts as molecule counts) or "
@@ -321,7 +349,9 @@ def _read_document(
     model = document.getModel()
     if model is None:
         raise SbmlError(f"{label}: the document has no model")
-    return _Reader(model, tuple(inputs), label, substance_units, species_in_laws).read(source)
+    return _Reader(
+        model, tuple(inputs), label, substance_units, species_in_laws, reactant_guard
+    ).read(source)
 
 
 def _error_listing(label: str, errors: Sequence[libsbml.SBMLError]) -> str:
@@ -372,6 +402,7 @@ class _Reader(ReaderRules):
         products = torch.zeros_like(reactants)
         one_way: list[str] = []  # flagged reversible, read as irreversible
         net_rates: list[str] = []  # flagged reversible with a net-rate law: refused
+        unguarded: list[str] = []  # laws that fire without the molecules they consume
         for r, reaction in enumerate(model.getListOfReactions()):
             rid = reaction.getId()
             if reaction.isSetFast() and reaction.getFast():
@@ -395,7 +426,11 @@ class _Reader(ReaderRules):
                     local[pid] = const(float(p.getValue()))
             expr = self.expression(law.getMath(), local, f"kinetic law of reaction {rid!r}")
             if reaction.getReversible():
-                backward = net_rate_products(expr, {self.species_index[s] for s in produced})
+                # a species the reaction also consumes is no backward direction's: an
+                # autocatalytic law (2 X + Y -> 3 X at k Y X (X - 1) / 2) subtracts a term in X
+                backward = net_rate_products(
+                    expr, {self.species_index[s] for s in produced if s not in consumed}
+                )
                 if backward:
                     formula = libsbml.formulaToL3String(law.getMath())
                     net_rates.append(
@@ -404,6 +439,15 @@ class _Reader(ReaderRules):
                     )
                 else:
                     one_way.append(rid)
+            unread = self._unread_reactants(expr, consumed, produced, fixed)
+            if unread:
+                formula = libsbml.formulaToL3String(law.getMath())
+                needs = " and ".join(f"{sid} >= {consumed[sid]}" for sid in unread)
+                unguarded.append(f"{rid!r} consumes {', '.join(unread)} but its law {formula!r} "
+                                 f"does not read {'them' if len(unread) > 1 else 'it'}"
+                                 + (f" (0 unless {needs})" if self.reactant_guard else ""))  # fmt: skip
+                if self.reactant_guard:
+                    expr = call("piecewise", expr, self._available(unread, consumed), const(0.0))
             exprs.append(expr)
             for sid, coeff in consumed.items():
                 if sid not in fixed:
@@ -425,6 +469,23 @@ class _Reader(ReaderRules):
                 f"flagged reversible with a one-way kinetic law (no subtracted term depends on "
                 f"a product) read as irreversible: {', '.join(repr(r) for r in one_way)}; a "
                 "propensity that turns negative is refused when simulated",
+                SbmlWarning,
+                stacklevel=4,  # the caller of read_sbml / read_sbml_string
+            )
+        if unguarded:
+            reading = (
+                "read as 0 while a reactant has fewer molecules than the reaction consumes (a "
+                "propensity is 0 where the reaction cannot happen; `reactant_guard: false` in "
+                "the model yaml, read_sbml(..., reactant_guard=False), reads the laws as "
+                "written, and a count they drive negative is refused when simulated)"
+                if self.reactant_guard
+                else "read as written (reactant_guard=False): a count they drive negative is "
+                "refused when simulated"
+            )
+            warnings.warn(
+                f"{self.label}: {len(unguarded)} kinetic law{'s' if len(unguarded) > 1 else ''}"
+                f" that can fire without {'their' if len(unguarded) > 1 else 'its'} reactants, "
+                f"{reading}: {'; '.join(unguarded)}",
                 SbmlWarning,
                 stacklevel=4,  # the caller of read_sbml / read_sbml_string
             )
@@ -472,4 +533,31 @@ class _Reader(ReaderRules):
             species_compartments={sp.getId(): sp.getCompartment() for sp in self.species},
             parameters=globals_,
             local_parameters=locals_,
+        )
+
+    def _unread_reactants(
+        self, law: Expr, consumed: Mapping[str, int], produced: Mapping[str, int], fixed: set[str]
+    ) -> list[str]:
+        """The species ``law`` fires without: those the reaction uses up (more consumed than
+        produced, not fixed, not set by a rule) that the law does not read, so that it stays
+        positive at their count 0 (Wilkinson's ``ch05-act.xml``: ``I -> A`` at ``alpha``)."""
+        read = law.species_used()
+        return [
+            sid
+            for sid, coeff in consumed.items()
+            if produced.get(sid, 0) < coeff
+            and sid not in fixed
+            and sid not in self.species_rules
+            and self.species_index[sid] not in read
+        ]
+
+    def _available(self, unread: Sequence[str], consumed: Mapping[str, int]) -> Expr:
+        """The condition that every species of ``unread`` has the molecules the reaction
+        consumes (counts, whatever ``species_in_laws`` says of the laws)."""
+        return call(
+            "and",
+            *(
+                call("geq", species_ref(self.species_index[sid], sid), const(float(consumed[sid])))
+                for sid in unread
+            ),
         )

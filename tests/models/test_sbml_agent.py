@@ -275,6 +275,7 @@ def _spec(**changes) -> dict:
         ),
         ({"substance_units": "moles"}, "model.substance_units must be items"),
         ({"species_in_laws": "amounts"}, "model.species_in_laws must be counts"),
+        ({"reactant_guard": "yes"}, "model.reactant_guard must be true"),
         ({"inputs": {"R1.k": "L"}}, "input 'R1.k' is not a global parameter of the model nor a"),
         ({"inputs": {"inducer": {"k": "L"}}}, "a reaction's local parameter is one key"),
     ],

@@ -15,7 +15,7 @@ import torch
 from surrogate.ctmc import CellStreams, CompiledSSA, gillespie
 from surrogate.ctmc.kinetics import const
 from surrogate.errors import ConfigError
-from surrogate.sbml import SbmlError, SbmlWarning, read_sbml, read_sbml_string
+from surrogate.sbml import SbmlError, SbmlModel, SbmlWarning, read_sbml, read_sbml_string
 from tests.sbml.builder import Reaction, Species, build
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -547,6 +547,28 @@ def test_a_negative_term_through_a_sign_keeping_construct_is_a_net_rate(law):
     refused(flagged(law), "reversible reaction 'R1'", "on its product 'B'")
 
 
+def test_an_autocatalytic_law_is_not_a_net_rate():
+    """StochSS's Brusselator flags 2 X + Y -> 3 X reversible with the mass-action law
+    k * Y * X * (X - 1) / 2: its falling factorial subtracts a term in X, a product that the
+    reaction also consumes, not a backward direction. Read as one-way, with the law's value;
+    a term in a product it does not consume (Z) is still a net rate."""
+
+    def autocatalytic(law: str) -> str:
+        return simple(
+            reactions=[Reaction("R1", law, {"X": 2, "Y": 1}, {"X": 3, "Z": 1}, reversible=True)],
+            species=[Species("X", amount=7), Species("Y", amount=4), Species("Z", amount=2)],
+            parameters={"k": 0.5, "kr": 0.1},
+        )
+
+    with pytest.warns(SbmlWarning, match="read as irreversible: 'R1'"):
+        model = read_sbml_string(autocatalytic("k * Y * X * (X - 1) / 2"))
+    rate = model.propensities(torch.tensor([[7, 4, 2]]), torch.zeros(0))
+    assert rate.tolist() == [[0.5 * 4 * 7 * 6 / 2]]
+    assert model.network.stoichiometry.tolist() == [[1, -1, 1]]
+    refused(autocatalytic("k * Y * X * (X - 1) / 2 - kr * Z"), "reversible reaction 'R1'",
+            "on its product 'Z'")  # fmt: skip
+
+
 def test_every_net_rate_law_is_named_at_once():
     refused(flagged("kf * A - kr * B", "kf * A", "kf * A - kr * B"), "reactions 'R1'", "'R3'")
 
@@ -563,6 +585,97 @@ def test_a_negative_propensity_is_refused_by_both_simulators():
         CompiledSSA(model.kinetics).advance(state, torch.zeros(0), 1.0, CellStreams.from_seed(0, 4))
     with pytest.raises(ValueError, match="negative or non-finite"):
         gillespie(model.network, state, torch.zeros(4, 0), 1.0, propensity=model.torch_propensity)
+
+
+# ----------------------------------------------------------------------------------------------
+# laws that fire without their reactants
+
+
+def activation_text() -> str:
+    """Wilkinson's ch05-act.xml in a string: I -> A at alpha, A -> I at beta (laws that read
+    neither I nor A), plus a dimerisation 2 P -> D at kd that reads no P, a catalysed
+    conversion S + E -> E + T at kc * S (E consumed and made: not flagged) and a decay T -> 0
+    at kt * T (reads its reactant)."""
+    return simple(
+        reactions=[
+            Reaction("Activation", "alpha", {"I": 1}, {"A": 1}, local={"alpha": 0.5}),
+            Reaction("Inactivation", "beta", {"A": 1}, {"I": 1}, local={"beta": 1.0}),
+            Reaction("Dimerise", "kd", {"P": 2}, {"D": 1}, local={"kd": 3.0}),
+            Reaction("Convert", "kc * S", {"S": 1, "E": 1}, {"E": 1, "T": 1}, local={"kc": 0.1}),
+            Reaction("Decay", "kt * T", {"T": 1}, local={"kt": 0.2}),
+        ],
+        species=[
+            Species("A", amount=0),
+            Species("I", amount=1),
+            Species("P", amount=3),
+            Species("D", amount=0),
+            Species("S", amount=5),
+            Species("E", amount=0),
+            Species("T", amount=1),
+        ],
+    )
+
+
+def activation(**guard) -> tuple[SbmlModel, list[str]]:
+    """:func:`activation_text` read, and the warnings that name its unguarded laws."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = read_sbml_string(activation_text(), **guard)
+    messages = [str(w.message) for w in caught if issubclass(w.category, SbmlWarning)]
+    return model, [m for m in messages if "without their reactants" in m]
+
+
+def test_a_law_that_fires_without_its_reactants_is_guarded_and_named():
+    """By default such a law is 0 while the species it uses up lacks the molecules (the SSA's
+    propensity on the lattice of counts), its value as written otherwise; one warning names
+    each such law, what it needs, and the setting that reads the laws as written. A catalyst
+    (consumed and made) and a law reading its reactant are neither flagged nor changed."""
+    model, messages = activation()
+    assert len(messages) == 1, messages
+    message = messages[0]
+    for needle in ("3 kinetic laws that can fire without their reactants",
+                   "'Activation' consumes I but its law 'alpha' does not read it (0 unless I >= 1)",
+                   "'Dimerise' consumes P but its law 'kd' does not read it (0 unless P >= 2)",
+                   "`reactant_guard: false` in the model yaml"):  # fmt: skip
+        assert needle in message, needle
+    assert "Convert" not in message and "Decay" not in message
+    #                 A  I  P  D  S  E  T
+    state = torch.tensor(
+        [
+            [0, 1, 2, 0, 5, 0, 1],  # I there, A not; P enough to dimerise
+            [1, 0, 1, 0, 0, 1, 0],
+        ]
+    )  # A there, I not; one P; no S, T
+    rates = model.propensities(state, torch.zeros(0))
+    assert rates.tolist() == [[0.5, 0.0, 3.0, 0.5, 0.2], [0.0, 1.0, 0.0, 0.0, 0.0]]
+    assert rates.tolist() == [
+        [law.evaluate(row, ()) for law in model.kinetics.propensity_exprs] for row in state.tolist()
+    ]
+
+
+def test_reactant_guard_false_reads_the_laws_as_written():
+    model, messages = activation(reactant_guard=False)
+    assert len(messages) == 1 and "read as written (reactant_guard=False)" in messages[0]
+    assert "0 unless" not in messages[0]
+    rates = model.propensities(torch.tensor([[1, 0, 1, 0, 0, 1, 0]]), torch.zeros(0))
+    assert rates.tolist() == [[0.5, 1.0, 3.0, 0.0, 0.0]]
+    with pytest.raises(SbmlError, match="reactant_guard must be true or false, got 'yes'"):
+        read_sbml_string(simple(), reactant_guard="yes")
+
+
+def test_a_guarded_telegraph_has_the_telegraph_law():
+    """Simulated by the compiled SSA, the guarded ch05-act telegraph never leaves {0, 1} and is
+    active alpha / (alpha + beta) = 1/3 of the time at stationarity: 4,000 cells at 30 s (30
+    relaxation times 1 / (alpha + beta)), within 4 binomial standard errors (0.030)."""
+    model, _ = activation()
+    n = 4000
+    state = model.initial_states(n)
+    out, _ = CompiledSSA(model.kinetics).advance(state, torch.zeros(0), 30.0,
+                                                 CellStreams.from_seed(11, n))  # fmt: skip
+    active, inactive = out[:, 0], out[:, 1]
+    assert bool(((active == 0) | (active == 1)).all()) and bool((active + inactive == 1).all())
+    share = active.double().mean().item()
+    assert abs(share - 1 / 3) < 4 * math.sqrt((1 / 3) * (2 / 3) / n)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -169,8 +169,9 @@ def test_a_network_that_runs_down_is_refused_as_such(compose_cfg, tmp_path, max_
 
 def test_species_in_laws_from_the_yaml_and_the_identity_of_older_models(tmp_path) -> None:
     """The yaml's `species_in_laws: counts` reaches the reader (a StochSS export with volume
-    1000 is read over counts); unset, the key stays out of the spec's digests (the full
-    model's law, every artefact's sources), so yamls written before it keep their artefacts."""
+    1000 is read over counts); unset, the key (and `reactant_guard`, added after it) stays out
+    of the spec's digests (the full model's law, every artefact's sources), so yamls written
+    before them keep their artefacts."""
     import hashlib
     import json
 
@@ -188,12 +189,34 @@ def test_species_in_laws_from_the_yaml_and_the_identity_of_older_models(tmp_path
     unset = SbmlAgentModel(str(write_model(tmp_path, DIMERISATION, inputs={"k_c": "L"},
                                            lump="D >= 2")))  # fmt: skip
     law = {k: v for k, v in unset.settings.items()
-           if k not in ABSTRACTION_KEYS and k != "species_in_laws"}  # fmt: skip
+           if k not in ABSTRACTION_KEYS and k not in ("species_in_laws", "reactant_guard")}  # fmt: skip
     digest = hashlib.sha256(json.dumps(law, sort_keys=True, default=str).encode()).hexdigest()
     assert unset.full_model_identity({})["model_sources"]["settings"] == digest
-    read = {k: v for k, v in unset.settings.items() if k != "species_in_laws"}
+    read = {k: v for k, v in unset.settings.items()
+            if k not in ("species_in_laws", "reactant_guard")}  # fmt: skip
     spec = hashlib.sha256(json.dumps(read, sort_keys=True, default=str).encode()).hexdigest()
     assert unset.sources()["spec"] == spec  # every artefact's identity, as before the key
+
+
+def test_reactant_guard_from_the_yaml(tmp_path) -> None:
+    """Unset, a law that fires without its reactants is guarded (Wilkinson's ch05-act laws:
+    0 while I, A lack the molecule); `reactant_guard: false` reaches the reader (the laws as
+    written) and is in the spec's identity; `true` is the default's law."""
+    from surrogate.models.sbml_agent import SbmlAgentModel
+    from tests.sbml.test_reader import activation_text
+
+    def model(**spec: object) -> SbmlAgentModel:
+        with pytest.warns(SbmlWarning, match="can fire without their reactants"):
+            return SbmlAgentModel(str(write_model(tmp_path, activation_text(),
+                                                  inputs={"Activation.alpha": "L"},
+                                                  lump="A >= 1", **spec)))  # fmt: skip
+
+    state, inputs = torch.tensor([[1, 0, 1, 0, 0, 1, 0]]), torch.tensor([[0.5]])
+    unset, written, guarded = model(), model(reactant_guard=False), model(reactant_guard=True)
+    assert unset.internal.kinetics.propensities(state, inputs).tolist() == [[0, 1, 0, 0, 0]]
+    assert guarded.internal.kinetics.propensities(state, inputs).tolist() == [[0, 1, 0, 0, 0]]
+    assert written.internal.kinetics.propensities(state, inputs).tolist() == [[0.5, 1, 3, 0, 0]]
+    assert written.sources()["spec"] != unset.sources()["spec"]
 
 
 def test_a_waste_counter_does_not_hold_the_settling_run_back(tmp_path) -> None:
