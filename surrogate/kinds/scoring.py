@@ -57,6 +57,13 @@ def segment_durations(phi: np.ndarray, dt: float) -> dict[int, np.ndarray]:
 HORIZON_QUANTILE = 0.9
 #: complete segments a lump needs for its horizon to be read
 HORIZON_MIN_SEGMENTS = 50
+#: a candidate whose held-out log-likelihood is below the best's by at most this many nats over
+#: all the held-out windows ties it, whatever the paired SE: a likelihood ratio under e is no
+#: evidence either way (Jeffreys' "barely worth mentioning" is under 3.2), while two nearly
+#: identical fits (the two-state chain and one hidden phase per lump) differ per cell so
+#: steadily that their SE shrinks with the gap (memoryless telegraph: 6.6e-9 a window, 0.007
+#: nats over 1e6 windows, beyond 1 SE; a clock 5.7e-7 lower tied within its larger SE)
+TIE_NATS = 1.0
 
 
 def memory_horizon(phi: np.ndarray, dt: float) -> float | None:
@@ -224,6 +231,8 @@ class KindScore:
     score_seconds: float = math.nan
     #: the occupancy's spread over blocks of a few sojourns (:func:`occupancy_spread`)
     spread: SpreadScore | None = None
+    #: the windows each held-out cell's mean is over (0: unknown, no :data:`TIE_NATS` floor)
+    windows_per_cell: int = 0
 
     def row(self) -> dict[str, Any]:
         """The score as a flat row for the table (no per-cell values)."""
@@ -303,7 +312,8 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
         durations = duration_scores(observed, sims, dt, lump_names)
     return KindScore(name, kind.complexity, float(per_cell.mean()),
                      tuple(float(v) for v in per_cell), durations,
-                     spread=occupancy_spread(observed, sims, dt))  # fmt: skip
+                     spread=occupancy_spread(observed, sims, dt),
+                     windows_per_cell=int(inputs.shape[1]))  # fmt: skip
 
 
 def _farthest(score: DurationScore) -> float:
@@ -409,8 +419,9 @@ def choose(
 ) -> Choice:
     """The best candidate by held-out log-likelihood per window among those that hold their
     durations (:func:`holds_durations`, where ``duration_tolerance`` is given); one within
-    ``tie_se`` standard errors of that best (the SE of the paired per-cell difference) ties it,
-    and a tie goes to the simplest (smallest complexity, then the higher likelihood).
+    ``tie_se`` standard errors of that best (the SE of the paired per-cell difference), or
+    within :data:`TIE_NATS` of it over all the held-out windows, ties it, and a tie goes to the
+    simplest (smallest complexity, then the higher likelihood).
 
     Where none holds them, the candidate closest to holding them (the smallest
     :func:`duration_miss`; the likelihood breaks an exact tie): the check at scale asks for
@@ -468,7 +479,9 @@ def choose(
         gap, se = _paired(s, top)
         pool_gap, pool_se = _paired(s, best)
         tie = s in pool and (
-            s is best or (math.isfinite(pool_se) and -pool_gap <= tie_se * pool_se)
+            s is best
+            or (math.isfinite(pool_se) and -pool_gap <= tie_se * pool_se)
+            or 0 < -pool_gap * _windows(s) <= TIE_NATS
         )
         if tie:
             tied.append(s)
@@ -486,7 +499,10 @@ def choose(
             reason += f"; the next, {runner['kind']}, is {_gap(runner)} lower"
     else:
         gap, se = _paired(chosen, best)
-        reason = (f"{chosen.name} is within {tie_se:g} SE of the best, {best.name} "
+        within = (f"within {tie_se:g} SE" if -gap <= tie_se * se else
+                  f"{-gap * _windows(chosen):.2g} nats over the {_windows(chosen):,} held-out "
+                  f"windows (at most {TIE_NATS:g}) from")  # fmt: skip
+        reason = (f"{chosen.name} is {within} the best, {best.name} "
                   f"({_gap({'diff_from_best': gap, 'diff_se': se})} lower), and simpler "
                   f"(complexity {chosen.complexity} < {best.complexity})")  # fmt: skip
     if duration_tolerance is not None:
@@ -511,6 +527,11 @@ def choose(
         else:
             reason += f"; every candidate holds its durations ({rule})"
     return Choice(chosen.name, reason, rows)
+
+
+def _windows(score: KindScore) -> int:
+    """The held-out windows ``score`` is over, all cells together (0 where unknown)."""
+    return len(score.per_cell) * score.windows_per_cell
 
 
 def _paired(score: KindScore, ref: KindScore) -> tuple[float, float]:

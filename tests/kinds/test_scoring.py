@@ -300,6 +300,42 @@ def test_choose_ties_go_to_the_simpler_kind() -> None:
     assert far.chosen == "clock" and "highest" in far.reason
 
 
+def test_a_gap_of_under_a_nat_ties_whatever_its_se() -> None:
+    """A memoryless telegraph's record (Wilkinson's ch05-act, seed 1, 1,000 held-out cells x
+    1,000 windows): one hidden phase per lump is the two-state chain refitted, 6.6e-9 a window
+    better with a paired SE ~10x smaller, and a clock 5.7e-7 lower with an SE ~3x larger. By
+    the SE alone the clock tied and was chosen over the two-state chain; 0.0066 nats over the
+    1e6 windows is no evidence, so the two-state chain ties and is chosen. A gap of 2 nats
+    (2e-6 a window) with the same small SE is no tie."""
+    rng = np.random.default_rng(3)
+    n, windows = 1000, 1000
+    base = rng.normal(-0.1418, 0.02, n)
+    none = {"off": DurationScore(0.0, 0.1, 0.0, 0.0, 10, 10)}
+
+    def score(name: str, complexity: int, values: np.ndarray, per_cell_windows: int) -> KindScore:
+        return KindScore(name, complexity, float(values.mean()), tuple(values), none,
+                         windows_per_cell=per_cell_windows)  # fmt: skip
+
+    def centred(sd: float) -> np.ndarray:
+        noise = rng.normal(0.0, sd, n)
+        return noise - noise.mean()
+
+    def record(two_state_gap: float, per_cell_windows: int = windows) -> list[KindScore]:
+        phases = base + 6.6e-9
+        two_state = phases - two_state_gap + centred(2e-8)  # SE ~6e-10
+        clock = phases - 5.7e-7 + centred(5e-5)  # SE ~1.6e-6
+        return [score("two-state", 0, two_state, per_cell_windows),
+                score("clock max_age=1", 1, clock, per_cell_windows),
+                score("phases", 3, phases, per_cell_windows)]  # fmt: skip
+
+    tied = choose(record(6.6e-9), 1.0, 0.03)
+    assert tied.chosen == "two-state", tied.reason
+    assert "nats over the 1,000,000 held-out windows (at most 1)" in tied.reason
+    assert choose(record(6.6e-9, per_cell_windows=0), 1.0, 0.03).chosen == "clock max_age=1"
+    apart = choose(record(2e-6), 1.0, 0.03)
+    assert apart.chosen == "clock max_age=1", apart.reason  # two-state 2 nats off: no tie
+
+
 def test_a_candidate_whose_durations_miss_is_not_chosen() -> None:
     """The likelihood's best whose simulated mean durations miss (off by more than the
     tolerance on a lump) gives way to the best that holds them; a KS over its critical value
