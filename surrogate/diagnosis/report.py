@@ -15,6 +15,7 @@ import pandas as pd
 
 from surrogate.diagnosis.fixed import FixedInputs
 from surrogate.diagnosis.population import Grid
+from surrogate.diagnosis.recommendation import COLLECT_TIME_MARGIN
 from surrogate.evaluate.report import format_markdown_table
 
 #: the report's figures, beside it in the inspection's directory
@@ -326,10 +327,13 @@ def report_markdown(summary: dict[str, Any], fixed: FixedInputs) -> str:  # noqa
         advised = col.get("advised")
         fix = (" or ".join(f"`{' '.join(o[1:])}`" for o in advised if len(o) > 1)
                if advised else "")  # fmt: skip
-        short = (f", too short: {fix}" if fix else ", too short") \
-            if needed_s > col["max_time"] else ""  # fmt: skip
+        short = (f", too short for {COLLECT_TIME_MARGIN:g} times that: {fix}" if fix
+                 else ", too short") \
+            if "max_time_needed" in col else ""  # fmt: skip
+        blackout = (f" with the next command's `{' '.join(col['blackout'])}`"
+                    if col.get("blackout") else "")  # fmt: skip
         # a lump the free population never visited in the collection's field cannot be timed
-        timing = (f"it takes ~{needed_s:.3g} s of simulated time (collect.max_time = "
+        timing = (f"it takes ~{needed_s:.3g} s of simulated time{blackout} (collect.max_time = "
                   f"{col['max_time']:g} s{short})" if math.isfinite(needed_s) else
                   f"its time cannot be estimated: the population in collect's field was never "
                   f"in one lump (the table above), so collect (collect.max_time = "

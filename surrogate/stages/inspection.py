@@ -95,6 +95,7 @@ from surrogate.diagnosis.fixed import FixedInputs
 from surrogate.diagnosis.options import InspectOptions
 from surrogate.diagnosis.population import Grid, Population, Runs, network_of, population_inputs
 from surrogate.diagnosis.recommendation import (
+    COLLECT_TIME_MARGIN,
     balanced_threshold,
     collection_overrides,
     input_ranges,
@@ -255,6 +256,7 @@ def collection_budget(
     fixed: FixedInputs,
     population: Population,
     measured_step: float,
+    blackout: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The rows per origin that give ``inspect.min_switches`` switches from each origin at the
     switching probability per window measured at the median inputs, what collecting them
@@ -266,11 +268,19 @@ def collection_budget(
     save more than :data:`DENSE_SAVING_S` of simulation, that is offered first (``dense``):
     the same rows, so the same switches, from 1/k of the simulated time (each window is one
     Bernoulli draw of psi whether or not its neighbours are kept; what thinning buys is rows
-    spread over more of the inputs, which a slow-switching lump pays k times for)."""
+    spread over more of the inputs, which a slow-switching lump pays k times for).
+
+    ``blackout``: the collect overrides the next command adds where the pilot's rows lagged a
+    jump (``collect.blackout_time=20``, ``collect.perturb_rate=0.025``), timed with them: they
+    leave fewer windows recordable, so the run the command makes is longer."""
     o = options
     source = _collect_source(settings)
     if source is None:
         return {}
+    if blackout:
+        keys = dict(item.split("=", 1) for item in blackout)
+        source = replace(source, options={**source.options, **{
+            key.removeprefix("collect."): float(value) for key, value in keys.items()}})  # fmt: skip
     c = source.options
     # keeping every switch (collect.keep_switches) a thinned row brings the switches of the
     # record_every windows it stands for
@@ -280,7 +290,7 @@ def collection_budget(
     rows = max(needed)
     out: dict[str, Any] = {"switch_per_window": fixed.switch.tolist(), "rows_needed": needed,
                            "n_per_state": int(c["n_per_state"]),
-                           "windows_per_row": per_row}  # fmt: skip
+                           "windows_per_row": per_row, "blackout": list(blackout)}  # fmt: skip
     if not math.isfinite(rows):
         return out
     out["recommended_n_per_state"] = max(int(rows), int(c["n_per_state"]))
@@ -321,13 +331,15 @@ def _collection_time(
                      if rate > 0 else math.inf)  # fmt: skip
     out["seconds_needed"] = times
     out["max_time"] = float(c["max_time"])
-    longest, eq = max(times), float(c["equilibration_time"])
-    if math.isfinite(longest) and longest > out["max_time"]:
+    eq = float(c["equilibration_time"])
+    # the cap: the estimate's recorded time with its margin (collect stops once it has its rows)
+    cap = eq + COLLECT_TIME_MARGIN * (max(times) - eq)
+    if math.isfinite(cap) and cap > out["max_time"]:
         # either setting alone gives the rows in time: a longer run, or more cells (rows per
         # second grow with the cells)
-        out["max_time_needed"] = round_up(longest)
+        out["max_time_needed"] = round_up(cap)
         if out["max_time"] > eq:
-            out["n_cells_needed"] = math.ceil(int(c["n_cells"]) * (longest - eq)
+            out["n_cells_needed"] = math.ceil(int(c["n_cells"]) * (cap - eq)
                                               / (out["max_time"] - eq))  # fmt: skip
     return out
 
@@ -456,7 +468,6 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     step_measured = network.cell_step_seconds(dt, fixed.events, settings.job.device) \
         if network is not None and fixed.events is not None else step_model  # fmt: skip
     costs = stage_costs(settings, step_measured)
-    collection = collection_budget(settings, o, fixed, population, step_measured)
     burn = burn_in_advice(network, fixed, o.burn_in_factor, o.settle_tolerance)
     ranges = input_ranges(network, population)
     low = o.min_occupancy
@@ -468,6 +479,9 @@ def _inspect(settings: InspectSettings, out: Path, config: Mapping[str, Any] | N
     else:
         pilot = _pilot(settings, o, facts["max_age"], step_measured)
     advice = pilot_advice(settings.config, pilot)
+    # timed as the next command collects: with the blackout it adds where the pilot's rows lag
+    collection = collection_budget(settings, o, fixed, population, step_measured,
+                                   advice.get("blackout") or ())  # fmt: skip
     bounds = signal_bounds_advice(internal, fixed, ranges)
     if bounds:
         advice["signal_bounds"] = bounds

@@ -584,9 +584,57 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
                                               population, 1e-5)  # fmt: skip
     sets = recommendation.collection_overrides(collection)
     assert inspection.check_printed(to_dict(tcfg), {}, {}, collection, True) == []
-    assert sets[0] == ["collect.n_per_state=30000000", "collect.record_every=1"], sets
-    assert len(sets) == 3 and collection["windows_per_row"] == 1
+    assert sets[0][:2] == ["collect.n_per_state=30000000", "collect.record_every=1"], sets
+    # ~1,700 s recording every window: within collect.max_time, not within its twice-the-time
+    # cap, so the dense sets name a longer run (or more cells) too
+    assert sets[0][2] == "collect.max_time=3400", sets
+    assert len(sets) == 4 and collection["windows_per_row"] == 1
     assert len(checks) >= 10  # the distinct settings checked
+
+
+def test_the_collection_is_timed_as_the_next_command_collects(tmp_path, compose_cfg) -> None:
+    """The run the inspector's next command makes, timed with the blackout it adds (fewer
+    windows recordable: exp(-0.025 x 20) = 0.61 of them against exp(-0.1 x 1) = 0.90), and
+    collect.max_time advised at twice that time (a cap: collect stops once it has its rows;
+    Wilkinson's immigration-death stopped short at the estimate, its collection's cells in the
+    rarer lump less often than the population's). The command then runs through the checks."""
+    from surrogate.diagnosis.recommendation import COLLECT_TIME_MARGIN
+    from surrogate.simulate.transitions import recorded_share
+
+    spec = _switch_yaml(tmp_path)
+    cfg = compose_cfg("inspect", ["model=sbml", f"model.spec={spec}", "collect.keep_switches=false",
+                                  "collect.record_every=1"])  # fmt: skip
+    settings = InspectSettings.from_config(cfg)
+    options = InspectOptions.from_mapping(settings.options)
+    population = SimpleNamespace(fields={"gaussian": {"phi_share": 0.05}})
+    blackout = ["collect.blackout_time=20", "collect.perturb_rate=0.025"]
+    fixed = _fixed(switch=np.full(2, 5e-3))  # 30,000 switches need 6e6 rows per origin
+    plain = inspection.collection_budget(settings, options, fixed, population, 1e-5)
+    dark = inspection.collection_budget(settings, options, fixed, population, 1e-5, blackout)
+    c = inspection._collect_source(settings).options  # the collection the inspector times
+    eq = float(c["equilibration_time"])
+    assert dark["blackout"] == blackout and plain["blackout"] == []
+    ratio = recorded_share(0.1, 1.0) / recorded_share(0.025, 20.0)
+    for lump in (0, 1):
+        got = (dark["seconds_needed"][lump] - eq) / (plain["seconds_needed"][lump] - eq)
+        assert got == pytest.approx(ratio, rel=1e-9), lump
+    longest = max(dark["seconds_needed"])
+    assert longest > float(c["max_time"])  # the default collect.max_time is too short
+    cap = eq + COLLECT_TIME_MARGIN * (longest - eq)
+    assert cap <= dark["max_time_needed"] < 1.1 * cap
+    assert dark["n_cells_needed"] == int(np.ceil(int(c["n_cells"]) * (cap - eq)
+                                                 / (float(c["max_time"]) - eq)))  # fmt: skip
+    # the cap is the margin over the estimate: advised where the estimate alone would fit
+    fits = inspection.collection_budget(settings, options, _fixed(switch=np.full(2, 0.03)),
+                                        population, 1e-5)  # fmt: skip
+    assert max(fits["seconds_needed"]) < float(c["max_time"])
+    assert ("max_time_needed" in fits) == (eq + COLLECT_TIME_MARGIN
+                                           * (max(fits["seconds_needed"]) - eq) > c["max_time"])  # fmt: skip
+    sets = recommendation.collection_overrides(dark)
+    command = inspection.next_command(to_dict(cfg), settings.setup.overrides(),
+                                      {"blackout": blackout}, {"advised": sets})  # fmt: skip
+    assert command["dropped"] == [] and "collect.blackout_time=20" in command["command"]
+    assert f"collect.max_time={dark['max_time_needed']:g}" in command["command"]
 
 
 def test_relaxation_with_plain_classes_auto_chooses_shared_bins(config, chooser) -> None:
