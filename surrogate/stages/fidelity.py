@@ -552,6 +552,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     summary["settled_collection"] = settled_collection(settings, summary, config)
     summary["settled_kept"] = settled_kept(settings) if summary["settled_collection"] else None
     summary["draw_again"] = draw_again(settings, summary, config)
+    summary["wider_choice"] = wider_choice(settings, summary, config)
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
     save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
@@ -634,6 +635,47 @@ def settled_collection(
                 "warning); the same command with `%s` records rows only once a jump has "
                 "settled", " ".join(advice))  # fmt: skip
     return advice
+
+
+#: the choice's remedies the fidelity report names where checks fail (in this order):
+#: candidates the choice lacked, then more held-out cells where it was a tie
+CHOICE_REMEDIES = ("wider_kinds", "more_cells")
+
+
+def wider_choice(
+    settings: FidelitySettings, summary: Mapping[str, Any], config: Mapping[str, Any]
+) -> list[str] | None:
+    """Where a check failed and a candidate's chain was chosen by measurement (``gp=auto``):
+    the first of its choice's own remedies that widen or sharpen it
+    (:func:`~surrogate.diagnosis.remedies.choice_remedies`: K lumps over
+    ``++model.classes=auto`` for a network that declares no classes, the memory families
+    ``gp.choice.kinds`` left out, then four times the held-out cells where the choice was a
+    tie) that this stage's own settings accept on ``config``; None where every check passed,
+    no chain was measured, or none applies. Wilkinson's immigration-death network: 14 of 24 on
+    clocks chosen without K lumps, 21 of 24 with ``++model.classes=auto`` (docs/sbml.md)."""
+    from surrogate.diagnosis.remedies import choice_remedies
+    from surrogate.models.network import NetworkInternalModel
+    from surrogate.stages.reproduce import measured_choice
+
+    if summary["passed"] >= summary["checks"]:
+        return None
+    for candidate in settings.candidates:
+        choice = measured_choice(candidate.train)
+        if choice is None:
+            continue
+        network = isinstance(candidate.train.setup.model.internal, NetworkInternalModel)
+        remedies = {r.kind: r for r in choice_remedies(choice, None, network)}
+        for kind in CHOICE_REMEDIES:
+            if kind in remedies:
+                advice = list(remedies[kind].overrides)
+                refused = _refusal(config, advice)
+                if refused is None:
+                    log.warning("fidelity: checks failed; the same command with `%s` widens "
+                                "or sharpens the measured choice", " ".join(advice))  # fmt: skip
+                    return advice
+                log.info("fidelity: %s would widen the choice, but is refused: %s",
+                         " ".join(advice), refused)  # fmt: skip
+    return None
 
 
 #: ``fidelity.sim_seed`` + this: the whole check drawn again (every stream of the default
@@ -874,6 +916,13 @@ def report_sections(
                    f"(checked) records rows only once a jump has settled"
                    f"{'' if kept is None else ', as many as the collection asks for'}, a new "
                    f"collection and new fits (docs/choice.md, \"The lag without the clock\").")  # fmt: skip
+    wider = summary.get("wider_choice")
+    if wider:
+        target += (f"\n\nThe chains were chosen by measurement (`gp=auto`): the same command "
+                   f"with `{' '.join(wider)}` (checked) widens or sharpens that choice (more "
+                   f"candidates, or more held-out cells where it was a tie), which measures "
+                   f"them against the rest again (docs/choice.md, \"The verdict's remedies "
+                   f"under a measured choice\").")  # fmt: skip
     again = summary.get("draw_again")
     if again:
         target += (f"\n\nTo tell a miss the draw decides from one the abstraction decides: the "

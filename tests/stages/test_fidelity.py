@@ -268,6 +268,51 @@ def test_failed_checks_name_the_check_drawn_again(compose_cfg, checked, monkeypa
     assert fidelity.draw_again(settings, summary, config) is None
 
 
+def test_failed_checks_under_a_measured_choice_name_its_remedies(
+    compose_cfg, checked, monkeypatch
+) -> None:
+    """A check failed and the chain was chosen by measurement: the report names the choice's
+    own remedy, checked by this stage's settings: first the candidates it lacked (K lumps for
+    a model that declares classes, `gp.choice.kinds`), else four times the held-out cells
+    where it was a tie; none where every check passed, no chain was measured, or the settings
+    refuse it (gp=svgp has no gp.choice)."""
+    from surrogate.config import to_dict
+    from surrogate.diagnosis.remedies import MeasuredChoice
+    from surrogate.stages import reproduce
+
+    settings, _, table = checked
+    auto = to_dict(compose_cfg("fidelity", [*(o for o in SMALL if o != "gp=svgp"), "gp=auto"]))
+    summary = fidelity.summarise(table, settings)
+    assert summary["passed"] < summary["checks"]
+
+    def row(kind: str, complexity: int, tied: bool) -> dict:
+        return {"kind": kind, "complexity": complexity, "log_likelihood_per_window": -0.1,
+                "diff_from_best": 0.0, "diff_se": 1e-4, "tied_with_best": tied,
+                "holds_durations": True}  # fmt: skip
+
+    def choice(kinds: tuple[str, ...]) -> MeasuredChoice:
+        return MeasuredChoice(chosen="clock max_age=5", kinds=kinds, max_ages=(1.0, 2.0, 5.0),
+                              scores=(row("two-state", 0, False), row("clock max_age=5", 1, True),
+                                      row("phases", 3, True)),
+                              n_cells=1000, tie_se=1.0, classes=True)  # fmt: skip
+
+    monkeypatch.setattr(reproduce, "measured_choice", lambda tr: choice(("two-state", "clock")))
+    wider = fidelity.wider_choice(settings, summary, auto)
+    assert wider == ["gp.choice.kinds=[two-state,clock,classes,phases]"]
+    assert fidelity._refusal(auto, wider) is None  # the advice runs
+    text = "\n".join(body for _, body in fidelity.report_sections(
+        table, {**summary, "wider_choice": wider}, settings))  # fmt: skip
+    assert f"the same command with `{wider[0]}` (checked) widens or sharpens" in text
+    every = ("two-state", "clock", "classes", "phases")
+    monkeypatch.setattr(reproduce, "measured_choice", lambda tr: choice(every))
+    assert fidelity.wider_choice(settings, summary, auto) == ["gp.choice.n_cells=4000"]
+    assert fidelity.wider_choice(settings, {**summary, "passed": summary["checks"]}, auto) is None
+    named = to_dict(compose_cfg("fidelity", SMALL))  # gp=svgp: no gp.choice to widen
+    assert fidelity.wider_choice(settings, summary, named) is None
+    monkeypatch.setattr(reproduce, "measured_choice", lambda tr: None)
+    assert fidelity.wider_choice(settings, summary, auto) is None
+
+
 def test_each_field_draws_its_own_stream_as_stored_references_do(compose_cfg) -> None:
     """fidelity.streams=per_field (the default): every run of the second field draws 10,000,000
     past the first's seed (the full model, its floor, the exact chain, each abstraction), the
