@@ -101,6 +101,11 @@ RUNAWAY_EVENTS = 10**7
 #: seconds of it (the auto-regulatory network's 4,000-s burn-in makes ~7e6 events at its median
 #: input, and a stationary sample's cell at a high input passed 1e7 in one call: no runaway)
 RUNAWAY_SPAN_SECONDS = 100.0
+#: ... and at least this many times the events the file's counts imply over the burn-in: a
+#: network busy from its start is no runaway (StochSS's Brusselator, ~215,000 events a second
+#: from its counts, 1.1e7 in its 50-s burn-in, was refused as one; a runaway's rate grows past
+#: any multiple of its start's)
+RUNAWAY_RATE_FACTOR = 10.0
 #: seconds per cell-step of the exact chain computed directly, per K^3 of a K-state generator
 #: (exp(Q dt) at each cell's inputs, decision.mode=direct): 5.7 ms per cell-step at K = 151
 #: (the textbook's dimerisation, the 2-core box under load), ~1.65e-9 x 151^3
@@ -440,10 +445,14 @@ class NetworkInternalModel:
     def burn_in_cap(self, seconds: float) -> int:
         """The events a cell may make in a burn-in of ``seconds``, one window: the model's
         :attr:`max_events` where set (a probe's copy), else :data:`RUNAWAY_EVENTS` per
-        :data:`RUNAWAY_SPAN_SECONDS` of it (at least one window's: 4e8 for a 4,000-s burn-in)."""
+        :data:`RUNAWAY_SPAN_SECONDS` of it (at least one window's: 4e8 for a 4,000-s burn-in),
+        or :data:`RUNAWAY_RATE_FACTOR` times the events the file's counts imply over it, the
+        larger."""
         if self.max_events is not None:
             return int(self.max_events)
-        return int(RUNAWAY_EVENTS * max(1.0, seconds / RUNAWAY_SPAN_SECONDS))
+        expected = self.events_per_window(seconds)  # NaN where the inputs have no values
+        busy = RUNAWAY_RATE_FACTOR * expected if math.isfinite(expected) else 0.0
+        return int(max(RUNAWAY_EVENTS * max(1.0, seconds / RUNAWAY_SPAN_SECONDS), busy))
 
     def start_state(
         self, n: int, device: torch.device, inputs: Tensor | None = None

@@ -148,6 +148,44 @@ def test_a_long_burn_in_of_a_busy_network_is_no_runaway(tmp_path: Path, monkeypa
         grows.burn_in_at(grows.file_inputs().expand(2, -1).clone())
 
 
+def test_a_network_busy_from_its_counts_is_no_runaway_in_its_burn_in(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """A burn-in's cap is at least ``RUNAWAY_RATE_FACTOR`` times the events the file's counts
+    imply over it: a birth-death busy from its start (~4,000 events a second, ~40,000 in a
+    10-s burn-in), which the span's cap alone (scaled down here to 10,000) refused as a
+    runaway, settles; a network that does run away still trips (StochSS's Brusselator:
+    1.1e7 events in its 50-s burn-in against 1e7)."""
+    from surrogate.errors import RunawayError
+    from surrogate.models import network as network_module
+
+    (tmp_path / "busy.xml").write_text(build("busy", [Species("X", amount=2000)],
+                                             {"b": 2000.0, "d": 1.0},
+                                             [Reaction("birth", "b", {}, {"X": 1}),
+                                              Reaction("death", "d * X", {"X": 1}, {})]))  # fmt: skip
+    spec = tmp_path / "busy.yaml"
+    spec.write_text(yaml.safe_dump({"name": "busy", "network": "busy.xml", "inputs": {"b": "L"},
+                                    "lump": "X >= 2000", "body": {"kind": "static"},
+                                    "burn_in": 10.0}))  # fmt: skip
+    busy = SbmlAgentModel(str(spec)).internal
+    monkeypatch.setattr(network_module, "RUNAWAY_EVENTS", 1_000)
+    monkeypatch.setattr(network_module, "RUNAWAY_SPAN_SECONDS", 1.0)
+    expected = busy.events_per_window(10.0)  # b + d X = 4,000 a second from the file's counts
+    assert expected == pytest.approx(40_000.0)
+    assert busy.burn_in_cap(10.0) == int(network_module.RUNAWAY_RATE_FACTOR * expected)
+    inputs = torch.full((2, 1), 2000.0, dtype=torch.float64)
+    torch.manual_seed(0)
+    counts = busy.burn_in_at(inputs)[0]
+    assert bool(((counts > 1800) & (counts < 2200)).all())  # settled near b / d
+    monkeypatch.setattr(network_module, "RUNAWAY_RATE_FACTOR", 0.0)  # the span's cap alone
+    with pytest.raises(RunawayError):
+        busy.burn_in_at(inputs)
+    monkeypatch.setattr(network_module, "RUNAWAY_RATE_FACTOR", 10.0)
+    grows = runaway(tmp_path).internal  # 1 s of e^(50 t): past any multiple of its start's
+    with pytest.raises(RunawayError):
+        grows.burn_in_at(grows.file_inputs().expand(2, -1).clone())
+
+
 def test_step_seconds_does_not_pay_a_runaway_burn_in(tmp_path: Path) -> None:
     """The per-step probe starts from the file's counts with windows capped at
     ``PROBE_MAX_EVENTS`` per cell: a runaway network falls back to ``STEP_SECONDS`` in a second
