@@ -13,6 +13,7 @@ import yaml
 
 from surrogate.diagnosis import cost
 from surrogate.fields import ConstantField, GaussianField
+from surrogate.models.network import NetworkInternalModel
 from surrogate.models.sbml_agent import SbmlAgentModel
 from surrogate.stages import budget
 from surrogate.stages.settings import SimulateSettings
@@ -103,6 +104,20 @@ def runaway(tmp_path: Path) -> SbmlAgentModel:
     return SbmlAgentModel(str(spec))
 
 
+def birth_death(tmp_path: Path, birth: float, start: int, burn_in: float) -> NetworkInternalModel:
+    """The network of a bounded birth-death, X made at ``birth`` (the input) and lost at 1 x X
+    (settling near ``birth``), from ``start`` molecules, with ``burn_in`` seconds of burn-in."""
+    (tmp_path / "busy.xml").write_text(build("busy", [Species("X", amount=start)],
+                                             {"b": birth, "d": 1.0},
+                                             [Reaction("birth", "b", {}, {"X": 1}),
+                                              Reaction("death", "d * X", {"X": 1}, {})]))  # fmt: skip
+    spec = tmp_path / "busy.yaml"
+    spec.write_text(yaml.safe_dump({"name": "busy", "network": "busy.xml", "inputs": {"b": "L"},
+                                    "lump": f"X >= {birth:g}", "body": {"kind": "static"},
+                                    "burn_in": burn_in}))  # fmt: skip
+    return SbmlAgentModel(str(spec)).internal
+
+
 def test_a_window_over_max_events_raises_naming_the_cell(tmp_path: Path) -> None:
     """``advance_at(..., max_events=...)`` caps each cell's events in the window; without it
     the window runs as before."""
@@ -125,14 +140,7 @@ def test_a_long_burn_in_of_a_busy_network_is_no_runaway(tmp_path: Path, monkeypa
     from surrogate.errors import RunawayError
     from surrogate.models import network as network_module
 
-    (tmp_path / "busy.xml").write_text(build("busy", [Species("X", amount=0)], {"b": 1000.0, "d": 1.0},
-                                             [Reaction("birth", "b", {}, {"X": 1}),
-                                              Reaction("death", "d * X", {"X": 1}, {})]))  # fmt: skip
-    spec = tmp_path / "busy.yaml"
-    spec.write_text(yaml.safe_dump({"name": "busy", "network": "busy.xml", "inputs": {"b": "L"},
-                                    "lump": "X >= 1000", "body": {"kind": "static"},
-                                    "burn_in": 200.0}))  # fmt: skip
-    busy = SbmlAgentModel(str(spec)).internal
+    busy = birth_death(tmp_path, birth=1000.0, start=0, burn_in=200.0)
     monkeypatch.setattr(network_module, "RUNAWAY_EVENTS", 50_000)  # ~4e5 events in the burn-in
     monkeypatch.setattr(network_module, "RUNAWAY_SPAN_SECONDS", 1.0)
     assert busy.burn_in_cap(200.0) == 10_000_000 and busy.burn_in_cap(0.5) == 50_000
@@ -159,15 +167,7 @@ def test_a_network_busy_from_its_counts_is_no_runaway_in_its_burn_in(
     from surrogate.errors import RunawayError
     from surrogate.models import network as network_module
 
-    (tmp_path / "busy.xml").write_text(build("busy", [Species("X", amount=2000)],
-                                             {"b": 2000.0, "d": 1.0},
-                                             [Reaction("birth", "b", {}, {"X": 1}),
-                                              Reaction("death", "d * X", {"X": 1}, {})]))  # fmt: skip
-    spec = tmp_path / "busy.yaml"
-    spec.write_text(yaml.safe_dump({"name": "busy", "network": "busy.xml", "inputs": {"b": "L"},
-                                    "lump": "X >= 2000", "body": {"kind": "static"},
-                                    "burn_in": 10.0}))  # fmt: skip
-    busy = SbmlAgentModel(str(spec)).internal
+    busy = birth_death(tmp_path, birth=2000.0, start=2000, burn_in=10.0)
     monkeypatch.setattr(network_module, "RUNAWAY_EVENTS", 1_000)
     monkeypatch.setattr(network_module, "RUNAWAY_SPAN_SECONDS", 1.0)
     expected = busy.events_per_window(10.0)  # b + d X = 4,000 a second from the file's counts
