@@ -97,8 +97,10 @@ def tabulate_with_clock(
     k = len(lead_ranges)
     if lead_size is None:
         lead_size = (4096,) if k == 1 else (256,) * k
-    return PsiLookupTable.from_function(psi, [*lead_ranges, (0.0, steps * dt)], input_names,
-                                        (*lead_size, steps + 1))  # fmt: skip
+    table = PsiLookupTable.from_function(psi, [*lead_ranges, (0.0, steps * dt)], input_names,
+                                         (*lead_size, steps + 1))  # fmt: skip
+    table.node_axes = (k,)  # a clock takes whole steps, each a node
+    return table
 
 
 def with_age(z: Tensor, age_steps: Tensor, dt: float, max_age: float) -> Tensor:

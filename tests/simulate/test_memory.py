@@ -260,3 +260,19 @@ def test_a_table_with_a_clock_node_per_step_is_read_at_the_node():
     both = MemoryDecision(stacked, internal, max_age=2.0, dt=DT)
     out = both.probability_at(phi, x, age, DT)
     assert torch.equal(out[:300], node[:300]) and torch.allclose(out[300:], torch.tensor(0.3))
+
+
+def test_a_clock_tables_deviation_is_read_at_the_clocks_it_takes():
+    """A psi whose law of the age jumps between two steps (a regular oscillator's hazard) is
+    exact at every clock a cell can have: the table's deviation reads its clock axis at the
+    nodes (0 here), where midway between them it would read half the jump."""
+    from surrogate.simulate.memory import tabulate_with_clock
+
+    def psi(phi, z):  # a step in the age midway between the 5th and 6th step
+        return 0.1 + 0.8 * (z[:, 1] > 5.5 * DT).float() + 0.0 * phi
+
+    table = tabulate_with_clock(psi, [(0.0, 1.0)], ("s", AGE), DT, 2.0, (33,))
+    assert table.node_axes == (1,)
+    assert table.max_deviation(psi, n_check=None) < 1e-6
+    table.node_axes = ()  # midway between the clock's nodes: half the step
+    assert table.max_deviation(psi, n_check=None) == pytest.approx(0.4, abs=1e-6)
