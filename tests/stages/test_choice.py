@@ -97,6 +97,14 @@ def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
         "n_inducing"] == 50  # fmt: skip
     recipe = ChoiceSettings.from_config({"clock_inducing": None})
     assert candidate_groups({}, recipe, Plain())["clock max_age=1"]["n_inducing"] == 200
+    # gp.choice.optimizer=newton: every candidate scored by Newton's 200 steps, no natural
+    # gradient; the recipes' own optimisers train the chosen one as before
+    newton = ChoiceSettings.from_config({"max_ages": [1], "optimizer": "newton"})
+    scored = candidate_groups({"lumps": "auto"}, newton, Plain())
+    assert all((g["optimizer"], g["epochs"], g["natural_gradient"]) == ("newton", 200, False)
+               for g in scored.values())  # fmt: skip
+    trained = candidate_groups({"lumps": "auto"}, newton, Plain(), scoring=False)
+    assert trained == {k: finals[k] for k in ("two-state", "clock max_age=1", "phases")}
     only = ChoiceSettings.from_config({"kinds": ["clock"], "max_ages": [2]})
     assert list(candidate_groups({}, only, Plain())) == ["clock max_age=2"]
     # a kind's own block given in part (+gp.phases.counts=max) keeps the recipe's other keys

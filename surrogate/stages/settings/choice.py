@@ -43,10 +43,15 @@ SCORES = "scores.csv"
 #: where the model declares classes, else the two-state chain)
 BY = ("measure", "rule")
 #: gp.choice.optimizer: lbfgs (every candidate fitted by L-BFGS, 200 iterations: ~5x faster
-#: than the recipes' Adam, docs/performance.md) | recipe (each recipe's own optimiser)
-OPTIMIZERS = ("lbfgs", "recipe")
+#: than the recipes' Adam, docs/performance.md) | newton (by Newton's q*, 200 steps: the
+#: binned fit solved exactly, gp.optimizer=newton) | recipe (each recipe's own optimiser)
+OPTIMIZERS = ("lbfgs", "newton", "recipe")
 #: what gp.choice.optimizer=lbfgs sets in each candidate (L-BFGS takes no natural gradient)
 LBFGS = {"optimizer": "lbfgs", "epochs": 200, "natural_gradient": False}
+#: what gp.choice.optimizer=newton sets in each candidate (gp=classes' recipe, for every kind)
+NEWTON = {"optimizer": "newton", "epochs": 200, "natural_gradient": False}
+#: the candidates' scoring keys per gp.choice.optimizer (recipe: none)
+SCORING_KEYS = {"lbfgs": LBFGS, "newton": NEWTON}
 #: every fit the choice makes (the candidates' to score them, the chosen one's with its recipe)
 #: runs on one torch thread, in as many processes as ``gp.choice.workers`` says: the same fits
 #: whatever the worker count and the machine's cores (a fit's float reductions depend on its
@@ -322,8 +327,8 @@ def candidate_groups(
     with); each on :data:`FIT_THREADS` unless the user set ``gp.threads``; the clocks scored
     with ``gp.choice.clock_inducing`` inducing points unless the user set ``gp.n_inducing``."""
     user = user_keys(raw_gp)
-    lbfgs = scoring and settings.optimizer == "lbfgs"
-    choice_keys = {k: v for k, v in LBFGS.items() if k not in user} if lbfgs else {}
+    keys = SCORING_KEYS.get(settings.optimizer, {}) if scoring else {}
+    choice_keys = {k: v for k, v in keys.items() if k not in user}
     if "threads" not in user:
         choice_keys["threads"] = FIT_THREADS
 
