@@ -522,7 +522,8 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
     """gp.choice.ahead with two workers: K lumps (E. coli declares classes) is trained with its
     recipe in a worker while the candidates are scored; the fit is the one this process makes
     from the same settings, bit for bit (one thread, its seed), so the train after the choice
-    reuses it. Not asked, with refit off or without K lumps, nothing is fitted ahead."""
+    reuses it. Not asked, with refit off, without K lumps or scored by Newton (K lumps'
+    recipe), nothing is fitted ahead."""
     import shutil
 
     import torch
@@ -546,8 +547,11 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
     train_stage.fit_candidate(ahead)
     for f, before in zip(files, made, strict=True):
         _assert_tensors_equal(torch.load(ahead.fit_directory / f, weights_only=True), before, f)
+    # scored by Newton, K lumps' scored fit is their recipe's: the one trained, not ahead
+    newton = "gp.choice.optimizer=newton"
     for key, extra in (("ahead", [kinds, "gp.choice.ahead=false"]),
-                       ("refit", [kinds, "gp.choice.refit=false"]), ("plain", [])):  # fmt: skip
+                       ("refit", [kinds, "gp.choice.refit=false"]), ("plain", []),
+                       ("newton", [kinds, newton])):  # fmt: skip
         with collecting_pending() as others:  # each a choice not made yet (its own directory)
             train_stage.validate(compose_in(tmp_path / key, "train", [*MEASURE, *extra]))
         assert others[0].ahead() is None, key

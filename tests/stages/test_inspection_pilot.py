@@ -104,3 +104,18 @@ def test_the_pilot_trains_nothing_ahead(compose_cfg) -> None:
     alone = to_dict(compose_cfg("inspect", ["gp.choice.by=measure",
                                             "gp.choice.kinds=[relaxation]"]))  # fmt: skip
     assert pilot_config(alone, 2000, 20, 5.0, None)[0]["gp"]["choice"]["kinds"] == ["relaxation"]
+
+
+def test_the_pilot_scores_as_the_choice_it_stands_for(compose_cfg) -> None:
+    """The pilot fits its candidates with the choice's own scoring optimiser (L-BFGS by
+    default, Newton where the user asks ``gp.choice.optimizer=newton``): what it recommends is
+    the measurement the next command makes."""
+    from surrogate.stages.pilot import _plan, pilot_config
+
+    for optimizer in ("lbfgs", "newton"):
+        config = to_dict(compose_cfg("inspect", ["gp.choice.by=measure",
+                                                 f"gp.choice.optimizer={optimizer}"]))  # fmt: skip
+        cfg, _, _ = pilot_config(config, 2000, 20, 5.0, None)
+        plan = _plan(cfg)[1]
+        assert plan is not None
+        assert {g["optimizer"] for g in plan.groups.values()} == {optimizer}, optimizer
