@@ -321,8 +321,8 @@ def candidate_groups(
     relax (``gp=classes gp.class_moves=relaxation``, scored as its recipe trains it: its cost is
     a stationary full-model sample, not the fit) where they are bins both lumps share, and each registered
     candidate kind's recipe (the hidden phases, ``gp=phases``); each the shipped recipe with the
-    user's keys (:func:`user_keys`) and, to score them (``scoring``) with
-    ``gp.choice.optimizer=lbfgs``, :data:`LBFGS` unless the user set those keys
+    user's keys (:func:`user_keys`) and, to score them (``scoring``), those of
+    ``gp.choice.optimizer`` (:data:`LBFGS` or :data:`NEWTON`) unless the user set them
     (``scoring=False``: the recipes' own optimisers, what ``gp.choice.refit`` trains the chosen
     with); each on :data:`FIT_THREADS` unless the user set ``gp.threads``; the clocks scored
     with ``gp.choice.clock_inducing`` inducing points unless the user set ``gp.n_inducing``."""
