@@ -10,7 +10,9 @@ this (docs/fidelity.md, "Memory: K lumps").
 python scripts/fidelity_null.py [--pairs 3] [--cells 2000] [--fields gaussian,linear,...]
 
 E. coli, start (2, 0), 10 s equilibration, dt 0.05 s; seeds 5000 + 10 p (reference), 6000 + 10 p
-(floor), 7000 + 100 p + k (the six candidates). 2,000 cells: ~37 s per field and pair on one
+(floor), 7000 + 100 p + k (the six candidates), each moved by i x 10,000,000 on the i-th field
+(``fidelity.streams=per_field``'s rule, :func:`surrogate.stages.reference.field_seed`: each
+field its own draw, as the check draws them). 2,000 cells: ~37 s per field and pair on one
 core of the 2-core box (the numba kernel).
 """
 
@@ -35,6 +37,7 @@ from surrogate.fields import Field
 from surrogate.models.ecoli import EcoliModel
 from surrogate.simulate import FullDecision, Simulator
 from surrogate.stages.fidelity import KS_C
+from surrogate.stages.reference import field_seed
 
 DT = 0.05
 TIMES = (125.0, 250.0, 375.0, 500.0)
@@ -68,15 +71,19 @@ def main() -> None:
     crit = KS_C[float(CHECK.alpha)] * math.sqrt(2.0 / args.cells)
     fails, checks, largest = 0, 0, 0.0
     t0 = time.perf_counter()
-    for name in args.fields.split(","):
+    for i, name in enumerate(args.fields.split(",")):
         field = build_field(field_config(name))
+
+        def seed(base: int, i: int = i) -> int:  # the field's own stream, as the check's
+            return field_seed(base, i, str(CHECK.streams))
+
         for p in range(args.pairs):
-            ref = distances(model, field, 5000 + 10 * p, args.cells)
-            floor = distances(model, field, 6000 + 10 * p, args.cells)
+            ref = distances(model, field, seed(5000 + 10 * p), args.cells)
+            floor = distances(model, field, seed(6000 + 10 * p), args.cells)
             limits = {t: min(max(CHECK.ks_factor * stats.ks_2samp(floor[t], ref[t]).statistic,
                                  crit), CHECK.ks_max) for t in TIMES}  # fmt: skip
             for k in range(6):
-                cand = distances(model, field, 7000 + 100 * p + k, args.cells)
+                cand = distances(model, field, seed(7000 + 100 * p + k), args.cells)
                 for t in TIMES:
                     ks = float(stats.ks_2samp(cand[t], ref[t]).statistic)
                     checks += 1
