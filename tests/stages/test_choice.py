@@ -555,6 +555,7 @@ def test_the_rule_candidate_is_trained_ahead_as_the_train_after_the_choice_would
         with collecting_pending() as others:  # each a choice not made yet (its own directory)
             train_stage.validate(compose_in(tmp_path / key, "train", [*MEASURE, *extra]))
         assert others[0].ahead() is None, key
+    assert others[0].finals["classes"] == others[0].groups["classes"]  # newton: scored as trained
 
 
 def _assert_tensors_equal(state: object, reference: object, where: str) -> None:
