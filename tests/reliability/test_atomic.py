@@ -199,8 +199,10 @@ def test_every_file_write_in_the_package_goes_through_io() -> None:
 # whole stages killed mid-run
 
 
-# ~2 s of time loop on one core: long enough to be killed inside it, short enough to rerun
-SIM_KILL = ["n_cells=200", "t_end=200.0", "equilibration_time=1.0"]
+# a time loop long enough to be killed 0.3 s into it on a fast box (1.5 s on one core of the
+# 2026-12-02 box, where 200 cells x 200 s had shrunk to 0.19 s and ended before the kill),
+# short enough to rerun (~15 s on the slowest box measured here)
+SIM_KILL = ["n_cells=1000", "t_end=400.0", "equilibration_time=1.0"]
 
 
 def _start_simulate(data_dir: Path, extra: list[str]) -> subprocess.Popen:
@@ -260,7 +262,8 @@ def test_simulate_killed_mid_run_leaves_no_partial_artefact(
     assert out == target
     run = load_run(out)
     assert read_manifest(out)["seed"] == cfg.seed
-    assert run.observables["cell"].nunique() == 200 and run.record_times[-1] == pytest.approx(200.0)
+    assert run.observables["cell"].nunique() == 1000
+    assert run.record_times[-1] == pytest.approx(400.0)
     clean_stale_tmp(out)  # what a locking stage does on its next run
     assert not _tmp_files(out)
 
