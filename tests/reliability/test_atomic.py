@@ -201,7 +201,8 @@ def test_every_file_write_in_the_package_goes_through_io() -> None:
 
 # a time loop long enough to be killed 0.3 s into it on a fast box (1.5 s on one core of the
 # 2026-12-02 box, where 200 cells x 200 s had shrunk to 0.19 s and ended before the kill),
-# short enough to rerun (~15 s on the slowest box measured here)
+# short enough to rerun (~20 s, estimated, on the slowest box measured here, where the old
+# 200 cells x 200 s took ~2 s)
 SIM_KILL = ["n_cells=1000", "t_end=400.0", "equilibration_time=1.0"]
 
 
