@@ -71,19 +71,17 @@ def main() -> None:
     crit = KS_C[float(CHECK.alpha)] * math.sqrt(2.0 / args.cells)
     fails, checks, largest = 0, 0, 0.0
     t0 = time.perf_counter()
+    streams = str(CHECK.streams)  # each field its own draws, as the check's
     for i, name in enumerate(args.fields.split(",")):
         field = build_field(field_config(name))
-
-        def seed(base: int, i: int = i) -> int:  # the field's own stream, as the check's
-            return field_seed(base, i, str(CHECK.streams))
-
         for p in range(args.pairs):
-            ref = distances(model, field, seed(5000 + 10 * p), args.cells)
-            floor = distances(model, field, seed(6000 + 10 * p), args.cells)
+            ref = distances(model, field, field_seed(5000 + 10 * p, i, streams), args.cells)
+            floor = distances(model, field, field_seed(6000 + 10 * p, i, streams), args.cells)
             limits = {t: min(max(CHECK.ks_factor * stats.ks_2samp(floor[t], ref[t]).statistic,
                                  crit), CHECK.ks_max) for t in TIMES}  # fmt: skip
             for k in range(6):
-                cand = distances(model, field, seed(7000 + 100 * p + k), args.cells)
+                cand = distances(model, field, field_seed(7000 + 100 * p + k, i, streams),
+                                 args.cells)  # fmt: skip
                 for t in TIMES:
                     ks = float(stats.ks_2samp(cand[t], ref[t]).statistic)
                     checks += 1

@@ -350,7 +350,7 @@ def candidate_groups(
         if _shared_bins(internal, declared.lumps):
             # scored as its recipe trains it, never refitted: its cost is the stationary
             # sample's full-model cells (minutes on a slow network), paid once
-            recipe = {k: v for k, v in choice_keys.items() if k not in LBFGS}
+            recipe = {k: v for k, v in choice_keys.items() if k not in keys}
             relaxing = {**group_config("gp", "classes"), "class_moves": CLASS_MOVES[1],
                         **recipe, **user}  # fmt: skip
             families.append((RELAXING_FAMILY, RELAXING_CANDIDATE, relaxing))
