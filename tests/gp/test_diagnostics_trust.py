@@ -61,6 +61,28 @@ def test_a_population_still_settling_shows_in_its_halves() -> None:
     assert out["phi0"]["settling_z"] < -6  # the second half switches more
 
 
+def test_cells_moving_to_other_inputs_are_settled() -> None:
+    """The inputs rise over the run (cells moving up a field) under a fixed law: the raw
+    switching frequency rises between the halves (-9 SE here); what psi predicts at the
+    inputs does too, so the residual, the settling check, does not."""
+    occupancy = _occupancy(3, cells=400, steps=250)
+    occupancy["z"] = np.clip(occupancy["t"] / occupancy["t"].max() + 0.1 * (occupancy["z"] - 0.5),
+                             0, 1)  # fmt: skip
+    rng = np.random.default_rng(4)  # outcomes drawn again from the law at the moved inputs
+    p0 = 0.1 + 0.1 * occupancy["z"].to_numpy()
+    leave = rng.uniform(size=len(occupancy)) < np.where(occupancy["phi"] == 0, p0, 0.05)
+    occupancy["phi_next"] = np.where(leave, 1 - occupancy["phi"], occupancy["phi"])
+    out, _ = psi_errors(_psi(1.0), occupancy, ["z"])
+    assert abs(out["phi0"]["settling_z"]) < 4
+    sel = occupancy["phi"] == 0
+    raw = (occupancy["phi_next"] != occupancy["phi"])[sel].to_numpy(float)
+    half = occupancy["t"][sel].to_numpy() < occupancy["t"][sel].median()
+    se = np.hypot(
+        *(cluster_se(raw[h], occupancy["cell"][sel].to_numpy()[h]) for h in (half, ~half))
+    )
+    assert (raw[half].mean() - raw[~half].mean()) / se < -6  # what the raw halves read
+
+
 def test_cluster_se_counts_correlated_windows_once_per_cell() -> None:
     """Cells with their own constant rate: the windows of a cell are one cluster, so the
     standard error is the spread of the cells' means over sqrt(cells), far above the binomial."""
