@@ -7,7 +7,7 @@ the stages, from plain values: :func:`surrogate.diagnosis.advice.verdict`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 from surrogate.diagnosis.advice import Verdict
@@ -55,16 +55,26 @@ def _flat(cfg: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def tried_remedies(
-    previous: Mapping[str, Any] | None, config: Mapping[str, Any], now: int
+    previous: Mapping[str, Any] | None,
+    config: Mapping[str, Any],
+    now: int,
+    causes: Collection[str] | None = None,
 ) -> dict[str, str]:
     """The remedy kinds not to advise again: those the previous run of the model (its
     :func:`verdict_record`) advised that this run (config ``config``, outcome ``now``) applied
-    without a gain, with what was measured, and those it had already set aside."""
+    without a gain, with what was measured, and those it had already set aside. A remedy whose
+    cause this run no longer finds (``causes``: the names of this run's causes; None: not
+    known) had its gain, whatever the outcome: a larger diagnostic population that made its
+    reference judge (Vilar's oscillator: 4,300 cells, then another cause) is no remedy tried
+    in vain, and set aside it left the next noisy reference nothing to advise."""
     if not previous:
         return {}
     out = dict(previous.get("tried") or {})
     before = previous["outcome"]
     for r in previous.get("remedies") or []:
+        if causes is not None and r.get("cause") not in causes:
+            out.pop(r["kind"], None)  # its cause went: it worked
+            continue
         if r["overrides"] and applied(previous["config"], config, r["overrides"]) \
                 and now >= before:  # fmt: skip
             out[r["kind"]] = (f"tried: `{' '.join(r['overrides'])}` ran and the comparisons "

@@ -378,7 +378,6 @@ def _verdict(
                    if isinstance(source, CollectSettings) else None)  # fmt: skip
     now = advice.outcome(failures)
     previous = _previous_verdict(settings, out) if config is not None else None
-    tried = advice.tried_remedies(previous, config, now) if config is not None else {}
     diagnostic = metrics.get("diagnostic")
     if tr.kind.classes and metrics.get("class_diagnostic"):
         diagnostic = class_diagnostic_by_lump(metrics["class_diagnostic"], tr.setup.model.internal)
@@ -398,6 +397,9 @@ def _verdict(
         diagnostic_span=(float(tr.diagnostic["equilibration_time"]), float(tr.diagnostic["t_end"]))
         if tr.diagnostic.get("t_end") else None,
     )  # fmt: skip
+    # the causes this run finds (no remedy checked): a remedy whose cause went had its gain
+    causes = {name for name, _, _ in verdict(measured).causes}
+    tried = advice.tried_remedies(previous, config, now, causes) if config is not None else {}
     v = verdict(measured, check=None if config is None else
                 (lambda overrides, what: checked(config, overrides, what)), tried=tried)  # fmt: skip
     if config is not None and out is not None:

@@ -200,6 +200,12 @@ def test_a_remedy_applied_without_a_gain_is_not_advised_again() -> None:
     tried = tried_remedies(record, after, 5)
     assert set(tried) == {"longer_clock", "more_rows"} and "from 3 to 5" in tried["longer_clock"]
     assert tried_remedies(record, after, 1) == {}  # it helped: advised as usual
+    # its cause gone (another found instead), a remedy had its gain whatever the outcome;
+    # one set aside before is advised again once its cause has gone
+    assert tried_remedies(record, after, 5, causes={"Not settled"}) == {}
+    assert set(tried_remedies(record, after, 5, causes={"m"})) == {"longer_clock", "more_rows"}
+    aside = {**record, "tried": {"more_rows": "tried before"}}
+    assert tried_remedies(aside, after, 5, causes=set()) == {}
     args: dict[str, Any] = {"diagnostic": {"phi0": UNBIASED, "phi1": UNBIASED},
                             "lump_names": ("off", "on"), "failures": {"g": ["off"]},
                             "outside": {"g": {"share_outside": 0.0, "inputs": {}}},
