@@ -36,6 +36,7 @@ from torch import Tensor
 from surrogate.errors import ArtefactError
 from surrogate.gp.binned import label_weight
 from surrogate.gp.lookup import grid_nodes
+from surrogate.gp.own_rows import summary
 from surrogate.gp.settings import GPSettings
 from surrogate.gp.training import fit_classifiers
 from surrogate.gp.windows import row_windows
@@ -124,7 +125,7 @@ def fit_class_law(
     grid = grid_nodes(bounds, sizes).to(torch.float32)
     law = torch.zeros(n_classes, grid.shape[0], n_classes, dtype=torch.float64)
     for a, steps in plan:
-        briers, row_weights = {}, {}
+        briers, row_weights, own_rows = {}, {}, {}
         for b, step in steps.items():
             if isinstance(step, float):
                 law[a, :, b] = step
@@ -134,12 +135,14 @@ def fit_class_law(
                 law[a, :, b] = clf.predict_proba(grid.to(clf.device)).double().cpu().clamp(0, 1)
             briers[str(b)] = clf.validation.get("brier") if clf.validation else None
             row_weights[str(b)] = round(weights[step], 1)
+            own_rows[str(b)] = summary(clf.own_rows)
         total = law[a].sum(-1, keepdim=True)
         if bool((total <= 0).any()):
             raise ArtefactError(f"the class chain's law from class {a} vanishes on its domain")
         law[a] = law[a] / total
         metrics[str(a)]["brier"] = briers
         metrics[str(a)]["row_weight"] = row_weights
+        metrics[str(a)]["own_rows"] = own_rows  # each classifier against its own rows
     if not torch.isfinite(law).all():
         raise ArtefactError("the class chain's classifiers predict NaN/inf on their domain")
     metrics["classifiers"] = len(problems)

@@ -73,6 +73,8 @@ class FittedClassifier:
     settings: GPSettings
     history: list[float] = field(default_factory=list)
     validation: dict[str, Any] | None = None
+    #: the fit against its own training rows (:func:`surrogate.gp.own_rows.own_rows_check`)
+    own_rows: dict[str, Any] | None = None
     n_train: int = 0
     n_val: int = 0
     train_seconds: float = 0.0
@@ -160,6 +162,7 @@ class FittedClassifier:
             },
             "history": [float(v) for v in self.history],
             "validation": copy.deepcopy(self.validation),
+            "own_rows": copy.deepcopy(self.own_rows),
             "n_train": int(self.n_train),
             "n_val": int(self.n_val),
             "train_seconds": float(self.train_seconds),
@@ -184,6 +187,7 @@ class FittedClassifier:
             settings=settings,
             history=list(state.get("history", [])),
             validation=copy.deepcopy(state.get("validation")),
+            own_rows=copy.deepcopy(state.get("own_rows")),
             n_train=int(state.get("n_train", 0)),
             n_val=int(state.get("n_val", 0)),
             train_seconds=float(state.get("train_seconds", 0.0)),

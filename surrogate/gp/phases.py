@@ -247,6 +247,57 @@ def expected_moves(
     return torch.from_numpy(ll), torch.from_numpy(counts), torch.from_numpy(first)
 
 
+@torch.no_grad()
+def window_log_likelihoods(
+    moves: Tensor, lumps: Tensor, node: Tensor, phi: Tensor, start: Tensor | None = None
+) -> Tensor:
+    """Each cell's log P(phi_t+1 | phi_0..phi_t, its inputs) at every window ``t`` (``n x T``
+    float64; summed over the windows, :func:`sequence_log_likelihood`'s): the forward pass's
+    log scale per window. Args as :func:`expected_moves`."""
+    if start is None:
+        start = _start_law(moves.to(DTYPE), node, (phi[:, :1] == lumps).to(DTYPE))
+    args = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=d) for t, d in (
+        (moves, np.float64), (lumps, np.int64), (node, np.int64), (phi, np.int64),
+        (start, np.float64))]  # fmt: skip
+    return torch.from_numpy(_forward_windows(*args))
+
+
+@numba.njit(cache=True)
+def _forward_windows(
+    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
+) -> np.ndarray:  # pragma: no cover - compiled
+    """The scaled forward pass of :func:`_forward_backward` alone, each window's log scale
+    kept."""
+    n, s = node.shape[0], moves.shape[1]
+    members = np.zeros((2, s), dtype=np.int64)
+    sizes = np.zeros(2, dtype=np.int64)
+    for a in range(s):
+        members[lumps[a], sizes[lumps[a]]] = a
+        sizes[lumps[a]] += 1
+    steps = node.shape[1]
+    out = np.zeros((n, steps))
+    alpha, ahead = np.zeros(s), np.zeros(s)
+    for i in range(n):
+        alpha[:] = start[i, :]
+        for t in range(steps):
+            g, was, seen = node[i, t], phi[i, t], phi[i, t + 1]
+            na, nb = (s if t == 0 else sizes[was]), sizes[seen]
+            ahead[:] = 0.0
+            c = 0.0
+            for jb in range(nb):
+                b = members[seen, jb]
+                v = 0.0
+                for ja in range(na):
+                    a = ja if t == 0 else members[was, ja]
+                    v += alpha[a] * moves[g, a, b]
+                ahead[b] = v
+                c += v
+            c = max(c, 1e-300)
+            alpha[:] = ahead / c
+            out[i, t] = math.log(c)
+    return out
+
+
 @numba.njit(cache=True)
 def _forward_backward(
     moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
@@ -722,4 +773,5 @@ __all__ = [
     "sojourn_law",
     "stationary",
     "stationary_leaving",
+    "window_log_likelihoods",
 ]

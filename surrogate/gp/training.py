@@ -35,6 +35,7 @@ from surrogate.gp.metrics import classification_metrics
 from surrogate.gp.model import PsiGP
 from surrogate.gp.newton import fit_newton
 from surrogate.gp.optimizers import fit_lbfgs
+from surrogate.gp.own_rows import own_rows_check
 from surrogate.gp.settings import GPSettings, psi_gp
 from surrogate.processes import spawned_pool
 
@@ -42,6 +43,8 @@ from surrogate.processes import spawned_pool
 #: where a step's fixed cost dominates. Measured: 200 bins, 50 inducing points 2.5x faster than
 #: one by one; 500 bins (1-D), 100 inducing 1.15x; ~1e5 bins (2-D, 500 per axis) 0.54x
 BATCH_MAX_BINS = 4096
+#: bins per input of an unbinned fit's own-rows check (a binned one reads its own bins)
+OWN_ROWS_BINS = 50
 
 log = logging.getLogger(__name__)
 
@@ -260,17 +263,26 @@ def fit_classifier(  # noqa: PLR0913  # rows: a table's per-row windows, beside 
 
     model.eval()
     likelihood.eval()
-    _validate(fitted, prep)
+    _validate(fitted, prep, weight)
     return fitted
 
 
-def _validate(fitted: FittedClassifier, prep: _Prepared) -> None:
-    """Held-out metrics of a trained classifier (none without a validation split)."""
+def _validate(fitted: FittedClassifier, prep: _Prepared, weight: float = 1.0) -> None:
+    """Held-out metrics of a trained classifier (none without a validation split), and the
+    fit against its own training rows, binned as it was trained (:mod:`surrogate.gp.own_rows`;
+    an unbinned fit's rows in :data:`OWN_ROWS_BINS` bins per input), each row counting
+    ``weight`` draws as in its likelihood (expected labels' dispersion: their SE)."""
     if prep.n_val > 0:
         p_val = fitted.predict_proba(prep.x[prep.val_idx])
         rows = None if prep.rows is None else prep.rows[prep.val_idx]
         fitted.validation = classification_metrics(p_val, prep.outcomes[prep.val_idx],
                                                    weights=rows)  # fmt: skip
+    z_b, n_b, k_b = bin_inputs(prep.z_train, prep.y_train, fitted.settings.bins or OWN_ROWS_BINS,
+                               prep.rows_train)  # fmt: skip
+    x_b = z_b * prep.normaliser.std + prep.normaliser.mean  # the fit's input space
+    p_b = fitted.predict_proba(x_b)
+    p, x, n, k = (t.detach().cpu().numpy() for t in (p_b, x_b, n_b * weight, k_b * weight))
+    fitted.own_rows = own_rows_check(p, x, n, k)
 
 
 def fit_classifiers(
@@ -355,7 +367,7 @@ def fit_classifiers(
         except (NotPSDError, NanError, FloatingPointError, torch.linalg.LinAlgError) as exc:
             raise _batch_failure(model, good_state, preps, settings, histories, 0,
                                  str(exc)) from exc  # fmt: skip
-        return _finish(model, preps, settings, histories, time.perf_counter() - t0)
+        return _finish(model, preps, settings, histories, time.perf_counter() - t0, weights)
     bar = tqdm(range(settings.epochs), desc=desc, disable=not progress, leave=False)
     for epoch in bar:
         epoch_start = _model_state(model)
@@ -379,7 +391,7 @@ def fit_classifiers(
         good_state = epoch_start
         bar.set_postfix(loss=" ".join(f"{v:.4f}" for v in values))
     bar.close()
-    return _finish(model, preps, settings, histories, time.perf_counter() - t0)
+    return _finish(model, preps, settings, histories, time.perf_counter() - t0, weights)
 
 
 def _in_processes(
@@ -436,12 +448,14 @@ def _finish(
     settings: GPSettings,
     histories: Sequence[list[float]],
     seconds: float,
+    weights: Sequence[float],
 ) -> list[FittedClassifier]:
-    """The batch's classifiers, each validated, with the shared loop's ``seconds``."""
+    """The batch's classifiers, each validated (its rows counting its ``weights`` entry),
+    with the shared loop's ``seconds``."""
     out = _split(model, preps, settings, histories)
-    for fitted, prep in zip(out, preps, strict=True):
+    for fitted, prep, weight in zip(out, preps, weights, strict=True):
         fitted.train_seconds = seconds
-        _validate(fitted, prep)
+        _validate(fitted, prep, weight)
     return out
 
 

@@ -361,11 +361,13 @@ class ChainKind:
 
     # what the measured choice asks of the kind (surrogate.kinds.scoring)
 
-    def sequence_log_likelihood(
+    def window_log_likelihoods(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
     ) -> Tensor:
-        """The log-likelihood of observed phi sequences given their inputs under this kind's
-        ``layer`` (its :meth:`decision_layer`), conditioned on each sequence's first phi.
+        """The log-likelihood of each window's phi given the sequence before it and the
+        inputs, under this kind's ``layer`` (its :meth:`decision_layer`): the terms whose sum
+        is :meth:`sequence_log_likelihood`. The measured choice sums those after each
+        sequence's first switch (``gp.choice.likelihood_from``).
 
         Args:
             layer: the kind's decision layer.
@@ -374,7 +376,7 @@ class ChainKind:
             dt: the window (s).
 
         Returns:
-            ``(n,)`` float64: each sequence's log p(phi_1..T | phi_0, inputs).
+            ``n x T`` float64: log p(phi_t+1 | phi_0..phi_t, inputs) for each window ``t``.
 
         Raises:
             NotImplementedError: the kind has no likelihood of phi sequences (each kind gives
@@ -382,8 +384,15 @@ class ChainKind:
         """
         raise NotImplementedError(
             f"the {self.title} chain ({type(self).__name__}) gives no log-likelihood of phi "
-            f"sequences (sequence_log_likelihood): the measured choice cannot score it"
+            f"sequences (window_log_likelihoods): the measured choice cannot score it"
         )
+
+    def sequence_log_likelihood(
+        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+    ) -> Tensor:
+        """Each sequence's log p(phi_1..T | phi_0, inputs) (``(n,)`` float64): the sum of its
+        :meth:`window_log_likelihoods`."""
+        return self.window_log_likelihoods(layer, inputs, phi, dt).sum(1)
 
     def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
         """Put ``layer`` where sequences that start in ``phi0`` (``(n,)``) at the inputs ``x0``

@@ -149,10 +149,10 @@ class SwitchClock(ChainKind):
                                                lead),
         )  # fmt: skip
 
-    def sequence_log_likelihood(
+    def window_log_likelihoods(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
     ) -> Tensor:
-        """sum_t log Bernoulli(phi_{t+1}; psi_{phi_t}(x_t, a_t)), the clock ``a_t`` computed
+        """log Bernoulli(phi_{t+1}; psi_{phi_t}(x_t, a_t)), the clock ``a_t`` computed
         from the observed phi history: it starts settled (at the cap) as the layer's does,
         since the time since the last switch before a sequence is unknown."""
         if not isinstance(layer, MemoryDecision):
@@ -167,7 +167,7 @@ class SwitchClock(ChainKind):
             age[:, t] = torch.where(changed[:, t - 1] > 0, 0.0, age[:, t - 1] + 1.0)
         p = layer.probability_at(phi[:, :-1].reshape(-1), inputs.reshape(n * steps, d),
                                  age.clamp(max=SETTLED).reshape(-1), dt)  # fmt: skip
-        return bernoulli_log_likelihood(p, phi[:, 1:].reshape(-1)).reshape(n, steps).sum(1)
+        return bernoulli_log_likelihood(p, phi[:, 1:].reshape(-1)).reshape(n, steps)
 
     def exact_layer(self, request: LayerRequest) -> tuple[DecisionLayer, dict[str, Any]]:
         """The exact psi with a switch clock (:func:`exact_clock_decision`, a table)."""

@@ -197,12 +197,12 @@ class KLumps(ChainKind):
         return learned_class_decision(request.model, directory, request.device,
                                       start=request.start)  # fmt: skip
 
-    def sequence_log_likelihood(
+    def window_log_likelihoods(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
     ) -> Tensor:
         """The forward algorithm over the classes, observing phi = the class's lump: the
         classes at the start from the chain's stationary law at the first inputs given the
-        first phi, then each window's law given the inputs."""
+        first phi, then each window's law given the inputs; each window's log scale."""
         if not isinstance(layer, ClassDecision):
             raise TypeError(f"K lumps scores a ClassDecision, got {layer!r}")
         table, n, steps = layer.table, inputs.shape[0], inputs.shape[1]
@@ -211,7 +211,7 @@ class KLumps(ChainKind):
         agrees = (lumps[None, None, :] == phi.to(torch.float32)[:, :, None]).to(torch.float64)
         alpha = _featurized_law_start(layer, inputs[:, 0]) * agrees[:, 0]
         alpha = alpha / alpha.sum(1, keepdim=True).clamp_min(PROBABILITY_FLOOR)
-        total = torch.zeros(n, dtype=torch.float64, device=phi.device)
+        terms = torch.zeros(n, steps, dtype=torch.float64, device=phi.device)
         for t in range(steps):  # over windows and origin classes (cells in the batch)
             z = inputs[:, t] if layer.featurize is None else layer.featurize(inputs[:, t])
             moved = torch.zeros_like(alpha)
@@ -220,9 +220,9 @@ class KLumps(ChainKind):
                 moved = moved + alpha[:, c, None] * table.law(origin, z).to(torch.float64)
             moved = moved * agrees[:, t + 1]
             mass = moved.sum(1)
-            total = total + mass.clamp_min(PROBABILITY_FLOOR).log()
+            terms[:, t] = mass.clamp_min(PROBABILITY_FLOOR).log()
             alpha = moved / mass.clamp_min(PROBABILITY_FLOOR)[:, None]
-        return total
+        return terms
 
     def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
         """Each cell's class drawn from the chain's stationary law at ``x0`` given ``phi0``."""

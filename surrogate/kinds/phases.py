@@ -30,13 +30,13 @@ from surrogate.gp.phases import (
     PhaseFitSettings,
     PhaseLaw,
     PhaseSelection,
-    expected_moves,
     grid_points,
     held_out_split,
     input_grid,
     match_leaving,
     select_phases,
     stationary_leaving,
+    window_log_likelihoods,
 )
 from surrogate.gp.predictor import PsiClassifier
 from surrogate.gp.training import GPSettings
@@ -308,11 +308,12 @@ class HiddenPhases(ChainKind):
         return layer, {"inputs": list(table.input_names), "lumps": self.lumps,
                        "states": list(table.class_names), "start": request.start}  # fmt: skip
 
-    def sequence_log_likelihood(
+    def window_log_likelihoods(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
     ) -> Tensor:
         """The exact marginal likelihood over the hidden phases by the fit's own forward pass
-        (:func:`~surrogate.gp.phases.expected_moves`): each window's law is the layer's table
+        (:func:`~surrogate.gp.phases.window_log_likelihoods`, the forward half of
+        :func:`~surrogate.gp.phases.expected_moves`), per window: each window's law is the layer's table
         read at the window's inputs as its draw reads it (between nodes, the multilinear mix
         the stochastic rounding averages to); the first state from the stationary law within
         phi_0's lump at the first window (:meth:`PhaseDecision.start_law`, as the layer starts
@@ -328,7 +329,7 @@ class HiddenPhases(ChainKind):
                              for a in range(s)], dim=1).to(torch.float64)  # fmt: skip
         node = torch.arange(n * steps, dtype=torch.int64).reshape(n, steps)
         start = layer.start_law(inputs[:, 0], phi[:, 0])
-        return expected_moves(moves, table.lumps.long(), node, phi.long(), start)[0]
+        return window_log_likelihoods(moves, table.lumps.long(), node, phi.long(), start)
 
     def start_sequences(self, layer: DecisionLayer, x0: Tensor, phi0: Tensor) -> None:
         """Each cell's hidden state drawn from :meth:`PhaseDecision.start_law` at ``x0`` given

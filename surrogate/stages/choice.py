@@ -35,14 +35,23 @@ import torch
 
 from surrogate.config import build_field, field_config, seed_everything, to_dict
 from surrogate.errors import NumericalError
-from surrogate.io import write_csv, write_json, write_manifest
+from surrogate.gp.own_rows import largest_miss, summary
+from surrogate.io import read_json, write_csv, write_json, write_manifest
 from surrogate.kinds.base import LayerRequest
-from surrogate.kinds.scoring import Choice, KindScore, choose, memory_horizon, score_kind
+from surrogate.kinds.scoring import (
+    FROM_START,
+    Choice,
+    KindScore,
+    choose,
+    memory_horizon,
+    score_kind,
+)
 from surrogate.processes import spawned_pool
 from surrogate.simulate.decision import FullDecision
 from surrogate.simulate.loop import Simulator
 from surrogate.simulate.sequences import phi_sequences
 from surrogate.simulate.transitions import record_occupancy
+from surrogate.stages.artefacts import FIT_METRICS
 from surrogate.stages.collect import collect
 from surrogate.stages.settings import CollectSettings, TrainSettings
 from surrogate.stages.settings.choice import (
@@ -180,9 +189,8 @@ def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
              inputs.shape[0], inputs.shape[1],
              "" if settings.fields is None else f" in fields {list(settings.fields)}",
              seconds)  # fmt: skip
-    return HeldOut(
-        inputs, phi, first.seed, () if settings.fields is None else tuple(cells)
-    ), seconds
+    return HeldOut(inputs, phi, first.seed, () if settings.fields is None else tuple(cells),
+                   settings.likelihood_from), seconds  # fmt: skip
 
 
 class _Fitted:
@@ -226,7 +234,8 @@ class _Fitted:
             del self.failed[name]
 
     def best(self) -> str:
-        """The name of the candidate with the highest held-out log-likelihood so far."""
+        """The name of the candidate with the highest held-out log-likelihood so far (over
+        the windows ``gp.choice.likelihood_from`` says: what the added clocks follow too)."""
         return max(self.scores, key=lambda s: s.log_likelihood).name
 
     def extend(self) -> None:
@@ -294,10 +303,13 @@ class HeldOut:
     seed: int
     #: the cells of each field in order (``gp.choice.fields``; empty: one field)
     groups: tuple[int, ...] = ()
+    #: the windows the likelihood ranks by (``gp.choice.likelihood_from``)
+    likelihood_from: str = FROM_START
 
     def task(self, name: str, index: int) -> Task:
         """What scoring candidate ``name``, the ``index``-th, needs."""
-        return name, self.inputs, self.phi, self.seed + index, self.groups
+        return (name, self.inputs, self.phi, self.seed + index, self.groups,
+                self.likelihood_from)  # fmt: skip
 
 
 def _clock_axis(
@@ -309,8 +321,9 @@ def _clock_axis(
 
 
 Outcome = tuple[str | None, float, str | None, KindScore | None]
-#: a candidate's scoring: its name, the held-out inputs and phi, its seed, the cells' groups
-Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...]]
+#: a candidate's scoring: its name, the held-out inputs and phi, its seed, the cells' groups,
+#: the windows its likelihood sums
+Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...], str]
 
 
 @contextlib.contextmanager
@@ -439,9 +452,10 @@ def _fit_one(fitter: Fitter, tr: Any, task: Task | None = None) -> Outcome:
     seconds = time.perf_counter() - start
     if task is None:
         return str(path), seconds, None, None
-    name, inputs, phi, seed, groups = task
+    name, inputs, phi, seed, groups, likelihood_from = task
     with one_thread(True):
-        score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed, groups)
+        score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed, groups,
+                       likelihood_from)  # fmt: skip
     return str(path), seconds, None, score
 
 
@@ -491,7 +505,7 @@ def _with_recipe(
     return tr, final, (Path(path), seconds), score
 
 
-def _score(
+def _score(  # noqa: PLR0913  # a Task's parts, as the workers receive them
     name: str,
     tr: TrainSettings,
     fit: tuple[Path, float],
@@ -500,19 +514,35 @@ def _score(
     phi: torch.Tensor,
     seed: int,
     groups: tuple[int, ...] = (),
+    likelihood_from: str = FROM_START,
 ) -> KindScore:
     """Candidate ``name``'s held-out score (its layer from its fit directory, as simulate builds
-    it; its durations per group of cells, ``groups``), with its fit's and its score's
-    seconds."""
+    it; its durations per group of cells, ``groups``; its likelihood over the windows
+    ``likelihood_from`` says), with its fit's and its score's seconds."""
     start = time.perf_counter()
     fit_dir, fit_seconds = fit
     request = LayerRequest.of_fit(model, tr, "lookup", None, torch.device("cpu"))
     layer, _ = tr.kind.decision_layer(request, fit_dir)
     s = score_kind(name, tr.kind, layer, inputs, phi, tr.setup.dt, model.internal.lump_names,
-                   seed=seed, groups=groups)  # fmt: skip
+                   seed=seed, groups=groups, likelihood_from=likelihood_from)  # fmt: skip
+    own = largest_miss(own_rows_of(read_json(fit_dir / FIT_METRICS,
+                                             made_by="python scripts/train.py")))  # fmt: skip
     return dataclasses.replace(
-        s, fit_seconds=fit_seconds, score_seconds=time.perf_counter() - start
+        s, fit_seconds=fit_seconds, score_seconds=time.perf_counter() - start, own_rows=own
     )
+
+
+def own_rows_of(metrics: Mapping[str, Any]) -> dict[str, Any]:
+    """The own-rows summaries (:func:`surrogate.gp.own_rows.summary`) of the classifiers a
+    fit's layer draws from, by name: a K-lumps chain's class classifiers (``class a->b``)
+    where its metrics hold them, else psi_0 and psi_1; empty for a fit made before they were
+    recorded."""
+    chain = metrics.get("class_chain") or {}
+    classes = {f"class {a}->{b}": s for a, m in chain.items() if isinstance(m, dict)
+               for b, s in (m.get("own_rows") or {}).items()}  # fmt: skip
+    if classes:
+        return classes
+    return {n: summary((metrics.get(n) or {}).get("own_rows")) for n in ("psi_0", "psi_1")}
 
 
 def _log(choice: Choice, overrides: str) -> None:
@@ -522,10 +552,16 @@ def _log(choice: Choice, overrides: str) -> None:
         spread = (f"  spread {row['spread_rel_diff']:+.1%} (SE {row['spread_rel_se']:.1%}, "
                   f"{row['spread_block_s']:g}-s blocks)"
                   if math.isfinite(row.get("spread_rel_diff", math.nan)) else "")  # fmt: skip
-        log.info("choice: %-18s log-lik/window %.5f (%+.2e, SE %.1e)  %s%s  fit %.1f s, score "
+        own = (
+            f"  own rows {row['own_rows_ratio'] - 1:+.1%} ({row['own_rows_z']:.1f} SE"
+            f"{', off' if row['own_rows_off'] else ''})"
+            if "own_rows_ratio" in row
+            else ""
+        )
+        log.info("choice: %-18s log-lik/window %.5f (%+.2e, SE %.1e)  %s%s%s  fit %.1f s, score "
                  "%.1f s", row["kind"], row["log_likelihood_per_window"], row["diff_from_best"],
                  row["diff_se"], "  ".join(f"{k} {row[k]:.3f} (crit {row[k + '_critical_05']:.3f})"
-                                           for k in on), spread,
+                                           for k in on), spread, own,
                  row["fit_seconds"], row["score_seconds"])  # fmt: skip
     log.info("choice: %s, because %s; simulate with `%s`", choice.chosen, choice.reason,
              overrides)  # fmt: skip

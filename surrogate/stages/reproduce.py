@@ -232,10 +232,13 @@ def report_sections(
     gp_rows = pd.DataFrame([
         {"classifier": f"{name} (from {metrics[name]['origin']})",
          **{k: metrics[name]["validation"][k]
-            for k in ("brier", "brier_baseline", "mean_log_predictive", "accuracy", "n")}}
+            for k in ("brier", "brier_baseline", "mean_log_predictive", "accuracy", "n")},
+         **_own_rows_columns(metrics[name].get("own_rows"))}
         for name in ("psi_0", "psi_1")
     ])  # fmt: skip
-    sections.append(("Classifiers (held-out validation)", format_markdown_table(gp_rows, ".4f")))
+    own = any(metrics[name].get("own_rows") for name in ("psi_0", "psi_1"))
+    sections.append(("Classifiers (held-out validation)", format_markdown_table(gp_rows, ".4f")
+                     + (OWN_ROWS_NOTE if own else "")))  # fmt: skip
     artefacts = {"train": train_dir, **evaluations, **{f"exact {k}": v for k, v in exact.items()}}
     if collect_dir is not None:
         artefacts = {"collect": collect_dir, **artefacts}
@@ -261,6 +264,27 @@ def report_sections(
     return sections, figures
 
 
+OWN_ROWS_NOTE = (
+    "\n\n*Own rows*: the switches each classifier predicts over its own training rows against "
+    "those the rows hold, in groups of about equal switches along each input: the range of "
+    "the ratio and the group farthest off in SE; *off* where a group misses by more than 3 % "
+    "and by more than the family-wise 1 % critical value: the fit stopped short of its rows or "
+    'smooths over them (docs/performance.md, "A fit against its own rows").'
+)
+
+
+def _own_rows_columns(check: Mapping[str, Any] | None) -> dict[str, str]:
+    """A classifier's own-rows check as the report's columns (none for a fit made before
+    it was recorded)."""
+    if not check:
+        return {}
+    ratios = [g["ratio"] for g in check["groups"]]
+    big = check["largest"]
+    return {"own rows: predicted / observed": f"{min(ratios):.3f}-{max(ratios):.3f}",
+            "farthest off": f"{big['ratio'] - 1:+.1%} ({big['z']:.1f} SE"
+                            f"{', off' if check['off'] else ''})"}  # fmt: skip
+
+
 def choice_text(directory: Path) -> str:
     """The measured choice's record (``choice.json`` of ``directory``) as the report's section:
     why, and every candidate's held-out score."""
@@ -276,6 +300,9 @@ def choice_text(directory: Path) -> str:
                 row[f"{lump} KS (crit)"] = f"{r[key]:.3f} ({r[key + '_critical_05']:.3f})"
                 row[f"{lump} mean"] = f"{r[lump + '_mean_rel_diff']:+.1%}"
         row["holds durations"] = "yes" if r.get("holds_durations") else "no"
+        if "own_rows_ratio" in r:  # the scored fit's largest miss of its own rows' switches
+            row["own rows"] = (f"{r['own_rows_ratio'] - 1:+.1%} ({r['own_rows_z']:.1f} SE"
+                               f"{', off' if r['own_rows_off'] else ''})")  # fmt: skip
         row["fit s"] = f"{r['fit_seconds']:.1f}"
         rows.append(row)
     held = record["heldout"]
@@ -285,7 +312,9 @@ def choice_text(directory: Path) -> str:
         f"held-out full-model run ({held['cells']} cells x {held['windows']} windows, "
         f"another seed): the log-likelihood per window of the observed phi given the inputs, "
         f"and its durations simulated under the held-out inputs against the observed "
-        f"(docs/choice.md). Record: {directory}."
+        f"(docs/choice.md); *own rows*: the scored fit's switches against those of its own "
+        f'training rows, the group of its inputs farthest off (docs/performance.md, "A fit '
+        f'against its own rows"). Record: {directory}.'
         + "".join(
             f" Left out, its fit failed: {name} ({why})."
             for name, why in (record.get("failed") or {}).items()

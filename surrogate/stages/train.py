@@ -52,6 +52,7 @@ from surrogate.gp import (
     save_psi,
 )
 from surrogate.gp.diagnostics import class_law_errors, plot_psi_errors, psi_errors
+from surrogate.gp.own_rows import describe
 from surrogate.gp.windows import WINDOWS, row_windows
 from surrogate.io import (
     MANIFEST,
@@ -365,9 +366,11 @@ def _fit(
                 "train_seconds": clf.train_seconds,
                 "final_loss": clf.history[-1] if clf.history else None,
                 "last_tenth_drop": last_tenth_drop(clf.history),
+                "own_rows": clf.own_rows,
             }
             for phi, clf in enumerate(psi.classifiers)
         }
+        log_own_rows(metrics, psi.input_names, settings.input_warps())
         for name, m in metrics.items():
             if m["last_tenth_drop"] is not None:
                 log.info("%s: loss per point fell %.2g over the last tenth of its steps (the "
@@ -415,6 +418,27 @@ def _fit(
         )  # fmt: skip
     log.info("trained both classifiers in %.1f s on %d thread(s); fit in %s", wall,
              settings.fit_threads, out)  # fmt: skip
+
+
+def log_own_rows(
+    metrics: Mapping[str, Any], input_names: Sequence[str], warps: Mapping[str, float] | None
+) -> None:
+    """Each classifier against its own training rows, one log line each; a warning where a
+    group of them is off (:mod:`surrogate.gp.own_rows`): the fit stopped short of its rows."""
+    for name in ("psi_0", "psi_1"):
+        check = metrics[name].get("own_rows")
+        if not check:
+            continue
+        line = describe(check, input_names, warps)
+        if check["off"]:
+            log.warning("%s (from %s) is off its own rows: %s, past %.0f %% and %.1f SE: the "
+                        "fit stopped short of them or smooths over them (the training history "
+                        "figure shows whether its loss flattened; docs/performance.md, \"A fit "
+                        "against its own rows\")", name, metrics[name]["origin"], line,
+                        100 * check["tolerance"], check["critical_z"])  # fmt: skip
+        else:
+            log.info("%s (from %s) against its own rows: %s", name, metrics[name]["origin"],
+                     line)  # fmt: skip
 
 
 def support_histogram(table: pd.DataFrame, inputs: Sequence[str]) -> dict[str, Any] | None:

@@ -230,8 +230,8 @@ class ChainKindContract:
         kind = self.make_kind()
         if not kind.candidate:
             try:
-                kind.sequence_log_likelihood(self.make_layer(PhiInternal()),
-                                             *self._sequences(), self.dt)  # fmt: skip
+                kind.window_log_likelihoods(self.make_layer(PhiInternal()),
+                                            *self._sequences(), self.dt)  # fmt: skip
             except NotImplementedError:
                 raise unittest.SkipTest(f"{kind.title} scores no phi sequences") from None
         return kind
@@ -240,12 +240,18 @@ class ChainKindContract:
         kind = self._scored()
         inputs, phi = self._sequences()
         layer = self.make_layer(PhiInternal())
+        terms = kind.window_log_likelihoods(layer, inputs, phi, self.dt)
+        assert terms.shape == (6, 25) and terms.dtype == torch.float64
+        # each window's term a log probability: a conditional one, whose sum is the sequence's
+        assert torch.isfinite(terms).all() and (terms <= 1e-9).all(), terms
         ll = kind.sequence_log_likelihood(layer, inputs, phi, self.dt)
-        assert ll.shape == (6,) and ll.dtype == torch.float64
-        assert torch.isfinite(ll).all() and (ll <= 1e-9).all(), ll
+        assert ll.shape == (6,) and torch.allclose(ll, terms.sum(1))
         # each sequence's alone: a sub-batch gives the same values, and again the same
-        again = kind.sequence_log_likelihood(layer, inputs[2:5], phi[2:5], self.dt)
-        assert torch.allclose(again, ll[2:5], rtol=1e-6, atol=1e-9), (again, ll[2:5])
+        again = kind.window_log_likelihoods(layer, inputs[2:5], phi[2:5], self.dt)
+        assert torch.allclose(again, terms[2:5], rtol=1e-6, atol=1e-9), (again, terms[2:5])
+        # each window's alone of those after it: the sequence cut short scores its windows so
+        cut = kind.window_log_likelihoods(layer, inputs[:, :10], phi[:, :11], self.dt)
+        assert torch.allclose(cut, terms[:, :10], rtol=1e-6, atol=1e-9), (cut, terms[:, :10])
         # a sequence the chain finds less likely scores lower: phi flipped every window is
         # unlikely under a chain whose switches have probability <= 0.4 each
         flips = torch.arange(phi.shape[1]).remainder(2).float().expand_as(phi)

@@ -115,11 +115,11 @@ class _Broken(TestTwoStateContract):
 class PooledScore(TwoStateChain):
     """Scores the batch's sequences together: one sequence's likelihood reads the others'."""
 
-    def sequence_log_likelihood(
+    def window_log_likelihoods(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
     ) -> Tensor:
-        ll = super().sequence_log_likelihood(layer, inputs, phi, dt)
-        return ll.mean().expand_as(ll)
+        terms = super().window_log_likelihoods(layer, inputs, phi, dt)
+        return terms.mean(0).expand_as(terms)
 
 
 class DroppingRows(TwoStateChain):

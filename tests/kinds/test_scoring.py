@@ -25,12 +25,15 @@ from surrogate.kinds import chain_kind
 from surrogate.kinds.base import ChainKind
 from surrogate.kinds.phases import HiddenPhases, phase_table
 from surrogate.kinds.scoring import (
+    FIRST_SWITCH,
+    FROM_START,
     DurationScore,
     KindScore,
     SpreadScore,
     choose,
     occupancy_spread,
     score_kind,
+    scored_windows,
     segment_durations,
 )
 from surrogate.simulate.classes import ClassDecision, ClassTable
@@ -252,6 +255,48 @@ def test_clock_likelihood_reads_the_observed_clock() -> None:
     ll = CLOCK.sequence_log_likelihood(layer, x, keeps, DT)
     # settled: the first window switches (0.99); then ages 0, 1 keep (0.99 each), 2 switches
     assert ll.item() == pytest.approx(6 * math.log(0.99), rel=1e-5)
+
+
+def test_the_likelihood_sums_the_windows_after_each_first_switch() -> None:
+    phi = torch.tensor([[0, 0, 1, 1, 0], [1, 1, 1, 1, 1], [1, 0, 0, 0, 0]])
+    assert scored_windows(phi).tolist() == [[False, False, True, True], [False] * 4,
+                                            [False, True, True, True]]  # fmt: skip
+    assert scored_windows(phi, FROM_START).all()
+    with pytest.raises(ValueError, match="likelihood_from must be one of"):
+        scored_windows(phi, "first")
+
+
+def test_a_clock_guessing_the_unknown_past_better_scores_alike_after_the_first_switch() -> None:
+    """Two clocks alike but in their settled hazard (the unknown past's guess, which the
+    censored first sojourn reads and a run reads once): from the start the one matching the
+    telegraph's first sojourns wins; after each first switch the two score the same (the
+    Vilar oscillator's clock caps grew past its segments this way)."""
+    x, phi = telegraph(300, 200, erlang=3, seed=4)
+    x, phi = torch.tensor(x, dtype=torch.float32), torch.tensor(phi)
+
+    def clock(settled_off: float | None) -> MemoryDecision:
+        def psi(p: Tensor, z: Tensor) -> Tensor:  # z: x, then the age (s), settled at 100
+            windows = z[:, 1] / DT  # a hazard rising with age, alike in both; OFF's its rate
+            on = 0.25 * (windows + 1).clamp(max=3) / 3
+            off = 0.04 + 0.08 * z[:, 0]
+            if settled_off is not None:  # the first sojourns (OFF) guessed otherwise
+                off = torch.where(z[:, 1] >= 100.0 - 1e-3, settled_off, off)
+            return torch.where(p > 0, 1.0 - on, off)
+
+        return MemoryDecision(psi, Internal(), max_age=100.0)
+
+    good, bad = clock(None), clock(0.3)
+    start = [score_kind(n, CLOCK, c, x, phi, DT, ("off", "on")) for n, c in (("good", good),
+                                                                              ("bad", bad))]  # fmt: skip
+    after = [score_kind(n, CLOCK, c, x, phi, DT, ("off", "on"), likelihood_from=FIRST_SWITCH)
+             for n, c in (("good", good), ("bad", bad))]  # fmt: skip
+    assert start[0].log_likelihood > start[1].log_likelihood + 1e-3  # every window: the default
+    assert after[0].log_likelihood == pytest.approx(after[1].log_likelihood, abs=1e-12)
+    # kept beside the ranking's whatever it is: what the choice's added clocks are judged by
+    assert [s.known_age_log_likelihood for s in start] == pytest.approx(
+        [s.log_likelihood for s in after], abs=1e-12)  # fmt: skip
+    # per scored window: the mean number of windows after the first switch
+    assert 150 < after[0].windows_per_cell < 200 == start[0].windows_per_cell
 
 
 def test_klumps_forward_algorithm_equals_enumeration() -> None:

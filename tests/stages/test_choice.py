@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from surrogate.errors import ConfigError, MissingArtefactError
@@ -64,11 +65,21 @@ class Plain:
         ({"fields": ["gaussian", "linear", "zero"], "n_cells": 2}, "gp.choice.n_cells"),
         ({"spread_tolerance": 0}, "gp.choice.spread_tolerance"),
         ({"spread_tolerance": "wide"}, "gp.choice.spread_tolerance"),
+        ({"likelihood_from": "first"}, "gp.choice.likelihood_from"),
     ],
 )
 def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         ChoiceSettings.from_config(options)
+
+
+def test_the_likelihoods_windows_are_in_the_identity_only_where_not_every_window() -> None:
+    """``start`` (every window, the default) leaves the identity as it was, so the records
+    made before the key read again; ``first_switch`` is another choice."""
+    default = ChoiceSettings.from_config({})
+    assert default.likelihood_from == "start" and "likelihood_from" not in default.identity()
+    after = ChoiceSettings.from_config({"likelihood_from": "first_switch"})
+    assert after.identity()["likelihood_from"] == "first_switch"
 
 
 def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
@@ -284,6 +295,8 @@ def test_pending_choice_is_refused_by_simulate_and_made_by_train(tmp_path: Path)
     assert record["chosen"] in ("two-state", "clock max_age=1")
     assert {r["kind"] for r in record["scores"]} == {"two-state", "clock max_age=1"}
     assert record["heldout"]["cells"] == 20 and record["heldout"]["windows"] == 100
+    for r in record["scores"]:  # 160 rows a fit: too few switches for its own-rows check
+        assert "own_rows_ratio" not in r
     settled = train_stage.validate(cfg)
     assert settled.measured_choice() == plan.directory
     scored = plan.candidates[record["chosen"]]
@@ -628,3 +641,28 @@ def test_the_spread_tolerance_enters_the_choice_identity_only_when_asked() -> No
     )
     assert "spread_tolerance" not in plain.identity()
     assert asked.identity()["spread_tolerance"] == 0.05 and asked.spread_tolerance == 0.05
+
+
+def test_a_score_row_carries_its_fits_largest_miss_of_its_own_rows() -> None:
+    """The classifiers a layer draws from: a K-lumps chain's class classifiers where its fit
+    holds them, else psi_0 and psi_1; the one farthest off (in SE) stands for the fit, and
+    the row says whether any was off."""
+    from surrogate.gp.own_rows import largest_miss, own_rows_check
+    from surrogate.kinds.scoring import KindScore
+    from surrogate.stages.choice import own_rows_of
+
+    x = np.linspace(0, 1, 50)[:, None]
+    n = np.full(50, 1000.0)
+    fine = own_rows_check(np.full(50, 0.1), x, n, n * 0.1)
+    high = own_rows_check(np.full(50, 0.15), x, n, n * 0.1)  # 50 % over its rows: off
+    psi = {"psi_0": {"own_rows": fine}, "psi_1": {"own_rows": high}}
+    assert set(own_rows_of(psi)) == {"psi_0", "psi_1"}
+    chain = {**psi, "class_chain": {"0": {"own_rows": {"1": None, "2": own_rows_of(psi)["psi_0"]}},
+                                    "classifiers": 2}}  # fmt: skip
+    assert set(own_rows_of(chain)) == {"class 0->1", "class 0->2"}  # the chain's, not psi's
+    assert own_rows_of({"psi_0": {}, "psi_1": {}}) == {"psi_0": None, "psi_1": None}
+    big = largest_miss(own_rows_of(psi))
+    assert big["classifier"] == "psi_1" and big["off"] and big["ratio"] == pytest.approx(1.5)
+    row = KindScore("clock max_age=1", 1, -0.1, (-0.1,), {}, own_rows=big).row()
+    assert row["own_rows_ratio"] == pytest.approx(1.5) and row["own_rows_off"] is True
+    assert largest_miss(own_rows_of({"psi_0": {}, "psi_1": {}})) is None

@@ -757,6 +757,8 @@ def test_reproduce_writes_the_report_of_every_field(beside) -> None:
     assert "The exact lumped psi (cells adapted to their current input)" in report
     assert "best two-state" not in report and "best any" not in report
     assert "| sparse | sparse where |" in report  # the density check's column beside the range
+    # too few switches in TINY's rows for a classifier's own-rows check: no column, no note
+    assert "own rows: predicted / observed" not in report and "*Own rows*" not in report
     manifest = json.loads((out / "manifest.json").read_text())
     assert set(manifest["evaluations"]) == set(manifest["exact"]) == {"gaussian", "linear",
                                                                         "dynamic"}  # fmt: skip
@@ -849,3 +851,21 @@ def test_a_collection_that_keeps_every_switch_trains_and_says_so(compose_cfg) ->
     assert meta["label_column"] == "phi_next"  # E. coli's expected labels not recorded
     per_state = meta["support_histogram"]["counts"]
     assert sum(map(sum, per_state)) == pytest.approx(table[WINDOWS].sum(), abs=2)
+
+
+def test_the_reports_classifier_table_reads_each_fits_own_rows() -> None:
+    """A classifier's own-rows check as the report's two columns: the ratios' range and the
+    group farthest off in SE, marked off where a group is."""
+    import numpy as np
+
+    from surrogate.gp.own_rows import own_rows_check
+    from surrogate.stages.reproduce import _own_rows_columns
+
+    x = np.linspace(0, 1, 50)[:, None]
+    n = np.full(50, 1000.0)
+    fine = _own_rows_columns(own_rows_check(np.full(50, 0.1), x, n, n * 0.1))
+    assert fine == {"own rows: predicted / observed": "1.000-1.000",
+                    "farthest off": "+0.0% (0.0 SE)"}  # fmt: skip
+    off = _own_rows_columns(own_rows_check(np.full(50, 0.15), x, n, n * 0.1))
+    assert off["farthest off"].startswith("+50.0%") and off["farthest off"].endswith(", off)")
+    assert _own_rows_columns(None) == {}

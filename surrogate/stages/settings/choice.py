@@ -32,7 +32,7 @@ from surrogate.errors import ConfigError, MissingArtefactError
 from surrogate.gp.class_relaxation import CLASS_MOVES, check_shared_bins
 from surrogate.io import read_json
 from surrogate.kinds import CHAIN_KINDS, SWITCH_CLOCK
-from surrogate.kinds.scoring import clock_name
+from surrogate.kinds.scoring import FIRST_SWITCH, FROM_START, LIKELIHOOD_FROM, clock_name
 from surrogate.models.capabilities import class_bins_of, lump_classes_of
 from surrogate.validation import known_keys
 
@@ -86,6 +86,7 @@ DEFAULTS: dict[str, Any] = {
     "workers": "auto",
     "fields": None,
     "spread_tolerance": None,
+    "likelihood_from": FROM_START,
 }
 
 
@@ -138,6 +139,12 @@ class ChoiceSettings:
     #: gene-expression network: every clock +3.6 to +13 %, the phases within 3 % (opt-in:
     #: measured there and on the toggle switch only, docs/choice.md)
     spread_tolerance: float | None = None
+    #: the windows the held-out likelihood ranks the candidates and decides the added clocks
+    #: by (:func:`~surrogate.kinds.scoring.scored_windows`): every window (``start``, the
+    #: default), or those after each cell's first switch (``first_switch``, opt-in: Vilar's
+    #: clock caps stop growing past its segments; but the dimerisation's clock at 2 s then
+    #: ties its phases and fails 4 of 24 checks, docs/choice.md, session 35)
+    likelihood_from: str = FROM_START
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -146,6 +153,12 @@ class ChoiceSettings:
         options = {**DEFAULTS, **known_keys(options or {}, sorted(DEFAULTS), "gp.choice")}
         if options["by"] not in BY:
             raise ConfigError(f"gp.choice.by must be one of {list(BY)}, got {options['by']!r}")
+        if options["likelihood_from"] not in LIKELIHOOD_FROM:
+            raise ConfigError(f"gp.choice.likelihood_from must be one of "
+                              f"{list(LIKELIHOOD_FROM)} (the windows after each held-out cell's "
+                              f"first switch, or every window), got "
+                              f"{options['likelihood_from']!r}; e.g. "
+                              f"gp.choice.likelihood_from={FIRST_SWITCH}")  # fmt: skip
         if options["optimizer"] not in OPTIMIZERS:
             raise ConfigError(f"gp.choice.optimizer must be one of {list(OPTIMIZERS)}, got "
                               f"{options['optimizer']!r}")  # fmt: skip
@@ -181,7 +194,8 @@ class ChoiceSettings:
                    _flag(options, "ahead"), _inducing(options["clock_inducing"]),
                    _fields(options["fields"], n_cells),
                    None if options["spread_tolerance"] is None
-                   else _number(options, "spread_tolerance"))  # fmt: skip
+                   else _number(options, "spread_tolerance"),
+                   str(options["likelihood_from"]))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -223,7 +237,10 @@ class ChoiceSettings:
                 "refit": self.refit, "clock_inducing": self.clock_inducing,
                 **({} if self.fields is None else {"fields": list(self.fields)}),
                 **({} if self.spread_tolerance is None
-                   else {"spread_tolerance": self.spread_tolerance})}  # fmt: skip
+                   else {"spread_tolerance": self.spread_tolerance}),
+                # every window, the choice before the key: its records read again
+                **({} if self.likelihood_from == FROM_START
+                   else {"likelihood_from": self.likelihood_from})}  # fmt: skip
 
 
 def _fields(value: Any, n_cells: int) -> tuple[str, ...] | None:
