@@ -2,9 +2,10 @@
 full-model phi sequences, and the best one picked.
 
 * :func:`score_kind`: a kind's held-out score: the log-likelihood per window of the observed phi
-  sequences given their inputs after each one's first switch (:meth:`ChainKind.window_log_likelihoods
-  <surrogate.kinds.base.ChainKind.window_log_likelihoods>`, :func:`scored_windows`), and its layer driven by the same
-  input traces: the two-sample KS and the mean's relative difference of the simulated segment
+  sequences given their inputs, over every window or after each one's first switch
+  (:meth:`ChainKind.window_log_likelihoods
+  <surrogate.kinds.base.ChainKind.window_log_likelihoods>`, :func:`scored_windows`), and its
+  layer driven by the same input traces: the two-sample KS and the mean's relative difference of the simulated segment
   durations per lump against the observed ones (:func:`duration_scores`).
 * :func:`choose`: the best kind by log-likelihood per window among those whose simulated
   durations hold (:func:`holds_durations`: every lump's mean within a tolerance; where none

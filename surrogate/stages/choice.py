@@ -535,8 +535,8 @@ def _score(  # noqa: PLR0913  # a Task's parts, as the workers receive them
 def own_rows_of(metrics: Mapping[str, Any]) -> dict[str, Any]:
     """The own-rows summaries (:func:`surrogate.gp.own_rows.summary`) of the classifiers a
     fit's layer draws from, by name: a K-lumps chain's class classifiers (``class a->b``)
-    where its metrics hold them, else psi_0 and psi_1; empty for a fit made before they were
-    recorded."""
+    where its metrics hold them, else psi_0 and psi_1 (each None for a fit made before they
+    were recorded, or with too few switches to check)."""
     chain = metrics.get("class_chain") or {}
     classes = {f"class {a}->{b}": s for a, m in chain.items() if isinstance(m, dict)
                for b, s in (m.get("own_rows") or {}).items()}  # fmt: skip
