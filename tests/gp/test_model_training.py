@@ -163,6 +163,9 @@ def test_any_number_of_inputs(d: int, ard: bool) -> None:
     lo, hi = q.clone(), q.clone()
     lo[:, 0], hi[:, 0] = 0.0, 1.0
     assert (fitted.predict_proba(hi) - fitted.predict_proba(lo)).mean() > 0.2
+    # its own rows checked along every input (unbinned: at most 2**16 bins in all, not 50**d)
+    assert fitted.own_rows is not None and {g["axis"] for g in fitted.own_rows["groups"]} == set(
+        range(d))  # fmt: skip
 
 
 def test_inputs_must_be_a_matrix() -> None:
