@@ -263,37 +263,69 @@ def window_log_likelihoods(
 
 
 @numba.njit(cache=True)
-def _forward_windows(
-    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
-) -> np.ndarray:  # pragma: no cover - compiled
-    """The scaled forward pass of :func:`_forward_backward` alone, each window's log scale
-    kept."""
-    n, s = node.shape[0], moves.shape[1]
+def _lump_members(
+    lumps: np.ndarray, s: int
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Each lump's states in order (``members[l, :sizes[l]]``) and their counts."""
     members = np.zeros((2, s), dtype=np.int64)
     sizes = np.zeros(2, dtype=np.int64)
     for a in range(s):
         members[lumps[a], sizes[lumps[a]]] = a
         sizes[lumps[a]] += 1
-    steps = node.shape[1]
+    return members, sizes
+
+
+@numba.njit(cache=True)
+def _forward_step(
+    before: np.ndarray,
+    after: np.ndarray,
+    moves: np.ndarray,
+    g: int,
+    members: np.ndarray,
+    sizes: np.ndarray,
+    was: int,
+    seen: int,
+) -> float:  # pragma: no cover - compiled
+    """One window of the scaled forward pass: ``after`` (zero outside the lump ``seen``) from
+    ``before`` through the moves at node ``g``, scaled to sum to one; returns the scale ``c``
+    (this window's likelihood given the past). From every state at the first window
+    (``was`` < 0: the start law as given), then only from the lump ``was`` seen at the
+    window's start."""
+    s, first = moves.shape[1], was < 0
+    na, nb = (s if first else sizes[was]), sizes[seen]
+    after[:] = 0.0
+    c = 0.0
+    for jb in range(nb):
+        b = members[seen, jb]
+        v = 0.0
+        for ja in range(na):
+            a = ja if first else members[was, ja]
+            v += before[a] * moves[g, a, b]
+        after[b] = v
+        c += v
+    c = max(c, 1e-300)
+    inverse = 1.0 / c
+    for jb in range(nb):
+        after[members[seen, jb]] *= inverse
+    return c
+
+
+@numba.njit(cache=True)
+def _forward_windows(
+    moves: np.ndarray, lumps: np.ndarray, node: np.ndarray, phi: np.ndarray, start: np.ndarray
+) -> np.ndarray:  # pragma: no cover - compiled
+    """The scaled forward pass of :func:`_forward_backward` alone, each window's log scale
+    kept."""
+    n, s, steps = node.shape[0], moves.shape[1], node.shape[1]
+    members, sizes = _lump_members(lumps, s)
     out = np.zeros((n, steps))
     alpha, ahead = np.zeros(s), np.zeros(s)
     for i in range(n):
         alpha[:] = start[i, :]
         for t in range(steps):
-            g, was, seen = node[i, t], phi[i, t], phi[i, t + 1]
-            na, nb = (s if t == 0 else sizes[was]), sizes[seen]
-            ahead[:] = 0.0
-            c = 0.0
-            for jb in range(nb):
-                b = members[seen, jb]
-                v = 0.0
-                for ja in range(na):
-                    a = ja if t == 0 else members[was, ja]
-                    v += alpha[a] * moves[g, a, b]
-                ahead[b] = v
-                c += v
-            c = max(c, 1e-300)
-            alpha[:] = ahead / c
+            was = -1 if t == 0 else phi[i, t]  # the first window: from every state
+            c = _forward_step(alpha, ahead, moves, node[i, t], members, sizes, was, phi[i, t + 1])
+            alpha[:] = ahead
             out[i, t] = math.log(c)
     return out
 
@@ -310,11 +342,7 @@ def _forward_backward(
     in order): the terms left out are exact zeros. The scales' logarithm is taken of their
     running product (one log per ~1e250 of it, not one per window)."""
     n, nodes, s = node.shape[0], moves.shape[0], moves.shape[1]
-    members = np.zeros((2, s), dtype=np.int64)
-    sizes = np.zeros(2, dtype=np.int64)
-    for a in range(s):
-        members[lumps[a], sizes[lumps[a]]] = a
-        sizes[lumps[a]] += 1
+    members, sizes = _lump_members(lumps, s)
     ll = np.zeros(n)
     first = np.zeros((n, s))
     counts = np.zeros((nodes, s, s))
@@ -326,25 +354,10 @@ def _forward_backward(
         alphas[0, :] = start[i, :]
         total, product = 0.0, 1.0
         for t in range(steps):
-            g, was, seen = node[i, t], phi[i, t], phi[i, t + 1]
-            # from every state at the first window (the start law as given), then only from
-            # the lump seen at the window's start
-            na, nb = (s if t == 0 else sizes[was]), sizes[seen]
-            alphas[t + 1, :] = 0.0
-            c = 0.0
-            for jb in range(nb):
-                b = members[seen, jb]
-                v = 0.0
-                for ja in range(na):
-                    a = ja if t == 0 else members[was, ja]
-                    v += alphas[t, a] * moves[g, a, b]
-                alphas[t + 1, b] = v
-                c += v
-            c = max(c, 1e-300)
-            inverse = 1.0 / c
-            for jb in range(nb):
-                alphas[t + 1, members[seen, jb]] *= inverse
-            scales[t] = inverse
+            was = -1 if t == 0 else phi[i, t]  # the first window: from every state
+            c = _forward_step(alphas[t], alphas[t + 1], moves, node[i, t], members, sizes, was,
+                              phi[i, t + 1])  # fmt: skip
+            scales[t] = 1.0 / c
             product *= c
             if product < 1e-250:
                 total += math.log(product)

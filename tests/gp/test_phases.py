@@ -392,3 +392,20 @@ def test_the_fits_tolerance_stops_early_at_the_same_likelihood() -> None:
     _, slow = fit_phase_law(z, phi, PhaseLayout((1, 2)), [(0.0, 1.0)], tight)
     assert fast["evaluations"] < slow["evaluations"]
     assert fast["log_likelihood"] == pytest.approx(slow["log_likelihood"], abs=1e-7)
+
+
+def test_the_window_terms_sum_to_the_forward_backward_likelihood() -> None:
+    """The forward pass window by window (the choice's scoring) and the forward-backward pass
+    (the fit's) share one step: the windows' log scales sum to each sequence's likelihood."""
+    from surrogate.gp.phases import expected_moves, window_log_likelihoods
+
+    gen = torch.Generator().manual_seed(0)
+    moves = torch.rand(5, 4, 4, generator=gen, dtype=torch.float64)
+    moves = moves / moves.sum(-1, keepdim=True)
+    lumps = torch.tensor([0, 0, 1, 1])
+    node = torch.randint(0, 5, (30, 200), generator=gen)
+    phi = torch.randint(0, 2, (30, 201), generator=gen)
+    terms = window_log_likelihoods(moves, lumps, node, phi)
+    assert terms.shape == (30, 200) and bool((terms <= 0).all())
+    torch.testing.assert_close(terms.sum(1), expected_moves(moves, lumps, node, phi)[0],
+                               rtol=0, atol=1e-10)  # fmt: skip
