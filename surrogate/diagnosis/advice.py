@@ -54,7 +54,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from surrogate.diagnosis.remedies import (
-    LONGER_BURN_IN,
     Advisor,
     Check,
     MeasuredChoice,
@@ -64,6 +63,7 @@ from surrogate.diagnosis.remedies import (
     coarser_remedy,
     larger_diagnostic,
     later_diagnostic_start,
+    longer_burn_in,
     more_rows,
 )
 from surrogate.kinds import ChainKind
@@ -189,6 +189,10 @@ class VerdictInputs:
             ``gp.diagnostic.equilibration_time`` and ``t_end``): a population not settled is
             advised a later start of its record
             (:func:`~surrogate.diagnosis.remedies.later_diagnostic_start`); None: no value.
+        burn_in: the model's burn-in (s, ``model.burn_in``) where its cells' start simulates
+            one and the model is a yaml (its key is given as ``++model.burn_in``): a population
+            not settled is advised one that ends where the drift did
+            (:func:`~surrogate.diagnosis.remedies.longer_burn_in`); None: no value.
     """
 
     diagnostic: Mapping[str, Any] | None
@@ -208,6 +212,7 @@ class VerdictInputs:
     blackout: tuple[str, ...] = ()
     diagnostic_cells: int | None = None
     diagnostic_span: tuple[float, float] | None = None
+    burn_in: float | None = None
 
 
 def verdict(  # noqa: C901  # one branch per first cause, in the report's order
@@ -284,7 +289,8 @@ def verdict(  # noqa: C901  # one branch per first cause, in the report's order
         what = ", ".join(f"leaving {lump_names[p]}: {z:+.1f} standard errors"
                          for p, z in settling)  # fmt: skip
         step = advisor.step("Not settled", [later_diagnostic_start(run.diagnostic_span),
-                                             LONGER_BURN_IN], then=".")  # fmt: skip
+                                             longer_burn_in(run.burn_in, run.diagnostic_span)],
+                             then=".")  # fmt: skip
         causes.append((
             "Not settled",
             f"the full model's diagnostic population switched at different rates in the first "

@@ -80,16 +80,32 @@ def more_rows(n_per_state: int | None, text: str = "more transitions ({more})") 
     return Remedy("more_rows", text.format(more="a larger `collect.n_per_state`"))
 
 
+#: the mean-duration error a learned psi's bias is judged by (the fidelity check's default):
+#: a reference whose error on the bias exceeds it cannot judge the bias
+DURATION_TOLERANCE = 0.03
+
 #: the margin on the diagnostic's cells a noisy reference is advised (its error falls as one
 #: over the root of its cells: the advised ones bring it to the tolerance / sqrt(margin))
 DIAGNOSTIC_MARGIN = 1.5
 
 
+def diagnostic_cells_needed(cells: int, rel_se: float, tolerance: float) -> int:
+    """The diagnostic cells that bring the relative error ``rel_se`` measured at ``cells``
+    under ``tolerance``: it falls as one over the root of the cells, so ``cells`` x
+    (``rel_se`` / ``tolerance``)^2 x :data:`DIAGNOSTIC_MARGIN`, rounded up to hundreds, and at
+    least 100 more than ``cells``.
+
+    Example:
+        >>> diagnostic_cells_needed(1000, 0.046, 0.03)
+        3600
+    """
+    n = int(math.ceil(cells * DIAGNOSTIC_MARGIN * (rel_se / tolerance) ** 2 / 100.0) * 100)
+    return max(n, cells + 100)
+
+
 def larger_diagnostic(cells: int | None, rel_se: float, tolerance: float) -> Remedy:
-    """A diagnostic population large enough to judge psi's bias: its relative error
-    ``rel_se`` falls as one over the root of its cells, so ``cells`` x (``rel_se`` /
-    ``tolerance``)^2 x :data:`DIAGNOSTIC_MARGIN`, rounded up to hundreds, bring it under
-    ``tolerance``; without ``cells``, no value.
+    """A diagnostic population large enough to judge psi's bias
+    (:func:`diagnostic_cells_needed`); without ``cells``, no value.
 
     Example:
         >>> larger_diagnostic(1000, 0.046, 0.03).overrides
@@ -98,8 +114,7 @@ def larger_diagnostic(cells: int | None, rel_se: float, tolerance: float) -> Rem
     if not cells or not rel_se > 0 or not tolerance > 0:
         return Remedy("larger_diagnostic", "a larger diagnostic population "
                                            "(`gp.diagnostic.n_cells`, `gp.diagnostic.t_end`)")  # fmt: skip
-    n = int(math.ceil(cells * DIAGNOSTIC_MARGIN * (rel_se / tolerance) ** 2 / 100.0) * 100)
-    n = max(n, cells + 100)
+    n = diagnostic_cells_needed(cells, rel_se, tolerance)
     return Remedy("larger_diagnostic", f"a larger diagnostic population, `gp.diagnostic.n_cells="
                   f"{n}` (now {cells}: its error falls as one over the root of its cells)",
                   (f"gp.diagnostic.n_cells={n}",))  # fmt: skip
@@ -126,10 +141,29 @@ def later_diagnostic_start(span: tuple[float, float] | None) -> Remedy:
                   f"its last)", (f"gp.diagnostic.equilibration_time={start}",))  # fmt: skip
 
 
-#: the step that names the burn-in (a model's setting with no value to advise from here)
-LONGER_BURN_IN = Remedy("longer_burn_in", "a longer burn-in (`model.burn_in`, where the model "
-                        "has one; `python3 scripts/inspect_model.py` measures the settling "
-                        "time)")  # fmt: skip
+def longer_burn_in(burn_in: float | None, span: tuple[float, float] | None) -> Remedy:
+    """A burn-in that ends where the diagnostic's drift did: its cells switched at another
+    rate in the first half of their record than in the second, so they were still drifting
+    ``model.burn_in`` + ``gp.diagnostic.equilibration_time`` + half of ``gp.diagnostic.t_end``
+    (``burn_in`` and ``span``, in s) after their fixed start counts; a burn-in that long, in
+    whole seconds, settles the collection's cells too (they start after the burn-in alone).
+    Printed as ``++model.burn_in=...`` (a yaml model's key); without ``burn_in`` (a model
+    whose start does not simulate one) or ``span``, no value.
+
+    Example:
+        >>> longer_burn_in(50.0, (10.0, 100.0)).overrides
+        ('++model.burn_in=110',)
+    """
+    if burn_in is None or not burn_in > 0 or span is None or not span[1] > 0:
+        return Remedy("longer_burn_in", "a longer burn-in (`model.burn_in`, where the model "
+                      "has one; `python3 scripts/inspect_model.py` measures the settling "
+                      "time)")  # fmt: skip
+    equilibration, t_end = span
+    needed = math.ceil(burn_in + equilibration + t_end / 2)
+    return Remedy("longer_burn_in", f"a longer burn-in, `++model.burn_in={needed}` (now "
+                  f"{burn_in:g} s: the diagnostic's cells still drifted {equilibration + t_end / 2:g} "
+                  f"s after it; the collection's cells start after it too)",
+                  (f"++model.burn_in={needed}",))  # fmt: skip
 
 
 def coarser_classes(
@@ -414,7 +448,7 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
 
 __all__ = [
     "DIAGNOSTIC_MARGIN",
-    "LONGER_BURN_IN",
+    "DURATION_TOLERANCE",
     "MEMORY_FAMILIES",
     "RELAXING_CANDIDATE",
     "RELAXING_OVERRIDES",
@@ -429,7 +463,9 @@ __all__ = [
     "clock_step",
     "coarser_classes",
     "coarser_remedy",
+    "diagnostic_cells_needed",
     "larger_diagnostic",
     "later_diagnostic_start",
+    "longer_burn_in",
     "more_rows",
 ]

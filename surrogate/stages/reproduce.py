@@ -24,7 +24,7 @@ import torch
 
 from surrogate.config import to_dict
 from surrogate.diagnosis.jumps import lagging_window
-from surrogate.diagnosis.remedies import MeasuredChoice
+from surrogate.diagnosis.remedies import DURATION_TOLERANCE, MeasuredChoice
 from surrogate.evaluate.report import format_markdown_table, table1_markdown, write_report
 from surrogate.evaluate.statistics import family_failures
 from surrogate.io import (
@@ -121,8 +121,6 @@ def reproduce(settings: ReproduceSettings, config: Mapping[str, Any] | None = No
     return out
 
 
-#: the mean-duration error a learned psi's bias is judged by (the fidelity check's default)
-DURATION_TOLERANCE = 0.03
 #: the side-by-side speed measurement: at most this many steps (best of two), cells as the runs'
 SPEED_STEPS = 1000
 SPEED_MAX_CELLS = 100_000
@@ -391,6 +389,7 @@ def _verdict(
     printed, and one the previous run of the model advised that this run applied without a
     gain is not advised again (``out / verdict.json`` keeps what the next run compares with)."""
     from surrogate.diagnosis.advice import VerdictInputs, verdict
+    from surrogate.models.capabilities import burn_in_of
     from surrogate.models.count_classes import CountClasses
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages import advice
@@ -413,6 +412,8 @@ def _verdict(
     # bins of a count: coarser classes are advised as concrete edges
     count_classes = getattr(tr.setup.model.internal, "count_classes", None)
     count_classes = count_classes if isinstance(count_classes, CountClasses) else None
+    # a yaml model's keys are given as ++model.<key>: its burn-in is advised with a value
+    yaml_model = "spec" in ((config or {}).get("model") or {})
     measured = VerdictInputs(
         diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names, failures=failures,
         outside=outside, outside_warning=settings.job.outside_warning,
@@ -422,9 +423,10 @@ def _verdict(
         max_age=tr.max_age if tr.kind.clock else None, count_classes=count_classes,
         choice=measured_choice(tr), wider_collection=tr.setup.model.wider_collection(),
         blackout=collection_blackout(tr),
-        diagnostic_cells=int(tr.diagnostic["n_cells"]) if tr.diagnostic.get("n_cells") else None,
+        diagnostic_cells=diagnostic_cells(tr.diagnostic, metrics.get("diagnostic")),
         diagnostic_span=(float(tr.diagnostic["equilibration_time"]), float(tr.diagnostic["t_end"]))
         if tr.diagnostic.get("t_end") else None,
+        burn_in=(burn_in_of(tr.setup.model.internal) or None) if yaml_model else None,
     )  # fmt: skip
     # the causes this run finds (no remedy checked): a remedy whose cause went had its gain
     causes = {name for name, _, _ in verdict(measured).causes}
@@ -440,6 +442,16 @@ def _verdict(
             f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
             f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
     return v.markdown(confirm=fidelity_command(tr)) + note
+
+
+def diagnostic_cells(
+    options: Mapping[str, Any], diagnostic: Mapping[str, Any] | None
+) -> int | None:
+    """The cells the diagnostic ran with: its record's (the train stage grows a reference too
+    noisy to judge, :func:`~surrogate.stages.train.grown_diagnostic`), else ``gp.diagnostic``'s
+    ``options``; None where neither says."""
+    used = ((diagnostic or {}).get("settings") or {}).get("n_cells") or options.get("n_cells")
+    return int(used) if used else None
 
 
 def collection_blackout(tr: TrainSettings, unless_left_out: bool = True) -> tuple[str, ...]:

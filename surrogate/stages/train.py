@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import shutil
 import time
@@ -33,12 +34,14 @@ import torch
 from torch import Tensor
 
 from surrogate.config import seed_everything, to_dict
+from surrogate.diagnosis.cost import duration
 from surrogate.diagnosis.jumps import (
     MIN_SETTLED_ROWS,
     SETTLED_AFTER,
     lagging_window,
     settled_rows,
 )
+from surrogate.diagnosis.remedies import DURATION_TOLERANCE, diagnostic_cells_needed
 from surrogate.errors import ArtefactError, ConfigError, NumericalError
 from surrogate.gp import (
     PsiClassifier,
@@ -511,11 +514,17 @@ def _train(
                              f"gp.grid_size={settings.grid_size}; nothing was written to {out}")  # fmt: skip
     exact_fn = exact_psi_function(model, settings.setup.dt)  # the reference of both below
     diagnostic, frame = diagnose(psi, settings, model, exact_fn)
+    diagnosed = grown_diagnostic(diagnostic, settings)  # the cells that judge it, or None
+    if diagnosed is not None:
+        grown_from = int(settings.diagnostic["n_cells"])
+        diagnostic, frame = diagnose(psi, diagnosed, model, exact_fn)
+        diagnostic["grown_from"] = grown_from
+    diagnosed = diagnosed or settings
     metrics["diagnostic"] = diagnostic
     chain = settings.kind.load(fit_dir)
     if isinstance(chain, ClassTable):  # a chain over classes: scored class by class
-        metrics["class_diagnostic"] = diagnose_classes(chain, settings, model)
-        metrics["class_shares"] = class_share_drift(chain, settings, model)
+        metrics["class_diagnostic"] = diagnose_classes(chain, diagnosed, model)
+        metrics["class_shares"] = class_share_drift(chain, diagnosed, model)
     # from here the directory reads as incomplete until the new manifest is written last
     (out / MANIFEST).unlink(missing_ok=True)
     own = (PSI, HISTORY_FIGURE, *settings.kind.files)
@@ -571,6 +580,61 @@ def _train(
                  "variation %.3f, chi-square p = %.2g%s", shares["t"], shares["total_variation"],
                  shares["p_value"], " (they drift)" if shares["drift"] else "")  # fmt: skip
     log.info("abstraction of %s: diagnostic and grid in %s", fit_dir, out)
+
+
+#: the longest a grown diagnostic may take, forecast from the first run's time (the stages'
+#: warning threshold: a run past it is the user's to start, as the verdict advises)
+GROW_MAX_SECONDS = budget.WARN_SECONDS
+
+
+def grown_diagnostic(
+    diagnostic: Mapping[str, Any], settings: TrainSettings
+) -> TrainSettings | None:
+    """``settings`` with the diagnostic cells that judge psi's bias, where its empirical
+    reference could not: a lump's relative error on the bias above
+    :data:`~surrogate.diagnosis.remedies.DURATION_TOLERANCE` (the verdict's "reference too
+    noisy to judge") gets the cells that bring it under
+    (:func:`~surrogate.diagnosis.remedies.diagnostic_cells_needed`, what the verdict would
+    advise as ``gp.diagnostic.n_cells``), up to ``gp.diagnostic.max_cells``; None where the
+    reference judges (or is exact), the ceiling leaves no more cells, or the larger run would
+    take more than :data:`GROW_MAX_SECONDS` at the first one's pace. The occupancy run is
+    made again at that size (the same run ``gp.diagnostic.n_cells`` would make): a run of the
+    model the user would otherwise start after reading the verdict (Vilar's oscillator: 1,000
+    cells, +- 4.6 %, a second 6.6-minute reproduce run at 4,300; docs/sbml.md)."""
+    d = settings.diagnostic
+    cells, ceiling = int(d["n_cells"]), int(d.get("max_cells") or 0)
+    if diagnostic.get("reference") != "empirical":
+        return None
+    errors = {p: s.get("rel_bias_se") for p in (0, 1)
+              if isinstance(s := diagnostic.get(f"phi{p}"), Mapping)}  # fmt: skip
+    noisy = {p: float(e) for p, e in errors.items()
+             if isinstance(e, int | float) and math.isfinite(e) and e > DURATION_TOLERANCE}  # fmt: skip
+    if not noisy:
+        return None
+    lumps = settings.setup.model.internal.lump_names
+    what = ", ".join(f"leaving {lumps[p]} +- {100 * e:.1f} %" for p, e in noisy.items())
+    needed = min(diagnostic_cells_needed(cells, max(noisy.values()), DURATION_TOLERANCE), ceiling)
+    if needed <= cells:
+        log.warning("the diagnostic's reference at %d cells cannot judge psi's bias (%s, against "
+                    "%.0f %%); gp.diagnostic.max_cells=%d leaves no more cells", cells, what,
+                    100 * DURATION_TOLERANCE, ceiling)  # fmt: skip
+        return None
+    wall = read_manifest(settings.occupancy().directory).get("wall_time_s")
+    made = float(wall) if isinstance(wall, int | float) else None
+    forecast = made * needed / cells if made is not None else None
+    if made is not None and forecast is not None and forecast > GROW_MAX_SECONDS:
+        log.warning("the diagnostic's reference at %d cells cannot judge psi's bias (%s, against "
+                    "%.0f %%); %d cells would take ~%s at the %s its cells took (more than %s): "
+                    "not made here (gp.diagnostic.n_cells=%d makes it)", cells, what,
+                    100 * DURATION_TOLERANCE, needed, duration(forecast), duration(made),
+                    duration(GROW_MAX_SECONDS), needed)  # fmt: skip
+        return None
+    took = (f", ~{duration(forecast)} at the {duration(made)} its {cells} cells took"
+            if made is not None and forecast is not None else "")  # fmt: skip
+    log.info("the diagnostic's reference at %d cells cannot judge psi's bias (%s, against %.0f "
+             "%%): made again at %d cells (gp.diagnostic.max_cells=%d)%s", cells, what,
+             100 * DURATION_TOLERANCE, needed, ceiling, took)  # fmt: skip
+    return dataclasses.replace(settings, diagnostic={**d, "n_cells": needed})
 
 
 def percent(fraction: float | None) -> str:

@@ -75,6 +75,12 @@ def test_each_cause_names_its_measurement_and_next_step() -> None:
     assert [r.overrides for _, r in later.remedies] == [
         ("gp.diagnostic.equilibration_time=60",), ()]  # fmt: skip
     assert "`gp.diagnostic.equilibration_time=60` (now 10 s; its first 50 s" in later.causes[0][2]
+    # a simulated burn-in: one that ends where the drift did (it printed no value before)
+    burned = _read(diagnostic={"phi0": _score(0.0, settling=-6.0)}, diagnostic_span=(10.0, 100.0),
+                   burn_in=50.0)  # fmt: skip
+    assert [r.overrides for _, r in burned.remedies][1] == ("++model.burn_in=110",)
+    assert "`++model.burn_in=110` (now 50 s: the diagnostic's cells still drifted 60 s" \
+        in burned.causes[0][2]  # fmt: skip
     biased = _read(diagnostic={"phi0": _score(0.15, se=0.02)})
     (cause,) = biased.causes
     assert cause[0] == "Biased switching probabilities"

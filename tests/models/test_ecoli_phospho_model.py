@@ -93,7 +93,7 @@ def test_the_pipeline_runs_on_the_phospho_model(tmp_path) -> None:
         "model.burn_in=0.5", "collect.n_per_state=200", "collect.n_cells=50",
         "collect.equilibration_time=0.5", "gp.n_inducing=10", "gp.epochs=3",
         "gp.batch_size=100", "gp.diagnostic.n_cells=40", "gp.diagnostic.t_end=2.0",
-        "gp.diagnostic.equilibration_time=0.5", *run, "evaluate.subsample=100",
+        "gp.diagnostic.equilibration_time=0.5", "gp.diagnostic.max_cells=0", *run, "evaluate.subsample=100",
         "evaluate.run_missing=true", "evaluate.noise_floor=false",
     ]  # fmt: skip
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

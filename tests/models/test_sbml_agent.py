@@ -99,7 +99,7 @@ def test_the_phospho_yaml_collects_and_learns_what_the_plugin_does(tmp_path) -> 
         "collect.n_per_state=60", "collect.n_cells=30",
         "collect.record_every=1", "collect.equilibration_time=0.2", "gp.n_inducing=8",
         "gp.epochs=3", "gp.labels=outcome", "gp.diagnostic.n_cells=20", "gp.diagnostic.t_end=1.0",
-        "gp.diagnostic.equilibration_time=0.2",
+        "gp.diagnostic.equilibration_time=0.2", "gp.diagnostic.max_cells=0",
     ]  # fmt: skip
     plugin = compose_config(tmp_path / "a", ["model=ecoli_phospho", "model.burn_in=0.2", *common])
     config = compose_config(tmp_path / "b", ["model=sbml", f"model.spec={PHOSPHO}",

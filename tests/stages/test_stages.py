@@ -247,6 +247,54 @@ def test_the_diagnostic_and_the_grid_do_not_refit(trained, beside, caplog) -> No
     assert a.directory == b.directory
 
 
+def test_a_reference_too_noisy_to_judge_is_made_again_larger(trained, beside, monkeypatch,
+                                                              caplog) -> None:  # fmt: skip
+    """A model with no exact psi is judged against the full model's binned frequencies; where
+    their error on psi's bias is above the verdict's 3 % tolerance the train stage makes the
+    diagnostic again with the cells the verdict would advise, up to ``gp.diagnostic.max_cells``
+    (the same run ``gp.diagnostic.n_cells`` makes), instead of leaving the user a rerun. The
+    verdict then reads the cells that ran."""
+    from surrogate.stages.reproduce import diagnostic_cells
+
+    monkeypatch.setattr(train, "exact_psi_function", lambda model, dt: None)
+    cfg = beside("train", [*_train_overrides(), "gp.diagnostic.n_cells=20",
+                           "gp.diagnostic.max_cells=60"])  # fmt: skip
+    settings = train.validate(cfg)
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.train"):
+        out = train.run(cfg)
+    metrics = json.loads((out / "train_metrics.json").read_text())
+    d = metrics["diagnostic"]
+    assert d["reference"] == "empirical" and d["grown_from"] == 20
+    assert d["settings"]["n_cells"] == 60 and d["n_occupancy"] == 60 * 200 // 10
+    assert "made again at 60 cells (gp.diagnostic.max_cells=60)" in caplog.text
+    assert diagnostic_cells(settings.diagnostic, d) == 60
+    # the same run the setting makes: its occupancy directory, reused
+    larger = train.validate(beside("train", [*_train_overrides(), "gp.diagnostic.n_cells=60"]))
+    assert larger.occupancy().directory.is_dir()
+    assert larger.occupancy().directory != settings.occupancy().directory
+    # never: the first run's reference is the record
+    caplog.clear()
+    never = beside("train", [*_train_overrides(), "gp.diagnostic.n_cells=20",
+                             "gp.diagnostic.max_cells=0"])  # fmt: skip
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.train"):
+        kept = json.loads((train.run(never) / "train_metrics.json").read_text())["diagnostic"]
+    assert "grown_from" not in kept and kept["settings"]["n_cells"] == 20
+    assert "gp.diagnostic.max_cells=0 leaves no more cells" in caplog.text
+    # nor where the larger run would take longer than the stages' warning threshold
+    caplog.clear()
+    monkeypatch.setattr(train, "GROW_MAX_SECONDS", 0.0)
+    slow = beside("train", [*_train_overrides(), "gp.diagnostic.n_cells=20",
+                            "gp.diagnostic.max_cells=40"])  # fmt: skip
+    with caplog.at_level(logging.INFO, logger="surrogate.stages.train"):
+        kept = json.loads((train.run(slow) / "train_metrics.json").read_text())["diagnostic"]
+    assert "grown_from" not in kept
+    assert "not made here (gp.diagnostic.n_cells=40 makes it)" in caplog.text
+    with pytest.raises(ConfigError, match="gp.diagnostic.max_cells must be a whole number"):
+        train.validate(beside("train", [*_train_overrides(), "gp.diagnostic.max_cells=2.5"]))
+    with pytest.raises(ConfigError, match="gp.diagnostic.max_cells must be a non-negative"):
+        train.validate(beside("train", [*_train_overrides(), "gp.diagnostic.max_cells=-1"]))
+
+
 def test_train_without_collect_names_the_command(compose_cfg) -> None:
     cfg = compose_cfg("train", ["field=linear"])
     with pytest.raises(MissingArtefactError, match=r"python scripts/collect.py .*field=linear"):

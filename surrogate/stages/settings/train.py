@@ -73,6 +73,9 @@ DIAGNOSTIC_DEFAULTS: dict[str, Any] = {
     "record_every": 10,  # as conf/gp/svgp.yaml
     "start": [2.0, 0.0],
     "equilibration_time": 10.0,
+    # where the reference is too noisy to judge psi's bias, the diagnostic is made again with
+    # the cells that judge it, up to this many (0: never; surrogate.stages.train.grown_diagnostic)
+    "max_cells": 8000,
 }
 
 
@@ -391,7 +394,8 @@ class TrainSettings:
     def occupancy(self) -> OccupancySettings:
         """The diagnostic's occupancy run: an unperturbed full-model population in the training
         field (``gp.diagnostic``: its size, start and length), seeded with this seed."""
-        options = dict(self.diagnostic)
+        # its cells' ceiling is the train stage's, not the run's (a stored run is reused)
+        options = {k: v for k, v in self.diagnostic.items() if k != "max_cells"}
         if self.kind.clock:  # the rows need the switch clocks
             options["clock"] = True
         return OccupancySettings(self.setup, options, self.job, self.command())
@@ -469,5 +473,8 @@ def _diagnostic(options: Mapping[str, Any], start_size: int | None) -> dict[str,
     positive(d, "t_end", "gp.diagnostic.")
     positive(d, "record_every", "gp.diagnostic.", integer=True)
     non_negative(d, "equilibration_time", "gp.diagnostic.")
+    if non_negative(d, "max_cells", "gp.diagnostic.") != int(d["max_cells"]):
+        raise ConfigError(f"gp.diagnostic.max_cells must be a whole number of cells (0: the "
+                          f"diagnostic never grows), got {d['max_cells']!r}")  # fmt: skip
     d["start"] = list(validate_start(d, "start", "gp.diagnostic.", start_size))
     return d
