@@ -387,6 +387,18 @@ class ChainKind:
             f"sequences (window_log_likelihoods): the measured choice cannot score it"
         )
 
+    def marginal_window_log_likelihoods(
+        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+    ) -> Tensor:
+        """:meth:`window_log_likelihoods` with the kind's state before each sequence (what
+        the record does not show) marginalised over its stationary law at the first inputs
+        within the first phi's lump: the same terms for a kind whose likelihood starts there
+        already (the two-state chain has no such state; K lumps and the hidden phases start
+        from that law); a kind that starts otherwise overrides it (the switch clock, read
+        settled at its cap as its layer starts a run). The measured choice's added clocks
+        follow this score (a longer cap's guess of an unknown past is no memory)."""
+        return self.window_log_likelihoods(layer, inputs, phi, dt)
+
     def sequence_log_likelihood(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
     ) -> Tensor:

@@ -245,12 +245,18 @@ class KindScore:
     #: clock's age is known (:data:`FIRST_SWITCH`), beside the ranking's whatever
     #: ``likelihood_from`` is: how much of a lead is the censored first sojourn's
     known_age_log_likelihood: float = math.nan
+    #: the log-likelihood per window over the same windows with each kind's state before the
+    #: record marginalised over its stationary law (:meth:`ChainKind.
+    #: marginal_window_log_likelihoods`: a clock's unknown first age; the others' as ranked):
+    #: what the choice's added clocks follow
+    marginal_log_likelihood: float = math.nan
 
     def row(self) -> dict[str, Any]:
         """The score as a flat row for the table (no per-cell values)."""
         out: dict[str, Any] = {"kind": self.name, "complexity": self.complexity,
                                "log_likelihood_per_window": self.log_likelihood,
-                               "known_age_log_likelihood": self.known_age_log_likelihood}  # fmt: skip
+                               "known_age_log_likelihood": self.known_age_log_likelihood,
+                               "marginal_log_likelihood": self.marginal_log_likelihood}  # fmt: skip
         for lump, d in self.durations.items():
             for key, value in asdict(d).items():
                 out[f"{lump}_{key}"] = value
@@ -320,8 +326,16 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
                          f"or infinite inputs; drop them before scoring")  # fmt: skip
     with torch.no_grad():
         terms = kind.window_log_likelihoods(layer, inputs, phi, dt)
-        ll, windows = _per_window(terms, scored_windows(phi, likelihood_from))
+        ranked = scored_windows(phi, likelihood_from)
+        ll, windows = _per_window(terms, ranked)
         known, _ = _per_window(terms, scored_windows(phi, FIRST_SWITCH))
+        marginal = ll
+        if (
+            type(kind).marginal_window_log_likelihoods
+            is not ChainKind.marginal_window_log_likelihoods
+        ):
+            marginal, _ = _per_window(kind.marginal_window_log_likelihoods(layer, inputs, phi, dt),
+                                      ranked)  # fmt: skip
         simulated = simulate_sequences(kind, layer, inputs, phi[:, 0], dt, seed)
     per_cell = ll.cpu().numpy()
     observed, sims = phi.cpu().numpy(), simulated.cpu().numpy()
@@ -337,7 +351,8 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
                      tuple(float(v) for v in per_cell), durations,
                      spread=occupancy_spread(observed, sims, dt),
                      windows_per_cell=round(windows),
-                     known_age_log_likelihood=float(known.mean()))  # fmt: skip
+                     known_age_log_likelihood=float(known.mean()),
+                     marginal_log_likelihood=float(marginal.mean()))  # fmt: skip
 
 
 def scored_windows(phi: Tensor, likelihood_from: str = FIRST_SWITCH) -> Tensor:

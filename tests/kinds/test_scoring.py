@@ -243,18 +243,64 @@ def test_clock_likelihood_reads_the_observed_clock() -> None:
     """The clock's ages come from the observed history, settled at the start: a psi that
     switches surely once 2 windows in a state gives the sequence 0,0,0,1,1,1,0 likelihood 1
     only if the clock restarts at each change (settled at the start: the first window switches
-    surely, so a sequence that stays there has likelihood 0)."""
+    surely, so a sequence that stays there has likelihood 0). Marginalised, the first window's
+    clock is unknown: its chance of switching is psi's over the clock's stationary law (ages
+    0, 1 and 2+ in proportion 1 : 0.99 : 0.99^2 / 0.99)."""
 
     def psi(p: Tensor, z: Tensor) -> Tensor:  # p(change) 0 before 2 windows, 1 from then
         change = (z[:, 1] >= 2 * DT - 1e-6).float() * 0.98 + 0.01
         return torch.where(p > 0, 1.0 - change, change)
 
-    layer = MemoryDecision(psi, Internal(), max_age=1.0)
+    layer = MemoryDecision(psi, Internal(), max_age=2 * DT)
     x = torch.zeros(1, 6, 1)
     keeps = torch.tensor([[0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]])
     ll = CLOCK.sequence_log_likelihood(layer, x, keeps, DT)
     # settled: the first window switches (0.99); then ages 0, 1 keep (0.99 each), 2 switches
     assert ll.item() == pytest.approx(6 * math.log(0.99), rel=1e-5)
+    terms = CLOCK.marginal_window_log_likelihoods(layer, x, keeps, DT)
+    law = np.array([1.0, 0.99, 0.99**2 / 0.99])
+    first = float(law @ np.array([0.01, 0.01, 0.99]) / law.sum())
+    assert terms[0, 0].item() == pytest.approx(math.log(first), rel=1e-6)
+    assert terms[0, 1:].sum().item() == pytest.approx(5 * math.log(0.99), rel=1e-5)
+
+
+def test_the_unknown_clock_is_marginalised_as_enumeration_gives() -> None:
+    """Up to a sequence's first switch the clock's likelihood is the sum over the clock's
+    unknown age at the start (its stationary law at the first inputs, ages 0..3 with 3 the
+    cap), each age's path probability taken window by window: the forward algorithm's terms
+    sum to its log, on sequences that switch early, late and never, under inputs that move."""
+    rng = np.random.default_rng(3)
+    hazard = rng.uniform(0.05, 0.6, size=(2, 4, 4))  # origin x input bin x age 0..3
+
+    def psi(p: Tensor, z: Tensor) -> Tensor:
+        i = (z[:, 0] * 4).long().clamp(0, 3)
+        a = (z[:, 1] / DT).round().long().clamp(0, 3)
+        leave = torch.tensor(hazard, dtype=torch.float32)[p.long(), i, a]
+        return torch.where(p > 0, 1.0 - leave, leave)
+
+    layer = MemoryDecision(psi, Internal(), max_age=3 * DT)
+    phi = torch.tensor([[0.0, 0, 0, 0, 0, 0], [1, 1, 1, 0, 0, 1], [0, 1, 1, 1, 1, 1],
+                        [1, 1, 1, 1, 1, 0]])  # fmt: skip
+    x = torch.tensor(rng.uniform(0, 1, size=(4, 5, 1)), dtype=torch.float32)
+    terms = CLOCK.marginal_window_log_likelihoods(layer, x, phi, DT).numpy()
+    bins = np.minimum((x[..., 0].numpy() * 4).astype(int), 3)
+    for cell in range(4):
+        origin = int(phi[cell, 0])
+        h0 = hazard[origin, bins[cell, 0]]
+        law = np.array([1.0, 1 - h0[0], (1 - h0[0]) * (1 - h0[1]),
+                        (1 - h0[0]) * (1 - h0[1]) * (1 - h0[2]) / h0[3]])  # fmt: skip
+        law = law / law.sum()
+        changes = np.flatnonzero(phi[cell, 1:].numpy() != phi[cell, :-1].numpy())
+        upto = int(changes[0]) if changes.size else 4
+        total = 0.0
+        for age, weight in enumerate(law):  # each unknown start, its path to the first switch
+            prob, a = weight, age
+            for t in range(upto + 1):
+                h = hazard[origin, bins[cell, t], min(a, 3)]
+                prob *= h if t == upto and changes.size else 1 - h
+                a += 1
+            total += prob
+        assert terms[cell, : upto + 1].sum() == pytest.approx(math.log(total), rel=1e-6), cell
 
 
 def test_the_likelihood_sums_the_windows_after_each_first_switch() -> None:
@@ -266,11 +312,13 @@ def test_the_likelihood_sums_the_windows_after_each_first_switch() -> None:
         scored_windows(phi, "first")
 
 
-def test_a_clock_guessing_the_unknown_past_better_scores_alike_after_the_first_switch() -> None:
-    """Two clocks alike but in their settled hazard (the unknown past's guess, which the
-    censored first sojourn reads and a run reads once): from the start the one matching the
-    telegraph's first sojourns wins; after each first switch the two score the same (the
-    Vilar oscillator's clock caps grew past its segments this way)."""
+def test_a_clock_guessing_the_unknown_past_otherwise_scores_alike() -> None:
+    """Two clocks alike but in their settled hazard (the cap's, which a run's layer starts
+    at). Read settled at the start, the censored first sojourn scores the one matching the
+    telegraph's first sojourns higher (the Vilar oscillator's clock caps grew past its
+    segments this way); after each first switch the two score the same, and so do they with
+    the clock marginalised over its unknown age (the settled age's weight, lasting 1,000
+    windows, is nil): the score the choice's added clocks follow."""
     x, phi = telegraph(300, 200, erlang=3, seed=4)
     x, phi = torch.tensor(x, dtype=torch.float32), torch.tensor(phi)
 
@@ -291,12 +339,27 @@ def test_a_clock_guessing_the_unknown_past_better_scores_alike_after_the_first_s
     after = [score_kind(n, CLOCK, c, x, phi, DT, ("off", "on"), likelihood_from=FIRST_SWITCH)
              for n, c in (("good", good), ("bad", bad))]  # fmt: skip
     assert start[0].log_likelihood > start[1].log_likelihood + 1e-3  # every window: the default
+    assert start[0].marginal_log_likelihood == pytest.approx(start[1].marginal_log_likelihood,
+                                                             abs=1e-9)  # fmt: skip
+    # the good clock's OFF hazard reads no age: its unknown past costs it nothing either way
+    assert start[0].marginal_log_likelihood == pytest.approx(start[0].log_likelihood, abs=1e-12)
     assert after[0].log_likelihood == pytest.approx(after[1].log_likelihood, abs=1e-12)
     # kept beside the ranking's whatever it is: what the choice's added clocks are judged by
     assert [s.known_age_log_likelihood for s in start] == pytest.approx(
         [s.log_likelihood for s in after], abs=1e-12)  # fmt: skip
     # per scored window: the mean number of windows after the first switch
     assert 150 < after[0].windows_per_cell < 200 == start[0].windows_per_cell
+    # a kind that starts from its stationary law already: the marginal score is the ranked one
+    two = score_kind(
+        "two",
+        TWO_STATE,
+        AbstractDecision(binned(x.numpy(), phi.numpy(), clock=False), Internal()),
+        x,
+        phi,
+        DT,
+        ("off", "on"),
+    )
+    assert two.marginal_log_likelihood == two.log_likelihood
 
 
 def test_klumps_forward_algorithm_equals_enumeration() -> None:

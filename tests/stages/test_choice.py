@@ -375,6 +375,28 @@ def test_a_clock_at_the_held_out_memory_horizon_is_added_past_twice_the_largest_
     assert plan.longer_clock(name, {k: v for k, v in groups.items() if k != longer}) is None
 
 
+def test_the_added_clocks_follow_the_marginal_score() -> None:
+    """The clocks the choice adds follow the best with each kind's unknown start
+    marginalised: read settled at the cap, Vilar's clock at 44 s led the one at 22 s by
+    1.3e-3 per window on its held-out cells' censored first sojourns alone (after each first
+    switch they tie), and each doubling was added and won (session 35). A score without a
+    marginal value is read by its ranked one."""
+    from types import SimpleNamespace
+
+    from surrogate.kinds.scoring import KindScore
+    from surrogate.stages.choice import _Fitted
+
+    def score(name: str, ranked: float, marginal: float = math.nan) -> KindScore:
+        return KindScore(name, 1, ranked, (ranked,), {}, marginal_log_likelihood=marginal)
+
+    plan = SimpleNamespace(candidates={}, groups={}, finals={})
+    scores = {"clock max_age=22": score("clock max_age=22", -0.02236, -0.01690),
+              "clock max_age=44": score("clock max_age=44", -0.02109, -0.01691)}  # fmt: skip
+    assert _Fitted(plan, None, None, {}, scores, {}).best() == "clock max_age=22"
+    ranked = {n: score(n, s.log_likelihood) for n, s in scores.items()}
+    assert _Fitted(plan, None, None, {}, ranked, {}).best() == "clock max_age=44"
+
+
 def test_a_clock_on_a_log_axis_is_added_once_where_a_clock_in_seconds_is_best() -> None:
     """The best a clock in seconds, the choice adds one clock on a log axis at twice its cap
     (knee five windows, bins as wide as the best's at a third of its cap); none where the best
