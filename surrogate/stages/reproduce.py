@@ -389,7 +389,6 @@ def _verdict(
     printed, and one the previous run of the model advised that this run applied without a
     gain is not advised again (``out / verdict.json`` keeps what the next run compares with)."""
     from surrogate.diagnosis.advice import VerdictInputs, verdict
-    from surrogate.models.capabilities import burn_in_of
     from surrogate.models.count_classes import CountClasses
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages import advice
@@ -412,8 +411,6 @@ def _verdict(
     # bins of a count: coarser classes are advised as concrete edges
     count_classes = getattr(tr.setup.model.internal, "count_classes", None)
     count_classes = count_classes if isinstance(count_classes, CountClasses) else None
-    # a yaml model's keys are given as ++model.<key>: its burn-in is advised with a value
-    yaml_model = "spec" in ((config or {}).get("model") or {})
     measured = VerdictInputs(
         diagnostic=diagnostic, lump_names=tr.setup.model.internal.lump_names, failures=failures,
         outside=outside, outside_warning=settings.job.outside_warning,
@@ -426,7 +423,7 @@ def _verdict(
         diagnostic_cells=diagnostic_cells(tr.diagnostic, metrics.get("diagnostic")),
         diagnostic_span=(float(tr.diagnostic["equilibration_time"]), float(tr.diagnostic["t_end"]))
         if tr.diagnostic.get("t_end") else None,
-        burn_in=(burn_in_of(tr.setup.model.internal) or None) if yaml_model else None,
+        burn_in=advisable_burn_in(config, tr.setup.model.internal),
     )  # fmt: skip
     # the causes this run finds (no remedy checked): a remedy whose cause went had its gain
     causes = {name for name, _, _ in verdict(measured).causes}
@@ -442,6 +439,18 @@ def _verdict(
             f"over the report's {m} comparisons, Bonferroni; the tables mark each test at 5 %: "
             f"{marked} marked, {counted} counted.)" if marked != counted else "")  # fmt: skip
     return v.markdown(confirm=fidelity_command(tr)) + note
+
+
+def advisable_burn_in(config: Mapping[str, Any] | None, internal: Any) -> float | None:
+    """The burn-in (s) the verdict may advise a longer one of, as ``++model.burn_in``: the
+    model's where it is a yaml (``model.spec``: its keys are given so) and its cells' start
+    simulates one (:func:`~surrogate.models.capabilities.burn_in_of`: not an enumerable
+    network, drawn from its stationary law); else None (no value to advise)."""
+    from surrogate.models.capabilities import burn_in_of
+
+    if "spec" not in ((config or {}).get("model") or {}):
+        return None
+    return burn_in_of(internal) or None
 
 
 def diagnostic_cells(

@@ -545,6 +545,12 @@ def test_every_recommendation_the_inspector_prints_passes_the_settings_checks(
     assert burn["applies"] and burn["enough"] is False and burn["needed_s"] == 120.0
     assert inspection.check_printed(big_config, {}, burn, {}, True) == []
     assert "refused" not in burn
+    # the verdict's longer burn-in has a value for it, none for an enumerable network's
+    from surrogate.stages.reproduce import advisable_burn_in
+
+    assert advisable_burn_in(big_config, network) == network.burn_in > 0
+    assert advisable_burn_in(config, model.internal) is None  # enumerable: drawn exactly
+    assert advisable_burn_in({"model": {"name": "x"}}, network) is None  # no yaml to key
     # the balanced threshold where the lump is rare
     rare = _fixed(occupancy=np.array([0.02]))
     balanced = recommendation.balanced_threshold(model.internal, rare)
