@@ -217,7 +217,7 @@ def unknown_age_windows(
     top = int(nodes) if nodes is not None else max(1, math.ceil(layer.max_age / dt - 1e-9))
     ages = torch.arange(top + 1, dtype=torch.float32, device=device)
     changed = phi[:, 1:] != phi[:, :-1]
-    first = torch.where(changed.any(1), changed.to(torch.int8).argmax(1),
+    first = torch.where(changed.any(1), changed.to(torch.float32).argmax(1),
                         torch.full((n,), steps, device=device, dtype=torch.long))  # fmt: skip
     before = torch.arange(steps, device=device).unsqueeze(0) <= first.unsqueeze(1)
     terms = torch.zeros(n, steps, dtype=torch.float64, device=device)
