@@ -584,7 +584,13 @@ def _diagnostic_text(metrics: Mapping[str, Any], lumps: tuple[str, str]) -> str:
         f"The learned switching probabilities against the {d['reference']} psi, weighted by "
         f"where an unperturbed full-model population lives ({o.get('n_cells')} cells from "
         f"{o.get('start')} for {o.get('t_end')} s in the training field; {d['n_occupancy']} "
-        "occupied points). The bias predicts the relative error of the mean segment duration "
+        "occupied points"
+        + (
+            f"; grown from {d['grown_from']} cells, whose reference was too noisy to judge the bias"
+            if d.get("grown_from")
+            else ""
+        )
+        + "). The bias predicts the relative error of the mean segment duration "
         "(with the opposite sign).\n\n" + format_markdown_table(pd.DataFrame(rows), ".4f")
     )
     return (

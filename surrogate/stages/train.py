@@ -600,7 +600,7 @@ def grown_diagnostic(
     take more than :data:`GROW_MAX_SECONDS` at the first one's pace. The occupancy run is
     made again at that size (the same run ``gp.diagnostic.n_cells`` would make): a run of the
     model the user would otherwise start after reading the verdict (Vilar's oscillator: 1,000
-    cells, +- 4.6 %, a second 6.6-minute reproduce run at 4,300; docs/sbml.md)."""
+    cells, +- 4.6 %, a second 6.6-minute reproduce run at 4,300; docs/choice.md)."""
     d = settings.diagnostic
     cells, ceiling = int(d["n_cells"]), int(d.get("max_cells") or 0)
     if diagnostic.get("reference") != "empirical":

@@ -268,6 +268,11 @@ def test_a_reference_too_noisy_to_judge_is_made_again_larger(trained, beside, mo
     assert d["settings"]["n_cells"] == 60 and d["n_occupancy"] == 60 * 200 // 10
     assert "made again at 60 cells (gp.diagnostic.max_cells=60)" in caplog.text
     assert diagnostic_cells(settings.diagnostic, d) == 60
+    from surrogate.stages.reproduce import _diagnostic_text  # the report says so
+
+    assert "(60 cells from" in _diagnostic_text(metrics, ("run", "tumble"))
+    assert "grown from 20 cells, whose reference was too noisy" in _diagnostic_text(
+        metrics, ("run", "tumble"))  # fmt: skip
     # the same run the setting makes: its occupancy directory, reused
     larger = train.validate(beside("train", [*_train_overrides(), "gp.diagnostic.n_cells=60"]))
     assert larger.occupancy().directory.is_dir()
