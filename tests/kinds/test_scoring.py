@@ -32,6 +32,7 @@ from surrogate.kinds.scoring import (
     SpreadScore,
     choose,
     occupancy_spread,
+    one_clock,
     score_kind,
     scored_windows,
     segment_durations,
@@ -406,6 +407,41 @@ def test_choose_ties_go_to_the_simpler_kind() -> None:
     assert close.chosen == "two-state" and "simpler" in close.reason
     far = choose([score("two-state", 0, 0.0), score("clock", 1, 1e-3)])
     assert far.chosen == "clock" and "highest" in far.reason
+
+
+def test_the_clocks_meet_each_other_on_the_marginal_score() -> None:
+    """Tyson's seed 0 (per window): the log clock at 10 s trails the clock at 10 s ranked
+    (-0.08218 against -0.08030: each reads a held-out cell's unknown first sojourn settled at
+    its own cap) and leads it marginalised (-0.07888 against -0.07946); at scale the log clock
+    passed 24 of 24, the clock 23. One clock is left, the marginal score's best, and it meets
+    the other kinds on the ranked score: a richer kind ahead of it there is still chosen, and
+    a pool of one clock is as it was."""
+    rng = np.random.default_rng(1)
+    base = rng.normal(-0.1, 0.01, 400)
+    noise = rng.normal(0.0, 1e-4, 400)
+    none = {"off": DurationScore(0.0, 0.1, 0.0, 0.0, 10, 10)}
+
+    def score(name: str, complexity: int, ranked: float, marginal: float) -> KindScore:
+        values = base + noise * complexity + ranked
+        return KindScore(name, complexity, float(values.mean()), tuple(values), none,
+                         marginal_log_likelihood=marginal)  # fmt: skip
+
+    clocks = [score("clock max_age=10", 1, -0.08030, -0.07946),
+              score("clock log max_age=10", 1, -0.08218, -0.07888)]  # fmt: skip
+    two = score("two-state", 0, -0.12436, -0.12436)
+    got = choose([two, *clocks])
+    assert got.chosen == "clock log max_age=10"
+    assert "of the clocks, clock log max_age=10 alone" in got.reason
+    assert "not ['clock max_age=10']" in got.reason
+    assert not next(r for r in got.table if r["kind"] == "clock max_age=10")["tied_with_best"]
+    # the clock left meets the rest ranked: phases ahead of it there are chosen
+    phases = score("phases", 3, -0.07000, -0.07000)
+    assert choose([two, *clocks, phases]).chosen == "phases"
+    # one clock, or a clock without a marginal score: the pool as it was
+    assert one_clock([two, clocks[0]]) == ([two, clocks[0]], [])
+    bare = KindScore("clock max_age=5", 1, float((base - 0.09).mean()), tuple(base - 0.09), none)
+    assert one_clock([bare, *clocks])[1] == []
+    assert choose([two, bare, clocks[0]]).chosen == "clock max_age=10"
 
 
 def test_a_gap_of_under_a_nat_ties_whatever_its_se() -> None:

@@ -235,9 +235,10 @@ class ChoiceSettings:
                 "equilibration_time": self.equilibration_time, "tie_se": self.tie_se,
                 "duration_tolerance": self.duration_tolerance, "extend": self.extend,
                 "refit": self.refit, "clock_inducing": self.clock_inducing,
-                # the added clocks follow the score with a clock's unknown first age
-                # marginalised (session 36): choices made before are made again (fits reused)
-                "clocks_follow": "marginal",
+                # the clocks added and compared with each other by the score with a clock's
+                # unknown first age marginalised (session 36): choices made before are made
+                # again (their fits are reused)
+                "clocks_by": "marginal",
                 **({} if self.fields is None else {"fields": list(self.fields)}),
                 **({} if self.spread_tolerance is None
                    else {"spread_tolerance": self.spread_tolerance}),
