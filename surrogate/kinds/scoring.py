@@ -500,7 +500,8 @@ def choose(
     spread_tolerance: float | None = None,
 ) -> Choice:
     """The best candidate by held-out log-likelihood per window among those that hold their
-    durations (:func:`holds_durations`, where ``duration_tolerance`` is given); one within
+    durations (:func:`holds_durations`, where ``duration_tolerance`` is given), their clocks
+    narrowed to the marginal score's best (:func:`one_clock`); one within
     ``tie_se`` standard errors of that best (the SE of the paired per-cell difference), or
     within :data:`TIE_NATS` of it over all the held-out windows, ties it, and a tie goes to the
     simplest (smallest complexity, then the higher likelihood).
