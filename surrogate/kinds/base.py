@@ -388,7 +388,12 @@ class ChainKind:
         )
 
     def marginal_window_log_likelihoods(
-        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+        self,
+        layer: DecisionLayer,
+        inputs: Tensor,
+        phi: Tensor,
+        dt: float,
+        ranked: Tensor | None = None,
     ) -> Tensor:
         """:meth:`window_log_likelihoods` with the kind's state before each sequence (what
         the record does not show) marginalised over its stationary law at the first inputs
@@ -396,8 +401,9 @@ class ChainKind:
         already (the two-state chain has no such state; K lumps and the hidden phases start
         from that law); a kind that starts otherwise overrides it (the switch clock, read
         settled at its cap as its layer starts a run). The measured choice's added clocks
-        follow this score (a longer cap's guess of an unknown past is no memory)."""
-        return self.window_log_likelihoods(layer, inputs, phi, dt)
+        follow this score (a longer cap's guess of an unknown past is no memory). ``ranked``:
+        the :meth:`window_log_likelihoods` already computed, not computed again."""
+        return ranked if ranked is not None else self.window_log_likelihoods(layer, inputs, phi, dt)
 
     def sequence_log_likelihood(
         self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float

@@ -172,12 +172,18 @@ class SwitchClock(ChainKind):
         return bernoulli_log_likelihood(p, phi[:, 1:].reshape(-1)).reshape(n, steps)
 
     def marginal_window_log_likelihoods(
-        self, layer: DecisionLayer, inputs: Tensor, phi: Tensor, dt: float
+        self,
+        layer: DecisionLayer,
+        inputs: Tensor,
+        phi: Tensor,
+        dt: float,
+        ranked: Tensor | None = None,
     ) -> Tensor:
-        """:meth:`window_log_likelihoods` with the clock up to each sequence's first switch
-        marginalised over its unknown age (:func:`unknown_age_windows`), the windows after
-        it as they are."""
-        settled = self.window_log_likelihoods(layer, inputs, phi, dt)
+        """:meth:`window_log_likelihoods` (``ranked`` where already computed) with the clock
+        up to each sequence's first switch marginalised over its unknown age
+        (:func:`unknown_age_windows`), the windows after it as they are."""
+        settled = ranked if ranked is not None else self.window_log_likelihoods(layer, inputs,
+                                                                                  phi, dt)  # fmt: skip
         assert isinstance(layer, MemoryDecision)  # window_log_likelihoods refused another
         unknown, before = unknown_age_windows(layer, inputs, phi.to(torch.float32), dt)
         return torch.where(before, unknown, settled)

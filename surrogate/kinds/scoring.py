@@ -329,13 +329,10 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
         ranked = scored_windows(phi, likelihood_from)
         ll, windows = _per_window(terms, ranked)
         known, _ = _per_window(terms, scored_windows(phi, FIRST_SWITCH))
-        marginal = ll
-        if (
-            type(kind).marginal_window_log_likelihoods
-            is not ChainKind.marginal_window_log_likelihoods
-        ):
-            marginal, _ = _per_window(kind.marginal_window_log_likelihoods(layer, inputs, phi, dt),
-                                      ranked)  # fmt: skip
+        # a kind whose likelihood starts from its stationary law gives its ranked terms back
+        marginal, _ = _per_window(
+            kind.marginal_window_log_likelihoods(layer, inputs, phi, dt, ranked=terms), ranked
+        )
         simulated = simulate_sequences(kind, layer, inputs, phi[:, 0], dt, seed)
     per_cell = ll.cpu().numpy()
     observed, sims = phi.cpu().numpy(), simulated.cpu().numpy()

@@ -613,27 +613,24 @@ def grown_diagnostic(
         return None
     lumps = settings.setup.model.internal.lump_names
     what = ", ".join(f"leaving {lumps[p]} +- {100 * e:.1f} %" for p, e in noisy.items())
+    head = (f"the diagnostic's reference at {cells} cells cannot judge psi's bias ({what}, "
+            f"against {100 * DURATION_TOLERANCE:.0f} %)")  # fmt: skip
     needed = min(diagnostic_cells_needed(cells, max(noisy.values()), DURATION_TOLERANCE), ceiling)
     if needed <= cells:
-        log.warning("the diagnostic's reference at %d cells cannot judge psi's bias (%s, against "
-                    "%.0f %%); gp.diagnostic.max_cells=%d leaves no more cells", cells, what,
-                    100 * DURATION_TOLERANCE, ceiling)  # fmt: skip
+        log.warning("%s; gp.diagnostic.max_cells=%d leaves no more cells", head, ceiling)
         return None
     wall = read_manifest(settings.occupancy().directory).get("wall_time_s")
     made = float(wall) if isinstance(wall, int | float) else None
     forecast = made * needed / cells if made is not None else None
     if made is not None and forecast is not None and forecast > GROW_MAX_SECONDS:
-        log.warning("the diagnostic's reference at %d cells cannot judge psi's bias (%s, against "
-                    "%.0f %%); %d cells would take ~%s at the %s its cells took (more than %s): "
-                    "not made here (gp.diagnostic.n_cells=%d makes it)", cells, what,
-                    100 * DURATION_TOLERANCE, needed, duration(forecast), duration(made),
-                    duration(GROW_MAX_SECONDS), needed)  # fmt: skip
+        log.warning("%s; %d cells would take ~%s at the %s its cells took (more than %s): not "
+                    "made here (gp.diagnostic.n_cells=%d makes it)", head, needed,
+                    duration(forecast), duration(made), duration(GROW_MAX_SECONDS), needed)  # fmt: skip
         return None
     took = (f", ~{duration(forecast)} at the {duration(made)} its {cells} cells took"
             if made is not None and forecast is not None else "")  # fmt: skip
-    log.info("the diagnostic's reference at %d cells cannot judge psi's bias (%s, against %.0f "
-             "%%): made again at %d cells (gp.diagnostic.max_cells=%d)%s", cells, what,
-             100 * DURATION_TOLERANCE, needed, ceiling, took)  # fmt: skip
+    log.info("%s: made again at %d cells (gp.diagnostic.max_cells=%d)%s", head, needed, ceiling,
+             took)  # fmt: skip
     return dataclasses.replace(settings, diagnostic={**d, "n_cells": needed})
 
 
