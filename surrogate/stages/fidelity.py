@@ -638,8 +638,9 @@ def settled_collection(
 
 
 #: the choice's remedies the fidelity report names where checks fail (in this order):
-#: candidates the choice lacked, then more held-out cells where it was a tie
-CHOICE_REMEDIES = ("wider_kinds", "more_cells")
+#: candidates the choice lacked, the occupancy spread's screen where the chosen candidate's
+#: spread is off, then more held-out cells where it was a tie
+CHOICE_REMEDIES = ("wider_kinds", "spread", "more_cells")
 
 
 def wider_choice(
@@ -649,10 +650,13 @@ def wider_choice(
     the first of its choice's own remedies that widen or sharpen it
     (:func:`~surrogate.diagnosis.remedies.choice_remedies`: K lumps over
     ``++model.classes=auto`` for a network that declares no classes, the memory families
-    ``gp.choice.kinds`` left out, then four times the held-out cells where the choice was a
-    tie) that this stage's own settings accept on ``config``; None where every check passed,
-    no chain was measured, or none applies. Wilkinson's immigration-death network: 14 of 24 on
-    clocks chosen without K lumps, 21 of 24 with ``++model.classes=auto`` (docs/sbml.md)."""
+    ``gp.choice.kinds`` left out, then the occupancy spread's screen where the chosen
+    candidate's spread is off, then four times the held-out cells where the choice was a tie)
+    that this stage's own settings accept on ``config``; None where every check passed, no
+    chain was measured, or none applies. Wilkinson's immigration-death network: 14 of 24 on
+    clocks chosen without K lumps, 21 of 24 with ``++model.classes=auto`` (docs/sbml.md);
+    CERENA's gene-expression network: 20 of 24 with its classes too, 23 of 24 at each of three
+    draws with the spread's screen (docs/choice.md)."""
     from surrogate.diagnosis.remedies import choice_remedies
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages.reproduce import measured_choice

@@ -237,7 +237,8 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
 ) -> None:  # fmt: skip
     """gp=auto measured the chain: the memory remedies widen the choice (a longer cap, the
     families left out, K lumps over classes: auto for a network without classes), ask for more
-    held-out cells on a tie, and name the runner-up outright; class shares drifting name
+    held-out cells on a tie, screen on the occupancy's spread where the chosen candidate's is
+    off and another's holds, and name the runner-up outright; class shares drifting name
     relaxation with K lumps outright (`gp.class_moves` alone is no key of gp=auto's group:
     refused); a trusted run whose choice held no candidate's durations gets the same remedies
     in its caveat. Each printed override passes the stages' checks on a measured config."""
@@ -253,6 +254,15 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
            *rows[2:]]  # fmt: skip
     none_held = [{**r, "holds_durations": False, "off_mean_rel_diff": 0.01 * (i + 3)}
                  for i, r in enumerate(rows)]  # fmt: skip
+    spread = {
+        "two-state": (-0.49, 0.008),
+        "clock max_age=2": (0.081, 0.013),
+        "phases": (0.013, 0.012),
+    }
+    spread_rows = [{**_choice_row(k, c, gap), "spread_rel_diff": spread[k][0],
+                    "spread_rel_se": spread[k][1]}
+                   for k, c, gap in (("two-state", 0, -4e-4), ("clock max_age=2", 1, 0.0),
+                                     ("phases", 3, -8e-5))]  # fmt: skip
     cases = {  # config, chain (lumps, history, moves), choice, branch, the remedies expected
         "clock at the largest cap": (
             measured, ("phi", "age", "learned"),
@@ -269,6 +279,9 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
             declared, ("classes", "none", "learned"),
             _measured("classes", classes_rows, classes=True), "drift",
             ["relaxation", "more_rows"]),
+        "the chosen spread off": (
+            measured, ("phi", "age", "learned"), _measured("clock max_age=2", spread_rows),
+            "memory", ["wider_kinds", "spread", "more_rows", "runner_up"]),
         "none held, trusted": (
             measured, ("phi", "age", "learned"),
             _measured("clock max_age=5", none_held, duration_tolerance=0.03), "within",
@@ -293,7 +306,8 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
     printed = {o for key in seen for o in key[1:]}
     assert {"gp.choice.max_ages=[1,2,5,10]", "gp.choice.kinds=[two-state,clock,classes,phases]",
             "++model.classes=auto", "gp.choice.n_cells=4000", "gp=phases",
-            "gp=classes"} <= printed  # fmt: skip
+            "gp=classes", "gp.choice.spread_tolerance=0.05",
+            "++gp.phases.counts=max"} <= printed  # fmt: skip
     # the remedies the named chain prints instead are not the choice's: gp.max_age alone,
     # accepted by the checks under gp=auto, would set every clock candidate's cap alike
     assert check_advice(measured, ["gp.class_moves=relaxation"]) is not None

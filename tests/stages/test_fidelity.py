@@ -273,11 +273,14 @@ def test_failed_checks_under_a_measured_choice_name_its_remedies(
 ) -> None:
     """A check failed and the chain was chosen by measurement: the report names the choice's
     own remedy, checked by this stage's settings: first the candidates it lacked (K lumps for
-    a model that declares classes, `gp.choice.kinds`), else four times the held-out cells
-    where it was a tie; none where every check passed, no chain was measured, or the settings
+    a model that declares classes, `gp.choice.kinds`), then the occupancy spread's screen
+    where the chosen spread is off and another candidate holds it, else four times the
+    held-out cells where it was a tie; none where every check passed, no chain was measured, or the settings
     refuse it (gp=svgp has no gp.choice)."""
+    from dataclasses import replace
+
     from surrogate.config import to_dict
-    from surrogate.diagnosis.remedies import MeasuredChoice
+    from surrogate.diagnosis.remedies import SPREAD_OVERRIDES, MeasuredChoice
     from surrogate.stages import reproduce
 
     settings, _, table = checked
@@ -305,6 +308,24 @@ def test_failed_checks_under_a_measured_choice_name_its_remedies(
     assert f"the same command with `{wider[0]}` (checked) widens or sharpens" in text
     every = ("two-state", "clock", "classes", "phases")
     monkeypatch.setattr(reproduce, "measured_choice", lambda tr: choice(every))
+    assert fidelity.wider_choice(settings, summary, auto) == ["gp.choice.n_cells=4000"]
+    # the chosen clock's occupancy spread off (CERENA's seed 0: +8.1 %, 6 SE) where the
+    # phases hold theirs: the spread's screen, before the tie's cells, and it runs
+    spread = {
+        "clock max_age=5": (0.081, 0.013),
+        "phases": (0.013, 0.012),
+        "two-state": (-0.49, 0.008),
+    }
+    screened = replace(choice(every), scores=tuple(
+        {**r, "spread_rel_diff": spread[r["kind"]][0], "spread_rel_se": spread[r["kind"]][1]}
+        for r in choice(every).scores))  # fmt: skip
+    monkeypatch.setattr(reproduce, "measured_choice", lambda tr: screened)
+    advice = fidelity.wider_choice(settings, summary, auto)
+    assert advice == list(SPREAD_OVERRIDES)
+    assert fidelity._refusal(auto, advice) is None  # the advice runs
+    # a choice already screened on the spread is not advised it again
+    again = replace(screened, spread_tolerance=0.05)
+    monkeypatch.setattr(reproduce, "measured_choice", lambda tr: again)
     assert fidelity.wider_choice(settings, summary, auto) == ["gp.choice.n_cells=4000"]
     assert fidelity.wider_choice(settings, {**summary, "passed": summary["checks"]}, auto) is None
     named = to_dict(compose_cfg("fidelity", SMALL))  # gp=svgp: no gp.choice to widen
