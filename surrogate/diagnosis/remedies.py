@@ -460,10 +460,10 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
                              "memory)" if auto_classes else "") + ".", tuple(overrides)))  # fmt: skip
     held = _spread_held_elsewhere(choice, chosen)
     if held is not None and chosen is not None:
+        diff, se = float(chosen["spread_rel_diff"]), float(chosen["spread_rel_se"])
+        standard = f" ({abs(diff) / se:.1f} SE)" if se > 0 else ""
         out.append(Remedy("spread", f"The chosen {choice.chosen}'s occupancy over a few sojourns "
-                          f"spreads {float(chosen['spread_rel_diff']):+.1%} "
-                          f"({abs(float(chosen['spread_rel_diff'])) / float(chosen['spread_rel_se']):.1f} SE) "
-                          f"from the held-out cells' (memory across sojourns, which a walker's "
+                          f"spreads {diff:+.1%}{standard} from the held-out cells' (memory across sojourns, which a walker's "
                           f"path integrates and the likelihood does not rank), where {held} holds "
                           f"both its durations and that spread: screen on it, with every phase in "
                           f"each lump, `{' '.join(SPREAD_OVERRIDES)}`.", SPREAD_OVERRIDES))  # fmt: skip
