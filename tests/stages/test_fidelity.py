@@ -272,9 +272,9 @@ def test_failed_checks_under_a_measured_choice_name_its_remedies(
     compose_cfg, checked, monkeypatch
 ) -> None:
     """A check failed and the chain was chosen by measurement: the report names the choice's
-    own remedy, checked by this stage's settings: first the candidates it lacked (K lumps for
-    a model that declares classes, `gp.choice.kinds`), then the occupancy spread's screen
-    where the chosen spread is off and another candidate holds it, else four times the
+    own remedy, checked by this stage's settings: first the occupancy spread's screen where
+    the chosen spread is off and another candidate holds it, then the candidates it lacked (K
+    lumps for a model that declares classes, `gp.choice.kinds`), else four times the
     held-out cells where it was a tie; none where every check passed, no chain was measured, or the settings
     refuse it (gp=svgp has no gp.choice)."""
     from dataclasses import replace
@@ -323,10 +323,18 @@ def test_failed_checks_under_a_measured_choice_name_its_remedies(
     advice = fidelity.wider_choice(settings, summary, auto)
     assert advice == list(SPREAD_OVERRIDES)
     assert fidelity._refusal(auto, advice) is None  # the advice runs
+    # read on the chosen itself, it comes before the candidates the choice lacked
+    narrow = replace(screened, kinds=("two-state", "clock"))
+    monkeypatch.setattr(reproduce, "measured_choice", lambda tr: narrow)
+    assert fidelity.wider_choice(settings, summary, auto) == list(SPREAD_OVERRIDES)
     # a choice already screened on the spread is not advised it again
     again = replace(screened, spread_tolerance=0.05)
     monkeypatch.setattr(reproduce, "measured_choice", lambda tr: again)
     assert fidelity.wider_choice(settings, summary, auto) == ["gp.choice.n_cells=4000"]
+    monkeypatch.setattr(
+        reproduce, "measured_choice", lambda tr: replace(narrow, spread_tolerance=0.05)
+    )
+    assert fidelity.wider_choice(settings, summary, auto) == wider
     assert fidelity.wider_choice(settings, {**summary, "passed": summary["checks"]}, auto) is None
     named = to_dict(compose_cfg("fidelity", SMALL))  # gp=svgp: no gp.choice to widen
     assert fidelity.wider_choice(settings, summary, named) is None
