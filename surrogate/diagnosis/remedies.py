@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap, farthest_lump
+from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap, farthest_lump, spread_within
 from surrogate.models.count_classes import CountClasses
 
 
@@ -392,11 +392,11 @@ def _standing(row: Mapping[str, Any]) -> str:
 
 def _spread_off(row: Mapping[str, Any], tolerance: float) -> bool | None:
     """Whether a score row's occupancy spread is off by more than ``tolerance`` and 2 SE
-    (:func:`~surrogate.kinds.scoring.holds_spread`'s rule); None where the row has none."""
+    (:func:`~surrogate.kinds.scoring.spread_within`); None where the row has none."""
     diff, se = row.get("spread_rel_diff"), row.get("spread_rel_se")
     if diff is None or se is None or not math.isfinite(float(diff)):
         return None
-    return abs(float(diff)) > max(tolerance, 2.0 * float(se))
+    return not spread_within(float(diff), float(se), tolerance)
 
 
 def _spread_held_elsewhere(choice: MeasuredChoice, chosen: Mapping[str, Any] | None) -> str | None:
@@ -463,8 +463,9 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
         diff, se = float(chosen["spread_rel_diff"]), float(chosen["spread_rel_se"])
         standard = f" ({abs(diff) / se:.1f} SE)" if se > 0 else ""
         out.append(Remedy("spread", f"The chosen {choice.chosen}'s occupancy over a few sojourns "
-                          f"spreads {diff:+.1%}{standard} from the held-out cells' (memory across sojourns, which a walker's "
-                          f"path integrates and the likelihood does not rank), where {held} holds "
+                          f"spreads {diff:+.1%}{standard} from the held-out cells' (memory "
+                          f"across sojourns, which a walker's path integrates and the "
+                          f"likelihood does not rank), where {held} holds "
                           f"both its durations and that spread: screen on it, with every phase in "
                           f"each lump, `{' '.join(SPREAD_OVERRIDES)}`.", SPREAD_OVERRIDES))  # fmt: skip
     tied = [k for k, r in rows.items() if r.get("tied_with_best") and k != choice.chosen]

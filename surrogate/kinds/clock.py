@@ -182,9 +182,9 @@ class SwitchClock(ChainKind):
         """:meth:`window_log_likelihoods` (``ranked`` where already computed) with the clock
         up to each sequence's first switch marginalised over its unknown age
         (:func:`unknown_age_windows`), the windows after it as they are."""
-        settled = ranked if ranked is not None else self.window_log_likelihoods(layer, inputs,
-                                                                                  phi, dt)  # fmt: skip
-        assert isinstance(layer, MemoryDecision)  # window_log_likelihoods refused another
+        settled = super().marginal_window_log_likelihoods(layer, inputs, phi, dt, ranked)
+        if not isinstance(layer, MemoryDecision):  # given ``ranked``, nothing has checked it
+            raise TypeError(f"the switch clock scores a MemoryDecision, got {layer!r}")
         unknown, before = unknown_age_windows(layer, inputs, phi.to(torch.float32), dt)
         return torch.where(before, unknown, settled)
 

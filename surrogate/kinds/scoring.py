@@ -449,7 +449,12 @@ def holds_spread(score: KindScore, tolerance: float | None) -> bool:
     spread = score.spread
     if tolerance is None or spread is None or not math.isfinite(spread.rel_diff):
         return True
-    return abs(spread.rel_diff) <= max(tolerance, 2.0 * spread.rel_se)
+    return spread_within(spread.rel_diff, spread.rel_se, tolerance)
+
+
+def spread_within(rel_diff: float, rel_se: float, tolerance: float) -> bool:
+    """The spread's rule: a relative difference within ``tolerance`` or two standard errors."""
+    return abs(rel_diff) <= max(tolerance, 2.0 * rel_se)
 
 
 def holds_durations(score: KindScore, tolerance: float) -> bool:
