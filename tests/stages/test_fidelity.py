@@ -275,8 +275,8 @@ def test_failed_checks_under_a_measured_choice_name_its_remedies(
     own remedy, checked by this stage's settings: first the occupancy spread's screen where
     the chosen spread is off and another candidate holds it, then the candidates it lacked (K
     lumps for a model that declares classes, `gp.choice.kinds`), else four times the
-    held-out cells where it was a tie; none where every check passed, no chain was measured, or the settings
-    refuse it (gp=svgp has no gp.choice)."""
+    held-out cells where it was a tie; none where every check passed, no chain was measured,
+    or the settings refuse it (gp=svgp has no gp.choice)."""
     from dataclasses import replace
 
     from surrogate.config import to_dict
