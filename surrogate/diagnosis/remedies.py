@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap, farthest_lump, spread_within
+from surrogate.kinds.scoring import LOG_CLOCK, candidate_cap, farthest_lump
 from surrogate.models.count_classes import CountClasses
 
 
@@ -325,14 +325,6 @@ CLASSES_FAMILY = MEMORY_FAMILIES[1]
 #: both lumps share), fitted by gp=classes' recipe, and the overrides that train it outright
 RELAXING_CANDIDATE = "classes relaxation"
 RELAXING_OVERRIDES = ("gp=classes", "gp.class_moves=relaxation")
-#: the occupancy spread the spread remedy asks the choice to hold, and its overrides: the screen
-#: (``gp.choice.spread_tolerance``) and every phase in each lump, since the screen hands the
-#: choice to the phases and their held-out count can miss a slow lump's tail (docs/kinds.md).
-#: CERENA's gene-expression network: 20 of 24 without, 23 of 24 at each of three draws with
-#: them; on the toggle switch, whose spreads all hold, they moved a tie to a failing clock
-#: (19 of 24): a remedy where the chosen spread is off, not a default (docs/choice.md)
-SPREAD_TOLERANCE = 0.05
-SPREAD_OVERRIDES = (f"gp.choice.spread_tolerance={SPREAD_TOLERANCE:g}", "++gp.phases.counts=max")
 
 
 def nameable(name: str, row: Mapping[str, Any] | None = None) -> bool:
@@ -390,37 +382,13 @@ def _standing(row: Mapping[str, Any]) -> str:
     return where + ("" if row.get("holds_durations") else " and did not hold its durations")
 
 
-def _spread_off(row: Mapping[str, Any], tolerance: float) -> bool | None:
-    """Whether a score row's occupancy spread is off by more than ``tolerance`` and 2 SE
-    (:func:`~surrogate.kinds.scoring.spread_within`); None where the row has none."""
-    diff, se = row.get("spread_rel_diff"), row.get("spread_rel_se")
-    if diff is None or se is None or not math.isfinite(float(diff)):
-        return None
-    return not spread_within(float(diff), float(se), tolerance)
-
-
-def _spread_held_elsewhere(choice: MeasuredChoice, chosen: Mapping[str, Any] | None) -> str | None:
-    """The best other candidate that holds its durations and its occupancy spread within
-    :data:`SPREAD_TOLERANCE`, where the choice did not screen on the spread and the chosen
-    candidate's spread is off; None otherwise."""
-    if choice.spread_tolerance is not None or chosen is None:
-        return None
-    if not _spread_off(chosen, SPREAD_TOLERANCE):
-        return None
-    others = [r for r in choice.scores if str(r["kind"]) != choice.chosen
-              and r.get("holds_durations") and _spread_off(r, SPREAD_TOLERANCE) is False]  # fmt: skip
-    best = max(others, key=lambda r: float(r["log_likelihood_per_window"]), default=None)
-    return None if best is None else str(best["kind"])
-
-
 def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bool) -> list[Remedy]:
     """The next steps where the runs miss memory that the kind the measured choice chose
     (``gp=auto``) does not hold: work through the choice, not around it (a kind named outright
     throws the measurement away). In order: wider candidates (a longer cap where the clock was
     chosen at the largest of ``gp.choice.max_ages``; the memory families ``gp.choice.kinds``
     left out; K lumps over ``++model.classes=auto`` for a network that declares no classes);
-    the occupancy spread's screen where the chosen candidate's spread is off and another
-    candidate holding its durations holds it (:data:`SPREAD_OVERRIDES`); more held-out cells
+    more held-out cells
     where the choice was a tie within its SE (four times: the SE halves);
     more transitions; last, as an explicit alternative outside the choice, the best candidate
     that holds more memory than the chosen (a longer clock or a more complex kind), named with
@@ -458,16 +426,6 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
                           f"wider candidates, `{' '.join(overrides)}`"
                           + (" (`model.classes=auto` chooses bins of the count that holds the "
                              "memory)" if auto_classes else "") + ".", tuple(overrides)))  # fmt: skip
-    held = _spread_held_elsewhere(choice, chosen)
-    if held is not None and chosen is not None:
-        diff, se = float(chosen["spread_rel_diff"]), float(chosen["spread_rel_se"])
-        standard = f" ({abs(diff) / se:.1f} SE)" if se > 0 else ""
-        out.append(Remedy("spread", f"The chosen {choice.chosen}'s occupancy over a few sojourns "
-                          f"spreads {diff:+.1%}{standard} from the held-out cells' (memory "
-                          f"across sojourns, which a walker's path integrates and the "
-                          f"likelihood does not rank), where {held} holds "
-                          f"both its durations and that spread: screen on it, with every phase in "
-                          f"each lump, `{' '.join(SPREAD_OVERRIDES)}`.", SPREAD_OVERRIDES))  # fmt: skip
     tied = [k for k, r in rows.items() if r.get("tied_with_best") and k != choice.chosen]
     if tied:
         n = 4 * choice.n_cells
@@ -498,8 +456,6 @@ __all__ = [
     "MEMORY_FAMILIES",
     "RELAXING_CANDIDATE",
     "RELAXING_OVERRIDES",
-    "SPREAD_OVERRIDES",
-    "SPREAD_TOLERANCE",
     "Advisor",
     "Check",
     "MeasuredChoice",

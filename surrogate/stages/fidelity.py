@@ -637,12 +637,9 @@ def settled_collection(
     return advice
 
 
-#: the choice's remedies the fidelity report names where checks fail (in this order): the
-#: occupancy spread's screen where the chosen candidate's spread is off (read on the chosen
-#: itself: CERENA's network 23 of 24 with it, where K lumps advised first changed nothing and
-#: then drew the phases' spread past the screen), candidates the choice lacked, then more
-#: held-out cells where it was a tie
-CHOICE_REMEDIES = ("spread", "wider_kinds", "more_cells")
+#: the choice's remedies the fidelity report names where checks fail (in this order):
+#: candidates the choice lacked, then more held-out cells where it was a tie
+CHOICE_REMEDIES = ("wider_kinds", "more_cells")
 
 
 def wider_choice(
@@ -652,13 +649,11 @@ def wider_choice(
     the first of its choice's own remedies that widen or sharpen it
     (:func:`~surrogate.diagnosis.remedies.choice_remedies`: K lumps over
     ``++model.classes=auto`` for a network that declares no classes, the memory families
-    ``gp.choice.kinds`` left out, after the occupancy spread's screen where the chosen
-    candidate's spread is off; then four times the held-out cells where the choice was a tie)
+    ``gp.choice.kinds`` left out; then four times the held-out cells where the choice was a
+    tie)
     that this stage's own settings accept on ``config``; None where every check passed, no
     chain was measured, or none applies. Wilkinson's immigration-death network: 14 of 24 on
-    clocks chosen without K lumps, 21 of 24 with ``++model.classes=auto`` (docs/sbml.md);
-    CERENA's gene-expression network: 20 of 24 as chosen and with its classes, 23 of 24 at each
-    of three draws with the spread's screen (docs/choice.md)."""
+    clocks chosen without K lumps, 21 of 24 with ``++model.classes=auto`` (docs/sbml.md)."""
     from surrogate.diagnosis.remedies import choice_remedies
     from surrogate.models.network import NetworkInternalModel
     from surrogate.stages.reproduce import measured_choice
@@ -926,8 +921,7 @@ def report_sections(
     if wider:
         target += (f"\n\nThe chains were chosen by measurement (`gp=auto`): the same command "
                    f"with `{' '.join(wider)}` (checked) widens or sharpens that choice (more "
-                   f"candidates, a screen on the occupancy's spread, or more held-out cells "
-                   f"where it was a tie), which measures "
+                   f"candidates, or more held-out cells where it was a tie), which measures "
                    f"them against the rest again (docs/choice.md, \"The verdict's remedies "
                    f"under a measured choice\").")  # fmt: skip
     again = summary.get("draw_again")

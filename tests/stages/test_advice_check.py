@@ -237,9 +237,9 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
 ) -> None:  # fmt: skip
     """gp=auto measured the chain: the memory remedies widen the choice (a longer cap, the
     families left out, K lumps over classes: auto for a network without classes), ask for more
-    held-out cells on a tie, screen on the occupancy's spread where the chosen candidate's is
-    off and another's holds, and name the runner-up outright; class shares drifting name
-    relaxation with K lumps outright (`gp.class_moves` alone is no key of gp=auto's group:
+    held-out cells on a tie, and name the runner-up outright (a chosen spread off adds no
+    screen: measured over four draws it did not help CERENA's network, session 38); class
+    shares drifting name relaxation with K lumps outright (`gp.class_moves` alone is no key of gp=auto's group:
     refused); a trusted run whose choice held no candidate's durations gets the same remedies
     in its caveat. Each printed override passes the stages' checks on a measured config."""
     measured = to_dict(compose_cfg("reproduce", ["model=sbml", f"model.spec={SPEC}",
@@ -281,7 +281,7 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
             ["relaxation", "more_rows"]),
         "the chosen spread off": (
             measured, ("phi", "age", "learned"), _measured("clock max_age=2", spread_rows),
-            "memory", ["wider_kinds", "spread", "more_rows", "runner_up"]),
+            "memory", ["wider_kinds", "more_rows", "runner_up"]),
         "none held, trusted": (
             measured, ("phi", "age", "learned"),
             _measured("clock max_age=5", none_held, duration_tolerance=0.03), "within",
@@ -306,8 +306,7 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
     printed = {o for key in seen for o in key[1:]}
     assert {"gp.choice.max_ages=[1,2,5,10]", "gp.choice.kinds=[two-state,clock,classes,phases]",
             "++model.classes=auto", "gp.choice.n_cells=4000", "gp=phases",
-            "gp=classes", "gp.choice.spread_tolerance=0.05",
-            "++gp.phases.counts=max"} <= printed  # fmt: skip
+            "gp=classes"} <= printed  # fmt: skip
     # the remedies the named chain prints instead are not the choice's: gp.max_age alone,
     # accepted by the checks under gp=auto, would set every clock candidate's cap alike
     assert check_advice(measured, ["gp.class_moves=relaxation"]) is not None
