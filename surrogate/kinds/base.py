@@ -260,6 +260,12 @@ class ChainKind:
         ``mode`` over the model's ``internal`` model (called on each kind whose :attr:`lumps`
         the config names)."""
 
+    @classmethod
+    def candidate_variants(cls, gp: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+        """More candidates of this kind the measured choice scores beside its recipe's group
+        ``gp`` (as the clock is scored at several caps): name -> gp group; none by default."""
+        return {}
+
     def fit_identity(
         self,
         gp: Mapping[str, Any],

@@ -195,6 +195,20 @@ class HiddenPhases(ChainKind):
     shares_psi = True
     law_version = ("phase_law_version", PHASE_LAW_VERSION)
 
+    @classmethod
+    def candidate_variants(cls, gp: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+        """Beside the counts the fit chooses, the most phases in every lump (``counts: max``),
+        unless the counts are fixed or already the most: the fit's choice reads its own
+        100 held-out cells and can miss a slow lump's tail that the choice's 1,000 see
+        (CERENA's network: the fit took (3, 2), the choice's cells scored (3, 3) 3.8e-4 per
+        window higher, and only (3, 3) held the population's durations; docs/kinds.md)."""
+        phases = gp.get("phases")
+        if (not isinstance(phases, Mapping) or phases.get("per_lump") is not None
+                or phases.get("counts") == COUNTS[0]):  # fmt: skip
+            return {}
+        most = {**gp, "phases": {**phases, "counts": COUNTS[0]}}
+        return {f"{cls.recipe} counts={COUNTS[0]}": most}
+
     def fit_identity(self, gp: Mapping[str, Any], *args: Any, **kwargs: Any) -> dict[str, Any]:
         """:meth:`ChainKind.fit_identity`, with ``gp.phases.counts`` left out where it is
         ``held_out`` (the rule before the key existed): those fits keep their identity."""

@@ -125,7 +125,9 @@ def duration_scores(
     :func:`~surrogate.evaluate.statistics.compare_samples`).
 
     Args:
-        observed, simulated: ``n x (T + 1)`` phi sequences.
+        observed: ``n x (T + 1)`` phi sequences.
+        simulated: ``m x (T + 1)`` phi sequences (any number of them: e.g. several draws
+            of each observed cell).
         dt: the window (s).
         lump_names: the two lumps' names (keys of the result).
     """
@@ -172,7 +174,9 @@ def occupancy_spread(observed: np.ndarray, simulated: np.ndarray, dt: float) -> 
     occupancy; the standard error is the delta method's over the cells (independent).
 
     Args:
-        observed, simulated: ``n x (T + 1)`` phi sequences (0/1), the same cells.
+        observed: ``n x (T + 1)`` phi sequences (0/1).
+        simulated: ``(r n) x (T + 1)``: ``r >= 1`` draws of the same cells, draw after draw
+            (each cell's simulated deviations are its draws' mean).
         dt: the window (s).
 
     Returns:
@@ -194,7 +198,12 @@ def occupancy_spread(observed: np.ndarray, simulated: np.ndarray, dt: float) -> 
         shares = np.asarray(phi, dtype=np.float64)[:, : k * block].reshape(n, k, block).mean(2)
         return ((shares - shares.mean()) ** 2).sum(1)  # each cell's squared deviations
 
-    obs, sim = per_cell(observed), per_cell(simulated)
+    simulated = np.asarray(simulated)
+    if simulated.shape[0] % n or simulated.shape[1:] != (windows,):
+        raise ValueError(f"simulated phi must be draws of the {n} observed cells, "
+                         f"(r * {n}) x {windows}, got {simulated.shape}")  # fmt: skip
+    obs = per_cell(observed)
+    sim = np.stack([per_cell(d) for d in np.split(simulated, simulated.shape[0] // n)]).mean(0)
     total_obs, total_sim = float(obs.sum()), float(sim.sum())
     if not total_obs > 0:
         return SpreadScore(block * dt, math.nan, math.nan)
@@ -237,6 +246,10 @@ class KindScore:
     score_seconds: float = math.nan
     #: the occupancy's spread over blocks of a few sojourns (:func:`occupancy_spread`)
     spread: SpreadScore | None = None
+    #: the durations and the spread of the kind's own population, closed loop (its cells'
+    #: inputs follow their own phi), against the held-out cells' (None: not scored)
+    closed_durations: dict[str, DurationScore] | None = None
+    closed_spread: SpreadScore | None = None
     #: the windows each held-out cell's mean is over (0: unknown, no :data:`TIE_NATS` floor)
     windows_per_cell: int = 0
     #: the scored fit against its own rows (:func:`surrogate.gp.own_rows.largest_miss`)
@@ -262,6 +275,10 @@ class KindScore:
                 out[f"{lump}_{key}"] = value
         if self.spread is not None:
             out.update({f"spread_{k}": v for k, v in asdict(self.spread).items()})
+        for lump, d in (self.closed_durations or {}).items():
+            out.update({f"closed_{lump}_{k}": v for k, v in asdict(d).items()})
+        if self.closed_spread is not None:
+            out.update({f"closed_spread_{k}": v for k, v in asdict(self.closed_spread).items()})
         if self.own_rows is not None:  # the scored fit's largest miss of its own rows
             out.update({"own_rows_ratio": self.own_rows["ratio"], "own_rows_z": self.own_rows["z"],
                         "own_rows_off": self.own_rows["off"]})  # fmt: skip
@@ -281,6 +298,8 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
     seed: int = 0,
     groups: Sequence[int] = (),
     likelihood_from: str = FROM_START,
+    draws: int = 1,
+    closed: Tensor | None = None,
 ) -> KindScore:
     """A fitted kind's held-out score (:class:`KindScore`).
 
@@ -303,11 +322,20 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
             :data:`FROM_START` (every window) or :data:`FIRST_SWITCH` (those after each
             cell's first switch, where a clock's age is known); the latter's is kept too,
             ``known_age_log_likelihood``.
+        draws: the simulated sequences per held-out cell its durations and spread are
+            scored from (more draws, less of the simulation's own noise in the screens).
+        closed: ``(r n) x (T + 1)`` phi of the kind's own population, closed loop (its
+            cells moved by their own phi, as the held-out cells were run: ``r`` draws of the
+            same count, fields and times, draw after draw), scored against the held-out phi
+            as the durations and spread are (``closed_durations``, ``closed_spread``); None:
+            not scored.
 
     Raises:
-        ValueError: the shapes disagree, a phi is not 0 or 1, an input is not finite, or the
+        ValueError: the shapes disagree, ``draws`` is not a positive integer, a phi is not 0 or 1, an input is not finite, or the
             groups do not add up to the cells.
     """
+    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
+        raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
     if groups and (sum(groups) != inputs.shape[0] or any(g < 1 for g in groups)):
         raise ValueError(f"groups {list(groups)} must be positive cell counts adding up to the "
                          f"{inputs.shape[0]} held-out cells")  # fmt: skip
@@ -333,23 +361,56 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
         marginal, _ = _per_window(
             kind.marginal_window_log_likelihoods(layer, inputs, phi, dt, ranked=terms), ranked
         )
-        simulated = simulate_sequences(kind, layer, inputs, phi[:, 0], dt, seed)
+        # draw after draw: the batch holds every draw of every cell
+        simulated = simulate_sequences(kind, layer, inputs.repeat(draws, 1, 1),
+                                       phi[:, 0].repeat(draws), dt, seed)  # fmt: skip
     per_cell = ll.cpu().numpy()
     observed, sims = phi.cpu().numpy(), simulated.cpu().numpy()
-    if len(groups) > 1:
-        edges = np.cumsum([0, *groups])
-        parts = [duration_scores(observed[a:b], sims[a:b], dt, lump_names)
-                 for a, b in itertools.pairwise(edges)]  # fmt: skip
-        durations = {lump: max((part[lump] for part in parts), key=_farthest)
-                     for lump in lump_names}  # fmt: skip
-    else:
-        durations = duration_scores(observed, sims, dt, lump_names)
+    durations = grouped_durations(observed, sims, dt, lump_names, groups)
+    closed_durations, closed_spread = None, None
+    if closed is not None:
+        own = closed.cpu().numpy()
+        if own.ndim != 2 or own.shape[1] != observed.shape[1] or own.shape[0] % observed.shape[0]:
+            raise ValueError(f"the closed-loop phi must be draws of the held-out cells, "
+                             f"(r * {observed.shape[0]}) x {observed.shape[1]}, got "
+                             f"{own.shape}")  # fmt: skip
+        closed_durations = grouped_durations(observed, own, dt, lump_names, groups)
+        closed_spread = occupancy_spread(observed, own, dt)
     return KindScore(name, kind.complexity, float(per_cell.mean()),
                      tuple(float(v) for v in per_cell), durations,
                      spread=occupancy_spread(observed, sims, dt),
+                     closed_durations=closed_durations, closed_spread=closed_spread,
                      windows_per_cell=round(windows),
                      known_age_log_likelihood=float(known.mean()),
                      marginal_log_likelihood=float(marginal.mean()))  # fmt: skip
+
+
+def grouped_durations(
+    observed: np.ndarray,
+    simulated: np.ndarray,
+    dt: float,
+    lump_names: Sequence[str],
+    groups: Sequence[int] = (),
+) -> dict[str, DurationScore]:
+    """:func:`duration_scores` per group of cells, each lump's the group farthest off.
+
+    Args:
+        observed: ``n x (T + 1)`` phi of the held-out cells.
+        simulated: ``(r n) x (T + 1)``: ``r >= 1`` simulated draws of the same cells, draw
+            after draw.
+        dt: the window (s).
+        lump_names: the two lumps' names.
+        groups: the cells' groups in order, by their sizes (summing to ``n``); empty or one
+            group: all cells together.
+    """
+    if len(groups) < 2:
+        return duration_scores(observed, simulated, dt, lump_names)
+    by_draw = simulated.reshape(-1, *observed.shape)
+    edges = np.cumsum([0, *groups])
+    parts = [duration_scores(observed[a:b], by_draw[:, a:b].reshape(-1, observed.shape[1]), dt,
+                             lump_names)
+             for a, b in itertools.pairwise(edges)]  # fmt: skip
+    return {lump: max((part[lump] for part in parts), key=_farthest) for lump in lump_names}
 
 
 def scored_windows(phi: Tensor, likelihood_from: str = FIRST_SWITCH) -> Tensor:
@@ -442,11 +503,18 @@ class Choice:
     table: list[dict[str, Any]]
 
 
+#: the standard errors a candidate's own population's mean duration may be off by, where more
+#: than the tolerance: one population's mean moves from draw to draw by several points against
+#: 1,000 held-out cells (CERENA's network: up to 5, docs/choice.md), more than its SE says
+CLOSED_SE = 3.0
+
+
 def holds_spread(score: KindScore, tolerance: float | None) -> bool:
-    """Whether ``score``'s occupancy spread (:func:`occupancy_spread`) holds: within
-    ``tolerance`` of the observed, or within two standard errors of it (a difference the held-out
-    cells cannot tell from none); True where no tolerance is asked or nothing was measured."""
-    spread = score.spread
+    """Whether ``score``'s occupancy spread (:func:`occupancy_spread`; its own population's,
+    closed loop, where it was run: what a walker's moves see) holds: within ``tolerance`` of the
+    observed, or within two standard errors of it (a difference the held-out cells cannot tell
+    from none); True where no tolerance is asked or nothing was measured."""
+    spread = score.closed_spread if score.closed_spread is not None else score.spread
     if tolerance is None or spread is None or not math.isfinite(spread.rel_diff):
         return True
     return spread_within(spread.rel_diff, spread.rel_se, tolerance)
@@ -460,12 +528,21 @@ def spread_within(rel_diff: float, rel_se: float, tolerance: float) -> bool:
 def holds_durations(score: KindScore, tolerance: float) -> bool:
     """Whether ``score``'s simulated durations hold on every lump: the means' relative
     difference within ``tolerance`` (a lump with too few segments to compare, NaN, does not
-    hold). Not the KS: at 1,000 held-out cells its critical value (~0.008) sees shape
-    differences of a fraction of a percent that the population checks do not (E. coli's K
-    lumps, at the noise floor at 1e5 cells, miss it by 0.003 on tumbles), and the likelihood
-    already weighs the durations' shape."""
-    return bool(score.durations) and all(
-        abs(d.mean_rel_diff) <= tolerance for d in score.durations.values()
+    hold), open loop and, where it was run, in its own population (closed loop; there within
+    ``tolerance`` or :data:`CLOSED_SE` standard errors: a population's means move from draw to
+    draw by more than the tolerance against 1,000 held-out cells). Not the KS: at 1,000
+    held-out cells its critical value (~0.008) sees shape differences of a fraction of a
+    percent that the population checks do not (E. coli's K lumps, at the noise floor at 1e5
+    cells, miss it by 0.003 on tumbles), and the likelihood already weighs the durations'
+    shape."""
+    closed = score.closed_durations or {}
+    return (
+        bool(score.durations)
+        and all(abs(d.mean_rel_diff) <= tolerance for d in score.durations.values())
+        and all(
+            abs(d.mean_rel_diff) <= max(tolerance, CLOSED_SE * d.mean_rel_se)
+            for d in closed.values()
+        )
     )  # NaN compares false
 
 
@@ -487,12 +564,18 @@ def farthest_lump(mean_rel_diffs: Mapping[str, float]) -> tuple[str, float] | No
 def duration_miss(score: KindScore) -> float:
     """How far ``score``'s simulated durations are from holding: the largest relative
     difference of the means over its lumps (:func:`farthest_lump`; inf where a lump has too
-    few segments to compare, or there are none)."""
-    diffs = {k: d.mean_rel_diff for k, d in score.durations.items()}
-    far = farthest_lump(diffs)
-    if far is None or not all(math.isfinite(v) for v in diffs.values()):
-        return math.inf
-    return abs(far[1])
+    few segments to compare, or there are none), open loop and in its own population where it
+    was run."""
+    misses = []
+    for loop in (score.durations, score.closed_durations):
+        if loop is None:
+            continue
+        diffs = {k: d.mean_rel_diff for k, d in loop.items()}
+        far = farthest_lump(diffs)
+        if far is None or not all(math.isfinite(v) for v in diffs.values()):
+            return math.inf
+        misses.append(abs(far[1]))
+    return max(misses)
 
 
 def choose(

@@ -135,9 +135,14 @@ class BatchSimulator(Simulator):
         n_cells: int | None = None,
         start: Sequence[float] | Tensor | None = None,
         equilibration_time: float = 0.0,
+        initialize: Callable[[Tensor], Tensor] | None = None,
     ) -> PopulationState:
         """Every replicate's initial state exactly as a standalone run with its seed draws it
-        (equilibration included); then each continues on its own generator."""
+        (equilibration included); then each continues on its own generator. ``initialize``
+        is refused: each replicate's layer starts as it does alone."""
+        if initialize is not None:
+            raise ValueError("a batch of replicates starts each replicate's layer as a "
+                             "standalone run does: initialize is not taken")  # fmt: skip
         states, self.generators, layer_states = [], [], []
         for rep in self.replicates:
             torch.manual_seed(int(rep.seed))

@@ -319,12 +319,14 @@ class Simulator:
         n_cells: int,
         start: Sequence[float] | Tensor,
         equilibration_time: float = 0.0,
+        initialize: Callable[[Tensor], Tensor] | None = None,
     ) -> PopulationState:
         """Cells at ``start`` (one point, or one per cell ``n x 2``), adapted to their inputs.
 
         The body draws its own initial state (e.g. headings, methylation from its stationary
         law), the decision layer its initial phi (the internal model's stationary law at each
-        cell's inputs); then ``equilibration_time`` seconds of internal dynamics (decision and
+        cell's inputs; or ``initialize(x)``'s, which starts the layer itself: a burn-in of
+        the full model per cell costs more than an abstraction's whole run); then ``equilibration_time`` seconds of internal dynamics (decision and
         the body's slow processes, no movement) let the decision layer's own state settle.
         Coupled fields start from their initial state (the equilibration does not change them).
         """
@@ -334,7 +336,7 @@ class Simulator:
             n_cells, torch.as_tensor(start, device=self.device), self.field, self.dt
         )
         x = self.body.inputs(body, self.field, 0.0)
-        phi = self.decision.initialize(x)
+        phi = (self.decision.initialize if initialize is None else initialize)(x)
         adapt = self.body.adapt_randoms
         for _ in range(round(equilibration_time / self.dt)):
             phi = self.decision.step(phi, x, self.dt)

@@ -102,6 +102,9 @@ class CollectOptions:
         expected: also record each window's expected label (``phi_next_expected``).
         keep_switches: also record every window where phi changed, off the thinned steps, each
             row with the :data:`WINDOWS` it stands for (see the module docstring).
+        classes_of_state: record the classes the internal model declares, read from the
+            decision's state (False for a layer that does not carry the internal model's
+            state: an abstraction's).
     """
 
     record_every: int = 1
@@ -110,6 +113,7 @@ class CollectOptions:
     blackout: int = 0
     expected: bool = False
     keep_switches: bool = False
+    classes_of_state: bool = True
 
 
 @dataclass(frozen=True)
@@ -131,11 +135,13 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
     max_steps: int,
     jumps: _Jumps | None = None,
     clock: bool = True,
+    initialize: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> Iterator[dict[str, np.ndarray]]:
     """Yield recorded rows step by step (see the module docstring), at most ``max_steps``
     steps; ``jumps``: the perturbation (None: none; ``options.max_time`` is the caller's).
     ``clock``: keep the switch clocks (every step one call; without it and without jumps the
-    unrecorded steps run in one call and the rows have no ``phi_age``)."""
+    unrecorded steps run in one call and the rows have no ``phi_age``). ``initialize``: the
+    cells' first phi (:meth:`Simulator.initial_state`)."""
     record_every, blackout, expected = options.record_every, options.blackout, options.expected
     # every switch kept where the rows are thinned (one in record_every windows otherwise)
     keep_switches = options.keep_switches and record_every > 1
@@ -150,11 +156,12 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
             "collect them with collect.expected_labels=false"
         )
     names = (*internal.input_names, *feature_names_of(internal))
-    classes = lump_classes_of(internal)  # K lumps: each window's class before and after
+    # K lumps: each window's class before and after
+    classes = lump_classes_of(internal) if options.classes_of_state else None
     # and, where the classes are bins of a count, the count: the bins are applied when read
     count = class_count_of(internal) if classes is not None else None
     device, dt = simulator.device, simulator.dt
-    state = simulator.initial_state(n_cells, start, options.equilibration_time)
+    state = simulator.initial_state(n_cells, start, options.equilibration_time, initialize)
     jump_probability = perturb_rate * dt
     # steps since each cell's last jump (-1: never), on the device: no per-step host sync
     since = torch.full((n_cells,), -1, dtype=torch.int64, device=device)
@@ -504,7 +511,7 @@ def record_stationary_bins(
     return pd.DataFrame(out)
 
 
-def record_occupancy(
+def record_occupancy(  # noqa: PLR0913  # a run's design, each optional with its default
     simulator: Simulator,
     n_cells: int,
     t_end: float,
@@ -512,13 +519,20 @@ def record_occupancy(
     record_every: int = 5,
     equilibration_time: float = 10.0,
     clock: bool = False,
+    classes_of_state: bool = True,
+    initialize: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> pd.DataFrame:
     """Where an unperturbed population lives: every ``record_every``-th step of every cell
     from ``start`` for ``t_end`` seconds (the weights of the abstraction's diagnostic);
-    ``clock``: with the switch clocks (``phi_age``; every step one call)."""
+    ``clock``: with the switch clocks (``phi_age``; every step one call);
+    ``classes_of_state``: with the classes the model declares (False: an abstraction's
+    population, whose decision does not carry the internal model's state); ``initialize``:
+    the cells' first phi (:meth:`Simulator.initial_state`)."""
     steps = max(1, round(t_end / simulator.dt))
-    options = CollectOptions(record_every=record_every, equilibration_time=equilibration_time)
-    chunks = list(_rows(simulator, n_cells, start, options, steps, clock=clock))
+    options = CollectOptions(record_every=record_every, equilibration_time=equilibration_time,
+                             classes_of_state=classes_of_state)  # fmt: skip
+    chunks = list(_rows(simulator, n_cells, start, options, steps, clock=clock,
+                        initialize=initialize))  # fmt: skip
     if not chunks:
         raise ConfigError(
             f"gp.diagnostic: t_end={t_end:g} s records no step (record_every={record_every})"

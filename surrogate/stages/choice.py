@@ -24,6 +24,7 @@ import dataclasses
 import logging
 import math
 import time
+import zlib
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.reduction import ForkingPickler
@@ -67,6 +68,8 @@ from surrogate.threads import one_thread
 
 log = logging.getLogger(__name__)
 
+#: a candidate's simulated durations' seed is the job's plus its name's hash modulo this
+CANDIDATE_SEEDS = 100_003
 #: the held-out run's seed is the job's plus this (its cells are not the collection's)
 HELDOUT_SEED_OFFSET = 7_919
 #: fits a candidate's train settings (loads its transitions, fits or reuses), returns its fit
@@ -120,8 +123,8 @@ def _make_choice(
     fits, failed, scored = fit_candidates(plan.candidates, fitter, heldout=heldout, pool=pool,
                                           ahead=plan.ahead() if pool is not None else None)  # fmt: skip
     made = _Fitted(plan, fitter, heldout, failed, scored, fits)
-    for i, name in enumerate(list(failed)):  # L-BFGS diverged: the recipe's own optimiser
-        made.retry(name, len(plan.candidates) + i)
+    for name in list(failed):  # L-BFGS diverged: the recipe's own optimiser
+        made.retry(name)
     if not made.fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     made.extend()
@@ -189,8 +192,11 @@ def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
              inputs.shape[0], inputs.shape[1],
              "" if settings.fields is None else f" in fields {list(settings.fields)}",
              seconds)  # fmt: skip
+    closed = (ClosedLoop(tuple(cells), settings.fields, settings.t_end,
+                         settings.equilibration_time, settings.draws)
+              if settings.closed_loop else None)  # fmt: skip
     return HeldOut(inputs, phi, first.seed, () if settings.fields is None else tuple(cells),
-                   settings.likelihood_from), seconds  # fmt: skip
+                   settings.likelihood_from, settings.draws, closed), seconds  # fmt: skip
 
 
 class _Fitted:
@@ -214,7 +220,6 @@ class _Fitted:
         self.groups = {n: g for n, g in plan.groups.items() if n in fits}
         self.finals = {n: plan.finals.get(n, g) for n, g in self.groups.items()}
         self.scores = list(scored.values())
-        self.added = 0  # candidates the choice added so far
 
     def _keep(self, name: str, made: tuple[Any, dict[str, Any], tuple[Path, float], KindScore],
               final: dict[str, Any]) -> None:  # fmt: skip
@@ -222,12 +227,11 @@ class _Fitted:
         self.finals[name] = final
         self.scores.append(score)
 
-    def retry(self, name: str, index: int) -> None:
-        """Fit failed candidate ``name`` with its recipe's optimiser and score it as the
-        ``index``-th (its seed): kept where that fit holds, left among the failed otherwise."""
+    def retry(self, name: str) -> None:
+        """Fit failed candidate ``name`` with its recipe's optimiser and score it: kept where
+        that fit holds, left among the failed otherwise."""
         final = self.plan.finals.get(name)
-        retried = _with_recipe(self.fitter, self.plan, name, final,
-                               self.heldout.task(name, index))  # fmt: skip
+        retried = _with_recipe(self.fitter, self.plan, name, final, self.heldout.task(name))
         if retried is not None:
             assert final is not None  # _with_recipe fits none without it
             self._keep(name, retried, final)
@@ -256,16 +260,13 @@ class _Fitted:
                      "longest lump's), past twice the largest cap; adding %s", horizon, name)  # fmt: skip
             base = largest_clock(self.groups)  # what reach_clock widened
             assert base is not None
-            reached = int(self._add(name, gp, {**self.finals[base], **_clock_axis(gp)},
-                                    len(self.plan.candidates) + self.added))  # fmt: skip
+            reached = int(self._add(name, gp, {**self.finals[base], **_clock_axis(gp)}))
         while (longer := self.plan.longer_clock(best := self.best(), self.groups,
                                                 reached)) is not None:  # fmt: skip
             # the likelihood's best is the clock at the largest cap: its memory may reach past it
             name, gp = longer
             log.info("choice: the best is the clock at its largest cap; adding %s", name)
-            # seeds after every candidate's, as they were numbered before this class
-            index = len(self.plan.candidates) + self.added
-            if not self._add(name, gp, {**self.finals[best], **_clock_axis(gp)}, index):
+            if not self._add(name, gp, {**self.finals[best], **_clock_axis(gp)}):
                 break  # named among the failed; no longer clock after it
         best = self.best()
         # the best is a clock in seconds: one on a log axis reaches twice as far
@@ -274,15 +275,12 @@ class _Fitted:
             log.info("choice: the best is a clock; adding %s (knee %g s, %d bins)", name,
                      gp["clock_knee"], gp["clock_bins"])  # fmt: skip
             axis = _clock_axis(gp, ("max_age", "clock_knee", "clock_bins"))
-            self._add(name, gp, {**self.finals[best], **axis},
-                      len(self.plan.candidates) + len(self.trains) + 2)  # fmt: skip
+            self._add(name, gp, {**self.finals[best], **axis})
 
-    def _add(self, name: str, gp: dict[str, Any], final: dict[str, Any], index: int) -> bool:
+    def _add(self, name: str, gp: dict[str, Any], final: dict[str, Any]) -> bool:
         """Fit and score added candidate ``name`` (gp group ``gp``; ``final`` as gp=auto trains
-        it) as the ``index``-th (its seed); whether it was kept (else it is named among the
-        failed)."""
-        self.added += 1
-        added = _fit_added(self.fitter, self.plan, name, gp, final, self.heldout, index)
+        it); whether it was kept (else it is named among the failed)."""
+        added = _fit_added(self.fitter, self.plan, name, gp, final, self.heldout)
         if isinstance(added, str):
             self.failed[name] = added
             return False
@@ -305,7 +303,8 @@ def _marginal(score: KindScore) -> float:
 @dataclasses.dataclass(frozen=True)
 class HeldOut:
     """The held-out run the candidates are scored on (``n x T`` inputs, ``n x (T + 1)`` phi)
-    and the seed its simulated durations start from (the ``i``-th candidate's: ``seed + i``)."""
+    and the seed its simulated durations start from (candidate ``name``'s:
+    :func:`candidate_seed`)."""
 
     inputs: torch.Tensor
     phi: torch.Tensor
@@ -314,11 +313,72 @@ class HeldOut:
     groups: tuple[int, ...] = ()
     #: the windows the likelihood ranks by (``gp.choice.likelihood_from``)
     likelihood_from: str = FROM_START
+    #: simulated sequences per held-out cell (``gp.choice.draws``)
+    draws: int = 1
+    #: how the held-out run was made, for each candidate's own population (closed loop)
+    closed: ClosedLoop | None = None
 
-    def task(self, name: str, index: int) -> Task:
-        """What scoring candidate ``name``, the ``index``-th, needs."""
-        return (name, self.inputs, self.phi, self.seed + index, self.groups,
-                self.likelihood_from)  # fmt: skip
+    def task(self, name: str) -> Task:
+        """What scoring candidate ``name`` needs."""
+        return (name, self.inputs, self.phi, candidate_seed(self.seed, name), self.groups,
+                self.likelihood_from, self.draws, self.closed)  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosedLoop:
+    """The held-out run's design, which each candidate's own population repeats closed loop,
+    ``draws`` times over: its cells per field (``fields`` by name, None: the training field),
+    the seconds recorded after ``equilibration_time`` s, from the diagnostic's start."""
+
+    cells: tuple[int, ...]
+    fields: tuple[str, ...] | None
+    t_end: float
+    equilibration_time: float
+    draws: int = 1
+
+    def run(self, tr: Any, layer: Any, seed: int, phi0: torch.Tensor) -> torch.Tensor:
+        """``(draws n) x (T + 1)`` phi of ``tr``'s model with decision ``layer`` (its cells
+        moved by their own phi), draw after draw, each draw's cells field after field as the
+        held-out run's, seeded with ``seed``. Each cell starts from the first phi of a
+        held-out cell (``phi0``, ``(n,)``), the layer at its own start there
+        (:meth:`~surrogate.kinds.base.ChainKind.start_sequences`), not from the internal
+        model's stationary law: that burn-in cost Tyson's oscillator 22 s a candidate, the
+        rest of its population under 3 s."""
+        setup = tr.setup
+        fields = ([setup.field] if self.fields is None
+                  else [build_field(field_config(name)) for name in self.fields])  # fmt: skip
+        seed_everything(seed)
+        parts, offset = [], 0
+        for field, n in zip(fields, self.cells, strict=True):  # every draw of a field at once
+            first = phi0[offset : offset + n].float().repeat(self.draws)
+            offset += n
+
+            def initialize(x: torch.Tensor, first: torch.Tensor = first) -> torch.Tensor:
+                tr.kind.start_sequences(layer, x, first)
+                return first.bool()
+
+            simulator = Simulator(setup.model, layer, field, setup.dt, "cpu", backend="auto")
+            run = record_occupancy(simulator, self.draws * n, self.t_end,
+                                   torch.tensor(tr.diagnostic["start"]), record_every=1,
+                                   equilibration_time=self.equilibration_time,
+                                   classes_of_state=False, initialize=initialize)  # fmt: skip
+            phi = phi_sequences(run, setup.model.internal.input_names)[1]
+            parts.append(phi.reshape(self.draws, n, -1))
+        return torch.cat(parts, dim=1).reshape(-1, parts[0].shape[-1])
+
+
+def candidate_seed(seed: int, name: str) -> int:
+    """The seed candidate ``name``'s simulated durations start from: ``seed`` plus a hash of
+    the name (CRC-32, stable across processes and runs), so a candidate draws the same
+    sequences whichever others are scored beside it. Numbered by place, the three phases'
+    spread on CERENA's network read +4.6 % in one candidate list and +5.0 % in another
+    (docs/choice.md).
+
+    Example:
+        >>> candidate_seed(0, "phases") == candidate_seed(0, "phases")
+        True
+    """
+    return seed + zlib.crc32(name.encode()) % CANDIDATE_SEEDS
 
 
 def _clock_axis(
@@ -332,7 +392,7 @@ def _clock_axis(
 Outcome = tuple[str | None, float, str | None, KindScore | None]
 #: a candidate's scoring: its name, the held-out inputs and phi, its seed, the cells' groups,
 #: the windows its likelihood sums
-Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...], str]
+Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...], str, int, "ClosedLoop | None"]
 
 
 @contextlib.contextmanager
@@ -382,8 +442,8 @@ def fit_candidates(
     (``gp.choice.ahead``); its numerical failure is logged, not raised.
     """
     outcomes: dict[str, Outcome] = {}
-    tasks = {name: (tr, heldout.task(name, i) if heldout is not None else None)
-             for i, (name, tr) in enumerate(candidates.items())}  # fmt: skip
+    tasks = {name: (tr, heldout.task(name) if heldout is not None else None)
+             for name, tr in candidates.items()}  # fmt: skip
     with contextlib.ExitStack() as stack:
         if pool is None:
             pool = stack.enter_context(candidate_pool(workers, fitter, candidates))
@@ -461,10 +521,10 @@ def _fit_one(fitter: Fitter, tr: Any, task: Task | None = None) -> Outcome:
     seconds = time.perf_counter() - start
     if task is None:
         return str(path), seconds, None, None
-    name, inputs, phi, seed, groups, likelihood_from = task
+    name, inputs, phi, seed, groups, likelihood_from, draws, closed = task
     with one_thread(True):
         score = _score(name, tr, (path, seconds), tr.setup.model, inputs, phi, seed, groups,
-                       likelihood_from)  # fmt: skip
+                       likelihood_from, draws, closed)  # fmt: skip
     return str(path), seconds, None, score
 
 
@@ -475,19 +535,18 @@ def _fit_added(
     gp: dict[str, Any],
     final: dict[str, Any],
     heldout: HeldOut,
-    index: int,
 ) -> tuple[Any, dict[str, Any], tuple[Path, float], KindScore] | str:
     """A candidate the choice adds (a longer clock, a log clock), the gp group ``gp``, fitted
-    here and scored as the ``index``-th (its seed), or as its recipe trains it (``final``)
+    here and scored, or as its recipe trains it (``final``)
     where that fit fails numerically (:func:`_with_recipe`): its train settings, group, fit
     and score, or why it failed."""
     assert plan.make is not None  # the choice adds none without it
     added = plan.make(gp)
-    path, seconds, error, score = _fit_one(fitter, added, heldout.task(name, index))
+    path, seconds, error, score = _fit_one(fitter, added, heldout.task(name))
     _log_outcome(name, (path, seconds, error, score))
     if error is None and path is not None and score is not None:
         return added, gp, (Path(path), seconds), score
-    retried = _with_recipe(fitter, plan, name, final, heldout.task(name, index + 1))
+    retried = _with_recipe(fitter, plan, name, final, heldout.task(name))
     return str(error) if retried is None else retried
 
 
@@ -524,16 +583,23 @@ def _score(  # noqa: PLR0913  # a Task's parts, as the workers receive them
     seed: int,
     groups: tuple[int, ...] = (),
     likelihood_from: str = FROM_START,
+    draws: int = 1,
+    closed: ClosedLoop | None = None,
 ) -> KindScore:
     """Candidate ``name``'s held-out score (its layer from its fit directory, as simulate builds
-    it; its durations per group of cells, ``groups``; its likelihood over the windows
-    ``likelihood_from`` says), with its fit's and its score's seconds."""
+    it; its durations per group of cells, ``groups``, from ``draws`` simulated sequences per
+    cell; its likelihood over the windows ``likelihood_from`` says; its own population's
+    durations where ``closed`` says how the held-out run was made), with its fit's and its
+    score's seconds."""
     start = time.perf_counter()
     fit_dir, fit_seconds = fit
     request = LayerRequest.of_fit(model, tr, "lookup", None, torch.device("cpu"))
     layer, _ = tr.kind.decision_layer(request, fit_dir)
+    # its own population, run as the held-out cells were (another seed than its draws')
+    loop_phi = None if closed is None else closed.run(tr, layer, seed + 1, phi[:, 0])
     s = score_kind(name, tr.kind, layer, inputs, phi, tr.setup.dt, model.internal.lump_names,
-                   seed=seed, groups=groups, likelihood_from=likelihood_from)  # fmt: skip
+                   seed=seed, groups=groups, likelihood_from=likelihood_from, draws=draws,
+                   closed=loop_phi)  # fmt: skip
     own = largest_miss(own_rows_of(read_json(fit_dir / FIT_METRICS,
                                              made_by="python scripts/train.py")))  # fmt: skip
     return dataclasses.replace(
@@ -557,10 +623,18 @@ def own_rows_of(metrics: Mapping[str, Any]) -> dict[str, Any]:
 def _log(choice: Choice, overrides: str) -> None:
     """The score table and the reason, in the log."""
     for row in choice.table:
-        on = [k for k in row if k.endswith("_ks")]
+        on = [k for k in row if k.endswith("_ks") and not k.startswith("closed_")]
         spread = (f"  spread {row['spread_rel_diff']:+.1%} (SE {row['spread_rel_se']:.1%}, "
                   f"{row['spread_block_s']:g}-s blocks)"
                   if math.isfinite(row.get("spread_rel_diff", math.nan)) else "")  # fmt: skip
+        lumps = [k[: -len("_ks")] for k in on]
+        spread += "  means " + " ".join(f"{lump} {row[f'{lump}_mean_rel_diff']:+.1%}"
+                                        for lump in lumps)  # fmt: skip
+        if lumps and f"closed_{lumps[0]}_mean_rel_diff" in row:
+            spread += "; closed loop " + " ".join(
+                f"{lump} {row[f'closed_{lump}_mean_rel_diff']:+.1%}" for lump in lumps
+            ) + (f", spread {row['closed_spread_rel_diff']:+.1%}"
+                 if math.isfinite(row.get("closed_spread_rel_diff", math.nan)) else "")  # fmt: skip
         own = (
             f"  own rows {row['own_rows_ratio'] - 1:+.1%} ({row['own_rows_z']:.1f} SE"
             f"{', off' if row['own_rows_off'] else ''})"

@@ -544,6 +544,92 @@ def test_the_occupancy_spread_sees_a_state_that_carries_across_switches() -> Non
     assert math.isnan(occupancy_spread(np.zeros((3, 40)), np.zeros((3, 40)), 0.05).rel_diff)
 
 
+def test_a_kind_off_in_its_own_population_does_not_hold_its_durations() -> None:
+    """score_kind(closed=...): the kind's own population's phi (closed loop) scored against the
+    held-out phi as its draws are (``closed_*`` in its row); a population whose ON segments
+    last twice as long fails the 3 % screen and sets the miss where its open-loop durations
+    hold (another draw of the same telegraph: 800 cells, the means' SE ~1 %); own phi of
+    another shape is refused; the spread screen reads the closed-loop spread."""
+    from dataclasses import replace
+
+    from surrogate.kinds.scoring import (
+        duration_miss,
+        duration_scores,
+        grouped_durations,
+        holds_durations,
+        holds_spread,
+    )
+
+    x, phi = telegraph(800, 600, erlang=1, seed=5)
+    _, again = telegraph(800, 600, erlang=1, seed=6)
+    _, longer = telegraph(800, 600, erlang=2, seed=7)
+    inputs, observed = torch.tensor(x, dtype=torch.float32), torch.tensor(phi).float()
+    layer = AbstractDecision(_constant_psi, Internal())
+    scored = score_kind("two-state", TWO_STATE, layer, inputs, observed, DT, ("off", "on"),
+                        seed=3, closed=torch.tensor(longer).float())  # fmt: skip
+    assert scored.closed_durations == grouped_durations(phi, longer, DT, ("off", "on"))
+    assert "closed_on_mean_rel_diff" in scored.row() and scored.closed_spread is not None
+    holding = duration_scores(phi, again, DT, ("off", "on"))
+    off = replace(scored, durations=holding)
+    assert holds_durations(replace(off, closed_durations=None), 0.03)  # open loop holds
+    assert not holds_durations(off, 0.03)
+    assert off.closed_durations["on"].mean_rel_diff > 0.5
+    assert duration_miss(off) == pytest.approx(off.closed_durations["on"].mean_rel_diff)
+    assert holds_durations(replace(off, closed_durations=holding), 0.03)
+    # closed loop, a miss past the tolerance holds within CLOSED_SE standard errors
+    from surrogate.kinds.scoring import CLOSED_SE
+
+    def own(diff: float, se: float) -> KindScore:
+        return replace(off, closed_durations={"on": DurationScore(0.0, 0.0, diff, se, 9, 9)})
+
+    assert holds_durations(own(0.04, 0.04 / CLOSED_SE + 1e-3), 0.03)
+    assert not holds_durations(own(0.04, 0.04 / CLOSED_SE - 1e-3), 0.03)
+    assert holds_durations(own(-0.03, 1e-4), 0.03)
+    wide = replace(off, spread=SpreadScore(4.0, 0.0, 0.01),
+                   closed_spread=SpreadScore(4.0, 0.3, 0.01))  # fmt: skip
+    assert not holds_spread(wide, 0.05) and holds_spread(replace(wide, closed_spread=None), 0.05)
+    with pytest.raises(ValueError, match="closed-loop phi must be draws of the held-out cells"):
+        score_kind("two-state", TWO_STATE, layer, inputs, observed, DT, ("off", "on"),
+                   closed=observed[:10])  # fmt: skip
+
+
+def test_the_spread_of_several_draws_averages_each_cells_draws() -> None:
+    """Simulated draws of the observed cells, draw after draw: the same draw twice scores as
+    once; more draws move the spread less from seed to seed (each cell's simulated deviations
+    averaged over 4 draws: about half the spread of one draw's, 20 seeds each); a count of
+    rows that is not a multiple of the cells is refused."""
+    slow = _regimes(300, 1000, True, 0)
+    once = occupancy_spread(slow, _regimes(300, 1000, True, 1), 0.05)
+    twice = occupancy_spread(slow, np.concatenate([_regimes(300, 1000, True, 1)] * 2), 0.05)
+    assert twice.rel_diff == pytest.approx(once.rel_diff)
+    one = [occupancy_spread(slow, _regimes(300, 1000, True, 100 + s), 0.05).rel_diff
+           for s in range(20)]  # fmt: skip
+    four = [occupancy_spread(slow, np.concatenate([_regimes(300, 1000, True, 200 + 4 * s + d)
+                                                   for d in range(4)]), 0.05).rel_diff
+            for s in range(20)]  # fmt: skip
+    # the ratio of the two SDs: 0.5 expected, its log's SD ~0.23 over 20 seeds; 0.8 is 2 SD
+    assert np.std(four) < 0.8 * np.std(one)
+    with pytest.raises(ValueError, match=r"draws of the 300 observed cells"):
+        occupancy_spread(slow, slow[:200], 0.05)
+
+
+def test_more_draws_score_more_simulated_segments() -> None:
+    """score_kind(draws=4) simulates every held-out cell four times: four times the simulated
+    segments (within 10 %), the same likelihood; draws must be an integer >= 1."""
+    x, phi = telegraph(100, 300, erlang=1, seed=5)
+    inputs, observed = torch.tensor(x, dtype=torch.float32), torch.tensor(phi).float()
+    layer = AbstractDecision(_biased_on_time, Internal())
+    one = score_kind("biased", TWO_STATE, layer, inputs, observed, DT, ("off", "on"), seed=3)
+    four = score_kind("biased", TWO_STATE, layer, inputs, observed, DT, ("off", "on"), seed=3,
+                      draws=4)  # fmt: skip
+    assert four.log_likelihood == one.log_likelihood
+    ratio = four.durations["on"].n_simulated / one.durations["on"].n_simulated
+    assert ratio == pytest.approx(4.0, rel=0.1)
+    assert four.durations["on"].n_observed == one.durations["on"].n_observed
+    with pytest.raises(ValueError, match="draws must be an integer >= 1"):
+        score_kind("biased", TWO_STATE, layer, inputs, observed, DT, ("off", "on"), draws=0)
+
+
 def test_a_candidate_whose_spread_misses_gives_way_where_another_holds_it() -> None:
     """With gp.choice.spread_tolerance, the likelihood's best that holds its durations but not
     the occupancy's spread (off by more than the tolerance and 2 SE) gives way to one holding

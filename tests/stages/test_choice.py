@@ -66,6 +66,8 @@ class Plain:
         ({"spread_tolerance": 0}, "gp.choice.spread_tolerance"),
         ({"spread_tolerance": "wide"}, "gp.choice.spread_tolerance"),
         ({"likelihood_from": "first"}, "gp.choice.likelihood_from"),
+        ({"draws": 0}, "gp.choice.draws"),
+        ({"draws": 2.5}, "gp.choice.draws"),
     ],
 )
 def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None:
@@ -84,13 +86,17 @@ def test_the_likelihoods_windows_are_in_the_identity_only_where_not_every_window
 
 def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
     """K lumps only where the model declares classes; one clock per cap; the hidden phases (a
-    registered candidate) last; L-BFGS in each unless the user set the optimiser's keys; a key
+    registered candidate) last, with their variant at the most phases in each lump; L-BFGS in each unless the user set the optimiser's keys; a key
     the user set (gp.threads) in every candidate; the clocks scored on fewer inducing points."""
     settings = ChoiceSettings.from_config({"max_ages": [1, 3]})
     raw = {"lumps": "auto", "threads": 1, "epochs": 7}
     groups = candidate_groups(raw, settings, Plain())
-    assert list(groups) == ["two-state", "clock max_age=1", "clock max_age=3", "phases"]
+    assert list(groups) == ["two-state", "clock max_age=1", "clock max_age=3", "phases",
+                            "phases counts=max"]  # fmt: skip
     assert groups["phases"]["lumps"] == "phases"
+    assert groups["phases"]["phases"]["counts"] == "held_out"
+    assert groups["phases counts=max"] == {
+        **groups["phases"], "phases": {**groups["phases"]["phases"], "counts": "max"}}  # fmt: skip
     assert groups["clock max_age=3"]["max_age"] == 3.0
     assert groups["clock max_age=3"]["history"] == "age"
     assert all(g["threads"] == 1 and g["epochs"] == 7 for g in groups.values())
@@ -115,13 +121,19 @@ def test_candidates_follow_the_model_and_carry_the_users_keys() -> None:
     assert all((g["optimizer"], g["epochs"], g["natural_gradient"]) == ("newton", 200, False)
                for g in scored.values())  # fmt: skip
     trained = candidate_groups({"lumps": "auto"}, newton, Plain(), scoring=False)
-    assert trained == {k: finals[k] for k in ("two-state", "clock max_age=1", "phases")}
+    assert trained == {k: finals[k] for k in ("two-state", "clock max_age=1", "phases",
+                                              "phases counts=max")}  # fmt: skip
     only = ChoiceSettings.from_config({"kinds": ["clock"], "max_ages": [2]})
     assert list(candidate_groups({}, only, Plain())) == ["clock max_age=2"]
-    # a kind's own block given in part (+gp.phases.counts=max) keeps the recipe's other keys
-    phases = candidate_groups({"phases": {"counts": "max"}}, settings, Plain())["phases"]
+    # a kind's own block given in part (+gp.phases.counts=max) keeps the recipe's other keys,
+    # and leaves no variant at the same counts; fixed counts none either
+    most = candidate_groups({"phases": {"counts": "max"}}, settings, Plain())
+    phases = most["phases"]
     assert phases["phases"]["counts"] == "max" and phases["phases"]["max_per_lump"] == 3
     assert PhaseSettings.from_config(phases["phases"]).per_lump == (3, 3)
+    assert "phases counts=max" not in most
+    fixed = candidate_groups({"phases": {"per_lump": [2, 1]}}, settings, Plain())
+    assert "phases counts=max" not in fixed and "phases" in fixed
     with pytest.raises(ConfigError, match=r"gp\.choice\.kinds=\['classes'\] leaves no candidate"):
         candidate_groups({}, ChoiceSettings.from_config({"kinds": ["classes"]}), Plain())
 
@@ -155,7 +167,7 @@ def test_k_lumps_whose_bins_relax_are_a_candidate_where_both_lumps_share_the_bin
     groups = candidate_groups({}, settings, Binned())
     finals = candidate_groups({}, settings, Binned(), scoring=False)
     assert list(groups) == ["two-state", "clock max_age=1", "classes", "classes relaxation",
-                            "phases"]  # fmt: skip
+                            "phases", "phases counts=max"]  # fmt: skip
     relaxing = groups["classes relaxation"]
     assert (relaxing["lumps"], relaxing["class_moves"]) == ("classes", "relaxation")
     assert groups["classes"]["class_moves"] == "learned"
@@ -203,10 +215,16 @@ def test_windows_shorter_than_dt_are_refused() -> None:
 def test_held_out_cells_split_among_the_fields_named(tmp_path: Path) -> None:
     """gp.choice.fields: the held-out cells move in each field named, split evenly (the first
     takes the rest); unset, the identity is what it was (choices made before are reused)."""
+    import torch
+
     from surrogate.stages.choice import _heldout_run
 
     assert "fields" not in ChoiceSettings.from_config({}).identity()
-    fields = ["gp.choice.fields=[zero,gaussian]", "gp.choice.n_cells=9"]
+    fields = [
+        "gp.choice.fields=[zero,gaussian]",
+        "gp.choice.n_cells=9",
+        "gp.choice.closed_loop=true",
+    ]
     cfg = compose_in(tmp_path, "train", [*MEASURE, *fields])
     with collecting_pending() as plans:
         train_stage.validate(cfg)
@@ -224,9 +242,28 @@ def test_held_out_cells_split_among_the_fields_named(tmp_path: Path) -> None:
     assert float(ligand[:5].abs().max()) == 0.0
     assert bool((ligand[5:] > 0).all())
     assert heldout.groups == (5, 4)  # the durations are screened per field
+    # each candidate's own population runs as the held-out cells did, closed loop: its rows
+    # carry its durations against theirs
+    from surrogate.stages.choice import ClosedLoop
+
+    assert heldout.closed == ClosedLoop((5, 4), ("zero", "gaussian"), 5.0, 1.0, draws=4)
+    row = record["scores"][0]
+    lumps = [k[: -len("_mean_rel_diff")] for k in row
+             if k.endswith("_mean_rel_diff") and not k.startswith("closed_")]  # fmt: skip
+    assert lumps and all(f"closed_{lump}_mean_rel_diff" in row for lump in lumps)
+    first = plan.candidates["two-state"]
+    fit = Path(train_stage.fit_candidate(first))  # made by the choice: reused
+    from surrogate.kinds.base import LayerRequest
+
+    request = LayerRequest.of_fit(first.setup.model, first, "lookup", None, "cpu")
+    layer, _ = first.kind.decision_layer(request, fit)
+    own = heldout.closed.run(first, layer, 1, heldout.phi[:, 0])  # four draws, field by field
+    assert tuple(own.shape) == (4 * 9, heldout.phi.shape[1])
+    assert torch.equal(own, heldout.closed.run(first, layer, 1, heldout.phi[:, 0]))  # seeded
     with collecting_pending() as plans:
         train_stage.validate(compose_in(tmp_path, "train", MEASURE))
     assert plans[0].directory != plan.directory  # another held-out run, another choice
+    assert _heldout_run(plans[0])[0].closed is None  # closed loop: opt-in
 
 
 def test_the_train_settings_check_the_choice_before_any_work(tmp_path: Path) -> None:
@@ -654,15 +691,30 @@ def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(
         assert record["gp"] == plan.groups["classes relaxation"]
 
 
-def test_the_spread_tolerance_enters_the_choice_identity_only_when_asked() -> None:
-    """gp.choice.spread_tolerance: null (the default) keeps the identity choices had before
-    it; a value makes another choice."""
-    plain, asked = (
-        ChoiceSettings.from_config({}),
-        ChoiceSettings.from_config({"spread_tolerance": 0.05}),
-    )
-    assert "spread_tolerance" not in plain.identity()
+def test_a_candidates_draws_follow_its_name_not_its_place() -> None:
+    """Each candidate's simulated durations are seeded by its name: the same seed whichever
+    candidates are scored beside it, another for another name; the task carries the draws."""
+    import torch
+
+    from surrogate.stages.choice import HeldOut, candidate_seed
+
+    heldout = HeldOut(torch.zeros(2, 3, 1), torch.zeros(2, 4), seed=7, draws=4)
+    task = heldout.task("phases counts=max")
+    assert task[3] == candidate_seed(7, "phases counts=max") and task[6] == 4
+    assert candidate_seed(7, "phases") != candidate_seed(7, "phases counts=max")
+    assert candidate_seed(8, "phases") == candidate_seed(7, "phases") + 1
+
+
+def test_the_spread_tolerance_and_the_draws_enter_the_choice_identity() -> None:
+    """gp.choice.spread_tolerance: null (the default) keeps it out of the identity; a value
+    makes another choice, and so does each count of draws and the closed loop."""
+    plain, asked = (ChoiceSettings.from_config({}),
+                    ChoiceSettings.from_config({"spread_tolerance": 0.05, "draws": 2,
+                                                "closed_loop": True}))  # fmt: skip
+    assert plain.spread_tolerance is None and "spread_tolerance" not in plain.identity()
     assert asked.identity()["spread_tolerance"] == 0.05 and asked.spread_tolerance == 0.05
+    assert plain.identity()["draws"] == 4 and asked.identity()["draws"] == 2
+    assert not plain.identity()["closed_loop"] and asked.identity()["closed_loop"]
 
 
 def test_a_score_row_carries_its_fits_largest_miss_of_its_own_rows() -> None:
