@@ -593,6 +593,35 @@ def test_a_kind_off_in_its_own_population_does_not_hold_its_durations() -> None:
                    closed=observed[:10])  # fmt: skip
 
 
+def _heterogeneous(n: int, windows: int, seed: int) -> np.ndarray:
+    """``n x windows`` phi of a telegraph whose leaving probability per window is the cell's
+    own, 0.02-0.3 (a cell's inputs fixed for its whole sequence)."""
+    rng = np.random.default_rng(seed)
+    leave = rng.uniform(0.02, 0.3, n)
+    out = np.empty((n, windows))
+    phi = rng.random(n) < 0.5
+    for t in range(windows):  # cells in the batch
+        out[:, t] = phi
+        phi = np.where(rng.random(n) < leave, ~phi, phi)
+    return out
+
+
+def test_the_means_standard_error_counts_cells_not_segments() -> None:
+    """Cells that differ (each its own leaving rate): the SE of the means' relative difference
+    between two independent populations matches the difference's spread over 40 pairs
+    (within 25 %: the SD of 40 draws is known to ~11 %), where counting segments as
+    independent gave about half of it."""
+    from surrogate.kinds.scoring import duration_scores
+
+    diffs, ses = [], []
+    for k in range(40):
+        scores = duration_scores(_heterogeneous(150, 400, 2 * k), _heterogeneous(150, 400, 2 * k + 1),
+                                 0.05, ("off", "on"))["on"]  # fmt: skip
+        diffs.append(scores.mean_rel_diff)
+        ses.append(scores.mean_rel_se)
+    assert float(np.mean(ses)) == pytest.approx(float(np.std(diffs, ddof=1)), rel=0.25)
+
+
 def test_the_spread_of_several_draws_averages_each_cells_draws() -> None:
     """Simulated draws of the observed cells, draw after draw: the same draw twice scores as
     once; more draws move the spread less from seed to seed (each cell's simulated deviations
