@@ -391,7 +391,7 @@ def _clock_axis(
 
 Outcome = tuple[str | None, float, str | None, KindScore | None]
 #: a candidate's scoring: its name, the held-out inputs and phi, its seed, the cells' groups,
-#: the windows its likelihood sums
+#: the windows its likelihood sums, the draws per cell and the closed loop's design (or None)
 Task = tuple[str, torch.Tensor, torch.Tensor, int, tuple[int, ...], str, int, "ClosedLoop | None"]
 
 
@@ -537,9 +537,8 @@ def _fit_added(
     heldout: HeldOut,
 ) -> tuple[Any, dict[str, Any], tuple[Path, float], KindScore] | str:
     """A candidate the choice adds (a longer clock, a log clock), the gp group ``gp``, fitted
-    here and scored, or as its recipe trains it (``final``)
-    where that fit fails numerically (:func:`_with_recipe`): its train settings, group, fit
-    and score, or why it failed."""
+    here and scored, or as its recipe trains it (``final``) where that fit fails numerically
+    (:func:`_with_recipe`): its train settings, group, fit and score, or why it failed."""
     assert plan.make is not None  # the choice adds none without it
     added = plan.make(gp)
     path, seconds, error, score = _fit_one(fitter, added, heldout.task(name))
