@@ -356,8 +356,8 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
             not scored.
 
     Raises:
-        ValueError: the shapes disagree, ``draws`` is not a positive integer, a phi is not 0 or 1, an input is not finite, or the
-            groups do not add up to the cells.
+        ValueError: the shapes disagree, ``draws`` is not a positive integer, a phi is not 0
+            or 1, an input is not finite, or the groups do not add up to the cells.
     """
     if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
         raise ValueError(f"draws must be an integer >= 1, got {draws!r}")

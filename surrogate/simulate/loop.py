@@ -325,9 +325,10 @@ class Simulator:
 
         The body draws its own initial state (e.g. headings, methylation from its stationary
         law), the decision layer its initial phi (the internal model's stationary law at each
-        cell's inputs; or ``initialize(x)``'s, which starts the layer itself: a burn-in of
-        the full model per cell costs more than an abstraction's whole run); then ``equilibration_time`` seconds of internal dynamics (decision and
-        the body's slow processes, no movement) let the decision layer's own state settle.
+        cell's inputs; or ``initialize(x)``'s, which starts the layer itself: a burn-in of the
+        full model per cell costs more than an abstraction's whole run); then
+        ``equilibration_time`` seconds of internal dynamics (decision and the body's slow
+        processes, no movement) let the decision layer's own state settle.
         Coupled fields start from their initial state (the equilibration does not change them).
         """
         for coupled, _ in self._coupled:

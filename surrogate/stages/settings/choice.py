@@ -262,7 +262,8 @@ class ChoiceSettings:
                    else {"likelihood_from": self.likelihood_from}),
                 # each candidate's draws seeded by its name (session 38): choices made before
                 # are made again
-                "draws": self.draws, "seeds": "by_name", "closed_loop": self.closed_loop}  # fmt: skip
+                "draws": self.draws, "seeds": "by_name",
+                "closed_loop": self.closed_loop}  # fmt: skip
 
 
 def _fields(value: Any, n_cells: int) -> tuple[str, ...] | None:
@@ -358,10 +359,11 @@ def candidate_groups(
     (``gp=svgp``), the switch clock at each cap (``gp=clock gp.max_age=...``), K lumps
     (``gp=classes``) where the model's ``internal`` model declares classes, K lumps whose bins
     relax (``gp=classes gp.class_moves=relaxation``, scored as its recipe trains it: its cost is
-    a stationary full-model sample, not the fit) where they are bins both lumps share, and each registered
-    candidate kind's recipe (the hidden phases, ``gp=phases``) with its variants
-    (:meth:`~surrogate.kinds.base.ChainKind.candidate_variants`: the phases at the most counts); each the shipped recipe with the
-    user's keys (:func:`user_keys`) and, to score them (``scoring``), those of
+    a stationary full-model sample, not the fit) where they are bins both lumps share, and each
+    registered candidate kind's recipe (the hidden phases, ``gp=phases``) with its variants
+    (:meth:`~surrogate.kinds.base.ChainKind.candidate_variants`: the phases at the most
+    counts); each the shipped recipe with the user's keys (:func:`user_keys`) and, to score
+    them (``scoring``), those of
     ``gp.choice.optimizer`` (:data:`LBFGS` or :data:`NEWTON`) unless the user set them
     (``scoring=False``: the recipes' own optimisers, what ``gp.choice.refit`` trains the chosen
     with); each on :data:`FIT_THREADS` unless the user set ``gp.threads``; the clocks scored
