@@ -388,8 +388,7 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
     throws the measurement away). In order: wider candidates (a longer cap where the clock was
     chosen at the largest of ``gp.choice.max_ages``; the memory families ``gp.choice.kinds``
     left out; K lumps over ``++model.classes=auto`` for a network that declares no classes);
-    more held-out cells
-    where the choice was a tie within its SE (four times: the SE halves);
+    more held-out cells where the choice was a tie within its SE (four times: the SE halves);
     more transitions; last, as an explicit alternative outside the choice, the best candidate
     that holds more memory than the chosen (a longer clock or a more complex kind), named with
     its standing in the table.

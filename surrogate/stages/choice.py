@@ -25,7 +25,7 @@ import logging
 import math
 import time
 import zlib
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
@@ -172,8 +172,7 @@ def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
     start = time.perf_counter()
     seed_everything(first.seed + HELDOUT_SEED_OFFSET)
     # the training field, or gp.choice.fields: the cells split evenly, the first takes the rest
-    fields = ([setup.field] if settings.fields is None
-              else [build_field(field_config(name)) for name in settings.fields])  # fmt: skip
+    fields = heldout_fields(setup, settings.fields)
     cells = [settings.n_cells // len(fields)] * len(fields)
     cells[0] += settings.n_cells - sum(cells)
     parts = []
@@ -345,8 +344,7 @@ class ClosedLoop:
         model's stationary law: that burn-in cost Tyson's oscillator 22 s a candidate, the
         rest of its population under 3 s."""
         setup = tr.setup
-        fields = ([setup.field] if self.fields is None
-                  else [build_field(field_config(name)) for name in self.fields])  # fmt: skip
+        fields = heldout_fields(setup, self.fields)
         seed_everything(seed)
         parts, offset = [], 0
         for field, n in zip(fields, self.cells, strict=True):  # every draw of a field at once
@@ -365,6 +363,12 @@ class ClosedLoop:
             phi = phi_sequences(run, setup.model.internal.input_names)[1]
             parts.append(phi.reshape(self.draws, n, -1))
         return torch.cat(parts, dim=1).reshape(-1, parts[0].shape[-1])
+
+
+def heldout_fields(setup: Any, names: Sequence[str] | None) -> list[Any]:
+    """The fields the held-out cells move in: ``setup``'s training field, or those named
+    (``gp.choice.fields``)."""
+    return [setup.field] if names is None else [build_field(field_config(n)) for n in names]
 
 
 def candidate_seed(seed: int, name: str) -> int:
@@ -627,10 +631,10 @@ def _log(choice: Choice, overrides: str) -> None:
                   f"{row['spread_block_s']:g}-s blocks)"
                   if math.isfinite(row.get("spread_rel_diff", math.nan)) else "")  # fmt: skip
         lumps = [k[: -len("_ks")] for k in on]
-        spread += "  means " + " ".join(f"{lump} {row[f'{lump}_mean_rel_diff']:+.1%}"
-                                        for lump in lumps)  # fmt: skip
+        means = "  means " + " ".join(f"{lump} {row[f'{lump}_mean_rel_diff']:+.1%}"
+                                      for lump in lumps)  # fmt: skip
         if lumps and f"closed_{lumps[0]}_mean_rel_diff" in row:
-            spread += "; closed loop " + " ".join(
+            means += "; closed loop " + " ".join(
                 f"{lump} {row[f'closed_{lump}_mean_rel_diff']:+.1%}" for lump in lumps
             ) + (f", spread {row['closed_spread_rel_diff']:+.1%}"
                  if math.isfinite(row.get("closed_spread_rel_diff", math.nan)) else "")  # fmt: skip
@@ -640,10 +644,11 @@ def _log(choice: Choice, overrides: str) -> None:
             if "own_rows_ratio" in row
             else ""
         )
-        log.info("choice: %-18s log-lik/window %.5f (%+.2e, SE %.1e)  %s%s%s  fit %.1f s, score "
-                 "%.1f s", row["kind"], row["log_likelihood_per_window"], row["diff_from_best"],
-                 row["diff_se"], "  ".join(f"{k} {row[k]:.3f} (crit {row[k + '_critical_05']:.3f})"
-                                           for k in on), spread, own,
+        log.info("choice: %-18s log-lik/window %.5f (%+.2e, SE %.1e)  %s%s%s%s  fit %.1f s, "
+                 "score %.1f s", row["kind"], row["log_likelihood_per_window"],
+                 row["diff_from_best"], row["diff_se"],
+                 "  ".join(f"{k} {row[k]:.3f} (crit {row[k + '_critical_05']:.3f})" for k in on),
+                 spread, means, own,
                  row["fit_seconds"], row["score_seconds"])  # fmt: skip
     log.info("choice: %s, because %s; simulate with `%s`", choice.chosen, choice.reason,
              overrides)  # fmt: skip

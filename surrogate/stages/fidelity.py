@@ -650,9 +650,8 @@ def wider_choice(
     (:func:`~surrogate.diagnosis.remedies.choice_remedies`: K lumps over
     ``++model.classes=auto`` for a network that declares no classes, the memory families
     ``gp.choice.kinds`` left out; then four times the held-out cells where the choice was a
-    tie)
-    that this stage's own settings accept on ``config``; None where every check passed, no
-    chain was measured, or none applies. Wilkinson's immigration-death network: 14 of 24 on
+    tie) that this stage's own settings accept on ``config``; None where every check passed,
+    no chain was measured, or none applies. Wilkinson's immigration-death network: 14 of 24 on
     clocks chosen without K lumps, 21 of 24 with ``++model.classes=auto`` (docs/sbml.md)."""
     from surrogate.diagnosis.remedies import choice_remedies
     from surrogate.models.network import NetworkInternalModel

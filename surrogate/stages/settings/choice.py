@@ -363,8 +363,8 @@ def candidate_groups(
     registered candidate kind's recipe (the hidden phases, ``gp=phases``) with its variants
     (:meth:`~surrogate.kinds.base.ChainKind.candidate_variants`: the phases at the most
     counts); each the shipped recipe with the user's keys (:func:`user_keys`) and, to score
-    them (``scoring``), those of
-    ``gp.choice.optimizer`` (:data:`LBFGS` or :data:`NEWTON`) unless the user set them
+    them (``scoring``), those of ``gp.choice.optimizer`` (:data:`LBFGS` or :data:`NEWTON`)
+    unless the user set them
     (``scoring=False``: the recipes' own optimisers, what ``gp.choice.refit`` trains the chosen
     with); each on :data:`FIT_THREADS` unless the user set ``gp.threads``; the clocks scored
     with ``gp.choice.clock_inducing`` inducing points unless the user set ``gp.n_inducing``."""
