@@ -286,8 +286,6 @@ class MeasuredChoice:
         classes: whether the model declares classes (K lumps can be a candidate).
         duration_tolerance: ``gp.choice.duration_tolerance``: the means' relative difference
             a candidate held to be chosen first (None: a record that does not say).
-        spread_tolerance: ``gp.choice.spread_tolerance``: the occupancy spread's screen
-            (None: not screened).
     """
 
     chosen: str
@@ -298,7 +296,6 @@ class MeasuredChoice:
     tie_se: float
     classes: bool
     duration_tolerance: float | None = None
-    spread_tolerance: float | None = None
 
     def none_held(self) -> tuple[str, float] | None:
         """Where the choice's screen held no candidate (every row's ``holds_durations``

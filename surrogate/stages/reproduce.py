@@ -527,8 +527,6 @@ def measured_choice(tr: TrainSettings) -> MeasuredChoice | None:
         classes=lump_classes_of(tr.setup.model.internal) is not None,
         duration_tolerance=(None if options.get("duration_tolerance") is None
                             else float(options["duration_tolerance"])),
-        spread_tolerance=(None if options.get("spread_tolerance") is None
-                          else float(options["spread_tolerance"])),
     )  # fmt: skip
 
 

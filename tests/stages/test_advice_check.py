@@ -369,16 +369,11 @@ def test_the_report_reads_the_measured_choice_that_made_its_chain(tmp_path) -> N
         ("two-state", "clock"), (1.0,), 20, 1.0)  # fmt: skip
     assert choice.classes is True  # E. coli declares classes (phi x CCW motors)
     assert choice.duration_tolerance == 0.03  # the screen the caveat "none held" reads
-    assert choice.spread_tolerance is None  # not screened on the spread: its remedy may apply
     v = verdict_of(diagnostic={"phi0": UNBIASED, "phi1": UNBIASED}, lump_names=("off", "on"),
                    failures={"g": ["off"]}, outside={"g": {"share_outside": 0.0, "inputs": {}}},
                    outside_warning=0.01, tolerance=0.03, kind=settled.kind, network=False,
                    n_per_state=100, choice=choice)  # fmt: skip
     assert "`gp.choice.kinds=[two-state,clock,classes,phases]`" in v.causes[0][2]
-    screened = compose_in(tmp_path, "train", [*measure, "gp.choice.spread_tolerance=0.05"])
-    train_stage.run(screened)
-    again = measured_choice(train_stage.validate(screened))
-    assert again is not None and again.spread_tolerance == 0.05  # its remedy is not advised
     rule = train_stage.validate(compose_in(tmp_path, "train", ["gp.choice.by=rule"]))
     assert measured_choice(rule) is None
 
