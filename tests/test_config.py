@@ -331,6 +331,8 @@ def test_keep_switches_is_checked_and_leaves_the_default_identity_alone(compose_
     assert "keep_switches" not in plain.identity()["collect"] and not plain.keep_switches
     kept = CollectSettings.from_config(compose_cfg("collect", ["collect.keep_switches=true"]))
     assert kept.keep_switches and kept.directory != plain.directory
+    assert kept.identity()["kept"] == "class_moves"  # E. coli declares classes: kept too
+    assert "kept" not in plain.identity()
     assert plain.expected_labels and not kept.expected_labels
     no_labels = CollectSettings.from_config(compose_cfg("collect", ["collect.expected_labels=false",
                                                                     "collect.keep_switches=auto"]))  # fmt: skip

@@ -118,9 +118,9 @@ def test_recorded_switch_clocks_follow_each_cells_phi() -> None:
 
 def test_keeping_switches_records_every_switch_and_the_thinned_rows_weighted() -> None:
     """collect.keep_switches with record_every=4 records, from one seed, exactly the windows
-    of an every-window collection that fall on the thinned steps or changed phi (recording
-    draws no random numbers), each carrying the windows it stands for: 4 where phi held, 1
-    where it changed."""
+    of an every-window collection that fall on the thinned steps or changed phi or (E. coli
+    declares classes: phi x CCW motors) the class (recording draws no random numbers), each
+    carrying the windows it stands for: 4 where both held, 1 where either changed."""
     from surrogate.gp.windows import WINDOWS
     from surrogate.simulate.transitions import _Jumps, _rows
 
@@ -140,12 +140,14 @@ def test_keeping_switches_records_every_switch_and_the_thinned_rows_weighted() -
     assert WINDOWS not in every.columns
     step = np.rint(every["t"].to_numpy() / 0.05).astype(np.int64) + 1  # the step k recorded
     switched = every["phi"] != every["phi_next"]
-    expected = every[(step % 4 == 0) | switched]
-    assert switched.sum() > 200 and (~switched & (step % 4 != 0)).sum() > 1000
-    for column in ("cell", "t", "phi", "phi_next", "since_jump"):
+    moved = (every["phi_class"] != every["phi_class_next"]) & ~switched  # within a lump
+    expected = every[(step % 4 == 0) | switched | moved]
+    assert switched.sum() > 200 and moved.sum() > 200
+    assert (~switched & ~moved & (step % 4 != 0)).sum() > 1000
+    for column in ("cell", "t", "phi", "phi_next", "since_jump", "phi_class", "phi_class_next"):
         np.testing.assert_array_equal(kept[column].to_numpy(), expected[column].to_numpy())
-    np.testing.assert_array_equal(kept[WINDOWS].to_numpy(),
-                                  np.where(kept["phi"] != kept["phi_next"], 1.0, 4.0))  # fmt: skip
+    changed = kept["phi_class"] != kept["phi_class_next"]
+    np.testing.assert_array_equal(kept[WINDOWS].to_numpy(), np.where(changed, 1.0, 4.0))
 
 
 def test_a_take_that_keeps_switches_counts_thinned_rows() -> None:
@@ -165,7 +167,5 @@ def test_a_take_that_keeps_switches_counts_thinned_rows() -> None:
                                                        keep_switches=True))  # fmt: skip
     assert WINDOWS in table.columns
     np.testing.assert_allclose(origin_rows(table, 5), [2000, 2000], atol=0.6)
-    switched = table["phi"] != table["phi_next"]
-    assert (table.loc[switched, WINDOWS] == 1.0).all() and (
-        table.loc[~switched, WINDOWS] == 5
-    ).all()
+    changed = table["phi_class"] != table["phi_class_next"]  # every switch changes the class
+    assert (table.loc[changed, WINDOWS] == 1.0).all() and (table.loc[~changed, WINDOWS] == 5).all()

@@ -882,9 +882,10 @@ def test_the_k_lumps_chain_trains_is_diagnosed_and_simulates(compose_cfg, caplog
 
 
 def test_a_collection_that_keeps_every_switch_trains_and_says_so(compose_cfg) -> None:
-    """collect.keep_switches=true through the stages: the table holds every switch of its
-    simulated time and the thinned held rows, each with its windows; the manifest records the
-    windows per origin; train fits psi on the outcomes, its support histogram counting windows."""
+    """collect.keep_switches=true through the stages: the table holds every switch and (E.
+    coli declares classes) every class move of its simulated time and the thinned held rows,
+    each with its windows; the manifest records the windows per origin; train fits psi on the
+    outcomes, its support histogram counting windows."""
     import json
 
     from surrogate.gp.windows import WINDOWS
@@ -893,10 +894,8 @@ def test_a_collection_that_keeps_every_switch_trains_and_says_so(compose_cfg) ->
     out = collect.run(compose_cfg("collect", [*[o for o in TINY if o.startswith("collect")],
                                               *keep]))  # fmt: skip
     table = pd.read_parquet(out / "transitions.parquet")
-    switched = table["phi"] != table["phi_next"]
-    assert set(table.loc[switched, WINDOWS]) == {1.0} and set(table.loc[~switched, WINDOWS]) == {
-        5.0
-    }
+    changed = table["phi_class"] != table["phi_class_next"]  # a switch changes the class too
+    assert set(table.loc[changed, WINDOWS]) == {1.0} and set(table.loc[~changed, WINDOWS]) == {5.0}
     manifest = json.loads((out / "manifest.json").read_text())
     assert sum(manifest["windows_per_origin"].values()) == pytest.approx(table[WINDOWS].sum())
     fit = train.run(compose_cfg("train", [*_train_overrides(), *keep, "gp=svgp"]))

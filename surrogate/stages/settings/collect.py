@@ -22,6 +22,7 @@ from surrogate.models.capabilities import (
     expected_class_next_of,
     expected_phi_next_of,
     feature_names_of,
+    lump_classes_of,
 )
 from surrogate.stages.settings.common import (
     COLLECT_CMD,
@@ -47,6 +48,9 @@ NOT_IDENTITY = ("probe_seconds",)
 #: carry no expected labels (the model gives none, or ``collect.expected_labels=false``) and no
 #: sequential design is asked for
 KEEP_SWITCHES = ("auto", True, False)
+#: what a collection that keeps every switch keeps besides, where the model declares classes:
+#: every window where the class changed (in its identity: tables kept otherwise before it)
+KEPT_CLASS_MOVES = "class_moves"
 #: ``collect.top_up``: where rows lag a jump within the measured window, record settled rows
 #: until each origin has ``n_per_state`` of them (auto), or keep the table as collected (off)
 TOP_UP = ("auto", "off")
@@ -241,13 +245,18 @@ class CollectSettings:
         the design's fits where it has one (a switched-off design leaves the fixed design's
         identity as it was); not the checks of :data:`NOT_IDENTITY`, nor the classes' bins
         where the rows store the count they bin (:attr:`bins_at_train`: the model's
-        :meth:`~surrogate.models.base.Model.rows_identity`)."""
+        :meth:`~surrogate.models.base.Model.rows_identity`; a table that keeps every class
+        move keeps those of the bins it was collected with, and its weighted rows read
+        unbiased under any bins)."""
         options = {k: v for k, v in identity_options(self.options).items()
                    if k != "design" or self.design}  # fmt: skip
         model = self.setup.identity()
         if self.bins_at_train:
             model = {**model, **self.setup.model.rows_identity(self.setup.model_config)}
         out = {**model, "collect": options, "device": self.job.device_type}
+        if self.keep_switches and lump_classes_of(self.setup.model.internal) is not None:
+            # every class move kept besides the switches (surrogate.simulate.transitions)
+            out["kept"] = KEPT_CLASS_MOVES
         if self.design is not None:
             # its rounds fit psi and score it on the diagnostic's occupancy run
             out["design_fit"] = {**self.design.fit_identity(), "occupancy": self.design.diagnostic}
