@@ -263,7 +263,10 @@ class ChoiceSettings:
                 # each candidate's draws seeded by its name (session 38): choices made before
                 # are made again
                 "draws": self.draws, "seeds": "by_name",
-                "closed_loop": self.closed_loop}  # fmt: skip
+                "closed_loop": self.closed_loop,
+                # the means held within the tolerance or 2 SE open loop too (session 39):
+                # choices made before are made again
+                "means": "tolerance_or_2se"}  # fmt: skip
 
 
 def _fields(value: Any, n_cells: int) -> tuple[str, ...] | None:
