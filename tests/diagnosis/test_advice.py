@@ -176,6 +176,13 @@ def test_memory_under_a_measured_choice_widens_the_choice_not_a_kind() -> None:
     assert overrides["wider_caps"] == ("gp.choice.max_ages=[1,2,5,10]",)
     assert overrides["wider_kinds"] == ("gp.choice.kinds=[two-state,clock,phases,classes]",
                                         "++model.classes=auto")  # fmt: skip
+    # a thinned collection: K lumps over a network's chosen classes with every move kept
+    thinned = _read(failures={"gaussian": ["off"]}, history="age", max_age=5.0,
+                    choice=_choice("clock max_age=5", rows, kinds=("two-state", "clock", "phases"),
+                                   thinned=True))  # fmt: skip
+    wider = next(r for _, r in thinned.remedies if r.kind == "wider_kinds")
+    assert wider.overrides[1:] == ("++model.classes=auto", "collect.keep_switches=true")
+    assert "`collect.keep_switches=true` keeps every move" in wider.text
     assert overrides["runner_up"] == ("gp=phases",)
     assert "phases, was 4.0 SE below the best" in cause[2] and "did not hold" in cause[2]
     assert "gp.max_age=10" not in cause[2] and "`gp=clock`" not in cause[2]

@@ -266,8 +266,8 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
     cases = {  # config, chain (lumps, history, moves), choice, branch, the remedies expected
         "clock at the largest cap": (
             measured, ("phi", "age", "learned"),
-            _measured("clock max_age=5", rows, kinds=("two-state", "clock")), "memory",
-            ["wider_caps", "wider_kinds", "more_cells", "more_rows", "runner_up"]),
+            _measured("clock max_age=5", rows, kinds=("two-state", "clock"), thinned=True),
+            "memory", ["wider_caps", "wider_kinds", "more_cells", "more_rows", "runner_up"]),
         "two-state": (
             measured, ("phi", "none", "learned"), _measured("two-state", tie), "memory",
             ["wider_kinds", "more_cells", "more_rows", "runner_up"]),
@@ -305,8 +305,8 @@ def test_every_remedy_under_a_measured_choice_passes_the_settings_checks(
                 assert not any(o.startswith(("gp=", "gp.max_age")) for o in remedy.overrides)
     printed = {o for key in seen for o in key[1:]}
     assert {"gp.choice.max_ages=[1,2,5,10]", "gp.choice.kinds=[two-state,clock,classes,phases]",
-            "++model.classes=auto", "gp.choice.n_cells=4000", "gp=phases",
-            "gp=classes"} <= printed  # fmt: skip
+            "++model.classes=auto", "collect.keep_switches=true", "gp.choice.n_cells=4000",
+            "gp=phases", "gp=classes"} <= printed  # fmt: skip
     # the remedies the named chain prints instead are not the choice's: gp.max_age alone,
     # accepted by the checks under gp=auto, would set every clock candidate's cap alike
     assert check_advice(measured, ["gp.class_moves=relaxation"]) is not None
@@ -369,6 +369,7 @@ def test_the_report_reads_the_measured_choice_that_made_its_chain(tmp_path) -> N
         ("two-state", "clock"), (1.0,), 20, 1.0)  # fmt: skip
     assert choice.classes is True  # E. coli declares classes (phi x CCW motors)
     assert choice.duration_tolerance == 0.03  # the screen the caveat "none held" reads
+    assert choice.thinned  # one window in several, switches not kept: the classes' remedy reads it
     v = verdict_of(diagnostic={"phi0": UNBIASED, "phi1": UNBIASED}, lump_names=("off", "on"),
                    failures={"g": ["off"]}, outside={"g": {"share_outside": 0.0, "inputs": {}}},
                    outside_warning=0.01, tolerance=0.03, kind=settled.kind, network=False,
