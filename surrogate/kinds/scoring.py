@@ -558,6 +558,34 @@ def holds_durations(score: KindScore, tolerance: float) -> bool:
     )
 
 
+def screen_se(scores: Sequence[KindScore]) -> float:
+    """The standard error the duration screen reads its candidates' means with: per
+    candidate the largest over its lumps (finite ones), the median over the candidates (one
+    odd candidate, a two-state chain far off, does not set it); NaN where none has one."""
+    per_kind = [max(ses) for s in scores
+                if (ses := [d.mean_rel_se for d in (s.durations or {}).values()
+                            if math.isfinite(d.mean_rel_se)])]  # fmt: skip
+    return float(np.median(per_kind)) if per_kind else math.nan
+
+
+def grown_cells(n_cells: int, se: float, tolerance: float, max_cells: int) -> int:
+    """The held-out cells that bring the screen's standard error ``se`` (at ``n_cells``) to
+    half the ``tolerance``, where it is over (the SE falls as one over the root of the
+    cells), at most ``max_cells``; ``n_cells`` where it is not over, or is not finite. At
+    half the tolerance 2 SE is the tolerance: the screen (:func:`means_within`) reads it.
+
+    Example:
+        >>> grown_cells(1000, 0.025, 0.03, 4000)
+        2778
+        >>> grown_cells(1000, 0.012, 0.03, 4000)
+        1000
+    """
+    target = tolerance / 2.0
+    if not (math.isfinite(se) and se > target):
+        return n_cells
+    return min(max_cells, math.ceil(n_cells * (se / target) ** 2))
+
+
 def means_within(duration: DurationScore, tolerance: float) -> bool:
     """The means' rule: a relative difference within ``tolerance`` or :data:`MEANS_SE`
     standard errors (NaN compares false; an SE that is NaN leaves the tolerance alone)."""

@@ -44,8 +44,10 @@ from surrogate.kinds.scoring import (
     Choice,
     KindScore,
     choose,
+    grown_cells,
     memory_horizon,
     score_kind,
+    screen_se,
 )
 from surrogate.processes import spawned_pool
 from surrogate.simulate.decision import FullDecision
@@ -128,6 +130,7 @@ def _make_choice(
     if not made.fits:
         raise NumericalError(f"gp=auto: every candidate's fit failed: {failed}")
     made.extend()
+    heldout, heldout_seconds = made.grow(pool, heldout, heldout_seconds)
     choice = choose(
         made.scores,
         plan.settings.tie_se,
@@ -163,18 +166,19 @@ def _make_choice(
     return out
 
 
-def _heldout_run(plan: PendingChoice) -> tuple[HeldOut, float]:
-    """The full model's held-out run the candidates are scored on (``gp.choice.n_cells`` x
-    ``gp.choice.t_end``, every window recorded, another seed than the collection's) and the
-    seconds it took."""
+def _heldout_run(plan: PendingChoice, n_cells: int | None = None) -> tuple[HeldOut, float]:
+    """The full model's held-out run the candidates are scored on (``n_cells``, default
+    ``gp.choice.n_cells``, x ``gp.choice.t_end``, every window recorded, another seed than the
+    collection's) and the seconds it took."""
     first = next(iter(plan.candidates.values()))
     setup, settings = first.setup, plan.settings
+    n_cells = settings.n_cells if n_cells is None else n_cells
     start = time.perf_counter()
     seed_everything(first.seed + HELDOUT_SEED_OFFSET)
     # the training field, or gp.choice.fields: the cells split evenly, the first takes the rest
     fields = heldout_fields(setup, settings.fields)
-    cells = [settings.n_cells // len(fields)] * len(fields)
-    cells[0] += settings.n_cells - sum(cells)
+    cells = [n_cells // len(fields)] * len(fields)
+    cells[0] += n_cells - sum(cells)
     parts = []
     for field, n in zip(fields, cells, strict=True):
         simulator = Simulator(setup.model, FullDecision(setup.model.internal), field, setup.dt,
@@ -225,6 +229,33 @@ class _Fitted:
         self.trains[name], self.groups[name], self.fits[name], score = made
         self.finals[name] = final
         self.scores.append(score)
+
+    def grow(
+        self, pool: ProcessPoolExecutor | None, heldout: HeldOut, seconds: float
+    ) -> tuple[HeldOut, float]:
+        """Where the screen's standard error (:func:`~surrogate.kinds.scoring.screen_se`) is
+        over half the duration tolerance, a held-out run of the cells that bring it there (at
+        most ``gp.choice.max_cells``, :func:`~surrogate.kinds.scoring.grown_cells`) and every
+        candidate scored on it again, its fit reused; the held-out run and its seconds (with
+        the first run's)."""
+        settings = self.plan.settings
+        se = screen_se(self.scores)
+        n_cells = grown_cells(int(heldout.inputs.shape[0]), se, settings.duration_tolerance,
+                              settings.max_cells)  # fmt: skip
+        if n_cells <= heldout.inputs.shape[0]:
+            return heldout, seconds
+        log.info("choice: the held-out means' SE, %.1f %%, is over half the duration tolerance "
+                 "(%g %%), where the screen would read 2 SE: the held-out run grown to %d cells "
+                 "(gp.choice.max_cells=%d) and every candidate scored again on it", 100 * se,
+                 100 * settings.duration_tolerance, n_cells, settings.max_cells)  # fmt: skip
+        grown, more = _heldout_run(self.plan, n_cells)
+        _, failed, scored = fit_candidates(self.trains, self.fitter, heldout=grown, pool=pool)
+        for name, why in failed.items():  # a fit reused scores as before; a new failure drops
+            self.failed[name] = why
+            for table in (self.trains, self.groups, self.finals, self.fits):
+                table.pop(name, None)
+        self.heldout, self.scores = grown, list(scored.values())
+        return grown, seconds + more
 
     def retry(self, name: str) -> None:
         """Fit failed candidate ``name`` with its recipe's optimiser and score it: kept where

@@ -65,8 +65,8 @@ def pilot_config(
 
     ``gp=auto`` (the user's group where it is auto, else the shipped one) measuring, with
     ``gp.choice``'s caps plus ``cap`` (the hazard's, where measured), ``n_cells`` held-out
-    cells for ``t_end`` s, fitted by the choice's own ``gp.choice.optimizer``, nothing trained
-    ahead, no K lumps whose bins relax (their stationary sample is a full-model run the pilot
+    cells for ``t_end`` s (never grown), fitted by the choice's own ``gp.choice.optimizer``,
+    nothing trained ahead, no K lumps whose bins relax (their stationary sample is a full-model run the pilot
     does not price); ``collect.n_per_state=n_per_state``."""
     cfg = copy.deepcopy(to_dict(config))
     cfg.pop("inspect", None)
@@ -79,8 +79,9 @@ def pilot_config(
     # nothing trained ahead: the pilot trains no chain after its choice; no K lumps whose bins
     # relax: their stationary sample would cost the pilot a full-model run it does not price
     kinds = [k for k in ChoiceSettings.from_config(gp.get("choice")).kinds if k != RELAXING_FAMILY]
+    # nor a held-out run grown: the pilot is priced at its cells, and recommends a kind
     gp["choice"] = {**(gp.get("choice") or {}), "by": "measure", "n_cells": int(n_cells),
-                    "t_end": float(t_end), "max_ages": ages,
+                    "t_end": float(t_end), "max_ages": ages, "max_cells": int(n_cells),
                     "ahead": False, "kinds": kinds or [RELAXING_FAMILY]}  # fmt: skip
     cfg["gp"] = gp
     # no top-up: the pilot is priced as one collection, and its lag is what it reports (the

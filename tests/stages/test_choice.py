@@ -27,7 +27,7 @@ from tests.reliability.conftest import compose_in
 
 MEASURE = ["gp.choice.by=measure", "gp.choice.kinds=[two-state,clock]", "gp.choice.max_ages=[1]",
            "gp.choice.n_cells=20", "gp.choice.t_end=5", "gp.choice.equilibration_time=1",
-           "gp.choice.workers=1"]  # fmt: skip
+           "gp.choice.workers=1", "gp.choice.max_cells=20"]  # fmt: skip
 
 
 class Plain:
@@ -68,6 +68,9 @@ class Plain:
         ({"likelihood_from": "first"}, "gp.choice.likelihood_from"),
         ({"draws": 0}, "gp.choice.draws"),
         ({"draws": 2.5}, "gp.choice.draws"),
+        ({"max_cells": 999}, "gp.choice.max_cells"),
+        ({"max_cells": "many"}, "gp.choice.max_cells"),
+        ({"max_cells": True}, "gp.choice.max_cells"),
     ],
 )
 def test_bad_choice_settings_are_refused_by_key(options: dict, key: str) -> None:
@@ -223,6 +226,7 @@ def test_held_out_cells_split_among_the_fields_named(tmp_path: Path) -> None:
     fields = [
         "gp.choice.fields=[zero,gaussian]",
         "gp.choice.n_cells=9",
+        "gp.choice.max_cells=9",
         "gp.choice.closed_loop=true",
     ]
     cfg = compose_in(tmp_path, "train", [*MEASURE, *fields])
@@ -670,7 +674,7 @@ def test_k_lumps_whose_bins_relax_are_fitted_and_scored_in_the_choice(
                  classes={"species": "G1", "edges": [1, 2, 3]})  # fmt: skip
     cfg = compose_in(tmp_path / "data", "train", [
         "model=sbml", f"model.spec={tmp_path / 'model.yaml'}", *MEASURE,
-        "gp.choice.kinds=[classes,relaxation]", "gp.choice.n_cells=40",
+        "gp.choice.kinds=[classes,relaxation]", "gp.choice.n_cells=40", "gp.choice.max_cells=40",
         "+gp.relaxation.n_cells=40", "+gp.relaxation.lags=[2.0,4.0]"])  # fmt: skip
     with collecting_pending() as plans:
         train_stage.validate(cfg)
@@ -740,3 +744,42 @@ def test_a_score_row_carries_its_fits_largest_miss_of_its_own_rows() -> None:
     row = KindScore("clock max_age=1", 1, -0.1, (-0.1,), {}, own_rows=big).row()
     assert row["own_rows_ratio"] == pytest.approx(1.5) and row["own_rows_off"] is True
     assert largest_miss(own_rows_of({"psi_0": {}, "psi_1": {}})) is None
+
+
+def test_a_held_out_run_too_small_for_the_tolerance_grows_and_scores_again(tmp_path: Path) -> None:
+    """gp.choice.max_cells: where the screen's SE (20 held-out cells x 5 s: far over half the
+    3 % tolerance) would make it read 2 SE, the held-out run grows to the cells that bring it
+    to half the tolerance, at most max_cells (auto: four times n_cells), and every candidate is
+    scored on it (its fit reused); max_cells=n_cells never grows it. The pure rule: the SE
+    falls as one over the root of the cells."""
+    import pandas as pd
+
+    from surrogate.kinds.scoring import grown_cells
+
+    assert ChoiceSettings.from_config({}).max_cells == 4000  # auto: 4 x the 1,000 cells
+    assert ChoiceSettings.from_config({"n_cells": 50}).max_cells == 200
+    assert grown_cells(1000, 0.025, 0.03, 4000) == 2778  # (2.5 / 1.5)^2 x 1,000
+    assert grown_cells(1000, 0.06, 0.03, 4000) == 4000  # capped
+    assert grown_cells(1000, 0.015, 0.03, 4000) == 1000  # at half the tolerance already
+    assert grown_cells(1000, float("nan"), 0.03, 4000) == 1000
+    cfg = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.max_cells=auto"])
+    with collecting_pending() as plans:
+        train_stage.validate(cfg)
+    plan = plans[0]
+    assert plan.settings.max_cells == 80
+    train_stage.run(cfg)
+    record = json.loads((plan.directory / "choice.json").read_text())
+    assert record["heldout"]["cells"] == 80
+    scores = pd.read_csv(plan.directory / "scores.csv")
+    fixed = compose_in(tmp_path, "train", MEASURE)  # max_cells=20: the run as asked
+    with collecting_pending() as plans:
+        train_stage.validate(fixed)
+    train_stage.run(fixed)
+    small = json.loads((plans[0].directory / "choice.json").read_text())
+    assert small["heldout"]["cells"] == 20
+    # the same fits, scored on four times the cells: more segments observed
+    grown_rows = {r["kind"]: r for r in record["scores"]}
+    for row in small["scores"]:
+        key = next(k for k in row if k.endswith("_n_observed"))
+        assert grown_rows[row["kind"]][key] > 2 * row[key]
+    assert set(scores["kind"]) == {r["kind"] for r in small["scores"]}

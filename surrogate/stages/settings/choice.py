@@ -89,6 +89,7 @@ DEFAULTS: dict[str, Any] = {
     "likelihood_from": FROM_START,
     "draws": 4,
     "closed_loop": False,
+    "max_cells": "auto",
 }
 
 
@@ -159,6 +160,13 @@ class ChoiceSettings:
     #: points from draw to draw on CERENA's network, and told none of its kinds apart
     #: (docs/choice.md, session 38)
     closed_loop: bool = False
+    #: the most held-out cells the run grows to where its means' standard error is over half
+    #: the duration tolerance (:func:`~surrogate.kinds.scoring.grown_cells`; "auto" in the
+    #: config: four times ``n_cells``, the SE halved; ``n_cells``: it never grows): above that
+    #: the screen reads 2 SE, not the tolerance. The immigration-death network's segments,
+    #: few and long, gave 2.5 % at 1,000 cells; its K lumps read -4.9 and -6.3 % there and
+    #: -0.3 and -0.1 % at 4,000 (docs/choice.md)
+    max_cells: int = 4000
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any] | None) -> ChoiceSettings:
@@ -210,7 +218,7 @@ class ChoiceSettings:
                    None if options["spread_tolerance"] is None
                    else _number(options, "spread_tolerance"),
                    str(options["likelihood_from"]), _number(options, "draws", integer=True),
-                   _flag(options, "closed_loop"))  # fmt: skip
+                   _flag(options, "closed_loop"), _max_cells(options["max_cells"], n_cells))  # fmt: skip
 
     def check_windows(self, dt: float) -> None:
         """Refuse a held-out run or a clock cap shorter than one window of ``dt`` s: both are
@@ -264,9 +272,27 @@ class ChoiceSettings:
                 # are made again
                 "draws": self.draws, "seeds": "by_name",
                 "closed_loop": self.closed_loop,
-                # the means held within the tolerance or 2 SE open loop too (session 39):
-                # choices made before are made again
-                "means": "tolerance_or_2se"}  # fmt: skip
+                # the means held within the tolerance or 2 SE open loop too, the held-out
+                # run grown where that SE is over half the tolerance (session 39): choices
+                # made before are made again
+                "means": "tolerance_or_2se", "max_cells": self.max_cells}  # fmt: skip
+
+
+#: ``gp.choice.max_cells: auto``: this many times ``gp.choice.n_cells`` (the SE halved)
+AUTO_GROWTH = 4
+
+
+def _max_cells(value: Any, n_cells: int) -> int:
+    """``gp.choice.max_cells``: ``auto`` (:data:`AUTO_GROWTH` x ``gp.choice.n_cells``) or an
+    integer at least ``gp.choice.n_cells`` (equal: the held-out run never grows)."""
+    if value == "auto":
+        return AUTO_GROWTH * n_cells
+    if isinstance(value, bool) or not isinstance(value, int) or value < n_cells:
+        raise ConfigError(f"gp.choice.max_cells must be auto or an integer >= gp.choice.n_cells "
+                          f"({n_cells}): the most held-out cells the run grows to where its "
+                          f"means' SE is over half the tolerance (gp.choice.max_cells="
+                          f"{n_cells} never grows it), got {value!r}")  # fmt: skip
+    return value
 
 
 def _fields(value: Any, n_cells: int) -> tuple[str, ...] | None:
