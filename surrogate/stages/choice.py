@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import logging
 import math
 import time
@@ -74,6 +75,8 @@ log = logging.getLogger(__name__)
 CANDIDATE_SEEDS = 100_003
 #: the held-out run's seed is the job's plus this (its cells are not the collection's)
 HELDOUT_SEED_OFFSET = 7_919
+#: the cells a grown held-out run adds are drawn on the first run's seed plus this
+GROWN_SEED_OFFSET = 104_729
 #: fits a candidate's train settings (loads its transitions, fits or reuses), returns its fit
 #: directory: the train stage's, passed in (this module sits below it)
 Fitter = Callable[[TrainSettings], Path]
@@ -166,40 +169,54 @@ def _make_choice(
     return out
 
 
-def _heldout_run(plan: PendingChoice, n_cells: int | None = None) -> tuple[HeldOut, float]:
-    """The full model's held-out run the candidates are scored on (``n_cells``, default
-    ``gp.choice.n_cells``, x ``gp.choice.t_end``, every window recorded, another seed than the
-    collection's) and the seconds it took."""
+def _heldout_run(
+    plan: PendingChoice, base: HeldOut | None = None, n_cells: int | None = None
+) -> tuple[HeldOut, float]:
+    """The full model's held-out run the candidates are scored on (``gp.choice.n_cells`` x
+    ``gp.choice.t_end``, every window recorded, another seed than the collection's) and the
+    seconds it took; with ``base``, that run grown to ``n_cells``: its cells kept and the rest
+    drawn on a seed of their own, each field's after its own (a grown run is the first one and
+    more, so what it read is not drawn again)."""
     first = next(iter(plan.candidates.values()))
     setup, settings = first.setup, plan.settings
     n_cells = settings.n_cells if n_cells is None else n_cells
     start = time.perf_counter()
-    seed_everything(first.seed + HELDOUT_SEED_OFFSET)
+    seed_everything(first.seed + HELDOUT_SEED_OFFSET + (0 if base is None else GROWN_SEED_OFFSET))
     # the training field, or gp.choice.fields: the cells split evenly, the first takes the rest
     fields = heldout_fields(setup, settings.fields)
     cells = [n_cells // len(fields)] * len(fields)
     cells[0] += n_cells - sum(cells)
-    parts = []
-    for field, n in zip(fields, cells, strict=True):
+    had = [0] * len(fields) if base is None else list(base.groups or (base.inputs.shape[0],))
+    cells = [max(n, old) for n, old in zip(cells, had, strict=True)]
+    inputs, phi = [], []
+    offsets = [0, *itertools.accumulate(had)]
+    for j, (field, n, old) in enumerate(zip(fields, cells, had, strict=True)):
+        if base is not None:  # each field's first cells, then its added ones
+            inputs.append(base.inputs[offsets[j] : offsets[j + 1]])
+            phi.append(base.phi[offsets[j] : offsets[j + 1]])
+        if n <= old:
+            continue
         simulator = Simulator(setup.model, FullDecision(setup.model.internal), field, setup.dt,
                               first.job.device, backend="auto")  # fmt: skip
-        run = record_occupancy(simulator, n, settings.t_end,
+        run = record_occupancy(simulator, n - old, settings.t_end,
                                torch.tensor(first.diagnostic["start"]), record_every=1,
                                equilibration_time=settings.equilibration_time)  # fmt: skip
-        parts.append(phi_sequences(run, setup.model.internal.input_names))
-    inputs = torch.cat([p[0] for p in parts])
-    phi = torch.cat([p[1] for p in parts])
-    inputs = inputs.to(torch.float32)  # the layers read float32 inputs, as simulate gives them
+        part = phi_sequences(run, setup.model.internal.input_names)
+        inputs.append(part[0].to(torch.float32))  # the layers read float32, as simulate gives
+        phi.append(part[1])
     seconds = time.perf_counter() - start
-    log.info("choice: held-out full-model run, %d cells x %d windows%s, in %.1f s",
-             inputs.shape[0], inputs.shape[1],
+    held = HeldOut(torch.cat(inputs), torch.cat(phi), first.seed,
+                   () if settings.fields is None else tuple(cells), settings.likelihood_from,
+                   settings.draws,
+                   ClosedLoop(tuple(cells), settings.fields, settings.t_end,
+                              settings.equilibration_time, settings.draws)
+                   if settings.closed_loop else None)  # fmt: skip
+    log.info("choice: held-out full-model run, %d cells x %d windows%s%s, in %.1f s",
+             held.inputs.shape[0], held.inputs.shape[1],
              "" if settings.fields is None else f" in fields {list(settings.fields)}",
+             "" if base is None else f" ({base.inputs.shape[0]} of them the first run's)",
              seconds)  # fmt: skip
-    closed = (ClosedLoop(tuple(cells), settings.fields, settings.t_end,
-                         settings.equilibration_time, settings.draws)
-              if settings.closed_loop else None)  # fmt: skip
-    return HeldOut(inputs, phi, first.seed, () if settings.fields is None else tuple(cells),
-                   settings.likelihood_from, settings.draws, closed), seconds  # fmt: skip
+    return held, seconds
 
 
 class _Fitted:
@@ -248,7 +265,7 @@ class _Fitted:
                  "(%g %%), where the screen would read 2 SE: the held-out run grown to %d cells "
                  "(gp.choice.max_cells=%d) and every candidate scored again on it", 100 * se,
                  100 * settings.duration_tolerance, n_cells, settings.max_cells)  # fmt: skip
-        grown, more = _heldout_run(self.plan, n_cells)
+        grown, more = _heldout_run(self.plan, heldout, n_cells)
         _, failed, scored = fit_candidates(self.trains, self.fitter, heldout=grown, pool=pool)
         for name, why in failed.items():  # a fit reused scores as before; a new failure drops
             self.failed[name] = why

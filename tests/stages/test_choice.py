@@ -753,6 +753,7 @@ def test_a_held_out_run_too_small_for_the_tolerance_grows_and_scores_again(tmp_p
     scored on it (its fit reused); max_cells=n_cells never grows it. The pure rule: the SE
     falls as one over the root of the cells."""
     import pandas as pd
+    import torch
 
     from surrogate.kinds.scoring import grown_cells
 
@@ -783,3 +784,18 @@ def test_a_held_out_run_too_small_for_the_tolerance_grows_and_scores_again(tmp_p
         key = next(k for k in row if k.endswith("_n_observed"))
         assert grown_rows[row["kind"]][key] > 2 * row[key]
     assert set(scores["kind"]) == {r["kind"] for r in small["scores"]}
+    # grown, the run keeps its first cells (each field's first, then its added ones)
+    from surrogate.stages.choice import _heldout_run
+
+    fields = compose_in(tmp_path, "train", [*MEASURE, "gp.choice.fields=[zero,gaussian]",
+                                            "gp.choice.n_cells=9", "gp.choice.max_cells=9"])  # fmt: skip
+    with collecting_pending() as plans:
+        train_stage.validate(fields)
+    first, _ = _heldout_run(plans[0])
+    grown, _ = _heldout_run(plans[0], first, 20)
+    assert grown.groups == (10, 10) and first.groups == (5, 4)
+    assert torch.equal(grown.phi[:5], first.phi[:5]) and torch.equal(
+        grown.phi[10:14], first.phi[5:]
+    )
+    assert torch.equal(grown.inputs[10:14], first.inputs[5:])
+    assert not torch.equal(grown.phi[5:10], grown.phi[:5])  # the added cells are new draws

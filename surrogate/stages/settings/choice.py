@@ -275,7 +275,8 @@ class ChoiceSettings:
                 # the means held within the tolerance or 2 SE open loop too, the held-out
                 # run grown where that SE is over half the tolerance (session 39): choices
                 # made before are made again
-                "means": "tolerance_or_2se", "max_cells": self.max_cells}  # fmt: skip
+                "means": "tolerance_or_2se", "max_cells": self.max_cells,
+                "grows": "adding_cells"}  # fmt: skip
 
 
 #: ``gp.choice.max_cells: auto``: this many times ``gp.choice.n_cells`` (the SE halved)
