@@ -422,6 +422,7 @@ def choice_remedies(choice: MeasuredChoice, n_per_state: int | None, network: bo
         overrides.append("++model.classes=auto")
         # a thinned table holds one in record_every of the chain's moves within a lump: the
         # immigration-death's fitted sojourns 4.6-5.5 % off the exact ones, 1.5-2.0 % kept
+        # (its check 17 -> 22 of 24; CERENA's, where K lumps trail, 20 -> 17: docs/choice.md)
         kept = choice.thinned
         if kept:
             overrides.append("collect.keep_switches=true")
