@@ -211,9 +211,7 @@ def occupancy_spread(observed: np.ndarray, simulated: np.ndarray, dt: float) -> 
         return ((shares - shares.mean()) ** 2).sum(1)  # each cell's squared deviations
 
     simulated = np.asarray(simulated)
-    if simulated.shape[0] % n or simulated.shape[1:] != (windows,):
-        raise ValueError(f"simulated phi must be draws of the {n} observed cells, "
-                         f"(r * {n}) x {windows}, got {simulated.shape}")  # fmt: skip
+    check_draws(simulated, (n, windows), "simulated phi", f"{n} observed cells")
     obs = per_cell(observed)
     sim = np.stack([per_cell(d) for d in np.split(simulated, simulated.shape[0] // n)]).mean(0)
     total_obs, total_sim = float(obs.sum()), float(sim.sum())
@@ -382,10 +380,7 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
     closed_durations, closed_spread = None, None
     if closed is not None:
         own = closed.cpu().numpy()
-        if own.ndim != 2 or own.shape[1] != observed.shape[1] or own.shape[0] % observed.shape[0]:
-            raise ValueError(f"the closed-loop phi must be draws of the held-out cells, "
-                             f"(r * {observed.shape[0]}) x {observed.shape[1]}, got "
-                             f"{own.shape}")  # fmt: skip
+        check_draws(own, observed.shape, "the closed-loop phi", "held-out cells")
         closed_durations = grouped_durations(observed, own, dt, lump_names, groups)
         closed_spread = occupancy_spread(observed, own, dt)
     return KindScore(name, kind.complexity, float(per_cell.mean()),
@@ -395,6 +390,15 @@ def score_kind(  # noqa: PLR0913  # the scoring's entry: seed and groups keyword
                      windows_per_cell=round(windows),
                      known_age_log_likelihood=float(known.mean()),
                      marginal_log_likelihood=float(marginal.mean()))  # fmt: skip
+
+
+def check_draws(simulated: np.ndarray, observed: tuple[int, ...], what: str, cells: str) -> None:
+    """Refuse ``simulated`` phi that are not ``r >= 1`` draws of the ``observed`` (``n x
+    (T + 1)``) cells, ``(r n) x (T + 1)``, naming it ``what`` and the cells ``cells``."""
+    n, windows = observed
+    if simulated.ndim != 2 or simulated.shape[1] != windows or simulated.shape[0] % n:
+        raise ValueError(f"{what} must be draws of the {cells}, (r * {n}) x {windows}, got "
+                         f"{simulated.shape}")  # fmt: skip
 
 
 def grouped_durations(

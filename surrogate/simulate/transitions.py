@@ -238,11 +238,11 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
         # except those still inside the blackout after a jump
         settled = (since < 0) | (since >= blackout)
         changed = phi_after != phi_before
-        class_before = class_after = None
+        class_before = class_after = after = None
         if classes is not None:
             assert before is not None  # kept on every step where a row may be recorded
-            class_before = classes.classify(before)
-            class_after = classes.classify(simulator.decision.fused_state())
+            after = simulator.decision.fused_state()
+            class_before, class_after = classes.classify(before), classes.classify(after)
             if keep_switches:  # a class move kept as a switch is (the module docstring)
                 changed = changed | (class_after != class_before)
         rows = (settled if recorded else settled & changed).nonzero().squeeze(1)
@@ -274,8 +274,8 @@ def _rows(  # noqa: C901  # one step's rows: each optional column is a branch
             p_next = expected_phi(before, x, dt)[rows]
             chunk[EXPECTED] = p_next.float().cpu().numpy()
         if classes is not None:
-            assert before is not None and class_before is not None and class_after is not None
-            after = simulator.decision.fused_state()
+            assert before is not None and after is not None
+            assert class_before is not None and class_after is not None
             chunk[CLASS] = class_before[rows].to(torch.int16).cpu().numpy()
             chunk[CLASS_NEXT] = class_after[rows].to(torch.int16).cpu().numpy()
             chunk.update(_count_columns(internal, count, before, after, x, rows, expected, dt))

@@ -651,8 +651,8 @@ def wider_choice(
     ``++model.classes=auto`` for a network that declares no classes, the memory families
     ``gp.choice.kinds`` left out; then four times the held-out cells where the choice was a
     tie) that this stage's own settings accept on ``config``; None where every check passed,
-    no chain was measured, or none applies. Wilkinson's immigration-death network: 17 of 24 on
-    clocks chosen without K lumps, 22 of 24 with ``++model.classes=auto
+    no chain was measured, or none applies. Wilkinson's immigration-death network: 17 of 24
+    without K lumps, 22 of 24 with ``++model.classes=auto
     collect.keep_switches=true`` (its collection thinned; docs/sbml.md)."""
     from surrogate.diagnosis.remedies import choice_remedies
     from surrogate.models.network import NetworkInternalModel

@@ -66,8 +66,8 @@ def pilot_config(
     ``gp=auto`` (the user's group where it is auto, else the shipped one) measuring, with
     ``gp.choice``'s caps plus ``cap`` (the hazard's, where measured), ``n_cells`` held-out
     cells for ``t_end`` s (never grown), fitted by the choice's own ``gp.choice.optimizer``,
-    nothing trained ahead, no K lumps whose bins relax (their stationary sample is a full-model run the pilot
-    does not price); ``collect.n_per_state=n_per_state``."""
+    nothing trained ahead, no K lumps whose bins relax (their stationary sample is a
+    full-model run the pilot does not price); ``collect.n_per_state=n_per_state``."""
     cfg = copy.deepcopy(to_dict(config))
     cfg.pop("inspect", None)
     raw = cfg.get("gp") or {}

@@ -527,8 +527,7 @@ def measured_choice(tr: TrainSettings) -> MeasuredChoice | None:
         classes=lump_classes_of(tr.setup.model.internal) is not None,
         duration_tolerance=(None if options.get("duration_tolerance") is None
                             else float(options["duration_tolerance"])),
-        thinned=(isinstance(tr.source, CollectSettings) and not tr.source.keep_switches
-                 and int(tr.source.options["record_every"]) > 1),
+        thinned=isinstance(tr.source, CollectSettings) and tr.source.thinned,
     )  # fmt: skip
 
 

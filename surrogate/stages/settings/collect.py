@@ -210,6 +210,12 @@ class CollectSettings:
                 and expected_phi_next_of(self.setup.model.internal) is not None)  # fmt: skip
 
     @property
+    def thinned(self) -> bool:
+        """Whether the table records one window in several (``record_every`` > 1) without
+        keeping every switch and class move besides (:attr:`keep_switches`)."""
+        return int(self.options["record_every"]) > 1 and not self.keep_switches
+
+    @property
     def keep_switches(self) -> bool:
         """Whether every window where phi changes is recorded besides the thinned ones
         (``collect.keep_switches``; its rows then carry the windows each stands for,
