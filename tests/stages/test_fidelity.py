@@ -83,6 +83,25 @@ def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
     assert labels[0] == "noise floor" and "full_repeat" not in labels
 
 
+def test_a_mean_just_past_the_tolerance_is_not_printed_as_the_tolerance() -> None:
+    """A -3.04 % miss of a 3 % check printed "-3.0 % ✗"; one decimal more where one decimal
+    would print the tolerance, one decimal elsewhere."""
+    assert fidelity._percent(-0.0304, 0.03) == "-3.04"
+    assert fidelity._percent(0.0296, 0.03) == "+2.96"
+    assert fidelity._percent(-0.0314, 0.03) == "-3.1"
+    assert fidelity._percent(0.5, 0.03) == "+50.0"
+
+
+def test_the_report_says_a_mean_is_held_to_the_tolerance_whatever_its_floor(checked) -> None:
+    """The mean check does not widen with its floor (the KS checks do): the report says so."""
+    settings, _, table = checked
+    summary = fidelity.summarise(table, settings)
+    text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
+    tol = 100 * float(settings.options["duration_tolerance"])
+    assert f"a mean is held to {tol:g} % whatever its floor" in text
+    assert set(table.loc[table["quantity"].str.startswith("mean_"), "threshold"]) == {tol / 100}
+
+
 def test_a_clocked_recipe_is_checked_beside_the_exact_clock_which_is_a_reference(
     compose_cfg,
 ) -> None:
