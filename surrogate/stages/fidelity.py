@@ -52,6 +52,7 @@ from surrogate.io import (
     MANIFEST,
     artefact_dir,
     make_once,
+    read_manifest,
     save_figure,
     write_csv,
     write_json,
@@ -80,6 +81,9 @@ from surrogate.simulate.population import steps_between
 from surrogate.simulate.precompile import kernel_wanted, precompile_in_background
 from surrogate.simulate.support import describe_sparse_where, sparse_share, warn_outside
 from surrogate.stages import reference
+from surrogate.stages.artefacts import SUMMARY
+from surrogate.stages.check_history import PREVIOUS, compare_with_previous, warn_followed_for_worse
+from surrogate.stages.check_history import describe as describe_previous
 from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
 from surrogate.stages.reference import (
@@ -110,7 +114,6 @@ from surrogate.stages.train import (
 log = logging.getLogger(__name__)
 
 TABLE = "fidelity"
-SUMMARY = "summary.json"
 FIGURE = "ks_over_time.png"
 #: the drift itself: each run's mean observable over time on the full model's noise band
 DRIFT_FIGURE = "drift.png"
@@ -439,10 +442,19 @@ def validate(cfg: Mapping[str, Any]) -> FidelitySettings:
 def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Train, simulate and check (reusing what exists); return the artefact directory."""
     settings = settle(validate, cfg, fit_candidate)
-    out = settings.directory
-    return make_once(out, settings.identity(), settings.command(),
-                     lambda _: _fidelity(settings, out, to_dict(cfg)), what="fidelity check",
-                     force=force)  # fmt: skip
+    out, config = settings.directory, to_dict(cfg)
+    made = (out / MANIFEST).exists() and not force
+    make_once(
+        out,
+        settings.identity(),
+        settings.command(),
+        lambda _: _fidelity(settings, out, config),
+        what="fidelity check",
+        force=force,
+    )
+    if made:  # reused: say where its advice was followed and the check passed fewer
+        warn_followed_for_worse(out, config, int(read_manifest(out).get("passed", 0)))
+    return out
 
 
 def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) -> None:  # noqa: C901  # the stage's steps in order
@@ -553,6 +565,7 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
     summary["settled_kept"] = settled_kept(settings) if summary["settled_collection"] else None
     summary["draw_again"] = draw_again(settings, summary, config)
     summary["wider_choice"] = wider_choice(settings, summary, config)
+    summary[PREVIOUS] = compare_with_previous(out, config, summary["passed"], summary["checks"])
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
     save_figure(out / DRIFT_FIGURE, plot_drift(summary["mean_observable"], settings))
@@ -933,6 +946,8 @@ def report_sections(
                    f"candidates, or more held-out cells where it was a tie), which measures "
                    f"them against the rest again (docs/choice.md, \"The verdict's remedies "
                    f"under a measured choice\").")  # fmt: skip
+    if summary.get(PREVIOUS):
+        target += "\n\n" + describe_previous(summary[PREVIOUS], summary["checks"])
     again = summary.get("draw_again")
     if again:
         target += (f"\n\nTo tell a miss the draw decides from one the abstraction decides: the "

@@ -81,6 +81,12 @@ def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
     fig = fidelity.plot_ks(table, settings)
     labels = fig.axes[0].get_legend_handles_labels()[1]
     assert labels[0] == "noise floor" and "full_repeat" not in labels
+    # the previous check of the model (surrogate/stages/check_history.py), where one exists
+    assert "The previous check" not in text
+    summary[fidelity.PREVIOUS] = {"directory": "model=m-a", "passed": 1, "checks": 4,
+                                  "followed": ["gp.x=1"], "now": 0, "fewer": True}  # fmt: skip
+    text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
+    assert "The previous check of this model at this size (`model=m-a`) passed 1 of 4" in text
 
 
 def test_a_mean_just_past_the_tolerance_is_not_printed_as_the_tolerance() -> None:

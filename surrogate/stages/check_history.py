@@ -1,0 +1,148 @@
+"""A fidelity check against the previous check of the same model at the same size: whether
+this one followed the advice the previous report printed, and what that did to the count of
+passing checks, so a remedy that made the check worse is said to be so and not followed again.
+
+The reproduce stage keeps the same record for its verdict (:mod:`surrogate.stages.advice`);
+here the record is each check's own ``summary.json`` (its printed remedies, and ``previous``:
+what this module found) beside its ``manifest.json`` (its config and count). CERENA's
+gene-expression network: 20 of 24 with no gp setting, whose report printed
+``++model.classes=auto collect.keep_switches=true``; followed, 17 of 24 (docs/choice.md).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from surrogate.io import MANIFEST
+from surrogate.stages.advice import applied
+from surrogate.stages.artefacts import SUMMARY
+
+log = logging.getLogger(__name__)
+
+#: the summary keys whose overrides a report prints as remedies (a new collection or a wider
+#: choice; ``draw_again``, which draws the same check again, is a diagnosis, not a remedy)
+REMEDY_KEYS = ("wider_choice", "settled_collection", "wider_collection")
+#: the ``fidelity`` options two checks share to be compared (the directory's name already
+#: holds the model, the cells, the duration and the training seeds)
+SAME_CHECK = ("fields", "duration_tolerance", "ks_max", "ks_factor", "alpha", "start",
+              "equilibration_time", "train_seeds")  # fmt: skip
+#: the summary's key of the comparison
+PREVIOUS = "previous"
+
+
+def _read(path: Path) -> dict[str, Any] | None:
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def _same_check(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    fa, fb = a.get("fidelity") or {}, b.get("fidelity") or {}
+    return all(json.dumps(fa.get(k), sort_keys=True) == json.dumps(fb.get(k), sort_keys=True)
+               for k in SAME_CHECK)  # fmt: skip
+
+
+def other_checks(directory: Path, config: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The complete checks beside ``directory`` of the same model, size and thresholds
+    (``config``'s): each its ``directory`` (a Path), ``manifest`` and ``summary``, oldest
+    first (by when its manifest was written)."""
+    stem = directory.name.rsplit("-", 1)[0]
+    found = []
+    for other in directory.parent.glob(f"{stem}-*"):
+        if other.resolve() == directory.resolve() or other.name.rsplit("-", 1)[0] != stem:
+            continue
+        manifest, summary = _read(other / MANIFEST), _read(other / SUMMARY)
+        if manifest is None or summary is None or "passed" not in manifest:
+            continue
+        if not _same_check(manifest.get("config") or {}, config):
+            continue
+        found.append({"directory": other, "manifest": manifest, "summary": summary,
+                      "written": (other / MANIFEST).stat().st_mtime_ns})  # fmt: skip
+    return sorted(found, key=lambda c: c["written"])
+
+
+def printed_remedies(summary: Mapping[str, Any]) -> list[list[str]]:
+    """The remedies a check's report printed (its summary's :data:`REMEDY_KEYS`)."""
+    return [list(summary[k]) for k in REMEDY_KEYS if summary.get(k)]
+
+
+def compare_with_previous(
+    directory: Path, config: Mapping[str, Any], passed: int, checks: int
+) -> dict[str, Any] | None:
+    """This check (``config``, ``passed`` of ``checks``, to be written in ``directory``)
+    against the newest other check of the same model, size and thresholds: its directory's
+    name, its count, the remedies it printed that this config ``followed``
+    (:func:`~surrogate.stages.advice.applied`) and whether this check then passes ``fewer``;
+    None where there is none."""
+    others = other_checks(directory, config)
+    if not others:
+        return None
+    last = others[-1]
+    before = last["manifest"]
+    followed = [" ".join(r) for r in printed_remedies(last["summary"])
+                if applied(before.get("config") or {}, config, r)]  # fmt: skip
+    return {"directory": last["directory"].name, "passed": int(before["passed"]),
+            "checks": int(before["checks"]), "followed": followed, "now": passed,
+            "fewer": bool(followed) and passed < int(before["passed"])}  # fmt: skip
+
+
+def describe(previous: Mapping[str, Any] | None, checks: int) -> str:
+    """The report's paragraph on :func:`compare_with_previous`'s record (empty for None).
+
+    Example:
+        >>> describe({"directory": "model=m-1", "passed": 20, "checks": 24, "now": 17,
+        ...           "followed": ["++model.classes=auto"], "fewer": True}, 24)[:70]
+        'The previous check of this model at this size (`model=m-1`) passed 20 '
+    """
+    if not previous:
+        return ""
+    text = (f"The previous check of this model at this size (`{previous['directory']}`) passed "
+            f"{previous['passed']} of {previous['checks']}")  # fmt: skip
+    followed = previous.get("followed") or []
+    if not followed:
+        return text + "; this one followed none of the advice it printed."
+    advice = " and ".join(f"`{f}`" for f in followed)
+    text += (
+        f" and printed {advice}, which this check followed: it passes {previous['now']} of {checks}"
+    )
+    if previous.get("fewer"):
+        return (
+            text + ", fewer. Keep the previous command's settings: this advice is not "
+            "followed again for this model (that command, run again, reuses its check and "
+            "says so)."
+        )
+    return text + "."
+
+
+def followed_for_worse(directory: Path, config: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The later checks of the same model, size and thresholds that followed advice the check
+    in ``directory`` printed and passed fewer: each its directory's name, count and advice
+    (what a reused check's log says, so that its report's advice is not followed again)."""
+    out = []
+    for other in other_checks(directory, config):
+        previous = other["summary"].get(PREVIOUS) or {}
+        if previous.get("directory") == directory.name and previous.get("fewer"):
+            out.append({"directory": other["directory"].name,
+                        "passed": int(other["manifest"]["passed"]),
+                        "checks": int(other["manifest"]["checks"]),
+                        "followed": list(previous.get("followed") or [])})  # fmt: skip
+    return out
+
+
+def warn_followed_for_worse(directory: Path, config: Mapping[str, Any], passed: int) -> None:
+    """Log, for a reused check, each later check that followed its advice and passed fewer."""
+    for later in followed_for_worse(directory, config):
+        log.warning("fidelity: this check's advice %s was followed in %s, which passed %d of %d "
+                    "against this check's %d: keep this command's settings, not that advice",
+                    " and ".join(f"`{f}`" for f in later["followed"]), later["directory"],
+                    later["passed"], later["checks"], passed)  # fmt: skip
+
+
+__all__ = ["PREVIOUS", "REMEDY_KEYS", "SAME_CHECK", "compare_with_previous", "describe",
+           "followed_for_worse", "other_checks", "printed_remedies", "warn_followed_for_worse"]  # fmt: skip
