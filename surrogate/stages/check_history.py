@@ -11,6 +11,7 @@ gene-expression network: 20 of 24 with no gp setting, whose report printed
 
 from __future__ import annotations
 
+import glob
 import json
 import logging
 from collections.abc import Mapping
@@ -51,11 +52,15 @@ def _same_check(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
 def other_checks(directory: Path, config: Mapping[str, Any]) -> list[dict[str, Any]]:
     """The complete checks beside ``directory`` of the same model, size and thresholds
     (``config``'s): each its ``directory`` (a Path), ``manifest`` and ``summary``, oldest
-    first (by when its manifest was written)."""
+    first (by when its manifest was written, then by name)."""
     stem = directory.name.rsplit("-", 1)[0]
     found = []
-    for other in directory.parent.glob(f"{stem}-*"):
+    for other in directory.parent.glob(f"{glob.escape(stem)}-*"):
         if other.resolve() == directory.resolve() or other.name.rsplit("-", 1)[0] != stem:
+            continue
+        try:  # a check another job is remaking may lose its manifest meanwhile: skipped
+            written = (other / MANIFEST).stat().st_mtime_ns
+        except OSError:
             continue
         manifest, summary = _read(other / MANIFEST), _read(other / SUMMARY)
         if manifest is None or summary is None or "passed" not in manifest:
@@ -63,8 +68,8 @@ def other_checks(directory: Path, config: Mapping[str, Any]) -> list[dict[str, A
         if not _same_check(manifest.get("config") or {}, config):
             continue
         found.append({"directory": other, "manifest": manifest, "summary": summary,
-                      "written": (other / MANIFEST).stat().st_mtime_ns})  # fmt: skip
-    return sorted(found, key=lambda c: c["written"])
+                      "written": written})  # fmt: skip
+    return sorted(found, key=lambda c: (c["written"], c["directory"].name))
 
 
 def printed_remedies(summary: Mapping[str, Any]) -> list[list[str]]:
@@ -72,24 +77,59 @@ def printed_remedies(summary: Mapping[str, Any]) -> list[list[str]]:
     return [list(summary[k]) for k in REMEDY_KEYS if summary.get(k)]
 
 
+def _share(passed: Any, checks: Any) -> float:
+    return int(passed) / max(int(checks), 1)
+
+
 def compare_with_previous(
     directory: Path, config: Mapping[str, Any], passed: int, checks: int
 ) -> dict[str, Any] | None:
     """This check (``config``, ``passed`` of ``checks``, to be written in ``directory``)
-    against the newest other check of the same model, size and thresholds: its directory's
-    name, its count, the remedies it printed that this config ``followed``
-    (:func:`~surrogate.stages.advice.applied`) and whether this check then passes ``fewer``;
-    None where there is none."""
-    others = other_checks(directory, config)
+    against the previous check of the same model, size and thresholds: the newest whose
+    printed advice this config followed (:func:`~surrogate.stages.advice.applied`), else the
+    newest (a check that itself followed this directory's advice is later, not previous):
+    its directory's name, its count, whether it ``printed`` advice, the overrides of each
+    remedy this check ``followed``, and whether this check then passes a smaller share
+    (``fewer``); None where there is none."""
+    others = [c for c in other_checks(directory, config)
+              if (c["summary"].get(PREVIOUS) or {}).get("directory") != directory.name]  # fmt: skip
     if not others:
         return None
-    last = others[-1]
+
+    def followed(check: Mapping[str, Any]) -> list[list[str]]:
+        before = check["manifest"].get("config") or {}
+        return [r for r in printed_remedies(check["summary"]) if applied(before, config, r)]
+
+    last, advice = next(((c, f) for c in reversed(others) if (f := followed(c))),
+                        (others[-1], []))  # fmt: skip
     before = last["manifest"]
-    followed = [" ".join(r) for r in printed_remedies(last["summary"])
-                if applied(before.get("config") or {}, config, r)]  # fmt: skip
     return {"directory": last["directory"].name, "passed": int(before["passed"]),
-            "checks": int(before["checks"]), "followed": followed, "now": passed,
-            "fewer": bool(followed) and passed < int(before["passed"])}  # fmt: skip
+            "checks": int(before["checks"]), "printed": bool(printed_remedies(last["summary"])),
+            "followed": advice, "now": passed,
+            "fewer": bool(advice) and _share(passed, checks) < _share(before["passed"],
+                                                                      before["checks"])}  # fmt: skip
+
+
+def tried_in_vain(directory: Path, config: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """The remedies not to print again for a check of ``config``: each remedy (its overrides
+    joined by spaces) a check of the same model, size and thresholds followed from settings
+    that ``config`` would reach it from too (:func:`~surrogate.stages.advice.applied` from
+    ``config`` to that check's config) and then passed a smaller share than the check whose
+    advice it was, with that check's directory name and the two counts."""
+    out: dict[str, dict[str, Any]] = {}
+    for later in other_checks(directory, config):
+        previous = later["summary"].get(PREVIOUS) or {}
+        if not previous.get("fewer"):
+            continue
+        for remedy in previous.get("followed") or []:
+            if applied(config, later["manifest"].get("config") or {}, remedy):
+                out[" ".join(remedy)] = {
+                    "directory": later["directory"].name,
+                    "passed": int(later["manifest"]["passed"]),
+                    "checks": int(later["manifest"]["checks"]),
+                    "before": f"{previous['passed']} of {previous['checks']}",
+                }
+    return out
 
 
 def describe(previous: Mapping[str, Any] | None, checks: int) -> str:
@@ -97,7 +137,8 @@ def describe(previous: Mapping[str, Any] | None, checks: int) -> str:
 
     Example:
         >>> describe({"directory": "model=m-1", "passed": 20, "checks": 24, "now": 17,
-        ...           "followed": ["++model.classes=auto"], "fewer": True}, 24)[:70]
+        ...           "printed": True, "followed": [["++model.classes=auto"]],
+        ...           "fewer": True}, 24)[:70]
         'The previous check of this model at this size (`model=m-1`) passed 20 '
     """
     if not previous:
@@ -106,18 +147,25 @@ def describe(previous: Mapping[str, Any] | None, checks: int) -> str:
             f"{previous['passed']} of {previous['checks']}")  # fmt: skip
     followed = previous.get("followed") or []
     if not followed:
-        return text + "; this one followed none of the advice it printed."
-    advice = " and ".join(f"`{f}`" for f in followed)
-    text += (
-        f" and printed {advice}, which this check followed: it passes {previous['now']} of {checks}"
-    )
+        return text + ("; this one followed none of the advice it printed."
+                       if previous.get("printed", True) else ".")  # fmt: skip
+    advice = " and ".join(f"`{' '.join(f)}`" for f in followed)
+    text += (f" and printed {advice}, which this check followed: it passes {previous['now']} "
+             f"of {checks}")  # fmt: skip
     if previous.get("fewer"):
-        return (
-            text + ", fewer. Keep the previous command's settings: this advice is not "
-            "followed again for this model (that command, run again, reuses its check and "
-            "says so)."
-        )
+        return (text + ", fewer. Keep the previous command's settings: this advice is not "
+                "printed again for this model (the previous command, run again, reuses its "
+                "check and says so in its log).")  # fmt: skip
     return text + "."
+
+
+def describe_not_advised(tried: Mapping[str, Mapping[str, Any]]) -> str:
+    """The report's line on the remedies :func:`tried_in_vain` kept from being printed (empty
+    where none)."""
+    return " ".join(
+        f"Not advised again: `{remedy}`, which {t['directory']} followed from settings like "
+        f"these and then passed {t['passed']} of {t['checks']} (the check before it "
+        f"{t['before']})." for remedy, t in tried.items())  # fmt: skip
 
 
 def followed_for_worse(directory: Path, config: Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -131,7 +179,7 @@ def followed_for_worse(directory: Path, config: Mapping[str, Any]) -> list[dict[
             out.append({"directory": other["directory"].name,
                         "passed": int(other["manifest"]["passed"]),
                         "checks": int(other["manifest"]["checks"]),
-                        "followed": list(previous.get("followed") or [])})  # fmt: skip
+                        "followed": [list(f) for f in previous.get("followed") or []]})  # fmt: skip
     return out
 
 
@@ -140,9 +188,10 @@ def warn_followed_for_worse(directory: Path, config: Mapping[str, Any], passed: 
     for later in followed_for_worse(directory, config):
         log.warning("fidelity: this check's advice %s was followed in %s, which passed %d of %d "
                     "against this check's %d: keep this command's settings, not that advice",
-                    " and ".join(f"`{f}`" for f in later["followed"]), later["directory"],
+                    " and ".join(f"`{' '.join(f)}`" for f in later["followed"]), later["directory"],
                     later["passed"], later["checks"], passed)  # fmt: skip
 
 
 __all__ = ["PREVIOUS", "REMEDY_KEYS", "SAME_CHECK", "compare_with_previous", "describe",
-           "followed_for_worse", "other_checks", "printed_remedies", "warn_followed_for_worse"]  # fmt: skip
+           "describe_not_advised", "followed_for_worse", "other_checks", "printed_remedies",
+           "tried_in_vain", "warn_followed_for_worse"]  # fmt: skip

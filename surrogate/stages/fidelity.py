@@ -27,7 +27,7 @@ import contextlib
 import functools
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,7 +82,14 @@ from surrogate.simulate.precompile import kernel_wanted, precompile_in_backgroun
 from surrogate.simulate.support import describe_sparse_where, sparse_share, warn_outside
 from surrogate.stages import reference
 from surrogate.stages.artefacts import SUMMARY
-from surrogate.stages.check_history import PREVIOUS, compare_with_previous, warn_followed_for_worse
+from surrogate.stages.check_history import (
+    PREVIOUS,
+    REMEDY_KEYS,
+    compare_with_previous,
+    describe_not_advised,
+    tried_in_vain,
+    warn_followed_for_worse,
+)
 from surrogate.stages.check_history import describe as describe_previous
 from surrogate.stages.choice import settle
 from surrogate.stages.collect import collect
@@ -443,7 +450,6 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
     """Train, simulate and check (reusing what exists); return the artefact directory."""
     settings = settle(validate, cfg, fit_candidate)
     out, config = settings.directory, to_dict(cfg)
-    made = (out / MANIFEST).exists() and not force
     make_once(
         out,
         settings.identity(),
@@ -452,8 +458,9 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         what="fidelity check",
         force=force,
     )
-    if made:  # reused: say where its advice was followed and the check passed fewer
-        warn_followed_for_worse(out, config, int(read_manifest(out).get("passed", 0)))
+    # reused (a fresh check has no later one naming it): where its advice was followed and
+    # the check passed fewer
+    warn_followed_for_worse(out, config, int(read_manifest(out).get("passed", 0)))
     return out
 
 
@@ -560,11 +567,22 @@ def _fidelity(settings: FidelitySettings, out: Path, config: Mapping[str, Any]) 
         label: class_diagnostic_by_lump(m["class_diagnostic"], settings.setup.model.internal)
         for label, m in metrics.items() if m.get("class_diagnostic")}  # fmt: skip
     summary["outside_training"] = outside
+    # advice a check of the model followed from settings like these for fewer passes is not
+    # printed again (surrogate/stages/check_history.py)
+    tried = tried_in_vain(out, config)
     summary["wider_collection"] = wider_collection(settings, outside, config)
     summary["settled_collection"] = settled_collection(settings, summary, config)
+    summary["wider_choice"] = wider_choice(settings, summary, config)
+    not_advised = [" ".join(summary[k]) for k in REMEDY_KEYS
+                   if summary[k] and " ".join(summary[k]) in tried]  # fmt: skip
+    for key in ("wider_collection", "settled_collection"):
+        if summary[key] and " ".join(summary[key]) in tried:
+            summary[key] = None
+    if summary["wider_choice"] and " ".join(summary["wider_choice"]) in tried:
+        summary["wider_choice"] = wider_choice(settings, summary, config, tried)
+    summary["not_advised"] = {r: tried[r] for r in not_advised}
     summary["settled_kept"] = settled_kept(settings) if summary["settled_collection"] else None
     summary["draw_again"] = draw_again(settings, summary, config)
-    summary["wider_choice"] = wider_choice(settings, summary, config)
     summary[PREVIOUS] = compare_with_previous(out, config, summary["passed"], summary["checks"])
     write_json(out / SUMMARY, summary)
     save_figure(out / FIGURE, plot_ks(table, settings))
@@ -656,14 +674,19 @@ CHOICE_REMEDIES = ("wider_kinds", "more_cells")
 
 
 def wider_choice(
-    settings: FidelitySettings, summary: Mapping[str, Any], config: Mapping[str, Any]
+    settings: FidelitySettings,
+    summary: Mapping[str, Any],
+    config: Mapping[str, Any],
+    tried: Collection[str] = (),
 ) -> list[str] | None:
     """Where a check failed and a candidate's chain was chosen by measurement (``gp=auto``):
     the first of its choice's own remedies that widen or sharpen it
     (:func:`~surrogate.diagnosis.remedies.choice_remedies`: K lumps over
     ``++model.classes=auto`` for a network that declares no classes, the memory families
     ``gp.choice.kinds`` left out; then four times the held-out cells where the choice was a
-    tie) that this stage's own settings accept on ``config``; None where every check passed,
+    tie) that this stage's own settings accept on ``config`` and that is not among ``tried``
+    (overrides joined by spaces: followed before for fewer passes,
+    :func:`~surrogate.stages.check_history.tried_in_vain`); None where every check passed,
     no chain was measured, or none applies. Wilkinson's immigration-death network: 17 of 24
     without K lumps, 22 of 24 with ``++model.classes=auto
     collect.keep_switches=true`` (its collection thinned; docs/sbml.md)."""
@@ -682,6 +705,10 @@ def wider_choice(
         for kind in CHOICE_REMEDIES:
             if kind in remedies:
                 advice = list(remedies[kind].overrides)
+                if " ".join(advice) in tried:
+                    log.info("fidelity: %s would widen the choice, but was followed before "
+                             "for fewer passes", " ".join(advice))  # fmt: skip
+                    continue
                 refused = _refusal(config, advice)
                 if refused is None:
                     log.warning("fidelity: checks failed; the same command with `%s` widens "
@@ -948,6 +975,8 @@ def report_sections(
                    f"under a measured choice\").")  # fmt: skip
     if summary.get(PREVIOUS):
         target += "\n\n" + describe_previous(summary[PREVIOUS], summary["checks"])
+    if summary.get("not_advised"):
+        target += "\n\n" + describe_not_advised(summary["not_advised"])
     again = summary.get("draw_again")
     if again:
         target += (f"\n\nTo tell a miss the draw decides from one the abstraction decides: the "

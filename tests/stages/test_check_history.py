@@ -15,7 +15,9 @@ from surrogate.stages.check_history import (
     PREVIOUS,
     compare_with_previous,
     describe,
+    describe_not_advised,
     followed_for_worse,
+    tried_in_vain,
     warn_followed_for_worse,
 )
 
@@ -33,7 +35,7 @@ def _config(**changes: Any) -> dict[str, Any]:
     }  # fmt: skip
     for key, value in changes.items():
         group, name = key.split("__")
-        config[group] = {**config[group], name: value}
+        config[group] = {**config.get(group, {}), name: value}
     return config
 
 
@@ -54,16 +56,25 @@ def test_a_followed_remedy_that_passed_fewer_is_said_to_and_found_from_the_first
     first = _check(tmp_path, "a", _config(), 20, {"wider_choice": REMEDY}, 1_000)
     now = _config(model__classes="auto", collect__keep_switches=True)
     record = compare_with_previous(tmp_path / f"{STEM}-b", now, 17, 24)
-    assert record == {"directory": first.name, "passed": 20, "checks": 24,
-                      "followed": [" ".join(REMEDY)], "now": 17, "fewer": True}  # fmt: skip
+    assert record == {"directory": first.name, "passed": 20, "checks": 24, "printed": True,
+                      "followed": [REMEDY], "now": 17, "fewer": True}  # fmt: skip
     text = describe(record, 24)
     assert "passed 20 of 24" in text and "it passes 17 of 24, fewer" in text
     assert "Keep the previous command's settings" in text
     second = _check(tmp_path, "b", now, 17, {PREVIOUS: record}, 2_000)
     later = followed_for_worse(first, _config())
     assert later == [{"directory": second.name, "passed": 17, "checks": 24,
-                      "followed": [" ".join(REMEDY)]}]  # fmt: skip
+                      "followed": [REMEDY]}]  # fmt: skip
     assert followed_for_worse(second, now) == []  # nothing followed the second's advice
+    # the first made again (force): compared with neither the second, which followed it
+    assert compare_with_previous(first, _config(), 20, 24) is None
+    # the advice is not printed again for settings like the first's (drawn again, say)
+    drawn = _config(fidelity__sim_seed=15000)
+    tried = tried_in_vain(tmp_path / f"{STEM}-c", drawn)
+    assert tried == {" ".join(REMEDY): {"directory": second.name, "passed": 17, "checks": 24,
+                                         "before": "20 of 24"}}  # fmt: skip
+    assert describe_not_advised(tried).startswith(f"Not advised again: `{' '.join(REMEDY)}`")
+    assert tried_in_vain(tmp_path / f"{STEM}-c", now) == {}  # already followed: nothing to keep
 
 
 def test_a_reused_check_logs_the_later_check_that_followed_its_advice_for_fewer(
@@ -90,6 +101,33 @@ def test_a_followed_remedy_that_gained_and_a_check_that_followed_none(tmp_path) 
                                   15, 24)  # fmt: skip
     assert drawn is not None and drawn["followed"] == [] and not drawn["fewer"]
     assert "followed none of the advice" in describe(drawn, 24)
+
+
+def test_the_previous_check_is_the_one_whose_advice_was_followed(tmp_path) -> None:
+    """A followed B: an unrelated check made between them is not taken for B's previous; the
+    counts compare as shares (another set of check times changes the total); a previous
+    check that printed no advice is not said to have printed some."""
+    first = _check(tmp_path, "a", _config(), 20, {"wider_choice": REMEDY}, 1)
+    _check(tmp_path, "m", _config(gp__n_inducing=12), 21, {}, 2)  # unrelated, newer
+    now = _config(model__classes="auto", collect__keep_switches=True)
+    record = compare_with_previous(tmp_path / f"{STEM}-b", now, 21, 30)
+    assert record is not None and record["directory"] == first.name
+    assert record["followed"] == [REMEDY] and record["fewer"]  # 21 of 30 < 20 of 24
+    assert not compare_with_previous(tmp_path / f"{STEM}-b", now, 26, 30)["fewer"]
+    plain = compare_with_previous(tmp_path / f"{STEM}-b", _config(gp__n_inducing=16), 20, 24)
+    assert plain is not None and plain["directory"] == f"{STEM}-m" and not plain["printed"]
+    assert describe(plain, 24).endswith("passed 21 of 24.")
+
+
+def test_a_model_name_with_brackets_finds_its_previous_check(tmp_path) -> None:
+    stem = "model=m[1]_n=10_T=2_seeds=0"
+    d = tmp_path / f"{stem}-a"
+    d.mkdir()
+    (d / "summary.json").write_text(json.dumps({"wider_choice": REMEDY}))
+    (d / "manifest.json").write_text(json.dumps({"stage": "fidelity", "config": _config(),
+                                                 "passed": 3, "checks": 4}))  # fmt: skip
+    record = compare_with_previous(tmp_path / f"{stem}-b", _config(), 3, 4)
+    assert record is not None and record["directory"] == d.name
 
 
 def test_only_checks_of_the_same_model_size_and_thresholds_are_compared(tmp_path) -> None:
@@ -128,7 +166,7 @@ def test_the_fidelity_stage_records_the_comparison_and_a_reused_check_warns(
     (first / "manifest.json").write_text(json.dumps({**manifest, "passed": 100}))
     second = fidelity.run(compose_cfg("fidelity", [*SMALL, "gp.n_inducing=12"]))
     record = json.loads((second / "summary.json").read_text())[PREVIOUS]
-    assert record["directory"] == first.name and record["followed"] == ["gp.n_inducing=12"]
+    assert record["directory"] == first.name and record["followed"] == [["gp.n_inducing=12"]]
     assert record["fewer"] and record["passed"] == 100
     assert "which this check followed" in (second / "fidelity.md").read_text()
     with caplog.at_level(logging.WARNING):

@@ -84,7 +84,7 @@ def test_the_report_calls_the_exact_psi_the_adapted_cells_psi(checked) -> None:
     # the previous check of the model (surrogate/stages/check_history.py), where one exists
     assert "The previous check" not in text
     summary[fidelity.PREVIOUS] = {"directory": "model=m-a", "passed": 1, "checks": 4,
-                                  "followed": ["gp.x=1"], "now": 0, "fewer": True}  # fmt: skip
+                                  "followed": [["gp.x=1"]], "now": 0, "fewer": True}  # fmt: skip
     text = "\n".join(body for _, body in fidelity.report_sections(table, summary, settings))
     assert "The previous check of this model at this size (`model=m-a`) passed 1 of 4" in text
 
@@ -349,6 +349,9 @@ def test_failed_checks_under_a_measured_choice_name_its_remedies(
     narrow = replace(screened, kinds=("two-state", "clock"))
     monkeypatch.setattr(reproduce, "measured_choice", lambda tr: narrow)
     assert fidelity.wider_choice(settings, summary, auto) == wider
+    # followed before from settings like these for fewer passes: the next remedy instead
+    tried = {" ".join(wider)}
+    assert fidelity.wider_choice(settings, summary, auto, tried) == ["gp.choice.n_cells=4000"]
     assert fidelity.wider_choice(settings, {**summary, "passed": summary["checks"]}, auto) is None
     named = to_dict(compose_cfg("fidelity", SMALL))  # gp=svgp: no gp.choice to widen
     assert fidelity.wider_choice(settings, summary, named) is None
