@@ -45,8 +45,12 @@ def _read(path: Path) -> dict[str, Any] | None:
 
 def _same_check(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
     fa, fb = a.get("fidelity") or {}, b.get("fidelity") or {}
-    return all(json.dumps(fa.get(k), sort_keys=True) == json.dumps(fb.get(k), sort_keys=True)
-               for k in SAME_CHECK)  # fmt: skip
+    return all(_canonical(fa.get(k)) == _canonical(fb.get(k)) for k in SAME_CHECK)
+
+
+def _canonical(value: Any) -> str:
+    # a tuple reads as the list its JSON copy holds; a value JSON cannot write, as its text
+    return json.dumps(value, sort_keys=True, default=str)
 
 
 def other_checks(directory: Path, config: Mapping[str, Any]) -> list[dict[str, Any]]:

@@ -458,8 +458,8 @@ def run(cfg: Mapping[str, Any], force: bool = False) -> Path:
         what="fidelity check",
         force=force,
     )
-    # reused (a fresh check has no later one naming it): where its advice was followed and
-    # the check passed fewer
+    # a check reused here may be one whose advice a later check followed for fewer passes:
+    # say so (a check just made has no later one naming it, so this logs nothing then)
     warn_followed_for_worse(out, config, int(read_manifest(out).get("passed", 0)))
     return out
 
